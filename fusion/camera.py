@@ -1,0 +1,198 @@
+"""Pinhole camera with radial-tangential (plumb-bob) distortion and its mount on the body.
+
+Read from / written to EuRoC/Kalibr-style `sensor.yaml`.  The distortion model is OpenCV's with
+k3 = 0 (Kalibr's `radial-tangential`: [k1, k2, p1, p2]):
+
+    x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
+    y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
+    u = fu x_d + cu,   v = fv y_d + cv
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fusion.errors import CameraModelError
+from fusion.fileio import dump_yaml, load_yaml
+
+MOUNTS = ("body_fixed", "gimbaled")
+
+
+@dataclass
+class CameraModel:
+    """Intrinsics, distortion and extrinsics of one camera.
+
+    `T_body_cam` is the camera's pose in the body frame (EuRoC's T_BS).  With `mount ==
+    "gimbaled"` the camera is stabilised: T_body_cam then holds for the *level* body frame
+    (body with roll and pitch removed), i.e. the camera keeps its attitude to the floor whatever
+    the airframe's tilt (the paper's assumption 3).
+    """
+    width: int
+    height: int
+    fu: float
+    fv: float
+    cu: float
+    cv: float
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(4))  # k1, k2, p1, p2
+    T_body_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    rate_hz: float = 30.0
+    mount: str = "body_fixed"
+
+    def __post_init__(self):
+        self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
+        self.T_body_cam = np.asarray(self.T_body_cam, dtype=float).reshape(4, 4)
+        if self.mount not in MOUNTS:
+            raise CameraModelError(f"unknown camera mount {self.mount!r}; expected one of {MOUNTS}")
+
+    # ------------------------------------------------------------------ matrices
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fu, 0.0, self.cu], [0.0, self.fv, self.cv], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_cv(self) -> np.ndarray:
+        """Distortion vector in OpenCV order (k1, k2, p1, p2, k3=0)."""
+        return np.r_[self.distortion, 0.0]
+
+    @property
+    def image_centre_px(self) -> np.ndarray:
+        """Geometric centre of the image (the paper's (FC_fx, FC_fy)), not the principal point."""
+        return np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
+
+    # ------------------------------------------------------------------ projection
+    def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) ideal normalised coordinates -> distorted normalised coordinates."""
+        k1, k2, p1, p2 = self.distortion
+        x, y = xy[..., 0], xy[..., 1]
+        r2 = x * x + y * y
+        radial = 1.0 + k1 * r2 + k2 * r2 * r2
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        return np.stack([xd, yd], axis=-1)
+
+    def project(self, p_cam: np.ndarray) -> np.ndarray:
+        """(N, 3) points in the camera frame -> (N, 2) distorted pixel coordinates.
+
+        Points at or behind the camera (z <= 1e-9) give NaN."""
+        p_cam = np.asarray(p_cam, dtype=float)
+        z = p_cam[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = p_cam[..., :2] / np.where(z > 1e-9, z, np.nan)[..., None]
+        xyd = self.distort_normalized(xy)
+        return np.stack([self.fu * xyd[..., 0] + self.cu, self.fv * xyd[..., 1] + self.cv], axis=-1)
+
+    def undistort_normalized(self, uv: np.ndarray, iterations: int = 30) -> np.ndarray:
+        """(N, 2) distorted pixels -> (N, 2) ideal normalised coordinates (x/z, y/z).
+
+        Inverts `distort_normalized` by Newton's method with the analytic 2x2 Jacobian; converges to
+        1e-12 for the distortion of ordinary lenses inside the image."""
+        uv = np.asarray(uv, dtype=float)
+        xd = np.stack([(uv[..., 0] - self.cu) / self.fu, (uv[..., 1] - self.cv) / self.fv], axis=-1)
+        if not np.any(self.distortion):
+            return xd
+        k1, k2, p1, p2 = self.distortion
+        xy = xd.copy()
+        for _ in range(iterations):
+            x, y = xy[..., 0], xy[..., 1]
+            r2 = x * x + y * y
+            radial = 1.0 + k1 * r2 + k2 * r2 * r2
+            dradial = 2.0 * k1 + 4.0 * k2 * r2  # d(radial)/d(r2) * 2
+            f = self.distort_normalized(xy) - xd
+            j11 = radial + x * dradial * x + 2.0 * p1 * y + 6.0 * p2 * x
+            j12 = x * dradial * y + 2.0 * p1 * x + 2.0 * p2 * y
+            j21 = y * dradial * x + 2.0 * p1 * x + 2.0 * p2 * y
+            j22 = radial + y * dradial * y + 6.0 * p1 * y + 2.0 * p2 * x
+            det = j11 * j22 - j12 * j21
+            dx = (j22 * f[..., 0] - j12 * f[..., 1]) / det
+            dy = (-j21 * f[..., 0] + j11 * f[..., 1]) / det
+            xy[..., 0] -= dx
+            xy[..., 1] -= dy
+            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < 1e-14:
+                break
+        return xy
+
+    def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) distorted pixels -> (N, 2) pixels of the ideal (distortion-free) pinhole camera."""
+        xy = self.undistort_normalized(uv)
+        return np.stack([self.fu * xy[..., 0] + self.cu, self.fv * xy[..., 1] + self.cv], axis=-1)
+
+    # ------------------------------------------------------------------ sensor.yaml
+    def to_sensor_yaml(self, comment: str = "") -> dict:
+        """EuRoC/Kalibr `sensor.yaml` content."""
+        return {
+            "sensor_type": "camera",
+            "comment": comment,
+            "T_BS": {"cols": 4, "rows": 4, "data": [float(v) for v in self.T_body_cam.reshape(-1)]},
+            "rate_hz": float(self.rate_hz),
+            "resolution": [int(self.width), int(self.height)],
+            "camera_model": "pinhole",
+            "intrinsics": [float(self.fu), float(self.fv), float(self.cu), float(self.cv)],
+            "distortion_model": "radial-tangential",
+            "distortion_coefficients": [float(v) for v in self.distortion],
+            "mount": self.mount,
+        }
+
+    @classmethod
+    def from_sensor_yaml(cls, data: dict, source: str = "sensor.yaml") -> "CameraModel":
+        """Build from parsed `sensor.yaml`; raises CameraModelError naming `source` and the key."""
+        if not isinstance(data, dict):
+            raise CameraModelError(f"{source}: expected a mapping at top level")
+
+        def need(key):
+            if key not in data:
+                raise CameraModelError(f"{source}: missing key '{key}'")
+            return data[key]
+
+        model = need("camera_model")
+        if model != "pinhole":
+            raise CameraModelError(f"{source}: camera_model {model!r} is not supported (pinhole only)")
+        dist_model = data.get("distortion_model", "radial-tangential")
+        if dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
+            raise CameraModelError(f"{source}: distortion_model {dist_model!r} is not supported")
+        T = read_T_BS(need("T_BS"), source)
+        res = _floats(need("resolution"), 2, "resolution", source)
+        intr = _floats(need("intrinsics"), 4, "intrinsics", source)
+        dist = _floats(data.get("distortion_coefficients", [0, 0, 0, 0]), 4,
+                       "distortion_coefficients", source)
+        if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
+            raise CameraModelError(f"{source}: resolution and focal lengths must be positive")
+        rate = float(data.get("rate_hz", 30.0))
+        mount = data.get("mount", "body_fixed")
+        if mount not in MOUNTS:
+            raise CameraModelError(f"{source}: mount {mount!r} is not one of {MOUNTS}")
+        return cls(int(res[0]), int(res[1]), *intr, distortion=dist, T_body_cam=T,
+                   rate_hz=rate, mount=mount)
+
+    @classmethod
+    def load(cls, path: Path) -> "CameraModel":
+        return cls.from_sensor_yaml(load_yaml(path, CameraModelError), str(path))
+
+    def save(self, path: Path, comment: str = "") -> None:
+        dump_yaml(self.to_sensor_yaml(comment), path)
+
+
+def _floats(value, n: int, key: str, source: str, error=CameraModelError) -> list[float]:
+    try:
+        out = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise error(f"{source}: '{key}' must be a list of {n} numbers") from None
+    if len(out) != n or not np.all(np.isfinite(out)):
+        raise error(f"{source}: '{key}' must be a list of {n} finite numbers")
+    return out
+
+
+def read_T_BS(value, source: str, error=CameraModelError) -> np.ndarray:
+    """Parse a Kalibr matrix block {rows: 4, cols: 4, data: [16 numbers]} into a rigid transform;
+    raises `error` naming `source` when it is malformed or not rigid."""
+    if not isinstance(value, dict) or "data" not in value:
+        raise error(f"{source}: 'T_BS' must have rows, cols and data")
+    data = _floats(value["data"], 16, "T_BS.data", source, error)
+    T = np.array(data).reshape(4, 4)
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or abs(np.linalg.det(R) - 1) > 1e-6 \
+            or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise error(f"{source}: 'T_BS' is not a rigid transform")
+    return T

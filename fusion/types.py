@@ -1,0 +1,108 @@
+"""Typed results passed between pipeline stages (DESIGN.md "Data flow").
+
+Array layouts are in the names: `timestamps_ns` (N,), `T_world_body` (N, 4, 4), `corners_px`
+(4, 2) in CORNER_NAMES order (symbol top-left, top-right, bottom-right, bottom-left), distorted
+pixel coordinates as seen in the image.  Pose covariances are 6x6 in GTSAM's Pose3 tangent order
+[rx, ry, rz, tx, ty, tz] (rad, m), expressed in the body frame (right perturbation
+T = T_hat * Exp(xi)).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.conventions import quat_wxyz_from_R, yaw_of
+
+
+@dataclass
+class QRDetection:
+    """One decoded QR code in one frame."""
+    camera: str                 # "cam0" (floor) or "cam1" (front)
+    timestamp_ns: int
+    payload: str                # raw decoded text (untrusted)
+    corners_px: np.ndarray      # (4, 2) refined corners, symbol TL, TR, BR, BL
+    corners_raw_px: np.ndarray  # (4, 2) corners as the decoder returned them
+
+    @property
+    def centre_px(self) -> np.ndarray:
+        """Intersection of the diagonals of the corner quadrilateral (the paper's Sec. 3.2.3)."""
+        return diagonal_intersection(self.corners_px)
+
+
+def diagonal_intersection(corners_px: np.ndarray) -> np.ndarray:
+    """Intersection of the diagonals TL-BR and TR-BL of a quadrilateral (4, 2) -> (2,)."""
+    p0, p1, p2, p3 = np.asarray(corners_px, dtype=float)
+    d1, d2 = p2 - p0, p3 - p1
+    A = np.column_stack([d1, -d2])
+    det = np.linalg.det(A)
+    if abs(det) < 1e-12:
+        return np.mean(corners_px, axis=0)
+    s = np.linalg.solve(A, p1 - p0)[0]
+    return p0 + s * d1
+
+
+@dataclass
+class Trajectory:
+    """A pose per timestamp, optionally with a 6x6 covariance each."""
+    name: str
+    timestamps_ns: np.ndarray                 # (N,) int64
+    T_world_body: np.ndarray                  # (N, 4, 4)
+    covariances: np.ndarray | None = None     # (N, 6, 6), [rx, ry, rz, tx, ty, tz], body frame
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+    @property
+    def positions_xyz(self) -> np.ndarray:
+        return self.T_world_body[:, :3, 3]
+
+    @property
+    def quat_wxyz(self) -> np.ndarray:
+        return quat_wxyz_from_R(self.T_world_body[:, :3, :3]) if len(self) else np.zeros((0, 4))
+
+    @property
+    def yaw_rad(self) -> np.ndarray:
+        return yaw_of(self.T_world_body[:, :3, :3])
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        return np.asarray(self.timestamps_ns, dtype=np.int64) * 1e-9
+
+    @classmethod
+    def empty(cls, name: str) -> "Trajectory":
+        return cls(name, np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
+
+
+@dataclass
+class LoadObservation:
+    """One sighting of a load code by the front camera.
+
+    `p_cam` / `cov_cam`: the code centre in the camera frame (m) and its 3x3 covariance, the
+    measurement a landmark factor uses; `p_world` / `cov_world`: the same combined with the
+    drone pose estimate at that frame (what the per-frame estimators report)."""
+    timestamp_ns: int
+    load_id: str
+    p_world: np.ndarray                       # (3,)
+    cov_world: np.ndarray | None = None       # (3, 3)
+    p_cam: np.ndarray | None = None           # (3,)
+    cov_cam: np.ndarray | None = None         # (3, 3)
+    corners_px: np.ndarray | None = None      # (4, 2)
+
+
+@dataclass
+class LoadEstimate:
+    """One mapped load code."""
+    load_id: str
+    p_world: np.ndarray                       # (3,)
+    cov_world: np.ndarray | None              # (3, 3) or None when unknown
+    n_obs: int
+
+
+@dataclass
+class LoadMap:
+    name: str
+    loads: list[LoadEstimate] = field(default_factory=list)
+
+    def by_id(self) -> dict[str, LoadEstimate]:
+        return {l.load_id: l for l in self.loads}

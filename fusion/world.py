@@ -1,0 +1,127 @@
+"""The warehouse: floor QR codes on a grid, load QR codes on vertical faces (`world.yaml`).
+
+`world.yaml` holds what an estimator may know in advance (the paper's assumptions 1, 6 and 9):
+
+    floor_qr: {side_m: 0.20, payload_unit_m: 1.0}
+    load_qr:  {side_m: 0.15}
+    bounds_m: {x: [xmin, xmax], y: [ymin, ymax]}      # optional: the size of the space
+
+Load code positions are what we map, so they are not in `world.yaml`; a simulated flight writes
+them to `loads_groundtruth.csv`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fusion.conventions import (FloorPayload, R_world_loadsymbol, make_T, symbol_corners_S,
+                                transform_points)
+from fusion.errors import WorldError
+from fusion.fileio import dump_yaml, load_yaml
+
+
+@dataclass(frozen=True)
+class LoadCode:
+    """A load QR code: id, symbol-centre position in W (m), heading of its face's outward normal (rad)."""
+    id: str
+    p_world: tuple[float, float, float]
+    normal_yaw: float
+
+    @property
+    def T_world_symbol(self) -> np.ndarray:
+        return make_T(R_world_loadsymbol(self.normal_yaw), self.p_world)
+
+
+@dataclass
+class World:
+    """What is known of the warehouse before flying."""
+    floor_side_m: float = 0.20
+    payload_unit_m: float = 1.0
+    load_side_m: float = 0.15
+    bounds_x_m: tuple[float, float] | None = None
+    bounds_y_m: tuple[float, float] | None = None
+
+    def __post_init__(self):
+        for name in ("floor_side_m", "payload_unit_m", "load_side_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise WorldError(f"world: {name} must be a positive number, got {v!r}")
+
+    # ---------------------------------------------------------------- floor codes
+    def floor_code_position(self, payload: FloorPayload) -> np.ndarray:
+        """(3,) world position of a floor code's symbol centre (z = 0)."""
+        return payload.position_m(self.payload_unit_m)
+
+    def contains(self, p_world: np.ndarray, margin_m: float = 0.0) -> bool:
+        """True if (x, y) lies inside the known bounds (always True when no bounds are set)."""
+        x, y = float(p_world[0]), float(p_world[1])
+        if self.bounds_x_m is not None and not (
+                self.bounds_x_m[0] - margin_m <= x <= self.bounds_x_m[1] + margin_m):
+            return False
+        if self.bounds_y_m is not None and not (
+                self.bounds_y_m[0] - margin_m <= y <= self.bounds_y_m[1] + margin_m):
+            return False
+        return True
+
+    def floor_corners_world(self, centre_world: np.ndarray) -> np.ndarray:
+        """(4, 3) world corners of a floor code (TL, TR, BR, BL): symbol axes = world axes."""
+        return symbol_corners_S(self.floor_side_m) + np.asarray(centre_world, dtype=float)
+
+    def load_corners_world(self, code: LoadCode) -> np.ndarray:
+        """(4, 3) world corners of a load code (TL, TR, BR, BL)."""
+        return transform_points(code.T_world_symbol, symbol_corners_S(self.load_side_m))
+
+    # ---------------------------------------------------------------- world.yaml
+    def to_yaml(self) -> dict:
+        data = {"floor_qr": {"side_m": float(self.floor_side_m),
+                             "payload_unit_m": float(self.payload_unit_m)},
+                "load_qr": {"side_m": float(self.load_side_m)}}
+        if self.bounds_x_m is not None and self.bounds_y_m is not None:
+            data["bounds_m"] = {"x": [float(v) for v in self.bounds_x_m],
+                                "y": [float(v) for v in self.bounds_y_m]}
+        return data
+
+    @classmethod
+    def from_yaml(cls, data: dict, source: str = "world.yaml") -> "World":
+        try:
+            floor = data["floor_qr"]
+            load = data.get("load_qr", {}) or {}
+            kwargs = {"floor_side_m": float(floor["side_m"]),
+                      "payload_unit_m": float(floor.get("payload_unit_m", 1.0)),
+                      "load_side_m": float(load.get("side_m", 0.15))}
+            bounds = data.get("bounds_m")
+            if bounds:
+                kwargs["bounds_x_m"] = tuple(float(v) for v in bounds["x"])
+                kwargs["bounds_y_m"] = tuple(float(v) for v in bounds["y"])
+                if len(kwargs["bounds_x_m"]) != 2 or len(kwargs["bounds_y_m"]) != 2:
+                    raise ValueError("bounds need two numbers per axis")
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise WorldError(f"{source}: malformed ({e.__class__.__name__}: {e})") from None
+        try:
+            return cls(**kwargs)
+        except WorldError as e:
+            raise WorldError(f"{source}: {e}") from None
+
+    @classmethod
+    def load(cls, path: Path) -> "World":
+        return cls.from_yaml(load_yaml(path, WorldError), str(path))
+
+    def save(self, path: Path) -> None:
+        dump_yaml(self.to_yaml(), path)
+
+
+@dataclass
+class Layout:
+    """Where every code actually is: what the simulator renders and the evaluation compares to.
+
+    `floor_codes`: (N, 2) payload coordinates (x, y) in payload units; `loads`: load codes."""
+    world: World
+    floor_codes_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    loads: list[LoadCode] = field(default_factory=list)
+
+    def floor_centres_world(self) -> np.ndarray:
+        """(N, 3) world positions of the floor codes' centres."""
+        xy = np.asarray(self.floor_codes_xy, dtype=float) * self.world.payload_unit_m
+        return np.column_stack([xy, np.zeros(len(xy))])
