@@ -7,6 +7,9 @@
     <flight>/mav0/vel0/{data.csv, sensor.yaml}                    body-frame velocity (optional)
     <flight>/mav0/state_groundtruth_estimate0/data.csv            ground truth (optional)
     <flight>/loads_groundtruth.csv                                id,x_m,y_m,z_m (optional)
+    <flight>/blackouts_groundtruth.csv                            start_ns,end_ns,kind (optional;
+                                                                  simulator: intervals with no
+                                                                  readable floor code by design)
 
 The reader is defensive: every malformed row raises LogError naming the file and line; a frame
 whose image is missing or unreadable is skipped, counted and reported (`CameraStream.skipped`).
@@ -41,6 +44,7 @@ GT_HEADER = ("#timestamp", " p_RS_R_x [m]", " p_RS_R_y [m]", " p_RS_R_z [m]", " 
              " b_w_RS_S_z [rad s^-1]", " b_a_RS_S_x [m s^-2]", " b_a_RS_S_y [m s^-2]",
              " b_a_RS_S_z [m s^-2]")
 LOADS_HEADER = ("id", "x_m", "y_m", "z_m")
+BLACKOUTS_HEADER = ("#start_ns", "end_ns", "kind")
 
 
 # ============================================================================ records
@@ -144,6 +148,7 @@ class FlightLog:
     velocity: VelocityData | None = None
     groundtruth: GroundTruth | None = None
     loads_groundtruth: dict[str, np.ndarray] | None = None
+    blackouts: list[tuple[int, int, str]] | None = None   # (start_ns, end_ns, kind)
 
     @property
     def floor(self) -> CameraStream:
@@ -301,6 +306,16 @@ def _read_loads(path: Path) -> dict[str, np.ndarray]:
     return loads
 
 
+def _read_blackouts(path: Path) -> list[tuple[int, int, str]]:
+    out = []
+    for lineno, row in _rows(path, 3):
+        t0, t1 = _timestamp(row[0], path, lineno), _timestamp(row[1], path, lineno)
+        if t1 < t0:
+            raise LogError(f"{path}:{lineno}: blackout ends before it starts")
+        out.append((t0, t1, row[2]))
+    return out
+
+
 def read_flight(root: Path) -> FlightLog:
     """Open a flight log folder.  Reads every CSV and YAML now (validating them), images lazily."""
     root = Path(root)
@@ -323,7 +338,9 @@ def read_flight(root: Path) -> FlightLog:
     gt = _read_groundtruth(gt_path) if gt_path.exists() else None
     loads_path = root / "loads_groundtruth.csv"
     loads = _read_loads(loads_path) if loads_path.exists() else None
-    return FlightLog(root, world, cameras, imu, vel, gt, loads)
+    bo_path = root / "blackouts_groundtruth.csv"
+    blackouts = _read_blackouts(bo_path) if bo_path.exists() else None
+    return FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts)
 
 
 # ============================================================================ writing
@@ -423,6 +440,10 @@ class FlightLogWriter:
     def write_loads_groundtruth(self, loads: dict[str, np.ndarray]) -> None:
         rows = ([k] + [_fmt(x) for x in p] for k, p in loads.items())
         _write_csv(self.tmp / "loads_groundtruth.csv", LOADS_HEADER, rows)
+
+    def write_blackouts(self, blackouts: list[tuple[int, int, str]]) -> None:
+        _write_csv(self.tmp / "blackouts_groundtruth.csv", BLACKOUTS_HEADER,
+                   ([str(int(a)), str(int(b)), k] for a, b, k in blackouts))
 
     def close(self) -> Path:
         for name, frames in self._frames.items():
