@@ -1,0 +1,1 @@
+"""QR front end: detection, payload classification, the paper's Algorithms 1-6, PnP."""
