@@ -39,3 +39,11 @@ class EstimationError(FusionError):
 
 class OutputError(FusionError):
     """An output folder or file that cannot be written (exists without --force, ...)."""
+
+
+class EvaluationError(FusionError):
+    """Evaluation inputs that cannot be compared (no ground truth overlap, malformed shapes)."""
+
+
+class QRSheetError(FusionError):
+    """A printable QR sheet that cannot be made (code larger than the page, unprintable id)."""
