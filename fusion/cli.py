@@ -1,0 +1,129 @@
+"""`fusion` command line: parse arguments, call the library, print.  No maths here.
+
+Known errors (fusion.errors.FusionError) become one line on stderr and exit code 1; anything else
+keeps its traceback, because it is a bug.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from fusion import __version__
+from fusion.errors import FusionError
+
+
+def _grid(text: str) -> tuple[int, int]:
+    try:
+        nx, ny = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected NXxNY like 10x6, got {text!r}") from None
+    if nx < 1 or ny < 1:
+        raise argparse.ArgumentTypeError("grid sizes must be positive")
+    return nx, ny
+
+
+def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
+    p.add_argument("log", type=Path, help="flight log folder (EuRoC layout)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--force", action="store_true", help="write into an existing output folder")
+    p.add_argument("--backend", choices=("zxing", "aruco"), default="zxing",
+                   help="QR detector (default: zxing-cpp)")
+    p.add_argument("--workers", type=int, default=None, help="processes for detection (default: all cores)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    if stages:
+        p.add_argument("--robust", choices=("none", "huber", "cauchy", "tukey"), default="huber",
+                       help="robust kernel on QR pose factors (default: huber)")
+        p.add_argument("--tight", action="store_true",
+                       help="tight coupling: floor-code corners as reprojection factors")
+        p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fusion",
+        description="Drone 3D localization and load mapping from QR codes (Kang & Jung 2024), "
+                    "fused with IMU in GTSAM.")
+    parser.add_argument("--version", action="version", version=f"fusion {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="simulate a warehouse flight log with ground truth")
+    p.add_argument("out", type=Path, help="output log folder")
+    p.add_argument("--scenario", default="default", help="default | gimbaled | paper_a5")
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="overwrite an existing folder")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--quiet", action="store_true")
+
+    p = sub.add_parser("detect", help="detect and decode QR codes; writes detections.csv")
+    _add_run_options(p, stages=False)
+    p = sub.add_parser("localize", help="per-frame estimates: paper (Alg. 1-6) and PnP")
+    _add_run_options(p, stages=False)
+    p = sub.add_parser("smooth", help="fusion only: smoother, incremental, EKF (no report)")
+    _add_run_options(p)
+    p = sub.add_parser("run", help="everything: detect, localize, fuse, evaluate, report")
+    _add_run_options(p)
+
+    p = sub.add_parser("demo", help="simulate the default flight and run the whole pipeline on it")
+    p.add_argument("--dir", type=Path, default=Path("demo-flight"),
+                   help="folder for the simulated log (DIR/log) and the results (DIR/out)")
+    p.add_argument("--duration", type=float, default=None, help="flight length in s (default 60)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+
+    p = sub.add_parser("qr-sheet", help="printable PDF of floor codes and load labels at true size")
+    p.add_argument("out", type=Path, help="output PDF")
+    p.add_argument("--grid", type=_grid, default=(10, 6), help="floor grid NXxNY (default 10x6)")
+    p.add_argument("--spacing", type=float, default=1.0, help="grid spacing in m (default 1.0)")
+    p.add_argument("--side", type=float, default=0.20, help="floor code side in m (default 0.20)")
+    p.add_argument("--unit", type=float, default=1.0, help="payload unit in m (default 1.0)")
+    p.add_argument("--loads", nargs="*", default=[], help="load ids to print as labels")
+    p.add_argument("--load-side", type=float, default=0.15, help="load code side in m")
+    p.add_argument("--page", default="A4", choices=("A4", "A3", "letter"))
+    return parser
+
+
+def _run_config(args):
+    from fusion.pipeline import RunConfig
+    return RunConfig(backend=args.backend, workers=args.workers, progress=not args.quiet,
+                     force=args.force,
+                     robust=getattr(args, "robust", "huber"), tight=getattr(args, "tight", False),
+                     incremental=not getattr(args, "no_incremental", False))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "simulate":
+            from fusion.sim import simulate
+            res = simulate(args.out, scenario=args.scenario, duration_s=args.duration,
+                           seed=args.seed, overwrite=args.force, progress=not args.quiet,
+                           workers=args.workers)
+            print(res.summary() if hasattr(res, "summary") else f"wrote {args.out}")
+        elif args.command in ("detect", "localize", "smooth", "run"):
+            from fusion import pipeline
+            result = pipeline.run(args.log, args.out, _run_config(args), until=args.command)
+            print(result.summary())
+        elif args.command == "demo":
+            from fusion import pipeline
+            result = pipeline.demo(args.dir, duration_s=args.duration, seed=args.seed,
+                                   progress=not args.quiet)
+            print(result.summary())
+        elif args.command == "qr-sheet":
+            from fusion.qrsheet import write_qr_sheet
+            pages = write_qr_sheet(args.out, grid=args.grid, spacing_m=args.spacing,
+                                   side_m=args.side, payload_unit_m=args.unit,
+                                   load_ids=args.loads, load_side_m=args.load_side, page=args.page)
+            print(f"wrote {args.out} ({pages} pages)")
+    except FusionError as e:
+        print(f"fusion: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("fusion: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
