@@ -1,0 +1,1 @@
+"""Warehouse flight simulator: trajectory, rendering, IMU synthesis, scenarios, `simulate()`."""

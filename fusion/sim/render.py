@@ -1,0 +1,407 @@
+"""Render grayscale camera images of QR codes through the full camera model.
+
+Geometry is exact: every output pixel (u, v) looks along the ray the camera model projects there
+(`CameraModel.undistort_normalized`, precomputed once per camera), and a code's texture is sampled
+where that ray meets the code's plane (one plane-to-ray homography per code, one `cv2.remap`).
+Anti-aliasing: each code's texture is taken from a mip level (2^k texels per module) chosen so that
+one texel covers about one pixel or more, then sampled bilinearly; a step between a black and a
+white texel therefore crosses mid-grey exactly at the module edge, so rendered edges are unbiased.
+
+Pixel coordinates follow OpenCV: the centre of pixel (col, row) is at (u, v) = (col, row).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.conventions import inv_T, symbol_corners_S
+from fusion.errors import SimulationError
+
+QUIET_ZONE_MODULES = 4
+BLACK_DN = 30.0          # printed black under nominal exposure
+WHITE_DN = 220.0         # printed white (paper) under nominal exposure
+BLACKOUT_KINDS = ("shadow", "glare", "torn")
+_MAX_TEXELS_PER_MODULE = 16
+
+
+# ============================================================================ codes
+
+
+def code_texture(payload: str) -> np.ndarray:
+    """(N, N) uint8 module bitmap of the QR symbol for `payload` (0 = dark, 255 = light), one pixel
+    per module, cropped to the symbol (no quiet zone).  Row 0 is the symbol's top: finders sit at
+    [0, 0] (top-left), [0, N-1] (top-right) and [N-1, 0] (bottom-left)."""
+    if not isinstance(payload, str) or not payload:
+        raise SimulationError(f"cannot encode QR payload {payload!r}")
+    return _code_texture_cached(payload).copy()
+
+
+@lru_cache(maxsize=4096)
+def _code_texture_cached(payload: str) -> np.ndarray:
+    img = cv2.QRCodeEncoder.create().encode(payload)
+    if img is None or img.size == 0:
+        raise SimulationError(f"cannot encode QR payload {payload!r}")
+    dark = np.argwhere(img < 128)
+    (r0, c0), (r1, c1) = dark.min(axis=0), dark.max(axis=0)
+    sym = np.ascontiguousarray(img[r0:r1 + 1, c0:c1 + 1])
+    if sym.shape[0] != sym.shape[1] or (sym.shape[0] - 17) % 4:
+        raise SimulationError(f"unexpected QR symbol size {sym.shape} for {payload!r}")
+    return sym
+
+
+@lru_cache(maxsize=8192)
+def _mip(payload: str, texels_per_module: int) -> np.ndarray:
+    """float32 texture with a white quiet zone, `texels_per_module` texels per module, in DN."""
+    sym = _code_texture_cached(payload)
+    q = QUIET_ZONE_MODULES
+    full = np.pad(sym, q, constant_values=255)
+    tex = np.where(full > 127, WHITE_DN, BLACK_DN).astype(np.float32)
+    return np.ascontiguousarray(np.kron(tex, np.ones((texels_per_module, texels_per_module),
+                                                     np.float32)))
+
+
+@dataclass
+class PlacedCode:
+    """A QR code in the world: payload, symbol frame S in W (conventions.py), symbol side (m)."""
+    payload: str
+    T_world_symbol: np.ndarray
+    side_m: float
+
+    @property
+    def modules(self) -> int:
+        return _code_texture_cached(self.payload).shape[0]
+
+    @property
+    def is_floor(self) -> bool:
+        """True for a code lying flat, facing up (z_S along world +z)."""
+        return float(self.T_world_symbol[2, 2]) > 0.9
+
+
+def project_code_corners(camera: CameraModel, T_world_cam: np.ndarray, code: PlacedCode) -> np.ndarray:
+    """(4, 2) distorted pixel coordinates of the symbol's outer corners TL, TR, BR, BL (no quiet
+    zone); NaN for corners behind the camera."""
+    corners_S = symbol_corners_S(code.side_m)
+    T_cam_symbol = inv_T(T_world_cam) @ code.T_world_symbol
+    p_cam = corners_S @ T_cam_symbol[:3, :3].T + T_cam_symbol[:3, 3]
+    return camera.project(p_cam)
+
+
+# ============================================================================ effects
+
+
+@dataclass
+class RenderEffects:
+    """Photometric effects applied after the geometric rendering.
+
+    noise_sigma_dn: Gaussian sensor noise (DN, 1 sigma); gain: exposure multiplier;
+    blur_px / blur_angle_rad: motion blur as a line kernel of that length (pixels moved during the
+    exposure) and image direction; blackout: None or one of BLACKOUT_KINDS, which makes every
+    floor code in view unreadable ('shadow': a deep shadow over the codes, 'glare': saturated
+    specular glare over them, 'torn': the top half of each symbol torn off)."""
+    noise_sigma_dn: float = 1.5
+    gain: float = 1.0
+    blur_px: float = 0.0
+    blur_angle_rad: float = 0.0
+    blackout: str | None = None
+
+    def __post_init__(self):
+        if self.blackout is not None and self.blackout not in BLACKOUT_KINDS:
+            raise SimulationError(f"unknown blackout kind {self.blackout!r}; "
+                                  f"expected one of {BLACKOUT_KINDS}")
+        if not (self.noise_sigma_dn >= 0 and self.gain > 0 and self.blur_px >= 0):
+            raise SimulationError("render effects: noise >= 0, gain > 0 and blur >= 0 required")
+
+
+def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray | None:
+    """Normalised line kernel of `length_px` along image direction `angle_rad` (None if < 1 px)."""
+    if length_px < 1.0:
+        return None
+    k = int(math.ceil(length_px)) | 1
+    k += 2
+    kernel = np.zeros((k, k), np.float32)
+    c = (k - 1) / 2.0
+    dx, dy = 0.5 * length_px * math.cos(angle_rad), 0.5 * length_px * math.sin(angle_rad)
+    n = max(8, int(4 * length_px))
+    for s in np.linspace(-1.0, 1.0, n):
+        x, y = c + s * dx, c + s * dy
+        x0, y0 = int(math.floor(x)), int(math.floor(y))
+        fx, fy = x - x0, y - y0
+        kernel[y0, x0] += (1 - fx) * (1 - fy)
+        kernel[y0, x0 + 1] += fx * (1 - fy)
+        kernel[y0 + 1, x0] += (1 - fx) * fy
+        kernel[y0 + 1, x0 + 1] += fx * fy
+    return kernel / kernel.sum()
+
+
+# ============================================================================ per-camera cache
+
+
+class _CameraRays:
+    """Per-camera precomputation: the undistorted normalised ray of every pixel (full resolution)
+    and of a coarse grid (for the low-frequency background)."""
+
+    COARSE = 8
+
+    def __init__(self, camera: CameraModel):
+        w, h = camera.width, camera.height
+        u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+        xy = camera.undistort_normalized(np.stack([u, v], axis=-1))
+        self.xn = np.ascontiguousarray(xy[..., 0], dtype=np.float64)
+        self.yn = np.ascontiguousarray(xy[..., 1], dtype=np.float64)
+        # largest normalised radius inside the image: projections farther out may fold back
+        self.r_max = float(np.sqrt(self.xn ** 2 + self.yn ** 2).max())
+        cw, ch = w // self.COARSE + 2, h // self.COARSE + 2
+        uc = np.linspace(0, w - 1, cw)
+        vc = np.linspace(0, h - 1, ch)
+        U, V = np.meshgrid(uc, vc)
+        self.coarse_xy = camera.undistort_normalized(np.stack([U, V], axis=-1))
+
+
+_RAYS: dict[tuple, _CameraRays] = {}
+
+
+def _camera_key(camera: CameraModel) -> tuple:
+    return (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv,
+            tuple(camera.distortion))
+
+
+def _rays(camera: CameraModel) -> _CameraRays:
+    key = _camera_key(camera)
+    r = _RAYS.get(key)
+    if r is None:
+        if len(_RAYS) > 8:
+            _RAYS.clear()
+        r = _RAYS[key] = _CameraRays(camera)
+    return r
+
+
+@lru_cache(maxsize=4)
+def _floor_texture(seed: int = 7, size: int = 512) -> np.ndarray:
+    """Periodic float32 floor texture (DN): mid grey, mild low-frequency variation, fine grain."""
+    rng = np.random.default_rng(seed)
+    low = rng.normal(0.0, 1.0, (16, 16)).astype(np.float32)
+    low = np.tile(low, (3, 3))
+    low = cv2.resize(low, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size:2 * size,
+                                                                               size:2 * size]
+    low = low / (np.abs(low).max() + 1e-9)
+    grain = cv2.GaussianBlur(rng.normal(0.0, 1.0, (size, size)).astype(np.float32), (0, 0), 1.0)
+    return np.ascontiguousarray(120.0 + 18.0 * low + 6.0 * grain / (grain.std() + 1e-9))
+
+
+FLOOR_TEXEL_M = 0.02     # floor texture resolution (m per texel), repeats every 10.24 m
+FAR_DN = 105.0           # what rays that miss the floor see (far walls / shelving, unlit)
+
+
+def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray) -> np.ndarray:
+    """float32 (H, W) background: the textured floor plane z = 0 where the ray meets it within
+    60 m, else a flat far-wall grey.  Computed on a coarse grid and interpolated (low frequency)."""
+    R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    xy = rays.coarse_xy
+    d = xy[..., 0, None] * R[:, 0] + xy[..., 1, None] * R[:, 1] + R[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -c[2] / d[..., 2]
+    hit = (d[..., 2] < -1e-6) & (t > 0) & (t < 60.0)
+    t = np.where(hit, t, 0.0)
+    px = ((c[0] + t * d[..., 0]) / FLOOR_TEXEL_M).astype(np.float32)
+    py = ((c[1] + t * d[..., 1]) / FLOOR_TEXEL_M).astype(np.float32)
+    tex = _floor_texture()
+    n = tex.shape[0]
+    half = ((camera.width + 1) // 2, (camera.height + 1) // 2)   # low frequency: half resolution
+    px = cv2.resize(np.mod(px, n), half, interpolation=cv2.INTER_LINEAR)
+    py = cv2.resize(np.mod(py, n), half, interpolation=cv2.INTER_LINEAR)
+    bg = cv2.remap(tex, px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    if not hit.all():
+        w_hit = cv2.resize(hit.astype(np.float32), half, interpolation=cv2.INTER_LINEAR)
+        bg = bg * w_hit + FAR_DN * (1.0 - w_hit)
+    return cv2.resize(bg, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
+
+
+# ============================================================================ rendering
+
+
+def camera_pose(camera: CameraModel, T_world_body: np.ndarray) -> np.ndarray:
+    """T_world_cam of `camera` on a body at T_world_body: body-fixed mounts tilt with the airframe;
+    gimbaled mounts hang from the level (yaw-only) body frame (the paper's assumption 3)."""
+    if camera.mount == "gimbaled":
+        yaw = math.atan2(T_world_body[1, 0], T_world_body[0, 0])
+        T_level = np.eye(4)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        T_level[:3, :3] = [[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]]
+        T_level[:3, 3] = T_world_body[:3, 3]
+        return T_level @ camera.T_body_cam
+    return T_world_body @ camera.T_body_cam
+
+
+def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_world: np.ndarray,
+               code: PlacedCode) -> np.ndarray | None:
+    """Composite one code (with its quiet zone) into `img` in place; returns the (4, 2) distorted
+    pixel corners of the quiet-zone outline if drawn, else None."""
+    T_cam_symbol = T_cam_world @ code.T_world_symbol
+    R, t = T_cam_symbol[:3, :3], T_cam_symbol[:3, 3]
+    # back face culling: the camera must be on the printed side (z_S) of the plane
+    if float(R[:, 2] @ (-t)) <= 1e-9:
+        return None
+    n_mod = code.modules
+    q = QUIET_ZONE_MODULES
+    m = code.side_m / n_mod                      # module size (m)
+    half_outer = 0.5 * code.side_m + q * m
+    # sample the quiet-zone outline (5 points per edge) to bound the projection
+    s = np.linspace(-half_outer, half_outer, 5)
+    ring = np.concatenate([np.column_stack([s, np.full(5, half_outer)]),
+                           np.column_stack([s, np.full(5, -half_outer)]),
+                           np.column_stack([np.full(5, half_outer), s]),
+                           np.column_stack([np.full(5, -half_outer), s])])
+    p_cam = ring @ R[:, :2].T + t
+    if np.any(p_cam[:, 2] < 0.02):
+        return None                              # (partly) behind the camera: not renderable
+    xy = p_cam[:, :2] / p_cam[:, 2:3]
+    h, w = img.shape
+    if np.max(np.hypot(xy[:, 0], xy[:, 1])) > 1.5 * rays.r_max:
+        # far outside the field of view, where the distortion polynomial may fold back
+        if np.min(np.hypot(xy[:, 0], xy[:, 1])) > 1.5 * rays.r_max:
+            return None
+        x0, y0, x1, y1 = 0, 0, w, h
+    else:
+        uv = camera.project(p_cam)
+        x0 = max(int(math.floor(uv[:, 0].min())) - 2, 0)
+        y0 = max(int(math.floor(uv[:, 1].min())) - 2, 0)
+        x1 = min(int(math.ceil(uv[:, 0].max())) + 3, w)
+        y1 = min(int(math.ceil(uv[:, 1].max())) + 3, h)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    # mip level: texels per module ~ pixels per module (power of two, magnifying)
+    corners_px = camera.project(symbol_corners_S(code.side_m) @ R.T + t)
+    edge_px = np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1))
+    px_per_module = edge_px / n_mod if np.isfinite(edge_px) else 1.0
+    tpm = 1
+    while tpm * 2 <= min(px_per_module, _MAX_TEXELS_PER_MODULE):
+        tpm *= 2
+    tex = _mip(code.payload, tpm)
+    # ray (xn, yn, 1) meets the plane at symbol coordinates H_sc @ ray, H_cs = [r1 r2 t]
+    H_cs = np.column_stack([R[:, 0], R[:, 1], t])
+    H_sc = np.linalg.inv(H_cs)
+    # symbol (x_S, y_S) -> texture (u_t, v_t); texel centres at integers, so the symbol's
+    # outer edge (q modules in) is at q * tpm - 0.5
+    A = np.array([[tpm / m, 0.0, half_outer * tpm / m - 0.5],
+                  [0.0, -tpm / m, half_outer * tpm / m - 0.5],
+                  [0.0, 0.0, 1.0]])
+    H = A @ H_sc
+    xn = rays.xn[y0:y1, x0:x1]
+    yn = rays.yn[y0:y1, x0:x1]
+    den = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
+    lam = H_sc[2, 0] * xn + H_sc[2, 1] * yn + H_sc[2, 2]   # 1/depth sign: rays hitting in front
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(lam > 0, 1.0 / den, np.nan)
+        mx = ((H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) * inv).astype(np.float32)
+        my = ((H[1, 0] * xn + H[1, 1] * yn + H[1, 2]) * inv).astype(np.float32)
+    n_tex = tex.shape[0]
+    inside = (mx >= -0.5) & (mx <= n_tex - 0.5) & (my >= -0.5) & (my <= n_tex - 0.5)
+    if not inside.any():
+        return None
+    mx = np.where(inside, mx, -10.0).astype(np.float32)
+    my = np.where(inside, my, -10.0).astype(np.float32)
+    patch = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    roi = img[y0:y1, x0:x1]
+    np.copyto(roi, patch, where=inside)
+    qz = np.array([[-half_outer, half_outer, 0.0], [half_outer, half_outer, 0.0],
+                   [half_outer, -half_outer, 0.0], [-half_outer, -half_outer, 0.0]])
+    return camera.project(qz @ R.T + t)
+
+
+def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) -> None:
+    """Make every code whose quiet-zone outline is in `quads` unreadable, in place."""
+    h, w = img.shape
+    for quad in quads:
+        if not np.all(np.isfinite(quad)):
+            continue
+        centre = quad.mean(axis=0)
+        if kind == "torn":
+            # the top half of the symbol (both top finders) is torn off, showing floor below
+            top = np.array([quad[0], quad[1], 0.5 * (quad[1] + quad[2]), 0.5 * (quad[0] + quad[3])])
+            top = centre + 1.02 * (top - centre)
+            mask = np.zeros((h, w), np.uint8)
+            cv2.fillConvexPoly(mask, np.round(top * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
+            a = mask.astype(np.float32) / 255.0
+            torn = 118.0 + 4.0 * rng.standard_normal((h, w)).astype(np.float32)
+            img *= 1.0 - a
+            img += a * torn
+            continue
+        big = centre + 1.6 * (quad - centre)     # well beyond the quiet zone
+        mask = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(mask, np.round(big * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
+        radius = max(3.0, 0.15 * float(np.linalg.norm(quad[0] - quad[2])))
+        a = cv2.GaussianBlur(mask.astype(np.float32) / 255.0, (0, 0), radius)
+        a = np.clip(1.6 * a, 0.0, 1.0)           # plateau of 1 over the code itself
+        if kind == "glare":
+            img *= 1.0 - a
+            img += a * 300.0                     # saturates after clipping
+        else:                                    # shadow: almost no light, contrast below noise
+            img *= 1.0 - a * 0.985
+            img += a * 4.0
+            img += (a * 3.0) * rng.standard_normal((h, w)).astype(np.float32)
+
+
+def _visible_far_to_near(codes: list[PlacedCode], T_cam_world: np.ndarray,
+                         rays: _CameraRays) -> np.ndarray:
+    """Indices of the codes that may appear in the image (a conservative view-cone test on the
+    bounding sphere of each code with its quiet zone), farthest first (painter's order)."""
+    if not codes:
+        return np.zeros(0, dtype=int)
+    centres = np.array([c.T_world_symbol[:3, 3] for c in codes])
+    radius = np.array([(0.5 + QUIET_ZONE_MODULES / c.modules) * c.side_m * 1.5 for c in codes])
+    p = centres @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    r = rays.r_max * 1.05
+    # inside the cone |xy| <= r z, widened by the sphere's radius
+    ok = np.hypot(p[:, 0], p[:, 1]) - r * p[:, 2] <= radius * math.sqrt(1.0 + r * r)
+    ok &= p[:, 2] > -radius
+    idx = np.flatnonzero(ok)
+    return idx[np.argsort(-p[idx, 2], kind="stable")]
+
+
+def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[PlacedCode], rng=None,
+                effects: RenderEffects | None = None) -> np.ndarray:
+    """uint8 (H, W) grayscale image seen by `camera` at pose T_world_cam (camera frame: OpenCV).
+
+    Background: the textured floor plane (z = 0), grey elsewhere; then every code in front of the
+    camera and facing it, far to near, with a white quiet zone of 4 modules; then `effects`
+    (blackout, motion blur, exposure gain, sensor noise).  `rng` (np.random.Generator) drives the
+    noise; None means no randomness (noise-free unless effects ask for noise, then seed 0)."""
+    effects = effects or RenderEffects(noise_sigma_dn=0.0)
+    if rng is None:
+        rng = np.random.default_rng(0)
+    rays = _rays(camera)
+    T_world_cam = np.asarray(T_world_cam, dtype=float)
+    T_cam_world = inv_T(T_world_cam)
+    img = _background(camera, rays, T_world_cam)
+    floor_quads = []
+    for i in _visible_far_to_near(codes, T_cam_world, rays):
+        code = codes[i]
+        quad = _draw_code(img, camera, rays, T_cam_world, code)
+        if quad is not None and code.is_floor:
+            floor_quads.append(quad)
+    if effects.blackout is not None:
+        _apply_blackout(img, effects.blackout, floor_quads, rng)
+    kernel = motion_blur_kernel(effects.blur_px, effects.blur_angle_rad)
+    if kernel is not None:
+        img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
+    if effects.gain != 1.0:
+        img *= effects.gain
+    if effects.noise_sigma_dn > 0:
+        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(effects.noise_sigma_dn)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def placed_floor_codes(xy_payload: np.ndarray, payload_unit_m: float, side_m: float) -> list[PlacedCode]:
+    """PlacedCodes for floor codes at payload coordinates (N, 2) (symbol frame = world axes)."""
+    from fusion.conventions import floor_payload
+    out = []
+    for x, y in np.asarray(xy_payload, dtype=float).reshape(-1, 2):
+        T = np.eye(4)
+        T[:2, 3] = (x * payload_unit_m, y * payload_unit_m)
+        out.append(PlacedCode(floor_payload(x, y), T, side_m))
+    return out
