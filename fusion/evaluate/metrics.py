@@ -1,0 +1,600 @@
+"""Trajectory and load-map error metrics against ground truth (pure maths, no I/O but `write_metrics`).
+
+Conventions (DESIGN.md): poses are T_world_body, both estimate and truth are in the world frame of
+the floor codes, so errors are computed without alignment unless asked (`align=True` is evo's
+`-a`: an SE(3) Umeyama fit of the positions).  Pose covariances are 6x6 in GTSAM Pose3 tangent
+order [rx, ry, rz, tx, ty, tz], body frame.  Every record's keys carry their unit
+(`ate_rmse_m`, `yaw_mae_deg`), so `metrics.json` carries its units.
+
+Estimators named in `position_yaw_only` (default: the paper's, Alg. 1-3, which gives position and
+yaw D_r-theta only) are compared on position and yaw; their roll/pitch are treated as unknown.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+from scipy.stats import chi2
+
+from fusion.conventions import wrap_angle, yaw_of
+from fusion.errors import EvaluationError
+from fusion.fileio import atomic_open
+from fusion.types import LoadMap, Trajectory
+
+SCHEMA = "fusion.metrics/1"
+
+# The paper's simulator results (Sec. 4.1: per-axis mean absolute error; Sec. 4.2: load map).
+PAPER_SIM_LOCALIZATION_MAE_CM = {"x": 0.83, "y": 0.32, "z": 2.95}
+PAPER_SIM_YAW_MAE_DEG = 1.08
+PAPER_SIM_LOADMAP_MAE_CM = {"x": 0.87, "y": 1.64, "z": 2.11}
+
+BLACKOUT_NOMINAL_DURATIONS_S = (0.5, 1.0, 2.0, 5.0)
+AXES = ("x", "y", "z")
+
+
+# ============================================================================ association
+
+
+@dataclass
+class Association:
+    """An estimate matched to ground truth interpolated at the estimate's timestamps.
+
+    Only estimate samples inside the ground-truth time span are kept (`index_est` says which)."""
+    name: str
+    timestamps_ns: np.ndarray            # (M,)
+    T_world_body_est: np.ndarray         # (M, 4, 4)
+    T_world_body_gt: np.ndarray          # (M, 4, 4)
+    covariances: np.ndarray | None       # (M, 6, 6) or None
+    index_est: np.ndarray                # (M,) indices into the estimate
+    n_outside_gt: int                    # estimate samples outside the ground-truth span
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+    @property
+    def position_errors_m(self) -> np.ndarray:
+        """(M, 3) p_est - p_gt in the world frame."""
+        return self.T_world_body_est[:, :3, 3] - self.T_world_body_gt[:, :3, 3]
+
+    @property
+    def yaw_errors_rad(self) -> np.ndarray:
+        """(M,) yaw_est - yaw_gt wrapped to (-pi, pi]."""
+        return wrap_angle(yaw_of(self.T_world_body_est[:, :3, :3])
+                          - yaw_of(self.T_world_body_gt[:, :3, :3]))
+
+
+def interpolate_poses(timestamps_ns: np.ndarray, T_world_body: np.ndarray,
+                      query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at `query_ns` (M,): linear in position, slerp in rotation.
+
+    Returns (T (K, 4, 4), mask (M,) of queries inside [t_0, t_end]); K = mask.sum()."""
+    t = np.asarray(timestamps_ns, dtype=np.int64)
+    q = np.asarray(query_ns, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros((0, 4, 4)), np.zeros(len(q), dtype=bool)
+    mask = (q >= t[0]) & (q <= t[-1])
+    qk = q[mask]
+    # Interpolate in float seconds relative to t0: exact at the samples, no int64 -> float loss.
+    ts = (t - t[0]) * 1e-9
+    qs = (qk - t[0]) * 1e-9
+    T = np.tile(np.eye(4), (len(qk), 1, 1))
+    for k in range(3):
+        T[:, k, 3] = np.interp(qs, ts, T_world_body[:, k, 3])
+    rots = Rotation.from_matrix(T_world_body[:, :3, :3])
+    if len(t) == 1:
+        T[:, :3, :3] = T_world_body[0, :3, :3]
+    else:
+        T[:, :3, :3] = Slerp(ts, rots)(qs).as_matrix()
+    return T, mask
+
+
+def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
+              traj: Trajectory) -> Association:
+    """Interpolate the ground truth (200 Hz) at the estimate's timestamps."""
+    T_gt, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, traj.timestamps_ns)
+    idx = np.flatnonzero(mask)
+    cov = None
+    if traj.covariances is not None and len(traj.covariances) == len(traj):
+        cov = np.asarray(traj.covariances)[idx]
+    return Association(traj.name, np.asarray(traj.timestamps_ns, dtype=np.int64)[idx],
+                       np.asarray(traj.T_world_body)[idx], T_gt, cov, idx,
+                       int(len(traj) - len(idx)))
+
+
+# ============================================================================ SE(3) helpers
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(N, 3) rotation vectors of (N, 3, 3) rotations."""
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """(N, 6) Log of (N, 4, 4) poses in GTSAM's Pose3 order [rx, ry, rz, tx, ty, tz]
+    (same as gtsam.Pose3.Logmap: translation part u = V(w)^-1 t, Barfoot eq. 7.86)."""
+    T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
+    w = so3_log(T[:, :3, :3])
+    t = T[:, :3, 3]
+    theta = np.linalg.norm(w, axis=1)
+    W = _skew(w)
+    W2 = W @ W
+    # V^-1 = I - W/2 + (1/theta^2) (1 - (theta sin theta) / (2 (1 - cos theta))) W^2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta ** 2
+    c = np.where(theta < 1e-4, 1.0 / 12.0 + theta ** 2 / 720.0, c)
+    Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * W2
+    u = np.einsum("nij,nj->ni", Vinv, t)
+    return np.hstack([w, u])
+
+
+def _skew(w: np.ndarray) -> np.ndarray:
+    W = np.zeros((len(w), 3, 3))
+    W[:, 0, 1], W[:, 0, 2] = -w[:, 2], w[:, 1]
+    W[:, 1, 0], W[:, 1, 2] = w[:, 2], -w[:, 0]
+    W[:, 2, 0], W[:, 2, 1] = -w[:, 1], w[:, 0]
+    return W
+
+
+def umeyama_alignment(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising sum |p_gt - (R p_est + t)|^2, no scale
+    (Umeyama 1991, eqs. 34-35 with c = 1; what evo's `-a` does).  (N, 3), (N, 3) -> (3,3), (3,)."""
+    if len(p_est) < 3:
+        raise EvaluationError(f"alignment needs at least 3 poses, got {len(p_est)}")
+    mu_e, mu_g = p_est.mean(axis=0), p_gt.mean(axis=0)
+    cov = (p_gt - mu_g).T @ (p_est - mu_e) / len(p_est)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    return R, mu_g - R @ mu_e
+
+
+def align_association(a: Association) -> tuple[Association, np.ndarray]:
+    """Apply the SE(3) Umeyama fit to the estimate; returns (aligned copy, T_gtworld_estworld)."""
+    R, t = umeyama_alignment(a.T_world_body_est[:, :3, 3], a.T_world_body_gt[:, :3, 3])
+    T_align = np.eye(4)
+    T_align[:3, :3], T_align[:3, 3] = R, t
+    aligned = Association(a.name, a.timestamps_ns, T_align @ a.T_world_body_est,
+                          a.T_world_body_gt, a.covariances, a.index_est, a.n_outside_gt)
+    return aligned, T_align
+
+
+# ============================================================================ records
+
+
+def _stats(x: np.ndarray) -> dict[str, float | None]:
+    """rmse / mean / median / std / max of non-negative errors (None when empty)."""
+    x = np.asarray(x, dtype=float)
+    if len(x) == 0:
+        return {"rmse": None, "mean": None, "median": None, "std": None, "max": None}
+    return {"rmse": float(np.sqrt(np.mean(x ** 2))), "mean": float(np.mean(x)),
+            "median": float(np.median(x)), "std": float(np.std(x)), "max": float(np.max(x))}
+
+
+@dataclass
+class AxisErrors:
+    """Per-axis error of p_est - p_gt (world frame): the paper's metric is the mean absolute error."""
+    n: int
+    mae_x_m: float | None
+    mae_y_m: float | None
+    mae_z_m: float | None
+    mae_x_cm: float | None
+    mae_y_cm: float | None
+    mae_z_cm: float | None
+    rmse_x_m: float | None
+    rmse_y_m: float | None
+    rmse_z_m: float | None
+    bias_x_m: float | None
+    bias_y_m: float | None
+    bias_z_m: float | None
+
+
+def axis_errors(err_xyz_m: np.ndarray) -> AxisErrors:
+    """Per-axis MAE (m and cm), RMSE and mean (bias) of (N, 3) errors."""
+    e = np.asarray(err_xyz_m, dtype=float).reshape(-1, 3)
+    if len(e) == 0:
+        return AxisErrors(0, *([None] * 12))
+    mae = np.mean(np.abs(e), axis=0)
+    rmse = np.sqrt(np.mean(e ** 2, axis=0))
+    bias = np.mean(e, axis=0)
+    return AxisErrors(len(e), *map(float, mae), *map(float, 100.0 * mae), *map(float, rmse),
+                      *map(float, bias))
+
+
+@dataclass
+class ATE:
+    """Absolute trajectory error: |p_est - p_gt| (evo APE, translation part)."""
+    n: int
+    alignment: str                      # "none" or "se3"
+    ate_rmse_m: float | None
+    ate_mean_m: float | None
+    ate_median_m: float | None
+    ate_std_m: float | None
+    ate_max_m: float | None
+
+
+def ate(a: Association, align: bool = False) -> ATE:
+    if align:
+        a, _ = align_association(a)
+    s = _stats(np.linalg.norm(a.position_errors_m, axis=1))
+    return ATE(len(a), "se3" if align else "none", s["rmse"], s["mean"], s["median"], s["std"],
+               s["max"])
+
+
+@dataclass
+class Yaw:
+    """Heading error yaw_est - yaw_gt, wrapped (degrees)."""
+    n: int
+    yaw_mae_deg: float | None
+    yaw_rmse_deg: float | None
+    yaw_max_deg: float | None
+    yaw_bias_deg: float | None
+
+
+def yaw_errors(a: Association) -> Yaw:
+    e = np.degrees(a.yaw_errors_rad)
+    if len(e) == 0:
+        return Yaw(0, None, None, None, None)
+    return Yaw(len(e), float(np.mean(np.abs(e))), float(np.sqrt(np.mean(e ** 2))),
+               float(np.max(np.abs(e))), float(np.mean(e)))
+
+
+def rotation_errors_deg(a: Association) -> np.ndarray:
+    """(M,) angle of R_gt^T R_est in degrees (full attitude)."""
+    R = np.swapaxes(a.T_world_body_gt[:, :3, :3], 1, 2) @ a.T_world_body_est[:, :3, :3]
+    return np.degrees(np.linalg.norm(so3_log(R), axis=1)) if len(R) else np.zeros(0)
+
+
+@dataclass
+class RPE:
+    """Relative error over a fixed travelled distance or time.
+
+    Translation: |(p_est_j - p_est_i) - (p_gt_j - p_gt_i)| in the world frame (orientation-free, so
+    the yaw-only paper estimator is comparable; equals evo's RPE translation when the rotation
+    error at i is zero).  Rotation: angle of (R_gt_i^T R_gt_j)^T (R_est_i^T R_est_j) (None for
+    yaw-only estimators); yaw: drift of the heading change.  Pairs: each i with the first j whose
+    distance (or time) from i reaches `delta`, kept if it overshoots by at most `tolerance`."""
+    delta: float
+    delta_unit: str                      # "m" (travelled, along the truth) or "s"
+    n_pairs: int
+    rpe_trans_rmse_m: float | None
+    rpe_trans_mean_m: float | None
+    rpe_trans_max_m: float | None
+    rpe_rot_rmse_deg: float | None
+    rpe_rot_max_deg: float | None
+    rpe_yaw_rmse_deg: float | None
+    rpe_yaw_max_deg: float | None
+
+
+def travelled_distance_m(gt_timestamps_ns: np.ndarray, gt_p_world: np.ndarray,
+                         query_ns: np.ndarray) -> np.ndarray:
+    """Path length of the truth from its start to each query time (m), (M,)."""
+    step = np.linalg.norm(np.diff(gt_p_world, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(step)])
+    t = np.asarray(gt_timestamps_ns, dtype=np.int64)
+    return np.interp((np.asarray(query_ns, dtype=np.int64) - t[0]) * 1e-9, (t - t[0]) * 1e-9, cum)
+
+
+def rpe(a: Association, along: np.ndarray, delta: float, unit: str, full_attitude: bool,
+        tolerance: float = 0.2) -> RPE:
+    """RPE with pairs chosen along a monotonic coordinate `along` (M,) (distance m or time s)."""
+    along = np.asarray(along, dtype=float)
+    j = np.searchsorted(along, along + delta, side="left")
+    ok = j < len(along)
+    i = np.flatnonzero(ok)
+    j = j[ok]
+    keep = (along[j] - along[i]) <= delta * (1.0 + tolerance)
+    i, j = i[keep], j[keep]
+    if len(i) == 0:
+        return RPE(delta, unit, 0, *([None] * 7))
+    p_e, p_g = a.T_world_body_est[:, :3, 3], a.T_world_body_gt[:, :3, 3]
+    d = np.linalg.norm((p_e[j] - p_e[i]) - (p_g[j] - p_g[i]), axis=1)
+    ye, yg = yaw_of(a.T_world_body_est[:, :3, :3]), yaw_of(a.T_world_body_gt[:, :3, :3])
+    dyaw = np.degrees(np.abs(wrap_angle((ye[j] - ye[i]) - (yg[j] - yg[i]))))
+    rot_rmse = rot_max = None
+    if full_attitude:
+        Re, Rg = a.T_world_body_est[:, :3, :3], a.T_world_body_gt[:, :3, :3]
+        rel_e = np.swapaxes(Re[i], 1, 2) @ Re[j]
+        rel_g = np.swapaxes(Rg[i], 1, 2) @ Rg[j]
+        ang = np.degrees(np.linalg.norm(so3_log(np.swapaxes(rel_g, 1, 2) @ rel_e), axis=1))
+        rot_rmse, rot_max = float(np.sqrt(np.mean(ang ** 2))), float(np.max(ang))
+    return RPE(delta, unit, len(i), float(np.sqrt(np.mean(d ** 2))), float(np.mean(d)),
+               float(np.max(d)), rot_rmse, rot_max, float(np.sqrt(np.mean(dyaw ** 2))),
+               float(np.max(dyaw)))
+
+
+@dataclass
+class NEES:
+    """Normalised estimation error squared e^T P^-1 e: its mean should be `dof` for a consistent
+    estimator; `fraction_inside_95` of samples should lie below the chi2(dof) 95% quantile
+    (filterpy.stats.NEES; Bar-Shalom, Li & Kirubarajan, Sec. 5.4)."""
+    dof: int
+    n: int
+    nees_mean: float | None
+    nees_median: float | None
+    chi2_95_bound: float
+    fraction_inside_95: float | None
+    # two-sided 95% interval of the mean if the samples were independent (they are not: a
+    # smoother's errors are correlated in time, so read it as a rough guide)
+    mean_interval_95_independent: tuple[float, float] | None
+
+
+def nees_from_errors(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,) e_k^T P_k^-1 e_k for (N, d) errors and (N, d, d) covariances (singular -> NaN)."""
+    err = np.asarray(err, dtype=float)
+    out = np.full(len(err), np.nan)
+    for k, (e, P) in enumerate(zip(err, cov)):
+        try:
+            out[k] = float(e @ np.linalg.solve(P, e))
+        except np.linalg.LinAlgError:
+            pass
+    return out
+
+
+def nees_record(values: np.ndarray, dof: int) -> NEES:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    bound = float(chi2.ppf(0.95, dof))
+    if len(v) == 0:
+        return NEES(dof, 0, None, None, bound, None, None)
+    n = len(v)
+    lo, hi = chi2.ppf([0.025, 0.975], n * dof) / n
+    return NEES(dof, n, float(np.mean(v)), float(np.median(v)), bound,
+                float(np.mean(v <= bound)), (float(lo), float(hi)))
+
+
+def pose_nees(a: Association) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample NEES (position 3-dof, pose 6-dof) of an association with covariances.
+
+    6-dof: xi = Log(T_gt^-1 T_est) in the body frame, Pose3 order, against the full 6x6.
+    3-dof: the world position error against R_est P_tt R_est^T (to first order
+    p = p_hat + R_hat t for T = T_hat Exp(xi))."""
+    if a.covariances is None or len(a) == 0:
+        return np.zeros(0), np.zeros(0)
+    P = a.covariances
+    T_err = np.einsum("nij,njk->nik", _inv(a.T_world_body_gt), a.T_world_body_est)
+    xi = se3_log(T_err)
+    nees6 = nees_from_errors(xi, P)
+    R = a.T_world_body_est[:, :3, :3]
+    P_pos_world = R @ P[:, 3:, 3:] @ np.swapaxes(R, 1, 2)
+    nees3 = nees_from_errors(a.position_errors_m, P_pos_world)
+    return nees3, nees6
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+# ============================================================================ blackouts, coverage
+
+
+def inside_intervals(t_ns: np.ndarray, intervals: Iterable[tuple[int, int, str]]) -> np.ndarray:
+    """(N,) True where start <= t <= end for some interval."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    mask = np.zeros(len(t), dtype=bool)
+    for start, end, *_ in intervals or ():
+        mask |= (t >= int(start)) & (t <= int(end))
+    return mask
+
+
+def nominal_duration_s(duration_s: float) -> float:
+    """Nearest of BLACKOUT_NOMINAL_DURATIONS_S in log scale (0.5 / 1 / 2 / 5 s)."""
+    d = max(duration_s, 1e-6)
+    return min(BLACKOUT_NOMINAL_DURATIONS_S, key=lambda n: abs(math.log(d / n)))
+
+
+def blackout_errors(a: Association, blackouts: list[tuple[int, int, str]]) -> dict:
+    """Position errors inside vs outside the blackouts, and the max error inside each blackout
+    (grouped by nominal duration 0.5 / 1 / 2 / 5 s)."""
+    err = np.linalg.norm(a.position_errors_m, axis=1)
+    inside = inside_intervals(a.timestamps_ns, blackouts)
+    s_in, s_out = _stats(err[inside]), _stats(err[~inside])
+    per = []
+    for start, end, kind in blackouts:
+        m = (a.timestamps_ns >= start) & (a.timestamps_ns <= end)
+        per.append({"start_ns": int(start), "end_ns": int(end), "kind": str(kind),
+                    "duration_s": (end - start) * 1e-9, "n_estimates": int(m.sum()),
+                    "max_error_m": float(err[m].max()) if m.any() else None})
+    groups: dict[str, dict] = {}
+    for b in per:
+        key = f"{nominal_duration_s(b['duration_s']):g}"
+        g = groups.setdefault(key, {"nominal_duration_s": float(key), "n_blackouts": 0,
+                                    "n_with_estimates": 0, "_max": []})
+        g["n_blackouts"] += 1
+        if b["max_error_m"] is not None:
+            g["n_with_estimates"] += 1
+            g["_max"].append(b["max_error_m"])
+    for g in groups.values():
+        m = g.pop("_max")
+        g["max_error_max_m"] = float(np.max(m)) if m else None
+        g["max_error_mean_m"] = float(np.mean(m)) if m else None
+    return {"n_inside": int(inside.sum()), "n_outside": int((~inside).sum()),
+            "inside": {f"{k}_m": v for k, v in s_in.items()},
+            "outside": {f"{k}_m": v for k, v in s_out.items()},
+            "per_blackout": per,
+            "by_duration": dict(sorted(groups.items(), key=lambda kv: float(kv[0])))}
+
+
+def coverage_fraction(gt_timestamps_ns: np.ndarray, est_timestamps_ns: np.ndarray,
+                      tolerance_s: float = 0.1) -> float:
+    """Fraction of ground-truth samples (uniform in time) with an estimate within `tolerance_s`."""
+    g = np.asarray(gt_timestamps_ns, dtype=np.int64)
+    e = np.sort(np.asarray(est_timestamps_ns, dtype=np.int64))
+    if len(g) == 0:
+        return 0.0
+    if len(e) == 0:
+        return 0.0
+    k = np.clip(np.searchsorted(e, g), 1, len(e)) if len(e) > 1 else np.zeros(len(g), dtype=int)
+    if len(e) > 1:
+        d = np.minimum(np.abs(e[k - 1] - g), np.abs(e[np.minimum(k, len(e) - 1)] - g))
+    else:
+        d = np.abs(e[0] - g)
+    return float(np.mean(d <= tolerance_s * 1e9))
+
+
+# ============================================================================ load maps
+
+
+def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
+    """Per-load and per-axis errors of a load map; ids missing from either side are listed."""
+    est = load_map.by_id()
+    common = sorted(set(est) & set(loads_gt))
+    per_load = {}
+    errs, nees = [], []
+    for lid in common:
+        e = np.asarray(est[lid].p_world, dtype=float) - np.asarray(loads_gt[lid], dtype=float)
+        errs.append(e)
+        rec = {"error_x_m": float(e[0]), "error_y_m": float(e[1]), "error_z_m": float(e[2]),
+               "error_norm_m": float(np.linalg.norm(e)), "n_obs": int(est[lid].n_obs),
+               "nees": None}
+        cov = est[lid].cov_world
+        if cov is not None:
+            v = nees_from_errors(e[None], np.asarray(cov, dtype=float)[None])[0]
+            rec["nees"] = None if not np.isfinite(v) else float(v)
+            if np.isfinite(v):
+                nees.append(v)
+        per_load[lid] = rec
+    E = np.asarray(errs).reshape(-1, 3)
+    norm = _stats(np.linalg.norm(E, axis=1))
+    return {"n_loads_gt": len(loads_gt), "n_mapped": len(common),
+            "missing_ids": sorted(set(loads_gt) - set(est)),
+            "extra_ids": sorted(set(est) - set(loads_gt)),
+            "axis": asdict(axis_errors(E)),
+            "error_norm": {f"{k}_m": v for k, v in norm.items()},
+            "nees_3dof": asdict(nees_record(np.asarray(nees), 3)),
+            "per_load": per_load}
+
+
+# ============================================================================ evaluate
+
+
+def trajectory_metrics(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
+                       traj: Trajectory, blackouts: list[tuple[int, int, str]] | None = None,
+                       full_attitude: bool = True, align: bool = False,
+                       coverage_tolerance_s: float = 0.1) -> dict:
+    """All metrics of one estimated trajectory against the truth, as a JSON-ready dict."""
+    a = associate(gt_timestamps_ns, gt_T_world_body, traj)
+    out: dict = {"n_poses": len(traj), "n_matched": len(a), "n_outside_groundtruth": a.n_outside_gt,
+                 "compared": "position+yaw" if not full_attitude else "pose",
+                 "coverage_fraction": coverage_fraction(gt_timestamps_ns, traj.timestamps_ns,
+                                                        coverage_tolerance_s),
+                 "coverage_tolerance_s": coverage_tolerance_s}
+    if len(a) == 0:
+        return out
+    out["axis"] = asdict(axis_errors(a.position_errors_m))
+    out["ate"] = asdict(ate(a))
+    if align and len(a) >= 3:
+        out["ate_aligned"] = asdict(ate(a, align=True))
+    out["yaw"] = asdict(yaw_errors(a))
+    if full_attitude:
+        r = rotation_errors_deg(a)
+        out["rotation"] = {"rot_rmse_deg": float(np.sqrt(np.mean(r ** 2))),
+                           "rot_mean_deg": float(np.mean(r)), "rot_max_deg": float(np.max(r))}
+    dist = travelled_distance_m(gt_timestamps_ns, gt_T_world_body[:, :3, 3], a.timestamps_ns)
+    out["rpe_1m"] = asdict(rpe(a, dist, 1.0, "m", full_attitude))
+    out["rpe_1s"] = asdict(rpe(a, (a.timestamps_ns - a.timestamps_ns[0]) * 1e-9, 1.0, "s",
+                               full_attitude))
+    if blackouts:
+        out["blackouts"] = blackout_errors(a, blackouts)
+    if a.covariances is not None:
+        n3, n6 = pose_nees(a)
+        out["nees_position_3dof"] = asdict(nees_record(n3, 3))
+        if full_attitude:
+            out["nees_pose_6dof"] = asdict(nees_record(n6, 6))
+    return out
+
+
+def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadMap],
+             loads_gt: dict[str, np.ndarray] | None, blackouts: list[tuple[int, int, str]] | None,
+             detection_stats: dict | None = None, *, align: bool = False,
+             position_yaw_only: Iterable[str] = ("paper",),
+             coverage_tolerance_s: float = 0.1) -> dict:
+    """Compare every trajectory and load map with the truth; returns a JSON-ready dict.
+
+    gt: `fusion.log.GroundTruth` (or None: only detection statistics and counts are returned).
+    trajectories / load_maps: by estimator name.  loads_gt: {id: (3,) world position, m}.
+    blackouts: [(start_ns, end_ns, kind)].  align: also report SE(3)-aligned ATE (evo's -a).
+    position_yaw_only: estimators whose roll/pitch are unknown (compared on position and yaw)."""
+    yaw_only = set(position_yaw_only)
+    blackouts = list(blackouts or [])
+    out: dict = {"schema": SCHEMA,
+                 "paper_simulator_reference": {
+                     "localization_mae_cm": PAPER_SIM_LOCALIZATION_MAE_CM,
+                     "yaw_mae_deg": PAPER_SIM_YAW_MAE_DEG,
+                     "loadmap_mae_cm": PAPER_SIM_LOADMAP_MAE_CM},
+                 "has_groundtruth": gt is not None,
+                 "trajectories": {}, "load_maps": {},
+                 "detection": detection_stats}
+    if blackouts:
+        d = [(b - a) * 1e-9 for a, b, _ in blackouts]
+        out["blackouts"] = {"n": len(blackouts), "total_s": float(np.sum(d)),
+                            "durations_s": [float(x) for x in d]}
+    if gt is not None:
+        t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
+        T_gt = gt.T_world_body
+        if len(t_gt) < 2:
+            raise EvaluationError(f"ground truth has {len(t_gt)} samples; need at least 2")
+        if np.any(np.diff(t_gt) <= 0):
+            raise EvaluationError("ground-truth timestamps are not strictly increasing")
+        out["groundtruth"] = {
+            "n_samples": int(len(t_gt)), "duration_s": float((t_gt[-1] - t_gt[0]) * 1e-9),
+            "path_length_m": float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1)))}
+        for name, traj in trajectories.items():
+            out["trajectories"][name] = trajectory_metrics(
+                t_gt, T_gt, traj, blackouts, full_attitude=name not in yaw_only, align=align,
+                coverage_tolerance_s=coverage_tolerance_s)
+    else:
+        for name, traj in trajectories.items():
+            out["trajectories"][name] = {"n_poses": len(traj)}
+    for name, lm in load_maps.items():
+        if loads_gt:
+            out["load_maps"][name] = load_map_errors(lm, loads_gt)
+        else:
+            out["load_maps"][name] = {"n_mapped": len(lm.loads)}
+    return to_jsonable(out)
+
+
+def to_jsonable(obj):
+    """Numpy scalars/arrays -> Python; NaN/inf -> None (strict JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer, int)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    return obj
+
+
+def write_metrics(path: Path, metrics: dict) -> Path:
+    """Write `metrics.json` atomically (strict JSON, indented)."""
+    path = Path(path)
+    with atomic_open(path) as f:
+        json.dump(to_jsonable(metrics), f, indent=1, allow_nan=False)
+        f.write("\n")
+    return path
+
+
+def export_groundtruth_tum(gt, path: Path) -> Path:
+    """Write the ground truth (`fusion.log.GroundTruth`) as a TUM file for evo."""
+    from fusion.log.files import write_tum
+    write_tum(path, Trajectory("groundtruth", np.asarray(gt.timestamps_ns, dtype=np.int64),
+                               gt.T_world_body))
+    return Path(path)

@@ -1,0 +1,258 @@
+"""Evaluation: metrics on synthetic trajectories (seeded), evo interop, report and plots."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusion.conventions import rot_z
+from fusion.errors import EvaluationError
+from fusion.evaluate import metrics as M
+from fusion.log.euroc import GroundTruth
+from fusion.types import LoadEstimate, LoadMap, Trajectory
+
+NS = 1_000_000_000
+
+
+def make_gt(duration_s: float = 20.0, rate_hz: float = 200.0) -> GroundTruth:
+    """A 3D figure: circle of radius 2 m, altitude 1.5 +- 0.3 m, yaw along the path, small tilt."""
+    n = int(duration_s * rate_hz) + 1
+    t_ns = (np.arange(n) * (NS // int(rate_hz))).astype(np.int64) + 10 * NS
+    s = (t_ns - t_ns[0]) * 1e-9
+    w = 2 * np.pi / 10.0
+    p = np.column_stack([3 + 2 * np.cos(w * s), 2 + 2 * np.sin(w * s), 1.5 + 0.3 * np.sin(0.5 * s)])
+    yaw = w * s + np.pi / 2
+    rpy = np.column_stack([0.05 * np.sin(s), 0.04 * np.cos(0.7 * s), yaw])
+    q_xyzw = Rotation.from_euler("xyz", rpy).as_quat()
+    q_wxyz = np.roll(q_xyzw, 1, axis=1)
+    z = np.zeros((n, 3))
+    return GroundTruth(t_ns, p, q_wxyz, z, z, z)
+
+
+def sample(gt: GroundTruth, every: int = 7, name: str = "est") -> Trajectory:
+    """The truth at every `every`-th sample (exact, no interpolation)."""
+    idx = np.arange(0, len(gt.timestamps_ns), every)
+    return Trajectory(name, gt.timestamps_ns[idx].copy(), gt.T_world_body[idx].copy())
+
+
+# ---------------------------------------------------------------------------- metrics
+
+
+def test_identical_trajectory_has_zero_error():
+    gt = make_gt()
+    m = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, sample(gt))
+    assert m["ate"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert m["ate"]["ate_max_m"] == pytest.approx(0.0, abs=1e-12)
+    assert m["yaw"]["yaw_max_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert m["rotation"]["rot_max_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert m["rpe_1m"]["n_pairs"] > 100 and m["rpe_1m"]["rpe_trans_max_m"] < 1e-12
+    assert m["rpe_1s"]["n_pairs"] > 100
+    assert m["coverage_fraction"] == 1.0
+
+
+def test_interpolation_between_samples_is_exact_for_linear_motion():
+    t = np.array([0, NS], dtype=np.int64)
+    T = np.tile(np.eye(4), (2, 1, 1))
+    T[1, :3, 3] = [1.0, 2.0, 3.0]
+    T[1, :3, :3] = rot_z(0.4)
+    Ti, mask = M.interpolate_poses(t, T, np.array([-1, NS // 4, NS + 1]))
+    assert mask.tolist() == [False, True, False]
+    np.testing.assert_allclose(Ti[0, :3, 3], [0.25, 0.5, 0.75])
+    np.testing.assert_allclose(Ti[0, :3, :3], rot_z(0.1), atol=1e-12)
+
+
+def test_constant_offset_gives_known_axis_errors():
+    gt = make_gt()
+    est = sample(gt)
+    offset = np.array([0.01, -0.02, 0.03])
+    est.T_world_body[:, :3, 3] += offset
+    m = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est, align=True)
+    ax = m["axis"]
+    assert [ax["mae_x_cm"], ax["mae_y_cm"], ax["mae_z_cm"]] == pytest.approx([1.0, 2.0, 3.0])
+    assert [ax["bias_x_m"], ax["bias_y_m"], ax["bias_z_m"]] == pytest.approx(offset.tolist())
+    assert m["ate"]["ate_rmse_m"] == pytest.approx(np.linalg.norm(offset))
+    # an SE(3) fit removes a constant offset; relative errors do not see it
+    assert m["ate_aligned"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    assert m["rpe_1m"]["rpe_trans_max_m"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_umeyama_recovers_a_rigid_motion():
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(50, 3))
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    t = np.array([1.0, 2.0, -0.5])
+    R_fit, t_fit = M.umeyama_alignment(p, p @ R.T + t)
+    np.testing.assert_allclose(R_fit, R, atol=1e-12)
+    np.testing.assert_allclose(t_fit, t, atol=1e-12)
+    with pytest.raises(EvaluationError):
+        M.umeyama_alignment(p[:2], p[:2])
+
+
+def test_yaw_wraps_around():
+    t = np.array([0, NS], dtype=np.int64)
+    T_gt = np.stack([np.eye(4), np.eye(4)])
+    T_gt[:, :3, :3] = rot_z(np.radians(359.0))
+    est = Trajectory("e", t.copy(), np.stack([np.eye(4), np.eye(4)]))
+    est.T_world_body[:, :3, :3] = rot_z(np.radians(1.0))
+    a = M.associate(t, T_gt, est)
+    y = M.yaw_errors(a)
+    assert y.yaw_mae_deg == pytest.approx(2.0)
+    assert y.yaw_bias_deg == pytest.approx(2.0)   # +2 deg, not -358
+
+
+def test_yaw_only_estimator_ignores_roll_pitch():
+    gt = make_gt()
+    est = sample(gt, name="paper")
+    # the paper's estimator: yaw only, roll = pitch = 0
+    yaw = est.yaw_rad
+    for k, y in enumerate(yaw):
+        est.T_world_body[k, :3, :3] = rot_z(y)
+    m = M.evaluate(gt, {"paper": est}, {}, None, None)["trajectories"]["paper"]
+    assert m["compared"] == "position+yaw"
+    assert "rotation" not in m and m["rpe_1m"]["rpe_rot_rmse_deg"] is None
+    assert m["yaw"]["yaw_max_deg"] < 1e-9 and m["ate"]["ate_max_m"] < 1e-12
+
+
+def test_blackout_split_and_duration_groups():
+    gt = make_gt()
+    est = sample(gt, every=1)
+    t0 = int(gt.timestamps_ns[0])
+    blackouts = [(t0 + 2 * NS, t0 + 2 * NS + NS // 2, "floor"),     # 0.5 s
+                 (t0 + 5 * NS, t0 + 6 * NS, "floor"),               # 1 s
+                 (t0 + 10 * NS, t0 + 12 * NS, "floor"),             # 2 s
+                 (t0 + 14 * NS, t0 + 19 * NS, "floor")]             # 5 s
+    inside = M.inside_intervals(est.timestamps_ns, blackouts)
+    # error grows linearly inside each blackout: 1 cm per s since its start
+    err = np.zeros(len(est))
+    for a, b, _ in blackouts:
+        m = (est.timestamps_ns >= a) & (est.timestamps_ns <= b)
+        err[m] = 0.01 * (est.timestamps_ns[m] - a) * 1e-9
+    est.T_world_body[:, 0, 3] += err
+    m = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est, blackouts)
+    bo = m["blackouts"]
+    assert bo["n_inside"] == inside.sum() and bo["n_outside"] == (~inside).sum()
+    assert bo["outside"]["max_m"] == pytest.approx(0.0, abs=1e-12)
+    assert bo["inside"]["max_m"] == pytest.approx(0.05)
+    assert list(bo["by_duration"]) == ["0.5", "1", "2", "5"]
+    got = [g["max_error_max_m"] for g in bo["by_duration"].values()]
+    assert got == pytest.approx([0.005, 0.01, 0.02, 0.05])
+    # an estimator silent inside the blackouts has no error there, and says so
+    raw = Trajectory("raw", est.timestamps_ns[~inside], gt.T_world_body[::1][~inside])
+    m2 = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, raw, blackouts,
+                              coverage_tolerance_s=0.01)
+    assert m2["blackouts"]["n_inside"] == 0
+    assert all(g["n_with_estimates"] == 0 for g in m2["blackouts"]["by_duration"].values())
+    # 8.5 s of 20 s blacked out, less 10 ms at each of the 8 blackout ends
+    assert m2["coverage_fraction"] == pytest.approx(1 - (8.5 - 8 * 0.01) / 20, abs=2e-3)
+
+
+def test_nees_of_samples_from_the_stated_covariance_is_near_dof():
+    rng = np.random.default_rng(42)
+    gt = make_gt(duration_s=20.0)
+    est = sample(gt, every=2)
+    n = len(est)
+    sig = np.array([0.01, 0.01, 0.03, 0.02, 0.02, 0.05])     # rad, rad, rad, m, m, m
+    A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
+    P = (A * sig[:, None]) @ (A * sig[:, None]).T               # correlated, SPD
+    L = np.linalg.cholesky(P)
+    xi = rng.normal(size=(n, 6)) @ L.T
+    import gtsam
+    for k in range(n):
+        est.T_world_body[k] = est.T_world_body[k] @ gtsam.Pose3.Expmap(xi[k]).matrix()
+    est.covariances = np.tile(P, (n, 1, 1))
+    m = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est)
+    n6, n3 = m["nees_pose_6dof"], m["nees_position_3dof"]
+    assert n6["n"] == n and abs(n6["nees_mean"] - 6.0) < 0.3
+    assert abs(n3["nees_mean"] - 3.0) < 0.2
+    assert 0.93 < n6["fraction_inside_95"] < 0.97
+    # an overconfident covariance shows up
+    est.covariances = est.covariances / 10.0
+    m = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est)
+    assert m["nees_pose_6dof"]["nees_mean"] > 50
+
+
+def test_se3_log_matches_gtsam():
+    import gtsam
+    rng = np.random.default_rng(7)
+    for scale in (1e-7, 1e-3, 0.3, 2.0):
+        xi = np.r_[rng.normal(size=3) * scale, rng.normal(size=3)]
+        T = gtsam.Pose3.Expmap(xi).matrix()
+        np.testing.assert_allclose(M.se3_log(T[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T)),
+                                   atol=1e-9)
+
+
+def test_load_map_errors_per_axis_and_nees():
+    loads_gt = {"A": np.array([1.0, 2.0, 1.0]), "B": np.array([4.0, 0.0, 2.0]),
+                "C": np.array([0.0, 5.0, 0.5])}
+    cov = np.diag([0.01, 0.02, 0.04]) ** 2
+    lm = LoadMap("pnp", [LoadEstimate("A", loads_gt["A"] + [0.01, 0.02, -0.04], cov, 5),
+                         LoadEstimate("B", loads_gt["B"] + [-0.01, 0.0, 0.02], None, 3),
+                         LoadEstimate("Z", np.zeros(3), None, 1)])
+    r = M.load_map_errors(lm, loads_gt)
+    assert r["n_mapped"] == 2 and r["missing_ids"] == ["C"] and r["extra_ids"] == ["Z"]
+    assert r["axis"]["mae_x_cm"] == pytest.approx(1.0)
+    assert r["axis"]["mae_y_cm"] == pytest.approx(1.0)
+    assert r["axis"]["mae_z_cm"] == pytest.approx(3.0)
+    assert r["per_load"]["A"]["nees"] == pytest.approx(3.0)   # one sigma on each axis
+    assert r["per_load"]["B"]["nees"] is None
+    assert r["nees_3dof"]["n"] == 1
+
+
+def test_evaluate_is_json_ready_and_written_atomically(tmp_path):
+    gt = make_gt(duration_s=10.0)
+    est = sample(gt)
+    est.covariances = np.tile(np.eye(6) * 1e-4, (len(est), 1, 1))
+    t0 = int(gt.timestamps_ns[0])
+    res = M.evaluate(gt, {"pnp": est, "smoother": est, "empty": Trajectory.empty("empty")},
+                     {"pnp": LoadMap("pnp", [])}, {"A": np.zeros(3)},
+                     [(t0 + NS, t0 + 2 * NS, "floor")], {"frames": 10}, align=True)
+    path = M.write_metrics(tmp_path / "metrics.json", res)
+    back = json.loads(path.read_text())
+    assert back["schema"] == M.SCHEMA and back["detection"] == {"frames": 10}
+    assert back["trajectories"]["pnp"]["ate"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-12)
+    assert back["trajectories"]["empty"]["n_matched"] == 0
+    assert back["load_maps"]["pnp"]["missing_ids"] == ["A"]
+    assert not list(tmp_path.glob(".*part"))
+    with pytest.raises(EvaluationError):
+        M.evaluate(GroundTruth(gt.timestamps_ns[:1], gt.p_world[:1], gt.q_world_body_wxyz[:1],
+                               gt.v_world[:1], gt.bias_gyro[:1], gt.bias_accel[:1]),
+                   {"pnp": est}, {}, None, None)
+
+
+# ---------------------------------------------------------------------------- evo interop
+
+
+def test_ate_equals_evo_ape(tmp_path):
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from evo.tools import file_interface
+
+    from fusion.log.files import write_tum
+
+    rng = np.random.default_rng(11)
+    gt = make_gt(duration_s=15.0)
+    est = sample(gt, every=7)
+    est.T_world_body[:, :3, 3] += rng.normal(scale=0.02, size=(len(est), 3)) + [0.03, -0.01, 0.0]
+    rot_noise = Rotation.from_rotvec(rng.normal(scale=0.01, size=(len(est), 3))).as_matrix()
+    est.T_world_body[:, :3, :3] = est.T_world_body[:, :3, :3] @ rot_noise
+    M.export_groundtruth_tum(gt, tmp_path / "gt.tum")
+    write_tum(tmp_path / "est.tum", est)
+
+    ref_e = file_interface.read_tum_trajectory_file(str(tmp_path / "gt.tum"))
+    est_e = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
+    ref_e, est_e = sync.associate_trajectories(ref_e, est_e, max_diff=1e-4)
+    assert est_e.num_poses == len(est)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((ref_e, est_e))
+    ours = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est, align=True)
+    assert ours["ate"]["ate_rmse_m"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.rmse),
+                                                      abs=1e-6)
+    assert ours["ate"]["ate_max_m"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.max),
+                                                     abs=1e-6)
+    # evo -a: SE(3) Umeyama alignment
+    est_e.align(ref_e, correct_scale=False)
+    ape.process_data((ref_e, est_e))
+    assert ours["ate_aligned"]["ate_rmse_m"] == pytest.approx(
+        ape.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6)
