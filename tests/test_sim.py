@@ -191,3 +191,107 @@ def test_render_effects_validate():
         RenderEffects(blackout="fog")
     with pytest.raises(SimulationError):
         RenderEffects(gain=0.0)
+
+
+# ============================================================================ trajectory and IMU
+
+from fusion.sim.imu import synthesize_imu, synthesize_velocity  # noqa: E402
+from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes  # noqa: E402
+
+
+def _test_trajectory() -> KeyframeTrajectory:
+    wps = [(0.0, 0.0, 0.0, 0.0, 0.5), (0.0, 0.0, 1.5, 0.3), (2.0, 0.5, 1.5, 1.6, 0.7),
+           (2.5, 2.0, 2.2, -0.5), (1.0, 1.0, 1.2, 0.2, 0.5), (0.0, 0.5, 1.8, 0.0)]
+    return KeyframeTrajectory(survey_keyframes(wps, speed_m_s=0.9, yaw_rate_rad_s=0.8))
+
+
+def _vee(S):
+    return np.stack([S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]], axis=-1)
+
+
+def test_trajectory_derivatives_match_finite_differences():
+    traj = _test_trajectory()
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(0.01, traj.duration_s - 0.01, 200))
+    h = 1e-5
+    s, sp, sm = traj.state(t), traj.state(t + h), traj.state(t - h)
+    np.testing.assert_allclose(s.v_world, (sp.p_world - sm.p_world) / (2 * h), atol=1e-6)
+    np.testing.assert_allclose(s.a_world, (sp.v_world - sm.v_world) / (2 * h), atol=1e-5)
+    Rdot = (sp.R_world_body - sm.R_world_body) / (2 * h)
+    omega_fd = _vee(np.einsum("nji,njk->nik", s.R_world_body, Rdot))
+    np.testing.assert_allclose(s.omega_body, omega_fd, atol=1e-6)
+    # attitude: thrust along body z, heading from the plan, rotations orthonormal
+    thrust = s.a_world + [0, 0, 9.81]
+    np.testing.assert_allclose(s.R_world_body[:, :, 2], thrust / np.linalg.norm(thrust, axis=1)[:, None],
+                               atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nji,njk->nik", s.R_world_body, s.R_world_body),
+                               np.broadcast_to(np.eye(3), (len(t), 3, 3)), atol=1e-12)
+    # continuity of the angular rate at keyframes (jerk is continuous)
+    tk = np.array([k.t_s for k in traj.keyframes[1:-1]])
+    jump = traj.state(tk + 1e-7).omega_body - traj.state(tk - 1e-7).omega_body
+    assert np.abs(jump).max() < 1e-4
+    assert np.abs(s.omega_body).max() > 0.1 and np.abs(s.a_world).max() > 0.3   # it does move
+
+
+def _integrate_rk4(imu, R0, v0, p0):
+    """RK4 on (R, v, p) with steps of two IMU intervals (samples k, k+1, k+2 = start, middle, end)."""
+    g = np.array([0.0, 0.0, -9.81])
+    t = imu.timestamps_ns * 1e-9
+    w, f = imu.gyro_rad_s, imu.accel_m_s2
+
+    def skew(x):
+        return np.array([[0, -x[2], x[1]], [x[2], 0, -x[0]], [-x[1], x[0], 0]])
+
+    def deriv(R, v, k):
+        return R @ skew(w[k]), R @ f[k] + g, v
+
+    R, v, p = R0.copy(), v0.copy(), p0.copy()
+    out = [p.copy()]
+    for k in range(0, len(t) - 2, 2):
+        h = t[k + 2] - t[k]
+        k1 = deriv(R, v, k)
+        k2 = deriv(R + 0.5 * h * k1[0], v + 0.5 * h * k1[1], k + 1)
+        k3 = deriv(R + 0.5 * h * k2[0], v + 0.5 * h * k2[1], k + 1)
+        k4 = deriv(R + h * k3[0], v + h * k3[1], k + 2)
+        p = p + h / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        v = v + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        R = R + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        u, _, vt = np.linalg.svd(R)
+        R = u @ vt
+        out.append(p.copy())
+    return np.array(out)
+
+
+def test_noise_free_imu_integrates_to_ground_truth_within_1mm():
+    traj = _test_trajectory()
+    assert traj.duration_s >= 10.0
+    imu, bg, ba = synthesize_imu(traj, rate_hz=200.0, noise_free=True)
+    n = 2001                                              # 10 s at 200 Hz
+    imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (imu.timestamps_ns[:n], imu.gyro_rad_s[:n],
+                                                         imu.accel_m_s2[:n])
+    s0 = traj.state(np.array([0.0]))
+    p = _integrate_rk4(imu, s0.R_world_body[0], s0.v_world[0], s0.p_world[0])
+    truth = traj.state(imu.timestamps_ns[::2] * 1e-9).p_world
+    err = np.linalg.norm(p - truth, axis=1)
+    assert err.max() < 1e-3, f"max drift {err.max() * 1e3:.3f} mm"
+    # the check can fail: gravity of the wrong sign or a frame mix-up drifts metres
+    wrong = _integrate_rk4(imu, s0.R_world_body[0] @ rot_z(0.01), s0.v_world[0], s0.p_world[0])
+    assert np.linalg.norm(wrong - truth, axis=1).max() > 1e-3
+
+
+def test_imu_noise_statistics():
+    traj = _test_trajectory()
+    from fusion.log import ImuNoise
+    noise = ImuNoise(1e-3, 1e-4, 1e-2, 1e-3)
+    clean, _, _ = synthesize_imu(traj, 200.0, noise_free=True)
+    imu, bg, ba = synthesize_imu(traj, 200.0, noise, np.random.default_rng(2))
+    white_g = imu.gyro_rad_s - clean.gyro_rad_s - bg
+    white_a = imu.accel_m_s2 - clean.accel_m_s2 - ba
+    np.testing.assert_allclose(white_g.std(), 1e-3 * np.sqrt(200), rtol=0.05)
+    np.testing.assert_allclose(white_a.std(), 1e-2 * np.sqrt(200), rtol=0.05)
+    steps = np.diff(ba, axis=0)
+    np.testing.assert_allclose(steps.std(), 1e-3 * np.sqrt(1 / 200), rtol=0.05)
+    vel = synthesize_velocity(traj, 30.0, 0.05, np.random.default_rng(0))
+    st = traj.state(vel.timestamps_ns * 1e-9)
+    v_true = np.einsum("nji,nj->ni", st.R_world_body, st.v_world)
+    np.testing.assert_allclose((vel.v_body_m_s - v_true).std(), 0.05, rtol=0.1)
