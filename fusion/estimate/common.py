@@ -1,0 +1,322 @@
+"""Shared pieces of the fusion back end: configuration, result type, input checks, initial values.
+
+Frames and layouts as in fusion.types: poses are T_world_body (4x4), pose covariances are 6x6 in
+GTSAM's Pose3 tangent order [rx, ry, rz, tx, ty, tz] in the body frame (right perturbation
+T = T_hat * Exp(xi)); positions in m, angles in rad, timestamps in int64 ns.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from fusion.errors import EstimationError
+from fusion.fileio import atomic_open
+from fusion.log.euroc import ImuData, VelocityData
+from fusion.types import LoadMap, LoadObservation, Trajectory
+
+ROBUST_KERNELS = ("none", "huber", "cauchy", "tukey")
+
+
+@dataclass
+class FusionConfig:
+    """Settings shared by the smoother, the incremental smoother and the EKF.
+
+    Robust kernel (QR pose factors and load factors): `robust_kernel` in ROBUST_KERNELS, applied
+    to the Mahalanobis norm of the whole residual (GTSAM's Robust noise model);
+    `robust_threshold` in those units (None: sqrt of the chi-square 99.9 % quantile for the
+    factor's dimension, 4.79 for a 6-dof pose, 4.30 for position + yaw, 3.72 for a 3-d point),
+    also the threshold at which a factor is counted as rejected in `stats`.
+    """
+    robust_kernel: str = "huber"
+    robust_threshold: float | None = None
+    # Raw trajectories without covariance (the paper's estimator: position + yaw only).
+    paper_sigma_xyz_m: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    paper_sigma_yaw_rad: float = math.radians(1.0)
+    # Priors on the first state.
+    bias_prior_sigma_gyro_rad_s: float = 1e-2
+    bias_prior_sigma_accel_m_s2: float = 0.1
+    velocity_prior_sigma_m_s: float = 0.1
+    # IMU coverage: a sample holds until the next one if that comes within `max_imu_gap_s`.
+    max_imu_gap_s: float = 0.05
+    integration_sigma: float = 1e-4          # GTSAM integration covariance (sigma^2 * I)
+    # Weak random-walk model used where there is no IMU (gaps, no-IMU flights): white
+    # acceleration `bridge_accel_sigma_m_s2` (m/s^2/sqrt(Hz)), white angular rate
+    # `bridge_rate_sigma_rad_s` (rad/s/sqrt(Hz)).
+    bridge_accel_sigma_m_s2: float = 2.0
+    bridge_rate_sigma_rad_s: float = 0.5
+    # Velocity samples are interpolated to a frame time if one lies within this distance.
+    velocity_max_gap_s: float = 0.1
+    # Frame-time matching of raw poses and load observations.
+    max_sync_s: float = 0.002
+    # Initial values: a raw position farther than this from the median of its neighbours
+    # (+- `init_window` raw poses) is not used for the initial guess (it still gets a factor).
+    init_outlier_m: float = 0.3
+    init_window: int = 15
+    # Batch Levenberg-Marquardt.
+    lm_max_iterations: int = 100
+    lm_relative_tol: float = 1e-7
+    compute_covariances: bool = True
+    # Incremental (iSAM2) mode.
+    isam_relinearize_threshold: float = 0.01
+    isam_relinearize_skip: int = 10
+
+    def __post_init__(self):
+        if self.robust_kernel not in ROBUST_KERNELS:
+            raise EstimationError(f"unknown robust kernel {self.robust_kernel!r}; "
+                                  f"choose one of {', '.join(ROBUST_KERNELS)}")
+        if self.robust_threshold is not None and not self.robust_threshold > 0:
+            raise EstimationError(f"robust_threshold must be > 0, got {self.robust_threshold}")
+
+    def threshold(self, dim: int) -> float:
+        """Robust-kernel threshold (Mahalanobis units) for a factor of dimension `dim`."""
+        if self.robust_threshold is not None:
+            return float(self.robust_threshold)
+        from scipy.stats import chi2
+        return float(math.sqrt(chi2.ppf(0.999, dim)))
+
+
+@dataclass
+class FusionResult:
+    """Output of every fusion back end: trajectory at frame times with (N, 6, 6) covariances,
+    load map with 3x3 covariances, and statistics (iterations, errors, rejections, time)."""
+    trajectory: Trajectory
+    loads: LoadMap
+    stats: dict = field(default_factory=dict)
+
+
+# =========================================================================== input checks
+
+
+def check_timestamps(t_ns: np.ndarray, what: str) -> np.ndarray:
+    """int64 copy of strictly increasing timestamps; EstimationError naming the first bad index."""
+    t = np.asarray(t_ns)
+    if t.ndim != 1:
+        raise EstimationError(f"{what}: timestamps must be 1-D, got shape {t.shape}")
+    if t.dtype.kind == "f":
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise EstimationError(f"{what}: timestamp {bad[0]} is NaN or infinite")
+    t = t.astype(np.int64)
+    d = np.diff(t)
+    bad = np.flatnonzero(d <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        kind = "duplicated" if d[bad[0]] == 0 else "out of order"
+        raise EstimationError(f"{what}: sample {i} is {kind} (t={t[i]} ns after {t[i - 1]} ns)")
+    return t
+
+
+def check_finite(a: np.ndarray, what: str) -> None:
+    """EstimationError naming the first sample (row) index holding a NaN or infinity."""
+    a = np.asarray(a, dtype=float)
+    bad = ~np.isfinite(a.reshape(len(a), -1)).all(axis=1) if len(a) else np.zeros(0, bool)
+    idx = np.flatnonzero(bad)
+    if idx.size:
+        raise EstimationError(f"{what}: sample {int(idx[0])} contains NaN or infinity")
+
+
+def check_imu(imu: ImuData) -> ImuData:
+    t = check_timestamps(imu.timestamps_ns, "IMU")
+    g, a = np.asarray(imu.gyro_rad_s, float), np.asarray(imu.accel_m_s2, float)
+    if g.shape != (len(t), 3) or a.shape != (len(t), 3):
+        raise EstimationError(f"IMU: gyro {g.shape} / accel {a.shape} do not match {len(t)} timestamps")
+    check_finite(g, "IMU gyro")
+    check_finite(a, "IMU accel")
+    T = np.asarray(imu.T_body_imu, float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise EstimationError("IMU: T_body_imu must be a finite 4x4 transform")
+    return ImuData(t, g, a, imu.noise, T, imu.rate_hz)
+
+
+def check_velocity(vel: VelocityData) -> VelocityData:
+    t = check_timestamps(vel.timestamps_ns, "velocity")
+    v = np.asarray(vel.v_body_m_s, float)
+    if v.shape != (len(t), 3):
+        raise EstimationError(f"velocity: shape {v.shape} does not match {len(t)} timestamps")
+    check_finite(v, "velocity")
+    if not vel.noise_m_s > 0:
+        raise EstimationError(f"velocity: noise_m_s must be > 0, got {vel.noise_m_s}")
+    return VelocityData(t, v, float(vel.noise_m_s))
+
+
+def match_to_frames(frame_t: np.ndarray, t: np.ndarray, max_sync_s: float) -> np.ndarray:
+    """Index of the nearest frame for each timestamp, -1 where none lies within max_sync_s."""
+    t = np.asarray(t, dtype=np.int64)
+    if len(frame_t) == 0 or len(t) == 0:
+        return np.full(len(t), -1, dtype=np.int64)
+    j = np.clip(np.searchsorted(frame_t, t), 1, len(frame_t) - 1) if len(frame_t) > 1 \
+        else np.zeros(len(t), dtype=np.int64)
+    if len(frame_t) > 1:
+        left = j - 1
+        use_left = np.abs(t - frame_t[left]) <= np.abs(frame_t[j] - t)
+        j = np.where(use_left, left, j)
+    ok = np.abs(frame_t[j] - t) <= int(max_sync_s * 1e9)
+    return np.where(ok, j, -1)
+
+
+@dataclass
+class RawPoses:
+    """Raw per-frame poses matched to frame indices."""
+    frame_idx: np.ndarray          # (M,) index into frame times
+    T_world_body: np.ndarray       # (M, 4, 4)
+    covariances: np.ndarray | None  # (M, 6, 6) or None (paper input: position + yaw)
+
+    @property
+    def full_pose(self) -> bool:
+        return self.covariances is not None
+
+
+def prepare_raw(frame_t: np.ndarray, raw: Trajectory, config: FusionConfig) -> RawPoses:
+    """Check the raw trajectory and match it to frames.  No pose at all -> EstimationError."""
+    if raw is None or len(raw) == 0:
+        raise EstimationError("no floor code was read in this flight")
+    t = check_timestamps(raw.timestamps_ns, f"raw trajectory {raw.name!r}")
+    T = np.asarray(raw.T_world_body, float)
+    if T.shape != (len(t), 4, 4):
+        raise EstimationError(f"raw trajectory {raw.name!r}: T_world_body has shape {T.shape}")
+    check_finite(T, f"raw trajectory {raw.name!r}")
+    cov = None
+    if raw.covariances is not None:
+        cov = np.asarray(raw.covariances, float)
+        if cov.shape != (len(t), 6, 6):
+            raise EstimationError(f"raw trajectory {raw.name!r}: covariances have shape {cov.shape}")
+        check_finite(cov, f"raw trajectory {raw.name!r} covariances")
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        ev_min = np.linalg.eigvalsh(cov)[:, 0]
+        bad = np.flatnonzero(ev_min <= 0)
+        if bad.size:
+            raise EstimationError(f"raw trajectory {raw.name!r}: covariance {int(bad[0])} is not "
+                                  "positive definite")
+    idx = match_to_frames(frame_t, t, config.max_sync_s)
+    bad = np.flatnonzero(idx < 0)
+    if bad.size:
+        raise EstimationError(f"raw trajectory {raw.name!r}: pose {int(bad[0])} (t={t[bad[0]]} ns) "
+                              "is at no floor-camera frame time")
+    return RawPoses(idx, T, cov)
+
+
+def velocity_at_frames(frame_t: np.ndarray, vel: VelocityData | None,
+                       config: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Body velocity linearly interpolated to frame times: (mask (N,), v_body (N, 3))."""
+    n = len(frame_t)
+    out = np.zeros((n, 3))
+    if vel is None or len(vel.timestamps_ns) == 0:
+        return np.zeros(n, bool), out
+    tv = vel.timestamps_ns
+    j = np.searchsorted(tv, frame_t)
+    jl, jr = np.clip(j - 1, 0, len(tv) - 1), np.clip(j, 0, len(tv) - 1)
+    gap = int(config.velocity_max_gap_s * 1e9)
+    ok = (frame_t >= tv[0]) & (frame_t <= tv[-1]) & ((tv[jr] - tv[jl]) <= gap)
+    exact = tv[jr] == frame_t
+    ok |= exact
+    w = np.where(tv[jr] > tv[jl], (frame_t - tv[jl]) / np.maximum(tv[jr] - tv[jl], 1), 1.0)
+    w = np.clip(w, 0.0, 1.0)[:, None]
+    out = (1 - w) * vel.v_body_m_s[jl] + w * vel.v_body_m_s[jr]
+    return ok, out
+
+
+# =========================================================================== initial values
+
+
+def inlier_raw_mask(raw: RawPoses, config: FusionConfig) -> np.ndarray:
+    """Raw poses whose position lies within init_outlier_m of the median of its neighbours."""
+    p = raw.T_world_body[:, :3, 3]
+    m = len(p)
+    w = config.init_window
+    ok = np.ones(m, bool)
+    for i in range(m):
+        lo, hi = max(0, i - w), min(m, i + w + 1)
+        med = np.median(p[lo:hi], axis=0)
+        ok[i] = np.linalg.norm(p[i] - med) <= config.init_outlier_m
+    if not ok.any():
+        ok[:] = True
+    return ok
+
+
+def initial_poses(frame_t: np.ndarray, raw: RawPoses, config: FusionConfig,
+                  use: np.ndarray | None = None) -> np.ndarray:
+    """(N, 4, 4) initial T_world_body at every frame: raw poses, interpolated (linear position,
+    slerp rotation) through gaps and held at the ends.  `use` masks out outliers."""
+    use = inlier_raw_mask(raw, config) if use is None else use
+    idx = raw.frame_idx[use]
+    T = raw.T_world_body[use]
+    # several raw poses at one frame (not expected): keep the first
+    idx, first = np.unique(idx, return_index=True)
+    T = T[first]
+    ts = frame_t[idx].astype(float)
+    tq = np.clip(frame_t.astype(float), ts[0], ts[-1])
+    out = np.tile(np.eye(4), (len(frame_t), 1, 1))
+    for a in range(3):
+        out[:, a, 3] = np.interp(tq, ts, T[:, a, 3])
+    rots = Rotation.from_matrix(T[:, :3, :3])
+    if len(ts) == 1:
+        out[:, :3, :3] = T[0, :3, :3]
+    else:
+        out[:, :3, :3] = Slerp(ts, rots)(tq).as_matrix()
+    return out
+
+
+def initial_velocities(frame_t: np.ndarray, T_init: np.ndarray) -> np.ndarray:
+    """(N, 3) world velocities by central finite differences of the initial positions."""
+    p = T_init[:, :3, 3]
+    if len(p) < 2:
+        return np.zeros_like(p)
+    return np.gradient(p, frame_t * 1e-9, axis=0)
+
+
+def first_velocity(frame_t: np.ndarray, raw: RawPoses, use: np.ndarray, k0: int,
+                   n_fit: int = 10) -> np.ndarray:
+    """World velocity at frame k0 from a least-squares line through the first inlier raw
+    positions (up to `n_fit`, within 0.5 s of k0); zeros when there are fewer than two."""
+    idx = raw.frame_idx[use]
+    p = raw.T_world_body[use, :3, 3]
+    t = frame_t[idx] * 1e-9
+    sel = np.flatnonzero(np.abs(t - frame_t[k0] * 1e-9) <= 0.5)[:n_fit]
+    if len(sel) < 2:
+        return np.zeros(3)
+    A = np.column_stack([np.ones(len(sel)), t[sel] - frame_t[k0] * 1e-9])
+    coef, *_ = np.linalg.lstsq(A, p[sel], rcond=None)
+    return coef[1]
+
+
+# =========================================================================== outputs
+
+
+def write_sigmas_csv(path, traj: Trajectory) -> None:
+    """Per-axis 1-sigma over time: `t_ns,sigma_rx_rad,...,sigma_tz_m` (body frame, Pose3 order)."""
+    if traj.covariances is None:
+        raise EstimationError(f"trajectory {traj.name!r} has no covariances to write")
+    sig = np.sqrt(np.maximum(np.diagonal(traj.covariances, axis1=1, axis2=2), 0.0))
+    with atomic_open(path) as f:
+        f.write("t_ns,sigma_rx_rad,sigma_ry_rad,sigma_rz_rad,sigma_tx_m,sigma_ty_m,sigma_tz_m\n")
+        for t, s in zip(traj.timestamps_ns, sig):
+            f.write(f"{int(t)}," + ",".join(f"{v:.6e}" for v in s) + "\n")
+
+
+def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
+                   config: FusionConfig) -> tuple[dict[str, list[tuple[int, LoadObservation]]], int]:
+    """Load observations with a camera-frame measurement, grouped by id, matched to frames.
+    Returns ({id: [(frame index, obs)]}, number skipped: no p_cam / non-finite / no frame)."""
+    groups: dict[str, list] = {}
+    skipped = 0
+    if not load_obs:
+        return groups, 0
+    idx = match_to_frames(frame_t, np.array([o.timestamp_ns for o in load_obs], dtype=np.int64),
+                          config.max_sync_s)
+    for k, o in zip(idx, load_obs):
+        if k < 0 or o.p_cam is None or o.cov_cam is None:
+            skipped += 1
+            continue
+        p, c = np.asarray(o.p_cam, float), np.asarray(o.cov_cam, float)
+        if p.shape != (3,) or c.shape != (3, 3) or not (np.all(np.isfinite(p))
+                                                        and np.all(np.isfinite(c))):
+            skipped += 1
+            continue
+        if np.linalg.eigvalsh(0.5 * (c + c.T))[0] <= 0:
+            skipped += 1
+            continue
+        groups.setdefault(o.load_id, []).append((int(k), o))
+    return groups, skipped
