@@ -256,3 +256,69 @@ def test_ate_equals_evo_ape(tmp_path):
     ape.process_data((ref_e, est_e))
     assert ours["ate_aligned"]["ate_rmse_m"] == pytest.approx(
         ape.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6)
+
+
+# ---------------------------------------------------------------------------- report and plots
+
+
+def _run_outputs(seed: int = 5):
+    rng = np.random.default_rng(seed)
+    gt = make_gt(duration_s=8.0)
+    t0 = int(gt.timestamps_ns[0])
+    blackouts = [(t0 + 2 * NS, t0 + 3 * NS, "floor")]
+    trajs = {}
+    for name in ("paper", "pnp", "smoother"):
+        e = sample(gt, every=10, name=name)
+        if name != "smoother":
+            keep = ~M.inside_intervals(e.timestamps_ns, blackouts)
+            e = Trajectory(name, e.timestamps_ns[keep], e.T_world_body[keep])
+        else:
+            e.covariances = np.tile(np.diag([1e-4] * 3 + [1e-4] * 3), (len(e), 1, 1))
+        e.T_world_body[:, :3, 3] += rng.normal(scale=0.01, size=(len(e), 3))
+        trajs[name] = e
+    loads_gt = {"A1": np.array([1.0, 4.5, 0.8]), "B2": np.array([3.0, 4.5, 1.2])}
+    lms = {"pnp": LoadMap("pnp", [LoadEstimate(k, v + 0.01, np.eye(3) * 1e-4, 4)
+                                  for k, v in loads_gt.items()])}
+    return gt, trajs, lms, loads_gt, blackouts
+
+
+def test_report_with_groundtruth(tmp_path):
+    from fusion.evaluate.report import write_report
+    gt, trajs, lms, loads_gt, blackouts = _run_outputs()
+    m = M.evaluate(gt, trajs, lms, loads_gt, blackouts, {"frames_floor": 80, "decoded": 75})
+    path = write_report(tmp_path, m, trajs, lms, gt, loads_gt, blackouts,
+                        {"log": "sim/flight", "duration_s": 8.0}, dpi=40)
+    text = path.read_text()
+    assert path == tmp_path / "report.md"
+    for needle in ("| pnp | raw |", "| smoother | fused |", "0.83 | 0.32 | 2.95 | 1.08",
+                   "0.87 | 1.64 | 2.11", "Floor-code blackouts", "NEES", "`decoded` | 75",
+                   "ATE RMSE [cm]", "RPE 1 m"):
+        assert needle in text, needle
+    assert "No ground truth" not in text
+    for png in ("trajectories.png", "position_errors.png", "error_boxplots.png", "load_map.png"):
+        assert (tmp_path / png).stat().st_size > 1000
+        assert f"]({png})" in text
+        assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_report_without_groundtruth(tmp_path):
+    from fusion.evaluate.report import write_report
+    _, trajs, lms, _, _ = _run_outputs()
+    m = M.evaluate(None, trajs, lms, None, None, {"frames_floor": 80})
+    path = write_report(tmp_path, m, trajs, lms, None, None, None, {"log": "real/flight"}, dpi=40)
+    text = path.read_text()
+    assert "No ground truth" in text and "`frames_floor` | 80" in text
+    assert "MAE x [cm]" not in text and "ATE" not in text
+    assert "| `A1` |" in text                      # the load map is listed
+    assert (tmp_path / "trajectories.png").exists() and (tmp_path / "load_map.png").exists()
+    assert not (tmp_path / "position_errors.png").exists()
+    # metrics None behaves the same
+    path = write_report(tmp_path / "b", None, trajs, {}, None, None, None, {}, dpi=40)
+    assert "No ground truth" in path.read_text()
+
+
+def test_estimator_colours_are_stable():
+    from fusion.evaluate.plots import estimator_colour
+    names = ("paper", "pnp", "smoother", "incremental", "ekf")
+    assert len({estimator_colour(n) for n in names}) == 5
+    assert estimator_colour("other") == estimator_colour("other")
