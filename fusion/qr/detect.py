@@ -1,0 +1,389 @@
+"""QR detection: decode every frame of a flight, refine the corners, cache the table.
+
+    detect_image(image, backend)            one frame -> list[RawCode] (decoder corners + payload)
+    detect_frame(image, camera, ...)        one frame -> list[QRDetection] with refined corners
+    detect_flight(log, cache_path, ...)     every frame of cam0 / cam1 -> DetectionResult
+
+Backends: "zxing" (zxing-cpp, default: fast, corners at the symbol's outer corners in whole
+pixels) and "aruco" (OpenCV's QRCodeDetectorAruco).  Both give corners in CORNER_NAMES order
+(symbol TL, TR, BR, BL, fixed by the finder patterns, so a code's rotation in the image is kept)
+in OpenCV's pixel convention (pixel centres at integer coordinates).
+
+Payloads are untrusted.  A payload that is not valid UTF-8 is dropped and counted
+(`CameraStats.payloads_dropped`); any other text is returned as-is (classification into floor /
+load / rejected is fusion.qr.codes' job).
+
+Cache `detections.csv`: first line `# fusion-detections v<FORMAT_VERSION> fingerprint=<sha256>`,
+second line `# meta <json>` (per-camera counts and skip messages), then a header row and one
+CSV row per detection.  The fingerprint hashes the format version, the backend and refinement
+settings, and each camera's data.csv and sensor.yaml bytes (not the images: a log whose images
+change under an unchanged data.csv must be re-detected by deleting the cache).
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import zxingcpp
+
+from fusion.camera import CameraModel
+from fusion.errors import DetectionError
+from fusion.fileio import atomic_open
+from fusion.qr.refine import modules_for_version, refine_corners_or_none
+from fusion.types import QRDetection
+
+BACKENDS = ("zxing", "aruco")
+FORMAT_VERSION = 1
+CACHE_NAME = "detections.csv"
+CACHE_HEADER = ("camera", "timestamp_ns", "payload",
+                "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
+                "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",
+                "raw_bl_x", "raw_bl_y", "refined")
+_MAGIC = "# fusion-detections"
+
+# zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
+# try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
+# per module) and save ~40 % of the time; try_rotate only concerns 1-D symbologies; the
+# GlobalHistogram binarizer is ~2x faster but lost 7-23 % of the codes, so LocalAverage stays.
+ZXING_OPTIONS = dict(try_rotate=False, try_downscale=False, try_invert=False,
+                     binarizer=zxingcpp.Binarizer.LocalAverage)
+
+
+@dataclass
+class RawCode:
+    """One decoded symbol as the decoder gave it."""
+    payload: str
+    corners_px: np.ndarray        # (4, 2) TL, TR, BR, BL (OpenCV pixel convention)
+    modules: int | None           # modules per side when the decoder reports the version
+
+
+@dataclass
+class CameraStats:
+    frames_total: int = 0
+    frames_skipped: int = 0        # missing / unreadable images
+    frames_with_code: int = 0      # frames with at least one kept detection
+    detections: int = 0
+    payloads_dropped: int = 0      # non-UTF-8 payloads
+    refine_failed: int = 0         # detections whose corners stayed the decoder's
+
+    def add(self, other: "CameraStats") -> None:
+        for k in self.__dataclass_fields__:
+            setattr(self, k, getattr(self, k) + getattr(other, k))
+
+
+@dataclass
+class DetectionResult:
+    """Every detection of a flight; `stats[camera]` counts frames; `skipped` says why frames were
+    skipped (file and line of data.csv)."""
+    detections: list[QRDetection]
+    stats: dict[str, CameraStats]
+    skipped: list[str] = field(default_factory=list)
+    backend: str = "zxing"
+    from_cache: bool = False
+
+    def for_camera(self, camera: str) -> list[QRDetection]:
+        return [d for d in self.detections if d.camera == camera]
+
+    def by_frame(self, camera: str) -> dict[int, list[QRDetection]]:
+        """timestamp_ns -> detections of that frame, in time order (frames without codes absent)."""
+        out: dict[int, list[QRDetection]] = {}
+        for d in self.detections:
+            if d.camera == camera:
+                out.setdefault(d.timestamp_ns, []).append(d)
+        return dict(sorted(out.items()))
+
+
+# ============================================================================ one image
+
+
+def _payload_text(raw: bytes, fallback: str | None) -> str | None:
+    try:
+        return bytes(raw).decode("utf-8")
+    except UnicodeDecodeError:
+        return fallback
+
+
+def _zxing(image: np.ndarray) -> tuple[list[RawCode], int]:
+    codes, dropped = [], 0
+    for b in zxingcpp.read_barcodes(image, formats=zxingcpp.BarcodeFormat.QRCode, **ZXING_OPTIONS):
+        text = _payload_text(b.bytes, b.text if b.content_type == zxingcpp.ContentType.Text else None)
+        if text is None:
+            dropped += 1
+            continue
+        p = b.position
+        # zxing's pixel corners are at integer coordinates: shift by half a pixel to OpenCV's
+        corners = np.array([[p.top_left.x, p.top_left.y], [p.top_right.x, p.top_right.y],
+                            [p.bottom_right.x, p.bottom_right.y],
+                            [p.bottom_left.x, p.bottom_left.y]], dtype=np.float64) - 0.5
+        modules = None
+        try:
+            version = int(b.extra.get("Version", ""))
+            if 1 <= version <= 40:
+                modules = modules_for_version(version)
+        except (TypeError, ValueError, AttributeError):
+            pass
+        codes.append(RawCode(text, corners, modules))
+    return codes, dropped
+
+
+_ARUCO = None
+
+
+def _aruco(image: np.ndarray) -> tuple[list[RawCode], int]:
+    global _ARUCO
+    if _ARUCO is None:
+        _ARUCO = cv2.QRCodeDetectorAruco()
+    ok, texts, points, _ = _ARUCO.detectAndDecodeMulti(image)
+    if not ok or points is None:
+        return [], 0
+    codes = []
+    for text, pts in zip(texts, points):
+        if not text:            # located but not decoded
+            continue
+        # OpenCV's corners are the centres of the outermost module pixels, not the symbol's outer
+        # edge; refinement moves them onto the edge.
+        codes.append(RawCode(str(text), np.asarray(pts, dtype=np.float64).reshape(4, 2), None))
+    # OpenCV decodes bytes to str itself; undecodable payloads come back empty and are not counted
+    return codes, 0
+
+
+def detect_image(image: np.ndarray, backend: str = "zxing") -> list[RawCode]:
+    """Decode the QR codes of one (H, W) uint8 grey image; corners as the decoder gives them."""
+    return _detect_image(image, backend)[0]
+
+
+def _detect_image(image: np.ndarray, backend: str) -> tuple[list[RawCode], int]:
+    if backend == "zxing":
+        return _zxing(image)
+    if backend == "aruco":
+        return _aruco(image)
+    raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")
+
+
+def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0,
+                 camera: CameraModel | None = None, backend: str = "zxing",
+                 stats: CameraStats | None = None) -> list[QRDetection]:
+    """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, see
+    fusion.qr.refine) and `corners_raw_px` as decoded.  `camera` (optional) makes the line fits
+    run in undistorted coordinates.  Counts go to `stats` when given."""
+    codes, dropped = _detect_image(image, backend)
+    out = []
+    failed = 0
+    for code in codes:
+        refined = refine_corners_or_none(image, code.corners_px, code.modules, camera)
+        if refined is None:
+            failed += 1
+            refined = code.corners_px.copy()
+        out.append(QRDetection(camera_name, int(timestamp_ns), code.payload, refined,
+                               code.corners_px))
+    if stats is not None:
+        stats.payloads_dropped += dropped
+        stats.refine_failed += failed
+        stats.detections += len(out)
+        stats.frames_with_code += bool(out)
+    return out
+
+
+# ============================================================================ a whole flight
+
+_WORKER_STREAMS: dict = {}
+_WORKER_BACKEND = "zxing"
+
+
+def _worker_init(streams: dict, backend: str) -> None:
+    global _WORKER_STREAMS, _WORKER_BACKEND
+    _WORKER_STREAMS, _WORKER_BACKEND = streams, backend
+    cv2.setNumThreads(1)      # one process per core already
+
+
+def _detect_chunk(camera_name: str, start: int, stop: int
+                  ) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
+    """Frames [start, stop) of one camera, read from their paths inside the worker."""
+    stream = _WORKER_STREAMS[camera_name]
+    stats = CameraStats()
+    skipped_before = len(stream.skipped)
+    dets: list[QRDetection] = []
+    for i in range(start, stop):
+        stats.frames_total += 1
+        image = stream.load_image(i)
+        if image is None:
+            stats.frames_skipped += 1
+            continue
+        dets.extend(detect_frame(image, camera_name, int(stream.timestamps_ns[i]), stream.camera,
+                                 _WORKER_BACKEND, stats))
+    skipped = stream.skipped[skipped_before:]
+    del stream.skipped[skipped_before:]
+    return camera_name, dets, stats, skipped
+
+
+def flight_fingerprint(log, backend: str) -> str:
+    """sha256 over the cache format, backend, refinement and each camera's data.csv + sensor.yaml."""
+    h = hashlib.sha256()
+    h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/refine-finder-lines-2\n".encode())
+    for name in sorted(log.cameras):
+        cam_dir = Path(log.root) / "mav0" / name
+        h.update(f"{name}\n".encode())
+        for fname in ("data.csv", "sensor.yaml"):
+            try:
+                h.update(hashlib.sha256((cam_dir / fname).read_bytes()).digest())
+            except OSError:
+                h.update(b"missing")
+    return h.hexdigest()
+
+
+def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
+                  workers: int | None = None, progress: bool = True,
+                  chunk_frames: int = 32) -> DetectionResult:
+    """Detections of every frame of every camera of `log` (fusion.log.FlightLog).
+
+    Frames are processed in parallel by `workers` processes (default: all cores; 1 = in this
+    process), each reading its own images.  With `cache_path` (a `detections.csv`), a cache whose
+    fingerprint matches is reused; a stale one (other data.csv / sensor.yaml / backend / format)
+    is recomputed and overwritten; a malformed one raises DetectionError naming file and line.
+    """
+    if backend not in BACKENDS:
+        raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")
+    fingerprint = flight_fingerprint(log, backend)
+    if cache_path is not None and Path(cache_path).is_file():
+        cached = read_cache(cache_path, expected_fingerprint=fingerprint)
+        if cached is not None:
+            cached.backend = backend
+            return cached
+    streams = {name: log.cameras[name] for name in sorted(log.cameras)}
+    tasks = [(name, s, min(s + chunk_frames, len(stream)))
+             for name, stream in streams.items() for s in range(0, len(stream), chunk_frames)]
+    n_frames = sum(len(s) for s in streams.values())
+    workers = (os.cpu_count() or 1) if workers is None else max(1, int(workers))
+    stats = {name: CameraStats() for name in streams}
+    dets: list[QRDetection] = []
+    skipped: list[str] = []
+    bar = _progress_bar(n_frames, progress)
+    try:
+        if workers == 1 or len(tasks) <= 1:
+            _worker_init(streams, backend)
+            results = (_detect_chunk(*t) for t in tasks)
+            _collect(results, dets, stats, skipped, bar)
+        else:
+            with ProcessPoolExecutor(workers, initializer=_worker_init,
+                                     initargs=(streams, backend)) as pool:
+                results = pool.map(_detect_chunk, *zip(*tasks))
+                _collect(results, dets, stats, skipped, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    # each stream keeps its skip messages, as if it had been read here
+    for msg_cam, msg in skipped:
+        streams[msg_cam].skipped.append(msg)
+    result = DetectionResult(dets, stats, [m for _, m in skipped], backend, False)
+    if cache_path is not None:
+        write_cache(result, cache_path, fingerprint)
+    return result
+
+
+def _collect(results, dets, stats, skipped, bar) -> None:
+    for name, chunk_dets, chunk_stats, chunk_skipped in results:
+        dets.extend(chunk_dets)
+        stats[name].add(chunk_stats)
+        skipped.extend((name, m) for m in chunk_skipped)
+        if bar is not None:
+            bar.update(chunk_stats.frames_total)
+
+
+def _progress_bar(total: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, unit="frame", desc="detect", leave=False)
+
+
+# ============================================================================ cache
+
+
+def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
+    """Write `detections.csv` atomically (see the module docstring for the layout)."""
+    meta = {"backend": result.backend,
+            "stats": {k: vars(v) for k, v in sorted(result.stats.items())},
+            "skipped": result.skipped}
+    with atomic_open(Path(path)) as f:
+        f.write(f"{_MAGIC} v{FORMAT_VERSION} fingerprint={fingerprint}\n")
+        f.write("# meta " + json.dumps(meta, ensure_ascii=True) + "\n")
+        w = csv.writer(f, lineterminator="\n", quoting=csv.QUOTE_MINIMAL)
+        w.writerow(CACHE_HEADER)
+        for d in result.detections:
+            refined = int(not np.array_equal(d.corners_px, d.corners_raw_px))
+            w.writerow([d.camera, str(int(d.timestamp_ns)), d.payload]
+                       + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
+                       + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
+                       + [str(refined)])
+
+
+def read_cache(path: Path, expected_fingerprint: str | None = None) -> DetectionResult | None:
+    """Read `detections.csv`.  Returns None when its fingerprint differs from
+    `expected_fingerprint` (stale: recompute); raises DetectionError naming the file and line when
+    it is malformed."""
+    path = Path(path)
+    try:
+        f = open(path, encoding="utf-8", newline="")
+    except OSError as e:
+        raise DetectionError(f"{path}: cannot read the detection cache ({e.strerror})") from None
+    with f:
+        try:
+            first = f.readline()
+            if not first.startswith(_MAGIC + " "):
+                raise DetectionError(f"{path}:1: not a fusion detection cache")
+            fields = dict(tok.split("=", 1) if "=" in tok else (tok, "")
+                          for tok in first[len(_MAGIC):].split())
+            if f"v{FORMAT_VERSION}" not in fields:
+                return None          # another format version: recompute
+            if expected_fingerprint is not None and fields.get("fingerprint") != expected_fingerprint:
+                return None
+            second = f.readline()
+            if not second.startswith("# meta "):
+                raise DetectionError(f"{path}:2: missing '# meta' line")
+            try:
+                meta = json.loads(second[len("# meta "):])
+                stats = {str(k): CameraStats(**{kk: int(vv) for kk, vv in v.items()})
+                         for k, v in meta["stats"].items()}
+                skipped = [str(m) for m in meta["skipped"]]
+                backend = str(meta["backend"])
+            except (ValueError, TypeError, KeyError, AttributeError):
+                raise DetectionError(f"{path}:2: malformed '# meta' line") from None
+            reader = csv.reader(f)
+            dets = []
+            for lineno, row in enumerate(reader, start=3):
+                if lineno == 3:
+                    if tuple(row) != CACHE_HEADER:
+                        raise DetectionError(f"{path}:3: unexpected header")
+                    continue
+                dets.append(_cache_row(row, path, reader.line_num + 2))
+        except UnicodeDecodeError:
+            raise DetectionError(f"{path}: not UTF-8 text") from None
+        except csv.Error as e:
+            raise DetectionError(f"{path}: malformed CSV ({e})") from None
+    return DetectionResult(dets, stats, skipped, backend, True)
+
+
+def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
+    if len(row) != len(CACHE_HEADER):
+        raise DetectionError(f"{path}:{lineno}: expected {len(CACHE_HEADER)} fields, found {len(row)}")
+    camera, ts, payload = row[0], row[1], row[2]
+    try:
+        t = int(ts)
+        vals = [float(v) for v in row[3:19]]
+    except ValueError:
+        raise DetectionError(f"{path}:{lineno}: a timestamp or corner is not a number") from None
+    if t < 0 or not all(math.isfinite(v) for v in vals):
+        raise DetectionError(f"{path}:{lineno}: negative timestamp or non-finite corner")
+    if camera not in ("cam0", "cam1"):
+        raise DetectionError(f"{path}:{lineno}: unknown camera {camera[:20]!r}")
+    corners = np.array(vals[:8]).reshape(4, 2)
+    raw = np.array(vals[8:]).reshape(4, 2)
+    return QRDetection(camera, t, payload, corners, raw)
