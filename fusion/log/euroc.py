@@ -404,6 +404,16 @@ class FlightLogWriter:
             raise LogError(f"{path}: could not write image")
         self._frames[name].append((int(timestamp_ns), fname))
 
+    def write_frame_png(self, name: str, timestamp_ns: int, png: bytes) -> None:
+        """Like `write_frame` for an image already PNG-encoded (e.g. by a worker process)."""
+        fname = f"{int(timestamp_ns)}.png"
+        path = self.tmp / "mav0" / name / "data" / fname
+        try:
+            path.write_bytes(png)
+        except OSError as e:
+            raise LogError(f"{path}: could not write image ({e})") from None
+        self._frames[name].append((int(timestamp_ns), fname))
+
     def write_imu(self, imu: ImuData) -> None:
         d = self.tmp / "mav0" / "imu0"
         d.mkdir(parents=True, exist_ok=True)
