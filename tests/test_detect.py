@@ -1,0 +1,238 @@
+"""QR detection and sub-pixel corners on rendered frames (fusion.sim.render), flight detection,
+the detections.csv cache."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import zxingcpp
+
+from fusion.camera import CameraModel
+from fusion.conventions import make_T, rot_z
+from fusion.errors import DetectionError
+from fusion.log import FlightLogWriter, read_flight
+from fusion.qr.detect import (CameraStats, detect_flight, detect_frame, detect_image, read_cache)
+from fusion.qr.refine import estimate_modules, modules_for_version, refine_corners, \
+    refine_corners_or_none
+from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes, project_code_corners, \
+    render_view
+from fusion.world import World
+
+R_DOWN = np.diag([1.0, -1.0, -1.0])       # camera z = world -z (looking at the floor)
+
+
+def _camera(distortion=(0.0, 0.0, 0.0, 0.0)) -> CameraModel:
+    return CameraModel(640, 480, 520.0, 518.0, 322.0, 237.0, distortion=np.array(distortion))
+
+
+def _pose(yaw: float, xy=(0.0, 0.0), height=0.8, tilt=(0.0, 0.0)) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+    R_tilt = Rotation.from_euler("xy", tilt).as_matrix()
+    return make_T(rot_z(yaw) @ R_tilt @ R_DOWN, [xy[0], xy[1], height])
+
+
+def _code(payload: str, side_m: float = 0.2, xy=(0.0, 0.0)) -> PlacedCode:
+    return PlacedCode(payload, make_T(np.eye(3), [xy[0], xy[1], 0.0]), side_m)
+
+
+def _render(camera, T_world_cam, codes, seed=0, noise=0.0, blur=0.0):
+    rng = np.random.default_rng(seed)
+    img = render_view(camera, T_world_cam, codes, rng,
+                      RenderEffects(noise_sigma_dn=noise, blur_px=blur, blur_angle_rad=0.7))
+    truth = {c.payload: project_code_corners(camera, T_world_cam, c) for c in codes}
+    return img, truth
+
+
+# ============================================================================ corner order
+
+
+@pytest.mark.parametrize("backend", ["zxing", "aruco"])
+@pytest.mark.parametrize("yaw_deg", [0, 90, 180, 270, 33, -127])
+def test_corner_order_follows_the_finder_patterns(backend, yaw_deg):
+    camera = _camera()
+    img, truth = _render(camera, _pose(math.radians(yaw_deg)), [_code("0/3/-4")], noise=1.0)
+    dets = detect_frame(img, "cam0", 5, camera, backend)
+    assert len(dets) == 1
+    d = dets[0]
+    assert d.payload == "0/3/-4" and d.camera == "cam0" and d.timestamp_ns == 5
+    gt = truth["0/3/-4"]
+    # every raw corner is nearest to its own true corner (order TL, TR, BR, BL), within a few px
+    dist = np.linalg.norm(d.corners_raw_px[:, None] - gt[None], axis=2)
+    assert np.all(np.argmin(dist, axis=1) == np.arange(4))
+    assert np.all(np.diag(dist) < 4.0)
+    assert np.max(np.linalg.norm(d.corners_px - gt, axis=1)) < 0.3
+
+
+# ============================================================================ accuracy
+
+
+def test_refined_corners_within_a_fraction_of_a_pixel_on_clean_renders():
+    camera = _camera((-0.28, 0.08, 0.0006, -0.0004))
+    rng = np.random.default_rng(3)
+    codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.35, 0.2)
+    err_raw, err_ref = [], []
+    for _ in range(6):
+        T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(0.0, 0.35, 2), rng.uniform(0.7, 1.3),
+                  rng.normal(0.0, 0.12, 2))
+        img, truth = _render(camera, T, codes, noise=0.5)
+        for d in detect_frame(img, "cam0", 0, camera):
+            err_raw.append(np.linalg.norm(d.corners_raw_px - truth[d.payload], axis=1))
+            err_ref.append(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))
+    err_raw, err_ref = np.array(err_raw), np.array(err_ref)
+    assert len(err_ref) >= 10
+    assert err_ref.mean() < 0.1            # measured 0.04 px (raw zxing: 0.7-1.0 px)
+    assert err_ref.max() < 0.3
+    assert err_raw.mean() > 3 * err_ref.mean()
+
+
+def test_undistorted_line_fits_beat_fitting_in_the_distorted_image():
+    camera = _camera((-0.35, 0.12, 0.0, 0.0))
+    # a code near the image corner, where distortion bends its edges most
+    T = _pose(0.4, (0.0, 0.0), 0.75)
+    code = _code("1/pallet-0042", 0.2, (0.2, 0.12))
+    img, truth = _render(camera, T, [code])
+    [raw] = detect_image(img)
+    with_cam = refine_corners(img, raw.corners_px, raw.modules, camera)
+    without = refine_corners(img, raw.corners_px, raw.modules, None)
+    e_cam = np.linalg.norm(with_cam - truth[code.payload], axis=1).mean()
+    e_none = np.linalg.norm(without - truth[code.payload], axis=1).mean()
+    assert e_cam < 0.15 and e_cam < 0.5 * e_none
+
+
+@pytest.mark.parametrize("payload", ["0/1/2", "1/" + "x" * 30, "1/" + "load-" * 12])
+def test_module_count_estimated_from_the_finders(payload):
+    camera = _camera()
+    img, truth = _render(camera, _pose(0.6), [_code(payload, 0.25)])
+    [raw] = detect_image(img)
+    assert raw.modules == PlacedCode(payload, np.eye(4), 0.2).modules
+    assert estimate_modules(img, raw.corners_px) == raw.modules
+    # refinement without the version (aruco path) lands on the same corners
+    a = refine_corners_or_none(img, raw.corners_px, None)
+    b = refine_corners_or_none(img, raw.corners_px, raw.modules)
+    assert a is not None and np.allclose(a, b)
+
+
+def test_refinement_failure_falls_back_to_the_raw_corners():
+    img = np.full((120, 160), 200, np.uint8)          # nothing to fit
+    raw = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]])
+    assert refine_corners_or_none(img, raw, 21) is None
+    assert np.array_equal(refine_corners(img, raw, 21), raw)
+    assert modules_for_version(1) == 21 and modules_for_version(40) == 177
+
+
+# ============================================================================ payloads
+
+
+def test_foreign_payload_is_returned_as_is():
+    camera = _camera()
+    text = 'hello, "world"\nline2 \u00e9'
+    img, _ = _render(camera, _pose(0.2), [_code(text, 0.25)])
+    [d] = detect_frame(img, "cam1", 9, camera)
+    assert d.payload == text
+
+
+def test_binary_payload_is_dropped_and_counted_not_raised():
+    bc = zxingcpp.create_barcode(b"\xff\xfe1/abc", zxingcpp.BarcodeFormat.QRCode)
+    img = np.pad(np.asarray(bc.to_image(scale=6)), 30, constant_values=255)
+    stats = CameraStats()
+    assert detect_frame(img, "cam1", 0, None, "zxing", stats) == []
+    assert stats.payloads_dropped == 1
+
+
+def test_unknown_backend_raises():
+    with pytest.raises(DetectionError, match="backend"):
+        detect_image(np.zeros((10, 10), np.uint8), "wechat")
+
+
+# ============================================================================ flights + cache
+
+
+def _write_flight(root, n0=4):
+    """cam0: n0 frames seeing floor codes at several yaws, one of them corrupted later;
+    cam1: 2 frames of a load code and a foreign payload."""
+    camera = _camera((-0.1, 0.02, 0.0, 0.0))
+    floor = placed_floor_codes(np.array([[0, 0], [1, 0]]), 0.3, 0.2)
+    front = [_code("1/box-7", 0.2, (0.0, 0.0)), _code("not, ours", 0.2, (0.3, 0.0))]
+    with FlightLogWriter(root) as w:
+        w.write_world(World(floor_side_m=0.2, payload_unit_m=0.3))
+        w.add_camera("cam0", camera)
+        w.add_camera("cam1", camera)
+        for i in range(n0):
+            img, _ = _render(camera, _pose(0.5 * i, (0.15, 0.0), 0.9), floor, seed=i, noise=1.0)
+            w.write_frame("cam0", 1000 + i, img)
+        for i in range(2):
+            img, _ = _render(camera, _pose(0.3 + i, (0.15, 0.0), 0.9), front, seed=10 + i)
+            w.write_frame("cam1", 5000 + i, img)
+    (root / "mav0" / "cam0" / "data" / "1002.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    return root
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    return _write_flight(tmp_path_factory.mktemp("flight") / "log")
+
+
+def test_detect_flight_counts_frames_and_skips_a_corrupt_png(flight):
+    res = detect_flight(read_flight(flight), workers=1, progress=False)
+    s0, s1 = res.stats["cam0"], res.stats["cam1"]
+    assert (s0.frames_total, s0.frames_skipped, s0.frames_with_code) == (4, 1, 3)
+    assert (s1.frames_total, s1.frames_skipped, s1.frames_with_code) == (2, 0, 2)
+    assert len(res.skipped) == 1 and "1002.png" in res.skipped[0] and "data.csv:4" in res.skipped[0]
+    by0 = res.by_frame("cam0")
+    assert sorted(by0) == [1000, 1001, 1003]
+    assert all(sorted(d.payload for d in v) == ["0/0/0", "0/1/0"] for v in by0.values())
+    by1 = res.by_frame("cam1")
+    assert sorted(d.payload for d in by1[5000]) == ["1/box-7", "not, ours"]
+    assert all(d.corners_px.shape == (4, 2) for d in res.detections)
+
+
+def test_parallel_equals_serial(flight):
+    log = read_flight(flight)
+    a = detect_flight(log, workers=1, progress=False)
+    b = detect_flight(read_flight(flight), workers=2, progress=False, chunk_frames=1)
+    assert [(d.camera, d.timestamp_ns, d.payload) for d in a.detections] == \
+        [(d.camera, d.timestamp_ns, d.payload) for d in b.detections]
+    assert all(np.array_equal(x.corners_px, y.corners_px) for x, y in zip(a.detections, b.detections))
+    assert a.stats == b.stats and a.skipped == b.skipped
+
+
+def test_cache_round_trip_and_invalidation(tmp_path):
+    root = _write_flight(tmp_path / "log", n0=3)
+    cache = tmp_path / "out" / "detections.csv"
+    first = detect_flight(read_flight(root), cache, workers=1, progress=False)
+    assert cache.is_file() and not first.from_cache
+    again = detect_flight(read_flight(root), cache, workers=1, progress=False)
+    assert again.from_cache
+    assert again.stats == first.stats and again.skipped == first.skipped
+    assert [(d.camera, d.timestamp_ns, d.payload) for d in again.detections] == \
+        [(d.camera, d.timestamp_ns, d.payload) for d in first.detections]
+    for x, y in zip(first.detections, again.detections):
+        assert np.array_equal(x.corners_px, y.corners_px)          # repr() floats round-trip
+        assert np.array_equal(x.corners_raw_px, y.corners_raw_px)
+    # another backend: recomputed
+    assert not detect_flight(read_flight(root), cache, backend="aruco", workers=1,
+                             progress=False).from_cache
+    # a changed data.csv (last frame dropped): recomputed, and the new counts are right
+    detect_flight(read_flight(root), cache, workers=1, progress=False)
+    csv_path = root / "mav0" / "cam0" / "data.csv"
+    csv_path.write_text("".join(csv_path.read_text().splitlines(keepends=True)[:-1]))
+    changed = detect_flight(read_flight(root), cache, workers=1, progress=False)
+    assert not changed.from_cache and changed.stats["cam0"].frames_total == 2
+
+
+def test_malformed_cache_raises_naming_file_and_line(tmp_path, flight):
+    cache = tmp_path / "detections.csv"
+    res = detect_flight(read_flight(flight), cache, workers=1, progress=False)
+    lines = cache.read_text().splitlines(keepends=True)
+    assert len(lines) == 3 + len(res.detections)
+    bad = lines[:4] + ["cam0,12,x,1,2,3\n"] + lines[4:]
+    cache.write_text("".join(bad))
+    with pytest.raises(DetectionError, match=r"detections\.csv:5: expected 20 fields"):
+        detect_flight(read_flight(flight), cache, workers=1, progress=False)
+    cache.write_text("".join(lines[:4] + ['cam0,12,"p",' + ",".join(["nan"] * 16) + ",1\n"]))
+    with pytest.raises(DetectionError, match=r"detections\.csv:5: .*non-finite"):
+        read_cache(cache)
+    cache.write_text("timestamp,whatever\n")
+    with pytest.raises(DetectionError, match=r"detections\.csv:1: not a fusion detection cache"):
+        detect_flight(read_flight(flight), cache, workers=1, progress=False)
