@@ -41,7 +41,8 @@ from fusion.estimate.graph import B, L, V, X
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
-__all__ = ["smooth", "smooth_incremental", "build_problem", "Problem", "imu_coverage"]
+__all__ = ["smooth", "smooth_incremental", "build_problem", "Problem", "imu_coverage",
+           "imu_subintervals"]
 
 
 # =========================================================================== IMU handling
@@ -72,24 +73,30 @@ def imu_coverage(frame_t: np.ndarray, imu: ImuData, max_gap_s: float) -> np.ndar
     return ok
 
 
-def preintegrate(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray,
-                 params: gtsam.PreintegrationCombinedParams) -> dict[int, gtsam.PreintegratedCombinedMeasurements]:
-    """Preintegrated measurements for each covered interval k (between frames k and k+1), with
-    zero bias as the linearisation point.  Samples are held constant (zero-order hold) and split
-    exactly at frame times."""
+def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
+    """Zero-order-hold split of the covered frame intervals at IMU sample times: arrays
+    (frame interval k, IMU sample index i, dt s) in time order; sample i is held constant from
+    its timestamp until the next sample, and every frame time is a split point."""
     t = imu.timestamps_ns
     ks = np.flatnonzero(covered)
     if ks.size == 0:
-        return {}
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     a, b = frame_t[ks], frame_t[ks + 1]
     inner = t[(t > a[0]) & (t < b[-1])]
     bounds = np.union1d(np.union1d(a, b), inner)
     s, e = bounds[:-1], bounds[1:]
     k_of = np.searchsorted(frame_t, s, side="right") - 1
-    keep = covered[np.clip(k_of, 0, len(covered) - 1)] & (k_of < len(covered))
+    keep = (k_of < len(covered)) & covered[np.clip(k_of, 0, len(covered) - 1)]
     s, e, k_of = s[keep], e[keep], k_of[keep]
     i_of = np.clip(np.searchsorted(t, s, side="right") - 1, 0, len(t) - 1)
-    dts = (e - s) * 1e-9
+    return k_of, i_of, (e - s) * 1e-9
+
+
+def preintegrate(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray,
+                 params: gtsam.PreintegrationCombinedParams) -> dict[int, gtsam.PreintegratedCombinedMeasurements]:
+    """Preintegrated measurements for each covered interval k (between frames k and k+1), with
+    zero bias as the linearisation point (imu_subintervals' zero-order hold)."""
+    k_of, i_of, dts = imu_subintervals(frame_t, imu, covered)
     acc, gyr = imu.accel_m_s2, imu.gyro_rad_s
     out: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
     bias0 = gtsam.imuBias.ConstantBias()
