@@ -1,0 +1,384 @@
+"""PnP estimator (fusion/qr/pnp.py) and its measurement model / CRB (fusion/qr/crb.py).
+
+Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from fusion.camera import CameraModel
+from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, floor_payload, inv_T,
+                                load_payload, make_T, rot_z, transform_points, wrap_angle, yaw_of)
+from fusion.qr.codes import classify
+from fusion.qr.crb import (floor_pose_crb, floor_reprojection, load_position_crb, se3_exp,
+                           symbol_reprojection)
+from fusion.qr.pnp import (aggregate_load_observations, camera_pose, edge_implied_yaw,
+                           estimate_floor_pose, estimate_load_observations, pnp_load_observations,
+                           pnp_trajectory, pose_at)
+from fusion.types import QRDetection, Trajectory
+from fusion.world import LoadCode, World
+
+WORLD = World(floor_side_m=0.20, payload_unit_m=1.0, load_side_m=0.15,
+              bounds_x_m=(-10.0, 10.0), bounds_y_m=(-10.0, 10.0))
+DIST = [-0.12, 0.03, 0.0008, -0.0005]
+FLOOR_CAM = CameraModel(640, 480, 600.0, 602.0, 321.0, 238.5, distortion=DIST,
+                        T_body_cam=make_T(R_BODY_FLOORCAM, [0.06, -0.02, -0.04]))
+FRONT_CAM = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
+                        T_body_cam=make_T(R_BODY_FRONTCAM, [0.10, 0.0, 0.02]))
+SIGMA = 0.15
+
+
+def body_pose(x, y, z, yaw_deg, roll_deg=0.0, pitch_deg=0.0):
+    R = Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True).as_matrix()
+    return make_T(R, [x, y, z])
+
+
+def aim(T_world_body, xy, camera=FLOOR_CAM):
+    """T_world_body shifted horizontally so that the camera's optical axis meets the floor at xy."""
+    T_wc = camera_pose(T_world_body, camera)
+    z = T_wc[:3, 2]
+    hit = T_wc[:3, 3] + (-T_wc[2, 3] / z[2]) * z
+    out = T_world_body.copy()
+    out[:2, 3] += np.asarray(xy, dtype=float) - hit[:2]
+    return out
+
+
+def floor_dets(T_world_body, centres_xy, camera=FLOOR_CAM, rng=None, sigma=0.0, ts=0):
+    """Detections of floor codes at payload (x, y) seen from T_world_body."""
+    out = []
+    T_cam_world = inv_T(camera_pose(T_world_body, camera))
+    for x, y in centres_xy:
+        cw = WORLD.floor_corners_world(np.array([x, y, 0.0]))
+        uv = camera.project(transform_points(T_cam_world, cw))
+        assert np.all(np.isfinite(uv)) and np.all((uv > 0) & (uv < [640, 480]))
+        if rng is not None:
+            uv = uv + rng.normal(0.0, sigma, uv.shape)
+        out.append(QRDetection("cam0", ts, floor_payload(x, y), uv, np.round(uv)))
+    return out
+
+
+def load_dets(T_world_body, codes, camera=FRONT_CAM, rng=None, sigma=0.0, ts=0):
+    out = []
+    T_cam_world = inv_T(camera_pose(T_world_body, camera))
+    for code in codes:
+        uv = camera.project(transform_points(T_cam_world, WORLD.load_corners_world(code)))
+        assert np.all(np.isfinite(uv)) and np.all((uv > 0) & (uv < [640, 480]))
+        if rng is not None:
+            uv = uv + rng.normal(0.0, sigma, uv.shape)
+        out.append(QRDetection("cam1", ts, load_payload(code.id), uv, np.round(uv)))
+    return out
+
+
+def floor_of(dets):
+    return classify(dets, WORLD).floor
+
+
+def local(T_true, T_est):
+    """GTSAM's local coordinates of T_est around T_true: xi with T_est = T_true * Exp(xi)."""
+    return gtsam.Pose3(T_true).localCoordinates(gtsam.Pose3(T_est))
+
+
+FOUR = [(0, 0), (1, 0), (0, 1), (1, 1)]
+T_FOUR = aim(body_pose(0, 0, 2.6, 35.0, roll_deg=4.0, pitch_deg=-3.0), (0.45, 0.6))
+
+
+# ============================================================================ model and Jacobians
+
+
+def test_se3_exp_matches_gtsam_expmap():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        xi = rng.normal(0, 1.0, 6)
+        np.testing.assert_allclose(se3_exp(xi), gtsam.Pose3.Expmap(xi).matrix(), atol=1e-12)
+    np.testing.assert_allclose(se3_exp(np.r_[0, 0, 0, 1, 2, 3.0]), make_T(np.eye(3), [1, 2, 3]))
+
+
+def test_floor_jacobian_matches_numerical_derivative_through_gtsam_expmap():
+    T = body_pose(0.3, 0.2, 1.5, 120.0, 5.0, -4.0)
+    pts = np.vstack([WORLD.floor_corners_world(np.array([x, y, 0.0])) for x, y in [(0, 0), (1, 0)]])
+    _, J = floor_reprojection(FLOOR_CAM, T, pts)
+    h = 1e-6
+    Jn = np.column_stack([
+        (FLOOR_CAM.project(transform_points(inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(d))
+                                                  .matrix() @ FLOOR_CAM.T_body_cam), pts))
+         - FLOOR_CAM.project(transform_points(inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(-d))
+                                                    .matrix() @ FLOOR_CAM.T_body_cam), pts))
+         ).reshape(-1) / (2 * h) for d in np.eye(6) * h])
+    np.testing.assert_allclose(J, Jn, atol=1e-4 * np.abs(J).max())
+
+
+def test_symbol_jacobian_matches_numerical_derivative():
+    from fusion.conventions import symbol_corners_S
+    from fusion.qr.crb import so3_exp
+    T = make_T(Rotation.from_rotvec([0.2, -2.9, 0.1]).as_matrix(), [0.3, -0.1, 2.0])
+    S = symbol_corners_S(0.15)
+    _, J = symbol_reprojection(FRONT_CAM, T, S)
+
+    def f(d):
+        Tp = make_T(T[:3, :3] @ so3_exp(d[:3]), T[:3, 3] + d[3:])
+        return FRONT_CAM.project(transform_points(Tp, S)).reshape(-1)
+
+    h = 1e-6
+    Jn = np.column_stack([(f(d) - f(-d)) / (2 * h) for d in np.eye(6) * h])
+    np.testing.assert_allclose(J, Jn, atol=1e-4 * np.abs(J).max())
+
+
+# ============================================================================ exact recovery
+
+
+@pytest.mark.parametrize("centres", [[(0, 0)], [(1, 1)], FOUR, [(0, 0), (1, 0)]])
+@pytest.mark.parametrize("yaw_deg", [0.0, 35.0, 179.0, -100.0])
+def test_exact_recovery_without_noise_body_fixed(centres, yaw_deg):
+    cx = np.mean([c[0] for c in centres])
+    cy = np.mean([c[1] for c in centres])
+    height = 1.2 if len(centres) == 1 else 2.8
+    T = aim(body_pose(0, 0, height, yaw_deg, roll_deg=6.0, pitch_deg=-5.0), (cx + 0.1, cy - 0.05))
+    res = estimate_floor_pose(floor_of(floor_dets(T, centres)), FLOOR_CAM)
+    assert res is not None and res.n_codes == len(centres)
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+    np.testing.assert_allclose(res.T_world_cam, T @ FLOOR_CAM.T_body_cam, atol=1e-9)
+    assert res.reprojection_rms_px < 1e-8
+    assert sorted(res.payloads) == sorted(floor_payload(*c) for c in centres)
+    # The covariance at a noise-free solution is the CRB there.
+    crb = floor_pose_crb(FLOOR_CAM, T, [WORLD.floor_corners_world(np.array([x, y, 0.0]))
+                                        for x, y in centres], SIGMA)
+    np.testing.assert_allclose(res.covariance, crb, rtol=1e-6, atol=1e-15)
+
+
+def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
+    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
+                      T_body_cam=FLOOR_CAM.T_body_cam, mount="gimbaled")
+    T_tilted = body_pose(0.5, 0.5, 2.6, -60.0, roll_deg=12.0, pitch_deg=8.0)
+    res = estimate_floor_pose(floor_of(floor_dets(T_tilted, FOUR, camera=cam)), cam)
+    level = make_T(rot_z(math.radians(-60.0)), [0.5, 0.5, 2.6])
+    np.testing.assert_allclose(res.T_world_body, level, atol=1e-9)
+    assert res.covariance[0, 0] == pytest.approx(math.radians(10.0) ** 2)
+    assert res.covariance[1, 1] == pytest.approx(math.radians(10.0) ** 2)
+    assert np.all(res.covariance[:2, 2:] == 0.0)
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_edge_implied_yaw_is_close_to_truth_for_tilted_views():
+    for yaw in (-170.0, -45.0, 0.0, 90.0, 178.0):
+        T = aim(body_pose(0, 0, 1.5, yaw, roll_deg=15.0, pitch_deg=-15.0), (0.05, 0.0))
+        y = edge_implied_yaw(floor_of(floor_dets(T, [(0, 0)])), FLOOR_CAM)
+        assert abs(wrap_angle(y - math.radians(yaw))) < math.radians(20.0)
+
+
+# ============================================================================ covariance
+
+
+def _floor_draws(T, centres, n, seed):
+    rng = np.random.default_rng(seed)
+    xis, nees, covs = [], [], []
+    for _ in range(n):
+        res = estimate_floor_pose(floor_of(floor_dets(T, centres, rng=rng, sigma=SIGMA)),
+                                  FLOOR_CAM, SIGMA)
+        xi = local(T, res.T_world_body)
+        xis.append(xi)
+        covs.append(res.covariance)
+        nees.append(xi @ np.linalg.solve(res.covariance, xi))
+    return np.array(xis), np.array(nees), np.array(covs)
+
+
+@pytest.mark.parametrize("centres,T", [
+    (FOUR, T_FOUR),
+    ([(0, 0)], body_pose(0.15, -0.1, 0.9, -20.0, roll_deg=3.0, pitch_deg=8.0)),
+])
+def test_pose_nees_is_consistent(centres, T):
+    xis, nees, _ = _floor_draws(T, centres, 200, seed=7)
+    assert 0.5 * 6 <= nees.mean() <= 2.0 * 6, nees.mean()
+
+
+def test_covariance_convention_is_gtsams_body_frame_right_perturbation():
+    """The covariance describes xi = Logmap(T_true^-1 T_est) (GTSAM's localCoordinates), in
+    [rx, ry, rz, tx, ty, tz]; a PriorFactorPose3 with it gives error = NEES / 2; other
+    conventions (world frame, [t, r] order) are clearly inconsistent with the same draws."""
+    xis, nees, covs = _floor_draws(T_FOUR, FOUR, 200, seed=11)
+    cov = covs.mean(axis=0)
+    # whitened sample covariance ~ identity
+    L = np.linalg.cholesky(np.linalg.inv(cov))
+    w = xis @ L
+    eig = np.linalg.eigvalsh(np.cov(w.T))
+    assert 0.6 < eig.min() and eig.max() < 1.5, eig
+    # what the back end does with it
+    noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+    factor = gtsam.PriorFactorPose3(0, gtsam.Pose3(T_FOUR), noise)
+    for xi in xis[:5]:
+        v = gtsam.Values()
+        v.insert(0, gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(xi))
+        assert factor.error(v) == pytest.approx(0.5 * xi @ np.linalg.solve(cov, xi), rel=1e-6)
+    # sampling T * Exp(xi), xi ~ N(0, cov), reproduces the estimates' world-frame position spread
+    rng = np.random.default_rng(3)
+    samples = rng.multivariate_normal(np.zeros(6), cov, 2000)
+    p_samp = np.array([(gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(s)).translation()
+                       for s in samples])
+    p_est = np.array([(gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(x)).translation() for x in xis])
+    ratio = np.sqrt(np.diag(np.cov(p_est.T)) / np.diag(np.cov(p_samp.T)))
+    assert np.all((0.75 < ratio) & (ratio < 1.33)), ratio
+    # wrong conventions fail the same consistency check
+    Ad = gtsam.Pose3(T_FOUR).AdjointMap()               # body -> world (left) perturbation
+    swap = np.r_[3, 4, 5, 0, 1, 2]
+    for bad in (Ad @ cov @ Ad.T, cov[np.ix_(swap, swap)]):
+        bad_nees = np.mean([x @ np.linalg.solve(bad, x) for x in xis])
+        assert not 3.0 <= bad_nees <= 12.0, bad_nees
+
+
+def test_single_code_fronto_parallel_never_flips_yaw():
+    """Nearly fronto-parallel single code from 2-3 m: IPPE's two solutions are close; whatever is
+    picked, the yaw is never flipped by 180 deg, and the error stays near the CRB."""
+    rng = np.random.default_rng(2024)
+    yaw_err = []
+    for k in range(250):
+        yaw = rng.uniform(-180.0, 180.0)
+        h = rng.uniform(2.0, 3.0)
+        T = body_pose(rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), h, yaw,
+                      roll_deg=rng.normal(0, 2.0), pitch_deg=rng.normal(0, 2.0))
+        # shift the body so that the camera (not the body origin) is over the code
+        T[:2, 3] -= (T @ FLOOR_CAM.T_body_cam)[:2, 3] - T[:2, 3]
+        res = estimate_floor_pose(floor_of(floor_dets(T, [(0, 0)], rng=rng, sigma=SIGMA)),
+                                  FLOOR_CAM, SIGMA)
+        assert res is not None
+        yaw_err.append(abs(wrap_angle(yaw_of(res.T_world_body[:3, :3]) - math.radians(yaw))))
+    assert max(yaw_err) < math.radians(10.0), math.degrees(max(yaw_err))
+
+
+# ============================================================================ robustness
+
+
+def test_rejected_codes_are_not_used():
+    T = T_FOUR
+    good = floor_dets(T, FOUR[:2])
+    # a code outside the world's bounds, a duplicated floor code (both copies dropped), a load code
+    # on the floor camera and a foreign payload, all with corners that would wreck the pose
+    junk_uv = good[0].corners_px + np.array([40.0, -25.0])
+    junk = [QRDetection("cam0", 0, "0/500/0", junk_uv, junk_uv),
+            QRDetection("cam0", 0, "0/1/1", junk_uv + 5, junk_uv),
+            QRDetection("cam0", 0, "0/1/1", junk_uv + 9, junk_uv),
+            QRDetection("cam0", 0, "1/box-7", junk_uv, junk_uv),
+            QRDetection("cam0", 0, "http://example.com", junk_uv, junk_uv)]
+    codes = classify(good + junk, WORLD)
+    assert len(codes.floor) == 2 and len(codes.rejected) == 5
+    res = estimate_floor_pose(codes.floor, FLOOR_CAM)
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+    traj, stats = pnp_trajectory({5: good + junk}, FLOOR_CAM, WORLD)
+    np.testing.assert_allclose(traj.T_world_body[0], T, atol=1e-9)
+    assert stats.rejections == {"outside_world": 1, "duplicate_floor": 2, "wrong_camera": 1,
+                                "not_ours": 1}
+
+
+def test_misplaced_code_is_dropped_as_outlier():
+    T = T_FOUR
+    dets = floor_dets(T, FOUR)
+    # the code that says (1, 1) is really printed at (0.7, 0.8): its corners contradict the others
+    wrong = floor_dets(T, [(0.7, 0.8)])[0]
+    dets[3] = QRDetection("cam0", 0, floor_payload(1, 1), wrong.corners_px, wrong.corners_px)
+    res = estimate_floor_pose(floor_of(dets), FLOOR_CAM)
+    assert res.dropped_payloads == [floor_payload(1, 1)] and res.n_codes == 3
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+
+
+def test_no_usable_code_gives_none():
+    assert estimate_floor_pose([], FLOOR_CAM) is None
+    d = floor_dets(T_FOUR, [(0, 0)])[0]
+    nan = QRDetection("cam0", 0, d.payload, np.full((4, 2), np.nan), d.corners_raw_px)
+    assert estimate_floor_pose(floor_of([nan]), FLOOR_CAM) is None
+    # corners that fit no square (a code's TR and BL swapped)
+    twisted = QRDetection("cam0", 0, d.payload, d.corners_px[[0, 3, 2, 1]], d.corners_raw_px)
+    assert estimate_floor_pose(floor_of([twisted]), FLOOR_CAM) is None
+
+
+def test_pnp_trajectory_counts_frames():
+    T1 = T_FOUR
+    T2 = aim(body_pose(0, 0, 2.6, 10.0), (0.4, 0.4))
+    frames = {300: floor_dets(T2, FOUR[:3], ts=300), 100: floor_dets(T1, FOUR, ts=100), 200: []}
+    traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD)
+    assert traj.timestamps_ns.tolist() == [100, 300]
+    np.testing.assert_allclose(traj.T_world_body, np.stack([T1, T2]), atol=1e-9)
+    assert traj.covariances.shape == (2, 6, 6)
+    assert (stats.n_frames, stats.n_posed, stats.n_without_floor_code) == (3, 2, 1)
+    assert stats.codes_per_pose == {3: 1, 4: 1}
+
+
+# ============================================================================ load codes
+
+LOADS = [LoadCode("box-1", (3.0, 0.3, 1.2), math.pi), LoadCode("box-2", (3.0, -0.4, 0.9), math.pi)]
+T_FRONT = body_pose(1.2, 0.0, 1.1, 5.0, roll_deg=2.0, pitch_deg=3.0)
+
+
+def test_load_positions_exact_without_noise():
+    codes = classify(load_dets(T_FRONT, LOADS), WORLD)
+    obs = estimate_load_observations(codes.loads, FRONT_CAM, WORLD, T_FRONT)
+    assert [o.load_id for o in obs] == ["box-1", "box-2"]
+    for o, code in zip(obs, LOADS):
+        np.testing.assert_allclose(o.p_world, code.p_world, atol=1e-9)
+        T_cam_world = inv_T(camera_pose(T_FRONT, FRONT_CAM))
+        np.testing.assert_allclose(o.p_cam, transform_points(T_cam_world, np.array([code.p_world]))[0],
+                                   atol=1e-9)
+        T_cam_sym = T_cam_world @ code.T_world_symbol
+        from fusion.conventions import symbol_corners_S
+        crb = load_position_crb(FRONT_CAM, T_cam_sym, symbol_corners_S(WORLD.load_side_m), SIGMA)
+        np.testing.assert_allclose(o.cov_cam, crb, rtol=1e-6)
+
+
+def test_load_position_nees_with_drone_pose_uncertainty():
+    rng = np.random.default_rng(5)
+    cov_body = np.diag([0.01, 0.01, 0.004, 0.02, 0.02, 0.01]) ** 2
+    cov_body[3, 1] = cov_body[1, 3] = 0.5 * 0.01 * 0.02   # some roll/lateral coupling
+    nees_cam, nees_world = [], []
+    for _ in range(200):
+        # truth: the drone is at T_true; the estimator believes T_hat = T_true * Exp(-xi)
+        xi = rng.multivariate_normal(np.zeros(6), cov_body)
+        T_hat = (gtsam.Pose3(T_FRONT) * gtsam.Pose3.Expmap(-xi)).matrix()
+        dets = load_dets(T_FRONT, LOADS[:1], rng=rng, sigma=SIGMA)
+        (o,) = estimate_load_observations(classify(dets, WORLD).loads, FRONT_CAM, WORLD, T_hat,
+                                          cov_body, SIGMA)
+        p_cam_true = transform_points(inv_T(camera_pose(T_FRONT, FRONT_CAM)),
+                                      np.array([LOADS[0].p_world]))[0]
+        e = o.p_cam - p_cam_true
+        nees_cam.append(e @ np.linalg.solve(o.cov_cam, e))
+        e = o.p_world - np.array(LOADS[0].p_world)
+        nees_world.append(e @ np.linalg.solve(o.cov_world, e))
+    assert 0.5 * 3 <= np.mean(nees_cam) <= 2.0 * 3, np.mean(nees_cam)
+    assert 0.5 * 3 <= np.mean(nees_world) <= 2.0 * 3, np.mean(nees_world)
+
+
+def test_load_observations_along_a_flight_and_the_map():
+    rng = np.random.default_rng(9)
+    floor_frames, front_frames = {}, {}
+    truth = {}
+    for k in range(7):
+        ts = 1_000_000_000 + k * 50_000_000
+        T = body_pose(1.0 + 0.05 * k, 0.5, 2.2, 0.0, roll_deg=1.0)
+        truth[ts] = T
+        floor_frames[ts] = floor_dets(T, [(1, 0), (1, 1)], rng=rng, sigma=SIGMA, ts=ts)
+        if k % 2 == 1:       # front frames between floor frames: poses interpolated
+            front_frames[ts + 25_000_000] = load_dets(
+                body_pose(1.025 + 0.05 * k, 0.5, 2.2, 0.0, roll_deg=1.0),
+                [LoadCode("box-1", (3.5, 0.6, 2.0), math.pi)], rng=rng, sigma=SIGMA,
+                ts=ts + 25_000_000)
+    front_frames[0] = front_frames[1_075_000_000]   # before the first pose: skipped
+    traj, _ = pnp_trajectory(floor_frames, FLOOR_CAM, WORLD)
+    obs = pnp_load_observations(front_frames, FRONT_CAM, WORLD, traj)
+    assert len(obs) == 3
+    lmap = aggregate_load_observations(obs)
+    (est,) = lmap.loads
+    assert est.load_id == "box-1" and est.n_obs == 3
+    err = est.p_world - np.array([3.5, 0.6, 2.0])
+    assert np.linalg.norm(err) < 0.05
+    info = sum(np.linalg.inv(o.cov_world) for o in obs)
+    np.testing.assert_allclose(est.cov_world, np.linalg.inv(info), rtol=1e-9)
+
+
+def test_pose_at_interpolates_and_refuses_gaps():
+    T0, T1 = body_pose(0, 0, 1, 0.0), body_pose(1, 0, 1, 90.0)
+    traj = Trajectory("t", np.array([0, 100_000_000]), np.stack([T0, T1]),
+                      np.stack([np.eye(6), 2 * np.eye(6)]))
+    T, cov = pose_at(traj, 75_000_000)
+    np.testing.assert_allclose(T, body_pose(0.75, 0, 1, 67.5), atol=1e-12)
+    np.testing.assert_allclose(cov, 2 * np.eye(6))
+    assert pose_at(traj, 50_000_000, max_gap_s=0.05) is None
+    assert pose_at(traj, 200_000_000) is None
+    np.testing.assert_array_equal(pose_at(traj, 100_000_500)[0], T1)   # within 1 ms: that pose
