@@ -322,3 +322,20 @@ def test_estimator_colours_are_stable():
     names = ("paper", "pnp", "smoother", "incremental", "ekf")
     assert len({estimator_colour(n) for n in names}) == 5
     assert estimator_colour("other") == estimator_colour("other")
+
+
+def test_nonfinite_and_unsorted_estimates():
+    gt = make_gt(duration_s=5.0)
+    est = sample(gt)
+    est.T_world_body[3, 0, 3] = np.nan
+    a = M.associate(gt.timestamps_ns, gt.T_world_body, est)
+    assert len(a) == len(est) - 1 and a.n_outside_gt == 1
+    assert np.all(np.isfinite(a.position_errors_m)) and np.abs(a.position_errors_m).max() < 1e-12
+    est.timestamps_ns = est.timestamps_ns[::-1].copy()
+    with pytest.raises(EvaluationError, match="sorted"):
+        M.associate(gt.timestamps_ns, gt.T_world_body, est)
+    # a singular covariance gives no NEES for that sample, the others are kept
+    e = np.ones((3, 3))
+    P = np.stack([np.eye(3), np.zeros((3, 3)), 2 * np.eye(3)])
+    v = M.nees_from_errors(e, P)
+    assert v[0] == pytest.approx(3.0) and np.isnan(v[1]) and v[2] == pytest.approx(1.5)

@@ -95,9 +95,15 @@ def interpolate_poses(timestamps_ns: np.ndarray, T_world_body: np.ndarray,
 
 def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
               traj: Trajectory) -> Association:
-    """Interpolate the ground truth (200 Hz) at the estimate's timestamps."""
-    T_gt, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, traj.timestamps_ns)
-    idx = np.flatnonzero(mask)
+    """Interpolate the ground truth (200 Hz) at the estimate's timestamps.  Estimate samples with
+    a non-finite pose are dropped (counted in `n_outside_gt`); unsorted timestamps raise."""
+    t_est = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    if np.any(np.diff(t_est) < 0):
+        raise EvaluationError(f"trajectory '{traj.name}': timestamps are not sorted")
+    T_gt, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, t_est)
+    finite = np.isfinite(np.asarray(traj.T_world_body, dtype=float).reshape(len(t_est), 16)).all(axis=1)
+    idx = np.flatnonzero(mask & finite)
+    T_gt = T_gt[finite[mask]]
     cov = None
     if traj.covariances is not None and len(traj.covariances) == len(traj):
         cov = np.asarray(traj.covariances)[idx]
@@ -328,6 +334,14 @@ class NEES:
 def nees_from_errors(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """(N,) e_k^T P_k^-1 e_k for (N, d) errors and (N, d, d) covariances (singular -> NaN)."""
     err = np.asarray(err, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    if len(err) == 0:
+        return np.zeros(0)
+    try:                                   # batched; one singular matrix makes it fall back
+        x = np.linalg.solve(cov, err[..., None])[..., 0]
+        return np.einsum("ni,ni->n", err, x)
+    except np.linalg.LinAlgError:
+        pass
     out = np.full(len(err), np.nan)
     for k, (e, P) in enumerate(zip(err, cov)):
         try:
