@@ -56,6 +56,7 @@ GRID_X = np.arange(-1, 11)
 GRID_Y = np.arange(0, 27)
 # heading of each Table A5 code's face normal (deg); the drone faces the opposite way
 NORMALS = {1: 0, 2: 0, 3: 180, 4: 270, 5: 0, 6: 90, 7: 0, 8: 270, 9: 30, 10: 135}
+UNDISTORT = False        # set from --undistort
 VIEWS = [(1.2, 0.0), (1.5, -0.3), (1.5, 0.3), (2.0, -0.15), (2.0, 0.15)]   # (distance m, right m)
 
 
@@ -157,7 +158,7 @@ def localization_errors(poses, sensor, floor_cam, world, codes, th_px, tilt_deg,
         T = rpy_T(xyz, roll, pitch, yaw)
         radius = 1.5 * xyz[2] * max(floor_cam.width, floor_cam.height) / floor_cam.fu + 1.0
         dets = sensor.detections(floor_cam, "cam0", T, near_codes(codes, xyz[:2], radius), image)
-        pose = paper.localize_frame(dets, floor_cam, world, th_px)
+        pose = paper.localize_frame(dets, floor_cam, world, th_px, undistort=UNDISTORT)
         if pose is None:
             res["missing_paper"] += 1
         else:
@@ -201,15 +202,16 @@ def mapping_errors(loads, sensor, floor_cam, front_cam, world, floor_codes_all, 
             missing["front"] += 1
             continue
         out["paper_true_pose"] += [(qr, o.p_world) for o in paper.map_loads_frame(
-            front, front_cam, world, drone, heading, th_px)]
+            front, front_cam, world, drone, heading, th_px, undistort=UNDISTORT)]
         radius = 1.5 * drone[2] * max(floor_cam.width, floor_cam.height) / floor_cam.fu + 1.0
         fdets = sensor.detections(floor_cam, "cam0", T, near_codes(floor_codes_all, drone[:2], radius))
-        pose = paper.localize_frame(fdets, floor_cam, world, th_px)
+        pose = paper.localize_frame(fdets, floor_cam, world, th_px, undistort=UNDISTORT)
         if pose is None:
             missing["floor"] += 1
         else:
             out["paper_chained"] += [(qr, o.p_world) for o in paper.map_loads_frame(
-                front, front_cam, world, pose.xyz, pose.yaw_rad, th_px)]
+                front, front_cam, world, pose.xyz, pose.yaw_rad, th_px,
+                undistort=UNDISTORT)]
         if estimate_load_observations is not None:
             sightings = classify(front, world).loads
             out["pnp_true_pose"] += [(qr, o.p_world) for o in estimate_load_observations(
@@ -244,10 +246,14 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=960)
     ap.add_argument("--f-px", type=float, default=900.0)
     ap.add_argument("--k1", type=float, default=0.0, help="radial distortion of both cameras")
+    ap.add_argument("--undistort", action="store_true",
+                    help="undistort the corners before the paper's formulas (default: as given)")
     ap.add_argument("--floor-side-m", type=float, default=0.25)
     ap.add_argument("--load-side-m", type=float, default=0.15)
     args = ap.parse_args(argv)
 
+    global UNDISTORT
+    UNDISTORT = args.undistort
     t0 = time.time()
     rng = np.random.default_rng(args.seed)
     world = World(floor_side_m=args.floor_side_m, payload_unit_m=1.0, load_side_m=args.load_side_m)
@@ -259,7 +265,7 @@ def main(argv=None) -> int:
             else "rendered (fusion.sim.render, 1.5 DN noise) + detected (fusion.qr.detect)")
     print(f"# Reproduction of Kang & Jung (2024), Sec. 4.1\n\n"
           f"Corners: {mode}.  Cameras {args.width}x{args.height}, f = {args.f_px} px, k1 = "
-          f"{args.k1}; floor codes {args.floor_side_m} m on a 1 m grid; load codes "
+          f"{args.k1}{' (corners undistorted first)' if args.undistort else ''}; floor codes {args.floor_side_m} m on a 1 m grid; load codes "
           f"{args.load_side_m} m; Th = {args.th_px} px; seed {args.seed}.  PnP: "
           f"{'fusion.qr.pnp' if estimate_floor_pose else 'not available (hook empty)'}.\n")
 
