@@ -319,3 +319,13 @@ def test_table_a5_averages_are_the_mean_of_five_results():
                                                                             abs=0.011)
     means = [np.mean([float(r["abs_error"]) for r in rows if r["axis"] == ax]) for ax in "xyz"]
     assert means == pytest.approx([0.93, 1.64, 2.11], abs=0.005)
+
+
+def test_paper_load_observations_use_the_nearest_floor_pose():
+    traj = paper.paper_trajectory({0: [project_floor(floor_camera(), "0/0/0", (0, 0),
+                                                     make_T(rot_z(0.0), DRONE - [1, 2, 0]))]},
+                                  floor_camera(), WORLD)
+    frames = {10_000_000: [load_det(0.0, 0.0)], 900_000_000: [load_det(0.0, 0.0)]}
+    obs = paper.paper_load_observations(frames, front_camera(), WORLD, traj)
+    assert [o.timestamp_ns for o in obs] == [7]          # the second frame has no pose near it
+    np.testing.assert_allclose(obs[0].p_world, [0.0 + DQW, 0.0, 1.5], atol=1e-9)

@@ -416,3 +416,28 @@ def aggregate_loads(observations: list[LoadObservation], name: str = "paper") ->
         cov = np.cov(P, rowvar=False) / n if n > 1 else None
         loads.append(LoadEstimate(load_id, P.mean(axis=0), cov, n))
     return LoadMap(name, loads)
+
+
+def paper_load_observations(front_frames: dict[int, list[QRDetection]], front_camera: CameraModel,
+                            world: World, trajectory: Trajectory, th_px: float = 5.0, *,
+                            max_gap_s: float = 0.05, undistort: bool = False,
+                            centre: str = "geometric") -> list[LoadObservation]:
+    """Algorithm 4 on every front frame {timestamp_ns: detections}, with the drone pose of the
+    `trajectory` frame nearest in time (the paper records both cameras together, Sec. 4.1.1);
+    frames with no pose within `max_gap_s` are skipped.  Position and yaw come from the pose;
+    its roll / pitch are ignored (the paper's front camera is level, Assumption 8)."""
+    ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
+    out: list[LoadObservation] = []
+    if len(ts) == 0:
+        return out
+    for t in sorted(front_frames):
+        i = int(np.searchsorted(ts, t))
+        near = [j for j in (i - 1, i) if 0 <= j < len(ts)]
+        j = min(near, key=lambda k: abs(int(ts[k]) - int(t)))
+        if abs(int(ts[j]) - int(t)) * 1e-9 > max_gap_s:
+            continue
+        T = trajectory.T_world_body[j]
+        yaw = math.atan2(T[1, 0], T[0, 0])
+        out.extend(map_loads_frame(front_frames[t], front_camera, world, T[:3, 3], yaw, th_px,
+                                   undistort=undistort, centre=centre))
+    return out
