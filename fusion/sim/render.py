@@ -237,6 +237,11 @@ def camera_pose(camera: CameraModel, T_world_body: np.ndarray) -> np.ndarray:
     return T_world_body @ camera.T_body_cam
 
 
+# quiet-zone outline in units of its half side: corners TL, TR, BR, BL, then edge midpoints
+_OUTLINE_UNIT = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0],
+                          [0, 1, 0], [1, 0, 0], [0, -1, 0], [-1, 0, 0]], dtype=float)
+
+
 def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_world: np.ndarray,
                code: PlacedCode) -> np.ndarray | None:
     """Composite one code (with its quiet zone) into `img` in place; returns the (4, 2) distorted
@@ -250,32 +255,30 @@ def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_wo
     q = QUIET_ZONE_MODULES
     m = code.side_m / n_mod                      # module size (m)
     half_outer = 0.5 * code.side_m + q * m
-    # sample the quiet-zone outline (5 points per edge) to bound the projection
-    s = np.linspace(-half_outer, half_outer, 5)
-    ring = np.concatenate([np.column_stack([s, np.full(5, half_outer)]),
-                           np.column_stack([s, np.full(5, -half_outer)]),
-                           np.column_stack([np.full(5, half_outer), s]),
-                           np.column_stack([np.full(5, -half_outer), s])])
-    p_cam = ring @ R[:, :2].T + t
+    # the quiet-zone outline (corners and edge midpoints) bounds the projection; then the
+    # symbol's own corners give the scale (pixels per module)
+    pts_S = _OUTLINE_UNIT[:, :2] * half_outer
+    pts_S = np.vstack([pts_S, _OUTLINE_UNIT[:4, :2] * (0.5 * code.side_m)])
+    p_cam = pts_S @ R[:, :2].T + t
     if np.any(p_cam[:, 2] < 0.02):
         return None                              # (partly) behind the camera: not renderable
-    xy = p_cam[:, :2] / p_cam[:, 2:3]
     h, w = img.shape
-    if np.max(np.hypot(xy[:, 0], xy[:, 1])) > 1.5 * rays.r_max:
+    r_xy = np.hypot(p_cam[:, 0], p_cam[:, 1]) / p_cam[:, 2]
+    uv = camera.project(p_cam)
+    if np.max(r_xy[:8]) > 1.5 * rays.r_max:
         # far outside the field of view, where the distortion polynomial may fold back
-        if np.min(np.hypot(xy[:, 0], xy[:, 1])) > 1.5 * rays.r_max:
+        if np.min(r_xy[:8]) > 1.5 * rays.r_max:
             return None
         x0, y0, x1, y1 = 0, 0, w, h
     else:
-        uv = camera.project(p_cam)
-        x0 = max(int(math.floor(uv[:, 0].min())) - 2, 0)
-        y0 = max(int(math.floor(uv[:, 1].min())) - 2, 0)
-        x1 = min(int(math.ceil(uv[:, 0].max())) + 3, w)
-        y1 = min(int(math.ceil(uv[:, 1].max())) + 3, h)
+        x0 = max(int(uv[:8, 0].min()) - 2, 0)
+        y0 = max(int(uv[:8, 1].min()) - 2, 0)
+        x1 = min(int(uv[:8, 0].max()) + 3, w)
+        y1 = min(int(uv[:8, 1].max()) + 3, h)
     if x1 <= x0 or y1 <= y0:
         return None
     # mip level: texels per module ~ pixels per module (power of two, magnifying)
-    corners_px = camera.project(symbol_corners_S(code.side_m) @ R.T + t)
+    corners_px = uv[8:]
     edge_px = np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1))
     px_per_module = edge_px / n_mod if np.isfinite(edge_px) else 1.0
     tpm = 1
@@ -308,9 +311,7 @@ def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_wo
     patch = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     roi = img[y0:y1, x0:x1]
     np.copyto(roi, patch, where=inside)
-    qz = np.array([[-half_outer, half_outer, 0.0], [half_outer, half_outer, 0.0],
-                   [half_outer, -half_outer, 0.0], [-half_outer, -half_outer, 0.0]])
-    return camera.project(qz @ R.T + t)
+    return uv[:4]
 
 
 def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) -> None:
@@ -346,10 +347,37 @@ def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) ->
             img += (a * 3.0) * rng.standard_normal((h, w)).astype(np.float32)
 
 
+@lru_cache(maxsize=4)
+def _noise_pool(shape: tuple[int, int]) -> np.ndarray:
+    """float32 standard-normal pool of twice the image size (fixed seed): each frame adds a window
+    at a random offset, ten times cheaper than drawing fresh noise for every pixel."""
+    return np.random.default_rng(12345).standard_normal((2 * shape[0], 2 * shape[1]),
+                                                       dtype=np.float32)
+
+
+def _noise(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """(H, W) float32 white standard-normal noise: a window of the pool at an offset from `rng`,
+    randomly flipped."""
+    pool = _noise_pool(tuple(shape))
+    r0 = int(rng.integers(0, shape[0]))
+    c0 = int(rng.integers(0, shape[1]))
+    win = pool[r0:r0 + shape[0], c0:c0 + shape[1]]
+    flip = int(rng.integers(0, 4))
+    if flip & 1:
+        win = win[::-1]
+    if flip & 2:
+        win = win[:, ::-1]
+    return win
+
+
+MIN_CODE_PX = 6.0   # codes whose quiet-zone outline spans fewer pixels are not drawn
+
+
 def _visible_far_to_near(codes: list[PlacedCode], T_cam_world: np.ndarray,
-                         rays: _CameraRays) -> np.ndarray:
+                         rays: _CameraRays, focal_px: float) -> np.ndarray:
     """Indices of the codes that may appear in the image (a conservative view-cone test on the
-    bounding sphere of each code with its quiet zone), farthest first (painter's order)."""
+    bounding sphere of each code with its quiet zone) and span at least MIN_CODE_PX pixels,
+    farthest first (painter's order)."""
     if not codes:
         return np.zeros(0, dtype=int)
     centres = np.array([c.T_world_symbol[:3, 3] for c in codes])
@@ -359,18 +387,40 @@ def _visible_far_to_near(codes: list[PlacedCode], T_cam_world: np.ndarray,
     # inside the cone |xy| <= r z, widened by the sphere's radius
     ok = np.hypot(p[:, 0], p[:, 1]) - r * p[:, 2] <= radius * math.sqrt(1.0 + r * r)
     ok &= p[:, 2] > -radius
+    ok &= focal_px * radius / 1.5 >= MIN_CODE_PX * 0.5 * np.maximum(np.linalg.norm(p, axis=1) - radius, 1e-3)
     idx = np.flatnonzero(ok)
     return idx[np.argsort(-p[idx, 2], kind="stable")]
 
 
+def _occluded(T_world_cam: np.ndarray, codes: list[PlacedCode], idx: np.ndarray,
+              occluders) -> np.ndarray:
+    """Mask over `idx`: the segment from the camera centre to the code centre crosses one of the
+    axis-aligned boxes (lo (3,), hi (3,)) in W (slab test)."""
+    c = T_world_cam[:3, 3]
+    p = np.array([codes[i].T_world_symbol[:3, 3] for i in idx]).reshape(-1, 3)
+    d = p - c
+    hidden = np.zeros(len(idx), bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        for lo, hi in occluders:
+            t0 = (np.asarray(lo) - c) * inv
+            t1 = (np.asarray(hi) - c) * inv
+            tmin = np.nanmax(np.minimum(t0, t1), axis=1)
+            tmax = np.nanmin(np.maximum(t0, t1), axis=1)
+            hidden |= (tmin <= tmax) & (tmax > 0.0) & (tmin < 0.999)
+    return hidden
+
+
 def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[PlacedCode], rng=None,
-                effects: RenderEffects | None = None) -> np.ndarray:
+                effects: RenderEffects | None = None, occluders=None) -> np.ndarray:
     """uint8 (H, W) grayscale image seen by `camera` at pose T_world_cam (camera frame: OpenCV).
 
     Background: the textured floor plane (z = 0), grey elsewhere; then every code in front of the
     camera and facing it, far to near, with a white quiet zone of 4 modules; then `effects`
     (blackout, motion blur, exposure gain, sensor noise).  `rng` (np.random.Generator) drives the
-    noise; None means no randomness (noise-free unless effects ask for noise, then seed 0)."""
+    noise; None means no randomness (noise-free unless effects ask for noise, then seed 0).
+    `occluders`: optional axis-aligned boxes [(lo (3,), hi (3,))] in W (racks); a code whose
+    centre they hide from the camera is not drawn (the boxes themselves are not drawn)."""
     effects = effects or RenderEffects(noise_sigma_dn=0.0)
     if rng is None:
         rng = np.random.default_rng(0)
@@ -379,7 +429,10 @@ def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[Placed
     T_cam_world = inv_T(T_world_cam)
     img = _background(camera, rays, T_world_cam)
     floor_quads = []
-    for i in _visible_far_to_near(codes, T_cam_world, rays):
+    visible = _visible_far_to_near(codes, T_cam_world, rays, max(camera.fu, camera.fv))
+    if occluders and len(visible):
+        visible = visible[~_occluded(T_world_cam, codes, visible, occluders)]
+    for i in visible:
         code = codes[i]
         quad = _draw_code(img, camera, rays, T_cam_world, code)
         if quad is not None and code.is_floor:
@@ -392,7 +445,7 @@ def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[Placed
     if effects.gain != 1.0:
         img *= effects.gain
     if effects.noise_sigma_dn > 0:
-        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(effects.noise_sigma_dn)
+        img += _noise(img.shape, rng) * np.float32(effects.noise_sigma_dn)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 

@@ -1,0 +1,192 @@
+"""Simulated warehouses and flights: where the codes are, how the drone flies, what goes wrong.
+
+A `Scenario` is everything `simulate()` needs: the world (floor grid, load codes), the cameras,
+the trajectory, the IMU noise, the photometric effects and the floor-camera blackouts.
+Scenarios: "default", "gimbaled", "paper_a5" (see each builder's docstring).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload, make_T
+from fusion.errors import SimulationError
+from fusion.log import ImuNoise
+from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes
+from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
+from fusion.world import Layout, LoadCode, World
+
+SCENARIOS = ("default", "gimbaled", "paper_a5")
+RESOLUTIONS = {"640x480": (640, 480), "1280x720": (1280, 720)}
+
+# Focal length (px) of both cameras at 640x480 (60 deg horizontal field of view).  zxing-cpp
+# decodes our renders down to about 2.1 px per module, so a 0.20 m version-1 floor code (9.5 mm
+# modules) reads up to about 2.5 m above the floor, and a 0.15 m load code from up to 1.6 m.
+FOCAL_640_PX = 550.0
+GROUND_Z_M = 0.15          # body height standing on the floor (landing gear)
+
+
+@dataclass
+class Scenario:
+    """A warehouse, a drone and a flight."""
+    name: str
+    layout: Layout
+    cameras: dict[str, CameraModel]          # "cam0" floor, "cam1" front
+    trajectory: KeyframeTrajectory
+    duration_s: float
+    blackouts: list[tuple[float, float, str]] = field(default_factory=list)   # (t0_s, t1_s, kind)
+    imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    imu_rate_hz: float = 200.0
+    velocity_rate_hz: float = 30.0
+    velocity_noise_m_s: float = 0.05
+    noise_sigma_dn: float = 2.0
+    gain_swing: float = 0.15               # exposure gain 1 +- this, slowly varying
+    exposure_s: float = 0.008              # motion blur = image motion during the exposure
+    occluders: list = field(default_factory=list)   # axis-aligned boxes (lo, hi) in W: racks
+
+    def codes(self) -> list[PlacedCode]:
+        """Every code to render: floor grid and load codes."""
+        w = self.layout.world
+        out = placed_floor_codes(self.layout.floor_codes_xy, w.payload_unit_m, w.floor_side_m)
+        out += [PlacedCode(load_payload(l.id), l.T_world_symbol, w.load_side_m)
+                for l in self.layout.loads]
+        return out
+
+    def effects(self, camera_name: str, t_s: float, blur_px: float = 0.0,
+                blur_angle_rad: float = 0.0) -> RenderEffects:
+        """Photometric effects of one frame (blur measured by the caller)."""
+        phase = 0.7 if camera_name == "cam1" else 0.0
+        gain = 1.0 + self.gain_swing * (0.7 * math.sin(2 * math.pi * t_s / 17.0 + phase)
+                                        + 0.3 * math.sin(2 * math.pi * t_s / 5.3 + 2 * phase))
+        blackout = None
+        if camera_name == "cam0":
+            for t0, t1, kind in self.blackouts:
+                if t0 <= t_s <= t1:
+                    blackout = kind
+        return RenderEffects(self.noise_sigma_dn, gain, blur_px, blur_angle_rad, blackout)
+
+
+def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, CameraModel]:
+    """Floor (cam0) and front (cam1) cameras at `resolution`; focal length scales with the width
+    so the field of view stays 60 deg horizontally."""
+    w, h = resolution
+    f = FOCAL_640_PX * w / 640.0
+    s = w / 640.0
+    floor = CameraModel(w, h, f, f * 1.0005, w / 2 + 1.3 * s, h / 2 - 0.8 * s,
+                        distortion=[-0.05, 0.012, 4e-4, -3e-4],
+                        T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.06]), mount=mount)
+    front = CameraModel(w, h, f, f * 0.9995, w / 2 - 1.8 * s, h / 2 + 2.6 * s,
+                        distortion=[-0.07, 0.02, -5e-4, 4e-4],
+                        T_body_cam=make_T(R_BODY_FRONTCAM, [0.12, 0.0, 0.0]), mount=mount)
+    return {"cam0": floor, "cam1": front}
+
+
+# ============================================================================ default / gimbaled
+
+
+def _default(name: str, resolution, mount: str) -> Scenario:
+    """A 10 m x 7 m warehouse, one double-sided rack between two aisles, a 60 s survey.
+
+    Floor: 0.20 m codes on a 1 m grid, x = 0..10, y = 0..7, none under the rack (y = 3, 4 for
+    x = 1..9).  Rack: faces at y = 2.7 (normal -y, ids "P-cc-l") and y = 4.3 (normal +y, ids
+    "Q-cc-l"), columns at x = 1.5, 3.5, 5.5, 7.5, levels l = 1, 2, 3 at z = 0.7, 1.4, 2.1 m;
+    0.15 m load codes.  Flight: take-off, aisle 1 (y = 1.5, facing the P face 1.2 m away) at 1.4 m
+    with hovers at each column, back at 2.1 m, a high pass at 2.6 m along x = 0.5 to aisle 2
+    (y = 5.5, a 180 deg yaw turn), aisle 2 at 1.6 m and low at 0.9 m, climb.  Floor-camera
+    blackouts of 0.5, 1, 2 and 5 s (shadow, glare, torn, shadow) where floor codes are in view."""
+    world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0))
+    floor = [(x, y) for x in range(0, 11) for y in range(0, 8)
+             if not (y in (3, 4) and 1 <= x <= 9)]
+    loads = []
+    for col, x in enumerate([1.5, 3.5, 5.5, 7.5], start=1):
+        for level, z in enumerate([0.7, 1.4, 2.1], start=1):
+            loads.append(LoadCode(f"P-{col:02d}-{level}", (x, 2.7, z), -math.pi / 2))
+            loads.append(LoadCode(f"Q-{col:02d}-{level}", (x, 4.3, z), math.pi / 2))
+    layout = Layout(world, np.array(floor, dtype=float), loads)
+    up, down = math.pi / 2, -math.pi / 2
+    g = GROUND_Z_M
+    wps = [(0.5, 1.5, g, up, 0.8), (0.5, 1.5, 1.4, up, 0.4),
+           (1.5, 1.5, 1.4, up, 0.8), (3.5, 1.5, 1.4, up, 0.8), (5.5, 1.5, 1.4, up, 0.8),
+           (7.5, 1.5, 1.4, up, 0.8), (7.5, 1.5, 2.1, up, 0.5), (5.5, 1.4, 2.1, up, 0.5),
+           (3.5, 1.6, 2.1, up, 0.5), (1.5, 1.5, 2.1, up, 0.3), (0.5, 2.0, 2.6, up + 0.4),
+           (0.5, 4.5, 2.6, up + math.pi / 2), (0.6, 5.5, 1.6, 3 * math.pi / 2, 0.5),
+           (2.5, 5.5, 1.6, 3 * math.pi / 2, 0.6), (4.5, 5.4, 1.6, 3 * math.pi / 2, 0.6),
+           (6.5, 5.5, 1.6, 3 * math.pi / 2, 0.6), (8.0, 5.6, 0.9, 3 * math.pi / 2, 0.5),
+           (5.5, 5.5, 0.9, 3 * math.pi / 2 + 0.3, 0.3), (3.0, 5.5, 1.3, 3 * math.pi / 2),
+           (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5)]
+    traj = KeyframeTrajectory(survey_keyframes(wps, speed_m_s=0.55, yaw_rate_rad_s=0.5))
+    if traj.duration_s < 60.0:
+        raise SimulationError(f"scenario {name}: trajectory only {traj.duration_s:.1f} s")
+    blackouts = [(9.0, 9.5, "shadow"), (17.0, 18.0, "glare"), (27.0, 29.0, "torn"),
+                 (40.0, 45.0, "shadow")]
+    rack = (np.array([1.0, 2.72, 0.0]), np.array([9.0, 4.28, 2.6]))   # just behind the faces
+    return Scenario(name, layout, make_cameras(resolution, mount), traj, 60.0, blackouts,
+                    occluders=[rack])
+
+
+# ============================================================================ paper Table A5
+
+# Table A5 of Kang & Jung (2024), "Real Position (a)", cm.  The table prints z = 681.17 and 682.70
+# for QR 9 and QR 10 with y = 190.90 and 180.30; every other code lies in a row at y = 2.9, 5.0 or
+# 6.8 m and below 2.9 m height, and QR 9 then sits right under QR 8 (x = 3.83 m, y = 6.75 m), so we
+# read those two rows as y and z swapped: QR 9 = (387.40, 681.17, 190.90), QR 10 = (808.10,
+# 682.70, 180.30).
+PAPER_A5_CM = [(32.50, 285.30, 236.50), (32.50, 286.40, 126.40), (823.46, 291.40, 75.60),
+               (399.20, 291.20, 171.31), (27.00, 500.10, 82.40), (604.00, 498.20, 73.54),
+               (26.50, 683.80, 78.10), (382.90, 675.10, 286.30), (387.40, 681.17, 190.90),
+               (808.10, 682.70, 180.30)]
+
+
+def _paper_a5(name: str, resolution, mount: str) -> Scenario:
+    """The ten load codes of the paper's Table A5, each visited and hovered in front of.
+
+    Each code hangs on a face whose outward normal is world -y (the codes form rows at y = 2.9,
+    5.0 and 6.8 m).  The drone hovers at the code's x and height (the paper's MatchedMapping
+    case, assumption 8: front camera perpendicular to the code, centres aligned), facing +y, at
+    the largest y on the 0.5 m floor grid that is at least 0.9 m in front of the face (0.9-1.4 m).
+    Floor: 0.25 m codes on a 0.5 m grid (payload_unit_m = 0.5), x = -1..9.5, y = 0..7 m, so that
+    a code is in full view of the floor camera at the lowest hover (0.74 m, 0.8 m x 0.6 m
+    footprint) and still has 2.3 px modules at the highest (2.86 m).  Load codes 0.15 m.  Flight:
+    take-off, the codes in table order with a 2.5 s hover each, landing; about 100 s.  Blackouts
+    on the floor camera during three transits (0.5, 1, 2 s)."""
+    world = World(0.25, 0.5, 0.15, (-1.0, 9.5), (0.0, 7.0))
+    floor = [(i, j) for i in range(-2, 20) for j in range(0, 15)]
+    loads = [LoadCode(f"QR{k + 1}", (x / 100, y / 100, z / 100), -math.pi / 2)
+             for k, (x, y, z) in enumerate(PAPER_A5_CM)]
+    layout = Layout(world, np.array(floor, dtype=float), loads)
+    up = math.pi / 2
+    g = GROUND_Z_M
+    wps = [(0.5, 1.0, g, up, 0.8)]
+    for l in loads:
+        x, y, z = l.p_world
+        y_hover = math.floor((y - 0.9) / 0.5) * 0.5
+        wps.append((x, y_hover, z, up, 2.5))
+    wps.append((wps[-1][0], wps[-1][1], g, up, 0.5))
+    traj = KeyframeTrajectory(survey_keyframes(wps, speed_m_s=0.6, yaw_rate_rad_s=0.5))
+    kf = traj.keyframes
+    # blackouts in the middle of three transits (between the hover keyframes)
+    mids = [0.5 * (kf[i].t_s + kf[i + 1].t_s) for i in (4, 8, 12)]
+    blackouts = [(mids[0] - 0.25, mids[0] + 0.25, "glare"), (mids[1] - 0.5, mids[1] + 0.5, "torn"),
+                 (mids[2] - 1.0, mids[2] + 1.0, "shadow")]
+    return Scenario(name, layout, make_cameras(resolution, mount), traj, traj.duration_s, blackouts)
+
+
+def build_scenario(name: str = "default", resolution=(640, 480)) -> Scenario:
+    """The scenario called `name` at camera `resolution` (width, height); raises SimulationError."""
+    if isinstance(resolution, str):
+        if resolution not in RESOLUTIONS:
+            raise SimulationError(f"unknown resolution {resolution!r}; expected one of {list(RESOLUTIONS)}")
+        resolution = RESOLUTIONS[resolution]
+    w, h = (int(v) for v in resolution)
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise SimulationError(f"bad camera resolution {w}x{h}")
+    if name == "default":
+        return _default(name, (w, h), "body_fixed")
+    if name == "gimbaled":
+        return _default(name, (w, h), "gimbaled")
+    if name == "paper_a5":
+        return _paper_a5(name, (w, h), "body_fixed")
+    raise SimulationError(f"unknown scenario {name!r}; expected one of {SCENARIOS}")
