@@ -142,9 +142,10 @@ def _cell_in(code: SheetCode, n_modules: int) -> tuple[float, float, float]:
 def layout_pages(codes: list[SheetCode], page: str, title: str) -> list[SheetPage]:
     """Flow codes row by row onto pages (left to right, top to bottom); sets each x_in / y_in.
     A code whose cell (symbol + quiet zone + caption) does not fit on a page raises QRSheetError."""
-    if page not in PAGES_MM:
+    sizes = {k.lower(): v for k, v in PAGES_MM.items()}
+    if not isinstance(page, str) or page.lower() not in sizes:
         raise QRSheetError(f"unknown page size {page!r} (known: {', '.join(PAGES_MM)})")
-    W, H = (v / MM_PER_INCH for v in PAGES_MM[page])
+    W, H = (v / MM_PER_INCH for v in sizes[page.lower()])
     m = MARGIN_MM / MM_PER_INCH
     left, right = m, W - m
     top, bottom = H - m - HEADER_MM / MM_PER_INCH, m + FOOTER_MM / MM_PER_INCH

@@ -72,6 +72,7 @@ def test_constant_offset_gives_known_axis_errors():
     ax = m["axis"]
     assert [ax["mae_x_cm"], ax["mae_y_cm"], ax["mae_z_cm"]] == pytest.approx([1.0, 2.0, 3.0])
     assert [ax["bias_x_m"], ax["bias_y_m"], ax["bias_z_m"]] == pytest.approx(offset.tolist())
+    assert m["mae_xyz_m"] == pytest.approx(np.abs(offset).tolist())
     assert m["ate"]["ate_rmse_m"] == pytest.approx(np.linalg.norm(offset))
     # an SE(3) fit removes a constant offset; relative errors do not see it
     assert m["ate_aligned"]["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
@@ -195,6 +196,7 @@ def test_load_map_errors_per_axis_and_nees():
     assert r["axis"]["mae_x_cm"] == pytest.approx(1.0)
     assert r["axis"]["mae_y_cm"] == pytest.approx(1.0)
     assert r["axis"]["mae_z_cm"] == pytest.approx(3.0)
+    assert r["mae_xyz_m"] == pytest.approx([0.01, 0.01, 0.03])
     assert r["per_load"]["A"]["nees"] == pytest.approx(3.0)   # one sigma on each axis
     assert r["per_load"]["B"]["nees"] is None
     assert r["nees_3dof"]["n"] == 1

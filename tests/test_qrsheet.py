@@ -83,6 +83,8 @@ def test_unprintable_load_id_is_refused(tmp_path, bad):
 def test_impossible_sheets_raise_clear_errors(tmp_path):
     with pytest.raises(QRSheetError, match="A4"):
         write_qr_sheet(tmp_path / "s.pdf", grid=(1, 1), side_m=0.20, page="A4")
+    assert write_qr_sheet(tmp_path / "letter.pdf", grid=(1, 1), side_m=0.05, page="letter") == 1
+    (tmp_path / "letter.pdf").unlink()
     with pytest.raises(QRSheetError, match="page size"):
         write_qr_sheet(tmp_path / "s.pdf", grid=(1, 1), side_m=0.05, page="B9")
     with pytest.raises(QRSheetError, match="twice"):

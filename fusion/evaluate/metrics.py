@@ -485,6 +485,7 @@ def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
             "missing_ids": sorted(set(loads_gt) - set(est)),
             "extra_ids": sorted(set(est) - set(loads_gt)),
             "axis": asdict(axis_errors(E)),
+            "mae_xyz_m": [float(v) for v in np.mean(np.abs(E), axis=0)] if len(E) else None,
             "error_norm": {f"{k}_m": v for k, v in norm.items()},
             "nees_3dof": asdict(nees_record(np.asarray(nees), 3)),
             "per_load": per_load}
@@ -508,6 +509,10 @@ def trajectory_metrics(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray
         return out
     out["axis"] = asdict(axis_errors(a.position_errors_m))
     out["ate"] = asdict(ate(a))
+    # headline figures, flat, for terminal summaries
+    out["mae_xyz_m"] = [out["axis"][f"mae_{k}_m"] for k in AXES]
+    out["mae_yaw_deg"] = yaw_errors(a).yaw_mae_deg
+    out["ate_rmse_m"] = out["ate"]["ate_rmse_m"]
     if align and len(a) >= 3:
         out["ate_aligned"] = asdict(ate(a, align=True))
     out["yaw"] = asdict(yaw_errors(a))
