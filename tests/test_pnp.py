@@ -160,6 +160,21 @@ def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
     assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
 
 
+def test_gimbaled_yaw_and_position_covariance_is_consistent():
+    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
+                      T_body_cam=FLOOR_CAM.T_body_cam, mount="gimbaled")
+    rng = np.random.default_rng(17)
+    nees = []
+    for _ in range(150):
+        T_tilted = body_pose(0.5, 0.5, 2.6, -60.0, roll_deg=rng.normal(0, 8), pitch_deg=rng.normal(0, 8))
+        res = estimate_floor_pose(floor_of(floor_dets(T_tilted, FOUR, camera=cam, rng=rng,
+                                                      sigma=SIGMA)), cam, SIGMA)
+        xi = local(make_T(rot_z(math.radians(-60.0)), [0.5, 0.5, 2.6]), res.T_world_body)
+        assert abs(xi[0]) < 1e-9 and abs(xi[1]) < 1e-9        # the level frame, exactly
+        nees.append(xi[2:] @ np.linalg.solve(res.covariance[2:, 2:], xi[2:]))
+    assert 0.5 * 4 <= np.mean(nees) <= 2.0 * 4, np.mean(nees)
+
+
 def test_edge_implied_yaw_is_close_to_truth_for_tilted_views():
     for yaw in (-170.0, -45.0, 0.0, 90.0, 178.0):
         T = aim(body_pose(0, 0, 1.5, yaw, roll_deg=15.0, pitch_deg=-15.0), (0.05, 0.0))
