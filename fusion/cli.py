@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unit", type=float, default=1.0, help="payload unit in m (default 1.0)")
     p.add_argument("--loads", nargs="*", default=[], help="load ids to print as labels")
     p.add_argument("--load-side", type=float, default=0.15, help="load code side in m")
-    p.add_argument("--page", default="A4", choices=("A4", "A3", "letter"))
+    p.add_argument("--page", default="A3", choices=("A4", "A3", "letter"),
+                   help="paper size (default A3: a 0.20 m code with its quiet zone exceeds A4)")
     return parser
 
 

@@ -76,7 +76,7 @@ class RunResult:
                          f"{(f'{yaw:8.3f}' if yaw is not None else f'{chr(45):>8}')} "
                          f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')}")
         for name, lm in self.load_maps.items():
-            m = (self.metrics or {}).get("loads", {}).get(name, {})
+            m = (self.metrics or {}).get("load_maps", {}).get(name, {})
             mae = m.get("mae_xyz_m")
             err = (f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm"
                    if mae else "")
@@ -106,3 +106,274 @@ def prepare_out_dir(out_dir: Path, force: bool) -> Path:
         raise OutputError(f"{out_dir}: output folder exists; use --force to write into it")
     out_dir.mkdir(parents=True, exist_ok=True)
     return out_dir
+
+
+# ============================================================================ stages
+
+
+@dataclass
+class LocalizeResult:
+    """Per-frame (raw) estimates: trajectories, load observations and load maps by estimator."""
+    trajectories: dict[str, Trajectory]
+    load_observations: dict[str, list[LoadObservation]]
+    load_maps: dict[str, LoadMap]
+    stats: dict
+    notes: list[str] = field(default_factory=list)
+
+
+def detection_statistics(log: FlightLog, det, world) -> dict:
+    """Frames with a (valid) floor code, codes per frame, rejected payloads by reason."""
+    from fusion.qr.codes import classify, rejection_counts
+    floor = det.by_frame("cam0")
+    classified = {t: classify(d, world) for t, d in floor.items()}
+    n_valid = [len(c.floor) for c in classified.values() if c.floor]
+    front = det.by_frame("cam1") if log.front is not None else {}
+    classified_front = [classify(d, world) for d in front.values()]
+    rejected = rejection_counts(list(classified.values()) + classified_front)
+    return {
+        "backend": det.backend, "from_cache": bool(det.from_cache),
+        "floor_frames": len(log.floor),
+        "floor_frames_with_code": len(n_valid),
+        "floor_frames_with_code_fraction": len(n_valid) / max(1, len(log.floor)),
+        "floor_codes_per_frame_with_code": float(np.mean(n_valid)) if n_valid else 0.0,
+        "front_frames": len(log.front) if log.front is not None else 0,
+        "front_frames_with_load_code": sum(1 for c in classified_front if c.loads),
+        "load_sightings": sum(len(c.loads) for c in classified_front),
+        "frames_skipped": len(det.skipped),
+        "skipped_messages": det.skipped[:20],
+        "rejected_total": int(sum(rejected.values())),
+        "rejected_by_reason": rejected,
+    }
+
+
+def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
+    """The two per-frame estimators on every floor frame, and load observations from cam1."""
+    from fusion.qr import paper, pnp
+    notes: list[str] = []
+    floor_frames = det.by_frame("cam0")
+    trajectories: dict[str, Trajectory] = {}
+    obs: dict[str, list[LoadObservation]] = {}
+    maps: dict[str, LoadMap] = {}
+    stats: dict = {}
+    try:
+        trajectories["paper"] = paper.paper_trajectory(floor_frames, log.floor.camera, log.world,
+                                                       cfg.th_px)
+    except EstimationError as e:
+        notes.append(f"paper estimator not run: {e}")
+    traj_pnp, pnp_stats = pnp.pnp_trajectory(floor_frames, log.floor.camera, log.world,
+                                             cfg.corner_sigma_px)
+    trajectories["pnp"] = traj_pnp
+    stats["pnp"] = {k: v for k, v in vars(pnp_stats).items()}
+    if log.front is None:
+        notes.append("no front camera (mav0/cam1) in this log: no load map")
+        return LocalizeResult(trajectories, obs, maps, stats, notes)
+    front_frames = det.by_frame("cam1")
+    cam1 = log.front.camera
+    if "paper" in trajectories:
+        try:
+            obs["paper"] = paper.paper_load_observations(front_frames, cam1, log.world,
+                                                         trajectories["paper"], cfg.th_px)
+            maps["paper"] = paper.aggregate_loads(obs["paper"], name="paper")
+        except EstimationError as e:
+            notes.append(f"paper load mapping not run: {e}")
+    obs["pnp"] = pnp.pnp_load_observations(front_frames, cam1, log.world, traj_pnp,
+                                           cfg.corner_sigma_px)
+    maps["pnp"] = pnp.aggregate_load_observations(obs["pnp"], name="pnp")
+    # every load sighting with a camera-frame measurement, whether or not a raw pose existed
+    # at that frame: the landmark factors of the fusion back end need no per-frame pose
+    obs["camera_frame"] = _camera_frame_load_observations(front_frames, cam1, log.world,
+                                                          cfg.corner_sigma_px)
+    return LocalizeResult(trajectories, obs, maps, stats, notes)
+
+
+def _camera_frame_load_observations(front_frames, camera, world, sigma_px) -> list[LoadObservation]:
+    from fusion.qr.codes import classify
+    from fusion.qr.pnp import estimate_load_observations
+    out = []
+    for ts in sorted(front_frames):
+        codes = classify(front_frames[ts], world)
+        if codes.loads:
+            out.extend(estimate_load_observations(codes.loads, camera, world, np.eye(4), None,
+                                                  sigma_px))
+    return out
+
+
+def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig) -> tuple[dict, list[str]]:
+    """Smoother, incremental smoother and EKF on the PnP poses; {name: FusionResult}, notes."""
+    from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
+    notes: list[str] = []
+    raw = loc.trajectories["pnp"]
+    if len(raw) == 0:
+        return {}, ["no floor code was read in this flight: nothing to fuse (no fused estimate)"]
+    if log.imu is None and log.velocity is None:
+        return {}, ["the log has neither IMU nor velocity: raw per-frame estimates only"]
+    if log.imu is None:
+        notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
+    if cfg.tight:
+        notes.append("--tight is not implemented by the back end yet: loosely coupled fusion used")
+    fcfg = FusionConfig(robust_kernel=cfg.robust)
+    load_obs = loc.load_observations.get("camera_frame")
+    T_bc = log.front.camera.T_body_cam if log.front is not None else np.eye(4)
+    frame_t = log.floor.timestamps_ns
+    solvers = [("smoother", smooth), ("ekf", run_ekf)]
+    if cfg.incremental:
+        solvers.insert(1, ("incremental", smooth_incremental))
+    results = {}
+    for name, fn in solvers:
+        try:
+            res = fn(frame_t, log.imu, raw, load_obs, T_bc, velocity=log.velocity, config=fcfg)
+        except EstimationError as e:
+            notes.append(f"{name} not run: {e}")
+            continue
+        res.trajectory.name = name
+        res.loads.name = name
+        results[name] = res
+    return results, notes
+
+
+def write_load_observations_csv(path: Path, observations: list[LoadObservation]) -> None:
+    """Raw per-frame load observations: `timestamp_ns,id,x_m,y_m,z_m,sigma_x_m,sigma_y_m,sigma_z_m`."""
+    import csv
+
+    from fusion.fileio import atomic_open
+    with atomic_open(path) as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["timestamp_ns", "id", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m"])
+        for o in observations:
+            sig = np.sqrt(np.diag(o.cov_world)) if o.cov_world is not None else None
+            w.writerow([int(o.timestamp_ns), o.load_id, *(f"{v:.6f}" for v in o.p_world),
+                        *(("", "", "") if sig is None else (f"{s:.6f}" for s in sig))])
+
+
+def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str = "run") -> RunResult:
+    """Run the pipeline on a logged flight up to stage `until` (detect, localize, smooth, run)."""
+    from fusion.qr.detect import detect_flight
+    cfg = cfg or RunConfig()
+    if until not in STAGES:
+        raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    log = read_flight(log_dir)
+    out_dir = prepare_out_dir(out_dir, cfg.force)
+    result = RunResult(out_dir, log_summary(log))
+    timings["read_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    det = detect_flight(log, cache_path=out_dir / "detections.csv", backend=cfg.backend,
+                        workers=cfg.workers, progress=cfg.progress)
+    result.detection_stats = detection_statistics(log, det, log.world)
+    timings["detect_s"] = time.perf_counter() - t
+    if det.skipped:
+        result.notes.append(f"{len(det.skipped)} frame(s) skipped (missing or unreadable image); "
+                            f"first: {det.skipped[0]}")
+    if until == "detect":
+        result.timings_s = timings
+        return result
+
+    t = time.perf_counter()
+    _progress(cfg, "per-frame estimators (paper, pnp)")
+    loc = localize_stage(log, det, cfg)
+    result.notes += loc.notes
+    result.trajectories.update(loc.trajectories)
+    result.load_maps.update(loc.load_maps)
+    for name, obs in loc.load_observations.items():
+        if name in RAW_ESTIMATORS:
+            write_load_observations_csv(out_dir / f"load_observations_{name}.csv", obs)
+    timings["localize_s"] = time.perf_counter() - t
+
+    fused_stats = {}
+    if until in ("smooth", "run"):
+        t = time.perf_counter()
+        _progress(cfg, "fusion (smoother, incremental, ekf)")
+        fused, notes = fuse_stage(log, loc, cfg)
+        result.notes += notes
+        for name, res in fused.items():
+            result.trajectories[name] = res.trajectory
+            if log.front is not None:
+                result.load_maps[name] = res.loads
+            fused_stats[name] = res.stats
+        timings["fuse_s"] = time.perf_counter() - t
+
+    _write_estimates(out_dir, result)
+    if until == "run":
+        t = time.perf_counter()
+        _progress(cfg, "evaluation and report")
+        _evaluate_and_report(log, result, fused_stats, loc.stats)
+        timings["report_s"] = time.perf_counter() - t
+    result.timings_s = timings
+    return result
+
+
+def _progress(cfg: RunConfig, what: str) -> None:
+    if cfg.progress:
+        import sys
+        print(f"fusion: {what} ...", file=sys.stderr, flush=True)
+
+
+def _write_estimates(out_dir: Path, result: RunResult) -> None:
+    from fusion.estimate import write_sigmas_csv
+    for name, traj in result.trajectories.items():
+        write_tum(out_dir / f"trajectory_{name}.tum", traj)
+        if traj.covariances is not None and len(traj):
+            write_sigmas_csv(out_dir / f"sigmas_{name}.csv", traj)
+    for name, lm in result.load_maps.items():
+        write_loads_csv(out_dir / f"loads_{name}.csv", lm)
+        write_loads_json(out_dir / f"loads_{name}.json", lm)
+
+
+def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
+                         raw_stats: dict) -> None:
+    from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, write_metrics
+    from fusion.evaluate.report import write_report
+    from fusion.evaluate.metrics import to_jsonable
+    out_dir = result.out_dir
+    gt = log.groundtruth
+    if gt is None:
+        result.notes.append("no ground truth in this log: no metrics (report without errors)")
+    metrics = evaluate(gt, result.trajectories, result.load_maps, log.loads_groundtruth,
+                       log.blackouts, result.detection_stats)
+    metrics["estimator_stats"] = to_jsonable({**raw_stats, **fused_stats})
+    metrics["notes"] = list(result.notes)
+    if gt is not None:
+        export_groundtruth_tum(gt, out_dir / "trajectory_groundtruth.tum")
+        write_metrics(out_dir / "metrics.json", metrics)
+        result.metrics = metrics
+    floor_xy = _floor_codes_seen(out_dir, log)
+    summary = dict(result.log_summary, payload_unit_m=log.world.payload_unit_m,
+                   detection=result.detection_stats)
+    result.report_path = write_report(out_dir, metrics, result.trajectories, result.load_maps,
+                                      gt, log.loads_groundtruth, log.blackouts, summary,
+                                      floor_codes_xy_m=floor_xy)
+
+
+def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
+    """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
+    from fusion.conventions import FloorPayload, parse_payload
+    from fusion.errors import PayloadError
+    from fusion.qr.detect import read_cache
+    cached = read_cache(out_dir / "detections.csv")
+    if cached is None:
+        return None
+    xy = set()
+    for d in cached.for_camera("cam0"):
+        try:
+            p = parse_payload(d.payload)
+        except PayloadError:
+            continue
+        if isinstance(p, FloorPayload):
+            xy.add((p.x * log.world.payload_unit_m, p.y * log.world.payload_unit_m))
+    return np.array(sorted(xy)) if xy else None
+
+
+def demo(folder: Path = Path("demo-flight"), duration_s: float | None = None, seed: int = 0,
+         progress: bool = True) -> RunResult:
+    """Simulate the default flight into `folder/log` (kept and reused if it is already there and
+    complete) and run the whole pipeline into `folder/out` (replaced)."""
+    from fusion.sim.simulate import simulate
+    folder = Path(folder)
+    log_dir = folder / "log"
+    if not (log_dir / "world.yaml").exists():
+        _progress(RunConfig(progress=progress), f"simulating the default flight into {log_dir}")
+        simulate(log_dir, scenario="default", duration_s=duration_s, seed=seed, overwrite=True,
+                 progress=progress)
+    return run(log_dir, folder / "out", RunConfig(progress=progress, force=True))
