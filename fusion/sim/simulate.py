@@ -113,12 +113,13 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
              seed: int = 0, overwrite: bool = False, progress: bool = True,
              workers: int | None = None, resolution=(640, 480), camera_rate_hz: float = CAMERA_RATE_HZ,
              noise_sigma_dn: float | None = None, png_compression: int = 1,
-             check_readable: bool = False) -> SimulationResult:
+             check_readable: bool = False, start_s: float = 0.0) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
     synchronised; imu0 200 Hz; vel0 30 Hz; ground truth at the IMU rate with the true biases;
     loads_groundtruth.csv; blackouts_groundtruth.csv).
 
+    `start_s` skips the start of the flight (timestamps stay the trajectory's time in ns).
     Deterministic for a seed.  `workers` processes render (None: all cores).  `check_readable`
     runs zxing-cpp on every floor frame and reports the fraction with a readable floor code.
     Raises SimulationError for an unknown scenario or a bad duration, LogError if `out_dir`
@@ -135,9 +136,11 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
         raise SimulationError(f"duration {duration_s!r} is not a number") from None
     if not (math.isfinite(duration_s) and duration_s > 0):
         raise SimulationError(f"duration must be a positive number of seconds, got {duration_s}")
-    if duration_s > sc.trajectory.duration_s + 1e-9:
+    if not (isinstance(start_s, (int, float)) and math.isfinite(start_s) and start_s >= 0):
+        raise SimulationError(f"start must be a non-negative number of seconds, got {start_s!r}")
+    if start_s + duration_s > sc.trajectory.duration_s + 1e-9:
         raise SimulationError(f"scenario {scenario!r} flies {sc.trajectory.duration_s:.1f} s; "
-                              f"duration {duration_s} s is longer")
+                              f"start {start_s} s + duration {duration_s} s is longer")
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
     if noise_sigma_dn is not None:
@@ -151,20 +154,21 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
 
     imu, bias_g, bias_a = synthesize_imu(traj, sc.imu_rate_hz, sc.imu_noise,
                                          np.random.default_rng([seed, _STREAM_IMU]))
-    keep = imu.timestamps_ns <= round(duration_s * 1e9)
+    t0_ns, t1_ns = int(round(start_s * 1e9)), int(round((start_s + duration_s) * 1e9))
+    keep = (imu.timestamps_ns >= t0_ns) & (imu.timestamps_ns <= t1_ns)
     imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (imu.timestamps_ns[keep],
                                                          imu.gyro_rad_s[keep], imu.accel_m_s2[keep])
     bias_g, bias_a = bias_g[keep], bias_a[keep]
     vel = synthesize_velocity(traj, sc.velocity_rate_hz, sc.velocity_noise_m_s,
                               np.random.default_rng([seed, _STREAM_VEL]))
-    keep = vel.timestamps_ns <= round(duration_s * 1e9)
+    keep = (vel.timestamps_ns >= t0_ns) & (vel.timestamps_ns <= t1_ns)
     vel.timestamps_ns, vel.v_body_m_s = vel.timestamps_ns[keep], vel.v_body_m_s[keep]
     st = traj.state(imu.timestamps_ns * 1e-9)
     gt = GroundTruth(imu.timestamps_ns, st.p_world, quat_wxyz_from_R(st.R_world_body), st.v_world,
                      bias_g, bias_a)
-    blackouts = [(int(round(a * 1e9)), int(round(min(b, duration_s) * 1e9)), kind)
-                 for a, b, kind in sc.blackouts if a < duration_s]
-    frame_ns = sample_times_ns(duration_s, camera_rate_hz)
+    blackouts = [(max(int(round(a * 1e9)), t0_ns), min(int(round(b * 1e9)), t1_ns), kind)
+                 for a, b, kind in sc.blackouts if a * 1e9 < t1_ns and b * 1e9 > t0_ns]
+    frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
 
     readable: list[bool] = []
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
