@@ -97,11 +97,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if args.command == "simulate":
-            from fusion.sim import simulate
+            from fusion.sim.simulate import simulate
             res = simulate(args.out, scenario=args.scenario, duration_s=args.duration,
                            seed=args.seed, overwrite=args.force, progress=not args.quiet,
                            workers=args.workers)
-            print(res.summary() if hasattr(res, "summary") else f"wrote {args.out}")
+            print(f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
+                  f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
+                  f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
+                  f"{res.wall_time_s:.1f} s wall time")
         elif args.command in ("detect", "localize", "smooth", "run"):
             from fusion import pipeline
             result = pipeline.run(args.log, args.out, _run_config(args), until=args.command)
