@@ -62,9 +62,7 @@ def test_corner_order_follows_the_finder_patterns(backend, yaw_deg):
     dist = np.linalg.norm(d.corners_raw_px[:, None] - gt[None], axis=2)
     assert np.all(np.argmin(dist, axis=1) == np.arange(4))
     assert np.all(np.diag(dist) < 4.0)
-    err = np.linalg.norm(d.corners_px - gt, axis=1)
-    # the bottom-right corner has no finder: it is extrapolated from the TR and BL finders' edges
-    assert np.all(err[[0, 1, 3]] < 0.15) and err[2] < 0.5
+    assert np.max(np.linalg.norm(d.corners_px - gt, axis=1)) < 0.2
 
 
 # ============================================================================ accuracy
@@ -84,8 +82,8 @@ def test_refined_corners_within_a_fraction_of_a_pixel_on_clean_renders():
             err_ref.append(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))
     err_raw, err_ref = np.array(err_raw), np.array(err_ref)
     assert len(err_ref) >= 10
-    assert err_ref.mean() < 0.1            # measured 0.04 px (raw zxing: 0.7-1.0 px)
-    assert err_ref[:, [0, 1, 3]].max() < 0.2 and err_ref[:, 2].max() < 0.5
+    assert err_ref.mean() < 0.1            # measured 0.02 px (raw zxing: 0.7-1.0 px)
+    assert err_ref.max() < 0.25
     assert err_raw.mean() > 3 * err_ref.mean()
 
 
@@ -114,6 +112,21 @@ def test_module_count_estimated_from_the_finders(payload):
     a = refine_corners_or_none(img, raw.corners_px, None)
     b = refine_corners_or_none(img, raw.corners_px, raw.modules)
     assert a is not None and np.allclose(a, b)
+
+
+def test_finder_homography_improves_the_bottom_right_corner():
+    camera = _camera((-0.2, 0.05, 0.0, 0.0))
+    err = {True: [], False: []}
+    for yaw in np.linspace(0.0, 2.0 * np.pi, 9)[:-1]:
+        T = _pose(yaw, tilt=(0.12 * np.sin(yaw), 0.12 * np.cos(yaw)))
+        img, truth = _render(camera, T, [_code("0/7/7", 0.2)], noise=1.0, seed=int(10 * yaw))
+        [raw] = detect_image(img)
+        for fh in err:
+            c = refine_corners(img, raw.corners_px, raw.modules, camera, finder_homography=fh)
+            err[fh].append(np.linalg.norm(c - truth["0/7/7"], axis=1))
+    with_h, lines_only = np.array(err[True]), np.array(err[False])
+    assert with_h[:, 2].mean() < 0.5 * lines_only[:, 2].mean()
+    assert with_h.max() < 0.2
 
 
 def test_refinement_failure_falls_back_to_the_raw_corners():
