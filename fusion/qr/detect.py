@@ -71,7 +71,7 @@ class CameraStats:
     frames_skipped: int = 0        # missing / unreadable images
     frames_with_code: int = 0      # frames with at least one kept detection
     detections: int = 0
-    payloads_dropped: int = 0      # non-UTF-8 payloads
+    payloads_dropped: int = 0      # non-UTF-8 payloads (aruco: frames where OpenCV's decoder threw)
     refine_failed: int = 0         # detections whose corners stayed the decoder's
 
     def add(self, other: "CameraStats") -> None:
@@ -141,7 +141,12 @@ def _aruco(image: np.ndarray) -> tuple[list[RawCode], int]:
     global _ARUCO
     if _ARUCO is None:
         _ARUCO = cv2.QRCodeDetectorAruco()
-    ok, texts, points, _ = _ARUCO.detectAndDecodeMulti(image)
+    try:
+        ok, texts, points, _ = _ARUCO.detectAndDecodeMulti(image)
+    except cv2.error:
+        # OpenCV 5.0's decoder asserts on some malformed symbols ("idx < data.size()"):
+        # the frame's codes are lost, counted as one dropped payload
+        return [], 1
     if not ok or points is None:
         return [], 0
     codes = []
