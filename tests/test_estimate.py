@@ -280,6 +280,10 @@ def test_outliers_rejected_by_robust_kernel():
     assert rmse(dirty) < 1.2 * rmse(clean), (rmse(dirty), rmse(clean))
     assert dirty.stats["rejected_pose_factors"] >= len(bad)
     assert dirty.stats["rejected_pose_factors"] <= len(bad) + 3
+    assert dirty.stats["gated_pose_factors"] == len(bad)
+    assert clean.stats["gated_pose_factors"] == 0
+    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [], T_BODY_FRONTCAM)
+    assert ekf.stats["gated_updates"] >= len(bad) - 1
 
 
 def test_paper_input_position_yaw_only():

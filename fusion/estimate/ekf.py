@@ -6,7 +6,7 @@ and 6) with filterpy holding the 15-d error state and its covariance:
     x = [dtheta (IMU-frame rotation, right perturbation), dp (world), dv (world), dbg, dba]
 
 The nominal state is the IMU frame's pose T_world_imu, world velocity and the biases; it is
-propagated by strapdown at the IMU rate (samples held constant until the next one, as in the
+propagated by strapdown at the IMU rate (the signal at each sub-interval's midpoint, as in the
 smoother), so an IMU mounted off the body frame needs no lever-arm approximation; outputs and
 measurements are mapped to the body with T_body_imu (Pose3 adjoint).  After each update the
 error is injected into the nominal state and reset to zero (reset Jacobian taken as identity).
@@ -15,8 +15,9 @@ Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or th
 position + yaw (yaw wrap-around handled by filterpy's `residual` hook), and body velocity.  The
 update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
 Outliers: the measurement covariance is inflated by the robust kernel's IRLS weight at the
-innovation's Mahalanobis distance (huber: d/k, cauchy: 1+(d/k)^2, tukey: rejected beyond k);
-updates with d > k are counted as rejected.
+innovation's Mahalanobis distance d (huber: d/k, cauchy: 1+(d/k)^2, tukey: skipped beyond k);
+updates with d > k are counted as rejected (`rejected_pose_factors`, all updates), those with
+d > FusionConfig.outlier_gate are skipped (`gated_updates`).
 
 Where no IMU data covers an interval (gap, IMU that stops early) the prediction is a random walk
 (constant velocity, constant rotation; process noise from FusionConfig.bridge_*), counted.
@@ -75,6 +76,7 @@ class _Ekf:
         self.ba = np.zeros(3)
         self.omega = np.zeros(3)    # last bias-corrected rate (IMU frame), for velocity updates
         self.rejected = 0
+        self.gated = 0
 
     # ------------------------------------------------------------------ state <-> body pose
     def T_world_body(self) -> np.ndarray:
@@ -148,6 +150,9 @@ class _Ekf:
         if d <= k or kernel == "none":
             return Rm
         self.rejected += 1
+        if self.config.outlier_gate is not None and d > self.config.outlier_gate:
+            self.gated += 1
+            return None
         if kernel == "huber":
             return Rm * (d / k)
         if kernel == "cauchy":
@@ -256,11 +261,12 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     sub: dict[int, list] = {}
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
-        k_of, i_of, dts = imu_subintervals(frame_t, imu, covered)
+        k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
         cut = np.flatnonzero(np.diff(k_of)) + 1
-        for ks, iss, ds in zip(np.split(k_of, cut), np.split(i_of, cut), np.split(dts, cut)):
+        for ks, ds, gs, as_ in zip(np.split(k_of, cut), np.split(dts, cut), np.split(gyr, cut),
+                                   np.split(acc, cut)):
             if len(ks):
-                sub[int(ks[0])] = list(zip(iss.tolist(), ds.tolist()))
+                sub[int(ks[0])] = list(zip(as_, gs, ds.tolist()))
     noise = imu.noise if imu is not None else None
 
     T_out = np.empty((n - k0, 4, 4))
@@ -269,8 +275,8 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     for k in range(k0, n):
         if k > k0:
             if covered[k - 1]:
-                for i, dt in sub[k - 1]:
-                    f.predict_imu(imu.accel_m_s2[i], imu.gyro_rad_s[i], dt, noise)
+                for acc_s, gyr_s, dt in sub[k - 1]:
+                    f.predict_imu(acc_s, gyr_s, dt, noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         m = raw_at.get(k)
@@ -289,7 +295,7 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
 
     loads = _map_loads(frame_t, load_obs, T_bc, T_out, cov_out, k0, config)
     stats = {"frames_before_first_fix": k0, "pose_updates": n_pose_updates,
-             "rejected_pose_factors": f.rejected, "robust_kernel": config.robust_kernel,
+             "rejected_pose_factors": f.rejected, "gated_updates": f.gated, "robust_kernel": config.robust_kernel,
              "imu_intervals": int(covered.sum()), "bridged_intervals": int((~covered).sum()),
              "time_s": time.perf_counter() - t_start}
     if imu is not None:
