@@ -60,8 +60,9 @@ def modules_for_version(version: int) -> int:
 def homography_from_corners(corners_px: np.ndarray, modules: float) -> np.ndarray:
     """3x3 H mapping module coordinates (u, v, 1) to pixels, from the 4 corners TL, TR, BR, BL."""
     n = float(modules)
-    src = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], dtype=np.float64)
-    return homography_4pt(src, corners_px)
+    src = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]], dtype=np.float32)
+    # float32 (OpenCV 5 accepts nothing else): 1e-4 px, ample for laying out profiles
+    return cv2.getPerspectiveTransform(src, np.asarray(corners_px, dtype=np.float32))
 
 
 def homography_4pt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -120,7 +121,7 @@ class _Distortion:
 
 
 @lru_cache(maxsize=64)
-def _layout(n: float) -> tuple[np.ndarray, ...]:
+def _layout(n: float, per_span: int) -> tuple[np.ndarray, ...]:
     """Fixed sampling layout for a symbol of n modules: span ends a, b and outward directions
     (6, 2) in module coordinates, and per profile its span, line (0 top, 1 right, 2 bottom,
     3 left) and module position (P, 2).  The six finder edges on the symbol's boundary:
@@ -133,21 +134,21 @@ def _layout(n: float) -> tuple[np.ndarray, ...]:
     a = np.array([sp[1] for sp in spans])
     b = np.array([sp[2] for sp in spans])
     out = np.array([sp[3] for sp in spans])
-    span_of = np.repeat(np.arange(len(spans)), _PROFILES_PER_SPAN)
-    t = np.tile(np.linspace(0.0, 1.0, _PROFILES_PER_SPAN), len(spans))
+    span_of = np.repeat(np.arange(len(spans)), per_span)
+    t = np.tile(np.linspace(0.0, 1.0, per_span), len(spans))
     uv = a[span_of] + t[:, None] * (b - a)[span_of]
     line_of = np.array([sp[0] for sp in spans])[span_of]
     return a, b, out, span_of, line_of, uv
 
 
 def _edge_points(image, dist: _Distortion, H: np.ndarray, n: float, half_width_px: float,
-                 n_offsets: int) -> tuple[np.ndarray, np.ndarray]:
+                 n_offsets: int, per_span: int = _PROFILES_PER_SPAN) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points on the symbol's finder edges (undistorted px) and their line index
     (0 top, 1 right, 2 bottom, 3 left): ((M, 2), (M,)).  Each profile runs from `half_width_px`
     outside the expected edge to as far inside in `n_offsets` samples; the edge point is its first
     crossing, from outside, of the level halfway between the quiet zone (outermost samples) and
     the darkest sample, interpolated linearly.  All profiles are read in one remap."""
-    a, b, out, span_of, line_of, uv = _layout(float(n))
+    a, b, out, span_of, line_of, uv = _layout(float(n), per_span)
     ends = _apply_h(H, np.concatenate([a, b, 0.5 * (a + b) + out]))
     pa, pb, po = ends[:6], ends[6:12], ends[12:]
     d = pb - pa
@@ -260,14 +261,15 @@ def _finder_homography(image, dist: _Distortion, H: np.ndarray, n: float, module
     G = H^-1 with Hartley normalisation, one round of outlier rejection.  None if it fails."""
     uv, out, axis, const, boundary = _finder_layout(float(n))
     base = _apply_h(H, uv)
-    probe = _apply_h(H, uv + 0.05 * out) - base
-    # image normal of the edge through each point: perpendicular to the image of the edge direction
-    along = np.zeros_like(out)
-    along[:, 0], along[:, 1] = out[:, 1], out[:, 0]
-    d = _apply_h(H, uv + 0.05 * along) - base
-    nrm = np.stack([d[:, 1], -d[:, 0]], axis=1)
-    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
-    nrm[np.sum(nrm * probe, axis=1) < 0] *= -1.0
+    # image normal of each edge (straight in undistorted px), pointing to its outer side
+    k = _PROFILES_PER_SPAN
+    first_last = base.reshape(-1, k, 2)[:, [0, -1]]                          # (12, 2, 2)
+    d = first_last[:, 1] - first_last[:, 0]
+    nrm_e = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.hypot(d[:, 0], d[:, 1])[:, None]
+    mid_uv = uv.reshape(-1, k, 2).mean(axis=1)
+    probe = _apply_h(H, mid_uv + 0.1 * out[::k]) - first_last.mean(axis=1)
+    nrm_e[np.sum(nrm_e * probe, axis=1) < 0] *= -1.0
+    nrm = np.repeat(nrm_e, k, axis=0)
     # separator edges: stay within half a module on either side
     half = np.where(boundary, float(np.clip(0.4 * module_px, 2.0, 4.0)), 0.45 * module_px)
     unit = np.linspace(1.0, -1.0, n_offsets)
@@ -356,7 +358,9 @@ def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, module
             half = wide if it == 0 else float(np.clip(0.4 * module_px, 2.0, 4.0))
             step = _FINE_STEP_PX if it > 0 else float(np.clip(half / 16.0, _FINE_STEP_PX, 0.5))
             n_offsets = int(round(2.0 * half / step)) + 1
-        pts, line_of = _edge_points(image, dist, H, n, half, n_offsets)
+        # with stage 2 to follow, stage 1 only has to land within a fraction of a module
+        per_span = 8 if finder_homography else _PROFILES_PER_SPAN
+        pts, line_of = _edge_points(image, dist, H, n, half, n_offsets, per_span)
         lines = _fit_lines(pts, line_of)
         if lines is None:
             return None
