@@ -43,6 +43,7 @@ from fusion.types import QRDetection
 BACKENDS = ("zxing", "aruco")
 FORMAT_VERSION = 1
 CACHE_NAME = "detections.csv"
+REFINE_METHOD = "finder-lines+finder-homography/1"   # change when refine.py's output changes
 CACHE_HEADER = ("camera", "timestamp_ns", "payload",
                 "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                 "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",
@@ -232,7 +233,7 @@ def _detect_chunk(camera_name: str, start: int, stop: int
 def flight_fingerprint(log, backend: str) -> str:
     """sha256 over the cache format, backend, refinement and each camera's data.csv + sensor.yaml."""
     h = hashlib.sha256()
-    h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/refine-finder-lines-2\n".encode())
+    h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/{REFINE_METHOD}\n".encode())
     for name in sorted(log.cameras):
         cam_dir = Path(log.root) / "mav0" / name
         h.update(f"{name}\n".encode())
