@@ -65,20 +65,6 @@ def homography_from_corners(corners_px: np.ndarray, modules: float) -> np.ndarra
     return cv2.getPerspectiveTransform(src, np.asarray(corners_px, dtype=np.float32))
 
 
-def homography_4pt(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """3x3 H (H[2, 2] = 1) with dst ~ H src for 4 point pairs (4, 2), in float64
-    (OpenCV 5's getPerspectiveTransform takes float32 only)."""
-    src = np.asarray(src, dtype=np.float64).reshape(4, 2)
-    dst = np.asarray(dst, dtype=np.float64).reshape(4, 2)
-    A = np.zeros((8, 8))
-    b = dst.reshape(8)
-    for i, ((x, y), (u, v)) in enumerate(zip(src, dst)):
-        A[2 * i] = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]
-        A[2 * i + 1] = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]
-    h = np.linalg.solve(A, b)
-    return np.append(h, 1.0).reshape(3, 3)
-
-
 def _apply_h(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     p = uv @ H[:, :2].T + H[:, 2]
     return p[..., :2] / p[..., 2:3]
