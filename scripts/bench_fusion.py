@@ -8,7 +8,7 @@ the front camera (code centres within 4 m in front of it, 1 / 1 / 2 cm noise).
 
 Prints Markdown tables: accuracy (ATE RMSE vs raw, max error inside each gap length, yaw RMSE,
 NEES) for smoother / incremental / EKF, the 5 %-misread-codes test, and batch time and peak
-memory for 1, 5, 10, 30 minute flights plus incremental / EKF speed vs real time.
+memory (max RSS) for 1, 5, 10, 30 minute flights plus incremental / EKF speed vs real time.
 
     /work/venv/bin/python scripts/bench_fusion.py [--quick] [--durations 1 5 10 30]
 """
@@ -20,7 +20,6 @@ import math
 import resource
 import sys
 import time
-import tracemalloc
 
 import gtsam
 import numpy as np
@@ -175,29 +174,42 @@ def outlier_table(duration_s: float, seed: int) -> None:
                   f"{b.stats['rejected_pose_factors']} / {n_bad} |")
 
 
+def speed_one(d_min: float) -> dict:
+    """Time and memory of one flight length (run in a fresh process so max RSS is its own)."""
+    fl = make_flight(60.0 * d_min, seed=int(d_min))
+    args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], T_BODY_FRONTCAM)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    t0 = time.perf_counter()
+    res = smooth(*args)
+    out = dict(frames=len(fl["frame_t"]), batch_s=time.perf_counter() - t0,
+               rss_before_mb=rss0, rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+    out.update({k: v for k, v in res.stats.items() if k.startswith("time_") or k == "iterations"})
+    del res
+    if d_min <= 10:
+        out["inc_rt"] = smooth_incremental(*args).stats["realtime_factor"]
+        out["ekf_rt"] = run_ekf(*args).stats["realtime_factor"]
+    return out
+
+
 def speed_table(durations_min) -> None:
-    print("\n### Speed and memory (30 Hz frames, 200 Hz IMU, gaps, loads)\n")
+    import json
+    import subprocess
+    print("\n### Speed and memory (30 Hz frames, 200 Hz IMU, gaps, loads; one process per row)\n")
     print("| flight (min) | frames | batch total (s) | build / LM / marginals (s) | LM iters | "
-          "peak traced (MB) | max RSS (MB) | incremental x real time | EKF x real time |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "max RSS before / after batch (MB) | incremental x real time | EKF x real time |")
+    print("|---|---|---|---|---|---|---|---|")
     for d in durations_min:
-        fl = make_flight(60.0 * d, seed=int(d))
-        args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], T_BODY_FRONTCAM)
-        tracemalloc.start()
-        t0 = time.perf_counter()
-        res = smooth(*args)
-        t_batch = time.perf_counter() - t0
-        _, peak = tracemalloc.get_traced_memory()
-        tracemalloc.stop()
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-        s = res.stats
-        inc = ekf = float("nan")
-        if d <= 10:
-            inc = smooth_incremental(*args).stats["realtime_factor"]
-            ekf = run_ekf(*args).stats["realtime_factor"]
-        print(f"| {d:g} | {len(fl['frame_t'])} | {t_batch:.2f} | {s['time_build_s']:.2f} / "
+        code = ("import json, sys; sys.path.insert(0, 'scripts'); import bench_fusion as b; "
+                f"print(json.dumps(b.speed_one({d!r})))")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+        if r.returncode != 0:
+            print(f"| {d:g} | failed: {r.stderr.strip().splitlines()[-1]} |")
+            continue
+        s = json.loads(r.stdout.strip().splitlines()[-1])
+        print(f"| {d:g} | {s['frames']} | {s['batch_s']:.2f} | {s['time_build_s']:.2f} / "
               f"{s['time_optimize_s']:.2f} / {s['time_covariance_s']:.2f} | {s['iterations']} | "
-              f"{peak / 2**20:.0f} | {rss:.0f} | {inc:.1f} | {ekf:.1f} |", flush=True)
+              f"{s['rss_before_mb']:.0f} / {s['rss_mb']:.0f} | {s.get('inc_rt', float('nan')):.1f} | "
+              f"{s.get('ekf_rt', float('nan')):.1f} |", flush=True)
 
 
 def main(argv=None) -> int:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 import time
-import tracemalloc
 from dataclasses import dataclass, field
 
 import gtsam
@@ -33,7 +32,7 @@ import numpy as np
 from fusion.conventions import yaw_of
 from fusion.errors import EstimationError
 from fusion.estimate import graph as G
-from fusion.estimate.common import (FusionConfig, FusionResult, RawPoses, check_imu,
+from fusion.estimate.common import (FusionConfig, FusionResult, check_imu,
                                     check_timestamps, check_velocity, first_velocity,
                                     group_load_obs, initial_poses, initial_velocities,
                                     inlier_raw_mask, prepare_raw, velocity_at_frames)
