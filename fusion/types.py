@@ -23,6 +23,7 @@ class QRDetection:
     payload: str                # raw decoded text (untrusted)
     corners_px: np.ndarray      # (4, 2) refined corners, symbol TL, TR, BR, BL
     corners_raw_px: np.ndarray  # (4, 2) corners as the decoder returned them
+    corner_sigma_px: float | None = None   # 1-sigma noise per corner coordinate (px), if known
 
     @property
     def centre_px(self) -> np.ndarray:
