@@ -125,8 +125,48 @@ def test_finder_homography_improves_the_bottom_right_corner():
             c = refine_corners(img, raw.corners_px, raw.modules, camera, finder_homography=fh)
             err[fh].append(np.linalg.norm(c - truth["0/7/7"], axis=1))
     with_h, lines_only = np.array(err[True]), np.array(err[False])
-    assert with_h[:, 2].mean() < 0.5 * lines_only[:, 2].mean()
-    assert with_h.max() < 0.2
+    assert with_h[:, 2].mean() < 0.75 * lines_only[:, 2].mean()     # measured 0.025 vs 0.038 px
+    assert with_h.mean() < 0.03 and with_h.max() < 0.15
+
+
+def _blurred_renders(blurs, n_per_blur, seed, noise=2.0):
+    """(image, raw corners, true corners, modules, blur px) of one 0.2 m floor code seen from
+    0.9-1.5 m (3.3-5.5 px per module) with motion blur `blur` px in a random image direction.  The raw
+    corners are the truth plus 0.7 px noise, rounded (a decoder's), so heavy blur that zxing
+    cannot decode still tests the refinement."""
+    camera = _camera((-0.05, 0.012, 4e-4, -3e-4))
+    rng = np.random.default_rng(seed)
+    code = _code("0/2/5", 0.2)
+    out = []
+    for blur in blurs:
+        for _ in range(n_per_blur):
+            T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2, 2), rng.uniform(0.9, 1.5),
+                      rng.normal(0.0, 0.05, 2))
+            img = render_view(camera, T, [code], rng,
+                              RenderEffects(noise_sigma_dn=noise, blur_px=blur,
+                                            blur_angle_rad=rng.uniform(0.0, np.pi)))
+            truth = project_code_corners(camera, T, code)
+            raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
+            out.append((camera, img, raw, truth, code.modules, blur))
+    return out
+
+
+def test_motion_blur_does_not_push_the_corners_outwards():
+    """A symmetric motion blur wider than a module greys the finder's 1-module ring; fitting the
+    finder's blurred module sequence keeps the edges in place (the 50 % crossing moved them
+    outwards by 0.2-1 px at 4-8 px blur)."""
+    outward, err = [], []
+    for camera, img, raw, truth, modules, blur in _blurred_renders([2, 4, 6, 8], 6, seed=11):
+        c = refine_corners_or_none(img, raw, modules, camera)
+        assert c is not None
+        centre = truth.mean(axis=0)
+        radial = (truth - centre) / np.linalg.norm(truth - centre, axis=1, keepdims=True)
+        outward.append(np.sum((c - truth) * radial, axis=1))
+        err.append(np.linalg.norm(c - truth, axis=1))
+    outward, err = np.array(outward), np.array(err)
+    assert abs(outward.mean()) < 0.1          # measured +0.004 px
+    assert err.mean() < 0.2                   # measured 0.041 px
+    assert err[-6:].mean() < 0.2              # 8 px blur alone: measured 0.095 px
 
 
 def test_refinement_failure_falls_back_to_the_raw_corners():

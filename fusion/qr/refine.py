@@ -36,6 +36,7 @@ Pixel convention: OpenCV's (pixel centres at integer coordinates).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
@@ -208,77 +209,205 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
     return np.array([x / w, y / w])
 
 
+# ---------------------------------------------------------------------------- stage 2: model fit
+
+# Across any outer edge of a finder pattern, going inwards, the modules read dark 1 | light 1 |
+# dark 3 | light 1 | dark 1 (the pattern is symmetric).  Outside lies the quiet zone (light, >= 4
+# modules) for the six edges on the symbol boundary, or the 1-module light separator and then data
+# modules (unknown) for the six edges facing the symbol's interior.  Profiles are taken in the
+# central band of each edge (2.25..4.75 modules along it), where this 1-D sequence holds for every
+# point a blur of up to ~1 module along the edge can reach.
+_MODEL_ALONG = np.linspace(2.25, 4.75, 6)       # profile positions along the finder (modules)
+_MODEL_WINDOW = {True: (-2.0, 3.0), False: (-1.0, 3.0)}   # sampled span (modules, + inwards)
+_MODEL_DARK = np.array([0.0, 1.0, 2.0, 5.0])     # transitions dark/light/dark/light (modules)
+_MODEL_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
+_MODEL_ITERATIONS = 6
+STAGE2_PASSES = 2
+_WIDTH_GRID_PX = np.array([1.2, 2.5, 4.0, 6.0, 8.5, 12.0])   # start of the width search
+_MODEL_MIN_WIDTH_PX = 0.5    # floor of the fitted motion-blur box width (px)
+_MODEL_PSF_PX = 1.5         # fixed second box (px): lens / pixel PSF and the bilinear sampling
+
+
 @lru_cache(maxsize=64)
-def _finder_layout(n: float) -> tuple[np.ndarray, ...]:
-    """Sampling layout of the 12 straight outer edges of the three finder patterns: the six on
-    the symbol boundary (quiet zone outside) and the six facing the separators (separator outside).
-    Per profile: module position (P, 2), outward module direction (P, 2), which coordinate is
-    constant on its edge (0: u, 1: v), the constant (modules), and whether it faces the quiet zone."""
-    m0, f = _SPAN_MARGIN, float(FINDER_MODULES)
-    # (axis, const, along_start, along_end, outward sign, boundary?)
-    edges = [(1, 0.0, m0, f - m0, -1, True), (1, 0.0, n - f + m0, n - m0, -1, True),     # top
-             (0, n, m0, f - m0, +1, True),                                              # right
-             (1, n, m0, f - m0, +1, True),                                              # bottom
-             (0, 0.0, m0, f - m0, -1, True), (0, 0.0, n - f + m0, n - m0, -1, True),    # left
-             (0, f, m0, f - m0, +1, False), (1, f, m0, f - m0, +1, False),              # TL finder
-             (0, n - f, m0, f - m0, -1, False), (1, f, n - f + m0, n - m0, +1, False),  # TR finder
-             (0, f, n - f + m0, n - m0, +1, False), (1, n - f, m0, f - m0, -1, False)]  # BL finder
-    k = _PROFILES_PER_SPAN
-    t = np.linspace(0.0, 1.0, k)
-    uv, out, axis, const, boundary = [], [], [], [], []
-    for ax, c, a0, a1, sign, bnd in edges:
-        along = a0 + t * (a1 - a0)
-        pts = np.column_stack([np.full(k, c), along]) if ax == 0 else np.column_stack([along, np.full(k, c)])
-        uv.append(pts)
-        o = np.zeros(2)
-        o[ax] = sign
-        out.append(np.tile(o, (k, 1)))
+def _model_layout(n: float) -> tuple[np.ndarray, ...]:
+    """Profiles of the 12 finder edges for a symbol of n modules: per profile the module position
+    on the edge (P, 2), the inward module direction (P, 2), which coordinate is constant on its
+    edge (0: u, 1: v), the constant (modules), and whether the edge is on the symbol boundary."""
+    f = float(FINDER_MODULES)
+    # (axis, const, finder start along the edge, outward sign, boundary?)
+    edges = [(1, 0.0, 0.0, -1, True), (0, 0.0, 0.0, -1, True),               # TL: top, left
+             (0, f, 0.0, +1, False), (1, f, 0.0, +1, False),                 # TL: right, bottom
+             (1, 0.0, n - f, -1, True), (0, n, 0.0, +1, True),               # TR: top, right
+             (0, n - f, 0.0, -1, False), (1, f, n - f, +1, False),           # TR: left, bottom
+             (0, 0.0, n - f, -1, True), (1, n, 0.0, +1, True),               # BL: left, bottom
+             (0, f, n - f, +1, False), (1, n - f, 0.0, -1, False)]           # BL: right, top
+    k = len(_MODEL_ALONG)
+    uv, inward, axis, const, boundary = [], [], [], [], []
+    for ax, c, start, sign, bnd in edges:
+        along = start + _MODEL_ALONG
+        uv.append(np.column_stack([np.full(k, c), along]) if ax == 0
+                  else np.column_stack([along, np.full(k, c)]))
+        d = np.zeros(2)
+        d[ax] = -sign
+        inward.append(np.tile(d, (k, 1)))
         axis += [ax] * k
         const += [c] * k
         boundary += [bnd] * k
-    return (np.concatenate(uv), np.concatenate(out), np.array(axis), np.array(const),
+    return (np.concatenate(uv), np.concatenate(inward), np.array(axis), np.array(const),
             np.array(boundary))
 
 
-def _finder_homography(image, dist: _Distortion, H: np.ndarray, n: float, module_px: float,
-                       n_offsets: int = 17) -> np.ndarray | None:
-    """Re-estimate H (module coordinates -> undistorted px) from edge points on all 12 finder
-    edges, each constrained to its module line u = c or v = c; linear (DLT-style) least squares in
-    G = H^-1 with Hartley normalisation, one round of outlier rejection.  None if it fails."""
-    uv, out, axis, const, boundary = _finder_layout(float(n))
-    base = _apply_h(H, uv)
-    # image normal of each edge (straight in undistorted px), pointing to its outer side
-    k = _PROFILES_PER_SPAN
-    first_last = base.reshape(-1, k, 2)[:, [0, -1]]                          # (12, 2, 2)
-    d = first_last[:, 1] - first_last[:, 0]
-    nrm_e = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.hypot(d[:, 0], d[:, 1])[:, None]
-    mid_uv = uv.reshape(-1, k, 2).mean(axis=1)
-    probe = _apply_h(H, mid_uv + 0.1 * out[::k]) - first_last.mean(axis=1)
-    nrm_e[np.sum(nrm_e * probe, axis=1) < 0] *= -1.0
-    nrm = np.repeat(nrm_e, k, axis=0)
-    # separator edges: stay within half a module on either side
-    half = np.where(boundary, float(np.clip(0.4 * module_px, 2.0, 4.0)), 0.45 * module_px)
-    unit = np.linspace(1.0, -1.0, n_offsets)
-    offsets = unit[None, :] * half[:, None]                                   # (P, K)
-    pts = base[:, None, :] + offsets[:, :, None] * nrm[:, None, :]
-    vals, inside = _sample(image, dist.distort(pts))
-    light = vals[:, :2].mean(axis=1)
-    dark = vals.min(axis=1)
-    thr = 0.5 * (light + dark)
-    below = vals < thr[:, None]
-    first = np.argmax(below, axis=1)
-    ok = inside.all(axis=1) & ((light - dark) > _MIN_CONTRAST) & (first > 0) & (first < n_offsets - 1)
-    idx = np.nonzero(ok)[0]
-    if idx.size < 24:
+def _ramp_integral(z, w):
+    """Q(z) = integral of clip(z / w + 1/2, 0, 1) dz (0 below -w/2) and dQ/dw."""
+    t = np.clip(z + 0.5 * w, 0.0, w)
+    q = t * t / (2.0 * w) + np.maximum(z - 0.5 * w, 0.0)
+    dq_dw = np.where((z > -0.5 * w) & (z < 0.5 * w), t / (2.0 * w) - t * t / (2.0 * w * w), 0.0)
+    return q, dq_dw
+
+
+def _edge_model(x: np.ndarray, width: np.ndarray, pixel: np.ndarray):
+    """Blurred finder profile at x (P, K) modules inwards from the edge, for a box kernel of
+    `width` (P, 1) modules convolved with a box of one pixel (`pixel` (P, 1) modules: the
+    sampling's interpolation): the dark fraction D, the blurred data indicator Dd (x < -1), and
+    their derivatives in x and in width.  A step at `pos` contributes H(x - pos), the kernel's
+    cumulative distribution, (Q(z + p/2) - Q(z - p/2)) / p with Q the integral of the box's."""
+    pos = np.concatenate([[-1.0], _MODEL_DARK])
+    z = x[..., None] - pos                                  # (P, K, 5)
+    w = width[..., None]
+    p = pixel[..., None]
+    qa, qa_w = _ramp_integral(z + 0.5 * p, w)
+    qb, qb_w = _ramp_integral(z - 0.5 * p, w)
+    H = (qa - qb) / p
+    dHdz = (np.clip((z + 0.5 * p) / w + 0.5, 0.0, 1.0) - np.clip((z - 0.5 * p) / w + 0.5, 0.0, 1.0)) / p
+    dHdw = (qa_w - qb_w) / p
+    D = H[..., 1:] @ _MODEL_SIGN
+    dD_dx = dHdz[..., 1:] @ _MODEL_SIGN
+    dD_dw = dHdw[..., 1:] @ _MODEL_SIGN
+    return D, 1.0 - H[..., 0], dD_dx, -dHdz[..., 0], dD_dw, -dHdw[..., 0]
+
+
+@dataclass
+class _ModelFit:
+    """Stage-2 edge points and what the fit learnt: points (M, 2) undistorted px, their module
+    line (axis (M,), const (M,)), edge-position sigma (M,) px, per-profile residual RMS (M,) DN,
+    contrast (M,) DN, and the fitted kernel widths (px) across u-edges and v-edges."""
+    points: np.ndarray
+    axis: np.ndarray
+    const: np.ndarray
+    sigma_px: np.ndarray
+    rms_dn: np.ndarray
+    contrast_dn: np.ndarray
+    width_px: np.ndarray
+
+
+def _level_fit(D, Dd, y, wmask):
+    """Per-profile least-squares levels (W, C, g) of y = W + C D + g Dd: (P, 3), residuals (P, K)."""
+    A = np.stack([np.ones_like(D), D, Dd], axis=-1) * wmask[..., None]
+    N = np.einsum("pki,pkj->pij", A, A) + np.diag([1e-9, 1e-9, 1e-6])
+    lev = np.linalg.solve(N, np.einsum("pki,pk->pi", A, y * wmask)[..., None])[..., 0]
+    r = (lev[:, 0:1] + lev[:, 1:2] * D + lev[:, 2:3] * Dd - y) * wmask
+    return lev, r
+
+
+def _model_edge_points(image, dist: _Distortion, H: np.ndarray, n: float,
+                       width0_px: np.ndarray | None = None,
+                       iterations: int = _MODEL_ITERATIONS) -> _ModelFit | None:
+    """Fit the finder's known profile across each of the 12 finder edges (module docstring).
+
+    Per profile i, image samples y(s) at s modules inwards from the edge H predicts (one remap
+    for all profiles) are modelled as  y = W + C D(s - e_i; w) + g Dd(s - e_i; w)  with D the
+    dark-module sequence blurred by a box of width w (modules) and Dd the data modules beyond the
+    separator (edges facing the interior only).  W, C, g are solved linearly per profile
+    (variable projection); the edge offsets e_i and one kernel width in pixels per edge
+    direction (u-edges, v-edges: a motion blur's projections on the two symbol axes, plus the
+    lens PSF) by Gauss-Newton, the widths eliminated by a Schur complement.  Symmetric blur then
+    moves no edge, whatever its width relative to the module."""
+    uv0, inward, axis, const, boundary = _model_layout(float(n))
+    P = len(uv0)
+    # local scale: |grad u| or |grad v| in modules per px at each profile (undistorted image)
+    w3 = uv0 @ H[2, :2] + H[2, 2]
+    xy0 = _apply_h(H, uv0)
+    J = (H[:2, :2][None] - xy0[:, :, None] * H[2, :2][None, None, :]) / w3[:, None, None]
+    try:
+        Jinv = np.linalg.inv(J)                                # rows: grad u, grad v (mod / px)
+    except np.linalg.LinAlgError:
         return None
-    k = first[idx]
-    v0 = vals[idx, k - 1]
-    frac = (v0 - thr[idx]) / np.maximum(v0 - vals[idx, k], 1e-6)
-    step = 2.0 * half[idx] / (n_offsets - 1)
-    s = offsets[idx, k - 1] - frac * step
-    p = base[idx] + s[:, None] * nrm[idx]
-    ax, c = axis[idx], const[idx] / n
-    # Hartley normalisation of the image points
+    g = np.linalg.norm(Jinv[np.arange(P), axis], axis=1)      # modules per px across the edge
+    if not np.all(np.isfinite(g)) or np.any(g <= 0):
+        return None
+    module_px = float(np.median(1.0 / g))
+    # samples: dense (0.5 px) within 3 px of the predicted edge, 0.25 module over the window
+    dense = np.arange(-3.0, 3.01, 0.5) / module_px
+    lo, hi = _MODEL_WINDOW[True]
+    s = np.unique(np.round(np.concatenate([dense, np.linspace(lo, hi, 21)]), 6))
+    s_mod = np.broadcast_to(s, (P, len(s)))
+    lo_inner = _MODEL_WINDOW[False][0]
+    wmask = np.where(boundary[:, None], 1.0, (s_mod >= lo_inner).astype(float))
+    pts = uv0[:, None, :] + s_mod[..., None] * inward[:, None, :]
+    y, inside = _sample(image, dist.distort(_apply_h(H, pts)))
+    y = y.astype(np.float64)
+    ok = inside.all(axis=1)
+    wmask = wmask * ok[:, None]
+    data_on = (~boundary).astype(float)[:, None]
+    # unknowns: e (P,) modules; kernel width per direction (2,) px
+    e = np.zeros(P)
+    max_w = 4.0 * module_px + 2.0
+    if width0_px is None:
+        # Gauss-Newton creeps when the width is far too small (samples outside the narrow ramps
+        # carry no derivative): start each direction at the best of a few widths, e = 0
+        grid = _WIDTH_GRID_PX[_WIDTH_GRID_PX <= max_w]
+        sub = np.arange(P) % 3 == 0
+        G = len(grid)
+        x = np.tile(s_mod[sub], (G, 1))
+        wg = np.repeat(grid, sub.sum())[:, None] * np.tile(g[sub], G)[:, None]
+        D, Dd = _edge_model(x, wg, np.tile(g[sub], G)[:, None] * _MODEL_PSF_PX)[:2]
+        wm = np.tile(wmask[sub], (G, 1))
+        _, r = _level_fit(D, Dd * np.tile(data_on[sub], (G, 1)), np.tile(y[sub], (G, 1)), wm)
+        cost = np.sum(r * r, axis=1).reshape(G, -1)
+        ax_sub = axis[sub]
+        per_axis = np.stack([cost[:, ax_sub == a].sum(axis=1) for a in (0, 1)], axis=1)
+        width_px = grid[np.argmin(per_axis, axis=0)].astype(float)
+    else:
+        width_px = np.clip(np.asarray(width0_px, dtype=float), _MODEL_MIN_WIDTH_PX, max_w)
+    for _ in range(iterations):
+        wmod = (width_px[axis] * g)[:, None]
+        D, Dd, dD_dx, dDd_dx, dD_dw, dDd_dw = _edge_model(s_mod - e[:, None], wmod, _MODEL_PSF_PX * g[:, None])
+        Dd = Dd * data_on
+        lev, r = _level_fit(D, Dd, y, wmask)
+        C, gam = lev[:, 1:2], lev[:, 2:3]
+        Je = -(C * dD_dx + gam * dDd_dx * data_on) * wmask               # d model / d e
+        Jw = (C * dD_dw + gam * dDd_dw * data_on) * wmask * g[:, None]   # d model / d width_px
+        a = np.sum(Je * Je, axis=1) + 1e-9
+        b = np.sum(Je * Jw, axis=1)
+        c = np.sum(Jw * Jw, axis=1)
+        ge = np.sum(Je * r, axis=1)
+        gw = np.sum(Jw * r, axis=1)
+        S = np.bincount(axis, c - b * b / a, 2) + 1e-6
+        rhs = np.bincount(axis, gw - b * ge / a, 2)
+        dw = -rhs / S
+        de = -(ge + b * dw[axis]) / a
+        e = e + np.clip(de, -0.35, 0.35)
+        width_px = np.clip(width_px + np.clip(dw, -1.5, 1.5), _MODEL_MIN_WIDTH_PX, max_w)
+    dof = np.maximum(wmask.sum(axis=1) - 5.0, 1.0)
+    rms = np.sqrt(np.sum(r * r, axis=1) / dof)
+    contrast = -C[:, 0]
+    sigma_e = rms / np.sqrt(a) / g                                     # px
+    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e)
+    if good.sum() < 24:
+        return None
+    med = float(np.median(rms[good]))
+    good &= rms <= 3.0 * med + 1.0
+    idx = np.nonzero(good)[0]
+    p = _apply_h(H, uv0[idx] + e[idx, None] * inward[idx])
+    return _ModelFit(p, axis[idx], const[idx], sigma_e[idx], rms[idx], contrast[idx], width_px)
+
+
+def _fit_homography(p: np.ndarray, ax: np.ndarray, const: np.ndarray, n: float,
+                    module_px: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """H (module coordinates -> undistorted px) from points p (M, 2) on module lines u = const
+    (ax 0) or v = const (ax 1): linear least squares in G = H^-1 with Hartley normalisation, one
+    round of outlier rejection.  Returns (H, mask of the points kept) or None."""
+    c = const / n
     mean = p.mean(axis=0)
     scale = np.sqrt(2.0) / max(np.sqrt(np.mean(np.sum((p - mean) ** 2, axis=1))), 1e-9)
     T = np.array([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]], [0.0, 0.0, 1.0]])
@@ -300,12 +429,13 @@ def _finder_homography(image, dist: _Distortion, H: np.ndarray, n: float, module
         r = np.abs(coord - c) * n * module_px                                 # ~ px
         keep = r <= max(0.25, 3.0 * float(np.median(r)))
         if keep.all() or keep.sum() < 24:
+            keep[:] = True if keep.sum() < 24 else keep
             break
     S = np.diag([1.0 / n, 1.0 / n, 1.0])            # module coords -> normalised module coords
     H_new = np.linalg.inv(T) @ np.linalg.inv(G) @ S
     if not np.all(np.isfinite(H_new)) or abs(H_new[2, 2]) < 1e-12:
         return None
-    return H_new / H_new[2, 2]
+    return H_new / H_new[2, 2], keep
 
 
 def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
@@ -363,11 +493,20 @@ def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, module
     if finder_homography:
         H = homography_from_corners(corners_u, n)
         module_px = np.mean(np.linalg.norm(corners_u - np.roll(corners_u, 1, axis=0), axis=1)) / n
-        H2 = _finder_homography(image, dist, H, n, module_px)
-        if H2 is not None:
-            new = _apply_h(H2, np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]))
-            if np.max(np.linalg.norm(new - corners_u, axis=1)) < max(1.0, 0.3 * module_px):
-                corners_u = new
+        width = None
+        for _ in range(STAGE2_PASSES):
+            fit = _model_edge_points(image, dist, H, n, width)
+            if fit is None:
+                break
+            res = _fit_homography(fit.points, fit.axis, fit.const, n, module_px)
+            if res is None:
+                break
+            new = _apply_h(res[0], np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]))
+            # stage 1's 50 % crossings move outwards by up to ~half the blur width
+            tol = max(1.0, 0.3 * module_px) + 0.5 * float(np.max(fit.width_px))
+            if np.max(np.linalg.norm(new - corners_u, axis=1)) >= tol:
+                break
+            corners_u, H, width = new, res[0], fit.width_px
     return dist.distort(corners_u)
 
 
