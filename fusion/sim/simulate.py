@@ -207,7 +207,10 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
                 for c in chunks:
                     consume(_render_chunk(c))
             else:
-                ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else mp.get_context()
+                # not "fork": forking a process that runs threads (OpenCV, BLAS, a test runner) can
+                # deadlock the children on a lock copied in the held state
+                ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods()
+                                     else "spawn")
                 with ctx.Pool(workers, initializer=_init_worker, initargs=init) as pool:
                     for res in pool.imap(_render_chunk, chunks):
                         consume(res)
