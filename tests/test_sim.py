@@ -368,3 +368,21 @@ def test_scenarios_build_and_gimbal_keeps_cameras_level():
     assert min(body) < 0.999                                      # a body-fixed one tilts
     with pytest.raises(SimulationError):
         build_scenario("default", resolution=(0, 10))
+
+
+def test_default_blackouts_hide_codes_that_would_be_readable():
+    """Each blackout of the default scenario sits where the floor camera would read a code."""
+    from fusion.sim.simulate import floor_code_readable
+    sc = build_scenario("default")
+    cam = sc.cameras["cam0"]
+    codes = sc.codes()
+    for t0, t1, kind in sc.blackouts:
+        for t in (t0 + 0.1 * (t1 - t0), 0.5 * (t0 + t1)):
+            T_wc = camera_pose(cam, sc.trajectory.state(np.array([t])).T_world_body[0])
+            fx = sc.effects("cam0", t)
+            assert fx.blackout == kind
+            dark = render_view(cam, T_wc, codes, np.random.default_rng(0), fx, sc.occluders)
+            fx.blackout = None
+            clean = render_view(cam, T_wc, codes, np.random.default_rng(0), fx, sc.occluders)
+            assert floor_code_readable(clean), f"{kind} at {t:.2f} s hides nothing"
+            assert not floor_code_readable(dark), f"{kind} at {t:.2f} s leaves a code readable"
