@@ -13,7 +13,7 @@ from fusion.conventions import make_T, rot_z
 from fusion.errors import DetectionError
 from fusion.log import FlightLogWriter, read_flight
 from fusion.qr.detect import (CameraStats, detect_flight, detect_frame, detect_image, read_cache)
-from fusion.qr.refine import estimate_modules, modules_for_version, refine_corners, \
+from fusion.qr.refine import estimate_modules, modules_for_version, refine_code, refine_corners, \
     refine_corners_or_none
 from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes, project_code_corners, \
     render_view
@@ -266,6 +266,7 @@ def test_cache_round_trip_and_invalidation(tmp_path):
     for x, y in zip(first.detections, again.detections):
         assert np.array_equal(x.corners_px, y.corners_px)          # repr() floats round-trip
         assert np.array_equal(x.corners_raw_px, y.corners_raw_px)
+        assert x.corner_sigma_px == y.corner_sigma_px and x.corner_sigma_px > 0
     # another backend: recomputed
     assert not detect_flight(read_flight(root), cache, backend="aruco", workers=1,
                              progress=False).from_cache
@@ -284,11 +285,39 @@ def test_malformed_cache_raises_naming_file_and_line(tmp_path, flight):
     assert len(lines) == 3 + len(res.detections)
     bad = lines[:4] + ["cam0,12,x,1,2,3\n"] + lines[4:]
     cache.write_text("".join(bad))
-    with pytest.raises(DetectionError, match=r"detections\.csv:5: expected 20 fields"):
+    with pytest.raises(DetectionError, match=r"detections\.csv:5: expected 21 fields"):
         detect_flight(read_flight(flight), cache, workers=1, progress=False)
-    cache.write_text("".join(lines[:4] + ['cam0,12,"p",' + ",".join(["nan"] * 16) + ",1\n"]))
+    cache.write_text("".join(lines[:4] + ['cam0,12,"p",' + ",".join(["nan"] * 16) + ",1,0.1\n"]))
     with pytest.raises(DetectionError, match=r"detections\.csv:5: .*non-finite"):
         read_cache(cache)
     cache.write_text("timestamp,whatever\n")
     with pytest.raises(DetectionError, match=r"detections\.csv:1: not a fusion detection cache"):
         detect_flight(read_flight(flight), cache, workers=1, progress=False)
+
+
+def test_corner_sigma_is_calibrated_over_heights_blur_and_noise():
+    """mean((corner error / corner_sigma_px)^2) per coordinate near 1 on seeded renders the
+    calibration (scripts/bench_detect.py) did not see; sigma grows with the blur."""
+    camera = _camera((-0.05, 0.012, 4e-4, -3e-4))
+    rng = np.random.default_rng(2024)
+    z2, sig, blurs = [], [], []
+    for i in range(60):
+        code = _code(["0/2/5", "1/" + "x" * 20][i % 2], 0.2)
+        T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2, 2), rng.uniform(0.7, 1.8),
+                  rng.normal(0.0, 0.08, 2))
+        blur = rng.uniform(0.0, 8.0)
+        img = render_view(camera, T, [code], rng,
+                          RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
+                                        blur_angle_rad=rng.uniform(0.0, np.pi)))
+        truth = project_code_corners(camera, T, code)
+        res = refine_code(img, np.round(truth + rng.normal(0.0, 0.7, truth.shape)), code.modules,
+                          camera)
+        if res is None:
+            continue
+        z2.append(np.mean(((res.corners_px - truth) / res.corner_sigma_px) ** 2))
+        sig.append(res.corner_sigma_px)
+        blurs.append(blur)
+    assert len(z2) >= 55
+    assert 0.7 <= np.mean(z2) <= 1.4
+    sig, blurs = np.array(sig), np.array(blurs)
+    assert np.median(sig[blurs > 5]) > 2 * np.median(sig[blurs < 2])

@@ -37,18 +37,19 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open
-from fusion.qr.refine import modules_for_version, refine_corners_or_none
+from fusion.qr.refine import modules_for_version, refine_code
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = "finder-lines+finder-model-homography/2"   # change when refine.py's output changes
 CACHE_HEADER = ("camera", "timestamp_ns", "payload",
                 "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                 "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",
-                "raw_bl_x", "raw_bl_y", "refined")
+                "raw_bl_x", "raw_bl_y", "refined", "corner_sigma_px")
 _MAGIC = "# fusion-detections"
+RAW_CORNER_SIGMA_PX = 1.0   # decoder corners (refinement failed): whole pixels, 0.7-1 px off
 
 # zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
 # try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
@@ -178,18 +179,21 @@ def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0
                  camera: CameraModel | None = None, backend: str = "zxing",
                  stats: CameraStats | None = None) -> list[QRDetection]:
     """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, see
-    fusion.qr.refine) and `corners_raw_px` as decoded.  `camera` (optional) makes the line fits
+    fusion.qr.refine), `corners_raw_px` as decoded and `corner_sigma_px` the refinement's
+    calibrated 1-sigma corner noise (RAW_CORNER_SIGMA_PX when refinement failed).  `camera` (optional) makes the line fits
     run in undistorted coordinates.  Counts go to `stats` when given."""
     codes, dropped = _detect_image(image, backend)
     out = []
     failed = 0
     for code in codes:
-        refined = refine_corners_or_none(image, code.corners_px, code.modules, camera)
-        if refined is None:
+        res = refine_code(image, code.corners_px, code.modules, camera)
+        if res is None:
             failed += 1
-            refined = code.corners_px.copy()
+            refined, sigma = code.corners_px.copy(), RAW_CORNER_SIGMA_PX
+        else:
+            refined, sigma = res.corners_px, res.corner_sigma_px
         out.append(QRDetection(camera_name, int(timestamp_ns), code.payload, refined,
-                               code.corners_px))
+                               code.corners_px, float(sigma)))
     if stats is not None:
         stats.payloads_dropped += dropped
         stats.refine_failed += failed
@@ -328,7 +332,8 @@ def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
             w.writerow([d.camera, str(int(d.timestamp_ns)), d.payload]
                        + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
                        + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
-                       + [str(refined)])
+                       + [str(refined),
+                          "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px))])
 
 
 def read_cache(path: Path, expected_fingerprint: str | None = None) -> DetectionResult | None:
@@ -392,4 +397,12 @@ def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
         raise DetectionError(f"{path}:{lineno}: unknown camera {camera[:20]!r}")
     corners = np.array(vals[:8]).reshape(4, 2)
     raw = np.array(vals[8:]).reshape(4, 2)
-    return QRDetection(camera, t, payload, corners, raw)
+    sigma = None
+    if row[20]:
+        try:
+            sigma = float(row[20])
+        except ValueError:
+            raise DetectionError(f"{path}:{lineno}: corner_sigma_px is not a number") from None
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise DetectionError(f"{path}:{lineno}: corner_sigma_px must be positive and finite")
+    return QRDetection(camera, t, payload, corners, raw, sigma)

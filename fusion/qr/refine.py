@@ -438,15 +438,75 @@ def _fit_homography(p: np.ndarray, ax: np.ndarray, const: np.ndarray, n: float,
     return H_new / H_new[2, 2], keep
 
 
-def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
-                           camera: CameraModel | None = None, iterations: int = 1,
-                           finder_homography: bool = True) -> np.ndarray | None:
-    """Refined (4, 2) corners (TL, TR, BR, BL, distorted px, OpenCV convention) or None if the
-    finder edges cannot be measured (too little contrast, symbol at the image border, ...).
+@dataclass
+class RefineResult:
+    """Refined corners (4, 2) (TL, TR, BR, BL, distorted px), their 1-sigma noise per coordinate
+    (px, calibrated on rendered codes: `corner_sigma`), the fitted blur+PSF box widths (px) across
+    the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage produced
+    the corners (1: boundary lines, 2: finder-model homography)."""
+    corners_px: np.ndarray
+    corner_sigma_px: float
+    width_px: np.ndarray
+    stage: int
 
-    `iterations` passes of boundary-line fits (the module docstring), then with
-    `finder_homography` one homography fit to all twelve finder edges (`_finder_homography`),
-    kept when it agrees with the line fit within 0.3 module."""
+
+# corner sigma model, fitted by scripts/bench_detect.py's calibration on rendered codes (seeded,
+# 0.7-1.8 m, blur 0-8 px, noise 0.5-4 DN):  sigma^2 = (K sigma_stat)^2 + A^2 + (B (w / m)^2)^2,
+# with sigma_stat the corner noise the edge-point residuals imply, w the larger fitted blur width
+# (px) and m the module size (px): the model's mismatch grows quickly once the blur spans modules.
+_SIGMA_K = 0.85
+_SIGMA_A_PX = 0.007
+_SIGMA_B_PX = 0.025
+STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
+
+
+def _corner_sigma_stat(H: np.ndarray, fit: "_ModelFit", keep: np.ndarray, n: float) -> float:
+    """RMS over the 8 corner coordinates of the first-order corner noise implied by independent
+    edge points with sigma fit.sigma_px, through the weighted least-squares fit of H (8 params)."""
+    p, ax, c, sig = fit.points[keep], fit.axis[keep], fit.const[keep], fit.sigma_px[keep]
+    sq = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
+    q = np.column_stack([p, np.ones(len(p))])
+
+    def resid(h):
+        Hh = np.append(h, 1.0).reshape(3, 3)
+        m = q @ np.linalg.inv(Hh).T
+        return (np.where(ax == 0, m[:, 0], m[:, 1]) / m[:, 2] - c)
+
+    def corners(h):
+        return _apply_h(np.append(h, 1.0).reshape(3, 3), sq).reshape(-1)
+
+    h0 = (H / H[2, 2]).reshape(-1)[:8]
+    step = 1e-6 * np.maximum(np.abs(h0), 1e-3)
+    J = np.empty((len(p), 8))
+    Jc = np.empty((8, 8))
+    for k in range(8):
+        d = np.zeros(8)
+        d[k] = step[k]
+        J[:, k] = (resid(h0 + d) - resid(h0 - d)) / (2 * step[k])
+        Jc[:, k] = (corners(h0 + d) - corners(h0 - d)) / (2 * step[k])
+    # residuals are in modules; sigma_px / module_px converts the point sigmas
+    mod_px = np.linalg.norm(corners(h0).reshape(4, 2)[1] - corners(h0).reshape(4, 2)[0]) / n
+    w = 1.0 / (sig / mod_px) ** 2
+    try:
+        cov_h = np.linalg.inv(J.T @ (J * w[:, None]))
+    except np.linalg.LinAlgError:
+        return float("nan")
+    cov_c = Jc @ cov_h @ Jc.T
+    return float(np.sqrt(max(np.trace(cov_c), 0.0) / 8.0))
+
+
+def corner_sigma(sigma_stat_px: float, width_px: np.ndarray, module_px: float) -> float:
+    """Calibrated 1-sigma corner noise per coordinate (px), see _SIGMA_K / _A / _B."""
+    wm = float(np.max(width_px)) / module_px
+    return float(np.sqrt((_SIGMA_K * sigma_stat_px) ** 2 + _SIGMA_A_PX ** 2
+                         + (_SIGMA_B_PX * wm * wm) ** 2))
+
+
+def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
+                camera: CameraModel | None = None, iterations: int = 1,
+                finder_homography: bool = True) -> RefineResult | None:
+    """Refined corners with their sigma and the fitted blur, or None (see
+    `refine_corners_or_none`, which returns only the corners)."""
     if image.ndim != 2 or image.dtype != np.uint8:
         raise ValueError("refine_corners expects a (H, W) uint8 image")
     corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
@@ -490,12 +550,14 @@ def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, module
         if np.max(np.linalg.norm(new - raw_u, axis=1)) > max(4.0, 1.5 * module_px):
             return None
         corners_u = new
+    stage, width = 1, np.full(2, np.nan)
+    sigma = STAGE1_SIGMA_PX
     if finder_homography:
         H = homography_from_corners(corners_u, n)
         module_px = np.mean(np.linalg.norm(corners_u - np.roll(corners_u, 1, axis=0), axis=1)) / n
-        width = None
+        w0 = None
         for _ in range(STAGE2_PASSES):
-            fit = _model_edge_points(image, dist, H, n, width)
+            fit = _model_edge_points(image, dist, H, n, w0)
             if fit is None:
                 break
             res = _fit_homography(fit.points, fit.axis, fit.const, n, module_px)
@@ -506,8 +568,25 @@ def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, module
             tol = max(1.0, 0.3 * module_px) + 0.5 * float(np.max(fit.width_px))
             if np.max(np.linalg.norm(new - corners_u, axis=1)) >= tol:
                 break
-            corners_u, H, width = new, res[0], fit.width_px
-    return dist.distort(corners_u)
+            corners_u, H, w0 = new, res[0], fit.width_px
+            stage, width = 2, fit.width_px
+            s_stat = _corner_sigma_stat(H, fit, res[1], n)
+            if np.isfinite(s_stat):
+                sigma = corner_sigma(s_stat, width, module_px)
+    return RefineResult(dist.distort(corners_u), sigma, width, stage)
+
+
+def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
+                           camera: CameraModel | None = None, iterations: int = 1,
+                           finder_homography: bool = True) -> np.ndarray | None:
+    """Refined (4, 2) corners (TL, TR, BR, BL, distorted px, OpenCV convention) or None if the
+    finder edges cannot be measured (too little contrast, symbol at the image border, ...).
+
+    `iterations` passes of boundary-line fits (stage 1, module docstring), then with
+    `finder_homography` STAGE2_PASSES homography fits to the twelve finder edges located by the
+    blurred-profile model (stage 2), each kept when it agrees with the previous corners."""
+    res = refine_code(image, corners_raw_px, modules, camera, iterations, finder_homography)
+    return None if res is None else res.corners_px
 
 
 def refine_corners(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
