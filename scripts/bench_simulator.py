@@ -14,18 +14,18 @@ import tempfile
 import time
 from pathlib import Path
 
-from fusion.sim import simulate as sim
+from fusion.sim.simulate import _init_worker, _render_frame, simulate
 from fusion.sim.scenarios import build_scenario
 
 
 def frames_per_second(resolution, n_frames: int) -> float:
     """Camera frames (each camera counts) per second on one core, PNG encoding included."""
     sc = build_scenario("default", resolution)
-    sim._init_worker(sc, 0, 1, False)
-    sim._render_frame(0, 5.0)                                  # warm the per-camera caches
+    _init_worker(sc, 0, 1, False)
+    _render_frame(0, 5.0)                                  # warm the per-camera caches
     t0 = time.perf_counter()
     for k in range(n_frames):
-        sim._render_frame(k, 5.0 + 50.0 * k / n_frames)
+        _render_frame(k, 5.0 + 50.0 * k / n_frames)
     return 2 * n_frames / (time.perf_counter() - t0)
 
 
@@ -41,14 +41,14 @@ def main() -> None:
         rows.append((f"render + PNG, one core, {res[0]}x{res[1]}", f"{fps:.1f} frames/s"))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "flight"
-        r = sim.simulate(out, args.scenario, duration_s=args.duration, seed=0, progress=False,
+        r = simulate(out, args.scenario, duration_s=args.duration, seed=0, progress=False,
                          workers=os.cpu_count())
         size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
         rows.append((f"{args.duration:.0f} s flight, 2 cameras x 30 fps, 640x480, "
                      f"{os.cpu_count()} workers", f"{r.wall_time_s:.1f} s wall ({size / 1e6:.0f} MB)"))
     # readability is measured separately (zxing on every floor frame costs extra time)
     with tempfile.TemporaryDirectory() as tmp:
-        r = sim.simulate(Path(tmp) / "f", args.scenario, duration_s=args.duration, seed=0,
+        r = simulate(Path(tmp) / "f", args.scenario, duration_s=args.duration, seed=0,
                          progress=False, workers=os.cpu_count(), check_readable=True)
         rows.append(("floor frames with a readable floor code (all / outside blackouts)",
                      f"{r.readable_floor_fraction:.3f} / "

@@ -143,9 +143,8 @@ def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray | None:
 
 class _CameraRays:
     """Per-camera precomputation: the undistorted normalised ray of every pixel (full resolution)
-    and of a coarse grid (for the low-frequency background)."""
-
-    COARSE = 8
+    and of every pixel of the half-resolution image (for the low-frequency background; half-res
+    pixel j is full-res coordinate 2 j + 0.5, as cv2.resize by 2 assumes)."""
 
     def __init__(self, camera: CameraModel):
         w, h = camera.width, camera.height
@@ -155,11 +154,12 @@ class _CameraRays:
         self.yn = np.ascontiguousarray(xy[..., 1], dtype=np.float64)
         # largest normalised radius inside the image: projections farther out may fold back
         self.r_max = float(np.sqrt(self.xn ** 2 + self.yn ** 2).max())
-        cw, ch = w // self.COARSE + 2, h // self.COARSE + 2
-        uc = np.linspace(0, w - 1, cw)
-        vc = np.linspace(0, h - 1, ch)
-        U, V = np.meshgrid(uc, vc)
-        self.coarse_xy = camera.undistort_normalized(np.stack([U, V], axis=-1))
+        self.half_size = ((w + 1) // 2, (h + 1) // 2)
+        uh, vh = np.meshgrid(2.0 * np.arange(self.half_size[0]) + 0.5,
+                             2.0 * np.arange(self.half_size[1]) + 0.5)
+        xyh = camera.undistort_normalized(np.stack([uh, vh], axis=-1))
+        self.half_x = np.ascontiguousarray(xyh[..., 0], dtype=np.float32)
+        self.half_y = np.ascontiguousarray(xyh[..., 1], dtype=np.float32)
 
 
 _RAYS: dict[tuple, _CameraRays] = {}
@@ -197,27 +197,46 @@ FLOOR_TEXEL_M = 0.02     # floor texture resolution (m per texel), repeats every
 FAR_DN = 105.0           # what rays that miss the floor see (far walls / shelving, unlit)
 
 
-def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray) -> np.ndarray:
-    """float32 (H, W) background: the textured floor plane z = 0 where the ray meets it within
-    60 m, else a flat far-wall grey.  Computed on a coarse grid and interpolated (low frequency)."""
-    R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
-    xy = rays.coarse_xy
-    d = xy[..., 0, None] * R[:, 0] + xy[..., 1, None] * R[:, 1] + R[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = -c[2] / d[..., 2]
-    hit = (d[..., 2] < -1e-6) & (t > 0) & (t < 60.0)
-    t = np.where(hit, t, 0.0)
-    px = ((c[0] + t * d[..., 0]) / FLOOR_TEXEL_M).astype(np.float32)
-    py = ((c[1] + t * d[..., 1]) / FLOOR_TEXEL_M).astype(np.float32)
-    tex = _floor_texture()
-    n = tex.shape[0]
-    half = ((camera.width + 1) // 2, (camera.height + 1) // 2)   # low frequency: half resolution
-    px = cv2.resize(np.mod(px, n), half, interpolation=cv2.INTER_LINEAR)
-    py = cv2.resize(np.mod(py, n), half, interpolation=cv2.INTER_LINEAR)
-    bg = cv2.remap(tex, px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-    if not hit.all():
-        w_hit = cv2.resize(hit.astype(np.float32), half, interpolation=cv2.INTER_LINEAR)
-        bg = bg * w_hit + FAR_DN * (1.0 - w_hit)
+RACK_DN = (92.0, 84.0, 100.0)   # rack box faces normal to world x, y, z
+RACK_BEAM_PITCH_M = 0.7         # horizontal beams (darker) every 0.7 m of height
+
+
+def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
+                occluders=()) -> np.ndarray:
+    """float32 (H, W) background at half resolution, upsampled (it is low frequency): the
+    textured floor plane z = 0 where the ray meets it within 60 m, else a flat far-wall grey;
+    in front of both, the occluder boxes (racks) as flat grey faces with darker beams."""
+    R, c = T_world_cam[:3, :3].astype(np.float32), T_world_cam[:3, 3].astype(np.float32)
+    xh, yh = rays.half_x, rays.half_y
+    d = [xh * R[i, 0] + yh * R[i, 1] + R[i, 2] for i in range(3)]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t_floor = np.where(d[2] < -1e-6, -c[2] / d[2], np.inf)
+        hit = t_floor < 60.0
+        t = np.where(hit, t_floor, 0.0)
+        tex = _floor_texture()
+        n = tex.shape[0]
+        px = np.mod((c[0] + t * d[0]) / FLOOR_TEXEL_M, n).astype(np.float32)
+        py = np.mod((c[1] + t * d[1]) / FLOOR_TEXEL_M, n).astype(np.float32)
+        bg = cv2.remap(tex, px, py, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        if not hit.all():
+            bg[~hit] = FAR_DN
+        depth = t_floor
+        for lo, hi in occluders or ():
+            t0 = [(np.float32(lo[i]) - c[i]) / d[i] for i in range(3)]
+            t1 = [(np.float32(hi[i]) - c[i]) / d[i] for i in range(3)]
+            near = [np.minimum(a, b) for a, b in zip(t0, t1)]
+            tmin = np.maximum(np.maximum(near[0], near[1]), near[2])
+            tmax = np.minimum(np.minimum(np.maximum(t0[0], t1[0]), np.maximum(t0[1], t1[1])),
+                              np.maximum(t0[2], t1[2]))
+            box = (tmin <= tmax) & (tmin > 0.0) & (tmin < depth)
+            if not box.any():
+                continue
+            axis = np.argmax(np.stack(near), axis=0)
+            z = c[2] + tmin * d[2]
+            beam = np.mod(z, RACK_BEAM_PITCH_M) < 0.06
+            shade = np.choose(axis, RACK_DN).astype(np.float32) - 35.0 * beam
+            bg = np.where(box, shade, bg)
+            depth = np.where(box, tmin, depth)
     return cv2.resize(bg, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
 
 
@@ -419,15 +438,15 @@ def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[Placed
     camera and facing it, far to near, with a white quiet zone of 4 modules; then `effects`
     (blackout, motion blur, exposure gain, sensor noise).  `rng` (np.random.Generator) drives the
     noise; None means no randomness (noise-free unless effects ask for noise, then seed 0).
-    `occluders`: optional axis-aligned boxes [(lo (3,), hi (3,))] in W (racks); a code whose
-    centre they hide from the camera is not drawn (the boxes themselves are not drawn)."""
+    `occluders`: optional axis-aligned boxes [(lo (3,), hi (3,))] in W (racks), drawn as flat
+    grey boxes; a code whose centre they hide from the camera is not drawn."""
     effects = effects or RenderEffects(noise_sigma_dn=0.0)
     if rng is None:
         rng = np.random.default_rng(0)
     rays = _rays(camera)
     T_world_cam = np.asarray(T_world_cam, dtype=float)
     T_cam_world = inv_T(T_world_cam)
-    img = _background(camera, rays, T_world_cam)
+    img = _background(camera, rays, T_world_cam, occluders)
     floor_quads = []
     visible = _visible_far_to_near(codes, T_cam_world, rays, max(camera.fu, camera.fv))
     if occluders and len(visible):
