@@ -127,14 +127,27 @@ def _levenberg_marquardt(x0, residual_and_jacobian, retract, max_iter: int = 30)
     return x, r, J
 
 
+def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
+    """Per-residual 1-sigma (8 per detection: x, y of its 4 corners), px: each detection's own
+    `corner_sigma_px` when it has one (fusion.qr.refine's calibrated value), else the default."""
+    out = []
+    for d in detections:
+        s = getattr(d, "corner_sigma_px", None)
+        s = float(s) if s is not None and math.isfinite(s) and s > 0 else float(default_sigma_px)
+        out.append(np.full(8, s))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 def _refine_body_pose(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray,
-                      uv_obs: np.ndarray):
-    """LM on the distorted-pixel reprojection error over the body pose (right perturbation)."""
+                      uv_obs: np.ndarray, sigma: np.ndarray | None = None):
+    """LM on the distorted-pixel reprojection error over the body pose (right perturbation),
+    whitened by the per-residual `sigma` (px) when given: residuals and Jacobian divided by it."""
     z = uv_obs.reshape(-1)
+    inv = 1.0 if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
 
     def rj(T):
         uv, J = floor_reprojection(camera, T, points_world)
-        return uv.reshape(-1) - z, J
+        return (uv.reshape(-1) - z) * inv, J * (inv[:, None] if sigma is not None else 1.0)
 
     return _levenberg_marquardt(T_world_body, rj, lambda T, d: T @ se3_exp(d))
 
@@ -208,7 +221,9 @@ def _initial_camera_poses(sightings: list[FloorSighting], camera: CameraModel) -
 
 def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: float,
                  ambiguity_chi2: float):
-    """Best refined body pose for these sightings: (T_world_body, r, J, ambiguous) or None."""
+    """Best refined body pose for these sightings: (T_world_body, r, J, ambiguous) or None.
+    r (px) and J are WHITENED by the per-corner sigmas (`corner_sigmas`, default `sigma`)."""
+    sig = corner_sigmas([s.detection for s in sightings], sigma)
     pts_w = np.vstack([s.corners_world for s in sightings])
     uv = np.vstack([np.asarray(s.detection.corners_px, dtype=float) for s in sightings])
     yaw_hint = edge_implied_yaw(sightings, camera)
@@ -226,7 +241,7 @@ def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: flo
     for T0, e0 in zip(starts, rms0):
         if not e0 <= 5.0 * best0 + 5.0 * sigma:
             continue
-        T, r, J = _refine_body_pose(camera, T0, pts_w, uv)
+        T, r, J = _refine_body_pose(camera, T0, pts_w, uv, sig)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
             continue
         if (T @ camera.T_body_cam)[2, 3] <= 0.0:     # under the floor: a mirrored corner order
@@ -240,9 +255,9 @@ def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: flo
     if not cands:
         return None
     best_sse = min(c[3] for c in cands)
-    close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2 * sigma ** 2]
+    close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2]     # whitened: chi^2 units
     T, r, J, _ = min(close, key=lambda c: _tilt_rad(c[0][:3, :3]))
-    return T, r, J, len(close) > 1
+    return T, r, J, sig, len(close) > 1
 
 
 def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
@@ -258,8 +273,10 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     2. each refined by LM on the reprojection error in distorted pixels over the body pose;
     3. candidates whose yaw is > 90 deg from `edge_implied_yaw` are dropped (no 180-deg flips);
        of those whose squared error is within `ambiguity_chi2` sigma^2 of the best, the most level;
-    4. covariance sigma^2 (J^T J)^-1, J = d(distorted px)/d(xi), xi the body-frame right
-       perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py).
+    4. covariance (J^T W J)^-1, J = d(distorted px)/d(xi), xi the body-frame right
+       perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py), W = diag(1/sigma_i^2)
+       with sigma_i each detection's `corner_sigma_px` when set, else `corner_sigma_px`; the LM
+       of step 2 minimises the same weighted error.
 
     "gimbaled" camera: the camera is stabilised, so the airframe's roll and pitch are not observed.
     The returned T_world_body is then the LEVEL body frame (roll = pitch = 0, estimated yaw and
@@ -274,7 +291,8 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
         sol = _solve_floor(sightings, camera, sigma, ambiguity_chi2)
         if sol is None:
             return None
-        T, r, J, ambiguous = sol
+        T, r, J, sig, ambiguous = sol
+        r = r * sig                                  # back to px for the outlier test
         rms = float(np.sqrt(np.mean(r ** 2)))
         if rms <= max_rms_px:
             break
@@ -287,7 +305,7 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     else:
         return None
     try:
-        cov = covariance_from_jacobian(J, sigma)
+        cov = covariance_from_jacobian(J, 1.0)       # J whitened: (J^T W J)^-1, W = diag(1/sigma_i^2)
     except EstimationError:
         return None
     T_world_cam = T @ camera.T_body_cam
@@ -321,7 +339,8 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     side world.load_side_m (reprojection RMS <= max_rms_px; others are skipped).
 
     p_cam (3,) = the code centre in the camera frame (m) from IPPE_SQUARE + LM in distorted pixels,
-    cov_cam (3, 3) = the centre block of sigma^2 (J^T J)^-1 (fusion/qr/crb.symbol_reprojection);
+    cov_cam (3, 3) = the centre block of sigma^2 (J^T J)^-1 (fusion/qr/crb.symbol_reprojection),
+    sigma the detection's `corner_sigma_px` when set, else `corner_sigma_px`;
     p_world = T_world_cam p_cam with T_world_cam = camera_pose(T_world_body, camera), and
     cov_world = R_world_cam cov_cam R_world_cam^T + J_b cov_body J_b^T, J_b = d p_world / d xi
     for the body-frame right perturbation xi of T_world_body (cov_body None: drone pose exact).
@@ -334,6 +353,7 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     corners_S = symbol_corners_S(world.load_side_m)
     out = []
     for s in sightings:
+        sig = float(corner_sigmas([s.detection], sigma)[0])     # one code: one sigma, no weights
         uv = np.asarray(s.detection.corners_px, dtype=float)
         xn = camera.undistort_normalized(uv)
         if uv.shape != (4, 2) or not np.all(np.isfinite(xn)):
@@ -353,12 +373,12 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
         if not cands:
             continue
         best_sse = min(c[3] for c in cands)
-        close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2 * sigma ** 2]
+        close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2 * sig ** 2]
         T, r, J, _ = max(close, key=lambda c: (R_wc @ c[0][:3, 1])[2])
         if float(np.sqrt(np.mean(r ** 2))) > max_rms_px:
             continue
         try:
-            cov_cam = covariance_from_jacobian(J, sigma)[3:, 3:]
+            cov_cam = covariance_from_jacobian(J, sig)[3:, 3:]
         except EstimationError:
             continue
         p_cam = T[:3, 3].copy()
