@@ -179,18 +179,21 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     obs["pnp"] = pnp.pnp_load_observations(front_frames, cam1, log.world, traj_pnp,
                                            cfg.corner_sigma_px)
     maps["pnp"] = pnp.aggregate_load_observations(obs["pnp"], name="pnp")
-    # every load sighting with a camera-frame measurement, whether or not a raw pose existed
-    # at that frame: the landmark factors of the fusion back end need no per-frame pose
-    obs["camera_frame"] = _camera_frame_load_observations(front_frames, cam1, log.world,
-                                                          cfg.corner_sigma_px)
+    # The landmark factors of the fusion back end need only the camera-frame measurement, so
+    # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
+    obs["camera_frame"] = obs["pnp"] + _unposed_load_observations(
+        front_frames, {o.timestamp_ns for o in obs["pnp"]}, cam1, log.world, cfg.corner_sigma_px)
     return LocalizeResult(trajectories, obs, maps, stats, notes)
 
 
-def _camera_frame_load_observations(front_frames, camera, world, sigma_px) -> list[LoadObservation]:
+def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
+                               sigma_px) -> list[LoadObservation]:
+    """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
+    their p_world is meaningless (identity drone pose) and must not be used."""
     from fusion.qr.codes import classify
     from fusion.qr.pnp import estimate_load_observations
     out = []
-    for ts in sorted(front_frames):
+    for ts in sorted(set(front_frames) - posed_ns):
         codes = classify(front_frames[ts], world)
         if codes.loads:
             out.extend(estimate_load_observations(codes.loads, camera, world, np.eye(4), None,
