@@ -17,14 +17,19 @@ bottom-right corner has no finder: it is where the TR finder's right edge and th
 bottom edge, extended, meet).
 
 Second stage (`finder_homography`, default on): the line fit leaves the bottom-right corner,
-extrapolated from two short edges, the least accurate (0.07 px mean, 0.35 px max on rendered
-frames).  With the symbol now known to a fraction of a module, edge points are also taken on the
-six finder edges that face the separators (u = 7, v = 7 on the TL finder, u = N-7, v = 7 on the
-TR, u = 7, v = N-7 on the BL; window +-0.45 module), and one homography H (module coordinates ->
-pixels) is fitted to all twelve edges at once: each point p on the module line u = c (or v = c)
-gives the linear equation g1.p - c g3.p = 0 (or g2.p - c g3.p = 0) in G = H^-1 (a DLT with
-Hartley normalisation, one round of outlier rejection).  The corners are H applied to the module
-square.  This brings the bottom-right corner to ~0.02 px mean, 0.1 px max.
+extrapolated from two short edges, the least accurate, and its 50 % crossings move outwards under
+motion blur wider than a module (the finder's 1-module ring blurs grey with its neighbours, so
+"halfway to the darkest sample" is no longer halfway to black: 0.2-1 px at 4-8 px blur).  Stage 2
+locates the twelve straight finder edges (six on the symbol boundary, six facing the separators)
+by fitting the finder's known module sequence across each edge (dark 1 | light 1 | dark 3, quiet
+zone or separator + unknown data outside), blurred by a box per symbol axis (the motion blur's
+projection, fitted) and a fixed 1.5 px box (PSF and sampling): `_model_edge_points`.  A symmetric
+blur then moves no edge.  One homography H (module coordinates -> pixels) is fitted to all edge
+points at once: each point p on the module line u = c (or v = c) gives the linear equation
+g1.p - c g3.p = 0 (or g2.p - c g3.p = 0) in G = H^-1 (a DLT with Hartley normalisation, one round
+of outlier rejection); STAGE2_PASSES passes.  The corners are H applied to the module square; their
+1-sigma noise (`RefineResult.corner_sigma_px`) propagates the edge-point residuals through that
+fit, plus a blur-per-module term calibrated on rendered codes.
 
 Lens distortion bends the edges.  With a `CameraModel` the whole construction runs in
 undistorted pixel coordinates: the raw corners are undistorted, the profiles are laid out in
