@@ -62,7 +62,7 @@ class FusionConfig:
     init_window: int = 15
     # Batch Levenberg-Marquardt.
     lm_max_iterations: int = 100
-    lm_relative_tol: float = 1e-7
+    lm_relative_tol: float = 1e-5          # GTSAM's default relativeErrorTol
     compute_covariances: bool = True
     # Incremental (iSAM2) mode.
     isam_relinearize_threshold: float = 0.01
@@ -229,15 +229,21 @@ def velocity_at_frames(frame_t: np.ndarray, vel: VelocityData | None,
 
 
 def inlier_raw_mask(raw: RawPoses, config: FusionConfig) -> np.ndarray:
-    """Raw poses whose position lies within init_outlier_m of the median of its neighbours."""
+    """Raw poses whose position lies within init_outlier_m of the median of its neighbours
+    (the raw poses i-w .. i+w, clipped at the ends; w = init_window)."""
     p = raw.T_world_body[:, :3, 3]
     m = len(p)
     w = config.init_window
-    ok = np.ones(m, bool)
-    for i in range(m):
-        lo, hi = max(0, i - w), min(m, i + w + 1)
-        med = np.median(p[lo:hi], axis=0)
-        ok[i] = np.linalg.norm(p[i] - med) <= config.init_outlier_m
+    med = np.empty_like(p)
+    if m > 2 * w + 1:            # full windows, vectorised
+        win = np.lib.stride_tricks.sliding_window_view(p, 2 * w + 1, axis=0)  # (m-2w, 3, 2w+1)
+        med[w:m - w] = np.median(win, axis=2)
+        edges = list(range(w)) + list(range(m - w, m))
+    else:
+        edges = range(m)
+    for i in edges:
+        med[i] = np.median(p[max(0, i - w):min(m, i + w + 1)], axis=0)
+    ok = np.linalg.norm(p - med, axis=1) <= config.init_outlier_m
     if not ok.any():
         ok[:] = True
     return ok
@@ -313,17 +319,22 @@ def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
         return groups, 0
     idx = match_to_frames(frame_t, np.array([o.timestamp_ns for o in load_obs], dtype=np.int64),
                           config.max_sync_s)
-    for k, o in zip(idx, load_obs):
-        if k < 0 or o.p_cam is None or o.cov_cam is None:
-            skipped += 1
-            continue
-        p, c = np.asarray(o.p_cam, float), np.asarray(o.cov_cam, float)
-        if p.shape != (3,) or c.shape != (3, 3) or not (np.all(np.isfinite(p))
-                                                        and np.all(np.isfinite(c))):
-            skipped += 1
-            continue
-        if np.linalg.eigvalsh(0.5 * (c + c.T))[0] <= 0:
-            skipped += 1
-            continue
-        groups.setdefault(o.load_id, []).append((int(k), o))
+    usable = [k >= 0 and o.p_cam is not None and o.cov_cam is not None
+              and np.shape(o.p_cam) == (3,) and np.shape(o.cov_cam) == (3, 3)
+              for k, o in zip(idx.tolist(), load_obs)]
+    sel = [i for i, u in enumerate(usable) if u]
+    skipped = len(load_obs) - len(sel)
+    if not sel:
+        return groups, skipped
+    P = np.array([load_obs[i].p_cam for i in sel], dtype=float)
+    C = np.array([load_obs[i].cov_cam for i in sel], dtype=float)
+    finite = np.isfinite(P).all(axis=1) & np.isfinite(C).all(axis=(1, 2))
+    C_ok = np.where(finite[:, None, None], C, np.eye(3))
+    pd = np.linalg.eigvalsh(0.5 * (C_ok + np.swapaxes(C_ok, 1, 2)))[:, 0] > 0
+    good = finite & pd
+    skipped += int((~good).sum())
+    for i, g in zip(sel, good.tolist()):
+        if g:
+            o = load_obs[i]
+            groups.setdefault(o.load_id, []).append((int(idx[i]), o))
     return groups, skipped

@@ -156,22 +156,32 @@ def load_error(p_cam_meas: np.ndarray, T_body_cam: np.ndarray, pose: gtsam.Pose3
 
 def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, T_body_cam: np.ndarray,
                 kernel: str, threshold: float) -> gtsam.CustomFactor:
-    """A load-code centre measured in the front camera at frame k, on X(k) and L(j)."""
-    p_meas = np.asarray(p_cam, float).copy()
-    T_bc = np.asarray(T_body_cam, float).copy()
-    model = robust(gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov_cam, float)), kernel,
+    """A load-code centre measured in the front camera at frame k, on X(k) and L(j).
+
+    Evaluated in the body frame: residual T_world_body^-1 l - T_body_cam p_cam with covariance
+    R_bc cov_cam R_bc^T.  This is load_error rotated by the constant R_bc, so the whitened
+    residual norm (hence the robust kernel and the normal equations) is exactly that of the
+    camera-frame residual, while the value and Jacobians come from one C++ call
+    (Pose3.transformTo) per evaluation."""
+    T_bc = np.asarray(T_body_cam, float)
+    R_bc = T_bc[:3, :3]
+    p_body = R_bc @ np.asarray(p_cam, float) + T_bc[:3, 3]
+    cov_body = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
+    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_body + cov_body.T)), kernel,
                    threshold)
+    kx, kl = X(k), L(j)
 
     def error(this, values, jacobians):
-        kx, kl = this.keys()
-        e, Hx, Hl = load_error(p_meas, T_bc, values.atPose3(kx), values.atPoint3(kl),
-                               jacobians is not None)
-        if jacobians is not None:
-            jacobians[0] = Hx
-            jacobians[1] = Hl
-        return e
+        pose, l_world = values.atPose3(kx), values.atPoint3(kl)
+        if jacobians is None:
+            return pose.transformTo(l_world) - p_body
+        Hx, Hl = np.empty((3, 6), order="F"), np.empty((3, 3), order="F")
+        q = pose.transformTo(l_world, Hx, Hl)
+        jacobians[0] = Hx
+        jacobians[1] = Hl
+        return q - p_body
 
-    return gtsam.CustomFactor(model, [X(k), L(j)], error)
+    return gtsam.CustomFactor(model, [kx, kl], error)
 
 
 def constant_velocity_error(dt: float, pose0: gtsam.Pose3, pose1: gtsam.Pose3, v0: np.ndarray,

@@ -118,6 +118,28 @@ def preintegrate(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray,
     return out
 
 
+def gyro_fill_rotations(T_init: np.ndarray, known: np.ndarray, pims: dict) -> int:
+    """Initial rotations inside raw-pose gaps from the gyro instead of slerp (in place).
+
+    Between frames a < b with raw poses and no raw pose in between, when the IMU covers every
+    interval: R_k = R_a dR_ak Exp(s_k r), dR_ak the preintegrated rotation (zero bias),
+    r = Log((R_a dR_ab)^T R_b) the end mismatch spread linearly in frame count (s_k = (k-a)/(b-a)).
+    A drone turns up to ~3 rad in a 5 s blackout, which slerp between the ends cannot follow;
+    the closer start saves Gauss-Newton iterations.  Returns the number of frames filled."""
+    filled = 0
+    for a, b in zip(known[:-1].tolist(), known[1:].tolist()):
+        if b - a < 2 or any(k not in pims for k in range(a, b)):
+            continue
+        R = [T_init[a, :3, :3]]
+        for k in range(a, b):
+            R.append(R[-1] @ pims[k].deltaRij().matrix())
+        r = gtsam.Rot3.Logmap(gtsam.Rot3(R[-1].T @ T_init[b, :3, :3]))
+        for k in range(a + 1, b):
+            T_init[k, :3, :3] = R[k - a] @ gtsam.Rot3.Expmap((k - a) / (b - a) * r).matrix()
+            filled += 1
+    return filled
+
+
 # =========================================================================== problem
 
 
@@ -195,6 +217,7 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         params = G.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
         pb.pims = preintegrate(frame_t, imu, covered, params)
+        gyro_fill_rotations(pb.T_init, np.unique(rawp.frame_idx[use]), pb.pims)
     for k in range(n - 1):
         if covered[k]:
             pb.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1),
@@ -298,44 +321,55 @@ def count_rejections(pb: Problem, dist: dict[int, float]) -> dict:
 
 
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                        max_iterations: int = 100,
-                        relative_tol: float = 1e-7, lambda0: float = 1e-5) -> tuple[gtsam.Values, int]:
+                        max_iterations: int = 100, relative_tol: float = 1e-5,
+                        lambda0: float = 1e-5, ordering: gtsam.Ordering | None = None):
     """Levenberg-Marquardt (Nocedal & Wright 2006, Sec. 10.3; GTSAM's defaults: lambda0 1e-5,
-    factor 10, identity damping) driven from Python around GTSAM's linearize / eliminate
-    (COLAMD ordering).  Each iteration first tries the undamped Gauss-Newton step and damps only
-    if that does not lower the error (from a good initial guess the first steps succeed).
+    factor 10, identity damping) driven from Python around GTSAM's linearize / multifrontal
+    elimination, with one COLAMD ordering computed up front and reused.  Each iteration first
+    tries the undamped Gauss-Newton step and damps only if that does not lower the error (from
+    a good initial guess the first steps succeed).  Stops when an accepted step lowers the error
+    by less than relative_tol (GTSAM's relativeErrorTol).
 
     Why not gtsam.LevenbergMarquardtOptimizer: with Python CustomFactors in the graph its
     linearisation took ~5 s per iteration on a 2-minute flight here (gtsam 4.3.0 wheel), 100x
     more than `graph.linearize` called from Python on the same graph; the maths is the same.
-    Returns (values, iterations)."""
+
+    Returns (values, iterations, bayes_tree): bayes_tree is the undamped elimination of the last
+    accepted step (linearised at the iterate before the returned one, whose step changed the
+    error by < relative_tol), reusable for marginal covariances; None if that step was damped."""
+    if ordering is None:
+        ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     err = graph.error(values)
     lam = 0.0      # try the Gauss-Newton step first; damp only when it fails to descend
     keys = [int(k) for k in values.keys()]
     it = 0
+    tree = None
     for it in range(1, max_iterations + 1):
         lin = graph.linearize(values)
         while True:
-            damped = lin.clone()
             if lam > 0:
-                _add_damping(damped, values, keys, lam)
-            delta = damped.optimize()
-            trial = values.retract(delta)
+                damped = lin.clone()
+                _add_damping(damped, keys, lam)
+                tree = damped.eliminateMultifrontal(ordering)
+            else:
+                tree = lin.eliminateMultifrontal(ordering)
+            trial = values.retract(tree.optimize())
             new_err = graph.error(trial)
             if new_err <= err:
                 break
             lam = lambda0 if lam == 0.0 else lam * 10.0
             if lam > 1e10:
-                return values, it
+                return values, it, None
+        undamped = lam == 0.0
         converged = (err - new_err) <= relative_tol * max(err, 1e-300)
         values, err = trial, new_err
         lam = lam / 10.0 if lam > lambda0 else 0.0
         if converged:
             break
-    return values, it
+    return values, it, tree if undamped else None
 
 
-def _add_damping(lin: gtsam.GaussianFactorGraph, values: gtsam.Values, keys, lam: float) -> None:
+def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
     s = math.sqrt(lam)
     for k in keys:
         d = _dim_of(k)
@@ -347,13 +381,15 @@ def _dim_of(key: int) -> int:
     return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3}[gtsam.Symbol(key).chr()]
 
 
-def _marginals(graph, values):
-    try:
-        return gtsam.Marginals(graph, values)
-    except RuntimeError:
-        # Cholesky can fail on a nearly singular system; QR is slower but more robust
-        return gtsam.Marginals(graph, values, gtsam.Marginals.Factorization.QR) \
-            if hasattr(gtsam.Marginals, "Factorization") else None
+def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
+    """(n, 4, 4) T_world_body of X(0..n-1) (the only Pose3 keys in the graph)."""
+    rows = gtsam.utilities.extractPose3(values)      # per pose: R row-major (9), t (3)
+    if rows.shape[0] != n:
+        raise EstimationError(f"expected {n} poses in the solution, found {rows.shape[0]}")
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = rows[:, :9].reshape(n, 3, 3)
+    T[:, :3, 3] = rows[:, 9:]
+    return T
 
 
 def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
@@ -377,8 +413,9 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     t_build = time.perf_counter() - t0
     graph = pb.graph()
     err0 = graph.error(pb.initial)
-    values, iterations = levenberg_marquardt(graph, pb.initial,
-                                             config.lm_max_iterations, config.lm_relative_tol)
+    ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+    values, iterations, tree = levenberg_marquardt(graph, pb.initial, config.lm_max_iterations,
+                                                   config.lm_relative_tol, ordering=ordering)
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
     gated = {"pose": 0, "load": 0}
@@ -390,23 +427,22 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         for i, f in enumerate(pb.factors):
             if i not in drop:
                 graph.add(f)
-        values, it2 = levenberg_marquardt(graph, values, config.lm_max_iterations,
-                                          config.lm_relative_tol)
+        values, it2, tree = levenberg_marquardt(graph, values, config.lm_max_iterations,
+                                                config.lm_relative_tol, ordering=ordering)
         iterations += it2
     t_opt = time.perf_counter() - t0 - t_build
     n = len(pb.frame_t)
-    T = np.empty((n, 4, 4))
-    for k in range(n):
-        T[k] = values.atPose3(X(k)).matrix()
+    T = poses_of(values, n)
     cov = None
     lcov = {}
     if config.compute_covariances:
-        marg = _marginals(graph, values)
+        if tree is None:        # the last step was damped: eliminate at the solution
+            tree = graph.linearize(values).eliminateMultifrontal(ordering)
         cov = np.empty((n, 6, 6))
         for k in range(n):
-            cov[k] = marg.marginalCovariance(X(k))
+            cov[k] = tree.marginalCovariance(X(k))
         for j in range(len(pb.load_ids)):
-            lcov[j] = marg.marginalCovariance(L(j))
+            lcov[j] = tree.marginalCovariance(L(j))
     t_cov = time.perf_counter() - t0 - t_build - t_opt
     loads = LoadMap("smoother", [LoadEstimate(lid, values.atPoint3(L(j)).copy(), lcov.get(j),
                                               pb.load_nobs[j])
