@@ -160,6 +160,8 @@ class _CameraRays:
         xyh = camera.undistort_normalized(np.stack([uh, vh], axis=-1))
         self.half_x = np.ascontiguousarray(xyh[..., 0], dtype=np.float32)
         self.half_y = np.ascontiguousarray(xyh[..., 1], dtype=np.float32)
+        self.bounds_xy = (float(self.xn.min()), float(self.xn.max()), float(self.yn.min()),
+                          float(self.yn.max()))
 
 
 _RAYS: dict[tuple, _CameraRays] = {}
@@ -201,6 +203,19 @@ RACK_DN = (92.0, 84.0, 100.0)   # rack box faces normal to world x, y, z
 RACK_BEAM_PITCH_M = 0.7         # horizontal beams (darker) every 0.7 m of height
 
 
+def _box_may_be_in_view(lo, hi, T_world_cam: np.ndarray, rays: _CameraRays) -> bool:
+    """False when all 8 corners of the box are in front of the camera and beyond one side of the
+    field of view (then no ray meets it); True otherwise (conservative)."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])], dtype=float)
+    p = (corners - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+    if np.any(p[:, 2] <= 1e-6):
+        return True
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    x0, x1, y0, y1 = rays.bounds_xy
+    return not (np.all(x < x0) or np.all(x > x1) or np.all(y < y0) or np.all(y > y1))
+
+
 def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
                 occluders=()) -> np.ndarray:
     """float32 (H, W) background at half resolution, upsampled (it is low frequency): the
@@ -222,6 +237,8 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
             bg[~hit] = FAR_DN
         depth = t_floor
         for lo, hi in occluders or ():
+            if not _box_may_be_in_view(lo, hi, T_world_cam, rays):
+                continue
             t0 = [(np.float32(lo[i]) - c[i]) / d[i] for i in range(3)]
             t1 = [(np.float32(hi[i]) - c[i]) / d[i] for i in range(3)]
             near = [np.minimum(a, b) for a, b in zip(t0, t1)]
@@ -231,11 +248,11 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
             box = (tmin <= tmax) & (tmin > 0.0) & (tmin < depth)
             if not box.any():
                 continue
-            axis = np.argmax(np.stack(near), axis=0)
-            z = c[2] + tmin * d[2]
-            beam = np.mod(z, RACK_BEAM_PITCH_M) < 0.06
-            shade = np.choose(axis, RACK_DN).astype(np.float32) - 35.0 * beam
-            bg = np.where(box, shade, bg)
+            tb = tmin[box]
+            n0, n1 = near[0][box], near[1][box]
+            shade = np.where(tb == n0, RACK_DN[0], np.where(tb == n1, RACK_DN[1], RACK_DN[2]))
+            beam = np.mod(c[2] + tb * d[2][box], RACK_BEAM_PITCH_M) < 0.06
+            bg[box] = shade - 35.0 * beam
             depth = np.where(box, tmin, depth)
     return cv2.resize(bg, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
 
