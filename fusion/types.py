@@ -24,6 +24,9 @@ class QRDetection:
     corners_px: np.ndarray      # (4, 2) refined corners, symbol TL, TR, BR, BL
     corners_raw_px: np.ndarray  # (4, 2) corners as the decoder returned them
     corner_sigma_px: float | None = None   # 1-sigma noise per corner coordinate (px), if known
+    # (8, 8) covariance of corners_px flattened TL u, TL v, TR u, TR v, BR u, ..., BL v (px^2):
+    # the corners come from one fit, so their errors are correlated; None when unknown
+    corner_cov_px2: np.ndarray | None = None
 
     @property
     def centre_px(self) -> np.ndarray:
