@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 import os
 import time
 from dataclasses import dataclass, field
@@ -120,7 +122,9 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     loads_groundtruth.csv; blackouts_groundtruth.csv).
 
     `start_s` skips the start of the flight (timestamps stay the trajectory's time in ns).
-    Deterministic for a seed.  `workers` processes render (None: all cores).  `check_readable`
+    Deterministic for a seed.  `workers` processes render (None: all cores); they start with
+    multiprocessing's "forkserver" method, so a script calling this needs the usual
+    `if __name__ == "__main__":` guard (or workers=1).  `check_readable`
     runs zxing-cpp on every floor frame and reports the fraction with a readable floor code.
     Raises SimulationError for an unknown scenario or a bad duration, LogError if `out_dir`
     exists and not `overwrite`."""
@@ -148,6 +152,10 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     if workers is None:
         workers = os.cpu_count() or 1
     workers = max(1, int(workers))
+    if workers > 1 and mp.current_process().name != "MainProcess":
+        # most likely a worker re-importing an unguarded main script: stop before touching disk
+        raise SimulationError("simulate(workers > 1) called inside a child process; guard the "
+                              "calling script with `if __name__ == '__main__':` or use workers=1")
     for cam in sc.cameras.values():
         cam.rate_hz = camera_rate_hz
     traj = sc.trajectory
@@ -208,12 +216,20 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
                     consume(_render_chunk(c))
             else:
                 # not "fork": forking a process that runs threads (OpenCV, BLAS, a test runner) can
-                # deadlock the children on a lock copied in the held state
+                # deadlock the children on a lock copied in the held state.  An executor, unlike
+                # multiprocessing.Pool, fails instead of respawning workers that die at start-up.
                 ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods()
                                      else "spawn")
-                with ctx.Pool(workers, initializer=_init_worker, initargs=init) as pool:
-                    for res in pool.imap(_render_chunk, chunks):
-                        consume(res)
+                try:
+                    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                             initargs=init) as pool:
+                        for res in pool.map(_render_chunk, chunks):
+                            consume(res)
+                except BrokenProcessPool:
+                    raise SimulationError(
+                        "a rendering worker process died; when calling simulate() with workers > 1 "
+                        "from a script, run it under `if __name__ == '__main__':` (the workers "
+                        "import the main module), or pass workers=1") from None
         finally:
             if bar is not None:
                 bar.close()
