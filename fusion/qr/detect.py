@@ -15,8 +15,9 @@ load / rejected is fusion.qr.codes' job).
 
 Cache `detections.csv`: first line `# fusion-detections v<FORMAT_VERSION> fingerprint=<sha256>`,
 second line `# meta <json>` (per-camera counts and skip messages), then a header row and one
-CSV row per detection.  The fingerprint hashes the format version, the backend and refinement
-settings, and each camera's data.csv and sensor.yaml bytes (not the images: a log whose images
+CSV row per detection; its last field `corner_cov_px2` holds the 36 upper-triangle entries (row
+by row) of the (8, 8) corner covariance, space-separated, or nothing when unknown.  The
+fingerprint hashes the format version, the backend and refinement settings, and each camera's data.csv and sensor.yaml bytes (not the images: a log whose images
 change under an unchanged data.csv must be re-detected by deleting the cache).
 """
 from __future__ import annotations
@@ -37,17 +38,17 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open
-from fusion.qr.refine import modules_for_version, refine_code
+from fusion.qr.refine import modules_for_version, refine_codes
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 CACHE_NAME = "detections.csv"
-REFINE_METHOD = "finder-lines+finder-model-homography/2"   # change when refine.py's output changes
+REFINE_METHOD = "finder-crossings+finder-model-homography/3"   # change when refine.py's output changes
 CACHE_HEADER = ("camera", "timestamp_ns", "payload",
                 "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                 "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",
-                "raw_bl_x", "raw_bl_y", "refined", "corner_sigma_px")
+                "raw_bl_x", "raw_bl_y", "refined", "corner_sigma_px", "corner_cov_px2")
 _MAGIC = "# fusion-detections"
 RAW_CORNER_SIGMA_PX = 1.0   # decoder corners (refinement failed): whole pixels, 0.7-1 px off
 
@@ -178,22 +179,23 @@ def _detect_image(image: np.ndarray, backend: str) -> tuple[list[RawCode], int]:
 def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0,
                  camera: CameraModel | None = None, backend: str = "zxing",
                  stats: CameraStats | None = None) -> list[QRDetection]:
-    """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, see
-    fusion.qr.refine), `corners_raw_px` as decoded and `corner_sigma_px` the refinement's
-    calibrated 1-sigma corner noise (RAW_CORNER_SIGMA_PX when refinement failed).  `camera` (optional) makes the line fits
-    run in undistorted coordinates.  Counts go to `stats` when given."""
+    """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, all codes
+    of the frame at once, see fusion.qr.refine), `corners_raw_px` as decoded, `corner_cov_px2`
+    the refinement's calibrated (8, 8) corner covariance and `corner_sigma_px` the square root of
+    its mean diagonal (RAW_CORNER_SIGMA_PX and no covariance when refinement failed).  `camera`
+    (optional) makes the fits run in undistorted coordinates.  Counts go to `stats` when given."""
     codes, dropped = _detect_image(image, backend)
     out = []
     failed = 0
-    for code in codes:
-        res = refine_code(image, code.corners_px, code.modules, camera)
+    refined_all = refine_codes(image, [(c.corners_px, c.modules) for c in codes], camera)
+    for code, res in zip(codes, refined_all):
         if res is None:
             failed += 1
-            refined, sigma = code.corners_px.copy(), RAW_CORNER_SIGMA_PX
+            refined, sigma, cov = code.corners_px.copy(), RAW_CORNER_SIGMA_PX, None
         else:
-            refined, sigma = res.corners_px, res.corner_sigma_px
+            refined, sigma, cov = res.corners_px, res.corner_sigma_px, res.corner_cov_px2
         out.append(QRDetection(camera_name, int(timestamp_ns), code.payload, refined,
-                               code.corners_px, float(sigma)))
+                               code.corners_px, float(sigma), cov))
     if stats is not None:
         stats.payloads_dropped += dropped
         stats.refine_failed += failed
@@ -333,7 +335,34 @@ def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
                        + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
                        + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
                        + [str(refined),
-                          "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px))])
+                          "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px)),
+                          _cov_text(d.corner_cov_px2)])
+
+
+_TRIU = np.triu_indices(8)
+
+
+def _cov_text(cov) -> str:
+    if cov is None:
+        return ""
+    return " ".join(repr(float(v)) for v in np.asarray(cov, dtype=float).reshape(8, 8)[_TRIU])
+
+
+def _cov_parse(text: str, path: Path, lineno: int) -> np.ndarray | None:
+    if not text:
+        return None
+    try:
+        vals = np.array([float(v) for v in text.split()])
+    except ValueError:
+        raise DetectionError(f"{path}:{lineno}: corner_cov_px2 is not numbers") from None
+    if vals.shape != (36,) or not np.all(np.isfinite(vals)):
+        raise DetectionError(f"{path}:{lineno}: corner_cov_px2 needs 36 finite numbers")
+    cov = np.zeros((8, 8))
+    cov[_TRIU] = vals
+    cov = cov + np.triu(cov, 1).T
+    if np.any(np.diag(cov) <= 0):
+        raise DetectionError(f"{path}:{lineno}: corner_cov_px2 has a non-positive variance")
+    return cov
 
 
 def read_cache(path: Path, expected_fingerprint: str | None = None) -> DetectionResult | None:
@@ -405,4 +434,4 @@ def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
             raise DetectionError(f"{path}:{lineno}: corner_sigma_px is not a number") from None
         if not (math.isfinite(sigma) and sigma > 0):
             raise DetectionError(f"{path}:{lineno}: corner_sigma_px must be positive and finite")
-    return QRDetection(camera, t, payload, corners, raw, sigma)
+    return QRDetection(camera, t, payload, corners, raw, sigma, _cov_parse(row[21], path, lineno))

@@ -16,20 +16,25 @@ intersections TL = top x left, TR = top x right, BR = right x bottom, BL = left 
 bottom-right corner has no finder: it is where the TR finder's right edge and the BL finder's
 bottom edge, extended, meet).
 
-Second stage (`finder_homography`, default on): the line fit leaves the bottom-right corner,
-extrapolated from two short edges, the least accurate, and its 50 % crossings move outwards under
-motion blur wider than a module (the finder's 1-module ring blurs grey with its neighbours, so
-"halfway to the darkest sample" is no longer halfway to black: 0.2-1 px at 4-8 px blur).  Stage 2
-locates the twelve straight finder edges (six on the symbol boundary, six facing the separators)
-by fitting the finder's known module sequence across each edge (dark 1 | light 1 | dark 3, quiet
-zone or separator + unknown data outside), blurred by a box per symbol axis (the motion blur's
-projection, fitted) and a fixed 1.5 px box (PSF and sampling): `_model_edge_points`.  A symmetric
-blur then moves no edge.  One homography H (module coordinates -> pixels) is fitted to all edge
-points at once: each point p on the module line u = c (or v = c) gives the linear equation
+Second stage (`finder_homography`, default on; `refine_codes` runs it for all codes of a frame in
+one set of array operations): the line fit leaves the bottom-right corner, extrapolated from two
+short edges, the least accurate, and 50 % crossings move outwards under motion blur wider than a
+module (the finder's 1-module ring blurs grey with its neighbours).  Stage 2 locates the twelve
+straight finder edges (six on the symbol boundary, six facing the separators) by fitting the
+finder's known module sequence across each edge (dark 1 | light 1 | dark 3, quiet zone or
+separator + unknown data outside), blurred by a box per code and symbol axis (the motion blur's
+projection, fitted) and a fixed 1.5 px box (PSF and sampling), in closed form (a box convolved
+with a box is a trapezoid; its integral is piecewise quadratic): `_model_edge_points`.  A
+symmetric blur then moves no edge.  Passes (`_MODEL_ITERATIONS`): from the decoder's corners, the
+profiles' 50 % crossings (local, so free of the decoder's scale error); then the model fit
+(3 Gauss-Newton iterations), then once more around the refined edges (1 iteration, widths warm).
+After each pass one homography H (module coordinates -> pixels) is fitted to all edge points of a
+code: each point p on the module line u = c (or v = c) gives the linear equation
 g1.p - c g3.p = 0 (or g2.p - c g3.p = 0) in G = H^-1 (a DLT with Hartley normalisation, one round
-of outlier rejection); STAGE2_PASSES passes.  The corners are H applied to the module square; their
-1-sigma noise (`RefineResult.corner_sigma_px`) propagates the edge-point residuals through that
-fit, plus a blur-per-module term calibrated on rendered codes.
+of outlier rejection), then one weighted Gauss-Newton step on the geometric residuals.  The corners
+are H applied to the module square; their (8, 8) covariance (`RefineResult.corner_cov_px2`)
+propagates each edge point's noise (its profile's residual RMS over its information) through that
+fit, Jc (J^T W J)^-1 Jc^T, and the lens distortion, calibrated on rendered codes (`calibrated_cov`).
 
 Lens distortion bends the edges.  With a `CameraModel` the whole construction runs in
 undistorted pixel coordinates: the raw corners are undistorted, the profiles are laid out in
@@ -222,22 +227,27 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
 # modules (unknown) for the six edges facing the symbol's interior.  Profiles are taken in the
 # central band of each edge (2.25..4.75 modules along it), where this 1-D sequence holds for every
 # point a blur of up to ~1 module along the edge can reach.
-_MODEL_ALONG = np.linspace(2.25, 4.75, 6)       # profile positions along the finder (modules)
-_MODEL_WINDOW = {True: (-2.0, 3.0), False: (-1.0, 3.0)}   # sampled span (modules, + inwards)
-_MODEL_DARK = np.array([0.0, 1.0, 2.0, 5.0])     # transitions dark/light/dark/light (modules)
-_MODEL_SIGN = np.array([1.0, -1.0, 1.0, -1.0])
-_MODEL_ITERATIONS = 6
-STAGE2_PASSES = 2
-_WIDTH_GRID_PX = np.array([1.2, 2.5, 4.0, 6.0, 8.5, 12.0])   # start of the width search
+_MODEL_ALONG = np.linspace(2.75, 4.25, 6)       # profile positions along the finder (modules)
+_MODEL_GROUP = 3             # consecutive profiles averaged into one before the fit
+_MODEL_WINDOW = (-2.0, 3.0)                     # sampled span (modules, + inwards)
+_MODEL_INNER_LO = -1.0                          # interior edges: data modules beyond this
+_MODEL_UNIFORM = 11                             # samples spread evenly over the window ...
+_MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)    # ... and 8 within 2 px of the edge
+_MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
+_MODEL_ITERATIONS = (0, 3, 1)   # Gauss-Newton iterations per pass (0: 50 % crossings only)
+STAGE2_PASSES = len(_MODEL_ITERATIONS)
+_WIDTH_GRID_PX = np.array([1.5, 3.0, 5.0, 8.0])  # start of the width search (pass 1)
 _MODEL_MIN_WIDTH_PX = 0.5    # floor of the fitted motion-blur box width (px)
-_MODEL_PSF_PX = 1.5         # fixed second box (px): lens / pixel PSF and the bilinear sampling
+_MODEL_PSF_PX = 1.5          # fixed second box (px): lens / pixel PSF and the bilinear sampling
+_MIN_GOOD_PROFILES = 10      # of 24 (averaged) per code
 
 
 @lru_cache(maxsize=64)
 def _model_layout(n: float) -> tuple[np.ndarray, ...]:
-    """Profiles of the 12 finder edges for a symbol of n modules: per profile the module position
-    on the edge (P, 2), the inward module direction (P, 2), which coordinate is constant on its
-    edge (0: u, 1: v), the constant (modules), and whether the edge is on the symbol boundary."""
+    """Profiles of the 12 finder edges for a symbol of n modules (72 = 12 x 6, consecutive
+    _MODEL_GROUP of them on one edge): per profile the module position on the edge (72, 2), the
+    inward module direction (72, 2), which coordinate is constant on its edge (0: u, 1: v), the
+    constant (modules), and whether the edge is on the symbol boundary."""
     f = float(FINDER_MODULES)
     # (axis, const, finder start along the edge, outward sign, boundary?)
     edges = [(1, 0.0, 0.0, -1, True), (0, 0.0, 0.0, -1, True),               # TL: top, left
@@ -262,268 +272,367 @@ def _model_layout(n: float) -> tuple[np.ndarray, ...]:
             np.array(boundary))
 
 
-def _ramp_integral(z, w):
-    """Q(z) = integral of clip(z / w + 1/2, 0, 1) dz (0 below -w/2) and dQ/dw."""
-    t = np.clip(z + 0.5 * w, 0.0, w)
-    q = t * t / (2.0 * w) + np.maximum(z - 0.5 * w, 0.0)
-    dq_dw = np.where((z > -0.5 * w) & (z < 0.5 * w), t / (2.0 * w) - t * t / (2.0 * w * w), 0.0)
-    return q, dq_dw
+def _blurred_steps(x: np.ndarray, a: np.ndarray, b: np.ndarray, derivatives: bool = True):
+    """Unit steps at _MODEL_STEPS seen through a box of width a convolved with a box of width b
+    (all in modules; x (P, K) inwards from the edge, a and b (P, 1)): the kernel's cumulative
+    distribution F (P, K, 4), and dF/dx, dF/da.  Closed form: with s1 = (a + b) / 2,
+    s2 = |a - b| / 2 and z clipped to [-s1, s1] (F is 0 / 1 beyond),
+    F = ((z + s1)^2 - max(z + s2, 0)^2 - max(z - s2, 0)^2) / (2 a b)  (a trapezoid's integral)."""
+    z = x[..., None] - _MODEL_STEPS
+    a3, b3 = a[..., None], b[..., None]
+    s1 = 0.5 * (a3 + b3)
+    s2 = 0.5 * np.abs(a3 - b3)
+    z = np.minimum(np.maximum(z, -s1), s1)
+    p = z + s1
+    m1 = np.maximum(z + s2, 0.0)
+    m2 = np.maximum(z - s2, 0.0)
+    inv = 1.0 / (a3 * b3)
+    F = 0.5 * inv * (p * p - m1 * m1 - m2 * m2)
+    if not derivatives:
+        return F, None, None
+    dF_dx = inv * (p - m1 - m2)
+    sgn = np.sign(a3 - b3)
+    dF_da = 0.5 * inv * (p - sgn * (m1 - m2)) - F / a3
+    return F, dF_dx, dF_da
 
 
-def _edge_model(x: np.ndarray, width: np.ndarray, pixel: np.ndarray):
-    """Blurred finder profile at x (P, K) modules inwards from the edge, for a box kernel of
-    `width` (P, 1) modules convolved with a box of one pixel (`pixel` (P, 1) modules: the
-    sampling's interpolation): the dark fraction D, the blurred data indicator Dd (x < -1), and
-    their derivatives in x and in width.  A step at `pos` contributes H(x - pos), the kernel's
-    cumulative distribution, (Q(z + p/2) - Q(z - p/2)) / p with Q the integral of the box's."""
-    pos = np.concatenate([[-1.0], _MODEL_DARK])
-    z = x[..., None] - pos                                  # (P, K, 5)
-    w = width[..., None]
-    p = pixel[..., None]
-    qa, qa_w = _ramp_integral(z + 0.5 * p, w)
-    qb, qb_w = _ramp_integral(z - 0.5 * p, w)
-    H = (qa - qb) / p
-    dHdz = (np.clip((z + 0.5 * p) / w + 0.5, 0.0, 1.0) - np.clip((z - 0.5 * p) / w + 0.5, 0.0, 1.0)) / p
-    dHdw = (qa_w - qb_w) / p
-    D = H[..., 1:] @ _MODEL_SIGN
-    dD_dx = dHdz[..., 1:] @ _MODEL_SIGN
-    dD_dw = dHdw[..., 1:] @ _MODEL_SIGN
-    return D, 1.0 - H[..., 0], dD_dx, -dHdz[..., 0], dD_dw, -dHdw[..., 0]
+_DARK = np.array([0.0, 1.0, -1.0, 1.0])     # D = F(0) - F(1) + F(2): the finder's dark modules
+_DATA = np.array([-1.0, 0.0, 0.0, 0.0])     # Dd = 1 - F(-1): the data beyond the separator
+
+
+def _levels(D, Dd, y, m):
+    """Per-profile least-squares levels (W, C, g) of y = W + C D + g Dd over the samples with
+    mask m: levels (P, 3), residuals (P, K), the basis (P, K, 3) and its inverse normal matrix
+    (P, 3, 3)."""
+    A = np.stack([m, D * m, Dd * m], axis=-1)
+    At = A.transpose(0, 2, 1)
+    N = At @ A + _LEVEL_REG
+    Ninv = _inv(N)
+    lev = Ninv @ (At @ (y * m)[..., None])
+    r = (A @ lev)[..., 0] - y * m
+    return lev[..., 0], r, A, Ninv
+
+
+_LEVEL_REG = np.diag([1e-9, 1e-9, 1e-6])      # the data level g is absent on boundary edges
+
+
+def _inv(M: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of square matrices (..., k, k); NaN where one is singular."""
+    try:
+        return np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        out = np.full(M.shape, np.nan)
+        for i in np.ndindex(M.shape[:-2]):
+            try:
+                out[i] = np.linalg.inv(M[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+@dataclass
+class _Profiles:
+    """The stage-2 profiles of a batch of codes, each the average of _MODEL_GROUP sampled ones
+    (24 per code, see _model_layout); per averaged profile the middle one's position."""
+    code: np.ndarray          # (P,) index of the code
+    uv0: np.ndarray           # (P, 2) module position on the edge
+    inward: np.ndarray        # (P, 2) inward module direction
+    axis: np.ndarray          # (P,) 0: edge on u = const, 1: on v = const
+    const: np.ndarray         # (P,) the constant (modules)
+    boundary: np.ndarray      # (P,) bool: edge on the symbol boundary (quiet zone outside)
+    uv_sampled: np.ndarray    # (P * _MODEL_GROUP, 2) the sampled profiles' positions
+
+
+def _profiles(ns: list[float]) -> _Profiles:
+    parts = [_model_layout(float(n)) for n in ns]
+    cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]
+    mid = slice(_MODEL_GROUP // 2, None, _MODEL_GROUP)
+    code = np.repeat(np.arange(len(ns)), [len(p[0]) // _MODEL_GROUP for p in parts])
+    return _Profiles(code, *(a[mid] for a in cat), cat[0])
+
+
+def _apply_hs(Hp: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Per-row homographies Hp (P, 3, 3) applied to uv (P, ..., 2)."""
+    ex = (slice(None),) + (None,) * (uv.ndim - 2)
+    w = Hp[:, 2, 0][ex] * uv[..., 0] + Hp[:, 2, 1][ex] * uv[..., 1] + Hp[:, 2, 2][ex]
+    x = Hp[:, 0, 0][ex] * uv[..., 0] + Hp[:, 0, 1][ex] * uv[..., 1] + Hp[:, 0, 2][ex]
+    y = Hp[:, 1, 0][ex] * uv[..., 0] + Hp[:, 1, 1][ex] * uv[..., 1] + Hp[:, 1, 2][ex]
+    return np.stack([x / w, y / w], axis=-1)
 
 
 @dataclass
 class _ModelFit:
-    """Stage-2 edge points and what the fit learnt: points (M, 2) undistorted px, their module
-    line (axis (M,), const (M,)), edge-position sigma (M,) px, per-profile residual RMS (M,) DN,
-    contrast (M,) DN, and the fitted kernel widths (px) across u-edges and v-edges."""
+    """Stage-2 edge points of a batch: points (P, 2) undistorted px, `good` (P,) usable, the
+    edge-position sigma (P,) px, modules per px across each edge g (P,), the fitted box widths
+    (C, 2) px across u-edges and v-edges."""
     points: np.ndarray
-    axis: np.ndarray
-    const: np.ndarray
+    good: np.ndarray
     sigma_px: np.ndarray
-    rms_dn: np.ndarray
-    contrast_dn: np.ndarray
+    g: np.ndarray
     width_px: np.ndarray
 
 
-def _level_fit(D, Dd, y, wmask):
-    """Per-profile least-squares levels (W, C, g) of y = W + C D + g Dd: (P, 3), residuals (P, K)."""
-    A = np.stack([np.ones_like(D), D, Dd], axis=-1) * wmask[..., None]
-    N = np.einsum("pki,pkj->pij", A, A) + np.diag([1e-9, 1e-9, 1e-6])
-    lev = np.linalg.solve(N, np.einsum("pki,pk->pi", A, y * wmask)[..., None])[..., 0]
-    r = (lev[:, 0:1] + lev[:, 1:2] * D + lev[:, 2:3] * Dd - y) * wmask
-    return lev, r
-
-
-def _model_edge_points(image, dist: _Distortion, H: np.ndarray, n: float,
-                       width0_px: np.ndarray | None = None,
-                       iterations: int = _MODEL_ITERATIONS) -> _ModelFit | None:
-    """Fit the finder's known profile across each of the 12 finder edges (module docstring).
+def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.ndarray,
+                       pr: _Profiles, width0_px: np.ndarray | None, iterations: int) -> _ModelFit:
+    """Fit the finder's known profile across each of the 12 finder edges of every code of a
+    batch (module docstring), all codes' profiles in one array.
 
     Per profile i, image samples y(s) at s modules inwards from the edge H predicts (one remap
-    for all profiles) are modelled as  y = W + C D(s - e_i; w) + g Dd(s - e_i; w)  with D the
-    dark-module sequence blurred by a box of width w (modules) and Dd the data modules beyond the
-    separator (edges facing the interior only).  W, C, g are solved linearly per profile
-    (variable projection); the edge offsets e_i and one kernel width in pixels per edge
-    direction (u-edges, v-edges: a motion blur's projections on the two symbol axes, plus the
-    lens PSF) by Gauss-Newton, the widths eliminated by a Schur complement.  Symmetric blur then
-    moves no edge, whatever its width relative to the module."""
-    uv0, inward, axis, const, boundary = _model_layout(float(n))
-    P = len(uv0)
-    # local scale: |grad u| or |grad v| in modules per px at each profile (undistorted image)
-    w3 = uv0 @ H[2, :2] + H[2, 2]
-    xy0 = _apply_h(H, uv0)
-    J = (H[:2, :2][None] - xy0[:, :, None] * H[2, :2][None, None, :]) / w3[:, None, None]
-    try:
-        Jinv = np.linalg.inv(J)                                # rows: grad u, grad v (mod / px)
-    except np.linalg.LinAlgError:
-        return None
-    g = np.linalg.norm(Jinv[np.arange(P), axis], axis=1)      # modules per px across the edge
-    if not np.all(np.isfinite(g)) or np.any(g <= 0):
-        return None
-    module_px = float(np.median(1.0 / g))
-    # samples: dense (0.5 px) within 3 px of the predicted edge, 0.25 module over the window
-    dense = np.arange(-3.0, 3.01, 0.5) / module_px
-    lo, hi = _MODEL_WINDOW[True]
-    s = np.unique(np.round(np.concatenate([dense, np.linspace(lo, hi, 21)]), 6))
-    s_mod = np.broadcast_to(s, (P, len(s)))
-    lo_inner = _MODEL_WINDOW[False][0]
-    wmask = np.where(boundary[:, None], 1.0, (s_mod >= lo_inner).astype(float))
-    pts = uv0[:, None, :] + s_mod[..., None] * inward[:, None, :]
-    y, inside = _sample(image, dist.distort(_apply_h(H, pts)))
-    y = y.astype(np.float64)
-    ok = inside.all(axis=1)
-    wmask = wmask * ok[:, None]
-    data_on = (~boundary).astype(float)[:, None]
-    # unknowns: e (P,) modules; kernel width per direction (2,) px
-    e = np.zeros(P)
-    max_w = 4.0 * module_px + 2.0
+    for all profiles of all codes) are modelled as  y = W + C D(s - e_i; w) + g Dd(s - e_i; w)
+    with D the dark-module sequence blurred by a box of width w and a 1.5 px box (PSF), Dd the
+    data modules beyond the separator (edges facing the interior only).  W, C, g are solved
+    linearly per profile and projected out (variable projection); the edge offsets e_i (modules)
+    and one box width in pixels per code and edge direction (u-edges, v-edges: a motion blur's
+    projections on the two symbol axes) by Gauss-Newton, the widths eliminated by a Schur
+    complement.  A symmetric blur then moves no edge, whatever its width relative to the module.
+    Without `width0_px` (first pass) e starts at each profile's 50 % crossing and the widths at
+    the best of _WIDTH_GRID_PX; otherwise at 0 and `width0_px`."""
+    C = len(Hs)
+    P = len(pr.code)
+    Hp = Hs[pr.code]
+    xy0 = _apply_hs(Hp, pr.uv0)
+    w3 = Hp[:, 2, 0] * pr.uv0[:, 0] + Hp[:, 2, 1] * pr.uv0[:, 1] + Hp[:, 2, 2]
+    J = (Hp[:, :2, :2] - xy0[:, :, None] * Hp[:, 2, None, :2]) / w3[:, None, None]
+    det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+    # rows of J^-1 are grad u = (J11, -J01) / det and grad v = (-J10, J00) / det (modules / px)
+    g = np.where(pr.axis == 0, np.hypot(J[:, 1, 1], J[:, 0, 1]),
+                 np.hypot(J[:, 1, 0], J[:, 0, 0])) / np.abs(det)
+    bad_geom = ~(np.isfinite(g) & (g > 0))
+    g = np.where(bad_geom, 1.0, g)
+    # samples: 11 over the window, 8 dense within 2 px of the predicted edge (per code)
+    lo, hi = _MODEL_WINDOW
+    s_code = np.sort(np.concatenate([np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM),
+                                                     (C, _MODEL_UNIFORM)),
+                                     _MODEL_DENSE_PX[None] / module_px[:, None]], axis=1), axis=1)
+    s = s_code[pr.code]                                                       # (P, K)
+    rep = lambda a: np.repeat(a, _MODEL_GROUP, axis=0)                        # noqa: E731
+    pts = pr.uv_sampled[:, None, :] + rep(s)[..., None] * rep(pr.inward)[:, None, :]
+    y, inside = _sample(image, dist.distort(_apply_hs(rep(Hp), pts)))
+    K = s.shape[1]
+    y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1, dtype=np.float64)
+    ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
+    m = np.where(pr.boundary[:, None], 1.0, (s >= _MODEL_INNER_LO).astype(float)) * ok[:, None]
+    inner = (~pr.boundary).astype(float)[:, None]
+    lbl = 2 * pr.code + pr.axis                                               # width groups
+    max_w = 4.0 * module_px + 2.0                                             # (C,)
+    psf = _MODEL_PSF_PX * g[:, None]
     if width0_px is None:
-        # Gauss-Newton creeps when the width is far too small (samples outside the narrow ramps
-        # carry no derivative): start each direction at the best of a few widths, e = 0
-        grid = _WIDTH_GRID_PX[_WIDTH_GRID_PX <= max_w]
+        # e: the first crossing, from outside, of the level halfway between outside and darkest
+        out_lvl = np.where(pr.boundary, y[:, 0], y[np.arange(P), np.argmin(np.abs(s + 0.5), axis=1)])
+        dark = np.min(np.where((s > -0.8) & (s < 1.6), y, np.inf), axis=1)
+        thr = 0.5 * (out_lvl + dark)
+        below = (y < thr[:, None]) & (s > np.where(pr.boundary, lo, -0.5)[:, None])
+        k = np.maximum(np.argmax(below, axis=1), 1)
+        y0, y1 = y[np.arange(P), k - 1], y[np.arange(P), k]
+        frac = np.clip((y0 - thr) / np.maximum(y0 - y1, 1e-6), 0.0, 1.0)
+        e = s[np.arange(P), k - 1] + frac * (s[np.arange(P), k] - s[np.arange(P), k - 1])
+        e = np.where(below.any(axis=1), np.clip(e, -0.7, 0.7), 0.0)
+        if iterations == 0:
+            # a first look: the crossings alone (biased outwards by blur, but local, so free of
+            # the decoder corners' scale errors that the model's later transitions would feel)
+            good = ok & (out_lvl - dark > _MIN_CONTRAST) & below.any(axis=1) & (np.abs(e) < 0.7)
+            points = _apply_hs(Hp, pr.uv0 + e[:, None] * pr.inward)
+            return _ModelFit(points, good, np.full(P, 0.3), g, np.full((C, 2), np.nan))
+        # widths: the best of a few, on every third profile
         sub = np.arange(P) % 3 == 0
-        G = len(grid)
-        x = np.tile(s_mod[sub], (G, 1))
-        wg = np.repeat(grid, sub.sum())[:, None] * np.tile(g[sub], G)[:, None]
-        D, Dd = _edge_model(x, wg, np.tile(g[sub], G)[:, None] * _MODEL_PSF_PX)[:2]
-        wm = np.tile(wmask[sub], (G, 1))
-        _, r = _level_fit(D, Dd * np.tile(data_on[sub], (G, 1)), np.tile(y[sub], (G, 1)), wm)
-        cost = np.sum(r * r, axis=1).reshape(G, -1)
-        ax_sub = axis[sub]
-        per_axis = np.stack([cost[:, ax_sub == a].sum(axis=1) for a in (0, 1)], axis=1)
-        width_px = grid[np.argmin(per_axis, axis=0)].astype(float)
+        G = len(_WIDTH_GRID_PX)
+        xs = np.tile((s - e[:, None])[sub], (G, 1))
+        gs = np.tile(g[sub], G)[:, None]
+        F = _blurred_steps(xs, np.repeat(_WIDTH_GRID_PX, sub.sum())[:, None] * gs,
+                           np.tile(psf[sub], (G, 1)), derivatives=False)[0]
+        _, r, _, _ = _levels(F @ _DARK, (1.0 + F @ _DATA) * np.tile(inner[sub], (G, 1)),
+                             np.tile(y[sub], (G, 1)), np.tile(m[sub], (G, 1)))
+        cost = np.bincount(np.tile(lbl[sub], G) + 2 * C * np.repeat(np.arange(G), sub.sum()),
+                           np.sum(r * r, axis=1), 2 * C * G).reshape(G, 2 * C)
+        width_px = _WIDTH_GRID_PX[np.argmin(cost, axis=0)].astype(float)
+        width_px = np.minimum(width_px, np.repeat(max_w, 2))
     else:
-        width_px = np.clip(np.asarray(width0_px, dtype=float), _MODEL_MIN_WIDTH_PX, max_w)
+        e = np.zeros(P)
+        width_px = np.clip(np.asarray(width0_px, dtype=float).reshape(-1), _MODEL_MIN_WIDTH_PX,
+                           np.repeat(max_w, 2))
     for _ in range(iterations):
-        wmod = (width_px[axis] * g)[:, None]
-        D, Dd, dD_dx, dDd_dx, dD_dw, dDd_dw = _edge_model(s_mod - e[:, None], wmod, _MODEL_PSF_PX * g[:, None])
-        Dd = Dd * data_on
-        lev, r = _level_fit(D, Dd, y, wmask)
-        C, gam = lev[:, 1:2], lev[:, 2:3]
-        Je = -(C * dD_dx + gam * dDd_dx * data_on) * wmask               # d model / d e
-        Jw = (C * dD_dw + gam * dDd_dw * data_on) * wmask * g[:, None]   # d model / d width_px
-        a = np.sum(Je * Je, axis=1) + 1e-9
-        b = np.sum(Je * Jw, axis=1)
-        c = np.sum(Jw * Jw, axis=1)
-        ge = np.sum(Je * r, axis=1)
-        gw = np.sum(Jw * r, axis=1)
-        S = np.bincount(axis, c - b * b / a, 2) + 1e-6
-        rhs = np.bincount(axis, gw - b * ge / a, 2)
-        dw = -rhs / S
-        de = -(ge + b * dw[axis]) / a
+        wmod = width_px[lbl][:, None] * g[:, None]
+        F, F_x, F_a = _blurred_steps(s - e[:, None], wmod, psf)
+        D, Dd = F @ _DARK, (1.0 + F @ _DATA) * inner
+        lev, r, A, Ninv = _levels(D, Dd, y, m)
+        Cl, gam = lev[:, 1:2], lev[:, 2:3]
+        Je = -(Cl * (F_x @ _DARK) + gam * (F_x @ _DATA) * inner) * m          # d model / d e
+        Jw = (Cl * (F_a @ _DARK) + gam * (F_a @ _DATA) * inner) * m * g[:, None]   # / d width_px
+        # project out the levels (variable projection): J <- (I - A N^-1 A^T) J
+        JJ = np.stack([Je, Jw], axis=-1)                                        # (P, K, 2)
+        JJt = JJ.transpose(0, 2, 1)
+        q = A.transpose(0, 2, 1) @ JJ                                           # (P, 3, 2)
+        G2 = JJt @ JJ - q.transpose(0, 2, 1) @ (Ninv @ q)                       # (P, 2, 2)
+        grad = (JJt @ r[..., None])[..., 0]                                     # (P, 2)
+        a, b, c = G2[:, 0, 0] + 1e-9, G2[:, 0, 1], G2[:, 1, 1]
+        ge, gw = grad[:, 0], grad[:, 1]
+        S = np.bincount(lbl, c - b * b / a, 2 * C) + 1e-6
+        dw = -np.bincount(lbl, gw - b * ge / a, 2 * C) / S
+        de = -(ge + b * dw[lbl]) / a
         e = e + np.clip(de, -0.35, 0.35)
-        width_px = np.clip(width_px + np.clip(dw, -1.5, 1.5), _MODEL_MIN_WIDTH_PX, max_w)
-    dof = np.maximum(wmask.sum(axis=1) - 5.0, 1.0)
+        width_px = np.clip(width_px + np.clip(dw, -1.5, 1.5), _MODEL_MIN_WIDTH_PX, np.repeat(max_w, 2))
+    dof = np.maximum(m.sum(axis=1) - 5.0, 1.0)
     rms = np.sqrt(np.sum(r * r, axis=1) / dof)
-    contrast = -C[:, 0]
-    sigma_e = rms / np.sqrt(a) / g                                     # px
-    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e)
-    if good.sum() < 24:
-        return None
-    med = float(np.median(rms[good]))
-    good &= rms <= 3.0 * med + 1.0
-    idx = np.nonzero(good)[0]
-    p = _apply_h(H, uv0[idx] + e[idx, None] * inward[idx])
-    return _ModelFit(p, axis[idx], const[idx], sigma_e[idx], rms[idx], contrast[idx], width_px)
+    contrast = -lev[:, 1]
+    sigma_e = rms / np.sqrt(np.maximum(a, 1e-12)) / g                     # px
+    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e) \
+        & (sigma_e > 0)
+    # per code: drop profiles whose residual is far above the code's median (occlusion, glare)
+    med = _masked_median(rms.reshape(C, -1), good.reshape(C, -1))
+    good &= rms <= 3.0 * med[pr.code] + 1.0
+    points = _apply_hs(Hp, pr.uv0 + e[:, None] * pr.inward)
+    return _ModelFit(points, good, np.where(good, sigma_e, 1.0), g, width_px.reshape(C, 2))
 
 
-def _fit_homography(p: np.ndarray, ax: np.ndarray, const: np.ndarray, n: float,
-                    module_px: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """H (module coordinates -> undistorted px) from points p (M, 2) on module lines u = const
-    (ax 0) or v = const (ax 1): linear least squares in G = H^-1 with Hartley normalisation, one
-    round of outlier rejection.  Returns (H, mask of the points kept) or None."""
-    c = const / n
-    mean = p.mean(axis=0)
-    scale = np.sqrt(2.0) / max(np.sqrt(np.mean(np.sum((p - mean) ** 2, axis=1))), 1e-9)
-    T = np.array([[scale, 0.0, -scale * mean[0]], [0.0, scale, -scale * mean[1]], [0.0, 0.0, 1.0]])
-    q = np.column_stack([(p - mean) * scale, np.ones(len(p))])
-    keep = np.ones(len(q), dtype=bool)
-    G = None
-    for round_ in range(2):
-        A = np.zeros((int(keep.sum()), 9))
-        qk, axk, ck = q[keep], ax[keep], c[keep]
-        A[axk == 0, 0:3] = qk[axk == 0]
-        A[axk == 1, 3:6] = qk[axk == 1]
-        A[:, 6:9] = -ck[:, None] * qk
-        _, _, vt = np.linalg.svd(A, full_matrices=False)
-        G = vt[-1].reshape(3, 3)
+def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row medians (lower middle) of x (C, M) over the entries where mask; 0 for empty rows."""
+    srt = np.sort(np.where(mask, x, np.inf), axis=1)
+    k = np.maximum(mask.sum(axis=1) - 1, 0) // 2
+    out = srt[np.arange(len(x)), k]
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+_SQUARE01 = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+
+
+def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
+    """Per code, H (module coordinates -> undistorted px) from the edge points on module lines
+    u = const (axis 0) or v = const (axis 1), and the (8, 8) covariance of the corners
+    H (0,0), H (n,0), H (n,n), H (0,n) that the edge-point sigmas imply.
+
+    Each point p on u = c gives the linear equation g1.p - c g3.p = 0 in G = H^-1 (v: g2):
+    a DLT per code in Hartley-normalised coordinates, one round of outlier rejection (points
+    farther than max(0.25 px, 3 x the median) dropped), then one weighted Gauss-Newton step on
+    the geometric residuals (module coordinate of G p minus c, weights 1 / (sigma_i g_i)^2).
+    The corner covariance is Jc (J^T W J)^-1 Jc^T with J = d residual / d h and Jc = d corners / d h
+    (h: the 8 entries of the normalised H, H33 = 1).  All codes at once: arrays (C, 60, ...).
+    Returns (H (C, 3, 3), corners (C, 4, 2), cov (C, 8, 8), ok (C,)); rows with ok False are junk."""
+    C = len(ns)
+    p = fit.points.reshape(C, -1, 2)
+    good = fit.good.reshape(C, -1)
+    ax = pr.axis.reshape(C, -1)
+    cn = pr.const.reshape(C, -1) / ns[:, None]                  # normalised module coordinates
+    gm = ns[:, None] / fit.g.reshape(C, -1)                    # px per normalised module
+    sig = fit.sigma_px.reshape(C, -1) / gm                     # sigma in normalised modules
+    wgood = good.astype(float)
+    cnt = np.maximum(wgood.sum(axis=1), 1.0)
+    mean = (wgood[:, None, :] @ p)[:, 0] / cnt[:, None]
+    d2 = np.sum(wgood * np.sum((p - mean[:, None]) ** 2, axis=2), axis=1) / cnt
+    scale = np.sqrt(2.0) / np.maximum(np.sqrt(d2), 1e-9)
+    q = np.concatenate([(p - mean[:, None]) * scale[:, None, None], np.ones(p.shape[:2] + (1,))],
+                       axis=2)                                  # (C, M, 3)
+    on_u = (ax == 0)[..., None]
+    A = np.concatenate([q * on_u, q * ~on_u, -cn[..., None] * q], axis=2)   # (C, M, 9)
+    keep = good
+    for round_ in range(2):     # (a degenerate code gives NaN here and fails `ok` below)
+        Wk = keep.astype(float)
+        M = (A * Wk[..., None]).transpose(0, 2, 1) @ A
+        Gv = np.linalg.eigh(M)[1][:, :, 0].reshape(C, 3, 3)
+        mG = q @ Gv.transpose(0, 2, 1)
+        with np.errstate(all="ignore"):
+            coord = np.where(ax == 0, mG[..., 0], mG[..., 1]) / mG[..., 2]
         if round_ == 1:
             break
-        m = q @ G.T
-        coord = np.where(ax == 0, m[:, 0], m[:, 1]) / m[:, 2]
-        r = np.abs(coord - c) * n * module_px                                 # ~ px
-        keep = r <= max(0.25, 3.0 * float(np.median(r)))
-        if keep.all() or keep.sum() < 24:
-            keep[:] = True if keep.sum() < 24 else keep
-            break
-    S = np.diag([1.0 / n, 1.0 / n, 1.0])            # module coords -> normalised module coords
-    H_new = np.linalg.inv(T) @ np.linalg.inv(G) @ S
-    if not np.all(np.isfinite(H_new)) or abs(H_new[2, 2]) < 1e-12:
-        return None
-    return H_new / H_new[2, 2], keep
+        res_px = np.abs(coord - cn) * gm
+        med = _masked_median(res_px, good)
+        keep = good & (res_px <= np.maximum(0.25, 3.0 * med)[:, None])
+        keep = np.where((keep.sum(axis=1) >= _MIN_GOOD_PROFILES)[:, None], keep, good)
+    with np.errstate(all="ignore"):
+        Hn = _inv(Gv)
+        Hn = Hn / Hn[:, 2:3, 2:3]
+        # one Gauss-Newton step on the geometric residuals, h = Hn.flat[:8]
+        G = _inv(Hn)
+        mG = q @ G.transpose(0, 2, 1)
+        coord = np.where(ax == 0, mG[..., 0], mG[..., 1]) / mG[..., 2]
+        r = coord - cn
+        Ga = np.where(on_u, G[:, None, 0, :], G[:, None, 1, :])               # (C, M, 3)
+        v = Ga - coord[..., None] * G[:, None, 2, :]
+        Jh = -(v[..., :, None] * mG[..., None, :]).reshape(C, -1, 9)[..., :8] / mG[..., 2:3]
+        w = keep / sig ** 2
+        info = (Jh * w[..., None]).transpose(0, 2, 1) @ Jh
+        cov_h = _inv(info)
+        dh = -(cov_h @ (Jh.transpose(0, 2, 1) @ (w * r)[..., None]))[..., 0]
+        Hn = Hn + np.concatenate([dh, np.zeros((C, 1))], axis=1).reshape(C, 3, 3)
+        # corners in normalised coordinates and their Jacobian in h
+        sq = np.column_stack([_SQUARE01, np.ones(4)])                          # (4, 3)
+        hq = sq @ Hn.transpose(0, 2, 1)                                        # (C, 4, 3)
+        xy = hq[..., :2] / hq[..., 2:3]
+        Jc = np.zeros((C, 4, 2, 9))
+        Jc[:, :, 0, 0:3] = sq[None] / hq[..., 2:3]
+        Jc[:, :, 1, 3:6] = sq[None] / hq[..., 2:3]
+        Jc[:, :, :, 6:9] = -xy[..., None] * sq[None, :, None, :] / hq[..., 2:3, None]
+        Jc = Jc.reshape(C, 8, 9)[..., :8]
+        cov = Jc @ cov_h @ Jc.transpose(0, 2, 1) / (scale ** 2)[:, None, None]
+        corners = xy / scale[:, None, None] + mean[:, None, :]
+        T_inv = np.zeros((C, 3, 3))
+        T_inv[:, 0, 0] = T_inv[:, 1, 1] = 1.0 / scale
+        T_inv[:, :2, 2] = mean
+        T_inv[:, 2, 2] = 1.0
+        S = np.diag([1.0, 1.0, 1.0])[None] * np.ones((C, 1, 1))
+        S[:, 0, 0] = S[:, 1, 1] = 1.0 / ns
+        H = T_inv @ Hn @ S
+        H = H / H[:, 2:3, 2:3]
+    ok = (keep.sum(axis=1) >= _MIN_GOOD_PROFILES) & np.all(np.isfinite(H).reshape(C, -1), axis=1) \
+        & np.all(np.isfinite(cov).reshape(C, -1), axis=1) \
+        & np.all(np.isfinite(corners).reshape(C, -1), axis=1)
+    return H, corners, cov, ok
 
 
 @dataclass
 class RefineResult:
-    """Refined corners (4, 2) (TL, TR, BR, BL, distorted px), their 1-sigma noise per coordinate
-    (px, calibrated on rendered codes: `corner_sigma`), the fitted blur+PSF box widths (px) across
-    the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage produced
-    the corners (1: boundary lines, 2: finder-model homography)."""
+    """Refined corners (4, 2) (TL, TR, BR, BL, distorted px), their (8, 8) covariance (px^2,
+    order TL u, TL v, TR u, ..., BL v; calibrated on rendered codes, see `_calibrated_cov`), the
+    1-sigma noise per coordinate (sqrt of its mean diagonal), the fitted blur+PSF box widths (px)
+    across the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage
+    produced the corners (1: boundary lines, 2: finder-model homography)."""
     corners_px: np.ndarray
     corner_sigma_px: float
     width_px: np.ndarray
     stage: int
+    corner_cov_px2: np.ndarray | None = None
 
 
-# corner sigma model, fitted by scripts/bench_detect.py's calibration on rendered codes (seeded,
-# 0.7-1.8 m, blur 0-8 px, noise 0.5-4 DN):  sigma^2 = (K sigma_stat)^2 + A^2 + (B (w / m)^2)^2,
-# with sigma_stat the corner noise the edge-point residuals imply, w the larger fitted blur width
-# (px) and m the module size (px): the model's mismatch grows quickly once the blur spans modules.
-_SIGMA_K = 0.85
-_SIGMA_A_PX = 0.007
-_SIGMA_B_PX = 0.025
+# corner covariance model, fitted (maximum likelihood) by `scripts/bench_detect.py --calibrate` on
+# rendered codes (seeded; 0.3 m codes at 0.8-2.5 m, 3-9 px per module, blur 0-8 px, noise
+# 0.5-4 DN):  Sigma = K^2 Sigma_stat + A^2 I_8, with Sigma_stat the edge-point noise (each
+# profile's residual RMS / sqrt of its Gauss-Newton information) propagated through the homography
+# fit.  Fitted K = 1.02, A = 0.0035 px; the blur-dependent terms of the fit came out zero (the
+# blurred-model fit leaves no blur bias to cover).  Out of sample (400 renders) the 8-D corner
+# NEES is 8.6 (ideal 8), 8.0-10.0 in each 2 px blur bin.
+_COV_K = 1.05
+_COV_A_PX = 0.004
 STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
 
 
-def _corner_sigma_stat(H: np.ndarray, fit: "_ModelFit", keep: np.ndarray, n: float) -> float:
-    """RMS over the 8 corner coordinates of the first-order corner noise implied by independent
-    edge points with sigma fit.sigma_px, through the weighted least-squares fit of H (8 params)."""
-    p, ax, c, sig = fit.points[keep], fit.axis[keep], fit.const[keep], fit.sigma_px[keep]
-    sq = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
-    q = np.column_stack([p, np.ones(len(p))])
-
-    def resid(h):
-        Hh = np.append(h, 1.0).reshape(3, 3)
-        m = q @ np.linalg.inv(Hh).T
-        return (np.where(ax == 0, m[:, 0], m[:, 1]) / m[:, 2] - c)
-
-    def corners(h):
-        return _apply_h(np.append(h, 1.0).reshape(3, 3), sq).reshape(-1)
-
-    h0 = (H / H[2, 2]).reshape(-1)[:8]
-    step = 1e-6 * np.maximum(np.abs(h0), 1e-3)
-    J = np.empty((len(p), 8))
-    Jc = np.empty((8, 8))
-    for k in range(8):
-        d = np.zeros(8)
-        d[k] = step[k]
-        J[:, k] = (resid(h0 + d) - resid(h0 - d)) / (2 * step[k])
-        Jc[:, k] = (corners(h0 + d) - corners(h0 - d)) / (2 * step[k])
-    # residuals are in modules; sigma_px / module_px converts the point sigmas
-    mod_px = np.linalg.norm(corners(h0).reshape(4, 2)[1] - corners(h0).reshape(4, 2)[0]) / n
-    w = 1.0 / (sig / mod_px) ** 2
-    try:
-        cov_h = np.linalg.inv(J.T @ (J * w[:, None]))
-    except np.linalg.LinAlgError:
-        return float("nan")
-    cov_c = Jc @ cov_h @ Jc.T
-    return float(np.sqrt(max(np.trace(cov_c), 0.0) / 8.0))
+def calibrated_cov(cov_stat_px2: np.ndarray, k: float | None = None, a: float | None = None
+                   ) -> np.ndarray:
+    """(8, 8) corner covariance (px^2) from the propagated one (model above)."""
+    k = _COV_K if k is None else k
+    a = _COV_A_PX if a is None else a
+    cov = k * k * np.asarray(cov_stat_px2) + a * a * np.eye(8)
+    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
-def corner_sigma(sigma_stat_px: float, width_px: np.ndarray, module_px: float) -> float:
-    """Calibrated 1-sigma corner noise per coordinate (px), see _SIGMA_K / _A / _B."""
-    wm = float(np.max(width_px)) / module_px
-    return float(np.sqrt((_SIGMA_K * sigma_stat_px) ** 2 + _SIGMA_A_PX ** 2
-                         + (_SIGMA_B_PX * wm * wm) ** 2))
+def _distort_cov(dist: _Distortion, corners_u: np.ndarray, cov_u: np.ndarray) -> np.ndarray:
+    """(C, 8, 8) covariances of undistorted corners (C, 4, 2) -> of the distorted corners."""
+    if dist.camera is None:
+        return cov_u
+    h = 1e-3
+    Jd = np.zeros(corners_u.shape[:2] + (2, 2))
+    for j in range(2):
+        d = np.zeros(2)
+        d[j] = h
+        Jd[..., :, j] = (dist.distort(corners_u + d) - dist.distort(corners_u - d)) / (2 * h)
+    C = len(corners_u)
+    Jb = np.zeros((C, 8, 8))
+    for k in range(4):
+        Jb[:, 2 * k:2 * k + 2, 2 * k:2 * k + 2] = Jd[:, k]
+    return Jb @ cov_u @ Jb.transpose(0, 2, 1)
 
 
-def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
-                camera: CameraModel | None = None, iterations: int = 1,
-                finder_homography: bool = True) -> RefineResult | None:
-    """Refined corners with their sigma and the fitted blur, or None (see
-    `refine_corners_or_none`, which returns only the corners)."""
-    if image.ndim != 2 or image.dtype != np.uint8:
-        raise ValueError("refine_corners expects a (H, W) uint8 image")
-    corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
-    if not np.all(np.isfinite(corners)):
-        return None
-    dist = _Distortion(camera)
-    if modules is None:
-        modules = estimate_modules(image, corners, camera)
-        if modules is None:
-            return None
-    n = float(modules)
-    raw_u = dist.undistort(corners)
+def _stage1(image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: int,
+            finder_homography: bool) -> np.ndarray | None:
+    """Boundary-line corners (4, 2) undistorted px from the decoder's (module docstring), or None."""
     corners_u = raw_u
     for it in range(iterations):
         H = homography_from_corners(corners_u, n)
@@ -555,30 +664,103 @@ def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | No
         if np.max(np.linalg.norm(new - raw_u, axis=1)) > max(4.0, 1.5 * module_px):
             return None
         corners_u = new
-    stage, width = 1, np.full(2, np.nan)
-    sigma = STAGE1_SIGMA_PX
-    if finder_homography:
-        H = homography_from_corners(corners_u, n)
-        module_px = np.mean(np.linalg.norm(corners_u - np.roll(corners_u, 1, axis=0), axis=1)) / n
-        w0 = None
-        for _ in range(STAGE2_PASSES):
-            fit = _model_edge_points(image, dist, H, n, w0)
-            if fit is None:
-                break
-            res = _fit_homography(fit.points, fit.axis, fit.const, n, module_px)
-            if res is None:
-                break
-            new = _apply_h(res[0], np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]))
-            # stage 1's 50 % crossings move outwards by up to ~half the blur width
-            tol = max(1.0, 0.3 * module_px) + 0.5 * float(np.max(fit.width_px))
-            if np.max(np.linalg.norm(new - corners_u, axis=1)) >= tol:
-                break
-            corners_u, H, w0 = new, res[0], fit.width_px
-            stage, width = 2, fit.width_px
-            s_stat = _corner_sigma_stat(H, fit, res[1], n)
-            if np.isfinite(s_stat):
-                sigma = corner_sigma(s_stat, width, module_px)
-    return RefineResult(dist.distort(corners_u), sigma, width, stage)
+    return corners_u
+
+
+def _stage2(image, dist: _Distortion, starts_u: list[np.ndarray], ns: list[float]
+            ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+    """Stage 2 for a batch of codes from their (4, 2) undistorted starting corners: per code
+    (corners_u (4, 2), cov_stat (8, 8) undistorted px^2, width_px (2,)) or None."""
+    C = len(ns)
+    pr = _profiles(ns)
+    nsa = np.asarray(ns, dtype=float)
+    Hs = np.stack([homography_from_corners(c, n) for c, n in zip(starts_u, ns)]).astype(float)
+    prev = np.stack(starts_u)
+    module_px = np.array([np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))
+                          for c in starts_u]) / nsa
+    out: list = [None] * C
+    width = None
+    alive = np.ones(C, dtype=bool)
+    for pass_, iterations in enumerate(_MODEL_ITERATIONS):
+        fit = _model_edge_points(image, dist, Hs, module_px, pr, width, iterations)
+        H, corners, cov, ok = _fit_homographies(fit, pr, nsa)
+        move = np.max(np.linalg.norm(corners - prev, axis=2), axis=1)
+        wmax = np.nan_to_num(np.max(fit.width_px, axis=1))
+        if pass_ == 0:
+            # from the decoder's corners: a corner that moved by more than 1.5 modules (or 4 px)
+            tol = np.maximum(4.0, 1.5 * module_px) + 0.5 * wmax
+        else:
+            # the crossings (first pass) move outwards by up to ~half the blur width
+            tol = np.maximum(1.0, 0.3 * module_px) + 0.5 * wmax
+        # a code that fails a pass keeps the previous pass's result (if a model pass)
+        alive &= ok & (move < tol)
+        if iterations > 0:
+            for ci in np.nonzero(alive)[0]:
+                out[ci] = (corners[ci], cov[ci], fit.width_px[ci])
+            width = fit.width_px if width is None else \
+                np.where(alive[:, None], fit.width_px, width)
+        Hs = np.where(alive[:, None, None], H, Hs)
+        prev = np.where(alive[:, None, None], corners, prev)
+        module_px = np.where(alive, np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=1),
+                                                           axis=2), axis=1) / nsa, module_px)
+    return out
+
+
+def refine_codes(image: np.ndarray, codes: list[tuple[np.ndarray, int | None]],
+                 camera: CameraModel | None = None, iterations: int = 1,
+                 finder_homography: bool = True) -> list[RefineResult | None]:
+    """Refined corners of every code of one image, or None per code where the finder edges
+    cannot be measured.  `codes`: (decoder corners (4, 2) TL, TR, BR, BL, modules per side or
+    None).  Stage 2 (`finder_homography`) runs for all codes at once, from the decoder's corners;
+    a code it fails on, or every code without it, gets `iterations` passes of stage 1."""
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise ValueError("refine_corners expects a (H, W) uint8 image")
+    dist = _Distortion(camera)
+    results: list[RefineResult | None] = [None] * len(codes)
+    todo, raws, ns = [], [], []
+    for i, (corners_raw_px, modules) in enumerate(codes):
+        corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
+        if not np.all(np.isfinite(corners)):
+            continue
+        if modules is None:
+            modules = estimate_modules(image, corners, camera)
+            if modules is None:
+                continue
+        todo.append(i)
+        raws.append(corners)
+        ns.append(float(modules))
+    if not todo:
+        return results
+    raw_u = dist.undistort(np.concatenate(raws)).reshape(-1, 4, 2)
+    stage2 = _stage2(image, dist, list(raw_u), ns) if finder_homography else [None] * len(todo)
+    done = [j for j, s in enumerate(stage2) if s is not None]
+    if done:
+        cu = np.stack([stage2[j][0] for j in done])
+        cov_u = np.stack([stage2[j][1] for j in done])
+        cd = dist.distort(cu)
+        cov_d = _distort_cov(dist, cu, cov_u)
+        for k, j in enumerate(done):
+            cov = calibrated_cov(cov_d[k])
+            results[todo[j]] = RefineResult(cd[k], float(np.sqrt(np.mean(np.diag(cov)))),
+                                            stage2[j][2], 2, cov)
+    for j, i in enumerate(todo):
+        if stage2[j] is not None:
+            continue
+        c = _stage1(image, dist, raw_u[j], ns[j], iterations, finder_homography)
+        if c is not None:
+            results[i] = RefineResult(dist.distort(c), STAGE1_SIGMA_PX, np.full(2, np.nan), 1,
+                                      STAGE1_SIGMA_PX ** 2 * np.eye(8))
+    return results
+
+
+def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
+                camera: CameraModel | None = None, iterations: int = 1,
+                finder_homography: bool = True) -> RefineResult | None:
+    """Refined corners of one code with their covariance and the fitted blur, or None (see
+    `refine_codes`; `refine_corners_or_none` returns only the corners)."""
+    return refine_codes(image, [(corners_raw_px, modules)], camera, iterations,
+                        finder_homography)[0]
+
 
 
 def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
