@@ -155,8 +155,9 @@ def load_error(p_cam_meas: np.ndarray, T_body_cam: np.ndarray, pose: gtsam.Pose3
 
 
 def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, T_body_cam: np.ndarray,
-                kernel: str, threshold: float) -> gtsam.CustomFactor:
-    """A load-code centre measured in the front camera at frame k, on X(k) and L(j).
+                kernel: str, threshold: float, load_key: int | None = None) -> gtsam.CustomFactor:
+    """A load-code centre measured in the front camera at frame k, on X(k) and L(j) (or on
+    `load_key` instead of L(j)).
 
     Evaluated in the body frame: residual T_world_body^-1 l - T_body_cam p_cam with covariance
     R_bc cov_cam R_bc^T.  This is load_error rotated by the constant R_bc, so the whitened
@@ -169,7 +170,7 @@ def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, T_body_c
     cov_body = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
     model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_body + cov_body.T)), kernel,
                    threshold)
-    kx, kl = X(k), L(j)
+    kx, kl = X(k), (L(j) if load_key is None else load_key)
 
     def error(this, values, jacobians):
         pose, l_world = values.atPose3(kx), values.atPoint3(kl)

@@ -22,6 +22,7 @@ One state per floor-camera frame: X(k) Pose3 T_world_body, V(k) world velocity, 
 """
 from __future__ import annotations
 
+import ctypes
 import math
 import time
 from dataclasses import dataclass, field
@@ -37,6 +38,7 @@ from fusion.estimate.common import (FusionConfig, FusionResult, check_imu,
                                     group_load_obs, initial_poses, initial_velocities,
                                     inlier_raw_mask, prepare_raw, velocity_at_frames)
 from fusion.estimate.graph import B, L, V, X
+from fusion.estimate.marginals import chain_marginals
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
@@ -161,6 +163,8 @@ class Problem:
     load_init: dict = field(default_factory=dict)           # j -> (3,) initial position
     load_nobs: dict = field(default_factory=dict)
     load_first_pcam: dict = field(default_factory=dict)     # j -> p_cam of the first sighting
+    load_sightings: dict = field(default_factory=dict)      # j -> [(frame, p_cam)] in time order
+    load_args: dict = field(default_factory=dict)   # factor index -> (k, j, p_cam, cov_cam)
     T_body_cam: np.ndarray | None = None
     thresholds: dict = field(default_factory=dict)      # "pose" / "load" -> Mahalanobis threshold
     pims: dict = field(default_factory=dict)
@@ -273,6 +277,7 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         obs = groups[lid]
         pts = []
         for k, o in obs:
+            pb.load_args[len(pb.factors)] = (k, j, o.p_cam, o.cov_cam)
             pb.add(G.load_factor(k, j, o.p_cam, o.cov_cam, T_bc, config.robust_kernel, thr_load),
                    k, "load")
             T_wc = pb.T_init[k] @ T_bc
@@ -281,6 +286,8 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         k_min, o_min = min(obs, key=lambda ko: ko[0])
         pb.load_first_frame[j] = k_min
         pb.load_first_pcam[j] = np.asarray(o_min.p_cam, float)
+        pb.load_sightings[j] = sorted(((k, np.asarray(o.p_cam, float)) for k, o in obs),
+                                      key=lambda kp: kp[0])
         pb.load_nobs[j] = len(obs)
     pb.stats["load_observations_skipped"] = skipped
     pb.stats["load_factors"] = sum(pb.load_nobs.values())
@@ -334,16 +341,15 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     linearisation took ~5 s per iteration on a 2-minute flight here (gtsam 4.3.0 wheel), 100x
     more than `graph.linearize` called from Python on the same graph; the maths is the same.
 
-    Returns (values, iterations, bayes_tree): bayes_tree is the undamped elimination of the last
-    accepted step (linearised at the iterate before the returned one, whose step changed the
-    error by < relative_tol), reusable for marginal covariances; None if that step was damped."""
+    Returns (values, iterations, linear_graph): linear_graph is the undamped linearisation of
+    the last accepted step (at the iterate before the returned one, whose step changed the error
+    by < relative_tol), reusable for marginal covariances; None if that step was damped."""
     if ordering is None:
         ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     err = graph.error(values)
     lam = 0.0      # try the Gauss-Newton step first; damp only when it fails to descend
     keys = [int(k) for k in values.keys()]
     it = 0
-    tree = None
     for it in range(1, max_iterations + 1):
         lin = graph.linearize(values)
         while True:
@@ -366,7 +372,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         lam = lam / 10.0 if lam > lambda0 else 0.0
         if converged:
             break
-    return values, it, tree if undamped else None
+    return values, it, lin if undamped else None
 
 
 def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
@@ -379,6 +385,15 @@ def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
 
 def _dim_of(key: int) -> int:
     return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3}[gtsam.Symbol(key).chr()]
+
+
+def release_heap() -> None:
+    """Hand the heap freed by GTSAM's eliminations back to the OS (glibc keeps it otherwise:
+    ~250 MB after a 10-minute flight), so the covariance pass does not stack on top of it."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
@@ -414,7 +429,7 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     graph = pb.graph()
     err0 = graph.error(pb.initial)
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
-    values, iterations, tree = levenberg_marquardt(graph, pb.initial, config.lm_max_iterations,
+    values, iterations, lin = levenberg_marquardt(graph, pb.initial, config.lm_max_iterations,
                                                    config.lm_relative_tol, ordering=ordering)
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
@@ -427,22 +442,34 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         for i, f in enumerate(pb.factors):
             if i not in drop:
                 graph.add(f)
-        values, it2, tree = levenberg_marquardt(graph, values, config.lm_max_iterations,
+        values, it2, lin = levenberg_marquardt(graph, values, config.lm_max_iterations,
                                                 config.lm_relative_tol, ordering=ordering)
         iterations += it2
     t_opt = time.perf_counter() - t0 - t_build
+    release_heap()
     n = len(pb.frame_t)
     T = poses_of(values, n)
     cov = None
     lcov = {}
+    covariance_method = "none"
     if config.compute_covariances:
-        if tree is None:        # the last step was damped: eliminate at the solution
-            tree = graph.linearize(values).eliminateMultifrontal(ordering)
-        cov = np.empty((n, 6, 6))
-        for k in range(n):
-            cov[k] = tree.marginalCovariance(X(k))
-        for j in range(len(pb.load_ids)):
-            lcov[j] = tree.marginalCovariance(L(j))
+        if lin is None:         # the last step was damped: linearise at the solution
+            lin = graph.linearize(values)
+        try:
+            bulk = chain_marginals(lin, n, pb.has_imu, len(pb.load_ids))
+        except np.linalg.LinAlgError:
+            bulk = None
+        if bulk is not None:
+            cov, lc = bulk
+            lcov = dict(enumerate(lc))
+        else:                   # not the chain structure: gtsam's Bayes tree, key by key
+            tree = lin.eliminateMultifrontal(ordering)
+            cov = np.empty((n, 6, 6))
+            for k in range(n):
+                cov[k] = tree.marginalCovariance(X(k))
+            for j in range(len(pb.load_ids)):
+                lcov[j] = tree.marginalCovariance(L(j))
+        covariance_method = "chain" if bulk is not None else "bayes_tree"
     t_cov = time.perf_counter() - t0 - t_build - t_opt
     loads = LoadMap("smoother", [LoadEstimate(lid, values.atPoint3(L(j)).copy(), lcov.get(j),
                                               pb.load_nobs[j])
@@ -452,6 +479,7 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                  final_error=float(graph.error(values)), rejected_pose_factors=rej["pose"],
                  rejected_load_factors=rej["load"], robust_kernel=config.robust_kernel,
                  pose_threshold=pb.thresholds["pose"], n_factors=len(pb.factors),
+                 covariance_method=covariance_method,
                  time_build_s=t_build, time_optimize_s=t_opt, time_covariance_s=t_cov,
                  time_s=time.perf_counter() - t0)
     traj = Trajectory("smoother", pb.frame_t.copy(), T, cov)
@@ -461,16 +489,31 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
 # =========================================================================== incremental
 
 
+LOAD_GENERATION_STRIDE = 10 ** 9       # L(j + g * stride): generation g of load j's variable
+
+
 def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                        load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
                        velocity: VelocityData | None = None,
                        config: FusionConfig | None = None) -> FusionResult:
-    """Causal iSAM2 (QR factorization) fusion: frame by frame, the factors available at that
-    frame are added and the pose estimate and marginal covariance of X(k) *as known at frame k*
-    are recorded (a filter-like output from a smoother).  Output starts at the first raw-pose
-    frame (`stats['frames_before_first_fix']` earlier frames have no estimate).  The velocity
-    prior at the start uses the first 0.5 s of raw poses (a start-up look-ahead).  Loads:
-    estimate and marginal covariance at the end of the flight."""
+    """Causal incremental fusion: frame by frame, the factors available at that frame are added
+    and the pose estimate and marginal covariance of X(k) *as known at frame k* are recorded (a
+    filter-like output from a smoother).
+
+    Engine: iSAM2 (QR factorization) inside gtsam's IncrementalFixedLagSmoother with lag
+    `config.incremental_lag_s`: states older than the lag are marginalised, so the cost per frame
+    stays bounded however long the flight.  A load's variable is marginalised too once it has not
+    been seen for the lag; when the load is seen again a new variable (next generation,
+    L(j + g * LOAD_GENERATION_STRIDE)) starts from a Gaussian prior = the old variable's
+    estimate and marginal covariance just before it left (its correlation with the states still
+    in the window is dropped: slightly optimistic, causal).  `incremental_lag_s=None`: plain
+    iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
+    much of the graph, so its cost grows with the flight).
+
+    Output starts at the first raw-pose frame (`stats['frames_before_first_fix']` earlier
+    frames have no estimate).  The velocity prior at the start uses the first 0.5 s of raw poses
+    (a start-up look-ahead).  Loads: the estimate and marginal covariance of each load's latest
+    variable at the end of the flight."""
     config = config or FusionConfig()
     t0 = time.perf_counter()
     pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config)
@@ -479,15 +522,20 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     by_frame: list[list[int]] = [[] for _ in range(n)]
     for i, k in enumerate(pb.factor_frame):
         by_frame[k].append(i)
-    loads_at: dict[int, list[int]] = {}
-    for j, k in pb.load_first_frame.items():
-        loads_at.setdefault(k, []).append(j)
+    pcam_at = {(k, j): p for j, sightings in pb.load_sightings.items() for k, p in sightings}
 
     params = gtsam.ISAM2Params()
     params.setFactorization("QR")
     params.setRelinearizeThreshold(config.isam_relinearize_threshold)
     params.relinearizeSkip = config.isam_relinearize_skip
-    isam = gtsam.ISAM2(params)
+    lag = config.incremental_lag_s
+    engine = gtsam.ISAM2(params) if lag is None else \
+        gtsam.IncrementalFixedLagSmoother(float(lag), params)
+    t_rel = (pb.frame_t - pb.frame_t[0]) * 1e-9
+    gen: dict[int, int] = {}            # load j -> generation of its current variable
+    last_seen: dict[int, float] = {}    # load j -> time stamp of its current variable
+    left: dict[int, tuple] = {}         # load j -> (estimate, covariance) when it left the window
+    n_generations = 0
 
     # raw pose factors index by frame, for the causal initial guess
     pose_at = {pb.factor_frame[i]: i for i, kind in pb.robust_kind.items() if kind == "pose"}
@@ -497,14 +545,10 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     vel_k = pb.v_init[k0]
     bias_k = gtsam.imuBias.ConstantBias()
     for k in range(k0, n):
+        tk = float(t_rel[k])
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
-        for i in by_frame[k]:
-            f = pb.factors[i]
-            keys = f.keys()
-            if any(gtsam.Symbol(key).index() < k0 for key in keys):
-                continue
-            g.add(f)
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         # causal initial guess: IMU prediction, else the raw pose, else the previous state
         if k > k0 and pb.has_imu and (k - 1) in pb.pims:
             nav = pb.pims[k - 1].predict(gtsam.NavState(pose_k, vel_k), bias_k)
@@ -517,26 +561,72 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             pose_guess = gtsam.Pose3(pb.T_init[k0])
         vals.insert(X(k), pose_guess)
         vals.insert(V(k), vel_guess)
+        new_keys = [X(k), V(k)]
         if pb.has_imu:
             vals.insert(B(k), bias_k)
-        for j in loads_at.get(k, []):
-            # first sighting: place the landmark with the predicted pose
-            T_wc = pose_guess.matrix() @ pb.T_body_cam
-            vals.insert(L(j), T_wc[:3, :3] @ pb.load_first_pcam[j] + T_wc[:3, 3])
-        isam.update(g, vals)
-        pose_k = isam.calculateEstimatePose3(X(k))
-        vel_k = isam.calculateEstimateVector(V(k))
+            new_keys.append(B(k))
+        if lag is not None:
+            # loads whose variable leaves the window in this update: keep their last marginal
+            cutoff = tk - lag
+            for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
+                key = L(j + gen[j] * LOAD_GENERATION_STRIDE)
+                left[j] = (engine.calculateEstimatePoint3(key), engine.marginalCovariance(key))
+        for i in by_frame[k]:
+            f = pb.factors[i]
+            keys = f.keys()
+            if any(gtsam.Symbol(key).chr() != ord("l") and gtsam.Symbol(key).index() < k0
+                   for key in keys):
+                continue
+            lkeys = [key for key in keys if gtsam.Symbol(key).chr() == ord("l")]
+            if lkeys:
+                j = gtsam.Symbol(lkeys[0]).index()
+                if j not in gen or j in left:        # first sighting, or back after leaving
+                    T_wc = pose_guess.matrix() @ pb.T_body_cam
+                    if j not in gen:
+                        gen[j] = 0
+                        guess = T_wc[:3, :3] @ pcam_at[(k, j)] + T_wc[:3, 3]
+                    else:
+                        gen[j] += 1
+                        n_generations += 1
+                        guess, cov = left.pop(j)
+                        g.add(gtsam.PriorFactorPoint3(
+                            L(j + gen[j] * LOAD_GENERATION_STRIDE), guess,
+                            gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
+                    vals.insert(L(j + gen[j] * LOAD_GENERATION_STRIDE), guess)
+                if gen[j] > 0:
+                    kk, _, p_cam, cov_cam = pb.load_args[i]
+                    f = G.load_factor(kk, j, p_cam, cov_cam, pb.T_body_cam, config.robust_kernel,
+                                      pb.thresholds["load"],
+                                      load_key=L(j + gen[j] * LOAD_GENERATION_STRIDE))
+                last_seen[j] = tk
+                new_keys.append(L(j + gen[j] * LOAD_GENERATION_STRIDE))
+            g.add(f)
+        if lag is None:
+            engine.update(g, vals)
+        else:
+            for key in new_keys:
+                stamps.insert((key, tk))
+            engine.update(g, vals, stamps)
+        pose_k = engine.calculateEstimatePose3(X(k))
+        vel_k = engine.calculateEstimateVector(V(k))
         if pb.has_imu:
-            bias_k = isam.calculateEstimateConstantBias(B(k))
+            bias_k = engine.calculateEstimateConstantBias(B(k))
         T_out[k - k0] = pose_k.matrix()
-        cov_out[k - k0] = isam.marginalCovariance(X(k))
-    values = isam.calculateEstimate()
-    loads = LoadMap("incremental", [
-        LoadEstimate(lid, values.atPoint3(L(j)).copy(), isam.marginalCovariance(L(j)),
-                     pb.load_nobs[j]) for j, lid in enumerate(pb.load_ids)])
+        cov_out[k - k0] = engine.marginalCovariance(X(k))
+    loads = []
+    for j, lid in enumerate(pb.load_ids):
+        if j not in gen:
+            continue
+        if j in left:
+            p, c = left[j]
+        else:
+            key = L(j + gen[j] * LOAD_GENERATION_STRIDE)
+            p, c = engine.calculateEstimatePoint3(key), engine.marginalCovariance(key)
+        loads.append(LoadEstimate(lid, np.asarray(p, float).copy(), c, pb.load_nobs[j]))
     elapsed = time.perf_counter() - t0
     duration = (pb.frame_t[-1] - pb.frame_t[k0]) * 1e-9
     stats = dict(pb.stats, frames_before_first_fix=k0, time_build_s=t_build, time_s=elapsed,
+                 incremental_lag_s=lag, load_generations=n_generations,
                  realtime_factor=duration / max(elapsed - t_build, 1e-9))
     traj = Trajectory("incremental", pb.frame_t[k0:].copy(), T_out, cov_out)
-    return FusionResult(traj, loads, stats)
+    return FusionResult(traj, LoadMap("incremental", loads), stats)
