@@ -211,15 +211,23 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
         init = (sc, seed, int(png_compression), check_readable)
         try:
             if workers == 1:
+                n_threads = cv2.getNumThreads()
                 _init_worker(*init)
-                for c in chunks:
-                    consume(_render_chunk(c))
+                try:
+                    for c in chunks:
+                        consume(_render_chunk(c))
+                finally:
+                    cv2.setNumThreads(n_threads)
             else:
                 # not "fork": forking a process that runs threads (OpenCV, BLAS, a test runner) can
                 # deadlock the children on a lock copied in the held state.  An executor, unlike
                 # multiprocessing.Pool, fails instead of respawning workers that die at start-up.
-                ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods()
-                                     else "spawn")
+                if "forkserver" in mp.get_all_start_methods():
+                    ctx = mp.get_context("forkserver")
+                    # the server imports the renderer once; workers fork from it ready to run
+                    ctx.set_forkserver_preload(["fusion.sim.simulate"])
+                else:
+                    ctx = mp.get_context("spawn")
                 try:
                     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
                                              initargs=init) as pool:
