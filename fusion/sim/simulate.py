@@ -42,6 +42,7 @@ class SimulationResult:
     readable_floor_fraction_outside_blackouts: float | None
     wall_time_s: float
     cameras: list[str] = field(default_factory=list)
+    render_cpu_s: float = 0.0               # CPU time of rendering + PNG encoding, all workers
 
 
 # ---------------------------------------------------------------------------- worker side
@@ -97,8 +98,11 @@ def _render_frame(k: int, t_s: float) -> tuple[int, list[bytes], bool | None]:
     return k, pngs, readable
 
 
-def _render_chunk(args) -> list:
-    return [_render_frame(k, t) for k, t in args]
+def _render_chunk(args) -> tuple[list, float]:
+    """Render frames [(index, t_s)]; also returns the CPU time this took (s)."""
+    t0 = time.process_time()
+    out = [_render_frame(k, t) for k, t in args]
+    return out, time.process_time() - t0
 
 
 def floor_code_readable(img: np.ndarray) -> bool:
@@ -199,7 +203,11 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
             bar = tqdm(total=len(tasks), unit="frame", desc=f"simulate {scenario}")
         names = list(sc.cameras)
 
-        def consume(results):
+        cpu_s = [0.0]
+
+        def consume(chunk_result):
+            results, cpu = chunk_result
+            cpu_s[0] += cpu
             for k, pngs, ok in results:
                 for name, png in zip(names, pngs):
                     writer.write_frame_png(name, int(frame_ns[k]), png)
@@ -251,4 +259,5 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
             inside |= (frame_ns >= a) & (frame_ns <= b)
         frac_out = float(r[~inside].mean()) if (~inside).any() else None
     return SimulationResult(Path(out_dir), scenario, duration_s, len(frame_ns), len(imu.timestamps_ns),
-                            blackouts, frac, frac_out, time.perf_counter() - t_wall, names)
+                            blackouts, frac, frac_out, time.perf_counter() - t_wall, names,
+                            cpu_s[0])
