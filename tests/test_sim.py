@@ -335,7 +335,8 @@ def test_simulate_writes_a_readable_deterministic_log(tmp_path):
 
 @pytest.mark.parametrize("kwargs", [dict(scenario="mars"), dict(duration_s=-1.0), dict(duration_s=0),
                                     dict(duration_s=float("nan")), dict(duration_s=1e6),
-                                    dict(duration_s="long")])
+                                    dict(duration_s="long"), dict(seed=-1), dict(start_s=-2.0),
+                                    dict(resolution="800x600")])
 def test_simulate_rejects_bad_input(tmp_path, kwargs):
     with pytest.raises(SimulationError):
         simulate(tmp_path / "x", progress=False, workers=1, **kwargs)

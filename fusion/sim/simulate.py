@@ -135,6 +135,8 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise SimulationError(f"seed must be a non-negative integer, got {seed!r}")
     sc = build_scenario(scenario, resolution)
     if duration_s is None:
         duration_s = sc.duration_s
