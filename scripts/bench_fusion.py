@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import os
 import resource
 import sys
 import time
@@ -45,8 +46,10 @@ def pnp_like_cov() -> np.ndarray:
     return cov
 
 
-def make_flight(duration_s: float, seed: int, with_gaps: bool = True, with_loads: bool = True):
-    """Simulated flight: dict with frame_t, imu, raw, load_obs, T_true, gap_of_frame, loads."""
+def make_flight(duration_s: float, seed: int, with_gaps: bool = True, with_loads: bool = True,
+                raw_scale: float = 1.0):
+    """Simulated flight: dict with frame_t, imu, raw, load_obs, T_true, gap_of_frame, loads.
+    `raw_scale` multiplies the raw-pose noise (sigmas) of pnp_like_cov()."""
     rng = np.random.default_rng(seed)
     # random survey waypoints in a 20 m x 10 m aisle area, 1-2.5 m high
     wps = [(0.0, 0.0, 1.5, 0.0, 1.0)]
@@ -75,7 +78,7 @@ def make_flight(duration_s: float, seed: int, with_gaps: bool = True, with_loads
                 gap_of_frame[inside] = g
                 t += g + 4.0
     keep = gap_of_frame == 0
-    cov = pnp_like_cov()
+    cov = pnp_like_cov() * raw_scale ** 2
     Lc = np.linalg.cholesky(cov)
     xi = rng.standard_normal((keep.sum(), 6)) @ Lc.T
     raw_T = np.array([T @ gtsam.Pose3.Expmap(x).matrix() for T, x in zip(T_true[keep], xi)])
@@ -122,6 +125,9 @@ def metrics(res_traj: Trajectory, fl: dict) -> dict:
         m = gaps == g
         out[f"gap{g}"] = 100 * err[m].max() if m.any() else float("nan")
     if res_traj.covariances is not None:
+        # the estimator's own prediction of its ATE: sqrt(mean trace(position covariance))
+        out["ate_pred_cm"] = 100 * math.sqrt(np.mean(np.trace(
+            res_traj.covariances[:, 3:, 3:], axis1=1, axis2=2)))
         ne = []
         for Te, Tt, P in zip(res_traj.T_world_body, T_true, res_traj.covariances):
             x = gtsam.Pose3.Logmap(gtsam.Pose3(Te).between(gtsam.Pose3(Tt)))
@@ -135,25 +141,33 @@ def load_rmse_cm(res, fl) -> float:
     return 100 * math.sqrt(np.mean(np.square(d))) if d else float("nan")
 
 
-def accuracy_table(duration_s: float, seed: int) -> None:
-    fl = make_flight(duration_s, seed)
+def accuracy_table(duration_s: float, seed: int, raw_scale: float = 1.0) -> None:
+    fl = make_flight(duration_s, seed, raw_scale=raw_scale)
     args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], T_BODY_FRONTCAM)
-    rows = [("raw (PnP-like)", metrics(fl["raw"], fl), float("nan"), float("nan"))]
-    for name, fn in (("smoother", smooth), ("incremental", smooth_incremental), ("ekf", run_ekf)):
+    raw_m = metrics(fl["raw"], fl)
+    rows = [("raw (PnP-like)", raw_m, float("nan"), float("nan"))]
+    solvers = (("smoother", smooth, None), ("incremental (lag 2 s)", smooth_incremental, None),
+               ("incremental (iSAM2, no lag)", smooth_incremental,
+                FusionConfig(incremental_lag_s=None)), ("ekf", run_ekf, None))
+    for name, fn, cfg in solvers:
         t0 = time.perf_counter()
-        res = fn(*args)
+        res = fn(*args, config=cfg)
         rows.append((name, metrics(res.trajectory, fl), load_rmse_cm(res, fl),
                      time.perf_counter() - t0))
-    print(f"\n### Accuracy, {duration_s:.0f} s flight, seed {seed} "
-          f"({len(fl['raw'])} raw poses of {len(fl['frame_t'])} frames, "
+    print(f"\n### Accuracy, {duration_s:.0f} s flight, seed {seed}, raw noise x{raw_scale:g} "
+          f"({SIGMA_POS_M * raw_scale * 1000:g} mm, {math.degrees(SIGMA_ROT_RAD) * raw_scale:g} deg "
+          f"per axis; {len(fl['raw'])} raw poses of {len(fl['frame_t'])} frames, "
           f"{len(fl['load_obs'])} load observations)\n")
     gh = " | ".join(f"max err in {g:g} s gap (cm)" for g in GAP_LENGTHS_S)
-    print(f"| estimator | ATE RMSE all (cm) | ATE RMSE seen (cm) | {gh} | yaw RMSE (deg) | "
-          "NEES (6-dof) | load RMSE (cm) | time (s) |")
-    print("|---" * (8 + len(GAP_LENGTHS_S)) + "|")
+    print(f"| estimator | ATE RMSE all (cm) | / raw | ATE predicted by its covariance (cm) | "
+          f"ATE RMSE seen (cm) | / raw | {gh} | yaw RMSE (deg) | NEES (6-dof) | load RMSE (cm) | "
+          "time (s) |")
+    print("|---" * (11 + len(GAP_LENGTHS_S)) + "|")
     for name, m, lr, tm in rows:
         gaps = " | ".join(f"{m[f'gap{g}']:.2f}" for g in GAP_LENGTHS_S)
-        print(f"| {name} | {m['ate_cm']:.3f} | {m['ate_seen_cm']:.3f} | {gaps} | "
+        print(f"| {name} | {m['ate_cm']:.3f} | {m['ate_cm'] / raw_m['ate_cm']:.2f} | "
+              f"{m.get('ate_pred_cm', float('nan')):.3f} | {m['ate_seen_cm']:.3f} | "
+              f"{m['ate_seen_cm'] / raw_m['ate_cm']:.2f} | {gaps} | "
               f"{m['yaw_deg']:.4f} | {m.get('nees', float('nan')):.2f} | {lr:.2f} | {tm:.2f} |")
 
 
@@ -179,11 +193,13 @@ def speed_one(d_min: float) -> dict:
     fl = make_flight(60.0 * d_min, seed=int(d_min))
     args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], T_BODY_FRONTCAM)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    t0 = time.perf_counter()
+    c0, t0 = time.process_time(), time.perf_counter()
     res = smooth(*args)
-    out = dict(frames=len(fl["frame_t"]), batch_s=time.perf_counter() - t0,
-               rss_before_mb=rss0, rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
-    out.update({k: v for k, v in res.stats.items() if k.startswith("time_") or k == "iterations"})
+    out = dict(frames=len(fl["frame_t"]), loads=len(res.loads.loads), batch_s=time.perf_counter() - t0,
+               batch_cpu_s=time.process_time() - c0, rss_before_mb=rss0,
+               rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+    out.update({k: v for k, v in res.stats.items()
+                if k.startswith("time_") or k in ("iterations", "covariance_method")})
     del res
     if d_min <= 10:
         out["inc_rt"] = smooth_incremental(*args).stats["realtime_factor"]
@@ -195,9 +211,10 @@ def speed_table(durations_min) -> None:
     import json
     import subprocess
     print("\n### Speed and memory (30 Hz frames, 200 Hz IMU, gaps, loads; one process per row)\n")
-    print("| flight (min) | frames | batch total (s) | build / LM / marginals (s) | LM iters | "
-          "max RSS before / after batch (MB) | incremental x real time | EKF x real time |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| flight (min) | frames | loads | batch total (s) | batch CPU (s) | build / LM / covariances (s) | "
+          "LM iters | max RSS before / after batch (MB) | incremental (lag 2 s) x real time | "
+          "EKF x real time |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for d in durations_min:
         code = ("import json, sys; sys.path.insert(0, 'scripts'); import bench_fusion as b; "
                 f"print(json.dumps(b.speed_one({d!r})))")
@@ -206,10 +223,10 @@ def speed_table(durations_min) -> None:
             print(f"| {d:g} | failed: {r.stderr.strip().splitlines()[-1]} |")
             continue
         s = json.loads(r.stdout.strip().splitlines()[-1])
-        print(f"| {d:g} | {s['frames']} | {s['batch_s']:.2f} | {s['time_build_s']:.2f} / "
-              f"{s['time_optimize_s']:.2f} / {s['time_covariance_s']:.2f} | {s['iterations']} | "
-              f"{s['rss_before_mb']:.0f} / {s['rss_mb']:.0f} | {s.get('inc_rt', float('nan')):.1f} | "
-              f"{s.get('ekf_rt', float('nan')):.1f} |", flush=True)
+        print(f"| {d:g} | {s['frames']} | {s['loads']} | {s['batch_s']:.2f} | {s['batch_cpu_s']:.2f} | "
+              f"{s['time_build_s']:.2f} / {s['time_optimize_s']:.2f} / {s['time_covariance_s']:.2f} | "
+              f"{s['iterations']} | {s['rss_before_mb']:.0f} / {s['rss_mb']:.0f} | "
+              f"{s.get('inc_rt', float('nan')):.1f} | {s.get('ekf_rt', float('nan')):.1f} |", flush=True)
 
 
 def main(argv=None) -> int:
@@ -219,9 +236,11 @@ def main(argv=None) -> int:
                     help="speed-table flight lengths in minutes (default 1 5 10 30)")
     ap.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
-    print(f"# bench_fusion  {datetime.datetime.now().isoformat(timespec='seconds')}")
+    print(f"# bench_fusion  {datetime.datetime.now().isoformat(timespec='seconds')}  "
+          f"(load average at start {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     acc_s = 60.0 if a.quick else 180.0
     accuracy_table(acc_s, a.seed)
+    accuracy_table(acc_s, a.seed, raw_scale=2.5)
     outlier_table(60.0 if a.quick else 120.0, a.seed + 1)
     speed_table(a.durations if a.durations is not None else ([1] if a.quick else [1, 5, 10, 30]))
     return 0

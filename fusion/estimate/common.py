@@ -65,11 +65,11 @@ class FusionConfig:
     lm_relative_tol: float = 1e-5          # GTSAM's default relativeErrorTol
     compute_covariances: bool = True
     # Incremental mode: iSAM2 inside gtsam's IncrementalFixedLagSmoother; states older than
-    # `incremental_lag_s` are marginalised (loads are kept to the end); None = plain iSAM2 over
+    # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain iSAM2 over
     # the whole flight (its cost grows with the flight).
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 10
-    incremental_lag_s: float | None = 2.0
+    incremental_lag_s: float | None = 1.0
 
     def __post_init__(self):
         if self.robust_kernel not in ROBUST_KERNELS:
