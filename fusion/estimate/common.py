@@ -64,12 +64,17 @@ class FusionConfig:
     lm_max_iterations: int = 100
     lm_relative_tol: float = 1e-5          # GTSAM's default relativeErrorTol
     compute_covariances: bool = True
+    # Tight coupling (smooth / smooth_incremental with floor_frames + floor_camera): floor-code
+    # corners as reprojection factors instead of the per-frame QR pose; a detection without its
+    # own corner_sigma_px / corner_cov_px2 uses `corner_sigma_px` (px, per coordinate).
+    tight: bool = False
+    corner_sigma_px: float = 0.15
     # Incremental mode: iSAM2 inside gtsam's IncrementalFixedLagSmoother; states older than
     # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain iSAM2 over
     # the whole flight (its cost grows with the flight).
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 10
-    incremental_lag_s: float | None = 1.0
+    incremental_lag_s: float | None = 0.5
 
     def __post_init__(self):
         if self.robust_kernel not in ROBUST_KERNELS:

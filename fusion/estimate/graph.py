@@ -238,3 +238,38 @@ def bridge_factors(k0: int, k1: int, dt: float, accel_sigma: float, rate_sigma: 
             B(k0), B(k1), gtsam.imuBias.ConstantBias(),
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sa), np.full(3, sg)])))
     return out
+
+
+def floor_corner_factor(k: int, camera, corners_world: np.ndarray, corners_px: np.ndarray,
+                        whitening: np.ndarray, kernel: str, threshold: float) -> gtsam.CustomFactor:
+    """Tight coupling: the floor codes' known world corners reprojected into the floor camera at
+    frame k, one factor on X(k) for all codes of the frame.
+
+    corners_world (4c, 3) m, corners_px (4c, 2) the refined detections (TL, TR, BR, BL per code),
+    whitening (c, 8, 8) per code (fusion.qr.pnp.corner_whitening: the corners' 8x8 covariance
+    C = L L^T -> L^-1).  Residual W (project(T_body_cam^-1 T_world_body^-1 p) - uv) (8c,),
+    unit-free after whitening; the projection is the camera's full radial-tangential model
+    (fusion.qr.crb.floor_reprojection, whose Jacobian is w.r.t. the same right perturbation as
+    GTSAM's Pose3).  A corner behind the camera at the current estimate gives a residual of
+    1e3 with zero Jacobian (the robust kernel then caps its pull)."""
+    from fusion.qr.crb import floor_reprojection
+    P = np.asarray(corners_world, float).copy()
+    z = np.asarray(corners_px, float).reshape(-1).copy()
+    W = np.asarray(whitening, float).copy()
+    c = len(W)
+    model = robust(gtsam.noiseModel.Unit.Create(8 * c), kernel, threshold)
+    kx = X(k)
+
+    def error(this, values, jacobians):
+        uv, J = floor_reprojection(camera, values.atPose3(kx).matrix(), P)
+        r = uv.reshape(-1) - z
+        bad = ~np.isfinite(r)
+        if bad.any():
+            r[bad] = 1e3
+            J[bad] = 0.0
+        rw = (W @ r.reshape(c, 8, 1)).reshape(-1)
+        if jacobians is not None:
+            jacobians[0] = (W @ J.reshape(c, 8, 6)).reshape(8 * c, 6)
+        return rw
+
+    return gtsam.CustomFactor(model, [kx], error)

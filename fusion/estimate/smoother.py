@@ -36,7 +36,8 @@ from fusion.estimate import graph as G
 from fusion.estimate.common import (FusionConfig, FusionResult, check_imu,
                                     check_timestamps, check_velocity, first_velocity,
                                     group_load_obs, initial_poses, initial_velocities,
-                                    inlier_raw_mask, prepare_raw, velocity_at_frames)
+                                    inlier_raw_mask, match_to_frames, prepare_raw,
+                                    velocity_at_frames)
 from fusion.estimate.graph import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
 from fusion.log.euroc import ImuData, VelocityData
@@ -152,7 +153,8 @@ class Problem:
     frame_t: np.ndarray
     factors: list = field(default_factory=list)        # gtsam factors
     factor_frame: list = field(default_factory=list)   # frame index per factor
-    robust_kind: dict = field(default_factory=dict)    # factor index -> "pose" / "load"
+    robust_kind: dict = field(default_factory=dict)    # factor index -> "pose" / "load" / "corners"
+    robust_threshold: dict = field(default_factory=dict)   # factor index -> kernel threshold
     initial: gtsam.Values = field(default_factory=gtsam.Values)
     T_init: np.ndarray | None = None
     v_init: np.ndarray | None = None
@@ -170,9 +172,11 @@ class Problem:
     pims: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
 
-    def add(self, factor, k: int, kind: str | None = None) -> None:
+    def add(self, factor, k: int, kind: str | None = None, threshold: float | None = None) -> None:
         if kind is not None:
             self.robust_kind[len(self.factors)] = kind
+            self.robust_threshold[len(self.factors)] = threshold if threshold is not None \
+                else self.thresholds[kind]
         self.factors.append(factor)
         self.factor_frame.append(int(k))
 
@@ -183,11 +187,48 @@ class Problem:
         return g
 
 
+def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None, floor_camera,
+                      config: FusionConfig, stats: dict) -> dict:
+    """{frame index: (corners_world (4c, 3), corners_px (4c, 2), whitening (c, 8, 8))} for tight
+    coupling; {} when it is off or impossible (the reason goes to stats['tight'])."""
+    if not config.tight:
+        stats["tight"] = "off"
+        return {}
+    if not floor_frames or floor_camera is None:
+        stats["tight"] = "no floor sightings / floor camera given: loosely coupled"
+        return {}
+    if getattr(floor_camera, "mount", "body_fixed") != "body_fixed":
+        stats["tight"] = f"{floor_camera.mount} floor camera not supported: loosely coupled"
+        return {}
+    from fusion.qr.pnp import corner_whitening
+    t = np.array(sorted(floor_frames), dtype=np.int64)
+    idx = match_to_frames(frame_t, t, config.max_sync_s)
+    out = {}
+    for ts, k in zip(t.tolist(), idx.tolist()):
+        sightings = [s for s in floor_frames[ts]
+                     if np.all(np.isfinite(np.asarray(s.detection.corners_px, float)))]
+        if k < 0 or not sightings:
+            continue
+        P = np.concatenate([np.asarray(s.corners_world, float).reshape(4, 3) for s in sightings])
+        uv = np.concatenate([np.asarray(s.detection.corners_px, float).reshape(4, 2)
+                             for s in sightings])
+        W = corner_whitening([s.detection for s in sightings], config.corner_sigma_px)
+        out[k] = (P, uv, W)
+    stats["tight"] = "on"
+    return out
+
+
 def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                   load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
                   velocity: VelocityData | None = None,
-                  config: FusionConfig | None = None) -> Problem:
+                  config: FusionConfig | None = None, floor_frames: dict | None = None,
+                  floor_camera=None) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
+
+    Tight coupling (`config.tight` with `floor_frames` {frame timestamp_ns: [FloorSighting]} and
+    the floor `floor_camera` CameraModel): at frames with floor sightings the known world
+    corners are reprojection factors on X(k) (graph.floor_corner_factor) instead of the raw
+    pose factor; the raw poses still give the initial values and the factors elsewhere.
 
     Raises EstimationError for: no raw pose at all ("no floor code was read in this flight"),
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
@@ -251,8 +292,12 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                                                  np.full(3, config.bias_prior_sigma_gyro_rad_s)])),
                pb.k_first)
 
-    # ---- QR pose factors
+    # ---- QR pose factors (or, tightly coupled, corner reprojection factors)
+    corner_frames = tight_corner_data(frame_t, floor_frames, floor_camera, config, pb.stats)
+    n_pose = 0
     for m, k in enumerate(rawp.frame_idx.tolist()):
+        if k in corner_frames:
+            continue
         T = rawp.T_world_body[m]
         if rawp.full_pose:
             f = G.pose_prior_factor(k, T, rawp.covariances[m], config.robust_kernel, thr_pose)
@@ -261,7 +306,13 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                                       config.paper_sigma_xyz_m, config.paper_sigma_yaw_rad,
                                       config.robust_kernel, thr_pose)
         pb.add(f, k, "pose")
-    pb.stats["pose_factors"] = len(rawp.frame_idx)
+        n_pose += 1
+    for k, (P, uv, W) in sorted(corner_frames.items()):
+        thr = config.threshold(8 * len(W))
+        pb.add(G.floor_corner_factor(k, floor_camera, P, uv, W, config.robust_kernel, thr), k,
+               "corners", thr)
+    pb.stats["pose_factors"] = n_pose
+    pb.stats["corner_factors"] = len(corner_frames)
     pb.stats["raw_pose_input"] = "pose6" if rawp.full_pose else "position_yaw"
 
     # ---- velocity factors
@@ -317,9 +368,9 @@ def robust_distances(pb: Problem, values: gtsam.Values) -> dict[int, float]:
 
 def count_rejections(pb: Problem, dist: dict[int, float]) -> dict:
     """Robust factors whose Mahalanobis distance exceeds the kernel threshold, per kind."""
-    out = {"pose": 0, "load": 0}
+    out = {"pose": 0, "load": 0, "corners": 0}
     for i, d in dist.items():
-        if d > pb.thresholds[pb.robust_kind[i]]:
+        if d > pb.robust_threshold[i]:
             out[pb.robust_kind[i]] += 1
     return out
 
@@ -329,7 +380,8 @@ def count_rejections(pb: Problem, dist: dict[int, float]) -> dict:
 
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                         max_iterations: int = 100, relative_tol: float = 1e-5,
-                        lambda0: float = 1e-5, ordering: gtsam.Ordering | None = None):
+                        lambda0: float = 1e-5, ordering: gtsam.Ordering | None = None,
+                        errors: list | None = None):
     """Levenberg-Marquardt (Nocedal & Wright 2006, Sec. 10.3; GTSAM's defaults: lambda0 1e-5,
     factor 10, identity damping) driven from Python around GTSAM's linearize / multifrontal
     elimination, with one COLAMD ordering computed up front and reused.  Each iteration first
@@ -343,10 +395,13 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
 
     Returns (values, iterations, linear_graph): linear_graph is the undamped linearisation of
     the last accepted step (at the iterate before the returned one, whose step changed the error
-    by < relative_tol), reusable for marginal covariances; None if that step was damped."""
+    by < relative_tol), reusable for marginal covariances; None if that step was damped.
+    `errors`, if given, receives the graph error at the start and after each accepted step."""
     if ordering is None:
         ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     err = graph.error(values)
+    if errors is not None:
+        errors.append(err)
     lam = 0.0      # try the Gauss-Newton step first; damp only when it fails to descend
     keys = [int(k) for k in values.keys()]
     it = 0
@@ -369,6 +424,8 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         undamped = lam == 0.0
         converged = (err - new_err) <= relative_tol * max(err, 1e-300)
         values, err = trial, new_err
+        if errors is not None:
+            errors.append(err)
         lam = lam / 10.0 if lam > lambda0 else 0.0
         if converged:
             break
@@ -410,7 +467,8 @@ def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
 def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
            load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
            velocity: VelocityData | None = None,
-           config: FusionConfig | None = None) -> FusionResult:
+           config: FusionConfig | None = None, floor_frames: dict | None = None,
+           floor_camera=None) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
     frame_times_ns (N,) int64: floor-camera frame times (one state each); imu: ImuData or None
@@ -424,16 +482,19 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     segments / bridged intervals, times)."""
     config = config or FusionConfig()
     t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config)
+    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config,
+                       floor_frames, floor_camera)
     t_build = time.perf_counter() - t0
     graph = pb.graph()
-    err0 = graph.error(pb.initial)
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+    errors: list[float] = []
     values, iterations, lin = levenberg_marquardt(graph, pb.initial, config.lm_max_iterations,
-                                                   config.lm_relative_tol, ordering=ordering)
+                                                   config.lm_relative_tol, ordering=ordering,
+                                                   errors=errors)
+    err0 = errors[0]
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
-    gated = {"pose": 0, "load": 0}
+    gated = {"pose": 0, "load": 0, "corners": 0}
     if config.outlier_gate is not None and any(d > config.outlier_gate for d in dist.values()):
         drop = {i for i, d in dist.items() if d > config.outlier_gate}
         for i in drop:
@@ -443,7 +504,8 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             if i not in drop:
                 graph.add(f)
         values, it2, lin = levenberg_marquardt(graph, values, config.lm_max_iterations,
-                                                config.lm_relative_tol, ordering=ordering)
+                                                config.lm_relative_tol, ordering=ordering,
+                                                errors=errors)
         iterations += it2
     t_opt = time.perf_counter() - t0 - t_build
     release_heap()
@@ -475,8 +537,9 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                                               pb.load_nobs[j])
                                  for j, lid in enumerate(pb.load_ids)])
     stats = dict(pb.stats, iterations=iterations, gated_pose_factors=gated["pose"],
-                 gated_load_factors=gated["load"], initial_error=float(err0),
-                 final_error=float(graph.error(values)), rejected_pose_factors=rej["pose"],
+                 gated_load_factors=gated["load"], gated_corner_factors=gated["corners"],
+                 rejected_corner_factors=rej["corners"], initial_error=float(err0),
+                 final_error=float(errors[-1]), rejected_pose_factors=rej["pose"],
                  rejected_load_factors=rej["load"], robust_kernel=config.robust_kernel,
                  pose_threshold=pb.thresholds["pose"], n_factors=len(pb.factors),
                  covariance_method=covariance_method,
@@ -495,7 +558,8 @@ LOAD_GENERATION_STRIDE = 10 ** 9       # L(j + g * stride): generation g of load
 def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                        load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
                        velocity: VelocityData | None = None,
-                       config: FusionConfig | None = None) -> FusionResult:
+                       config: FusionConfig | None = None, floor_frames: dict | None = None,
+                       floor_camera=None) -> FusionResult:
     """Causal incremental fusion: frame by frame, the factors available at that frame are added
     and the pose estimate and marginal covariance of X(k) *as known at frame k* are recorded (a
     filter-like output from a smoother).
@@ -516,13 +580,21 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     variable at the end of the flight."""
     config = config or FusionConfig()
     t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config)
+    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config,
+                       floor_frames, floor_camera)
     t_build = time.perf_counter() - t0
     n, k0 = len(pb.frame_t), pb.k_first
     by_frame: list[list[int]] = [[] for _ in range(n)]
     for i, k in enumerate(pb.factor_frame):
         by_frame[k].append(i)
     pcam_at = {(k, j): p for j, sightings in pb.load_sightings.items() for k, p in sightings}
+    # per factor: the load it observes (-1: none); factors on states before k0 are left out
+    chr_l, mask = ord("l"), (1 << 56) - 1
+    load_of, usable = {}, {}
+    for i, f in enumerate(pb.factors):
+        keys = f.keys()
+        usable[i] = all((key >> 56) == chr_l or (key & mask) >= k0 for key in keys)
+        load_of[i] = next(((key & mask) for key in keys if (key >> 56) == chr_l), -1)
 
     params = gtsam.ISAM2Params()
     params.setFactorization("QR")
@@ -538,7 +610,8 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     n_generations = 0
 
     # raw pose factors index by frame, for the causal initial guess
-    pose_at = {pb.factor_frame[i]: i for i, kind in pb.robust_kind.items() if kind == "pose"}
+    pose_at = {pb.factor_frame[i]: i for i, kind in pb.robust_kind.items()
+               if kind == "pose" and isinstance(pb.factors[i], gtsam.PriorFactorPose3)}
     T_out = np.empty((n - k0, 4, 4))
     cov_out = np.empty((n - k0, 6, 6))
     pose_k = gtsam.Pose3(pb.T_init[k0])
@@ -572,14 +645,11 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                 key = L(j + gen[j] * LOAD_GENERATION_STRIDE)
                 left[j] = (engine.calculateEstimatePoint3(key), engine.marginalCovariance(key))
         for i in by_frame[k]:
-            f = pb.factors[i]
-            keys = f.keys()
-            if any(gtsam.Symbol(key).chr() != ord("l") and gtsam.Symbol(key).index() < k0
-                   for key in keys):
+            if not usable[i]:
                 continue
-            lkeys = [key for key in keys if gtsam.Symbol(key).chr() == ord("l")]
-            if lkeys:
-                j = gtsam.Symbol(lkeys[0]).index()
+            f = pb.factors[i]
+            j = load_of[i]
+            if j >= 0:
                 if j not in gen or j in left:        # first sighting, or back after leaving
                     T_wc = pose_guess.matrix() @ pb.T_body_cam
                     if j not in gen:
