@@ -566,3 +566,74 @@ def test_incremental_short_lag_recreates_loads(flight):
     k0 = res.stats["frames_before_first_fix"]
     err = pos_err(res.trajectory.T_world_body, flight.T_true[k0:])
     assert np.sqrt(np.mean(err[30:] ** 2)) < 0.005
+
+
+# =========================================================================== tight coupling
+
+
+def floor_sightings(fl: Flight, camera, seed: int, sigma_px: float = 0.15,
+                    spacing_m: float = 0.6, side_m: float = 0.12) -> dict:
+    """{frame timestamp_ns: [FloorSighting]}: floor codes on a grid, corners projected through
+    the truth with N(0, sigma_px) pixel noise, at frames outside the blackouts."""
+    from fusion.qr.codes import FloorSighting
+    from fusion.types import QRDetection
+    rng = np.random.default_rng(seed)
+    half = side_m / 2
+    offs = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
+    out = {}
+    for k in np.flatnonzero(~fl.gap_mask):
+        T_cw = inv_T(fl.T_true[k] @ camera.T_body_cam)
+        c = fl.T_true[k, :2, 3]
+        gx = np.arange(np.floor(c[0] / spacing_m) - 3, np.floor(c[0] / spacing_m) + 4) * spacing_m
+        gy = np.arange(np.floor(c[1] / spacing_m) - 3, np.floor(c[1] / spacing_m) + 4) * spacing_m
+        found = []
+        for x in gx:
+            for y in gy:
+                P = offs + [x, y, 0.0]
+                pc = P @ T_cw[:3, :3].T + T_cw[:3, 3]
+                if np.any(pc[:, 2] < 0.3):
+                    continue
+                uv = camera.project(pc)
+                if np.all(np.isfinite(uv)) and np.all((uv > 5) & (uv < [camera.width - 5,
+                                                                        camera.height - 5])):
+                    uv = uv + rng.normal(size=uv.shape) * sigma_px
+                    det = QRDetection("cam0", int(fl.frame_t[k]), f"0/{x:g}/{y:g}", uv, uv.round(),
+                                      sigma_px)
+                    found.append(FloorSighting(det, None, np.array([x, y, 0.0]), P))
+        if found:
+            out[int(fl.frame_t[k])] = found
+    return out
+
+
+def test_tight_coupling_uses_corners_and_is_consistent():
+    from fusion.sim.scenarios import make_cameras
+    cam = make_cameras()["cam0"]
+    fl = make_flight(seed=13, duration_s=6.0, gaps=((2.5, 3.5),))
+    floor = floor_sightings(fl, cam, seed=14)
+    loose = smooth(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM)
+    tight = smooth(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM,
+                   config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
+    assert tight.stats["tight"] == "on" and loose.stats["tight"] == "off"
+    assert tight.stats["corner_factors"] == len(floor) > 100
+    assert tight.stats["pose_factors"] == len(fl.raw) - len(floor)
+    assert tight.stats["covariance_method"] == "chain"
+    seen = ~fl.gap_mask
+    rmse = lambda r: np.sqrt(np.mean(pos_err(r.trajectory.T_world_body, fl.T_true)[seen] ** 2))
+    # ~4.5 codes x 4 corners at 0.15 px per frame carry more than one 2 mm raw pose
+    assert rmse(tight) < 0.85 * rmse(loose), (rmse(tight), rmse(loose))
+    e = nees(tight.trajectory, fl.T_true)
+    assert 0.5 * 6 < e.mean() < 2.0 * 6, e.mean()
+    # the causal mode takes the same factors
+    inc = smooth_incremental(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM,
+                             config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
+    k0 = inc.stats["frames_before_first_fix"]
+    err = pos_err(inc.trajectory.T_world_body, fl.T_true[k0:])
+    assert np.sqrt(np.mean(err[30:][~fl.gap_mask[k0:][30:]] ** 2)) < 0.002
+
+
+def test_tight_without_sightings_falls_back(flight):
+    res = smooth(flight.frame_t[:90], flight.imu, Trajectory(
+        "pnp", flight.raw.timestamps_ns[:90], flight.raw.T_world_body[:90],
+        flight.raw.covariances[:90]), [], T_BODY_FRONTCAM, config=FusionConfig(tight=True))
+    assert res.stats["tight"].startswith("no floor sightings")
+    assert res.stats["pose_factors"] == 90

@@ -474,7 +474,9 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     frame_times_ns (N,) int64: floor-camera frame times (one state each); imu: ImuData or None
     (then velocity is required: velocity-only mode); raw: per-frame QR poses at a subset of the
     frame times (with (M,6,6) covariances, or None for the paper's position + yaw);
-    load_obs: front-camera load observations with p_cam / cov_cam; T_body_frontcam (4,4).
+    load_obs: front-camera load observations with p_cam / cov_cam; T_body_frontcam (4,4);
+    floor_frames {frame timestamp_ns: [fusion.qr.codes.FloorSighting]} and floor_camera
+    (CameraModel of cam0): used only with config.tight (see build_problem).
     Returns FusionResult with the trajectory at every frame time (covariances (N,6,6), Pose3
     order, body frame), the load map (3x3 world covariances) and stats (iterations,
     initial/final error, rejected_* = robust factors beyond the kernel threshold at the robust
