@@ -138,7 +138,9 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
                       shape=(n * s, m)) if c_vals else sp.csc_matrix((n * s, m))
     chunk = int(max(3, (work_mb * 2 ** 20 // (8 * n * s)) // 3 * 3))
     del D, E
-    WX = np.empty((n, 6, m))
+    # pose rows of W; float32 when float64 would pass work_mb * 4 (relative error ~1e-7 on the
+    # load term of the pose covariance, far below anything it is used for)
+    WX = np.empty((n, 6, m), np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2 ** 20 else np.float32)
     CtW = np.empty((m, m))
     buf = np.empty(n * s * min(chunk, m))
     for c0 in range(0, m, chunk):
@@ -159,7 +161,9 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     for j in range(n_loads):
         Dl_full[3 * j:3 * j + 3, 3 * j:3 * j + 3] = Dl[j]
     Sc_inv = _spd_inv(Dl_full - 0.5 * (CtW + CtW.T))
-    cov += np.matmul(np.matmul(WX, Sc_inv), WX.transpose(0, 2, 1))
+    for a in range(0, n, 4096):         # in frame blocks: WX @ Sc^-1 would be another WX
+        w = WX[a:a + 4096].astype(np.float64)
+        cov[a:a + 4096] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
     lcov = np.stack([Sc_inv[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(n_loads)])
     return _sym(cov), _sym(lcov)
 
