@@ -52,8 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default="default", help="default | gimbaled | paper_a5")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resolution", choices=("640x480", "1280x720"), default="640x480",
+                   help="both cameras' resolution (default 640x480)")
+    p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
+    p.add_argument("--start", type=float, default=0.0,
+                   help="skip the first S seconds of the scenario's trajectory")
     p.add_argument("--force", action="store_true", help="overwrite an existing folder")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
     p.add_argument("--quiet", action="store_true")
 
     p = sub.add_parser("detect", help="detect and decode QR codes; writes detections.csv")
@@ -100,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
             from fusion.sim.simulate import simulate
             res = simulate(args.out, scenario=args.scenario, duration_s=args.duration,
                            seed=args.seed, overwrite=args.force, progress=not args.quiet,
-                           workers=args.workers)
+                           workers=args.workers,
+                           resolution=tuple(int(v) for v in args.resolution.split("x")),
+                           camera_rate_hz=args.fps, start_s=args.start)
             print(f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
                   f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
                   f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
