@@ -2,6 +2,7 @@
 
     detect_image(image, backend)            one frame -> list[RawCode] (decoder corners + payload)
     detect_frame(image, camera, ...)        one frame -> list[QRDetection] with refined corners
+    detect_frames(images, camera, ...)      several frames of one camera, refined together
     detect_flight(log, cache_path, ...)     every frame of cam0 / cam1 -> DetectionResult
 
 Backends: "zxing" (zxing-cpp, default: fast, corners at the symbol's outer corners in whole
@@ -38,7 +39,7 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open
-from fusion.qr.refine import modules_for_version, refine_codes
+from fusion.qr.refine import modules_for_version, refine_frames
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
@@ -179,29 +180,47 @@ def _detect_image(image: np.ndarray, backend: str) -> tuple[list[RawCode], int]:
 def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0,
                  camera: CameraModel | None = None, backend: str = "zxing",
                  stats: CameraStats | None = None) -> list[QRDetection]:
-    """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, all codes
-    of the frame at once, see fusion.qr.refine), `corners_raw_px` as decoded, `corner_cov_px2`
-    the refinement's calibrated (8, 8) corner covariance and `corner_sigma_px` the square root of
-    its mean diagonal (RAW_CORNER_SIGMA_PX and no covariance when refinement failed).  `camera`
-    (optional) makes the fits run in undistorted coordinates.  Counts go to `stats` when given."""
-    codes, dropped = _detect_image(image, backend)
+    """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, see
+    fusion.qr.refine), `corners_raw_px` as decoded, `corner_cov_px2` the refinement's calibrated
+    (8, 8) corner covariance and `corner_sigma_px` the square root of its mean diagonal
+    (RAW_CORNER_SIGMA_PX and no covariance when refinement failed).  `camera` (optional) makes
+    the fits run in undistorted coordinates.  Counts go to `stats` when given."""
+    return detect_frames([image], camera_name, [timestamp_ns], camera, backend, stats)[0]
+
+
+def detect_frames(images: list[np.ndarray], camera_name: str = "", timestamps_ns=None,
+                  camera: CameraModel | None = None, backend: str = "zxing",
+                  stats: CameraStats | None = None) -> list[list[QRDetection]]:
+    """`detect_frame` for several frames of one camera: each decoded on its own, all their codes
+    refined together (fusion.qr.refine.refine_frames: the array work is shared, ~2x cheaper per
+    frame than one frame at a time).  Returns one list of detections per image."""
+    timestamps_ns = [0] * len(images) if timestamps_ns is None else list(timestamps_ns)
+    decoded = [_detect_image(image, backend) for image in images]
+    refined_all = refine_frames(list(images), [[(c.corners_px, c.modules) for c in codes]
+                                               for codes, _ in decoded], camera)
     out = []
-    failed = 0
-    refined_all = refine_codes(image, [(c.corners_px, c.modules) for c in codes], camera)
-    for code, res in zip(codes, refined_all):
-        if res is None:
-            failed += 1
-            refined, sigma, cov = code.corners_px.copy(), RAW_CORNER_SIGMA_PX, None
-        else:
-            refined, sigma, cov = res.corners_px, res.corner_sigma_px, res.corner_cov_px2
-        out.append(QRDetection(camera_name, int(timestamp_ns), code.payload, refined,
-                               code.corners_px, float(sigma), cov))
-    if stats is not None:
-        stats.payloads_dropped += dropped
-        stats.refine_failed += failed
-        stats.detections += len(out)
-        stats.frames_with_code += bool(out)
+    for (codes, dropped), refined_frame, ts in zip(decoded, refined_all, timestamps_ns):
+        dets = []
+        failed = 0
+        for code, res in zip(codes, refined_frame):
+            if res is None:
+                failed += 1
+                refined, sigma, cov = code.corners_px.copy(), RAW_CORNER_SIGMA_PX, None
+            else:
+                refined, sigma, cov = res.corners_px, res.corner_sigma_px, res.corner_cov_px2
+            dets.append(QRDetection(camera_name, int(ts), code.payload, refined,
+                                    code.corners_px, float(sigma), cov))
+        if stats is not None:
+            stats.payloads_dropped += dropped
+            stats.refine_failed += failed
+            stats.detections += len(dets)
+            stats.frames_with_code += bool(dets)
+        out.append(dets)
     return out
+
+
+REFINE_BATCH_FRAMES = 8
+"""Frames refined together in a flight (measured fastest per frame: 8; 32 is no faster)."""
 
 
 # ============================================================================ a whole flight
@@ -223,14 +242,20 @@ def _detect_chunk(camera_name: str, start: int, stop: int
     stats = CameraStats()
     skipped_before = len(stream.skipped)
     dets: list[QRDetection] = []
+    images, stamps = [], []
     for i in range(start, stop):
         stats.frames_total += 1
         image = stream.load_image(i)
         if image is None:
             stats.frames_skipped += 1
-            continue
-        dets.extend(detect_frame(image, camera_name, int(stream.timestamps_ns[i]), stream.camera,
-                                 _WORKER_BACKEND, stats))
+        else:
+            images.append(image)
+            stamps.append(int(stream.timestamps_ns[i]))
+        if len(images) == REFINE_BATCH_FRAMES or (i == stop - 1 and images):
+            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera,
+                                            _WORKER_BACKEND, stats):
+                dets.extend(frame_dets)
+            images, stamps = [], []
     skipped = stream.skipped[skipped_before:]
     del stream.skipped[skipped_before:]
     return camera_name, dets, stats, skipped

@@ -127,6 +127,37 @@ def _levenberg_marquardt(x0, residual_and_jacobian, retract, max_iter: int = 30)
     return x, r, J
 
 
+def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
+    """(n, 8, 8) whitening matrices W_i = L_i^-1 of each detection's corner covariance
+    C_i = L_i L_i^T (Cholesky; order TL u, TL v, TR u, ..., BL v), so that W_i (z_i - h_i) has
+    identity covariance: `corner_cov_px2` when set and positive definite (the corners come from
+    one homography fit, so their errors are correlated), else diag(1 / sigma^2) with sigma the
+    detection's `corner_sigma_px` or `default_sigma_px` (`corner_sigmas`)."""
+    sig = corner_sigmas(detections, default_sigma_px).reshape(-1, 8)
+    out = np.zeros((len(sig), 8, 8))
+    for i, d in enumerate(detections):
+        C = getattr(d, "corner_cov_px2", None)
+        if C is not None:
+            C = np.asarray(C, dtype=float)
+            if C.shape == (8, 8) and np.all(np.isfinite(C)):
+                try:
+                    out[i] = np.linalg.inv(np.linalg.cholesky(0.5 * (C + C.T)))
+                    continue
+                except np.linalg.LinAlgError:
+                    pass
+        out[i] = np.diag(1.0 / sig[i])
+    return out
+
+
+def _whiten(W: np.ndarray, r: np.ndarray, J: np.ndarray | None = None):
+    """Block-diagonal whitening: r (8n,) and J (8n, k) -> W_i r_i, W_i J_i per block of 8."""
+    n = len(W)
+    rw = (W @ r.reshape(n, 8, 1)).reshape(-1)
+    if J is None:
+        return rw
+    return rw, (W @ J.reshape(n, 8, -1)).reshape(8 * n, -1)
+
+
 def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
     """Per-residual 1-sigma (8 per detection: x, y of its 4 corners), px: each detection's own
     `corner_sigma_px` when it has one (fusion.qr.refine's calibrated value), else the default."""
@@ -139,27 +170,28 @@ def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
 
 
 def _refine_body_pose(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray,
-                      uv_obs: np.ndarray, sigma: np.ndarray | None = None):
+                      uv_obs: np.ndarray, whitening: np.ndarray | None = None):
     """LM on the distorted-pixel reprojection error over the body pose (right perturbation),
-    whitened by the per-residual `sigma` (px) when given: residuals and Jacobian divided by it."""
+    whitened per code by `whitening` (n, 8, 8) when given (`corner_whitening`)."""
     z = uv_obs.reshape(-1)
-    inv = 1.0 if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
 
     def rj(T):
         uv, J = floor_reprojection(camera, T, points_world)
-        return (uv.reshape(-1) - z) * inv, J * (inv[:, None] if sigma is not None else 1.0)
+        r = uv.reshape(-1) - z
+        return (r, J) if whitening is None else _whiten(whitening, r, J)
 
     return _levenberg_marquardt(T_world_body, rj, lambda T, d: T @ se3_exp(d))
 
 
 def _refine_symbol_pose(camera: CameraModel, T_cam_symbol: np.ndarray, points_symbol: np.ndarray,
-                        uv_obs: np.ndarray):
-    """LM on the distorted-pixel reprojection error over a code's pose in the camera."""
+                        uv_obs: np.ndarray, whitening: np.ndarray):
+    """LM on the whitened (`whitening` (1, 8, 8)) distorted-pixel reprojection error over a code's
+    pose in the camera."""
     z = uv_obs.reshape(-1)
 
     def rj(T):
         uv, J = symbol_reprojection(camera, T, points_symbol)
-        return uv.reshape(-1) - z, J
+        return _whiten(whitening, uv.reshape(-1) - z, J)
 
     def retract(T, d):
         return make_T(T[:3, :3] @ so3_exp(d[:3]), T[:3, 3] + d[3:])
@@ -222,8 +254,8 @@ def _initial_camera_poses(sightings: list[FloorSighting], camera: CameraModel) -
 def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: float,
                  ambiguity_chi2: float):
     """Best refined body pose for these sightings: (T_world_body, r, J, ambiguous) or None.
-    r (px) and J are WHITENED by the per-corner sigmas (`corner_sigmas`, default `sigma`)."""
-    sig = corner_sigmas([s.detection for s in sightings], sigma)
+    r and J are WHITENED per code (`corner_whitening`, default sigma `sigma`)."""
+    wht = corner_whitening([s.detection for s in sightings], sigma)
     pts_w = np.vstack([s.corners_world for s in sightings])
     uv = np.vstack([np.asarray(s.detection.corners_px, dtype=float) for s in sightings])
     yaw_hint = edge_implied_yaw(sightings, camera)
@@ -241,7 +273,7 @@ def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: flo
     for T0, e0 in zip(starts, rms0):
         if not e0 <= 5.0 * best0 + 5.0 * sigma:
             continue
-        T, r, J = _refine_body_pose(camera, T0, pts_w, uv, sig)
+        T, r, J = _refine_body_pose(camera, T0, pts_w, uv, wht)
         if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
             continue
         if (T @ camera.T_body_cam)[2, 3] <= 0.0:     # under the floor: a mirrored corner order
@@ -257,7 +289,7 @@ def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, sigma: flo
     best_sse = min(c[3] for c in cands)
     close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2]     # whitened: chi^2 units
     T, r, J, _ = min(close, key=lambda c: _tilt_rad(c[0][:3, :3]))
-    return T, r, J, sig, len(close) > 1
+    return T, r, J, len(close) > 1
 
 
 def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
@@ -274,9 +306,11 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     3. candidates whose yaw is > 90 deg from `edge_implied_yaw` are dropped (no 180-deg flips);
        of those whose squared error is within `ambiguity_chi2` sigma^2 of the best, the most level;
     4. covariance (J^T W J)^-1, J = d(distorted px)/d(xi), xi the body-frame right
-       perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py), W = diag(1/sigma_i^2)
-       with sigma_i each detection's `corner_sigma_px` when set, else `corner_sigma_px`; the LM
-       of step 2 minimises the same weighted error.
+       perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py), W block-diagonal
+       with one (8, 8) block C_i^-1 per code: C_i the detection's `corner_cov_px2` when set (its
+       corners come from one homography fit, so their errors are correlated), else
+       sigma_i^2 I with sigma_i its `corner_sigma_px`, else `corner_sigma_px`; the LM of step 2
+       minimises the same weighted error.
 
     "gimbaled" camera: the camera is stabilised, so the airframe's roll and pitch are not observed.
     The returned T_world_body is then the LEVEL body frame (roll = pitch = 0, estimated yaw and
@@ -291,8 +325,10 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
         sol = _solve_floor(sightings, camera, sigma, ambiguity_chi2)
         if sol is None:
             return None
-        T, r, J, sig, ambiguous = sol
-        r = r * sig                                  # back to px for the outlier test
+        T, _, J, ambiguous = sol
+        pts_w = np.vstack([s.corners_world for s in sightings])
+        uv = np.vstack([np.asarray(s.detection.corners_px, dtype=float) for s in sightings])
+        r = (floor_reprojection(camera, T, pts_w)[0] - uv).reshape(-1)   # px, for the outlier test
         rms = float(np.sqrt(np.mean(r ** 2)))
         if rms <= max_rms_px:
             break
@@ -305,7 +341,7 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     else:
         return None
     try:
-        cov = covariance_from_jacobian(J, 1.0)       # J whitened: (J^T W J)^-1, W = diag(1/sigma_i^2)
+        cov = covariance_from_jacobian(J, 1.0)       # J whitened: (J^T W J)^-1
     except EstimationError:
         return None
     T_world_cam = T @ camera.T_body_cam
@@ -339,8 +375,9 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     side world.load_side_m (reprojection RMS <= max_rms_px; others are skipped).
 
     p_cam (3,) = the code centre in the camera frame (m) from IPPE_SQUARE + LM in distorted pixels,
-    cov_cam (3, 3) = the centre block of sigma^2 (J^T J)^-1 (fusion/qr/crb.symbol_reprojection),
-    sigma the detection's `corner_sigma_px` when set, else `corner_sigma_px`;
+    cov_cam (3, 3) = the centre block of (J^T C^-1 J)^-1 (fusion/qr/crb.symbol_reprojection),
+    C the detection's `corner_cov_px2`, else sigma^2 I with sigma its `corner_sigma_px`, else
+    `corner_sigma_px` (the LM minimises the same weighted error);
     p_world = T_world_cam p_cam with T_world_cam = camera_pose(T_world_body, camera), and
     cov_world = R_world_cam cov_cam R_world_cam^T + J_b cov_body J_b^T, J_b = d p_world / d xi
     for the body-frame right perturbation xi of T_world_body (cov_body None: drone pose exact).
@@ -353,7 +390,7 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     corners_S = symbol_corners_S(world.load_side_m)
     out = []
     for s in sightings:
-        sig = float(corner_sigmas([s.detection], sigma)[0])     # one code: one sigma, no weights
+        wht = corner_whitening([s.detection], sigma)
         uv = np.asarray(s.detection.corners_px, dtype=float)
         xn = camera.undistort_normalized(uv)
         if uv.shape != (4, 2) or not np.all(np.isfinite(xn)):
@@ -367,18 +404,19 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
         cands = []
         for rv, tv in zip(rvecs[:n], tvecs[:n]):
             T0 = make_T(cv2.Rodrigues(np.asarray(rv, dtype=float))[0], np.ravel(tv))
-            T, r, J = _refine_symbol_pose(camera, T0, corners_S, uv)
+            T, r, J = _refine_symbol_pose(camera, T0, corners_S, uv, wht)
             if np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and T[2, 3] > 0:
                 cands.append((T, r, J, float(r @ r)))
         if not cands:
             continue
         best_sse = min(c[3] for c in cands)
-        close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2 * sig ** 2]
+        close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2]      # whitened: chi^2
         T, r, J, _ = max(close, key=lambda c: (R_wc @ c[0][:3, 1])[2])
-        if float(np.sqrt(np.mean(r ** 2))) > max_rms_px:
+        r_px = symbol_reprojection(camera, T, corners_S)[0] - uv
+        if float(np.sqrt(np.mean(r_px ** 2))) > max_rms_px:
             continue
         try:
-            cov_cam = covariance_from_jacobian(J, sig)[3:, 3:]
+            cov_cam = covariance_from_jacobian(J, 1.0)[3:, 3:]
         except EstimationError:
             continue
         p_cam = T[:3, 3].copy()

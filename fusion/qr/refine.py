@@ -108,6 +108,22 @@ class _Distortion:
         out = cv2.undistortPoints(uv, c.K, c.dist_cv, None, None, c.K, _UNDISTORT_CRITERIA)
         return out.reshape(-1, 2)
 
+    def distort_xy(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Undistorted -> distorted pixels, x and y as separate arrays (keeps their dtype)."""
+        if self.camera is None:
+            return x, y
+        c = self.camera
+        k1, k2, p1, p2 = (x.dtype.type(v) for v in c.distortion)
+        xn = (x - x.dtype.type(c.cu)) * x.dtype.type(1.0 / c.fu)
+        yn = (y - y.dtype.type(c.cv)) * y.dtype.type(1.0 / c.fv)
+        xy2 = xn * yn
+        x2, y2 = xn * xn, yn * yn
+        r2 = x2 + y2
+        radial = 1 + r2 * (k1 + k2 * r2)
+        xd = xn * radial + (2 * p1) * xy2 + p2 * (r2 + 2 * x2)
+        yd = yn * radial + p1 * (r2 + 2 * y2) + (2 * p2) * xy2
+        return xd * x.dtype.type(c.fu) + x.dtype.type(c.cu), yd * y.dtype.type(c.fv) + y.dtype.type(c.cv)
+
     def distort(self, uv: np.ndarray) -> np.ndarray:
         if self.camera is None:
             return uv
@@ -236,7 +252,7 @@ _MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)    # ... and 8 within 2 px of the e
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
 _MODEL_ITERATIONS = (0, 3, 1)   # Gauss-Newton iterations per pass (0: 50 % crossings only)
 STAGE2_PASSES = len(_MODEL_ITERATIONS)
-_WIDTH_GRID_PX = np.array([1.5, 3.0, 5.0, 8.0])  # start of the width search (pass 1)
+_WIDTH_GRID_PX = np.array([2.0, 4.5, 8.0])  # start of the width search (first model pass)
 _MODEL_MIN_WIDTH_PX = 0.5    # floor of the fitted motion-blur box width (px)
 _MODEL_PSF_PX = 1.5          # fixed second box (px): lens / pixel PSF and the bilinear sampling
 _MIN_GOOD_PROFILES = 10      # of 24 (averaged) per code
@@ -278,7 +294,7 @@ def _blurred_steps(x: np.ndarray, a: np.ndarray, b: np.ndarray, derivatives: boo
     distribution F (P, K, 4), and dF/dx, dF/da.  Closed form: with s1 = (a + b) / 2,
     s2 = |a - b| / 2 and z clipped to [-s1, s1] (F is 0 / 1 beyond),
     F = ((z + s1)^2 - max(z + s2, 0)^2 - max(z - s2, 0)^2) / (2 a b)  (a trapezoid's integral)."""
-    z = x[..., None] - _MODEL_STEPS
+    z = x[..., None] - _MODEL_STEPS.astype(x.dtype)
     a3, b3 = a[..., None], b[..., None]
     s1 = 0.5 * (a3 + b3)
     s2 = 0.5 * np.abs(a3 - b3)
@@ -296,8 +312,8 @@ def _blurred_steps(x: np.ndarray, a: np.ndarray, b: np.ndarray, derivatives: boo
     return F, dF_dx, dF_da
 
 
-_DARK = np.array([0.0, 1.0, -1.0, 1.0])     # D = F(0) - F(1) + F(2): the finder's dark modules
-_DATA = np.array([-1.0, 0.0, 0.0, 0.0])     # Dd = 1 - F(-1): the data beyond the separator
+_DARK = np.array([0.0, 1.0, -1.0, 1.0], np.float32)  # D = F(0) - F(1) + F(2): the dark modules
+_DATA = np.array([-1.0, 0.0, 0.0, 0.0], np.float32)  # Dd = 1 - F(-1): data beyond the separator
 
 
 def _levels(D, Dd, y, m):
@@ -313,7 +329,7 @@ def _levels(D, Dd, y, m):
     return lev[..., 0], r, A, Ninv
 
 
-_LEVEL_REG = np.diag([1e-9, 1e-9, 1e-6])      # the data level g is absent on boundary edges
+_LEVEL_REG = np.diag(np.float32([1e-6, 1e-6, 1e-4]))   # the data level g: absent on boundary edges
 
 
 def _inv(M: np.ndarray) -> np.ndarray:
@@ -372,10 +388,37 @@ class _ModelFit:
     width_px: np.ndarray
 
 
-def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.ndarray,
-                       pr: _Profiles, width0_px: np.ndarray | None, iterations: int) -> _ModelFit:
+def _sample_profiles(images: list[np.ndarray], image_rows: np.ndarray, dist: _Distortion,
+                     H: np.ndarray, uv: np.ndarray, step: np.ndarray, s: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Image values along profiles: row i samples images[image_rows[i]] at the module
+    coordinates uv[i] + s[i, k] step[i] mapped by H[i] (module -> undistorted px) and distorted.
+    Returns (y (R, K) float32, inside (R, K)).  float32 and separate x / y arrays: this runs
+    for every sample of every pass."""
+    H = H.astype(np.float32)
+    s = s.astype(np.float32)
+    u = uv[:, 0:1].astype(np.float32) + s * step[:, 0:1].astype(np.float32)
+    v = uv[:, 1:2].astype(np.float32) + s * step[:, 1:2].astype(np.float32)
+    w = H[:, 2, 0:1] * u + H[:, 2, 1:2] * v + H[:, 2, 2:3]
+    x = (H[:, 0, 0:1] * u + H[:, 0, 1:2] * v + H[:, 0, 2:3]) / w
+    y = (H[:, 1, 0:1] * u + H[:, 1, 1:2] * v + H[:, 1, 2:3]) / w
+    x, y = dist.distort_xy(x, y)
+    vals = np.empty(x.shape, np.float32)
+    inside = np.empty(x.shape, bool)
+    for i in (np.unique(image_rows) if len(images) > 1 else [0]):
+        rows = slice(None) if len(images) == 1 else image_rows == i
+        img = images[i]
+        xi, yi = x[rows], y[rows]
+        vals[rows] = cv2.remap(img, xi, yi, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        inside[rows] = (xi >= 0) & (yi >= 0) & (xi <= img.shape[1] - 1) & (yi <= img.shape[0] - 1)
+    return vals, inside
+
+
+def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
+                       Hs: np.ndarray, module_px: np.ndarray, pr: _Profiles,
+                       width0_px: np.ndarray | None, iterations: int) -> _ModelFit:
     """Fit the finder's known profile across each of the 12 finder edges of every code of a
-    batch (module docstring), all codes' profiles in one array.
+    batch (module docstring), all codes' profiles in one array; code c is in images[image_of[c]].
 
     Per profile i, image samples y(s) at s modules inwards from the edge H predicts (one remap
     for all profiles of all codes) are modelled as  y = W + C D(s - e_i; w) + g Dd(s - e_i; w)
@@ -405,17 +448,21 @@ def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.n
                                                      (C, _MODEL_UNIFORM)),
                                      _MODEL_DENSE_PX[None] / module_px[:, None]], axis=1), axis=1)
     s = s_code[pr.code]                                                       # (P, K)
-    rep = lambda a: np.repeat(a, _MODEL_GROUP, axis=0)                        # noqa: E731
-    pts = pr.uv_sampled[:, None, :] + rep(s)[..., None] * rep(pr.inward)[:, None, :]
-    y, inside = _sample(image, dist.distort(_apply_hs(rep(Hp), pts)))
     K = s.shape[1]
-    y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1, dtype=np.float64)
+    y, inside = _sample_profiles(images, np.repeat(image_of[pr.code], _MODEL_GROUP), dist,
+                                 np.repeat(Hp, _MODEL_GROUP, axis=0), pr.uv_sampled,
+                                 np.repeat(pr.inward, _MODEL_GROUP, axis=0),
+                                 np.repeat(s, _MODEL_GROUP, axis=0))
+    # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
+    y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
+    s = s.astype(np.float32)
     ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
-    m = np.where(pr.boundary[:, None], 1.0, (s >= _MODEL_INNER_LO).astype(float)) * ok[:, None]
-    inner = (~pr.boundary).astype(float)[:, None]
+    m = (np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]).astype(np.float32)
+    inner = (~pr.boundary).astype(np.float32)[:, None]
     lbl = 2 * pr.code + pr.axis                                               # width groups
     max_w = 4.0 * module_px + 2.0                                             # (C,)
-    psf = _MODEL_PSF_PX * g[:, None]
+    g32 = g.astype(np.float32)[:, None]
+    psf = np.float32(_MODEL_PSF_PX) * g32
     if width0_px is None:
         # e: the first crossing, from outside, of the level halfway between outside and darkest
         out_lvl = np.where(pr.boundary, y[:, 0], y[np.arange(P), np.argmin(np.abs(s + 0.5), axis=1)])
@@ -426,19 +473,19 @@ def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.n
         y0, y1 = y[np.arange(P), k - 1], y[np.arange(P), k]
         frac = np.clip((y0 - thr) / np.maximum(y0 - y1, 1e-6), 0.0, 1.0)
         e = s[np.arange(P), k - 1] + frac * (s[np.arange(P), k] - s[np.arange(P), k - 1])
-        e = np.where(below.any(axis=1), np.clip(e, -0.7, 0.7), 0.0)
+        e = np.where(below.any(axis=1), np.clip(e, -0.7, 0.7), 0.0).astype(np.float32)
         if iterations == 0:
             # a first look: the crossings alone (biased outwards by blur, but local, so free of
             # the decoder corners' scale errors that the model's later transitions would feel)
             good = ok & (out_lvl - dark > _MIN_CONTRAST) & below.any(axis=1) & (np.abs(e) < 0.7)
-            points = _apply_hs(Hp, pr.uv0 + e[:, None] * pr.inward)
+            points = _apply_hs(Hp, pr.uv0 + e[:, None].astype(np.float64) * pr.inward)
             return _ModelFit(points, good, np.full(P, 0.3), g, np.full((C, 2), np.nan))
         # widths: the best of a few, on every third profile
         sub = np.arange(P) % 3 == 0
         G = len(_WIDTH_GRID_PX)
         xs = np.tile((s - e[:, None])[sub], (G, 1))
-        gs = np.tile(g[sub], G)[:, None]
-        F = _blurred_steps(xs, np.repeat(_WIDTH_GRID_PX, sub.sum())[:, None] * gs,
+        gs = np.tile(g32[sub], (G, 1))
+        F = _blurred_steps(xs, np.repeat(_WIDTH_GRID_PX.astype(np.float32), sub.sum())[:, None] * gs,
                            np.tile(psf[sub], (G, 1)), derivatives=False)[0]
         _, r, _, _ = _levels(F @ _DARK, (1.0 + F @ _DATA) * np.tile(inner[sub], (G, 1)),
                              np.tile(y[sub], (G, 1)), np.tile(m[sub], (G, 1)))
@@ -447,17 +494,17 @@ def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.n
         width_px = _WIDTH_GRID_PX[np.argmin(cost, axis=0)].astype(float)
         width_px = np.minimum(width_px, np.repeat(max_w, 2))
     else:
-        e = np.zeros(P)
+        e = np.zeros(P, np.float32)
         width_px = np.clip(np.asarray(width0_px, dtype=float).reshape(-1), _MODEL_MIN_WIDTH_PX,
                            np.repeat(max_w, 2))
     for _ in range(iterations):
-        wmod = width_px[lbl][:, None] * g[:, None]
+        wmod = width_px[lbl].astype(np.float32)[:, None] * g32
         F, F_x, F_a = _blurred_steps(s - e[:, None], wmod, psf)
         D, Dd = F @ _DARK, (1.0 + F @ _DATA) * inner
         lev, r, A, Ninv = _levels(D, Dd, y, m)
         Cl, gam = lev[:, 1:2], lev[:, 2:3]
         Je = -(Cl * (F_x @ _DARK) + gam * (F_x @ _DATA) * inner) * m          # d model / d e
-        Jw = (Cl * (F_a @ _DARK) + gam * (F_a @ _DATA) * inner) * m * g[:, None]   # / d width_px
+        Jw = (Cl * (F_a @ _DARK) + gam * (F_a @ _DATA) * inner) * m * g32       # / d width_px
         # project out the levels (variable projection): J <- (I - A N^-1 A^T) J
         JJ = np.stack([Je, Jw], axis=-1)                                        # (P, K, 2)
         JJt = JJ.transpose(0, 2, 1)
@@ -469,12 +516,13 @@ def _model_edge_points(image, dist: _Distortion, Hs: np.ndarray, module_px: np.n
         S = np.bincount(lbl, c - b * b / a, 2 * C) + 1e-6
         dw = -np.bincount(lbl, gw - b * ge / a, 2 * C) / S
         de = -(ge + b * dw[lbl]) / a
-        e = e + np.clip(de, -0.35, 0.35)
+        e = e + np.clip(de, -0.35, 0.35).astype(np.float32)
         width_px = np.clip(width_px + np.clip(dw, -1.5, 1.5), _MODEL_MIN_WIDTH_PX, np.repeat(max_w, 2))
     dof = np.maximum(m.sum(axis=1) - 5.0, 1.0)
     rms = np.sqrt(np.sum(r * r, axis=1) / dof)
     contrast = -lev[:, 1]
-    sigma_e = rms / np.sqrt(np.maximum(a, 1e-12)) / g                     # px
+    e = e.astype(np.float64)
+    sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12))).astype(np.float64) / g   # px
     good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e) \
         & (sigma_e > 0)
     # per code: drop profiles whose residual is far above the code's median (occlusion, glare)
@@ -592,15 +640,17 @@ class RefineResult:
     corner_cov_px2: np.ndarray | None = None
 
 
-# corner covariance model, fitted (maximum likelihood) by `scripts/bench_detect.py --calibrate` on
-# rendered codes (seeded; 0.3 m codes at 0.8-2.5 m, 3-9 px per module, blur 0-8 px, noise
-# 0.5-4 DN):  Sigma = K^2 Sigma_stat + A^2 I_8, with Sigma_stat the edge-point noise (each
-# profile's residual RMS / sqrt of its Gauss-Newton information) propagated through the homography
-# fit.  Fitted K = 1.02, A = 0.0035 px; the blur-dependent terms of the fit came out zero (the
-# blurred-model fit leaves no blur bias to cover).  Out of sample (400 renders) the 8-D corner
-# NEES is 8.6 (ideal 8), 8.0-10.0 in each 2 px blur bin.
+# corner covariance model, fitted by `scripts/bench_detect.py --calibrate` on rendered codes
+# (seeded; 0.3 m codes at 0.8-2.5 m, 3-9 px per module, blur 0-8 px, noise 0.5-4 DN):
+#     Sigma = K^2 Sigma_stat + A^2 I_8,
+# Sigma_stat the edge-point noise (each profile's residual RMS over the square root of its
+# Gauss-Newton information) propagated through the homography fit.  Maximum likelihood gives
+# K = 1.02, A = 0.0035 px (blur-dependent terms came out zero: the blurred-model fit leaves no blur
+# bias to cover).  The errors are heavier-tailed than Gaussian (a few codes 0.05-0.15 px off with
+# sigma 0.02 px), so A is raised to 0.005 px to keep the MEAN pose NEES of PnP honest on rendered
+# frames (tests/test_pnp.py, `rendered_nees`): 8-D corner NEES out of sample 7.3 (median 5.2).
 _COV_K = 1.05
-_COV_A_PX = 0.004
+_COV_A_PX = 0.005
 STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
 
 
@@ -609,7 +659,7 @@ def calibrated_cov(cov_stat_px2: np.ndarray, k: float | None = None, a: float | 
     """(8, 8) corner covariance (px^2) from the propagated one (model above)."""
     k = _COV_K if k is None else k
     a = _COV_A_PX if a is None else a
-    cov = k * k * np.asarray(cov_stat_px2) + a * a * np.eye(8)
+    cov = k * k * np.asarray(cov_stat_px2) + a * a * np.eye(8)     # (..., 8, 8)
     return 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
@@ -667,10 +717,12 @@ def _stage1(image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: i
     return corners_u
 
 
-def _stage2(image, dist: _Distortion, starts_u: list[np.ndarray], ns: list[float]
+def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
+            starts_u: list[np.ndarray], ns: list[float]
             ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
-    """Stage 2 for a batch of codes from their (4, 2) undistorted starting corners: per code
-    (corners_u (4, 2), cov_stat (8, 8) undistorted px^2, width_px (2,)) or None."""
+    """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
+    undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
+    width_px (2,)) or None."""
     C = len(ns)
     pr = _profiles(ns)
     nsa = np.asarray(ns, dtype=float)
@@ -682,7 +734,7 @@ def _stage2(image, dist: _Distortion, starts_u: list[np.ndarray], ns: list[float
     width = None
     alive = np.ones(C, dtype=bool)
     for pass_, iterations in enumerate(_MODEL_ITERATIONS):
-        fit = _model_edge_points(image, dist, Hs, module_px, pr, width, iterations)
+        fit = _model_edge_points(images, image_of, dist, Hs, module_px, pr, width, iterations)
         H, corners, cov, ok = _fit_homographies(fit, pr, nsa)
         move = np.max(np.linalg.norm(corners - prev, axis=2), axis=1)
         wmax = np.nan_to_num(np.max(fit.width_px, axis=1))
@@ -706,51 +758,66 @@ def _stage2(image, dist: _Distortion, starts_u: list[np.ndarray], ns: list[float
     return out
 
 
-def refine_codes(image: np.ndarray, codes: list[tuple[np.ndarray, int | None]],
-                 camera: CameraModel | None = None, iterations: int = 1,
-                 finder_homography: bool = True) -> list[RefineResult | None]:
-    """Refined corners of every code of one image, or None per code where the finder edges
-    cannot be measured.  `codes`: (decoder corners (4, 2) TL, TR, BR, BL, modules per side or
-    None).  Stage 2 (`finder_homography`) runs for all codes at once, from the decoder's corners;
-    a code it fails on, or every code without it, gets `iterations` passes of stage 1."""
-    if image.ndim != 2 or image.dtype != np.uint8:
-        raise ValueError("refine_corners expects a (H, W) uint8 image")
+def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, int | None]]],
+                  camera: CameraModel | None = None, iterations: int = 1,
+                  finder_homography: bool = True) -> list[list[RefineResult | None]]:
+    """Refined corners of every code of several images of one camera: codes[i] lists image i's
+    (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
+    RefineResult or None (finder edges not measurable) per code.  Stage 2
+    (`finder_homography`) runs for all codes of all images at once, from the decoder's corners
+    (the array work is shared, only the sampling is per image: batching frames is what makes it
+    fast); a code it fails on, or every code without it, gets `iterations` passes of stage 1."""
+    if len(images) != len(codes):
+        raise ValueError("refine_frames: one list of codes per image")
+    for image in images:
+        if image.ndim != 2 or image.dtype != np.uint8:
+            raise ValueError("refine_corners expects (H, W) uint8 images")
     dist = _Distortion(camera)
-    results: list[RefineResult | None] = [None] * len(codes)
-    todo, raws, ns = [], [], []
-    for i, (corners_raw_px, modules) in enumerate(codes):
-        corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
-        if not np.all(np.isfinite(corners)):
-            continue
-        if modules is None:
-            modules = estimate_modules(image, corners, camera)
-            if modules is None:
+    results: list[list[RefineResult | None]] = [[None] * len(c) for c in codes]
+    todo, raws, ns = [], [], []          # todo: (image, code) of each code refined
+    for i, (image, image_codes) in enumerate(zip(images, codes)):
+        for k, (corners_raw_px, modules) in enumerate(image_codes):
+            corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
+            if not np.all(np.isfinite(corners)):
                 continue
-        todo.append(i)
-        raws.append(corners)
-        ns.append(float(modules))
+            if modules is None:
+                modules = estimate_modules(image, corners, camera)
+                if modules is None:
+                    continue
+            todo.append((i, k))
+            raws.append(corners)
+            ns.append(float(modules))
     if not todo:
         return results
     raw_u = dist.undistort(np.concatenate(raws)).reshape(-1, 4, 2)
-    stage2 = _stage2(image, dist, list(raw_u), ns) if finder_homography else [None] * len(todo)
+    image_of = np.array([i for i, _ in todo])
+    stage2 = _stage2(images, image_of, dist, list(raw_u), ns) if finder_homography \
+        else [None] * len(todo)
     done = [j for j, s in enumerate(stage2) if s is not None]
     if done:
         cu = np.stack([stage2[j][0] for j in done])
         cov_u = np.stack([stage2[j][1] for j in done])
         cd = dist.distort(cu)
-        cov_d = _distort_cov(dist, cu, cov_u)
+        cov_d = calibrated_cov(_distort_cov(dist, cu, cov_u))
+        sig = np.sqrt(np.mean(np.diagonal(cov_d, axis1=1, axis2=2), axis=1))
         for k, j in enumerate(done):
-            cov = calibrated_cov(cov_d[k])
-            results[todo[j]] = RefineResult(cd[k], float(np.sqrt(np.mean(np.diag(cov)))),
-                                            stage2[j][2], 2, cov)
-    for j, i in enumerate(todo):
+            i, c = todo[j]
+            results[i][c] = RefineResult(cd[k], float(sig[k]), stage2[j][2], 2, cov_d[k])
+    for j, (i, c) in enumerate(todo):
         if stage2[j] is not None:
             continue
-        c = _stage1(image, dist, raw_u[j], ns[j], iterations, finder_homography)
-        if c is not None:
-            results[i] = RefineResult(dist.distort(c), STAGE1_SIGMA_PX, np.full(2, np.nan), 1,
-                                      STAGE1_SIGMA_PX ** 2 * np.eye(8))
+        corners_u = _stage1(images[i], dist, raw_u[j], ns[j], iterations, finder_homography)
+        if corners_u is not None:
+            results[i][c] = RefineResult(dist.distort(corners_u), STAGE1_SIGMA_PX,
+                                         np.full(2, np.nan), 1, STAGE1_SIGMA_PX ** 2 * np.eye(8))
     return results
+
+
+def refine_codes(image: np.ndarray, codes: list[tuple[np.ndarray, int | None]],
+                 camera: CameraModel | None = None, iterations: int = 1,
+                 finder_homography: bool = True) -> list[RefineResult | None]:
+    """Refined corners of every code of one image (`refine_frames` with one image)."""
+    return refine_frames([image], [codes], camera, iterations, finder_homography)[0]
 
 
 def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
