@@ -3,19 +3,29 @@
 For 640x480 and 1280x720 frames rendered by fusion.sim.render (floor codes on a grid, a down-looking
 camera at random height / yaw / tilt, sensor noise and motion blur, radial-tangential distortion),
 measures per frame on one core: PNG decoding (cv2.imread from disk), detection (zxing-cpp with
-fusion's options, and OpenCV's QRCodeDetectorAruco), corner refinement, and OpenCV's
-QRCodeDetector().detectAndDecodeMulti for comparison; corner errors (raw decoder corners vs
-refined) against the projected ground truth; decode rate over the codes fully in view.
+fusion's options, and OpenCV's QRCodeDetectorAruco), corner refinement (all codes of a frame in one
+`refine_codes` call), and OpenCV's QRCodeDetector().detectAndDecodeMulti for comparison; corner
+errors (raw decoder corners vs refined) against the projected ground truth; decode rate over the
+codes fully in view.  Then: the motion-blur sweep (one 0.2 m code at 0.9-1.5 m, 0/2/4/6/8 px blur:
+mean corner error and mean outward bias), and the uncertainty check (8-D corner NEES of the
+(8, 8) corner covariance on renders the calibration did not see, and the full-pose NEES of PnP on
+refined corners of rendered frames, tests/test_pnp.py's `rendered_nees`, with the (8, 8)
+covariances vs one sigma per code).
 
-    /work/venv/bin/python scripts/bench_detect.py [--frames 60] [--seed 0]
+    /work/venv/bin/python scripts/bench_detect.py [--frames 60] [--seed 0] [--calibrate]
+
+`--calibrate` refits fusion.qr.refine's corner covariance model (K, A: maximum likelihood over
+seeded renders, 0.3 m codes at 0.8-2.5 m, blur 0-8 px, noise 0.5-4 DN) and prints it.
 
 Times are best-of-3 CPU times of this process (time.process_time), i.e. per-core cost even when
-other jobs share the machine.  Prints a Markdown table.  Targets: detection + refinement >= 300 frames/s per core at 640x480 and
->= 150 at 1280x720 (PNG decoding counted separately).
+other jobs share the machine.  Refinement is timed one frame at a time and, as detect_flight runs
+it, REFINE_BATCH_FRAMES frames at once (the frames/s column uses the latter).  Prints Markdown tables.  Targets: detection + refinement >= 300
+frames/s per core at 640x480 and >= 150 at 1280x720 (PNG decoding counted separately).
 """
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,9 +37,13 @@ from scipy.spatial.transform import Rotation
 from fusion.camera import CameraModel
 from fusion.conventions import make_T
 from fusion.qr.detect import detect_image
-from fusion.qr.refine import refine_corners_or_none
-from fusion.sim.render import (QUIET_ZONE_MODULES, RenderEffects, placed_floor_codes,
+from fusion.qr import refine as refine_mod
+from fusion.qr.detect import REFINE_BATCH_FRAMES
+from fusion.qr.refine import refine_codes, refine_frames
+from fusion.sim.render import (QUIET_ZONE_MODULES, PlacedCode, RenderEffects, placed_floor_codes,
                                project_code_corners, render_view)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 R_DOWN = np.diag([1.0, -1.0, -1.0])
 # (row label, backend, refinement stage 2 = homography on all finder edges)
@@ -94,12 +108,17 @@ def bench(width: int, height: int, n: int, seed: int, repeats: int = 3) -> dict:
         reps = repeats if backend == "zxing" else 1
         t_det = best_of(lambda: [detect_image(img, backend) for img in frames], reps) / n
 
-        def refine_all():
-            return [[refine_corners_or_none(img, r.corners_px, r.modules, camera,
-                                            finder_homography=finder_h) for r in rs]
-                    for img, rs in zip(frames, raws)]
+        def refine_all(batch=REFINE_BATCH_FRAMES):
+            out = []
+            for s in range(0, n, batch):
+                res = refine_frames(frames[s:s + batch],
+                                    [[(r.corners_px, r.modules) for r in rs] for rs in raws[s:s + batch]],
+                                    camera, finder_homography=finder_h)
+                out += [[None if x is None else x.corners_px for x in frame] for frame in res]
+            return out
         refined = refine_all()
         t_ref = best_of(refine_all, reps) / n
+        t_ref1 = best_of(lambda: refine_all(1), reps) / n
         e_raw, e_ref, found, failed = [], [], 0, 0
         for truth, rs, refs in zip(truths, raws, refined):
             for r, c in zip(rs, refs):
@@ -112,7 +131,7 @@ def bench(width: int, height: int, n: int, seed: int, repeats: int = 3) -> dict:
                 else:
                     e_ref.append(np.linalg.norm(c - truth[r.payload], axis=1))
         e_raw, e_ref = np.concatenate(e_raw), np.concatenate(e_ref)
-        out[key] = {"det_ms": 1e3 * t_det, "ref_ms": 1e3 * t_ref,
+        out[key] = {"det_ms": 1e3 * t_det, "ref_ms": 1e3 * t_ref, "ref1_ms": 1e3 * t_ref1,
                     "fps": 1.0 / (t_det + t_ref), "codes": found,
                     "decode_rate": found / max(1, sum(len(t) for t in truths)),
                     "raw_mean": e_raw.mean(), "raw_max": e_raw.max(),
@@ -134,23 +153,137 @@ def bench(width: int, height: int, n: int, seed: int, repeats: int = 3) -> dict:
     return out
 
 
+_TEST_CAMERA = CameraModel(640, 480, 520.0, 518.0, 322.0, 237.0,
+                           distortion=np.array([-0.05, 0.012, 4e-4, -3e-4]))
+
+
+def _down_pose(rng, height: float, tilt_sigma: float) -> np.ndarray:
+    tilt = rng.normal(0.0, tilt_sigma, 2)
+    R = Rotation.from_euler("zxy", [rng.uniform(-np.pi, np.pi), *tilt]).as_matrix() @ R_DOWN
+    return make_T(R, [rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), height])
+
+
+def blur_sweep(blurs=(0, 2, 4, 6, 8), n_per_blur: int = 20, seed: int = 11) -> list[dict]:
+    """Mean corner error and mean outward bias (px) per motion-blur length: one 0.2 m code at
+    0.9-1.5 m (3.3-5.5 px per module), noise 2 DN, decoder corners simulated (truth + 0.7 px
+    noise, rounded) so that blur the decoder cannot read still tests the refinement."""
+    rng = np.random.default_rng(seed)
+    code = PlacedCode("0/2/5", np.eye(4), 0.2)
+    rows = []
+    for blur in blurs:
+        err, out, failed = [], [], 0
+        for _ in range(n_per_blur):
+            T = _down_pose(rng, rng.uniform(0.9, 1.5), 0.05)
+            img = render_view(_TEST_CAMERA, T, [code], rng,
+                              RenderEffects(noise_sigma_dn=2.0, blur_px=float(blur),
+                                            blur_angle_rad=rng.uniform(0.0, np.pi)))
+            truth = project_code_corners(_TEST_CAMERA, T, code)
+            raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
+            [res] = refine_codes(img, [(raw, code.modules)], _TEST_CAMERA)
+            if res is None:
+                failed += 1
+                continue
+            centre = truth.mean(axis=0)
+            radial = (truth - centre) / np.linalg.norm(truth - centre, axis=1, keepdims=True)
+            err.append(np.linalg.norm(res.corners_px - truth, axis=1))
+            out.append(np.sum((res.corners_px - truth) * radial, axis=1))
+        rows.append({"blur": blur, "err": float(np.mean(err)), "max": float(np.max(err)),
+                     "outward": float(np.mean(out)), "failed": failed, "n": n_per_blur})
+    return rows
+
+
+def calibration_renders(n: int, seed: int) -> list[tuple]:
+    """(corner error (8,), propagated covariance Sigma_stat (8, 8), blur px) of one 0.3 m code at
+    0.8-2.5 m (3-9 px per module), blur 0-8 px, noise 0.5-4 DN; codes stage 2 failed on skipped."""
+    rng = np.random.default_rng(seed)
+    saved = refine_mod._COV_K, refine_mod._COV_A_PX
+    refine_mod._COV_K, refine_mod._COV_A_PX = 1.0, 0.0        # -> corner_cov_px2 = Sigma_stat
+    out = []
+    try:
+        for i in range(n):
+            code = PlacedCode(["0/2/5", "1/" + "x" * 20][i % 2], np.eye(4), 0.3)
+            T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.08)
+            blur = rng.uniform(0.0, 8.0)
+            img = render_view(_TEST_CAMERA, T, [code], rng,
+                              RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
+                                            blur_angle_rad=rng.uniform(0.0, np.pi)))
+            truth = project_code_corners(_TEST_CAMERA, T, code)
+            raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
+            [res] = refine_codes(img, [(raw, code.modules)], _TEST_CAMERA)
+            if res is not None and res.stage == 2:
+                out.append(((res.corners_px - truth).reshape(-1), res.corner_cov_px2, blur))
+    finally:
+        refine_mod._COV_K, refine_mod._COV_A_PX = saved
+    return out
+
+
+def corner_nees(data, k: float | None = None, a: float | None = None) -> np.ndarray:
+    """(N, 2): 8-D NEES of each sample under the calibrated covariance, and its blur."""
+    return np.array([(e @ np.linalg.solve(refine_mod.calibrated_cov(S, k, a), e), b)
+                     for e, S, b in data])
+
+
+def calibrate(n: int = 300, seed: int = 7) -> tuple[float, float]:
+    """Maximum-likelihood K, A of fusion.qr.refine's corner covariance model."""
+    from scipy.optimize import minimize
+    data = calibration_renders(n, seed)
+
+    def nll(x):
+        k, a = np.abs(x)
+        tot = 0.0
+        for e, S, _ in data:
+            L = np.linalg.cholesky(refine_mod.calibrated_cov(S, k, a))
+            z = np.linalg.solve(L, e)
+            tot += z @ z + 2.0 * np.sum(np.log(np.diag(L)))
+        return tot
+    fit = minimize(nll, [1.0, 0.01], method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-4})
+    k, a = (float(v) for v in np.abs(fit.x))
+    print(f"calibration on {len(data)} renders (seed {seed}): K = {k:.3f}, A = {a:.4f} px "
+          f"(in use: K = {refine_mod._COV_K}, A = {refine_mod._COV_A_PX})")
+    return k, a
+
+
+def uncertainty_rows(n_corner: int, n_frames: int) -> None:
+    val = calibration_renders(n_corner, 99)
+    v = corner_nees(val)
+    print(f"| 8-D corner NEES (ideal 8), {len(v)} renders of one 0.3 m code, 0.8-2.5 m "
+          f"| mean {v[:, 0].mean():.2f}, median {np.median(v[:, 0]):.2f} (chi2(8) median 7.34) |")
+    for lo in (0, 2, 4, 6):
+        sel = (v[:, 1] >= lo) & (v[:, 1] < lo + 2)
+        print(f"| ... blur {lo}-{lo + 2} px | mean {v[sel, 0].mean():.2f} ({sel.sum()} codes) |")
+    from test_pnp import rendered_nees
+    for use_cov, label in ((True, "(8, 8) corner covariance per code"),
+                           (False, "one sigma per code (sqrt of the mean diagonal)")):
+        r = rendered_nees(n_frames, 31, use_cov)
+        print(f"| PnP NEES, {label}, {n_frames} rendered frames | single code (ideal 6): "
+              f"{np.mean(r['single']):.2f} (median {np.median(r['single']):.2f}, n {len(r['single'])}); "
+              f"several codes (ideal 6): {np.mean(r['multi']):.2f} (median {np.median(r['multi']):.2f}, "
+              f"n {len(r['multi'])}); load centre (ideal 3): {np.mean(r['load']):.2f} "
+              f"(median {np.median(r['load']):.2f}, n {len(r['load'])}) |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--calibrate", action="store_true")
     args = ap.parse_args()
     cv2.setNumThreads(1)      # per-core figures
+    if args.calibrate:
+        calibrate()
     rows = [bench(640, 480, args.frames, args.seed), bench(1280, 720, args.frames, args.seed + 1)]
     target = {"640x480": 300.0, "1280x720": 150.0}
     print("| resolution | backend / refinement | codes in view / frame | PNG read ms "
-          "| detect ms | refine ms | detect+refine frames/s/core (target) | decode rate "
+          f"| detect ms | refine ms (1 frame / {REFINE_BATCH_FRAMES} frames at once) "
+          "| detect+refine frames/s/core (target) | decode rate "
           "| raw corner err mean / max px | refined mean / p95 / max px | refine failed |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         for key, _, _ in VARIANTS:
             b = r[key]
             print(f"| {r['res']} | {key} | {r['codes_in_view']:.2f} | {r['png_ms']:.2f} "
-                  f"| {b['det_ms']:.2f} | {b['ref_ms']:.2f} | {b['fps']:.0f} ({target[r['res']]:.0f}) "
+                  f"| {b['det_ms']:.2f} | {b['ref1_ms']:.2f} / {b['ref_ms']:.2f} "
+                  f"| {b['fps']:.0f} ({target[r['res']]:.0f}) "
                   f"| {100 * b['decode_rate']:.0f} % | {b['raw_mean']:.3f} / {b['raw_max']:.2f} "
                   f"| {b['ref_mean']:.3f} / {b['ref_p95']:.3f} / {b['ref_max']:.2f} "
                   f"| {b['ref_failed']} / {b['codes']} |")
@@ -164,6 +297,16 @@ def main() -> None:
         print(f"- {r['res']}: zxing detection is {o['det_ms'] / z['det_ms']:.1f}x faster than "
               f"cv2.QRCodeDetector; detection + refinement {z['fps']:.0f} frames/s/core vs target "
               f"{target[r['res']]:.0f} ({z['fps'] / target[r['res']] - 1:+.0%}).")
+    print()
+    print("| motion blur px | mean corner error px | max px | mean outward bias px | refine failed |")
+    print("|--:|--:|--:|--:|--:|")
+    for b in blur_sweep():
+        print(f"| {b['blur']} | {b['err']:.3f} | {b['max']:.3f} | {b['outward']:+.3f} "
+              f"| {b['failed']} / {b['n']} |")
+    print()
+    print("| uncertainty check | value |")
+    print("|---|---|")
+    uncertainty_rows(300, 100)
 
 
 if __name__ == "__main__":

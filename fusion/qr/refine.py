@@ -251,6 +251,7 @@ _MODEL_UNIFORM = 11                             # samples spread evenly over the
 _MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)    # ... and 8 within 2 px of the edge
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
 _MODEL_ITERATIONS = (0, 3, 1)   # Gauss-Newton iterations per pass (0: 50 % crossings only)
+_MODEL_STEP_CLIP = (0.35, 0.1)  # largest edge step per iteration (modules): first / later passes
 STAGE2_PASSES = len(_MODEL_ITERATIONS)
 _WIDTH_GRID_PX = np.array([2.0, 4.5, 8.0])  # start of the width search (first model pass)
 _MODEL_MIN_WIDTH_PX = 0.5    # floor of the fitted motion-blur box width (px)
@@ -416,7 +417,8 @@ def _sample_profiles(images: list[np.ndarray], image_rows: np.ndarray, dist: _Di
 
 def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
                        Hs: np.ndarray, module_px: np.ndarray, pr: _Profiles,
-                       width0_px: np.ndarray | None, iterations: int) -> _ModelFit:
+                       width0_px: np.ndarray | None, iterations: int,
+                       step_clip: float = _MODEL_STEP_CLIP[0]) -> _ModelFit:
     """Fit the finder's known profile across each of the 12 finder edges of every code of a
     batch (module docstring), all codes' profiles in one array; code c is in images[image_of[c]].
 
@@ -516,7 +518,7 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
         S = np.bincount(lbl, c - b * b / a, 2 * C) + 1e-6
         dw = -np.bincount(lbl, gw - b * ge / a, 2 * C) / S
         de = -(ge + b * dw[lbl]) / a
-        e = e + np.clip(de, -0.35, 0.35).astype(np.float32)
+        e = e + np.clip(de, -step_clip, step_clip).astype(np.float32)
         width_px = np.clip(width_px + np.clip(dw, -1.5, 1.5), _MODEL_MIN_WIDTH_PX, np.repeat(max_w, 2))
     dof = np.maximum(m.sum(axis=1) - 5.0, 1.0)
     rms = np.sqrt(np.sum(r * r, axis=1) / dof)
@@ -730,27 +732,35 @@ def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
     prev = np.stack(starts_u)
     module_px = np.array([np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))
                           for c in starts_u]) / nsa
+    raw = prev
     out: list = [None] * C
     width = None
     alive = np.ones(C, dtype=bool)
+    model_passes = 0
     for pass_, iterations in enumerate(_MODEL_ITERATIONS):
-        fit = _model_edge_points(images, image_of, dist, Hs, module_px, pr, width, iterations)
+        fit = _model_edge_points(images, image_of, dist, Hs, module_px, pr, width, iterations,
+                                 _MODEL_STEP_CLIP[min(model_passes, 1)])
         H, corners, cov, ok = _fit_homographies(fit, pr, nsa)
-        move = np.max(np.linalg.norm(corners - prev, axis=2), axis=1)
         wmax = np.nan_to_num(np.max(fit.width_px, axis=1))
-        if pass_ == 0:
-            # from the decoder's corners: a corner that moved by more than 1.5 modules (or 4 px)
-            tol = np.maximum(4.0, 1.5 * module_px) + 0.5 * wmax
+        if iterations == 0 or model_passes == 0:
+            # against the decoder's corners: no corner moves by more than 1.5 modules (or 4 px),
+            # plus half the blur (50 % crossings move outwards by up to that)
+            move = np.max(np.linalg.norm(corners - raw, axis=2), axis=1)
+            ok &= move < np.maximum(4.0, 1.5 * module_px) + 0.5 * wmax
         else:
-            # the crossings (first pass) move outwards by up to ~half the blur width
-            tol = np.maximum(1.0, 0.3 * module_px) + 0.5 * wmax
-        # a code that fails a pass keeps the previous pass's result (if a model pass)
-        alive &= ok & (move < tol)
-        if iterations > 0:
-            for ci in np.nonzero(alive)[0]:
-                out[ci] = (corners[ci], cov[ci], fit.width_px[ci])
-            width = fit.width_px if width is None else \
-                np.where(alive[:, None], fit.width_px, width)
+            move = np.max(np.linalg.norm(corners - prev, axis=2), axis=1)
+            ok &= move < np.maximum(1.0, 0.3 * module_px) + 0.5 * wmax
+        if iterations == 0:
+            # the crossings only lay out the next pass: where they fail (heavy blur), the
+            # decoder's corners do
+            Hs = np.where(ok[:, None, None], H, Hs)
+            continue
+        # a code that fails a model pass keeps the previous model pass's result
+        alive &= ok
+        model_passes += 1
+        for ci in np.nonzero(alive)[0]:
+            out[ci] = (corners[ci], cov[ci], fit.width_px[ci])
+        width = fit.width_px if width is None else np.where(alive[:, None], fit.width_px, width)
         Hs = np.where(alive[:, None, None], H, Hs)
         prev = np.where(alive[:, None, None], corners, prev)
         module_px = np.where(alive, np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=1),
