@@ -34,13 +34,15 @@ __all__ = ["chain_marginals"]
 
 
 def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: bool, n_loads: int,
-                    work_mb: float = 64.0) -> tuple[np.ndarray, np.ndarray] | None:
+                    work_mb: float = 128.0, group: int = 1
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """Marginal covariances of X(0..n_frames-1) ((N, 6, 6), Pose3 order, body frame) and of
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
     unconstrained Gaussian factors on X/V/B of one or two consecutive frames and at most one L.
     Returns None when the graph does not have that structure (the caller then falls back to
     gtsam).  `work_mb` bounds the dense frame-by-load work array (loads are processed in column
-    chunks that fit)."""
+    chunks that fit); `group` frames form one block of the recursions (same result, fewer
+    Python-level steps)."""
     slot = {_X: (0, 6), _V: (6, 3)}
     if has_bias:
         slot[_B] = (9, 6)
@@ -86,77 +88,121 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
                         np.add.at(target, (k[:, None, None], np.arange(sa, sa + da)[None, :, None],
                                            np.arange(sb, sb + db)[None, None, :]), blk)
 
-    groups: dict[tuple, list] = {}
-    batch = 2048                                 # factors per Hessian batch (bounds memory)
+    keys_of, jac_of = [], []
     for i in range(lin.size()):
         f = lin.at(i)
         if f is None:
             continue
         if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
             return None
-        keys = f.keys()
-        chrs = [key >> _CHR_SHIFT for key in keys]
-        idxs = [key & _IDX_MASK for key in keys]
-        frames = [ix for c, ix in zip(chrs, idxs) if c != _L]
-        base = min(frames) if frames else 0
-        n_l = chrs.count(_L)
-        if (frames and max(frames) - base > 1) or n_l > 1 \
-                or any(c not in slot and c != _L for c in chrs):
-            return None
-        lidx = idxs[chrs.index(_L)] if n_l else -1
-        sig = tuple((c, 0 if c == _L else ix - base) for c, ix in zip(chrs, idxs))
-        A = f.jacobian()[0]                      # whitened (robust weights included)
-        items = groups.setdefault((sig, A.shape[0]), [])
-        items.append((base, lidx, A))
-        if len(items) == batch:
-            flush(sig, items)
-            items.clear()
-    for (sig, _), items in groups.items():
-        if items:
-            flush(sig, items)
-    del groups
+        keys_of.append(f.keys())
+        jac_of.append(f.jacobian()[0])           # whitened (robust weights included)
+    if not keys_of:
+        return None
+    # key signatures, vectorised: (chr, frame offset from the factor's first frame) per key
+    lens = np.array([len(k) for k in keys_of])
+    if lens.min() < 1 or lens.max() > 8:
+        return None
+    flat = np.array([key for k in keys_of for key in k], dtype=np.uint64)
+    chrs = (flat >> np.uint64(_CHR_SHIFT)).astype(np.int64)
+    idxs = (flat & np.uint64(_IDX_MASK)).astype(np.int64)
+    is_l = chrs == _L
+    if not np.all(is_l | np.isin(chrs, list(slot))):
+        return None
+    starts = np.r_[0, np.cumsum(lens)[:-1]]
+    big = np.iinfo(np.int64).max
+    base = np.minimum.reduceat(np.where(is_l, big, idxs), starts)
+    top = np.maximum.reduceat(np.where(is_l, -1, idxs), starts)
+    n_l = np.add.reduceat(is_l.astype(np.int64), starts)
+    no_frame = base == big
+    base = np.where(no_frame, 0, base)
+    if np.any(n_l > 1) or np.any(~no_frame & (top - base > 1)):
+        return None
+    lidx = np.full(len(lens), -1)
+    lidx[np.repeat(np.arange(len(lens)), lens)[is_l]] = idxs[is_l]
+    rel = np.where(is_l, 0, idxs - np.repeat(base, lens))
+    code = np.full((len(lens), 9), -1, dtype=np.int64)
+    pos = np.arange(len(flat)) - np.repeat(starts, lens)
+    code[np.repeat(np.arange(len(lens)), lens), pos] = chrs * 2 + rel
+    code[:, 8] = [a.shape[0] for a in jac_of]
+    sigs, group_of = np.unique(code, axis=0, return_inverse=True)
+    order = np.argsort(group_of.ravel(), kind="stable")
+    bounds = np.searchsorted(group_of.ravel()[order], np.arange(len(sigs) + 1))
+    batch = 2048                                 # factors per Hessian batch (bounds memory)
+    for gi, row in enumerate(sigs):
+        sig = tuple((int(c) // 2, int(c) % 2) for c in row[:8] if c >= 0)
+        members = order[bounds[gi]:bounds[gi + 1]]
+        for b0 in range(0, len(members), batch):
+            part = members[b0:b0 + batch]
+            flush(sig, [(int(base[i]), int(lidx[i]), jac_of[i]) for i in part])
+    del keys_of, jac_of
+    # ---- group `group` consecutive frames per block (fewer, larger numpy steps; the matrix
+    # stays block tridiagonal), padding with decoupled identity frames
+    g = max(1, int(group))
+    ng = -(-n // g)
+    S = g * s
+    Dp = np.zeros((ng * g, s, s))
+    Dp[:n] = D
+    Dp[n:] = np.eye(s)
+    Ep = np.zeros((ng * g, s, s))
+    Ep[:n - 1] = E
+    del D, E
+    Dg = np.zeros((ng, S, S))
+    for i in range(g):
+        Dg[:, i * s:(i + 1) * s, i * s:(i + 1) * s] = Dp[i::g]
+        if i < g - 1:
+            Dg[:, i * s:(i + 1) * s, (i + 1) * s:(i + 2) * s] = Ep[i::g]
+            Dg[:, (i + 1) * s:(i + 2) * s, i * s:(i + 1) * s] = Ep[i::g].transpose(0, 2, 1)
+    Eg = np.zeros((max(ng - 1, 0), S, S))
+    Eg[:, (g - 1) * s:, :s] = Ep[g - 1::g][:ng - 1]
+    del Dp, Ep
+    xrows = (np.arange(g)[:, None] * s + np.arange(6)[None, :]).ravel()    # pose rows in a block
     # ---- block LDL^T of A, forward
-    Pinv = np.empty((n, s, s))
-    G = np.empty((n, s, s))                      # G[k] = P_{k-1}^-1 E_{k-1}, k >= 1
+    Pinv = np.empty((ng, S, S))
+    G = np.empty((ng, S, S))                     # G[b] = P_{b-1}^-1 E_{b-1}, b >= 1
     inv = np.linalg.inv
-    Pinv[0] = inv(D[0])
-    for k in range(1, n):
-        G[k] = Pinv[k - 1] @ E[k - 1]
-        Pinv[k] = inv(D[k] - E[k - 1].T @ G[k])
+    Pinv[0] = inv(Dg[0])
+    for b in range(1, ng):
+        G[b] = Pinv[b - 1] @ Eg[b - 1]
+        Pinv[b] = inv(Dg[b] - Eg[b - 1].T @ G[b])
+    del Dg, Eg
     # ---- diagonal blocks of A^-1, backward
-    cov = np.empty((n, 6, 6))
-    Sk = Pinv[n - 1]
-    cov[n - 1] = Sk[:6, :6]
-    for k in range(n - 2, -1, -1):
-        Gk = G[k + 1]
-        Sk = Pinv[k] + Gk @ Sk @ Gk.T
-        cov[k] = Sk[:6, :6]
+    cov = np.empty((ng * g, 6, 6))
+    Sk = Pinv[ng - 1]
+    for b in range(ng - 1, -1, -1):
+        if b < ng - 1:
+            Gb = G[b + 1]
+            Sk = Pinv[b] + Gb @ Sk @ Gb.T
+        for i in range(g):
+            cov[b * g + i] = Sk[i * s:i * s + 6, i * s:i * s + 6]
+    cov = cov[:n].copy()
     if m == 0:
         return _sym(cov), np.zeros((0, 3, 3))
     # ---- loads: W = A^-1 C by column chunks; keep the pose rows of W
     C = sp.csc_matrix((np.concatenate(c_vals), (np.concatenate(c_rows), np.concatenate(c_cols))),
-                      shape=(n * s, m)) if c_vals else sp.csc_matrix((n * s, m))
-    chunk = int(max(3, (work_mb * 2 ** 20 // (8 * n * s)) // 3 * 3))
-    del D, E
+                      shape=(ng * S, m)) if c_vals else sp.csc_matrix((ng * S, m))
+    chunk = int(max(3, (work_mb * 2 ** 20 // (8 * ng * S)) // 3 * 3))
     # pose rows of W; float32 when float64 would pass work_mb * 4 (relative error ~1e-7 on the
     # load term of the pose covariance, far below anything it is used for)
-    WX = np.empty((n, 6, m), np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2 ** 20 else np.float32)
+    WX = np.empty((ng, 6 * g, m),
+                  np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2 ** 20 else np.float32)
     CtW = np.empty((m, m))
-    buf = np.empty(n * s * min(chunk, m))
+    buf = np.empty(ng * S * min(chunk, m))
     for c0 in range(0, m, chunk):
         c1 = min(m, c0 + chunk)
-        Y = buf[:n * s * (c1 - c0)].reshape(n * s, c1 - c0)
+        Y = buf[:ng * S * (c1 - c0)].reshape(ng * S, c1 - c0)
         C[:, c0:c1].toarray(out=Y)
-        Y = Y.reshape(n, s, c1 - c0)                         # forward: L Y = C
-        for k in range(1, n):                                # (Y_k = C_k - G_k^T Y_{k-1})
-            Y[k] -= G[k].T @ Y[k - 1]
-        Wk = Pinv[n - 1] @ Y[n - 1]            # backward: W_k = P_k^-1 Y_k - G_{k+1} W_{k+1}
-        Y[n - 1] = Wk
-        for k in range(n - 2, -1, -1):
-            Wk = Pinv[k] @ Y[k] - G[k + 1] @ Wk
-            Y[k] = Wk
-        WX[:, :, c0:c1] = Y[:, :6, :]
-        CtW[:, c0:c1] = C.T @ Y.reshape(n * s, c1 - c0)
+        Y = Y.reshape(ng, S, c1 - c0)                        # forward: L Y = C
+        for b in range(1, ng):                               # (Y_b = C_b - G_b^T Y_{b-1})
+            Y[b] -= G[b].T @ Y[b - 1]
+        Wb = Pinv[ng - 1] @ Y[ng - 1]          # backward: W_b = P_b^-1 Y_b - G_{b+1} W_{b+1}
+        Y[ng - 1] = Wb
+        for b in range(ng - 2, -1, -1):
+            Wb = Pinv[b] @ Y[b] - G[b + 1] @ Wb
+            Y[b] = Wb
+        WX[:, :, c0:c1] = Y[:, xrows, :]
+        CtW[:, c0:c1] = C.T @ Y.reshape(ng * S, c1 - c0)
+    WX = WX.reshape(ng * g, 6, m)[:n]
     Dl_full = np.zeros((m, m))
     for j in range(n_loads):
         Dl_full[3 * j:3 * j + 3, 3 * j:3 * j + 3] = Dl[j]
