@@ -34,7 +34,7 @@ __all__ = ["chain_marginals"]
 
 
 def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: bool, n_loads: int,
-                    work_mb: float = 128.0, group: int = 1
+                    work_mb: float = 64.0, group: int = 1
                     ) -> tuple[np.ndarray, np.ndarray] | None:
     """Marginal covariances of X(0..n_frames-1) ((N, 6, 6), Pose3 order, body frame) and of
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
