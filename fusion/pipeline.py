@@ -201,8 +201,13 @@ def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
     return out
 
 
-def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig) -> tuple[dict, list[str]]:
-    """Smoother, incremental smoother and EKF on the PnP poses; {name: FusionResult}, notes."""
+def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None
+               ) -> tuple[dict, list[str]]:
+    """Smoother, incremental smoother and EKF on the PnP poses; {name: FusionResult}, notes.
+
+    With `cfg.tight` the two GTSAM smoothers use each floor code's corners as reprojection
+    factors (the floor sightings of `det`) instead of the per-frame PnP pose; the EKF stays
+    loosely coupled."""
     from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
     notes: list[str] = []
     raw = loc.trajectories["pnp"]
@@ -212,19 +217,27 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig) -> tuple[dic
         return {}, ["the log has neither IMU nor velocity: raw per-frame estimates only"]
     if log.imu is None:
         notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
+    fcfg = FusionConfig(robust_kernel=cfg.robust, tight=cfg.tight)
+    graph_kwargs = {}
     if cfg.tight:
-        notes.append("--tight is not implemented by the back end yet: loosely coupled fusion used")
-    fcfg = FusionConfig(robust_kernel=cfg.robust)
+        from fusion.qr.codes import classify
+        graph_kwargs = {"floor_frames": {t: classify(d, log.world).floor
+                                         for t, d in det.by_frame("cam0").items()},
+                        "floor_camera": log.floor.camera}
+        notes.append("tight coupling: floor-code corners as reprojection factors in the "
+                     "smoothers (the EKF stays loosely coupled)")
     load_obs = loc.load_observations.get("camera_frame")
     T_bc = log.front.camera.T_body_cam if log.front is not None else np.eye(4)
     frame_t = log.floor.timestamps_ns
-    solvers = [("smoother", smooth), ("ekf", run_ekf)]
+    solvers = [("smoother", smooth, graph_kwargs), ("ekf", run_ekf, {})]
     if cfg.incremental:
-        solvers.insert(1, ("incremental", smooth_incremental))
+        solvers.insert(1, ("incremental", smooth_incremental, graph_kwargs))
     results = {}
-    for name, fn in solvers:
+    for name, fn, kwargs in solvers:
         try:
-            res = fn(frame_t, log.imu, raw, load_obs, T_bc, velocity=log.velocity, config=fcfg)
+            res = fn(frame_t, log.imu, raw, load_obs, T_bc, velocity=log.velocity,
+                     config=FusionConfig(robust_kernel=cfg.robust, tight=False)
+                     if fn is run_ekf else fcfg, **kwargs)
         except EstimationError as e:
             notes.append(f"{name} not run: {e}")
             continue
@@ -288,7 +301,7 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused, notes = fuse_stage(log, loc, cfg)
+        fused, notes = fuse_stage(log, loc, cfg, det)
         result.notes += notes
         for name, res in fused.items():
             result.trajectories[name] = res.trajectory

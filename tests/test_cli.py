@@ -131,3 +131,12 @@ def test_console_script_version():
     exe = shutil.which("fusion") or str(Path(sys.executable).with_name("fusion"))
     out = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.startswith("fusion ")
+
+
+def test_smooth_tight_coupling(tmp_path):
+    out = tmp_path / "tight"
+    assert main(["smooth", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--tight",
+                 "--no-incremental"]) == 0
+    tight = read_tum(out / "trajectory_smoother.tum")
+    raw = read_tum(out / "trajectory_pnp.tum")
+    assert len(tight) > len(raw) > 0
