@@ -194,20 +194,33 @@ def blur_sweep(blurs=(0, 2, 4, 6, 8), n_per_blur: int = 20, seed: int = 11) -> l
 
 def calibration_renders(n: int, seed: int) -> list[tuple]:
     """(corner error (8,), propagated covariance Sigma_stat (8, 8), blur px) of one 0.3 m code at
-    0.8-2.5 m (3-9 px per module), blur 0-8 px, noise 0.5-4 DN; codes stage 2 failed on skipped."""
+    0.8-2.5 m (3-9 px per module), blur 0-8 px, noise 0.5-4 DN; every other code seen obliquely
+    (tilt 0.2-0.5 rad, as the front camera sees load codes), the others nearly fronto-parallel
+    (the floor camera); codes stage 2 failed on are skipped."""
     rng = np.random.default_rng(seed)
     saved = refine_mod._COV_K, refine_mod._COV_A_PX
     refine_mod._COV_K, refine_mod._COV_A_PX = 1.0, 0.0        # -> corner_cov_px2 = Sigma_stat
     out = []
     try:
         for i in range(n):
-            code = PlacedCode(["0/2/5", "1/" + "x" * 20][i % 2], np.eye(4), 0.3)
-            T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.08)
+            code = PlacedCode(["0/2/5", "1/" + "x" * 20][(i // 2) % 2], np.eye(4), 0.3)
+            if i % 2:
+                tilt = rng.uniform(0.2, 0.5)
+                T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.0)
+                a = rng.uniform(0.0, 2.0 * np.pi)
+                T[:3, :3] = Rotation.from_rotvec(tilt * np.array([np.cos(a), np.sin(a), 0.0])
+                                                 ).as_matrix() @ T[:3, :3]
+            else:
+                T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.08)
             blur = rng.uniform(0.0, 8.0)
             img = render_view(_TEST_CAMERA, T, [code], rng,
                               RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
                                             blur_angle_rad=rng.uniform(0.0, np.pi)))
             truth = project_code_corners(_TEST_CAMERA, T, code)
+            centre = truth.mean(axis=0)
+            outline = centre + (1.0 + 2.0 * QUIET_ZONE_MODULES / code.modules) * (truth - centre)
+            if not (np.all(outline >= 1) and np.all(outline < [639, 479])):
+                continue
             raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
             [res] = refine_codes(img, [(raw, code.modules)], _TEST_CAMERA)
             if res is not None and res.stage == 2:
@@ -223,24 +236,22 @@ def corner_nees(data, k: float | None = None, a: float | None = None) -> np.ndar
                      for e, S, b in data])
 
 
-def calibrate(n: int = 300, seed: int = 7) -> tuple[float, float]:
-    """Maximum-likelihood K, A of fusion.qr.refine's corner covariance model."""
-    from scipy.optimize import minimize
+def calibrate(n: int = 400, seed: int = 7, k: float = 1.05) -> float:
+    """A of fusion.qr.refine's corner covariance model (K fixed): the value that makes the mean
+    8-D corner NEES 8 on seeded renders (bisection).  The errors are heavier-tailed than Gaussian
+    (systematic model mismatch: the renderer's PSF is not the model's box), so matching the mean
+    keeps the downstream NEES honest where a maximum-likelihood fit follows the bulk."""
     data = calibration_renders(n, seed)
-
-    def nll(x):
-        k, a = np.abs(x)
-        tot = 0.0
-        for e, S, _ in data:
-            L = np.linalg.cholesky(refine_mod.calibrated_cov(S, k, a))
-            z = np.linalg.solve(L, e)
-            tot += z @ z + 2.0 * np.sum(np.log(np.diag(L)))
-        return tot
-    fit = minimize(nll, [1.0, 0.01], method="Nelder-Mead", options={"xatol": 1e-5, "fatol": 1e-4})
-    k, a = (float(v) for v in np.abs(fit.x))
-    print(f"calibration on {len(data)} renders (seed {seed}): K = {k:.3f}, A = {a:.4f} px "
-          f"(in use: K = {refine_mod._COV_K}, A = {refine_mod._COV_A_PX})")
-    return k, a
+    lo, hi = 0.0, 0.1
+    for _ in range(30):
+        a = 0.5 * (lo + hi)
+        lo, hi = (a, hi) if corner_nees(data, k, a)[:, 0].mean() > 8.0 else (lo, a)
+    a = 0.5 * (lo + hi)
+    v = corner_nees(data, k, a)[:, 0]
+    print(f"calibration on {len(data)} renders (seed {seed}): K = {k}, A = {a:.4f} px "
+          f"(mean NEES {v.mean():.2f}, median {np.median(v):.2f}; in use: K = "
+          f"{refine_mod._COV_K}, A = {refine_mod._COV_A_PX})")
+    return a
 
 
 def uncertainty_rows(n_corner: int, n_frames: int) -> None:
