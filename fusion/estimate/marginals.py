@@ -40,9 +40,9 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
     unconstrained Gaussian factors on X/V/B of one or two consecutive frames and at most one L.
     Returns None when the graph does not have that structure (the caller then falls back to
-    gtsam).  `work_mb` bounds the dense frame-by-load work array (loads are processed in column
-    chunks that fit); `group` frames form one block of the recursions (same result, fewer
-    Python-level steps)."""
+    gtsam).  The pose rows of W = A^-1 C (N x 6 x 3 n_loads) are kept in float64 below
+    4 * `work_mb` MB, else in float32; `group` frames form one block of the recursions (same
+    result, fewer but larger numpy steps)."""
     slot = {_X: (0, 6), _V: (6, 3)}
     if has_bias:
         slot[_B] = (9, 6)
@@ -178,30 +178,59 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     cov = cov[:n].copy()
     if m == 0:
         return _sym(cov), np.zeros((0, 3, 3))
-    # ---- loads: W = A^-1 C by column chunks; keep the pose rows of W
-    C = sp.csc_matrix((np.concatenate(c_vals), (np.concatenate(c_rows), np.concatenate(c_cols))),
-                      shape=(ng * S, m)) if c_vals else sp.csc_matrix((ng * S, m))
-    chunk = int(max(3, (work_mb * 2 ** 20 // (8 * ng * S)) // 3 * 3))
+    # ---- loads: W = A^-1 C, all load columns at once.  C is kept as, per block row with
+    # entries, (its load columns, the dense S x k block); the forward sweep (Y = L^-1 C) keeps
+    # every K-th Y only and the backward sweep recomputes each segment from its checkpoint
+    # (memory ~2 sqrt(N) S m instead of N S m, one extra forward sweep)
+    rows = np.concatenate(c_rows) if c_rows else np.zeros(0, np.int64)
+    cols = np.concatenate(c_cols) if c_cols else np.zeros(0, np.int64)
+    vals = np.concatenate(c_vals) if c_vals else np.zeros(0)
+    blk, loc = rows // S, rows % S
+    pair, pair_of = np.unique(blk * m + cols, return_inverse=True)
+    dense = np.zeros((len(pair), S))
+    np.add.at(dense, (pair_of.ravel(), loc), vals)
+    pblk, pcol = pair // m, pair % m
+    cut = np.flatnonzero(np.diff(pblk)) + 1
+    c_blocks = {int(pblk[a]): (pcol[a:e], dense[a:e].T.copy())
+                for a, e in zip(np.r_[0, cut], np.r_[cut, len(pair)])}
+    del rows, cols, vals, blk, loc, pair, pair_of, dense
+    K = max(1, int(np.ceil(np.sqrt(ng))))
+    ck = np.empty((-(-ng // K), S, m))
+    Y = np.zeros((S, m))
+    for b in range(ng):                                  # forward: Y_b = C_b - G_b^T Y_{b-1}
+        if b > 0:
+            Y = -(G[b].T @ Y)
+        if b in c_blocks:
+            cb, db = c_blocks[b]
+            Y[:, cb] += db
+        if b % K == 0:
+            ck[b // K] = Y
     # pose rows of W; float32 when float64 would pass work_mb * 4 (relative error ~1e-7 on the
     # load term of the pose covariance, far below anything it is used for)
     WX = np.empty((ng, 6 * g, m),
                   np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2 ** 20 else np.float32)
-    CtW = np.empty((m, m))
-    buf = np.empty(ng * S * min(chunk, m))
-    for c0 in range(0, m, chunk):
-        c1 = min(m, c0 + chunk)
-        Y = buf[:ng * S * (c1 - c0)].reshape(ng * S, c1 - c0)
-        C[:, c0:c1].toarray(out=Y)
-        Y = Y.reshape(ng, S, c1 - c0)                        # forward: L Y = C
-        for b in range(1, ng):                               # (Y_b = C_b - G_b^T Y_{b-1})
-            Y[b] -= G[b].T @ Y[b - 1]
-        Wb = Pinv[ng - 1] @ Y[ng - 1]          # backward: W_b = P_b^-1 Y_b - G_{b+1} W_{b+1}
-        Y[ng - 1] = Wb
-        for b in range(ng - 2, -1, -1):
-            Wb = Pinv[b] @ Y[b] - G[b + 1] @ Wb
-            Y[b] = Wb
-        WX[:, :, c0:c1] = Y[:, xrows, :]
-        CtW[:, c0:c1] = C.T @ Y.reshape(ng * S, c1 - c0)
+    CtW = np.zeros((m, m))
+    seg = np.empty((K, S, m))
+    W_next = None
+    for a in range(((ng - 1) // K) * K, -1, -K):
+        e = min(a + K, ng)
+        Y = ck[a // K]
+        seg[0] = Y
+        for b in range(a + 1, e):
+            Y = -(G[b].T @ Y)
+            if b in c_blocks:
+                cb, db = c_blocks[b]
+                Y[:, cb] += db
+            seg[b - a] = Y
+        for b in range(e - 1, a - 1, -1):            # backward: W_b = P_b^-1 Y_b - G_{b+1} W_{b+1}
+            W = Pinv[b] @ seg[b - a]
+            if W_next is not None:
+                W -= G[b + 1] @ W_next
+            WX[b] = W[xrows]
+            if b in c_blocks:
+                cb, db = c_blocks[b]
+                CtW[cb] += db.T @ W
+            W_next = W
     WX = WX.reshape(ng * g, 6, m)[:n]
     Dl_full = np.zeros((m, m))
     for j in range(n_loads):
