@@ -45,7 +45,7 @@ from fusion.types import QRDetection
 BACKENDS = ("zxing", "aruco")
 FORMAT_VERSION = 3
 CACHE_NAME = "detections.csv"
-REFINE_METHOD = "finder-crossings+finder-model-homography/3"   # change when refine.py's output changes
+REFINE_METHOD = "finder-crossings+finder-model-homography/7"   # change when refine.py's output changes
 CACHE_HEADER = ("camera", "timestamp_ns", "payload",
                 "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                 "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",

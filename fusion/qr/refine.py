@@ -248,7 +248,7 @@ _MODEL_GROUP = 3             # consecutive profiles averaged into one before the
 _MODEL_WINDOW = (-2.0, 3.0)                     # sampled span (modules, + inwards)
 _MODEL_INNER_LO = -1.0                          # interior edges: data modules beyond this
 _MODEL_UNIFORM = 11                             # samples spread evenly over the window ...
-_MODEL_DENSE_PX = np.array([-1.2, -0.4, 0.4, 1.2])   # ... and 4 within 1.2 px of the edge
+_MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)    # ... and 8 within 2 px of the edge
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
 _MODEL_ITERATIONS = (0, 3, 1)   # Gauss-Newton iterations per pass (0: 50 % crossings only)
 _MODEL_STEP_CLIP = (0.35, 0.1)  # largest edge step per iteration (modules): first / later passes
@@ -475,21 +475,20 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
                  np.hypot(J[:, 1, 0], J[:, 0, 0])) / np.abs(det)
     bad_geom = ~(np.isfinite(g) & (g > 0))
     g = np.where(bad_geom, 1.0, g)
-    # samples: 11 over the window, 4 dense within 1.2 px of the predicted edge (per code)
+    # samples: 11 over the window, 8 dense within 2 px of the predicted edge (per code)
     lo, hi = _MODEL_WINDOW
     s_code = np.sort(np.concatenate([np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM),
                                                      (C, _MODEL_UNIFORM)),
                                      _MODEL_DENSE_PX[None] / module_px[:, None]], axis=1), axis=1)
     s = s_code[pr.code]                                                       # (P, K)
     K = s.shape[1]
-    # the crossings pass reads only the middle profile of each group
-    group = _MODEL_GROUP if iterations > 0 else 1
-    y, inside = _sample_profiles(images, np.repeat(image_of[pr.code], group), dist,
-                                 np.repeat(Hp, group, axis=0),
-                                 pr.uv_sampled if group > 1 else pr.uv0,
-                                 np.repeat(pr.inward, group, axis=0), np.repeat(s, group, axis=0))
+    # (the crossings pass too: one profile per group was measurably worse on a flight)
+    y, inside = _sample_profiles(images, np.repeat(image_of[pr.code], _MODEL_GROUP), dist,
+                                 np.repeat(Hp, _MODEL_GROUP, axis=0), pr.uv_sampled,
+                                 np.repeat(pr.inward, _MODEL_GROUP, axis=0),
+                                 np.repeat(s, _MODEL_GROUP, axis=0))
     # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
-    y = y.reshape(P, group, K).mean(axis=1)
+    y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
     s = s.astype(np.float32)
     ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
     m = (np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]).astype(np.float32)
@@ -685,9 +684,9 @@ class RefineResult:
 # errors of 0.02-0.09 px (worst for edges a few degrees off the pixel axes or diagonal) that the
 # per-profile residuals do not reveal.  A is therefore chosen for the MEAN pose NEES of PnP on
 # rendered frames (tests/test_pnp.py `rendered_nees`; `scripts/bench_detect.py --calibrate`
-# prints the mean-matching A on single-code renders): 8-D corner NEES out of sample ~7.7.
+# prints the mean-matching A on single-code renders): 8-D corner NEES out of sample ~7.3.
 _COV_K = 1.05
-_COV_A_PX = 0.004
+_COV_A_PX = 0.005
 STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
 
 
