@@ -147,43 +147,125 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
 
 
 def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
-    """The two per-frame estimators on every floor frame, and load observations from cam1."""
-    from fusion.qr import paper, pnp
+    """The two per-frame estimators on every floor frame, and load observations from cam1.
+
+    Frames are independent, so both phases (floor poses, then load codes placed with those
+    poses) run on `cfg.workers` processes over contiguous chunks of the flight."""
     notes: list[str] = []
     floor_frames = det.by_frame("cam0")
+    workers = _worker_count(cfg.workers, len(floor_frames))
+    parts = _parallel_map(_localize_floor_chunk,
+                          [(chunk, log.floor.camera, log.world, cfg)
+                           for chunk in _chunks(floor_frames, workers)], workers)
     trajectories: dict[str, Trajectory] = {}
+    paper_errors = [p["paper_error"] for p in parts if p["paper_error"]]
+    if paper_errors:
+        notes.append(f"paper estimator not run: {paper_errors[0]}")
+    else:
+        trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
+    traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
+    trajectories["pnp"] = traj_pnp
+    stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
     obs: dict[str, list[LoadObservation]] = {}
     maps: dict[str, LoadMap] = {}
-    stats: dict = {}
-    try:
-        trajectories["paper"] = paper.paper_trajectory(floor_frames, log.floor.camera, log.world,
-                                                       cfg.th_px)
-    except EstimationError as e:
-        notes.append(f"paper estimator not run: {e}")
-    traj_pnp, pnp_stats = pnp.pnp_trajectory(floor_frames, log.floor.camera, log.world,
-                                             cfg.corner_sigma_px)
-    trajectories["pnp"] = traj_pnp
-    stats["pnp"] = {k: v for k, v in vars(pnp_stats).items()}
     if log.front is None:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
         return LocalizeResult(trajectories, obs, maps, stats, notes)
     front_frames = det.by_frame("cam1")
-    cam1 = log.front.camera
+    parts = _parallel_map(_localize_front_chunk,
+                          [(chunk, log.front.camera, log.world, trajectories.get("paper"),
+                            traj_pnp, cfg) for chunk in _chunks(front_frames, workers)], workers)
+    from fusion.qr import paper, pnp
     if "paper" in trajectories:
-        try:
-            obs["paper"] = paper.paper_load_observations(front_frames, cam1, log.world,
-                                                         trajectories["paper"], cfg.th_px)
+        errors = [p["paper_error"] for p in parts if p["paper_error"]]
+        if errors:
+            notes.append(f"paper load mapping not run: {errors[0]}")
+        else:
+            obs["paper"] = [o for p in parts for o in p["paper"]]
             maps["paper"] = paper.aggregate_loads(obs["paper"], name="paper")
-        except EstimationError as e:
-            notes.append(f"paper load mapping not run: {e}")
-    obs["pnp"] = pnp.pnp_load_observations(front_frames, cam1, log.world, traj_pnp,
-                                           cfg.corner_sigma_px)
+    obs["pnp"] = [o for p in parts for o in p["pnp"]]
     maps["pnp"] = pnp.aggregate_load_observations(obs["pnp"], name="pnp")
     # The landmark factors of the fusion back end need only the camera-frame measurement, so
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
-    obs["camera_frame"] = obs["pnp"] + _unposed_load_observations(
-        front_frames, {o.timestamp_ns for o in obs["pnp"]}, cam1, log.world, cfg.corner_sigma_px)
+    obs["camera_frame"] = obs["pnp"] + [o for p in parts for o in p["unposed"]]
     return LocalizeResult(trajectories, obs, maps, stats, notes)
+
+
+def _localize_floor_chunk(args) -> dict:
+    from fusion.qr import paper, pnp
+    frames, camera, world, cfg = args
+    out = {"paper": None, "paper_error": None}
+    try:
+        out["paper"] = paper.paper_trajectory(frames, camera, world, cfg.th_px)
+    except EstimationError as e:
+        out["paper_error"] = str(e)
+    out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(frames, camera, world, cfg.corner_sigma_px)
+    return out
+
+
+def _localize_front_chunk(args) -> dict:
+    from fusion.qr import paper, pnp
+    frames, camera, world, traj_paper, traj_pnp, cfg = args
+    out = {"paper": [], "paper_error": None}
+    if traj_paper is not None:
+        try:
+            out["paper"] = paper.paper_load_observations(frames, camera, world, traj_paper,
+                                                         cfg.th_px)
+        except EstimationError as e:
+            out["paper_error"] = str(e)
+    out["pnp"] = pnp.pnp_load_observations(frames, camera, world, traj_pnp, cfg.corner_sigma_px)
+    out["unposed"] = _unposed_load_observations(frames, {o.timestamp_ns for o in out["pnp"]},
+                                                camera, world, cfg.corner_sigma_px)
+    return out
+
+
+def _worker_count(requested: int | None, n_items: int) -> int:
+    import os
+    n = (os.cpu_count() or 1) if requested is None else max(1, int(requested))
+    return max(1, min(n, n_items // 200))      # below ~200 frames a chunk, processes cost more
+
+
+def _chunks(frames: dict, n: int) -> list[dict]:
+    """Split {timestamp: value} into n contiguous (time-ordered) dicts."""
+    keys = sorted(frames)
+    bounds = np.linspace(0, len(keys), n + 1).astype(int)
+    return [{k: frames[k] for k in keys[a:b]} for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _parallel_map(fn, tasks: list, workers: int) -> list:
+    if workers <= 1 or len(tasks) <= 1:
+        return [fn(t) for t in tasks]
+    from concurrent.futures import ProcessPoolExecutor
+    with ProcessPoolExecutor(workers) as pool:
+        return list(pool.map(fn, tasks))
+
+
+def _concat(trajs: list[Trajectory], name: str) -> Trajectory:
+    trajs = [t for t in trajs if len(t)]
+    if not trajs:
+        return Trajectory.empty(name)
+    covs = [t.covariances for t in trajs]
+    return Trajectory(name, np.concatenate([t.timestamps_ns for t in trajs]),
+                      np.concatenate([t.T_world_body for t in trajs]),
+                      None if any(c is None for c in covs) else np.concatenate(covs))
+
+
+def _merge_pnp_stats(parts: list) -> dict:
+    """Sum the per-chunk PnPStats (counts and per-key counts; the mean RMS weighted by poses)."""
+    from collections import Counter
+    out: dict = {}
+    for key in ("n_frames", "n_posed", "n_without_floor_code", "n_unsolved", "n_ambiguous",
+                "n_codes_dropped"):
+        out[key] = int(sum(getattr(p, key) for p in parts))
+    for key in ("codes_per_pose", "rejections"):
+        c: Counter = Counter()
+        for p in parts:
+            c.update(getattr(p, key))
+        out[key] = dict(sorted(c.items()))
+    rms = [(p.mean_reprojection_rms_px, p.n_posed) for p in parts if p.n_posed]
+    out["mean_reprojection_rms_px"] = (float(sum(r * n for r, n in rms) / sum(n for _, n in rms))
+                                       if rms else float("nan"))
+    return out
 
 
 def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
