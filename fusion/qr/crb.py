@@ -14,10 +14,11 @@ Processing I", 1993, eq. 3.31 for the Gaussian Fisher information).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import inv_T, transform_points
 from fusion.errors import EstimationError
 
 # ============================================================================ SE(3) in GTSAM's order
@@ -39,14 +40,19 @@ def skew_stack(p: np.ndarray) -> np.ndarray:
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix exp([w]x) (Rodrigues)."""
-    w = np.asarray(w, dtype=float)
-    th2 = float(w @ w)
-    W = skew(w)
-    if th2 < 1e-16:
-        return np.eye(3) + W + 0.5 * W @ W
-    th = np.sqrt(th2)
-    return np.eye(3) + np.sin(th) / th * W + (1.0 - np.cos(th)) / th2 * W @ W
+    """Rotation matrix exp([w]x) = I + a [w]x + b [w]x^2, a = sin(th)/th, b = (1 - cos(th))/th^2
+    (Rodrigues; Taylor series near th = 0), written out entry by entry: it runs in every LM step."""
+    w0, w1, w2 = (float(v) for v in w)
+    th2 = w0 * w0 + w1 * w1 + w2 * w2
+    if th2 < 1e-8:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0          # error O(th^4) < 1e-16
+    else:
+        th = math.sqrt(th2)
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
+    return np.array([[1.0 - b * (w1 * w1 + w2 * w2), b01 - a * w2, b02 + a * w1],
+                     [b01 + a * w2, 1.0 - b * (w0 * w0 + w2 * w2), b12 - a * w0],
+                     [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)]])
 
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
@@ -69,33 +75,91 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
 # ============================================================================ projection Jacobians
 
 
+class Projector:
+    """CameraModel.project with its Jacobian, the camera's constants read once: the PnP
+    estimator's LM evaluates it a few times per frame, so it is written out entry by entry."""
+    __slots__ = ("k1", "k2", "f", "c", "p12", "p21", "M_tangential")
+
+    def __init__(self, camera: CameraModel):
+        self.k1, self.k2, p1, p2 = (float(v) for v in camera.distortion)
+        self.f = np.array([float(camera.fu), float(camera.fv)])
+        self.c = np.array([float(camera.cu), float(camera.cv)])
+        self.p12 = np.array([p1, p2])
+        self.p21 = np.array([p2, p1])
+        # [2 p1 y + 6 p2 x, 6 p1 y + 2 p2 x] = [x, y] @ M_tangential: the tangential part of
+        # d(x_d)/dx and d(y_d)/dy
+        self.M_tangential = np.array([[6.0 * p2, 2.0 * p2], [2.0 * p1, 6.0 * p1]])
+
+    def project(self, p_cam: np.ndarray, jacobian: bool = True
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3)
+        (None when not `jacobian`).  Points at or behind the camera (z <= 1e-9) give NaN.
+
+        Model (fusion/camera.py): x = X/Z, y = Y/Z, r^2 = x^2 + y^2, radial = 1 + k1 r^2 + k2 r^4,
+        x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2), y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y,
+        u = fu x_d + cu, v = fv y_d + cv; the Jacobian is F D P with F = diag(fu, fv),
+        D = d(x_d, y_d)/d(x, y), P = d(x, y)/d(X, Y, Z) = [[1, 0, -x], [0, 1, -y]] / Z.  Written
+        on (N, 2) arrays: the LM evaluates it a few times per frame."""
+        Z = p_cam[:, 2:3]
+        iz = 1.0 / np.where(Z > 1e-9, Z, np.nan)         # (N, 1)
+        xy = p_cam[:, :2] * iz                             # (N, 2) x, y
+        sq = xy * xy
+        r2 = sq[:, 0:1] + sq[:, 1:2]
+        radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
+        cross = xy[:, 0:1] * xy[:, 1:2]                    # x y
+        xy_d = xy * radial + (2.0 * cross) * self.p12 + (r2 + 2.0 * sq) * self.p21
+        uv = xy_d * self.f + self.c
+        if not jacobian:
+            return uv, None
+        dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2)          # d(radial)/dx = dr x
+        D = np.empty((len(p_cam), 2, 2))
+        diag = radial + dr * sq + xy @ self.M_tangential
+        D[:, 0, 0] = diag[:, 0]
+        D[:, 1, 1] = diag[:, 1]
+        d01 = dr * cross + 2.0 * (xy @ self.p12)[:, None]  # = D[1, 0]
+        D[:, 0, 1:] = d01
+        D[:, 1, :1] = d01
+        FD = D * (self.f * iz)[:, :, None]                 # rows fu / Z D[0], fv / Z D[1]
+        J = np.empty((len(p_cam), 2, 3))
+        J[:, :, :2] = FD
+        J[:, :, 2] = -(FD @ xy[:, :, None])[:, :, 0]
+        return uv, J
+
+
 def project_with_jacobian(camera: CameraModel, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3).
 
     Points at or behind the camera give NaN (as CameraModel.project)."""
-    p_cam = np.asarray(p_cam, dtype=float).reshape(-1, 3)
-    X, Y, Z = p_cam[:, 0], p_cam[:, 1], p_cam[:, 2]
-    Zs = np.where(Z > 1e-9, Z, np.nan)
-    x, y = X / Zs, Y / Zs
-    k1, k2, p1, p2 = camera.distortion
-    r2 = x * x + y * y
-    radial = 1.0 + k1 * r2 + k2 * r2 * r2
-    dr = 2.0 * (k1 + 2.0 * k2 * r2)                    # d(radial)/dx = dr * x
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    D = np.empty((len(p_cam), 2, 2))                   # d(xd, yd)/d(x, y)
-    D[:, 0, 0] = radial + dr * x * x + 2.0 * p1 * y + 6.0 * p2 * x
-    D[:, 0, 1] = dr * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-    D[:, 1, 0] = dr * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-    D[:, 1, 1] = radial + dr * y * y + 6.0 * p1 * y + 2.0 * p2 * x
-    P = np.zeros((len(p_cam), 2, 3))                   # d(x, y)/d(X, Y, Z)
-    P[:, 0, 0] = 1.0 / Zs
-    P[:, 1, 1] = 1.0 / Zs
-    P[:, 0, 2] = -x / Zs
-    P[:, 1, 2] = -y / Zs
-    F = np.diag([camera.fu, camera.fv])
-    uv = np.stack([camera.fu * xd + camera.cu, camera.fv * yd + camera.cv], axis=-1)
-    return uv, F @ D @ P
+    return Projector(camera).project(np.asarray(p_cam, dtype=float).reshape(-1, 3))
+
+
+def cross_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) rows a of A and (N, 3) points p -> (N, 2, 3) rows a x p, i.e. A_n @ [p_n]x
+    (a^T [p]x = (a x p)^T)."""
+    out = np.empty_like(A)
+    a0, a1, a2 = A[..., 0], A[..., 1], A[..., 2]
+    q0, q1, q2 = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+    out[..., 0] = a1 * q2 - a2 * q1
+    out[..., 1] = a2 * q0 - a0 * q2
+    out[..., 2] = a0 * q1 - a1 * q0
+    return out
+
+
+def floor_reprojection_parts(projector: Projector, R_cam_body: np.ndarray, t_cam_body: np.ndarray,
+                             R_world_body: np.ndarray, t_world_body: np.ndarray,
+                             points_world: np.ndarray, jacobian: bool = True
+                             ) -> tuple[np.ndarray, np.ndarray | None]:
+    """`floor_reprojection` with the camera's constants precomputed: pixels (N, 2) and the
+    Jacobian (N, 2, 6) (rows u, v of each point; None when not `jacobian`)."""
+    p_body = (points_world - t_world_body) @ R_world_body
+    uv, J_proj = projector.project(p_body @ R_cam_body.T + t_cam_body, jacobian)
+    if not jacobian:
+        return uv, None
+    A = J_proj @ R_cam_body                            # d(pixels)/d(p_body)
+    J = np.empty((len(p_body), 2, 6))
+    J[:, :, :3] = cross_rows(A, p_body)                # A [p_body]x
+    J[:, :, 3:] = -A
+    return uv, J
 
 
 def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
@@ -107,16 +171,27 @@ def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_wor
     For a "gimbaled" camera T_world_body is the level body frame (CameraModel docstring).
     Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v, p_cam = T_cam_body p_body,
     so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
-    T_cam_body = inv_T(camera.T_body_cam)
-    p_body = transform_points(inv_T(T_world_body), points_world)
-    p_cam = transform_points(T_cam_body, p_body)
-    uv, J_proj = project_with_jacobian(camera, p_cam)
-    R_cb = T_cam_body[:3, :3]
-    n = len(p_body)
-    J_pt = np.empty((n, 3, 6))
-    J_pt[:, :, :3] = R_cb @ skew_stack(p_body)
-    J_pt[:, :, 3:] = -R_cb
-    return uv, np.einsum("nij,njk->nik", J_proj, J_pt).reshape(2 * n, 6)
+    T_body_cam = np.asarray(camera.T_body_cam, dtype=float)
+    R_cb = T_body_cam[:3, :3].T
+    T_world_body = np.asarray(T_world_body, dtype=float)
+    uv, J = floor_reprojection_parts(Projector(camera), R_cb, -R_cb @ T_body_cam[:3, 3],
+                                     T_world_body[:3, :3], T_world_body[:3, 3],
+                                     np.asarray(points_world, dtype=float).reshape(-1, 3))
+    return uv, J.reshape(-1, 6)
+
+
+def symbol_reprojection_parts(projector: Projector, R_cam_symbol: np.ndarray,
+                              t_cam_symbol: np.ndarray, points_symbol: np.ndarray,
+                              jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """`symbol_reprojection` with the camera's constants precomputed: pixels (N, 2) and the
+    Jacobian (N, 2, 6) (None when not `jacobian`)."""
+    uv, J_proj = projector.project(points_symbol @ R_cam_symbol.T + t_cam_symbol, jacobian)
+    if not jacobian:
+        return uv, None
+    J = np.empty((len(points_symbol), 2, 6))
+    J[:, :, :3] = -cross_rows(J_proj @ R_cam_symbol, points_symbol)   # -J_proj R [p_S]x
+    J[:, :, 3:] = J_proj
+    return uv, J
 
 
 def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_symbol: np.ndarray
@@ -125,32 +200,34 @@ def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_sy
     w.r.t. [w (3), dt (3)] where R_cam_symbol <- R_cam_symbol exp([w]x) (symbol frame) and
     t_cam_symbol <- t_cam_symbol + dt (camera frame, m): the last three are the code centre p_cam.
     d p_cam / d[w, dt] = [ -R_cam_symbol [p_S]x , I ]."""
-    R, t = T_cam_symbol[:3, :3], T_cam_symbol[:3, 3]
-    p_S = np.asarray(points_symbol, dtype=float)
-    uv, J_proj = project_with_jacobian(camera, p_S @ R.T + t)
-    n = len(p_S)
-    J_pt = np.empty((n, 3, 6))
-    J_pt[:, :, :3] = -R @ skew_stack(p_S)
-    J_pt[:, :, 3:] = np.eye(3)
-    return uv, np.einsum("nij,njk->nik", J_proj, J_pt).reshape(2 * n, 6)
+    T_cam_symbol = np.asarray(T_cam_symbol, dtype=float)
+    uv, J = symbol_reprojection_parts(Projector(camera), T_cam_symbol[:3, :3], T_cam_symbol[:3, 3],
+                                      np.asarray(points_symbol, dtype=float).reshape(-1, 3))
+    return uv, J.reshape(-1, 6)
 
 
 # ============================================================================ Cramér–Rao bounds
 
 
-def covariance_from_jacobian(J: np.ndarray, sigma_px: float) -> np.ndarray:
-    """sigma^2 (J^T J)^-1, symmetrised; raises EstimationError when J^T J is singular."""
-    H = J.T @ J
+def covariance_from_information(H: np.ndarray, sigma_px: float = 1.0) -> np.ndarray:
+    """sigma^2 H^-1 of a symmetric information matrix H (e.g. J^T J), symmetrised, through its
+    eigen-decomposition; raises EstimationError when H is singular or its condition number is
+    above 1e14."""
+    H = np.asarray(H, dtype=float)
     if not np.all(np.isfinite(H)):
         raise EstimationError("non-finite Jacobian (a point at or behind the camera)")
-    try:
-        C = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        raise EstimationError("singular information matrix (degenerate view)") from None
-    if np.linalg.cond(H) > 1e14:
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    if not lam[0] > 0:
+        raise EstimationError("singular information matrix (degenerate view)")
+    if lam[-1] > 1e14 * lam[0]:
         raise EstimationError("ill-conditioned information matrix (degenerate view)")
-    C = sigma_px ** 2 * C
+    C = (sigma_px ** 2) * ((V / lam) @ V.T)
     return 0.5 * (C + C.T)
+
+
+def covariance_from_jacobian(J: np.ndarray, sigma_px: float) -> np.ndarray:
+    """sigma^2 (J^T J)^-1, symmetrised; raises EstimationError when J^T J is singular."""
+    return covariance_from_information(J.T @ J, sigma_px)
 
 
 def floor_pose_crb(camera: CameraModel, T_world_body: np.ndarray,
