@@ -55,6 +55,19 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
                      [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)]])
 
 
+def so3_exp_stack(w: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotation matrices exp([w_k]x) of (K, 3) rotation vectors (Rodrigues, as so3_exp)."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.einsum("ki,ki->k", w, w)
+    small = th2 < 1e-8
+    th = np.sqrt(th2)
+    safe_th, safe_th2 = np.where(small, 1.0, th), np.where(small, 1.0, th2)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / safe_th)[:, None, None]
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / safe_th2)[:, None, None]
+    W = skew_stack(w)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """4x4 SE(3) exponential of xi = [w (3), v (3)], the same map as gtsam.Pose3.Expmap."""
     xi = np.asarray(xi, dtype=float)

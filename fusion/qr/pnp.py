@@ -26,12 +26,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
-from fusion.conventions import (inv_T, make_T, rot_z, symbol_corners_S,
+from fusion.conventions import (make_T, rot_z, symbol_corners_S,
                                 wrap_angle, yaw_of)
 from fusion.errors import EstimationError
 from fusion.qr.codes import FloorSighting, LoadSighting, classify, rejection_counts
-from fusion.qr.crb import (Projector, covariance_from_information, cross_rows, floor_reprojection_parts,
-                           skew, so3_exp, symbol_reprojection_parts)
+from fusion.qr.crb import Projector, cross_rows, skew, so3_exp, so3_exp_stack
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
 from fusion.world import World
 
@@ -82,14 +81,27 @@ def camera_pose(T_world_body: np.ndarray, camera: CameraModel) -> np.ndarray:
 
 def _same_pose(x_a, x_b, tol_rad: float, tol_m: float) -> bool:
     """Whether poses x = (R, t) differ by at most `tol_rad` in rotation and `tol_m` in position."""
-    c = 0.5 * (float(np.vdot(x_a[0], x_b[0])) - 1.0)        # cos(angle): trace(R_a^T R_b) = <R_a, R_b>
+    c = 0.5 * (float(np.vdot(x_a[0], x_b[0])) - 1.0)     # cos(angle): trace(R_a^T R_b) = <R_a, R_b>
     return c >= math.cos(tol_rad) and float(np.linalg.norm(x_a[1] - x_b[1])) <= tol_m
+
+
+def _same_minimum(x_a, H_a: np.ndarray, x_b) -> bool:
+    """Whether refined poses x = (R, t) are the same minimum of a cost with information H_a at
+    x_a: x_b = x_a Exp(xi) with xi^T H_a xi < 0.01 (a tenth of a standard deviation apart; the LM
+    stops within about 1e-3)."""
+    D = x_a[0].T @ x_b[0]
+    if np.trace(D) < 2.98:                      # more than ~0.14 rad apart
+        return False
+    xi = np.array([0.5 * (D[2, 1] - D[1, 2]), 0.5 * (D[0, 2] - D[2, 0]), 0.5 * (D[1, 0] - D[0, 1]),
+                   *(x_a[0].T @ (x_b[1] - x_a[1]))])
+    return float(xi @ H_a @ xi) < 0.01
 
 
 def _cv_points(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 1, a.shape[-1]))
 
 
+_EYE3 = np.eye(3)
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-14)
 
 
@@ -98,157 +110,14 @@ def undistort(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
     undistortPoints (about 30x faster than CameraModel.undistort_normalized), checked by
     distorting back; where that check fails (strong distortion), CameraModel's Newton inversion."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    if not np.all(np.isfinite(uv)):
+    if len(uv) == 0 or not np.all(np.isfinite(uv)):
         return camera.undistort_normalized(uv)
     xn = cv2.undistortPoints(_cv_points(uv), camera.K, camera.dist_cv, None, None, None,
                              _UNDISTORT_CRITERIA).reshape(-1, 2)
-    xd = camera.distort_normalized(xn)
-    back = np.column_stack([camera.fu * xd[:, 0] + camera.cu, camera.fv * xd[:, 1] + camera.cv])
+    back, _ = Projector(camera).project(np.column_stack([xn, np.ones(len(xn))]), jacobian=False)
     if np.all(np.abs(back - uv) < 1e-8):
         return xn
     return camera.undistort_normalized(uv)
-
-
-# ---------------------------------------------------------------------------- Gauss-Newton / LM
-
-MAX_ITERATIONS = 20
-"""Iteration cap of the LM; from the IPPE / SQPnP starts it converges in 2-4."""
-CONVERGED_DECREMENT = 1e-10
-"""Converged when the predicted decrease of the whitened cost, g^T H^-1 g (chi^2 units: the step
-is sqrt of this many standard deviations long), is below this plus 1e-10 of the cost."""
-
-
-def _whitened_normal_equations(J: np.ndarray, r: np.ndarray, W: np.ndarray) -> np.ndarray:
-    """J (K, N, 2, 6) and r (K, N, 2) px of K poses, N = 4 n corners, W (n, 8, 8) whitening ->
-    (K, 7, 7) matrices [[J^T W^T W J, J^T W^T W r], [., r^T W^T W r]]: H, g = G[:6, :6], G[:6, 6],
-    cost = G[6, 6] (all of them from one product of the whitened [J | r])."""
-    K, N = r.shape[:2]
-    n = len(W)
-    Jr = np.empty((K, N, 2, 7))
-    Jr[..., :6] = J
-    Jr[..., 6] = r
-    M = (W @ Jr.reshape(K, n, 8, 7)).reshape(K, 8 * n, 7)
-    return M.transpose(0, 2, 1) @ M
-
-
-def _stack_poses(xs: list) -> tuple[np.ndarray, np.ndarray]:
-    """[(R, t)] * K -> R (K, 3, 3), t (K, 3)."""
-    if len(xs) == 1:
-        return xs[0][0][None], xs[0][1][None]
-    return np.stack([x[0] for x in xs]), np.stack([x[1] for x in xs])
-
-
-class _FloorModel:
-    """Whitened reprojection error of one frame's floor corners over the body pose (R, t) of
-    T_world_body, right perturbation [w, v] (fusion/qr/crb.py); retraction R exp(w), t + R v.
-    Evaluated for K poses at once (the starts are K = 2 or 3, the LM steps K = 1)."""
-
-    def __init__(self, camera: CameraModel, points_world: np.ndarray, uv: np.ndarray,
-                 whitening: np.ndarray):
-        T_bc = camera.T_body_cam
-        self.projector = Projector(camera)
-        self.R_cb = np.ascontiguousarray(T_bc[:3, :3].T)
-        self.t_cb = -self.R_cb @ T_bc[:3, 3]
-        self.P, self.z, self.W = points_world, uv, whitening
-
-    def residual_px(self, x) -> np.ndarray:
-        """(4n, 2) reprojection error in pixels (NaN for a point behind the camera)."""
-        uv, _ = floor_reprojection_parts(self.projector, self.R_cb, self.t_cb, x[0], x[1],
-                                         self.P, jacobian=False)
-        return uv - self.z
-
-    def normal_equations(self, xs: list) -> np.ndarray:
-        """(K, 7, 7) `_whitened_normal_equations` of K poses; d p_cam / d xi = R_cb [[p_body]x, -I]
-        (fusion/qr/crb.floor_reprojection)."""
-        R, t = _stack_poses(xs)
-        N = len(self.P)
-        p_body = ((self.P - t[:, None, :]) @ R).reshape(-1, 3)          # (K N, 3)
-        uv, J_proj = self.projector.project(p_body @ self.R_cb.T + self.t_cb)
-        A = J_proj @ self.R_cb                                           # d px / d p_body
-        J = np.empty((len(p_body), 2, 6))
-        J[:, :, :3] = cross_rows(A, p_body)                              # A [p_body]x
-        J[:, :, 3:] = -A
-        return _whitened_normal_equations(J.reshape(len(xs), N, 2, 6),
-                                          uv.reshape(len(xs), N, 2) - self.z, self.W)
-
-    @staticmethod
-    def retract(x, delta):
-        R, t = x
-        return R @ so3_exp(delta[:3]), t + R @ delta[3:]
-
-
-class _SymbolModel:
-    """Whitened reprojection error of one load code's corners over its pose (R, t) in the camera:
-    R exp(w) (symbol frame), t + dt (camera frame), as fusion/qr/crb.symbol_reprojection."""
-
-    def __init__(self, projector: Projector, points_symbol: np.ndarray, uv: np.ndarray,
-                 whitening: np.ndarray):
-        self.projector, self.P, self.z, self.W = projector, points_symbol, uv, whitening
-
-    def residual_px(self, x) -> np.ndarray:
-        """(4, 2) reprojection error in pixels."""
-        uv, _ = symbol_reprojection_parts(self.projector, x[0], x[1], self.P, jacobian=False)
-        return uv - self.z
-
-    def normal_equations(self, xs: list) -> np.ndarray:
-        """(K, 7, 7) `_whitened_normal_equations` of K poses; d p_cam / d[w, dt] =
-        [-R [p_S]x, I] (fusion/qr/crb.symbol_reprojection)."""
-        R, t = _stack_poses(xs)
-        K = len(xs)
-        p_S = np.broadcast_to(self.P, (K, 4, 3)).reshape(-1, 3)
-        uv, J_proj = self.projector.project((self.P @ R.transpose(0, 2, 1) + t[:, None, :])
-                                            .reshape(-1, 3))
-        J = np.empty((4 * K, 2, 6))
-        J[:, :, :3] = -cross_rows((J_proj.reshape(K, 8, 3) @ R).reshape(-1, 2, 3), p_S)
-        J[:, :, 3:] = J_proj
-        return _whitened_normal_equations(J.reshape(K, 4, 2, 6), uv.reshape(K, 4, 2) - self.z,
-                                          self.W)
-
-    @staticmethod
-    def retract(x, delta):
-        return x[0] @ so3_exp(delta[:3]), x[1] + delta[3:]
-
-
-def _levenberg_marquardt(model, x, G: np.ndarray | None = None, max_iter: int = MAX_ITERATIONS):
-    """Minimise the model's whitened cost |W (h(x) - z)|^2 over a pose x = (R, t) from `x` (G: its
-    normal equations when already evaluated); returns (x, G) at the optimum, G the 7x7
-    `_whitened_normal_equations` there (H = J^T W^T W J for the covariance, cost = G[6, 6]), or
-    None when the cost is not finite at the start.
-
-    Gauss-Newton steps, damped (Levenberg-Marquardt, lambda diag(H)) only after a step that
-    raised the cost; stops when the predicted decrease g^T H^-1 g is below
-    CONVERGED_DECREMENT (1 + cost): from IPPE / SQPnP starts that takes 2-4 evaluations."""
-    if G is None:
-        G = model.normal_equations([x])[0]
-    if not np.all(np.isfinite(G)):
-        return None
-    cost = G[6, 6]
-    lam = 0.0
-    for _ in range(max_iter):
-        H, g = G[:6, :6], G[:6, 6]
-        if lam > 0.0:
-            H = H + lam * np.diag(H.diagonal())
-        try:
-            delta = np.linalg.solve(H, -g)
-        except np.linalg.LinAlgError:
-            break
-        if -(g @ delta) <= CONVERGED_DECREMENT * (1.0 + cost):
-            # converged: take this last, tiny step without re-linearising (G stays, H is then
-            # that of a point < 1e-4 sigma away); in a noise-free view it is what makes the
-            # solution exact to 1e-12
-            x = model.retract(x, delta)
-            break
-        x_new = model.retract(x, delta)
-        G_new = model.normal_equations([x_new])[0]
-        cost_new = G_new[6, 6]
-        if cost_new <= cost:                 # False for NaN
-            x, G, cost = x_new, G_new, cost_new
-            lam = 0.0 if lam <= 1e-3 else 0.1 * lam
-        else:
-            lam = 1e-3 if lam == 0.0 else 10.0 * lam
-            if lam > 1e6:
-                break
-    return x, G
 
 
 def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
@@ -289,12 +158,198 @@ def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
     out = []
     for d in detections:
         s = getattr(d, "corner_sigma_px", None)
-        s = float(s) if s is not None and math.isfinite(s) and s > 0 else float(default_sigma_px)
-        out.append(s)
+        out.append(float(s) if s is not None and math.isfinite(s) and s > 0
+                   else float(default_sigma_px))
     return np.repeat(np.asarray(out, dtype=float), 8)
 
 
+def _covariances(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 6, 6) information matrices -> covariances H^-1 (K, 6, 6) through one batched
+    eigen-decomposition, and a (K,) mask of the valid ones (finite, positive definite, condition
+    number <= 1e14, as crb.covariance_from_information)."""
+    ok = np.isfinite(H).all(axis=(1, 2))
+    Hs = np.where(ok[:, None, None], H, np.eye(6))
+    lam, V = np.linalg.eigh(Hs)
+    ok &= (lam[:, 0] > 0) & (lam[:, -1] <= 1e14 * lam[:, 0])
+    lam = np.where(ok[:, None], lam, 1.0)
+    C = (V / lam[:, None, :]) @ V.transpose(0, 2, 1)
+    return 0.5 * (C + C.transpose(0, 2, 1)), ok
+
+
+# ============================================================================ batched Gauss-Newton
+
+MAX_ITERATIONS = 20
+"""Iteration cap of the LM; from the IPPE / SQPnP starts it converges in 2-4."""
+CONVERGED_DECREMENT = 1e-6
+"""Converged when the predicted decrease of the whitened cost, g^T H^-1 g, is below this fraction
+of the cost (plus 1e-15): the pose is then within about 1e-3 sqrt(cost / dof) standard deviations
+of the optimum, and exact in a noise-free view."""
+START_MARGIN_CHI2 = 100.0
+"""A start is refined only when its whitened cost is within 2x + this of the best start's of the
+same view (refinement lowers a cost by about the 6 pose dof, rarely by tens: this keeps every
+start that could end within AMBIGUITY_CHI2 of the best, and skips mirror solutions)."""
+
+
+def _whitened_normal_equations(Jr: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Jr (K, N, 2, 7) = [J | r] of K problems (J d(px)/d(pose) of N = 4 n corners, r their
+    px residuals), W (K, n, 8, 8) their whitening -> (K, 7, 7) matrices
+    [[J^T W^T W J, J^T W^T W r], [., r^T W^T W r]]: H, g = G[:6, :6], G[:6, 6], cost = G[6, 6]
+    (all of them from one product of the whitened [J | r])."""
+    K, N = Jr.shape[:2]
+    M = (W @ Jr.reshape(K, N // 4, 8, 7)).reshape(K, 2 * N, 7)
+    return M.transpose(0, 2, 1) @ M
+
+
+class _FloorProblems:
+    """K floor-camera problems with the same number n of codes: world corners P (K, 4n, 3),
+    observed px z (K, 4n, 2), whitening W (K, n, 8, 8); unknown the body pose (R, t) of
+    T_world_body, perturbed on the right by [w, v] (fusion/qr/crb.floor_reprojection), retracted
+    as R exp(w), t + R v."""
+
+    def __init__(self, projector: Projector, R_cb: np.ndarray, t_cb: np.ndarray, P: np.ndarray,
+                 z: np.ndarray, W: np.ndarray):
+        self.projector, self.R_cb, self.t_cb, self.P, self.z, self.W = projector, R_cb, t_cb, P, z, W
+
+    def subset(self, idx: np.ndarray) -> "_FloorProblems":
+        return _FloorProblems(self.projector, self.R_cb, self.t_cb, self.P[idx], self.z[idx],
+                              self.W[idx])
+
+    def residual_px(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, 4n, 2) reprojection errors in pixels of poses R (K, 3, 3), t (K, 3)."""
+        p_cam = ((self.P - t[:, None, :]) @ R) @ self.R_cb.T + self.t_cb
+        uv, _ = self.projector.project(p_cam.reshape(-1, 3), jacobian=False)
+        return uv.reshape(self.z.shape) - self.z
+
+    def normal_equations(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, 7, 7) `_whitened_normal_equations`; d p_cam / d xi = R_cb [[p_body]x, -I]."""
+        K, N = self.P.shape[:2]
+        p_body = ((self.P - t[:, None, :]) @ R).reshape(-1, 3)          # (K N, 3)
+        uv, J_proj = self.projector.project(p_body @ self.R_cb.T + self.t_cb)
+        A = J_proj @ self.R_cb                                           # d px / d p_body
+        Jr = np.empty((K * N, 2, 7))
+        Jr[:, :, :3] = cross_rows(A, p_body)                             # A [p_body]x
+        Jr[:, :, 3:6] = -A
+        Jr[:, :, 6] = uv - self.z.reshape(-1, 2)
+        return _whitened_normal_equations(Jr.reshape(K, N, 2, 7), self.W)
+
+    @staticmethod
+    def retract(R: np.ndarray, t: np.ndarray, delta: np.ndarray):
+        return R @ so3_exp_stack(delta[:, :3]), t + (R @ delta[:, 3:, None])[:, :, 0]
+
+
+class _SymbolProblems:
+    """K load-code problems: the code's corners P (4, 3) in its symbol frame, observed px
+    z (K, 4, 2), whitening W (K, 1, 8, 8); unknown the pose (R, t) of T_cam_symbol, perturbed as
+    R exp(w) (symbol frame), t + dt (camera frame) (fusion/qr/crb.symbol_reprojection)."""
+
+    def __init__(self, projector: Projector, P: np.ndarray, z: np.ndarray, W: np.ndarray):
+        self.projector, self.P, self.z, self.W = projector, P, z, W
+
+    def subset(self, idx: np.ndarray) -> "_SymbolProblems":
+        return _SymbolProblems(self.projector, self.P, self.z[idx], self.W[idx])
+
+    def residual_px(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        p_cam = self.P @ R.transpose(0, 2, 1) + t[:, None, :]
+        uv, _ = self.projector.project(p_cam.reshape(-1, 3), jacobian=False)
+        return uv.reshape(self.z.shape) - self.z
+
+    def normal_equations(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, 7, 7) `_whitened_normal_equations`; d p_cam / d[w, dt] = [-R [p_S]x, I]."""
+        K = len(R)
+        uv, J_proj = self.projector.project(
+            (self.P @ R.transpose(0, 2, 1) + t[:, None, :]).reshape(-1, 3))
+        B = (J_proj.reshape(K, 8, 3) @ R).reshape(-1, 2, 3)
+        Jr = np.empty((4 * K, 2, 7))
+        Jr[:, :, :3] = cross_rows(B, np.broadcast_to(-self.P, (K, 4, 3)).reshape(-1, 3))
+        Jr[:, :, 3:6] = J_proj
+        Jr[:, :, 6] = uv - self.z.reshape(-1, 2)
+        return _whitened_normal_equations(Jr.reshape(K, 4, 2, 7), self.W)
+
+    @staticmethod
+    def retract(R: np.ndarray, t: np.ndarray, delta: np.ndarray):
+        return R @ so3_exp_stack(delta[:, :3]), t + delta[:, 3:]
+
+
+def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
+                         max_iter: int = MAX_ITERATIONS):
+    """Minimise each of K problems' whitened cost |W (h(x) - z)|^2 over its pose x = (R, t), from
+    the starts R (K, 3, 3), t (K, 3) with normal equations G (K, 7, 7) (`normal_equations`), all
+    K in one evaluation per step; returns R, t, G at the optima (H = G[:, :6, :6] = J^T W^T W J
+    for the covariance, cost = G[:, 6, 6]); a start whose G is not finite is left as it is.
+
+    Gauss-Newton steps, damped (Levenberg-Marquardt, lambda diag(H)) only after a step that
+    raised the cost; a problem stops when its predicted decrease g^T H^-1 g is below
+    CONVERGED_DECREMENT cost: from IPPE / SQPnP starts that takes 2-4 evaluations."""
+    R, t, G = R.copy(), t.copy(), G.copy()
+    lam = np.zeros(len(R))
+    active = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
+    diag = np.arange(6)
+    for _ in range(max_iter):
+        if len(active) == 0:
+            break
+        Ga = G[active]
+        H, g = Ga[:, :6, :6], Ga[:, :6, 6]
+        H[:, diag, diag] *= (1.0 + lam[active])[:, None]
+        try:
+            delta = np.linalg.solve(H, -g[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:                  # one is singular: one at a time
+            delta = np.full(g.shape, np.nan)
+            for i in range(len(active)):
+                try:
+                    delta[i] = np.linalg.solve(H[i], -g[i])
+                except np.linalg.LinAlgError:
+                    pass
+        decrease = -np.einsum("ki,ki->k", g, delta)
+        going = decrease > CONVERGED_DECREMENT * Ga[:, 6, 6] + 1e-15     # False for NaN
+        step = active[going]
+        if len(step) == 0:
+            break
+        R_new, t_new = problems.retract(R[step], t[step], delta[going])
+        G_new = problems.subset(step).normal_equations(R_new, t_new)
+        better = G_new[:, 6, 6] <= G[step, 6, 6]                         # False for NaN
+        k = step[better]
+        R[k], t[k], G[k] = R_new[better], t_new[better], G_new[better]
+        lam[k] = np.where(lam[k] <= 1e-3, 0.0, 0.1 * lam[k])
+        k = step[~better]
+        lam[k] = np.where(lam[k] == 0.0, 1e-3, 10.0 * lam[k])
+        active = np.sort(np.concatenate([step[better], k[lam[k] <= 1e6]]))
+    return R, t, G
+
+
+def _refine(problems, R: np.ndarray, t: np.ndarray, owner: list[int]):
+    """Refine starts R (K, 3, 3), t (K, 3) of `problems` (one per start; `owner[k]` the view it
+    belongs to): all evaluated in one batch, those whose whitened cost is within
+    2x + START_MARGIN_CHI2 of their view's best refined by `_levenberg_marquardt`.
+    Returns (owner, R, t, G (7, 7), r_px) per refined start."""
+    G0 = problems.normal_equations(R, t)
+    cost = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
+    best: dict[int, float] = {}
+    for o, c in zip(owner, cost.tolist()):
+        best[o] = min(best.get(o, math.inf), c)
+    keep = np.array([c <= 2.0 * best[o] + START_MARGIN_CHI2 for o, c in zip(owner, cost.tolist())])
+    keep = np.flatnonzero(keep)
+    if len(keep) == 0:
+        return []
+    sub = problems.subset(keep)
+    R, t, G = _levenberg_marquardt(sub, R[keep], t[keep], G0[keep])
+    r = sub.residual_px(R, t)
+    return [(owner[k], R[i], t[i], G[i], r[i]) for i, k in enumerate(keep.tolist())]
+
+
 # ============================================================================ floor camera
+
+
+def _edge_vectors(xn: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """(n, 4, 2) undistorted corners of n floor codes -> (n, 2) each code's estimate of the
+    direction of world +x in a level, yaw-0 body frame (`edge_implied_yaw`); zero for a code
+    whose rays do not all meet the floor."""
+    d = xn @ camera.T_body_cam[:3, :2].T + camera.T_body_cam[:3, 2]   # rays in the body frame
+    ok = np.all(np.isfinite(d), axis=(1, 2)) & np.all(d[:, :, 2] < -1e-6, axis=1)
+    f = d[:, :, :2] / np.where(ok[:, None, None], -d[:, :, 2:3], 1.0)  # floor points
+    tl, tr, br, bl = f[:, 0], f[:, 1], f[:, 2], f[:, 3]
+    up = (tl - bl) + (tr - br)
+    e = (tr - tl) + (br - bl) + np.column_stack([up[:, 1], -up[:, 0]])
+    return np.where(ok[:, None], e, 0.0)
 
 
 def edge_implied_yaw(sightings: list[FloorSighting], camera: CameraModel,
@@ -305,21 +360,16 @@ def edge_implied_yaw(sightings: list[FloorSighting], camera: CameraModel,
     (TL->TR, BL->BR) and its "up" turned by -90 deg (BL->TL, BR->TR) give the direction of world +x
     in that frame, at angle a, so the yaw is -a.  A tilt of up to 30 deg moves this by far less
     than 90 deg, which is what rules out 180-deg yaw flips.  None if no code's rays meet the floor.
-    `xn` (4n, 2): the corners already undistorted (`undistort`), to save doing it again."""
+    `xn` (4n, 2): the corners already undistorted (`undistort`)."""
     if not sightings:
         return None
     if xn is None:
         xn = undistort(camera, np.vstack([np.asarray(s.detection.corners_px, dtype=float)
                                           for s in sightings]))
-    d = xn @ camera.T_body_cam[:3, :2].T + camera.T_body_cam[:3, 2]     # rays in the body frame
-    d = d.reshape(-1, 4, 3)
-    ok = np.all(np.isfinite(d), axis=(1, 2)) & np.all(d[:, :, 2] < -1e-6, axis=1)
-    if not np.any(ok):
-        return None
-    f = d[ok, :, :2] / (-d[ok, :, 2:3])
-    tl, tr, br, bl = f[:, 0], f[:, 1], f[:, 2], f[:, 3]
-    up = ((tl - bl) + (tr - br)).sum(axis=0)
-    e = ((tr - tl) + (br - bl)).sum(axis=0) + np.array([up[1], -up[0]])
+    return _yaw_of_edges(_edge_vectors(np.asarray(xn).reshape(-1, 4, 2), camera).sum(axis=0))
+
+
+def _yaw_of_edges(e: np.ndarray) -> float | None:
     if not np.any(e):
         return None
     return float(-math.atan2(e[1], e[0]))
@@ -343,75 +393,158 @@ def _initial_camera_poses(points_world: np.ndarray, xn: np.ndarray, centre_world
     return out
 
 
-_EYE3 = np.eye(3)
-START_MARGIN_CHI2 = 100.0
-"""A start is refined only when its whitened cost is within 2x + this of the best start's
-(refinement lowers a cost by about the 6 pose dof, rarely by tens: this keeps every start that
-could end within AMBIGUITY_CHI2 of the best, and skips mirror solutions)."""
-
-
-def _solve_floor(sightings: list[FloorSighting], camera: CameraModel, points_world: np.ndarray,
-                 uv: np.ndarray, xn: np.ndarray, whitening: np.ndarray, ambiguity_chi2: float):
-    """Best refined body pose for these sightings (corners `points_world` (4n, 3), `uv` (4n, 2) px,
-    `xn` undistorted, `whitening` (n, 8, 8)): (T_world_body, H, r_px, ambiguous) or None, with
-    H = J^T W^T W J at the solution and r_px (4n, 2) its reprojection error in pixels.
-
-    Starts: IPPE (IPPE_SQUARE for one code); SQPnP's too when no IPPE start refines to a fit
-    whose whitened error is plausible (`_chi2_bound`)."""
-    model = _FloorModel(camera, points_world, uv, whitening)
-    yaw_hint = edge_implied_yaw(sightings, camera, xn)
-    if len(sightings) == 1:
-        centre, methods = sightings[0].centre_world, (cv2.SOLVEPNP_IPPE_SQUARE,)
-    else:
-        centre, methods = None, (cv2.SOLVEPNP_IPPE, cv2.SOLVEPNP_SQPNP)
-    R_bc, t_bc = camera.T_body_cam[:3, :3], camera.T_body_cam[:3, 3]
-    starts: list = []
-    cands: list = []
-    for method in methods:
-        new = []
-        for R_cw, t_cw in _initial_camera_poses(points_world, xn, centre, method):
-            R_wb = R_cw.T @ R_bc.T                    # T_world_body = T_cam_world^-1 T_body_cam^-1
-            x0 = (R_wb, -R_cw.T @ t_cw - R_wb @ t_bc)
-            if not any(_same_pose(x0, x, 1e-3, 1e-3) for x in starts + new):
-                new.append(x0)                        # SQPnP's is usually one of IPPE's
-        if not new:
-            continue
-        starts += new
-        G0 = model.normal_equations(new)
-        costs = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
-        best0 = float(costs.min())
-        for k in np.argsort(costs):
-            if not costs[k] <= 2.0 * best0 + START_MARGIN_CHI2:
-                continue
-            sol = _levenberg_marquardt(model, new[k], G0[k])
-            if sol is None:
-                continue
-            x, G = sol
-            if not np.all(np.isfinite(G)):
-                continue
-            if x[0][2, :] @ t_bc + x[1][2] <= 0.0:     # camera under the floor: mirrored corners
-                continue
-            if yaw_hint is not None and \
-                    abs(wrap_angle(math.atan2(x[0][1, 0], x[0][0, 0]) - yaw_hint)) \
-                    > MAX_YAW_DEVIATION_RAD:
-                continue
-            if any(_same_pose(x, c[0], 1e-7, 1e-7) for c in cands):
-                continue
-            cands.append((x, G))
-        if cands and min(c[1][6, 6] for c in cands) <= _chi2_bound(8 * len(sightings)):
-            break                                     # SQPnP only when IPPE found no good fit
-    if not cands:
-        return None
-    best_sse = min(c[1][6, 6] for c in cands)
-    close = [c for c in cands if c[1][6, 6] <= best_sse + ambiguity_chi2]   # whitened: chi^2
-    x, G = max(close, key=lambda c: c[0][0][2, 2])    # the most level: body z nearest world z
-    return make_T(*x), G[:6, :6], model.residual_px(x), len(close) > 1
-
-
 def _chi2_bound(dof: int) -> float:
     """A loose upper bound of a chi-square(dof) draw (Wilson-Hilferty, about 5 sigma): a whitened
     cost above it means the start does not fit."""
     return dof * (1.0 - 2.0 / (9.0 * dof) + 5.0 * math.sqrt(2.0 / (9.0 * dof))) ** 3
+
+
+class _FloorCodes:
+    """The floor codes of a batch of frames, stacked: world corners P (c, 4, 3), symbol centres
+    (c, 3), observed px uv (c, 4, 2), undistorted xn (c, 4, 2), whitening W (c, 8, 8) and edge
+    vectors E (c, 2) (`_edge_vectors`)."""
+
+    def __init__(self, sightings: list[FloorSighting], camera: CameraModel, sigma: float):
+        self.P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)
+                           for s in sightings]).reshape(-1, 4, 3)
+        self.centres = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)
+                                 for s in sightings]).reshape(-1, 3)
+        self.uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2)
+                            for s in sightings]).reshape(-1, 4, 2)
+        self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
+        self.W = corner_whitening([s.detection for s in sightings], sigma)
+        self.E = _edge_vectors(self.xn, camera)
+
+
+def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: CameraModel,
+                       ambiguity_chi2: float) -> list[tuple | None]:
+    """Best refined body pose of each view (an array of code indices into `codes`):
+    (R_world_body, t_world_body, G (7, 7), r_px (4n, 2), ambiguous) or None.
+
+    Starts: IPPE (IPPE_SQUARE for one code), and SQPnP when no IPPE start refined to a fit whose
+    whitened error is plausible (`_chi2_bound`); refined in batches of views with the same number
+    of codes; candidates under the floor or > MAX_YAW_DEVIATION_RAD from the edge-implied yaw are
+    dropped; of those within `ambiguity_chi2` of the best, the most level."""
+    projector = Projector(camera)
+    R_bc, t_bc = camera.T_body_cam[:3, :3], camera.T_body_cam[:3, 3]
+    R_cb = np.ascontiguousarray(R_bc.T)
+    t_cb = -R_cb @ t_bc
+    hints = [_yaw_of_edges(codes.E[v].sum(axis=0)) for v in views]
+    starts: list[list] = [[] for _ in views]
+    cands: list[list] = [[] for _ in views]
+
+    def add_starts(which: list[int], sqpnp: bool) -> None:
+        """Starts of views `which`, refined in batches by number of codes, into `cands`."""
+        by_n: dict[int, list] = {}
+        for k in which:
+            v = views[k]
+            xn = codes.xn[v].reshape(-1, 2)
+            if not np.all(np.isfinite(xn)):
+                continue
+            method = cv2.SOLVEPNP_SQPNP if sqpnp else \
+                cv2.SOLVEPNP_IPPE_SQUARE if len(v) == 1 else cv2.SOLVEPNP_IPPE
+            for R_cw, t_cw in _initial_camera_poses(codes.P[v].reshape(-1, 3), xn,
+                                                    codes.centres[v[0]] if len(v) == 1 else None,
+                                                    method):
+                R_wb = R_cw.T @ R_cb               # T_world_body = T_cam_world^-1 T_cam_body
+                x0 = (R_wb, -R_cw.T @ t_cw - R_wb @ t_bc)
+                if not any(_same_pose(x0, x, 1e-3, 1e-3) for x in starts[k]):
+                    starts[k].append(x0)           # SQPnP's is usually one of IPPE's
+                    by_n.setdefault(len(v), []).append((k, x0))
+        for n, group in by_n.items():
+            idx = np.array([views[k] for k, _ in group])                        # (K, n)
+            problems = _FloorProblems(projector, R_cb, t_cb, codes.P[idx].reshape(-1, 4 * n, 3),
+                                      codes.uv[idx].reshape(-1, 4 * n, 2), codes.W[idx])
+            for k, R, t, G, r in _refine(problems, np.array([x[0] for _, x in group]),
+                                         np.array([x[1] for _, x in group]),
+                                         [k for k, _ in group]):
+                if not np.all(np.isfinite(G)):
+                    continue
+                if R[2] @ t_bc + t[2] <= 0.0:      # camera under the floor: mirrored corners
+                    continue
+                if hints[k] is not None and abs(wrap_angle(math.atan2(R[1, 0], R[0, 0])
+                                                           - hints[k])) > MAX_YAW_DEVIATION_RAD:
+                    continue
+                if any(_same_minimum((c[0], c[1]), c[2][:6, :6], (R, t)) for c in cands[k]):
+                    continue
+                cands[k].append((R, t, G, r))
+
+    add_starts(list(range(len(views))), sqpnp=False)
+    # SQPnP (a global solver) only where IPPE found no plausible fit
+    retry = [k for k, v in enumerate(views) if len(v) > 1 and
+             min((c[2][6, 6] for c in cands[k]), default=math.inf) > _chi2_bound(8 * len(v))]
+    if retry:
+        add_starts(retry, sqpnp=True)
+    out: list[tuple | None] = []
+    for cs in cands:
+        if not cs:
+            out.append(None)
+            continue
+        best = min(c[2][6, 6] for c in cs)
+        close = [c for c in cs if c[2][6, 6] <= best + ambiguity_chi2]      # whitened: chi^2
+        R, t, G, r = max(close, key=lambda c: c[0][2, 2])   # most level: body z nearest world z
+        out.append((R, t, G, r, len(close) > 1))
+    return out
+
+
+def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
+                         corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, *,
+                         max_rms_px: float = MAX_REPROJECTION_RMS_PX,
+                         ambiguity_chi2: float = AMBIGUITY_CHI2,
+                         gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD
+                         ) -> list[PnPResult | None]:
+    """`estimate_floor_pose` of many frames (each a list of floor sightings), computed together:
+    the corners undistorted and whitened at once, and the views refined in batches (one
+    vectorised evaluation per LM step for all frames with the same number of codes)."""
+    sigma = float(corner_sigma_px)
+    if not sigma > 0:
+        raise EstimationError(f"corner_sigma_px must be positive, got {corner_sigma_px!r}")
+    frames = [list(f) for f in frames]
+    out: list[PnPResult | None] = [None] * len(frames)
+    owner = [i for i, f in enumerate(frames) if f]
+    if not owner:
+        return out
+    all_sightings = [s for i in owner for s in frames[i]]
+    codes = _FloorCodes(all_sightings, camera, sigma)
+    first = np.cumsum([0] + [len(frames[i]) for i in owner])
+    views = [np.arange(a, b) for a, b in zip(first[:-1], first[1:])]
+    dropped: list[list[str]] = [[] for _ in owner]
+    done: list[tuple] = []                  # (k, R, t, H, rms, ambiguous)
+    pending = list(range(len(owner)))
+    while pending:
+        sols = _solve_floor_views(codes, [views[k] for k in pending], camera, ambiguity_chi2)
+        retry = []
+        for k, sol in zip(pending, sols):
+            if sol is None:
+                continue
+            R, t, G, r, ambiguous = sol
+            rms = float(np.sqrt(np.mean(r ** 2)))
+            if rms <= max_rms_px:
+                done.append((k, R, t, G[:6, :6], rms, ambiguous))
+            elif len(views[k]) > 1:          # leave out the worst-fitting code and solve again
+                worst = int(np.argmax((r.reshape(-1, 8) ** 2).sum(axis=1)))
+                dropped[k].append(all_sightings[views[k][worst]].detection.payload)
+                views[k] = np.delete(views[k], worst)
+                retry.append(k)
+        pending = retry
+    if not done:
+        return out
+    covs, ok = _covariances(np.array([d[3] for d in done]))   # H whitened: (J^T W J)^-1
+    gimbaled = camera.mount == "gimbaled"
+    for (k, R, t, _, rms, ambiguous), cov, good in zip(done, covs, ok):
+        if not good:
+            continue
+        T = make_T(R, t)
+        T_world_cam = T @ camera.T_body_cam
+        if gimbaled:
+            T = level_frame(T)
+            keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
+            cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad ** 2] * 2 + [0.0] * 4)
+        out[owner[k]] = PnPResult(
+            T_world_body=T, covariance=cov, T_world_cam=T_world_cam, n_codes=len(views[k]),
+            payloads=[all_sightings[c].detection.payload for c in views[k]],
+            reprojection_rms_px=rms, ambiguous=ambiguous, dropped_payloads=dropped[k])
+    return out
 
 
 def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
@@ -423,69 +556,29 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     """Body pose from all floor codes of one floor-camera frame, or None (no code, no solution,
     or reprojection RMS above `max_rms_px` even after leaving out the worst-fitting codes).
 
-    1. corners undistorted (`undistort`, once per frame); candidates: one code: IPPE_SQUARE's
-       two solutions; several: planar IPPE's two, and SQPnP's when neither fits the corners;
+    1. corners undistorted (`undistort`); candidates: one code: IPPE_SQUARE's two solutions;
+       several: planar IPPE's two, and SQPnP's when no IPPE candidate refines to a plausible fit;
     2. the candidates whose whitened error is within 2x + START_MARGIN_CHI2 of the best one's
        are refined by Gauss-Newton / LM on the reprojection error in distorted pixels over the
        body pose (`_levenberg_marquardt`; 2-4 evaluations);
     3. candidates whose yaw is > 90 deg from `edge_implied_yaw` are dropped (no 180-deg flips);
        of those whose squared error is within `ambiguity_chi2` sigma^2 of the best, the most level;
-    4. covariance (J^T W J)^-1, J = d(distorted px)/d(xi), xi the body-frame right
-       perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py), W block-diagonal
-       with one (8, 8) block C_i^-1 per code: C_i the detection's `corner_cov_px2` when set (its
-       corners come from one homography fit, so their errors are correlated), else
+    4. covariance (J^T W J)^-1, J = d(distorted px)/d(xi) at the returned pose, xi the body-frame
+       right perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3; fusion/qr/crb.py), W
+       block-diagonal with one (8, 8) block C_i^-1 per code: C_i the detection's `corner_cov_px2`
+       when set (its corners come from one homography fit, so their errors are correlated), else
        sigma_i^2 I with sigma_i its `corner_sigma_px`, else `corner_sigma_px`; the LM of step 2
-       minimises the same weighted error, and J is its last Jacobian.
+       minimises the same weighted error.
 
     "gimbaled" camera: the camera is stabilised, so the airframe's roll and pitch are not observed.
     The returned T_world_body is then the LEVEL body frame (roll = pitch = 0, estimated yaw and
     position), and its covariance keeps the PnP marginal of [rz, tx, ty, tz] while rx and ry get
-    variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no correlation."""
-    sightings = list(sightings)
-    dropped: list[str] = []
-    sigma = float(corner_sigma_px)
-    if not sigma > 0:
-        raise EstimationError(f"corner_sigma_px must be positive, got {corner_sigma_px!r}")
-    if not sightings:
-        return None
-    pts_all = np.vstack([np.asarray(s.corners_world, dtype=float).reshape(4, 3) for s in sightings])
-    uv_all = np.vstack([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2)
-                        for s in sightings])
-    xn_all = undistort(camera, uv_all)
-    if not np.all(np.isfinite(xn_all)):
-        return None
-    wht_all = corner_whitening([s.detection for s in sightings], sigma)
-    keep = list(range(len(sightings)))
-    while True:
-        rows = (4 * np.asarray(keep)[:, None] + np.arange(4)).reshape(-1)
-        sub = [sightings[i] for i in keep]
-        sol = _solve_floor(sub, camera, pts_all[rows], uv_all[rows], xn_all[rows], wht_all[keep],
-                           ambiguity_chi2)
-        if sol is None:
-            return None
-        T, H, r, ambiguous = sol
-        r = r.reshape(-1)                              # px, for the outlier test
-        rms = float(np.sqrt(np.mean(r ** 2)))
-        if rms <= max_rms_px:
-            break
-        if len(keep) < 2:
-            return None
-        per_code = (r.reshape(len(keep), 8) ** 2).sum(axis=1)
-        worst = int(np.argmax(per_code))
-        dropped.append(sub[worst].detection.payload)
-        del keep[worst]
-    try:
-        cov = covariance_from_information(H)       # H whitened: (J^T W J)^-1
-    except EstimationError:
-        return None
-    T_world_cam = T @ camera.T_body_cam
-    if camera.mount == "gimbaled":
-        T = level_frame(T)
-        keep6 = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
-        cov = keep6 @ cov @ keep6 + np.diag([gimbal_roll_pitch_sigma_rad ** 2] * 2 + [0.0] * 4)
-    return PnPResult(T_world_body=T, covariance=cov, T_world_cam=T_world_cam,
-                     n_codes=len(keep), payloads=[sightings[i].detection.payload for i in keep],
-                     reprojection_rms_px=rms, ambiguous=ambiguous, dropped_payloads=dropped)
+    variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no correlation.
+
+    Many frames: `estimate_floor_poses` (the same, about 10x faster per frame)."""
+    return estimate_floor_poses([sightings], camera, corner_sigma_px, max_rms_px=max_rms_px,
+                                ambiguity_chi2=ambiguity_chi2,
+                                gimbal_roll_pitch_sigma_rad=gimbal_roll_pitch_sigma_rad)[0]
 
 
 # ============================================================================ front camera
@@ -515,6 +608,77 @@ def position_jacobian_wrt_body(T_world_body: np.ndarray, camera: CameraModel,
     return J
 
 
+def estimate_load_observations_frames(
+        frames: list[tuple[list[LoadSighting], np.ndarray, np.ndarray | None]],
+        camera: CameraModel, world: World, corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, *,
+        max_rms_px: float = MAX_REPROJECTION_RMS_PX, ambiguity_chi2: float = AMBIGUITY_CHI2
+        ) -> list[list[LoadObservation]]:
+    """`estimate_load_observations` of many front-camera frames, each given as (sightings,
+    T_world_body, cov_body or None), computed together (all codes' LM steps in one vectorised
+    evaluation); one list of observations per frame."""
+    sigma = float(corner_sigma_px)
+    items = [(f, s) for f, (sightings, _, _) in enumerate(frames) for s in sightings
+             if np.asarray(s.detection.corners_px, dtype=float).shape == (4, 2)]
+    out: list[list[LoadObservation]] = [[] for _ in frames]
+    if not items:
+        return out
+    uv = np.array([np.asarray(s.detection.corners_px, dtype=float) for _, s in items])
+    xn = undistort(camera, uv.reshape(-1, 2)).reshape(-1, 4, 2)
+    W = corner_whitening([s.detection for _, s in items], sigma)
+    corners_S = symbol_corners_S(world.load_side_m)
+    obj = _cv_points(corners_S)
+    owner, R0, t0 = [], [], []
+    for c in range(len(items)):
+        if not np.all(np.isfinite(xn[c])):
+            continue
+        try:
+            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, _cv_points(xn[c]), _EYE3, None,
+                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        except cv2.error:
+            continue
+        for rv, tv in zip(rvecs[:n], tvecs[:n]):
+            owner.append(c)
+            R0.append(cv2.Rodrigues(rv)[0])
+            t0.append(tv.reshape(3))
+    if not owner:
+        return out
+    idx = np.array(owner)
+    problems = _SymbolProblems(Projector(camera), corners_S, uv[idx], W[idx][:, None])
+    cands: dict[int, list] = {}
+    for c, R, t, G, r in _refine(problems, np.array(R0), np.array(t0), owner):
+        if np.all(np.isfinite(G)) and t[2] > 0:
+            cands.setdefault(c, []).append((R, t, G, r))
+    T_world_cam = [camera_pose(np.asarray(T, dtype=float), camera) for _, T, _ in frames]
+    chosen = []
+    for c, cs in sorted(cands.items()):
+        R_wc = T_world_cam[items[c][0]][:3, :3]
+        best = min(x[2][6, 6] for x in cs)
+        close = [x for x in cs if x[2][6, 6] <= best + ambiguity_chi2]     # whitened: chi^2
+        R, t, G, r = max(close, key=lambda x: (R_wc @ x[0][:, 1])[2])     # symbol up nearest +z
+        if float(np.sqrt(np.mean(r ** 2))) <= max_rms_px:
+            chosen.append((c, t, G[:6, :6]))
+    if not chosen:
+        return out
+    covs, ok = _covariances(np.array([x[2] for x in chosen]))
+    for (c, t, _), cov, good in zip(chosen, covs, ok):
+        if not good:
+            continue
+        f, s = items[c]
+        _, T_world_body, cov_body = frames[f]
+        R_wc, t_wc = T_world_cam[f][:3, :3], T_world_cam[f][:3, 3]
+        cov_cam = cov[3:, 3:].copy()
+        p_cam = t.copy()
+        cov_world = R_wc @ cov_cam @ R_wc.T
+        if cov_body is not None:
+            Jb = position_jacobian_wrt_body(np.asarray(T_world_body, dtype=float), camera, p_cam)
+            cov_world = cov_world + Jb @ np.asarray(cov_body, dtype=float) @ Jb.T
+        out[f].append(LoadObservation(timestamp_ns=int(s.detection.timestamp_ns),
+                                      load_id=s.load_id, p_world=R_wc @ p_cam + t_wc,
+                                      cov_world=0.5 * (cov_world + cov_world.T), p_cam=p_cam,
+                                      cov_cam=cov_cam, corners_px=uv[c].copy()))
+    return out
+
+
 def estimate_load_observations(sightings: list[LoadSighting], camera: CameraModel, world: World,
                                T_world_body: np.ndarray, cov_body: np.ndarray | None = None,
                                corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, *,
@@ -524,86 +688,26 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     side world.load_side_m (reprojection RMS <= max_rms_px; others are skipped).
 
     p_cam (3,) = the code centre in the camera frame (m) from IPPE_SQUARE + LM in distorted pixels
-    (both IPPE solutions when their whitened errors are within 2x + START_MARGIN_CHI2 of each
-    other, else the better one), cov_cam (3, 3) = the centre block of (J^T C^-1 J)^-1
-    (fusion/qr/crb.symbol_reprojection), C the detection's `corner_cov_px2`, else sigma^2 I with
-    sigma its `corner_sigma_px`, else `corner_sigma_px` (the LM minimises the same weighted error);
+    (both IPPE solutions unless one fits far worse: START_MARGIN_CHI2), cov_cam (3, 3) = the centre
+    block of (J^T C^-1 J)^-1 (fusion/qr/crb.symbol_reprojection), C the detection's
+    `corner_cov_px2`, else sigma^2 I with sigma its `corner_sigma_px`, else `corner_sigma_px` (the
+    LM minimises the same weighted error);
     p_world = T_world_cam p_cam with T_world_cam = camera_pose(T_world_body, camera), and
     cov_world = R_world_cam cov_cam R_world_cam^T + J_b cov_body J_b^T, J_b = d p_world / d xi
     (`position_jacobian_wrt_body`) for the body-frame right perturbation xi of T_world_body
     (cov_body None: drone pose exact).
     IPPE's two-fold ambiguity barely moves the centre; when both fit, the one whose symbol "up"
-    is nearer world +z is taken (load codes hang on vertical faces, up = +z)."""
-    sightings = [s for s in sightings
-                 if np.asarray(s.detection.corners_px, dtype=float).shape == (4, 2)]
-    if not sightings:
-        return []
-    sigma = float(corner_sigma_px)
-    T_world_body = np.asarray(T_world_body, dtype=float)
-    T_world_cam = camera_pose(T_world_body, camera)
-    R_wc = T_world_cam[:3, :3]
-    corners_S = symbol_corners_S(world.load_side_m)
-    obj = _cv_points(corners_S)
-    projector = Projector(camera)
-    uv_all = np.vstack([np.asarray(s.detection.corners_px, dtype=float) for s in sightings])
-    xn_all = undistort(camera, uv_all).reshape(-1, 4, 2)
-    wht_all = corner_whitening([s.detection for s in sightings], sigma)
-    out = []
-    for k, s in enumerate(sightings):
-        uv, xn = uv_all[4 * k:4 * k + 4], xn_all[k]
-        if not np.all(np.isfinite(xn)):
-            continue
-        try:
-            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, _cv_points(xn), _EYE3, None,
-                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        except cv2.error:
-            continue
-        model = _SymbolModel(projector, corners_S, uv, wht_all[k:k + 1])
-        starts = [(cv2.Rodrigues(rv)[0], tv.reshape(3)) for rv, tv in zip(rvecs[:n], tvecs[:n])]
-        if not starts:
-            continue
-        G0 = model.normal_equations(starts)
-        costs = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
-        best0 = float(costs.min())
-        cands = []
-        for k, x0 in enumerate(starts):
-            if not costs[k] <= 2.0 * best0 + START_MARGIN_CHI2:
-                continue
-            sol = _levenberg_marquardt(model, x0, G0[k])
-            if sol is None:
-                continue
-            (R, t), G = sol
-            if np.all(np.isfinite(G)) and t[2] > 0:
-                cands.append((R, t, G, float(G[6, 6])))
-        if not cands:
-            continue
-        best_sse = min(c[3] for c in cands)
-        close = [c for c in cands if c[3] <= best_sse + ambiguity_chi2]      # whitened: chi^2
-        R, t, G, _ = max(close, key=lambda c: (R_wc @ c[0][:, 1])[2])
-        r_px = model.residual_px((R, t))
-        if not float(np.sqrt(np.mean(r_px ** 2))) <= max_rms_px:
-            continue
-        try:
-            cov_cam = covariance_from_information(G[:6, :6])[3:, 3:]
-        except EstimationError:
-            continue
-        p_cam = t.copy()
-        p_world = R_wc @ p_cam + T_world_cam[:3, 3]
-        cov_world = R_wc @ cov_cam @ R_wc.T
-        if cov_body is not None:
-            Jb = position_jacobian_wrt_body(T_world_body, camera, p_cam)
-            cov_world = cov_world + Jb @ np.asarray(cov_body, dtype=float) @ Jb.T
-        out.append(LoadObservation(timestamp_ns=int(s.detection.timestamp_ns), load_id=s.load_id,
-                                   p_world=p_world, cov_world=0.5 * (cov_world + cov_world.T),
-                                   p_cam=p_cam, cov_cam=cov_cam,
-                                   corners_px=uv.copy()))
-    return out
+    is nearer world +z is taken (load codes hang on vertical faces, up = +z).
+
+    Many frames: `estimate_load_observations_frames` (the same, computed together)."""
+    return estimate_load_observations_frames([(sightings, T_world_body, cov_body)], camera, world,
+                                             corner_sigma_px, max_rms_px=max_rms_px,
+                                             ambiguity_chi2=ambiguity_chi2)[0]
 
 
 # ============================================================================ whole flights
 
 
-@dataclass
 class PnPStats:
     """What happened to a flight's floor-camera frames."""
     n_frames: int = 0
@@ -617,35 +721,46 @@ class PnPStats:
     mean_reprojection_rms_px: float = float("nan")
 
 
+FRAMES_PER_BATCH = 512
+"""Frames solved together by `pnp_trajectory` / `pnp_load_observations` (bounded memory)."""
+
+
 def pnp_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, world: World,
                    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, name: str = "pnp"
                    ) -> tuple[Trajectory, PnPStats]:
     """Per-frame PnP body poses of a floor-camera flight: {timestamp_ns: detections} ->
     (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
-    left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used."""
+    left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used.
+    Each frame is solved on its own (`estimate_floor_pose`), FRAMES_PER_BATCH frames at a time
+    (`estimate_floor_poses`)."""
     stats = PnPStats()
     ts_out, T_out, cov_out, rms = [], [], [], []
     codes_seen = []
     per_pose: Counter = Counter()
+    with_floor = []
     for ts in sorted(frames):
         stats.n_frames += 1
         codes = classify(frames[ts], world)
         codes_seen.append(codes)
-        if not codes.floor:
+        if codes.floor:
+            with_floor.append((ts, codes.floor))
+        else:
             stats.n_without_floor_code += 1
-            continue
-        res = estimate_floor_pose(codes.floor, camera, corner_sigma_px)
-        if res is None:
-            stats.n_unsolved += 1
-            continue
-        stats.n_posed += 1
-        stats.n_ambiguous += int(res.ambiguous)
-        stats.n_codes_dropped += len(res.dropped_payloads)
-        per_pose[res.n_codes] += 1
-        ts_out.append(int(ts))
-        T_out.append(res.T_world_body)
-        cov_out.append(res.covariance)
-        rms.append(res.reprojection_rms_px)
+    for b in range(0, len(with_floor), FRAMES_PER_BATCH):
+        batch = with_floor[b:b + FRAMES_PER_BATCH]
+        for (ts, _), res in zip(batch, estimate_floor_poses([f for _, f in batch], camera,
+                                                            corner_sigma_px)):
+            if res is None:
+                stats.n_unsolved += 1
+                continue
+            stats.n_posed += 1
+            stats.n_ambiguous += int(res.ambiguous)
+            stats.n_codes_dropped += len(res.dropped_payloads)
+            per_pose[res.n_codes] += 1
+            ts_out.append(int(ts))
+            T_out.append(res.T_world_body)
+            cov_out.append(res.covariance)
+            rms.append(res.reprojection_rms_px)
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:
@@ -686,8 +801,9 @@ def pnp_load_observations(front_frames: dict[int, list[QRDetection]], front_came
                           max_gap_s: float = 0.1) -> list[LoadObservation]:
     """Load observations of a flight's front-camera frames ({timestamp_ns: detections}), placed
     with the drone pose of `trajectory` at each frame (`pose_at`); frames without a pose are
-    skipped.  Rejected payloads (classify) are never used."""
-    out: list[LoadObservation] = []
+    skipped.  Rejected payloads (classify) are never used.  Solved FRAMES_PER_BATCH frames at a
+    time (`estimate_load_observations_frames`)."""
+    todo = []
     for ts in sorted(front_frames):
         codes = classify(front_frames[ts], world)
         if not codes.loads:
@@ -695,9 +811,12 @@ def pnp_load_observations(front_frames: dict[int, list[QRDetection]], front_came
         pose = pose_at(trajectory, ts, max_gap_s)
         if pose is None:
             continue
-        T_world_body, cov = pose
-        out.extend(estimate_load_observations(codes.loads, front_camera, world, T_world_body, cov,
-                                              corner_sigma_px))
+        todo.append((codes.loads, pose[0], pose[1]))
+    out: list[LoadObservation] = []
+    for b in range(0, len(todo), FRAMES_PER_BATCH):
+        for obs in estimate_load_observations_frames(todo[b:b + FRAMES_PER_BATCH], front_camera,
+                                                     world, corner_sigma_px):
+            out.extend(obs)
     return out
 
 
