@@ -58,6 +58,8 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 def so3_exp_stack(w: np.ndarray) -> np.ndarray:
     """(K, 3, 3) rotation matrices exp([w_k]x) of (K, 3) rotation vectors (Rodrigues, as so3_exp)."""
     w = np.asarray(w, dtype=float)
+    if len(w) == 1:
+        return so3_exp(w[0])[None]
     th2 = np.einsum("ki,ki->k", w, w)
     small = th2 < 1e-8
     th = np.sqrt(th2)

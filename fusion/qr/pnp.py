@@ -281,59 +281,70 @@ def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
     raised the cost; a problem stops when its predicted decrease g^T H^-1 g is below
     CONVERGED_DECREMENT cost: from IPPE / SQPnP starts that takes 2-4 evaluations."""
     R, t, G = R.copy(), t.copy(), G.copy()
-    lam = np.zeros(len(R))
-    active = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))
+    idx = np.flatnonzero(np.isfinite(G).all(axis=(1, 2)))      # the problems still iterating
+    if len(idx) < len(R):
+        problems = problems.subset(idx)
+    Ra, ta, Ga = R[idx], t[idx], G[idx]                         # their current poses
+    lam = np.zeros(len(idx))
     diag = np.arange(6)
     for _ in range(max_iter):
-        if len(active) == 0:
+        if len(idx) == 0:
             break
-        Ga = G[active]
         H, g = Ga[:, :6, :6], Ga[:, :6, 6]
-        H[:, diag, diag] *= (1.0 + lam[active])[:, None]
+        if lam.any():
+            H = H.copy()
+            H[:, diag, diag] *= (1.0 + lam)[:, None]
         try:
             delta = np.linalg.solve(H, -g[:, :, None])[:, :, 0]
         except np.linalg.LinAlgError:                  # one is singular: one at a time
             delta = np.full(g.shape, np.nan)
-            for i in range(len(active)):
+            for i in range(len(idx)):
                 try:
                     delta[i] = np.linalg.solve(H[i], -g[i])
                 except np.linalg.LinAlgError:
                     pass
         decrease = -np.einsum("ki,ki->k", g, delta)
         going = decrease > CONVERGED_DECREMENT * Ga[:, 6, 6] + 1e-15     # False for NaN
-        step = active[going]
-        if len(step) == 0:
-            break
-        R_new, t_new = problems.retract(R[step], t[step], delta[going])
-        G_new = problems.subset(step).normal_equations(R_new, t_new)
-        better = G_new[:, 6, 6] <= G[step, 6, 6]                         # False for NaN
-        k = step[better]
-        R[k], t[k], G[k] = R_new[better], t_new[better], G_new[better]
-        lam[k] = np.where(lam[k] <= 1e-3, 0.0, 0.1 * lam[k])
-        k = step[~better]
-        lam[k] = np.where(lam[k] == 0.0, 1e-3, 10.0 * lam[k])
-        active = np.sort(np.concatenate([step[better], k[lam[k] <= 1e6]]))
+        if not going.all():                            # converged ones leave the batch
+            R[idx], t[idx], G[idx] = Ra, ta, Ga
+            idx, Ra, ta, Ga, lam, delta = (idx[going], Ra[going], ta[going], Ga[going],
+                                           lam[going], delta[going])
+            if len(idx) == 0:
+                break
+            problems = problems.subset(going)
+        R_new, t_new = problems.retract(Ra, ta, delta)
+        G_new = problems.normal_equations(R_new, t_new)
+        better = G_new[:, 6, 6] <= Ga[:, 6, 6]                           # False for NaN
+        if better.all():
+            Ra, ta, Ga = R_new, t_new, G_new
+            if lam.any():
+                lam = np.where(lam <= 1e-3, 0.0, 0.1 * lam)
+            continue
+        Ra[better], ta[better], Ga[better] = R_new[better], t_new[better], G_new[better]
+        lam = np.where(better, np.where(lam <= 1e-3, 0.0, 0.1 * lam),
+                       np.where(lam == 0.0, 1e-3, 10.0 * lam))
+        alive = lam <= 1e6                             # else give up: it cannot descend
+        if not alive.all():
+            R[idx], t[idx], G[idx] = Ra, ta, Ga
+            idx, Ra, ta, Ga, lam = idx[alive], Ra[alive], ta[alive], Ga[alive], lam[alive]
+            problems = problems.subset(alive)
+    R[idx], t[idx], G[idx] = Ra, ta, Ga
     return R, t, G
 
 
-def _refine(problems, R: np.ndarray, t: np.ndarray, owner: list[int]):
+def _refine(problems, R: np.ndarray, t: np.ndarray, owner: np.ndarray):
     """Refine starts R (K, 3, 3), t (K, 3) of `problems` (one per start; `owner[k]` the view it
     belongs to): all evaluated in one batch, those whose whitened cost is within
     2x + START_MARGIN_CHI2 of their view's best refined by `_levenberg_marquardt`.
-    Returns (owner, R, t, G (7, 7), r_px) per refined start."""
+    Returns owner (K',), R (K', 3, 3), t (K', 3), G (K', 7, 7), r_px (K', N, 2) of those."""
     G0 = problems.normal_equations(R, t)
     cost = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
-    best: dict[int, float] = {}
-    for o, c in zip(owner, cost.tolist()):
-        best[o] = min(best.get(o, math.inf), c)
-    keep = np.array([c <= 2.0 * best[o] + START_MARGIN_CHI2 for o, c in zip(owner, cost.tolist())])
-    keep = np.flatnonzero(keep)
-    if len(keep) == 0:
-        return []
+    best = np.full(owner.max() + 1, np.inf)
+    np.minimum.at(best, owner, cost)
+    keep = np.flatnonzero(cost <= 2.0 * best[owner] + START_MARGIN_CHI2)
     sub = problems.subset(keep)
     R, t, G = _levenberg_marquardt(sub, R[keep], t[keep], G0[keep])
-    r = sub.residual_px(R, t)
-    return [(owner[k], R[i], t[i], G[i], r[i]) for i, k in enumerate(keep.tolist())]
+    return owner[keep], R, t, G, sub.residual_px(R, t)
 
 
 # ============================================================================ floor camera
@@ -393,6 +404,89 @@ def _initial_camera_poses(points_world: np.ndarray, xn: np.ndarray, centre_world
     return out
 
 
+IPPE_BATCH_MIN = 4
+"""Fewer views than this are initialised by OpenCV's IPPE one at a time (faster than `_ippe`'s
+vectorised form for a handful)."""
+
+
+def _ippe(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """IPPE (Collins & Bartoli, "Infinitesimal Plane-Based Pose Estimation", IJCV 2014, Sec. 4 and
+    Algorithm 1) for K views at once: plane points X (K, N, 2) (z = 0, N >= 4) and their
+    normalised image points xn (K, N, 2) -> the two candidate poses of each view, R (K, 2, 3, 3),
+    t (K, 2, 3) with p_cam = R [x, y, 0] + t (as cv2.solvePnPGeneric(SOLVEPNP_IPPE), whose
+    homography estimate differs slightly for N > 4).  Raises np.linalg.LinAlgError when a view
+    is degenerate.
+
+    Homography H (plane -> image, h22 = 1) by the normalised DLT (Hartley & Zisserman 2004,
+    Alg. 4.2); J its Jacobian at the plane origin, v = H(0); R_v rotates z onto the ray of v
+    (IPPE eq. 29); A = B^-1 J with B = [I2, -v] R_v[:, :2]; gamma = the largest singular value of A
+    and R~ = A / gamma the top-left 2x2 of R_v^T R, completed to a rotation in the two ways b, -b
+    (eq. 30-32); each t by linear least squares on the projection equations (eq. 37)."""
+    K, N = X.shape[:2]
+    mx = X.mean(axis=1, keepdims=True)
+    Xc = X - mx                                               # plane points about their mean
+    sx = np.sqrt(2.0 / (Xc ** 2).sum(axis=2).mean(axis=1))    # Hartley scaling (K,)
+    my = xn.mean(axis=1, keepdims=True)
+    sy = np.sqrt(2.0 / ((xn - my) ** 2).sum(axis=2).mean(axis=1))
+    a = Xc * sx[:, None, None]
+    b = (xn - my) * sy[:, None, None]
+    A = np.zeros((K, N, 2, 9))                                # DLT rows, h = H row-major
+    A[:, :, 0, 0:2] = a
+    A[:, :, 0, 2] = 1.0
+    A[:, :, 1, 3:5] = a
+    A[:, :, 1, 5] = 1.0
+    A[:, :, 0, 6:8] = -b[:, :, 0:1] * a
+    A[:, :, 0, 8] = -b[:, :, 0]
+    A[:, :, 1, 6:8] = -b[:, :, 1:2] * a
+    A[:, :, 1, 8] = -b[:, :, 1]
+    A = A.reshape(K, 2 * N, 9)
+    M = A.transpose(0, 2, 1) @ A
+    h = np.linalg.solve(M[:, :8, :8], -M[:, :8, 8:])[:, :, 0]
+    Hn = np.concatenate([h, np.ones((K, 1))], axis=1).reshape(K, 3, 3)
+    T_inv = np.zeros((K, 3, 3))                               # undo the image normalisation
+    T_inv[:, 0, 0] = T_inv[:, 1, 1] = 1.0 / sy
+    T_inv[:, :2, 2] = my[:, 0]
+    T_inv[:, 2, 2] = 1.0
+    H = (T_inv @ Hn) * np.stack([sx, sx, np.ones(K)], axis=1)[:, None, :]
+    H = H / H[:, 2:3, 2:3]                                    # centred plane -> image
+    v = H[:, :2, 2]
+    J = H[:, :2, :2] - H[:, 2:3, :2] * H[:, :2, 2:3]          # d(image) / d(plane) at the origin
+    ray = np.concatenate([v, np.ones((K, 1))], axis=1) / np.sqrt(1.0 + (v ** 2).sum(axis=1))[:, None]
+    ax, ay, az = ray[:, 0], ray[:, 1], ray[:, 2]
+    d = 1.0 / (1.0 + az)
+    Rv = np.empty((K, 3, 3))                                  # R_v e_z = ray
+    Rv[:, 0, 0], Rv[:, 0, 1], Rv[:, 0, 2] = 1.0 - ax * ax * d, -ax * ay * d, ax
+    Rv[:, 1, 0], Rv[:, 1, 1], Rv[:, 1, 2] = -ax * ay * d, 1.0 - ay * ay * d, ay
+    Rv[:, 2, 0], Rv[:, 2, 1], Rv[:, 2, 2] = -ax, -ay, 1.0 - (ax * ax + ay * ay) * d
+    B = Rv[:, :2, :2] - v[:, :, None] * Rv[:, 2:3, :2]
+    Am = np.linalg.solve(B, J)
+    ata = Am.transpose(0, 2, 1) @ Am
+    tr = ata[:, 0, 0] + ata[:, 1, 1]
+    det = ata[:, 0, 0] * ata[:, 1, 1] - ata[:, 0, 1] ** 2
+    gamma = np.sqrt(0.5 * (tr + np.sqrt(np.maximum(tr * tr - 4.0 * det, 0.0))))
+    Rt = Am / gamma[:, None, None]
+    b0 = np.sqrt(np.maximum(1.0 - Rt[:, 0, 0] ** 2 - Rt[:, 1, 0] ** 2, 0.0))
+    b1 = np.sqrt(np.maximum(1.0 - Rt[:, 0, 1] ** 2 - Rt[:, 1, 1] ** 2, 0.0))
+    b1 = np.where(Rt[:, 0, 0] * Rt[:, 0, 1] + Rt[:, 1, 0] * Rt[:, 1, 1] > 0.0, -b1, b1)
+    R = np.empty((K, 2, 3, 3))
+    for i, sign in enumerate((1.0, -1.0)):
+        c1 = np.stack([Rt[:, 0, 0], Rt[:, 1, 0], sign * b0], axis=1)
+        c2 = np.stack([Rt[:, 0, 1], Rt[:, 1, 1], sign * b1], axis=1)
+        R[:, i] = Rv @ np.stack([c1, c2, np.cross(c1, c2)], axis=2)
+    # t: least squares of [1, 0, -u; 0, 1, -v] t = [u r_z - r_x, v r_z - r_y], r = R [x, y, 0]
+    r = Xc[:, None] @ R[:, :, :, :2].transpose(0, 1, 3, 2)    # (K, 2, N, 3)
+    u, w = xn[:, None, :, 0], xn[:, None, :, 1]
+    ATA = np.zeros((K, 1, 3, 3))
+    ATA[:, 0, 0, 0] = ATA[:, 0, 1, 1] = N
+    ATA[:, 0, 0, 2] = ATA[:, 0, 2, 0] = -xn[:, :, 0].sum(axis=1)
+    ATA[:, 0, 1, 2] = ATA[:, 0, 2, 1] = -xn[:, :, 1].sum(axis=1)
+    ATA[:, 0, 2, 2] = (xn ** 2).sum(axis=(1, 2))
+    bx, by = u * r[..., 2] - r[..., 0], w * r[..., 2] - r[..., 1]
+    ATb = np.stack([bx.sum(-1), by.sum(-1), -(u * bx + w * by).sum(-1)], axis=-1)
+    t = np.linalg.solve(np.broadcast_to(ATA, (K, 2, 3, 3)), ATb[..., None])[..., 0]
+    return R, t - (R[..., :2] @ mx[:, :, :, None])[..., 0]      # p_cam = R ([x, y] - mx) + t
+
+
 def _chi2_bound(dof: int) -> float:
     """A loose upper bound of a chi-square(dof) draw (Wilson-Hilferty, about 5 sigma): a whitened
     cost above it means the start does not fit."""
@@ -419,7 +513,7 @@ class _FloorCodes:
 def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: CameraModel,
                        ambiguity_chi2: float) -> list[tuple | None]:
     """Best refined body pose of each view (an array of code indices into `codes`):
-    (R_world_body, t_world_body, G (7, 7), r_px (4n, 2), ambiguous) or None.
+    (R_world_body, t_world_body, H (6, 6), rms_px, ambiguous) or None; H = J^T W^T W J there.
 
     Starts: IPPE (IPPE_SQUARE for one code), and SQPnP when no IPPE start refined to a fit whose
     whitened error is plausible (`_chi2_bound`); refined in batches of views with the same number
@@ -429,45 +523,79 @@ def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: Came
     R_bc, t_bc = camera.T_body_cam[:3, :3], camera.T_body_cam[:3, 3]
     R_cb = np.ascontiguousarray(R_bc.T)
     t_cb = -R_cb @ t_bc
-    hints = [_yaw_of_edges(codes.E[v].sum(axis=0)) for v in views]
+    E = np.zeros((len(views), 2))                    # each view's sum of its codes' edge vectors
+    np.add.at(E, np.repeat(np.arange(len(views)), [len(v) for v in views]),
+              codes.E[np.concatenate(views)])
+    hints = np.where(np.any(E != 0.0, axis=1), -np.arctan2(E[:, 1], E[:, 0]), np.nan)
+    finite = np.isfinite(codes.xn).all(axis=(1, 2))
     starts: list[list] = [[] for _ in views]
     cands: list[list] = [[] for _ in views]
 
     def add_starts(which: list[int], sqpnp: bool) -> None:
         """Starts of views `which`, refined in batches by number of codes, into `cands`."""
-        by_n: dict[int, list] = {}
-        for k in which:
-            v = views[k]
-            xn = codes.xn[v].reshape(-1, 2)
-            if not np.all(np.isfinite(xn)):
-                continue
-            method = cv2.SOLVEPNP_SQPNP if sqpnp else \
-                cv2.SOLVEPNP_IPPE_SQUARE if len(v) == 1 else cv2.SOLVEPNP_IPPE
-            for R_cw, t_cw in _initial_camera_poses(codes.P[v].reshape(-1, 3), xn,
-                                                    codes.centres[v[0]] if len(v) == 1 else None,
-                                                    method):
-                R_wb = R_cw.T @ R_cb               # T_world_body = T_cam_world^-1 T_cam_body
-                x0 = (R_wb, -R_cw.T @ t_cw - R_wb @ t_bc)
-                if not any(_same_pose(x0, x, 1e-3, 1e-3) for x in starts[k]):
-                    starts[k].append(x0)           # SQPnP's is usually one of IPPE's
-                    by_n.setdefault(len(v), []).append((k, x0))
+        which = [k for k in which if finite[views[k]].all()]
+        owner, R_cw, t_cw = [], [], []
+        if not sqpnp:                               # IPPE, vectorised over views of n codes
+            by_n: dict[int, list[int]] = {}
+            for k in which:
+                by_n.setdefault(len(views[k]), []).append(k)
+            for n, ks in by_n.items():
+                idx = np.array([views[k] for k in ks])
+                P = codes.P[idx].reshape(-1, 4 * n, 3)
+                try:
+                    if len(ks) < IPPE_BATCH_MIN or np.any(P[:, :, 2] != 0.0):
+                        raise np.linalg.LinAlgError("few views, or not on the floor z = 0")
+                    R, t = _ippe(P[:, :, :2], codes.xn[idx].reshape(-1, 4 * n, 2))
+                except np.linalg.LinAlgError:       # OpenCV's, one view at a time
+                    fallback = [(k, R_, t_) for k in ks for R_, t_ in _initial_camera_poses(
+                        codes.P[views[k]].reshape(-1, 3), codes.xn[views[k]].reshape(-1, 2),
+                        codes.centres[views[k][0]] if n == 1 else None,
+                        cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE)]
+                    owner += [k for k, _, _ in fallback]
+                    R_cw += [R_ for _, R_, _ in fallback]
+                    t_cw += [t_ for _, _, t_ in fallback]
+                    continue
+                owner += [k for k in ks for _ in range(2)]
+                R_cw += list(R.reshape(-1, 3, 3))
+                t_cw += list(t.reshape(-1, 3))
+        else:
+            for k in which:
+                v = views[k]
+                for R, t in _initial_camera_poses(codes.P[v].reshape(-1, 3),
+                                                  codes.xn[v].reshape(-1, 2), None,
+                                                  cv2.SOLVEPNP_SQPNP):
+                    owner.append(k)
+                    R_cw.append(R)
+                    t_cw.append(t)
+        if not owner:
+            return
+        R_wc = np.array(R_cw).transpose(0, 2, 1)
+        R_wb = R_wc @ R_cb                          # T_world_body = T_cam_world^-1 T_cam_body
+        t_wb = -(R_wc @ np.array(t_cw)[:, :, None])[:, :, 0] - R_wb @ t_bc
+        by_n: dict[int, list[int]] = {}
+        for i, k in enumerate(owner):
+            x0 = (R_wb[i], t_wb[i])
+            if not any(_same_pose(x0, x, 1e-3, 1e-3) for x in starts[k]):
+                starts[k].append(x0)                # SQPnP's is usually one of IPPE's
+                by_n.setdefault(len(views[k]), []).append(i)
         for n, group in by_n.items():
-            idx = np.array([views[k] for k, _ in group])                        # (K, n)
+            own = np.array(owner)[group]
+            idx = np.array([views[k] for k in own])                              # (K, n)
             problems = _FloorProblems(projector, R_cb, t_cb, codes.P[idx].reshape(-1, 4 * n, 3),
                                       codes.uv[idx].reshape(-1, 4 * n, 2), codes.W[idx])
-            for k, R, t, G, r in _refine(problems, np.array([x[0] for _, x in group]),
-                                         np.array([x[1] for _, x in group]),
-                                         [k for k, _ in group]):
-                if not np.all(np.isfinite(G)):
+            own, R, t, G, r = _refine(problems, R_wb[group], t_wb[group], own)
+            hint = hints[own]
+            ok = np.isfinite(G).all(axis=(1, 2)) \
+                & (R[:, 2] @ t_bc + t[:, 2] > 0.0) \
+                & (np.isnan(hint) | (np.abs(wrap_angle(np.arctan2(R[:, 1, 0], R[:, 0, 0]) - hint))
+                                     <= MAX_YAW_DEVIATION_RAD))
+            # (camera above the floor: else mirrored corners; yaw near the edges': no flip)
+            rms = np.sqrt(np.mean(r ** 2, axis=(1, 2)))
+            for i in np.flatnonzero(ok).tolist():
+                k = int(own[i])
+                if any(_same_minimum((c[0], c[1]), c[2][:6, :6], (R[i], t[i])) for c in cands[k]):
                     continue
-                if R[2] @ t_bc + t[2] <= 0.0:      # camera under the floor: mirrored corners
-                    continue
-                if hints[k] is not None and abs(wrap_angle(math.atan2(R[1, 0], R[0, 0])
-                                                           - hints[k])) > MAX_YAW_DEVIATION_RAD:
-                    continue
-                if any(_same_minimum((c[0], c[1]), c[2][:6, :6], (R, t)) for c in cands[k]):
-                    continue
-                cands[k].append((R, t, G, r))
+                cands[k].append((R[i], t[i], G[i], r[i], float(rms[i])))
 
     add_starts(list(range(len(views))), sqpnp=False)
     # SQPnP (a global solver) only where IPPE found no plausible fit
@@ -477,13 +605,13 @@ def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: Came
         add_starts(retry, sqpnp=True)
     out: list[tuple | None] = []
     for cs in cands:
-        if not cs:
-            out.append(None)
+        if len(cs) < 2:
+            out.append((*cs[0], False) if cs else None)
             continue
         best = min(c[2][6, 6] for c in cs)
         close = [c for c in cs if c[2][6, 6] <= best + ambiguity_chi2]      # whitened: chi^2
-        R, t, G, r = max(close, key=lambda c: c[0][2, 2])   # most level: body z nearest world z
-        out.append((R, t, G, r, len(close) > 1))
+        c = max(close, key=lambda c: c[0][2, 2])      # most level: body z nearest world z
+        out.append((*c, len(close) > 1))
     return out
 
 
@@ -517,8 +645,7 @@ def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
         for k, sol in zip(pending, sols):
             if sol is None:
                 continue
-            R, t, G, r, ambiguous = sol
-            rms = float(np.sqrt(np.mean(r ** 2)))
+            R, t, G, r, rms, ambiguous = sol
             if rms <= max_rms_px:
                 done.append((k, R, t, G[:6, :6], rms, ambiguous))
             elif len(views[k]) > 1:          # leave out the worst-fitting code and solve again
@@ -626,28 +753,29 @@ def estimate_load_observations_frames(
     xn = undistort(camera, uv.reshape(-1, 2)).reshape(-1, 4, 2)
     W = corner_whitening([s.detection for _, s in items], sigma)
     corners_S = symbol_corners_S(world.load_side_m)
-    obj = _cv_points(corners_S)
+    good = np.flatnonzero(np.isfinite(xn).all(axis=(1, 2)))
     owner, R0, t0 = [], [], []
-    for c in range(len(items)):
-        if not np.all(np.isfinite(xn[c])):
-            continue
-        try:
-            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, _cv_points(xn[c]), _EYE3, None,
-                                                     flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        except cv2.error:
-            continue
-        for rv, tv in zip(rvecs[:n], tvecs[:n]):
-            owner.append(c)
-            R0.append(cv2.Rodrigues(rv)[0])
-            t0.append(tv.reshape(3))
-    if not owner:
+    try:                                     # IPPE (IPPE_SQUARE's), both solutions of each code
+        if len(good) < IPPE_BATCH_MIN:
+            raise np.linalg.LinAlgError("few codes")
+        R, t = _ippe(np.broadcast_to(corners_S[:, :2], (len(good), 4, 2)), xn[good])
+        owner, R0, t0 = np.repeat(good, 2), R.reshape(-1, 3, 3), t.reshape(-1, 3)
+    except np.linalg.LinAlgError:            # OpenCV's, one code at a time
+        for c in good.tolist():
+            for R, t in _initial_camera_poses(corners_S, xn[c], np.zeros(3),
+                                              cv2.SOLVEPNP_IPPE_SQUARE):
+                owner.append(c)
+                R0.append(R)
+                t0.append(t)
+    if len(owner) == 0:
         return out
-    idx = np.array(owner)
-    problems = _SymbolProblems(Projector(camera), corners_S, uv[idx], W[idx][:, None])
+    owner = np.asarray(owner)
+    problems = _SymbolProblems(Projector(camera), corners_S, uv[owner], W[owner][:, None])
     cands: dict[int, list] = {}
-    for c, R, t, G, r in _refine(problems, np.array(R0), np.array(t0), owner):
-        if np.all(np.isfinite(G)) and t[2] > 0:
-            cands.setdefault(c, []).append((R, t, G, r))
+    own, R, t, G, r = _refine(problems, np.array(R0), np.array(t0), owner)
+    ok = np.isfinite(G).all(axis=(1, 2)) & (t[:, 2] > 0)
+    for i in np.flatnonzero(ok).tolist():
+        cands.setdefault(int(own[i]), []).append((R[i], t[i], G[i], r[i]))
     T_world_cam = [camera_pose(np.asarray(T, dtype=float), camera) for _, T, _ in frames]
     chosen = []
     for c, cs in sorted(cands.items()):
