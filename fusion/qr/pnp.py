@@ -135,11 +135,14 @@ def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
         C = getattr(d, "corner_cov_px2", None)
         if C is not None:
             C = np.asarray(C, dtype=float)
-            if C.shape == (8, 8) and np.all(np.isfinite(C)):
+            if C.shape == (8, 8):
                 with_cov.append(i)
                 covs.append(C)
-    if with_cov:
+    if covs:
         C = np.stack(covs)
+        finite = np.isfinite(C).all(axis=(1, 2))
+        with_cov, C = [i for i, f in zip(with_cov, finite) if f], C[finite]
+    if with_cov:
         C = 0.5 * (C + np.swapaxes(C, 1, 2))
         try:
             out[with_cov] = np.linalg.inv(np.linalg.cholesky(C))
@@ -572,14 +575,24 @@ def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: Came
         R_wc = np.array(R_cw).transpose(0, 2, 1)
         R_wb = R_wc @ R_cb                          # T_world_body = T_cam_world^-1 T_cam_body
         t_wb = -(R_wc @ np.array(t_cw)[:, :, None])[:, :, 0] - R_wb @ t_bc
+        owner = np.asarray(owner)
+        new = np.ones(len(owner), dtype=bool)     # not a duplicate (1e-3 rad, 1e-3 m) of another
+        if sqpnp:                                   # SQPnP's is usually one of IPPE's
+            for i, k in enumerate(owner.tolist()):
+                new[i] = not any(_same_pose((R_wb[i], t_wb[i]), x, 1e-3, 1e-3)
+                                 for x in starts[k])
+        else:                                       # IPPE's two of a view (consecutive)
+            pair = np.flatnonzero(owner[1:] == owner[:-1])
+            cos = 0.5 * (np.einsum("kij,kij->k", R_wb[pair], R_wb[pair + 1]) - 1.0)
+            new[pair + 1] = ~((cos >= math.cos(1e-3)) &
+                              (np.linalg.norm(t_wb[pair] - t_wb[pair + 1], axis=1) <= 1e-3))
         by_n: dict[int, list[int]] = {}
-        for i, k in enumerate(owner):
-            x0 = (R_wb[i], t_wb[i])
-            if not any(_same_pose(x0, x, 1e-3, 1e-3) for x in starts[k]):
-                starts[k].append(x0)                # SQPnP's is usually one of IPPE's
-                by_n.setdefault(len(views[k]), []).append(i)
+        for i in np.flatnonzero(new).tolist():
+            k = int(owner[i])
+            starts[k].append((R_wb[i], t_wb[i]))
+            by_n.setdefault(len(views[k]), []).append(i)
         for n, group in by_n.items():
-            own = np.array(owner)[group]
+            own = owner[group]
             idx = np.array([views[k] for k in own])                              # (K, n)
             problems = _FloorProblems(projector, R_cb, t_cb, codes.P[idx].reshape(-1, 4 * n, 3),
                                       codes.uv[idx].reshape(-1, 4 * n, 2), codes.W[idx])
@@ -658,11 +671,15 @@ def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
         return out
     covs, ok = _covariances(np.array([d[3] for d in done]))   # H whitened: (J^T W J)^-1
     gimbaled = camera.mount == "gimbaled"
-    for (k, R, t, _, rms, ambiguous), cov, good in zip(done, covs, ok):
+    Ts = np.zeros((len(done), 4, 4))
+    Ts[:, :3, :3] = [d[1] for d in done]
+    Ts[:, :3, 3] = [d[2] for d in done]
+    Ts[:, 3, 3] = 1.0
+    Ts_world_cam = Ts @ camera.T_body_cam
+    for (k, _, _, _, rms, ambiguous), T, T_world_cam, cov, good in zip(done, Ts, Ts_world_cam,
+                                                                        covs, ok):
         if not good:
             continue
-        T = make_T(R, t)
-        T_world_cam = T @ camera.T_body_cam
         if gimbaled:
             T = level_frame(T)
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
@@ -771,22 +788,45 @@ def estimate_load_observations_frames(
         return out
     owner = np.asarray(owner)
     problems = _SymbolProblems(Projector(camera), corners_S, uv[owner], W[owner][:, None])
-    cands: dict[int, list] = {}
     own, R, t, G, r = _refine(problems, np.array(R0), np.array(t0), owner)
-    ok = np.isfinite(G).all(axis=(1, 2)) & (t[:, 2] > 0)
-    for i in np.flatnonzero(ok).tolist():
-        cands.setdefault(int(own[i]), []).append((R[i], t[i], G[i], r[i]))
-    T_world_cam = [camera_pose(np.asarray(T, dtype=float), camera) for _, T, _ in frames]
+    T_world_cam = np.array([camera_pose(np.asarray(T, dtype=float), camera) for _, T, _ in frames])
+    frame_of = np.array([f for f, _ in items])[own]
+    up_z = np.einsum("kj,kj->k", T_world_cam[frame_of, 2, :3], R[:, :, 1])  # symbol up, world z
+    rms = np.sqrt(np.mean(r ** 2, axis=(1, 2)))
+    cands: dict[int, list[int]] = {}
+    for i in np.flatnonzero(np.isfinite(G).all(axis=(1, 2)) & (t[:, 2] > 0)).tolist():
+        cands.setdefault(int(own[i]), []).append(i)
     chosen = []
     for c, cs in sorted(cands.items()):
-        R_wc = T_world_cam[items[c][0]][:3, :3]
-        best = min(x[2][6, 6] for x in cs)
-        close = [x for x in cs if x[2][6, 6] <= best + ambiguity_chi2]     # whitened: chi^2
-        R, t, G, r = max(close, key=lambda x: (R_wc @ x[0][:, 1])[2])     # symbol up nearest +z
-        if float(np.sqrt(np.mean(r ** 2))) <= max_rms_px:
-            chosen.append((c, t, G[:6, :6]))
+        if len(cs) > 1:
+            best = min(G[i, 6, 6] for i in cs)
+            close = [i for i in cs if G[i, 6, 6] <= best + ambiguity_chi2]  # whitened: chi^2
+            cs = [max(close, key=lambda i: up_z[i])]          # symbol up nearest world +z
+        if rms[cs[0]] <= max_rms_px:
+            chosen.append(cs[0])
     if not chosen:
         return out
+    covs, ok = _covariances(G[chosen, :6, :6])
+    chosen = np.asarray(chosen)[ok]
+    f = frame_of[chosen]
+    p_cam, cov_cam = t[chosen], covs[ok, 3:, 3:]
+    R_wc = T_world_cam[f, :3, :3]
+    p_world = (R_wc @ p_cam[:, :, None])[:, :, 0] + T_world_cam[f, :3, 3]
+    cov_world = R_wc @ cov_cam @ R_wc.transpose(0, 2, 1)
+    for k, (i, fk) in enumerate(zip(chosen.tolist(), f.tolist())):
+        c = int(own[i])
+        _, T_world_body, cov_body = frames[fk]
+        cw = cov_world[k]
+        if cov_body is not None:
+            Jb = position_jacobian_wrt_body(np.asarray(T_world_body, dtype=float), camera,
+                                            p_cam[k])
+            cw = cw + Jb @ np.asarray(cov_body, dtype=float) @ Jb.T
+        s = items[c][1]
+        out[fk].append(LoadObservation(timestamp_ns=int(s.detection.timestamp_ns),
+                                       load_id=s.load_id, p_world=p_world[k],
+                                       cov_world=0.5 * (cw + cw.T), p_cam=p_cam[k],
+                                       cov_cam=cov_cam[k], corners_px=uv[c].copy()))
+    return out
     covs, ok = _covariances(np.array([x[2] for x in chosen]))
     for (c, t, _), cov, good in zip(chosen, covs, ok):
         if not good:
