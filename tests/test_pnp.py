@@ -3,6 +3,7 @@
 Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
 import math
 
+import cv2
 import gtsam
 import numpy as np
 import pytest
@@ -15,7 +16,8 @@ from fusion.qr.codes import classify
 from fusion.qr.crb import (floor_pose_crb, floor_reprojection, load_position_crb, se3_exp,
                            symbol_reprojection)
 from fusion.qr.pnp import (aggregate_load_observations, camera_pose, edge_implied_yaw,
-                           estimate_floor_pose, estimate_load_observations, pnp_load_observations,
+                           estimate_floor_pose, estimate_floor_poses, estimate_load_observations,
+                           estimate_load_observations_frames, pnp_load_observations,
                            pnp_trajectory, pose_at)
 from fusion.types import QRDetection, Trajectory
 from fusion.world import LoadCode, World
@@ -517,3 +519,148 @@ def test_pose_nees_on_rendered_corners_with_their_covariance():
     assert len(nees["single"]) >= 80 and len(nees["multi"]) >= 60 and len(nees["load"]) >= 90
     for key, dof in (("single", 6), ("multi", 6), ("load", 3)):
         assert 0.7 * dof <= np.mean(nees[key]) <= 1.4 * dof, (key, np.mean(nees[key]))
+
+
+# ============================================================================ batches and fast paths
+
+
+def test_many_frames_at_once_equal_one_at_a_time():
+    """estimate_floor_poses (vectorised IPPE + LM over all views with the same code count) gives
+    what estimate_floor_pose gives frame by frame (OpenCV's IPPE there), to well within a tenth of
+    a standard deviation; an empty frame and a frame with a misplaced code are handled alike."""
+    import dataclasses
+    rng = np.random.default_rng(41)
+    frames = []
+    for i in range(14):
+        centres = [FOUR[:1], FOUR[:2], FOUR[:3], FOUR][i % 4]
+        cx, cy = np.mean(centres, axis=0)
+        T = aim(body_pose(0, 0, 1.3 if len(centres) == 1 else 2.7, rng.uniform(-180, 180),
+                          roll_deg=rng.normal(0, 4), pitch_deg=rng.normal(0, 4)),
+                (cx + rng.uniform(-0.1, 0.1), cy + rng.uniform(-0.1, 0.1)))
+        frames.append(floor_of(floor_dets(T, centres, rng=rng, sigma=SIGMA)))
+    bad = floor_dets(T_FOUR, FOUR)
+    wrong = floor_dets(T_FOUR, [(0.7, 0.8)])[0]
+    bad[3] = dataclasses.replace(bad[3], corners_px=wrong.corners_px)
+    frames += [[], floor_of(bad)]
+    batch = estimate_floor_poses(frames, FLOOR_CAM, SIGMA)
+    assert len(batch) == len(frames) and batch[-2] is None
+    assert batch[-1].dropped_payloads == [floor_payload(1, 1)]
+    for sightings, b in zip(frames, batch):
+        one = estimate_floor_pose(sightings, FLOOR_CAM, SIGMA)
+        assert (one is None) == (b is None)
+        if one is None:
+            continue
+        xi = local(one.T_world_body, b.T_world_body)
+        assert xi @ np.linalg.solve(one.covariance, xi) < 1e-4
+        assert np.linalg.norm(b.covariance - one.covariance) < 1e-3 * np.linalg.norm(one.covariance)
+        assert (b.payloads, b.dropped_payloads, b.ambiguous) == \
+            (one.payloads, one.dropped_payloads, one.ambiguous)
+    # load codes: many frames together = one frame at a time
+    items = []
+    for k in range(6):
+        T = body_pose(1.2 + 0.1 * k, 0.05 * k, 1.1, 5.0 - 3 * k, roll_deg=2.0, pitch_deg=3.0)
+        items.append((classify(load_dets(T, LOADS[:1 + k % 2], rng=rng, sigma=SIGMA), WORLD).loads,
+                      T, np.diag([1e-4] * 3 + [4e-4] * 3) if k % 2 else None))
+    many = estimate_load_observations_frames(items, FRONT_CAM, WORLD, SIGMA)
+    for (loads, T, cov), obs in zip(items, many):
+        one = estimate_load_observations(loads, FRONT_CAM, WORLD, T, cov, SIGMA)
+        assert [o.load_id for o in obs] == [o.load_id for o in one]
+        for a, b in zip(obs, one):
+            e = a.p_cam - b.p_cam
+            assert e @ np.linalg.solve(b.cov_cam, e) < 1e-4
+            assert np.linalg.norm(a.cov_world - b.cov_world) < 1e-3 * np.linalg.norm(b.cov_world)
+
+
+@pytest.mark.parametrize("n_points", [4, 8, 16])
+def test_vectorised_ippe_matches_opencv(n_points):
+    """_ippe's two poses are OpenCV's SOLVEPNP_IPPE ones (its homography estimate differs slightly
+    from ours beyond 4 points), and one of them is the true pose for noise-free points."""
+    from fusion.qr.pnp import _ippe
+    rng = np.random.default_rng(n_points)
+    K = 30
+    if n_points == 4:
+        X = np.array([[-0.1, 0.1], [0.1, 0.1], [0.1, -0.1], [-0.1, -0.1]]) + rng.uniform(-1, 1, (K, 1, 2))
+    else:
+        X = rng.uniform(-1.0, 1.0, (K, n_points, 2))
+    R_true = np.array([Rotation.from_rotvec([math.pi, 0, 0] + rng.normal(0, 0.3, 3)).as_matrix()
+                       for _ in range(K)])
+    t_true = np.column_stack([rng.uniform(-0.5, 0.5, (K, 2)), rng.uniform(1.5, 3.0, K)])
+    P = np.concatenate([X, np.zeros((K, n_points, 1))], axis=2)
+    p_cam = P @ R_true.transpose(0, 2, 1) + t_true[:, None]
+    xn = p_cam[..., :2] / p_cam[..., 2:]
+    R, t = _ippe(X, xn)
+    for k in range(K):
+        err = min(np.abs(R[k, j] - R_true[k]).max() + np.abs(t[k, j] - t_true[k]).max()
+                  for j in range(2))
+        assert err < 1e-9
+        noisy = xn[k] + rng.normal(0.0, 3e-4, xn[k].shape)
+        R2, t2 = _ippe(X[k:k + 1], noisy[None])
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(P[k].reshape(-1, 1, 3), noisy.reshape(-1, 1, 2),
+                                                 np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+        for rv, tv in zip(rvecs[:n], tvecs[:n]):
+            err = min(np.abs(R2[0, j] - cv2.Rodrigues(rv)[0]).max() +
+                      np.abs(t2[0, j] - tv.ravel()).max() for j in range(2))
+            assert err < (1e-8 if n_points == 4 else 1e-4), err
+
+
+@pytest.mark.parametrize("mount", ["body_fixed", "gimbaled"])
+def test_load_position_jacobian_matches_numerical_derivative(mount):
+    from fusion.qr.crb import se3_exp
+    from fusion.qr.pnp import position_jacobian_wrt_body
+    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, T_body_cam=FRONT_CAM.T_body_cam,
+                      mount=mount)
+    T = body_pose(1.0, -0.5, 1.4, 130.0, roll_deg=7.0, pitch_deg=-9.0)
+    p_cam = np.array([0.2, -0.3, 2.1])
+
+    def f(xi):
+        return transform_points(camera_pose(T @ se3_exp(xi), cam), p_cam[None])[0]
+
+    h = 1e-6
+    Jn = np.column_stack([(f(d) - f(-d)) / (2 * h) for d in np.eye(6) * h])
+    np.testing.assert_allclose(position_jacobian_wrt_body(T, cam, p_cam), Jn, atol=1e-7)
+
+
+def test_fast_model_pieces_match_their_references():
+    """Projector = CameraModel.project (NaN behind the camera) with a numerical Jacobian;
+    so3_exp / so3_exp_stack = GTSAM's Rot3.Expmap; pnp.undistort = CameraModel.undistort_normalized,
+    also where OpenCV's iteration fails (strong distortion: the Newton fallback)."""
+    from fusion.qr.crb import Projector, so3_exp, so3_exp_stack
+    from fusion.qr.pnp import undistort
+    rng = np.random.default_rng(8)
+    p = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(0.5, 3.0, 50)])
+    p[0, 2] = -1.0
+    uv, J = Projector(FLOOR_CAM).project(p)
+    np.testing.assert_array_equal(np.isnan(uv), np.isnan(FLOOR_CAM.project(p)))
+    np.testing.assert_allclose(uv[1:], FLOOR_CAM.project(p)[1:], atol=1e-9)
+    h = 1e-6
+    Jn = np.stack([(FLOOR_CAM.project(p + d) - FLOOR_CAM.project(p - d)) / (2 * h)
+                   for d in np.eye(3) * h], axis=-1)
+    np.testing.assert_allclose(J[1:], Jn[1:], atol=1e-4 * np.abs(J[1:]).max())
+    w = np.vstack([rng.normal(0, 1.0, (5, 3)), rng.normal(0, 1e-5, (3, 3)), np.zeros((1, 3))])
+    for wk, Rk in zip(w, so3_exp_stack(w)):
+        np.testing.assert_allclose(so3_exp(wk), gtsam.Rot3.Expmap(wk).matrix(), atol=1e-15)
+        np.testing.assert_allclose(Rk, gtsam.Rot3.Expmap(wk).matrix(), atol=1e-15)
+    for cam in (FLOOR_CAM, CameraModel(640, 480, 300.0, 300.0, 320.0, 240.0,
+                                       distortion=[-0.45, 0.2, 0.0, 0.0])):
+        px = np.vstack([rng.uniform([0, 0], [640, 480], (40, 2)), [[0.0, 0.0], [639.0, 479.0]]])
+        np.testing.assert_allclose(undistort(cam, px), cam.undistort_normalized(px), atol=1e-10)
+
+
+def test_whitening_of_a_batch_with_one_bad_covariance():
+    """corner_whitening: a corner covariance that is not positive definite (or not finite) falls
+    back to diag(1 / sigma) for that detection only; the others are whitened by their Cholesky."""
+    import dataclasses
+    from fusion.qr.pnp import corner_whitening
+    rng = np.random.default_rng(2)
+    A = rng.normal(0, 0.1, (8, 8))
+    C = A @ A.T + 0.01 * np.eye(8)
+    d = floor_dets(T_FOUR, FOUR)
+    dets = [dataclasses.replace(d[0], corner_cov_px2=C),
+            dataclasses.replace(d[1], corner_cov_px2=-C, corner_sigma_px=0.3),
+            dataclasses.replace(d[2], corner_cov_px2=np.full((8, 8), np.nan)),
+            d[3]]
+    W = corner_whitening(dets, 0.2)
+    np.testing.assert_allclose(W[0] @ C @ W[0].T, np.eye(8), atol=1e-9)
+    np.testing.assert_allclose(W[1], np.eye(8) / 0.3)
+    np.testing.assert_allclose(W[2], np.eye(8) / 0.2)
+    np.testing.assert_allclose(W[3], np.eye(8) / 0.2)
