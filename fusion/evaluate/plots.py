@@ -88,7 +88,8 @@ def _gt_xyz(gt) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(gt.timestamps_ns, dtype=np.int64), np.asarray(gt.p_world, dtype=float)
 
 
-def _t0(gt, trajectories: dict[str, Trajectory]) -> int:
+def time_origin_ns(gt, trajectories: dict[str, Trajectory]) -> int:
+    """Timestamp (ns) that the plots' time axes count from: the earliest of truth and estimates."""
     starts = [int(t.timestamps_ns[0]) for t in trajectories.values() if len(t)]
     if gt is not None and len(gt.timestamps_ns):
         starts.append(int(gt.timestamps_ns[0]))
@@ -238,7 +239,7 @@ def plot_error_overview(path: Path, trajectories: dict[str, Trajectory], gt,
     axes, every estimator, floor-code blackouts shaded and labelled with their durations."""
     raw_names = set(raw_names)
     assoc = associations if associations is not None else associate_all(trajectories, gt)
-    t0 = _t0(gt, trajectories)
+    t0 = time_origin_ns(gt, trajectories)
     fig = Figure(figsize=(11, 5.6), layout="constrained")
     ax_p, ax_y = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [1.6, 1.0]})
     drawn: list[list[np.ndarray]] = [[], []]
@@ -289,7 +290,7 @@ def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], g
     assoc = {n: a for n, a in assoc.items() if n not in exclude}
     if not assoc:
         return None
-    t0 = _t0(gt, trajectories)
+    t0 = time_origin_ns(gt, trajectories)
     fig = Figure(figsize=(11, 7.2), layout="constrained")
     axes = fig.subplots(3, 1, sharex=True)
     errs = {n: 100.0 * a.position_errors_m for n, a in assoc.items()}
@@ -412,7 +413,8 @@ def _seen_ids(load_maps: dict[str, LoadMap]) -> set[str]:
     return {l.load_id for lm in load_maps.values() for l in lm.loads}
 
 
-def _stack_labels(ids: list[str], xy: np.ndarray, tol_m: float = 0.05) -> list[tuple[str, np.ndarray]]:
+def _stack_labels(ids: list[str], xy: np.ndarray,
+                  tol_m: float = 0.05) -> list[tuple[str, np.ndarray]]:
     """One label per group of loads at the same (x, y) (a rack column): the ids' common prefix
     followed by '*' when they differ."""
     out, used = [], np.zeros(len(ids), dtype=bool)
@@ -594,7 +596,8 @@ def plot_all(out_dir: Path, trajectories: dict[str, Trajectory], load_maps: dict
     return paths
 
 
-__all__ = ["estimator_colour", "decimate_minmax", "associate_all", "plot_trajectories",
-           "plot_error_overview", "plot_position_errors", "plot_position_errors_zoom",
-           "plot_error_boxplots", "plot_load_map", "plot_load_errors", "plot_all",
+__all__ = ["estimator_colour", "decimate_minmax", "associate_all", "time_origin_ns",
+           "plot_trajectories", "plot_error_overview", "plot_position_errors",
+           "plot_position_errors_zoom", "plot_error_boxplots", "plot_load_map",
+           "plot_load_errors", "plot_all",
            "RAW_ESTIMATORS", "ZOOM_EXCLUDE"]

@@ -1,42 +1,71 @@
-"""`report.md`: Markdown tables (raw vs fused, beside the paper's figures) and the PNG plots.
+"""`report.md`: a headline table (raw vs fused, blackouts, loads) on the first screen, then the
+details (the paper's per-axis MAE beside its published figures, ATE / RPE, each blackout, NEES,
+the load map), each section with its plots, and the log and detection facts last.
 
 With ground truth the tables come from `metrics.evaluate`'s dict; without it the report shows
-the trajectories, the load map and the detection statistics only, and says so.
+the trajectories, the load map and the detection statistics only, and says so.  Every column
+header states its unit; numbers carry three significant digits (errors span 0.001-50 cm).
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from fusion.evaluate.metrics import (PAPER_SIM_LOADMAP_MAE_CM, PAPER_SIM_LOCALIZATION_MAE_CM,
-                                     PAPER_SIM_YAW_MAE_DEG)
-from fusion.evaluate.plots import DEFAULT_DPI, RAW_ESTIMATORS, plot_all
+                                     PAPER_SIM_YAW_MAE_DEG, coverage_fraction, inside_intervals)
+from fusion.evaluate.plots import DEFAULT_DPI, RAW_ESTIMATORS, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
 from fusion.types import LoadMap, Trajectory
 
 DASH = "–"
+BLACKOUT_COVERAGE_TOLERANCE_S = 0.05   # a blackout instant counts as covered by a pose this close
 PLOT_CAPTIONS = {
     "trajectories": "Trajectories: top view and side view (truth grey, raw estimators as dots, "
-                    "fused as lines; floor codes as faint squares)",
-    "position_errors": "Position error over time per axis and its norm, ±2σ from the "
-                       "covariances, floor-code blackouts shaded",
-    "error_boxplots": "Absolute error per axis and yaw per estimator (cf. the paper's Fig. 31)",
-    "load_map": "Load map: estimated vs true positions (top view, 2σ ellipses) and heights "
-                "(cf. the paper's Figs. 33-34)",
+                    "fused as lines; floor codes as faint squares; cf. the paper's Fig. 32)",
+    "position_errors": "Raw vs fused: |position error| and |yaw error| over time, log scale, "
+                       "floor-code blackouts shaded with their durations",
+    "position_errors_zoom": "Position error per axis (estimate − truth, cm) of PnP and the fused "
+                            "estimators with their ±2σ bands, blackouts shaded; the y-range comes "
+                            "from these estimators' errors (the paper's are in the overview)",
+    "error_boxplots": "Absolute errors per estimator on log axes: drone per axis and yaw (cf. the "
+                      "paper's Fig. 31) and loads per axis (cf. Fig. 34); boxes are quartiles, "
+                      "whiskers 5th–95th percentiles, × the maximum, dashed the paper's "
+                      "simulator MAE",
+    "load_map": "Load map, for orientation: top view with 2σ ellipses and rack columns labelled, "
+                "height per load id; hollow grey: true loads that no estimator saw "
+                "(cf. the paper's Fig. 33)",
+    "load_errors": "Load error per load id and axis (estimate − truth, cm) with ±2σ bars; the "
+                   "paper's estimator and the others each on their own scale; grey rows: not seen",
 }
+_PLOT_SECTION = {"position_errors": "summary", "position_errors_zoom": "summary",
+                 "error_boxplots": "localization", "trajectories": "localization",
+                 "load_map": "loads", "load_errors": "loads"}
 
 
-def _f(v, scale: float = 1.0, digits: int = 2) -> str:
+# ============================================================================ formatting
+
+
+def fmt(v, scale: float = 1.0, sig: int = 3, max_decimals: int = 5) -> str:
+    """`v * scale` with `sig` significant digits and no exponent (15.3, 0.318, 0.00512);
+    a dash for None / NaN; whole numbers above 10**sig."""
     if v is None:
         return DASH
     try:
         x = float(v) * scale
     except (TypeError, ValueError):
         return str(v)
-    if not np.isfinite(x):
+    if not math.isfinite(x):
         return DASH
-    return f"{x:.{digits}f}"
+    if x == 0:
+        return "0"
+    decimals = min(max(sig - 1 - math.floor(math.log10(abs(x))), 0), max_decimals)
+    return f"{x:.{decimals}f}"
+
+
+def _pct(v) -> str:
+    return DASH if v is None else f"{100.0 * float(v):.1f}"
 
 
 def _get(d: dict | None, *keys):
@@ -80,77 +109,176 @@ def _kv_rows(d: dict) -> list[list[str]]:
     return rows
 
 
-# ============================================================================ sections
+def _plots(plots: dict[str, Path], section: str) -> list[str]:
+    lines = []
+    for key, path in plots.items():
+        if _PLOT_SECTION.get(key, "other") == section:
+            lines += [f"![{key}]({path.name})", "", f"*{PLOT_CAPTIONS.get(key, key)}.*", ""]
+    return lines
+
+
+# ============================================================================ summary
+
+
+def _longest_gap_s(traj: Trajectory) -> float | None:
+    """Longest time between consecutive poses (s); the time before the first pose and after the
+    last one is in the coverage, not here."""
+    t = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    return float(np.max(np.diff(t))) * 1e-9 if len(t) >= 2 else None
+
+
+def _blackout_coverage(traj: Trajectory, gt, blackouts) -> float | None:
+    """Share of the blackouts' time with a pose within BLACKOUT_COVERAGE_TOLERANCE_S."""
+    if gt is None or not blackouts:
+        return None
+    t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
+    t_in = t_gt[inside_intervals(t_gt, blackouts)]
+    if not len(t_in):
+        return None
+    return coverage_fraction(t_in, traj.timestamps_ns, BLACKOUT_COVERAGE_TOLERANCE_S)
+
+
+def _summary_section(m: dict, trajectories: dict[str, Trajectory], gt, blackouts) -> list[str]:
+    trajs = m.get("trajectories", {})
+    maps = m.get("load_maps", {})
+    has_loads = any("axis" in r for r in maps.values())
+    rows, facts = [], {}
+    for name, t in trajs.items():
+        traj = trajectories.get(name)
+        b = t.get("blackouts") or {}
+        cov_b = _blackout_coverage(traj, gt, blackouts) if traj is not None else None
+        gap = _longest_gap_s(traj) if traj is not None else None
+        facts[name] = dict(ate=_get(t, "ate", "ate_rmse_m"), max_in=_get(b, "inside", "max_m"),
+                           cov_b=cov_b, gap=gap, coverage=t.get("coverage_fraction"))
+        row = [name, _kind(name), _pct(t.get("coverage_fraction")), fmt(gap),
+               fmt(_get(t, "ate", "ate_rmse_m"), 100), fmt(_get(t, "yaw", "yaw_mae_deg"))]
+        if blackouts:
+            row += [_pct(cov_b), fmt(_get(b, "inside", "max_m"), 100)]
+        if has_loads:
+            r = maps.get(name, {})
+            row += [f"{r.get('n_mapped', 0)}/{r.get('n_loads_gt', 0)}" if r else DASH,
+                    fmt(_get(r, "error_norm", "rmse_m"), 100)]
+        rows.append(row)
+    header = ["estimator", "kind", "coverage [%]", "longest gap [s]", "ATE RMSE [cm]",
+              "yaw MAE [deg]"]
+    if blackouts:
+        header += ["blackout time with a pose [%]", "max error in blackouts [cm]"]
+    if has_loads:
+        header += ["loads mapped/true", "load 3D RMSE [cm]"]
+    lines = ["## Summary", ""] + _table(header, rows)
+    lines += _headline_sentences(m, facts, blackouts)
+    tol_s = _get(next(iter(trajs.values()), {}), "coverage_tolerance_s") or 0.1
+    lines += [f"Coverage: share of the ground-truth time with a pose within {tol_s * 1e3:.0f} ms "
+              f"(blackouts: within {BLACKOUT_COVERAGE_TOLERANCE_S * 1e3:.0f} ms); longest gap: "
+              "between consecutive poses. ATE: |p_est − p_true| "
+              "in the floor codes' world frame, no alignment. Loads: 3D distance to the true "
+              "code centre over the loads both mapped and known.", ""]
+    return lines
+
+
+def _headline_sentences(m: dict, facts: dict, blackouts) -> list[str]:
+    def best(kind):
+        c = [(f["ate"], n) for n, f in facts.items() if _kind(n) == kind and f["ate"] is not None]
+        return min(c)[1] if c else None
+    raw, fused = best("raw"), best("fused")
+    if raw is None or fused is None:
+        return []
+    fr, ff = facts[raw], facts[fused]
+    out = [f"**Best raw: {raw}**, ATE RMSE {fmt(fr['ate'], 100)} cm, a pose for "
+           f"{_pct(fr['coverage'])} % of the flight. **Best fused: {fused}**, ATE RMSE "
+           f"{fmt(ff['ate'], 100)} cm, {_pct(ff['coverage'])} % of the flight."]
+    info = m.get("blackouts")
+    if blackouts and info:
+        longest = max(info.get("durations_s") or [0.0])
+        out.append(f"Floor-code blackouts: {info['n']}, {fmt(info.get('total_s'))} s in total, "
+                   f"the longest {fmt(longest)} s; {raw} has a pose in "
+                   f"{_pct(fr['cov_b'])} % of that time, {fused} in {_pct(ff['cov_b'])} % with a "
+                   f"maximum error of {fmt(ff['max_in'], 100)} cm.")
+    return [" ".join(out), ""]
+
+
+# ============================================================================ details
 
 
 def _localization_section(m: dict) -> list[str]:
     trajs = m.get("trajectories", {})
     rows = []
     for name, t in trajs.items():
-        rows.append([name, _kind(name), t.get("n_matched", 0), _f(t.get("coverage_fraction"), 100, 1),
-                     _f(_get(t, "axis", "mae_x_cm")), _f(_get(t, "axis", "mae_y_cm")),
-                     _f(_get(t, "axis", "mae_z_cm")), _f(_get(t, "yaw", "yaw_mae_deg"))])
+        rows.append([name, _kind(name), t.get("n_matched", 0), fmt(_get(t, "axis", "mae_x_cm")),
+                     fmt(_get(t, "axis", "mae_y_cm")), fmt(_get(t, "axis", "mae_z_cm")),
+                     fmt(_get(t, "yaw", "yaw_mae_deg"))])
     p = PAPER_SIM_LOCALIZATION_MAE_CM
-    rows.append(["*paper, simulator (Sec. 4.1)*", "", "50", DASH, _f(p["x"]), _f(p["y"]),
-                 _f(p["z"]), _f(PAPER_SIM_YAW_MAE_DEG)])
-    lines = ["## Localization: per-axis mean absolute error (the paper's metric)", ""]
-    lines += _table(["estimator", "kind", "poses", "coverage [%]", "MAE x [cm]", "MAE y [cm]",
-                     "MAE z [cm]", "MAE yaw [deg]"], rows)
-    lines += ["Coverage: share of ground-truth time with an estimate within "
-              f"{_f(_get(next(iter(trajs.values()), {}), 'coverage_tolerance_s'), 1000, 0)} ms. "
-              "The paper's estimator gives position and yaw only; its roll and pitch are not "
+    rows.append(["*paper, simulator (Sec. 4.1)*", "", "50", f"{p['x']:g}", f"{p['y']:g}",
+                 f"{p['z']:g}", f"{PAPER_SIM_YAW_MAE_DEG:g}"])         # as published
+    lines = ["## Localization", "", "### Per-axis mean absolute error (the paper's metric)", ""]
+    lines += _table(["estimator", "kind", "poses", "MAE x [cm]", "MAE y [cm]", "MAE z [cm]",
+                     "MAE yaw [deg]"], rows)
+    lines += ["The paper's estimator gives position and yaw only; its roll and pitch are not "
               "compared.", ""]
 
     rows = []
     for name, t in trajs.items():
-        rows.append([name, _f(_get(t, "ate", "ate_rmse_m"), 100), _f(_get(t, "ate", "ate_mean_m"), 100),
-                     _f(_get(t, "ate", "ate_max_m"), 100),
-                     _f(_get(t, "ate_aligned", "ate_rmse_m"), 100),
-                     _f(_get(t, "rotation", "rot_rmse_deg")),
-                     _f(_get(t, "rpe_1m", "rpe_trans_rmse_m"), 100),
-                     _f(_get(t, "rpe_1m", "rpe_yaw_rmse_deg")),
-                     _f(_get(t, "rpe_1s", "rpe_trans_rmse_m"), 100),
-                     _f(_get(t, "rpe_1s", "rpe_rot_rmse_deg"))])
-    lines += ["## Absolute and relative errors", ""]
+        rows.append([name, fmt(_get(t, "ate", "ate_rmse_m"), 100),
+                     fmt(_get(t, "ate", "ate_mean_m"), 100), fmt(_get(t, "ate", "ate_max_m"), 100),
+                     fmt(_get(t, "ate_aligned", "ate_rmse_m"), 100),
+                     fmt(_get(t, "rotation", "rot_rmse_deg")),
+                     fmt(_get(t, "rpe_1m", "rpe_trans_rmse_m"), 100),
+                     fmt(_get(t, "rpe_1m", "rpe_yaw_rmse_deg")),
+                     fmt(_get(t, "rpe_1s", "rpe_trans_rmse_m"), 100),
+                     fmt(_get(t, "rpe_1s", "rpe_rot_rmse_deg"))])
+    lines += ["### Absolute and relative errors", ""]
     lines += _table(["estimator", "ATE RMSE [cm]", "ATE mean [cm]", "ATE max [cm]",
                      "ATE RMSE, SE(3)-aligned [cm]", "rotation RMSE [deg]",
                      "RPE 1 m trans. RMSE [cm]", "RPE 1 m yaw RMSE [deg]",
                      "RPE 1 s trans. RMSE [cm]", "RPE 1 s rot. RMSE [deg]"], rows)
     lines += ["ATE: |p_est − p_true| in the floor codes' world frame, no alignment (the aligned "
               "column, when present, is evo's `-a`). RPE: drift of the displacement over 1 m of "
-              "travelled distance / over 1 s, in the world frame.", ""]
+              "travelled distance / over 1 s, in the world frame. Rotation: full attitude "
+              "(not for the paper's estimator).", ""]
     return lines
 
 
-def _blackout_section(m: dict) -> list[str]:
+def _blackout_section(m: dict, t0_ns: int) -> list[str]:
     info = m.get("blackouts")
     if not info:
         return []
-    trajs = m.get("trajectories", {})
-    groups = sorted({g for t in trajs.values() for g in (_get(t, "blackouts", "by_duration") or {})},
-                    key=float)
+    trajs = {n: t for n, t in m.get("trajectories", {}).items() if t.get("blackouts")}
+    lines = ["## Floor-code blackouts", "",
+             f"{info['n']} blackouts in the log, {fmt(info.get('total_s'))} s in total "
+             "(intervals in which the simulator made the floor codes unreadable on purpose). "
+             "Maximum |position error| inside each, in cm, with the number of poses inside in "
+             "brackets; \"no pose\": the estimator has nothing there (the gap the fusion "
+             "fills).", ""]
+    per = {n: t["blackouts"].get("per_blackout") or [] for n, t in trajs.items()}
+    n_b = max((len(v) for v in per.values()), default=0)
+    rows = []
+    for i in range(n_b):
+        ref = next(v[i] for v in per.values() if len(v) > i)
+        row = [str(i + 1), fmt((ref["start_ns"] - t0_ns) * 1e-9), fmt(ref["duration_s"]),
+               str(ref.get("kind", ""))]
+        for name in trajs:
+            b = per[name][i] if len(per[name]) > i else None
+            if b is None:
+                row.append(DASH)
+            elif not b.get("n_estimates"):
+                row.append("no pose")
+            else:
+                row.append(f"{fmt(b.get('max_error_m'), 100)} ({b['n_estimates']})")
+        rows.append(row)
+    if rows:
+        lines += _table(["#", "start [s]", "duration [s]", "kind"]
+                        + [f"{n} max [cm] (poses)" for n in trajs], rows)
     rows = []
     for name, t in trajs.items():
-        b = t.get("blackouts")
-        if not b:
-            continue
-        row = [name, b["n_inside"], _f(_get(b, "inside", "rmse_m"), 100),
-               _f(_get(b, "inside", "max_m"), 100), _f(_get(b, "outside", "rmse_m"), 100),
-               _f(_get(b, "outside", "max_m"), 100)]
-        for g in groups:
-            rec = _get(b, "by_duration", g) or {}
-            row.append(_f(rec.get("max_error_max_m"), 100) +
-                       (f" ({rec.get('n_with_estimates', 0)}/{rec.get('n_blackouts', 0)})"
-                        if rec else ""))
-        rows.append(row)
-    lines = ["## Floor-code blackouts", "",
-             f"{info['n']} blackouts in the log, {_f(info.get('total_s'), 1, 1)} s in total "
-             "(intervals in which the simulator made the floor codes unreadable on purpose).", ""]
+        b = t["blackouts"]
+        rows.append([name, b["n_inside"], fmt(_get(b, "inside", "rmse_m"), 100),
+                     fmt(_get(b, "inside", "max_m"), 100), fmt(_get(b, "outside", "rmse_m"), 100),
+                     fmt(_get(b, "outside", "max_m"), 100)])
+    lines += ["Inside vs outside the blackouts:", ""]
     lines += _table(["estimator", "poses inside", "RMSE inside [cm]", "max inside [cm]",
-                     "RMSE outside [cm]", "max outside [cm]"]
-                    + [f"max in {g} s blackouts [cm] (with estimates/all)" for g in groups], rows)
-    lines += ["A raw estimator has no pose inside a blackout (a dash): that is the gap the fusion "
-              "fills.", ""]
+                     "RMSE outside [cm]", "max outside [cm]"], rows)
+    lines += [f"Start times count from the plots' time origin. Raw estimators may show a pose "
+              "at a blackout's edge.", ""]
     return lines
 
 
@@ -160,9 +288,9 @@ def _nees_section(m: dict) -> list[str]:
         n3, n6 = t.get("nees_position_3dof"), t.get("nees_pose_6dof")
         if not n3 and not n6:
             continue
-        rows.append([name, (n3 or n6 or {}).get("n", 0), _f(_get(n3, "nees_mean")),
-                     _f(_get(n3, "fraction_inside_95"), 100, 1), _f(_get(n6, "nees_mean")),
-                     _f(_get(n6, "fraction_inside_95"), 100, 1)])
+        rows.append([name, (n3 or n6 or {}).get("n", 0), fmt(_get(n3, "nees_mean")),
+                     _pct(_get(n3, "fraction_inside_95")), fmt(_get(n6, "nees_mean")),
+                     _pct(_get(n6, "fraction_inside_95"))])
     if not rows:
         return []
     lines = ["## Consistency (NEES)", ""]
@@ -170,36 +298,43 @@ def _nees_section(m: dict) -> list[str]:
                      "inside χ²(3) 95% [%]", "pose NEES mean (ideal 6)", "inside χ²(6) 95% [%]"],
                     rows)
     lines += ["Pose error ξ = Log(T_true⁻¹ T_est) in the body frame, GTSAM order "
-              "[rx, ry, rz, tx, ty, tz], against the reported 6×6 covariance. A mean far above "
-              "the dimension means overconfident covariances; far below, overcautious.", ""]
+              "[rx, ry, rz, tx, ty, tz], against the reported 6×6 covariance (NEES is "
+              "dimensionless). A mean far above the dimension means overconfident covariances; "
+              "far below, overcautious.", ""]
     return lines
 
 
-def _loadmap_section(m: dict) -> list[str]:
+def _loadmap_section(m: dict, plot_lines: list[str]) -> list[str]:
     maps = m.get("load_maps", {})
     if not maps or not any("axis" in v for v in maps.values()):
         return []
     rows = []
     for name, r in maps.items():
-        rows.append([name, f"{r.get('n_mapped', 0)}/{r.get('n_loads_gt', 0)}",
-                     _f(_get(r, "axis", "mae_x_cm")), _f(_get(r, "axis", "mae_y_cm")),
-                     _f(_get(r, "axis", "mae_z_cm")), _f(_get(r, "error_norm", "rmse_m"), 100),
-                     _f(_get(r, "error_norm", "max_m"), 100), _f(_get(r, "nees_3dof", "nees_mean")),
-                     ", ".join(r.get("missing_ids", [])[:8]) or DASH,
+        rows.append([name, _kind(name), f"{r.get('n_mapped', 0)}/{r.get('n_loads_gt', 0)}",
+                     fmt(_get(r, "axis", "mae_x_cm")), fmt(_get(r, "axis", "mae_y_cm")),
+                     fmt(_get(r, "axis", "mae_z_cm")), fmt(_get(r, "error_norm", "rmse_m"), 100),
+                     fmt(_get(r, "error_norm", "max_m"), 100),
+                     fmt(_get(r, "nees_3dof", "nees_mean")),
                      ", ".join(r.get("extra_ids", [])[:8]) or DASH])
     p = PAPER_SIM_LOADMAP_MAE_CM
-    rows.append(["*paper, simulator (Sec. 4.2)*", DASH, _f(p["x"]), _f(p["y"]), _f(p["z"]), DASH,
-                 DASH, DASH, DASH, DASH])
+    rows.append(["*paper, simulator (Sec. 4.2)*", "", DASH, f"{p['x']:g}", f"{p['y']:g}",
+                 f"{p['z']:g}", DASH, DASH, DASH, DASH])             # as published
     lines = ["## Load map", ""]
-    lines += _table(["estimator", "mapped/true", "MAE x [cm]", "MAE y [cm]", "MAE z [cm]",
-                     "3D RMSE [cm]", "3D max [cm]", "NEES mean (ideal 3)", "missing", "unknown ids"],
+    lines += _table(["estimator", "kind", "mapped/true", "MAE x [cm]", "MAE y [cm]", "MAE z [cm]",
+                     "3D RMSE [cm]", "3D max [cm]", "NEES mean (ideal 3)", "ids not in the truth"],
                     rows)
+    missing = sorted(set.intersection(*[set(r.get("missing_ids", [])) for r in maps.values()]))
+    if missing:
+        lines += [f"Not seen by any estimator ({len(missing)}): "
+                  + ", ".join(f"`{i}`" for i in missing[:40])
+                  + (" …" if len(missing) > 40 else "") + ".", ""]
+    lines += plot_lines
     ids = sorted({i for r in maps.values() for i in (r.get("per_load") or {})})
     if ids:
         names = list(maps)
-        per = [[f"`{i}`"] + [_f(_get(maps[n], "per_load", i, "error_norm_m"), 100) for n in names]
+        per = [[f"`{i}`"] + [fmt(_get(maps[n], "per_load", i, "error_norm_m"), 100) for n in names]
                for i in ids]
-        lines += ["3D error per load [cm]:", ""]
+        lines += ["3D error per load [cm] (a dash: not mapped by that estimator):", ""]
         lines += _table(["load id"] + names, per)
     return lines
 
@@ -212,14 +347,13 @@ def _trajectory_summary(trajectories: dict[str, Trajectory]) -> list[str]:
             span = (int(t.timestamps_ns[-1]) - int(t.timestamps_ns[0])) * 1e-9
             length = float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
             rate = (len(t) - 1) / span if span > 0 else 0.0
-            rows.append([name, _kind(name), len(t), _f(span, 1, 1), _f(rate, 1, 1), _f(length),
-                         _f(p[:, 2].mean()), "yes" if t.covariances is not None else "no"])
+            rows.append([name, _kind(name), len(t), f"{span:.1f}", f"{rate:.1f}",
+                         f"{length:.2f}", f"{p[:, 2].mean():.2f}",
+                         "yes" if t.covariances is not None else "no"])
         else:
             rows.append([name, _kind(name), 0, DASH, DASH, DASH, DASH, DASH])
-    lines = ["## Trajectories", ""]
-    lines += _table(["estimator", "kind", "poses", "time span [s]", "mean rate [Hz]",
-                     "path length [m]", "mean height [m]", "covariance"], rows)
-    return lines
+    return _table(["estimator", "kind", "poses", "time span [s]", "mean rate [Hz]",
+                   "path length [m]", "mean height [m]", "covariance"], rows)
 
 
 def _load_table(load_maps: dict[str, LoadMap]) -> list[str]:
@@ -228,13 +362,24 @@ def _load_table(load_maps: dict[str, LoadMap]) -> list[str]:
         for l in sorted(lm.loads, key=lambda l: l.load_id):
             sig = np.sqrt(np.clip(np.diag(l.cov_world), 0, None)) * 100 if l.cov_world is not None \
                 else [None] * 3
-            rows.append([name, f"`{l.load_id}`", *(_f(v, 1, 3) for v in l.p_world),
-                         *(_f(s) for s in sig), l.n_obs])
+            rows.append([name, f"`{l.load_id}`", *(f"{v:.4f}" for v in l.p_world),
+                         *(fmt(s) for s in sig), l.n_obs])
     if not rows:
         return []
-    return ["## Load map (estimates)", ""] + _table(
+    return ["## Load map estimates", ""] + _table(
         ["estimator", "load id", "x [m]", "y [m]", "z [m]", "σx [cm]", "σy [cm]", "σz [cm]",
          "observations"], rows)
+
+
+def _load_counts(load_maps: dict[str, LoadMap]) -> list[str]:
+    if not load_maps:
+        return []
+    rows = [[name, _kind(name), len(lm.loads),
+             fmt(np.median([np.sqrt(max(np.trace(l.cov_world), 0)) for l in lm.loads
+                            if l.cov_world is not None]) if any(
+                 l.cov_world is not None for l in lm.loads) else None, 100)]
+            for name, lm in load_maps.items()]
+    return _table(["estimator", "kind", "loads mapped", "median 3D σ [cm]"], rows)
 
 
 # ============================================================================ report
@@ -257,41 +402,59 @@ def write_report(out_dir: Path, metrics: dict | None, trajectories: dict[str, Tr
     log_summary = dict(log_summary or {})
     has_truth = bool(metrics and metrics.get("has_groundtruth") and gt is not None)
     unit = log_summary.get("payload_unit_m", 1.0)
+    blackouts = blackouts if has_truth else None
     plots = plot_all(out_dir, trajectories, load_maps, gt if has_truth else None,
-                     loads_gt if has_truth else None, blackouts if has_truth else None,
+                     loads_gt if has_truth else None, blackouts,
                      floor_codes_xy_m=floor_codes_xy_m,
                      payload_unit_m=float(unit) if unit else None, dpi=dpi)
 
     lines = ["# fusion report", ""]
+    facts = [f"`{log_summary['path']}`" if "path" in log_summary else None,
+             f"{fmt(log_summary['duration_s'])} s" if "duration_s" in log_summary else None,
+             f"{log_summary['floor_frames']} floor frames" if "floor_frames" in log_summary
+             else None]
+    if any(facts):
+        lines += ["Flight " + ", ".join(f for f in facts if f) + ".", ""]
+    if has_truth:
+        lines += _summary_section(metrics, trajectories, gt, blackouts)
+        lines += _plots(plots, "summary")
+        gtm = metrics.get("groundtruth", {})
+        lines += _localization_section(metrics)
+        lines += ["Trajectories (ground truth: "
+                  f"{gtm.get('n_samples', DASH)} samples over {fmt(gtm.get('duration_s'))} s, "
+                  f"path length {fmt(gtm.get('path_length_m'))} m):", ""]
+        lines += _trajectory_summary(trajectories)
+        lines += _plots(plots, "localization")
+        lines += _blackout_section(metrics, time_origin_ns(gt, trajectories))
+        lines += _nees_section(metrics)
+        load_plots = _plots(plots, "loads")
+        section = _loadmap_section(metrics, load_plots)
+        lines += section
+        if section:
+            plots = {k: v for k, v in plots.items() if _PLOT_SECTION.get(k) != "loads"}
+    else:
+        lines += ["## Summary", "",
+                  "> **No ground truth in this log:** errors, NEES and the comparison with the "
+                  "paper's figures are not computed. Shown: trajectories, load map and detection "
+                  "statistics only.", ""]
+        lines += _trajectory_summary(trajectories)
+        lines += _load_counts(load_maps)
+        lines += ["## Localization", ""] + _plots(plots, "localization")
+        if load_maps:
+            lines += ["## Load map", ""]
+    lines += _plots(plots, "loads")
+    lines += _plots(plots, "other")
+    lines += _load_table(load_maps)
     if log_summary:
         lines += ["## Flight log", ""]
         lines += _table(["item", "value"], _kv_rows({k: v for k, v in log_summary.items()
                                                       if k != "detection"}))
-    if not has_truth:
-        lines += ["> **No ground truth in this log:** errors, NEES and the comparison with the "
-                  "paper's figures are not computed. Shown: trajectories, load map and detection "
-                  "statistics only.", ""]
-    lines += _trajectory_summary(trajectories)
-    if has_truth:
-        gtm = metrics.get("groundtruth", {})
-        lines += [f"Ground truth: {gtm.get('n_samples', DASH)} samples over "
-                  f"{_f(gtm.get('duration_s'), 1, 1)} s, path length "
-                  f"{_f(gtm.get('path_length_m'))} m.", ""]
-        lines += _localization_section(metrics)
-        lines += _blackout_section(metrics)
-        lines += _nees_section(metrics)
-        lines += _loadmap_section(metrics)
-    lines += _load_table(load_maps)
     detection = (metrics or {}).get("detection") or log_summary.get("detection")
     lines += ["## Detection statistics", ""]
     if detection:
         lines += _table(["item", "value"], _kv_rows(detection))
     else:
         lines += ["No detection statistics were given.", ""]
-    lines += ["## Plots", ""]
-    for key, path in plots.items():
-        lines += [f"![{key}]({path.name})", "",
-                  f"*{PLOT_CAPTIONS.get(key, key)}.*", ""]
     report = out_dir / "report.md"
     with atomic_open(report) as f:
         f.write("\n".join(lines).rstrip() + "\n")
