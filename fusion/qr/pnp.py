@@ -105,19 +105,46 @@ _EYE3 = np.eye(3)
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-14)
 
 
-def undistort(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
-    """(N, 2) distorted pixels -> (N, 2) ideal normalised coordinates: OpenCV's iterative
-    undistortPoints (about 30x faster than CameraModel.undistort_normalized), checked by
-    distorting back; where that check fails (strong distortion), CameraModel's Newton inversion."""
-    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    if len(uv) == 0 or not np.all(np.isfinite(uv)):
-        return camera.undistort_normalized(uv)
+def _opencv_undistorts(camera: CameraModel) -> bool:
+    """Whether OpenCV's iterative undistortPoints reproduces CameraModel.undistort_normalized
+    (to 1e-8 px on distorting back) over a grid covering the image and a 10 % margin; cached per
+    camera parameters."""
+    key = (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv,
+           *camera.distortion.tolist())
+    ok = _OPENCV_UNDISTORTS.get(key)
+    if ok is None:
+        u, v = np.meshgrid(np.linspace(-0.1, 1.1, 25) * camera.width,
+                           np.linspace(-0.1, 1.1, 19) * camera.height)
+        ok = _undistort_checked(camera, np.column_stack([u.ravel(), v.ravel()])) is not None
+        _OPENCV_UNDISTORTS[key] = ok
+    return ok
+
+
+_OPENCV_UNDISTORTS: dict[tuple, bool] = {}
+
+
+def _undistort_checked(camera: CameraModel, uv: np.ndarray) -> np.ndarray | None:
+    """OpenCV's undistortPoints of (N, 2) pixels, or None where distorting back misses by 1e-8 px."""
     xn = cv2.undistortPoints(_cv_points(uv), camera.K, camera.dist_cv, None, None, None,
                              _UNDISTORT_CRITERIA).reshape(-1, 2)
     back, _ = Projector(camera).project(np.column_stack([xn, np.ones(len(xn))]), jacobian=False)
-    if np.all(np.abs(back - uv) < 1e-8):
-        return xn
-    return camera.undistort_normalized(uv)
+    return xn if np.all(np.abs(back - uv) < 1e-8) else None
+
+
+def undistort(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
+    """(N, 2) distorted pixels -> (N, 2) ideal normalised coordinates, = CameraModel's
+    undistort_normalized: OpenCV's iterative undistortPoints (about 30x faster), trusted inside
+    the image (+10 %) when `_opencv_undistorts` verified it for this camera, else checked by
+    distorting back; where that fails (strong distortion), CameraModel's Newton inversion."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    if len(uv) == 0 or not np.all(np.isfinite(uv)):
+        return camera.undistort_normalized(uv)
+    lo = -0.1 * np.array([camera.width, camera.height])
+    if _opencv_undistorts(camera) and np.all(uv >= lo) and np.all(uv <= -11.0 * lo):
+        return cv2.undistortPoints(_cv_points(uv), camera.K, camera.dist_cv, None, None, None,
+                                   _UNDISTORT_CRITERIA).reshape(-1, 2)
+    xn = _undistort_checked(camera, uv)
+    return camera.undistort_normalized(uv) if xn is None else xn
 
 
 def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
@@ -342,9 +369,11 @@ def _refine(problems, R: np.ndarray, t: np.ndarray, owner: np.ndarray):
     Returns owner (K',), R (K', 3, 3), t (K', 3), G (K', 7, 7), r_px (K', N, 2) of those."""
     G0 = problems.normal_equations(R, t)
     cost = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
-    best = np.full(owner.max() + 1, np.inf)
-    np.minimum.at(best, owner, cost)
-    keep = np.flatnonzero(cost <= 2.0 * best[owner] + START_MARGIN_CHI2)
+    best: dict[int, float] = {}
+    for o, c in zip(owner.tolist(), cost.tolist()):
+        best[o] = min(best.get(o, math.inf), c)
+    keep = np.flatnonzero(cost <= 2.0 * np.array([best[o] for o in owner.tolist()])
+                          + START_MARGIN_CHI2)
     sub = problems.subset(keep)
     R, t, G = _levenberg_marquardt(sub, R[keep], t[keep], G0[keep])
     return owner[keep], R, t, G, sub.residual_px(R, t)
@@ -424,7 +453,13 @@ def _ippe(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Alg. 4.2); J its Jacobian at the plane origin, v = H(0); R_v rotates z onto the ray of v
     (IPPE eq. 29); A = B^-1 J with B = [I2, -v] R_v[:, :2]; gamma = the largest singular value of A
     and R~ = A / gamma the top-left 2x2 of R_v^T R, completed to a rotation in the two ways b, -b
-    (eq. 30-32); each t by linear least squares on the projection equations (eq. 37)."""
+    (eq. 30-32); each t by linear least squares on the projection equations (eq. 37).
+    A degenerate view (e.g. all points at one pixel) gives NaN poses or LinAlgError."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return _ippe_unchecked(X, xn)
+
+
+def _ippe_unchecked(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     K, N = X.shape[:2]
     mx = X.mean(axis=1, keepdims=True)
     Xc = X - mx                                               # plane points about their mean
@@ -526,9 +561,8 @@ def _solve_floor_views(codes: _FloorCodes, views: list[np.ndarray], camera: Came
     R_bc, t_bc = camera.T_body_cam[:3, :3], camera.T_body_cam[:3, 3]
     R_cb = np.ascontiguousarray(R_bc.T)
     t_cb = -R_cb @ t_bc
-    E = np.zeros((len(views), 2))                    # each view's sum of its codes' edge vectors
-    np.add.at(E, np.repeat(np.arange(len(views)), [len(v) for v in views]),
-              codes.E[np.concatenate(views)])
+    E = np.add.reduceat(codes.E[np.concatenate(views)],           # each view's sum of its codes'
+                        np.cumsum([0] + [len(v) for v in views[:-1]]))   # edge vectors
     hints = np.where(np.any(E != 0.0, axis=1), -np.arctan2(E[:, 1], E[:, 0]), np.nan)
     finite = np.isfinite(codes.xn).all(axis=(1, 2))
     starts: list[list] = [[] for _ in views]
