@@ -297,10 +297,32 @@ def test_report_with_groundtruth(tmp_path):
                    "ATE RMSE [cm]", "RPE 1 m"):
         assert needle in text, needle
     assert "No ground truth" not in text
-    for png in ("trajectories.png", "position_errors.png", "error_boxplots.png", "load_map.png"):
+    for png in ("trajectories.png", "position_errors.png", "position_errors_zoom.png",
+                "error_boxplots.png", "load_map.png", "load_errors.png"):
         assert (tmp_path / png).stat().st_size > 1000
-        assert f"]({png})" in text
+        assert text.count(f"]({png})") == 1, png
         assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (tmp_path / "position_sigma.png").exists()
+    # the first screen: the headline table and the raw-vs-fused plots come before the details
+    summary = text.index("## Summary")
+    assert summary < text.index("](position_errors.png)") < text.index("## Localization")
+    assert summary < text.index("](position_errors_zoom.png)") < text.index("## Localization")
+    assert text.index("## Localization") < text.index("## Flight log")
+    head = text[summary:text.index("## Localization")]
+    assert "| pnp | raw | " in head and "| smoother | fused | 100.0 |" in head
+    assert "Best raw:" in head and "Best fused: smoother" in head
+    # raw estimators have no pose in the blackout, the fused one covers all of it
+    assert "| 1 | 2.00 | 1.00 | floor | no pose | no pose |" in text
+    # every numeric column of every table names its unit (or is a count / name / ratio)
+    unitless = {"estimator", "kind", "poses", "#", "load id", "item", "value", "covariance",
+                "mapped/true", "loads mapped/true", "ids not in the truth", "observations",
+                "paper", "pnp", "smoother", "loads mapped", "poses inside"}
+    lines = text.splitlines()
+    headers = [h for h, nxt in zip(lines, lines[1:]) if nxt.startswith("|---")]
+    assert len(headers) >= 8
+    for h in headers:
+        for cell in (c.strip() for c in h.strip("|").split("|")):
+            assert "[" in cell or "NEES" in cell or cell in unitless, (cell, h)
 
 
 def test_report_without_groundtruth(tmp_path):
@@ -313,7 +335,11 @@ def test_report_without_groundtruth(tmp_path):
     assert "MAE x [cm]" not in text and "ATE" not in text
     assert "| `A1` |" in text                      # the load map is listed
     assert (tmp_path / "trajectories.png").exists() and (tmp_path / "load_map.png").exists()
-    assert not (tmp_path / "position_errors.png").exists()
+    assert (tmp_path / "position_sigma.png").exists()         # the smoother has covariances
+    assert "](position_sigma.png)" in text and "longest gap [s]" in text
+    for png in ("position_errors.png", "position_errors_zoom.png", "error_boxplots.png",
+                "load_errors.png"):
+        assert not (tmp_path / png).exists()
     # metrics None behaves the same
     path = write_report(tmp_path / "b", None, trajs, {}, None, None, None, {}, dpi=40)
     assert "No ground truth" in path.read_text()
@@ -341,3 +367,60 @@ def test_nonfinite_and_unsorted_estimates():
     P = np.stack([np.eye(3), np.zeros((3, 3)), 2 * np.eye(3)])
     v = M.nees_from_errors(e, P)
     assert v[0] == pytest.approx(3.0) and np.isnan(v[1]) and v[2] == pytest.approx(1.5)
+
+
+def test_fmt_keeps_three_significant_digits():
+    from fusion.evaluate.report import DASH, fmt
+    assert [fmt(v) for v in (15.3249, 0.31849, 0.0051249, 123.4, 26224.35, 0)] == \
+        ["15.3", "0.318", "0.00512", "123", "26224", "0"]
+    assert fmt(0.0015, 100) == "0.150" and fmt(-2.5e-3, 100) == "-0.250"
+    assert fmt(None) == DASH and fmt(float("nan")) == DASH and fmt("n/a") == "n/a"
+    assert fmt(1e-9) == "0.00000"                       # capped decimals, no exponent
+
+
+def test_decimate_minmax_keeps_every_bin_extreme():
+    from fusion.evaluate.plots import decimate_minmax
+    rng = np.random.default_rng(3)
+    y = rng.normal(size=100_003)
+    y[[17, 50_000, 99_999]] = [40.0, -35.0, 25.0]           # spikes that must survive
+    i = decimate_minmax(y, 1000)
+    assert len(i) <= 1002 and np.all(np.diff(i) > 0)
+    assert {17, 50_000, 99_999} <= set(i.tolist())
+    np.testing.assert_array_equal(decimate_minmax(y[:500], 1000), np.arange(500))
+    y[10:20] = np.nan                                        # NaN never chosen over a number
+    assert np.all(np.isfinite(y[decimate_minmax(y, 1000)]))
+
+
+def test_zoom_limits_ignore_excluded_estimator_and_spikes():
+    from fusion.evaluate.plots import zoom_limits_cm
+    rng = np.random.default_rng(4)
+    fine = rng.normal(scale=0.05, size=(5000, 3))           # cm
+    fine[100] = [30.0, -30.0, 30.0]                          # one spike
+    lim = zoom_limits_cm([fine], [np.full((5000, 3), 0.1)])
+    assert np.all(lim < 0.5) and np.all(lim > 0.13)          # set by the bulk, not the spike
+    wide_sigma = np.full((5000, 3), 0.1)
+    wide_sigma[:1000] = 3.0                                  # a long blackout: 20 % of samples
+    assert np.all(zoom_limits_cm([fine], [wide_sigma]) > 3.0)
+
+
+def test_load_rows_put_unseen_loads_last():
+    from fusion.evaluate.plots import load_rows
+    gt = {k: np.zeros(3) for k in ("A1", "A2", "B1", "B2")}
+    maps = {"pnp": LoadMap("pnp", [LoadEstimate("B1", np.zeros(3), None, 3),
+                                   LoadEstimate("ZZ", np.zeros(3), None, 1)]),
+            "smoother": LoadMap("smoother", [LoadEstimate("A2", np.zeros(3), None, 3)])}
+    assert load_rows(maps, gt) == (["A2", "B1", "A1", "B2"], 2)
+    assert load_rows(maps, gt, max_unseen_rows=1) == (["A2", "B1", "2 loads not seen"], 2)
+
+
+def test_load_error_plot_and_boxplots_with_unseen_and_covariance_free_loads(tmp_path):
+    from fusion.evaluate.plots import plot_error_boxplots, plot_load_errors
+    gt, trajs, lms, loads_gt, _ = _run_outputs()
+    loads_gt = dict(loads_gt, C3=np.array([5.0, 4.5, 2.0]))  # never seen
+    lms["paper"] = LoadMap("paper", [LoadEstimate("A1", loads_gt["A1"] + 0.1, None, 2)])
+    assert plot_load_errors(tmp_path / "e.png", lms, None) is None
+    p = plot_load_errors(tmp_path / "e.png", lms, loads_gt, dpi=40)
+    assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    p = plot_error_boxplots(tmp_path / "b.png", trajs, gt, load_maps=lms, loads_gt=loads_gt,
+                            dpi=40)
+    assert p.stat().st_size > 1000

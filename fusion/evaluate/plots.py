@@ -272,6 +272,17 @@ def _robust_limit(values: list[np.ndarray], percentile: float, floor: float) -> 
     return max(float(np.percentile(v, percentile)) if len(v) else floor, floor)
 
 
+def zoom_limits_cm(errors_cm: list[np.ndarray], two_sigmas_cm: list[np.ndarray],
+                   percentile: float = 99.5, sigma_percentile: float = 95.0,
+                   margin: float = 1.3, floor_cm: float = 1e-3) -> np.ndarray:
+    """(3,) symmetric y-limits (cm) per axis for the zoomed error plot: `margin` x the larger of
+    the `percentile` of |error| and the `sigma_percentile` of 2σ over the given (N_i, 3) arrays."""
+    return np.array([margin * max(_robust_limit([e[:, k] for e in errors_cm], percentile, floor_cm),
+                                  _robust_limit([s[:, k] for s in two_sigmas_cm],
+                                                sigma_percentile, floor_cm))
+                     for k in range(3)])
+
+
 def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], gt,
                               blackouts: list[tuple[int, int, str]] | None = None, *,
                               exclude: Iterable[str] = ZOOM_EXCLUDE,
@@ -281,9 +292,9 @@ def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], g
                               dpi: int = DEFAULT_DPI) -> Path | None:
     """Per-axis position error (est - truth, cm) of the estimators not in `exclude` (PnP and the
     fused ones) with their ±2σ bands (world axes), blackouts shaded.  Each axis' y-range is
-    1.3 x the larger of the `percentile` of |error| and the `sigma_percentile` of 2σ over those
-    estimators, so a few spikes or a briefly huge σ do not flatten the rest; samples beyond it
-    are counted in the panel.
+    `zoom_limits_cm`: 1.3 x the larger of the `percentile` of |error| and the `sigma_percentile`
+    of 2σ over those estimators, so a few spikes or a briefly huge σ do not flatten the rest;
+    samples beyond it are counted in the panel.
     Returns None when no estimator is left to draw."""
     raw_names, exclude = set(raw_names), set(exclude)
     assoc = associations if associations is not None else associate_all(trajectories, gt)
@@ -302,10 +313,10 @@ def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], g
             if s is not None:
                 _draw_band(axes[k], name, ts, 2.0 * s[:, k], f"{name} ±2σ" if k == 0 else None)
             _draw_series(axes[k], name, ts, errs[name][:, k], name in raw_names, label=(k == 0))
+    lims = zoom_limits_cm(list(errs.values()), [2 * s for s in sigmas.values() if s is not None],
+                          percentile, sigma_percentile)
     for k, ax in enumerate(axes):
-        lim = 1.3 * max(_robust_limit([e[:, k] for e in errs.values()], percentile, 1e-3),
-                        _robust_limit([2 * s[:, k] for s in sigmas.values() if s is not None],
-                                      sigma_percentile, 1e-3))
+        lim = lims[k]
         n_out = sum(int(np.sum(np.abs(e[:, k]) > lim)) for e in errs.values())
         ax.set_ylim(-lim, lim)
         if n_out:
@@ -330,6 +341,43 @@ def plot_position_errors(path: Path, trajectories: dict[str, Trajectory], gt,
     """Alias of `plot_error_overview` (log-scale error norm of every estimator), kept for
     callers of the first version; the per-axis ±2σ plot is `plot_position_errors_zoom`."""
     return plot_error_overview(path, trajectories, gt, blackouts, raw_names=raw_names, dpi=dpi)
+
+
+def plot_position_sigma(path: Path, trajectories: dict[str, Trajectory], *,
+                        raw_names: Iterable[str] = RAW_ESTIMATORS,
+                        dpi: int = DEFAULT_DPI) -> Path | None:
+    """Without ground truth, what the estimators claim: 3D position 1σ (cm, sqrt of the trace
+    of the translation covariance) over time on a log axis, one colour per estimator, and a
+    rug of the raw estimators' poses (their gaps are where the floor codes were unreadable).
+    Returns None when no trajectory has covariances."""
+    raw_names = set(raw_names)
+    with_cov = {n: t for n, t in trajectories.items() if len(t) and t.covariances is not None}
+    if not with_cov:
+        return None
+    t0 = time_origin_ns(None, trajectories)
+    fig = Figure(figsize=(11, 4.6), layout="constrained")
+    ax, ax_rug = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [4.0, 1.0]})
+    for name, traj in with_cov.items():
+        ts = (np.asarray(traj.timestamps_ns, dtype=np.int64) - t0) * 1e-9
+        tr = np.trace(np.asarray(traj.covariances)[:, 3:, 3:], axis1=1, axis2=2)
+        sig_cm = np.maximum(100.0 * np.sqrt(np.clip(tr, 0, None)), LOG_FLOOR)
+        _draw_series(ax, name, ts, sig_cm, name in raw_names)
+    raw = [n for n in trajectories if n in raw_names and len(trajectories[n])]
+    for i, name in enumerate(raw):
+        ts = (np.asarray(trajectories[name].timestamps_ns, dtype=np.int64) - t0) * 1e-9
+        ts = ts[_stride(len(ts), 4 * MAX_DRAWN_POINTS)]
+        ax_rug.plot(ts, np.full(len(ts), i), "|", ms=6, color=estimator_colour(name))
+    ax_rug.set_yticks(range(len(raw)), raw, fontsize=8)
+    ax_rug.set_ylim(-0.7, len(raw) - 0.3)
+    ax_rug.set_xlabel("time since start [s]")
+    ax_rug.set_title("raw poses (gaps: no floor code read)", fontsize=8, loc="left")
+    ax.set_yscale("log")
+    ax.set_ylabel("position 1σ (3D) [cm]")
+    ax.set_title("Claimed position uncertainty over time (no ground truth: no errors)")
+    ax.grid(True, which="major", lw=0.4, alpha=0.6)
+    ax.grid(True, which="minor", lw=0.2, alpha=0.3)
+    _legend(fig, ax, markerscale=4)
+    return _save(fig, path, dpi)
 
 
 # ============================================================================ box plots
@@ -492,6 +540,18 @@ def plot_load_map(path: Path, load_maps: dict[str, LoadMap],
     return _save(fig, path, dpi)
 
 
+def load_rows(load_maps: dict[str, LoadMap], loads_gt: dict[str, np.ndarray],
+              max_unseen_rows: int = 40) -> tuple[list[str], int]:
+    """Row labels of the per-load error plot and how many of them (the first) were mapped by
+    some estimator; the true loads nobody mapped follow, or one "<n> loads not seen" row when
+    there are more than `max_unseen_rows`.  Mapped ids that are not in the truth are left out."""
+    seen = sorted(_seen_ids(load_maps) & set(loads_gt))
+    unseen = sorted(set(loads_gt) - set(seen))
+    rows = seen + (unseen if len(unseen) <= max_unseen_rows
+                   else [f"{len(unseen)} loads not seen"])
+    return rows, len(seen)
+
+
 def plot_load_errors(path: Path, load_maps: dict[str, LoadMap], loads_gt: dict[str, np.ndarray],
                      *, exclude: Iterable[str] = ZOOM_EXCLUDE, max_unseen_rows: int = 40,
                      dpi: int = DEFAULT_DPI) -> Path | None:
@@ -503,10 +563,8 @@ def plot_load_errors(path: Path, load_maps: dict[str, LoadMap], loads_gt: dict[s
     count).  Returns None without a load truth."""
     if not loads_gt:
         return None
-    seen = sorted(_seen_ids(load_maps) & set(loads_gt))
-    unseen = sorted(set(loads_gt) - set(seen))
-    rows = seen + (unseen if len(unseen) <= max_unseen_rows
-                   else [f"{len(unseen)} loads not seen"])
+    rows, n_seen = load_rows(load_maps, loads_gt, max_unseen_rows)
+    seen = rows[:n_seen]
     y_of = {lid: i for i, lid in enumerate(rows)}
     exclude = set(exclude)
     groups = [g for g in ([n for n in load_maps if n in exclude],
@@ -569,12 +627,17 @@ def plot_all(out_dir: Path, trajectories: dict[str, Trajectory], load_maps: dict
              dpi: int = DEFAULT_DPI) -> dict[str, Path]:
     """Every plot that the inputs allow; returns {plot name: PNG path}, names as in the files:
     trajectories, position_errors (raw vs fused overview, log), position_errors_zoom (PnP and
-    fused per axis ±2σ), error_boxplots, load_map, load_errors."""
+    fused per axis ±2σ), error_boxplots, load_map, load_errors; without ground truth
+    position_sigma instead of the error plots."""
     out_dir = Path(out_dir)
     paths = {"trajectories": plot_trajectories(
         out_dir / "trajectories.png", trajectories, gt, floor_codes_xy_m=floor_codes_xy_m,
         payload_unit_m=payload_unit_m, dpi=dpi)}
     assoc = associate_all(trajectories, gt) if gt is not None else {}
+    if not assoc:
+        sig = plot_position_sigma(out_dir / "position_sigma.png", trajectories, dpi=dpi)
+        if sig is not None:
+            paths["position_sigma"] = sig
     if assoc:
         paths["position_errors"] = plot_error_overview(
             out_dir / "position_errors.png", trajectories, gt, blackouts, associations=assoc,
@@ -598,6 +661,6 @@ def plot_all(out_dir: Path, trajectories: dict[str, Trajectory], load_maps: dict
 
 __all__ = ["estimator_colour", "decimate_minmax", "associate_all", "time_origin_ns",
            "plot_trajectories", "plot_error_overview", "plot_position_errors",
-           "plot_position_errors_zoom", "plot_error_boxplots", "plot_load_map",
-           "plot_load_errors", "plot_all",
+           "plot_position_errors_zoom", "plot_position_sigma", "plot_error_boxplots",
+           "plot_load_map", "plot_load_errors", "plot_all", "zoom_limits_cm", "load_rows",
            "RAW_ESTIMATORS", "ZOOM_EXCLUDE"]

@@ -26,13 +26,16 @@ PLOT_CAPTIONS = {
                     "fused as lines; floor codes as faint squares; cf. the paper's Fig. 32)",
     "position_errors": "Raw vs fused: |position error| and |yaw error| over time, log scale, "
                        "floor-code blackouts shaded with their durations",
-    "position_errors_zoom": "Position error per axis (estimate − truth, cm) of PnP and the fused "
-                            "estimators with their ±2σ bands, blackouts shaded; the y-range comes "
-                            "from these estimators' errors (the paper's are in the overview)",
+    "position_errors_zoom": "Position error per axis (estimate − truth, cm) of PnP and the "
+                            "fused estimators with their ±2σ bands, blackouts shaded; the y-range"
+                            " comes from these estimators' errors (the paper's are in the "
+                            "overview)",
     "error_boxplots": "Absolute errors per estimator on log axes: drone per axis and yaw (cf. the "
                       "paper's Fig. 31) and loads per axis (cf. Fig. 34); boxes are quartiles, "
                       "whiskers 5th–95th percentiles, × the maximum, dashed the paper's "
                       "simulator MAE",
+    "position_sigma": "Position uncertainty the estimators report (3D 1σ, cm, log scale) and "
+                      "the times at which the raw estimators have a pose",
     "load_map": "Load map, for orientation: top view with 2σ ellipses and rack columns labelled, "
                 "height per load id; hollow grey: true loads that no estimator saw "
                 "(cf. the paper's Fig. 33)",
@@ -40,6 +43,7 @@ PLOT_CAPTIONS = {
                    "paper's estimator and the others each on their own scale; grey rows: not seen",
 }
 _PLOT_SECTION = {"position_errors": "summary", "position_errors_zoom": "summary",
+                 "position_sigma": "localization",
                  "error_boxplots": "localization", "trajectories": "localization",
                  "load_map": "loads", "load_errors": "loads"}
 
@@ -295,8 +299,8 @@ def _nees_section(m: dict) -> list[str]:
         return []
     lines = ["## Consistency (NEES)", ""]
     lines += _table(["estimator", "poses", "position NEES mean (ideal 3)",
-                     "inside χ²(3) 95% [%]", "pose NEES mean (ideal 6)", "inside χ²(6) 95% [%]"],
-                    rows)
+                     "inside χ²(3) 95% [%]", "pose NEES mean (ideal 6)",
+                     "inside χ²(6) 95% [%]"], rows)
     lines += ["Pose error ξ = Log(T_true⁻¹ T_est) in the body frame, GTSAM order "
               "[rx, ry, rz, tx, ty, tz], against the reported 6×6 covariance (NEES is "
               "dimensionless). A mean far above the dimension means overconfident covariances; "
@@ -348,12 +352,12 @@ def _trajectory_summary(trajectories: dict[str, Trajectory]) -> list[str]:
             length = float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
             rate = (len(t) - 1) / span if span > 0 else 0.0
             rows.append([name, _kind(name), len(t), f"{span:.1f}", f"{rate:.1f}",
-                         f"{length:.2f}", f"{p[:, 2].mean():.2f}",
+                         fmt(_longest_gap_s(t)), f"{length:.2f}", f"{p[:, 2].mean():.2f}",
                          "yes" if t.covariances is not None else "no"])
         else:
-            rows.append([name, _kind(name), 0, DASH, DASH, DASH, DASH, DASH])
+            rows.append([name, _kind(name), 0, DASH, DASH, DASH, DASH, DASH, DASH])
     return _table(["estimator", "kind", "poses", "time span [s]", "mean rate [Hz]",
-                   "path length [m]", "mean height [m]", "covariance"], rows)
+                   "longest gap [s]", "path length [m]", "mean height [m]", "covariance"], rows)
 
 
 def _load_table(load_maps: dict[str, LoadMap]) -> list[str]:
