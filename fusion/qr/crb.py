@@ -160,23 +160,6 @@ def cross_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
     return out
 
 
-def floor_reprojection_parts(projector: Projector, R_cam_body: np.ndarray, t_cam_body: np.ndarray,
-                             R_world_body: np.ndarray, t_world_body: np.ndarray,
-                             points_world: np.ndarray, jacobian: bool = True
-                             ) -> tuple[np.ndarray, np.ndarray | None]:
-    """`floor_reprojection` with the camera's constants precomputed: pixels (N, 2) and the
-    Jacobian (N, 2, 6) (rows u, v of each point; None when not `jacobian`)."""
-    p_body = (points_world - t_world_body) @ R_world_body
-    uv, J_proj = projector.project(p_body @ R_cam_body.T + t_cam_body, jacobian)
-    if not jacobian:
-        return uv, None
-    A = J_proj @ R_cam_body                            # d(pixels)/d(p_body)
-    J = np.empty((len(p_body), 2, 6))
-    J[:, :, :3] = cross_rows(A, p_body)                # A [p_body]x
-    J[:, :, 3:] = -A
-    return uv, J
-
-
 def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Distorted pixels (N, 2) of world points (N, 3) seen from body pose T_world_body, and the
@@ -187,26 +170,16 @@ def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_wor
     Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v, p_cam = T_cam_body p_body,
     so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
     T_body_cam = np.asarray(camera.T_body_cam, dtype=float)
-    R_cb = T_body_cam[:3, :3].T
     T_world_body = np.asarray(T_world_body, dtype=float)
-    uv, J = floor_reprojection_parts(Projector(camera), R_cb, -R_cb @ T_body_cam[:3, 3],
-                                     T_world_body[:3, :3], T_world_body[:3, 3],
-                                     np.asarray(points_world, dtype=float).reshape(-1, 3))
+    R_cb = T_body_cam[:3, :3].T
+    p_body = (np.asarray(points_world, dtype=float).reshape(-1, 3) - T_world_body[:3, 3]) \
+        @ T_world_body[:3, :3]
+    uv, J_proj = Projector(camera).project((p_body - T_body_cam[:3, 3]) @ T_body_cam[:3, :3])
+    A = J_proj @ R_cb                                  # d(pixels)/d(p_body)
+    J = np.empty((len(p_body), 2, 6))
+    J[:, :, :3] = cross_rows(A, p_body)                # A [p_body]x
+    J[:, :, 3:] = -A
     return uv, J.reshape(-1, 6)
-
-
-def symbol_reprojection_parts(projector: Projector, R_cam_symbol: np.ndarray,
-                              t_cam_symbol: np.ndarray, points_symbol: np.ndarray,
-                              jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-    """`symbol_reprojection` with the camera's constants precomputed: pixels (N, 2) and the
-    Jacobian (N, 2, 6) (None when not `jacobian`)."""
-    uv, J_proj = projector.project(points_symbol @ R_cam_symbol.T + t_cam_symbol, jacobian)
-    if not jacobian:
-        return uv, None
-    J = np.empty((len(points_symbol), 2, 6))
-    J[:, :, :3] = -cross_rows(J_proj @ R_cam_symbol, points_symbol)   # -J_proj R [p_S]x
-    J[:, :, 3:] = J_proj
-    return uv, J
 
 
 def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_symbol: np.ndarray
@@ -216,8 +189,12 @@ def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_sy
     t_cam_symbol <- t_cam_symbol + dt (camera frame, m): the last three are the code centre p_cam.
     d p_cam / d[w, dt] = [ -R_cam_symbol [p_S]x , I ]."""
     T_cam_symbol = np.asarray(T_cam_symbol, dtype=float)
-    uv, J = symbol_reprojection_parts(Projector(camera), T_cam_symbol[:3, :3], T_cam_symbol[:3, 3],
-                                      np.asarray(points_symbol, dtype=float).reshape(-1, 3))
+    R = T_cam_symbol[:3, :3]
+    p_S = np.asarray(points_symbol, dtype=float).reshape(-1, 3)
+    uv, J_proj = Projector(camera).project(p_S @ R.T + T_cam_symbol[:3, 3])
+    J = np.empty((len(p_S), 2, 6))
+    J[:, :, :3] = -cross_rows(J_proj @ R, p_S)         # -J_proj R [p_S]x
+    J[:, :, 3:] = J_proj
     return uv, J.reshape(-1, 6)
 
 
