@@ -311,7 +311,8 @@ def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
     """Minimise each of K problems' whitened cost |W (h(x) - z)|^2 over its pose x = (R, t), from
     the starts R (K, 3, 3), t (K, 3) with normal equations G (K, 7, 7) (`normal_equations`), all
     K in one evaluation per step; returns R, t, G at the optima (H = G[:, :6, :6] = J^T W^T W J
-    for the covariance, cost = G[:, 6, 6]); a start whose G is not finite is left as it is.
+    for the covariance, cost = G[:, 6, 6]) and a (K,) mask of the converged ones (not those that
+    ran out of iterations or could not descend; a start whose G is not finite is left as it is).
 
     Gauss-Newton steps, damped (Levenberg-Marquardt, lambda diag(H)) only after a step that
     raised the cost; a problem stops when its predicted decrease g^T H^-1 g is below
@@ -322,6 +323,7 @@ def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
         problems = problems.subset(idx)
     Ra, ta, Ga = R[idx], t[idx], G[idx]                         # their current poses
     lam = np.zeros(len(idx))
+    converged = np.zeros(len(R), dtype=bool)
     diag = np.arange(6)
     for _ in range(max_iter):
         if len(idx) == 0:
@@ -343,6 +345,7 @@ def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
         going = decrease > CONVERGED_DECREMENT * Ga[:, 6, 6] + 1e-15     # False for NaN
         if not going.all():                            # converged ones leave the batch
             R[idx], t[idx], G[idx] = Ra, ta, Ga
+            converged[idx[~going & np.isfinite(decrease)]] = True
             idx, Ra, ta, Ga, lam, delta = (idx[going], Ra[going], ta[going], Ga[going],
                                            lam[going], delta[going])
             if len(idx) == 0:
@@ -365,14 +368,15 @@ def _levenberg_marquardt(problems, R: np.ndarray, t: np.ndarray, G: np.ndarray,
             idx, Ra, ta, Ga, lam = idx[alive], Ra[alive], ta[alive], Ga[alive], lam[alive]
             problems = problems.subset(alive)
     R[idx], t[idx], G[idx] = Ra, ta, Ga
-    return R, t, G
+    return R, t, G, converged
 
 
 def _refine(problems, R: np.ndarray, t: np.ndarray, owner: np.ndarray):
     """Refine starts R (K, 3, 3), t (K, 3) of `problems` (one per start; `owner[k]` the view it
     belongs to): all evaluated in one batch, those whose whitened cost is within
     2x + START_MARGIN_CHI2 of their view's best refined by `_levenberg_marquardt`.
-    Returns owner (K',), R (K', 3, 3), t (K', 3), G (K', 7, 7), r_px (K', N, 2) of those."""
+    Returns owner (K',), R (K', 3, 3), t (K', 3), G (K', 7, 7), r_px (K', N, 2) of those that
+    converged, or of all refined starts of a view none of whose starts converged."""
     G0 = problems.normal_equations(R, t)
     cost = np.where(np.isfinite(G0).all(axis=(1, 2)), G0[:, 6, 6], np.inf)
     best: dict[int, float] = {}
@@ -381,8 +385,13 @@ def _refine(problems, R: np.ndarray, t: np.ndarray, owner: np.ndarray):
     keep = np.flatnonzero(cost <= 2.0 * np.array([best[o] for o in owner.tolist()])
                           + START_MARGIN_CHI2)
     sub = problems.subset(keep)
-    R, t, G = _levenberg_marquardt(sub, R[keep], t[keep], G0[keep])
-    return owner[keep], R, t, G, sub.residual_px(R, t)
+    R, t, G, converged = _levenberg_marquardt(sub, R[keep], t[keep], G0[keep])
+    own = owner[keep]
+    if not converged.all():         # an unconverged start is no minimum: no candidate (unless
+        good = set(own[converged].tolist())           # its view has nothing better)
+        use = np.array([c or o not in good for o, c in zip(own.tolist(), converged.tolist())])
+        sub, own, R, t, G = sub.subset(use), own[use], R[use], t[use], G[use]
+    return own, R, t, G, sub.residual_px(R, t)
 
 
 # ============================================================================ floor camera
