@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse  # noqa: E402
+from matplotlib.ticker import NullFormatter, NullLocator  # noqa: E402
 
 from fusion.evaluate.metrics import (PAPER_SIM_LOADMAP_MAE_CM,  # noqa: E402
                                      PAPER_SIM_LOCALIZATION_MAE_CM, PAPER_SIM_YAW_MAE_DEG,
@@ -173,6 +174,18 @@ def _shade_blackouts(ax, blackouts, t0_ns: int, label: bool, annotate: bool = Fa
                         fontsize=7, color="#555555")
 
 
+def _log_y(ax, minor: bool = True) -> None:
+    """Log y-axis with unlabelled minor ticks (labelling them costs most of a figure's time;
+    `minor=False`: none, for many small panels)."""
+    ax.set_yscale("log")
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.grid(True, which="major", lw=0.4, alpha=0.6)
+    if minor:
+        ax.grid(True, which="minor", lw=0.2, alpha=0.3)
+    else:
+        ax.yaxis.set_minor_locator(NullLocator())
+
+
 def _legend(fig, ax_or_axes, **kw) -> None:
     axes = ax_or_axes if isinstance(ax_or_axes, (list, tuple, np.ndarray)) else [ax_or_axes]
     seen, handles, labels = set(), [], []
@@ -256,9 +269,7 @@ def plot_error_overview(path: Path, trajectories: dict[str, Trajectory], gt,
             v = np.concatenate(drawn[k])
             ax.set_ylim(bottom=max(LOG_FLOOR, 0.5 * float(np.percentile(v, 1.0))))
         _shade_blackouts(ax, blackouts, t0, label=(k == 0), annotate=(k == 0))
-        ax.set_yscale("log")
-        ax.grid(True, which="major", lw=0.4, alpha=0.6)
-        ax.grid(True, which="minor", lw=0.2, alpha=0.3)
+        _log_y(ax)
     ax_p.set_ylabel("|position error| [cm]")
     ax_y.set_ylabel("|yaw error| [deg]")
     ax_y.set_xlabel("time since start [s]")
@@ -321,7 +332,8 @@ def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], g
         ax.set_ylim(-lim, lim)
         if n_out:
             ax.text(0.995, 0.03, f"{n_out} sample(s) beyond ±{lim:.2g} cm", transform=ax.transAxes,
-                    ha="right", va="bottom", fontsize=7, color="#555555")
+                    ha="right", va="bottom", fontsize=7, color="#555555",
+                    bbox=dict(fc="white", ec="none", alpha=0.8, pad=1.0))
         _shade_blackouts(ax, blackouts, t0, label=(k == 0), annotate=(k == 0))
         ax.axhline(0.0, color="#888888", lw=0.6)
         ax.grid(True, lw=0.3, alpha=0.5)
@@ -371,11 +383,9 @@ def plot_position_sigma(path: Path, trajectories: dict[str, Trajectory], *,
     ax_rug.set_ylim(-0.7, len(raw) - 0.3)
     ax_rug.set_xlabel("time since start [s]")
     ax_rug.set_title("raw poses (gaps: no floor code read)", fontsize=8, loc="left")
-    ax.set_yscale("log")
+    _log_y(ax)
     ax.set_ylabel("position 1σ (3D) [cm]")
     ax.set_title("Claimed position uncertainty over time (no ground truth: no errors)")
-    ax.grid(True, which="major", lw=0.4, alpha=0.6)
-    ax.grid(True, which="minor", lw=0.2, alpha=0.3)
     _legend(fig, ax, markerscale=4)
     return _save(fig, path, dpi)
 
@@ -397,10 +407,9 @@ def _boxes(ax, names: list[str], vals: list[np.ndarray], title: str,
         ax.set_xticks(range(1, len(names) + 1), names, rotation=40, ha="right", fontsize=8)
     if reference is not None:
         ax.axhline(reference, color="#d55e00", ls="--", lw=0.9, label="paper's simulator MAE")
-    ax.set_yscale("log")
+    _log_y(ax, minor=False)
+    ax.grid(False, axis="x", which="both")
     ax.set_title(title, fontsize=10)
-    ax.grid(True, axis="y", which="major", lw=0.4, alpha=0.6)
-    ax.grid(True, axis="y", which="minor", lw=0.2, alpha=0.3)
 
 
 def plot_error_boxplots(path: Path, trajectories: dict[str, Trajectory], gt, *,
