@@ -664,3 +664,27 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
     np.testing.assert_allclose(W[1], np.eye(8) / 0.3)
     np.testing.assert_allclose(W[2], np.eye(8) / 0.2)
     np.testing.assert_allclose(W[3], np.eye(8) / 0.2)
+
+
+def test_lm_reports_which_starts_converged():
+    """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
+    (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
+    from fusion.qr.crb import Projector, so3_exp
+    from fusion.qr.pnp import _FloorProblems, _levenberg_marquardt, corner_whitening
+    sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
+    P = np.vstack([s.corners_world for s in sightings])[None]
+    z = np.vstack([s.detection.corners_px for s in sightings])[None]
+    W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
+    R_cb = FLOOR_CAM.T_body_cam[:3, :3].T
+    problems = _FloorProblems(Projector(FLOOR_CAM), R_cb, -R_cb @ FLOOR_CAM.T_body_cam[:3, 3],
+                              np.repeat(P, 2, axis=0), np.repeat(z, 2, axis=0),
+                              np.repeat(W, 2, axis=0))
+    R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.25, -0.2, 0.3])])
+    t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [0.3, -0.2, 0.4]])
+    G0 = problems.normal_equations(R0, t0)
+    _, _, G, converged = _levenberg_marquardt(problems, R0, t0, G0, max_iter=3)
+    assert converged.tolist() == [True, False] and G[1, 6, 6] > G[0, 6, 6]
+    R, t, G, converged = _levenberg_marquardt(problems, R0, t0, G0)
+    assert converged.all()
+    np.testing.assert_allclose(R[1], R[0], atol=1e-6)
+    np.testing.assert_allclose(t[1], t[0], atol=1e-6)
