@@ -670,7 +670,8 @@ def test_lm_reports_which_starts_converged():
     """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
     (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
     from fusion.qr.crb import Projector, so3_exp
-    from fusion.qr.pnp import _FloorProblems, _levenberg_marquardt, corner_whitening
+    from fusion.qr.pnp import (_FloorProblems, _levenberg_marquardt, _same_minimum,
+                               corner_whitening)
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]
@@ -685,6 +686,5 @@ def test_lm_reports_which_starts_converged():
     _, _, G, converged = _levenberg_marquardt(problems, R0, t0, G0, max_iter=3)
     assert converged.tolist() == [True, False] and G[1, 6, 6] > G[0, 6, 6]
     R, t, G, converged = _levenberg_marquardt(problems, R0, t0, G0)
-    assert converged.all()
-    np.testing.assert_allclose(R[1], R[0], atol=1e-6)
-    np.testing.assert_allclose(t[1], t[0], atol=1e-6)
+    assert converged.all()                                  # both at the same minimum:
+    assert _same_minimum((R[0], t[0]), G[0, :6, :6], (R[1], t[1]))   # < 0.1 sigma apart
