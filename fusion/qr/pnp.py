@@ -109,6 +109,7 @@ def _cv_points(a: np.ndarray) -> np.ndarray:
 
 _EYE3 = np.eye(3)
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-14)
+_OPENCV_UNDISTORTS: dict[tuple, bool] = {}          # `_opencv_undistorts`, per camera
 
 
 def _opencv_undistorts(camera: CameraModel) -> bool:
@@ -124,9 +125,6 @@ def _opencv_undistorts(camera: CameraModel) -> bool:
         ok = _undistort_checked(camera, np.column_stack([u.ravel(), v.ravel()])) is not None
         _OPENCV_UNDISTORTS[key] = ok
     return ok
-
-
-_OPENCV_UNDISTORTS: dict[tuple, bool] = {}
 
 
 def _undistort_checked(camera: CameraModel, uv: np.ndarray) -> np.ndarray | None:
@@ -157,7 +155,7 @@ def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
     """(n, 8, 8) whitening matrices W_i = L_i^-1 of each detection's corner covariance
     C_i = L_i L_i^T (Cholesky; order TL u, TL v, TR u, ..., BL v), so that W_i (z_i - h_i) has
     identity covariance: `corner_cov_px2` when set and positive definite (the corners come from
-    one homography fit, so their errors are correlated), else diag(1 / sigma^2) with sigma the
+    one homography fit, so their errors are correlated), else diag(1 / sigma) with sigma the
     detection's `corner_sigma_px` or `default_sigma_px` (`corner_sigmas`)."""
     sig = corner_sigmas(detections, default_sigma_px).reshape(-1, 8)
     out = np.zeros((len(sig), 8, 8))
