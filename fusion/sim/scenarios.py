@@ -87,7 +87,7 @@ def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, 
 # ============================================================================ default / gimbaled
 
 
-def _default(name: str, resolution, mount: str) -> Scenario:
+def _default(name: str, resolution, mount: str, min_duration_s: float | None = None) -> Scenario:
     """A 10 m x 7 m warehouse, one double-sided rack between two aisles, a 60 s survey.
 
     Floor: 0.20 m codes on a 1 m grid, x = 0..10, y = 0..7, none under the rack (y = 3, 4 for
@@ -96,7 +96,11 @@ def _default(name: str, resolution, mount: str) -> Scenario:
     0.15 m load codes.  Flight: take-off, aisle 1 (y = 1.5, facing the P face 1.2 m away) at 1.4 m
     with hovers at each column, back at 2.1 m, a high pass at 2.6 m along x = 0.5 to aisle 2
     (y = 5.5, a 180 deg yaw turn), aisle 2 at 1.6 m and low at 0.9 m, climb.  Floor-camera
-    blackouts of 0.5, 1, 2 and 5 s (shadow, glare, torn, shadow) where floor codes are in view."""
+    blackouts of 0.5, 1, 2 and 5 s (shadow, glare, torn, shadow) where floor codes are in view.
+
+    Longer flights (`min_duration_s` beyond one lap): the survey repeats, each lap returning
+    along x = 0.5 to aisle 1 and flying the same passes with the same four blackouts at the same
+    places, so a 10-minute flight is eight or nine laps of the same warehouse."""
     world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0))
     floor = [(x, y) for x in range(0, 11) for y in range(0, 8)
              if not (y in (3, 4) and 1 <= x <= 9)]
@@ -117,13 +121,31 @@ def _default(name: str, resolution, mount: str) -> Scenario:
            (6.5, 5.5, 1.6, 3 * math.pi / 2, 0.6), (8.0, 5.6, 0.9, 3 * math.pi / 2, 0.5),
            (5.5, 5.5, 0.9, 3 * math.pi / 2 + 0.3, 0.3), (3.0, 5.5, 1.3, 3 * math.pi / 2),
            (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5)]
-    traj = KeyframeTrajectory(survey_keyframes(wps, speed_m_s=0.55, yaw_rate_rad_s=0.5))
+    lap = wps[2:]                       # from the first hover in aisle 1 to the end
+    all_wps = list(wps)
+    while True:
+        traj = KeyframeTrajectory(survey_keyframes(all_wps, speed_m_s=0.55, yaw_rate_rad_s=0.5))
+        if min_duration_s is None or traj.duration_s >= min_duration_s:
+            break
+        k = (len(all_wps) - len(wps)) // (len(lap) + 2) + 1
+        turn = 2.0 * math.pi * k        # keep yaw continuous: each lap turns the same way
+        all_wps += [(0.5, 5.0, 2.0, all_wps[-1][3]), (0.5, 1.5, 1.4, up + turn, 0.4)]
+        all_wps += [(x, y, z, yaw + turn, *rest) for x, y, z, yaw, *rest in lap]
     if traj.duration_s < 60.0:
         raise SimulationError(f"scenario {name}: trajectory only {traj.duration_s:.1f} s")
-    blackouts = [(9.0, 9.5, "shadow"), (17.0, 18.0, "glare"), (27.0, 29.0, "torn"),
-                 (40.0, 45.0, "shadow")]
+    lap_blackouts = [(9.0, 9.5, "shadow"), (17.0, 18.0, "glare"), (27.0, 29.0, "torn"),
+                     (40.0, 45.0, "shadow")]
+    # the same blackouts at the same places of every lap: shift by the arrival times at the
+    # lap's first hover (1.5, 1.5, 1.4)
+    arrivals = [kf.t_s for i, kf in enumerate(traj.keyframes)
+                if np.allclose(kf.p_world, (1.5, 1.5, 1.4))
+                and not np.allclose(traj.keyframes[i - 1].p_world, (1.5, 1.5, 1.4))]
+    blackouts = [(a + arr - arrivals[0], b + arr - arrivals[0], kind)
+                 for arr in arrivals for a, b, kind in lap_blackouts
+                 if b + arr - arrivals[0] <= traj.duration_s]
     rack = (np.array([1.0, 2.72, 0.0]), np.array([9.0, 4.28, 2.6]))   # just behind the faces
-    return Scenario(name, layout, make_cameras(resolution, mount), traj, 60.0, blackouts,
+    duration = 60.0 if min_duration_s is None or min_duration_s <= 60.0 else traj.duration_s
+    return Scenario(name, layout, make_cameras(resolution, mount), traj, duration, blackouts,
                     occluders=[rack])
 
 
@@ -174,8 +196,10 @@ def _paper_a5(name: str, resolution, mount: str) -> Scenario:
     return Scenario(name, layout, make_cameras(resolution, mount), traj, traj.duration_s, blackouts)
 
 
-def build_scenario(name: str = "default", resolution=(640, 480)) -> Scenario:
-    """The scenario called `name` at camera `resolution` (width, height); raises SimulationError."""
+def build_scenario(name: str = "default", resolution=(640, 480),
+                   min_duration_s: float | None = None) -> Scenario:
+    """The scenario called `name` at camera `resolution` (width, height), flying at least
+    `min_duration_s` where the scenario can repeat (default, gimbaled); raises SimulationError."""
     if isinstance(resolution, str):
         if resolution not in RESOLUTIONS:
             raise SimulationError(f"unknown resolution {resolution!r}; expected one of {list(RESOLUTIONS)}")
@@ -184,9 +208,9 @@ def build_scenario(name: str = "default", resolution=(640, 480)) -> Scenario:
     if not (16 <= w <= 8192 and 16 <= h <= 8192):
         raise SimulationError(f"bad camera resolution {w}x{h}")
     if name == "default":
-        return _default(name, (w, h), "body_fixed")
+        return _default(name, (w, h), "body_fixed", min_duration_s)
     if name == "gimbaled":
-        return _default(name, (w, h), "gimbaled")
+        return _default(name, (w, h), "gimbaled", min_duration_s)
     if name == "paper_a5":
         return _paper_a5(name, (w, h), "body_fixed")
     raise SimulationError(f"unknown scenario {name!r}; expected one of {SCENARIOS}")

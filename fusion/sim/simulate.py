@@ -137,7 +137,10 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise SimulationError(f"seed must be a non-negative integer, got {seed!r}")
-    sc = build_scenario(scenario, resolution)
+    want_s = None
+    if isinstance(duration_s, (int, float)) and isinstance(start_s, (int, float)):
+        want_s = float(start_s) + float(duration_s)
+    sc = build_scenario(scenario, resolution, min_duration_s=want_s)
     if duration_s is None:
         duration_s = sc.duration_s
     try:
