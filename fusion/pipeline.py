@@ -62,7 +62,8 @@ class RunResult:
                          f"/{ds.get('floor_frames', 0)}; skipped frames: {ds.get('frames_skipped', 0)};"
                          f" rejected payloads: {ds.get('rejected_total', 0)}")
         per = (self.metrics or {}).get("trajectories", {})
-        header = f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} {'yaw deg':>8} {'ATE cm':>8}"
+        header = (f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
+                  f"{'yaw deg':>8} {'ATE cm':>8} {'ATE@pnp cm':>11}")
         lines += ["", header, "-" * len(header)]
         for name, traj in self.trajectories.items():
             m = per.get(name, {})
@@ -72,9 +73,11 @@ class RunResult:
                 return f"{100 * mae[i]:7.2f}" if mae else f"{'-':>7}"
             yaw = m.get("mae_yaw_deg")
             ate = m.get("ate_rmse_m")
+            ate_ref = m.get("ate_rmse_on_reference_frames_m")
             lines.append(f"{name:<12} {len(traj):>6} {cm(0)} {cm(1)} {cm(2)} "
                          f"{(f'{yaw:8.3f}' if yaw is not None else f'{chr(45):>8}')} "
-                         f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')}")
+                         f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')} "
+                         f"{(f'{100 * ate_ref:11.3f}' if ate_ref is not None else f'{chr(45):>11}')}")
         for name, lm in self.load_maps.items():
             m = (self.metrics or {}).get("load_maps", {}).get(name, {})
             mae = m.get("mae_xyz_m")
@@ -273,14 +276,16 @@ def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
     """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
     their p_world is meaningless (identity drone pose) and must not be used."""
     from fusion.qr.codes import classify
-    from fusion.qr.pnp import estimate_load_observations
-    out = []
+    from fusion.qr.pnp import estimate_load_observations_frames
+    batch = []
     for ts in sorted(set(front_frames) - posed_ns):
         codes = classify(front_frames[ts], world)
         if codes.loads:
-            out.extend(estimate_load_observations(codes.loads, camera, world, np.eye(4), None,
-                                                  sigma_px))
-    return out
+            batch.append((codes.loads, np.eye(4), None))
+    if not batch:
+        return []
+    per_frame = estimate_load_observations_frames(batch, camera, world, sigma_px)
+    return [o for frame in per_frame for o in frame]
 
 
 def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None

@@ -538,7 +538,7 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
              loads_gt: dict[str, np.ndarray] | None, blackouts: list[tuple[int, int, str]] | None,
              detection_stats: dict | None = None, *, align: bool = False,
              position_yaw_only: Iterable[str] = ("paper",),
-             coverage_tolerance_s: float = 0.1) -> dict:
+             coverage_tolerance_s: float = 0.1, common_reference: str = "pnp") -> dict:
     """Compare every trajectory and load map with the truth; returns a JSON-ready dict.
 
     gt: `fusion.log.GroundTruth` (or None: only detection statistics and counts are returned).
@@ -573,6 +573,19 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
             out["trajectories"][name] = trajectory_metrics(
                 t_gt, T_gt, traj, blackouts, full_attitude=name not in yaw_only, align=align,
                 coverage_tolerance_s=coverage_tolerance_s)
+        # Like-for-like: every estimator on the frames where the reference raw estimator has a
+        # pose (a fused trajectory also covers blackouts and the time before the first fix,
+        # where errors are larger by nature).
+        ref = trajectories.get(common_reference)
+        if ref is not None and len(ref):
+            for name, traj in trajectories.items():
+                sub = _at_timestamps(traj, ref.timestamps_ns)
+                if len(sub):
+                    a = associate(t_gt, T_gt, sub)
+                    if len(a):
+                        out["trajectories"][name]["ate_rmse_on_reference_frames_m"] = \
+                            ate(a).ate_rmse_m
+            out["common_reference"] = common_reference
     else:
         for name, traj in trajectories.items():
             out["trajectories"][name] = {"n_poses": len(traj)}
@@ -582,6 +595,13 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
         else:
             out["load_maps"][name] = {"n_mapped": len(lm.loads)}
     return to_jsonable(out)
+
+
+def _at_timestamps(traj: Trajectory, timestamps_ns: np.ndarray) -> Trajectory:
+    """The poses of `traj` stamped exactly at one of `timestamps_ns`."""
+    keep = np.isin(np.asarray(traj.timestamps_ns), np.asarray(timestamps_ns))
+    cov = traj.covariances[keep] if traj.covariances is not None else None
+    return Trajectory(traj.name, traj.timestamps_ns[keep], traj.T_world_body[keep], cov)
 
 
 def to_jsonable(obj):

@@ -27,6 +27,7 @@ RESOLUTIONS = {"640x480": (640, 480), "1280x720": (1280, 720)}
 # modules) reads up to about 2.5 m above the floor, and a 0.15 m load code from up to 1.6 m.
 FOCAL_640_PX = 550.0
 GROUND_Z_M = 0.15          # body height standing on the floor (landing gear)
+MAX_SURVEY_S = 4 * 3600.0  # the repeating survey is built up to this length
 
 
 @dataclass
@@ -123,6 +124,9 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
            (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5)]
     lap = wps[2:]                       # from the first hover in aisle 1 to the end
     all_wps = list(wps)
+    if min_duration_s is not None and not (math.isfinite(min_duration_s)
+                                           and min_duration_s <= MAX_SURVEY_S):
+        min_duration_s = None           # simulate() refuses it with a clear message
     while True:
         traj = KeyframeTrajectory(survey_keyframes(all_wps, speed_m_s=0.55, yaw_rate_rad_s=0.5))
         if min_duration_s is None or traj.duration_s >= min_duration_s:
