@@ -346,3 +346,22 @@ def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
             o = load_obs[i]
             groups.setdefault(o.load_id, []).append((int(idx[i]), o))
     return groups, skipped
+
+
+def check_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
+                 velocity: VelocityData | None, T_body_frontcam: np.ndarray,
+                 config: FusionConfig):
+    """The checks every back end starts with; returns (frame_t, RawPoses, imu or None,
+    velocity or None, T_body_frontcam (4, 4)) or raises EstimationError."""
+    frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
+    if len(frame_t) == 0:
+        raise EstimationError("no floor-camera frames")
+    rawp = prepare_raw(frame_t, raw, config)
+    imu = check_imu(imu) if imu is not None and len(imu.timestamps_ns) else None
+    velocity = check_velocity(velocity) if velocity is not None else None
+    if imu is None and velocity is None:
+        raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
+    T_bc = np.asarray(T_body_frontcam, float)
+    if T_bc.shape != (4, 4) or not np.all(np.isfinite(T_bc)):
+        raise EstimationError("T_body_frontcam must be a finite 4x4 transform")
+    return frame_t, rawp, imu, velocity, T_bc

@@ -38,9 +38,8 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.conventions import inv_T, wrap_angle, yaw_of
 from fusion.estimate import graph as G
-from fusion.estimate.common import (FusionConfig, FusionResult, check_imu, check_timestamps,
-                                    check_velocity, first_velocity, group_load_obs,
-                                    inlier_raw_mask, prepare_raw, velocity_at_frames)
+from fusion.estimate.common import (FusionConfig, FusionResult, check_inputs, first_velocity,
+                                    group_load_obs, inlier_raw_mask, velocity_at_frames)
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
 from fusion.errors import EstimationError
 from fusion.conventions import GRAVITY_M_S2
@@ -223,15 +222,8 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     times, with the filtered (causal) covariance mapped to the body frame (Pose3 order)."""
     config = config or FusionConfig()
     t_start = time.perf_counter()
-    frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
-    if len(frame_t) == 0:
-        raise EstimationError("no floor-camera frames")
-    rawp = prepare_raw(frame_t, raw, config)
-    imu = check_imu(imu) if imu is not None and len(imu.timestamps_ns) else None
-    velocity = check_velocity(velocity) if velocity is not None else None
-    if imu is None and velocity is None:
-        raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
-    T_bc = np.asarray(T_body_frontcam, float)
+    frame_t, rawp, imu, velocity, T_bc = check_inputs(frame_times_ns, imu, raw, velocity,
+                                                      T_body_frontcam, config)
     n = len(frame_t)
     use = inlier_raw_mask(rawp, config)
     k0 = int(rawp.frame_idx[use].min())

@@ -33,11 +33,9 @@ import numpy as np
 from fusion.conventions import yaw_of
 from fusion.errors import EstimationError
 from fusion.estimate import graph as G
-from fusion.estimate.common import (FusionConfig, FusionResult, check_imu,
-                                    check_timestamps, check_velocity, first_velocity,
+from fusion.estimate.common import (FusionConfig, FusionResult, check_inputs, first_velocity,
                                     group_load_obs, initial_poses, initial_velocities,
-                                    inlier_raw_mask, match_to_frames, prepare_raw,
-                                    velocity_at_frames)
+                                    inlier_raw_mask, match_to_frames, velocity_at_frames)
 from fusion.estimate.graph import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
 from fusion.log.euroc import ImuData, VelocityData
@@ -234,17 +232,8 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
     poses at no frame time, neither IMU nor velocity."""
     config = config or FusionConfig()
-    frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
-    if len(frame_t) == 0:
-        raise EstimationError("no floor-camera frames")
-    rawp = prepare_raw(frame_t, raw, config)
-    imu = check_imu(imu) if imu is not None and len(imu.timestamps_ns) else None
-    velocity = check_velocity(velocity) if velocity is not None else None
-    if imu is None and velocity is None:
-        raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
-    T_bc = np.asarray(T_body_frontcam, float)
-    if T_bc.shape != (4, 4) or not np.all(np.isfinite(T_bc)):
-        raise EstimationError("T_body_frontcam must be a finite 4x4 transform")
+    frame_t, rawp, imu, velocity, T_bc = check_inputs(frame_times_ns, imu, raw, velocity,
+                                                      T_body_frontcam, config)
 
     n = len(frame_t)
     pb = Problem(frame_t=frame_t, has_imu=imu is not None, T_body_cam=T_bc)
