@@ -54,6 +54,21 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def skew(w: np.ndarray) -> np.ndarray:
+    """3x3 cross-product matrix [w]x (skew(w) @ p == cross(w, p))."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def skew_stack(p: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) cross-product matrices of (..., 3) vectors."""
+    p = np.asarray(p, dtype=float)
+    S = np.zeros(p.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -p[..., 2], p[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = p[..., 2], -p[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -p[..., 1], p[..., 0]
+    return S
+
+
 def inv_T(T: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform (or a stack of them, shape (..., 4, 4))."""
     T = np.asarray(T, dtype=float)

@@ -16,17 +16,12 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from fusion.conventions import GRAVITY_M_S2, wrap_angle
+from fusion.conventions import GRAVITY_M_S2, skew, wrap_angle
 from fusion.log.euroc import ImuNoise
 
 __all__ = ["X", "V", "B", "L", "imu_params", "robust", "pose_prior_factor",
            "position_yaw_factor", "body_velocity_factor", "load_factor",
            "constant_velocity_factor", "skew"]
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """3x3 cross-product matrix [w]x."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
 # =========================================================================== noise models

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 from scipy.stats import chi2
 
-from fusion.conventions import wrap_angle, yaw_of
+from fusion.conventions import skew_stack, wrap_angle, yaw_of
 from fusion.errors import EvaluationError
 from fusion.fileio import atomic_open
 from fusion.types import LoadMap, Trajectory
@@ -127,7 +127,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     w = so3_log(T[:, :3, :3])
     t = T[:, :3, 3]
     theta = np.linalg.norm(w, axis=1)
-    W = _skew(w)
+    W = skew_stack(w)
     W2 = W @ W
     # V^-1 = I - W/2 + (1/theta^2) (1 - (theta sin theta) / (2 (1 - cos theta))) W^2
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -136,14 +136,6 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * W2
     u = np.einsum("nij,nj->ni", Vinv, t)
     return np.hstack([w, u])
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2] = -w[:, 2], w[:, 1]
-    W[:, 1, 0], W[:, 1, 2] = w[:, 2], -w[:, 0]
-    W[:, 2, 0], W[:, 2, 1] = -w[:, 1], w[:, 0]
-    return W
 
 
 def umeyama_alignment(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -19,24 +19,10 @@ import math
 import numpy as np
 
 from fusion.camera import CameraModel
+from fusion.conventions import skew, skew_stack  # noqa: F401  (re-exported)
 from fusion.errors import EstimationError
 
 # ============================================================================ SE(3) in GTSAM's order
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """3x3 cross-product matrix [w]x (skew(w) @ p == cross(w, p))."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def skew_stack(p: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
-    p = np.asarray(p, dtype=float)
-    S = np.zeros(p.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -p[..., 2], p[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = p[..., 2], -p[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -p[..., 1], p[..., 0]
-    return S
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
