@@ -99,6 +99,20 @@ def wrap_angle(a):
     return -(np.mod(-np.asarray(a) + np.pi, 2.0 * np.pi) - np.pi)
 
 
+def interpolate_poses(ts: np.ndarray, T: np.ndarray, tq: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) sampled at increasing times `ts` (N,), interpolated at `tq` (M,) inside
+    [ts[0], ts[-1]]: linear position, slerp rotation.  Returns (M, 4, 4)."""
+    from scipy.spatial.transform import Slerp
+    out = np.tile(np.eye(4), (len(tq), 1, 1))
+    for a in range(3):
+        out[:, a, 3] = np.interp(tq, ts, T[:, a, 3])
+    if len(ts) == 1:
+        out[:, :3, :3] = T[0, :3, :3]
+    else:
+        out[:, :3, :3] = Slerp(ts, Rotation.from_matrix(T[:, :3, :3]))(tq).as_matrix()
+    return out
+
+
 def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
     """Unit quaternion(s) (w, x, y, z), w >= 0, from rotation matrix (or stack (N,3,3))."""
     q_xyzw = Rotation.from_matrix(R).as_quat()

@@ -10,8 +10,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
+from fusion.conventions import interpolate_poses
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
 from fusion.log.euroc import ImuData, VelocityData
@@ -269,15 +269,7 @@ def initial_poses(frame_t: np.ndarray, raw: RawPoses, config: FusionConfig,
     T = T[first]
     ts = frame_t[idx].astype(float)
     tq = np.clip(frame_t.astype(float), ts[0], ts[-1])
-    out = np.tile(np.eye(4), (len(frame_t), 1, 1))
-    for a in range(3):
-        out[:, a, 3] = np.interp(tq, ts, T[:, a, 3])
-    rots = Rotation.from_matrix(T[:, :3, :3])
-    if len(ts) == 1:
-        out[:, :3, :3] = T[0, :3, :3]
-    else:
-        out[:, :3, :3] = Slerp(ts, rots)(tq).as_matrix()
-    return out
+    return interpolate_poses(ts, T, tq)
 
 
 def initial_velocities(frame_t: np.ndarray, T_init: np.ndarray) -> np.ndarray:

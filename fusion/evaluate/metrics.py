@@ -18,9 +18,10 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from fusion.conventions import interpolate_poses as _interpolate_sampled
 from fusion.conventions import skew_stack, wrap_angle, yaw_of
 from fusion.errors import EvaluationError
 from fusion.fileio import atomic_open
@@ -82,15 +83,7 @@ def interpolate_poses(timestamps_ns: np.ndarray, T_world_body: np.ndarray,
     # Interpolate in float seconds relative to t0: exact at the samples, no int64 -> float loss.
     ts = (t - t[0]) * 1e-9
     qs = (qk - t[0]) * 1e-9
-    T = np.tile(np.eye(4), (len(qk), 1, 1))
-    for k in range(3):
-        T[:, k, 3] = np.interp(qs, ts, T_world_body[:, k, 3])
-    rots = Rotation.from_matrix(T_world_body[:, :3, :3])
-    if len(t) == 1:
-        T[:, :3, :3] = T_world_body[0, :3, :3]
-    else:
-        T[:, :3, :3] = Slerp(ts, rots)(qs).as_matrix()
-    return T, mask
+    return _interpolate_sampled(ts, T_world_body, qs), mask
 
 
 def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
