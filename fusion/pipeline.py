@@ -323,8 +323,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None
     for name, fn, kwargs in solvers:
         try:
             res = fn(frame_t, log.imu, raw, load_obs, T_bc, velocity=log.velocity,
-                     config=FusionConfig(robust_kernel=cfg.robust, tight=False)
-                     if fn is run_ekf else fcfg, **kwargs)
+                     config=fcfg, **kwargs)
         except EstimationError as e:
             notes.append(f"{name} not run: {e}")
             continue
