@@ -16,6 +16,7 @@ import numpy as np
 
 from fusion.errors import CameraModelError
 from fusion.fileio import dump_yaml, load_yaml
+from fusion.geometry import inv_T, level_frame
 
 MOUNTS = ("body_fixed", "gimbaled")
 
@@ -61,6 +62,28 @@ class CameraModel:
     def image_centre_px(self) -> np.ndarray:
         """Geometric centre of the image (the paper's (FC_fx, FC_fy)), not the principal point."""
         return np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
+
+    # ------------------------------------------------------------------ mount
+    def T_world_cam(self, T_world_body: np.ndarray) -> np.ndarray:
+        """Camera pose(s) (..., 4, 4) for body pose(s) T_world_body (..., 4, 4): T_world_body *
+        T_body_cam for a body-fixed mount; for a gimbaled one the camera hangs from the level
+        (yaw-only) body frame (the paper's assumption 3): level_frame(T_world_body) * T_body_cam."""
+        T_world_body = np.asarray(T_world_body, dtype=float)
+        T_parent = level_frame(T_world_body) if self.mount == "gimbaled" else T_world_body
+        return T_parent @ self.T_body_cam
+
+    def T_body_cam_at(self, T_world_body: np.ndarray) -> np.ndarray:
+        """The camera's pose in the (tilted) body frame at body pose(s) T_world_body: T_body_cam
+        itself for a body-fixed mount; for a gimbaled one it follows the airframe's roll and pitch,
+        T_body_level * T_body_cam."""
+        T_world_body = np.asarray(T_world_body, dtype=float)
+        if self.mount != "gimbaled":
+            return np.broadcast_to(self.T_body_cam, T_world_body.shape).copy()
+        return inv_T(T_world_body) @ self.T_world_cam(T_world_body)
+
+    @property
+    def gimbaled(self) -> bool:
+        return self.mount == "gimbaled"
 
     # ------------------------------------------------------------------ projection
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:

@@ -11,12 +11,10 @@
 """
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fusion.errors import PayloadError
 
@@ -41,105 +39,6 @@ def symbol_corners_S(side_m: float) -> np.ndarray:
     """(4, 3) corners of a symbol of edge `side_m` in its own frame S, in CORNER_NAMES order."""
     h = 0.5 * side_m
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-
-
-# --------------------------------------------------------------------------- SE(3) helpers
-
-
-def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """4x4 homogeneous transform from a 3x3 rotation and a 3-vector translation."""
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
-    return T
-
-
-def skew(w: np.ndarray) -> np.ndarray:
-    """3x3 cross-product matrix [w]x (skew(w) @ p == cross(w, p))."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def skew_stack(p: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) cross-product matrices of (..., 3) vectors."""
-    p = np.asarray(p, dtype=float)
-    S = np.zeros(p.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -p[..., 2], p[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = p[..., 2], -p[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -p[..., 1], p[..., 0]
-    return S
-
-
-def inv_T(T: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 rigid transform (or a stack of them, shape (..., 4, 4))."""
-    T = np.asarray(T, dtype=float)
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(R, -1, -2)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
-    out[..., 3, 3] = 1.0
-    return out
-
-
-def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
-    """Map (N, 3) points from frame b into frame a."""
-    p_b = np.asarray(p_b, dtype=float)
-    return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
-
-
-def yaw_of(R_world_body: np.ndarray) -> float:
-    """Heading of body x from world x, counter-clockwise, in rad in (-pi, pi] (works for (...,3,3))."""
-    R = np.asarray(R_world_body)
-    return np.arctan2(R[..., 1, 0], R[..., 0, 0])
-
-
-def wrap_angle(a):
-    """Wrap an angle (or array of angles) to (-pi, pi]."""
-    return -(np.mod(-np.asarray(a) + np.pi, 2.0 * np.pi) - np.pi)
-
-
-def interpolate_poses(ts: np.ndarray, T: np.ndarray, tq: np.ndarray) -> np.ndarray:
-    """Poses (N, 4, 4) sampled at increasing times `ts` (N,), interpolated at `tq` (M,) inside
-    [ts[0], ts[-1]]: linear position, slerp rotation.  Returns (M, 4, 4)."""
-    from scipy.spatial.transform import Slerp
-    out = np.tile(np.eye(4), (len(tq), 1, 1))
-    for a in range(3):
-        out[:, a, 3] = np.interp(tq, ts, T[:, a, 3])
-    if len(ts) == 1:
-        out[:, :3, :3] = T[0, :3, :3]
-    else:
-        out[:, :3, :3] = Slerp(ts, Rotation.from_matrix(T[:, :3, :3]))(tq).as_matrix()
-    return out
-
-
-def quat_wxyz_from_R(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion(s) (w, x, y, z), w >= 0, from rotation matrix (or stack (N,3,3))."""
-    q_xyzw = Rotation.from_matrix(R).as_quat()
-    q = np.roll(q_xyzw, 1, axis=-1)
-    sign = np.where(q[..., :1] < 0.0, -1.0, 1.0)
-    return q * sign
-
-
-def R_from_quat_wxyz(q_wxyz: np.ndarray) -> np.ndarray:
-    """Rotation matrix (or stack) from quaternion(s) (w, x, y, z); normalises the input."""
-    q = np.asarray(q_wxyz, dtype=float)
-    return Rotation.from_quat(np.roll(q, -1, axis=-1)).as_matrix()
-
-
-def rot_z(yaw: float) -> np.ndarray:
-    """Rotation about world z by `yaw` rad."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def R_world_loadsymbol(normal_yaw: float) -> np.ndarray:
-    """Rotation of a load code's symbol frame S on a vertical face whose outward normal points at
-    heading `normal_yaw` (rad): z_S = normal, y_S = world +z, x_S = y_S x z_S (the viewer's right)."""
-    n = np.array([math.cos(normal_yaw), math.sin(normal_yaw), 0.0])
-    up = np.array([0.0, 0.0, 1.0])
-    x = np.cross(up, n)
-    return np.column_stack([x, up, n])
 
 
 # --------------------------------------------------------------------------- payload grammar

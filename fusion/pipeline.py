@@ -425,9 +425,13 @@ def _write_estimates(out_dir: Path, result: RunResult) -> None:
 
 def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
                          raw_stats: dict) -> None:
-    from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, write_metrics
+    from fusion.evaluate.metrics import (
+        evaluate,
+        export_groundtruth_tum,
+        to_jsonable,
+        write_metrics,
+    )
     from fusion.evaluate.report import write_report
-    from fusion.evaluate.metrics import to_jsonable
     out_dir = result.out_dir
     gt = log.groundtruth
     if gt is None:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.conventions import quat_wxyz_from_R, yaw_of
+from fusion.geometry import quat_wxyz_from_R, yaw_of
 
 
 @dataclass

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.conventions import (FloorPayload, R_world_loadsymbol, make_T, symbol_corners_S,
-                                transform_points)
+from fusion.conventions import FloorPayload, symbol_corners_S
 from fusion.errors import WorldError
 from fusion.fileio import dump_yaml, load_yaml
+from fusion.geometry import R_world_loadsymbol, make_T, transform_points
 
 
 @dataclass(frozen=True)

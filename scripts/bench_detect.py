@@ -35,13 +35,18 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
-from fusion.conventions import make_T
-from fusion.qr.detect import detect_image
+from fusion.geometry import make_T
 from fusion.qr import refine as refine_mod
-from fusion.qr.detect import REFINE_BATCH_FRAMES
+from fusion.qr.detect import REFINE_BATCH_FRAMES, detect_image
 from fusion.qr.refine import refine_codes, refine_frames
-from fusion.sim.render import (QUIET_ZONE_MODULES, PlacedCode, RenderEffects, placed_floor_codes,
-                               project_code_corners, render_view)
+from fusion.sim.render import (
+    QUIET_ZONE_MODULES,
+    PlacedCode,
+    RenderEffects,
+    placed_floor_codes,
+    project_code_corners,
+    render_view,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 

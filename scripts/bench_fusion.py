@@ -25,8 +25,9 @@ import time
 import gtsam
 import numpy as np
 
-from fusion.conventions import R_BODY_FRONTCAM, inv_T, make_T, wrap_angle, yaw_of
+from fusion.conventions import R_BODY_FRONTCAM
 from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
+from fusion.geometry import inv_T, make_T, wrap_angle, yaw_of
 from fusion.log.euroc import ImuNoise
 from fusion.sim.imu import synthesize_imu
 from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes

@@ -38,10 +38,10 @@ import gtsam
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fusion.conventions import inv_T, make_T, transform_points, wrap_angle, yaw_of
+from fusion.geometry import inv_T, make_T, transform_points, wrap_angle, yaw_of
 from fusion.qr.codes import classify
 from fusion.qr.crb import floor_pose_crb
-from fusion.qr.pnp import camera_pose, estimate_floor_pose, estimate_floor_poses
+from fusion.qr.pnp import estimate_floor_pose, estimate_floor_poses
 from fusion.sim.scenarios import build_scenario
 from fusion.types import QRDetection
 
@@ -67,7 +67,7 @@ def sample_view(rng, scen, max_codes=4, margin_px=4.0):
         R = Rotation.from_euler("ZYX", [rng.uniform(-180, 180), tilt[0], tilt[1]],
                                 degrees=True).as_matrix()
         T = make_T(R, [rng.uniform(0.3, 9.7), rng.uniform(0.3, 6.7), rng.uniform(0.8, 3.0)])
-        T_cam_world = inv_T(camera_pose(T, cam))
+        T_cam_world = inv_T(cam.T_world_cam(T))
         seen = []
         for c in centres:
             uv = cam.project(transform_points(T_cam_world, world.floor_corners_world(c)))
@@ -119,7 +119,7 @@ def run_rendered(scen, n, sigma, seed):
     t_render = t_detect = 0.0
     for _ in range(n):
         T, seen = sample_view(rng, scen, max_codes=99)
-        T_wc = camera_pose(T, cam)
+        T_wc = cam.T_world_cam(T)
         t0 = time.process_time()
         img = render_view(cam, T_wc, codes, rng, RenderEffects(noise_sigma_dn=2.0))
         t1 = time.process_time()

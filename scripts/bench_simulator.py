@@ -14,8 +14,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from fusion.sim.simulate import _init_worker, _render_frame, simulate
 from fusion.sim.scenarios import build_scenario
+from fusion.sim.simulate import _init_worker, _render_frame, simulate
 
 
 def frames_per_second(resolution, n_frames: int) -> float:

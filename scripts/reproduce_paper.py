@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, inv_T, load_payload, make_T,
-                                rot_z, transform_points, wrap_angle)
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload
+from fusion.geometry import inv_T, make_T, rot_z, wrap_angle
 from fusion.qr import paper
 from fusion.qr.codes import classify
 from fusion.types import QRDetection
@@ -108,8 +108,7 @@ class Sensor:
 
     def detections(self, camera: CameraModel, cam_name: str, T_world_body: np.ndarray,
                    codes: list, t: int = 0) -> list[QRDetection]:
-        from fusion.sim.render import camera_pose
-        T_world_cam = camera_pose(camera, T_world_body)
+        T_world_cam = camera.T_world_cam(T_world_body)
         if self.projected:
             return self._projected(camera, cam_name, T_world_cam, codes, t)
         from fusion.qr.detect import detect_frame

@@ -5,11 +5,26 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, FloorPayload, LoadPayload,
-                                R_world_loadsymbol, floor_payload, inv_T, make_T, parse_payload,
-                                quat_wxyz_from_R, R_from_quat_wxyz, symbol_corners_S, wrap_angle,
-                                yaw_of, rot_z)
+from fusion.conventions import (
+    R_BODY_FLOORCAM,
+    R_BODY_FRONTCAM,
+    FloorPayload,
+    LoadPayload,
+    floor_payload,
+    parse_payload,
+    symbol_corners_S,
+)
 from fusion.errors import CameraModelError, PayloadError, WorldError
+from fusion.geometry import (
+    R_from_quat_wxyz,
+    R_world_loadsymbol,
+    inv_T,
+    make_T,
+    quat_wxyz_from_R,
+    rot_z,
+    wrap_angle,
+    yaw_of,
+)
 from fusion.world import World
 
 

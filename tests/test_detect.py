@@ -9,14 +9,31 @@ import pytest
 import zxingcpp
 
 from fusion.camera import CameraModel
-from fusion.conventions import make_T, rot_z
 from fusion.errors import DetectionError
+from fusion.geometry import make_T, rot_z
 from fusion.log import FlightLogWriter, read_flight
-from fusion.qr.detect import (CameraStats, detect_flight, detect_frame, detect_image, read_cache)
-from fusion.qr.refine import estimate_modules, modules_for_version, refine_code, refine_codes, \
-    refine_corners, refine_corners_or_none
-from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes, project_code_corners, \
-    render_view
+from fusion.qr.detect import (
+    CameraStats,
+    detect_flight,
+    detect_frame,
+    detect_image,
+    read_cache,
+)
+from fusion.qr.refine import (
+    estimate_modules,
+    modules_for_version,
+    refine_code,
+    refine_codes,
+    refine_corners,
+    refine_corners_or_none,
+)
+from fusion.sim.render import (
+    PlacedCode,
+    RenderEffects,
+    placed_floor_codes,
+    project_code_corners,
+    render_view,
+)
 from fusion.world import World
 
 R_DOWN = np.diag([1.0, -1.0, -1.0])       # camera z = world -z (looking at the floor)

@@ -13,14 +13,24 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 import pytest
-from gtsam.utils.numerical_derivative import (numericalDerivative11, numericalDerivative21,
-                                              numericalDerivative22)
+from gtsam.utils.numerical_derivative import (
+    numericalDerivative11,
+    numericalDerivative21,
+    numericalDerivative22,
+)
 from scipy.spatial.transform import Rotation
 
-from fusion.conventions import GRAVITY_M_S2, R_BODY_FRONTCAM, inv_T, make_T, wrap_angle, yaw_of
+from fusion.conventions import GRAVITY_M_S2, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
-from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental, write_sigmas_csv
+from fusion.estimate import (
+    FusionConfig,
+    run_ekf,
+    smooth,
+    smooth_incremental,
+    write_sigmas_csv,
+)
 from fusion.estimate import graph as G
+from fusion.geometry import inv_T, make_T, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, ImuNoise, VelocityData
 from fusion.types import LoadObservation, Trajectory
 
@@ -203,8 +213,12 @@ def test_constant_velocity_jacobians_match_numerical():
     rng = np.random.default_rng(6)
     p0, p1, v0, v1 = _rand_pose(rng), _rand_pose(rng), rng.normal(size=3), rng.normal(size=3)
     _, H = G.constant_velocity_error(0.1, p0, p1, v0, v1, True)
-    from gtsam.utils.numerical_derivative import (numericalDerivative41, numericalDerivative42,
-                                                  numericalDerivative43, numericalDerivative44)
+    from gtsam.utils.numerical_derivative import (
+        numericalDerivative41,
+        numericalDerivative42,
+        numericalDerivative43,
+        numericalDerivative44,
+    )
     f = lambda a, b, c, d: G.constant_velocity_error(0.1, a, b, c, d, False)[0]
     for Hi, nd in zip(H, (numericalDerivative41, numericalDerivative42, numericalDerivative43,
                           numericalDerivative44)):

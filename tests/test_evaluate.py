@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fusion.conventions import rot_z
 from fusion.errors import EvaluationError
 from fusion.evaluate import metrics as M
+from fusion.geometry import rot_z
 from fusion.log.euroc import GroundTruth
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 

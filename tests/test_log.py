@@ -6,9 +6,17 @@ import numpy as np
 import pytest
 
 from fusion.camera import CameraModel
-from fusion.conventions import R_BODY_FLOORCAM, make_T, rot_z
+from fusion.conventions import R_BODY_FLOORCAM
 from fusion.errors import LogError
-from fusion.log import FlightLogWriter, GroundTruth, ImuData, ImuNoise, VelocityData, read_flight
+from fusion.geometry import make_T, rot_z
+from fusion.log import (
+    FlightLogWriter,
+    GroundTruth,
+    ImuData,
+    ImuNoise,
+    VelocityData,
+    read_flight,
+)
 from fusion.log.files import read_loads_csv, read_tum, write_loads_csv, write_tum
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 from fusion.world import World

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, inv_T, make_T, rot_z,
-                                transform_points)
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
+from fusion.geometry import inv_T, make_T, rot_z, transform_points
 from fusion.qr import paper
 from fusion.types import LoadObservation, QRDetection
 from fusion.world import LoadCode, World

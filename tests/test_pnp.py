@@ -10,15 +10,39 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, floor_payload, inv_T,
-                                load_payload, make_T, rot_z, transform_points, wrap_angle, yaw_of)
+from fusion.conventions import (
+    R_BODY_FLOORCAM,
+    R_BODY_FRONTCAM,
+    floor_payload,
+    load_payload,
+)
+from fusion.geometry import (
+    inv_T,
+    make_T,
+    rot_z,
+    se3_exp,
+    transform_points,
+    wrap_angle,
+    yaw_of,
+)
 from fusion.qr.codes import classify
-from fusion.qr.crb import (floor_pose_crb, floor_reprojection, load_position_crb, se3_exp,
-                           symbol_reprojection)
-from fusion.qr.pnp import (aggregate_load_observations, camera_pose, edge_implied_yaw,
-                           estimate_floor_pose, estimate_floor_poses, estimate_load_observations,
-                           estimate_load_observations_frames, pnp_load_observations,
-                           pnp_trajectory, pose_at)
+from fusion.qr.crb import (
+    floor_pose_crb,
+    floor_reprojection,
+    load_position_crb,
+    symbol_reprojection,
+)
+from fusion.qr.pnp import (
+    aggregate_load_observations,
+    edge_implied_yaw,
+    estimate_floor_pose,
+    estimate_floor_poses,
+    estimate_load_observations,
+    estimate_load_observations_frames,
+    pnp_load_observations,
+    pnp_trajectory,
+    pose_at,
+)
 from fusion.types import QRDetection, Trajectory
 from fusion.world import LoadCode, World
 
@@ -39,7 +63,7 @@ def body_pose(x, y, z, yaw_deg, roll_deg=0.0, pitch_deg=0.0):
 
 def aim(T_world_body, xy, camera=FLOOR_CAM):
     """T_world_body shifted horizontally so that the camera's optical axis meets the floor at xy."""
-    T_wc = camera_pose(T_world_body, camera)
+    T_wc = camera.T_world_cam(T_world_body)
     z = T_wc[:3, 2]
     hit = T_wc[:3, 3] + (-T_wc[2, 3] / z[2]) * z
     out = T_world_body.copy()
@@ -50,7 +74,7 @@ def aim(T_world_body, xy, camera=FLOOR_CAM):
 def floor_dets(T_world_body, centres_xy, camera=FLOOR_CAM, rng=None, sigma=0.0, ts=0):
     """Detections of floor codes at payload (x, y) seen from T_world_body."""
     out = []
-    T_cam_world = inv_T(camera_pose(T_world_body, camera))
+    T_cam_world = inv_T(camera.T_world_cam(T_world_body))
     for x, y in centres_xy:
         cw = WORLD.floor_corners_world(np.array([x, y, 0.0]))
         uv = camera.project(transform_points(T_cam_world, cw))
@@ -63,7 +87,7 @@ def floor_dets(T_world_body, centres_xy, camera=FLOOR_CAM, rng=None, sigma=0.0, 
 
 def load_dets(T_world_body, codes, camera=FRONT_CAM, rng=None, sigma=0.0, ts=0):
     out = []
-    T_cam_world = inv_T(camera_pose(T_world_body, camera))
+    T_cam_world = inv_T(camera.T_world_cam(T_world_body))
     for code in codes:
         uv = camera.project(transform_points(T_cam_world, WORLD.load_corners_world(code)))
         assert np.all(np.isfinite(uv)) and np.all((uv > 0) & (uv < [640, 480]))
@@ -113,7 +137,7 @@ def test_floor_jacobian_matches_numerical_derivative_through_gtsam_expmap():
 
 def test_symbol_jacobian_matches_numerical_derivative():
     from fusion.conventions import symbol_corners_S
-    from fusion.qr.crb import so3_exp
+    from fusion.geometry import so3_exp
     T = make_T(Rotation.from_rotvec([0.2, -2.9, 0.1]).as_matrix(), [0.3, -0.1, 2.0])
     S = symbol_corners_S(0.15)
     _, J = symbol_reprojection(FRONT_CAM, T, S)
@@ -331,7 +355,7 @@ def test_load_positions_exact_without_noise():
     assert [o.load_id for o in obs] == ["box-1", "box-2"]
     for o, code in zip(obs, LOADS):
         np.testing.assert_allclose(o.p_world, code.p_world, atol=1e-9)
-        T_cam_world = inv_T(camera_pose(T_FRONT, FRONT_CAM))
+        T_cam_world = inv_T(FRONT_CAM.T_world_cam(T_FRONT))
         np.testing.assert_allclose(o.p_cam, transform_points(T_cam_world, np.array([code.p_world]))[0],
                                    atol=1e-9)
         T_cam_sym = T_cam_world @ code.T_world_symbol
@@ -352,7 +376,7 @@ def test_load_position_nees_with_drone_pose_uncertainty():
         dets = load_dets(T_FRONT, LOADS[:1], rng=rng, sigma=SIGMA)
         (o,) = estimate_load_observations(classify(dets, WORLD).loads, FRONT_CAM, WORLD, T_hat,
                                           cov_body, SIGMA)
-        p_cam_true = transform_points(inv_T(camera_pose(T_FRONT, FRONT_CAM)),
+        p_cam_true = transform_points(inv_T(FRONT_CAM.T_world_cam(T_FRONT)),
                                       np.array([LOADS[0].p_world]))[0]
         e = o.p_cam - p_cam_true
         nees_cam.append(e @ np.linalg.solve(o.cov_cam, e))
@@ -447,9 +471,16 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
     still tests the refinement.  `use_cov` False drops corner_cov_px2 (one sigma per code, the
     previous whitening).  Returns {"single": [...], "multi": [...], "load": [...]} NEES lists."""
     import dataclasses
+
     from fusion.qr.refine import refine_codes
-    from fusion.sim.render import (QUIET_ZONE_MODULES, PlacedCode, RenderEffects,
-                                   placed_floor_codes, project_code_corners, render_view)
+    from fusion.sim.render import (
+        QUIET_ZONE_MODULES,
+        PlacedCode,
+        RenderEffects,
+        placed_floor_codes,
+        project_code_corners,
+        render_view,
+    )
     rng = np.random.default_rng(seed)
     grid = np.array([[x, y] for x in range(-4, 5) for y in range(-4, 5)], float)
     floor = placed_floor_codes(grid, RENDER_WORLD.payload_unit_m, RENDER_WORLD.floor_side_m)
@@ -480,7 +511,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
     for _ in range(n_frames):
         T = body_pose(rng.uniform(-0.25, 0.25), rng.uniform(-0.25, 0.25), rng.uniform(0.8, 2.5),
                       rng.uniform(-180, 180), roll_deg=rng.normal(0, 3), pitch_deg=rng.normal(0, 3))
-        T_wc = camera_pose(T, FLOOR_CAM)
+        T_wc = FLOOR_CAM.T_world_cam(T)
         img = render_view(FLOOR_CAM, T_wc, floor, rng, effects())
         dets = [dataclasses.replace(d, camera="cam0") for d in refined(FLOOR_CAM, T_wc, floor, img)]
         sightings = classify(dets, RENDER_WORLD).floor
@@ -493,7 +524,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
                 out[key].append(float(xi @ np.linalg.solve(res.covariance, xi)))
         # a load code facing the front camera from 0.8-2.5 m, seen off-centre and obliquely
         dist = rng.uniform(0.8, 2.5)
-        T_wc1 = camera_pose(T, FRONT_CAM)
+        T_wc1 = FRONT_CAM.T_world_cam(T)
         ray = T_wc1[:3, :3] @ np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.1, 0.1), 1.0])
         p = T_wc1[:3, 3] + dist * ray / np.linalg.norm(ray)
         view_yaw = math.atan2(-ray[1], -ray[0]) + rng.uniform(-0.4, 0.4)
@@ -605,7 +636,7 @@ def test_vectorised_ippe_matches_opencv(n_points):
 
 @pytest.mark.parametrize("mount", ["body_fixed", "gimbaled"])
 def test_load_position_jacobian_matches_numerical_derivative(mount):
-    from fusion.qr.crb import se3_exp
+    from fusion.geometry import se3_exp
     from fusion.qr.pnp import position_jacobian_wrt_body
     cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, T_body_cam=FRONT_CAM.T_body_cam,
                       mount=mount)
@@ -613,7 +644,7 @@ def test_load_position_jacobian_matches_numerical_derivative(mount):
     p_cam = np.array([0.2, -0.3, 2.1])
 
     def f(xi):
-        return transform_points(camera_pose(T @ se3_exp(xi), cam), p_cam[None])[0]
+        return transform_points(cam.T_world_cam(T @ se3_exp(xi)), p_cam[None])[0]
 
     h = 1e-6
     Jn = np.column_stack([(f(d) - f(-d)) / (2 * h) for d in np.eye(6) * h])
@@ -624,7 +655,8 @@ def test_fast_model_pieces_match_their_references():
     """Projector = CameraModel.project (NaN behind the camera) with a numerical Jacobian;
     so3_exp / so3_exp_stack = GTSAM's Rot3.Expmap; pnp.undistort = CameraModel.undistort_normalized,
     also where OpenCV's iteration fails (strong distortion: the Newton fallback)."""
-    from fusion.qr.crb import Projector, so3_exp, so3_exp_stack
+    from fusion.geometry import so3_exp, so3_exp_stack
+    from fusion.qr.crb import Projector
     from fusion.qr.pnp import undistort
     rng = np.random.default_rng(8)
     p = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(0.5, 3.0, 50)])
@@ -650,6 +682,7 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
     """corner_whitening: a corner covariance that is not positive definite (or not finite) falls
     back to diag(1 / sigma) for that detection only; the others are whitened by their Cholesky."""
     import dataclasses
+
     from fusion.qr.pnp import corner_whitening
     rng = np.random.default_rng(2)
     A = rng.normal(0, 0.1, (8, 8))
@@ -669,9 +702,14 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
 def test_lm_reports_which_starts_converged():
     """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
     (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
-    from fusion.qr.crb import Projector, so3_exp
-    from fusion.qr.pnp import (_FloorProblems, _levenberg_marquardt, _same_minimum,
-                               corner_whitening)
+    from fusion.geometry import so3_exp
+    from fusion.qr.crb import Projector
+    from fusion.qr.pnp import (
+        _FloorProblems,
+        _levenberg_marquardt,
+        _same_minimum,
+        corner_whitening,
+    )
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]

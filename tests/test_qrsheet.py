@@ -7,8 +7,14 @@ import numpy as np
 import pytest
 
 from fusion.errors import QRSheetError
-from fusion.qrsheet import (MM_PER_INCH, PAGES_MM, page_figure, sheet_pages, symbol_modules,
-                            write_qr_sheet)
+from fusion.qrsheet import (
+    MM_PER_INCH,
+    PAGES_MM,
+    page_figure,
+    sheet_pages,
+    symbol_modules,
+    write_qr_sheet,
+)
 
 
 def _pdf_page_count(path) -> int:

@@ -7,14 +7,19 @@ import pytest
 import zxingcpp
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, make_T, rot_z,
-                                symbol_corners_S)
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, symbol_corners_S
 from fusion.errors import SimulationError
-from fusion.sim.render import (BLACKOUT_KINDS, PlacedCode, RenderEffects, camera_pose,
-                               code_texture, placed_floor_codes, project_code_corners,
-                               render_view)
+from fusion.geometry import make_T, rot_z
+from fusion.sim.render import (
+    BLACKOUT_KINDS,
+    PlacedCode,
+    RenderEffects,
+    code_texture,
+    placed_floor_codes,
+    project_code_corners,
+    render_view,
+)
 from fusion.world import LoadCode
-
 
 # ============================================================================ rendering
 
@@ -127,13 +132,13 @@ def _views():
         from scipy.spatial.transform import Rotation
         R = rot_z(yaw) @ Rotation.from_rotvec([tilt[0], tilt[1], 0]).as_matrix()
         T_wb = make_T(R, [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), rng.uniform(0.9, 1.3)])
-        views.append((floor, camera_pose(floor, T_wb), grid))
+        views.append((floor, floor.T_world_cam(T_wb), grid))
     front = _front_camera()
     loads = [PlacedCode("1/P-03-2", LoadCode("P-03-2", (3.0, 0.0, 1.5), np.pi).T_world_symbol, 0.15)]
     for k in range(3):
         yaw = rng.normal(0, 0.3)
         T_wb = make_T(rot_z(yaw), [rng.uniform(1.6, 2.1), rng.uniform(-0.2, 0.2), 1.5 + rng.normal(0, 0.1)])
-        views.append((front, camera_pose(front, T_wb), loads))
+        views.append((front, front.T_world_cam(T_wb), loads))
     return views
 
 
@@ -163,7 +168,7 @@ def test_rendered_corners_match_projection_within_half_pixel():
 
 def test_projection_is_full_camera_model():
     camera = _floor_camera()
-    T_wc = camera_pose(camera, make_T(rot_z(0.4), [0.3, -0.2, 1.2]))
+    T_wc = camera.T_world_cam(make_T(rot_z(0.4), [0.3, -0.2, 1.2]))
     code = placed_floor_codes(np.array([[0, 0]]), 1.0, 0.2)[0]
     uv = project_code_corners(camera, T_wc, code)
     p_cam = (symbol_corners_S(0.2) - T_wc[:3, 3]) @ T_wc[:3, :3]
@@ -178,7 +183,7 @@ def test_blackouts_make_floor_codes_unreadable(kind):
     grid = placed_floor_codes(np.array([[x, y] for x in range(-2, 3) for y in range(-2, 3)]), 1.0, 0.2)
     readable = blacked = 0
     for k, h in enumerate([0.9, 1.3, 1.8]):
-        T_wc = camera_pose(camera, make_T(rot_z(0.5 * k), [0.05 * k, -0.1, h]))
+        T_wc = camera.T_world_cam(make_T(rot_z(0.5 * k), [0.05 * k, -0.1, h]))
         clean = render_view(camera, T_wc, grid, np.random.default_rng(k), RenderEffects())
         dark = render_view(camera, T_wc, grid, np.random.default_rng(k), RenderEffects(blackout=kind))
         readable += len(zxingcpp.read_barcodes(clean))
@@ -363,9 +368,9 @@ def test_scenarios_build_and_gimbal_keeps_cameras_level():
     np.testing.assert_allclose(a5.layout.loads[0].p_world, [0.325, 2.853, 2.365])
     gim = build_scenario("gimbaled")
     st = gim.trajectory.state(np.linspace(5, 30, 50))
-    tilt = [camera_pose(gim.cameras["cam0"], T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
+    tilt = [gim.cameras["cam0"].T_world_cam(T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
     np.testing.assert_allclose(tilt, 1.0, atol=1e-12)            # floor camera looks straight down
-    body = [camera_pose(sc.cameras["cam0"], T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
+    body = [sc.cameras["cam0"].T_world_cam(T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
     assert min(body) < 0.999                                      # a body-fixed one tilts
     with pytest.raises(SimulationError):
         build_scenario("default", resolution=(0, 10))
@@ -379,7 +384,7 @@ def test_default_blackouts_hide_codes_that_would_be_readable():
     codes = sc.codes()
     for t0, t1, kind in sc.blackouts:
         for t in (t0 + 0.1 * (t1 - t0), 0.5 * (t0 + t1)):
-            T_wc = camera_pose(cam, sc.trajectory.state(np.array([t])).T_world_body[0])
+            T_wc = cam.T_world_cam(sc.trajectory.state(np.array([t])).T_world_body[0])
             fx = sc.effects("cam0", t)
             assert fx.blackout == kind
             dark = render_view(cam, T_wc, codes, np.random.default_rng(0), fx, sc.occluders)

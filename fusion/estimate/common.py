@@ -11,9 +11,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fusion.conventions import interpolate_poses
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
+from fusion.geometry import interpolate_poses
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadMap, LoadObservation, Trajectory
 

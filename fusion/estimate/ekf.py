@@ -36,13 +36,19 @@ import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from fusion.conventions import inv_T, wrap_angle, yaw_of
-from fusion.estimate import graph as G
-from fusion.estimate.common import (FusionConfig, FusionResult, check_inputs, first_velocity,
-                                    group_load_obs, inlier_raw_mask, velocity_at_frames)
-from fusion.estimate.smoother import imu_coverage, imu_subintervals
-from fusion.errors import EstimationError
 from fusion.conventions import GRAVITY_M_S2
+from fusion.estimate import graph as G
+from fusion.estimate.common import (
+    FusionConfig,
+    FusionResult,
+    check_inputs,
+    first_velocity,
+    group_load_obs,
+    inlier_raw_mask,
+    velocity_at_frames,
+)
+from fusion.estimate.smoother import imu_coverage, imu_subintervals
+from fusion.geometry import adjoint, inv_T, skew, so3_exp, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
@@ -52,21 +58,12 @@ GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
 _TH, _P, _V, _BG, _BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 
 
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    return gtsam.Rot3.Expmap(w).matrix()
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """GTSAM Pose3 adjoint in [r, t] order: [[R, 0], [t^ R, R]]."""
-    return gtsam.Pose3(T).AdjointMap()
-
-
 class _Ekf:
     def __init__(self, T_body_imu: np.ndarray, config: FusionConfig):
         self.kf = ExtendedKalmanFilter(dim_x=15, dim_z=6)
         self.T_bi = T_body_imu
         self.T_ib = inv_T(T_body_imu)
-        self.Ad_bi = _adjoint(T_body_imu)
+        self.Ad_bi = adjoint(T_body_imu)
         self.config = config
         self.R = np.eye(3)          # R_world_imu
         self.p = np.zeros(3)        # p_world_imu
@@ -104,13 +101,13 @@ class _Ekf:
         a_w = R @ f + GRAVITY_W
         self.p = self.p + self.v * dt + 0.5 * a_w * dt * dt
         self.v = self.v + a_w * dt
-        dR = _exp_so3(w * dt)
+        dR = so3_exp(w * dt)
         self.R = R @ dR
         F = np.eye(15)
         F[_TH, _TH] = dR.T
         F[_TH, _BG] = -np.eye(3) * dt
         F[_P, _V] = np.eye(3) * dt
-        F[_V, _TH] = -R @ G.skew(f) * dt
+        F[_V, _TH] = -R @ skew(f) * dt
         F[_V, _BA] = -R * dt
         q = np.empty(15)
         q[_TH] = noise.gyroscope_noise_density ** 2 * dt
@@ -168,7 +165,7 @@ class _Ekf:
 
     def _inject(self) -> None:
         dx = self.kf.x.ravel()
-        self.R = self.R @ _exp_so3(dx[_TH])
+        self.R = self.R @ so3_exp(dx[_TH])
         self.p = self.p + dx[_P]
         self.v = self.v + dx[_V]
         self.bg = self.bg + dx[_BG]
@@ -205,7 +202,7 @@ class _Ekf:
         v_b_world = self.v + self.R @ np.cross(self.omega, self.T_ib[:3, 3])
         hx = R_ib.T @ self.R.T @ v_b_world
         H = np.zeros((3, 15))
-        H[:, _TH] = R_ib.T @ G.skew(self.R.T @ v_b_world)
+        H[:, _TH] = R_ib.T @ skew(self.R.T @ v_b_world)
         H[:, _V] = R_ib.T @ self.R.T
         self._update(v_meas, H, hx, np.eye(3) * sigma ** 2)
 
@@ -311,7 +308,7 @@ def _map_loads(frame_t, load_obs, T_bc, T_out, cov_out, k0, config) -> LoadMap:
             q = T_bc[:3, :3] @ np.asarray(o.p_cam, float) + T_bc[:3, 3]   # body frame
             R_wb = T_wb[:3, :3]
             p = R_wb @ q + T_wb[:3, 3]
-            J = np.hstack([-R_wb @ G.skew(q), R_wb])
+            J = np.hstack([-R_wb @ skew(q), R_wb])
             R_wc = R_wb @ T_bc[:3, :3]
             C = R_wc @ o.cov_cam @ R_wc.T + J @ cov_out[k - k0] @ J.T
             W = np.linalg.inv(C)

@@ -16,7 +16,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
-from fusion.conventions import GRAVITY_M_S2, skew, wrap_angle
+from fusion.conventions import GRAVITY_M_S2
+from fusion.geometry import skew, wrap_angle
 from fusion.log.euroc import ImuNoise
 
 __all__ = ["X", "V", "B", "L", "imu_params", "robust", "pose_prior_factor",

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-import scipy.sparse as sp
 
 _CHR_SHIFT = 56
 _IDX_MASK = (1 << _CHR_SHIFT) - 1

@@ -30,14 +30,23 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from fusion.conventions import yaw_of
 from fusion.errors import EstimationError
 from fusion.estimate import graph as G
-from fusion.estimate.common import (FusionConfig, FusionResult, check_inputs, first_velocity,
-                                    group_load_obs, initial_poses, initial_velocities,
-                                    inlier_raw_mask, match_to_frames, velocity_at_frames)
+from fusion.estimate.common import (
+    FusionConfig,
+    FusionResult,
+    check_inputs,
+    first_velocity,
+    group_load_obs,
+    initial_poses,
+    initial_velocities,
+    inlier_raw_mask,
+    match_to_frames,
+    velocity_at_frames,
+)
 from fusion.estimate.graph import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
+from fusion.geometry import yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 

@@ -18,13 +18,12 @@ from pathlib import Path
 from typing import Iterable
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from fusion.conventions import interpolate_poses as _interpolate_sampled
-from fusion.conventions import skew_stack, wrap_angle, yaw_of
 from fusion.errors import EvaluationError
 from fusion.fileio import atomic_open
+from fusion.geometry import interpolate_poses as _interpolate_sampled
+from fusion.geometry import inv_T, se3_log, so3_log, wrap_angle, yaw_of
 from fusion.types import LoadMap, Trajectory
 
 SCHEMA = "fusion.metrics/1"
@@ -106,29 +105,6 @@ def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
 
 
 # ============================================================================ SE(3) helpers
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """(N, 3) rotation vectors of (N, 3, 3) rotations."""
-    return Rotation.from_matrix(R).as_rotvec()
-
-
-def se3_log(T: np.ndarray) -> np.ndarray:
-    """(N, 6) Log of (N, 4, 4) poses in GTSAM's Pose3 order [rx, ry, rz, tx, ty, tz]
-    (same as gtsam.Pose3.Logmap: translation part u = V(w)^-1 t, Barfoot eq. 7.86)."""
-    T = np.asarray(T, dtype=float).reshape(-1, 4, 4)
-    w = so3_log(T[:, :3, :3])
-    t = T[:, :3, 3]
-    theta = np.linalg.norm(w, axis=1)
-    W = skew_stack(w)
-    W2 = W @ W
-    # V^-1 = I - W/2 + (1/theta^2) (1 - (theta sin theta) / (2 (1 - cos theta))) W^2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta ** 2
-    c = np.where(theta < 1e-4, 1.0 / 12.0 + theta ** 2 / 720.0, c)
-    Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * W2
-    u = np.einsum("nij,nj->ni", Vinv, t)
-    return np.hstack([w, u])
 
 
 def umeyama_alignment(p_est: np.ndarray, p_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -357,22 +333,13 @@ def pose_nees(a: Association) -> tuple[np.ndarray, np.ndarray]:
     if a.covariances is None or len(a) == 0:
         return np.zeros(0), np.zeros(0)
     P = a.covariances
-    T_err = np.einsum("nij,njk->nik", _inv(a.T_world_body_gt), a.T_world_body_est)
+    T_err = np.einsum("nij,njk->nik", inv_T(a.T_world_body_gt), a.T_world_body_est)
     xi = se3_log(T_err)
     nees6 = nees_from_errors(xi, P)
     R = a.T_world_body_est[:, :3, :3]
     P_pos_world = R @ P[:, 3:, 3:] @ np.swapaxes(R, 1, 2)
     nees3 = nees_from_errors(a.position_errors_m, P_pos_world)
     return nees3, nees6
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(T)
-    Rt = np.swapaxes(T[:, :3, :3], 1, 2)
-    out[:, :3, :3] = Rt
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 # ============================================================================ blackouts, coverage

@@ -25,9 +25,13 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse  # noqa: E402
 from matplotlib.ticker import NullFormatter, NullLocator  # noqa: E402
 
-from fusion.evaluate.metrics import (PAPER_SIM_LOADMAP_MAE_CM,  # noqa: E402
-                                     PAPER_SIM_LOCALIZATION_MAE_CM, PAPER_SIM_YAW_MAE_DEG,
-                                     Association, associate)
+from fusion.evaluate.metrics import (  # noqa: E402
+    PAPER_SIM_LOADMAP_MAE_CM,
+    PAPER_SIM_LOCALIZATION_MAE_CM,
+    PAPER_SIM_YAW_MAE_DEG,
+    Association,
+    associate,
+)
 from fusion.fileio import atomic_open  # noqa: E402
 from fusion.types import LoadMap, Trajectory  # noqa: E402
 

@@ -13,8 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.evaluate.metrics import (PAPER_SIM_LOADMAP_MAE_CM, PAPER_SIM_LOCALIZATION_MAE_CM,
-                                     PAPER_SIM_YAW_MAE_DEG, coverage_fraction, inside_intervals)
+from fusion.evaluate.metrics import (
+    PAPER_SIM_LOADMAP_MAE_CM,
+    PAPER_SIM_LOCALIZATION_MAE_CM,
+    PAPER_SIM_YAW_MAE_DEG,
+    coverage_fraction,
+    inside_intervals,
+)
 from fusion.evaluate.plots import DEFAULT_DPI, RAW_ESTIMATORS, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
 from fusion.types import LoadMap, Trajectory
@@ -286,7 +291,7 @@ def _blackout_section(m: dict, t0_ns: int) -> list[str]:
     lines += ["Inside vs outside the blackouts:", ""]
     lines += _table(["estimator", "poses inside", "RMSE inside [cm]", "max inside [cm]",
                      "RMSE outside [cm]", "max outside [cm]"], rows)
-    lines += [f"Start times count from the plots' time origin. Raw estimators may show a pose "
+    lines += ["Start times count from the plots' time origin. Raw estimators may show a pose "
               "at a blackout's edge.", ""]
     return lines
 

@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 
 from fusion.camera import CameraModel, read_T_BS
-from fusion.conventions import R_from_quat_wxyz, make_T
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import atomic_open, dump_yaml, load_yaml
+from fusion.geometry import R_from_quat_wxyz, make_T
 from fusion.world import World
 
 CAMERA_NAMES = ("cam0", "cam1")

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.conventions import R_from_quat_wxyz
 from fusion.errors import LogError
 from fusion.fileio import atomic_open
+from fusion.geometry import R_from_quat_wxyz
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 
 LOADS_COLUMNS = ("id", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m", "n_obs")

@@ -14,64 +14,11 @@ Processing I", 1993, eq. 3.31 for the Gaussian Fisher information).
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import skew, skew_stack  # noqa: F401  (re-exported)
 from fusion.errors import EstimationError
-
-# ============================================================================ SE(3) in GTSAM's order
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix exp([w]x) = I + a [w]x + b [w]x^2, a = sin(th)/th, b = (1 - cos(th))/th^2
-    (Rodrigues; Taylor series near th = 0), written out entry by entry: it runs in every LM step."""
-    w0, w1, w2 = (float(v) for v in w)
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    if th2 < 1e-8:
-        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0          # error O(th^4) < 1e-16
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
-    return np.array([[1.0 - b * (w1 * w1 + w2 * w2), b01 - a * w2, b02 + a * w1],
-                     [b01 + a * w2, 1.0 - b * (w0 * w0 + w2 * w2), b12 - a * w0],
-                     [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)]])
-
-
-def so3_exp_stack(w: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) rotation matrices exp([w_k]x) of (K, 3) rotation vectors (Rodrigues, as so3_exp)."""
-    w = np.asarray(w, dtype=float)
-    if len(w) == 1:
-        return so3_exp(w[0])[None]
-    th2 = np.einsum("ki,ki->k", w, w)
-    small = th2 < 1e-8
-    th = np.sqrt(th2)
-    safe_th, safe_th2 = np.where(small, 1.0, th), np.where(small, 1.0, th2)
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / safe_th)[:, None, None]
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / safe_th2)[:, None, None]
-    W = skew_stack(w)
-    return np.eye(3) + a * W + b * (W @ W)
-
-
-def se3_exp(xi: np.ndarray) -> np.ndarray:
-    """4x4 SE(3) exponential of xi = [w (3), v (3)], the same map as gtsam.Pose3.Expmap."""
-    xi = np.asarray(xi, dtype=float)
-    w, v = xi[:3], xi[3:]
-    th2 = float(w @ w)
-    W = skew(w)
-    if th2 < 1e-16:
-        V = np.eye(3) + 0.5 * W
-    else:
-        th = np.sqrt(th2)
-        V = np.eye(3) + (1.0 - np.cos(th)) / th2 * W + (th - np.sin(th)) / (th2 * th) * W @ W
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(w)
-    T[:3, 3] = V @ v
-    return T
-
+from fusion.geometry import cross_rows
 
 # ============================================================================ projection Jacobians
 
@@ -132,18 +79,6 @@ def project_with_jacobian(camera: CameraModel, p_cam: np.ndarray) -> tuple[np.nd
 
     Points at or behind the camera give NaN (as CameraModel.project)."""
     return Projector(camera).project(np.asarray(p_cam, dtype=float).reshape(-1, 3))
-
-
-def cross_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """(N, 2, 3) rows a of A and (N, 3) points p -> (N, 2, 3) rows a x p, i.e. A_n @ [p_n]x
-    (a^T [p]x = (a x p)^T)."""
-    out = np.empty_like(A)
-    a0, a1, a2 = A[..., 0], A[..., 1], A[..., 2]
-    q0, q1, q2 = p[:, 0:1], p[:, 1:2], p[:, 2:3]
-    out[..., 0] = a1 * q2 - a2 * q1
-    out[..., 1] = a2 * q0 - a0 * q2
-    out[..., 2] = a0 * q1 - a1 * q0
-    return out
 
 
 def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray

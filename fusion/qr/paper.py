@@ -39,12 +39,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import (R_BODY_FLOORCAM, R_BODY_FRONTCAM, make_T, rot_z,
-                                wrap_angle)
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
-from fusion.qr.codes import FRONT_CAMERA, FLOOR_CAMERA, classify
-from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory, \
-    diagonal_intersection
+from fusion.geometry import make_T, rot_z, wrap_angle
+from fusion.qr.codes import FLOOR_CAMERA, FRONT_CAMERA, classify
+from fusion.types import (
+    LoadEstimate,
+    LoadMap,
+    LoadObservation,
+    QRDetection,
+    Trajectory,
+    diagonal_intersection,
+)
 from fusion.world import World
 
 MATCHED = "matched"

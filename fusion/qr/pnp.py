@@ -29,14 +29,22 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
-from fusion.conventions import (make_T, rot_z, symbol_corners_S,
-                                wrap_angle, yaw_of)
+from fusion.conventions import symbol_corners_S
 from fusion.errors import EstimationError
+from fusion.geometry import (
+    cross_rows,
+    interpolate_pose,
+    level_frame,
+    rot_z,
+    skew,
+    so3_exp_stack,
+    wrap_angle,
+    yaw_of,
+)
 from fusion.qr.codes import FloorSighting, LoadSighting, classify, rejection_counts
-from fusion.qr.crb import Projector, cross_rows, skew, so3_exp, so3_exp_stack
+from fusion.qr.crb import Projector
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
 from fusion.world import World
 
@@ -72,17 +80,6 @@ class PnPResult:
 
 
 # ============================================================================ small helpers
-
-
-def level_frame(T_world_body: np.ndarray) -> np.ndarray:
-    """The body frame with roll and pitch removed: same origin, z = world z, same yaw."""
-    return make_T(rot_z(float(yaw_of(T_world_body[:3, :3]))), T_world_body[:3, 3])
-
-
-def camera_pose(T_world_body: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """T_world_cam: T_world_body * T_body_cam, with the level frame for a "gimbaled" camera."""
-    T = level_frame(T_world_body) if camera.mount == "gimbaled" else T_world_body
-    return T @ camera.T_body_cam
 
 
 def _same_pose(x_a, x_b, tol_rad: float, tol_m: float) -> bool:
@@ -787,7 +784,7 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
 
 def position_jacobian_wrt_body(T_world_body: np.ndarray, camera: CameraModel,
                                 p_cam: np.ndarray) -> np.ndarray:
-    """(3, 6) d p_world / d xi of p_world = camera_pose(T_world_body Exp(xi), camera) p_cam, xi the
+    """(3, 6) d p_world / d xi of p_world = camera.T_world_cam(T_world_body Exp(xi)) p_cam, xi the
     body-frame right perturbation [rx, ry, rz, tx, ty, tz] (GTSAM Pose3).
 
     body_fixed: p_world = R (Exp(xi) q) + t with q = T_body_cam p_cam, so R [ -[q]x , I ].
@@ -846,7 +843,7 @@ def estimate_load_observations_frames(
     owner = np.asarray(owner)
     problems = _SymbolProblems(Projector(camera), corners_S, uv[owner], W[owner][:, None])
     own, R, t, G, r = _refine(problems, np.array(R0), np.array(t0), owner)
-    T_world_cam = np.array([camera_pose(np.asarray(T, dtype=float), camera) for _, T, _ in frames])
+    T_world_cam = np.array([camera.T_world_cam(np.asarray(T, dtype=float)) for _, T, _ in frames])
     frame_of = np.array([f for f, _ in items])[own]
     up_z = np.einsum("kj,kj->k", T_world_cam[frame_of, 2, :3], R[:, :, 1])  # symbol up, world z
     rms = np.sqrt(np.mean(r ** 2, axis=(1, 2)))
@@ -917,7 +914,7 @@ def estimate_load_observations(sightings: list[LoadSighting], camera: CameraMode
     block of (J^T C^-1 J)^-1 (fusion/qr/crb.symbol_reprojection), C the detection's
     `corner_cov_px2`, else sigma^2 I with sigma its `corner_sigma_px`, else `corner_sigma_px` (the
     LM minimises the same weighted error);
-    p_world = T_world_cam p_cam with T_world_cam = camera_pose(T_world_body, camera), and
+    p_world = T_world_cam p_cam with T_world_cam = camera.T_world_cam(T_world_body), and
     cov_world = R_world_cam cov_cam R_world_cam^T + J_b cov_body J_b^T, J_b = d p_world / d xi
     (`position_jacobian_wrt_body`) for the body-frame right perturbation xi of T_world_body
     (cov_body None: drone pose exact).
@@ -1013,9 +1010,7 @@ def pose_at(trajectory: Trajectory, timestamp_ns: int, max_gap_s: float = 0.1
         return None
     t0, t1 = int(ts[i - 1]), int(ts[i])
     a = (int(timestamp_ns) - t0) / (t1 - t0)
-    T0, T1 = trajectory.T_world_body[i - 1], trajectory.T_world_body[i]
-    dw = Rotation.from_matrix(T0[:3, :3].T @ T1[:3, :3]).as_rotvec()
-    T = make_T(T0[:3, :3] @ so3_exp(a * dw), (1 - a) * T0[:3, 3] + a * T1[:3, 3])
+    T = interpolate_pose(trajectory.T_world_body[i - 1], trajectory.T_world_body[i], a)
     cov = None if covs is None else covs[i - 1 if a < 0.5 else i]
     return T, cov
 

@@ -19,8 +19,9 @@ import cv2
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import inv_T, symbol_corners_S
+from fusion.conventions import symbol_corners_S
 from fusion.errors import SimulationError
+from fusion.geometry import inv_T
 
 QUIET_ZONE_MODULES = 4
 BLACK_DN = 30.0          # printed black under nominal exposure
@@ -258,19 +259,6 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
 
 
 # ============================================================================ rendering
-
-
-def camera_pose(camera: CameraModel, T_world_body: np.ndarray) -> np.ndarray:
-    """T_world_cam of `camera` on a body at T_world_body: body-fixed mounts tilt with the airframe;
-    gimbaled mounts hang from the level (yaw-only) body frame (the paper's assumption 3)."""
-    if camera.mount == "gimbaled":
-        yaw = math.atan2(T_world_body[1, 0], T_world_body[0, 0])
-        T_level = np.eye(4)
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        T_level[:3, :3] = [[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]]
-        T_level[:3, 3] = T_world_body[:3, 3]
-        return T_level @ camera.T_body_cam
-    return T_world_body @ camera.T_body_cam
 
 
 # quiet-zone outline in units of its half side: corners TL, TR, BR, BL, then edge midpoints

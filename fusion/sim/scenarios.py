@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload, make_T
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload
 from fusion.errors import SimulationError
+from fusion.geometry import make_T
 from fusion.log import ImuNoise
 from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes
 from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes

@@ -8,21 +8,21 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from fusion.conventions import inv_T, quat_wxyz_from_R
 from fusion.errors import SimulationError
+from fusion.geometry import inv_T, quat_wxyz_from_R
 from fusion.log import FlightLogWriter, GroundTruth
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
-from fusion.sim.render import camera_pose, render_view
+from fusion.sim.render import render_view
 from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
 
 CAMERA_RATE_HZ = 30.0
@@ -84,7 +84,7 @@ def _render_frame(k: int, t_s: float) -> tuple[int, list[bytes], bool | None]:
     T_wb = st.T_world_body
     pngs, readable = [], None
     for ci, (name, cam) in enumerate(sc.cameras.items()):
-        poses = [camera_pose(cam, T) for T in T_wb]
+        poses = [cam.T_world_cam(T) for T in T_wb]
         blur_px, blur_dir = _blur(cam, poses[0], poses[2], 1.2)
         fx = sc.effects(name, t_s, blur_px, blur_dir)
         rng = np.random.default_rng([_SCENE["seed"], _STREAM_FRAME, ci, k])
