@@ -9,10 +9,64 @@ T = T_hat * Exp(xi)).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
 from fusion.geometry import quat_wxyz_from_R, yaw_of
+
+
+class Choice(str, Enum):
+    """An enum whose members are their own strings (file names, CLI choices, JSON keys)."""
+
+    def __str__(self) -> str:
+        return str(self.value)
+
+    @classmethod
+    def parse(cls, value: "str | Choice", what: str) -> "Choice":
+        """The member named `value`; ValueError naming `what` and the choices otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"{what} {value!r} is not one of "
+                             f"{', '.join(m.value for m in cls)}") from None
+
+
+class Estimator(Choice):
+    """Who produced a trajectory / load map: raw per-frame estimators, then fused back ends."""
+    PAPER = "paper"              # Kang & Jung, Algorithms 1-6
+    PNP = "pnp"                  # our PnP with covariance
+    SMOOTHER = "smoother"        # GTSAM batch
+    INCREMENTAL = "incremental"  # GTSAM fixed-lag (causal)
+    EKF = "ekf"                  # filterpy error-state EKF (causal)
+
+    @property
+    def raw(self) -> bool:
+        return self in RAW_ESTIMATORS
+
+
+RAW_ESTIMATORS = (Estimator.PAPER, Estimator.PNP)
+FUSED_ESTIMATORS = (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF)
+
+
+class Mount(Choice):
+    """How a camera hangs on the airframe (CameraModel)."""
+    BODY_FIXED = "body_fixed"
+    GIMBALED = "gimbaled"        # keeps its attitude to the level, yaw-only body frame
+
+
+class RobustKernel(Choice):
+    """Robust kernel on QR pose and load factors (GTSAM's mEstimator names)."""
+    NONE = "none"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+
+
+class CameraRole(Choice):
+    """Which camera of a flight log: EuRoC folder names."""
+    FLOOR = "cam0"               # down-looking, floor codes
+    FRONT = "cam1"               # forward-looking, load codes
 
 
 @dataclass
