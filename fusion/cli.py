@@ -6,6 +6,7 @@ keeps its traceback, because it is a bug.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -29,14 +30,37 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
     p.add_argument("--force", action="store_true", help="write into an existing output folder")
     p.add_argument("--backend", choices=("zxing", "aruco"), default="zxing",
                    help="QR detector (default: zxing-cpp)")
-    p.add_argument("--workers", type=int, default=None, help="processes for detection (default: all cores)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes for detection and per-frame estimates (default: all cores)")
     if stages:
         p.add_argument("--robust", choices=("none", "huber", "cauchy", "tukey"), default="huber",
                        help="robust kernel on QR pose factors (default: huber)")
         p.add_argument("--tight", action="store_true",
                        help="tight coupling: floor-code corners as reprojection factors")
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+
+
+def _verbosity_options() -> argparse.ArgumentParser:
+    """-v / -q, accepted by every subcommand."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more log messages (-vv: debug)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bars; warnings and errors only")
+    return p
+
+
+def configure_logging(verbose: int, quiet: bool) -> None:
+    """Log records of the `fusion` package to stderr: INFO by default, WARNING with -q,
+    DEBUG with -vv."""
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(
+        "fusion: %(levelname)s: %(name)s: %(message)s" if verbose else "fusion: %(message)s"))
+    root = logging.getLogger("fusion")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,8 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "fused with IMU in GTSAM.")
     parser.add_argument("--version", action="version", version=f"fusion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
+    common = _verbosity_options()
 
-    p = sub.add_parser("simulate", help="simulate a warehouse flight log with ground truth")
+    p = sub.add_parser("simulate", parents=[common], help="simulate a warehouse flight log with ground truth")
     p.add_argument("out", type=Path, help="output log folder")
     p.add_argument("--scenario", default="default", help="default | gimbaled | paper_a5")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
@@ -59,25 +84,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the first S seconds of the scenario's trajectory")
     p.add_argument("--force", action="store_true", help="overwrite an existing folder")
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
-    p.add_argument("--quiet", action="store_true")
 
-    p = sub.add_parser("detect", help="detect and decode QR codes; writes detections.csv")
+    p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
     _add_run_options(p, stages=False)
-    p = sub.add_parser("localize", help="per-frame estimates: paper (Alg. 1-6) and PnP")
+    p = sub.add_parser("localize", parents=[common], help="per-frame estimates: paper (Alg. 1-6) and PnP")
     _add_run_options(p, stages=False)
-    p = sub.add_parser("smooth", help="fusion only: smoother, incremental, EKF (no report)")
+    p = sub.add_parser("smooth", parents=[common], help="fusion only: smoother, incremental, EKF (no report)")
     _add_run_options(p)
-    p = sub.add_parser("run", help="everything: detect, localize, fuse, evaluate, report")
+    p = sub.add_parser("run", parents=[common], help="everything: detect, localize, fuse, evaluate, report")
     _add_run_options(p)
 
-    p = sub.add_parser("demo", help="simulate the default flight and run the whole pipeline on it")
+    p = sub.add_parser("demo", parents=[common], help="simulate the default flight and run the whole pipeline on it")
     p.add_argument("--dir", type=Path, default=Path("demo-flight"),
                    help="folder for the simulated log (DIR/log) and the results (DIR/out)")
     p.add_argument("--duration", type=float, default=None, help="flight length in s (default 60)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quiet", action="store_true")
 
-    p = sub.add_parser("qr-sheet", help="printable PDF of floor codes and load labels at true size")
+    p = sub.add_parser("qr-sheet", parents=[common], help="printable PDF of floor codes and load labels at true size")
     p.add_argument("out", type=Path, help="output PDF")
     p.add_argument("--grid", type=_grid, default=(10, 6), help="floor grid NXxNY (default 10x6)")
     p.add_argument("--spacing", type=float, default=1.0, help="grid spacing in m (default 1.0)")
@@ -100,6 +123,7 @@ def _run_config(args):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging(args.verbose, args.quiet)
     try:
         if args.command == "simulate":
             from fusion.sim.simulate import simulate

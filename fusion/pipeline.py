@@ -10,6 +10,7 @@ Each stage is a function with a typed result; the CLI only calls `run` / `demo` 
 from __future__ import annotations
 
 import time
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,7 +19,10 @@ import numpy as np
 from fusion.errors import EstimationError, FusionError, OutputError
 from fusion.log import FlightLog, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
+from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.types import LoadMap, LoadObservation, Trajectory
+
+logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
 RAW_ESTIMATORS = ("paper", "pnp")
@@ -157,9 +161,8 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     notes: list[str] = []
     floor_frames = det.by_frame("cam0")
     workers = _worker_count(cfg.workers, len(floor_frames))
-    parts = _parallel_map(_localize_floor_chunk,
-                          [(chunk, log.floor.camera, log.world, cfg)
-                           for chunk in _chunks(floor_frames, workers)], workers)
+    parts = list(parallel_map(_localize_floor_chunk, _chunks(floor_frames, workers), workers,
+                              (log.floor.camera, log.world, cfg), preload=_LOCALIZE_PRELOAD))
     trajectories: dict[str, Trajectory] = {}
     paper_errors = [p["paper_error"] for p in parts if p["paper_error"]]
     if paper_errors:
@@ -175,9 +178,9 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
         return LocalizeResult(trajectories, obs, maps, stats, notes)
     front_frames = det.by_frame("cam1")
-    parts = _parallel_map(_localize_front_chunk,
-                          [(chunk, log.front.camera, log.world, trajectories.get("paper"),
-                            traj_pnp, cfg) for chunk in _chunks(front_frames, workers)], workers)
+    parts = list(parallel_map(_localize_front_chunk, _chunks(front_frames, workers), workers,
+                              (log.front.camera, log.world, trajectories.get("paper"), traj_pnp,
+                               cfg), preload=_LOCALIZE_PRELOAD))
     from fusion.qr import paper, pnp
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
@@ -194,9 +197,13 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     return LocalizeResult(trajectories, obs, maps, stats, notes)
 
 
-def _localize_floor_chunk(args) -> dict:
+_LOCALIZE_PRELOAD = ("fusion.pipeline",)
+
+
+def _localize_floor_chunk(context, frames: dict) -> dict:
+    """Paper and PnP poses of the floor frames {timestamp_ns: detections} of one chunk."""
     from fusion.qr import paper, pnp
-    frames, camera, world, cfg = args
+    camera, world, cfg = context
     out = {"paper": None, "paper_error": None}
     try:
         out["paper"] = paper.paper_trajectory(frames, camera, world, cfg.th_px)
@@ -206,9 +213,11 @@ def _localize_floor_chunk(args) -> dict:
     return out
 
 
-def _localize_front_chunk(args) -> dict:
+def _localize_front_chunk(context, frames: dict) -> dict:
+    """Paper and PnP load observations of the front frames {timestamp_ns: detections} of one
+    chunk, placed with the raw trajectories."""
     from fusion.qr import paper, pnp
-    frames, camera, world, traj_paper, traj_pnp, cfg = args
+    camera, world, traj_paper, traj_pnp, cfg = context
     out = {"paper": [], "paper_error": None}
     if traj_paper is not None:
         try:
@@ -222,25 +231,24 @@ def _localize_front_chunk(args) -> dict:
     return out
 
 
+MIN_FRAMES_PER_WORKER = 200
+"""Below about this many frames a chunk, starting processes costs more than it saves."""
+
+
 def _worker_count(requested: int | None, n_items: int) -> int:
-    import os
-    n = (os.cpu_count() or 1) if requested is None else max(1, int(requested))
-    return max(1, min(n, n_items // 200))      # below ~200 frames a chunk, processes cost more
+    """`requested` processes as given; by default one per core, capped so that each has at least
+    MIN_FRAMES_PER_WORKER frames."""
+    if requested is not None:
+        return max(1, min(int(requested), n_items))
+    return max(1, min(worker_count(None), n_items // MIN_FRAMES_PER_WORKER))
 
 
 def _chunks(frames: dict, n: int) -> list[dict]:
     """Split {timestamp: value} into n contiguous (time-ordered) dicts."""
     keys = sorted(frames)
-    bounds = np.linspace(0, len(keys), n + 1).astype(int)
-    return [{k: frames[k] for k in keys[a:b]} for a, b in zip(bounds[:-1], bounds[1:])]
-
-
-def _parallel_map(fn, tasks: list, workers: int) -> list:
-    if workers <= 1 or len(tasks) <= 1:
-        return [fn(t) for t in tasks]
-    from concurrent.futures import ProcessPoolExecutor
-    with ProcessPoolExecutor(workers) as pool:
-        return list(pool.map(fn, tasks))
+    if not keys:
+        return [{}]
+    return [{k: frames[k] for k in keys[a:b]} for a, b in chunk_bounds(len(keys), n)]
 
 
 def _concat(trajs: list[Trajectory], name: str) -> Trajectory:
@@ -407,9 +415,7 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
 
 
 def _progress(cfg: RunConfig, what: str) -> None:
-    if cfg.progress:
-        import sys
-        print(f"fusion: {what} ...", file=sys.stderr, flush=True)
+    logger.info("%s ...", what)
 
 
 def _write_estimates(out_dir: Path, result: RunResult) -> None:

@@ -27,8 +27,6 @@ import csv
 import hashlib
 import json
 import math
-import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,6 +37,7 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open
+from fusion.parallel import parallel_map, worker_count
 from fusion.qr.refine import modules_for_version, refine_frames
 from fusion.types import QRDetection
 
@@ -225,20 +224,13 @@ REFINE_BATCH_FRAMES = 8
 
 # ============================================================================ a whole flight
 
-_WORKER_STREAMS: dict = {}
-_WORKER_BACKEND = "zxing"
-
-
-def _worker_init(streams: dict, backend: str) -> None:
-    global _WORKER_STREAMS, _WORKER_BACKEND
-    _WORKER_STREAMS, _WORKER_BACKEND = streams, backend
-    cv2.setNumThreads(1)      # one process per core already
-
-
-def _detect_chunk(camera_name: str, start: int, stop: int
+def _detect_chunk(context: tuple[dict, str], task: tuple[str, int, int]
                   ) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
-    """Frames [start, stop) of one camera, read from their paths inside the worker."""
-    stream = _WORKER_STREAMS[camera_name]
+    """Frames [start, stop) of one camera, read from their paths in the calling process;
+    `context` = ({camera name: CameraStream}, backend)."""
+    streams, backend = context
+    camera_name, start, stop = task
+    stream = streams[camera_name]
     stats = CameraStats()
     skipped_before = len(stream.skipped)
     dets: list[QRDetection] = []
@@ -253,7 +245,7 @@ def _detect_chunk(camera_name: str, start: int, stop: int
             stamps.append(int(stream.timestamps_ns[i]))
         if len(images) == REFINE_BATCH_FRAMES or (i == stop - 1 and images):
             for frame_dets in detect_frames(images, camera_name, stamps, stream.camera,
-                                            _WORKER_BACKEND, stats):
+                                            backend, stats):
                 dets.extend(frame_dets)
             images, stamps = [], []
     skipped = stream.skipped[skipped_before:]
@@ -298,21 +290,15 @@ def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
     tasks = [(name, s, min(s + chunk_frames, len(stream)))
              for name, stream in streams.items() for s in range(0, len(stream), chunk_frames)]
     n_frames = sum(len(s) for s in streams.values())
-    workers = (os.cpu_count() or 1) if workers is None else max(1, int(workers))
+    workers = worker_count(workers)
     stats = {name: CameraStats() for name in streams}
     dets: list[QRDetection] = []
     skipped: list[str] = []
     bar = _progress_bar(n_frames, progress)
     try:
-        if workers == 1 or len(tasks) <= 1:
-            _worker_init(streams, backend)
-            results = (_detect_chunk(*t) for t in tasks)
-            _collect(results, dets, stats, skipped, bar)
-        else:
-            with ProcessPoolExecutor(workers, initializer=_worker_init,
-                                     initargs=(streams, backend)) as pool:
-                results = pool.map(_detect_chunk, *zip(*tasks))
-                _collect(results, dets, stats, skipped, bar)
+        results = parallel_map(_detect_chunk, tasks, workers, (streams, backend),
+                               preload=["fusion.qr.detect"])
+        _collect(results, dets, stats, skipped, bar)
     finally:
         if bar is not None:
             bar.close()

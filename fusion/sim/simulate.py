@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing as mp
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,6 +18,7 @@ import numpy as np
 from fusion.errors import SimulationError
 from fusion.geometry import inv_T, quat_wxyz_from_R
 from fusion.log import FlightLogWriter, GroundTruth
+from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.render import render_view
 from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
@@ -47,18 +45,28 @@ class SimulationResult:
 
 # ---------------------------------------------------------------------------- worker side
 
-_SCENE: dict = {}
+class _RenderJob:
+    """What every rendering task needs (sent once to each worker process); the scene's code
+    textures are built on first use, in the worker."""
 
+    def __init__(self, scenario: Scenario, seed: int, png_level: int, check_readable: bool):
+        self.scenario, self.seed, self.check_readable = scenario, seed, check_readable
+        # sensor noise defeats LZ matching: Huffman-only coding is as small and several times
+        # faster than deflate at level >= 3; level 9 with the default strategy for the smallest
+        strategy = cv2.IMWRITE_PNG_STRATEGY_DEFAULT if png_level >= 9 else \
+            cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
+        self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, png_level, cv2.IMWRITE_PNG_STRATEGY,
+                           strategy]
+        self._codes = None
 
-def _init_worker(scenario: Scenario, seed: int, png_level: int, check_readable: bool) -> None:
-    cv2.setNumThreads(1)
-    # sensor noise defeats LZ matching: Huffman-only coding is as small and several times faster
-    # than deflate at level >= 3; level 9 with the default strategy for the smallest files
-    strategy = cv2.IMWRITE_PNG_STRATEGY_DEFAULT if png_level >= 9 else \
-        cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
-    _SCENE.update(scenario=scenario, codes=scenario.codes(), seed=seed, check_readable=check_readable,
-                  png_params=[cv2.IMWRITE_PNG_COMPRESSION, png_level, cv2.IMWRITE_PNG_STRATEGY,
-                              strategy])
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_codes": None}
+
+    @property
+    def codes(self):
+        if self._codes is None:
+            self._codes = self.scenario.codes()
+        return self._codes
 
 
 def _blur(camera, T_a: np.ndarray, T_b: np.ndarray, depth_hint_m: float) -> tuple[float, float]:
@@ -77,8 +85,8 @@ def _blur(camera, T_a: np.ndarray, T_b: np.ndarray, depth_hint_m: float) -> tupl
     return float(np.hypot(*d)), float(math.atan2(d[1], d[0]))
 
 
-def _render_frame(k: int, t_s: float) -> tuple[int, list[bytes], bool | None]:
-    sc: Scenario = _SCENE["scenario"]
+def _render_frame(job: _RenderJob, k: int, t_s: float) -> tuple[int, list[bytes], bool | None]:
+    sc = job.scenario
     half = 0.5 * sc.exposure_s
     st = sc.trajectory.state(np.array([t_s - half, t_s, t_s + half]))
     T_wb = st.T_world_body
@@ -87,21 +95,21 @@ def _render_frame(k: int, t_s: float) -> tuple[int, list[bytes], bool | None]:
         poses = [cam.T_world_cam(T) for T in T_wb]
         blur_px, blur_dir = _blur(cam, poses[0], poses[2], 1.2)
         fx = sc.effects(name, t_s, blur_px, blur_dir)
-        rng = np.random.default_rng([_SCENE["seed"], _STREAM_FRAME, ci, k])
-        img = render_view(cam, poses[1], _SCENE["codes"], rng, fx, sc.occluders)
-        ok, buf = cv2.imencode(".png", img, _SCENE["png_params"])
+        rng = np.random.default_rng([job.seed, _STREAM_FRAME, ci, k])
+        img = render_view(cam, poses[1], job.codes, rng, fx, sc.occluders)
+        ok, buf = cv2.imencode(".png", img, job.png_params)
         if not ok:
             raise SimulationError(f"PNG encoding failed for {name} frame {k}")
         pngs.append(buf.tobytes())
-        if name == "cam0" and _SCENE["check_readable"]:
+        if name == "cam0" and job.check_readable:
             readable = floor_code_readable(img)
     return k, pngs, readable
 
 
-def _render_chunk(args) -> tuple[list, float]:
+def _render_chunk(job: _RenderJob, frames: list[tuple[int, float]]) -> tuple[list, float]:
     """Render frames [(index, t_s)]; also returns the CPU time this took (s)."""
     t0 = time.process_time()
-    out = [_render_frame(k, t) for k, t in args]
+    out = [_render_frame(job, k, t) for k, t in frames]
     return out, time.process_time() - t0
 
 
@@ -158,9 +166,7 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
     if noise_sigma_dn is not None:
         sc.noise_sigma_dn = float(noise_sigma_dn)
-    if workers is None:
-        workers = os.cpu_count() or 1
-    workers = max(1, int(workers))
+    workers = worker_count(workers)
     if workers > 1 and mp.current_process().name != "MainProcess":
         # most likely a worker re-importing an unguarded main script: stop before touching disk
         raise SimulationError("simulate(workers > 1) called inside a child process; guard the "
@@ -221,36 +227,11 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
                 if bar is not None:
                     bar.update(1)
 
-        init = (sc, seed, int(png_compression), check_readable)
+        job = _RenderJob(sc, seed, int(png_compression), check_readable)
         try:
-            if workers == 1:
-                n_threads = cv2.getNumThreads()
-                _init_worker(*init)
-                try:
-                    for c in chunks:
-                        consume(_render_chunk(c))
-                finally:
-                    cv2.setNumThreads(n_threads)
-            else:
-                # not "fork": forking a process that runs threads (OpenCV, BLAS, a test runner) can
-                # deadlock the children on a lock copied in the held state.  An executor, unlike
-                # multiprocessing.Pool, fails instead of respawning workers that die at start-up.
-                if "forkserver" in mp.get_all_start_methods():
-                    ctx = mp.get_context("forkserver")
-                    # the server imports the renderer once; workers fork from it ready to run
-                    ctx.set_forkserver_preload(["fusion.sim.simulate"])
-                else:
-                    ctx = mp.get_context("spawn")
-                try:
-                    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                             initargs=init) as pool:
-                        for res in pool.map(_render_chunk, chunks):
-                            consume(res)
-                except BrokenProcessPool:
-                    raise SimulationError(
-                        "a rendering worker process died; when calling simulate() with workers > 1 "
-                        "from a script, run it under `if __name__ == '__main__':` (the workers "
-                        "import the main module), or pass workers=1") from None
+            for res in parallel_map(_render_chunk, chunks, workers, job,
+                                    preload=["fusion.sim.simulate"]):
+                consume(res)
         finally:
             if bar is not None:
                 bar.close()

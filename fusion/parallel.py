@@ -1,0 +1,94 @@
+"""The one way `fusion` runs work on several processes (simulate, detect, localize).
+
+`parallel_map(fn, tasks, workers, context)` yields `fn(context, task)` for every task, in task
+order.  `context` (cameras, world, configuration: whatever every task needs) is sent once to each
+worker process; the tasks carry only their own slice of the work.  Workers start with
+multiprocessing's "forkserver" method (else "spawn"), never "fork": forking a process that runs
+threads (OpenCV, BLAS, a test runner) can deadlock a child on a lock copied in the held state.
+So `fn` must be a module-level function, and a script that calls this with workers > 1 needs the
+usual `if __name__ == "__main__":` guard.  With workers <= 1 (or a single task) everything runs
+in this process, which is what the tests compare the parallel path against.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from itertools import repeat
+from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
+
+import cv2
+import numpy as np
+
+from fusion.errors import FusionError
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class ParallelError(FusionError):
+    """A worker process died or could not start."""
+
+
+_WORKER_CONTEXT: Any = None   # set in each worker process by _start_worker, read by _call only
+
+
+def _start_worker(context: Any) -> None:
+    global _WORKER_CONTEXT
+    _WORKER_CONTEXT = context
+    cv2.setNumThreads(1)      # one process per core already
+
+
+def _call(fn: Callable[[Any, T], R], task: T) -> R:
+    return fn(_WORKER_CONTEXT, task)
+
+
+def worker_count(requested: int | None) -> int:
+    """`requested` processes, at least 1; None: one per core."""
+    return (os.cpu_count() or 1) if requested is None else max(1, int(requested))
+
+
+def chunk_bounds(n_items: int, n_chunks: int) -> list[tuple[int, int]]:
+    """[start, stop) of `n_chunks` contiguous, nearly equal chunks covering range(n_items);
+    empty chunks are left out."""
+    bounds = np.linspace(0, n_items, max(1, n_chunks) + 1).astype(int)
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def parallel_map(fn: Callable[[Any, T], R], tasks: Iterable[T], workers: int,
+                 context: Any = None, preload: Sequence[str] = ()) -> Iterator[R]:
+    """Yield fn(context, task) for each task, in order, on `workers` processes.
+
+    `preload`: modules the forkserver imports once, so that workers fork from it ready to run.
+    Raises ParallelError when called with workers > 1 inside a worker process (an unguarded
+    main script being re-imported) or when a worker dies."""
+    tasks = list(tasks)
+    if workers <= 1 or len(tasks) <= 1:
+        for task in tasks:
+            yield fn(context, task)
+        return
+    if mp.current_process().name != "MainProcess":
+        raise ParallelError("parallel work started inside a worker process; guard the calling "
+                            "script with `if __name__ == '__main__':` or use one worker")
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        if preload:
+            ctx.set_forkserver_preload(list(preload))
+    else:
+        ctx = mp.get_context("spawn")
+    n = min(workers, len(tasks))
+    logger.debug("parallel_map %s: %d tasks on %d %s workers", getattr(fn, "__name__", fn),
+              len(tasks), n, ctx.get_start_method())
+    try:
+        with ProcessPoolExecutor(n, mp_context=ctx, initializer=_start_worker,
+                                 initargs=(context,)) as pool:
+            yield from pool.map(_call, repeat(fn), tasks)
+    except BrokenProcessPool:
+        raise ParallelError(
+            "a worker process died; when calling fusion with several workers from a script, "
+            "run it under `if __name__ == '__main__':` (the workers import the main module), "
+            "or use one worker") from None
