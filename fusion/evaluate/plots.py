@@ -33,12 +33,11 @@ from fusion.evaluate.metrics import (  # noqa: E402
     associate,
 )
 from fusion.fileio import atomic_open  # noqa: E402
-from fusion.types import LoadMap, Trajectory  # noqa: E402
+from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory  # noqa: E402
 
 DEFAULT_DPI = 130
 TRUTH_COLOUR = "#222222"
 UNSEEN_COLOUR = "#aaaaaa"
-RAW_ESTIMATORS = ("paper", "pnp")
 ZOOM_EXCLUDE = ("paper",)       # left out of the zoomed (cm-scale) plots: its errors set the scale
 MAX_DRAWN_POINTS = 4000         # per series; longer series are min/max-decimated for drawing
 LOG_FLOOR = 1e-4                # smallest value drawn on log axes (cm or deg)
@@ -348,15 +347,6 @@ def plot_position_errors_zoom(path: Path, trajectories: dict[str, Trajectory], g
                       (f"; {left_out} left out (see the overview)" if left_out else ""), pad=12)
     _legend(fig, axes[0], markerscale=4)
     return _save(fig, path, dpi)
-
-
-def plot_position_errors(path: Path, trajectories: dict[str, Trajectory], gt,
-                         blackouts: list[tuple[int, int, str]] | None = None, *,
-                         raw_names: Iterable[str] = RAW_ESTIMATORS,
-                         dpi: int = DEFAULT_DPI) -> Path:
-    """Alias of `plot_error_overview` (log-scale error norm of every estimator), kept for
-    callers of the first version; the per-axis ±2σ plot is `plot_position_errors_zoom`."""
-    return plot_error_overview(path, trajectories, gt, blackouts, raw_names=raw_names, dpi=dpi)
 
 
 def plot_position_sigma(path: Path, trajectories: dict[str, Trajectory], *,
@@ -673,7 +663,7 @@ def plot_all(out_dir: Path, trajectories: dict[str, Trajectory], load_maps: dict
 
 
 __all__ = ["estimator_colour", "decimate_minmax", "associate_all", "time_origin_ns",
-           "plot_trajectories", "plot_error_overview", "plot_position_errors",
+           "plot_trajectories", "plot_error_overview",
            "plot_position_errors_zoom", "plot_position_sigma", "plot_error_boxplots",
            "plot_load_map", "plot_load_errors", "plot_all", "zoom_limits_cm", "load_rows",
-           "RAW_ESTIMATORS", "ZOOM_EXCLUDE"]
+           "ZOOM_EXCLUDE"]

@@ -20,9 +20,9 @@ from fusion.evaluate.metrics import (
     coverage_fraction,
     inside_intervals,
 )
-from fusion.evaluate.plots import DEFAULT_DPI, RAW_ESTIMATORS, plot_all, time_origin_ns
+from fusion.evaluate.plots import DEFAULT_DPI, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
-from fusion.types import LoadMap, Trajectory
+from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory
 
 DASH = "–"
 BLACKOUT_COVERAGE_TOLERANCE_S = 0.05   # a blackout instant counts as covered by a pose this close
