@@ -13,10 +13,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fusion.evaluate.metrics import evaluate, inside_intervals, write_metrics
 from fusion.evaluate.report import write_report
+from fusion.geometry import R_from_euler, quat_wxyz_from_R
 from fusion.log.euroc import GroundTruth
 from fusion.qrsheet import write_qr_sheet
 from fusion.types import LoadEstimate, LoadMap, Trajectory
@@ -30,8 +30,8 @@ def synthetic(minutes: float, seed: int = 0):
     t = (np.arange(n) * (NS // 200)).astype(np.int64)
     s = t * 1e-9
     p = np.column_stack([4 + 3 * np.cos(0.2 * s), 3 + 2 * np.sin(0.3 * s), 1.5 + 0.3 * np.sin(0.5 * s)])
-    q = np.roll(Rotation.from_euler("xyz", np.column_stack(
-        [0.05 * np.sin(s), 0.04 * np.cos(0.7 * s), 0.2 * s])).as_quat(), 1, axis=1)
+    q = quat_wxyz_from_R(R_from_euler("xyz", np.column_stack(
+        [0.05 * np.sin(s), 0.04 * np.cos(0.7 * s), 0.2 * s])))
     z = np.zeros((n, 3))
     gt = GroundTruth(t, p, q, z, z, z)
     T = gt.T_world_body
