@@ -230,3 +230,19 @@ def test_inventory_ambiguous_from_raw_observations(sample_run, tmp_path):
     assert st["P-01-2"] == Status.AMBIGUOUS and st["P-02-2"] == Status.PRESENT
     row = next(r for r in res.rows if r.load_id == "P-01-2")
     assert len(row.places) == 2
+
+
+def test_inventory_log_option_and_no_record(sample_run, tmp_path):
+    """Without run.json and without --log the front camera is unknown: unread loads are not
+    surveyed, with a note; --log gives the camera back."""
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    (run / "run.json").unlink()
+    manifest = _manifest(tmp_path / "m.csv", {"PHANTOM": [2.5, 2.7, 1.4]})
+    res = run_inventory(run, manifest, write=False)
+    assert res.statuses()["PHANTOM"] == Status.NOT_SURVEYED and "front camera unknown" in res.notes[0]
+    assert main(["inventory", str(run), "--expected", str(manifest), "--log", str(SAMPLE),
+                 "-q"]) == 0
+    with open(run / "inventory.csv", encoding="utf-8") as f:
+        rows = {r["id"]: r["status"] for r in csv.DictReader(f)}
+    assert rows == {"PHANTOM": "missing", "P-01-2": "unexpected", "P-02-2": "unexpected"}

@@ -15,7 +15,7 @@ from fusion.fileio import load_yaml
 from fusion.geometry import make_T, rot_z
 from fusion.log.files import write_loads_json, write_tum
 from fusion.types import LoadEstimate, LoadMap, Trajectory
-from fusion.warehouse.merge import ChangeKind, merge_runs, run_merge
+from fusion.warehouse.merge import ChangeKind, merge_runs
 from fusion.warehouse.runs import RUN_RECORD, load_run
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"

@@ -30,7 +30,7 @@ def _trajectory(name, rng, n=300):
     t = np.linspace(0, 2 * math.pi, n)
     p = np.column_stack([3 + 2 * np.cos(t), 3 + 1.5 * np.sin(t), 1.4 + 0.2 * np.sin(3 * t)])
     p += 0.01 * rng.normal(size=p.shape)
-    T = np.array([make_T(rot_z(a + math.pi / 2), q) for a, q in zip(t, p)])
+    T = np.array([make_T(rot_z(a + math.pi / 2), q) for a, q in zip(t, p, strict=False)])
     return Trajectory(name, np.arange(n, dtype=np.int64) * 33_000_000, T)
 
 

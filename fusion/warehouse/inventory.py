@@ -185,7 +185,7 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
     places = {lid: ambiguous_places(obs) for lid, obs in run.observations.items()}
     ambiguous = {lid for lid, p in places.items() if len(p) >= 2}
     not_read = [e for e in expected if e.load_id not in mapped and e.load_id not in ambiguous]
-    frames = best = None
+    view: dict[str, tuple[int | None, float | None]] = {e.load_id: (None, None) for e in not_read}
     world = run.world
     if not_read:
         if run.front_camera is None or world is None:
@@ -194,8 +194,8 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
         else:
             frames, best = visibility(np.array([e.p_world for e in not_read]), run.trajectory,
                                       run.front_camera, world.load_side_m)
-    view = {e.load_id: (int(frames[i]), float(best[i])) if frames is not None else (None, None)
-            for i, e in enumerate(not_read)}
+            view = {e.load_id: (int(n), float(b)) for e, n, b in zip(not_read, frames, best,
+                                                                    strict=True)}
     rows: list[InventoryRow] = []
     for e in expected:
         est = mapped.get(e.load_id)

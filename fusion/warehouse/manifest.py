@@ -78,6 +78,8 @@ def read_manifest(path: Path) -> list[ExpectedLoad]:
     delimiter = ";" if lines[0].count(";") > lines[0].count(",") else ","
     rows = csv.reader(lines, delimiter=delimiter)
     header = [h.strip().lower() for h in next(rows)]
+    required: tuple[str, ...]
+    optional: tuple[str, ...]
     if "pallet_id" in header or "location" in header:
         layout, required, optional = "wms", WMS_COLUMNS, WMS_OPTIONAL
     else:

@@ -91,18 +91,19 @@ class MergeResult:
 
 def check_same_warehouse(runs: list[RunOutputs]) -> dict:
     """The common world.yaml of `runs`; WarehouseError if one is unknown or they differ."""
+    worlds = []
     for r in runs:
         if r.world_yaml is None:
             raise WarehouseError(f"{r.out_dir}: no run.json (world.yaml unknown): re-run "
                                  "`fusion run` on its log to record it")
-    ref = runs[0]
-    for r in runs[1:]:
-        if r.world_yaml != ref.world_yaml:
-            keys = sorted(k for k in set(ref.world_yaml) | set(r.world_yaml)
-                          if ref.world_yaml.get(k) != r.world_yaml.get(k))
-            raise WarehouseError(f"{r.out_dir}: a different warehouse than {ref.out_dir} "
+        worlds.append(r.world_yaml)
+    ref = worlds[0]
+    for r, w in zip(runs[1:], worlds[1:], strict=True):
+        if w != ref:
+            keys = sorted(k for k in set(ref) | set(w) if ref.get(k) != w.get(k))
+            raise WarehouseError(f"{r.out_dir}: a different warehouse than {runs[0].out_dir} "
                                  f"(world.yaml differs in {', '.join(keys)}); refusing to merge")
-    return ref.world_yaml
+    return ref
 
 
 def _fuse(p_a, P_a, p_b, P_b) -> tuple[np.ndarray, np.ndarray]:
@@ -152,7 +153,7 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
             continue
         frames, _ = visibility(np.array([state[lid].p_world for lid in unseen]), run.trajectory,
                                run.front_camera, world.load_side_m)
-        for lid, n in zip(unseen, frames):
+        for lid, n in zip(unseen, frames, strict=False):
             if n >= MIN_FRAMES_IN_VIEW:
                 changes.append(Change(lid, ChangeKind.DISAPPEARED, k, state[lid].p_world, None,
                                       frames_in_view=int(n)))

@@ -138,10 +138,10 @@ def build_figure(trajectories: dict[str, Trajectory], load_map: LoadMap | None,
             name=f"loads ({escape.html_text(load_map.name)})",
             marker={"size": 5, "color": cols, "line": {"width": 1, "color": "#000000"}},
             hovertext=[_load_hover(l.load_id, l.p_world, l.cov_world, l.n_obs,
-                                   None if s is None else str(s)) for l, s in zip(loads, st)],
+                                   None if s is None else str(s)) for l, s in zip(loads, st, strict=False)],
             hoverinfo="text"))
         first = True
-        for l, c in zip(loads, cols):
+        for l, c in zip(loads, cols, strict=False):
             if l.cov_world is None:
                 continue
             v, f = _ellipsoid_mesh(np.asarray(l.p_world, dtype=float), np.asarray(l.cov_world))
