@@ -239,7 +239,7 @@ def run_inventory(run_out: Path, manifest: Path, estimator: str = Estimator.SMOO
             f.write("\n".join(section) + "\n")
         attach_to_report(out / "report.md", section)
         from fusion.warehouse.view3d import write_run_html
-        write_run_html(out, result)
+        write_run_html(out, result, log=log)
     return result
 
 

@@ -216,9 +216,10 @@ def floor_codes_from_detections(out_dir: Path, payload_unit_m: float) -> np.ndar
     return np.array(sorted(xy)) if xy else None
 
 
-def write_run_html(out_dir: Path, inventory_result=None, expected: list | None = None) -> Path:
+def write_run_html(out_dir: Path, inventory_result=None, expected: list | None = None,
+                   log: Path | None = None) -> Path:
     """Redraw `out_dir/report.html` from the run's files (trajectory_*.tum, loads_*.json,
-    detections.csv, run.json), with the inventory's colours when given."""
+    detections.csv, run.json or `log`), with the inventory's colours when given."""
     from fusion.warehouse.runs import load_run
     out_dir = Path(out_dir)
     trajectories = {}
@@ -229,7 +230,7 @@ def write_run_html(out_dir: Path, inventory_result=None, expected: list | None =
     gt_path = out_dir / "trajectory_groundtruth.tum"
     gt = read_tum(gt_path, "groundtruth") if gt_path.exists() else None
     estimator = inventory_result.estimator if inventory_result is not None else Estimator.SMOOTHER
-    run = load_run(out_dir, estimator)
+    run = load_run(out_dir, estimator, log)
     world = run.world
     unit = world.payload_unit_m if world is not None else 1.0
     statuses = inventory_result.statuses() if inventory_result is not None else None
