@@ -12,6 +12,7 @@ from pathlib import Path
 
 from fusion import __version__
 from fusion.errors import FusionError
+from fusion.types import Estimator
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -100,6 +101,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=None, help="flight length in s (default 60)")
     p.add_argument("--seed", type=int, default=0)
 
+    p = sub.add_parser("inventory", parents=[common],
+                       help="compare a run's load map with the warehouse system's manifest")
+    p.add_argument("run_out", type=Path, help="output folder of `fusion run`")
+    p.add_argument("--expected", type=Path, required=True,
+                   help="manifest CSV: id,x_m,y_m,z_m[,tolerance_m] or a WMS export "
+                        "location,pallet_id,x,y,z,unit[,tolerance] (see fusion/warehouse/manifest.py)")
+    p.add_argument("--estimator", default=str(Estimator.SMOOTHER),
+                   choices=[str(e) for e in Estimator], help="whose load map (default smoother)")
+    p.add_argument("--log", type=Path, default=None,
+                   help="flight log for world.yaml and the front camera (default: the run's run.json)")
+    p = sub.add_parser("map", parents=[common], help="maps across flights")
+    map_sub = p.add_subparsers(dest="map_command", required=True)
+    p = map_sub.add_parser("merge", parents=[common],
+                           help="fuse the load maps of several runs of one warehouse; list changes")
+    p.add_argument("run_outs", type=Path, nargs="+", help="output folders of `fusion run`, in flight order")
+    p.add_argument("--out", type=Path, required=True, help="output folder of the merged map")
+    p.add_argument("--estimator", default=str(Estimator.SMOOTHER),
+                   choices=[str(e) for e in Estimator], help="whose load maps (default smoother)")
+    p.add_argument("--force", action="store_true", help="write into an existing output folder")
+
     p = sub.add_parser("qr-sheet", parents=[common], help="printable PDF of floor codes and load labels at true size")
     p.add_argument("out", type=Path, help="output PDF")
     p.add_argument("--grid", type=_grid, default=(10, 6), help="floor grid NXxNY (default 10x6)")
@@ -145,6 +166,22 @@ def main(argv: list[str] | None = None) -> int:
             result = pipeline.demo(args.dir, duration_s=args.duration, seed=args.seed,
                                    progress=not args.quiet)
             print(result.summary())
+        elif args.command == "inventory":
+            from fusion.warehouse.inventory import run_inventory
+            inv = run_inventory(args.run_out, args.expected, args.estimator, args.log)
+            print("inventory: " + ", ".join(f"{n} {s}" for s, n in inv.counts().items()))
+            for note in inv.notes:
+                print(f"note: {note}")
+            print(f"wrote {args.run_out / 'inventory.csv'}")
+        elif args.command == "map" and args.map_command == "merge":
+            from fusion.warehouse.merge import run_merge
+            res = run_merge(args.run_outs, args.out, args.estimator, args.force)
+            kinds: dict[str, int] = {}
+            for c in res.changes:
+                kinds[str(c.kind)] = kinds.get(str(c.kind), 0) + 1
+            print(f"merged {len(res.runs)} runs: {len(res.loads)} loads; changes: "
+                  + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none"))
+            print(f"wrote {args.out}")
         elif args.command == "qr-sheet":
             from fusion.qrsheet import write_qr_sheet
             pages = write_qr_sheet(args.out, grid=args.grid, spacing_m=args.spacing,

@@ -47,3 +47,8 @@ class EvaluationError(FusionError):
 
 class QRSheetError(FusionError):
     """A printable QR sheet that cannot be made (code larger than the page, unprintable id)."""
+
+
+class WarehouseError(FusionError):
+    """Inventory / map-merge inputs that cannot be used (bad manifest line, runs of different
+    warehouses, a run folder without its outputs)."""

@@ -23,6 +23,7 @@ from fusion.evaluate.metrics import (
 from fusion.evaluate.plots import DEFAULT_DPI, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory
+from fusion.warehouse.hook import report_hook
 
 DASH = "–"
 BLACKOUT_COVERAGE_TOLERANCE_S = 0.05   # a blackout instant counts as covered by a pose this close
@@ -429,6 +430,9 @@ def write_report(out_dir: Path, metrics: dict | None, trajectories: dict[str, Tr
              else None]
     if any(facts):
         lines += ["Flight " + ", ".join(f for f in facts if f) + ".", ""]
+    warehouse_lines = report_hook(out_dir, trajectories, load_maps, floor_codes_xy_m, log_summary,
+                                  gt if has_truth else None)
+    lines += warehouse_lines[:2]                        # link to report.html
     if has_truth:
         lines += _summary_section(metrics, trajectories, gt, blackouts)
         lines += _plots(plots, "summary")
@@ -469,6 +473,7 @@ def write_report(out_dir: Path, metrics: dict | None, trajectories: dict[str, Tr
         lines += _table(["item", "value"], _kv_rows(detection))
     else:
         lines += ["No detection statistics were given.", ""]
+    lines += warehouse_lines[2:]                        # where `fusion inventory` puts its section
     report = out_dir / "report.md"
     with atomic_open(report) as f:
         f.write("\n".join(lines).rstrip() + "\n")
