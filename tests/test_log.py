@@ -28,7 +28,9 @@ def write_small_log(root, n_frames=5, n_imu=50, seed=0):
                       make_T(R_BODY_FLOORCAM, [0, 0, -0.02]), rate_hz=10)
     t_cam = (np.arange(n_frames) * 1e8).astype(np.int64) + 1_000_000_000
     t_imu = (np.arange(n_imu) * 5e6).astype(np.int64) + 1_000_000_000
-    imu = ImuData(t_imu, rng.normal(size=(n_imu, 3)), rng.normal(size=(n_imu, 3)),
+    # a plausible resting IMU (check_log flags units by magnitude and noise)
+    imu = ImuData(t_imu, rng.normal(scale=1.4e-3, size=(n_imu, 3)),
+                  np.array([0, 0, 9.81]) + rng.normal(scale=0.03, size=(n_imu, 3)),
                   ImuNoise(1e-4, 2e-5, 2e-3, 3e-3), np.eye(4), 200.0)
     q = rng.normal(size=(n_imu, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
