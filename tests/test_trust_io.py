@@ -304,17 +304,19 @@ def test_log_warnings_reach_summary_and_metrics(tmp_path, capsys):
     assert "\\[clock\\_offset\\] x1" in (out / "report.md").read_text()   # Markdown-escaped
 
 
-def test_named_pipe_world_yaml_is_refused_not_hung(tmp_path):
+@pytest.mark.parametrize("rel", ["world.yaml", "mav0/imu0/data.csv", "mav0/cam0/sensor.yaml"])
+def test_named_pipe_inputs_are_refused_not_hung(tmp_path, rel):
     log_dir = _copy_sample(tmp_path)
-    (log_dir / "world.yaml").unlink()
-    os.mkfifo(log_dir / "world.yaml")
-    # a hang-guard only (a hung reader never returns); the expected run takes about a second
+    (log_dir / rel).unlink()
+    os.mkfifo(log_dir / rel)
+    # in a subprocess with a hang-guard only (a reader blocked on a pipe never returns); the
+    # expected run takes about a second
     proc = subprocess.run([sys.executable, "-m", "fusion.cli", "run", str(log_dir), "--out",
                            str(tmp_path / "out"), "--quiet"], capture_output=True, text=True,
                           timeout=300, env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [
-        f"fusion: error: {log_dir / 'world.yaml'}: is a named pipe, expected a regular file"]
+        f"fusion: error: {log_dir / rel}: is a named pipe, expected a regular file"]
 
 
 # ---------------------------------------------------------------- untrusted ids in outputs
