@@ -7,7 +7,6 @@ when they are regular files: a named pipe or a device would hang the reader or n
 from __future__ import annotations
 
 import contextlib
-import errno
 import hashlib
 import io
 import json
