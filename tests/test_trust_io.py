@@ -341,3 +341,18 @@ def test_load_ids_are_neutralised_in_csv_and_escaped_in_markdown(tmp_path):
         cells = re.split(r"(?<!\\)\|", l)[1:-1]
         assert len(cells) == 9, l
     assert any("`` a`b\\|c ``" in l for l in rows)
+
+
+def test_simulate_on_a_full_disk_is_one_error_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    import fusion.log.euroc as euroc
+    real = euroc.atomic_open
+
+    def full(path, *a, **k):
+        if str(path).endswith("data.csv"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, *a, **k)
+    monkeypatch.setattr(euroc, "atomic_open", full)
+    assert _simulate(tmp_path / "f") == 1
+    line = _one_error_line(capsys)
+    assert "cannot write the flight log: No space left on device" in line
+    assert list(tmp_path.iterdir()) == []
