@@ -28,7 +28,9 @@ def _grid(text: str) -> tuple[int, int]:
 def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
     p.add_argument("log", type=Path, help="flight log folder (EuRoC layout)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--force", action="store_true", help="write into an existing output folder")
+    p.add_argument("--force", action="store_true",
+                   help="write into an existing output folder: the previous run's outputs (its "
+                        "manifest.json) are replaced, other files are kept")
     p.add_argument("--backend", choices=("zxing", "aruco"), default="zxing",
                    help="QR detector (default: zxing-cpp)")
     p.add_argument("--workers", type=int, default=None,
@@ -83,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
     p.add_argument("--start", type=float, default=0.0,
                    help="skip the first S seconds of the scenario's trajectory")
-    p.add_argument("--force", action="store_true", help="overwrite an existing folder")
+    p.add_argument("--force", action="store_true",
+                   help="replace a log that `fusion simulate` wrote there (other files are kept)")
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")

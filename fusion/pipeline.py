@@ -5,7 +5,8 @@ map, metrics and a report (DESIGN.md "Data flow"):
              -> fusion (smoother, incremental, ekf) -> evaluate (with ground truth) -> report
 
 Each stage is a function with a typed result; the CLI only calls `run` / `demo` and prints
-`RunResult.summary()`.  Outputs are written atomically, file by file.
+`RunResult.summary()`.  Outputs are written atomically, file by file, into an output folder that
+the run locks, lists in `manifest.json` and rolls back on failure (`fusion.fileio.OutputFolder`).
 """
 from __future__ import annotations
 
@@ -16,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.errors import EstimationError, FusionError, OutputError
-from fusion.log import FlightLog, read_flight
+from fusion.errors import EstimationError, FusionError
+from fusion.fileio import OutputFolder, csv_safe
+from fusion.log import FlightLog, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.types import LoadMap, LoadObservation, Trajectory
@@ -54,6 +56,7 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     report_path: Path | None = None
+    warnings: list[LogWarning] = field(default_factory=list)   # the log's (FlightLog.warnings)
 
     def summary(self) -> str:
         """A short table for the terminal."""
@@ -88,6 +91,8 @@ class RunResult:
             err = (f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm"
                    if mae else "")
             lines.append(f"loads {name:<9} {len(lm.loads)} mapped{err}")
+        for w in self.warnings:
+            lines.append(f"warning: {w}")
         for note in self.notes:
             lines.append(f"note: {note}")
         if self.report_path is not None:
@@ -104,15 +109,15 @@ def log_summary(log: FlightLog) -> dict:
             "has_loads_groundtruth": log.loads_groundtruth is not None}
 
 
-def prepare_out_dir(out_dir: Path, force: bool) -> Path:
-    """Create the output folder; refuse an existing non-empty one unless `force`."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputError(f"{out_dir}: exists and is not a folder")
-    if out_dir.exists() and any(out_dir.iterdir()) and not force:
-        raise OutputError(f"{out_dir}: output folder exists; use --force to write into it")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    return out_dir
+def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> OutputFolder:
+    """The run's output folder, to use as a context manager: entering creates and locks it,
+    refuses a non-empty one unless `force` (then deletes the previous run's outputs from its
+    manifest, keeps the user's files and the self-checking detection cache); leaving writes
+    `manifest.json`, or on failure removes what the run wrote."""
+    from fusion import __version__
+    from fusion.qr.detect import CACHE_NAME
+    meta = {"fusion_version": __version__, "log": str(log_dir) if log_dir is not None else None}
+    return OutputFolder(Path(out_dir), force, keep=(CACHE_NAME,), meta=meta)
 
 
 # ============================================================================ stages
@@ -139,6 +144,7 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
     rejected = rejection_counts(list(classified.values()) + classified_front)
     return {
         "backend": det.backend, "from_cache": bool(det.from_cache),
+        "cache": getattr(det, "cache_status", "none"),
         "floor_frames": len(log.floor),
         "floor_frames_with_code": len(n_valid),
         "floor_frames_with_code_fraction": len(n_valid) / max(1, len(log.floor)),
@@ -351,21 +357,31 @@ def write_load_observations_csv(path: Path, observations: list[LoadObservation])
         w.writerow(["timestamp_ns", "id", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m"])
         for o in observations:
             sig = np.sqrt(np.diag(o.cov_world)) if o.cov_world is not None else None
-            w.writerow([int(o.timestamp_ns), o.load_id, *(f"{v:.6f}" for v in o.p_world),
+            w.writerow([int(o.timestamp_ns), csv_safe(o.load_id), *(f"{v:.6f}" for v in o.p_world),
                         *(("", "", "") if sig is None else (f"{s:.6f}" for s in sig))])
 
 
 def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str = "run") -> RunResult:
-    """Run the pipeline on a logged flight up to stage `until` (detect, localize, smooth, run)."""
-    from fusion.qr.detect import detect_flight
+    """Run the pipeline on a logged flight up to stage `until` (detect, localize, smooth, run).
+
+    The output folder is locked for the run; `manifest.json` lists what it wrote; on any failure
+    the run's partial outputs are removed (a file-system error becomes one OutputError)."""
     cfg = cfg or RunConfig()
     if until not in STAGES:
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
     log = read_flight(log_dir)
-    out_dir = prepare_out_dir(out_dir, cfg.force)
-    result = RunResult(out_dir, log_summary(log))
+    with prepare_out_dir(out_dir, cfg.force, log_dir) as out:
+        result = _run_into(log, out.path, cfg, until, timings, t)
+    return result
+
+
+def _run_into(log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings: dict,
+              t: float) -> RunResult:
+    """`run`'s stages, writing into the prepared (locked) output folder."""
+    from fusion.qr.detect import detect_flight
+    result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
     timings["read_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -376,6 +392,9 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
     if det.skipped:
         result.notes.append(f"{len(det.skipped)} frame(s) skipped (missing or unreadable image); "
                             f"first: {det.skipped[0]}")
+    if det.from_cache:
+        result.notes.append(f"detections reused from {out_dir / 'detections.csv'} (log and "
+                            "images unchanged)")
     if until == "detect":
         result.timings_s = timings
         return result
@@ -446,6 +465,7 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
                        log.blackouts, result.detection_stats)
     metrics["estimator_stats"] = to_jsonable({**raw_stats, **fused_stats})
     metrics["notes"] = list(result.notes)
+    metrics["warnings"] = [w.to_dict() for w in result.warnings]
     if gt is not None:
         export_groundtruth_tum(gt, out_dir / "trajectory_groundtruth.tum")
         write_metrics(out_dir / "metrics.json", metrics)
@@ -453,6 +473,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
     floor_xy = _floor_codes_seen(out_dir, log)
     summary = dict(result.log_summary, payload_unit_m=log.world.payload_unit_m,
                    detection=result.detection_stats)
+    if result.warnings:
+        summary["warnings"] = [str(w) for w in result.warnings]
     result.report_path = write_report(out_dir, metrics, result.trajectories, result.load_maps,
                                       gt, log.loads_groundtruth, log.blackouts, summary,
                                       floor_codes_xy_m=floor_xy)
@@ -480,7 +502,9 @@ def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
 def demo(folder: Path = Path("demo-flight"), duration_s: float | None = None, seed: int = 0,
          progress: bool = True) -> RunResult:
     """Simulate the default flight into `folder/log` (kept and reused if it is already there and
-    complete) and run the whole pipeline into `folder/out` (replaced)."""
+    complete) and run the whole pipeline into `folder/out` (the previous demo's outputs are
+    replaced).  Nothing the demo did not create is deleted: other files in `folder/log` and
+    `folder/out` stay, and files of a log layout it did not write are refused, not replaced."""
     from fusion.sim.simulate import simulate
     folder = Path(folder)
     log_dir = folder / "log"

@@ -18,7 +18,7 @@ import numpy as np
 
 from fusion.conventions import FloorPayload, symbol_corners_S
 from fusion.errors import WorldError
-from fusion.fileio import dump_yaml, load_yaml
+from fusion.fileio import dump_yaml, load_yaml, strict_float, strict_floats
 from fusion.geometry import R_world_loadsymbol, make_T, transform_points
 
 
@@ -46,7 +46,7 @@ class World:
     def __post_init__(self):
         for name in ("floor_side_m", "payload_unit_m", "load_side_m"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise WorldError(f"world: {name} must be a positive number, got {v!r}")
 
     # ---------------------------------------------------------------- floor codes
@@ -85,20 +85,32 @@ class World:
 
     @classmethod
     def from_yaml(cls, data: dict, source: str = "world.yaml") -> "World":
-        try:
-            floor = data["floor_qr"]
-            load = data.get("load_qr", {}) or {}
-            kwargs = {"floor_side_m": float(floor["side_m"]),
-                      "payload_unit_m": float(floor.get("payload_unit_m", 1.0)),
-                      "load_side_m": float(load.get("side_m", 0.15))}
-            bounds = data.get("bounds_m")
-            if bounds:
-                kwargs["bounds_x_m"] = tuple(float(v) for v in bounds["x"])
-                kwargs["bounds_y_m"] = tuple(float(v) for v in bounds["y"])
-                if len(kwargs["bounds_x_m"]) != 2 or len(kwargs["bounds_y_m"]) != 2:
-                    raise ValueError("bounds need two numbers per axis")
-        except (KeyError, TypeError, ValueError, AttributeError) as e:
-            raise WorldError(f"{source}: malformed ({e.__class__.__name__}: {e})") from None
+        """Build from parsed world.yaml.  Numbers are parsed strictly (a bool or a string is not
+        a number: `side_m: true` would otherwise read as 1 m); every error names the field."""
+        floor = _section(data, "floor_qr", source, required=True)
+        load = _section(data, "load_qr", source)
+        if "side_m" not in floor:
+            raise WorldError(f"{source}: floor_qr.side_m is missing")
+        kwargs = {"floor_side_m": strict_float(floor["side_m"], f"{source}: floor_qr.side_m",
+                                               WorldError, positive=True),
+                  "payload_unit_m": strict_float(floor.get("payload_unit_m", 1.0),
+                                                 f"{source}: floor_qr.payload_unit_m", WorldError,
+                                                 positive=True),
+                  "load_side_m": strict_float(load.get("side_m", 0.15),
+                                              f"{source}: load_qr.side_m", WorldError,
+                                              positive=True)}
+        bounds = data.get("bounds_m")
+        if bounds is not None:
+            if not isinstance(bounds, dict):
+                raise WorldError(f"{source}: bounds_m must be a mapping with x and y")
+            for axis in ("x", "y"):
+                if axis not in bounds:
+                    raise WorldError(f"{source}: bounds_m.{axis} is missing")
+                lo, hi = strict_floats(bounds[axis], 2, f"{source}: bounds_m.{axis}", WorldError)
+                if not lo < hi:
+                    raise WorldError(f"{source}: bounds_m.{axis} is [{lo:g}, {hi:g}]: the minimum "
+                                     "must come first and be below the maximum (reversed?)")
+                kwargs[f"bounds_{axis}_m"] = (lo, hi)
         try:
             return cls(**kwargs)
         except WorldError as e:
@@ -110,6 +122,18 @@ class World:
 
     def save(self, path: Path) -> None:
         dump_yaml(self.to_yaml(), path)
+
+
+def _section(data: dict, key: str, source: str, required: bool = False) -> dict:
+    """A mapping-valued entry of world.yaml ({} when absent and optional)."""
+    if key not in data or data[key] is None:
+        if required:
+            raise WorldError(f"{source}: {key} is missing")
+        return {}
+    value = data[key]
+    if not isinstance(value, dict):
+        raise WorldError(f"{source}: {key} must be a mapping, got {type(value).__name__}")
+    return value
 
 
 @dataclass

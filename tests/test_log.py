@@ -28,7 +28,9 @@ def write_small_log(root, n_frames=5, n_imu=50, seed=0):
                       make_T(R_BODY_FLOORCAM, [0, 0, -0.02]), rate_hz=10)
     t_cam = (np.arange(n_frames) * 1e8).astype(np.int64) + 1_000_000_000
     t_imu = (np.arange(n_imu) * 5e6).astype(np.int64) + 1_000_000_000
-    imu = ImuData(t_imu, rng.normal(size=(n_imu, 3)), rng.normal(size=(n_imu, 3)),
+    # a plausible resting IMU (check_log flags units by magnitude and noise)
+    imu = ImuData(t_imu, rng.normal(scale=1.4e-3, size=(n_imu, 3)),
+                  np.array([0, 0, 9.81]) + rng.normal(scale=0.03, size=(n_imu, 3)),
                   ImuNoise(1e-4, 2e-5, 2e-3, 3e-3), np.eye(4), 200.0)
     q = rng.normal(size=(n_imu, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
@@ -193,3 +195,189 @@ def test_loads_csv_round_trip(tmp_path):
     assert np.allclose(back["a,b"].p_world, [1, 2, 3]) and back["a,b"].n_obs == 7
     assert np.allclose(np.sqrt(np.diag(back["a,b"].cov_world)), [0.01, 0.02, 0.03])
     assert back["c"].cov_world is None
+
+
+# ---------------------------------------------------------------- trust: hostile and mistaken inputs
+
+
+def _set_yaml_line(path, key, text):
+    """Replace the line `key: ...` of a flat YAML file (or append it)."""
+    lines = [l for l in path.read_text().splitlines() if not l.startswith(f"{key}:")]
+    path.write_text("\n".join(lines + [f"{key}: {text}"]) + "\n")
+
+
+def _rewrite_csv(path, fn):
+    """Apply fn(t_ns (N,), values (N, M)) -> (t, values) to a numeric EuRoC CSV."""
+    lines = path.read_text().splitlines()
+    rows = np.array([[float(v) for v in l.split(",")] for l in lines[1:]])
+    t = np.array([int(l.split(",")[0]) for l in lines[1:]], dtype=object)
+    t2, vals = fn(t, rows[:, 1:])
+    path.write_text("\n".join([lines[0]] + [",".join([str(a)] + [repr(float(x)) for x in v])
+                                            for a, v in zip(t2, vals)]) + "\n")
+
+
+@pytest.mark.parametrize("case, match", [
+    ("ts_overflow", r"cam0/data.csv:3: timestamp 99999999999999999999 is too large"),
+    ("ts_plus", r"imu0/data.csv:4: timestamp '\+1010000000' is not an integer"),
+    ("gt_zero_quat", r"state_groundtruth_estimate0/data.csv:4: quaternion q_RS_wxyz "
+                     r"\(0, 0, 0, 0\) is not a rotation"),
+    ("world_side_bool", r"world.yaml: floor_qr.side_m: expected a number, got bool True"),
+    ("world_unit_text", r"world.yaml: floor_qr.payload_unit_m: expected a number, got str"),
+    ("world_bounds_reversed", r"world.yaml: bounds_m.x is \[10, 0\]: the minimum must come first"),
+    ("cam_rate_text", r"cam0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
+    ("cam_resolution_bool", r"cam0/sensor.yaml: resolution\[0\]: expected a number, got bool"),
+    ("imu_rate_text", r"imu0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
+    ("imu_noise_bool", r"imu0/sensor.yaml: gyroscope_noise_density: expected a number, got bool"),
+    ("vel_noise_text", r"vel0/sensor.yaml: noise_m_s: expected a number"),
+    ("imu_microseconds", r"imu0/data.csv: timestamps advance 5000 per sample .* rate_hz 200: "
+                         r"they look like microseconds"),
+    ("cam_milliseconds", r"cam0/data.csv: timestamps advance 100 per sample .* like milliseconds"),
+    ("accel_in_g", r"imu0/data.csv: the accelerometer's median magnitude is 0.999, .* look like g"),
+])
+def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
+    mav = log_dir / "mav0"
+    cam_csv, imu_csv = mav / "cam0" / "data.csv", mav / "imu0" / "data.csv"
+    gt_csv = mav / "state_groundtruth_estimate0" / "data.csv"
+    world = log_dir / "world.yaml"
+    if case == "ts_overflow":
+        edit_line(cam_csv, 3, "99999999999999999999," + cam_csv.read_text().splitlines()[2].split(",")[1])
+    elif case == "ts_plus":
+        line = imu_csv.read_text().splitlines()[3]
+        edit_line(imu_csv, 4, "+" + line)
+    elif case == "gt_zero_quat":
+        parts = gt_csv.read_text().splitlines()[3].split(",")
+        edit_line(gt_csv, 4, ",".join(parts[:4] + ["0", "0", "0", "0"] + parts[8:]))
+    elif case == "world_side_bool":
+        world.write_text(world.read_text().replace("side_m: 0.2,", "side_m: true,", 1))
+    elif case == "world_unit_text":
+        world.write_text(world.read_text().replace("payload_unit_m: 1.0", "payload_unit_m: '1'"))
+    elif case == "world_bounds_reversed":
+        world.write_text(world.read_text().replace("x: [0.0, 10.0]", "x: [10, 0]"))
+    elif case == "cam_rate_text":
+        _set_yaml_line(mav / "cam0" / "sensor.yaml", "rate_hz", "fast")
+    elif case == "cam_resolution_bool":
+        _set_yaml_line(mav / "cam0" / "sensor.yaml", "resolution", "[true, 48]")
+    elif case == "imu_rate_text":
+        _set_yaml_line(mav / "imu0" / "sensor.yaml", "rate_hz", "fast")
+    elif case == "imu_noise_bool":
+        _set_yaml_line(mav / "imu0" / "sensor.yaml", "gyroscope_noise_density", "yes")
+    elif case == "vel_noise_text":
+        (mav / "vel0" / "sensor.yaml").write_text("sensor_type: velocity\nnoise_m_s: small\n")
+    elif case == "imu_microseconds":
+        _rewrite_csv(imu_csv, lambda t, v: ([x // 1000 for x in t], v))
+    elif case == "cam_milliseconds":
+        lines = cam_csv.read_text().splitlines()
+        cam_csv.write_text("\n".join([lines[0]] + [f"{int(l.split(',')[0]) // 1_000_000},"
+                                                   f"{l.split(',')[1]}" for l in lines[1:]]) + "\n")
+    elif case == "accel_in_g":
+        _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :3], v[:, 3:] / 9.81]))
+    with pytest.raises(LogError, match=match):
+        read_flight(log_dir)
+
+
+def _warning_names(log):
+    return {w.name: w for w in log.warnings}
+
+
+def test_clean_log_has_no_warnings(log_dir):
+    assert read_flight(log_dir).warnings == []
+
+
+@pytest.mark.parametrize("case, name, match", [
+    ("gyro_deg_s", "gyroscope_units", r"imu0/data.csv: white noise .*x sensor.yaml's "
+                                      r"gyroscope_noise_density: the gyro looks like deg/s"),
+    ("imu_10hz", "rate_mismatch", r"imu0: samples every 100 ms \(10 Hz\) but sensor.yaml says "
+                                  r"rate_hz 200"),
+    ("imu_offset", "clock_offset", r"imu0 \(1001-1001.25 s\) does not overlap cam0"),
+    ("gt_offset", "clock_offset", r"groundtruth \(1.6-1.845 s\) does not overlap cam0 \(1-1.4 s\)"),
+    ("tbs_mm", "T_BS_translation", r"cam1/sensor.yaml: T_BS puts cam1 20 m from the body origin"),
+    ("gt_quat_scaled", "groundtruth_quaternion_not_unit", r"50 quaternion\(s\) not of unit norm "
+                                                          r"\(first: line 2, norm 2\)"),
+    ("accel_clipped", "imu_saturated", r"imu0/data.csv: 10 sample value\(s\) sit at an axis' "
+                                       r"extreme"),
+])
+def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
+    mav = log_dir / "mav0"
+    imu_csv = mav / "imu0" / "data.csv"
+    gt_csv = mav / "state_groundtruth_estimate0" / "data.csv"
+    if case == "gyro_deg_s":
+        _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[np.degrees(v[:, :3]), v[:, 3:]]))
+    elif case == "imu_10hz":
+        _rewrite_csv(imu_csv, lambda t, v: (t[::20], v[::20]))
+        lines = imu_csv.read_text().splitlines()       # keep the flight's span: 0.1 s steps
+        imu_csv.write_text("\n".join([lines[0]] + [f"{1_000_000_000 + 100_000_000 * i},"
+                                                   + l.split(",", 1)[1]
+                                                   for i, l in enumerate(lines[1:])]) + "\n")
+    elif case == "imu_offset":
+        _rewrite_csv(imu_csv, lambda t, v: ([x + 1000 * 10**9 for x in t], v))
+    elif case == "gt_offset":
+        _rewrite_csv(gt_csv, lambda t, v: ([x + 600_000_000 for x in t], v))
+    elif case == "tbs_mm":
+        cam = CameraModel.load(mav / "cam1" / "sensor.yaml")
+        cam.T_body_cam[:3, 3] *= 1000.0
+        cam.save(mav / "cam1" / "sensor.yaml")
+    elif case == "gt_quat_scaled":
+        _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
+    elif case == "accel_clipped":
+        _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :5], np.minimum(v[:, 5], np.sort(v[:, 5])[-10])]))
+    log = read_flight(log_dir)
+    found = _warning_names(log)
+    assert name in found, log.warnings
+    assert found[name].count >= 1
+    import re
+    assert re.search(match, found[name].message), found[name].message
+    if case == "gt_quat_scaled":
+        assert np.allclose(np.linalg.norm(log.groundtruth.q_world_body_wxyz, axis=1), 1.0)
+
+
+def test_image_header_is_checked_before_decoding(log_dir, monkeypatch):
+    """A PNG whose header claims 100000x100000 px is skipped and counted like any bad image,
+    without being decoded (OpenCV would raise on it)."""
+    import struct
+    import zlib
+    files = sorted((log_dir / "mav0" / "cam0" / "data").iterdir())
+    ok, buf = cv2.imencode(".png", np.zeros((48, 64), np.uint8))
+    b = bytearray(buf.tobytes())
+    b[16:24] = struct.pack(">II", 100_000, 100_000)
+    b[29:33] = struct.pack(">I", zlib.crc32(bytes(b[12:29])) & 0xFFFFFFFF)
+    files[2].write_bytes(bytes(b))
+    log = read_flight(log_dir)
+    decoded = []
+    real = cv2.imdecode
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(1) or real(*a))
+    frames = list(log.floor.frames())
+    assert [f.image is None for f in frames] == [False, False, True, False, False]
+    assert len(decoded) == 4
+    assert "data.csv:4: image" in log.floor.skipped[0]
+    assert "100000x100000 (header), sensor.yaml says 64x48" in log.floor.skipped[0]
+
+
+def test_image_size_from_header_png_and_jpeg():
+    from fusion.log.euroc import image_size_from_header
+    img = np.zeros((37, 53), np.uint8)
+    for ext in (".png", ".jpg"):
+        ok, buf = cv2.imencode(ext, img)
+        assert image_size_from_header(buf.tobytes()) == (53, 37)
+    assert image_size_from_header(b"GIF89a....") is None
+
+
+def test_load_ids_round_trip_spreadsheet_safe(tmp_path):
+    from fusion.fileio import csv_safe, csv_unsafe
+    assert csv_safe("\rx") == "'\rx" and csv_unsafe(csv_safe("\rx")) == "\rx"
+    ids = ["=cmd|' /C calc'!A0", "+1", "-2", "@SUM(A1)", "\tx", "'quoted", "plain"]
+    m = LoadMap("pnp", [LoadEstimate(i, np.array([1.0, 2, 3]), None, 1) for i in ids])
+    write_loads_csv(tmp_path / "l.csv", m)
+    import csv
+    with open(tmp_path / "l.csv", newline="") as f:
+        first = [row[0] for row in csv.reader(f)][1:]
+    for cell in first:
+        assert not cell.startswith(("=", "+", "-", "@", "\t", "\r"))
+    assert "'=cmd|' /C calc'!A0" in first and "plain" in first and "''quoted" in first
+    assert set(read_loads_csv(tmp_path / "l.csv").by_id()) == set(ids)
+    root = tmp_path / "flight"
+    with FlightLogWriter(root) as w:
+        w.write_world(World())
+        w.add_camera("cam0", CameraModel(64, 48, 60.0, 60.0, 32.0, 24.0))
+        w.write_loads_groundtruth({i: np.array([1.0, 2, 3]) for i in ids})
+    text = (root / "loads_groundtruth.csv").read_text()
+    assert "\n=" not in text and "\n'=cmd" in text

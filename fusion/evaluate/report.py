@@ -9,6 +9,7 @@ header states its unit; numbers carry three significant digits (errors span 0.00
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,32 @@ def fmt(v, scale: float = 1.0, sig: int = 3, max_decimals: int = 5) -> str:
     return f"{x:.{decimals}f}"
 
 
+_MD_SPECIAL = set("\\`*_[]<>|~&")   # inline-significant in a table cell (cells hold no blocks)
+
+
+def _md_plain(text) -> str:
+    """Control characters and line breaks as spaces (a line break would end the table row)."""
+    return "".join(" " if ch in "\r\n\t" or ord(ch) < 0x20 or ord(ch) == 0x7F else ch
+                   for ch in str(text))
+
+
+def md_text(text) -> str:
+    """Untrusted text (a path, a payload) as literal Markdown table-cell text: the characters
+    that format, link or split a cell (`|`) are backslash-escaped (CommonMark escapes)."""
+    return "".join("\\" + ch if ch in _MD_SPECIAL else ch for ch in _md_plain(text))
+
+
+def md_code(text) -> str:
+    """Untrusted text (a load id from a QR payload) as a code span in a table cell: a fence
+    longer than any backtick run inside, `|` escaped (GFM splits cells before inline parsing and
+    shows `\\|` as `|`, also in code spans)."""
+    t = _md_plain(text).replace("|", "\\|")
+    longest = max((len(m) for m in re.findall("`+", t)), default=0)
+    fence = "`" * (longest + 1)
+    pad = " " if longest or t.startswith(" ") or t.endswith(" ") else ""
+    return f"{fence}{pad}{t}{pad}{fence}" if t else DASH
+
+
 def _pct(v) -> str:
     return DASH if v is None else f"{100.0 * float(v):.1f}"
 
@@ -115,7 +142,7 @@ def _kv_rows(d: dict) -> list[list[str]]:
             v = f"{v:.4g}"
         elif isinstance(v, (list, tuple)):
             v = ", ".join(str(x) for x in v[:12]) + (" …" if len(v) > 12 else "")
-        rows.append([f"`{k}`", str(v).replace("|", "\\|").replace("\n", " ")])
+        rows.append([f"`{k}`", md_text(v)])
     return rows
 
 
@@ -330,7 +357,7 @@ def _loadmap_section(m: dict, plot_lines: list[str]) -> list[str]:
                      fmt(_get(r, "axis", "mae_z_cm")), fmt(_get(r, "error_norm", "rmse_m"), 100),
                      fmt(_get(r, "error_norm", "max_m"), 100),
                      fmt(_get(r, "nees_3dof", "nees_mean")),
-                     ", ".join(r.get("extra_ids", [])[:8]) or DASH])
+                     ", ".join(md_code(i) for i in r.get("extra_ids", [])[:8]) or DASH])
     p = PAPER_SIM_LOADMAP_MAE_CM
     rows.append(["*paper, simulator (Sec. 4.2)*", "", DASH, f"{p['x']:g}", f"{p['y']:g}",
                  f"{p['z']:g}", DASH, DASH, DASH, DASH])             # as published
@@ -341,13 +368,13 @@ def _loadmap_section(m: dict, plot_lines: list[str]) -> list[str]:
     missing = sorted(set.intersection(*[set(r.get("missing_ids", [])) for r in maps.values()]))
     if missing:
         lines += [f"Not seen by any estimator ({len(missing)}): "
-                  + ", ".join(f"`{i}`" for i in missing[:40])
+                  + ", ".join(md_code(i) for i in missing[:40])
                   + (" …" if len(missing) > 40 else "") + ".", ""]
     lines += plot_lines
     ids = sorted({i for r in maps.values() for i in (r.get("per_load") or {})})
     if ids:
         names = list(maps)
-        per = [[f"`{i}`"] + [fmt(_get(maps[n], "per_load", i, "error_norm_m"), 100) for n in names]
+        per = [[md_code(i)] + [fmt(_get(maps[n], "per_load", i, "error_norm_m"), 100) for n in names]
                for i in ids]
         lines += ["3D error per load [cm] (a dash: not mapped by that estimator):", ""]
         lines += _table(["load id"] + names, per)
@@ -377,7 +404,7 @@ def _load_table(load_maps: dict[str, LoadMap]) -> list[str]:
         for l in sorted(lm.loads, key=lambda l: l.load_id):
             sig = np.sqrt(np.clip(np.diag(l.cov_world), 0, None)) * 100 if l.cov_world is not None \
                 else [None] * 3
-            rows.append([name, f"`{l.load_id}`", *(f"{v:.4f}" for v in l.p_world),
+            rows.append([name, md_code(l.load_id), *(f"{v:.4f}" for v in l.p_world),
                          *(fmt(s) for s in sig), l.n_obs])
     if not rows:
         return []
@@ -424,7 +451,7 @@ def write_report(out_dir: Path, metrics: dict | None, trajectories: dict[str, Tr
                      payload_unit_m=float(unit) if unit else None, dpi=dpi)
 
     lines = ["# fusion report", ""]
-    facts = [f"`{log_summary['path']}`" if "path" in log_summary else None,
+    facts = [md_code(log_summary["path"]) if "path" in log_summary else None,
              f"{fmt(log_summary['duration_s'])} s" if "duration_s" in log_summary else None,
              f"{log_summary['floor_frames']} floor frames" if "floor_frames" in log_summary
              else None]

@@ -7,9 +7,10 @@ from fusion.log.euroc import (
                               GroundTruth,
                               ImuData,
                               ImuNoise,
+                              LogWarning,
                               VelocityData,
                               read_flight,
 )
 
 __all__ = ["CameraStream", "Frame", "FlightLog", "FlightLogWriter", "GroundTruth", "ImuData",
-           "ImuNoise", "VelocityData", "read_flight"]
+           "ImuNoise", "LogWarning", "VelocityData", "read_flight"]

@@ -13,13 +13,21 @@
 
 The reader is defensive: every malformed row raises LogError naming the file and line; a frame
 whose image is missing or unreadable is skipped, counted and reported (`CameraStream.skipped`).
-Images are streamed, never all held in memory.
+Images are streamed, never all held in memory; an image's size is read from its header and
+checked against sensor.yaml before it is decoded.  Only regular files are opened (a named pipe
+would hang the reader).  After reading, plausibility checks look for unit and clock mistakes
+(`check_log`): certain ones raise LogError, the others become `FlightLog.warnings`.
 """
 from __future__ import annotations
 
+import contextlib
 import csv
+import json
 import math
+import os
+import re
 import shutil
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -29,7 +37,21 @@ import numpy as np
 
 from fusion.camera import CameraModel, read_T_BS
 from fusion.errors import CameraModelError, LogError, WorldError
-from fusion.fileio import atomic_open, dump_yaml, load_yaml
+from fusion.fileio import (
+    MANIFEST_FORMAT,
+    MANIFEST_NAME,
+    atomic_open,
+    csv_safe,
+    csv_unsafe,
+    dump_yaml,
+    load_yaml,
+    open_regular,
+    pid_alive,
+    read_manifest,
+    remove_listed,
+    strict_float,
+    strict_floats,
+)
 from fusion.geometry import R_from_quat_wxyz, make_T
 from fusion.world import World
 
@@ -45,9 +67,47 @@ GT_HEADER = ("#timestamp", " p_RS_R_x [m]", " p_RS_R_y [m]", " p_RS_R_z [m]", " 
              " b_a_RS_S_z [m s^-2]")
 LOADS_HEADER = ("id", "x_m", "y_m", "z_m")
 BLACKOUTS_HEADER = ("#start_ns", "end_ns", "kind")
+INT64_MAX = 2**63 - 1
+_DIGITS = re.compile(r"[0-9]+")
+
+# plausibility limits (check_log)
+GRAVITY_M_S2 = 9.80665
+ACCEL_NORM_RANGE_M_S2 = (7.0, 12.5)    # median |specific force| of a flying or resting drone
+ACCEL_IN_G_RANGE = (0.7, 1.3)          # the same median when the accelerometer reports g
+GYRO_MAX_PLAUSIBLE_RAD_S = 8.7         # 500 deg/s: beyond any warehouse flight's 99th percentile
+GYRO_NOISE_RATIO_SUSPECT = 30.0        # measured / stated white noise (deg/s: 57x; rotor vibration
+                                       # and conservative Kalibr densities stay well below)
+SATURATION_MIN_SAMPLES = 10            # repeats of an axis' extreme value that mean clipping
+SATURATION_MIN_FRACTION = 0.005
+RATE_MISMATCH_FACTOR = 1.5             # measured vs sensor.yaml rate_hz
+UNIT_MATCH_DECADES = 0.3               # |log10(ratio) - 3k| below this: a factor 1000^k (units)
+MIN_PLAUSIBLE_DT_NS = 100_000          # faster than 10 kHz: timestamps are not nanoseconds
+CLOCK_OFFSET_MAX_S = 0.5               # streams shifted by more than this: a clock offset
+T_BS_MAX_TRANSLATION_M = 1.0           # a sensor farther than this from the IMU: millimetres?
+QUAT_NORM_TOLERANCE = 1e-3             # ground-truth quaternions further from unit: renormalised
+QUAT_NORM_MIN = 1e-6                   # below this a quaternion is no rotation at all
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+IMAGE_HEADER_BYTES = 64 * 1024         # enough to reach a JPEG's frame header (after EXIF)
+PARTIAL_MARKER = ".fusion-partial"     # inside `<log>.partial/`: written by FlightLogWriter
+LOG_CONFLICT_NAMES = ("world.yaml", "loads_groundtruth.csv", "blackouts_groundtruth.csv", "mav0")
 
 
 # ============================================================================ records
+
+
+@dataclass
+class LogWarning:
+    """A named, counted problem of a flight log that does not stop the run (e.g. a suspected
+    unit mistake); `count` is how many rows / streams / files it concerns."""
+    name: str
+    count: int
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "count": int(self.count), "message": self.message}
+
+    def __str__(self) -> str:
+        return f"[{self.name}] x{self.count}: {self.message}"
 
 
 @dataclass
@@ -118,13 +178,42 @@ class CameraStream:
         return len(self.timestamps_ns)
 
     def load_image(self, i: int) -> np.ndarray | None:
-        """Image i as uint8 grayscale, or None (recorded in `skipped`) if missing or unreadable."""
+        """Image i as uint8 grayscale, or None (recorded in `skipped`) if missing, not a regular
+        file, of another size than sensor.yaml's resolution (read from the header, before
+        decoding: a header claiming 100000x100000 px is never decoded) or unreadable."""
         path = self.paths[i]
         where = f"{path.parent.parent / 'data.csv'}:{self.csv_lines[i]}"
-        if not path.is_file():
+        if not os.path.lexists(path):
             self.skipped.append(f"{where}: image {path.name} is missing")
             return None
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        try:
+            with open_regular(path, LogError, binary=True) as f:
+                data = f.read(IMAGE_HEADER_BYTES)
+                size = image_size_from_header(data)
+                limit = (self.camera.width, self.camera.height)
+                if size is not None and size != limit:
+                    self.skipped.append(f"{where}: image {path.name} is {size[0]}x{size[1]} "
+                                        f"(header), sensor.yaml says {limit[0]}x{limit[1]}")
+                    return None
+                if size is None and data.startswith(PNG_SIGNATURE):
+                    self.skipped.append(f"{where}: image {path.name} is unreadable (PNG header "
+                                        "truncated or malformed)")
+                    return None
+                if size is None and os.fstat(f.fileno()).st_size > _max_image_bytes(*limit):
+                    self.skipped.append(f"{where}: image {path.name} is too large for "
+                                        f"{limit[0]}x{limit[1]} px")
+                    return None
+                data += f.read()
+        except LogError as e:
+            self.skipped.append(f"{where}: image {path.name}: {str(e).split(': ', 1)[-1]}")
+            return None
+        except OSError as e:
+            self.skipped.append(f"{where}: image {path.name} cannot be read ({e.strerror})")
+            return None
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        except cv2.error:
+            img = None
         if img is None or img.size == 0:
             self.skipped.append(f"{where}: image {path.name} is unreadable")
             return None
@@ -139,6 +228,40 @@ class CameraStream:
             yield Frame(int(t), self.load_image(i), self.paths[i])
 
 
+def image_size_from_header(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the first bytes of a PNG (IHDR) or JPEG (SOFn) file; None for other
+    formats or a header too short to say."""
+    if data.startswith(PNG_SIGNATURE):
+        if len(data) >= 24 and data[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", data[16:24])
+            return int(w), int(h)
+        return None
+    if data.startswith(b"\xff\xd8"):
+        i = 2
+        while i + 9 <= len(data):
+            if data[i] != 0xFF:
+                return (0, 0)
+            marker = data[i + 1]
+            if marker == 0xFF:            # fill byte
+                i += 1
+                continue
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                i += 2
+                continue
+            (length,) = struct.unpack(">H", data[i + 2:i + 4])
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                h, w = struct.unpack(">HH", data[i + 5:i + 9])
+                return int(w), int(h)
+            i += 2 + length
+        return None
+    return None
+
+
+def _max_image_bytes(width: int, height: int) -> int:
+    """Largest file we decode without a readable header: 4 bytes a pixel and 64 KiB of extras."""
+    return 4 * width * height + 64 * 1024
+
+
 @dataclass
 class FlightLog:
     root: Path
@@ -149,6 +272,7 @@ class FlightLog:
     groundtruth: GroundTruth | None = None
     loads_groundtruth: dict[str, np.ndarray] | None = None
     blackouts: list[tuple[int, int, str]] | None = None   # (start_ns, end_ns, kind)
+    warnings: list[LogWarning] = field(default_factory=list)   # plausibility (check_log)
 
     @property
     def floor(self) -> CameraStream:
@@ -170,11 +294,7 @@ class FlightLog:
 def _rows(path: Path, ncols: int, header_prefix: str = "#") -> Iterator[tuple[int, list[str]]]:
     """Yield (line number, fields) of a CSV file, skipping comment/header lines and blank lines;
     a row with the wrong number of fields raises LogError naming file and line."""
-    try:
-        f = open(path, encoding="utf-8", newline="")
-    except FileNotFoundError:
-        raise LogError(f"{path}: file not found") from None
-    with f:
+    with open_regular(path, LogError) as f:
         try:
             for lineno, row in enumerate(csv.reader(f), start=1):
                 if not row or (len(row) == 1 and not row[0].strip()):
@@ -191,14 +311,17 @@ def _rows(path: Path, ncols: int, header_prefix: str = "#") -> Iterator[tuple[in
 
 
 def _timestamp(text: str, path: Path, lineno: int) -> int:
-    try:
-        t = int(text)
-    except ValueError:
+    """A non-negative integer number of nanoseconds that fits int64 (digits only)."""
+    if text.startswith("-") and _DIGITS.fullmatch(text[1:]):
+        raise LogError(f"{path}:{lineno}: negative timestamp {text[:30]}")
+    if not _DIGITS.fullmatch(text):
+        hint = " (seconds with a fraction?)" if re.fullmatch(r"[0-9]+\.[0-9]*", text) else ""
         raise LogError(f"{path}:{lineno}: timestamp {text[:30]!r} is not an integer "
-                       "number of nanoseconds") from None
-    if t < 0:
-        raise LogError(f"{path}:{lineno}: negative timestamp {t}")
-    return t
+                       f"number of nanoseconds{hint}")
+    if len(text) > 19 or int(text) > INT64_MAX:
+        raise LogError(f"{path}:{lineno}: timestamp {text[:30]}{'...' if len(text) > 30 else ''} "
+                       "is too large (beyond int64 nanoseconds, year 2262)")
+    return int(text)
 
 
 def _numbers(fields: list[str], path: Path, lineno: int) -> list[float]:
@@ -217,23 +340,45 @@ def _check_monotonic(t: int, prev: int | None, path: Path, lineno: int) -> None:
         raise LogError(f"{path}:{lineno}: {what} timestamp {t} (previous {prev})")
 
 
-def _numeric_csv(path: Path, ncols: int) -> tuple[np.ndarray, np.ndarray]:
-    """Read a `timestamp, v1, ..., v{ncols-1}` CSV with strictly increasing timestamps."""
-    ts, vals, prev = [], [], None
+def _numeric_csv(path: Path, ncols: int, with_lines: bool = False):
+    """Read a `timestamp, v1, ..., v{ncols-1}` CSV with strictly increasing timestamps:
+    (timestamps_ns, values) and, with `with_lines`, each row's line number."""
+    ts, vals, lines, prev = [], [], [], None
     for lineno, row in _rows(path, ncols):
         t = _timestamp(row[0], path, lineno)
         _check_monotonic(t, prev, path, lineno)
         prev = t
         ts.append(t)
         vals.append(_numbers(row[1:], path, lineno))
+        lines.append(lineno)
     if not ts:
         raise LogError(f"{path}: no data rows")
-    return np.asarray(ts, dtype=np.int64), np.asarray(vals, dtype=float)
+    out = np.asarray(ts, dtype=np.int64), np.asarray(vals, dtype=float)
+    return (*out, np.asarray(lines)) if with_lines else out
+
+
+def _check_sensor_numbers(cfg: dict, source: str, camera: bool) -> None:
+    """Strict types for sensor.yaml's numbers (a bool or a string is not a number), before the
+    camera model or IMU reader converts them; errors name the file and key."""
+    if "rate_hz" in cfg:
+        strict_float(cfg["rate_hz"], f"{source}: rate_hz", LogError, positive=True)
+    if isinstance(cfg.get("T_BS"), dict) and "data" in cfg["T_BS"]:
+        strict_floats(cfg["T_BS"]["data"], 16, f"{source}: T_BS.data", LogError)
+    if not camera:
+        return
+    for key, n in (("resolution", 2), ("intrinsics", 4), ("distortion_coefficients", 4)):
+        if key in cfg:
+            vals = strict_floats(cfg[key], n, f"{source}: {key}", LogError)
+            if key == "resolution" and any(v != int(v) or v < 1 for v in vals):
+                raise LogError(f"{source}: resolution must be two positive whole numbers")
 
 
 def _read_camera(cam_dir: Path, name: str) -> CameraStream:
+    sensor_path = cam_dir / "sensor.yaml"
+    cfg = load_yaml(sensor_path, LogError)
+    _check_sensor_numbers(cfg, str(sensor_path), camera=True)
     try:
-        camera = CameraModel.load(cam_dir / "sensor.yaml")
+        camera = CameraModel.from_sensor_yaml(cfg, str(sensor_path))
     except CameraModelError as e:
         raise LogError(str(e)) from None
     data_dir = (cam_dir / "data").resolve()
@@ -261,21 +406,21 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
 def _read_imu(imu_dir: Path) -> ImuData:
     sensor_path = imu_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
+    _check_sensor_numbers(cfg, str(sensor_path), camera=False)
     noise = {}
     for key in ("gyroscope_noise_density", "gyroscope_random_walk",
                 "accelerometer_noise_density", "accelerometer_random_walk"):
         if key not in cfg:
             raise LogError(f"{sensor_path}: missing key '{key}'")
-        try:
-            noise[key] = float(cfg[key])
-        except (TypeError, ValueError):
-            raise LogError(f"{sensor_path}: '{key}' is not a number") from None
-        if not (math.isfinite(noise[key]) and noise[key] > 0):
-            raise LogError(f"{sensor_path}: '{key}' must be positive")
+        noise[key] = strict_float(cfg[key], f"{sensor_path}: {key}", LogError, positive=True)
     T = read_T_BS(cfg.get("T_BS", {"data": np.eye(4).reshape(-1).tolist()}), str(sensor_path),
                   LogError)
     ts, vals = _numeric_csv(imu_dir / "data.csv", 7)
-    rate = float(cfg.get("rate_hz", 0) or 0) or float(1e9 / np.median(np.diff(ts)) if len(ts) > 1 else 200)
+    if cfg.get("rate_hz") is not None:
+        rate = float(cfg["rate_hz"])
+    else:
+        dt = float(np.median(np.diff(ts))) if len(ts) > 1 else 0.0
+        rate = 1e9 / dt if dt > 0 else 200.0
     return ImuData(ts, vals[:, :3], vals[:, 3:], ImuNoise(**noise), T, rate)
 
 
@@ -284,25 +429,42 @@ def _read_velocity(vel_dir: Path) -> VelocityData:
     sensor_path = vel_dir / "sensor.yaml"
     if sensor_path.exists():
         cfg = load_yaml(sensor_path, LogError)
-        try:
-            noise = float(cfg.get("noise_m_s", noise))
-        except (TypeError, ValueError):
-            raise LogError(f"{sensor_path}: 'noise_m_s' is not a number") from None
+        noise = strict_float(cfg.get("noise_m_s", noise), f"{sensor_path}: noise_m_s", LogError,
+                             positive=True)
     ts, vals = _numeric_csv(vel_dir / "data.csv", 4)
     return VelocityData(ts, vals, noise)
 
 
-def _read_groundtruth(path: Path) -> GroundTruth:
-    ts, v = _numeric_csv(path, 17)
-    return GroundTruth(ts, v[:, 0:3], v[:, 3:7], v[:, 7:10], v[:, 10:13], v[:, 13:16])
+def _read_groundtruth(path: Path) -> tuple[GroundTruth, list[LogWarning]]:
+    """Ground truth; a zero quaternion is an error naming the line, a non-unit one is
+    renormalised and counted (warning `groundtruth_quaternion_not_unit`)."""
+    ts, v, lines = _numeric_csv(path, 17, with_lines=True)
+    q = v[:, 3:7]
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(norm < QUAT_NORM_MIN)
+    if len(bad):
+        raise LogError(f"{path}:{lines[bad[0]]}: quaternion q_RS_wxyz "
+                       f"({', '.join(f'{x:g}' for x in q[bad[0]])}) is not a rotation")
+    warnings = []
+    off = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
+    if off.any():
+        i = int(np.flatnonzero(off)[0])
+        warnings.append(LogWarning(
+            "groundtruth_quaternion_not_unit", int(off.sum()),
+            f"{path}: {int(off.sum())} quaternion(s) not of unit norm (first: line {lines[i]}, "
+            f"norm {norm[i]:.4g}); renormalised"))
+        q = q.copy()
+        q[off] /= norm[off, None]       # unit ones stay bit-exact
+    return GroundTruth(ts, v[:, 0:3], q, v[:, 7:10], v[:, 10:13], v[:, 13:16]), warnings
 
 
 def _read_loads(path: Path) -> dict[str, np.ndarray]:
     loads: dict[str, np.ndarray] = {}
     for lineno, row in _rows(path, 4, header_prefix="id"):
-        if row[0] in loads:
-            raise LogError(f"{path}:{lineno}: duplicate load id {row[0]!r}")
-        loads[row[0]] = np.asarray(_numbers(row[1:], path, lineno))
+        load_id = csv_unsafe(row[0])
+        if load_id in loads:
+            raise LogError(f"{path}:{lineno}: duplicate load id {load_id[:64]!r}")
+        loads[load_id] = np.asarray(_numbers(row[1:], path, lineno))
     return loads
 
 
@@ -335,12 +497,156 @@ def read_flight(root: Path) -> FlightLog:
     imu = _read_imu(mav / "imu0") if (mav / "imu0").is_dir() else None
     vel = _read_velocity(mav / "vel0") if (mav / "vel0").is_dir() else None
     gt_path = mav / "state_groundtruth_estimate0" / "data.csv"
-    gt = _read_groundtruth(gt_path) if gt_path.exists() else None
+    gt, warnings = _read_groundtruth(gt_path) if os.path.lexists(gt_path) else (None, [])
     loads_path = root / "loads_groundtruth.csv"
-    loads = _read_loads(loads_path) if loads_path.exists() else None
+    loads = _read_loads(loads_path) if os.path.lexists(loads_path) else None
     bo_path = root / "blackouts_groundtruth.csv"
-    blackouts = _read_blackouts(bo_path) if bo_path.exists() else None
-    return FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts)
+    blackouts = _read_blackouts(bo_path) if os.path.lexists(bo_path) else None
+    log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, warnings)
+    log.warnings += check_log(log)
+    return log
+
+
+# ============================================================================ plausibility
+
+
+def _declared_rate(sensor_path: Path) -> float | None:
+    """rate_hz as sensor.yaml states it (None when absent); the file was validated already."""
+    try:
+        v = load_yaml(sensor_path, LogError).get("rate_hz")
+    except LogError:
+        return None
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 else None
+
+
+_UNIT_NAMES = {1: "microseconds", 2: "milliseconds", 3: "seconds"}
+
+
+def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
+                ) -> list[LogWarning]:
+    """Timestamp units from the sample interval against sensor.yaml's rate_hz: a ratio of
+    1e-3 / 1e-6 / 1e-9 is a unit mistake (LogError); any other mismatch a warning."""
+    if len(ts) < 2:
+        return []
+    dt = float(np.median(np.diff(ts)))
+    if rate_hz is None:
+        if dt < MIN_PLAUSIBLE_DT_NS:
+            return [LogWarning("timestamp_units", 1,
+                               f"{csv_path}: timestamps advance {dt:g} per sample, i.e. faster "
+                               f"than {1e9 / MIN_PLAUSIBLE_DT_NS:g} Hz if they were nanoseconds: "
+                               "are they in another unit?")]
+        return []
+    expected = 1e9 / rate_hz
+    decades = math.log10(dt / expected)
+    k = round(-decades / 3)
+    if k in _UNIT_NAMES and abs(decades + 3 * k) < UNIT_MATCH_DECADES:
+        raise LogError(f"{csv_path}: timestamps advance {dt:g} per sample while "
+                       f"{csv_path.parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
+                       f"like {_UNIT_NAMES[k]}; EuRoC timestamps are nanoseconds")
+    if abs(decades) > math.log10(RATE_MISMATCH_FACTOR):
+        return [LogWarning("rate_mismatch", 1,
+                           f"{name}: samples every {dt * 1e-6:.4g} ms ({1e9 / dt:.4g} Hz) but "
+                           f"sensor.yaml says rate_hz {rate_hz:g}")]
+    return []
+
+
+def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
+    """Accelerometer in g (median |specific force| ~ 1: LogError), other magnitudes, gyro in
+    deg/s (rates beyond GYRO_MAX_PLAUSIBLE_RAD_S, or white noise far above sensor.yaml's density,
+    estimated from first differences: std(diff)/sqrt(2) = sigma_d for white noise), clipping."""
+    out = []
+    n = len(imu.timestamps_ns)
+    a_norm = float(np.median(np.linalg.norm(imu.accel_m_s2, axis=1)))
+    if ACCEL_IN_G_RANGE[0] <= a_norm <= ACCEL_IN_G_RANGE[1]:
+        raise LogError(f"{csv_path}: the accelerometer's median magnitude is {a_norm:.3g}, gravity "
+                       f"is {GRAVITY_M_S2} m s^-2: the a_RS_S columns look like g; convert them "
+                       "to m s^-2")
+    if not ACCEL_NORM_RANGE_M_S2[0] <= a_norm <= ACCEL_NORM_RANGE_M_S2[1]:
+        out.append(LogWarning("accelerometer_magnitude", 1,
+                              f"{csv_path}: median |a_RS_S| is {a_norm:.3g} m s^-2, gravity is "
+                              f"{GRAVITY_M_S2}: wrong units, scale or a broken sensor?"))
+    w_norm = np.linalg.norm(imu.gyro_rad_s, axis=1)
+    p99 = float(np.percentile(w_norm, 99))
+    ratio = None
+    if n > 2 and imu.rate_hz > 0:
+        sigma_d = float(np.median(np.std(np.diff(imu.gyro_rad_s, axis=0), axis=0))) / math.sqrt(2)
+        ratio = sigma_d / (imu.noise.gyroscope_noise_density * math.sqrt(imu.rate_hz))
+    if p99 > GYRO_MAX_PLAUSIBLE_RAD_S or (ratio is not None and ratio > GYRO_NOISE_RATIO_SUSPECT):
+        why = (f"99th percentile of |w| {p99:.3g} rad/s" if p99 > GYRO_MAX_PLAUSIBLE_RAD_S
+               else f"white noise {ratio:.3g}x sensor.yaml's gyroscope_noise_density")
+        out.append(LogWarning("gyroscope_units", 1,
+                              f"{csv_path}: {why}: the gyro looks like deg/s (rad/s expected), or "
+                              "sensor.yaml's noise is wrong"))
+    clipped = 0
+    for col in np.hstack([imu.gyro_rad_s, imu.accel_m_s2]).T:
+        m = float(np.max(np.abs(col)))
+        hits = int(np.sum(np.abs(col) >= m)) if m > 0 else 0
+        if hits >= max(SATURATION_MIN_SAMPLES, SATURATION_MIN_FRACTION * n):
+            clipped += hits
+    if clipped:
+        out.append(LogWarning("imu_saturated", clipped,
+                              f"{csv_path}: {clipped} sample value(s) sit at an axis' extreme: the "
+                              "IMU saturates (clipped motion)"))
+    return out
+
+
+def _span(ts: np.ndarray) -> tuple[int, int]:
+    return int(ts[0]), int(ts[-1])
+
+
+def check_log(log: FlightLog) -> list[LogWarning]:
+    """Plausibility checks of a read log: timestamp units and rates, IMU units and clipping,
+    sensor clock offsets above CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not
+    overlapping) and T_BS translations above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise
+    LogError; the rest are returned as warnings."""
+    mav = Path(log.root) / "mav0"
+    out: list[LogWarning] = []
+    streams: dict[str, np.ndarray] = {}
+    for name, cam in log.cameras.items():
+        out += _check_rate(name, mav / name / "data.csv", cam.timestamps_ns,
+                           _declared_rate(mav / name / "sensor.yaml"))
+        streams[name] = cam.timestamps_ns
+    if log.imu is not None:
+        out += _check_rate("imu0", mav / "imu0" / "data.csv", log.imu.timestamps_ns,
+                           _declared_rate(mav / "imu0" / "sensor.yaml"))
+        out += _check_imu(log.imu, mav / "imu0" / "data.csv")
+        streams["imu0"] = log.imu.timestamps_ns
+    if log.velocity is not None:
+        out += _check_rate("vel0", mav / "vel0" / "data.csv", log.velocity.timestamps_ns, None)
+        streams["vel0"] = log.velocity.timestamps_ns
+    if log.groundtruth is not None:
+        out += _check_rate("groundtruth", mav / "state_groundtruth_estimate0" / "data.csv",
+                           log.groundtruth.timestamps_ns, None)
+        streams["groundtruth"] = log.groundtruth.timestamps_ns
+    ref0, ref1 = _span(streams["cam0"])
+    for name, ts in streams.items():
+        if name == "cam0":
+            continue
+        a0, a1 = _span(ts)
+        d0, d1 = (a0 - ref0) * 1e-9, (a1 - ref1) * 1e-9
+        if a0 > ref1 or a1 < ref0:
+            out.append(LogWarning("clock_offset", 1,
+                                  f"{name} ({a0 * 1e-9:.6g}-{a1 * 1e-9:.6g} s) does not overlap "
+                                  f"cam0 ({ref0 * 1e-9:.6g}-{ref1 * 1e-9:.6g} s): its clock is "
+                                  "offset or in other units"))
+        elif d0 * d1 > 0 and min(abs(d0), abs(d1)) > CLOCK_OFFSET_MAX_S:
+            off = d0 if abs(d0) < abs(d1) else d1
+            out.append(LogWarning("clock_offset", 1,
+                                  f"{name} starts and ends {abs(off):.3g} s "
+                                  f"{'later' if off > 0 else 'earlier'} than cam0: its clock "
+                                  f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)"))
+    mounts = {name: (mav / name / "sensor.yaml", cam.camera.T_body_cam)
+              for name, cam in log.cameras.items()}
+    if log.imu is not None:
+        mounts["imu0"] = (mav / "imu0" / "sensor.yaml", log.imu.T_body_imu)
+    for name, (path, T) in mounts.items():
+        d = float(np.linalg.norm(np.asarray(T)[:3, 3]))
+        if d > T_BS_MAX_TRANSLATION_M:
+            out.append(LogWarning("T_BS_translation", 1,
+                                  f"{path}: T_BS puts {name} {d:.4g} m from the body origin "
+                                  f"(more than {T_BS_MAX_TRANSLATION_M:g} m): millimetres "
+                                  "instead of metres?"))
+    return out
 
 
 # ============================================================================ writing
@@ -358,7 +664,7 @@ def _fmt(v: float) -> str:
 
 
 class FlightLogWriter:
-    """Write a flight log.  Everything goes to `<root>.partial/` first and is renamed to `root`
+    """Write a flight log.  Everything goes to `<root>.partial/` first and is moved to `root`
     by `close()`, so an interrupted write never leaves a log that looks complete.
 
         with FlightLogWriter(out) as w:
@@ -366,17 +672,55 @@ class FlightLogWriter:
             w.add_camera("cam0", camera)
             w.write_frame("cam0", t_ns, image)
             w.write_imu(imu)
-    """
+
+    Nothing the writer did not create is deleted.  `root/manifest.json` lists the files it
+    wrote; with `overwrite`, only the files of the previous log's manifest are replaced and the
+    user's other files in `root` are kept (a file of the log layout that the manifest does not
+    list is refused, not overwritten).  A pre-existing `<root>.partial/` is removed only if an
+    earlier writer that has died made it (its PARTIAL_MARKER names a dead pid); otherwise the
+    write is refused.  File-system errors (full disk, read-only folder) become one LogError."""
 
     def __init__(self, root: Path, overwrite: bool = False):
         self.root = Path(root)
-        if self.root.exists() and not overwrite:
+        if os.path.lexists(self.root) and not overwrite:
             raise LogError(f"{self.root}: already exists")
+        self.previous: list[str] = []
+        if os.path.lexists(self.root):
+            self.previous = _previous_log_files(self.root)
         self.tmp = self.root.with_name(self.root.name + ".partial")
-        if self.tmp.exists():
-            shutil.rmtree(self.tmp)
-        (self.tmp / "mav0").mkdir(parents=True)
+        try:
+            self._claim_partial()
+            (self.tmp / "mav0").mkdir()
+        except OSError as e:
+            self._discard()
+            raise LogError(f"{self.tmp}: cannot write the flight log ({e.strerror})") from None
         self._frames: dict[str, list[tuple[int, str]]] = {}
+
+    def _claim_partial(self) -> None:
+        """Create `<root>.partial/` with our marker; take over only a dead writer's leftover."""
+        self.root.parent.mkdir(parents=True, exist_ok=True)
+        if os.path.lexists(self.tmp):
+            marker = self.tmp / PARTIAL_MARKER
+            try:
+                pid = int(marker.read_text(encoding="utf-8").split()[0]) \
+                    if self.tmp.is_dir() and not self.tmp.is_symlink() else None
+            except (OSError, ValueError, IndexError):
+                pid = None
+            if pid is None:
+                raise LogError(f"{self.tmp}: exists and was not made by fusion; move or remove it "
+                               f"to write {self.root.name}")
+            if pid_alive(pid):
+                raise LogError(f"{self.tmp}: another fusion process (pid {pid}) is writing this "
+                               "flight log")
+            shutil.rmtree(self.tmp)          # a dead writer's leftover: ours to remove
+        self.tmp.mkdir()
+        self._owns_tmp = True
+        (self.tmp / PARTIAL_MARKER).write_text(f"{os.getpid()}\n", encoding="utf-8")
+
+    def _discard(self) -> None:
+        if getattr(self, "_owns_tmp", False):
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            self._owns_tmp = False
 
     # context manager: commit on success, discard on error
     def __enter__(self) -> "FlightLogWriter":
@@ -384,9 +728,15 @@ class FlightLogWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self.close()
-        else:
-            shutil.rmtree(self.tmp, ignore_errors=True)
+            try:
+                self.close()
+            except OSError as e:
+                self._discard()
+                raise LogError(_os_message(self.root, e)) from None
+            return
+        self._discard()
+        if issubclass(exc_type, OSError):
+            raise LogError(_os_message(self.root, exc)) from None
 
     def write_world(self, world: World) -> None:
         world.save(self.tmp / "world.yaml")
@@ -448,7 +798,7 @@ class FlightLogWriter:
         _write_csv(d / "data.csv", GT_HEADER, rows)
 
     def write_loads_groundtruth(self, loads: dict[str, np.ndarray]) -> None:
-        rows = ([k] + [_fmt(x) for x in p] for k, p in loads.items())
+        rows = ([csv_safe(k)] + [_fmt(x) for x in p] for k, p in loads.items())
         _write_csv(self.tmp / "loads_groundtruth.csv", LOADS_HEADER, rows)
 
     def write_blackouts(self, blackouts: list[tuple[int, int, str]]) -> None:
@@ -456,13 +806,66 @@ class FlightLogWriter:
                    ([str(int(a)), str(int(b)), k] for a, b, k in blackouts))
 
     def close(self) -> Path:
+        """Finish the log: frame lists and manifest, then move it to `root` (replacing only the
+        previous log's own files)."""
         for name, frames in self._frames.items():
             _write_csv(self.tmp / "mav0" / name / "data.csv", ("#timestamp [ns]", "filename"),
                        ([str(t), f] for t, f in frames))
-        if self.root.exists():
-            shutil.rmtree(self.root)
-        self.tmp.rename(self.root)
+        os.unlink(self.tmp / PARTIAL_MARKER)
+        files = sorted(str(p.relative_to(self.tmp).as_posix())
+                       for p in self.tmp.rglob("*") if p.is_file())
+        with atomic_open(self.tmp / MANIFEST_NAME) as f:
+            json.dump({"format": MANIFEST_FORMAT, "written_by": "fusion simulate",
+                       "status": "complete", "files": [{"path": r} for r in files]}, f, indent=0)
+        if not os.path.lexists(self.root):
+            self.tmp.rename(self.root)
+        else:
+            remove_listed(self.root, self.previous)
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.root / MANIFEST_NAME)
+            _merge_into(self.tmp, self.root)
+            self.tmp.rmdir()
+        self._owns_tmp = False
         return self.root
+
+
+def _os_message(root: Path, e: OSError) -> str:
+    where = f" ({e.filename})" if getattr(e, "filename", None) else ""
+    return f"{root}: cannot write the flight log: {e.strerror or e}{where}; nothing was kept"
+
+
+def _previous_log_files(root: Path) -> list[str]:
+    """Files of the log in `root` that a FlightLogWriter wrote (its manifest).  Refuses (LogError)
+    a root that is not a folder, or that holds files of the log layout the manifest does not
+    list: they are the user's, and writing the log would overwrite them."""
+    if not root.is_dir() or root.is_symlink():
+        raise LogError(f"{root}: exists and is not a folder")
+    manifest = read_manifest(root, LogError)
+    ours = {e["path"] for e in manifest["files"]} if manifest else set()
+    foreign = []
+    for name in LOG_CONFLICT_NAMES:
+        p = root / name
+        if p.is_dir() and not p.is_symlink():
+            foreign += [q.relative_to(root).as_posix() for q in p.rglob("*")
+                        if not q.is_dir() and q.relative_to(root).as_posix() not in ours]
+        elif os.path.lexists(p) and name not in ours:
+            foreign.append(name)
+    if foreign:
+        raise LogError(f"{root}: holds {len(foreign)} file(s) that fusion did not write "
+                       f"(e.g. {', '.join(sorted(foreign)[:3])}); refusing to overwrite them: "
+                       "choose another folder or move them away")
+    return sorted(ours)
+
+
+def _merge_into(src: Path, dst: Path) -> None:
+    """Move every entry of `src` into `dst` (folders merged, files replaced)."""
+    for entry in sorted(src.iterdir()):
+        target = dst / entry.name
+        if entry.is_dir() and target.is_dir() and not target.is_symlink():
+            _merge_into(entry, target)
+            entry.rmdir()
+        else:
+            os.replace(entry, target)
 
 
 def T_from_groundtruth_row(p: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import LogError
-from fusion.fileio import atomic_open
+from fusion.fileio import atomic_open, csv_safe, csv_unsafe, open_regular
 from fusion.geometry import R_from_quat_wxyz
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 
@@ -37,8 +37,9 @@ def read_tum(path: Path, name: str | None = None) -> Trajectory:
     path = Path(path)
     ts, T = [], []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (FileNotFoundError, UnicodeDecodeError) as e:
+        with open_regular(path, LogError, newline=None) as f:
+            lines = f.read().splitlines()
+    except UnicodeDecodeError as e:
         raise LogError(f"{path}: cannot read ({e.__class__.__name__})") from None
     for lineno, line in enumerate(lines, start=1):
         s = line.strip()
@@ -66,24 +67,21 @@ def read_tum(path: Path, name: str | None = None) -> Trajectory:
 
 
 def write_loads_csv(path: Path, load_map: LoadMap) -> None:
-    """`id,x_m,y_m,z_m,sigma_x_m,sigma_y_m,sigma_z_m,n_obs` (sigma empty when unknown)."""
+    """`id,x_m,y_m,z_m,sigma_x_m,sigma_y_m,sigma_z_m,n_obs` (sigma empty when unknown).  Ids come
+    from QR payloads (untrusted): `csv_safe` keeps a spreadsheet from reading one as a formula."""
     with atomic_open(path) as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(LOADS_COLUMNS)
         for l in sorted(load_map.loads, key=lambda l: l.load_id):
             sig = (np.sqrt(np.diag(l.cov_world)) if l.cov_world is not None else [None] * 3)
-            w.writerow([l.load_id, *(f"{v:.6f}" for v in l.p_world),
+            w.writerow([csv_safe(l.load_id), *(f"{v:.6f}" for v in l.p_world),
                         *("" if s is None else f"{s:.6f}" for s in sig), l.n_obs])
 
 
 def read_loads_csv(path: Path, name: str | None = None) -> LoadMap:
     path = Path(path)
     loads = []
-    try:
-        f = open(path, encoding="utf-8", newline="")
-    except FileNotFoundError:
-        raise LogError(f"{path}: file not found") from None
-    with f:
+    with open_regular(path, LogError) as f:
         for lineno, row in enumerate(csv.reader(f), start=1):
             if lineno == 1 or not row:
                 continue
@@ -96,7 +94,7 @@ def read_loads_csv(path: Path, name: str | None = None) -> LoadMap:
             except ValueError:
                 raise LogError(f"{path}:{lineno}: a value is not a number") from None
             cov = np.diag(np.square(sig)) if sig is not None else None
-            loads.append(LoadEstimate(row[0], p, cov, n))
+            loads.append(LoadEstimate(csv_unsafe(row[0]), p, cov, n))
     return LoadMap(name or path.stem, loads)
 
 

@@ -18,15 +18,20 @@ Cache `detections.csv`: first line `# fusion-detections v<FORMAT_VERSION> finger
 second line `# meta <json>` (per-camera counts and skip messages), then a header row and one
 CSV row per detection; its last field `corner_cov_px2` holds the 36 upper-triangle entries (row
 by row) of the (8, 8) corner covariance, space-separated, or nothing when unknown.  The
-fingerprint hashes the format version, the backend and refinement settings, and each camera's data.csv and sensor.yaml bytes (not the images: a log whose images
-change under an unchanged data.csv must be re-detected by deleting the cache).
+fingerprint hashes the format version, the backend and refinement settings, each camera's
+data.csv and sensor.yaml bytes, and the size and modification time (ns) of every image, so a
+cache is recomputed when any image changes.  Payloads (untrusted) are stored spreadsheet-safe
+(`fusion.fileio.csv_safe`, undone on reading).  `DetectionResult.cache_status` and a log
+message say whether a run reused the cache.
 """
 from __future__ import annotations
 
 import csv
 import hashlib
 import json
+import logging
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,13 +41,13 @@ import zxingcpp
 
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
-from fusion.fileio import atomic_open
+from fusion.fileio import atomic_open, csv_safe, csv_unsafe, open_regular
 from fusion.parallel import parallel_map, worker_count
 from fusion.qr.refine import modules_for_version, refine_frames
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4          # 4: payloads spreadsheet-safe; image sizes and mtimes in the key
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = "finder-crossings+finder-model-homography/7"   # change when refine.py's output changes
 CACHE_HEADER = ("camera", "timestamp_ns", "payload",
@@ -51,6 +56,9 @@ CACHE_HEADER = ("camera", "timestamp_ns", "payload",
                 "raw_bl_x", "raw_bl_y", "refined", "corner_sigma_px", "corner_cov_px2")
 _MAGIC = "# fusion-detections"
 RAW_CORNER_SIGMA_PX = 1.0   # decoder corners (refinement failed): whole pixels, 0.7-1 px off
+CACHE_REUSED, CACHE_WRITTEN, CACHE_STALE, CACHE_NONE = "reused", "written", "recomputed", "none"
+
+logger = logging.getLogger(__name__)
 
 # zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
 # try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
@@ -91,6 +99,7 @@ class DetectionResult:
     skipped: list[str] = field(default_factory=list)
     backend: str = "zxing"
     from_cache: bool = False
+    cache_status: str = CACHE_NONE   # reused | written (no cache) | recomputed (stale) | none
 
     def for_camera(self, camera: str) -> list[QRDetection]:
         return [d for d in self.detections if d.camera == camera]
@@ -254,7 +263,8 @@ def _detect_chunk(context: tuple[dict, str], task: tuple[str, int, int]
 
 
 def flight_fingerprint(log, backend: str) -> str:
-    """sha256 over the cache format, backend, refinement and each camera's data.csv + sensor.yaml."""
+    """sha256 over the cache format, backend, refinement, each camera's data.csv + sensor.yaml
+    and the (size, mtime_ns) of each of its images (a stat per image: no image is read)."""
     h = hashlib.sha256()
     h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/{REFINE_METHOD}\n".encode())
     for name in sorted(log.cameras):
@@ -262,9 +272,16 @@ def flight_fingerprint(log, backend: str) -> str:
         h.update(f"{name}\n".encode())
         for fname in ("data.csv", "sensor.yaml"):
             try:
-                h.update(hashlib.sha256((cam_dir / fname).read_bytes()).digest())
-            except OSError:
+                with open_regular(cam_dir / fname, DetectionError, binary=True) as f:
+                    h.update(hashlib.sha256(f.read()).digest())
+            except (DetectionError, OSError):
                 h.update(b"missing")
+        for path in log.cameras[name].paths:
+            try:
+                st = os.stat(path)
+                h.update(f"{st.st_size} {st.st_mtime_ns}\n".encode())
+            except OSError:
+                h.update(b"missing\n")
     return h.hexdigest()
 
 
@@ -281,11 +298,18 @@ def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
     if backend not in BACKENDS:
         raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")
     fingerprint = flight_fingerprint(log, backend)
-    if cache_path is not None and Path(cache_path).is_file():
+    status = CACHE_NONE if cache_path is None else CACHE_WRITTEN
+    if cache_path is not None and os.path.lexists(cache_path):
         cached = read_cache(cache_path, expected_fingerprint=fingerprint)
         if cached is not None:
             cached.backend = backend
+            cached.cache_status = CACHE_REUSED
+            logger.info("detections reused from %s (same data.csv, sensor.yaml, image sizes and "
+                        "times, backend %s)", cache_path, backend)
             return cached
+        status = CACHE_STALE
+        logger.info("detection cache %s is stale (the log, its images or the settings changed): "
+                    "detecting again", cache_path)
     streams = {name: log.cameras[name] for name in sorted(log.cameras)}
     tasks = [(name, s, min(s + chunk_frames, len(stream)))
              for name, stream in streams.items() for s in range(0, len(stream), chunk_frames)]
@@ -305,7 +329,7 @@ def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
     # each stream keeps its skip messages, as if it had been read here
     for msg_cam, msg in skipped:
         streams[msg_cam].skipped.append(msg)
-    result = DetectionResult(dets, stats, [m for _, m in skipped], backend, False)
+    result = DetectionResult(dets, stats, [m for _, m in skipped], backend, False, status)
     if cache_path is not None:
         write_cache(result, cache_path, fingerprint)
     return result
@@ -342,7 +366,7 @@ def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
         w.writerow(CACHE_HEADER)
         for d in result.detections:
             refined = int(not np.array_equal(d.corners_px, d.corners_raw_px))
-            w.writerow([d.camera, str(int(d.timestamp_ns)), d.payload]
+            w.writerow([d.camera, str(int(d.timestamp_ns)), csv_safe(d.payload)]
                        + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
                        + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
                        + [str(refined),
@@ -381,11 +405,7 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
     `expected_fingerprint` (stale: recompute); raises DetectionError naming the file and line when
     it is malformed."""
     path = Path(path)
-    try:
-        f = open(path, encoding="utf-8", newline="")
-    except OSError as e:
-        raise DetectionError(f"{path}: cannot read the detection cache ({e.strerror})") from None
-    with f:
+    with open_regular(path, DetectionError) as f:
         try:
             first = f.readline()
             if not first.startswith(_MAGIC + " "):
@@ -419,13 +439,13 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
             raise DetectionError(f"{path}: not UTF-8 text") from None
         except csv.Error as e:
             raise DetectionError(f"{path}: malformed CSV ({e})") from None
-    return DetectionResult(dets, stats, skipped, backend, True)
+    return DetectionResult(dets, stats, skipped, backend, True, CACHE_REUSED)
 
 
 def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
     if len(row) != len(CACHE_HEADER):
         raise DetectionError(f"{path}:{lineno}: expected {len(CACHE_HEADER)} fields, found {len(row)}")
-    camera, ts, payload = row[0], row[1], row[2]
+    camera, ts, payload = row[0], row[1], csv_unsafe(row[2])
     try:
         t = int(ts)
         vals = [float(v) for v in row[3:19]]

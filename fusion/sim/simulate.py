@@ -139,7 +139,9 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     `if __name__ == "__main__":` guard (or workers=1).  `check_readable`
     runs zxing-cpp on every floor frame and reports the fraction with a readable floor code.
     Raises SimulationError for an unknown scenario or a bad duration, LogError if `out_dir`
-    exists and not `overwrite`."""
+    exists and not `overwrite`.  With `overwrite`, only a previous simulation's files (its
+    manifest.json) are replaced: the user's other files in `out_dir` are kept, and a folder
+    holding a log fusion did not write, or a foreign `<out_dir>.partial/`, is refused."""
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
