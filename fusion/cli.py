@@ -63,7 +63,6 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     root = logging.getLogger("fusion")
     root.handlers[:] = [handler]
     root.setLevel(level)
-    root.propagate = False
 
 
 def build_parser() -> argparse.ArgumentParser:
