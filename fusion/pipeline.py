@@ -355,7 +355,7 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    log = read_flight(log_dir)
+    log = log_dir if isinstance(log_dir, FlightLog) else read_flight(log_dir)
     out_dir = prepare_out_dir(out_dir, cfg.force)
     result = RunResult(out_dir, log_summary(log))
     timings["read_s"] = time.perf_counter() - t
