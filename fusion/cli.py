@@ -102,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite an existing folder")
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--format", choices=("euroc", "rosbag1", "rosbag2", "video"), default="euroc",
+                   help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
+                        "a folder of lossless videos + CSV + Kalibr yaml")
 
     p = sub.add_parser("detect", help="detect and decode QR codes; writes detections.csv")
     _add_run_options(p, stages=False)
@@ -168,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
                            seed=args.seed, overwrite=args.force, progress=not args.quiet,
                            workers=args.workers,
                            resolution=tuple(int(v) for v in args.resolution.split("x")),
-                           camera_rate_hz=args.fps, start_s=args.start)
+                           camera_rate_hz=args.fps, start_s=args.start, fmt=args.format)
             print(f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
                   f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
                   f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "

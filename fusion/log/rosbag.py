@@ -491,6 +491,9 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     types = first.types
     calib = external_calibration(opts)
     roles = assign_roles(path, types, opts, calib.topics if calib else None, meta)
+    if roles.imu is None and roles.velocity is None:
+        raise LogError(f"{path}: no IMU topic (sensor_msgs/Imu) and no velocity topic; the bag "
+                       f"holds {_listing(types)}")
     cam_topics = {CameraRole.FLOOR.value: roles.floor}
     if roles.front:
         cam_topics[CameraRole.FRONT.value] = roles.front
@@ -537,9 +540,6 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         or None
     blackouts = [(int(a), int(b), str(k)) for a, b, k in meta["blackouts"]] \
         if meta.get("blackouts") is not None else None
-    if imu is None and vel is None:
-        log.warning("%s: no IMU and no velocity topic; fusion will have nothing but the cameras",
-                    path)
     return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
 
 
