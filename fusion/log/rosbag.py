@@ -197,7 +197,7 @@ def scan_bag(path: Path, deserialize: set[str] | None = None,
         scans = {t: TopicScan(t, types[t]) for t in types if topics is None or t in topics}
         truncated = None
         n = 0
-        it = reader.messages(connections=want)
+        it = reader.messages(connections=want) if want else iter(())   # () would mean all
         while True:
             try:
                 item = next(it)
