@@ -175,9 +175,11 @@ def _open_reader(path: Path):
     except FileNotFoundError:
         raise LogError(f"{path}: not found") from None
     except Exception as e:  # noqa: BLE001 - rosbags raises many types for a damaged bag
+        fix = ("if it is truncated, `rosbag reindex` it" if is_ros1(path) else
+               "if it is truncated, `mcap recover` it" if Path(path).suffix == ".mcap" else
+               "is metadata.yaml intact?")
         raise LogError(f"{path}: cannot open as a {'ROS 1' if is_ros1(path) else 'ROS 2'} bag "
-                       f"({e.__class__.__name__}: {str(e)[:160]}); a truncated ROS 1 bag needs "
-                       "`rosbag reindex`") from None
+                       f"({e.__class__.__name__}: {str(e)[:160]}); {fix}") from None
     return reader
 
 
