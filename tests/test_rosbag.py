@@ -290,3 +290,25 @@ def test_simulate_writes_every_format(tmp_path, fmt, name):
     flight = open_flight(res.root)
     assert len(flight.floor) == res.n_frames and len(flight.imu.timestamps_ns) == res.n_imu
     assert flight.floor.load_image(0).shape == (480, 640)
+
+
+def test_roles_by_type_and_overrides(tmp_path):
+    from fusion.log.rosbag import ODOMETRY, TWIST, assign_roles
+    types = {"/a/image": IMAGE, "/b/image": COMPRESSED, "/imu": IMU, "/odom": ODOMETRY,
+             "/fusion/groundtruth": ODOMETRY}
+    r = assign_roles(tmp_path, types, LogOptions())
+    assert (r.floor, r.front, r.imu, r.velocity) == ("/a/image", "/b/image", "/imu", "/odom")
+    r = assign_roles(tmp_path, types, LogOptions(floor_topic="/b/image"))
+    assert (r.floor, r.front) == ("/b/image", "/a/image")
+    # Kalibr's rostopic names the floor camera (cam0)
+    r = assign_roles(tmp_path, types, LogOptions(), kalibr_topics={"cam0": "/b/image"})
+    assert (r.floor, r.front) == ("/b/image", "/a/image")
+    # TwistStamped is preferred to Odometry; two of a kind need an override
+    r = assign_roles(tmp_path, {**types, "/tw": TWIST}, LogOptions())
+    assert r.velocity == "/tw"
+    with pytest.raises(LogError, match=r"2 IMU topics \(/imu, /imu2\); say which with --imu-topic"):
+        assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions())
+    assert assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions(imu_topic="/imu2")).imu \
+        == "/imu2"
+    with pytest.raises(LogError, match=r"3 image topics"):
+        assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions())

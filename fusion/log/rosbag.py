@@ -312,8 +312,11 @@ def assign_roles(path: Path, types: dict[str, str], opts: LogOptions,
             raise LogError(f"{path}: {len(rest)} image topics ({', '.join(rest)}); say which with "
                            "--floor-topic and --front-topic")
         floor = rest.pop(0)
-    if front is None and rest and opts.floor_topic is None:
+    if front is None and len(rest) == 1:
         front = rest.pop(0)
+    elif front is None and rest:
+        log.warning("%s: image topics %s not used; --front-topic picks the front camera", path,
+                    ", ".join(rest))
     imu = check(opts.imu_topic or named.get("imu0"), (IMU,), "IMU")
     if imu is None:
         imus = _topics_of(types, (IMU,))
