@@ -312,3 +312,26 @@ def test_roles_by_type_and_overrides(tmp_path):
         == "/imu2"
     with pytest.raises(LogError, match=r"3 image topics"):
         assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions())
+
+
+def test_euroc_folder_as_calibration_for_a_bag(tmp_path, sample):
+    """The EuRoC dataset's own bags: images + IMU only, the calibration in the folder's
+    sensor.yaml files (--calib FOLDER)."""
+    from fusion.camera import CameraModel
+    from fusion.geometry import make_T, rot_z
+    sample.world.save(tmp_path / "world.yaml")
+    cam = CameraModel(32, 24, 50.0, 50.0, 16.0, 12.0, T_body_cam=make_T(rot_z(0.2), [0, 0, 0.1]))
+    calib = tmp_path / "calib"
+    (calib / "mav0" / "cam0").mkdir(parents=True)
+    cam.save(calib / "mav0" / "cam0" / "sensor.yaml")
+    with euroc.FlightLogWriter(tmp_path / "tmp") as w:          # just for its imu0/sensor.yaml
+        w.write_imu(euroc.ImuData(np.arange(3), np.zeros((3, 3)), np.zeros((3, 3)),
+                                  euroc.ImuNoise(1e-4, 1e-5, 1e-3, 1e-4)))
+    shutil.copytree(tmp_path / "tmp" / "mav0" / "imu0", calib / "mav0" / "imu0")
+    bag = _write_bag(tmp_path / "euroc.bag", _images(4))
+    flight = open_flight(bag, LogOptions(calib=calib))
+    np.testing.assert_array_equal(flight.floor.camera.T_body_cam, cam.T_body_cam)
+    assert flight.imu.noise == euroc.ImuNoise(1e-4, 1e-5, 1e-3, 1e-4)
+    np.testing.assert_allclose(flight.imu.accel_m_s2[0], [0, 0, 9.81])
+    np.testing.assert_allclose(flight.imu.gyro_rad_s[0], [0.01, 0, 0])
+    assert flight.front is None and flight.velocity is None

@@ -168,7 +168,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
     if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
         role_of[rb.GROUNDTRUTH_TOPIC] = ROLE_NAMES["groundtruth"]
     imu_topic = roles.imu if roles else None
-    scan = rb.scan_bag(path, deserialize={imu_topic} if imu_topic else set())
+    scan = rb.scan_bag(path, vectors={imu_topic} if imu_topic else set())
     if scan.truncated:
         report.problems.append(scan.truncated)
     for topic in sorted(scan.types):
@@ -180,9 +180,5 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
                                    f"{stats.count} could be read")
         report.streams.append(stats)
     if imu_topic and scan.topics[imu_topic].data:
-        msgs = scan.topics[imu_topic].data
-        g = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z]
-                      for m in msgs])
-        a = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
-                      for m in msgs])
-        report.imu_units = imu_units_verdict(g, a)
+        ga = np.array(scan.topics[imu_topic].data, dtype=float)
+        report.imu_units = imu_units_verdict(ga[:, :3], ga[:, 3:])
