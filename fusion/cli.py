@@ -27,9 +27,11 @@ def _add_log_options(p: argparse.ArgumentParser) -> None:
     """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
     g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
     g.add_argument("--floor-topic", help="floor camera topic (default: found by type)")
-    g.add_argument("--front-topic", help="front camera topic (default: found by type)")
+    g.add_argument("--front-topic",
+                   help="front camera topic (default: found by type; 'none': no front camera)")
     g.add_argument("--imu-topic", help="sensor_msgs/Imu topic (default: found by type)")
-    g.add_argument("--velocity-topic", help="TwistStamped or Odometry topic (default: by type)")
+    g.add_argument("--velocity-topic",
+                   help="TwistStamped or Odometry topic (default: by type; 'none': ignore)")
     g.add_argument("--stamps", choices=("header", "receive"), default="header",
                    help="bag message times: header stamps (default) or the bag's receive time")
     g.add_argument("--calib", type=Path,

@@ -300,6 +300,8 @@ def test_roles_by_type_and_overrides(tmp_path):
     assert (r.floor, r.front, r.imu, r.velocity) == ("/a/image", "/b/image", "/imu", "/odom")
     r = assign_roles(tmp_path, types, LogOptions(floor_topic="/b/image"))
     assert (r.floor, r.front) == ("/b/image", "/a/image")
+    r = assign_roles(tmp_path, types, LogOptions(front_topic="none", velocity_topic="none"))
+    assert (r.floor, r.front, r.velocity) == ("/a/image", None, None)    # e.g. EuRoC's stereo
     # Kalibr's rostopic names the floor camera (cam0)
     r = assign_roles(tmp_path, types, LogOptions(), kalibr_topics={"cam0": "/b/image"})
     assert (r.floor, r.front) == ("/b/image", "/a/image")
@@ -335,3 +337,23 @@ def test_euroc_folder_as_calibration_for_a_bag(tmp_path, sample):
     np.testing.assert_allclose(flight.imu.accel_m_s2[0], [0, 0, 9.81])
     np.testing.assert_allclose(flight.imu.gyro_rad_s[0], [0.01, 0, 0])
     assert flight.front is None and flight.velocity is None
+
+
+def test_detection_in_worker_processes_after_the_parent_read(bags, tmp_path):
+    """Forked detection workers must not read through a reader the parent left open (shared
+    file offsets): same detections as in one process."""
+    from fusion.qr.detect import detect_flight
+    flight = open_flight(bags["mcap"])
+    for s in flight.cameras.values():
+        s.load_image(3)                     # parent opens its reader, iterator mid-bag
+    par = detect_flight(flight, workers=2, progress=False, chunk_frames=3)
+    one = detect_flight(open_flight(bags["mcap"]), workers=1, progress=False)
+    assert len(one.detections) > 5 and not par.skipped
+    assert [(d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in par.detections] \
+        == [(d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in one.detections]
+    # the guard itself: a stream used from another process id reopens its reader
+    s = flight.floor
+    reader = s._reader
+    s._pid = -1                             # as seen from a forked child
+    np.testing.assert_array_equal(s.load_image(4), open_flight(bags["mcap"]).floor.load_image(4))
+    assert s._reader is not reader and s._pid > 0

@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import heapq
 import logging
+import os
 import shutil
 import struct
 import tempfile
@@ -53,6 +54,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 STRING = "std_msgs/msg/String"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
 VELOCITY_TYPES = (TWIST, ODOMETRY)        # preference order
+NO_TOPIC = "none"                         # --front-topic none / --velocity-topic none
 METADATA_TOPIC = "/fusion/metadata"
 GROUNDTRUTH_TOPIC = "/fusion/groundtruth"
 METADATA_VERSION = 1
@@ -337,19 +339,23 @@ def assign_roles(path: Path, types: dict[str, str], opts: LogOptions,
         named.setdefault(key, topic)
     images = _topics_of(types, IMAGE_TYPES)
     floor = opts.floor_topic or named.get(CameraRole.FLOOR.value)
-    front = opts.front_topic or named.get(CameraRole.FRONT.value)
+    no_front = opts.front_topic == NO_TOPIC
+    front = None if no_front else opts.front_topic or named.get(CameraRole.FRONT.value)
     floor = check(floor if floor in types or opts.floor_topic else None, IMAGE_TYPES, "floor")
-    front = check(front if front in types or opts.front_topic else None, IMAGE_TYPES, "front")
+    front = check(front if front in types or (opts.front_topic and not no_front) else None,
+                  IMAGE_TYPES, "front")
     rest = [t for t in images if t not in (floor, front)]
     if floor is None:
         if not rest:
             raise LogError(f"{path}: no camera topic (sensor_msgs/Image or CompressedImage); "
                            f"the bag holds {_listing(types)}")
-        if len(rest) > 2 and front is None:
+        if len(rest) > 2 and front is None and not no_front:
             raise LogError(f"{path}: {len(rest)} image topics ({', '.join(rest)}); say which with "
                            "--floor-topic and --front-topic")
         floor = rest.pop(0)
-    if front is None and len(rest) == 1:
+    if no_front:
+        pass
+    elif front is None and len(rest) == 1:
         front = rest.pop(0)
     elif front is None and rest:
         log.warning("%s: image topics %s not used; --front-topic picks the front camera", path,
@@ -361,8 +367,10 @@ def assign_roles(path: Path, types: dict[str, str], opts: LogOptions,
             raise LogError(f"{path}: {len(imus)} IMU topics ({', '.join(imus)}); say which with "
                            "--imu-topic")
         imu = imus[0] if imus else None
-    vel = check(opts.velocity_topic or named.get("vel0"), VELOCITY_TYPES, "velocity")
-    if vel is None:
+    no_vel = opts.velocity_topic == NO_TOPIC
+    vel = None if no_vel else check(opts.velocity_topic or named.get("vel0"), VELOCITY_TYPES,
+                                    "velocity")
+    if vel is None and not no_vel:
         for ty in VELOCITY_TYPES:
             cands = _topics_of(types, (ty,), exclude=(GROUNDTRUTH_TOPIC,))
             if len(cands) > 1:
@@ -393,10 +401,11 @@ class BagCameraStream(CameraStream):
         self._reader = None
         self._iter = None
         self._next_seq = -1
+        self._pid = None                                  # process that opened _reader
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state.update(_reader=None, _iter=None, _next_seq=-1)
+        state.update(_reader=None, _iter=None, _next_seq=-1, _pid=None)
         return state
 
     def close(self) -> None:
@@ -416,8 +425,12 @@ class BagCameraStream(CameraStream):
         return h.digest()
 
     def _seek(self, k: int) -> None:
+        if self._reader is not None and self._pid != os.getpid():
+            # a forked worker shares the parent's file offsets: never read through them
+            self._reader, self._iter = None, None
         if self._reader is None:
             self._reader = _open_reader(self.bag)
+            self._pid = os.getpid()
         cons = [c for c in self._reader.connections if c.topic == self.topic]
         start = int(self.log_by_seq[k])
         first = int(np.searchsorted(self.log_by_seq, start, side="left"))
@@ -428,7 +441,7 @@ class BagCameraStream(CameraStream):
             self._next_seq += 1
 
     def _raw(self, k: int):
-        if self._iter is None or self._next_seq != k:
+        if self._iter is None or self._next_seq != k or self._pid != os.getpid():
             self._seek(k)
         con, _, raw = next(self._iter)
         self._next_seq += 1

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import shutil
 from fractions import Fraction
 from pathlib import Path
@@ -78,10 +79,11 @@ class VideoCameraStream(CameraStream):
         self._container = None
         self._frames = None
         self._next = -1
+        self._pid = None                                  # process that opened _container
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        state.update(_container=None, _frames=None, _next=-1)
+        state.update(_container=None, _frames=None, _next=-1, _pid=None)
         return state
 
     def close(self) -> None:
@@ -99,8 +101,12 @@ class VideoCameraStream(CameraStream):
 
     def _seek(self, k: int) -> None:
         import av
+        if self._container is not None and self._pid != os.getpid():
+            # a forked worker shares the parent's file offsets: never read through them
+            self._container, self._frames = None, None
         if self._container is None:
             self._container = av.open(str(self.video))
+            self._pid = os.getpid()
         vs = self._container.streams.video[0]
         target = int(self.pts[k])
         if k == 0:
@@ -111,7 +117,7 @@ class VideoCameraStream(CameraStream):
         self._next = None            # unknown until the first frame at or after the target
 
     def _decode(self, k: int):
-        if self._frames is None or self._next != k:
+        if self._frames is None or self._next != k or self._pid != os.getpid():
             self._seek(k)
             target = int(self.pts[k])
             for frame in self._frames:
