@@ -609,8 +609,10 @@ def _camera_for(name, topic, calib, meta_cams, scan, infos, where) -> tuple[Came
     cands = [t for t in infos if t.rsplit("/", 1)[0] == ns] or (list(infos) if len(infos) == 1
                                                                  else [])
     if cands and scan.topics[cands[0]].first is not None:
-        raise LogError(f"{where}: CameraInfo {cands[0]} gives the intrinsics but not where the "
-                       "camera sits on the drone; give a Kalibr camchain-imucam.yaml (--calib)")
+        cam = camera_from_info(scan.topics[cands[0]].first, f"{where}: CameraInfo {cands[0]}")
+        raise LogError(f"{where}: CameraInfo {cands[0]} gives the intrinsics ({cam.width}x"
+                       f"{cam.height}, fu {cam.fu:g}) but not where the camera sits on the drone; "
+                       "give a Kalibr camchain-imucam.yaml (--calib)")
     raise LogError(f"{where}: no calibration (no CameraInfo in the bag); give a Kalibr "
                    "camchain-imucam.yaml or an EuRoC folder with --calib")
 
