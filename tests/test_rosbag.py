@@ -103,7 +103,20 @@ def _write_bag(path, images=(), imu=True, camera_info=False, ros1=None, stamps=N
     log_times = list(log_times) if log_times is not None else stamps
     target = path if ros1 else path.with_name(path.stem + "_dir")
     w = W1(target) if ros1 else W2(target, version=9, storage_plugin=StoragePlugin.MCAP)
-    with w:
+    queue = []                                      # (receive time, order, connection, bytes)
+
+    class TimeOrdered:                              # write in receive-time order, as recorded
+        def __init__(self, writer):
+            self.w = writer
+
+        def add_connection(self, *a, **k):
+            return self.w.add_connection(*a, **k)
+
+        def write(self, con, t, data):
+            queue.append((t, len(queue), con, data))
+
+    real, w = w, TimeOrdered(w)
+    with real:
         if n:
             c = w.add_connection(topic, IMAGE, typestore=ts)
             for img, t, tl in zip(images, stamps, log_times):
@@ -134,6 +147,8 @@ def _write_bag(path, images=(), imu=True, camera_info=False, ros1=None, stamps=N
                                   linear_acceleration=V(x=0.0, y=0.0, z=9.81),
                                   linear_acceleration_covariance=np.zeros(9))
                 w.write(ci, t, ser(m, IMU))
+        for t, _, con, data in sorted(queue, key=lambda q: q[:2]):
+            real.write(con, t, data)
     if not ros1:                                   # one .mcap file, as `ros2 bag` can read
         (target / f"{target.name}.mcap").replace(path)
         shutil.rmtree(target)
@@ -248,12 +263,37 @@ def test_bad_bags_end_in_one_line(tmp_path, world_and_calib):
     bag = _write_bag(tmp_path / "info.mcap", _images(3), camera_info=True)
     with pytest.raises(LogError, match=r"CameraInfo /cam/camera_info .*\(--calib\)"):
         open_flight(bag)
-    # truncated ROS 1 bag: its index is gone, rosbags cannot open it
+    # a ROS 1 bag cut before its first complete message
     good = _write_bag(tmp_path / "full.bag", _images(3))
     cut = tmp_path / "cut.bag"
-    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    with pytest.raises(LogError, match=r"cut.bag: cannot open as a ROS 1 bag"):
+    cut.write_bytes(good.read_bytes()[:200])
+    with pytest.raises(LogError, match=r"cut.bag: truncated or unindexed ROS 1 bag with no "
+                                       r"complete message"):
         open_flight(cut, opts)
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.8])
+def test_truncated_ros1_bag_reads_up_to_the_damage(tmp_path, world_and_calib, monkeypatch,
+                                                   caplog, fraction):
+    import tempfile
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))     # the recovered copy goes here
+    imgs = _images(20)
+    good = _write_bag(tmp_path / "full.bag", imgs)
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * fraction)])
+    flight = open_flight(cut, LogOptions(calib=world_and_calib))
+    n = len(flight.floor)
+    assert 0 < n < 20 and "cut.bag: truncated or unindexed ROS 1 bag, cut after" in caplog.text
+    assert flight.root == cut
+    full = open_flight(good, LogOptions(calib=world_and_calib))
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns[:n])
+    for i in (0, n - 1):
+        np.testing.assert_array_equal(flight.floor.load_image(i), imgs[i])
+    # the recovered copy is reused while the bag is unchanged
+    copies = list((tmp_path / "fusion-recovered-bags").glob("cut-*.bag"))
+    assert len(copies) == 1
+    open_flight(cut, LogOptions(calib=world_and_calib))
+    assert list((tmp_path / "fusion-recovered-bags").glob("cut-*.bag")) == copies
 
 
 def test_truncated_mcap_is_refused_in_one_line(tmp_path, world_and_calib):

@@ -144,6 +144,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
 
     from fusion.log import rosbag as rb
     from fusion.log.sources import external_calibration
+    path = rb.readable_bag(path)
     first = rb.scan_bag(path, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
     meta = {}
     if first.topics.get(rb.METADATA_TOPIC) and first.topics[rb.METADATA_TOPIC].first is not None:

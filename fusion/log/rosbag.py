@@ -219,6 +219,21 @@ def _open_reader(path: Path):
     return reader
 
 
+def readable_bag(path: Path) -> Path:
+    """`path`, or for a ROS 1 bag that rosbags cannot open (cut short, so unindexed) an indexed
+    copy of its complete messages (fusion.log.ros1recover, with a warning)."""
+    path = Path(path)
+    if not is_ros1(path) or not path.is_file():
+        return path
+    from rosbags.rosbag1 import Reader as Reader1
+    try:
+        with Reader1(path):
+            return path
+    except Exception:  # noqa: BLE001 - rosbags' ReaderError and struct errors of a cut header
+        from fusion.log.ros1recover import recovered_copy
+        return recovered_copy(path)
+
+
 def scan_bag(path: Path, vectors: set[str] | None = None,
              first_of: set[str] | None = None, topics: set[str] | None = None) -> BagScan:
     """One pass over the bag: stamps of every message of `topics` (all when None), the numbers
@@ -536,7 +551,8 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     from fusion.log.sources import external_calibration, find_world   # cycle: sources -> rosbag
     opts = opts or LogOptions()
     path = Path(path)
-    first = scan_bag(path, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
+    bag = readable_bag(path)          # errors name `path`; reading goes through `bag`
+    first = scan_bag(bag, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(METADATA_TOPIC) and first.topics[METADATA_TOPIC].first is not None:
         try:
@@ -558,7 +574,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     if gt_topic:
         deser.add(gt_topic)
     want = set(cam_topics.values()) | deser | set(infos)
-    scan = scan_bag(path, vectors=deser, first_of=set(cam_topics.values()) | set(infos),
+    scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos),
                     topics=want)
 
     meta_cams = _metadata_cameras(meta, f"{path}: {METADATA_TOPIC}")
@@ -580,7 +596,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if img.shape != (cam.height, cam.width):
             raise LogError(f"{where} message 0: image is {img.shape[1]}x{img.shape[0]}, the "
                            f"calibration says {cam.width}x{cam.height}")
-        cameras[name] = BagCameraStream(name, cam, t[order], path, topic, ts_scan.msgtype, order,
+        cameras[name] = BagCameraStream(name, cam, t[order], bag, topic, ts_scan.msgtype, order,
                                         np.asarray(ts_scan.log_ns, np.int64), opts.stamps)
 
     imu = None
