@@ -25,8 +25,52 @@ def _grid(text: str) -> tuple[int, int]:
     return nx, ny
 
 
+def _add_log_options(p: argparse.ArgumentParser) -> None:
+    """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
+    g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
+    g.add_argument("--floor-topic", help="floor camera topic (default: found by type)")
+    g.add_argument("--front-topic",
+                   help="front camera topic (default: found by type; 'none': no front camera)")
+    g.add_argument("--imu-topic", help="sensor_msgs/Imu topic (default: found by type)")
+    g.add_argument("--velocity-topic",
+                   help="TwistStamped or Odometry topic (default: by type; 'none': ignore)")
+    g.add_argument("--stamps", choices=("header", "receive"), default="header",
+                   help="bag message times: header stamps (default) or the bag's receive time")
+    g.add_argument("--calib", type=Path,
+                   help="Kalibr camchain-imucam.yaml (cam0 floor, cam1 front), or an EuRoC folder")
+    g.add_argument("--imu-calib", type=Path, help="Kalibr imu.yaml (noise densities)")
+    g.add_argument("--world", type=Path, help="world.yaml (default: in or next to the log)")
+    g.add_argument("--front-video", type=Path, help="front camera video (video logs)")
+    g.add_argument("--frame-times", type=Path,
+                   help="floor video frame times CSV, ns per frame (default VIDEO.csv)")
+    g.add_argument("--front-frame-times", type=Path, help="front video frame times CSV")
+    g.add_argument("--imu", type=Path, help="IMU CSV (EuRoC imu0 columns) or PX4 ULog (.ulg)")
+    g.add_argument("--video-fps", type=float, help="constant video rate (without frame times)")
+    g.add_argument("--video-start-ns", type=int,
+                   help="first frame's time in the IMU clock (constant-rate video)")
+
+
+def _log_options(args):
+    from fusion.log import LogOptions, StampSource
+    return LogOptions(floor_topic=args.floor_topic, front_topic=args.front_topic,
+                      imu_topic=args.imu_topic, velocity_topic=args.velocity_topic,
+                      stamps=StampSource(args.stamps), calib=args.calib,
+                      imu_calib=args.imu_calib, world=args.world, front_video=args.front_video,
+                      frame_times=args.frame_times, front_frame_times=args.front_frame_times,
+                      imu=args.imu, video_fps=args.video_fps, video_start_ns=args.video_start_ns)
+
+
+def _flight_arg(args):
+    """The log path itself, or the opened FlightLog when a log option was given."""
+    from fusion.log import LogOptions, open_flight
+    opts = _log_options(args)
+    return args.log if opts == LogOptions() else open_flight(args.log, opts)
+
+
 def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
-    p.add_argument("log", type=Path, help="flight log folder (EuRoC layout)")
+    p.add_argument("log", type=Path,
+                   help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video")
+    _add_log_options(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--force", action="store_true",
                    help="write into an existing output folder: the previous run's outputs (its "
@@ -87,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="replace a log that `fusion simulate` wrote there (other files are kept)")
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
+    p.add_argument("--format", choices=("euroc", "rosbag1", "rosbag2", "video"), default="euroc",
+                   help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
+                        "a folder of lossless videos + CSV + Kalibr yaml")
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
     _add_run_options(p, stages=False)
@@ -96,6 +143,25 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(p)
     p = sub.add_parser("run", parents=[common], help="everything: detect, localize, fuse, evaluate, report")
     _add_run_options(p)
+
+    p = sub.add_parser("inspect", parents=[common], help="what a log holds: streams, rates, gaps, roles, IMU units")
+    p.add_argument("log", type=Path, help="EuRoC folder, ROS bag or video log")
+    _add_log_options(p)
+    p = sub.add_parser("import", parents=[common], help="write any log as an EuRoC folder")
+    p.add_argument("log", type=Path, help="ROS bag or video log (or an EuRoC folder)")
+    p.add_argument("out", type=Path, help="output EuRoC folder")
+    p.add_argument("--force", action="store_true", help="overwrite an existing folder")
+    _add_log_options(p)
+    p = sub.add_parser("export", parents=[common], help="write a flight as a ROS 1 (.bag) or ROS 2 (.mcap) bag, "
+                                      "or a video folder")
+    p.add_argument("log", type=Path, help="flight log (any supported format)")
+    p.add_argument("out", type=Path, help="OUT.bag (ROS 1), OUT.mcap (ROS 2), else a video folder")
+    p.add_argument("--image-format", choices=("raw", "png", "jpeg"), default="raw",
+                   help="bag images: raw mono8 Image (default) or png / jpeg CompressedImage")
+    p.add_argument("--video-codec", choices=("ffv1", "h264"), default="ffv1",
+                   help="video folder codec: ffv1 lossless MKV (default) or h264 MP4 (lossy)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output")
+    _add_log_options(p)
 
     p = sub.add_parser("demo", parents=[common], help="simulate the default flight and run the whole pipeline on it")
     p.add_argument("--dir", type=Path, default=Path("demo-flight"),
@@ -154,15 +220,28 @@ def main(argv: list[str] | None = None) -> int:
                            seed=args.seed, overwrite=args.force, progress=not args.quiet,
                            workers=args.workers,
                            resolution=tuple(int(v) for v in args.resolution.split("x")),
-                           camera_rate_hz=args.fps, start_s=args.start)
+                           camera_rate_hz=args.fps, start_s=args.start, fmt=args.format)
             print(f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
                   f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
                   f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
                   f"{res.wall_time_s:.1f} s wall time")
         elif args.command in ("detect", "localize", "smooth", "run"):
             from fusion import pipeline
-            result = pipeline.run(args.log, args.out, _run_config(args), until=args.command)
+            result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
             print(result.summary())
+        elif args.command == "inspect":
+            from fusion.log.inspect import inspect_log
+            print(inspect_log(args.log, _log_options(args)).format_text())
+        elif args.command == "import":
+            from fusion.log.convert import import_flight
+            out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force)
+            print(f"wrote {out} (EuRoC layout)")
+        elif args.command == "export":
+            from fusion.log.convert import export_flight
+            out = export_flight(args.log, args.out, _log_options(args),
+                                image_format=args.image_format, video_codec=args.video_codec,
+                                overwrite=args.force)
+            print(f"wrote {out}")
         elif args.command == "demo":
             from fusion import pipeline
             result = pipeline.demo(args.dir, duration_s=args.duration, seed=args.seed,

@@ -371,8 +371,8 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    log = read_flight(log_dir)
-    with prepare_out_dir(out_dir, cfg.force, log_dir) as out:
+    log = log_dir if isinstance(log_dir, FlightLog) else read_flight(log_dir)
+    with prepare_out_dir(out_dir, cfg.force, log.root) as out:
         result = _run_into(log, out.path, cfg, until, timings, t)
     return result
 

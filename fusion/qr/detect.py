@@ -270,6 +270,9 @@ def flight_fingerprint(log, backend: str) -> str:
     for name in sorted(log.cameras):
         cam_dir = Path(log.root) / "mav0" / name
         h.update(f"{name}\n".encode())
+        if hasattr(log.cameras[name], "fingerprint"):     # bag / video streams (fusion.log)
+            h.update(log.cameras[name].fingerprint())
+            continue
         for fname in ("data.csv", "sensor.yaml"):
             try:
                 with open_regular(cam_dir / fname, DetectionError, binary=True) as f:

@@ -127,7 +127,8 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
              seed: int = 0, overwrite: bool = False, progress: bool = True,
              workers: int | None = None, resolution=(640, 480), camera_rate_hz: float = CAMERA_RATE_HZ,
              noise_sigma_dn: float | None = None, png_compression: int = 1,
-             check_readable: bool = False, start_s: float = 0.0) -> SimulationResult:
+             check_readable: bool = False, start_s: float = 0.0,
+             fmt: str = "euroc") -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
     synchronised; imu0 200 Hz; vel0 30 Hz; ground truth at the IMU rate with the true biases;
@@ -141,7 +142,23 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     Raises SimulationError for an unknown scenario or a bad duration, LogError if `out_dir`
     exists and not `overwrite`.  With `overwrite`, only a previous simulation's files (its
     manifest.json) are replaced: the user's other files in `out_dir` are kept, and a folder
-    holding a log fusion did not write, or a foreign `<out_dir>.partial/`, is refused."""
+    holding a log fusion did not write, or a foreign `<out_dir>.partial/`, is refused.
+
+    `fmt` (fusion.log.LogFormat): "euroc" (default), "rosbag1" (OUT.bag), "rosbag2" (OUT.mcap)
+    or "video" (a folder of lossless FFV1 videos); the EuRoC folder is written first and
+    converted once complete (fusion.log.convert.export_flight)."""
+    from fusion.log import LogFormat
+    try:
+        fmt = LogFormat(fmt)
+    except ValueError:
+        raise SimulationError(f"unknown format {fmt!r}; expected one of "
+                              f"{', '.join(f.value for f in LogFormat)}") from None
+    if fmt != LogFormat.EUROC:
+        return _simulate_as(fmt, out_dir, overwrite, scenario=scenario, duration_s=duration_s,
+                            seed=seed, progress=progress, workers=workers, resolution=resolution,
+                            camera_rate_hz=camera_rate_hz, noise_sigma_dn=noise_sigma_dn,
+                            png_compression=png_compression, check_readable=check_readable,
+                            start_s=start_s)
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
@@ -249,3 +266,30 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     return SimulationResult(Path(out_dir), scenario, duration_s, len(frame_ns), len(imu.timestamps_ns),
                             blackouts, frac, frac_out, time.perf_counter() - t_wall, names,
                             cpu_s[0])
+
+
+_FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}
+
+
+def _simulate_as(fmt, out: Path, overwrite: bool, **kwargs) -> SimulationResult:
+    """simulate() into a temporary EuRoC folder beside `out`, then convert it to `fmt`."""
+    import shutil
+
+    from fusion.errors import LogError
+    from fusion.log.convert import export_flight
+    out = Path(out)
+    suffix = _FORMAT_SUFFIX[fmt.value]
+    if suffix and out.suffix != suffix:
+        out = out.with_name(out.name + suffix)
+    if out.exists() and not overwrite:
+        raise LogError(f"{out}: already exists")
+    tmp = out.with_name(out.name + ".euroc")
+    t_wall = time.perf_counter()
+    try:
+        res = simulate(tmp, overwrite=True, **kwargs)
+        export_flight(tmp, out, fmt=fmt, overwrite=overwrite)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    res.root = out
+    res.wall_time_s = time.perf_counter() - t_wall
+    return res

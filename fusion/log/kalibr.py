@@ -1,0 +1,197 @@
+"""Kalibr calibration files: `camchain-imucam.yaml` (cameras + camera-IMU extrinsics) and
+`imu.yaml` (IMU noise densities).
+
+camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
+
+    cam0:
+      camera_model: pinhole            # only pinhole is supported
+      intrinsics: [fu, fv, pu, pv]
+      distortion_model: radtan         # radial-tangential [k1, k2, r1, r2]
+      distortion_coeffs: [k1, k2, r1, r2]
+      resolution: [w, h]
+      T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
+      timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
+      rostopic: /cam0/image_raw
+    cam1: ...
+
+Kalibr's cam0 is our floor camera, cam1 the front camera (CameraRole).  The body frame is the
+IMU frame rotated by `T_body_imu` (identity unless the IMU is mounted otherwise, e.g. PX4's FRD),
+so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`) are
+ignored by Kalibr.
+
+imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block), keys
+accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
+gyroscope_random_walk, rostopic, update_rate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.camera import MOUNTS, CameraModel
+from fusion.errors import LogError
+from fusion.fileio import dump_yaml, load_yaml
+from fusion.geometry import inv_T
+from fusion.log.euroc import ImuNoise
+from fusion.types import CameraRole
+
+KALIBR_DISTORTION_MODELS = ("radtan", "radial-tangential", "plumb_bob")
+NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk",
+              "accelerometer_noise_density", "accelerometer_random_walk")
+
+
+@dataclass
+class KalibrCamera:
+    """One `camN` block: the camera model (T_body_cam already composed), its topic and the
+    camera-to-IMU clock shift in ns (t_imu = t_cam + timeshift_ns)."""
+    key: str                  # "cam0", "cam1", ...
+    camera: CameraModel
+    rostopic: str | None
+    timeshift_ns: int
+
+
+@dataclass
+class KalibrImu:
+    noise: ImuNoise
+    rostopic: str | None
+    rate_hz: float | None
+
+
+def _matrix(value, where: str) -> np.ndarray:
+    try:
+        T = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise LogError(f"{where}: not a 4x4 matrix of numbers") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise LogError(f"{where}: not a 4x4 matrix of finite numbers")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or abs(np.linalg.det(R) - 1) > 1e-5 \
+            or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise LogError(f"{where}: not a rigid transform")
+    return T
+
+
+def _numbers(value, n: int, where: str) -> list[float]:
+    try:
+        out = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise LogError(f"{where}: expected a list of {n} numbers") from None
+    if len(out) != n or not all(math.isfinite(v) for v in out):
+        raise LogError(f"{where}: expected a list of {n} finite numbers")
+    return out
+
+
+def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str, KalibrCamera]:
+    """Parse a Kalibr camchain(-imucam).yaml; returns {"cam0": KalibrCamera, ...}.
+    Raises LogError naming the file and key."""
+    path = Path(path)
+    data = load_yaml(path, LogError)
+    T_bi = np.eye(4) if T_body_imu is None else np.asarray(T_body_imu, float)
+    out = {}
+    for key in sorted(k for k in data if str(k).startswith("cam")):
+        block = data[key]
+        where = f"{path}: {key}"
+        if not isinstance(block, dict):
+            raise LogError(f"{where}: expected a mapping")
+        model = block.get("camera_model", "pinhole")
+        if model != "pinhole":
+            raise LogError(f"{where}.camera_model: {model!r} is not supported (pinhole only)")
+        dmodel = block.get("distortion_model", "radtan")
+        if dmodel not in KALIBR_DISTORTION_MODELS:
+            raise LogError(f"{where}.distortion_model: {dmodel!r} is not supported "
+                           f"(one of {', '.join(KALIBR_DISTORTION_MODELS)})")
+        for need in ("intrinsics", "resolution"):
+            if need not in block:
+                raise LogError(f"{where}: missing key '{need}'")
+        intr = _numbers(block["intrinsics"], 4, f"{where}.intrinsics")
+        res = _numbers(block["resolution"], 2, f"{where}.resolution")
+        dist = _numbers(block.get("distortion_coeffs", [0, 0, 0, 0]), 4,
+                        f"{where}.distortion_coeffs")
+        if "T_cam_imu" not in block:
+            raise LogError(f"{where}: missing key 'T_cam_imu' (a camchain-imucam.yaml from "
+                           "kalibr_calibrate_imu_camera is needed for the camera-IMU extrinsics)")
+        T_cam_imu = _matrix(block["T_cam_imu"], f"{where}.T_cam_imu")
+        try:
+            shift_s = float(block.get("timeshift_cam_imu", 0.0))
+        except (TypeError, ValueError):
+            raise LogError(f"{where}.timeshift_cam_imu: not a number") from None
+        if not math.isfinite(shift_s):
+            raise LogError(f"{where}.timeshift_cam_imu: not finite")
+        mount = block.get("mount", MOUNTS[0])
+        if mount not in MOUNTS:
+            raise LogError(f"{where}.mount: {mount!r} is not one of {MOUNTS}")
+        if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
+            raise LogError(f"{where}: resolution and focal lengths must be positive")
+        cam = CameraModel(int(res[0]), int(res[1]), *intr, distortion=np.array(dist),
+                          T_body_cam=T_bi @ inv_T(T_cam_imu),
+                          rate_hz=float(block.get("rate_hz", 30.0)), mount=mount)
+        topic = block.get("rostopic")
+        out[str(key)] = KalibrCamera(str(key), cam, str(topic) if topic else None,
+                                     int(round(shift_s * 1e9)))
+    if not out:
+        raise LogError(f"{path}: no 'cam0' block (not a Kalibr camchain)")
+    return out
+
+
+def write_camchain(path: Path, cameras: dict[str, CameraModel], topics: dict[str, str],
+                   T_body_imu: np.ndarray | None = None,
+                   timeshift_ns: dict[str, int] | None = None) -> None:
+    """Write Kalibr camchain-imucam.yaml for cameras {"cam0": model, ...}."""
+    T_bi = np.eye(4) if T_body_imu is None else np.asarray(T_body_imu, float)
+    data = {}
+    for key, cam in sorted(cameras.items()):
+        T_cam_imu = inv_T(cam.T_body_cam) @ T_bi      # T_body_cam = T_body_imu * T_imu_cam
+        block = {"camera_model": "pinhole",
+                 "intrinsics": [float(cam.fu), float(cam.fv), float(cam.cu), float(cam.cv)],
+                 "distortion_model": "radtan",
+                 "distortion_coeffs": [float(v) for v in cam.distortion],
+                 "resolution": [int(cam.width), int(cam.height)],
+                 "T_cam_imu": [[float(v) for v in row] for row in T_cam_imu],
+                 "timeshift_cam_imu": float((timeshift_ns or {}).get(key, 0)) * 1e-9,
+                 "rostopic": topics.get(key, f"/{key}/image_raw"),
+                 "rate_hz": float(cam.rate_hz)}
+        if cam.mount != MOUNTS[0]:
+            block["mount"] = cam.mount
+        data[key] = block
+    dump_yaml(data, path)
+
+
+def read_imu_yaml(path: Path) -> KalibrImu:
+    """Kalibr imu.yaml (flat input format or `imu0:` output block)."""
+    path = Path(path)
+    data = load_yaml(path, LogError)
+    block = data.get("imu0", data) if isinstance(data.get("imu0"), dict) else data
+    vals = {}
+    for key in NOISE_KEYS:
+        if key not in block:
+            raise LogError(f"{path}: missing key '{key}'")
+        try:
+            vals[key] = float(block[key])
+        except (TypeError, ValueError):
+            raise LogError(f"{path}: '{key}' is not a number") from None
+        if not (math.isfinite(vals[key]) and vals[key] > 0):
+            raise LogError(f"{path}: '{key}' must be positive")
+    rate = block.get("update_rate")
+    try:
+        rate = float(rate) if rate is not None else None
+    except (TypeError, ValueError):
+        raise LogError(f"{path}: 'update_rate' is not a number") from None
+    topic = block.get("rostopic")
+    return KalibrImu(ImuNoise(**vals), str(topic) if topic else None, rate)
+
+
+def write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float, rostopic: str = "/imu0") -> None:
+    data = {key: float(getattr(noise, key)) for key in NOISE_KEYS}
+    data.update(rostopic=rostopic, update_rate=float(rate_hz))
+    dump_yaml(data, path)
+
+
+def role_of_kalibr_key(key: str) -> CameraRole | None:
+    """Kalibr's cam0 / cam1 are our floor / front cameras."""
+    try:
+        return CameraRole(key)
+    except ValueError:
+        return None
