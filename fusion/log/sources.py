@@ -62,9 +62,13 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         return euroc.read_flight(path)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import read_bag
-        return read_bag(path, opts)
-    from fusion.log.video import read_video_flight
-    return read_video_flight(path, opts)
+        log = read_bag(path, opts)
+    else:
+        from fusion.log.video import read_video_flight
+        log = read_video_flight(path, opts)
+    # the same unit, rate and clock plausibility checks as an EuRoC folder gets
+    log.warnings += euroc.check_log(log)
+    return log
 
 
 # ============================================================================ calibration

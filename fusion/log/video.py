@@ -331,15 +331,15 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if (folder / VELOCITY_YAML_FILE).is_file():
             noise = float(load_yaml(folder / VELOCITY_YAML_FILE, LogError).get("noise_m_s", noise))
         vel = VelocityData(ts, v, noise)
-    gt = euroc._read_groundtruth(folder / GROUNDTRUTH_FILE) \
-        if (folder / GROUNDTRUTH_FILE).is_file() else None
+    gt, gt_warnings = euroc._read_groundtruth(folder / GROUNDTRUTH_FILE) \
+        if (folder / GROUNDTRUTH_FILE).is_file() else (None, [])
     loads = euroc._read_loads(folder / LOADS_FILE) if (folder / LOADS_FILE).is_file() else None
     blackouts = euroc._read_blackouts(folder / BLACKOUTS_FILE) \
         if (folder / BLACKOUTS_FILE).is_file() else None
     world = find_world(path, opts, None, "")
     if imu is None and vel is None:
         log.warning("%s: no IMU (imu.csv or a .ulg) and no velocity.csv", path)
-    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
+    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, list(gt_warnings))
 
 
 def _camchain_keys(calib_path: Path, name: str) -> set:
