@@ -1,4 +1,4 @@
-"""PnP estimator (fusion/qr/pnp.py) and its measurement model / CRB (fusion/qr/crb.py).
+"""PnP estimator (fusion/qr/pnp.py) and its measurement model / CRB (fusion/qr/reprojection.py).
 
 Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
 import math
@@ -26,7 +26,7 @@ from fusion.geometry import (
     yaw_of,
 )
 from fusion.qr.codes import classify
-from fusion.qr.crb import (
+from fusion.qr.reprojection import (
     floor_pose_crb,
     floor_reprojection,
     load_position_crb,
@@ -656,7 +656,7 @@ def test_fast_model_pieces_match_their_references():
     so3_exp / so3_exp_stack = GTSAM's Rot3.Expmap; pnp.undistort = CameraModel.undistort_normalized,
     also where OpenCV's iteration fails (strong distortion: the Newton fallback)."""
     from fusion.geometry import so3_exp, so3_exp_stack
-    from fusion.qr.crb import Projector
+    from fusion.qr.reprojection import Projector
     from fusion.qr.pnp import undistort
     rng = np.random.default_rng(8)
     p = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(0.5, 3.0, 50)])
@@ -703,7 +703,7 @@ def test_lm_reports_which_starts_converged():
     """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
     (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
     from fusion.geometry import so3_exp
-    from fusion.qr.crb import Projector
+    from fusion.qr.reprojection import Projector
     from fusion.qr.pnp import (
         _FloorProblems,
         _levenberg_marquardt,

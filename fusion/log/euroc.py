@@ -30,7 +30,7 @@ import numpy as np
 from fusion.camera import CameraModel, read_T_BS
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import atomic_open, dump_yaml, load_yaml
-from fusion.geometry import R_from_quat_wxyz, make_T
+from fusion.geometry import R_from_quat_wxyz
 from fusion.world import World
 
 CAMERA_NAMES = ("cam0", "cam1")
@@ -463,7 +463,3 @@ class FlightLogWriter:
             shutil.rmtree(self.root)
         self.tmp.rename(self.root)
         return self.root
-
-
-def T_from_groundtruth_row(p: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
-    return make_T(R_from_quat_wxyz(q_wxyz), p)

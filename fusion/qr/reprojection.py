@@ -1,6 +1,10 @@
-"""Measurement model of QR corners in distorted pixels, its Jacobians, and the Cramér–Rao bound.
+"""Reprojection model of QR corners in distorted pixels, its Jacobians, and the Cramér–Rao bound.
 
-Not from the paper: this is the model our PnP estimator (fusion/qr/pnp.py) minimises and the bound
+`Projector` (CameraModel.project with its Jacobian d(px)/d(p_cam)); `floor_reprojection` /
+`symbol_reprojection` (corner pixels and their Jacobians w.r.t. a body pose / a code's pose in
+the camera); `floor_pose_crb` / `load_position_crb` and the information -> covariance helpers.
+
+Not from the paper: this is the model our PnP estimator (fusion/qr/pnp/) minimises and the bound
 its benchmark compares against.  Corner pixels z = pi(T_cam_world p_world) + e, e ~ N(0, sigma^2 I)
 per coordinate; pi = CameraModel.project (pinhole + radial-tangential distortion).
 
@@ -72,13 +76,6 @@ class Projector:
         J[:, :, :2] = FD
         J[:, :, 2] = -(FD @ xy[:, :, None])[:, :, 0]
         return uv, J
-
-
-def project_with_jacobian(camera: CameraModel, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3).
-
-    Points at or behind the camera give NaN (as CameraModel.project)."""
-    return Projector(camera).project(np.asarray(p_cam, dtype=float).reshape(-1, 3))
 
 
 def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
