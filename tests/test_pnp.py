@@ -1,4 +1,4 @@
-"""PnP estimator (fusion/qr/pnp.py) and its measurement model / CRB (fusion/qr/reprojection.py).
+"""PnP estimator (fusion/qr/pnp/) and its measurement model / CRB (fusion/qr/reprojection.py).
 
 Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
 import math
@@ -606,7 +606,7 @@ def test_many_frames_at_once_equal_one_at_a_time():
 def test_vectorised_ippe_matches_opencv(n_points):
     """_ippe's two poses are OpenCV's SOLVEPNP_IPPE ones (its homography estimate differs slightly
     from ours beyond 4 points), and one of them is the true pose for noise-free points."""
-    from fusion.qr.pnp import _ippe
+    from fusion.qr.pnp.ippe import ippe as _ippe
     rng = np.random.default_rng(n_points)
     K = 30
     if n_points == 4:
@@ -700,29 +700,23 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
 
 
 def test_lm_reports_which_starts_converged():
-    """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
+    """levenberg_marquardt flags a start it could not take to a minimum within its iterations
     (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
     from fusion.geometry import so3_exp
-    from fusion.qr.reprojection import Projector
-    from fusion.qr.pnp import (
-        _FloorProblems,
-        _levenberg_marquardt,
-        _same_minimum,
-        corner_whitening,
-    )
+    from fusion.qr.pnp import corner_whitening
+    from fusion.qr.pnp.floor import FloorProblems
+    from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]
     W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
-    R_cb = FLOOR_CAM.T_body_cam[:3, :3].T
-    problems = _FloorProblems(Projector(FLOOR_CAM), R_cb, -R_cb @ FLOOR_CAM.T_body_cam[:3, 3],
-                              np.repeat(P, 2, axis=0), np.repeat(z, 2, axis=0),
-                              np.repeat(W, 2, axis=0))
+    problems = FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, 2, axis=0),
+                                        np.repeat(z, 2, axis=0), np.repeat(W, 2, axis=0))
     R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.25, -0.2, 0.3])])
     t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [0.3, -0.2, 0.4]])
-    G0 = problems.normal_equations(R0, t0)
-    _, _, G, converged = _levenberg_marquardt(problems, R0, t0, G0, max_iter=3)
-    assert converged.tolist() == [True, False] and G[1, 6, 6] > G[0, 6, 6]
-    R, t, G, converged = _levenberg_marquardt(problems, R0, t0, G0)
-    assert converged.all()                                  # both at the same minimum:
-    assert _same_minimum((R[0], t[0]), G[0, :6, :6], (R[1], t[1]))   # < 0.1 sigma apart
+    normal = problems.normal_equations(R0, t0)
+    res = levenberg_marquardt(problems, R0, t0, normal, max_iter=3)
+    assert res.converged.tolist() == [True, False] and res.normal.cost[1] > res.normal.cost[0]
+    res = levenberg_marquardt(problems, R0, t0, normal)
+    assert res.converged.all()                              # both at the same minimum:
+    assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])  # < 0.1 sigma
