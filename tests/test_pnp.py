@@ -472,7 +472,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
     previous whitening).  Returns {"single": [...], "multi": [...], "load": [...]} NEES lists."""
     import dataclasses
 
-    from fusion.qr.refine import refine_codes
+    from fusion.qr.refine import refine_frames
     from fusion.sim.render import (
         QUIET_ZONE_MODULES,
         PlacedCode,
@@ -496,7 +496,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
             if np.all(np.isfinite(outline)) and np.all(outline >= 1) and \
                     np.all(outline < np.array([camera.width, camera.height]) - 2):
                 cand.append((c, np.round(truth + rng.normal(0.0, 0.7, truth.shape))))
-        res = refine_codes(img, [(raw, c.modules) for c, raw in cand], camera)
+        [res] = refine_frames([img], [[(raw, c.modules) for c, raw in cand]], camera)
         for (c, raw), r in zip(cand, res):
             if r is not None and r.stage == 2:
                 d = QRDetection(camera.name if hasattr(camera, "name") else "cam", 0, c.payload,
