@@ -720,3 +720,36 @@ def test_lm_reports_which_starts_converged():
     res = levenberg_marquardt(problems, R0, t0, normal)
     assert res.converged.all()                              # both at the same minimum:
     assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])  # < 0.1 sigma
+
+
+# ============================================================================ decisions pinned
+
+
+def _four_code_problems(n_starts: int):
+    """`n_starts` copies of one noisy four-code floor view as LM problems (FloorProblems)."""
+    from fusion.qr.pnp import corner_whitening
+    from fusion.qr.pnp.floor import FloorProblems
+    sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
+    P = np.vstack([s.corners_world for s in sightings])[None]
+    z = np.vstack([s.detection.corners_px for s in sightings])[None]
+    W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
+    return FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, n_starts, axis=0),
+                                    np.repeat(z, n_starts, axis=0), np.repeat(W, n_starts, axis=0))
+
+
+def test_lm_damps_a_step_that_raises_the_cost():
+    """From a poor start (0.65 rad and 0.53 m off) the full Gauss-Newton step raises the cost
+    (5.2e8 from 3.0e8): undamped, the LM would repeat that step and never converge; damped, it
+    reaches the minimum that the start at the truth reaches."""
+    from fusion.geometry import so3_exp
+    from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
+    problems = _four_code_problems(2)
+    R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.475, 0.396, 0.19])])
+    t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [-0.447, 0.266, 0.117]])
+    normal = problems.normal_equations(R0, t0)
+    gauss_newton = np.linalg.solve(normal.H[1], -normal.g[1])
+    R1, t1 = problems.subset([1]).retract(R0[1:], t0[1:], gauss_newton[None])
+    assert problems.subset([1]).normal_equations(R1, t1).cost[0] > normal.cost[1]
+    res = levenberg_marquardt(problems, R0, t0, normal)
+    assert res.converged.all()
+    assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])
