@@ -753,3 +753,19 @@ def test_lm_damps_a_step_that_raises_the_cost():
     res = levenberg_marquardt(problems, R0, t0, normal)
     assert res.converged.all()
     assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 40.0, 120.0])
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.3, 0.0), (0.5, 0.3)])
+def test_level_body_single_frame_is_recovered_exactly(yaw_deg, offset):
+    """A level body with a down-looking camera puts R_cam_world at a rotation of exactly pi, where
+    OpenCV's IPPE returns a broken rotation vector (opencv-contrib 5.0: e.g. [13.6, -13.6, 0]
+    for [2.22, -2.22, 0]); the one-frame path must still recover the pose exactly, for one code
+    (no SQPnP fallback) and for two."""
+    T = aim(body_pose(0, 0, 2.0, yaw_deg), offset)
+    for centres in ([(0, 0)], [(0, 0), (1, 0)]):
+        T_view = T if len(centres) == 1 else aim(body_pose(0, 0, 2.6, yaw_deg),
+                                                 (0.5 + 0.3 * offset[0], 0.3 * offset[1]))
+        res = estimate_floor_pose(floor_of(floor_dets(T_view, centres)), FLOOR_CAM)
+        assert res is not None                  # exact to the LM's tolerance (the bug: 0.1-2 rad)
+        np.testing.assert_allclose(res.T_world_body, T_view, atol=1e-6)

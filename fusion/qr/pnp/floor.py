@@ -20,7 +20,7 @@ from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.geometry import cross_rows, level_frame, so3_exp_stack, wrap_angle
 from fusion.qr.codes import FloorSighting
-from fusion.qr.pnp.ippe import IPPE_BATCH_MIN, ippe, opencv_starts
+from fusion.qr.pnp.ippe import IPPE_BATCH_MIN, ippe_or_none, opencv_starts
 from fusion.qr.pnp.lm import (
     AMBIGUITY_CHI2,
     MAX_REPROJECTION_RMS_PX,
@@ -198,23 +198,39 @@ class FloorCodes:
 def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], sqpnp: bool
                   ) -> Starts:
     """Candidate T_cam_world (R_cam_world, t_cam_world) of views `which`, owner = view index.
-    IPPE's two solutions per view (`ippe` on all views with the same number of codes; OpenCV's
-    IPPE / IPPE_SQUARE one view at a time for fewer than IPPE_BATCH_MIN views, or when the
-    batch is degenerate), or with `sqpnp` OpenCV's SQPnP."""
+    IPPE's two solutions per view: `ippe` on all views with the same number of codes; OpenCV's
+    IPPE / IPPE_SQUARE one view at a time for fewer than IPPE_BATCH_MIN views or a degenerate
+    batch, and `ippe` of that view alone where OpenCV's fails (`opencv_starts`' fit check).
+    With `sqpnp`: OpenCV's SQPnP."""
     owner: list[int] = []
     R_cw: list[np.ndarray] = []
     t_cw: list[np.ndarray] = []
 
-    def opencv(k: int, method: int) -> None:
+    def opencv(k: int, method: int) -> bool:
         v = views[k]
         # one code with IPPE_SQUARE: about its centre (the floor symbol frame has the world axes)
         origin = codes.centres[v[0]] if len(v) == 1 and method == cv2.SOLVEPNP_IPPE_SQUARE \
             else None
-        for R, t in opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin,
-                                  method):
+        poses = opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin,
+                              method, check_fit=method != cv2.SOLVEPNP_SQPNP)
+        for R, t in poses:
             owner.append(k)
             R_cw.append(R)
             t_cw.append(t)
+        return bool(poses)
+
+    def vectorised(ks: list[int], n: int) -> bool:
+        idx = np.array([views[k] for k in ks])
+        P = codes.P[idx].reshape(-1, 4 * n, 3)
+        if np.any(P[:, :, 2] != 0.0):                 # not on the floor z = 0
+            return False
+        poses = ippe_or_none(P[:, :, :2], codes.xn[idx].reshape(-1, 4 * n, 2))
+        if poses is None:
+            return False
+        owner.extend(k for k in ks for _ in range(2))
+        R_cw.extend(poses[0].reshape(-1, 3, 3))
+        t_cw.extend(poses[1].reshape(-1, 3))
+        return True
 
     if sqpnp:
         for k in which:
@@ -224,19 +240,11 @@ def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], 
         for k in which:
             by_n.setdefault(len(views[k]), []).append(k)
         for n, ks in by_n.items():
-            idx = np.array([views[k] for k in ks])
-            P = codes.P[idx].reshape(-1, 4 * n, 3)
-            try:
-                if len(ks) < IPPE_BATCH_MIN or np.any(P[:, :, 2] != 0.0):
-                    raise np.linalg.LinAlgError("few views, or not on the floor z = 0")
-                R, t = ippe(P[:, :, :2], codes.xn[idx].reshape(-1, 4 * n, 2))
-            except np.linalg.LinAlgError:
-                for k in ks:
-                    opencv(k, cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE)
+            if len(ks) >= IPPE_BATCH_MIN and vectorised(ks, n):
                 continue
-            owner += [k for k in ks for _ in range(2)]
-            R_cw += list(R.reshape(-1, 3, 3))
-            t_cw += list(t.reshape(-1, 3))
+            for k in ks:
+                if not opencv(k, cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE):
+                    vectorised([k], n)
     return Starts(np.asarray(owner, dtype=int), np.array(R_cw).reshape(-1, 3, 3),
                   np.array(t_cw).reshape(-1, 3))
 
