@@ -20,7 +20,7 @@ from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.geometry import cross_rows, level_frame, so3_exp_stack, wrap_angle
 from fusion.qr.codes import FloorSighting
-from fusion.qr.pnp.ippe import IPPE_BATCH_MIN, ippe_or_none, opencv_starts
+from fusion.qr.pnp.ippe import ippe_or_none, opencv_starts
 from fusion.qr.pnp.lm import (
     AMBIGUITY_CHI2,
     MAX_REPROJECTION_RMS_PX,
@@ -198,26 +198,23 @@ class FloorCodes:
 def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], sqpnp: bool
                   ) -> Starts:
     """Candidate T_cam_world (R_cam_world, t_cam_world) of views `which`, owner = view index.
-    IPPE's two solutions per view: `ippe` on all views with the same number of codes; OpenCV's
-    IPPE / IPPE_SQUARE one view at a time for fewer than IPPE_BATCH_MIN views or a degenerate
-    batch, and `ippe` of that view alone where OpenCV's fails (`opencv_starts`' fit check).
-    With `sqpnp`: OpenCV's SQPnP."""
+    IPPE's two solutions per view (`ippe` on all views with the same number of codes, one view
+    at a time when the batch is degenerate, and OpenCV's IPPE / IPPE_SQUARE for a view `ippe`
+    cannot solve), or with `sqpnp` OpenCV's SQPnP."""
     owner: list[int] = []
     R_cw: list[np.ndarray] = []
     t_cw: list[np.ndarray] = []
 
-    def opencv(k: int, method: int) -> bool:
+    def opencv(k: int, method: int) -> None:
         v = views[k]
         # one code with IPPE_SQUARE: about its centre (the floor symbol frame has the world axes)
         origin = codes.centres[v[0]] if len(v) == 1 and method == cv2.SOLVEPNP_IPPE_SQUARE \
             else None
-        poses = opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin,
-                              method, check_fit=method != cv2.SOLVEPNP_SQPNP)
-        for R, t in poses:
+        for R, t in opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin,
+                                  method):
             owner.append(k)
             R_cw.append(R)
             t_cw.append(t)
-        return bool(poses)
 
     def vectorised(ks: list[int], n: int) -> bool:
         idx = np.array([views[k] for k in ks])
@@ -240,11 +237,11 @@ def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], 
         for k in which:
             by_n.setdefault(len(views[k]), []).append(k)
         for n, ks in by_n.items():
-            if len(ks) >= IPPE_BATCH_MIN and vectorised(ks, n):
+            if len(ks) > 1 and vectorised(ks, n):
                 continue
-            for k in ks:
-                if not opencv(k, cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE):
-                    vectorised([k], n)
+            for k in ks:                                # a degenerate view: one at a time
+                if not vectorised([k], n):
+                    opencv(k, cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE)
     return Starts(np.asarray(owner, dtype=int), np.array(R_cw).reshape(-1, 3, 3),
                   np.array(t_cw).reshape(-1, 3))
 

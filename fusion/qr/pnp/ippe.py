@@ -1,13 +1,13 @@
 """Starting poses of planar targets: IPPE (Collins & Bartoli 2014) vectorised over many views,
 and OpenCV's solvePnPGeneric (IPPE, IPPE_SQUARE, SQPnP) one view at a time.
 
-OpenCV returns its poses as rotation vectors, and for a rotation within ~1e-5 rad of pi -- a
-level body with a down-looking camera, as simulated hovers are -- IPPE's vector is broken
-(opencv-contrib 5.0: [13.6, -13.6, 0] or [0, 0, 0] for [2.22, -2.22, 0]; tests/test_pnp.py
-`test_level_body_single_frame_is_recovered_exactly`).  Such a pose misses the corners by about
-the code's size, where IPPE's two poses agree with the image to first order (measured <= 0.09
-of the corners' spread, tilts to 45 deg, 0.5 px noise): `opencv_starts` refuses solutions
-beyond IPPE_MAX_RMS_FRACTION of it and the caller falls back to the vectorised `ippe`."""
+The IPPE starts come from `ippe` even for a single view, although OpenCV's is faster there:
+OpenCV returns rotation vectors, and near a rotation of pi -- a level body over a down-looking
+camera, as in simulated hovers -- its IPPE poses are wrong (opencv-contrib 5.0: [13.6, -13.6, 0]
+or [0, 0, 0] for [2.22, -2.22, 0]; both poses tilted by +-12 deg for a code at the image centre),
+and the LM cannot reach the level pose from them (tests/test_pnp.py
+`test_level_body_single_frame_is_recovered_exactly`).  OpenCV stays the fallback for a view
+`ippe` finds degenerate, and the source of SQPnP starts."""
 from __future__ import annotations
 
 import cv2
@@ -15,33 +15,21 @@ import numpy as np
 
 from fusion.qr.pnp.undistort import cv_points
 
-IPPE_BATCH_MIN = 4
-"""Fewer views than this are initialised by OpenCV's IPPE one at a time (faster than `ippe`'s
-vectorised form for a handful)."""
-IPPE_MAX_RMS_FRACTION = 0.25
-"""An OpenCV IPPE solution whose reprojection RMS exceeds this fraction of the image points' RMS
-spread is a broken rotation vector (module docstring), not a pose."""
-
 _EYE3 = np.eye(3)
 
 
-def opencv_starts(points: np.ndarray, xn: np.ndarray, origin: np.ndarray | None, method: int,
-                  check_fit: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+def opencv_starts(points: np.ndarray, xn: np.ndarray, origin: np.ndarray | None, method: int
+                  ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Candidate poses (R, t) with p_cam = R p + t of points p (N, 3) seen at normalised image
     points xn (N, 2), from cv2.solvePnPGeneric with `method` (IPPE_SQUARE: one square code,
     `origin` its centre, the points in a frame with the symbol's axes; planar IPPE or SQPnP:
-    any points, `origin` None = their mean).  Empty when OpenCV fails, or with `check_fit` when
-    a solution's reprojection RMS is above IPPE_MAX_RMS_FRACTION of the points' spread."""
+    any points, `origin` None = their mean).  Empty when OpenCV fails."""
     origin = np.asarray(origin, dtype=float) if origin is not None else points.mean(axis=0)
     try:
-        n, rvecs, tvecs, rms = cv2.solvePnPGeneric(cv_points(points - origin), cv_points(xn),
-                                                   _EYE3, None, flags=method)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(cv_points(points - origin), cv_points(xn),
+                                                 _EYE3, None, flags=method)
     except cv2.error:
         return []
-    if check_fit and n:
-        spread = float(np.sqrt(np.mean(np.sum((xn - xn.mean(axis=0)) ** 2, axis=1))))
-        if not np.max(np.ravel(rms)[:n]) <= IPPE_MAX_RMS_FRACTION * spread:
-            return []
     out = []
     for rv, tv in zip(rvecs[:n], tvecs[:n]):
         R = cv2.Rodrigues(rv)[0]
@@ -123,11 +111,17 @@ def _ippe_unchecked(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarr
     b0 = np.sqrt(np.maximum(1.0 - Rt[:, 0, 0] ** 2 - Rt[:, 1, 0] ** 2, 0.0))
     b1 = np.sqrt(np.maximum(1.0 - Rt[:, 0, 1] ** 2 - Rt[:, 1, 1] ** 2, 0.0))
     b1 = np.where(Rt[:, 0, 0] * Rt[:, 0, 1] + Rt[:, 1, 0] * Rt[:, 1, 1] > 0.0, -b1, b1)
-    R = np.empty((K, 2, 3, 3))
-    for i, sign in enumerate((1.0, -1.0)):
-        c1 = np.stack([Rt[:, 0, 0], Rt[:, 1, 0], sign * b0], axis=1)
-        c2 = np.stack([Rt[:, 0, 1], Rt[:, 1, 1], sign * b1], axis=1)
-        R[:, i] = Rv @ np.stack([c1, c2, np.cross(c1, c2)], axis=2)
+    # R_v^T R = [c1, c2, c1 x c2], c1 = (Rt00, Rt10, +-b0), c2 = (Rt01, Rt11, +-b1)
+    M = np.empty((K, 2, 3, 3))
+    M[:, :, :2, :2] = Rt[:, None]
+    M[:, 0, 2, 0], M[:, 1, 2, 0] = b0, -b0
+    M[:, 0, 2, 1], M[:, 1, 2, 1] = b1, -b1
+    e0 = Rt[:, 1, 0] * b1 - Rt[:, 1, 1] * b0
+    e1 = Rt[:, 0, 1] * b0 - Rt[:, 0, 0] * b1
+    M[:, 0, 0, 2], M[:, 1, 0, 2] = e0, -e0
+    M[:, 0, 1, 2], M[:, 1, 1, 2] = e1, -e1
+    M[:, :, 2, 2] = (Rt[:, 0, 0] * Rt[:, 1, 1] - Rt[:, 0, 1] * Rt[:, 1, 0])[:, None]
+    R = Rv[:, None] @ M
     # t: least squares of [1, 0, -u; 0, 1, -v] t = [u r_z - r_x, v r_z - r_y], r = R [x, y, 0]
     r = Xc[:, None] @ R[:, :, :, :2].transpose(0, 1, 3, 2)    # (K, 2, N, 3)
     u, w = xn[:, None, :, 0], xn[:, None, :, 1]

@@ -16,7 +16,7 @@ from fusion.camera import CameraModel
 from fusion.conventions import symbol_corners_S
 from fusion.geometry import cross_rows, rot_z, skew, so3_exp_stack, yaw_of
 from fusion.qr.codes import LoadSighting
-from fusion.qr.pnp.ippe import IPPE_BATCH_MIN, ippe_or_none, opencv_starts
+from fusion.qr.pnp.ippe import ippe_or_none, opencv_starts
 from fusion.qr.pnp.lm import (
     AMBIGUITY_CHI2,
     MAX_REPROJECTION_RMS_PX,
@@ -99,10 +99,9 @@ def position_jacobian_wrt_body(T_world_body: np.ndarray, camera: CameraModel,
 
 def _symbol_starts(corners_S: np.ndarray, xn: np.ndarray, good: np.ndarray) -> Starts:
     """IPPE's two T_cam_symbol of each code `good` (normalised corners xn (c, 4, 2)), owner =
-    code index: vectorised (`ippe`), or OpenCV's IPPE_SQUARE one code at a time for fewer than
-    IPPE_BATCH_MIN codes or a degenerate batch (and `ippe` of the code alone where OpenCV's
-    fails its fit check, `opencv_starts`)."""
-    if len(good) >= IPPE_BATCH_MIN:
+    code index: vectorised (`ippe`; one code at a time when the batch is degenerate), or
+    OpenCV's IPPE_SQUARE for a code `ippe` cannot solve."""
+    if len(good) > 1:
         poses = ippe_or_none(np.broadcast_to(corners_S[:, :2], (len(good), 4, 2)), xn[good])
         if poses is not None:
             return Starts(np.repeat(good, 2), poses[0].reshape(-1, 3, 3),
@@ -110,12 +109,10 @@ def _symbol_starts(corners_S: np.ndarray, xn: np.ndarray, good: np.ndarray) -> S
     owner: list[int] = []
     R0: list[np.ndarray] = []
     t0: list[np.ndarray] = []
-    for c in good.tolist():
-        starts = opencv_starts(corners_S, xn[c], np.zeros(3), cv2.SOLVEPNP_IPPE_SQUARE,
-                               check_fit=True)
-        if not starts:
-            poses = ippe_or_none(corners_S[None, :, :2], xn[c][None])
-            starts = [] if poses is None else list(zip(poses[0][0], poses[1][0]))
+    for c in good.tolist():                            # a degenerate code: one at a time
+        poses = ippe_or_none(corners_S[None, :, :2], xn[c][None])
+        starts = opencv_starts(corners_S, xn[c], np.zeros(3), cv2.SOLVEPNP_IPPE_SQUARE) \
+            if poses is None else list(zip(poses[0][0], poses[1][0]))
         for R, t in starts:
             owner.append(c)
             R0.append(R)
