@@ -769,3 +769,27 @@ def test_level_body_single_frame_is_recovered_exactly(yaw_deg, offset):
         res = estimate_floor_pose(floor_of(floor_dets(T_view, centres)), FLOOR_CAM)
         assert res is not None                  # exact to the LM's tolerance (the bug: 0.1-2 rad)
         np.testing.assert_allclose(res.T_world_body, T_view, atol=1e-6)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 70.0, -150.0])
+def test_ambiguous_floor_pose_takes_the_more_level_solution(yaw_deg):
+    """One small code far off-centre (3 m up, 0.2 m code, sigma 0.3 px): IPPE's mirror solution,
+    tilted by ~20 deg, fits the noise-free corners within AMBIGUITY_CHI2 of the true, level
+    one; the near-level rule must take the level one (the inverted rule is off by ~0.95)."""
+    T = aim(body_pose(0, 0, 3.0, yaw_deg), (0.5, 0.3))
+    res = estimate_floor_pose(floor_of(floor_dets(T, [(0, 0)])), FLOOR_CAM, 0.3)
+    assert res.ambiguous
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+
+
+@pytest.mark.parametrize("distance_m", [3.0, 4.0])
+def test_ambiguous_load_code_takes_the_solution_with_up_along_world_z(distance_m):
+    """A load code 3-4 m ahead (sigma 0.3 px): both IPPE solutions fit within AMBIGUITY_CHI2;
+    the one whose symbol "up" is nearer world +z is the true one, and its centre is exact (the
+    other's is 3-4 mm off)."""
+    code = LoadCode("box-1", (distance_m, 0.3, 1.3), math.pi)
+    T = body_pose(0.0, 0.0, 1.1, 0.0)
+    obs = estimate_load_observations(classify(load_dets(T, [code]), WORLD).loads, FRONT_CAM,
+                                     WORLD, T, None, 0.3)
+    assert len(obs) == 1
+    np.testing.assert_allclose(obs[0].p_world, code.p_world, atol=1e-9)
