@@ -793,3 +793,19 @@ def test_ambiguous_load_code_takes_the_solution_with_up_along_world_z(distance_m
                                      WORLD, T, None, 0.3)
     assert len(obs) == 1
     np.testing.assert_allclose(obs[0].p_world, code.p_world, atol=1e-9)
+
+
+@pytest.mark.parametrize("yaw_deg", [120.0, 124.6, 130.0])
+def test_sqpnp_start_finds_the_misplaced_code_where_ippe_does_not(yaw_deg):
+    """Two codes, one printed 0.55 m from where its payload says (0/0/-2 at (0.21, -1.51)), seen
+    tilted by 17 deg: no IPPE start refines to a plausible fit, and at the minimum they reach the
+    GOOD code fits worst, so it would be left out and the pose taken from the misplaced one
+    (0.49 m off).  SQPnP's start reaches the minimum where the misplaced code fits worst: it is
+    dropped and the pose is exact."""
+    T = body_pose(0.70, -0.98, 2.65, yaw_deg, roll_deg=2.9, pitch_deg=16.5)
+    misplaced = floor_dets(T, [(0.21, -1.51)])[0]
+    dets = [QRDetection("cam0", 0, floor_payload(0, -2), misplaced.corners_px,
+                        misplaced.corners_px)] + floor_dets(T, [(2, -1)])
+    res = estimate_floor_pose(floor_of(dets), FLOOR_CAM)
+    assert res.dropped_payloads == [floor_payload(0, -2)]
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
