@@ -18,6 +18,8 @@ Processing I", 1993, eq. 3.31 for the Gaussian Fisher information).
 """
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import numpy as np
 
 from fusion.camera import CameraModel
@@ -41,6 +43,13 @@ class Projector:
         # [2 p1 y + 6 p2 x, 6 p1 y + 2 p2 x] = [x, y] @ M_tangential: the tangential part of
         # d(x_d)/dx and d(y_d)/dy
         self.M_tangential = np.array([[6.0 * p2, 2.0 * p2], [2.0 * p1, 6.0 * p1]])
+
+    @overload
+    def project(self, p_cam: np.ndarray, jacobian: Literal[True] = ...
+                ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def project(self, p_cam: np.ndarray, jacobian: Literal[False]) -> tuple[np.ndarray, None]: ...
 
     def project(self, p_cam: np.ndarray, jacobian: bool = True
                 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -85,8 +94,8 @@ def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_wor
     xi = [rx, ry, rz, tx, ty, tz] (T_world_body * Exp(xi)).
 
     For a "gimbaled" camera T_world_body is the level body frame (CameraModel docstring).
-    Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v, p_cam = T_cam_body p_body,
-    so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
+    Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v,
+    p_cam = T_cam_body p_body, so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
     T_body_cam = np.asarray(camera.T_body_cam, dtype=float)
     T_world_body = np.asarray(T_world_body, dtype=float)
     R_cb = T_body_cam[:3, :3].T

@@ -166,14 +166,14 @@ def aggregate_load_observations(observations: list[LoadObservation], name: str =
     loads = []
     for load_id in sorted(by_id):
         obs = by_id[load_id]
-        with_cov = [o for o in obs if o.cov_world is not None]
-        if with_cov:
+        covs = [(o.cov_world, o.p_world) for o in obs if o.cov_world is not None]
+        if covs:
             info = np.zeros((3, 3))
             vec = np.zeros(3)
-            for o in with_cov:
-                W = np.linalg.inv(o.cov_world)
+            for cov, p_world in covs:
+                W = np.linalg.inv(cov)
                 info += W
-                vec += W @ o.p_world
+                vec += W @ p_world
             P = np.linalg.inv(info)
             loads.append(LoadEstimate(load_id, P @ vec, 0.5 * (P + P.T), len(obs)))
         else:

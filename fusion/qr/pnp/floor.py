@@ -379,15 +379,15 @@ def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
     if not done:
         return out
     ks = sorted(done)
-    sols = [done[k] for k in ks]
-    covs, ok = covariances(np.array([s.candidate.information for s in sols]))  # (J^T W J)^-1
+    accepted = [done[k] for k in ks]
+    covs, ok = covariances(np.array([s.candidate.information for s in accepted]))  # (J^T W J)^-1
     gimbaled = camera.mount == Mount.GIMBALED
-    Ts = np.zeros((len(sols), 4, 4))
-    Ts[:, :3, :3] = [s.candidate.R_world_body for s in sols]
-    Ts[:, :3, 3] = [s.candidate.t_world_body for s in sols]
+    Ts = np.zeros((len(accepted), 4, 4))
+    Ts[:, :3, :3] = [s.candidate.R_world_body for s in accepted]
+    Ts[:, :3, 3] = [s.candidate.t_world_body for s in accepted]
     Ts[:, 3, 3] = 1.0
     Ts_world_cam = Ts @ camera.T_body_cam
-    for k, sol, T, T_world_cam, cov, good in zip(ks, sols, Ts, Ts_world_cam, covs, ok):
+    for k, sol, T, T_world_cam, cov, good in zip(ks, accepted, Ts, Ts_world_cam, covs, ok):
         if not good:
             continue
         if gimbaled:
@@ -431,7 +431,7 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     position), and its covariance keeps the PnP marginal of [rz, tx, ty, tz] while rx and ry get
     variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no correlation.
 
-    Many frames: `estimate_floor_poses` (the same, about 10x faster per frame)."""
+    Many frames: `estimate_floor_poses` (the same, far cheaper per frame: scripts/bench_pnp.py)."""
     return estimate_floor_poses([sightings], camera, corner_sigma_px, max_rms_px=max_rms_px,
                                 ambiguity_chi2=ambiguity_chi2,
                                 gimbal_roll_pitch_sigma_rad=gimbal_roll_pitch_sigma_rad,

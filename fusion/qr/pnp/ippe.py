@@ -81,8 +81,8 @@ def _ippe_unchecked(X: np.ndarray, xn: np.ndarray) -> tuple[np.ndarray, np.ndarr
     A[:, :, 0, 8] = -b[:, :, 0]
     A[:, :, 1, 6:8] = -b[:, :, 1:2] * a
     A[:, :, 1, 8] = -b[:, :, 1]
-    A = A.reshape(K, 2 * N, 9)
-    M = A.transpose(0, 2, 1) @ A
+    rows = A.reshape(K, 2 * N, 9)
+    M = rows.transpose(0, 2, 1) @ rows
     h = np.linalg.solve(M[:, :8, :8], -M[:, :8, 8:])[:, :, 0]
     Hn = np.concatenate([h, np.ones((K, 1))], axis=1).reshape(K, 3, 3)
     T_inv = np.zeros((K, 3, 3))                               # undo the image normalisation

@@ -6,9 +6,9 @@ the whitened normal equations per step for all of them.  A problem is any object
 code's pose in the camera).  Poses are (R (K, 3, 3), t (K, 3)) pairs, perturbed on the right as
 each problem's `retract` says.
 
-Written by hand rather than with GTSAM: for 6-DOF problems of 8-32 residuals the per-call
-overhead of a factor graph dominates, and vectorising over frames is what makes PnP cost about
-0.1-0.2 ms per frame (scripts/bench_pnp.py).
+Written by hand rather than as one GTSAM graph per frame: one vectorised evaluation serves the
+views of many frames at once, which is what makes batched PnP cheap per frame
+(scripts/bench_pnp.py measures it).
 """
 from __future__ import annotations
 

@@ -23,28 +23,29 @@ def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
     out = np.zeros((len(sig), n, n))
     idx = np.arange(n)
     out[:, idx, idx] = 1.0 / sig
-    with_cov, covs = [], []
+    with_cov: list[int] = []
+    covs: list[np.ndarray] = []
     for i, d in enumerate(detections):
-        C = getattr(d, "corner_cov_px2", None)
-        if C is not None:
-            C = np.asarray(C, dtype=float)
-            if C.shape == (n, n):
+        cov = getattr(d, "corner_cov_px2", None)
+        if cov is not None:
+            cov = np.asarray(cov, dtype=float)
+            if cov.shape == (n, n):
                 with_cov.append(i)
-                covs.append(C)
+                covs.append(cov)
     if covs:
         C = np.stack(covs)
         finite = np.isfinite(C).all(axis=(1, 2))
         with_cov, C = [i for i, f in zip(with_cov, finite) if f], C[finite]
-    if with_cov:
-        C = 0.5 * (C + np.swapaxes(C, 1, 2))
-        try:
-            out[with_cov] = np.linalg.inv(np.linalg.cholesky(C))
-        except np.linalg.LinAlgError:          # one is not positive definite: one at a time
-            for i, Ci in zip(with_cov, C):
-                try:
-                    out[i] = np.linalg.inv(np.linalg.cholesky(Ci))
-                except np.linalg.LinAlgError:
-                    pass                           # keeps diag(1 / sigma)
+        if with_cov:
+            C = 0.5 * (C + np.swapaxes(C, 1, 2))
+            try:
+                out[with_cov] = np.linalg.inv(np.linalg.cholesky(C))
+            except np.linalg.LinAlgError:          # one is not positive definite: one at a time
+                for i, Ci in zip(with_cov, C):
+                    try:
+                        out[i] = np.linalg.inv(np.linalg.cholesky(Ci))
+                    except np.linalg.LinAlgError:
+                        pass                           # keeps diag(1 / sigma)
     return out
 
 
