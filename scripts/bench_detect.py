@@ -3,14 +3,14 @@
 For 640x480 and 1280x720 frames rendered by fusion.sim.render (floor codes on a grid, a down-looking
 camera at random height / yaw / tilt, sensor noise and motion blur, radial-tangential distortion),
 measures per frame on one core: PNG decoding (cv2.imread from disk), detection (zxing-cpp with
-fusion's options, and OpenCV's QRCodeDetectorAruco), corner refinement (all codes of a frame in one
-`refine_codes` call), and OpenCV's QRCodeDetector().detectAndDecodeMulti for comparison; corner
-errors (raw decoder corners vs refined) against the projected ground truth; decode rate over the
-codes fully in view.  Then: the motion-blur sweep (one 0.2 m code at 0.9-1.5 m, 0/2/4/6/8 px blur:
-mean corner error and mean outward bias), and the uncertainty check (8-D corner NEES of the
-(8, 8) corner covariance on renders the calibration did not see, and the full-pose NEES of PnP on
-refined corners of rendered frames, tests/test_pnp.py's `rendered_nees`, with the (8, 8)
-covariances vs one sigma per code).
+fusion's options, and OpenCV's QRCodeDetectorAruco), corner refinement (`refine_frames`: all codes
+of REFINE_BATCH_FRAMES frames per call, and of one frame per call), and OpenCV's
+QRCodeDetector().detectAndDecodeMulti for comparison; corner errors (raw decoder corners vs refined)
+against the projected ground truth; decode rate over the codes fully in view.  Then: the motion-blur
+sweep (one 0.2 m code at 0.9-1.5 m, 0/2/4/6/8 px blur: mean corner error and mean outward bias), and
+the uncertainty check (8-D corner NEES of the (8, 8) corner covariance on renders the calibration
+did not see, and the full-pose NEES of PnP on refined corners of rendered frames,
+tests/test_pnp.py's `rendered_nees`, with the (8, 8) covariances vs one sigma per code).
 
     /work/venv/bin/python scripts/bench_detect.py [--frames 60] [--seed 0] [--calibrate]
 
@@ -36,9 +36,13 @@ from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
 from fusion.geometry import make_T
-from fusion.qr import refine as refine_mod
 from fusion.qr.detect import REFINE_BATCH_FRAMES, detect_image
-from fusion.qr.refine import refine_codes, refine_frames
+from fusion.qr.refine import (
+    CALIBRATED_COV_MODEL,
+    CornerCovarianceModel,
+    refine_code,
+    refine_frames,
+)
 from fusion.sim.render import (
     QUIET_ZONE_MODULES,
     PlacedCode,
@@ -184,7 +188,7 @@ def blur_sweep(blurs=(0, 2, 4, 6, 8), n_per_blur: int = 20, seed: int = 11) -> l
                                             blur_angle_rad=rng.uniform(0.0, np.pi)))
             truth = project_code_corners(_TEST_CAMERA, T, code)
             raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
-            [res] = refine_codes(img, [(raw, code.modules)], _TEST_CAMERA)
+            res = refine_code(img, raw, code.modules, _TEST_CAMERA)
             if res is None:
                 failed += 1
                 continue
@@ -203,42 +207,37 @@ def calibration_renders(n: int, seed: int) -> list[tuple]:
     (tilt 0.2-0.5 rad, as the front camera sees load codes), the others nearly fronto-parallel
     (the floor camera); codes stage 2 failed on are skipped."""
     rng = np.random.default_rng(seed)
-    saved = refine_mod._COV_K, refine_mod._COV_A_PX
-    refine_mod._COV_K, refine_mod._COV_A_PX = 1.0, 0.0        # -> corner_cov_px2 = Sigma_stat
+    stat_only = CornerCovarianceModel(k=1.0, a_px=0.0)        # -> corner_cov_px2 = Sigma_stat
     out = []
-    try:
-        for i in range(n):
-            code = PlacedCode(["0/2/5", "1/" + "x" * 20][(i // 2) % 2], np.eye(4), 0.3)
-            if i % 2:
-                tilt = rng.uniform(0.2, 0.5)
-                T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.0)
-                a = rng.uniform(0.0, 2.0 * np.pi)
-                T[:3, :3] = Rotation.from_rotvec(tilt * np.array([np.cos(a), np.sin(a), 0.0])
-                                                 ).as_matrix() @ T[:3, :3]
-            else:
-                T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.08)
-            blur = rng.uniform(0.0, 8.0)
-            img = render_view(_TEST_CAMERA, T, [code], rng,
-                              RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
-                                            blur_angle_rad=rng.uniform(0.0, np.pi)))
-            truth = project_code_corners(_TEST_CAMERA, T, code)
-            centre = truth.mean(axis=0)
-            outline = centre + (1.0 + 2.0 * QUIET_ZONE_MODULES / code.modules) * (truth - centre)
-            if not (np.all(outline >= 1) and np.all(outline < [639, 479])):
-                continue
-            raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
-            [res] = refine_codes(img, [(raw, code.modules)], _TEST_CAMERA)
-            if res is not None and res.stage == 2:
-                out.append(((res.corners_px - truth).reshape(-1), res.corner_cov_px2, blur))
-    finally:
-        refine_mod._COV_K, refine_mod._COV_A_PX = saved
+    for i in range(n):
+        code = PlacedCode(["0/2/5", "1/" + "x" * 20][(i // 2) % 2], np.eye(4), 0.3)
+        if i % 2:
+            tilt = rng.uniform(0.2, 0.5)
+            T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.0)
+            a = rng.uniform(0.0, 2.0 * np.pi)
+            T[:3, :3] = Rotation.from_rotvec(tilt * np.array([np.cos(a), np.sin(a), 0.0])
+                                             ).as_matrix() @ T[:3, :3]
+        else:
+            T = _down_pose(rng, rng.uniform(0.8, 2.5), 0.08)
+        blur = rng.uniform(0.0, 8.0)
+        img = render_view(_TEST_CAMERA, T, [code], rng,
+                          RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
+                                        blur_angle_rad=rng.uniform(0.0, np.pi)))
+        truth = project_code_corners(_TEST_CAMERA, T, code)
+        centre = truth.mean(axis=0)
+        outline = centre + (1.0 + 2.0 * QUIET_ZONE_MODULES / code.modules) * (truth - centre)
+        if not (np.all(outline >= 1) and np.all(outline < [639, 479])):
+            continue
+        raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
+        res = refine_code(img, raw, code.modules, _TEST_CAMERA, cov_model=stat_only)
+        if res is not None and res.stage == 2:
+            out.append(((res.corners_px - truth).reshape(-1), res.corner_cov_px2, blur))
     return out
 
 
-def corner_nees(data, k: float | None = None, a: float | None = None) -> np.ndarray:
-    """(N, 2): 8-D NEES of each sample under the calibrated covariance, and its blur."""
-    return np.array([(e @ np.linalg.solve(refine_mod.calibrated_cov(S, k, a), e), b)
-                     for e, S, b in data])
+def corner_nees(data, model: CornerCovarianceModel = CALIBRATED_COV_MODEL) -> np.ndarray:
+    """(N, 2): 8-D NEES of each sample under the covariance `model`, and its blur."""
+    return np.array([(e @ np.linalg.solve(model.apply(S), e), b) for e, S, b in data])
 
 
 def calibrate(n: int = 400, seed: int = 7, k: float = 1.05) -> float:
@@ -250,12 +249,13 @@ def calibrate(n: int = 400, seed: int = 7, k: float = 1.05) -> float:
     lo, hi = 0.0, 0.1
     for _ in range(30):
         a = 0.5 * (lo + hi)
-        lo, hi = (a, hi) if corner_nees(data, k, a)[:, 0].mean() > 8.0 else (lo, a)
+        mean_nees = corner_nees(data, CornerCovarianceModel(k, a))[:, 0].mean()
+        lo, hi = (a, hi) if mean_nees > 8.0 else (lo, a)
     a = 0.5 * (lo + hi)
-    v = corner_nees(data, k, a)[:, 0]
+    v = corner_nees(data, CornerCovarianceModel(k, a))[:, 0]
     print(f"calibration on {len(data)} renders (seed {seed}): K = {k}, A = {a:.4f} px "
           f"(mean NEES {v.mean():.2f}, median {np.median(v):.2f}; in use: K = "
-          f"{refine_mod._COV_K}, A = {refine_mod._COV_A_PX})")
+          f"{CALIBRATED_COV_MODEL.k}, A = {CALIBRATED_COV_MODEL.a_px})")
     return a
 
 

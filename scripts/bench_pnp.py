@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion.geometry import inv_T, make_T, transform_points, wrap_angle, yaw_of
 from fusion.qr.codes import classify
-from fusion.qr.crb import floor_pose_crb
+from fusion.qr.reprojection import floor_pose_crb
 from fusion.qr.pnp import estimate_floor_pose, estimate_floor_poses
 from fusion.sim.scenarios import build_scenario
 from fusion.types import QRDetection

@@ -15,17 +15,17 @@ import time
 from pathlib import Path
 
 from fusion.sim.scenarios import build_scenario
-from fusion.sim.simulate import _init_worker, _render_frame, simulate
+from fusion.sim.simulate import frame_renderer, simulate
 
 
 def frames_per_second(resolution, n_frames: int) -> float:
     """Camera frames (each camera counts) per second on one core, PNG encoding included."""
     sc = build_scenario("default", resolution)
-    _init_worker(sc, 0, 1, False)
-    _render_frame(0, 5.0)                                  # warm the per-camera caches
+    render = frame_renderer(sc, seed=0, png_compression=1)
+    render(0, 5.0)                                         # warm the per-camera caches
     t0 = time.perf_counter()
     for k in range(n_frames):
-        _render_frame(k, 5.0 + 50.0 * k / n_frames)
+        render(k, 5.0 + 50.0 * k / n_frames)
     return 2 * n_frames / (time.perf_counter() - t0)
 
 

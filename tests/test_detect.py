@@ -23,9 +23,7 @@ from fusion.qr.refine import (
     estimate_modules,
     modules_for_version,
     refine_code,
-    refine_codes,
-    refine_corners,
-    refine_corners_or_none,
+    refine_frames,
 )
 from fusion.sim.render import (
     PlacedCode,
@@ -111,8 +109,8 @@ def test_undistorted_line_fits_beat_fitting_in_the_distorted_image():
     code = _code("1/pallet-0042", 0.2, (0.2, 0.12))
     img, truth = _render(camera, T, [code])
     [raw] = detect_image(img)
-    with_cam = refine_corners(img, raw.corners_px, raw.modules, camera)
-    without = refine_corners(img, raw.corners_px, raw.modules, None)
+    with_cam = refine_code(img, raw.corners_px, raw.modules, camera).corners_px
+    without = refine_code(img, raw.corners_px, raw.modules, None).corners_px
     e_cam = np.linalg.norm(with_cam - truth[code.payload], axis=1).mean()
     e_none = np.linalg.norm(without - truth[code.payload], axis=1).mean()
     assert e_cam < 0.15 and e_cam < 0.5 * e_none
@@ -126,9 +124,9 @@ def test_module_count_estimated_from_the_finders(payload):
     assert raw.modules == PlacedCode(payload, np.eye(4), 0.2).modules
     assert estimate_modules(img, raw.corners_px) == raw.modules
     # refinement without the version (aruco path) lands on the same corners
-    a = refine_corners_or_none(img, raw.corners_px, None)
-    b = refine_corners_or_none(img, raw.corners_px, raw.modules)
-    assert a is not None and np.allclose(a, b)
+    a = refine_code(img, raw.corners_px, None)
+    b = refine_code(img, raw.corners_px, raw.modules)
+    assert a is not None and np.allclose(a.corners_px, b.corners_px)
 
 
 def test_finder_homography_improves_the_bottom_right_corner():
@@ -139,7 +137,8 @@ def test_finder_homography_improves_the_bottom_right_corner():
         img, truth = _render(camera, T, [_code("0/7/7", 0.2)], noise=1.0, seed=int(10 * yaw))
         [raw] = detect_image(img)
         for fh in err:
-            c = refine_corners(img, raw.corners_px, raw.modules, camera, finder_homography=fh)
+            c = refine_code(img, raw.corners_px, raw.modules, camera,
+                            finder_homography=fh).corners_px
             err[fh].append(np.linalg.norm(c - truth["0/7/7"], axis=1))
     with_h, lines_only = np.array(err[True]), np.array(err[False])
     assert with_h[:, 2].mean() < 0.75 * lines_only[:, 2].mean()     # measured 0.025 vs 0.038 px
@@ -174,8 +173,9 @@ def test_motion_blur_does_not_push_the_corners_outwards():
     outwards by 0.2-1 px at 4-8 px blur)."""
     outward, err = [], []
     for camera, img, raw, truth, modules, blur in _blurred_renders([2, 4, 6, 8], 6, seed=11):
-        c = refine_corners_or_none(img, raw, modules, camera)
-        assert c is not None
+        res = refine_code(img, raw, modules, camera)
+        assert res is not None
+        c = res.corners_px
         centre = truth.mean(axis=0)
         radial = (truth - centre) / np.linalg.norm(truth - centre, axis=1, keepdims=True)
         outward.append(np.sum((c - truth) * radial, axis=1))
@@ -187,25 +187,24 @@ def test_motion_blur_does_not_push_the_corners_outwards():
 
 
 def test_refining_frames_together_equals_one_at_a_time():
-    """refine_frames (all codes of several images in one batch) = refine_codes per image."""
-    from fusion.qr.refine import refine_frames
+    """refine_frames (all codes of several images in one batch) = refine_code per code."""
     data = _blurred_renders([0, 3, 6], 2, seed=5)
     images = [img for _, img, _, _, _, _ in data]
     codes = [[(raw, modules)] for _, _, raw, _, modules, _ in data]
     camera = data[0][0]
     together = refine_frames(images, codes, camera)
     for img, c, [res] in zip(images, codes, together):
-        [alone] = refine_codes(img, c, camera)
+        alone = refine_code(img, *c[0], camera)
         assert res is not None and res.stage == 2
         np.testing.assert_allclose(res.corners_px, alone.corners_px, rtol=0, atol=1e-9)
         np.testing.assert_allclose(res.corner_cov_px2, alone.corner_cov_px2, rtol=1e-9)
 
 
-def test_refinement_failure_falls_back_to_the_raw_corners():
+def test_refinement_failure_gives_none():
     img = np.full((120, 160), 200, np.uint8)          # nothing to fit
     raw = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]])
-    assert refine_corners_or_none(img, raw, 21) is None
-    assert np.array_equal(refine_corners(img, raw, 21), raw)
+    assert refine_code(img, raw, 21) is None
+    assert refine_frames([img, img], [[(raw, 21)], []]) == [[None], []]
     assert modules_for_version(1) == 21 and modules_for_version(40) == 177
 
 

@@ -1,4 +1,4 @@
-"""PnP estimator (fusion/qr/pnp.py) and its measurement model / CRB (fusion/qr/crb.py).
+"""PnP estimator (fusion/qr/pnp/) and its measurement model / CRB (fusion/qr/reprojection.py).
 
 Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
 import math
@@ -26,7 +26,7 @@ from fusion.geometry import (
     yaw_of,
 )
 from fusion.qr.codes import classify
-from fusion.qr.crb import (
+from fusion.qr.reprojection import (
     floor_pose_crb,
     floor_reprojection,
     load_position_crb,
@@ -472,7 +472,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
     previous whitening).  Returns {"single": [...], "multi": [...], "load": [...]} NEES lists."""
     import dataclasses
 
-    from fusion.qr.refine import refine_codes
+    from fusion.qr.refine import refine_frames
     from fusion.sim.render import (
         QUIET_ZONE_MODULES,
         PlacedCode,
@@ -496,7 +496,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
             if np.all(np.isfinite(outline)) and np.all(outline >= 1) and \
                     np.all(outline < np.array([camera.width, camera.height]) - 2):
                 cand.append((c, np.round(truth + rng.normal(0.0, 0.7, truth.shape))))
-        res = refine_codes(img, [(raw, c.modules) for c, raw in cand], camera)
+        [res] = refine_frames([img], [[(raw, c.modules) for c, raw in cand]], camera)
         for (c, raw), r in zip(cand, res):
             if r is not None and r.stage == 2:
                 d = QRDetection(camera.name if hasattr(camera, "name") else "cam", 0, c.payload,
@@ -606,7 +606,7 @@ def test_many_frames_at_once_equal_one_at_a_time():
 def test_vectorised_ippe_matches_opencv(n_points):
     """_ippe's two poses are OpenCV's SOLVEPNP_IPPE ones (its homography estimate differs slightly
     from ours beyond 4 points), and one of them is the true pose for noise-free points."""
-    from fusion.qr.pnp import _ippe
+    from fusion.qr.pnp.ippe import ippe as _ippe
     rng = np.random.default_rng(n_points)
     K = 30
     if n_points == 4:
@@ -656,7 +656,7 @@ def test_fast_model_pieces_match_their_references():
     so3_exp / so3_exp_stack = GTSAM's Rot3.Expmap; pnp.undistort = CameraModel.undistort_normalized,
     also where OpenCV's iteration fails (strong distortion: the Newton fallback)."""
     from fusion.geometry import so3_exp, so3_exp_stack
-    from fusion.qr.crb import Projector
+    from fusion.qr.reprojection import Projector
     from fusion.qr.pnp import undistort
     rng = np.random.default_rng(8)
     p = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(0.5, 3.0, 50)])
@@ -700,29 +700,112 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
 
 
 def test_lm_reports_which_starts_converged():
-    """_levenberg_marquardt flags a start it could not take to a minimum within its iterations
+    """levenberg_marquardt flags a start it could not take to a minimum within its iterations
     (such a point is no candidate pose: its cost can pass for a second, ambiguous minimum)."""
     from fusion.geometry import so3_exp
-    from fusion.qr.crb import Projector
-    from fusion.qr.pnp import (
-        _FloorProblems,
-        _levenberg_marquardt,
-        _same_minimum,
-        corner_whitening,
-    )
+    from fusion.qr.pnp import corner_whitening
+    from fusion.qr.pnp.floor import FloorProblems
+    from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]
     W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
-    R_cb = FLOOR_CAM.T_body_cam[:3, :3].T
-    problems = _FloorProblems(Projector(FLOOR_CAM), R_cb, -R_cb @ FLOOR_CAM.T_body_cam[:3, 3],
-                              np.repeat(P, 2, axis=0), np.repeat(z, 2, axis=0),
-                              np.repeat(W, 2, axis=0))
+    problems = FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, 2, axis=0),
+                                        np.repeat(z, 2, axis=0), np.repeat(W, 2, axis=0))
     R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.25, -0.2, 0.3])])
     t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [0.3, -0.2, 0.4]])
-    G0 = problems.normal_equations(R0, t0)
-    _, _, G, converged = _levenberg_marquardt(problems, R0, t0, G0, max_iter=3)
-    assert converged.tolist() == [True, False] and G[1, 6, 6] > G[0, 6, 6]
-    R, t, G, converged = _levenberg_marquardt(problems, R0, t0, G0)
-    assert converged.all()                                  # both at the same minimum:
-    assert _same_minimum((R[0], t[0]), G[0, :6, :6], (R[1], t[1]))   # < 0.1 sigma apart
+    normal = problems.normal_equations(R0, t0)
+    res = levenberg_marquardt(problems, R0, t0, normal, max_iter=3)
+    assert res.converged.tolist() == [True, False] and res.normal.cost[1] > res.normal.cost[0]
+    res = levenberg_marquardt(problems, R0, t0, normal)
+    assert res.converged.all()                              # both at the same minimum:
+    assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])  # < 0.1 sigma
+
+
+# ============================================================================ decisions pinned
+
+
+def _four_code_problems(n_starts: int):
+    """`n_starts` copies of one noisy four-code floor view as LM problems (FloorProblems)."""
+    from fusion.qr.pnp import corner_whitening
+    from fusion.qr.pnp.floor import FloorProblems
+    sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
+    P = np.vstack([s.corners_world for s in sightings])[None]
+    z = np.vstack([s.detection.corners_px for s in sightings])[None]
+    W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
+    return FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, n_starts, axis=0),
+                                    np.repeat(z, n_starts, axis=0), np.repeat(W, n_starts, axis=0))
+
+
+def test_lm_damps_a_step_that_raises_the_cost():
+    """From a poor start (0.65 rad and 0.53 m off) the full Gauss-Newton step raises the cost
+    (5.2e8 from 3.0e8): undamped, the LM would repeat that step and never converge; damped, it
+    reaches the minimum that the start at the truth reaches."""
+    from fusion.geometry import so3_exp
+    from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
+    problems = _four_code_problems(2)
+    R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.475, 0.396, 0.19])])
+    t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [-0.447, 0.266, 0.117]])
+    normal = problems.normal_equations(R0, t0)
+    gauss_newton = np.linalg.solve(normal.H[1], -normal.g[1])
+    R1, t1 = problems.subset([1]).retract(R0[1:], t0[1:], gauss_newton[None])
+    assert problems.subset([1]).normal_equations(R1, t1).cost[0] > normal.cost[1]
+    res = levenberg_marquardt(problems, R0, t0, normal)
+    assert res.converged.all()
+    assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 40.0, 120.0])
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.3, 0.0), (0.5, 0.3)])
+def test_level_body_single_frame_is_recovered_exactly(yaw_deg, offset):
+    """A level body with a down-looking camera puts R_cam_world at a rotation of exactly pi, where
+    OpenCV's IPPE returns a broken rotation vector (opencv-contrib 5.0: e.g. [13.6, -13.6, 0]
+    for [2.22, -2.22, 0]); the one-frame path must still recover the pose exactly, for one code
+    (no SQPnP fallback) and for two."""
+    T = aim(body_pose(0, 0, 2.0, yaw_deg), offset)
+    for centres in ([(0, 0)], [(0, 0), (1, 0)]):
+        T_view = T if len(centres) == 1 else aim(body_pose(0, 0, 2.6, yaw_deg),
+                                                 (0.5 + 0.3 * offset[0], 0.3 * offset[1]))
+        res = estimate_floor_pose(floor_of(floor_dets(T_view, centres)), FLOOR_CAM)
+        assert res is not None                  # exact to the LM's tolerance (the bug: 0.1-2 rad)
+        np.testing.assert_allclose(res.T_world_body, T_view, atol=1e-6)
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 70.0, -150.0])
+def test_ambiguous_floor_pose_takes_the_more_level_solution(yaw_deg):
+    """One small code far off-centre (3 m up, 0.2 m code, sigma 0.3 px): IPPE's mirror solution,
+    tilted by ~20 deg, fits the noise-free corners within AMBIGUITY_CHI2 of the true, level
+    one; the near-level rule must take the level one (the inverted rule is off by ~0.95)."""
+    T = aim(body_pose(0, 0, 3.0, yaw_deg), (0.5, 0.3))
+    res = estimate_floor_pose(floor_of(floor_dets(T, [(0, 0)])), FLOOR_CAM, 0.3)
+    assert res.ambiguous
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+
+
+@pytest.mark.parametrize("distance_m", [3.0, 4.0])
+def test_ambiguous_load_code_takes_the_solution_with_up_along_world_z(distance_m):
+    """A load code 3-4 m ahead (sigma 0.3 px): both IPPE solutions fit within AMBIGUITY_CHI2;
+    the one whose symbol "up" is nearer world +z is the true one, and its centre is exact (the
+    other's is 3-4 mm off)."""
+    code = LoadCode("box-1", (distance_m, 0.3, 1.3), math.pi)
+    T = body_pose(0.0, 0.0, 1.1, 0.0)
+    obs = estimate_load_observations(classify(load_dets(T, [code]), WORLD).loads, FRONT_CAM,
+                                     WORLD, T, None, 0.3)
+    assert len(obs) == 1
+    np.testing.assert_allclose(obs[0].p_world, code.p_world, atol=1e-9)
+
+
+@pytest.mark.parametrize("yaw_deg", [120.0, 124.6, 130.0])
+def test_sqpnp_start_finds_the_misplaced_code_where_ippe_does_not(yaw_deg):
+    """Two codes, one printed 0.55 m from where its payload says (0/0/-2 at (0.21, -1.51)), seen
+    tilted by 17 deg: no IPPE start refines to a plausible fit, and at the minimum they reach the
+    GOOD code fits worst, so it would be left out and the pose taken from the misplaced one
+    (0.49 m off).  SQPnP's start reaches the minimum where the misplaced code fits worst: it is
+    dropped and the pose is exact."""
+    T = body_pose(0.70, -0.98, 2.65, yaw_deg, roll_deg=2.9, pitch_deg=16.5)
+    misplaced = floor_dets(T, [(0.21, -1.51)])[0]
+    dets = [QRDetection("cam0", 0, floor_payload(0, -2), misplaced.corners_px,
+                        misplaced.corners_px)] + floor_dets(T, [(2, -1)])
+    res = estimate_floor_pose(floor_of(dets), FLOOR_CAM)
+    assert res.dropped_payloads == [floor_payload(0, -2)]
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)

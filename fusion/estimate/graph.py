@@ -245,10 +245,10 @@ def floor_corner_factor(k: int, camera, corners_world: np.ndarray, corners_px: n
     whitening (c, 8, 8) per code (fusion.qr.pnp.corner_whitening: the corners' 8x8 covariance
     C = L L^T -> L^-1).  Residual W (project(T_body_cam^-1 T_world_body^-1 p) - uv) (8c,),
     unit-free after whitening; the projection is the camera's full radial-tangential model
-    (fusion.qr.crb.floor_reprojection, whose Jacobian is w.r.t. the same right perturbation as
+    (fusion.qr.reprojection.floor_reprojection; its Jacobian is w.r.t. the right perturbation of
     GTSAM's Pose3).  A corner behind the camera at the current estimate gives a residual of
     1e3 with zero Jacobian (the robust kernel then caps its pull)."""
-    from fusion.qr.crb import floor_reprojection
+    from fusion.qr.reprojection import floor_reprojection
     P = np.asarray(corners_world, float).copy()
     z = np.asarray(corners_px, float).reshape(-1).copy()
     W = np.asarray(whitening, float).copy()

@@ -52,7 +52,7 @@ from fusion.fileio import (
     strict_float,
     strict_floats,
 )
-from fusion.geometry import R_from_quat_wxyz, make_T
+from fusion.geometry import R_from_quat_wxyz
 from fusion.world import World
 
 CAMERA_NAMES = ("cam0", "cam1")
@@ -867,6 +867,3 @@ def _merge_into(src: Path, dst: Path) -> None:
         else:
             os.replace(entry, target)
 
-
-def T_from_groundtruth_row(p: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
-    return make_T(R_from_quat_wxyz(q_wxyz), p)

@@ -85,11 +85,6 @@ class PaperPose:
         return np.array([self.x, self.y, self.z])
 
     @property
-    def yaw_deg_paper(self) -> float:
-        """D_r-theta as the paper reports it: degrees in [0, 360)."""
-        return math.degrees(self.yaw_rad) % 360.0
-
-    @property
     def T_world_body(self) -> np.ndarray:
         """4x4 pose with roll = pitch = 0 (the paper estimates no tilt)."""
         return make_T(rot_z(self.yaw_rad), self.xyz)

@@ -16,7 +16,7 @@ intersections TL = top x left, TR = top x right, BR = right x bottom, BL = left 
 bottom-right corner has no finder: it is where the TR finder's right edge and the BL finder's
 bottom edge, extended, meet).
 
-Second stage (`finder_homography`, default on; `refine_codes` runs it for all codes of a frame in
+Second stage (`finder_homography`, default on; `refine_frames` runs it for all codes of its frames in
 one set of array operations): the line fit leaves the bottom-right corner, extrapolated from two
 short edges, the least accurate, and 50 % crossings move outwards under motion blur wider than a
 module (the finder's 1-module ring blurs grey with its neighbours).  Stage 2 locates the twelve
@@ -34,7 +34,7 @@ g1.p - c g3.p = 0 (or g2.p - c g3.p = 0) in G = H^-1 (a DLT with Hartley normali
 of outlier rejection), then one weighted Gauss-Newton step on the geometric residuals.  The corners
 are H applied to the module square; their (8, 8) covariance (`RefineResult.corner_cov_px2`)
 propagates each edge point's noise (its profile's residual RMS over its information) through that
-fit, Jc (J^T W J)^-1 Jc^T, and the lens distortion, calibrated on rendered codes (`calibrated_cov`).
+fit, Jc (J^T W J)^-1 Jc^T, and the lens distortion, calibrated on rendered codes (`CornerCovarianceModel`).
 
 Lens distortion bends the edges.  With a `CameraModel` the whole construction runs in
 undistorted pixel coordinates: the raw corners are undistorted, the profiles are laid out in
@@ -664,7 +664,7 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
 @dataclass
 class RefineResult:
     """Refined corners (4, 2) (TL, TR, BR, BL, distorted px), their (8, 8) covariance (px^2,
-    order TL u, TL v, TR u, ..., BL v; calibrated on rendered codes, see `_calibrated_cov`), the
+    order TL u, TL v, TR u, ..., BL v; calibrated on rendered codes, see `CornerCovarianceModel`), the
     1-sigma noise per coordinate (sqrt of its mean diagonal), the fitted blur+PSF box widths (px)
     across the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage
     produced the corners (1: boundary lines, 2: finder-model homography)."""
@@ -685,18 +685,24 @@ class RefineResult:
 # per-profile residuals do not reveal.  A is therefore chosen for the MEAN pose NEES of PnP on
 # rendered frames (tests/test_pnp.py `rendered_nees`; `scripts/bench_detect.py --calibrate`
 # prints the mean-matching A on single-code renders): 8-D corner NEES out of sample ~7.3.
-_COV_K = 1.05
-_COV_A_PX = 0.005
 STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
 
 
-def calibrated_cov(cov_stat_px2: np.ndarray, k: float | None = None, a: float | None = None
-                   ) -> np.ndarray:
-    """(8, 8) corner covariance (px^2) from the propagated one (model above)."""
-    k = _COV_K if k is None else k
-    a = _COV_A_PX if a is None else a
-    cov = k * k * np.asarray(cov_stat_px2) + a * a * np.eye(8)     # (..., 8, 8)
-    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
+@dataclass(frozen=True)
+class CornerCovarianceModel:
+    """Sigma = k^2 Sigma_stat + a_px^2 I_8 (the model above); the defaults are the calibrated
+    values.  `CornerCovarianceModel(1.0, 0.0)` leaves Sigma_stat as it is (what
+    `scripts/bench_detect.py --calibrate` fits k and a_px to)."""
+    k: float = 1.05
+    a_px: float = 0.005
+
+    def apply(self, cov_stat_px2: np.ndarray) -> np.ndarray:
+        """(..., 8, 8) corner covariance (px^2) from the propagated one, symmetrised."""
+        cov = self.k * self.k * np.asarray(cov_stat_px2) + self.a_px * self.a_px * np.eye(8)
+        return 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+CALIBRATED_COV_MODEL = CornerCovarianceModel()
 
 
 def _distort_cov(dist: _Distortion, corners_u: np.ndarray, cov_u: np.ndarray) -> np.ndarray:
@@ -804,18 +810,24 @@ def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
 
 def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, int | None]]],
                   camera: CameraModel | None = None, iterations: int = 1,
-                  finder_homography: bool = True) -> list[list[RefineResult | None]]:
+                  finder_homography: bool = True,
+                  cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL
+                  ) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
     RefineResult or None (finder edges not measurable) per code.  Stage 2
     (`finder_homography`) runs for all codes of all images at once, from the decoder's corners
     (the array work is shared, only the sampling is per image: batching frames is what makes it
-    fast); a code it fails on, or every code without it, gets `iterations` passes of stage 1."""
+    fast); a code it fails on, or every code without it, gets `iterations` passes of stage 1.
+    `camera`: fit in undistorted coordinates (None: no distortion); `cov_model`: the corner
+    covariance model applied to stage 2's propagated covariance.
+
+    One code: `refine_code`."""
     if len(images) != len(codes):
         raise ValueError("refine_frames: one list of codes per image")
     for image in images:
         if image.ndim != 2 or image.dtype != np.uint8:
-            raise ValueError("refine_corners expects (H, W) uint8 images")
+            raise ValueError("refine_frames expects (H, W) uint8 images")
     dist = _Distortion(camera)
     results: list[list[RefineResult | None]] = [[None] * len(c) for c in codes]
     todo, raws, ns = [], [], []          # todo: (image, code) of each code refined
@@ -842,7 +854,7 @@ def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, i
         cu = np.stack([stage2[j][0] for j in done])
         cov_u = np.stack([stage2[j][1] for j in done])
         cd = dist.distort(cu)
-        cov_d = calibrated_cov(_distort_cov(dist, cu, cov_u))
+        cov_d = cov_model.apply(_distort_cov(dist, cu, cov_u))
         sig = np.sqrt(np.mean(np.diagonal(cov_d, axis1=1, axis2=2), axis=1))
         for k, j in enumerate(done):
             i, c = todo[j]
@@ -857,48 +869,21 @@ def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, i
     return results
 
 
-def refine_codes(image: np.ndarray, codes: list[tuple[np.ndarray, int | None]],
-                 camera: CameraModel | None = None, iterations: int = 1,
-                 finder_homography: bool = True) -> list[RefineResult | None]:
-    """Refined corners of every code of one image (`refine_frames` with one image)."""
-    return refine_frames([image], [codes], camera, iterations, finder_homography)[0]
-
-
 def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
                 camera: CameraModel | None = None, iterations: int = 1,
-                finder_homography: bool = True) -> RefineResult | None:
-    """Refined corners of one code with their covariance and the fitted blur, or None (see
-    `refine_codes`; `refine_corners_or_none` returns only the corners)."""
-    return refine_codes(image, [(corners_raw_px, modules)], camera, iterations,
-                        finder_homography)[0]
+                finder_homography: bool = True,
+                cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL) -> RefineResult | None:
+    """Sub-pixel corners of one QR symbol's outer edge with their covariance and the fitted
+    blur, or None when the finder edges cannot be measured (too little contrast, symbol at the
+    image border, ...): `refine_frames` of one image with one code.
 
-
-
-def refine_corners_or_none(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
-                           camera: CameraModel | None = None, iterations: int = 1,
-                           finder_homography: bool = True) -> np.ndarray | None:
-    """Refined (4, 2) corners (TL, TR, BR, BL, distorted px, OpenCV convention) or None if the
-    finder edges cannot be measured (too little contrast, symbol at the image border, ...).
-
-    `iterations` passes of boundary-line fits (stage 1, module docstring), then with
-    `finder_homography` STAGE2_PASSES homography fits to the twelve finder edges located by the
-    blurred-profile model (stage 2), each kept when it agrees with the previous corners."""
-    res = refine_code(image, corners_raw_px, modules, camera, iterations, finder_homography)
-    return None if res is None else res.corners_px
-
-
-def refine_corners(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
-                   camera: CameraModel | None = None, iterations: int = 1,
-                   finder_homography: bool = True) -> np.ndarray:
-    """Sub-pixel (4, 2) corners of a QR symbol's outer edge, TL, TR, BR, BL in distorted pixels.
-
-    `image`: (H, W) uint8 grey image; `corners_raw_px`: (4, 2) decoder corners in the same order;
-    `modules`: modules per side (17 + 4 version), estimated from the finder patterns when None;
-    `camera`: fit the lines in undistorted coordinates.  Returns a copy of the raw corners when
-    the refinement fails (use `refine_corners_or_none` to tell)."""
-    out = refine_corners_or_none(image, corners_raw_px, modules, camera, iterations,
-                                 finder_homography)
-    return np.array(corners_raw_px, dtype=np.float64).reshape(4, 2) if out is None else out
+    `image`: (H, W) uint8 grey image; `corners_raw_px`: (4, 2) decoder corners, TL, TR, BR, BL
+    (distorted px, OpenCV convention); `modules`: modules per side (17 + 4 version), estimated
+    from the finder patterns when None; `iterations` passes of boundary-line fits (stage 1,
+    module docstring), and with `finder_homography` the homography fits to the twelve finder
+    edges located by the blurred-profile model (stage 2)."""
+    return refine_frames([image], [[(corners_raw_px, modules)]], camera, iterations,
+                         finder_homography, cov_model)[0][0]
 
 
 def estimate_modules(image: np.ndarray, corners_px: np.ndarray,

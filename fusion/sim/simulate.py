@@ -113,6 +113,16 @@ def _render_chunk(job: _RenderJob, frames: list[tuple[int, float]]) -> tuple[lis
     return out, time.process_time() - t0
 
 
+def frame_renderer(scenario: Scenario, seed: int = 0, png_compression: int = 1):
+    """`render(k, t_s) -> [PNG bytes per camera]`: frame k of `scenario` at time t_s, exactly as
+    `simulate` renders it (for benchmarks and experiments that time or inspect single frames)."""
+    job = _RenderJob(scenario, seed, png_compression, check_readable=False)
+
+    def render(k: int, t_s: float) -> list[bytes]:
+        return _render_frame(job, k, t_s)[1]
+    return render
+
+
 def floor_code_readable(img: np.ndarray) -> bool:
     """True if zxing-cpp decodes at least one floor code (payload '0/...') in `img`."""
     import zxingcpp

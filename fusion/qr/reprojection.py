@@ -1,6 +1,10 @@
-"""Measurement model of QR corners in distorted pixels, its Jacobians, and the Cramér–Rao bound.
+"""Reprojection model of QR corners in distorted pixels, its Jacobians, and the Cramér–Rao bound.
 
-Not from the paper: this is the model our PnP estimator (fusion/qr/pnp.py) minimises and the bound
+`Projector` (CameraModel.project with its Jacobian d(px)/d(p_cam)); `floor_reprojection` /
+`symbol_reprojection` (corner pixels and their Jacobians w.r.t. a body pose / a code's pose in
+the camera); `floor_pose_crb` / `load_position_crb` and the information -> covariance helpers.
+
+Not from the paper: this is the model our PnP estimator (fusion/qr/pnp/) minimises and the bound
 its benchmark compares against.  Corner pixels z = pi(T_cam_world p_world) + e, e ~ N(0, sigma^2 I)
 per coordinate; pi = CameraModel.project (pinhole + radial-tangential distortion).
 
@@ -13,6 +17,8 @@ Robotics", 2017, Sec. 7.3 for the perturbation; Kay, "Fundamentals of Statistica
 Processing I", 1993, eq. 3.31 for the Gaussian Fisher information).
 """
 from __future__ import annotations
+
+from typing import Literal, overload
 
 import numpy as np
 
@@ -37,6 +43,13 @@ class Projector:
         # [2 p1 y + 6 p2 x, 6 p1 y + 2 p2 x] = [x, y] @ M_tangential: the tangential part of
         # d(x_d)/dx and d(y_d)/dy
         self.M_tangential = np.array([[6.0 * p2, 2.0 * p2], [2.0 * p1, 6.0 * p1]])
+
+    @overload
+    def project(self, p_cam: np.ndarray, jacobian: Literal[True] = ...
+                ) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @overload
+    def project(self, p_cam: np.ndarray, jacobian: Literal[False]) -> tuple[np.ndarray, None]: ...
 
     def project(self, p_cam: np.ndarray, jacobian: bool = True
                 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -74,13 +87,6 @@ class Projector:
         return uv, J
 
 
-def project_with_jacobian(camera: CameraModel, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3).
-
-    Points at or behind the camera give NaN (as CameraModel.project)."""
-    return Projector(camera).project(np.asarray(p_cam, dtype=float).reshape(-1, 3))
-
-
 def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Distorted pixels (N, 2) of world points (N, 3) seen from body pose T_world_body, and the
@@ -88,8 +94,8 @@ def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_wor
     xi = [rx, ry, rz, tx, ty, tz] (T_world_body * Exp(xi)).
 
     For a "gimbaled" camera T_world_body is the level body frame (CameraModel docstring).
-    Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v, p_cam = T_cam_body p_body,
-    so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
+    Derivation: p_body(xi) = Exp(xi)^-1 p_body ~ p_body + [p_body]x w - v,
+    p_cam = T_cam_body p_body, so d p_cam / d xi = R_cam_body [ [p_body]x , -I ]."""
     T_body_cam = np.asarray(camera.T_body_cam, dtype=float)
     T_world_body = np.asarray(T_world_body, dtype=float)
     R_cb = T_body_cam[:3, :3].T

@@ -1,0 +1,182 @@
+"""Whole flights: per-frame PnP over a flight's detections, batched; load observations placed
+with the drone trajectory; the information-weighted load map; and what happened (PnPStats)."""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.geometry import interpolate_pose
+from fusion.qr.codes import classify, rejection_counts
+from fusion.qr.pnp.floor import estimate_floor_poses
+from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
+from fusion.qr.pnp.whitening import DEFAULT_CORNER_SIGMA_PX
+from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
+from fusion.world import World
+
+FRAMES_PER_BATCH = 512
+"""Frames solved together by `pnp_trajectory` / `pnp_load_observations` (bounded memory)."""
+SAME_STAMP_NS = 1_000_000
+"""`pose_at`: a pose stamped within this of the query is taken as it is (1 ms)."""
+MAX_POSE_GAP_S = 0.1
+"""`pose_at`: the longest gap between two poses across which a pose is interpolated."""
+S_PER_NS = 1e-9
+
+
+@dataclass
+class PnPStats:
+    """What happened to a flight's floor-camera frames."""
+    n_frames: int = 0
+    n_posed: int = 0
+    n_without_floor_code: int = 0
+    n_unsolved: int = 0                  # floor codes in view but no acceptable pose
+    n_ambiguous: int = 0                 # decided by the near-level rule
+    n_codes_dropped: int = 0             # outlier codes left out of a pose
+    codes_per_pose: dict[int, int] = field(default_factory=dict)   # n_codes -> n_frames
+    rejections: dict[str, int] = field(default_factory=dict)       # classify() reason -> count
+    mean_reprojection_rms_px: float = float("nan")                 # over the posed frames
+
+    @classmethod
+    def merged(cls, parts: list["PnPStats"]) -> "PnPStats":
+        """The stats of a flight solved in parts: counts summed, the mean RMS weighted by the
+        parts' posed frames."""
+        codes: Counter = Counter()
+        rejections: Counter = Counter()
+        for p in parts:
+            codes.update(p.codes_per_pose)
+            rejections.update(p.rejections)
+        posed = [p for p in parts if p.n_posed]
+        n_posed = sum(p.n_posed for p in parts)
+        return cls(n_frames=sum(p.n_frames for p in parts), n_posed=n_posed,
+                   n_without_floor_code=sum(p.n_without_floor_code for p in parts),
+                   n_unsolved=sum(p.n_unsolved for p in parts),
+                   n_ambiguous=sum(p.n_ambiguous for p in parts),
+                   n_codes_dropped=sum(p.n_codes_dropped for p in parts),
+                   codes_per_pose=dict(sorted(codes.items())),
+                   rejections=dict(sorted(rejections.items())),
+                   mean_reprojection_rms_px=(
+                       float(sum(p.mean_reprojection_rms_px * p.n_posed for p in posed) / n_posed)
+                       if n_posed else float("nan")))
+
+
+def pnp_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, world: World,
+                   corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, name: str = "pnp"
+                   ) -> tuple[Trajectory, PnPStats]:
+    """Per-frame PnP body poses of a floor-camera flight: {timestamp_ns: detections} ->
+    (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
+    left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used.
+    Each frame is solved on its own (`estimate_floor_pose`), FRAMES_PER_BATCH frames at a time
+    (`estimate_floor_poses`)."""
+    stats = PnPStats()
+    ts_out, T_out, cov_out, rms = [], [], [], []
+    codes_seen = []
+    per_pose: Counter = Counter()
+    with_floor = []
+    for ts in sorted(frames):
+        stats.n_frames += 1
+        codes = classify(frames[ts], world)
+        codes_seen.append(codes)
+        if codes.floor:
+            with_floor.append((ts, codes.floor))
+        else:
+            stats.n_without_floor_code += 1
+    for b in range(0, len(with_floor), FRAMES_PER_BATCH):
+        batch = with_floor[b:b + FRAMES_PER_BATCH]
+        for (ts, _), res in zip(batch, estimate_floor_poses([f for _, f in batch], camera,
+                                                            corner_sigma_px)):
+            if res is None:
+                stats.n_unsolved += 1
+                continue
+            stats.n_posed += 1
+            stats.n_ambiguous += int(res.ambiguous)
+            stats.n_codes_dropped += len(res.dropped_payloads)
+            per_pose[res.n_codes] += 1
+            ts_out.append(int(ts))
+            T_out.append(res.T_world_body)
+            cov_out.append(res.covariance)
+            rms.append(res.reprojection_rms_px)
+    stats.codes_per_pose = dict(sorted(per_pose.items()))
+    stats.rejections = rejection_counts(codes_seen)
+    if rms:
+        stats.mean_reprojection_rms_px = float(np.mean(rms))
+    if not ts_out:
+        return Trajectory.empty(name), stats
+    return Trajectory(name, np.asarray(ts_out, dtype=np.int64), np.stack(T_out),
+                      np.stack(cov_out)), stats
+
+
+def pose_at(trajectory: Trajectory, timestamp_ns: int, max_gap_s: float = MAX_POSE_GAP_S
+            ) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(T_world_body, cov or None) at `timestamp_ns`: the pose stamped within SAME_STAMP_NS of
+    it, or the interpolation (linear position, geodesic rotation; covariance of the nearer pose)
+    between the poses on either side when they are at most `max_gap_s` apart; None otherwise."""
+    ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
+    if len(ts) == 0:
+        return None
+    covs = trajectory.covariances
+    i = int(np.searchsorted(ts, timestamp_ns))
+    for j in (i - 1, i):
+        if 0 <= j < len(ts) and abs(int(ts[j]) - int(timestamp_ns)) <= SAME_STAMP_NS:
+            return trajectory.T_world_body[j], (None if covs is None else covs[j])
+    if i == 0 or i == len(ts) or (ts[i] - ts[i - 1]) * S_PER_NS > max_gap_s:
+        return None
+    t0, t1 = int(ts[i - 1]), int(ts[i])
+    a = (int(timestamp_ns) - t0) / (t1 - t0)
+    T = interpolate_pose(trajectory.T_world_body[i - 1], trajectory.T_world_body[i], a)
+    cov = None if covs is None else covs[i - 1 if a < 0.5 else i]
+    return T, cov
+
+
+def pnp_load_observations(front_frames: dict[int, list[QRDetection]], front_camera: CameraModel,
+                          world: World, trajectory: Trajectory,
+                          corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+                          max_gap_s: float = MAX_POSE_GAP_S) -> list[LoadObservation]:
+    """Load observations of a flight's front-camera frames ({timestamp_ns: detections}), placed
+    with the drone pose of `trajectory` at each frame (`pose_at`); frames without a pose are
+    skipped.  Rejected payloads (classify) are never used.  Solved FRAMES_PER_BATCH frames at a
+    time (`estimate_load_observations_frames`)."""
+    todo = []
+    for ts in sorted(front_frames):
+        codes = classify(front_frames[ts], world)
+        if not codes.loads:
+            continue
+        pose = pose_at(trajectory, ts, max_gap_s)
+        if pose is None:
+            continue
+        todo.append(LoadFrame(codes.loads, pose[0], pose[1]))
+    out: list[LoadObservation] = []
+    for b in range(0, len(todo), FRAMES_PER_BATCH):
+        for obs in estimate_load_observations_frames(todo[b:b + FRAMES_PER_BATCH], front_camera,
+                                                     world, corner_sigma_px):
+            out.extend(obs)
+    return out
+
+
+def aggregate_load_observations(observations: list[LoadObservation], name: str = "pnp") -> LoadMap:
+    """Information-weighted mean of each load id's p_world: P = (sum C_i^-1)^-1,
+    p = P sum C_i^-1 p_i (observations without cov_world get the plain mean, cov None).
+
+    Caveat: observations taken from nearby drone poses share pose error, so P is optimistic when
+    they are many; the factor-graph back end models that correlation properly."""
+    by_id: dict[str, list[LoadObservation]] = {}
+    for o in observations:
+        by_id.setdefault(o.load_id, []).append(o)
+    loads = []
+    for load_id in sorted(by_id):
+        obs = by_id[load_id]
+        covs = [(o.cov_world, o.p_world) for o in obs if o.cov_world is not None]
+        if covs:
+            info = np.zeros((3, 3))
+            vec = np.zeros(3)
+            for cov, p_world in covs:
+                W = np.linalg.inv(cov)
+                info += W
+                vec += W @ p_world
+            P = np.linalg.inv(info)
+            loads.append(LoadEstimate(load_id, P @ vec, 0.5 * (P + P.T), len(obs)))
+        else:
+            loads.append(LoadEstimate(load_id, np.mean([o.p_world for o in obs], axis=0), None,
+                                      len(obs)))
+    return LoadMap(name, loads)
