@@ -123,6 +123,10 @@ class Trajectory:
     def yaw_rad(self) -> np.ndarray:
         return yaw_of(self.T_world_body[:, :3, :3])
 
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        return np.asarray(self.timestamps_ns, dtype=np.int64) * 1e-9
+
     @classmethod
     def empty(cls, name: str) -> "Trajectory":
         return cls(name, np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
