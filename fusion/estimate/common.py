@@ -104,6 +104,10 @@ class FusionConfig:
     bias_prior_sigma_gyro_rad_s: float = 1e-2
     bias_prior_sigma_accel_m_s2: float = 0.1
     velocity_prior_sigma_m_s: float = 0.1
+    # ... and when fewer than two fixes give the first velocity: a drone's speed
+    unknown_velocity_sigma_m_s: float = 2.0
+    # Incremental start from position + yaw fixes: roll / pitch prior (the IMU pins them next)
+    initial_roll_pitch_sigma_rad: float = math.radians(10.0)
     # First velocity: least-squares line through up to `first_velocity_fixes` inlier raw
     # positions within `first_velocity_window_s` of the first fix.
     first_velocity_fixes: int = 10

@@ -395,8 +395,14 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         pb.counts.frames_outside_imu = int(((frame_t < t0) | (frame_t > t1)).sum())
 
     # ---- priors
+    # the first velocity comes from a line through the first fixes; with fewer than two of them
+    # it is unknown (zero, with the sigma of a drone's speed)
+    near = np.abs(frame_t[inlier_frames] - frame_t[pb.k_first]) <= \
+        config.first_velocity_window_s * 1e9
+    v_sigma = config.velocity_prior_sigma_m_s if near.sum() >= 2 else \
+        config.unknown_velocity_sigma_m_s
     pb.add(gtsam.PriorFactorVector(V(pb.k_first), v0, gtsam.noiseModel.Isotropic.Sigma(
-        3, config.velocity_prior_sigma_m_s)), pb.k_first)
+        3, v_sigma)), pb.k_first)
     if imu is not None:
         pb.add(gtsam.PriorFactorConstantBias(B(pb.k_first), gtsam.imuBias.ConstantBias(),
                                              gtsam.noiseModel.Diagonal.Sigmas(np.r_[
@@ -528,7 +534,7 @@ class LMResult:
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                         config: FusionConfig | None = None,
                         ordering: gtsam.Ordering | None = None,
-                        errors: list | None = None) -> LMResult:
+                        errors: list | None = None, qr: bool = False) -> LMResult:
     """Levenberg-Marquardt (Nocedal & Wright 2006, Sec. 10.3; GTSAM's defaults: lambda0 1e-5,
     factor 10, identity damping) driven from Python around GTSAM's linearize / multifrontal
     elimination, with one COLAMD ordering computed up front and reused.  Each iteration first
@@ -543,6 +549,9 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     linearisation is 8-110x slower than `graph.linearize` called from Python on the same graph
     (measured here, gtsam 4.3.0 wheel, same optimum; GTSAM issue #875: CustomFactor overhead).
 
+    `qr`: eliminate by Householder QR on the whitened Jacobians instead of GTSAM's default
+    (Cholesky on the normal equations, which squares the condition number: a long IMU-only
+    stretch then looks indeterminate to it); slower, used by `solve` as the first fallback.
     Raises what GTSAM raises on a singular system (RuntimeError: IndeterminantLinearSystem;
     ValueError: a variable of the ordering in no factor); `solve` handles those.
     `errors`, if given, receives the graph error at the start and after each accepted step."""
@@ -562,12 +571,12 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         lin = graph.linearize(values)
         stalled = False
         while True:
+            system = lin
             if lam > 0:
-                damped = lin.clone()
-                _add_damping(damped, keys, lam)
-                tree = damped.eliminateMultifrontal(ordering)
-            else:
-                tree = lin.eliminateMultifrontal(ordering)
+                system = lin.clone()
+                _add_damping(system, keys, lam)
+            tree = system.eliminateMultifrontal(ordering, gtsam.EliminateQR) if qr else \
+                system.eliminateMultifrontal(ordering)
             delta = tree.optimize()
             trial = values.retract(delta)
             new_err = graph.error(trial)
@@ -637,33 +646,40 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: Fusio
           health: SolveHealth, ordering: gtsam.Ordering | None = None,
           errors: list | None = None) -> tuple[LMResult, gtsam.NonlinearFactorGraph,
                                                  gtsam.Ordering]:
-    """levenberg_marquardt with the failures recorded in `health`: a singular linear system
-    (IndeterminantLinearSystem, an ordering variable in no factor) is retried once with
-    weak_priors on every variable; iteration-limit stops and stalls are counted.  Returns the
-    result, the graph and the ordering actually solved (for the covariances).  A second failure
-    raises EstimationError with GTSAM's reason."""
+    """levenberg_marquardt with the failures recorded in `health`.  A singular linear system
+    (IndeterminantLinearSystem, an ordering variable in no factor) is retried with QR
+    elimination (nearly indeterminate for Cholesky only, e.g. seconds of IMU-only motion), then
+    with QR and weak_priors on every state (a variable nothing constrains); each retry is
+    counted in linear_fallbacks, and iteration-limit stops and stalls are counted.  Returns the
+    result, the graph and the ordering actually solved (for the covariances).  A failure of
+    the last retry raises EstimationError with GTSAM's reason."""
     ordering = ordering or gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     try:
         res = levenberg_marquardt(graph, values, config, ordering, errors)
     except (RuntimeError, ValueError) as e:
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        log.warning("singular linear system (%s): retrying with weak priors on every state",
-                    reason)
+        reason = _first_line(e)
+        log.warning("singular linear system (%s): retrying with QR elimination", reason)
         health.linear_fallbacks += 1
-        health.note(f"singular linear system ({reason}): solved again with weak priors on "
-                    "every state")
-        priors = weak_priors(values, config)
-        health.weak_prior_states += len(priors)
-        graph = gtsam.NonlinearFactorGraph(graph)
-        for f in priors:
-            graph.add(f)
-        ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+        health.note(f"singular linear system for Cholesky ({reason}): solved by QR")
         try:
-            res = levenberg_marquardt(graph, values, config, ordering, errors)
+            res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
         except (RuntimeError, ValueError) as e2:
-            raise EstimationError(f"the factor graph cannot be solved even with weak priors: "
-                                  f"{str(e2).strip().splitlines()[0] if str(e2).strip() else e2!r}"
-                                  ) from None
+            log.warning("singular linear system (%s): retrying with weak priors on every state",
+                        _first_line(e2))
+            health.linear_fallbacks += 1
+            health.note(f"singular linear system ({_first_line(e2)}): solved again with weak "
+                        "priors on every state")
+            priors = weak_priors(values, config)
+            health.weak_prior_states += len(priors)
+            graph = gtsam.NonlinearFactorGraph(graph)
+            for f in priors:
+                graph.add(f)
+            ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+            try:
+                res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
+            except (RuntimeError, ValueError) as e3:
+                raise EstimationError("the factor graph cannot be solved even with weak priors: "
+                                      f"{_first_line(e3)}") from None
     if res.stop is LMStop.ITERATION_LIMIT:
         health.iteration_limit_hits += 1
         health.note(f"Levenberg-Marquardt stopped at its iteration limit "
@@ -672,6 +688,14 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: Fusio
         health.lm_stalls += 1
         health.note("Levenberg-Marquardt stalled: no damping lowered the error")
     return res, graph, ordering
+
+
+def _first_line(e: Exception) -> str:
+    """GTSAM's messages run over several lines; the first (plus the variable) names the cause."""
+    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+    if not lines:
+        return type(e).__name__
+    return " ".join(lines[:2]) if lines[0].endswith("variable") else lines[0]
 
 
 def gate_outliers(pb: Problem, dist: dict[int, float], config: FusionConfig,
@@ -795,7 +819,7 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             lcov = dict(enumerate(lc))
         else:                   # not the chain structure: gtsam's Bayes tree, key by key
             try:
-                tree = lin.eliminateMultifrontal(ordering)
+                tree = lin.eliminateMultifrontal(ordering, gtsam.EliminateQR)
                 cov = np.empty((n, 6, 6))
                 for k in range(n):
                     cov[k] = tree.marginalCovariance(X(k))
@@ -955,7 +979,10 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                     left[j] = (engine.calculateEstimatePoint3(lkey(j)),
                                engine.marginalCovariance(lkey(j)))
                 except (RuntimeError, ValueError, IndexError):
+                    # never estimated (the failed update that brought it): start it afresh
                     left.pop(j, None)
+                    gen.pop(j, None)
+                    last_seen.pop(j, None)
         engine = _new_engine(config)
         start = k
         streak.clear()
@@ -986,6 +1013,12 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                 g.add(gtsam.PriorFactorConstantBias(B(k), bias_guess, gtsam.noiseModel.Diagonal.Sigmas(
                     np.r_[np.full(3, config.bias_prior_sigma_accel_m_s2),
                           np.full(3, config.bias_prior_sigma_gyro_rad_s)])))
+        if k == k0 and pb.raw_input is not RawPoseInput.POSE6:
+            # position + yaw fixes leave the first roll / pitch to the IMU, which has not
+            # spoken yet: a prior at the initial guess (sigma: the gimbal convention's)
+            g.add(gtsam.PriorFactorPose3(X(k), pose_guess, gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[np.full(2, config.initial_roll_pitch_sigma_rad),
+                      config.fallback_sigma_rot_rad, np.full(3, config.fallback_sigma_pos_m)])))
         if weak or (fresh and k > k0 and k not in pose_at):
             for f in weak_priors(vals, config):
                 if gtsam.Symbol(f.keys()[0]).chr() == ord("x"):
