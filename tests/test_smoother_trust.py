@@ -137,7 +137,7 @@ def test_wrong_world_yaml_does_not_crash(short, fault):
     if fault == "side_m":
         # every fix disagrees with the IMU: none removed, and said so
         assert res.health.gate_skipped > 0.5 * len(short.raw)
-        assert res.health.reasons
+        assert res.health.reasons and res.health.mode is SolveMode.IMU_REJECTED
     else:
         # the fixes jump where the code under the drone changes: those are rejected
         assert res.stats["rejected_pose_factors"] > 0
@@ -154,9 +154,13 @@ def test_faulty_imu_does_not_crash(short, fault):
     res, inc = both_smoothers(short, imu=bad)
     for r in (res, inc):
         assert np.all(np.isfinite(r.trajectory.T_world_body))
-    # the fixes disagree with the motion model everywhere: none removed, and said so
+    # the fixes disagree with the motion model everywhere: none removed, the IMU is left out
+    # (said so), and the fixes keep the trajectory where they are
     assert res.health.gate_skipped > 0.5 * len(short.raw) and res.health.reasons
+    assert res.health.mode is SolveMode.IMU_REJECTED and res.stats["imu_intervals"] == 0
     assert res.health.linear_fallbacks == 0
+    assert rmse(res, short, ~short.gap_mask) < 0.005
+    assert len(res.loads.loads) == len(short.loads_true)
 
 
 def test_timestamps_in_microseconds_do_not_crash(short):

@@ -34,10 +34,12 @@ class TightCoupling(Choice):
 
 
 class SolveMode(Choice):
-    """How much the fixes constrain the estimate."""
+    """How much the fixes constrain the estimate, and by what."""
     FUSED = "fused"                  # fixes and motion model
     DEAD_RECKONED = "dead_reckoned"  # at most config.dead_reckoning_max_fixes fixes: IMU /
     #                                  velocity integration from them, sigma grows accordingly
+    IMU_REJECTED = "imu_rejected"    # most fixes disagreed with the IMU beyond the gate: fused
+    #                                  without it (random-walk model, velocity if any)
 
 
 @dataclass
@@ -97,6 +99,8 @@ class FusionConfig:
     # motion model (IMU units, clock) rather than the fixes is wrong, and removing the fixes
     # would leave the trajectory unanchored.
     max_gated_fraction: float = 0.5
+    # ... and then the batch smoother solves again without the IMU (SolveMode.IMU_REJECTED)
+    reject_disagreeing_imu: bool = True
     # Raw trajectories without covariance (the paper's estimator: position + yaw only).
     paper_sigma_xyz_m: tuple[float, float, float] = (0.02, 0.02, 0.02)
     paper_sigma_yaw_rad: float = math.radians(1.0)
@@ -474,15 +478,16 @@ def check_front_camera(front_camera) -> CameraModel | None:
 
 def prepare_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                    velocity: VelocityData | None, front_camera: CameraModel | None,
-                   config: FusionConfig) -> FusionInputs:
-    """The checks every back end starts with, or EstimationError naming the bad input."""
+                   config: FusionConfig, require_motion: bool = True) -> FusionInputs:
+    """The checks every back end starts with, or EstimationError naming the bad input.
+    `require_motion=False` accepts neither IMU nor velocity (the random-walk model alone)."""
     frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
     if len(frame_t) == 0:
         raise EstimationError("no floor-camera frames")
     rawp = prepare_raw(frame_t, raw, config)
     imu = check_imu(imu) if imu is not None and len(imu.timestamps_ns) else None
     velocity = check_velocity(velocity) if velocity is not None else None
-    if imu is None and velocity is None:
+    if imu is None and velocity is None and require_motion:
         raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
     return FusionInputs(frame_t, rawp, imu, velocity, check_front_camera(front_camera))
 

@@ -330,7 +330,8 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                   load_obs: list[LoadObservation] | None, front_camera: CameraModel | None,
                   velocity: VelocityData | None = None,
                   config: FusionConfig | None = None, floor_frames: dict | None = None,
-                  floor_camera: CameraModel | None = None) -> Problem:
+                  floor_camera: CameraModel | None = None,
+                  require_motion: bool = True) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
     front_camera: the load camera (CameraModel, mount-aware), None without one (load
@@ -345,7 +346,8 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
     poses at no frame time, neither IMU nor velocity, a front camera that is not a CameraModel."""
     config = config or FusionConfig()
-    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config)
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config,
+                         require_motion)
     frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     n = len(frame_t)
     use = inlier_raw_mask(rawp, config)
@@ -774,12 +776,42 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     initial/final error, rejected_* = robust factors beyond the kernel threshold at the robust
     solution, gated_* = those beyond `outlier_gate`, removed before the final solve, IMU
     segments / bridged intervals, times, `health` as a dict) and `health` (SolveHealth).
-    Never raises a GTSAM exception: a singular system is retried with weak priors, and only a
-    second failure ends in EstimationError."""
+    Never raises a GTSAM exception: a singular system is retried by QR, then with weak priors,
+    and only a third failure ends in EstimationError.  When most fixes disagree with the IMU
+    beyond the outlier gate (config.reject_disagreeing_imu), the flight is solved again
+    without the IMU (random-walk model and velocity): health.mode IMU_REJECTED."""
     config = config or FusionConfig()
+    res = _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
+                       floor_frames, floor_camera)
+    if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
+        return res
+    # most fixes disagree with the IMU: its units, the world's scale or a clock are wrong, and
+    # the IMU's confident factors would drag the trajectory away from every fix
+    log.warning("smoother: most fixes disagree with the IMU; solving again without it")
+    alt = _smooth_once(frame_times_ns, None, raw, load_obs, front_camera, velocity, config,
+                       floor_frames, floor_camera, require_motion=False)
+    h = alt.health
+    h.mode = SolveMode.IMU_REJECTED
+    h.reasons = list(dict.fromkeys([
+        f"{res.health.gate_skipped} of {res.health.fixes} fixes disagreed with the IMU beyond "
+        "the outlier gate: solved again without the IMU (random-walk motion model"
+        + (", velocity" if velocity is not None else "") + "); check the IMU's units and "
+        "clock, and world.yaml's side_m / payload_unit_m"] + h.reasons))
+    h.gate_skipped += res.health.gate_skipped
+    h.iteration_limit_hits += res.health.iteration_limit_hits
+    h.lm_stalls += res.health.lm_stalls
+    h.linear_fallbacks += res.health.linear_fallbacks
+    alt.stats["health"] = h.as_dict()
+    alt.stats["imu_rejected"] = True
+    return alt
+
+
+def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
+                 floor_frames, floor_camera, require_motion: bool = True) -> FusionResult:
+    """One batch solve (smooth without the IMU-rejection retry)."""
     t0 = time.perf_counter()
     pb = build_problem(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
-                       floor_frames, floor_camera)
+                       floor_frames, floor_camera, require_motion)
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
