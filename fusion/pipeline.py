@@ -17,9 +17,15 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import EstimationError, FusionError, OutputError
+from fusion.estimate import (
+    FusionConfig,
+    FusionResult,
+    run_ekf,
+    smooth,
+    smooth_incremental,
+)
 from fusion.log import FlightLog, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
-from fusion.estimate import FusionConfig, FusionResult, run_ekf, smooth, smooth_incremental
 from fusion.types import (
     RAW_ESTIMATORS,
     Estimator,
@@ -57,7 +63,7 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     report_path: Path | None = None
-    failures: dict[str, "EstimatorFailure"] = field(default_factory=dict)
+    failures: dict[str, EstimatorFailure] = field(default_factory=dict)
 
     def summary(self) -> str:
         """A short table for the terminal."""

@@ -18,6 +18,14 @@ import gtsam
 import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
+from test_estimate import (
+    FRONT_CAM,
+    T_BODY_FRONTCAM,
+    _rand_pose,
+    front_camera,
+    make_flight,
+    pos_err,
+)
 
 from fusion.errors import EstimationError
 from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
@@ -27,14 +35,6 @@ from fusion.estimate.smoother import LMStop, build_problem, levenberg_marquardt
 from fusion.geometry import inv_T, level_frame, make_T
 from fusion.log.euroc import ImuData
 from fusion.types import Estimator, LoadObservation, Mount, RobustKernel, Trajectory
-from test_estimate import (
-    FRONT_CAM,
-    T_BODY_FRONTCAM,
-    _rand_pose,
-    front_camera,
-    make_flight,
-    pos_err,
-)
 
 GRID_M = 1.0        # floor codes on a 1 m grid (the default scenario's)
 
@@ -310,7 +310,10 @@ def test_gimbaled_cameras_fused_like_for_like():
 @pytest.mark.parametrize("mount", list(Mount))
 def test_load_jacobians_match_numerical_for_each_mount(mount):
     """The camera-frame load residual and the body-frame CustomFactor, both mounts."""
-    from gtsam.utils.numerical_derivative import numericalDerivative21, numericalDerivative22
+    from gtsam.utils.numerical_derivative import (
+        numericalDerivative21,
+        numericalDerivative22,
+    )
     rng = np.random.default_rng(34)
     for _ in range(4):
         pose, l, pm = _rand_pose(rng), rng.normal(size=3) * 3, rng.normal(size=3)

@@ -17,5 +17,15 @@ from fusion.estimate.common import (
 from fusion.estimate.ekf import run_ekf
 from fusion.estimate.smoother import smooth, smooth_incremental
 
-__all__ = ["FusionConfig", "FusionResult", "SolveHealth", "SolveMode", "RawPoseInput",
-           "TightCoupling", "smooth", "smooth_incremental", "run_ekf", "write_sigmas_csv"]
+__all__ = [
+    "FusionConfig",
+    "FusionResult",
+    "RawPoseInput",
+    "SolveHealth",
+    "SolveMode",
+    "TightCoupling",
+    "run_ekf",
+    "smooth",
+    "smooth_incremental",
+    "write_sigmas_csv",
+]

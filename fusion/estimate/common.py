@@ -12,12 +12,13 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
+from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
 from fusion.geometry import interpolate_poses
 from fusion.log.euroc import ImuData, VelocityData
-from fusion.camera import CameraModel
 from fusion.types import Choice, LoadMap, LoadObservation, RobustKernel, Trajectory
+
 
 class RawPoseInput(Choice):
     """What the raw per-frame poses constrain (chosen once per flight in build_problem)."""

@@ -18,14 +18,35 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.geometry import level_frame, level_frame_jacobian, rot_z, skew, wrap_angle, yaw_gradient, yaw_of
+from fusion.geometry import (
+    level_frame,
+    level_frame_jacobian,
+    rot_z,
+    skew,
+    wrap_angle,
+    yaw_gradient,
+    yaw_of,
+)
 from fusion.log.euroc import ImuNoise
 from fusion.qr.crb import floor_reprojection
 from fusion.types import RobustKernel
 
-__all__ = ["X", "V", "B", "L", "imu_params", "robust", "pose_prior_factor",
-           "position_yaw_factor", "level_pose_factor", "body_velocity_factor", "load_factor",
-           "constant_velocity_factor", "bridge_factors", "floor_corner_factor"]
+__all__ = [
+    "B",
+    "L",
+    "V",
+    "X",
+    "body_velocity_factor",
+    "bridge_factors",
+    "constant_velocity_factor",
+    "floor_corner_factor",
+    "imu_params",
+    "level_pose_factor",
+    "load_factor",
+    "pose_prior_factor",
+    "position_yaw_factor",
+    "robust",
+]
 
 
 # =========================================================================== noise models

@@ -57,10 +57,27 @@ from fusion.estimate.marginals import chain_marginals
 from fusion.geometry import make_T, rot_z, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
-from fusion.types import Choice, Estimator, LoadEstimate, LoadMap, LoadObservation, Trajectory
+from fusion.types import (
+    Choice,
+    Estimator,
+    LoadEstimate,
+    LoadMap,
+    LoadObservation,
+    Trajectory,
+)
 
-__all__ = ["smooth", "smooth_incremental", "build_problem", "Problem", "imu_coverage",
-           "imu_subintervals", "levenberg_marquardt", "LMResult", "LMStop", "FactorKind"]
+__all__ = [
+    "FactorKind",
+    "LMResult",
+    "LMStop",
+    "Problem",
+    "build_problem",
+    "imu_coverage",
+    "imu_subintervals",
+    "levenberg_marquardt",
+    "smooth",
+    "smooth_incremental",
+]
 
 log = logging.getLogger(__name__)
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
