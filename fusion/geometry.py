@@ -232,6 +232,32 @@ def level_frame(T_world_body: np.ndarray) -> np.ndarray:
     return out
 
 
+def yaw_gradient(R_world_body: np.ndarray) -> np.ndarray:
+    """(3,) d yaw / d w of yaw_of(R Exp(w)) at w = 0 (right perturbation, GTSAM's Rot3 / Pose3).
+
+    R' = R (I + [w]x) moves the first column by R (w x e_x) = R[:, 1] w_z - R[:, 2] w_y, and
+    yaw = atan2(R10, R00) by (R00 dR10 - R10 dR00) / (R00^2 + R10^2); w_x (roll) does not move it."""
+    R = np.asarray(R_world_body, dtype=float)
+    n = R[0, 0] ** 2 + R[1, 0] ** 2
+    return np.array([0.0, (R[1, 0] * R[0, 2] - R[0, 0] * R[1, 2]) / n,
+                     (R[0, 0] * R[1, 1] - R[1, 0] * R[0, 1]) / n])
+
+
+def level_frame_jacobian(T_world_body: np.ndarray) -> np.ndarray:
+    """(6, 6) d xi_level / d xi_body: how a right perturbation of the body pose,
+    T_world_body Exp(xi_body), moves level_frame(T_world_body) in its own right-perturbation
+    coordinates, level Exp(xi_level) (both in GTSAM's Pose3 order [r, t]).
+
+    The level frame keeps only yaw and position: its rotation moves about its z by d yaw
+    (yaw_gradient), its origin by R dt, i.e. by Rz(yaw)^T R dt in its own axes."""
+    T = np.asarray(T_world_body, dtype=float)
+    R = T[:3, :3]
+    J = np.zeros((6, 6))
+    J[2, :3] = yaw_gradient(R)
+    J[3:, 3:] = rot_z(float(yaw_of(R))).T @ R
+    return J
+
+
 # --------------------------------------------------------------------------- interpolation
 
 

@@ -10,25 +10,37 @@ the run locks, lists in `manifest.json` and rolls back on failure (`fusion.filei
 """
 from __future__ import annotations
 
-import time
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from fusion.errors import EstimationError, FusionError
+from fusion.estimate import (
+    FusionConfig,
+    FusionResult,
+    run_ekf,
+    smooth,
+    smooth_incremental,
+)
 from fusion.fileio import OutputFolder, csv_safe
 from fusion.log import FlightLog, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
-from fusion.types import LoadMap, LoadObservation, Trajectory
+from fusion.types import (
+    RAW_ESTIMATORS,
+    Estimator,
+    LoadMap,
+    LoadObservation,
+    Trajectory,
+)
 
 logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
-RAW_ESTIMATORS = ("paper", "pnp")
-FUSED_ESTIMATORS = ("smoother", "incremental", "ekf")
+log_ = logging.getLogger(__name__)
 
 
 @dataclass
@@ -57,6 +69,7 @@ class RunResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     report_path: Path | None = None
     warnings: list[LogWarning] = field(default_factory=list)   # the log's (FlightLog.warnings)
+    failures: dict[str, EstimatorFailure] = field(default_factory=dict)
 
     def summary(self) -> str:
         """A short table for the terminal."""
@@ -93,6 +106,8 @@ class RunResult:
             lines.append(f"loads {name:<9} {len(lm.loads)} mapped{err}")
         for w in self.warnings:
             lines.append(f"warning: {w}")
+        for name, failure in self.failures.items():
+            lines.append(f"{name:<12} FAILED: {failure.reason}")
         for note in self.notes:
             lines.append(f"note: {note}")
         if self.report_path is not None:
@@ -131,6 +146,9 @@ class LocalizeResult:
     load_maps: dict[str, LoadMap]
     stats: dict
     notes: list[str] = field(default_factory=list)
+    # every front-camera load sighting as a camera-frame measurement (p_cam, cov_cam), also at
+    # frames without a raw pose (their p_world is meaningless): what the fused back ends take
+    camera_frame_observations: list[LoadObservation] = field(default_factory=list)
 
 
 def detection_statistics(log: FlightLog, det, world) -> dict:
@@ -199,8 +217,8 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     maps["pnp"] = pnp.aggregate_load_observations(obs["pnp"], name="pnp")
     # The landmark factors of the fusion back end need only the camera-frame measurement, so
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
-    obs["camera_frame"] = obs["pnp"] + [o for p in parts for o in p["unposed"]]
-    return LocalizeResult(trajectories, obs, maps, stats, notes)
+    camera_frame = obs["pnp"] + [o for p in parts for o in p["unposed"]]
+    return LocalizeResult(trajectories, obs, maps, stats, notes, camera_frame)
 
 
 _LOCALIZE_PRELOAD = ("fusion.pipeline",)
@@ -302,49 +320,78 @@ def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
     return [o for frame in per_frame for o in frame]
 
 
-def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None
-               ) -> tuple[dict, list[str]]:
-    """Smoother, incremental smoother and EKF on the PnP poses; {name: FusionResult}, notes.
+@dataclass
+class EstimatorFailure:
+    """A fused estimator that produced no result, and why (summary, metrics.json)."""
+    estimator: Estimator
+    reason: str                      # one line
+    error_type: str                  # the exception's class name
 
-    With `cfg.tight` the two GTSAM smoothers use each floor code's corners as reprojection
-    factors (the floor sightings of `det`) instead of the per-frame PnP pose; the EKF stays
-    loosely coupled."""
-    from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
-    notes: list[str] = []
-    raw = loc.trajectories["pnp"]
+
+@dataclass
+class FuseStageResult:
+    """The fused back ends' results, those that failed, and notes for the summary."""
+    results: dict[Estimator, FusionResult] = field(default_factory=dict)
+    failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) -> FuseStageResult:
+    """Smoother, incremental smoother and EKF on the PnP poses.
+
+    Each back end runs on its own: one that raises is recorded in `failures` with its reason
+    and the others still run.  The smoothers take both cameras' CameraModels (mount-aware);
+    with `cfg.tight` they use each floor code's corners as reprojection factors (the floor
+    sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled."""
+    out = FuseStageResult()
+    raw = loc.trajectories[str(Estimator.PNP)]
     if len(raw) == 0:
-        return {}, ["no floor code was read in this flight: nothing to fuse (no fused estimate)"]
+        out.notes.append("no floor code was read in this flight: nothing to fuse (no fused "
+                         "estimate)")
+        return out
     if log.imu is None and log.velocity is None:
-        return {}, ["the log has neither IMU nor velocity: raw per-frame estimates only"]
+        out.notes.append("the log has neither IMU nor velocity: raw per-frame estimates only")
+        return out
     if log.imu is None:
-        notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
+        out.notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
     fcfg = FusionConfig(robust_kernel=cfg.robust, tight=cfg.tight)
-    graph_kwargs = {}
+    graph_kwargs = {"floor_camera": log.floor.camera}
     if cfg.tight:
         from fusion.qr.codes import classify
-        graph_kwargs = {"floor_frames": {t: classify(d, log.world).floor
-                                         for t, d in det.by_frame("cam0").items()},
-                        "floor_camera": log.floor.camera}
-        notes.append("tight coupling: floor-code corners as reprojection factors in the "
-                     "smoothers (the EKF stays loosely coupled)")
-    load_obs = loc.load_observations.get("camera_frame")
-    T_bc = log.front.camera.T_body_cam if log.front is not None else np.eye(4)
+        graph_kwargs["floor_frames"] = {t: classify(d, log.world).floor
+                                        for t, d in det.by_frame("cam0").items()}
+        out.notes.append("tight coupling: floor-code corners as reprojection factors in the "
+                         "smoothers (the EKF stays loosely coupled)")
+    load_obs = loc.camera_frame_observations if log.front is not None else []
+    front = log.front.camera if log.front is not None else None
     frame_t = log.floor.timestamps_ns
-    solvers = [("smoother", smooth, graph_kwargs), ("ekf", run_ekf, {})]
+    # the EKF still takes a bare T_body_frontcam (body-fixed)
+    ekf_front = front.T_body_cam if front is not None else None
+    solvers = [(Estimator.SMOOTHER, smooth, front, graph_kwargs)]
     if cfg.incremental:
-        solvers.insert(1, ("incremental", smooth_incremental, graph_kwargs))
-    results = {}
-    for name, fn, kwargs in solvers:
+        solvers.append((Estimator.INCREMENTAL, smooth_incremental, front, graph_kwargs))
+    solvers.append((Estimator.EKF, run_ekf, ekf_front, {}))
+    for name, fn, cam, kwargs in solvers:
         try:
-            res = fn(frame_t, log.imu, raw, load_obs, T_bc, velocity=log.velocity,
+            res = fn(frame_t, log.imu, raw, load_obs, cam, velocity=log.velocity,
                      config=fcfg, **kwargs)
-        except EstimationError as e:
-            notes.append(f"{name} not run: {e}")
+        except FusionError as e:
+            out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
-        res.trajectory.name = name
-        res.loads.name = name
-        results[name] = res
-    return results, notes
+        except Exception as e:          # a bug in one back end must not cost the others
+            log_.exception("%s failed", name)
+            out.failures[name] = EstimatorFailure(
+                name, f"internal error: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}",
+                type(e).__name__)
+            continue
+        res.trajectory.name = str(name)
+        res.loads.name = str(name)
+        out.results[name] = res
+        for reason in res.health.reasons:
+            out.notes.append(f"{name}: {reason}")
+    for name, failure in out.failures.items():
+        log_.warning("%s failed: %s", name, failure.reason)
+    return out
 
 
 def write_load_observations_csv(path: Path, observations: list[LoadObservation]) -> None:
@@ -414,9 +461,10 @@ def _run_into(log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused, notes = fuse_stage(log, loc, cfg, det)
-        result.notes += notes
-        for name, res in fused.items():
+        fused_stage = fuse_stage(log, loc, cfg, det)
+        result.notes += fused_stage.notes
+        result.failures = {str(k): v for k, v in fused_stage.failures.items()}
+        for name, res in fused_stage.results.items():
             result.trajectories[name] = res.trajectory
             if log.front is not None:
                 result.load_maps[name] = res.loads
@@ -464,6 +512,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
     metrics = evaluate(gt, result.trajectories, result.load_maps, log.loads_groundtruth,
                        log.blackouts, result.detection_stats)
     metrics["estimator_stats"] = to_jsonable({**raw_stats, **fused_stats})
+    metrics["estimator_failures"] = {name: {"reason": f.reason, "error_type": f.error_type}
+                                     for name, f in result.failures.items()}
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     if gt is not None:

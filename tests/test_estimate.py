@@ -20,6 +20,7 @@ from gtsam.utils.numerical_derivative import (
 )
 from scipy.spatial.transform import Rotation
 
+from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
 from fusion.estimate import (
@@ -30,11 +31,18 @@ from fusion.estimate import (
     write_sigmas_csv,
 )
 from fusion.estimate import graph as G
+from fusion.estimate.common import RawPoseInput, TightCoupling
 from fusion.geometry import inv_T, make_T, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, ImuNoise, VelocityData
-from fusion.types import LoadObservation, Trajectory
+from fusion.types import LoadObservation, Mount, RobustKernel, Trajectory
 
 T_BODY_FRONTCAM = make_T(R_BODY_FRONTCAM, [0.1, 0.0, 0.05])
+FRONT_CAM = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, T_body_cam=T_BODY_FRONTCAM)
+
+
+def front_camera(T_body_cam: np.ndarray, mount: Mount = Mount.BODY_FIXED) -> CameraModel:
+    return CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, T_body_cam=T_body_cam,
+                       mount=str(mount))
 
 
 # =========================================================================== synthetic flight
@@ -153,7 +161,7 @@ def flight():
 
 @pytest.fixture(scope="module")
 def smoothed(flight):
-    return smooth(flight.frame_t, flight.imu, flight.raw, flight.load_obs, T_BODY_FRONTCAM)
+    return smooth(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
 
 
 # =========================================================================== Jacobians
@@ -194,9 +202,9 @@ def test_load_jacobians_match_numerical():
     rng = np.random.default_rng(4)
     for _ in range(5):
         pose, l, pm = _rand_pose(rng), rng.normal(size=3) * 3, rng.normal(size=3)
-        T_bc = _rand_pose(rng).matrix()
-        _, Hx, Hl = G.load_error(pm, T_bc, pose, l, True)
-        f = lambda x, ll: G.load_error(pm, T_bc, x, ll, False)[0]
+        cam = front_camera(_rand_pose(rng).matrix())
+        _, Hx, Hl = G.load_error(pm, cam, pose, l, True)
+        f = lambda x, ll: G.load_error(pm, cam, x, ll, False)[0]
         np.testing.assert_allclose(Hx, numericalDerivative21(f, pose, l), atol=1e-6)
         np.testing.assert_allclose(Hl, numericalDerivative22(f, pose, l), atol=1e-6)
 
@@ -205,7 +213,7 @@ def test_load_error_zero_at_truth():
     rng = np.random.default_rng(5)
     pose, T_bc, l = _rand_pose(rng), _rand_pose(rng).matrix(), rng.normal(size=3)
     p_cam = (inv_T(pose.matrix() @ T_bc) @ np.r_[l, 1])[:3]
-    e, _, _ = G.load_error(p_cam, T_bc, pose, l, False)
+    e, _, _ = G.load_error(p_cam, front_camera(T_bc), pose, l, False)
     np.testing.assert_allclose(e, 0, atol=1e-12)
 
 
@@ -288,15 +296,15 @@ def test_outliers_rejected_by_robust_kernel():
     shift = rng.uniform(1.0, 3.0, size=(len(bad), 1)) * rng.choice([-1, 1], size=(len(bad), 2))
     T[bad, :2, 3] += shift
     bad_raw = Trajectory("pnp", raw.timestamps_ns, T, raw.covariances)
-    clean = smooth(fl.frame_t, fl.imu, raw, [], T_BODY_FRONTCAM)
-    dirty = smooth(fl.frame_t, fl.imu, bad_raw, [], T_BODY_FRONTCAM)
+    clean = smooth(fl.frame_t, fl.imu, raw, [], FRONT_CAM)
+    dirty = smooth(fl.frame_t, fl.imu, bad_raw, [], FRONT_CAM)
     rmse = lambda r: np.sqrt(np.mean(pos_err(r.trajectory.T_world_body, fl.T_true) ** 2))
     assert rmse(dirty) < 1.2 * rmse(clean), (rmse(dirty), rmse(clean))
     assert dirty.stats["rejected_pose_factors"] >= len(bad)
     assert dirty.stats["rejected_pose_factors"] <= len(bad) + 3
     assert dirty.stats["gated_pose_factors"] == len(bad)
     assert clean.stats["gated_pose_factors"] == 0
-    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [], T_BODY_FRONTCAM)
+    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [], FRONT_CAM)
     assert ekf.stats["gated_updates"] >= len(bad) - 1
 
 
@@ -311,8 +319,8 @@ def test_paper_input_position_yaw_only():
         T[i, :3, 3] += rng.normal(size=3) * 0.01
     raw = Trajectory("paper", fl.raw.timestamps_ns, T, None)
     cfg = FusionConfig(paper_sigma_xyz_m=(0.01, 0.01, 0.01))
-    res = smooth(fl.frame_t, fl.imu, raw, [], T_BODY_FRONTCAM, config=cfg)
-    assert res.stats["raw_pose_input"] == "position_yaw"
+    res = smooth(fl.frame_t, fl.imu, raw, [], FRONT_CAM, config=cfg)
+    assert res.stats["raw_pose_input"] is RawPoseInput.POSITION_YAW
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert np.sqrt(np.mean(err ** 2)) < 0.01
     # roll / pitch recovered from gravity although the raw poses say 0
@@ -323,7 +331,7 @@ def test_paper_input_position_yaw_only():
 
 def test_velocity_only_mode():
     fl = make_flight(seed=5, duration_s=10.0, gaps=((4.0, 5.0),))
-    res = smooth(fl.frame_t, None, fl.raw, [], T_BODY_FRONTCAM, velocity=fl.velocity)
+    res = smooth(fl.frame_t, None, fl.raw, [], FRONT_CAM, velocity=fl.velocity)
     assert res.stats["imu_intervals"] == 0
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert np.sqrt(np.mean(err[~fl.gap_mask] ** 2)) < 0.004
@@ -331,7 +339,7 @@ def test_velocity_only_mode():
 
 
 def test_imu_with_velocity_factors(flight):
-    res = smooth(flight.frame_t, flight.imu, flight.raw, [], T_BODY_FRONTCAM,
+    res = smooth(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM,
                  velocity=flight.velocity)
     assert res.stats["velocity_factors"] == len(flight.frame_t)
     err = pos_err(res.trajectory.T_world_body, flight.T_true)
@@ -355,7 +363,7 @@ def test_imu_offset_body_P_sensor_is_honoured():
     f_b = np.einsum("nji,nj->ni", T[:, :3, :3], a - g)
     f_s = (f_b + np.cross(alpha, t_bi) + np.cross(w_b, np.cross(w_b, t_bi))) @ R_bi
     imu = ImuData(fl.imu.timestamps_ns, w_b @ R_bi, f_s, ImuNoise(), T_bi, 200.0)
-    res = smooth(fl.frame_t, imu, fl.raw, [], T_BODY_FRONTCAM)
+    res = smooth(fl.frame_t, imu, fl.raw, [], FRONT_CAM)
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert err[fl.gap_mask].max() < 0.02, err[fl.gap_mask].max()
 
@@ -365,7 +373,7 @@ def test_imu_offset_body_P_sensor_is_honoured():
 
 def test_incremental_is_causal_and_tracks(flight):
     res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs,
-                             T_BODY_FRONTCAM)
+                             FRONT_CAM)
     tr = res.trajectory
     k0 = res.stats["frames_before_first_fix"]
     np.testing.assert_array_equal(tr.timestamps_ns, flight.frame_t[k0:])
@@ -383,7 +391,7 @@ def test_incremental_is_causal_and_tracks(flight):
 
 
 def test_ekf_tracks(flight):
-    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, T_BODY_FRONTCAM)
+    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
     tr = res.trajectory
     k0 = res.stats["frames_before_first_fix"]
     err = pos_err(tr.T_world_body, flight.T_true[k0:])
@@ -406,7 +414,7 @@ def test_ekf_paper_input_wraps_yaw():
         T[i, :3, :3] = Rotation.from_euler("z", yaw_of(T[i, :3, :3])).as_matrix()
     raw = Trajectory("paper", fl.raw.timestamps_ns, T, None)
     # world rotated by the flip: gravity unchanged (rotation about z); IMU unchanged (body frame)
-    res = run_ekf(fl.frame_t, fl.imu, raw, [], T_BODY_FRONTCAM,
+    res = run_ekf(fl.frame_t, fl.imu, raw, [], FRONT_CAM,
                   config=FusionConfig(paper_sigma_xyz_m=(0.003,) * 3))
     k0 = res.stats["frames_before_first_fix"]
     yaw_err = wrap_angle(res.trajectory.yaw_rad - yaw_of(T_true[k0:, :3, :3]))
@@ -420,9 +428,9 @@ def test_ekf_paper_input_wraps_yaw():
 
 def test_no_floor_code_raises(flight):
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
-        smooth(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], T_BODY_FRONTCAM)
+        smooth(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], FRONT_CAM)
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
-        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], T_BODY_FRONTCAM)
+        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], FRONT_CAM)
 
 
 def test_nan_in_imu_names_the_sample(flight):
@@ -431,9 +439,9 @@ def test_nan_in_imu_names_the_sample(flight):
     acc[123, 1] = np.nan
     bad = ImuData(imu.timestamps_ns, imu.gyro_rad_s, acc, imu.noise)
     with pytest.raises(EstimationError, match="sample 123"):
-        smooth(flight.frame_t, bad, flight.raw, [], T_BODY_FRONTCAM)
+        smooth(flight.frame_t, bad, flight.raw, [], FRONT_CAM)
     with pytest.raises(EstimationError, match="sample 123"):
-        run_ekf(flight.frame_t, bad, flight.raw, [], T_BODY_FRONTCAM)
+        run_ekf(flight.frame_t, bad, flight.raw, [], FRONT_CAM)
 
 
 @pytest.mark.parametrize("kind", ["duplicated", "out of order"])
@@ -445,7 +453,7 @@ def test_bad_imu_timestamps_raise(flight, kind):
         t[50], t[51] = t[51], t[50]
     bad = ImuData(t, flight.imu.gyro_rad_s, flight.imu.accel_m_s2)
     with pytest.raises(EstimationError, match=f"sample 5[01] is {kind}"):
-        smooth(flight.frame_t, bad, flight.raw, [], T_BODY_FRONTCAM)
+        smooth(flight.frame_t, bad, flight.raw, [], FRONT_CAM)
 
 
 def test_imu_gap_is_bridged_and_counted():
@@ -455,7 +463,7 @@ def test_imu_gap_is_bridged_and_counted():
     keep = ~((t > 4.0) & (t < 4.5))
     gapped = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep],
                      imu.noise)
-    res = smooth(fl.frame_t, gapped, fl.raw, [], T_BODY_FRONTCAM)
+    res = smooth(fl.frame_t, gapped, fl.raw, [], FRONT_CAM)
     assert res.stats["imu_segments"] == 2
     assert 14 <= res.stats["bridged_intervals"] <= 17
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
@@ -468,12 +476,12 @@ def test_imu_stops_early():
     keep = imu.timestamps_ns < fl.frame_t[200]
     short = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep],
                     imu.noise)
-    res = smooth(fl.frame_t, short, fl.raw, [], T_BODY_FRONTCAM, velocity=fl.velocity)
+    res = smooth(fl.frame_t, short, fl.raw, [], FRONT_CAM, velocity=fl.velocity)
     assert res.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
     assert res.stats["imu_segments"] == 1
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert np.sqrt(np.mean(err ** 2)) < 0.005
-    ekf = run_ekf(fl.frame_t, short, fl.raw, [], T_BODY_FRONTCAM, velocity=fl.velocity)
+    ekf = run_ekf(fl.frame_t, short, fl.raw, [], FRONT_CAM, velocity=fl.velocity)
     assert len(ekf.trajectory) == len(fl.frame_t)
     assert ekf.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
 
@@ -484,12 +492,12 @@ def test_raw_pose_off_frame_time_raises(flight):
     t[3] += 7_000_000
     with pytest.raises(EstimationError, match="pose 3"):
         smooth(flight.frame_t, flight.imu, Trajectory("pnp", t, raw.T_world_body,
-                                                      raw.covariances), [], T_BODY_FRONTCAM)
+                                                      raw.covariances), [], FRONT_CAM)
 
 
 def test_no_imu_no_velocity_raises(flight):
     with pytest.raises(EstimationError, match="neither IMU nor velocity"):
-        smooth(flight.frame_t, None, flight.raw, [], T_BODY_FRONTCAM)
+        smooth(flight.frame_t, None, flight.raw, [], FRONT_CAM)
 
 
 def test_unknown_kernel_raises():
@@ -520,15 +528,15 @@ def test_load_factor_body_frame_equals_camera_frame_residual():
     rng = np.random.default_rng(11)
     for _ in range(3):
         pose, l = _rand_pose(rng), rng.normal(size=3) * 3
-        T_bc = _rand_pose(rng).matrix()
+        cam = front_camera(_rand_pose(rng).matrix())
         p_cam = rng.normal(size=3)
         Lc = rng.normal(size=(3, 3)) * 0.01
         cov = Lc @ Lc.T + 1e-5 * np.eye(3)
-        f = G.load_factor(0, 0, p_cam, cov, T_bc, "none", 1.0)
+        f = G.load_factor(0, 0, p_cam, cov, cam, RobustKernel.NONE, 1.0)
         vals = gtsam.Values()
         vals.insert(G.X(0), pose)
         vals.insert(G.L(0), l)
-        e, Hx, Hl = G.load_error(p_cam, T_bc, pose, l, True)
+        e, Hx, Hl = G.load_error(p_cam, cam, pose, l, True)
         info = np.linalg.inv(cov)
         np.testing.assert_allclose(f.error(vals), 0.5 * e @ info @ e, rtol=1e-9)
         A, b = f.linearize(vals).jacobian()
@@ -543,9 +551,9 @@ def test_bulk_marginals_equal_gtsam(mode):
     from fusion.estimate.smoother import build_problem, levenberg_marquardt
     fl = make_flight(seed=12, duration_s=6.0, gaps=((2.0, 3.0),))
     imu = None if mode == "velocity_only" else fl.imu
-    pb = build_problem(fl.frame_t, imu, fl.raw, fl.load_obs, T_BODY_FRONTCAM, fl.velocity)
+    pb = build_problem(fl.frame_t, imu, fl.raw, fl.load_obs, FRONT_CAM, fl.velocity)
     graph = pb.graph()
-    values, _, lin = levenberg_marquardt(graph, pb.initial)
+    values = levenberg_marquardt(graph, pb.initial).values
     lin = graph.linearize(values)
     cov, lcov = chain_marginals(lin, len(fl.frame_t), imu is not None, len(pb.load_ids),
                                 work_mb=0.01, group=7)  # load chunks; 180 frames: 26 blocks, 2 pad
@@ -560,7 +568,7 @@ def test_bulk_marginals_equal_gtsam(mode):
 
 def test_blackout_initial_rotation_follows_gyro(flight):
     from fusion.estimate.smoother import build_problem
-    pb = build_problem(flight.frame_t, flight.imu, flight.raw, [], T_BODY_FRONTCAM)
+    pb = build_problem(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM)
     gap = np.flatnonzero(flight.gap_mask)
     R_err = np.einsum("nji,njk->nik", pb.T_init[gap, :3, :3], flight.T_true[gap, :3, :3])
     ang = np.degrees(np.linalg.norm(Rotation.from_matrix(R_err).as_rotvec(), axis=1))
@@ -571,7 +579,7 @@ def test_incremental_short_lag_recreates_loads(flight):
     """With a lag shorter than the time between sightings every load leaves the window and comes
     back as a new variable with its marginal as prior; the map stays accurate."""
     res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs,
-                             T_BODY_FRONTCAM, config=FusionConfig(incremental_lag_s=0.1))
+                             FRONT_CAM, config=FusionConfig(incremental_lag_s=0.1))
     assert res.stats["load_generations"] > 10
     est = res.loads.by_id()
     assert set(est) == set(flight.loads_true)
@@ -624,10 +632,10 @@ def test_tight_coupling_uses_corners_and_is_consistent():
     cam = make_cameras()["cam0"]
     fl = make_flight(seed=13, duration_s=6.0, gaps=((2.5, 3.5),))
     floor = floor_sightings(fl, cam, seed=14)
-    loose = smooth(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM)
-    tight = smooth(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM,
+    loose = smooth(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM)
+    tight = smooth(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM,
                    config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
-    assert tight.stats["tight"] == "on" and loose.stats["tight"] == "off"
+    assert tight.stats["tight"] is TightCoupling.ON and loose.stats["tight"] is TightCoupling.OFF
     assert tight.stats["corner_factors"] == len(floor) > 100
     assert tight.stats["pose_factors"] == len(fl.raw) - len(floor)
     assert tight.stats["covariance_method"] == "chain"
@@ -638,7 +646,7 @@ def test_tight_coupling_uses_corners_and_is_consistent():
     e = nees(tight.trajectory, fl.T_true)
     assert 0.5 * 6 < e.mean() < 2.0 * 6, e.mean()
     # the causal mode takes the same factors
-    inc = smooth_incremental(fl.frame_t, fl.imu, fl.raw, [], T_BODY_FRONTCAM,
+    inc = smooth_incremental(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM,
                              config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
     k0 = inc.stats["frames_before_first_fix"]
     err = pos_err(inc.trajectory.T_world_body, fl.T_true[k0:])
@@ -648,6 +656,6 @@ def test_tight_coupling_uses_corners_and_is_consistent():
 def test_tight_without_sightings_falls_back(flight):
     res = smooth(flight.frame_t[:90], flight.imu, Trajectory(
         "pnp", flight.raw.timestamps_ns[:90], flight.raw.T_world_body[:90],
-        flight.raw.covariances[:90]), [], T_BODY_FRONTCAM, config=FusionConfig(tight=True))
-    assert res.stats["tight"].startswith("no floor sightings")
+        flight.raw.covariances[:90]), [], FRONT_CAM, config=FusionConfig(tight=True))
+    assert res.stats["tight"] is TightCoupling.NO_SIGHTINGS
     assert res.stats["pose_factors"] == 90

@@ -7,36 +7,101 @@ T = T_hat * Exp(xi)); positions in m, angles in rad, timestamps in int64 ns.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.stats import chi2
 
+from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
 from fusion.geometry import interpolate_poses
 from fusion.log.euroc import ImuData, VelocityData
-from fusion.types import LoadMap, LoadObservation, Trajectory
+from fusion.types import Choice, LoadMap, LoadObservation, RobustKernel, Trajectory
 
-ROBUST_KERNELS = ("none", "huber", "cauchy", "tukey")
+
+class RawPoseInput(Choice):
+    """What the raw per-frame poses constrain (chosen once per flight in build_problem)."""
+    POSE6 = "pose6"                  # full 6-dof pose with covariance (PnP, body-fixed camera)
+    POSITION_YAW = "position_yaw"    # the paper's output: position + yaw, configured sigmas
+    LEVEL_POSE = "level_pose"        # gimbaled floor camera: yaw + position, PnP covariance
+
+
+class TightCoupling(Choice):
+    """Whether floor-code corners entered the graph as reprojection factors (config.tight)."""
+    OFF = "off"                      # not asked for
+    ON = "on"
+    NO_SIGHTINGS = "no_sightings"    # asked for, but no floor sightings / floor camera given
+
+
+class SolveMode(Choice):
+    """How much the fixes constrain the estimate, and by what."""
+    FUSED = "fused"                  # fixes and motion model
+    DEAD_RECKONED = "dead_reckoned"  # at most config.dead_reckoning_max_fixes fixes: IMU /
+    #                                  velocity integration from them, sigma grows accordingly
+    IMU_REJECTED = "imu_rejected"    # most fixes disagreed with the IMU beyond the gate: fused
+    #                                  without it (random-walk model, velocity if any)
+
+
+@dataclass
+class SolveHealth:
+    """What happened inside a back end, beyond its numbers (FusionResult.health).
+
+    `iteration_limit_hits`: solves that stopped at config.lm_max_iterations (or, incremental,
+    never); `lm_stalls`: LM could not lower the error with any damping; `linear_fallbacks`: a
+    linear solve that failed (IndeterminantLinearSystem, an empty elimination) and was retried
+    with weak priors on every state (`weak_prior_states` of them); `gate_skipped`: the outlier
+    gate would have removed more than config.max_gated_fraction of the fixes, so it was not
+    applied (the motion model, not the fixes, is suspect); `loads_dropped`: load ids whose every
+    sighting was gated; `resets`: incremental re-initialisations from agreeing fixes."""
+    mode: SolveMode = SolveMode.FUSED
+    reasons: list[str] = field(default_factory=list)
+    fixes: int = 0
+    frames_far_from_fix: int = 0
+    iteration_limit_hits: int = 0
+    lm_stalls: int = 0
+    linear_fallbacks: int = 0
+    weak_prior_states: int = 0
+    gate_skipped: int = 0
+    loads_dropped: list[str] = field(default_factory=list)
+    resets: int = 0
+
+    def note(self, reason: str) -> None:
+        if reason not in self.reasons:
+            self.reasons.append(reason)
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["mode"] = str(self.mode)
+        return d
 
 
 @dataclass
 class FusionConfig:
-    """Settings shared by the smoother, the incremental smoother and the EKF.
+    """Settings shared by the smoother, the incremental smoother and the EKF: every tuning number
+    of the back end lives here.
 
-    Robust kernel (QR pose factors and load factors): `robust_kernel` in ROBUST_KERNELS, applied
-    to the Mahalanobis norm of the whole residual (GTSAM's Robust noise model);
-    `robust_threshold` in those units (None: sqrt of the chi-square 99.9 % quantile for the
-    factor's dimension, 4.79 for a 6-dof pose, 4.30 for position + yaw, 3.72 for a 3-d point),
-    also the threshold at which a factor is counted as rejected in `stats`.
+    Robust kernel (QR pose factors and load factors): `robust_kernel` (RobustKernel; a plain
+    string is parsed), applied to the Mahalanobis norm of the whole residual (GTSAM's Robust
+    noise model); `robust_threshold` in those units (None: sqrt of the chi-square
+    `robust_quantile` quantile for the factor's dimension, 4.79 for a 6-dof pose, 4.30 for
+    position + yaw, 3.72 for a 3-d point), also the threshold at which a factor is counted as
+    rejected in `stats`.
     `outlier_gate`: after the robust solve, QR pose / load factors whose Mahalanobis distance
     still exceeds this are removed and the graph solved again (the EKF skips such updates);
     Huber's bounded but non-zero pull of a misread code 1-3 m away otherwise still bends the
     trajectory by ~0.1 mm per outlier.  None disables it.
     """
-    robust_kernel: str = "huber"
+    robust_kernel: RobustKernel = RobustKernel.HUBER
     robust_threshold: float | None = None
+    robust_quantile: float = 0.999
     outlier_gate: float | None = 25.0
+    # The gate is not applied when it would remove more than this share of the fixes: then the
+    # motion model (IMU units, clock) rather than the fixes is wrong, and removing the fixes
+    # would leave the trajectory unanchored.
+    max_gated_fraction: float = 0.5
+    # ... and then the batch smoother solves again without the IMU (SolveMode.IMU_REJECTED)
+    reject_disagreeing_imu: bool = True
     # Raw trajectories without covariance (the paper's estimator: position + yaw only).
     paper_sigma_xyz_m: tuple[float, float, float] = (0.02, 0.02, 0.02)
     paper_sigma_yaw_rad: float = math.radians(1.0)
@@ -44,14 +109,27 @@ class FusionConfig:
     bias_prior_sigma_gyro_rad_s: float = 1e-2
     bias_prior_sigma_accel_m_s2: float = 0.1
     velocity_prior_sigma_m_s: float = 0.1
+    # ... and when fewer than two fixes give the first velocity: a drone's speed
+    unknown_velocity_sigma_m_s: float = 2.0
+    # Incremental start from position + yaw fixes: roll / pitch prior (the IMU pins them next)
+    initial_roll_pitch_sigma_rad: float = math.radians(10.0)
+    # First velocity: least-squares line through up to `first_velocity_fixes` inlier raw
+    # positions within `first_velocity_window_s` of the first fix.
+    first_velocity_fixes: int = 10
+    first_velocity_window_s: float = 0.5
     # IMU coverage: a sample holds until the next one if that comes within `max_imu_gap_s`.
     max_imu_gap_s: float = 0.05
     integration_sigma: float = 1e-4          # GTSAM integration covariance (sigma^2 * I)
     # Weak random-walk model used where there is no IMU (gaps, no-IMU flights): white
     # acceleration `bridge_accel_sigma_m_s2` (m/s^2/sqrt(Hz)), white angular rate
-    # `bridge_rate_sigma_rad_s` (rad/s/sqrt(Hz)).
+    # `bridge_rate_sigma_rad_s` (rad/s/sqrt(Hz)); the bridge's pose link leaves the
+    # translation free (`bridge_free_sigma_m`: the position-velocity factor constrains it), and
+    # its sigmas are floored at `bridge_min_sigma` (a zero-length interval).
     bridge_accel_sigma_m_s2: float = 2.0
     bridge_rate_sigma_rad_s: float = 0.5
+    bridge_free_sigma_m: float = 1e3
+    bridge_min_dt_s: float = 1e-6
+    bridge_min_sigma: float = 1e-9
     # Velocity samples are interpolated to a frame time if one lies within this distance.
     velocity_max_gap_s: float = 0.1
     # Frame-time matching of raw poses and load observations.
@@ -60,46 +138,83 @@ class FusionConfig:
     # (+- `init_window` raw poses) is not used for the initial guess (it still gets a factor).
     init_outlier_m: float = 0.3
     init_window: int = 15
-    # Batch Levenberg-Marquardt.
+    # Batch Levenberg-Marquardt (GTSAM's defaults: lambda0 1e-5, factor 10, relativeErrorTol
+    # 1e-5); a step is given up (an LM stall) once lambda exceeds `lm_lambda_max`.
     lm_max_iterations: int = 100
-    lm_relative_tol: float = 1e-5          # GTSAM's default relativeErrorTol
+    lm_relative_tol: float = 1e-5
+    lm_lambda0: float = 1e-5
+    lm_lambda_factor: float = 10.0
+    lm_lambda_max: float = 1e10
     compute_covariances: bool = True
+    # A failed linear solve (unconstrained variable) is retried with weak priors on every
+    # state at its current value: rotation, position, velocity, bias sigmas.
+    fallback_sigma_rot_rad: float = math.pi
+    fallback_sigma_pos_m: float = 1e3
+    fallback_sigma_vel_m_s: float = 1e2
+    fallback_sigma_bias: float = 1e2
+    # Dead reckoning: with at most `dead_reckoning_max_fixes` fixes the result is labelled
+    # dead-reckoned (SolveMode); frames more than `far_from_fix_s` from every fix are counted.
+    dead_reckoning_max_fixes: int = 1
+    far_from_fix_s: float = 1.0
     # Tight coupling (smooth / smooth_incremental with floor_frames + floor_camera): floor-code
     # corners as reprojection factors instead of the per-frame QR pose; a detection without its
-    # own corner_sigma_px / corner_cov_px2 uses `corner_sigma_px` (px, per coordinate).
+    # own corner_sigma_px / corner_cov_px2 uses `corner_sigma_px` (px, per coordinate).  A
+    # corner behind the camera at the current estimate gives `corner_behind_residual`
+    # (whitened) with zero Jacobian.
     tight: bool = False
     corner_sigma_px: float = 0.15
+    corner_behind_residual: float = 1e3
     # Incremental mode: iSAM2 inside gtsam's IncrementalFixedLagSmoother; states older than
-    # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain iSAM2 over
-    # the whole flight (its cost grows with the flight).
+    # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain
+    # iSAM2 over the whole flight (its cost grows with the flight).
     isam_relinearize_threshold: float = 0.01
     isam_relinearize_skip: int = 10
     incremental_lag_s: float | None = 0.5
+    # Incremental re-initialisation: after `reinit_rejected_fixes` consecutive fixes beyond the
+    # kernel threshold whose offsets from the estimate agree (spread <= `reinit_agreement_m`,
+    # `reinit_agreement_rad`), the smoother restarts from the latest fix, its velocity and bias
+    # estimates carried over as priors (velocity sigma `reinit_velocity_sigma_m_s`).
+    # Consecutive fixes beyond the outlier gate (the kernel threshold without a gate) count.
+    # The restart's priors: attitude `reinit_sigma_rot_rad` and position `reinit_sigma_pos_m`
+    # at the re-initialised pose, velocity `reinit_velocity_sigma_m_s`.
+    reinit_rejected_fixes: int = 10
+    reinit_velocity_sigma_m_s: float = 0.5
+    reinit_sigma_rot_rad: float = 0.05
+    reinit_sigma_pos_m: float = 1.0
+    reinit_agreement_m: float = 0.05
+    reinit_agreement_rad: float = math.radians(2.0)
 
     def __post_init__(self):
-        if self.robust_kernel not in ROBUST_KERNELS:
+        try:
+            self.robust_kernel = RobustKernel.parse(self.robust_kernel, "robust kernel")
+        except ValueError:
             raise EstimationError(f"unknown robust kernel {self.robust_kernel!r}; "
-                                  f"choose one of {', '.join(ROBUST_KERNELS)}")
+                                  f"choose one of {', '.join(k.value for k in RobustKernel)}"
+                                  ) from None
         if self.outlier_gate is not None and not self.outlier_gate > 0:
             raise EstimationError(f"outlier_gate must be > 0, got {self.outlier_gate}")
         if self.robust_threshold is not None and not self.robust_threshold > 0:
             raise EstimationError(f"robust_threshold must be > 0, got {self.robust_threshold}")
+        if not 0 < self.max_gated_fraction <= 1:
+            raise EstimationError(f"max_gated_fraction must be in (0, 1], got "
+                                  f"{self.max_gated_fraction}")
 
     def threshold(self, dim: int) -> float:
         """Robust-kernel threshold (Mahalanobis units) for a factor of dimension `dim`."""
         if self.robust_threshold is not None:
             return float(self.robust_threshold)
-        from scipy.stats import chi2
-        return float(math.sqrt(chi2.ppf(0.999, dim)))
+        return float(math.sqrt(chi2.ppf(self.robust_quantile, dim)))
 
 
 @dataclass
 class FusionResult:
     """Output of every fusion back end: trajectory at frame times with (N, 6, 6) covariances,
-    load map with 3x3 covariances, and statistics (iterations, errors, rejections, time)."""
+    load map with 3x3 covariances, statistics (counts and times, JSON-ready) and what happened
+    inside (`health`)."""
     trajectory: Trajectory
     loads: LoadMap
     stats: dict = field(default_factory=dict)
+    health: SolveHealth = field(default_factory=SolveHealth)
 
 
 # =========================================================================== input checks
@@ -281,13 +396,14 @@ def initial_velocities(frame_t: np.ndarray, T_init: np.ndarray) -> np.ndarray:
 
 
 def first_velocity(frame_t: np.ndarray, raw: RawPoses, use: np.ndarray, k0: int,
-                   n_fit: int = 10) -> np.ndarray:
+                   n_fit: int = FusionConfig.first_velocity_fixes,
+                   window_s: float = FusionConfig.first_velocity_window_s) -> np.ndarray:
     """World velocity at frame k0 from a least-squares line through the first inlier raw
-    positions (up to `n_fit`, within 0.5 s of k0); zeros when there are fewer than two."""
+    positions (up to `n_fit`, within `window_s` of k0); zeros when there are fewer than two."""
     idx = raw.frame_idx[use]
     p = raw.T_world_body[use, :3, 3]
     t = frame_t[idx] * 1e-9
-    sel = np.flatnonzero(np.abs(t - frame_t[k0] * 1e-9) <= 0.5)[:n_fit]
+    sel = np.flatnonzero(np.abs(t - frame_t[k0] * 1e-9) <= window_s)[:n_fit]
     if len(sel) < 2:
         return np.zeros(3)
     A = np.column_stack([np.ones(len(sel)), t[sel] - frame_t[k0] * 1e-9])
@@ -340,20 +456,55 @@ def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
     return groups, skipped
 
 
-def check_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                 velocity: VelocityData | None, T_body_frontcam: np.ndarray,
-                 config: FusionConfig):
-    """The checks every back end starts with; returns (frame_t, RawPoses, imu or None,
-    velocity or None, T_body_frontcam (4, 4)) or raises EstimationError."""
+@dataclass
+class FusionInputs:
+    """Checked inputs of a back end (prepare_inputs)."""
+    frame_t: np.ndarray                 # (N,) int64 ns, strictly increasing
+    raw: RawPoses
+    imu: ImuData | None
+    velocity: VelocityData | None
+    front_camera: CameraModel | None
+
+
+def check_front_camera(front_camera) -> CameraModel | None:
+    """The front camera as a CameraModel (None: no front camera).  A bare 4x4 T_body_cam is
+    refused: without the mount a gimbaled camera would be fused as a rigid one."""
+    if front_camera is None or isinstance(front_camera, CameraModel):
+        if front_camera is not None and not np.all(np.isfinite(front_camera.T_body_cam)):
+            raise EstimationError("front camera: T_body_cam must be finite")
+        return front_camera
+    raise EstimationError(f"front_camera must be a CameraModel (its mount matters), got "
+                          f"{type(front_camera).__name__}")
+
+
+def prepare_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
+                   velocity: VelocityData | None, front_camera: CameraModel | None,
+                   config: FusionConfig, require_motion: bool = True) -> FusionInputs:
+    """The checks every back end starts with, or EstimationError naming the bad input.
+    `require_motion=False` accepts neither IMU nor velocity (the random-walk model alone)."""
     frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
     if len(frame_t) == 0:
         raise EstimationError("no floor-camera frames")
     rawp = prepare_raw(frame_t, raw, config)
     imu = check_imu(imu) if imu is not None and len(imu.timestamps_ns) else None
     velocity = check_velocity(velocity) if velocity is not None else None
-    if imu is None and velocity is None:
+    if imu is None and velocity is None and require_motion:
         raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
-    T_bc = np.asarray(T_body_frontcam, float)
+    return FusionInputs(frame_t, rawp, imu, velocity, check_front_camera(front_camera))
+
+
+def check_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
+                 velocity: VelocityData | None, front, config: FusionConfig):
+    """prepare_inputs as the tuple (frame_t, RawPoses, imu or None, velocity or None,
+    T_body_frontcam (4, 4)) for back ends that still take a bare body-fixed T_body_frontcam
+    (`front` may be that 4x4 or a body-fixed CameraModel; identity when None)."""
+    camera = front if isinstance(front, CameraModel) or front is None else None
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, camera, config)
+    if camera is not None:
+        if camera.gimbaled:
+            raise EstimationError("a gimbaled front camera is not supported by this back end")
+        return inp.frame_t, inp.raw, inp.imu, inp.velocity, camera.T_body_cam.copy()
+    T_bc = np.eye(4) if front is None else np.asarray(front, float)
     if T_bc.shape != (4, 4) or not np.all(np.isfinite(T_bc)):
         raise EstimationError("T_body_frontcam must be a finite 4x4 transform")
-    return frame_t, rawp, imu, velocity, T_bc
+    return inp.frame_t, inp.raw, inp.imu, inp.velocity, T_bc

@@ -16,13 +16,37 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
+from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.geometry import skew, wrap_angle
+from fusion.geometry import (
+    level_frame,
+    level_frame_jacobian,
+    rot_z,
+    skew,
+    wrap_angle,
+    yaw_gradient,
+    yaw_of,
+)
 from fusion.log.euroc import ImuNoise
+from fusion.qr.reprojection import floor_reprojection
+from fusion.types import RobustKernel
 
-__all__ = ["X", "V", "B", "L", "imu_params", "robust", "pose_prior_factor",
-           "position_yaw_factor", "body_velocity_factor", "load_factor",
-           "constant_velocity_factor", "skew"]
+__all__ = [
+    "B",
+    "L",
+    "V",
+    "X",
+    "body_velocity_factor",
+    "bridge_factors",
+    "constant_velocity_factor",
+    "floor_corner_factor",
+    "imu_params",
+    "level_pose_factor",
+    "load_factor",
+    "pose_prior_factor",
+    "position_yaw_factor",
+    "robust",
+]
 
 
 # =========================================================================== noise models
@@ -48,12 +72,15 @@ def imu_params(noise: ImuNoise, T_body_imu: np.ndarray,
     return p
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: str, threshold: float) -> gtsam.noiseModel.Base:
+def robust(base: gtsam.noiseModel.Base, kernel: RobustKernel,
+           threshold: float) -> gtsam.noiseModel.Base:
     """Wrap a Gaussian model in an M-estimator acting on the whitened residual norm."""
     est = gtsam.noiseModel.mEstimator
-    if kernel == "none":
+    kernel = RobustKernel(kernel)
+    if kernel is RobustKernel.NONE:
         return base
-    make = {"huber": est.Huber, "cauchy": est.Cauchy, "tukey": est.Tukey}[kernel]
+    make = {RobustKernel.HUBER: est.Huber, RobustKernel.CAUCHY: est.Cauchy,
+            RobustKernel.TUKEY: est.Tukey}[kernel]
     return gtsam.noiseModel.Robust.Create(make.Create(threshold), base)
 
 
@@ -72,16 +99,12 @@ def position_yaw_error(p_meas: np.ndarray, yaw_meas: float, pose: gtsam.Pose3,
     """Residual [p - p_meas (world, m), wrap(yaw - yaw_meas) (rad)] (4,) and its 4x6 Jacobian."""
     R = pose.rotation().matrix()
     t = pose.translation()
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    e = np.concatenate([t - p_meas, [float(wrap_angle(yaw - yaw_meas))]])
+    e = np.concatenate([t - p_meas, [float(wrap_angle(yaw_of(R) - yaw_meas))]])
     if not want_jacobian:
         return e, None
     H = np.zeros((4, 6))
     H[:3, 3:] = R
-    # R' = R (I + [dr]x): dR[i,0] = R[i,1] dr_z - R[i,2] dr_y
-    n = R[0, 0] ** 2 + R[1, 0] ** 2
-    H[3, 1] = -(R[0, 0] * R[1, 2] - R[1, 0] * R[0, 2]) / n
-    H[3, 2] = (R[0, 0] * R[1, 1] - R[1, 0] * R[0, 1]) / n
+    H[3, :3] = yaw_gradient(R)
     return e, H
 
 
@@ -96,6 +119,42 @@ def position_yaw_factor(k: int, p_world: np.ndarray, yaw: float, sigma_xyz, sigm
     def error(this, values, jacobians):
         e, H = position_yaw_error(p_meas, yaw_meas, values.atPose3(this.keys()[0]),
                                   jacobians is not None)
+        if jacobians is not None:
+            jacobians[0] = H
+        return e
+
+    return gtsam.CustomFactor(model, [X(k)], error)
+
+
+def level_pose_error(T_meas_level: np.ndarray, pose: gtsam.Pose3, want_jacobian: bool):
+    """Residual of a level-frame pose measurement (gimbaled floor camera: PnP observes the level
+    frame's yaw and position, not the airframe's roll and pitch), in the measured level frame's
+    right-perturbation coordinates [rz, tx, ty, tz]: [wrap(yaw - yaw_meas),
+    Rz(yaw_meas)^T (t - t_meas)] (4,), and its 4x6 Jacobian w.r.t. the body pose."""
+    R = pose.rotation().matrix()
+    t = pose.translation()
+    Rz_meas = T_meas_level[:3, :3]
+    e = np.concatenate([[float(wrap_angle(yaw_of(R) - yaw_of(Rz_meas)))],
+                        Rz_meas.T @ (t - T_meas_level[:3, 3])])
+    if not want_jacobian:
+        return e, None
+    H = np.zeros((4, 6))
+    H[0, :3] = yaw_gradient(R)
+    H[1:, 3:] = Rz_meas.T @ R
+    return e, H
+
+
+def level_pose_factor(k: int, T_world_level: np.ndarray, cov_level: np.ndarray,
+                      kernel: RobustKernel, threshold: float) -> gtsam.CustomFactor:
+    """A gimbaled floor camera's per-frame pose on X(k): yaw + position of the level frame with
+    the PnP covariance's [rz, tx, ty, tz] block (cov_level 4x4; PnP's rx, ry are placeholders)."""
+    T_meas = np.asarray(T_world_level, float).copy()
+    T_meas[:3, :3] = rot_z(float(yaw_of(T_meas[:3, :3])))
+    cov = np.asarray(cov_level, float)
+    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T)), kernel, threshold)
+
+    def error(this, values, jacobians):
+        e, H = level_pose_error(T_meas, values.atPose3(this.keys()[0]), jacobians is not None)
         if jacobians is not None:
             jacobians[0] = H
         return e
@@ -133,50 +192,74 @@ def body_velocity_factor(k: int, v_body: np.ndarray, sigma_m_s: float) -> gtsam.
     return gtsam.CustomFactor(model, [X(k), V(k)], error)
 
 
-def load_error(p_cam_meas: np.ndarray, T_body_cam: np.ndarray, pose: gtsam.Pose3,
+def load_error(p_cam_meas: np.ndarray, camera: CameraModel, pose: gtsam.Pose3,
                l_world: np.ndarray, want_jacobian: bool):
-    """Residual (T_world_body T_body_cam)^-1 l - p_cam (camera frame, m) (3,), Jacobians wrt pose
-    (3x6) and landmark (3x3)."""
-    R = pose.rotation().matrix()
-    t = pose.translation()
-    R_bc, t_bc = T_body_cam[:3, :3], T_body_cam[:3, 3]
-    q = R.T @ (l_world - t)                       # landmark in the body frame
+    """Residual T_world_cam^-1 l - p_cam (camera frame, m) (3,) with T_world_cam =
+    camera.T_world_cam(T_world_body) (mount-aware), Jacobians wrt pose (3x6) and landmark (3x3).
+
+    The camera hangs from a parent frame P: the body (body_fixed) or its level frame (gimbaled:
+    p_world = level_frame(T_world_body) T_body_cam p_cam, which moves with the body's position
+    and yaw only).  With q = R_wp^T (l - t_wp): d e / d xi_P = R_bc^T [[q]x, -I], and
+    d xi_P / d xi_body = I or geometry.level_frame_jacobian."""
+    T_wb = pose.matrix()
+    T_wp = level_frame(T_wb) if camera.gimbaled else T_wb
+    T_bc = camera.T_body_cam
+    R_bc, t_bc = T_bc[:3, :3], T_bc[:3, 3]
+    q = T_wp[:3, :3].T @ (l_world - T_wp[:3, 3])     # landmark in the parent frame
     e = R_bc.T @ (q - t_bc) - p_cam_meas
     if not want_jacobian:
         return e, None, None
     Hx = np.zeros((3, 6))
     Hx[:, :3] = R_bc.T @ skew(q)
     Hx[:, 3:] = -R_bc.T
-    return e, Hx, R_bc.T @ R.T
+    if camera.gimbaled:
+        Hx = Hx @ level_frame_jacobian(T_wb)
+    return e, Hx, R_bc.T @ T_wp[:3, :3].T
 
 
-def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, T_body_cam: np.ndarray,
-                kernel: str, threshold: float, load_key: int | None = None) -> gtsam.CustomFactor:
+def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, camera: CameraModel,
+                kernel: RobustKernel, threshold: float,
+                load_key: int | None = None) -> gtsam.CustomFactor:
     """A load-code centre measured in the front camera at frame k, on X(k) and L(j) (or on
     `load_key` instead of L(j)).
 
-    Evaluated in the body frame: residual T_world_body^-1 l - T_body_cam p_cam with covariance
+    Evaluated in the camera's parent frame P (the body, or its level frame for a gimbaled
+    camera; see load_error): residual T_world_P^-1 l - T_body_cam p_cam with covariance
     R_bc cov_cam R_bc^T.  This is load_error rotated by the constant R_bc, so the whitened
     residual norm (hence the robust kernel and the normal equations) is exactly that of the
     camera-frame residual, while the value and Jacobians come from one C++ call
-    (Pose3.transformTo) per evaluation."""
-    T_bc = np.asarray(T_body_cam, float)
+    (Pose3.transformTo) per evaluation; for a gimbaled camera the pose Jacobian is chained
+    through geometry.level_frame_jacobian."""
+    T_bc = np.asarray(camera.T_body_cam, float)
     R_bc = T_bc[:3, :3]
-    p_body = R_bc @ np.asarray(p_cam, float) + T_bc[:3, 3]
-    cov_body = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
-    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_body + cov_body.T)), kernel,
-                   threshold)
+    p_parent = R_bc @ np.asarray(p_cam, float) + T_bc[:3, 3]
+    cov_parent = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
+    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_parent + cov_parent.T)),
+                   kernel, threshold)
     kx, kl = X(k), (L(j) if load_key is None else load_key)
 
-    def error(this, values, jacobians):
-        pose, l_world = values.atPose3(kx), values.atPoint3(kl)
-        if jacobians is None:
-            return pose.transformTo(l_world) - p_body
-        Hx, Hl = np.empty((3, 6), order="F"), np.empty((3, 3), order="F")
-        q = pose.transformTo(l_world, Hx, Hl)
-        jacobians[0] = Hx
-        jacobians[1] = Hl
-        return q - p_body
+    if not camera.gimbaled:
+        def error(this, values, jacobians):
+            pose, l_world = values.atPose3(kx), values.atPoint3(kl)
+            if jacobians is None:
+                return pose.transformTo(l_world) - p_parent
+            Hx, Hl = np.empty((3, 6), order="F"), np.empty((3, 3), order="F")
+            q = pose.transformTo(l_world, Hx, Hl)
+            jacobians[0] = Hx
+            jacobians[1] = Hl
+            return q - p_parent
+    else:
+        def error(this, values, jacobians):
+            T_wb = values.atPose3(kx).matrix()
+            level = gtsam.Pose3(level_frame(T_wb))
+            l_world = values.atPoint3(kl)
+            if jacobians is None:
+                return level.transformTo(l_world) - p_parent
+            Hp, Hl = np.empty((3, 6), order="F"), np.empty((3, 3), order="F")
+            q = level.transformTo(l_world, Hp, Hl)
+            jacobians[0] = Hp @ level_frame_jacobian(T_wb)
+            jacobians[1] = Hl
+            return q - p_parent
 
     return gtsam.CustomFactor(model, [kx, kl], error)
 
@@ -213,55 +296,63 @@ def constant_velocity_factor(k0: int, k1: int, dt: float, sigma_m: float) -> gts
 
 
 def bridge_factors(k0: int, k1: int, dt: float, accel_sigma: float, rate_sigma: float,
-                   with_bias: bool, noise: ImuNoise | None) -> list:
+                   with_bias: bool, noise: ImuNoise | None, free_sigma_m: float,
+                   min_dt_s: float, min_sigma: float) -> list:
     """Weak random-walk link between frames k0 and k1 where no IMU data covers the interval:
     rotation random walk (white rate, sigma rate*sqrt(dt)), velocity random walk (white
-    acceleration, sigma accel*sqrt(dt)), position-velocity consistency (sigma accel*dt^1.5/2),
-    and the bias random walk of the IMU when bias states exist."""
-    dt = max(dt, 1e-6)
+    acceleration, sigma accel*sqrt(dt)), position-velocity consistency (sigma accel*dt^1.5/2;
+    the pose link's translation is left free, sigma `free_sigma_m`), and the bias random walk
+    of the IMU when bias states exist.  dt is floored at `min_dt_s`, sigmas at `min_sigma`."""
+    dt = max(dt, min_dt_s)
     rot_sigma = rate_sigma * math.sqrt(dt)
     out = [
         gtsam.BetweenFactorPose3(X(k0), X(k1), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
-            np.r_[np.full(3, rot_sigma), np.full(3, 1e3)])),
+            np.r_[np.full(3, rot_sigma), np.full(3, free_sigma_m)])),
         gtsam.BetweenFactorVector(V(k0), V(k1), np.zeros(3),
                                   gtsam.noiseModel.Isotropic.Sigma(3, accel_sigma * math.sqrt(dt))),
-        constant_velocity_factor(k0, k1, dt, 0.5 * accel_sigma * dt ** 1.5 + 1e-6),
+        constant_velocity_factor(k0, k1, dt, 0.5 * accel_sigma * dt ** 1.5 + min_sigma),
     ]
     if with_bias:
-        sg = max(noise.gyroscope_random_walk * math.sqrt(dt), 1e-9)
-        sa = max(noise.accelerometer_random_walk * math.sqrt(dt), 1e-9)
+        sg = max(noise.gyroscope_random_walk * math.sqrt(dt), min_sigma)
+        sa = max(noise.accelerometer_random_walk * math.sqrt(dt), min_sigma)
         out.append(gtsam.BetweenFactorConstantBias(
             B(k0), B(k1), gtsam.imuBias.ConstantBias(),
             gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sa), np.full(3, sg)])))
     return out
 
 
-def floor_corner_factor(k: int, camera, corners_world: np.ndarray, corners_px: np.ndarray,
-                        whitening: np.ndarray, kernel: str, threshold: float) -> gtsam.CustomFactor:
+def floor_corner_factor(k: int, camera: CameraModel, corners_world: np.ndarray,
+                        corners_px: np.ndarray, whitening: np.ndarray, kernel: RobustKernel,
+                        threshold: float, behind_residual: float) -> gtsam.CustomFactor:
     """Tight coupling: the floor codes' known world corners reprojected into the floor camera at
     frame k, one factor on X(k) for all codes of the frame.
 
     corners_world (4c, 3) m, corners_px (4c, 2) the refined detections (TL, TR, BR, BL per code),
     whitening (c, 8, 8) per code (fusion.qr.pnp.corner_whitening: the corners' 8x8 covariance
-    C = L L^T -> L^-1).  Residual W (project(T_body_cam^-1 T_world_body^-1 p) - uv) (8c,),
-    unit-free after whitening; the projection is the camera's full radial-tangential model
-    (fusion.qr.reprojection.floor_reprojection; its Jacobian is w.r.t. the right perturbation of
-    GTSAM's Pose3).  A corner behind the camera at the current estimate gives a residual of
-    1e3 with zero Jacobian (the robust kernel then caps its pull)."""
-    from fusion.qr.reprojection import floor_reprojection
+    C = L L^T -> L^-1).  Residual W (project(T_world_cam^-1 p) - uv) (8c,), unit-free after
+    whitening, T_world_cam = camera.T_world_cam(T_world_body); the projection is the camera's
+    full radial-tangential model (fusion.qr.reprojection.floor_reprojection, whose Jacobian is w.r.t. the
+    same right perturbation as GTSAM's Pose3, of the camera's parent frame: for a gimbaled
+    camera the level frame, chained to the body by geometry.level_frame_jacobian).  A corner
+    behind the camera at the current estimate gives a residual of `behind_residual` with zero
+    Jacobian (the robust kernel then caps its pull)."""
     P = np.asarray(corners_world, float).copy()
     z = np.asarray(corners_px, float).reshape(-1).copy()
     W = np.asarray(whitening, float).copy()
     c = len(W)
     model = robust(gtsam.noiseModel.Unit.Create(8 * c), kernel, threshold)
     kx = X(k)
+    gimbaled = camera.gimbaled
 
     def error(this, values, jacobians):
-        uv, J = floor_reprojection(camera, values.atPose3(kx).matrix(), P)
+        T_wb = values.atPose3(kx).matrix()
+        uv, J = floor_reprojection(camera, level_frame(T_wb) if gimbaled else T_wb, P)
+        if gimbaled:
+            J = J @ level_frame_jacobian(T_wb)
         r = uv.reshape(-1) - z
         bad = ~np.isfinite(r)
         if bad.any():
-            r[bad] = 1e3
+            r[bad] = behind_residual
             J[bad] = 0.0
         rw = (W @ r.reshape(c, 8, 1)).reshape(-1)
         if jacobians is not None:

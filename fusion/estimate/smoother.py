@@ -23,35 +23,64 @@ One state per floor-camera frame: X(k) Pose3 T_world_body, V(k) world velocity, 
 from __future__ import annotations
 
 import ctypes
+import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import gtsam
 import numpy as np
 
+from fusion.camera import CameraModel
+from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
 from fusion.estimate import graph as G
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
-    check_inputs,
+    RawPoseInput,
+    RawPoses,
+    SolveHealth,
+    SolveMode,
+    TightCoupling,
     first_velocity,
     group_load_obs,
     initial_poses,
     initial_velocities,
     inlier_raw_mask,
     match_to_frames,
+    prepare_inputs,
     velocity_at_frames,
 )
 from fusion.estimate.graph import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
-from fusion.geometry import yaw_of
+from fusion.geometry import make_T, rot_z, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
-from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
+from fusion.qr.pnp import corner_whitening
+from fusion.types import (
+    Choice,
+    Estimator,
+    LoadEstimate,
+    LoadMap,
+    LoadObservation,
+    Trajectory,
+)
 
-__all__ = ["smooth", "smooth_incremental", "build_problem", "Problem", "imu_coverage",
-           "imu_subintervals"]
+__all__ = [
+    "FactorKind",
+    "LMResult",
+    "LMStop",
+    "Problem",
+    "build_problem",
+    "imu_coverage",
+    "imu_subintervals",
+    "levenberg_marquardt",
+    "smooth",
+    "smooth_incremental",
+]
+
+log = logging.getLogger(__name__)
+GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
 
 
 # =========================================================================== IMU handling
@@ -153,61 +182,116 @@ def gyro_fill_rotations(T_init: np.ndarray, known: np.ndarray, pims: dict) -> in
 # =========================================================================== problem
 
 
+class FactorKind(Choice):
+    """Robust factors, by what they measure (gated and counted per kind)."""
+    POSE = "pose"                # per-frame QR pose (6-dof, position + yaw, or level pose)
+    LOAD = "load"                # load-code centre in the front camera
+    CORNERS = "corners"          # floor-code corners of one frame (tight coupling)
+
+
+@dataclass
+class RobustFactor:
+    kind: FactorKind
+    threshold: float             # kernel threshold, Mahalanobis units
+
+
+@dataclass
+class LoadFactorArgs:
+    """What a load factor was built from (the incremental smoother rebuilds it on a new key)."""
+    k: int                       # frame
+    j: int                       # load index
+    p_cam: np.ndarray            # (3,) m, camera frame
+    cov_cam: np.ndarray          # (3, 3) m^2
+
+
+@dataclass
+class LoadTrack:
+    """One load id's sightings in the flight."""
+    load_id: str
+    init_world: np.ndarray                       # (3,) initial position (median of sightings)
+    sightings: list[tuple[int, np.ndarray]]      # (frame, p_cam (3,)) in time order
+
+    @property
+    def n_obs(self) -> int:
+        return len(self.sightings)
+
+
+@dataclass
+class GraphCounts:
+    """What build_problem put into the graph (FusionResult.stats, JSON-ready via as_dict)."""
+    raw_pose_input: RawPoseInput = RawPoseInput.POSE6
+    tight: TightCoupling = TightCoupling.OFF
+    imu_intervals: int = 0
+    bridged_intervals: int = 0
+    imu_segments: int = 0
+    frames_outside_imu: int | None = None
+    pose_factors: int = 0
+    corner_factors: int = 0
+    velocity_factors: int = 0
+    load_factors: int = 0
+    load_observations_skipped: int = 0
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        if self.frames_outside_imu is None:
+            del d["frames_outside_imu"]
+        return d
+
+
 @dataclass
 class Problem:
     """The factor graph of one flight, with each factor tagged by the frame at which it becomes
     available (the newest frame among its keys), and the initial values."""
-    frame_t: np.ndarray
-    factors: list = field(default_factory=list)        # gtsam factors
-    factor_frame: list = field(default_factory=list)   # frame index per factor
-    robust_kind: dict = field(default_factory=dict)    # factor index -> "pose" / "load" / "corners"
-    robust_threshold: dict = field(default_factory=dict)   # factor index -> kernel threshold
+    frame_t: np.ndarray                                   # (N,) int64 ns
+    front_camera: CameraModel | None
+    raw_input: RawPoseInput
+    has_imu: bool
+    k_first: int                                          # first frame with an inlier raw pose
+    fix_frames: np.ndarray                                # frames with a raw pose (sorted, unique)
+    fix_T: dict[int, np.ndarray]                          # frame -> raw T_world_body (4, 4)
+    pose_threshold: float
+    load_threshold: float
+    T_init: np.ndarray                                    # (N, 4, 4)
+    v_init: np.ndarray                                    # (N, 3)
+    factors: list = field(default_factory=list)           # gtsam factors
+    factor_frame: list[int] = field(default_factory=list)  # frame index per factor
+    robust: dict[int, RobustFactor] = field(default_factory=dict)   # by factor index
+    load_args: dict[int, LoadFactorArgs] = field(default_factory=dict)   # by factor index
+    loads: list[LoadTrack] = field(default_factory=list)  # by load index j
+    pims: dict[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
     initial: gtsam.Values = field(default_factory=gtsam.Values)
-    T_init: np.ndarray | None = None
-    v_init: np.ndarray | None = None
-    has_imu: bool = False
-    k_first: int = 0                                    # first frame with an (inlier) raw pose
-    load_ids: list = field(default_factory=list)
-    load_first_frame: dict = field(default_factory=dict)   # j -> first frame observing it
-    load_init: dict = field(default_factory=dict)           # j -> (3,) initial position
-    load_nobs: dict = field(default_factory=dict)
-    load_first_pcam: dict = field(default_factory=dict)     # j -> p_cam of the first sighting
-    load_sightings: dict = field(default_factory=dict)      # j -> [(frame, p_cam)] in time order
-    load_args: dict = field(default_factory=dict)   # factor index -> (k, j, p_cam, cov_cam)
-    T_body_cam: np.ndarray | None = None
-    thresholds: dict = field(default_factory=dict)      # "pose" / "load" -> Mahalanobis threshold
-    pims: dict = field(default_factory=dict)
-    stats: dict = field(default_factory=dict)
+    counts: GraphCounts = field(default_factory=GraphCounts)
 
-    def add(self, factor, k: int, kind: str | None = None, threshold: float | None = None) -> None:
+    @property
+    def load_ids(self) -> list[str]:
+        return [t.load_id for t in self.loads]
+
+    def add(self, factor, k: int, kind: FactorKind | None = None,
+            threshold: float | None = None) -> None:
         if kind is not None:
-            self.robust_kind[len(self.factors)] = kind
-            self.robust_threshold[len(self.factors)] = threshold if threshold is not None \
-                else self.thresholds[kind]
+            if threshold is None:
+                threshold = self.load_threshold if kind is FactorKind.LOAD else self.pose_threshold
+            self.robust[len(self.factors)] = RobustFactor(kind, threshold)
         self.factors.append(factor)
         self.factor_frame.append(int(k))
 
-    def graph(self) -> gtsam.NonlinearFactorGraph:
+    def graph(self, skip: set[int] = frozenset()) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
-        for f in self.factors:
-            g.add(f)
+        for i, f in enumerate(self.factors):
+            if i not in skip:
+                g.add(f)
         return g
 
 
-def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None, floor_camera,
-                      config: FusionConfig, stats: dict) -> dict:
-    """{frame index: (corners_world (4c, 3), corners_px (4c, 2), whitening (c, 8, 8))} for tight
-    coupling; {} when it is off or impossible (the reason goes to stats['tight'])."""
+def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None,
+                      floor_camera: CameraModel | None, config: FusionConfig
+                      ) -> tuple[dict, TightCoupling]:
+    """({frame index: (corners_world (4c, 3), corners_px (4c, 2), whitening (c, 8, 8))},
+    TightCoupling) for tight coupling; {} when it is off or impossible."""
     if not config.tight:
-        stats["tight"] = "off"
-        return {}
+        return {}, TightCoupling.OFF
     if not floor_frames or floor_camera is None:
-        stats["tight"] = "no floor sightings / floor camera given: loosely coupled"
-        return {}
-    if getattr(floor_camera, "mount", "body_fixed") != "body_fixed":
-        stats["tight"] = f"{floor_camera.mount} floor camera not supported: loosely coupled"
-        return {}
-    from fusion.qr.pnp import corner_whitening
+        return {}, TightCoupling.NO_SIGHTINGS
     t = np.array(sorted(floor_frames), dtype=np.int64)
     idx = match_to_frames(frame_t, t, config.max_sync_s)
     out = {}
@@ -221,38 +305,79 @@ def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None, floor_came
                              for s in sightings])
         W = corner_whitening([s.detection for s in sightings], config.corner_sigma_px)
         out[k] = (P, uv, W)
-    stats["tight"] = "on"
-    return out
+    return out, TightCoupling.ON
+
+
+def raw_pose_input(rawp: RawPoses, floor_camera: CameraModel | None) -> RawPoseInput:
+    """What the raw poses constrain: the paper's position + yaw (no covariance), a gimbaled floor
+    camera's level pose (PnP: roll / pitch unobserved), else the full pose."""
+    if not rawp.full_pose:
+        return RawPoseInput.POSITION_YAW
+    if floor_camera is not None and floor_camera.gimbaled:
+        return RawPoseInput.LEVEL_POSE
+    return RawPoseInput.POSE6
+
+
+def dead_reckon(frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int,
+                pims: dict, v_anchor: np.ndarray) -> None:
+    """Initial values by IMU dead reckoning from frame `anchor` (in place), forward and
+    backward through the preintegrated intervals (zero bias); intervals without IMU hold the
+    pose and velocity.  Forward (Forster et al. 2017, eq. 33): R1 = R0 dR, v1 = v0 + g dt +
+    R0 dV, p1 = p0 + v0 dt + g dt^2 / 2 + R0 dP; backward the same solved for the start."""
+    v[anchor] = v_anchor
+    for k in range(anchor, len(frame_t) - 1):
+        T[k + 1], v[k + 1] = T[k], v[k]
+        if k in pims:
+            nav = pims[k].predict(gtsam.NavState(gtsam.Pose3(T[k]), v[k]),
+                                  gtsam.imuBias.ConstantBias())
+            T[k + 1], v[k + 1] = nav.pose().matrix(), nav.velocity()
+    for k in range(anchor - 1, -1, -1):
+        T[k], v[k] = T[k + 1], v[k + 1]
+        if k in pims:
+            pim = pims[k]
+            dt = pim.deltaTij()
+            R0 = T[k + 1, :3, :3] @ pim.deltaRij().matrix().T
+            v0 = v[k + 1] - GRAVITY_W * dt - R0 @ pim.deltaVij()
+            p0 = T[k + 1, :3, 3] - v0 * dt - 0.5 * GRAVITY_W * dt ** 2 - R0 @ pim.deltaPij()
+            T[k] = np.eye(4)
+            T[k, :3, :3], T[k, :3, 3], v[k] = R0, p0, v0
 
 
 def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                  load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
+                  load_obs: list[LoadObservation] | None, front_camera: CameraModel | None,
                   velocity: VelocityData | None = None,
                   config: FusionConfig | None = None, floor_frames: dict | None = None,
-                  floor_camera=None) -> Problem:
+                  floor_camera: CameraModel | None = None,
+                  require_motion: bool = True) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
-    Tight coupling (`config.tight` with `floor_frames` {frame timestamp_ns: [FloorSighting]} and
-    the floor `floor_camera` CameraModel): at frames with floor sightings the known world
+    front_camera: the load camera (CameraModel, mount-aware), None without one (load
+    observations are then skipped and counted).  floor_camera: the floor camera; with a
+    gimbaled one the PnP poses are level-frame poses (RawPoseInput.LEVEL_POSE), and with
+    `config.tight` and `floor_frames` {frame timestamp_ns: [FloorSighting]} the known world
     corners are reprojection factors on X(k) (graph.floor_corner_factor) instead of the raw
-    pose factor; the raw poses still give the initial values and the factors elsewhere.
+    pose factor at frames with floor sightings; the raw poses still give the initial values
+    and the factors elsewhere.
 
     Raises EstimationError for: no raw pose at all ("no floor code was read in this flight"),
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
-    poses at no frame time, neither IMU nor velocity."""
+    poses at no frame time, neither IMU nor velocity, a front camera that is not a CameraModel."""
     config = config or FusionConfig()
-    frame_t, rawp, imu, velocity, T_bc = check_inputs(frame_times_ns, imu, raw, velocity,
-                                                      T_body_frontcam, config)
-
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config,
+                         require_motion)
+    frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     n = len(frame_t)
-    pb = Problem(frame_t=frame_t, has_imu=imu is not None, T_body_cam=T_bc)
     use = inlier_raw_mask(rawp, config)
-    pb.T_init = initial_poses(frame_t, rawp, config, use)
-    pb.v_init = initial_velocities(frame_t, pb.T_init)
-    pb.k_first = int(rawp.frame_idx[use].min())
-    thr_pose = config.threshold(6 if rawp.full_pose else 4)
-    thr_load = config.threshold(3)
-    pb.thresholds = {"pose": thr_pose, "load": thr_load}
+    raw_input = raw_pose_input(rawp, floor_camera)
+    T_init = initial_poses(frame_t, rawp, config, use)
+    pb = Problem(frame_t=frame_t, front_camera=inp.front_camera, raw_input=raw_input,
+                 has_imu=imu is not None, k_first=int(rawp.frame_idx[use].min()),
+                 fix_frames=np.unique(rawp.frame_idx),
+                 fix_T={int(k): T for k, T in zip(rawp.frame_idx.tolist(), rawp.T_world_body)},
+                 pose_threshold=config.threshold(6 if raw_input is RawPoseInput.POSE6 else 4),
+                 load_threshold=config.threshold(3), T_init=T_init,
+                 v_init=initial_velocities(frame_t, T_init))
+    pb.counts.raw_pose_input = raw_input
 
     # ---- motion model between consecutive frames
     covered = np.zeros(max(n - 1, 0), bool)
@@ -260,7 +385,13 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         params = G.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
         pb.pims = preintegrate(frame_t, imu, covered, params)
-        gyro_fill_rotations(pb.T_init, np.unique(rawp.frame_idx[use]), pb.pims)
+    v0 = first_velocity(frame_t, rawp, use, pb.k_first, config.first_velocity_fixes,
+                        config.first_velocity_window_s)
+    inlier_frames = np.unique(rawp.frame_idx[use])
+    if len(inlier_frames) <= config.dead_reckoning_max_fixes:
+        dead_reckon(frame_t, pb.T_init, pb.v_init, pb.k_first, pb.pims, v0)
+    elif imu is not None:
+        gyro_fill_rotations(pb.T_init, inlier_frames, pb.pims)
     for k in range(n - 1):
         if covered[k]:
             pb.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1),
@@ -269,20 +400,28 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             dt = (frame_t[k + 1] - frame_t[k]) * 1e-9
             for f in G.bridge_factors(k, k + 1, dt, config.bridge_accel_sigma_m_s2,
                                       config.bridge_rate_sigma_rad_s, imu is not None,
-                                      imu.noise if imu is not None else None):
+                                      imu.noise if imu is not None else None,
+                                      config.bridge_free_sigma_m, config.bridge_min_dt_s,
+                                      config.bridge_min_sigma):
                 pb.add(f, k + 1)
     # segments = maximal runs of IMU-covered intervals
     edges = np.diff(np.r_[0, covered.astype(int), 0])
-    pb.stats.update(imu_intervals=int(covered.sum()), bridged_intervals=int((~covered).sum()),
-                    imu_segments=int((edges == 1).sum()))
+    pb.counts.imu_intervals = int(covered.sum())
+    pb.counts.bridged_intervals = int((~covered).sum())
+    pb.counts.imu_segments = int((edges == 1).sum())
     if imu is not None:
         t0, t1 = imu.timestamps_ns[0], imu.timestamps_ns[-1]
-        pb.stats["frames_outside_imu"] = int(((frame_t < t0) | (frame_t > t1)).sum())
+        pb.counts.frames_outside_imu = int(((frame_t < t0) | (frame_t > t1)).sum())
 
     # ---- priors
-    v0 = first_velocity(frame_t, rawp, use, pb.k_first)
+    # the first velocity comes from a line through the first fixes; with fewer than two of them
+    # it is unknown (zero, with the sigma of a drone's speed)
+    near = np.abs(frame_t[inlier_frames] - frame_t[pb.k_first]) <= \
+        config.first_velocity_window_s * 1e9
+    v_sigma = config.velocity_prior_sigma_m_s if near.sum() >= 2 else \
+        config.unknown_velocity_sigma_m_s
     pb.add(gtsam.PriorFactorVector(V(pb.k_first), v0, gtsam.noiseModel.Isotropic.Sigma(
-        3, config.velocity_prior_sigma_m_s)), pb.k_first)
+        3, v_sigma)), pb.k_first)
     if imu is not None:
         pb.add(gtsam.PriorFactorConstantBias(B(pb.k_first), gtsam.imuBias.ConstantBias(),
                                              gtsam.noiseModel.Diagonal.Sigmas(np.r_[
@@ -291,55 +430,56 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                pb.k_first)
 
     # ---- QR pose factors (or, tightly coupled, corner reprojection factors)
-    corner_frames = tight_corner_data(frame_t, floor_frames, floor_camera, config, pb.stats)
-    n_pose = 0
+    corner_frames, pb.counts.tight = tight_corner_data(frame_t, floor_frames, floor_camera,
+                                                       config)
+    kernel = config.robust_kernel
     for m, k in enumerate(rawp.frame_idx.tolist()):
         if k in corner_frames:
             continue
         T = rawp.T_world_body[m]
-        if rawp.full_pose:
-            f = G.pose_prior_factor(k, T, rawp.covariances[m], config.robust_kernel, thr_pose)
+        if raw_input is RawPoseInput.POSE6:
+            f = G.pose_prior_factor(k, T, rawp.covariances[m], kernel, pb.pose_threshold)
+        elif raw_input is RawPoseInput.LEVEL_POSE:
+            f = G.level_pose_factor(k, T, rawp.covariances[m][2:, 2:], kernel, pb.pose_threshold)
         else:
             f = G.position_yaw_factor(k, T[:3, 3], float(yaw_of(T[:3, :3])),
                                       config.paper_sigma_xyz_m, config.paper_sigma_yaw_rad,
-                                      config.robust_kernel, thr_pose)
-        pb.add(f, k, "pose")
-        n_pose += 1
+                                      kernel, pb.pose_threshold)
+        pb.add(f, k, FactorKind.POSE)
+        pb.counts.pose_factors += 1
     for k, (P, uv, W) in sorted(corner_frames.items()):
         thr = config.threshold(8 * len(W))
-        pb.add(G.floor_corner_factor(k, floor_camera, P, uv, W, config.robust_kernel, thr), k,
-               "corners", thr)
-    pb.stats["pose_factors"] = n_pose
-    pb.stats["corner_factors"] = len(corner_frames)
-    pb.stats["raw_pose_input"] = "pose6" if rawp.full_pose else "position_yaw"
+        pb.add(G.floor_corner_factor(k, floor_camera, P, uv, W, kernel, thr,
+                                     config.corner_behind_residual), k, FactorKind.CORNERS, thr)
+    pb.counts.corner_factors = len(corner_frames)
 
     # ---- velocity factors
     vmask, v_body = velocity_at_frames(frame_t, velocity, config)
     for k in np.flatnonzero(vmask).tolist():
         pb.add(G.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
-    pb.stats["velocity_factors"] = int(vmask.sum())
+    pb.counts.velocity_factors = int(vmask.sum())
 
     # ---- loads
+    cam = pb.front_camera
     groups, skipped = group_load_obs(frame_t, load_obs or [], config)
-    pb.load_ids = sorted(groups)
-    for j, lid in enumerate(pb.load_ids):
+    if cam is None:
+        skipped += sum(len(obs) for obs in groups.values())
+        groups = {}
+    for j, lid in enumerate(sorted(groups)):
         obs = groups[lid]
-        pts = []
-        for k, o in obs:
-            pb.load_args[len(pb.factors)] = (k, j, o.p_cam, o.cov_cam)
-            pb.add(G.load_factor(k, j, o.p_cam, o.cov_cam, T_bc, config.robust_kernel, thr_load),
-                   k, "load")
-            T_wc = pb.T_init[k] @ T_bc
-            pts.append(T_wc[:3, :3] @ np.asarray(o.p_cam, float) + T_wc[:3, 3])
-        pb.load_init[j] = np.median(np.array(pts), axis=0)
-        k_min, o_min = min(obs, key=lambda ko: ko[0])
-        pb.load_first_frame[j] = k_min
-        pb.load_first_pcam[j] = np.asarray(o_min.p_cam, float)
-        pb.load_sightings[j] = sorted(((k, np.asarray(o.p_cam, float)) for k, o in obs),
-                                      key=lambda kp: kp[0])
-        pb.load_nobs[j] = len(obs)
-    pb.stats["load_observations_skipped"] = skipped
-    pb.stats["load_factors"] = sum(pb.load_nobs.values())
+        k_obs = np.array([k for k, _ in obs])
+        p_cam = np.array([np.asarray(o.p_cam, float) for _, o in obs])
+        for (k, o), pc in zip(obs, p_cam):
+            pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, np.asarray(o.cov_cam, float))
+            pb.add(G.load_factor(k, j, pc, o.cov_cam, cam, kernel, pb.load_threshold), k,
+                   FactorKind.LOAD)
+        T_wc = cam.T_world_cam(pb.T_init[k_obs])
+        pts = np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
+        order = np.argsort(k_obs, kind="stable")
+        pb.loads.append(LoadTrack(lid, np.median(pts, axis=0),
+                                  [(int(k_obs[i]), p_cam[i]) for i in order]))
+    pb.counts.load_observations_skipped = skipped
+    pb.counts.load_factors = sum(t.n_obs for t in pb.loads)
 
     # ---- initial values
     for k in range(n):
@@ -347,58 +487,94 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         pb.initial.insert(V(k), pb.v_init[k])
         if imu is not None:
             pb.initial.insert(B(k), gtsam.imuBias.ConstantBias())
-    for j, p in pb.load_init.items():
-        pb.initial.insert(L(j), p)
+    for j, track in enumerate(pb.loads):
+        pb.initial.insert(L(j), track.init_world)
     return pb
 
 
-def robust_distances(pb: Problem, values: gtsam.Values) -> dict[int, float]:
+def robust_distances(pb: Problem, values: gtsam.Values,
+                     skip: set[int] = frozenset()) -> dict[int, float]:
     """Mahalanobis distance (whitened residual norm before the kernel) of each robust factor."""
-    out = {}
-    for i in pb.robust_kind:
-        f = pb.factors[i]
-        e = f.unwhitenedError(values)
-        nm = f.noiseModel()
-        out[i] = nm.noise().mahalanobisDistance(e) if isinstance(nm, gtsam.noiseModel.Robust) \
-            else nm.mahalanobisDistance(e)
-    return out
+    return {i: mahalanobis(pb.factors[i], values) for i in pb.robust if i not in skip}
 
 
-def count_rejections(pb: Problem, dist: dict[int, float]) -> dict:
+def mahalanobis(factor, values: gtsam.Values) -> float:
+    e = factor.unwhitenedError(values)
+    nm = factor.noiseModel()
+    return nm.noise().mahalanobisDistance(e) if isinstance(nm, gtsam.noiseModel.Robust) \
+        else nm.mahalanobisDistance(e)
+
+
+def count_rejections(pb: Problem, dist: dict[int, float]) -> dict[FactorKind, int]:
     """Robust factors whose Mahalanobis distance exceeds the kernel threshold, per kind."""
-    out = {"pose": 0, "load": 0, "corners": 0}
+    out = dict.fromkeys(FactorKind, 0)
     for i, d in dist.items():
-        if d > pb.robust_threshold[i]:
-            out[pb.robust_kind[i]] += 1
+        if d > pb.robust[i].threshold:
+            out[pb.robust[i].kind] += 1
     return out
+
+
+def fix_health(pb: Problem, config: FusionConfig, health: SolveHealth) -> None:
+    """Fixes, frames far from every fix, and the dead-reckoning label (in place)."""
+    fix_t = pb.frame_t[pb.fix_frames]
+    health.fixes = len(fix_t)
+    j = np.clip(np.searchsorted(fix_t, pb.frame_t), 1, max(len(fix_t) - 1, 1))
+    d = np.abs(pb.frame_t - fix_t[np.minimum(j, len(fix_t) - 1)])
+    if len(fix_t) > 1:
+        d = np.minimum(d, np.abs(pb.frame_t - fix_t[j - 1]))
+    health.frames_far_from_fix = int((d > config.far_from_fix_s * 1e9).sum())
+    if health.fixes <= config.dead_reckoning_max_fixes:
+        health.mode = SolveMode.DEAD_RECKONED
+        span = (pb.frame_t[-1] - pb.frame_t[0]) * 1e-9
+        health.note(f"dead-reckoned: {health.fixes} fix(es) in {span:.1f} s; the estimate is "
+                    "IMU / velocity integration from it, sigma grows with the distance in time")
 
 
 # =========================================================================== batch
 
 
+class LMStop(Choice):
+    """Why levenberg_marquardt stopped."""
+    CONVERGED = "converged"
+    ITERATION_LIMIT = "iteration_limit"
+    STALLED = "stalled"          # no damping up to lambda_max lowered the error
+
+
+@dataclass
+class LMResult:
+    values: gtsam.Values
+    iterations: int
+    # the undamped linearisation of the last accepted step, reusable for marginal covariances;
+    # None if that step was damped or the model-misfit test stopped (linearise at `values`)
+    linear: gtsam.GaussianFactorGraph | None
+    stop: LMStop
+
+
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                        max_iterations: int = 100, relative_tol: float = 1e-5,
-                        lambda0: float = 1e-5, ordering: gtsam.Ordering | None = None,
-                        errors: list | None = None):
+                        config: FusionConfig | None = None,
+                        ordering: gtsam.Ordering | None = None,
+                        errors: list | None = None, qr: bool = False) -> LMResult:
     """Levenberg-Marquardt (Nocedal & Wright 2006, Sec. 10.3; GTSAM's defaults: lambda0 1e-5,
     factor 10, identity damping) driven from Python around GTSAM's linearize / multifrontal
     elimination, with one COLAMD ordering computed up front and reused.  Each iteration first
     tries the undamped Gauss-Newton step and damps only if that does not lower the error (from
     a good initial guess the first steps succeed).  Stops when an accepted step lowers the error
-    by less than relative_tol (GTSAM's relativeErrorTol), or when an undamped step's actual
-    decrease matches the linear model's predicted decrease to within relative_tol of the error:
-    the model misfit bounds what a further step could gain, so the usual last step that only
-    confirms convergence (a full linearise + eliminate) is skipped.
+    by less than lm_relative_tol (GTSAM's relativeErrorTol), or when an undamped step's actual
+    decrease matches the linear model's predicted decrease to within lm_relative_tol of the
+    error: the model misfit bounds what a further step could gain, so the usual last step that
+    only confirms convergence (a full linearise + eliminate) is skipped.
 
     Why not gtsam.LevenbergMarquardtOptimizer: with Python CustomFactors in the graph its
-    linearisation took ~5 s per iteration on a 2-minute flight here (gtsam 4.3.0 wheel), 100x
-    more than `graph.linearize` called from Python on the same graph; the maths is the same.
+    linearisation is 8-110x slower than `graph.linearize` called from Python on the same graph
+    (measured here, gtsam 4.3.0 wheel, same optimum; GTSAM issue #875: CustomFactor overhead).
 
-    Returns (values, iterations, linear_graph): linear_graph is the undamped linearisation of
-    the last accepted step (at the iterate before the returned one, whose step changed the error
-    by < relative_tol), reusable for marginal covariances; None if that step was damped or the
-    model-misfit test stopped (then linearise at the returned values).
+    `qr`: eliminate by Householder QR on the whitened Jacobians instead of GTSAM's default
+    (Cholesky on the normal equations, which squares the condition number: a long IMU-only
+    stretch then looks indeterminate to it); slower, used by `solve` as the first fallback.
+    Raises what GTSAM raises on a singular system (RuntimeError: IndeterminantLinearSystem;
+    ValueError: a variable of the ordering in no factor); `solve` handles those.
     `errors`, if given, receives the graph error at the start and after each accepted step."""
+    config = config or FusionConfig()
     if ordering is None:
         ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     err = graph.error(values)
@@ -407,38 +583,46 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     lam = 0.0      # try the Gauss-Newton step first; damp only when it fails to descend
     keys = [int(k) for k in values.keys()]
     it = 0
-    for it in range(1, max_iterations + 1):
+    stop = LMStop.ITERATION_LIMIT
+    lin = None
+    undamped = False
+    for it in range(1, config.lm_max_iterations + 1):
         lin = graph.linearize(values)
+        stalled = False
         while True:
+            system = lin
             if lam > 0:
-                damped = lin.clone()
-                _add_damping(damped, keys, lam)
-                tree = damped.eliminateMultifrontal(ordering)
-            else:
-                tree = lin.eliminateMultifrontal(ordering)
+                system = lin.clone()
+                _add_damping(system, keys, lam)
+            tree = system.eliminateMultifrontal(ordering, gtsam.EliminateQR) if qr else \
+                system.eliminateMultifrontal(ordering)
             delta = tree.optimize()
             trial = values.retract(delta)
             new_err = graph.error(trial)
             if new_err <= err:
                 break
-            lam = lambda0 if lam == 0.0 else lam * 10.0
-            if lam > 1e10:
-                return values, it, None
+            lam = config.lm_lambda0 if lam == 0.0 else lam * config.lm_lambda_factor
+            if lam > config.lm_lambda_max:
+                stalled = True
+                break
+        if stalled:
+            return LMResult(values, it, None, LMStop.STALLED)
         undamped = lam == 0.0
-        converged = (err - new_err) <= relative_tol * max(err, 1e-300)
+        converged = (err - new_err) <= config.lm_relative_tol * max(err, 1e-300)
         if undamped and not converged:
             # the linear model's misfit on this step bounds what another step could still gain
             predicted = lin.error(gtsam.VectorValues.Zero(delta)) - lin.error(delta)
-            if abs((err - new_err) - predicted) <= relative_tol * max(new_err, 1e-300):
+            if abs((err - new_err) - predicted) <= config.lm_relative_tol * max(new_err, 1e-300):
                 converged = True
                 lin = None              # the covariance pass linearises at the solution
         values, err = trial, new_err
         if errors is not None:
             errors.append(err)
-        lam = lam / 10.0 if lam > lambda0 else 0.0
+        lam = lam / config.lm_lambda_factor if lam > config.lm_lambda0 else 0.0
         if converged:
+            stop = LMStop.CONVERGED
             break
-    return values, it, lin if undamped else None
+    return LMResult(values, it, lin if undamped and stop is LMStop.CONVERGED else None, stop)
 
 
 def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
@@ -451,6 +635,123 @@ def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
 
 def _dim_of(key: int) -> int:
     return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3}[gtsam.Symbol(key).chr()]
+
+
+def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
+    """A weak prior at its current value on every variable (FusionConfig.fallback_sigma_*):
+    keeps a singular system solvable without moving a well-constrained estimate."""
+    out = []
+    rot, pos = config.fallback_sigma_rot_rad, config.fallback_sigma_pos_m
+    pose_model = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, rot), np.full(3, pos)])
+    for key in values.keys():
+        c = gtsam.Symbol(key).chr()
+        if c == ord("x"):
+            out.append(gtsam.PriorFactorPose3(key, values.atPose3(key), pose_model))
+        elif c == ord("v"):
+            out.append(gtsam.PriorFactorVector(key, values.atVector(key),
+                                               gtsam.noiseModel.Isotropic.Sigma(
+                                                   3, config.fallback_sigma_vel_m_s)))
+        elif c == ord("b"):
+            out.append(gtsam.PriorFactorConstantBias(key, values.atConstantBias(key),
+                                                     gtsam.noiseModel.Isotropic.Sigma(
+                                                         6, config.fallback_sigma_bias)))
+        elif c == ord("l"):
+            out.append(gtsam.PriorFactorPoint3(key, values.atPoint3(key),
+                                               gtsam.noiseModel.Isotropic.Sigma(3, pos)))
+    return out
+
+
+def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: FusionConfig,
+          health: SolveHealth, ordering: gtsam.Ordering | None = None,
+          errors: list | None = None) -> tuple[LMResult, gtsam.NonlinearFactorGraph,
+                                                 gtsam.Ordering]:
+    """levenberg_marquardt with the failures recorded in `health`.  A singular linear system
+    (IndeterminantLinearSystem, an ordering variable in no factor) is retried with QR
+    elimination (nearly indeterminate for Cholesky only, e.g. seconds of IMU-only motion), then
+    with QR and weak_priors on every state (a variable nothing constrains); each retry is
+    counted in linear_fallbacks, and iteration-limit stops and stalls are counted.  Returns the
+    result, the graph and the ordering actually solved (for the covariances).  A failure of
+    the last retry raises EstimationError with GTSAM's reason."""
+    ordering = ordering or gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+    try:
+        res = levenberg_marquardt(graph, values, config, ordering, errors)
+    except (RuntimeError, ValueError) as e:
+        reason = _first_line(e)
+        log.warning("singular linear system (%s): retrying with QR elimination", reason)
+        health.linear_fallbacks += 1
+        health.note(f"singular linear system for Cholesky ({reason}): solved by QR")
+        try:
+            res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
+        except (RuntimeError, ValueError) as e2:
+            log.warning("singular linear system (%s): retrying with weak priors on every state",
+                        _first_line(e2))
+            health.linear_fallbacks += 1
+            health.note(f"singular linear system ({_first_line(e2)}): solved again with weak "
+                        "priors on every state")
+            priors = weak_priors(values, config)
+            health.weak_prior_states += len(priors)
+            graph = gtsam.NonlinearFactorGraph(graph)
+            for f in priors:
+                graph.add(f)
+            ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
+            try:
+                res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
+            except (RuntimeError, ValueError) as e3:
+                raise EstimationError("the factor graph cannot be solved even with weak priors: "
+                                      f"{_first_line(e3)}") from None
+    if res.stop is LMStop.ITERATION_LIMIT:
+        health.iteration_limit_hits += 1
+        health.note(f"Levenberg-Marquardt stopped at its iteration limit "
+                    f"({config.lm_max_iterations}) before converging")
+    elif res.stop is LMStop.STALLED:
+        health.lm_stalls += 1
+        health.note("Levenberg-Marquardt stalled: no damping lowered the error")
+    return res, graph, ordering
+
+
+def _first_line(e: Exception) -> str:
+    """GTSAM's messages run over several lines; the first (plus the variable) names the cause."""
+    lines = [ln.strip() for ln in str(e).strip().splitlines() if ln.strip()]
+    if not lines:
+        return type(e).__name__
+    return " ".join(lines[:2]) if lines[0].endswith("variable") else lines[0]
+
+
+def gate_outliers(pb: Problem, dist: dict[int, float], config: FusionConfig,
+                  health: SolveHealth) -> tuple[set[int], list, dict[FactorKind, int]]:
+    """Factors to remove after the robust solve (Mahalanobis distance beyond outlier_gate),
+    weak priors that keep their variables constrained, and the counts per kind.
+
+    Fixes (pose / corner factors) are gated only when at most max_gated_fraction of them are
+    beyond the gate; otherwise the motion model, not the fixes, is suspect (IMU units, clock),
+    and removing most fixes would leave the trajectory unanchored: none is removed and the
+    skip is counted.  A load whose every sighting is gated is taken out of the map (its
+    variable keeps a weak prior at its current value, so the graph stays solvable)."""
+    gated = dict.fromkeys(FactorKind, 0)
+    if config.outlier_gate is None:
+        return set(), [], gated
+    beyond = {i for i, d in dist.items() if d > config.outlier_gate}
+    fixes = [i for i in dist if pb.robust[i].kind is not FactorKind.LOAD]
+    bad_fixes = [i for i in fixes if i in beyond]
+    if fixes and len(bad_fixes) > config.max_gated_fraction * len(fixes):
+        health.gate_skipped += len(bad_fixes)
+        health.note(f"{len(bad_fixes)} of {len(fixes)} fixes disagree with the motion model "
+                    "beyond the outlier gate: not removed (IMU units, scale or clock suspect)")
+        beyond -= set(bad_fixes)
+    for i in beyond:
+        gated[pb.robust[i].kind] += 1
+    priors = []
+    by_load: dict[int, list[int]] = {}
+    for i, a in pb.load_args.items():
+        by_load.setdefault(a.j, []).append(i)
+    for j, idx in by_load.items():
+        if all(i in beyond for i in idx):
+            health.loads_dropped.append(pb.loads[j].load_id)
+            priors.append(j)
+    if health.loads_dropped:
+        health.note(f"{len(health.loads_dropped)} load(s) with every sighting beyond the "
+                    f"outlier gate left out of the map: {', '.join(health.loads_dropped[:5])}")
+    return beyond, priors, gated
 
 
 def release_heap() -> None:
@@ -474,50 +775,80 @@ def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
 
 
 def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-           load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
+           load_obs: list[LoadObservation] | None, front_camera: CameraModel | None = None,
            velocity: VelocityData | None = None,
            config: FusionConfig | None = None, floor_frames: dict | None = None,
-           floor_camera=None) -> FusionResult:
+           floor_camera: CameraModel | None = None) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
     frame_times_ns (N,) int64: floor-camera frame times (one state each); imu: ImuData or None
     (then velocity is required: velocity-only mode); raw: per-frame QR poses at a subset of the
     frame times (with (M,6,6) covariances, or None for the paper's position + yaw);
-    load_obs: front-camera load observations with p_cam / cov_cam; T_body_frontcam (4,4);
-    floor_frames {frame timestamp_ns: [fusion.qr.codes.FloorSighting]} and floor_camera
-    (CameraModel of cam0): used only with config.tight (see build_problem).
+    load_obs: front-camera load observations with p_cam / cov_cam; front_camera: the load
+    camera's CameraModel (mount-aware; None: no loads); floor_camera: the floor camera's
+    CameraModel (a gimbaled one makes the PnP poses level-frame poses); floor_frames
+    {frame timestamp_ns: [fusion.qr.codes.FloorSighting]}: used only with config.tight.
     Returns FusionResult with the trajectory at every frame time (covariances (N,6,6), Pose3
-    order, body frame), the load map (3x3 world covariances) and stats (iterations,
+    order, body frame), the load map (3x3 world covariances), stats (iterations,
     initial/final error, rejected_* = robust factors beyond the kernel threshold at the robust
     solution, gated_* = those beyond `outlier_gate`, removed before the final solve, IMU
-    segments / bridged intervals, times)."""
+    segments / bridged intervals, times, `health` as a dict) and `health` (SolveHealth).
+    Never raises a GTSAM exception: a singular system is retried by QR, then with weak priors,
+    and only a third failure ends in EstimationError.  When most fixes disagree with the IMU
+    beyond the outlier gate (config.reject_disagreeing_imu), the flight is solved again
+    without the IMU (random-walk model and velocity): health.mode IMU_REJECTED."""
     config = config or FusionConfig()
-    t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config,
+    res = _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
                        floor_frames, floor_camera)
+    if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
+        return res
+    # most fixes disagree with the IMU: its units, the world's scale or a clock are wrong, and
+    # the IMU's confident factors would drag the trajectory away from every fix
+    log.warning("smoother: most fixes disagree with the IMU; solving again without it")
+    alt = _smooth_once(frame_times_ns, None, raw, load_obs, front_camera, velocity, config,
+                       floor_frames, floor_camera, require_motion=False)
+    h = alt.health
+    h.mode = SolveMode.IMU_REJECTED
+    h.reasons = list(dict.fromkeys([
+        f"{res.health.gate_skipped} of {res.health.fixes} fixes disagreed with the IMU beyond "
+        "the outlier gate: solved again without the IMU (random-walk motion model"
+        + (", velocity" if velocity is not None else "") + "); check the IMU's units and "
+        "clock, and world.yaml's side_m / payload_unit_m"] + h.reasons))
+    h.gate_skipped += res.health.gate_skipped
+    h.iteration_limit_hits += res.health.iteration_limit_hits
+    h.lm_stalls += res.health.lm_stalls
+    h.linear_fallbacks += res.health.linear_fallbacks
+    alt.stats["health"] = h.as_dict()
+    alt.stats["imu_rejected"] = True
+    return alt
+
+
+def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
+                 floor_frames, floor_camera, require_motion: bool = True) -> FusionResult:
+    """One batch solve (smooth without the IMU-rejection retry)."""
+    t0 = time.perf_counter()
+    pb = build_problem(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
+                       floor_frames, floor_camera, require_motion)
+    health = SolveHealth()
+    fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
     graph = pb.graph()
-    ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
     errors: list[float] = []
-    values, iterations, lin = levenberg_marquardt(graph, pb.initial, config.lm_max_iterations,
-                                                   config.lm_relative_tol, ordering=ordering,
-                                                   errors=errors)
+    res, graph, ordering = solve(graph, pb.initial, config, health, errors=errors)
+    values, iterations, lin = res.values, res.iterations, res.linear
     err0 = errors[0]
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
-    gated = {"pose": 0, "load": 0, "corners": 0}
-    if config.outlier_gate is not None and any(d > config.outlier_gate for d in dist.values()):
-        drop = {i for i, d in dist.items() if d > config.outlier_gate}
-        for i in drop:
-            gated[pb.robust_kind[i]] += 1
-        graph = gtsam.NonlinearFactorGraph()
-        for i, f in enumerate(pb.factors):
-            if i not in drop:
-                graph.add(f)
-        values, it2, lin = levenberg_marquardt(graph, values, config.lm_max_iterations,
-                                                config.lm_relative_tol, ordering=ordering,
-                                                errors=errors)
-        iterations += it2
+    drop, dropped_loads, gated = gate_outliers(pb, dist, config, health)
+    if drop:
+        graph = pb.graph(drop)
+        for j in dropped_loads:
+            graph.add(gtsam.PriorFactorPoint3(L(j), values.atPoint3(L(j)),
+                                              gtsam.noiseModel.Isotropic.Sigma(
+                                                  3, config.fallback_sigma_pos_m)))
+        res, graph, ordering = solve(graph, values, config, health, ordering, errors)
+        values, lin = res.values, res.linear
+        iterations += res.iterations
     t_opt = time.perf_counter() - t0 - t_build
     release_heap()
     n = len(pb.frame_t)
@@ -529,51 +860,100 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         if lin is None:         # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
         try:
-            bulk = chain_marginals(lin, n, pb.has_imu, len(pb.load_ids))
+            bulk = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
         except np.linalg.LinAlgError:
             bulk = None
         if bulk is not None:
             cov, lc = bulk
             lcov = dict(enumerate(lc))
         else:                   # not the chain structure: gtsam's Bayes tree, key by key
-            tree = lin.eliminateMultifrontal(ordering)
-            cov = np.empty((n, 6, 6))
-            for k in range(n):
-                cov[k] = tree.marginalCovariance(X(k))
-            for j in range(len(pb.load_ids)):
-                lcov[j] = tree.marginalCovariance(L(j))
-        covariance_method = "chain" if bulk is not None else "bayes_tree"
+            try:
+                tree = lin.eliminateMultifrontal(ordering, gtsam.EliminateQR)
+                cov = np.empty((n, 6, 6))
+                for k in range(n):
+                    cov[k] = tree.marginalCovariance(X(k))
+                for j in range(len(pb.loads)):
+                    lcov[j] = tree.marginalCovariance(L(j))
+            except (RuntimeError, ValueError) as e:
+                cov, lcov = None, {}
+                health.note(f"no covariances: the linearised system is singular ({e})")
+        covariance_method = "chain" if bulk is not None else (
+            "bayes_tree" if cov is not None else "none")
     t_cov = time.perf_counter() - t0 - t_build - t_opt
-    loads = LoadMap("smoother", [LoadEstimate(lid, values.atPoint3(L(j)).copy(), lcov.get(j),
-                                              pb.load_nobs[j])
-                                 for j, lid in enumerate(pb.load_ids)])
-    stats = dict(pb.stats, iterations=iterations, gated_pose_factors=gated["pose"],
-                 gated_load_factors=gated["load"], gated_corner_factors=gated["corners"],
-                 rejected_corner_factors=rej["corners"], initial_error=float(err0),
-                 final_error=float(errors[-1]), rejected_pose_factors=rej["pose"],
-                 rejected_load_factors=rej["load"], robust_kernel=config.robust_kernel,
-                 pose_threshold=pb.thresholds["pose"], n_factors=len(pb.factors),
+    dropped = set(health.loads_dropped)
+    loads = LoadMap(str(Estimator.SMOOTHER),
+                    [LoadEstimate(t.load_id, values.atPoint3(L(j)).copy(), lcov.get(j), t.n_obs)
+                     for j, t in enumerate(pb.loads) if t.load_id not in dropped])
+    stats = dict(pb.counts.as_dict(), iterations=iterations, initial_error=float(err0),
+                 final_error=float(errors[-1]), robust_kernel=config.robust_kernel,
+                 pose_threshold=pb.pose_threshold, n_factors=len(pb.factors),
                  covariance_method=covariance_method,
                  time_build_s=t_build, time_optimize_s=t_opt, time_covariance_s=t_cov,
                  time_s=time.perf_counter() - t0)
-    traj = Trajectory("smoother", pb.frame_t.copy(), T, cov)
-    return FusionResult(traj, loads, stats)
+    for kind, word in ((FactorKind.POSE, "pose"), (FactorKind.LOAD, "load"),
+                       (FactorKind.CORNERS, "corner")):
+        stats[f"gated_{word}_factors"] = gated[kind]
+        stats[f"rejected_{word}_factors"] = rej[kind]
+    stats["health"] = health.as_dict()
+    traj = Trajectory(str(Estimator.SMOOTHER), pb.frame_t.copy(), T, cov)
+    return FusionResult(traj, loads, stats, health)
 
 
 # =========================================================================== incremental
 
 
 LOAD_GENERATION_STRIDE = 10 ** 9       # L(j + g * stride): generation g of load j's variable
+_CHR_SHIFT, _IDX_MASK = 56, (1 << 56) - 1
+
+
+def _frame_of(key: int) -> int:
+    """Frame index of an X / V / B key, -1 for a load key."""
+    return -1 if (key >> _CHR_SHIFT) == ord("l") else key & _IDX_MASK
+
+
+@dataclass
+class _Streak:
+    """Consecutive fixes beyond the kernel threshold at the predicted state (incremental)."""
+    frames: list[int] = field(default_factory=list)
+    offsets_m: list[np.ndarray] = field(default_factory=list)   # fix - prediction, world
+    offsets_yaw: list[float] = field(default_factory=list)
+
+    def clear(self) -> None:
+        self.frames.clear()
+        self.offsets_m.clear()
+        self.offsets_yaw.clear()
+
+    def agrees(self, config: FusionConfig) -> bool:
+        """Enough fixes, and their offsets from the IMU prediction agree with each other: the
+        fixes move as the IMU says, so the estimate (not the fixes) is off."""
+        if len(self.frames) < config.reinit_rejected_fixes:
+            return False
+        d = np.array(self.offsets_m[-config.reinit_rejected_fixes:])
+        y = np.array(self.offsets_yaw[-config.reinit_rejected_fixes:])
+        spread_m = np.linalg.norm(d - np.median(d, axis=0), axis=1).max()
+        spread_yaw = np.abs(wrap_angle(y - np.median(y))).max()
+        return spread_m <= config.reinit_agreement_m and spread_yaw <= config.reinit_agreement_rad
+
+
+def _new_engine(config: FusionConfig):
+    params = gtsam.ISAM2Params()
+    params.setFactorization("QR")
+    params.setRelinearizeThreshold(config.isam_relinearize_threshold)
+    params.relinearizeSkip = config.isam_relinearize_skip
+    lag = config.incremental_lag_s
+    return gtsam.ISAM2(params) if lag is None else \
+        gtsam.IncrementalFixedLagSmoother(float(lag), params)
 
 
 def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                       load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
+                       load_obs: list[LoadObservation] | None,
+                       front_camera: CameraModel | None = None,
                        velocity: VelocityData | None = None,
                        config: FusionConfig | None = None, floor_frames: dict | None = None,
-                       floor_camera=None) -> FusionResult:
+                       floor_camera: CameraModel | None = None) -> FusionResult:
     """Causal incremental fusion: frame by frame, the factors available at that frame are added
     and the pose estimate and marginal covariance of X(k) *as known at frame k* are recorded (a
-    filter-like output from a smoother).
+    filter-like output from a smoother).  Same inputs as `smooth`.
 
     Engine: iSAM2 (QR factorization) inside gtsam's IncrementalFixedLagSmoother with lag
     `config.incremental_lag_s`: states older than the lag are marginalised, so the cost per frame
@@ -585,102 +965,145 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
     much of the graph, so its cost grows with the flight).
 
+    Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
+    beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
+    from the prediction match: they move as the IMU says), e.g. after a long blackout, the
+    engine restarts at the latest fix: that fix's factor, priors on velocity and bias at their
+    current estimates, loads carried over as priors.  A singular update is handled the same way
+    (health.linear_fallbacks).
+
     Output starts at the first raw-pose frame (`stats['frames_before_first_fix']` earlier
     frames have no estimate).  The velocity prior at the start uses the first 0.5 s of raw poses
     (a start-up look-ahead).  Loads: the estimate and marginal covariance of each load's latest
     variable at the end of the flight."""
     config = config or FusionConfig()
     t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, T_body_frontcam, velocity, config,
+    pb = build_problem(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
                        floor_frames, floor_camera)
+    health = SolveHealth()
+    fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
     n, k0 = len(pb.frame_t), pb.k_first
     by_frame: list[list[int]] = [[] for _ in range(n)]
     for i, k in enumerate(pb.factor_frame):
         by_frame[k].append(i)
-    pcam_at = {(k, j): p for j, sightings in pb.load_sightings.items() for k, p in sightings}
-    # per factor: the load it observes (-1: none); factors on states before k0 are left out
-    chr_l, mask = ord("l"), (1 << 56) - 1
-    load_of, usable = {}, {}
+    # per factor: the oldest frame among its keys (-1: loads only) and the load it observes
+    oldest, load_of = {}, {}
     for i, f in enumerate(pb.factors):
-        keys = f.keys()
-        usable[i] = all((key >> 56) == chr_l or (key & mask) >= k0 for key in keys)
-        load_of[i] = next(((key & mask) for key in keys if (key >> 56) == chr_l), -1)
-
-    params = gtsam.ISAM2Params()
-    params.setFactorization("QR")
-    params.setRelinearizeThreshold(config.isam_relinearize_threshold)
-    params.relinearizeSkip = config.isam_relinearize_skip
+        frames = [_frame_of(key) for key in f.keys() if _frame_of(key) >= 0]
+        oldest[i] = min(frames) if frames else -1
+        load_of[i] = pb.load_args[i].j if i in pb.load_args else -1
+    cam = pb.front_camera
     lag = config.incremental_lag_s
-    engine = gtsam.ISAM2(params) if lag is None else \
-        gtsam.IncrementalFixedLagSmoother(float(lag), params)
+    engine = _new_engine(config)
     t_rel = (pb.frame_t - pb.frame_t[0]) * 1e-9
     gen: dict[int, int] = {}            # load j -> generation of its current variable
     last_seen: dict[int, float] = {}    # load j -> time stamp of its current variable
     left: dict[int, tuple] = {}         # load j -> (estimate, covariance) when it left the window
     n_generations = 0
+    start = k0                          # factors on states before `start` are left out
 
-    # raw pose factors index by frame, for the causal initial guess
-    pose_at = {pb.factor_frame[i]: i for i, kind in pb.robust_kind.items()
-               if kind == "pose" and isinstance(pb.factors[i], gtsam.PriorFactorPose3)}
+    # the pose factor of each frame with a fix (for the re-initialisation test)
+    pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
+    streak = _Streak()
+    # a fix counts towards a restart when the estimate is this far from it (Mahalanobis): the
+    # outlier gate, else the kernel threshold
+    reinit_distance = config.outlier_gate if config.outlier_gate is not None else \
+        pb.pose_threshold
     T_out = np.empty((n - k0, 4, 4))
     cov_out = np.empty((n - k0, 6, 6))
     pose_k = gtsam.Pose3(pb.T_init[k0])
     vel_k = pb.v_init[k0]
     bias_k = gtsam.imuBias.ConstantBias()
-    for k in range(k0, n):
-        tk = float(t_rel[k])
+
+    def lkey(j: int) -> int:
+        return L(j + gen[j] * LOAD_GENERATION_STRIDE)
+
+    def restart(k: int, reason: str) -> None:
+        """A fresh engine whose first state will be frame k (loads carried over as priors)."""
+        nonlocal engine, start
+        for j in list(gen):
+            if j not in left:
+                try:
+                    left[j] = (engine.calculateEstimatePoint3(lkey(j)),
+                               engine.marginalCovariance(lkey(j)))
+                except (RuntimeError, ValueError, IndexError):
+                    # never estimated (the failed update that brought it): start it afresh
+                    left.pop(j, None)
+                    gen.pop(j, None)
+                    last_seen.pop(j, None)
+        engine = _new_engine(config)
+        start = k
+        streak.clear()
+        health.resets += 1
+        health.note(reason)
+
+    def _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_guess, weak=False):
+        nonlocal n_generations
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        # causal initial guess: IMU prediction, else the raw pose, else the previous state
-        if k > k0 and pb.has_imu and (k - 1) in pb.pims:
-            nav = pb.pims[k - 1].predict(gtsam.NavState(pose_k, vel_k), bias_k)
-            pose_guess, vel_guess = nav.pose(), nav.velocity()
-        elif k in pose_at and pb.stats["raw_pose_input"] == "pose6":
-            pose_guess, vel_guess = pb.factors[pose_at[k]].prior(), vel_k
-        else:
-            pose_guess, vel_guess = pose_k, vel_k
-        if k == k0:
-            pose_guess = gtsam.Pose3(pb.T_init[k0])
         vals.insert(X(k), pose_guess)
         vals.insert(V(k), vel_guess)
         new_keys = [X(k), V(k)]
         if pb.has_imu:
-            vals.insert(B(k), bias_k)
+            vals.insert(B(k), bias_guess)
             new_keys.append(B(k))
+        if fresh and k > k0:
+            # restart: the state carries over as priors (velocity, bias at their estimates;
+            # attitude at the guess, loosely, as a position + yaw fix leaves roll / pitch
+            # free); the position comes from this frame's fix (or, singular, a weak prior)
+            g.add(gtsam.PriorFactorPose3(X(k), pose_guess, gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[np.full(3, config.reinit_sigma_rot_rad),
+                      np.full(3, config.reinit_sigma_pos_m)])))
+            g.add(gtsam.PriorFactorVector(V(k), vel_guess, gtsam.noiseModel.Isotropic.Sigma(
+                3, config.reinit_velocity_sigma_m_s)))
+            if pb.has_imu:
+                g.add(gtsam.PriorFactorConstantBias(B(k), bias_guess, gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[np.full(3, config.bias_prior_sigma_accel_m_s2),
+                          np.full(3, config.bias_prior_sigma_gyro_rad_s)])))
+        if k == k0 and pb.raw_input is not RawPoseInput.POSE6:
+            # position + yaw fixes leave the first roll / pitch to the IMU, which has not
+            # spoken yet: a prior at the initial guess (sigma: the gimbal convention's)
+            g.add(gtsam.PriorFactorPose3(X(k), pose_guess, gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[np.full(2, config.initial_roll_pitch_sigma_rad),
+                      config.fallback_sigma_rot_rad, np.full(3, config.fallback_sigma_pos_m)])))
+        if weak or (fresh and k > k0 and k not in pose_at):
+            for f in weak_priors(vals, config):
+                if gtsam.Symbol(f.keys()[0]).chr() == ord("x"):
+                    g.add(f)
         if lag is not None:
             # loads whose variable leaves the window in this update: keep their last marginal
             cutoff = tk - lag
             for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
-                key = L(j + gen[j] * LOAD_GENERATION_STRIDE)
-                left[j] = (engine.calculateEstimatePoint3(key), engine.marginalCovariance(key))
+                left[j] = (engine.calculateEstimatePoint3(lkey(j)),
+                           engine.marginalCovariance(lkey(j)))
         for i in by_frame[k]:
-            if not usable[i]:
+            if oldest[i] < start:
                 continue
             f = pb.factors[i]
             j = load_of[i]
             if j >= 0:
                 if j not in gen or j in left:        # first sighting, or back after leaving
-                    T_wc = pose_guess.matrix() @ pb.T_body_cam
                     if j not in gen:
                         gen[j] = 0
-                        guess = T_wc[:3, :3] @ pcam_at[(k, j)] + T_wc[:3, 3]
+                        a = pb.load_args[i]
+                        T_wc = cam.T_world_cam(pose_guess.matrix())
+                        guess = T_wc[:3, :3] @ a.p_cam + T_wc[:3, 3]
                     else:
                         gen[j] += 1
                         n_generations += 1
                         guess, cov = left.pop(j)
                         g.add(gtsam.PriorFactorPoint3(
-                            L(j + gen[j] * LOAD_GENERATION_STRIDE), guess,
+                            lkey(j), guess,
                             gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
-                    vals.insert(L(j + gen[j] * LOAD_GENERATION_STRIDE), guess)
+                    vals.insert(lkey(j), guess)
                 if gen[j] > 0:
-                    kk, _, p_cam, cov_cam = pb.load_args[i]
-                    f = G.load_factor(kk, j, p_cam, cov_cam, pb.T_body_cam, config.robust_kernel,
-                                      pb.thresholds["load"],
-                                      load_key=L(j + gen[j] * LOAD_GENERATION_STRIDE))
+                    a = pb.load_args[i]
+                    f = G.load_factor(a.k, j, a.p_cam, a.cov_cam, cam, config.robust_kernel,
+                                      pb.load_threshold, load_key=lkey(j))
                 last_seen[j] = tk
-                new_keys.append(L(j + gen[j] * LOAD_GENERATION_STRIDE))
+                new_keys.append(lkey(j))
             g.add(f)
         if lag is None:
             engine.update(g, vals)
@@ -688,26 +1111,79 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             for key in new_keys:
                 stamps.insert((key, tk))
             engine.update(g, vals, stamps)
+
+    k = k0
+    while k < n:
+        tk = float(t_rel[k])
+        # causal initial guess: IMU prediction, else the raw pose, else the previous state
+        if k > start and pb.has_imu and (k - 1) in pb.pims:
+            nav = pb.pims[k - 1].predict(gtsam.NavState(pose_k, vel_k), bias_k)
+            pose_guess, vel_guess = nav.pose(), nav.velocity()
+        elif k in pose_at and pb.raw_input is RawPoseInput.POSE6:
+            pose_guess, vel_guess = pb.factors[pose_at[k]].prior(), vel_k
+        else:
+            pose_guess, vel_guess = pose_k, vel_k
+        if k == k0:
+            pose_guess = gtsam.Pose3(pb.T_init[k0])
+        fresh = k == start
+        try:
+            _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k)
+        except (RuntimeError, ValueError) as e:
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            health.linear_fallbacks += 1
+            log.warning("incremental: singular update at t=%.2f s (%s)", tk, reason)
+            restart(k, f"singular update ({reason}): restarted with a weak pose prior")
+            try:
+                _incremental_step(k, tk, True, pose_guess, vel_guess, bias_k, weak=True)
+            except (RuntimeError, ValueError) as e2:
+                raise EstimationError(f"incremental smoother: the update at frame {k} failed "
+                                      f"again after a restart: {e2}") from None
+        # a fix the estimate rejects (beyond the kernel threshold after the update): part of a
+        # streak that may call for a restart from the fixes
+        if k in pose_at and not fresh:
+            est = gtsam.Values()
+            pose_est = engine.calculateEstimatePose3(X(k))
+            est.insert(X(k), pose_est)
+            f = pb.factors[pose_at[k]]
+            if mahalanobis(f, est) > reinit_distance:
+                T_fix = pb.fix_T[k]
+                R_est = pose_est.rotation().matrix()
+                streak.frames.append(k)
+                streak.offsets_m.append(T_fix[:3, 3] - pose_est.translation())
+                streak.offsets_yaw.append(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est)))
+                if streak.agrees(config):
+                    # roll / pitch: the fix's when it has them, else the estimate's
+                    R_new = T_fix[:3, :3] if pb.raw_input is RawPoseInput.POSE6 else \
+                        rot_z(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est))) @ R_est
+                    log.info("incremental: re-initialised at t=%.2f s", tk)
+                    restart(k, f"re-initialised from {config.reinit_rejected_fixes} agreeing "
+                               "fixes that the estimate had rejected (count: resets)")
+                    _incremental_step(k, tk, True, gtsam.Pose3(make_T(R_new, T_fix[:3, 3])),
+                                      vel_guess, bias_k)
+            else:
+                streak.clear()
         pose_k = engine.calculateEstimatePose3(X(k))
         vel_k = engine.calculateEstimateVector(V(k))
         if pb.has_imu:
             bias_k = engine.calculateEstimateConstantBias(B(k))
         T_out[k - k0] = pose_k.matrix()
         cov_out[k - k0] = engine.marginalCovariance(X(k))
+        k += 1
+
     loads = []
-    for j, lid in enumerate(pb.load_ids):
+    for j, track in enumerate(pb.loads):
         if j not in gen:
             continue
         if j in left:
             p, c = left[j]
         else:
-            key = L(j + gen[j] * LOAD_GENERATION_STRIDE)
-            p, c = engine.calculateEstimatePoint3(key), engine.marginalCovariance(key)
-        loads.append(LoadEstimate(lid, np.asarray(p, float).copy(), c, pb.load_nobs[j]))
+            p, c = engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j))
+        loads.append(LoadEstimate(track.load_id, np.asarray(p, float).copy(), c, track.n_obs))
     elapsed = time.perf_counter() - t0
     duration = (pb.frame_t[-1] - pb.frame_t[k0]) * 1e-9
-    stats = dict(pb.stats, frames_before_first_fix=k0, time_build_s=t_build, time_s=elapsed,
-                 incremental_lag_s=lag, load_generations=n_generations,
-                 realtime_factor=duration / max(elapsed - t_build, 1e-9))
-    traj = Trajectory("incremental", pb.frame_t[k0:].copy(), T_out, cov_out)
-    return FusionResult(traj, LoadMap("incremental", loads), stats)
+    stats = dict(pb.counts.as_dict(), frames_before_first_fix=k0, time_build_s=t_build,
+                 time_s=elapsed, incremental_lag_s=lag, load_generations=n_generations,
+                 realtime_factor=duration / max(elapsed - t_build, 1e-9),
+                 health=health.as_dict())
+    traj = Trajectory(str(Estimator.INCREMENTAL), pb.frame_t[k0:].copy(), T_out, cov_out)
+    return FusionResult(traj, LoadMap(str(Estimator.INCREMENTAL), loads), stats, health)
