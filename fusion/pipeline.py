@@ -316,7 +316,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None
     load_obs = loc.load_observations.get("camera_frame")
     T_bc = log.front.camera.T_body_cam if log.front is not None else np.eye(4)
     frame_t = log.floor.timestamps_ns
-    solvers = [("smoother", smooth, graph_kwargs), ("ekf", run_ekf, {})]
+    solvers = [("smoother", smooth, graph_kwargs), ("ekf", lambda ft, imu, raw_, obs, _T, **kw: run_ekf(ft, imu, raw_, obs, front_camera=log.front.camera if log.front is not None else None, floor_camera=log.floor.camera, **kw), {})]
     if cfg.incremental:
         solvers.insert(1, ("incremental", smooth_incremental, graph_kwargs))
     results = {}

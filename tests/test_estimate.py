@@ -20,6 +20,7 @@ from gtsam.utils.numerical_derivative import (
 )
 from scipy.spatial.transform import Rotation
 
+from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
 from fusion.estimate import (
@@ -35,6 +36,7 @@ from fusion.log.euroc import ImuData, ImuNoise, VelocityData
 from fusion.types import LoadObservation, Trajectory
 
 T_BODY_FRONTCAM = make_T(R_BODY_FRONTCAM, [0.1, 0.0, 0.05])
+FRONT_CAMERA = CameraModel(640, 480, 500.0, 500.0, 320.0, 240.0, T_body_cam=T_BODY_FRONTCAM)
 
 
 # =========================================================================== synthetic flight
@@ -296,7 +298,7 @@ def test_outliers_rejected_by_robust_kernel():
     assert dirty.stats["rejected_pose_factors"] <= len(bad) + 3
     assert dirty.stats["gated_pose_factors"] == len(bad)
     assert clean.stats["gated_pose_factors"] == 0
-    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [], T_BODY_FRONTCAM)
+    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [])
     assert ekf.stats["gated_updates"] >= len(bad) - 1
 
 
@@ -383,7 +385,7 @@ def test_incremental_is_causal_and_tracks(flight):
 
 
 def test_ekf_tracks(flight):
-    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, T_BODY_FRONTCAM)
+    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, front_camera=FRONT_CAMERA)
     tr = res.trajectory
     k0 = res.stats["frames_before_first_fix"]
     err = pos_err(tr.T_world_body, flight.T_true[k0:])
@@ -406,7 +408,7 @@ def test_ekf_paper_input_wraps_yaw():
         T[i, :3, :3] = Rotation.from_euler("z", yaw_of(T[i, :3, :3])).as_matrix()
     raw = Trajectory("paper", fl.raw.timestamps_ns, T, None)
     # world rotated by the flip: gravity unchanged (rotation about z); IMU unchanged (body frame)
-    res = run_ekf(fl.frame_t, fl.imu, raw, [], T_BODY_FRONTCAM,
+    res = run_ekf(fl.frame_t, fl.imu, raw, [],
                   config=FusionConfig(paper_sigma_xyz_m=(0.003,) * 3))
     k0 = res.stats["frames_before_first_fix"]
     yaw_err = wrap_angle(res.trajectory.yaw_rad - yaw_of(T_true[k0:, :3, :3]))
@@ -422,7 +424,7 @@ def test_no_floor_code_raises(flight):
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
         smooth(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], T_BODY_FRONTCAM)
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
-        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], T_BODY_FRONTCAM)
+        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [])
 
 
 def test_nan_in_imu_names_the_sample(flight):
@@ -433,7 +435,7 @@ def test_nan_in_imu_names_the_sample(flight):
     with pytest.raises(EstimationError, match="sample 123"):
         smooth(flight.frame_t, bad, flight.raw, [], T_BODY_FRONTCAM)
     with pytest.raises(EstimationError, match="sample 123"):
-        run_ekf(flight.frame_t, bad, flight.raw, [], T_BODY_FRONTCAM)
+        run_ekf(flight.frame_t, bad, flight.raw, [])
 
 
 @pytest.mark.parametrize("kind", ["duplicated", "out of order"])
@@ -473,7 +475,7 @@ def test_imu_stops_early():
     assert res.stats["imu_segments"] == 1
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert np.sqrt(np.mean(err ** 2)) < 0.005
-    ekf = run_ekf(fl.frame_t, short, fl.raw, [], T_BODY_FRONTCAM, velocity=fl.velocity)
+    ekf = run_ekf(fl.frame_t, short, fl.raw, [], velocity=fl.velocity)
     assert len(ekf.trajectory) == len(fl.frame_t)
     assert ekf.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
 
