@@ -40,7 +40,7 @@ import gtsam
 import numpy as np
 
 from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
-from fusion.estimate.health import Status, assess
+from fusion.estimate.health import Status, assess_result
 from fusion.geometry import inv_T, level_frame
 from fusion.log.euroc import ImuNoise
 from fusion.sim.imu import synthesize_imu
@@ -185,24 +185,11 @@ def run_one(scenario: str, seed: int, duration_s: float, estimators) -> dict:
         err = np.array([pos[kraw[i]] - T_true[kraw[i], :3, 3] for i in common])
         raw_err = raw.positions_xyz[common] - T_true[kraw[common], :3, 3]
         ratio = math.sqrt(np.mean(np.sum(err ** 2, 1))) / max(math.sqrt(np.mean(np.sum(raw_err ** 2, 1))), 1e-12)
-        h = assess(tr, raw, **health_inputs(res.stats, len(raw)))
+        h = assess_result(res, raw, max_iterations=FusionConfig().lm_max_iterations)
         out[est] = {"ratio": ratio, "nees": pose_nees(tr, T_true[k]), "status": h.status,
                     "reason": h.reason, "resets": res.stats.get("resets", 0),
                     "frames": len(tr) / len(frame_t), "time_s": time.perf_counter() - t0}
     return out
-
-
-def health_inputs(stats: dict, n_raw: int) -> dict:
-    """assess() keyword arguments from a FusionResult's stats (every back end's own names)."""
-    rejected = stats.get("gated_updates", stats.get("gated_pose_factors",
-                         stats.get("removed_pose_factors", 0)))
-    kw = {"gated_fraction": rejected / max(n_raw, 1)}
-    if "iterations" in stats and "max_iterations" in stats:
-        kw["iteration_limit_hits"] = int(stats["iterations"] >= stats["max_iterations"])
-    elif "iteration_limit_hits" in stats:
-        kw["iteration_limit_hits"] = int(stats["iteration_limit_hits"])
-    kw["resets"] = int(stats.get("resets", 0))
-    return kw
 
 
 def fmt(v: float) -> str:
