@@ -415,12 +415,15 @@ class _Ekf:
         self._fix_update(fix, z, H, e, Rm, residual)
 
     def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
-        """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body)."""
+        """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body), i.e.
+        h = R_imu_body^T (R^T v + omega x t_imu_body).  With R' = R Exp(dtheta),
+        R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
+        arm term is in the IMU frame already)."""
         R_ib = self.T_ib[:3, :3]
         v_b_world = self.v + self.R @ np.cross(self.omega, self.T_ib[:3, 3])
         hx = R_ib.T @ self.R.T @ v_b_world
         H = np.zeros((3, 15))
-        H[:, _TH] = R_ib.T @ skew(self.R.T @ v_b_world)
+        H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
         self._update(v_meas, H, hx, np.eye(3) * sigma ** 2)
 

@@ -61,6 +61,7 @@ class HealthConfig:
     min_window_fixes: int = 5
     fix_quantile: float = 0.999          # per-fix and per-window chi-square quantile
     lost_share: float = 0.5              # inconsistent fixes that make a window lost
+    inconsistent_degraded: float = 0.1   # inconsistent fixes over the flight -> degraded
     overconfident_share: float = 0.1     # overconfident windows (share of windows) -> degraded
     diverged_share: float = 0.1          # fixes in lost windows -> diverged
     gated_degraded: float = 0.1
@@ -207,6 +208,9 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
                         f"(windowed innovation beyond chi-square {config.fix_quantile})")
     elif h.lost_share > 0:
         degraded.append(f"lost the raw fixes in {100 * h.lost_share:.1f} % of them")
+    if h.inconsistent_share >= config.inconsistent_degraded:
+        degraded.append(f"{100 * h.inconsistent_share:.0f} % of the fixes disagree with the estimate "
+                        f"(beyond chi-square {config.fix_quantile})")
     if h.windows and h.overconfident_windows / h.windows >= config.overconfident_share:
         degraded.append(f"overconfident: windowed NIS beyond its chi-square bound in "
                         f"{h.overconfident_windows} of {h.windows} windows")
