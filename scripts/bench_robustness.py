@@ -118,7 +118,7 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
         cov = gimbal_cov(cov)
         raw_T = level_frame(raw_T)
     if scenario == "misread5":
-        bad = rng.choice(len(raw_T), size=int(round(MISREAD_FRACTION * len(raw_T))), replace=False)
+        bad = rng.choice(len(raw_T), size=round(MISREAD_FRACTION * len(raw_T)), replace=False)
         raw_T[bad, :2, 3] += rng.uniform(1.0, 3.0, (len(bad), 2)) * rng.choice([-1, 1], (len(bad), 2))
     elif scenario == "misprint":
         # the code the drone crosses fastest carries its x-neighbour's payload (a code under a
@@ -134,7 +134,7 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
     ids = list(loads)
     P = np.array([loads[i] for i in ids])
     cov_cam = np.diag([0.01, 0.01, 0.02]) ** 2
-    step = max(1, int(round(fps / 10)))
+    step = max(1, round(fps / 10))
     for k in range(0, len(frame_t), step):
         T_cw = inv_T(front_cam.T_world_cam(T_true[k]))
         pc = P @ T_cw[:3, :3].T + T_cw[:3, 3]
@@ -143,8 +143,8 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
         for j in np.flatnonzero(vis):
             z = pc[j] + rng.standard_normal(3) * np.sqrt(np.diag(cov_cam))
             obs.append(LoadObservation(int(frame_t[k]), ids[j], np.zeros(3), None, z, cov_cam))
-    return dict(frame_t=frame_t, imu=imu, raw=raw, load_obs=obs, T_true=T_true, loads=loads,
-                floor_camera=floor_cam, front_camera=front_cam)
+    return {"frame_t": frame_t, "imu": imu, "raw": raw, "load_obs": obs, "T_true": T_true,
+            "loads": loads, "floor_camera": floor_cam, "front_camera": front_cam}
 
 
 def call_backend(fn, fl: dict, config: FusionConfig):
@@ -178,7 +178,7 @@ def run_one(scenario: str, seed: int, duration_s: float, estimators) -> dict:
         t0 = time.perf_counter()
         try:
             res = call_backend(fns[est], fl, FusionConfig())
-        except Exception as e:      # a failing back end is a result of the benchmark, not a crash
+        except Exception as e:  # noqa: BLE001 - a failing back end is a result here, not a crash
             out[est] = {"error": f"{type(e).__name__}: {e}"}
             continue
         tr = res.trajectory

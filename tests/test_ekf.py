@@ -30,6 +30,7 @@ from fusion.types import LoadObservation, Trajectory
 SIGMA_POS_M = 0.002
 SIGMA_ROT_RAD = math.radians(0.05)
 GIMBAL_SIGMA_RAD = math.radians(10.0)
+PAPER_SIGMA_YAW_RAD = math.radians(0.5)
 # a brisk survey (tilts of several degrees) whose yaw crosses +-pi twice (2.7 -> 3.7 -> 2.8 rad)
 WAYPOINTS = [(0.0, 0.0, 1.5, 2.7, 0.5), (3.0, 1.5, 1.8, 3.7), (5.0, -1.0, 1.2, 3.3),
              (2.0, -2.0, 2.0, 2.8), (0.0, 1.0, 1.5, 3.6), (3.0, 2.0, 1.4, 3.0)]
@@ -64,8 +65,8 @@ def make_flight(seed=0, duration_s=12.0, fps=30.0, gimbaled=False, gaps=(), spee
         cov = keep6 @ cov @ keep6 + np.diag([GIMBAL_SIGMA_RAD ** 2] * 2 + [0.0] * 4)
         raw_T = level_frame(raw_T)
     raw = Trajectory("pnp", frame_t[keep], raw_T, np.repeat(cov[None], keep.sum(), 0))
-    return dict(traj=traj, frame_t=frame_t, imu=imu, raw=raw, T_true=T_true, rng=rng,
-                floor=cams["cam0"], front=cams["cam1"])
+    return {"traj": traj, "frame_t": frame_t, "imu": imu, "raw": raw, "T_true": T_true, "rng": rng,
+            "floor": cams["cam0"], "front": cams["cam1"]}
 
 
 def errors(res, fl):
@@ -306,7 +307,7 @@ def test_velocity_updates_track_truth_without_imu():
     assert rmse(pos) < 0.5 * rmse(errors(no_vel, fl)[0])
 
 
-def paper_raw(fl, sigma_yaw=math.radians(0.5), sigma_xyz=0.005, seed=11):
+def paper_raw(fl, sigma_yaw=PAPER_SIGMA_YAW_RAD, sigma_xyz=0.005, seed=11):
     """Position + yaw fixes (the paper's estimator; roll/pitch zero), yaw in (-pi, pi]."""
     rng = np.random.default_rng(seed)
     T = level_frame(fl["T_true"]).copy()

@@ -10,9 +10,18 @@ import pytest
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionResult
 from fusion.estimate.ekf import EkfRecovery
-from fusion.estimate.health import Health, HealthConfig, Status, assess, assess_result, fix_nis
+from fusion.estimate.health import (
+    Health,
+    HealthConfig,
+    Status,
+    assess,
+    assess_result,
+    fix_nis,
+)
 from fusion.types import LoadMap, Trajectory
 from tests.test_ekf import ekf, faulty, make_flight
+
+SIGMA_ROT_RAD = math.radians(0.03)
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +30,7 @@ def healthy():
     return fl, ekf(fl)
 
 
-def fused_from_truth(fl, sigma_pos=0.001, sigma_rot=math.radians(0.03), seed=0, drift=None):
+def fused_from_truth(fl, sigma_pos=0.001, sigma_rot=SIGMA_ROT_RAD, seed=0, drift=None):
     """A fused trajectory = truth * Exp(n) with a stated covariance; `drift` (m/s) moves it away
     from the truth linearly in time."""
     rng = np.random.default_rng(seed)
@@ -123,7 +132,7 @@ def test_position_yaw_fixes_without_covariance(healthy):
     fl, res = healthy
     raw = fl["raw"]
     paper = Trajectory("paper", raw.timestamps_ns, raw.T_world_body, None)
-    idx, nis, dim = fix_nis(res.trajectory, paper)
+    idx, _nis, dim = fix_nis(res.trajectory, paper)
     assert dim == 4 and len(idx) == len(raw)
     assert assess(res.trajectory, paper).status == Status.OK
     tight = HealthConfig(raw_sigma_xyz_m=1e-5, raw_sigma_yaw_rad=1e-6)

@@ -75,7 +75,7 @@ from fusion.geometry import adjoint, inv_T, rot_z, skew, so3_exp, wrap_angle, ya
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
-__all__ = ["run_ekf", "EkfRecovery"]
+__all__ = ["EkfRecovery", "run_ekf"]
 
 log = logging.getLogger(__name__)
 

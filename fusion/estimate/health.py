@@ -41,7 +41,7 @@ from fusion.types import Trajectory
 # stats keys of the back ends (smoother.py, ekf.py) that count gated / removed fixes
 _GATED_KEYS = ("gated_updates", "gated_pose_factors", "removed_pose_factors")
 
-__all__ = ["Status", "Health", "HealthConfig", "assess", "assess_result", "fix_nis"]
+__all__ = ["Health", "HealthConfig", "Status", "assess", "assess_result", "fix_nis"]
 
 
 class Status(str, Enum):
