@@ -13,9 +13,9 @@ error is injected into the nominal state and reset to zero (reset Jacobian taken
 
 Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or position + yaw
 (yaw wrap-around handled by filterpy's `residual` hook) for the paper's output and for the
-level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there:
-its world position and yaw, with their covariance, are what the fix measures), and body velocity.  The
-update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
+level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
+world position and yaw, with their covariance, are what the fix measures), and body velocity.
+The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
 Outliers: the measurement covariance is inflated by the robust kernel's IRLS weight at the
 innovation's Mahalanobis distance d (huber: d/k, cauchy: 1+(d/k)^2, tukey: skipped beyond k);
 updates with d > k are counted as rejected (`rejected_pose_factors`, all updates), those with
@@ -28,13 +28,15 @@ agree with each other (a cubic in time fits their positions and yaw within 3 sig
 tolerance; a misread or a misprinted code makes a jump that a cubic does not fit):
 - most fixes of the window beyond the robust threshold and the window consistent: the filter, not
   the fixes, is wrong; its covariance is inflated (all of P, biases included, by the scalar that
-  brings the innovation to the threshold: innovation-based covariance matching, Mehra, IEEE TAC
-  17(5), 1972; the fading-memory filter of Simon, "Optimal State Estimation", 2006, sec. 7.4)
-  and the fix is used at full weight (`inflated_updates`);
+  brings the squared Mahalanobis distance of the innovation to its expected value, the
+  dimension: innovation-based covariance matching, Mehra, IEEE TAC 17(5), 1972; cf. the
+  fading-memory filter of Simon, "Optimal State Estimation", 2006, sec. 7.4) and the fix is used
+  at full weight (`inflated_updates`);
 - every fix of the window gated and the window consistent: the filter re-initialises from the
   fixes (pose and covariance from the last fix, velocity from the cubic's slope, bias covariance
   back to its fault level) (`resets`).
-A fix is never skipped for ever; the covariance stays honest (it grows when the filter is wrong).
+So no run of consistent fixes is gated for ever, and the covariance grows when the filter is
+wrong instead of claiming an accuracy it lost.
 
 Where no IMU data covers an interval (gap, IMU that stops early) the prediction is a random walk
 (constant velocity, constant rotation; process noise from FusionConfig.bridge_*), counted.
@@ -42,9 +44,9 @@ Where no IMU data covers an interval (gap, IMU that stops early) the prediction 
 Loads: not filter states.  Each observation is mapped to the world with the filtered pose at its
 frame through the front camera's mount, p = T_world_cam(T_world_body) p_cam (CameraModel, so a
 gimbaled camera hangs from the level frame), covariance R_wc cov_cam R_wc^T + J P_pose J^T (J by
-central differences on the body pose, mount-agnostic), and the
-observations of one load are fused by information weighting (this ignores the correlation of pose
-errors between frames, so the load covariance is optimistic).
+central differences on the body pose, mount-agnostic), and the observations of one load are
+fused by information weighting (this ignores the correlation of pose errors between frames, so
+the load covariance is optimistic).
 """
 from __future__ import annotations
 
