@@ -224,6 +224,24 @@ def test_jump_of_consistent_fixes_is_not_a_reset():
     assert pos.max() < 0.02
 
 
+def test_long_misprint_run_is_not_followed():
+    """2.5 s of fixes 1 m off (longer than the recovery window): they agree with each other, but
+    the jump into them is faster than any drone, so the filter neither inflates nor resets; with
+    no look-back beyond the window it would re-initialise onto them."""
+    fl = make_flight(seed=8)
+    raw = fl["raw"]
+    T = raw.T_world_body.copy()
+    t = raw.timestamps_ns * 1e-9
+    T[(t >= 6.0) & (t < 8.5), 0, 3] += 1.0
+    fl["raw"] = Trajectory("pnp", raw.timestamps_ns, T, raw.covariances)
+    res = ekf(fl)
+    assert res.stats["resets"] == 0 and res.stats["inflated_updates"] == 0
+    assert errors(res, fl)[0].max() < 0.02
+    short = ekf(fl, recovery=EkfRecovery(lookback_s=0.0))
+    assert short.stats["resets"] >= 1
+    assert errors(short, fl)[0].max() > 0.5
+
+
 # =========================================================================== pinned branches
 
 

@@ -109,6 +109,23 @@ def test_drift_diverged_and_misreads_ok():
     assert 0.03 < h.inconsistent_share < 0.07
 
 
+def test_short_loss_is_degraded_not_diverged():
+    """A 2.5 s run of wrong fixes (a misprinted code) against a right estimate: one or two lost
+    windows, not in a long run: DEGRADED with the reason, not DIVERGED; the same share lost for
+    good (the fixes 1 m off from 8 s on, the estimate stuck) is DIVERGED."""
+    fl = make_flight(seed=25)
+    raw = fl["raw"]
+    t = raw.timestamps_ns * 1e-9
+    T = raw.T_world_body.copy()
+    T[(t >= 6.0) & (t < 8.5), 0, 3] += 1.0
+    h = assess(fused_from_truth(fl), Trajectory("pnp", raw.timestamps_ns, T, raw.covariances))
+    assert h.status == Status.DEGRADED and "for at most" in h.reason
+    T = raw.T_world_body.copy()
+    T[t >= 8.0, 0, 3] += 1.0
+    h = assess(fused_from_truth(fl), Trajectory("pnp", raw.timestamps_ns, T, raw.covariances))
+    assert h.status == Status.DIVERGED and h.lost_run >= 2
+
+
 def test_covariance_growth_and_coverage(healthy):
     fl, res = healthy
     tr = res.trajectory

@@ -92,6 +92,8 @@ class EkfRecovery:
     """When and how the EKF recovers instead of locking out (module docstring).
 
     window_s / min_fixes: the fixes looked at (at least min_fixes within the last window_s);
+    lookback_s / max_speed_m_s: no step between consecutive fixes of the last lookback_s may be
+    faster than max_speed_m_s (a warehouse drone's top speed, with margin; see _FixWindow);
     fault_share: share of the window's fixes beyond the robust threshold that makes the filter,
     not the fixes, the suspect; consistency_m / consistency_rad: motion tolerance of the cubic
     fit (unmodelled jerk over the window plus margin) on top of 3 sigma of each fix;
@@ -101,6 +103,8 @@ class EkfRecovery:
     1-sigma after a reset.  enabled=False gives the plain gated filter (it can lock out)."""
     enabled: bool = True
     window_s: float = 1.5
+    lookback_s: float = 3.0
+    max_speed_m_s: float = 5.0
     min_fixes: int = 6
     fault_share: float = 0.5
     consistency_m: float = 0.1
@@ -127,7 +131,10 @@ class _Fix:
 
 
 class _FixWindow:
-    """The recent fixes and whether they agree with each other (a cubic in time fits them)."""
+    """The recent fixes and whether they agree with each other: a cubic in time fits those of
+    the last `window_s`, and no step between consecutive fixes of the last `lookback_s` is
+    faster than `max_speed_m_s` (so a jump into a run of self-consistent but wrong fixes, a
+    misprinted code, stays visible for lookback_s after it)."""
 
     def __init__(self, rec: EkfRecovery):
         self.rec = rec
@@ -135,43 +142,64 @@ class _FixWindow:
 
     def add(self, fix: _Fix) -> None:
         self.fixes.append(fix)
-        while self.fixes and fix.t_s - self.fixes[0].t_s > self.rec.window_s:
+        while self.fixes and fix.t_s - self.fixes[0].t_s > max(self.rec.lookback_s, self.rec.window_s):
             self.fixes.popleft()
 
     def clear(self) -> None:
         self.fixes.clear()
 
-    def _enough(self) -> bool:
-        return len(self.fixes) >= self.rec.min_fixes
+    def recent(self) -> list[_Fix]:
+        t_new = self.fixes[-1].t_s
+        return [f for f in self.fixes if t_new - f.t_s <= self.rec.window_s]
 
-    def fit(self):
+    def jump_free(self) -> bool:
+        """No step between consecutive fixes of the look-back beyond max_speed_m_s * dt plus
+        3 sigma of both fixes and the motion tolerance."""
+        f = list(self.fixes)
+        if len(f) < 2:
+            return True
+        t = np.array([x.t_s for x in f])
+        P = np.array([x.p_world for x in f])
+        sp = np.array([np.linalg.norm(x.sigma_p) for x in f])
+        step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+        allowed = self.rec.max_speed_m_s * np.diff(t) + 3.0 * (sp[1:] + sp[:-1]) \
+            + self.rec.consistency_m
+        return bool(np.all(step <= allowed))
+
+    def consistent(self) -> bool:
+        return self.fit(self.recent())[0] and self.jump_free()
+
+    def fit(self, fixes):
         """(consistent: bool, velocity at the last fix (3,)): least-squares cubic per position
-        axis and for the unwrapped yaw; consistent when every residual is within 3 sigma of the
-        fix plus the motion tolerance."""
-        t = np.array([f.t_s for f in self.fixes])
+        axis and for the unwrapped yaw over `fixes`; consistent when every residual is within
+        3 sigma of the fix plus the motion tolerance."""
+        t = np.array([f.t_s for f in fixes])
         t = t - t[-1]
-        P = np.array([f.p_world for f in self.fixes])
-        yaw = np.unwrap([f.yaw for f in self.fixes])
+        P = np.array([f.p_world for f in fixes])
+        yaw = np.unwrap([f.yaw for f in fixes])
         deg = min(3, len(t) - 2)
         A = np.vander(t, deg + 1)
         Y = np.column_stack([P, yaw])
         coef, *_ = np.linalg.lstsq(A, Y, rcond=None)
         res = np.abs(Y - A @ coef)
-        sp = np.array([f.sigma_p for f in self.fixes])
-        sy = np.array([f.sigma_yaw for f in self.fixes])
+        sp = np.array([f.sigma_p for f in fixes])
+        sy = np.array([f.sigma_yaw for f in fixes])
         ok = bool(np.all(res[:, :3] <= 3.0 * sp + self.rec.consistency_m)
                   and np.all(res[:, 3] <= 3.0 * sy + self.rec.consistency_rad))
         velocity = coef[-2, :3] if deg >= 1 else np.zeros(3)
         return ok, velocity
 
     def filter_at_fault(self) -> bool:
-        if not self._enough():
+        recent = self.recent()
+        if len(recent) < self.rec.min_fixes:
             return False
-        share = np.mean([f.over for f in self.fixes])
-        return share >= self.rec.fault_share and self.fit()[0]
+        share = np.mean([f.over for f in recent])
+        return share >= self.rec.fault_share and self.consistent()
 
     def all_gated(self) -> bool:
-        return self._enough() and all(f.gated for f in self.fixes) and self.fit()[0]
+        recent = self.recent()
+        return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) \
+            and self.consistent()
 
 
 class _Ekf:
@@ -353,7 +381,7 @@ class _Ekf:
     def reset(self, fix: _Fix) -> None:
         """Re-initialise from the window's fixes: pose and covariance of the last fix, velocity
         from the cubic fit, biases kept with their covariance back to the fault level."""
-        _, v = self.window.fit()
+        _, v = self.window.fit(self.window.recent())
         P = np.zeros((15, 15))
         self.kf.P = P
         if fix.cov.shape == (6, 6):

@@ -21,9 +21,11 @@ Works on any back end's output without ground truth (issue 8, "Health per estima
 4. Covariance growth: the largest position 1-sigma of the fused estimate.
 5. Coverage: the share of raw fixes whose frame has a fused estimate.
 
-Status: DIVERGED when lost windows hold at least `diverged_share` of the fixes, the gated share
-reaches `gated_diverged`, or a position sigma exceeds `sigma_diverged_m`; otherwise DEGRADED
-when any test above fails its (lower) threshold; otherwise OK.
+Status: DIVERGED when lost windows hold at least `diverged_share` of the fixes and at least
+`diverged_run` of them come in a row (an estimate that lost the fixes for good, not one that
+rightly ignored a short run of wrong ones, e.g. a misprinted code), the gated share reaches
+`gated_diverged`, or a position sigma exceeds `sigma_diverged_m`; otherwise DEGRADED when any
+test above fails its (lower) threshold; otherwise OK.
 """
 from __future__ import annotations
 
@@ -63,7 +65,8 @@ class HealthConfig:
     lost_share: float = 0.5              # inconsistent fixes that make a window lost
     inconsistent_degraded: float = 0.1   # inconsistent fixes over the flight -> degraded
     overconfident_share: float = 0.1     # overconfident windows (share of windows) -> degraded
-    diverged_share: float = 0.1          # fixes in lost windows -> diverged
+    diverged_share: float = 0.1          # fixes in lost windows -> diverged, if also
+    diverged_run: int = 2                # ... this many consecutive windows were lost
     gated_degraded: float = 0.1
     gated_diverged: float = 0.5
     inflated_degraded: float = 0.05
@@ -84,6 +87,7 @@ class Health:
     coverage: float = 1.0                # n_fixes / raw fixes
     inconsistent_share: float = 0.0      # fixes beyond the per-fix chi-square bound
     lost_share: float = 0.0              # fixes in lost windows
+    lost_run: int = 0                    # longest run of consecutive lost windows
     overconfident_windows: int = 0
     windows: int = 0
     window_nis: np.ndarray = field(default_factory=lambda: np.zeros(0))   # mean NIS / dim
@@ -101,7 +105,8 @@ class Health:
         """JSON-ready summary (for metrics.json)."""
         return {"status": str(self.status), "reason": self.reason, "n_fixes": self.n_fixes,
                 "coverage": self.coverage, "inconsistent_share": self.inconsistent_share,
-                "lost_share": self.lost_share, "overconfident_windows": self.overconfident_windows,
+                "lost_share": self.lost_share, "lost_run": self.lost_run,
+                "overconfident_windows": self.overconfident_windows,
                 "windows": self.windows, "gated_fraction": self.gated_fraction,
                 "inflated_fraction": self.inflated_fraction,
                 "iteration_limit_hits": self.iteration_limit_hits, "resets": self.resets,
@@ -178,6 +183,7 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
     t = np.asarray(raw.timestamps_ns, dtype=np.int64)[idx] * 1e-9
     lost_fixes = 0
     means = []
+    run, last_lost = 0, None
     if len(t):
         edges = np.arange(t[0], t[-1] + config.window_s, config.window_s)
         w_of = np.searchsorted(edges, t, side="right") - 1
@@ -189,6 +195,9 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
             h.windows += 1
             if bad[sel].mean() > config.lost_share:
                 lost_fixes += n
+                run = run + 1 if last_lost == w - 1 else 1
+                last_lost = w
+                h.lost_run = max(h.lost_run, run)
                 means.append(float(np.mean(nis[sel])) / dim)
                 continue
             good = nis[sel & ~bad]
@@ -203,11 +212,13 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
         h.max_sigma_m = float(sig.max())
 
     diverged, degraded = [], []
-    if h.lost_share >= config.diverged_share:
+    if h.lost_share >= config.diverged_share and h.lost_run >= config.diverged_run:
         diverged.append(f"lost the raw fixes in {100 * h.lost_share:.0f} % of them "
-                        f"(windowed innovation beyond chi-square {config.fix_quantile})")
+                        f"(windowed innovation beyond chi-square {config.fix_quantile}, "
+                        f"{h.lost_run} windows in a row)")
     elif h.lost_share > 0:
-        degraded.append(f"lost the raw fixes in {100 * h.lost_share:.1f} % of them")
+        degraded.append(f"lost the raw fixes in {100 * h.lost_share:.1f} % of them, for at most "
+                        f"{h.lost_run * config.window_s:.0f} s (wrong fixes, or a transient)")
     if h.inconsistent_share >= config.inconsistent_degraded:
         degraded.append(f"{100 * h.inconsistent_share:.0f} % of the fixes disagree with the estimate "
                         f"(beyond chi-square {config.fix_quantile})")
