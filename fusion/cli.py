@@ -12,6 +12,9 @@ from pathlib import Path
 
 from fusion import __version__
 from fusion.errors import FusionError
+
+EXIT_NOT_TRUSTED = 3
+"""`--strict`: the run finished and wrote its outputs, but an estimate cannot be trusted."""
 from fusion.types import Estimator
 
 
@@ -85,6 +88,9 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
         p.add_argument("--tight", action="store_true",
                        help="tight coupling: floor-code corners as reprojection factors")
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+        p.add_argument("--strict", action="store_true",
+                       help=f"exit {EXIT_NOT_TRUSTED} when a fused estimator failed or its health "
+                            "is not ok (degraded, diverged)")
 
 
 def _verbosity_options() -> argparse.ArgumentParser:
@@ -227,8 +233,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"{res.wall_time_s:.1f} s wall time")
         elif args.command in ("detect", "localize", "smooth", "run"):
             from fusion import pipeline
-            result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
+            result = pipeline.run(_flight_arg(args), args.out, _run_config(args),
+                                  until=args.command)
             print(result.summary())
+            if getattr(args, "strict", False) and not result.trusted:
+                print("fusion: --strict: an estimate is not trusted (see health above)",
+                      file=sys.stderr)
+                return EXIT_NOT_TRUSTED
         elif args.command == "inspect":
             from fusion.log.inspect import inspect_log
             print(inspect_log(args.log, _log_options(args)).format_text())

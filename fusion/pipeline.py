@@ -21,6 +21,9 @@ from fusion.errors import EstimationError, FusionError
 from fusion.estimate import (
     FusionConfig,
     FusionResult,
+    Health,
+    Status,
+    assess_result,
     run_ekf,
     smooth,
     smooth_incremental,
@@ -70,6 +73,12 @@ class RunResult:
     report_path: Path | None = None
     warnings: list[LogWarning] = field(default_factory=list)   # the log's (FlightLog.warnings)
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
+    health: dict[str, Health] = field(default_factory=dict)     # fused estimators (health.py)
+
+    @property
+    def trusted(self) -> bool:
+        """True when every fused estimator ran and its health is ok (what --strict asks)."""
+        return not self.failures and all(h.status == Status.OK for h in self.health.values())
 
     def summary(self) -> str:
         """A short table for the terminal."""
@@ -83,7 +92,7 @@ class RunResult:
                          f" rejected payloads: {ds.get('rejected_total', 0)}")
         per = (self.metrics or {}).get("trajectories", {})
         header = (f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
-                  f"{'yaw deg':>8} {'ATE cm':>8} {'ATE@pnp cm':>11}")
+                  f"{'yaw deg':>8} {'ATE cm':>8} {'ATE@pnp cm':>11} {'health':>9}")
         lines += ["", header, "-" * len(header)]
         for name, traj in self.trajectories.items():
             m = per.get(name, {})
@@ -97,13 +106,17 @@ class RunResult:
             lines.append(f"{name:<12} {len(traj):>6} {cm(0)} {cm(1)} {cm(2)} "
                          f"{(f'{yaw:8.3f}' if yaw is not None else f'{chr(45):>8}')} "
                          f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')} "
-                         f"{(f'{100 * ate_ref:11.3f}' if ate_ref is not None else f'{chr(45):>11}')}")
+                         f"{(f'{100 * ate_ref:11.3f}' if ate_ref is not None else f'{chr(45):>11}')} "
+                         f"{str(self.health[name].status) if name in self.health else chr(45):>9}")
         for name, lm in self.load_maps.items():
             m = (self.metrics or {}).get("load_maps", {}).get(name, {})
             mae = m.get("mae_xyz_m")
             err = (f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm"
                    if mae else "")
             lines.append(f"loads {name:<9} {len(lm.loads)} mapped{err}")
+        for name, h in self.health.items():
+            if h.status != Status.OK:
+                lines.append(f"health: {name} {h.status}: {h.reason}")
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
@@ -365,15 +378,13 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     frame_t = log.floor.timestamps_ns
-    # the EKF still takes a bare T_body_frontcam (body-fixed)
-    ekf_front = front.T_body_cam if front is not None else None
-    solvers = [(Estimator.SMOOTHER, smooth, front, graph_kwargs)]
+    solvers = [(Estimator.SMOOTHER, smooth, graph_kwargs)]
     if cfg.incremental:
-        solvers.append((Estimator.INCREMENTAL, smooth_incremental, front, graph_kwargs))
-    solvers.append((Estimator.EKF, run_ekf, ekf_front, {}))
-    for name, fn, cam, kwargs in solvers:
+        solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
+    solvers.append((Estimator.EKF, run_ekf, {"floor_camera": log.floor.camera}))
+    for name, fn, kwargs in solvers:
         try:
-            res = fn(frame_t, log.imu, raw, load_obs, cam, velocity=log.velocity,
+            res = fn(frame_t, log.imu, raw, load_obs, front_camera=front, velocity=log.velocity,
                      config=fcfg, **kwargs)
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
@@ -464,7 +475,10 @@ def _run_into(log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings
         fused_stage = fuse_stage(log, loc, cfg, det)
         result.notes += fused_stage.notes
         result.failures = {str(k): v for k, v in fused_stage.failures.items()}
+        raw = loc.trajectories[str(Estimator.PNP)]
+        max_iterations = FusionConfig().lm_max_iterations
         for name, res in fused_stage.results.items():
+            result.health[str(name)] = assess_result(res, raw, max_iterations=max_iterations)
             result.trajectories[name] = res.trajectory
             if log.front is not None:
                 result.load_maps[name] = res.loads
@@ -516,10 +530,12 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
                                      for name, f in result.failures.items()}
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
+    metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
+    # written with or without ground truth: health, failures and warnings hold without it
+    write_metrics(out_dir / "metrics.json", metrics)
+    result.metrics = metrics
     if gt is not None:
         export_groundtruth_tum(gt, out_dir / "trajectory_groundtruth.tum")
-        write_metrics(out_dir / "metrics.json", metrics)
-        result.metrics = metrics
     floor_xy = _floor_codes_seen(out_dir, log)
     summary = dict(result.log_summary, payload_unit_m=log.world.payload_unit_m,
                    detection=result.detection_stats)

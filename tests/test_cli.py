@@ -84,7 +84,10 @@ def test_run_without_front_camera_imu_or_groundtruth(tmp_path, capsys):
     assert main(["run", str(log), "--out", str(out), "--quiet", "--workers", "1"]) == 0
     text = capsys.readouterr().out
     assert "no front camera" in text and "velocity only" in text and "no ground truth" in text
-    assert not (out / "metrics.json").exists() and not list(out.glob("loads_*.csv"))
+    assert not list(out.glob("loads_*.csv"))
+    # metrics.json holds health, failures and warnings even without ground truth
+    health = json.loads((out / "metrics.json").read_text())["health"]
+    assert health["smoother"]["status"] in ("ok", "degraded", "diverged")
     assert (out / "trajectory_smoother.tum").exists()
     assert "No ground truth" in (out / "report.md").read_text()
 
@@ -140,3 +143,19 @@ def test_smooth_tight_coupling(tmp_path):
     tight = read_tum(out / "trajectory_smoother.tum")
     raw = read_tum(out / "trajectory_pnp.tum")
     assert len(tight) > len(raw) > 0
+
+
+def test_strict_exits_3_when_an_estimate_is_not_ok(tmp_path, capsys, monkeypatch):
+    from fusion import pipeline
+    from fusion.estimate import Health, Status
+    out = tmp_path / "out"
+    args = ["run", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--strict"]
+    assert main(args) == 0                          # the sample flight is healthy
+    monkeypatch.setattr(pipeline, "assess_result",
+                        lambda res, raw, **kw: Health(Status.DEGRADED, ["test: made degraded"]))
+    assert main(args + ["--force"]) == 3
+    text = capsys.readouterr()
+    assert "health: smoother degraded: test: made degraded" in text.out
+    assert "--strict" in text.err
+    assert main(args[:-1] + ["--force"]) == 0       # without --strict the run still succeeds
+    assert "degraded" in (out / "report.md").read_text().split("## Summary")[0]

@@ -304,7 +304,7 @@ def test_outliers_rejected_by_robust_kernel():
     assert dirty.stats["rejected_pose_factors"] <= len(bad) + 3
     assert dirty.stats["gated_pose_factors"] == len(bad)
     assert clean.stats["gated_pose_factors"] == 0
-    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [], FRONT_CAM)
+    ekf = run_ekf(fl.frame_t, fl.imu, bad_raw, [])
     assert ekf.stats["gated_updates"] >= len(bad) - 1
 
 
@@ -391,7 +391,7 @@ def test_incremental_is_causal_and_tracks(flight):
 
 
 def test_ekf_tracks(flight):
-    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
+    res = run_ekf(flight.frame_t, flight.imu, flight.raw, flight.load_obs, front_camera=FRONT_CAM)
     tr = res.trajectory
     k0 = res.stats["frames_before_first_fix"]
     err = pos_err(tr.T_world_body, flight.T_true[k0:])
@@ -414,7 +414,7 @@ def test_ekf_paper_input_wraps_yaw():
         T[i, :3, :3] = Rotation.from_euler("z", yaw_of(T[i, :3, :3])).as_matrix()
     raw = Trajectory("paper", fl.raw.timestamps_ns, T, None)
     # world rotated by the flip: gravity unchanged (rotation about z); IMU unchanged (body frame)
-    res = run_ekf(fl.frame_t, fl.imu, raw, [], FRONT_CAM,
+    res = run_ekf(fl.frame_t, fl.imu, raw, [],
                   config=FusionConfig(paper_sigma_xyz_m=(0.003,) * 3))
     k0 = res.stats["frames_before_first_fix"]
     yaw_err = wrap_angle(res.trajectory.yaw_rad - yaw_of(T_true[k0:, :3, :3]))
@@ -430,7 +430,7 @@ def test_no_floor_code_raises(flight):
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
         smooth(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], FRONT_CAM)
     with pytest.raises(EstimationError, match="no floor code was read in this flight"):
-        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [], FRONT_CAM)
+        run_ekf(flight.frame_t, flight.imu, Trajectory.empty("pnp"), [])
 
 
 def test_nan_in_imu_names_the_sample(flight):
@@ -441,7 +441,7 @@ def test_nan_in_imu_names_the_sample(flight):
     with pytest.raises(EstimationError, match="sample 123"):
         smooth(flight.frame_t, bad, flight.raw, [], FRONT_CAM)
     with pytest.raises(EstimationError, match="sample 123"):
-        run_ekf(flight.frame_t, bad, flight.raw, [], FRONT_CAM)
+        run_ekf(flight.frame_t, bad, flight.raw, [])
 
 
 @pytest.mark.parametrize("kind", ["duplicated", "out of order"])
@@ -481,7 +481,7 @@ def test_imu_stops_early():
     assert res.stats["imu_segments"] == 1
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
     assert np.sqrt(np.mean(err ** 2)) < 0.005
-    ekf = run_ekf(fl.frame_t, short, fl.raw, [], FRONT_CAM, velocity=fl.velocity)
+    ekf = run_ekf(fl.frame_t, short, fl.raw, [], velocity=fl.velocity)
     assert len(ekf.trajectory) == len(fl.frame_t)
     assert ekf.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
 

@@ -14,10 +14,17 @@ from fusion.estimate.common import (
     TightCoupling,
     write_sigmas_csv,
 )
-from fusion.estimate.ekf import run_ekf
+from fusion.estimate.ekf import EkfRecovery, run_ekf
+from fusion.estimate.health import Health, HealthConfig, Status, assess, assess_result
 from fusion.estimate.smoother import smooth, smooth_incremental
 
 __all__ = [
+    "EkfRecovery",
+    "Health",
+    "HealthConfig",
+    "Status",
+    "assess",
+    "assess_result",
     "FusionConfig",
     "FusionResult",
     "RawPoseInput",

@@ -351,22 +351,39 @@ def velocity_at_frames(frame_t: np.ndarray, vel: VelocityData | None,
 # =========================================================================== initial values
 
 
-def inlier_raw_mask(raw: RawPoses, config: FusionConfig) -> np.ndarray:
-    """Raw poses whose position lies within init_outlier_m of the median of its neighbours
-    (the raw poses i-w .. i+w, clipped at the ends; w = init_window)."""
+INLIER_WINDOW_S = 0.25
+"""Half-width (s) of the time window of inlier_raw_mask: short enough that the median of a
+one-sided window (at the edge of a gap) lags a 1.3 m/s drone by 0.16 m < init_outlier_m."""
+
+
+def inlier_raw_mask(raw: RawPoses, config: FusionConfig,
+                    frame_t: np.ndarray | None = None) -> np.ndarray:
+    """Raw poses whose position lies within init_outlier_m of the median position of its
+    neighbours in time: the raw poses within +-INLIER_WINDOW_S of it (at most init_window on
+    each side, nearest first), itself included.  Without frame_t (frame times, ns) the window is
+    +-init_window frames (regular frames assumed).  Neighbours are taken in time, not by index,
+    so the valid poses on either side of a blackout are not compared with each other.  A pose
+    with fewer than two neighbours in its window cannot be judged and is kept."""
     p = raw.T_world_body[:, :3, 3]
     m = len(p)
-    w = config.init_window
-    med = np.empty_like(p)
-    if m > 2 * w + 1:            # full windows, vectorised
-        win = np.lib.stride_tricks.sliding_window_view(p, 2 * w + 1, axis=0)  # (m-2w, 3, 2w+1)
-        med[w:m - w] = np.median(win, axis=2)
-        edges = list(range(w)) + list(range(m - w, m))
+    w = int(config.init_window)
+    if m == 0:
+        return np.zeros(0, bool)
+    if frame_t is not None:
+        t = np.asarray(frame_t, dtype=np.int64)[raw.frame_idx]
+        half = int(round(INLIER_WINDOW_S * 1e9))
     else:
-        edges = range(m)
-    for i in edges:
-        med[i] = np.median(p[max(0, i - w):min(m, i + w + 1)], axis=0)
-    ok = np.linalg.norm(p - med, axis=1) <= config.init_outlier_m
+        t = np.asarray(raw.frame_idx, dtype=np.int64)
+        half = w
+    offs = np.arange(-w, w + 1)
+    nb = np.arange(m)[:, None] + offs[None, :]                   # (m, 2w+1) neighbour indices
+    valid = (nb >= 0) & (nb < m)
+    nbc = np.clip(nb, 0, m - 1)
+    valid &= np.abs(t[nbc] - t[:, None]) <= half
+    P = np.where(valid[:, :, None], p[nbc], np.nan)               # (m, 2w+1, 3)
+    med = np.nanmedian(P, axis=1)
+    judged = valid.sum(axis=1) >= 3                                # itself and two neighbours
+    ok = ~judged | (np.linalg.norm(p - med, axis=1) <= config.init_outlier_m)
     if not ok.any():
         ok[:] = True
     return ok

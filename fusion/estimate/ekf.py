@@ -11,31 +11,56 @@ smoother), so an IMU mounted off the body frame needs no lever-arm approximation
 measurements are mapped to the body with T_body_imu (Pose3 adjoint).  After each update the
 error is injected into the nominal state and reset to zero (reset Jacobian taken as identity).
 
-Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or the paper's
-position + yaw (yaw wrap-around handled by filterpy's `residual` hook), and body velocity.  The
-update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
+Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or position + yaw
+(yaw wrap-around handled by filterpy's `residual` hook) for the paper's output and for the
+level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
+world position and yaw, with their covariance, are what the fix measures), and body velocity.
+The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
 Outliers: the measurement covariance is inflated by the robust kernel's IRLS weight at the
 innovation's Mahalanobis distance d (huber: d/k, cauchy: 1+(d/k)^2, tukey: skipped beyond k);
 updates with d > k are counted as rejected (`rejected_pose_factors`, all updates), those with
 d > FusionConfig.outlier_gate are skipped (`gated_updates`).
 
+Recovery, not lock-out (issue 8).  A fixed gate locks a filter out for good once it has drifted
+(a faulty IMU: gyro dead band, saturation, accelerometer in g): every later fix is "an outlier".
+The filter therefore keeps the fixes of the last `EkfRecovery.window_s` and asks whether they
+agree with each other (a cubic in time fits their positions and yaw within 3 sigma plus a motion
+tolerance; a misread or a misprinted code makes a jump that a cubic does not fit):
+- most fixes of the window beyond the robust threshold and the window consistent: the filter, not
+  the fixes, is wrong; its covariance is inflated (all of P, biases included, by the scalar that
+  brings the squared Mahalanobis distance of the innovation to its expected value, the
+  dimension: innovation-based covariance matching, Mehra, IEEE TAC 17(5), 1972; cf. the
+  fading-memory filter of Simon, "Optimal State Estimation", 2006, sec. 7.4) and the fix is used
+  at full weight (`inflated_updates`);
+- every fix of the window gated and the window consistent: the filter re-initialises from the
+  fixes (pose and covariance from the last fix, velocity from the cubic's slope, bias covariance
+  back to its fault level) (`resets`).
+So no run of consistent fixes is gated for ever, and the covariance grows when the filter is
+wrong instead of claiming an accuracy it lost.
+
 Where no IMU data covers an interval (gap, IMU that stops early) the prediction is a random walk
 (constant velocity, constant rotation; process noise from FusionConfig.bridge_*), counted.
 
 Loads: not filter states.  Each observation is mapped to the world with the filtered pose at its
-frame, p = T_world_body T_body_cam p_cam, covariance R_wc cov_cam R_wc^T + J P_pose J^T, and the
-observations of one load are fused by information weighting (this ignores the correlation of pose
-errors between frames, so the load covariance is optimistic).
+frame through the front camera's mount, p = T_world_cam(T_world_body) p_cam (CameraModel, so a
+gimbaled camera hangs from the level frame), covariance R_wc cov_cam R_wc^T + J P_pose J^T (J by
+central differences on the body pose, mount-agnostic), and the observations of one load are
+fused by information weighting (this ignores the correlation of pose errors between frames, so
+the load covariance is optimistic).
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
+from collections import deque
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
 from fusion.estimate import graph as G
 from fusion.estimate.common import (
@@ -48,23 +73,143 @@ from fusion.estimate.common import (
     velocity_at_frames,
 )
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
-from fusion.geometry import adjoint, inv_T, skew, so3_exp, wrap_angle, yaw_of
+from fusion.geometry import adjoint, inv_T, rot_z, skew, so3_exp, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
-__all__ = ["run_ekf"]
+__all__ = ["EkfRecovery", "run_ekf"]
+
+log = logging.getLogger(__name__)
 
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
 _TH, _P, _V, _BG, _BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+_LOAD_JACOBIAN_STEP = 1e-6          # body-pose perturbation (rad, m) for the load-point Jacobian
+_TILT_SIGMA_RAD = 0.05              # roll / pitch 1-sigma of a start or reset from position + yaw
+
+
+@dataclass
+class EkfRecovery:
+    """When and how the EKF recovers instead of locking out (module docstring).
+
+    window_s / min_fixes: the fixes looked at (at least min_fixes within the last window_s);
+    lookback_s / max_speed_m_s: no step between consecutive fixes of the last lookback_s may be
+    faster than max_speed_m_s (a warehouse drone's top speed, with margin; see _FixWindow);
+    fault_share: share of the window's fixes beyond the robust threshold that makes the filter,
+    not the fixes, the suspect; consistency_m / consistency_rad: motion tolerance of the cubic
+    fit (unmodelled jerk over the window plus margin) on top of 3 sigma of each fix;
+    max_inflation: cap of the covariance scale factor per fix; reset_sigma_gyro_rad_s /
+    reset_sigma_accel_m_s2: bias 1-sigma after a reset (a faulty IMU: dead band, saturation, wrong
+    unit, so large biases must be learnable); reset_velocity_sigma_m_s: floor of the velocity
+    1-sigma after a reset.  enabled=False gives the plain gated filter (it can lock out)."""
+    enabled: bool = True
+    window_s: float = 1.5
+    lookback_s: float = 3.0
+    max_speed_m_s: float = 5.0
+    min_fixes: int = 6
+    fault_share: float = 0.5
+    consistency_m: float = 0.1
+    consistency_rad: float = math.radians(3.0)
+    max_inflation: float = 1e8
+    reset_sigma_gyro_rad_s: float = 0.1
+    reset_sigma_accel_m_s2: float = 2.0
+    reset_velocity_sigma_m_s: float = 0.3
+
+
+@dataclass
+class _Fix:
+    """One raw fix as the recovery logic sees it: time (s), world position (3,), yaw (rad),
+    their 1-sigma (position per axis (3,), yaw), the fix itself (for a reset) and its outcome."""
+    t_s: float
+    p_world: np.ndarray
+    yaw: float
+    sigma_p: np.ndarray
+    sigma_yaw: float
+    T_meas: np.ndarray
+    cov: np.ndarray          # 6x6 body-frame (full pose) or level-frame covariance
+    over: bool = False       # beyond the robust threshold
+    gated: bool = False      # beyond the gate
+
+
+class _FixWindow:
+    """The recent fixes and whether they agree with each other: a cubic in time fits those of
+    the last `window_s`, and no step between consecutive fixes of the last `lookback_s` is
+    faster than `max_speed_m_s` (so a jump into a run of self-consistent but wrong fixes, a
+    misprinted code, stays visible for lookback_s after it)."""
+
+    def __init__(self, rec: EkfRecovery):
+        self.rec = rec
+        self.fixes: deque[_Fix] = deque()
+
+    def add(self, fix: _Fix) -> None:
+        self.fixes.append(fix)
+        while self.fixes and fix.t_s - self.fixes[0].t_s > max(self.rec.lookback_s, self.rec.window_s):
+            self.fixes.popleft()
+
+    def clear(self) -> None:
+        self.fixes.clear()
+
+    def recent(self) -> list[_Fix]:
+        t_new = self.fixes[-1].t_s
+        return [f for f in self.fixes if t_new - f.t_s <= self.rec.window_s]
+
+    def jump_free(self) -> bool:
+        """No step between consecutive fixes of the look-back beyond max_speed_m_s * dt plus
+        3 sigma of both fixes and the motion tolerance."""
+        f = list(self.fixes)
+        if len(f) < 2:
+            return True
+        t = np.array([x.t_s for x in f])
+        P = np.array([x.p_world for x in f])
+        sp = np.array([np.linalg.norm(x.sigma_p) for x in f])
+        step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+        allowed = self.rec.max_speed_m_s * np.diff(t) + 3.0 * (sp[1:] + sp[:-1]) \
+            + self.rec.consistency_m
+        return bool(np.all(step <= allowed))
+
+    def consistent(self) -> bool:
+        return self.fit(self.recent())[0] and self.jump_free()
+
+    def fit(self, fixes):
+        """(consistent: bool, velocity at the last fix (3,)): least-squares cubic per position
+        axis and for the unwrapped yaw over `fixes`; consistent when every residual is within
+        3 sigma of the fix plus the motion tolerance."""
+        t = np.array([f.t_s for f in fixes])
+        t = t - t[-1]
+        P = np.array([f.p_world for f in fixes])
+        yaw = np.unwrap([f.yaw for f in fixes])
+        deg = min(3, len(t) - 2)
+        A = np.vander(t, deg + 1)
+        Y = np.column_stack([P, yaw])
+        coef, *_ = np.linalg.lstsq(A, Y, rcond=None)
+        res = np.abs(Y - A @ coef)
+        sp = np.array([f.sigma_p for f in fixes])
+        sy = np.array([f.sigma_yaw for f in fixes])
+        ok = bool(np.all(res[:, :3] <= 3.0 * sp + self.rec.consistency_m)
+                  and np.all(res[:, 3] <= 3.0 * sy + self.rec.consistency_rad))
+        velocity = coef[-2, :3] if deg >= 1 else np.zeros(3)
+        return ok, velocity
+
+    def filter_at_fault(self) -> bool:
+        recent = self.recent()
+        if len(recent) < self.rec.min_fixes:
+            return False
+        share = np.mean([f.over for f in recent])
+        return share >= self.rec.fault_share and self.consistent()
+
+    def all_gated(self) -> bool:
+        recent = self.recent()
+        return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) \
+            and self.consistent()
 
 
 class _Ekf:
-    def __init__(self, T_body_imu: np.ndarray, config: FusionConfig):
+    def __init__(self, T_body_imu: np.ndarray, config: FusionConfig, recovery: EkfRecovery):
         self.kf = ExtendedKalmanFilter(dim_x=15, dim_z=6)
         self.T_bi = T_body_imu
         self.T_ib = inv_T(T_body_imu)
         self.Ad_bi = adjoint(T_body_imu)
         self.config = config
+        self.recovery = recovery
         self.R = np.eye(3)          # R_world_imu
         self.p = np.zeros(3)        # p_world_imu
         self.v = np.zeros(3)        # v_world_imu
@@ -73,6 +218,9 @@ class _Ekf:
         self.omega = np.zeros(3)    # last bias-corrected rate (IMU frame), for velocity updates
         self.rejected = 0
         self.gated = 0
+        self.inflated = 0
+        self.resets = 0
+        self.window = _FixWindow(recovery)
 
     # ------------------------------------------------------------------ state <-> body pose
     def T_world_body(self) -> np.ndarray:
@@ -90,6 +238,15 @@ class _Ekf:
     def body_cov(self) -> np.ndarray:
         J = self.J_body()
         return J @ self.kf.P[:6, :6] @ J.T
+
+    def set_pose(self, T_world_body: np.ndarray, cov_body: np.ndarray) -> None:
+        """Nominal pose from a body pose and its 6x6 body-frame covariance (Pose3 order)."""
+        T_wi = T_world_body @ self.T_bi
+        self.R, self.p = T_wi[:3, :3].copy(), T_wi[:3, 3].copy()
+        Jinv = np.linalg.inv(self.J_body())
+        self.kf.P[:6, :6] = Jinv @ cov_body @ Jinv.T
+        self.kf.P[:6, 6:] = 0.0
+        self.kf.P[6:, :6] = 0.0
 
     # ------------------------------------------------------------------ prediction
     def predict_imu(self, acc: np.ndarray, gyr: np.ndarray, dt: float, noise) -> None:
@@ -137,10 +294,13 @@ class _Ekf:
         self.kf.predict()
 
     # ------------------------------------------------------------------ updates
-    def _robust_R(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray, dim: int):
-        """Measurement covariance inflated by the kernel's IRLS weight; None = reject."""
+    def _mahalanobis(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> float:
         S = H @ self.kf.P @ H.T + Rm
-        d = math.sqrt(max(float(y @ np.linalg.solve(S, y)), 0.0))
+        return math.sqrt(max(float(y @ np.linalg.solve(S, y)), 0.0))
+
+    def _robust_R(self, d: float, Rm: np.ndarray, dim: int):
+        """Measurement covariance inflated by the kernel's IRLS weight at Mahalanobis distance d;
+        None = skip (gated, or tukey beyond its threshold)."""
         k = self.config.threshold(dim)
         kernel = self.config.robust_kernel
         if d <= k or kernel == "none":
@@ -155,13 +315,93 @@ class _Ekf:
             return Rm * (1.0 + (d / k) ** 2)
         return None    # tukey: weight 0
 
-    def _update(self, z, H, hx, Rm, residual=np.subtract):
-        y = residual(z, hx)
-        Rr = self._robust_R(np.asarray(y).ravel(), H, Rm, len(y))
-        if Rr is None:
-            return
-        self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rr, residual=residual)
+    def _apply(self, z, H, hx, Rm, residual) -> None:
+        self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
         self._inject()
+
+    def _update(self, z, H, hx, Rm, residual=np.subtract) -> None:
+        """A velocity update: robust kernel and gate, no recovery logic."""
+        y = np.asarray(residual(z, hx), float).ravel()
+        Rr = self._robust_R(self._mahalanobis(y, H, Rm), Rm, len(y))
+        if Rr is not None:
+            self._apply(z, H, hx, Rr, residual)
+
+    def _inflate_to(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray, d_target: float) -> float:
+        """Scale P by lam >= 1 so that y^T (lam H P H^T + R)^-1 y = d_target^2 (bisection on
+        log lam; the left side decreases with lam); returns lam."""
+        HPH = H @ self.kf.P @ H.T
+        lo, hi = 0.0, math.log(self.recovery.max_inflation)
+
+        def d2(log_lam):
+            return float(y @ np.linalg.solve(math.exp(log_lam) * HPH + Rm, y))
+
+        if d2(hi) > d_target ** 2:
+            lo = hi
+        else:
+            for _ in range(40):
+                mid = 0.5 * (lo + hi)
+                if d2(mid) > d_target ** 2:
+                    lo = mid
+                else:
+                    hi = mid
+        lam = math.exp(hi)
+        self.kf.P = self.kf.P * lam
+        return lam
+
+    def _fix_update(self, fix: _Fix, z, H, hx, Rm, residual) -> None:
+        """A pose fix: robust kernel and gate, with recovery (module docstring)."""
+        y = np.asarray(residual(z, hx), float).ravel()
+        d = self._mahalanobis(y, H, Rm)
+        k = self.config.threshold(len(y))
+        gate = self.config.outlier_gate
+        fix.over = d > k
+        fix.gated = gate is not None and d > gate
+        rec = self.recovery
+        if not rec.enabled or not fix.over:
+            self.window.add(fix)
+            Rr = self._robust_R(d, Rm, len(y))
+            if Rr is not None:
+                self._apply(z, H, hx, Rr, residual)
+            return
+        self.window.add(fix)
+        if fix.gated and self.window.all_gated():
+            self.rejected += 1
+            self.reset(fix)
+            return
+        if self.window.filter_at_fault():
+            self.rejected += 1
+            self.inflated += 1
+            self._inflate_to(y, H, Rm, math.sqrt(len(y)))
+            self._apply(z, H, hx, Rm, residual)
+            return
+        Rr = self._robust_R(d, Rm, len(y))
+        if Rr is not None:
+            self._apply(z, H, hx, Rr, residual)
+
+    def reset(self, fix: _Fix) -> None:
+        """Re-initialise from the window's fixes: pose and covariance of the last fix, velocity
+        from the cubic fit, biases kept with their covariance back to the fault level."""
+        _, v = self.window.fit(self.window.recent())
+        P = np.zeros((15, 15))
+        self.kf.P = P
+        if fix.cov.shape == (6, 6):
+            self.set_pose(fix.T_meas, fix.cov)
+        else:                                   # position + yaw fix: keep the filter's roll/pitch
+            R_b = self.T_world_body()[:3, :3]
+            T = np.eye(4)
+            T[:3, :3] = rot_z(fix.yaw - float(yaw_of(R_b))) @ R_b
+            T[:3, 3] = fix.p_world
+            cov = np.diag(np.r_[[_TILT_SIGMA_RAD ** 2] * 2, fix.sigma_yaw ** 2, fix.sigma_p ** 2])
+            self.set_pose(T, cov)
+        self.v = v - self.R @ np.cross(self.omega, self.T_ib[:3, 3])
+        rec = self.recovery
+        sigma_v = max(rec.reset_velocity_sigma_m_s, self.config.velocity_prior_sigma_m_s)
+        self.kf.P[_V, _V] = np.eye(3) * sigma_v ** 2
+        self.kf.P[_BG, _BG] = np.eye(3) * rec.reset_sigma_gyro_rad_s ** 2
+        self.kf.P[_BA, _BA] = np.eye(3) * rec.reset_sigma_accel_m_s2 ** 2
+        self.kf.x = np.zeros(15)
+        self.resets += 1
+        self.window.clear()
 
     def _inject(self) -> None:
         dx = self.kf.x.ravel()
@@ -172,79 +412,107 @@ class _Ekf:
         self.ba = self.ba + dx[_BA]
         self.kf.x = np.zeros(15)
 
-    def update_pose(self, T_meas: np.ndarray, cov: np.ndarray) -> None:
+    def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
         """z = Log(T_hat_body^-1 T_meas) (6,), h(dx) = J_body dx (right perturbation)."""
         T_hat = gtsam.Pose3(self.T_world_body())
         z = gtsam.Pose3.Logmap(T_hat.between(gtsam.Pose3(T_meas)))
         H = np.zeros((6, 15))
         H[:, :6] = self.J_body()
-        self._update(z, H, np.zeros(6), cov)
+        R_m = T_meas[:3, :3]
+        sigma_p = np.sqrt(np.maximum(np.diag(R_m @ cov[3:, 3:] @ R_m.T), 0.0))
+        fix = _Fix(t_s, T_meas[:3, 3].copy(), float(yaw_of(R_m)), sigma_p,
+                   math.sqrt(max(cov[2, 2], 0.0)), T_meas, cov)
+        self._fix_update(fix, z, H, np.zeros(6), cov, np.subtract)
 
-    def update_position_yaw(self, T_meas: np.ndarray, sigma_xyz, sigma_yaw: float) -> None:
-        """z = [p_world_body (3), yaw (1)]; the residual hook wraps yaw to (-pi, pi]."""
+    def update_position_yaw(self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray,
+                            cov6: np.ndarray | None = None) -> None:
+        """z = [p_world_body (3), yaw (1)] with 4x4 covariance Rm; the residual hook wraps yaw
+        to (-pi, pi].  cov6: the level-frame 6x6 covariance it came from (kept for a reset)."""
         T_hat = gtsam.Pose3(self.T_world_body())
         z = np.r_[T_meas[:3, 3], yaw_of(T_meas[:3, :3])]
         e, Hb = G.position_yaw_error(np.zeros(3), 0.0, T_hat, True)   # e = h(T_hat)
         H = np.zeros((4, 15))
         H[:, :6] = Hb @ self.J_body()
-        Rm = np.diag(np.r_[np.asarray(sigma_xyz, float), sigma_yaw] ** 2)
 
         def residual(a, b):
             r = np.subtract(a, b)
             r[3] = wrap_angle(r[3])
             return r
 
-        self._update(z, H, e, Rm, residual)
+        sd = np.sqrt(np.maximum(np.diag(Rm), 0.0))
+        fix = _Fix(t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas,
+                   cov6 if cov6 is not None else Rm)
+        self._fix_update(fix, z, H, e, Rm, residual)
 
     def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
-        """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body)."""
+        """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body), i.e.
+        h = R_imu_body^T (R^T v + omega x t_imu_body).  With R' = R Exp(dtheta),
+        R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
+        arm term is in the IMU frame already)."""
         R_ib = self.T_ib[:3, :3]
         v_b_world = self.v + self.R @ np.cross(self.omega, self.T_ib[:3, 3])
         hx = R_ib.T @ self.R.T @ v_b_world
         H = np.zeros((3, 15))
-        H[:, _TH] = R_ib.T @ skew(self.R.T @ v_b_world)
+        H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
         self._update(v_meas, H, hx, np.eye(3) * sigma ** 2)
 
 
+def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
+    """4x4 covariance of [p_world (3), yaw] of a level-frame pose T_level = [Rz(yaw), p] whose
+    6x6 covariance (Pose3 order, right perturbation T = T_level Exp(xi)) is cov_level: to first
+    order yaw = yaw_hat + xi_rz and p = p_hat + Rz xi_t (the level frame's z is world z)."""
+    J = np.zeros((4, 6))
+    J[:3, 3:] = T_level[:3, :3]
+    J[3, 2] = 1.0
+    return J @ cov_level @ J.T
+
+
 def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-            load_obs: list[LoadObservation] | None, T_body_frontcam: np.ndarray,
-            velocity: VelocityData | None = None,
-            config: FusionConfig | None = None) -> FusionResult:
+            load_obs: list[LoadObservation] | None = None, *,
+            front_camera: CameraModel | None = None, floor_camera: CameraModel | None = None,
+            velocity: VelocityData | None = None, config: FusionConfig | None = None,
+            recovery: EkfRecovery | None = None) -> FusionResult:
     """Causal error-state EKF over a flight; same inputs and result as `smooth`.
 
+    front_camera: maps load observations to the world (its mount: camera.T_world_cam); None:
+    no load map (a warning when there are load observations).  floor_camera: only its mount is used; a gimbaled floor
+    camera's raw poses are level-frame poses (pnp.py), fused as position + yaw.
     The filter starts at the first (inlier) raw pose (`stats['frames_before_first_fix']` earlier
     frames have no estimate), with the velocity from a line through the first 0.5 s of raw
     positions (start-up look-ahead, as smooth_incremental).  Trajectory at the remaining frame
-    times, with the filtered (causal) covariance mapped to the body frame (Pose3 order)."""
+    times, with the filtered (causal) covariance mapped to the body frame (Pose3 order).
+    stats: pose_updates, rejected_pose_factors, gated_updates, inflated_updates, resets, ..."""
     config = config or FusionConfig()
+    recovery = recovery or EkfRecovery()
     t_start = time.perf_counter()
-    frame_t, rawp, imu, velocity, T_bc = check_inputs(frame_times_ns, imu, raw, velocity,
-                                                      T_body_frontcam, config)
+    T_front = front_camera.T_body_cam if front_camera is not None else np.eye(4)
+    frame_t, rawp, imu, velocity, _ = check_inputs(frame_times_ns, imu, raw, velocity, T_front, config)
+    if load_obs and front_camera is None:
+        log.warning("%d load observations but no front camera: the EKF maps no loads", len(load_obs))
+    level_fixes = floor_camera is not None and floor_camera.gimbaled
     n = len(frame_t)
-    use = inlier_raw_mask(rawp, config)
+    use = inlier_raw_mask(rawp, config, frame_t)
     k0 = int(rawp.frame_idx[use].min())
     m0 = int(np.flatnonzero(use & (rawp.frame_idx == k0))[0])
     raw_at = {int(k): m for m, k in enumerate(rawp.frame_idx.tolist())}
     vmask, v_body = velocity_at_frames(frame_t, velocity, config)
 
     T_bi = np.asarray(imu.T_body_imu, float) if imu is not None else np.eye(4)
-    f = _Ekf(T_bi, config)
-    T_wi = rawp.T_world_body[m0] @ T_bi
-    f.R, f.p = T_wi[:3, :3].copy(), T_wi[:3, 3].copy()
-    f.v = first_velocity(frame_t, rawp, use, k0)
-    P0 = np.zeros((15, 15))
-    if rawp.full_pose:
-        Jinv = np.linalg.inv(f.J_body())
-        P0[:6, :6] = Jinv @ rawp.covariances[m0] @ Jinv.T
-    else:
-        P0[_TH, _TH] = np.diag([0.05 ** 2, 0.05 ** 2, config.paper_sigma_yaw_rad ** 2])
-        P0[_P, _P] = np.diag(np.asarray(config.paper_sigma_xyz_m, float) ** 2)
-    P0[_V, _V] = np.eye(3) * config.velocity_prior_sigma_m_s ** 2
-    P0[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s ** 2
-    P0[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2 ** 2
+    f = _Ekf(T_bi, config, recovery)
     f.kf.x = np.zeros(15)
-    f.kf.P = P0
+    f.kf.P = np.zeros((15, 15))
+    if rawp.full_pose:
+        f.set_pose(rawp.T_world_body[m0], rawp.covariances[m0])
+    else:
+        f.set_pose(rawp.T_world_body[m0],
+                   np.diag(np.r_[_TILT_SIGMA_RAD ** 2, _TILT_SIGMA_RAD ** 2, config.paper_sigma_yaw_rad ** 2,
+                                 np.asarray(config.paper_sigma_xyz_m, float) ** 2]))
+    f.v = first_velocity(frame_t, rawp, use, k0)
+    f.kf.P[_V, _V] = np.eye(3) * config.velocity_prior_sigma_m_s ** 2
+    f.kf.P[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s ** 2
+    f.kf.P[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2 ** 2
+    paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
     sub: dict[int, list] = {}
@@ -270,11 +538,15 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         m = raw_at.get(k)
         if m is not None and k > k0:
-            if rawp.full_pose:
-                f.update_pose(rawp.T_world_body[m], rawp.covariances[m])
+            t_s = frame_t[k] * 1e-9
+            T_m = rawp.T_world_body[m]
+            if rawp.full_pose and not level_fixes:
+                f.update_pose(t_s, T_m, rawp.covariances[m])
+            elif rawp.full_pose:
+                f.update_position_yaw(t_s, T_m, level_fix_covariance(T_m, rawp.covariances[m]),
+                                      rawp.covariances[m])
             else:
-                f.update_position_yaw(rawp.T_world_body[m], config.paper_sigma_xyz_m,
-                                      config.paper_sigma_yaw_rad)
+                f.update_position_yaw(t_s, T_m, paper_Rm)
             n_pose_updates += 1
         if vmask[k]:
             f.update_body_velocity(v_body[k], velocity.noise_m_s)
@@ -282,9 +554,12 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         cov_out[k - k0] = f.body_cov()
         cov_out[k - k0] = 0.5 * (cov_out[k - k0] + cov_out[k - k0].T)
 
-    loads = _map_loads(frame_t, load_obs, T_bc, T_out, cov_out, k0, config)
+    loads = _map_loads(frame_t, load_obs if front_camera is not None else None, front_camera,
+                       T_out, cov_out, k0, config)
     stats = {"frames_before_first_fix": k0, "pose_updates": n_pose_updates,
-             "rejected_pose_factors": f.rejected, "gated_updates": f.gated, "robust_kernel": config.robust_kernel,
+             "rejected_pose_factors": f.rejected, "gated_updates": f.gated,
+             "inflated_updates": f.inflated, "resets": f.resets,
+             "robust_kernel": config.robust_kernel,
              "imu_intervals": int(covered.sum()), "bridged_intervals": int((~covered).sum()),
              "time_s": time.perf_counter() - t_start}
     if imu is not None:
@@ -295,7 +570,25 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     return FusionResult(Trajectory("ekf", frame_t[k0:].copy(), T_out, cov_out), loads, stats)
 
 
-def _map_loads(frame_t, load_obs, T_bc, T_out, cov_out, k0, config) -> LoadMap:
+def load_point_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.ndarray):
+    """World point of a camera-frame point through the camera's mount, and its 3x6 Jacobian
+    with respect to the body pose (right perturbation, Pose3 order) by central differences
+    (step _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path."""
+    def point(T_wb):
+        T_wc = camera.T_world_cam(T_wb)
+        return T_wc[:3, :3] @ p_cam + T_wc[:3, 3]
+
+    pose = gtsam.Pose3(T_world_body)
+    J = np.empty((3, 6))
+    h = _LOAD_JACOBIAN_STEP
+    for i in range(6):
+        dx = np.zeros(6)
+        dx[i] = h
+        J[:, i] = (point(pose.retract(dx).matrix()) - point(pose.retract(-dx).matrix())) / (2 * h)
+    return point(T_world_body), J
+
+
+def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config) -> LoadMap:
     """Information-weighted fusion of per-observation world points (see module docstring)."""
     groups, _ = group_load_obs(frame_t, load_obs or [], config)
     out = []
@@ -305,11 +598,8 @@ def _map_loads(frame_t, load_obs, T_bc, T_out, cov_out, k0, config) -> LoadMap:
             if k < k0:
                 continue
             T_wb = T_out[k - k0]
-            q = T_bc[:3, :3] @ np.asarray(o.p_cam, float) + T_bc[:3, 3]   # body frame
-            R_wb = T_wb[:3, :3]
-            p = R_wb @ q + T_wb[:3, 3]
-            J = np.hstack([-R_wb @ skew(q), R_wb])
-            R_wc = R_wb @ T_bc[:3, :3]
+            p, J = load_point_world(camera, T_wb, np.asarray(o.p_cam, float))
+            R_wc = camera.T_world_cam(T_wb)[:3, :3]
             C = R_wc @ o.cov_cam @ R_wc.T + J @ cov_out[k - k0] @ J.T
             W = np.linalg.inv(C)
             info += W

@@ -175,6 +175,27 @@ def _blackout_coverage(traj: Trajectory, gt, blackouts) -> float | None:
     return coverage_fraction(t_in, traj.timestamps_ns, BLACKOUT_COVERAGE_TOLERANCE_S)
 
 
+def _health_lines(m: dict) -> list[str]:
+    """The headline's first line: can each fused estimate be trusted (estimate/health.py),
+    which back ends failed, and the log's warnings."""
+    health = m.get("health") or {}
+    failures = m.get("estimator_failures") or {}
+    warnings = m.get("warnings") or []
+    if not (health or failures or warnings):
+        return []
+    parts = [f"{md_code(name)} **{md_text(h.get('status', DASH))}**"
+             + (f" ({md_text(h.get('reason', ''))})" if h.get("status") != "ok" else "")
+             for name, h in health.items()]
+    parts += [f"{md_code(name)} **failed** ({md_text(f.get('reason', ''))})"
+              for name, f in failures.items()]
+    lines = ["**Health:** " + "; ".join(parts) + "." if parts else "**Health:** no fused estimate."]
+    if warnings:
+        lines += ["", "**Log warnings:** " + "; ".join(
+            f"{md_code(w.get('name', ''))} ×{w.get('count', 1)}: {md_text(w.get('message', ''))}"
+            for w in warnings) + "."]
+    return lines + [""]
+
+
 def _summary_section(m: dict, trajectories: dict[str, Trajectory], gt, blackouts) -> list[str]:
     trajs = m.get("trajectories", {})
     maps = m.get("load_maps", {})
@@ -460,6 +481,7 @@ def write_report(out_dir: Path, metrics: dict | None, trajectories: dict[str, Tr
     warehouse_lines = report_hook(out_dir, trajectories, load_maps, floor_codes_xy_m, log_summary,
                                   gt if has_truth else None)
     lines += warehouse_lines[:2]                        # link to report.html
+    lines += _health_lines(metrics or {})
     if has_truth:
         lines += _summary_section(metrics, trajectories, gt, blackouts)
         lines += _plots(plots, "summary")

@@ -1,0 +1,161 @@
+"""fusion.estimate.health: the consistency monitor's statuses on runs whose truth is known."""
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.errors import EstimationError
+from fusion.estimate.common import FusionResult
+from fusion.estimate.ekf import EkfRecovery
+from fusion.estimate.health import (
+    Health,
+    HealthConfig,
+    Status,
+    assess,
+    assess_result,
+    fix_nis,
+)
+from fusion.types import LoadMap, Trajectory
+from tests.test_ekf import ekf, faulty, make_flight
+
+SIGMA_ROT_RAD = math.radians(0.03)
+
+
+@pytest.fixture(scope="module")
+def healthy():
+    fl = make_flight(seed=21)
+    return fl, ekf(fl)
+
+
+def fused_from_truth(fl, sigma_pos=0.001, sigma_rot=SIGMA_ROT_RAD, seed=0, drift=None):
+    """A fused trajectory = truth * Exp(n) with a stated covariance; `drift` (m/s) moves it away
+    from the truth linearly in time."""
+    rng = np.random.default_rng(seed)
+    cov = np.diag([sigma_rot ** 2] * 3 + [sigma_pos ** 2] * 3)
+    xi = rng.multivariate_normal(np.zeros(6), cov, size=len(fl["frame_t"]))
+    T = np.array([Tt @ gtsam.Pose3.Expmap(x).matrix() for Tt, x in zip(fl["T_true"], xi)])
+    if drift is not None:
+        T[:, :3, 3] += np.outer(fl["frame_t"] * 1e-9, drift)
+    return Trajectory("fused", fl["frame_t"].copy(), T, np.repeat(cov[None], len(T), 0))
+
+
+def test_healthy_run_is_ok(healthy):
+    fl, res = healthy
+    h = assess_result(res, fl["raw"])
+    assert isinstance(h, Health)
+    assert h.status == Status.OK, h.reason
+    assert h.coverage == 1.0 and h.lost_share == 0.0
+    # the windowed mean NIS (per dimension) of a consistent run lies around or below 1
+    assert 0.2 < np.median(h.window_nis) < 1.5
+    d = h.to_dict()
+    assert d["status"] == "ok" and d["reason"] == "consistent with the raw fixes"
+
+
+def test_runaway_ekf_is_diverged():
+    """Gyro dead band, plain gated filter: it runs away although fixes arrive at every frame."""
+    fl = faulty(make_flight(seed=22, duration_s=15.0), "dead_band")
+    res = ekf(fl, recovery=EkfRecovery(enabled=False))
+    h = assess_result(res, fl["raw"])
+    assert h.status == Status.DIVERGED
+    assert "lost the raw fixes" in h.reason and h.lost_share > 0.5
+
+
+def test_many_gated_fixes_degraded(healthy):
+    fl, res = healthy
+    h = assess(res.trajectory, fl["raw"], gated_fraction=0.2)
+    assert h.status == Status.DEGRADED and "20 % of the fixes gated" in h.reason
+    assert assess(res.trajectory, fl["raw"], gated_fraction=0.6).status == Status.DIVERGED
+
+
+def test_iteration_limit_resets_and_inflation_degrade(healthy):
+    fl, res = healthy
+    assert assess(res.trajectory, fl["raw"], iteration_limit_hits=1).status == Status.DEGRADED
+    assert assess(res.trajectory, fl["raw"], resets=2).status == Status.DEGRADED
+    assert assess(res.trajectory, fl["raw"], inflated_fraction=0.2).status == Status.DEGRADED
+    stats = dict(res.stats, iterations=100)
+    hit = assess_result(FusionResult(res.trajectory, LoadMap("ekf"), stats), fl["raw"],
+                        max_iterations=100)
+    assert hit.iteration_limit_hits == 1 and hit.status == Status.DEGRADED
+
+
+def test_overconfident_estimate_degraded():
+    """Right on average but claiming half the sigma than it has; fixes honest."""
+    fl = make_flight(seed=23)
+    fused = fused_from_truth(fl, sigma_pos=0.004, sigma_rot=math.radians(0.1))
+    fused.covariances = fused.covariances / 4.0
+    h = assess(fused, fl["raw"])
+    assert h.status == Status.DEGRADED
+    assert h.overconfident_windows > 0 and "overconfident" in h.reason
+    honest = fused_from_truth(fl, sigma_pos=0.004, sigma_rot=math.radians(0.1))
+    assert assess(honest, fl["raw"]).status == Status.OK
+
+
+def test_drift_diverged_and_misreads_ok():
+    """A fused estimate drifting 5 cm/s away is DIVERGED; an exact one judged against fixes of
+    which 5 % are misreads (1-3 m off) stays OK: single fixes do not make an estimate wrong."""
+    fl = make_flight(seed=24)
+    assert assess(fused_from_truth(fl, drift=[0.05, 0.0, 0.0]), fl["raw"]).status == Status.DIVERGED
+    rng = np.random.default_rng(1)
+    raw = fl["raw"]
+    T = raw.T_world_body.copy()
+    bad = rng.choice(len(T), size=len(T) // 20, replace=False)
+    T[bad, :2, 3] += rng.uniform(1, 3, (len(bad), 2))
+    misread = Trajectory("pnp", raw.timestamps_ns, T, raw.covariances)
+    h = assess(fused_from_truth(fl), misread)
+    assert h.status == Status.OK, h.reason
+    assert 0.03 < h.inconsistent_share < 0.07
+
+
+def test_short_loss_is_degraded_not_diverged():
+    """A 2.5 s run of wrong fixes (a misprinted code) against a right estimate: one or two lost
+    windows, not in a long run: DEGRADED with the reason, not DIVERGED; the same share lost for
+    good (the fixes 1 m off from 8 s on, the estimate stuck) is DIVERGED."""
+    fl = make_flight(seed=25)
+    raw = fl["raw"]
+    t = raw.timestamps_ns * 1e-9
+    T = raw.T_world_body.copy()
+    T[(t >= 6.0) & (t < 8.5), 0, 3] += 1.0
+    h = assess(fused_from_truth(fl), Trajectory("pnp", raw.timestamps_ns, T, raw.covariances))
+    assert h.status == Status.DEGRADED and "for at most" in h.reason
+    T = raw.T_world_body.copy()
+    T[t >= 8.0, 0, 3] += 1.0
+    h = assess(fused_from_truth(fl), Trajectory("pnp", raw.timestamps_ns, T, raw.covariances))
+    assert h.status == Status.DIVERGED and h.lost_run >= 2
+
+
+def test_covariance_growth_and_coverage(healthy):
+    fl, res = healthy
+    tr = res.trajectory
+    grown = Trajectory(tr.name, tr.timestamps_ns, tr.T_world_body, tr.covariances.copy())
+    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3)              # 1 m sigma once
+    h = assess(grown, fl["raw"])
+    assert h.status == Status.DEGRADED and h.max_sigma_m == pytest.approx(1.0)
+    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3) * 400.0      # 20 m
+    assert assess(grown, fl["raw"]).status == Status.DIVERGED
+    half = Trajectory(tr.name, tr.timestamps_ns[len(tr) // 2:], tr.T_world_body[len(tr) // 2:],
+                      tr.covariances[len(tr) // 2:])
+    h = assess(half, fl["raw"])
+    assert h.status == Status.DEGRADED and h.coverage == pytest.approx(0.5, abs=0.01)
+    assert assess(Trajectory.empty("ekf"), fl["raw"]).status == Status.DIVERGED
+    with pytest.raises(EstimationError):
+        assess(tr, Trajectory.empty("pnp"))
+
+
+def test_position_yaw_fixes_without_covariance(healthy):
+    """The paper's estimator (no covariance): 4-d innovation with HealthConfig's sigmas."""
+    fl, res = healthy
+    raw = fl["raw"]
+    paper = Trajectory("paper", raw.timestamps_ns, raw.T_world_body, None)
+    idx, _nis, dim = fix_nis(res.trajectory, paper)
+    assert dim == 4 and len(idx) == len(raw)
+    assert assess(res.trajectory, paper).status == Status.OK
+    tight = HealthConfig(raw_sigma_xyz_m=1e-5, raw_sigma_yaw_rad=1e-6)
+    fused_nocov = Trajectory("f", res.trajectory.timestamps_ns, res.trajectory.T_world_body, None)
+    assert assess(fused_nocov, paper, config=tight).status != Status.OK
+
+
+def test_status_is_str_valued():
+    assert Status.DIVERGED == "diverged" and str(Status.OK) == "ok"
