@@ -7,6 +7,7 @@ k3 = 0 (Kalibr's `radial-tangential`: [k1, k2, p1, p2]):
     y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
     u = fu x_d + cu,   v = fv y_d + cv
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ class CameraModel:
     (body with roll and pitch removed), i.e. the camera keeps its attitude to the floor whatever
     the airframe's tilt (the paper's assumption 3).
     """
+
     width: int
     height: int
     fu: float
@@ -159,7 +161,7 @@ class CameraModel:
         }
 
     @classmethod
-    def from_sensor_yaml(cls, data: dict, source: str = "sensor.yaml") -> "CameraModel":
+    def from_sensor_yaml(cls, data: dict, source: str = "sensor.yaml") -> CameraModel:
         """Build from parsed `sensor.yaml`; raises CameraModelError naming `source` and the key."""
         if not isinstance(data, dict):
             raise CameraModelError(f"{source}: expected a mapping at top level")
@@ -178,19 +180,19 @@ class CameraModel:
         T = read_T_BS(need("T_BS"), source)
         res = _floats(need("resolution"), 2, "resolution", source)
         intr = _floats(need("intrinsics"), 4, "intrinsics", source)
-        dist = _floats(data.get("distortion_coefficients", [0, 0, 0, 0]), 4,
-                       "distortion_coefficients", source)
+        dist = _floats(
+            data.get("distortion_coefficients", [0, 0, 0, 0]), 4, "distortion_coefficients", source
+        )
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise CameraModelError(f"{source}: resolution and focal lengths must be positive")
         rate = float(data.get("rate_hz", 30.0))
         mount = data.get("mount", "body_fixed")
         if mount not in MOUNTS:
             raise CameraModelError(f"{source}: mount {mount!r} is not one of {MOUNTS}")
-        return cls(int(res[0]), int(res[1]), *intr, distortion=dist, T_body_cam=T,
-                   rate_hz=rate, mount=mount)
+        return cls(int(res[0]), int(res[1]), *intr, distortion=dist, T_body_cam=T, rate_hz=rate, mount=mount)
 
     @classmethod
-    def load(cls, path: Path) -> "CameraModel":
+    def load(cls, path: Path) -> CameraModel:
         return cls.from_sensor_yaml(load_yaml(path, CameraModelError), str(path))
 
     def save(self, path: Path, comment: str = "") -> None:
@@ -215,7 +217,10 @@ def read_T_BS(value, source: str, error=CameraModelError) -> np.ndarray:
     data = _floats(value["data"], 16, "T_BS.data", source, error)
     T = np.array(data).reshape(4, 4)
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or abs(np.linalg.det(R) - 1) > 1e-6 \
-            or not np.allclose(T[3], [0, 0, 0, 1]):
+    if (
+        not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+        or abs(np.linalg.det(R) - 1) > 1e-6
+        or not np.allclose(T[3], [0, 0, 0, 1])
+    ):
         raise error(f"{source}: 'T_BS' is not a rigid transform")
     return T

@@ -3,6 +3,7 @@
 Known errors (fusion.errors.FusionError) become one line on stderr and exit code 1; anything else
 keeps its traceback, because it is a bug.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -12,10 +13,10 @@ from pathlib import Path
 
 from fusion import __version__
 from fusion.errors import FusionError
+from fusion.types import Estimator
 
 EXIT_NOT_TRUSTED = 3
 """`--strict`: the run finished and wrote its outputs, but an estimate cannot be trusted."""
-from fusion.types import Estimator
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -32,74 +33,110 @@ def _add_log_options(p: argparse.ArgumentParser) -> None:
     """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
     g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
     g.add_argument("--floor-topic", help="floor camera topic (default: found by type)")
-    g.add_argument("--front-topic",
-                   help="front camera topic (default: found by type; 'none': no front camera)")
+    g.add_argument(
+        "--front-topic", help="front camera topic (default: found by type; 'none': no front camera)"
+    )
     g.add_argument("--imu-topic", help="sensor_msgs/Imu topic (default: found by type)")
-    g.add_argument("--velocity-topic",
-                   help="TwistStamped or Odometry topic (default: by type; 'none': ignore)")
-    g.add_argument("--stamps", choices=("header", "receive"), default="header",
-                   help="bag message times: header stamps (default) or the bag's receive time")
-    g.add_argument("--calib", type=Path,
-                   help="Kalibr camchain-imucam.yaml (cam0 floor, cam1 front), or an EuRoC folder")
+    g.add_argument(
+        "--velocity-topic", help="TwistStamped or Odometry topic (default: by type; 'none': ignore)"
+    )
+    g.add_argument(
+        "--stamps",
+        choices=("header", "receive"),
+        default="header",
+        help="bag message times: header stamps (default) or the bag's receive time",
+    )
+    g.add_argument(
+        "--calib", type=Path, help="Kalibr camchain-imucam.yaml (cam0 floor, cam1 front), or an EuRoC folder"
+    )
     g.add_argument("--imu-calib", type=Path, help="Kalibr imu.yaml (noise densities)")
     g.add_argument("--world", type=Path, help="world.yaml (default: in or next to the log)")
     g.add_argument("--front-video", type=Path, help="front camera video (video logs)")
-    g.add_argument("--frame-times", type=Path,
-                   help="floor video frame times CSV, ns per frame (default VIDEO.csv)")
+    g.add_argument(
+        "--frame-times", type=Path, help="floor video frame times CSV, ns per frame (default VIDEO.csv)"
+    )
     g.add_argument("--front-frame-times", type=Path, help="front video frame times CSV")
     g.add_argument("--imu", type=Path, help="IMU CSV (EuRoC imu0 columns) or PX4 ULog (.ulg)")
     g.add_argument("--video-fps", type=float, help="constant video rate (without frame times)")
-    g.add_argument("--video-start-ns", type=int,
-                   help="first frame's time in the IMU clock (constant-rate video)")
+    g.add_argument(
+        "--video-start-ns", type=int, help="first frame's time in the IMU clock (constant-rate video)"
+    )
 
 
 def _log_options(args):
     from fusion.log import LogOptions, StampSource
-    return LogOptions(floor_topic=args.floor_topic, front_topic=args.front_topic,
-                      imu_topic=args.imu_topic, velocity_topic=args.velocity_topic,
-                      stamps=StampSource(args.stamps), calib=args.calib,
-                      imu_calib=args.imu_calib, world=args.world, front_video=args.front_video,
-                      frame_times=args.frame_times, front_frame_times=args.front_frame_times,
-                      imu=args.imu, video_fps=args.video_fps, video_start_ns=args.video_start_ns)
+
+    return LogOptions(
+        floor_topic=args.floor_topic,
+        front_topic=args.front_topic,
+        imu_topic=args.imu_topic,
+        velocity_topic=args.velocity_topic,
+        stamps=StampSource(args.stamps),
+        calib=args.calib,
+        imu_calib=args.imu_calib,
+        world=args.world,
+        front_video=args.front_video,
+        frame_times=args.frame_times,
+        front_frame_times=args.front_frame_times,
+        imu=args.imu,
+        video_fps=args.video_fps,
+        video_start_ns=args.video_start_ns,
+    )
 
 
 def _flight_arg(args):
     """The log path itself, or the opened FlightLog when a log option was given."""
     from fusion.log import LogOptions, open_flight
+
     opts = _log_options(args)
     return args.log if opts == LogOptions() else open_flight(args.log, opts)
 
 
 def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
-    p.add_argument("log", type=Path,
-                   help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video")
+    p.add_argument(
+        "log", type=Path, help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video"
+    )
     _add_log_options(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--force", action="store_true",
-                   help="write into an existing output folder: the previous run's outputs (its "
-                        "manifest.json) are replaced, other files are kept")
-    p.add_argument("--backend", choices=("zxing", "aruco"), default="zxing",
-                   help="QR detector (default: zxing-cpp)")
-    p.add_argument("--workers", type=int, default=None,
-                   help="processes for detection and per-frame estimates (default: all cores)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write into an existing output folder: the previous run's outputs (its "
+        "manifest.json) are replaced, other files are kept",
+    )
+    p.add_argument(
+        "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="processes for detection and per-frame estimates (default: all cores)",
+    )
     if stages:
-        p.add_argument("--robust", choices=("none", "huber", "cauchy", "tukey"), default="huber",
-                       help="robust kernel on QR pose factors (default: huber)")
-        p.add_argument("--tight", action="store_true",
-                       help="tight coupling: floor-code corners as reprojection factors")
+        p.add_argument(
+            "--robust",
+            choices=("none", "huber", "cauchy", "tukey"),
+            default="huber",
+            help="robust kernel on QR pose factors (default: huber)",
+        )
+        p.add_argument(
+            "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
+        )
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
-        p.add_argument("--strict", action="store_true",
-                       help=f"exit {EXIT_NOT_TRUSTED} when a fused estimator failed or its health "
-                            "is not ok (degraded, diverged)")
+        p.add_argument(
+            "--strict",
+            action="store_true",
+            help=f"exit {EXIT_NOT_TRUSTED} when a fused estimator failed or its health "
+            "is not ok (degraded, diverged)",
+        )
 
 
 def _verbosity_options() -> argparse.ArgumentParser:
     """-v / -q, accepted by every subcommand."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("-v", "--verbose", action="count", default=0,
-                   help="more log messages (-vv: debug)")
-    p.add_argument("-q", "--quiet", action="store_true",
-                   help="no progress bars; warnings and errors only")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log messages (-vv: debug)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars; warnings and errors only")
     return p
 
 
@@ -108,8 +145,11 @@ def configure_logging(verbose: int, quiet: bool) -> None:
     DEBUG with -vv."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose >= 2 else logging.INFO)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(
-        "fusion: %(levelname)s: %(name)s: %(message)s" if verbose else "fusion: %(message)s"))
+    handler.setFormatter(
+        logging.Formatter(
+            "fusion: %(levelname)s: %(name)s: %(message)s" if verbose else "fusion: %(message)s"
+        )
+    )
     root = logging.getLogger("fusion")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -119,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fusion",
         description="Drone 3D localization and load mapping from QR codes (Kang & Jung 2024), "
-                    "fused with IMU in GTSAM.")
+        "fused with IMU in GTSAM.",
+    )
     parser.add_argument("--version", action="version", version=f"fusion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     common = _verbosity_options()
@@ -129,17 +170,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenario", default="default", help="default | gimbaled | paper_a5")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--resolution", choices=("640x480", "1280x720"), default="640x480",
-                   help="both cameras' resolution (default 640x480)")
+    p.add_argument(
+        "--resolution",
+        choices=("640x480", "1280x720"),
+        default="640x480",
+        help="both cameras' resolution (default 640x480)",
+    )
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
-    p.add_argument("--start", type=float, default=0.0,
-                   help="skip the first S seconds of the scenario's trajectory")
-    p.add_argument("--force", action="store_true",
-                   help="replace a log that `fusion simulate` wrote there (other files are kept)")
+    p.add_argument(
+        "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a log that `fusion simulate` wrote there (other files are kept)",
+    )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
-    p.add_argument("--format", choices=("euroc", "rosbag1", "rosbag2", "video"), default="euroc",
-                   help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
-                        "a folder of lossless videos + CSV + Kalibr yaml")
+    p.add_argument(
+        "--format",
+        choices=("euroc", "rosbag1", "rosbag2", "video"),
+        default="euroc",
+        help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
+        "a folder of lossless videos + CSV + Kalibr yaml",
+    )
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
     _add_run_options(p, stages=False)
@@ -150,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", parents=[common], help="everything: detect, localize, fuse, evaluate, report")
     _add_run_options(p)
 
-    p = sub.add_parser("inspect", parents=[common], help="what a log holds: streams, rates, gaps, roles, IMU units")
+    p = sub.add_parser(
+        "inspect", parents=[common], help="what a log holds: streams, rates, gaps, roles, IMU units"
+    )
     p.add_argument("log", type=Path, help="EuRoC folder, ROS bag or video log")
     _add_log_options(p)
     p = sub.add_parser("import", parents=[common], help="write any log as an EuRoC folder")
@@ -158,44 +213,81 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("out", type=Path, help="output EuRoC folder")
     p.add_argument("--force", action="store_true", help="overwrite an existing folder")
     _add_log_options(p)
-    p = sub.add_parser("export", parents=[common], help="write a flight as a ROS 1 (.bag) or ROS 2 (.mcap) bag, "
-                                      "or a video folder")
+    p = sub.add_parser(
+        "export",
+        parents=[common],
+        help="write a flight as a ROS 1 (.bag) or ROS 2 (.mcap) bag, or a video folder",
+    )
     p.add_argument("log", type=Path, help="flight log (any supported format)")
     p.add_argument("out", type=Path, help="OUT.bag (ROS 1), OUT.mcap (ROS 2), else a video folder")
-    p.add_argument("--image-format", choices=("raw", "png", "jpeg"), default="raw",
-                   help="bag images: raw mono8 Image (default) or png / jpeg CompressedImage")
-    p.add_argument("--video-codec", choices=("ffv1", "h264"), default="ffv1",
-                   help="video folder codec: ffv1 lossless MKV (default) or h264 MP4 (lossy)")
+    p.add_argument(
+        "--image-format",
+        choices=("raw", "png", "jpeg"),
+        default="raw",
+        help="bag images: raw mono8 Image (default) or png / jpeg CompressedImage",
+    )
+    p.add_argument(
+        "--video-codec",
+        choices=("ffv1", "h264"),
+        default="ffv1",
+        help="video folder codec: ffv1 lossless MKV (default) or h264 MP4 (lossy)",
+    )
     p.add_argument("--force", action="store_true", help="overwrite an existing output")
     _add_log_options(p)
 
-    p = sub.add_parser("demo", parents=[common], help="simulate the default flight and run the whole pipeline on it")
-    p.add_argument("--dir", type=Path, default=Path("demo-flight"),
-                   help="folder for the simulated log (DIR/log) and the results (DIR/out)")
+    p = sub.add_parser(
+        "demo", parents=[common], help="simulate the default flight and run the whole pipeline on it"
+    )
+    p.add_argument(
+        "--dir",
+        type=Path,
+        default=Path("demo-flight"),
+        help="folder for the simulated log (DIR/log) and the results (DIR/out)",
+    )
     p.add_argument("--duration", type=float, default=None, help="flight length in s (default 60)")
     p.add_argument("--seed", type=int, default=0)
 
-    p = sub.add_parser("inventory", parents=[common],
-                       help="compare a run's load map with the warehouse system's manifest")
+    p = sub.add_parser(
+        "inventory", parents=[common], help="compare a run's load map with the warehouse system's manifest"
+    )
     p.add_argument("run_out", type=Path, help="output folder of `fusion run`")
-    p.add_argument("--expected", type=Path, required=True,
-                   help="manifest CSV: id,x_m,y_m,z_m[,tolerance_m] or a WMS export "
-                        "location,pallet_id,x,y,z,unit[,tolerance] (see fusion/warehouse/manifest.py)")
-    p.add_argument("--estimator", default=str(Estimator.SMOOTHER),
-                   choices=[str(e) for e in Estimator], help="whose load map (default smoother)")
-    p.add_argument("--log", type=Path, default=None,
-                   help="flight log for world.yaml and the front camera (default: the run's run.json)")
+    p.add_argument(
+        "--expected",
+        type=Path,
+        required=True,
+        help="manifest CSV: id,x_m,y_m,z_m[,tolerance_m] or a WMS export "
+        "location,pallet_id,x,y,z,unit[,tolerance] (see fusion/warehouse/manifest.py)",
+    )
+    p.add_argument(
+        "--estimator",
+        default=str(Estimator.SMOOTHER),
+        choices=[str(e) for e in Estimator],
+        help="whose load map (default smoother)",
+    )
+    p.add_argument(
+        "--log",
+        type=Path,
+        default=None,
+        help="flight log for world.yaml and the front camera (default: the run's run.json)",
+    )
     p = sub.add_parser("map", parents=[common], help="maps across flights")
     map_sub = p.add_subparsers(dest="map_command", required=True)
-    p = map_sub.add_parser("merge", parents=[common],
-                           help="fuse the load maps of several runs of one warehouse; list changes")
+    p = map_sub.add_parser(
+        "merge", parents=[common], help="fuse the load maps of several runs of one warehouse; list changes"
+    )
     p.add_argument("run_outs", type=Path, nargs="+", help="output folders of `fusion run`, in flight order")
     p.add_argument("--out", type=Path, required=True, help="output folder of the merged map")
-    p.add_argument("--estimator", default=str(Estimator.SMOOTHER),
-                   choices=[str(e) for e in Estimator], help="whose load maps (default smoother)")
+    p.add_argument(
+        "--estimator",
+        default=str(Estimator.SMOOTHER),
+        choices=[str(e) for e in Estimator],
+        help="whose load maps (default smoother)",
+    )
     p.add_argument("--force", action="store_true", help="write into an existing output folder")
 
-    p = sub.add_parser("qr-sheet", parents=[common], help="printable PDF of floor codes and load labels at true size")
+    p = sub.add_parser(
+        "qr-sheet", parents=[common], help="printable PDF of floor codes and load labels at true size"
+    )
     p.add_argument("out", type=Path, help="output PDF")
     p.add_argument("--grid", type=_grid, default=(10, 6), help="floor grid NXxNY (default 10x6)")
     p.add_argument("--spacing", type=float, default=1.0, help="grid spacing in m (default 1.0)")
@@ -203,17 +295,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unit", type=float, default=1.0, help="payload unit in m (default 1.0)")
     p.add_argument("--loads", nargs="*", default=[], help="load ids to print as labels")
     p.add_argument("--load-side", type=float, default=0.15, help="load code side in m")
-    p.add_argument("--page", default="A3", choices=("A4", "A3", "letter"),
-                   help="paper size (default A3: a 0.20 m code with its quiet zone exceeds A4)")
+    p.add_argument(
+        "--page",
+        default="A3",
+        choices=("A4", "A3", "letter"),
+        help="paper size (default A3: a 0.20 m code with its quiet zone exceeds A4)",
+    )
     return parser
 
 
 def _run_config(args):
     from fusion.pipeline import RunConfig
-    return RunConfig(backend=args.backend, workers=args.workers, progress=not args.quiet,
-                     force=args.force,
-                     robust=getattr(args, "robust", "huber"), tight=getattr(args, "tight", False),
-                     incremental=not getattr(args, "no_incremental", False))
+
+    return RunConfig(
+        backend=args.backend,
+        workers=args.workers,
+        progress=not args.quiet,
+        force=args.force,
+        robust=getattr(args, "robust", "huber"),
+        tight=getattr(args, "tight", False),
+        incremental=not getattr(args, "no_incremental", False),
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -222,44 +324,65 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "simulate":
             from fusion.sim.simulate import simulate
-            res = simulate(args.out, scenario=args.scenario, duration_s=args.duration,
-                           seed=args.seed, overwrite=args.force, progress=not args.quiet,
-                           workers=args.workers,
-                           resolution=tuple(int(v) for v in args.resolution.split("x")),
-                           camera_rate_hz=args.fps, start_s=args.start, fmt=args.format)
-            print(f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
-                  f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
-                  f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
-                  f"{res.wall_time_s:.1f} s wall time")
+
+            res = simulate(
+                args.out,
+                scenario=args.scenario,
+                duration_s=args.duration,
+                seed=args.seed,
+                overwrite=args.force,
+                progress=not args.quiet,
+                workers=args.workers,
+                resolution=tuple(int(v) for v in args.resolution.split("x")),
+                camera_rate_hz=args.fps,
+                start_s=args.start,
+                fmt=args.format,
+            )
+            print(
+                f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
+                f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
+                f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
+                f"{res.wall_time_s:.1f} s wall time"
+            )
         elif args.command in ("detect", "localize", "smooth", "run"):
             from fusion import pipeline
-            result = pipeline.run(_flight_arg(args), args.out, _run_config(args),
-                                  until=args.command)
+
+            result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
             print(result.summary())
             if getattr(args, "strict", False) and not result.trusted:
-                print("fusion: --strict: an estimate is not trusted (see health above)",
-                      file=sys.stderr)
+                print("fusion: --strict: an estimate is not trusted (see health above)", file=sys.stderr)
                 return EXIT_NOT_TRUSTED
         elif args.command == "inspect":
             from fusion.log.inspect import inspect_log
+
             print(inspect_log(args.log, _log_options(args)).format_text())
         elif args.command == "import":
             from fusion.log.convert import import_flight
+
             out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force)
             print(f"wrote {out} (EuRoC layout)")
         elif args.command == "export":
             from fusion.log.convert import export_flight
-            out = export_flight(args.log, args.out, _log_options(args),
-                                image_format=args.image_format, video_codec=args.video_codec,
-                                overwrite=args.force)
+
+            out = export_flight(
+                args.log,
+                args.out,
+                _log_options(args),
+                image_format=args.image_format,
+                video_codec=args.video_codec,
+                overwrite=args.force,
+            )
             print(f"wrote {out}")
         elif args.command == "demo":
             from fusion import pipeline
-            result = pipeline.demo(args.dir, duration_s=args.duration, seed=args.seed,
-                                   progress=not args.quiet)
+
+            result = pipeline.demo(
+                args.dir, duration_s=args.duration, seed=args.seed, progress=not args.quiet
+            )
             print(result.summary())
         elif args.command == "inventory":
             from fusion.warehouse.inventory import run_inventory
+
             inv = run_inventory(args.run_out, args.expected, args.estimator, args.log)
             print("inventory: " + ", ".join(f"{n} {s}" for s, n in inv.counts().items()))
             for note in inv.notes:
@@ -267,18 +390,29 @@ def main(argv: list[str] | None = None) -> int:
             print(f"wrote {args.run_out / 'inventory.csv'}")
         elif args.command == "map" and args.map_command == "merge":
             from fusion.warehouse.merge import run_merge
+
             res = run_merge(args.run_outs, args.out, args.estimator, args.force)
             kinds: dict[str, int] = {}
             for c in res.changes:
                 kinds[str(c.kind)] = kinds.get(str(c.kind), 0) + 1
-            print(f"merged {len(res.runs)} runs: {len(res.loads)} loads; changes: "
-                  + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none"))
+            print(
+                f"merged {len(res.runs)} runs: {len(res.loads)} loads; changes: "
+                + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
+            )
             print(f"wrote {args.out}")
         elif args.command == "qr-sheet":
             from fusion.qrsheet import write_qr_sheet
-            pages = write_qr_sheet(args.out, grid=args.grid, spacing_m=args.spacing,
-                                   side_m=args.side, payload_unit_m=args.unit,
-                                   load_ids=args.loads, load_side_m=args.load_side, page=args.page)
+
+            pages = write_qr_sheet(
+                args.out,
+                grid=args.grid,
+                spacing_m=args.spacing,
+                side_m=args.side,
+                payload_unit_m=args.unit,
+                load_ids=args.loads,
+                load_side_m=args.load_side,
+                page=args.page,
+            )
             print(f"wrote {args.out} ({pages} pages)")
     except FusionError as e:
         print(f"fusion: error: {e}", file=sys.stderr)

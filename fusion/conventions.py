@@ -9,6 +9,7 @@
   outward normal.
 - Yaw (the paper's D_r-theta) is the heading of body x from world x, counter-clockwise, in rad.
 """
+
 from __future__ import annotations
 
 import re
@@ -23,13 +24,9 @@ GRAVITY_M_S2 = 9.81
 
 # Default camera mounts (rotation part of T_body_cam).
 # Floor camera: optical axis = body -z, image "up" (12 o'clock) = body +x, as the paper's Fig. 15d.
-R_BODY_FLOORCAM = np.array([[0.0, -1.0, 0.0],
-                            [-1.0, 0.0, 0.0],
-                            [0.0, 0.0, -1.0]])
+R_BODY_FLOORCAM = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 # Front camera: optical axis = body +x, image right = body -y, image down = body -z.
-R_BODY_FRONTCAM = np.array([[0.0, 0.0, 1.0],
-                            [-1.0, 0.0, 0.0],
-                            [0.0, -1.0, 0.0]])
+R_BODY_FRONTCAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 # QR corner order used everywhere: symbol top-left, top-right, bottom-right, bottom-left.
 CORNER_NAMES = ("top_left", "top_right", "bottom_right", "bottom_left")
@@ -53,6 +50,7 @@ _LOAD_RE = re.compile(r"1/(.+)", re.DOTALL)
 @dataclass(frozen=True)
 class FloorPayload:
     """A floor code `0/<x>/<y>`: the symbol centre is (x, y) * payload_unit_m in the world."""
+
     x: float
     y: float
 
@@ -63,6 +61,7 @@ class FloorPayload:
 @dataclass(frozen=True)
 class LoadPayload:
     """A load code `1/<id>`; `id` is printable text of at most MAX_LOAD_ID_CHARS characters."""
+
     id: str
 
 
@@ -98,8 +97,10 @@ def parse_payload(raw) -> FloorPayload | LoadPayload:
 
 def floor_payload(x: float, y: float) -> str:
     """Payload text for a floor code at (x, y) in payload units (integers printed without '.0')."""
+
     def fmt(v: float) -> str:
         return str(int(v)) if float(v).is_integer() else f"{v:.6f}".rstrip("0")
+
     return f"0/{fmt(x)}/{fmt(y)}"
 
 

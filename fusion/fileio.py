@@ -4,6 +4,7 @@ writes, spreadsheet-safe CSV cells, and the output folder of a run (lock, manife
 Outputs are written to a temporary file in the same folder and renamed into place, so an
 interrupted run never leaves a half-written file that looks complete.  Inputs are opened only
 when they are regular files: a named pipe or a device would hang the reader or never end."""
+
 from __future__ import annotations
 
 import contextlib
@@ -14,8 +15,8 @@ import math
 import os
 import stat
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import yaml
 
@@ -23,8 +24,14 @@ from fusion.errors import FusionError, OutputError
 
 # ============================================================================ input
 
-def open_regular(path: Path, error: type[FusionError] = FusionError, binary: bool = False,
-                 encoding: str = "utf-8", newline: str | None = "") -> io.IOBase:
+
+def open_regular(
+    path: Path,
+    error: type[FusionError] = FusionError,
+    binary: bool = False,
+    encoding: str = "utf-8",
+    newline: str | None = "",
+) -> io.IOBase:
     """Open `path` for reading only if it is a regular file (symlinks followed).
 
     The file is opened non-blocking and checked with fstat on the open descriptor, so a named
@@ -42,10 +49,17 @@ def open_regular(path: Path, error: type[FusionError] = FusionError, binary: boo
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            kind = ("a named pipe" if stat.S_ISFIFO(st.st_mode) else
-                    "a folder" if stat.S_ISDIR(st.st_mode) else
-                    "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
-                    "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+            kind = (
+                "a named pipe"
+                if stat.S_ISFIFO(st.st_mode)
+                else "a folder"
+                if stat.S_ISDIR(st.st_mode)
+                else "a device"
+                if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+                else "a socket"
+                if stat.S_ISSOCK(st.st_mode)
+                else "not a regular file"
+            )
             raise error(f"{path}: is {kind}, expected a regular file")
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
@@ -82,8 +96,14 @@ def load_yaml(path: Path, error: type[FusionError] = FusionError) -> dict:
     return data
 
 
-def strict_float(value, where: str, error: type[FusionError] = FusionError, *,
-                 positive: bool = False, allow_none: bool = False) -> float | None:
+def strict_float(
+    value,
+    where: str,
+    error: type[FusionError] = FusionError,
+    *,
+    positive: bool = False,
+    allow_none: bool = False,
+) -> float | None:
     """A YAML value as a finite float.  Only int and float are numbers: a bool (`true` would
     otherwise read as 1.0), a string ("fast", "0.2") or a list raises `error` naming `where`."""
     if value is None and allow_none:
@@ -98,8 +118,7 @@ def strict_float(value, where: str, error: type[FusionError] = FusionError, *,
     return v
 
 
-def strict_floats(value, n: int | None, where: str,
-                  error: type[FusionError] = FusionError) -> list[float]:
+def strict_floats(value, n: int | None, where: str, error: type[FusionError] = FusionError) -> list[float]:
     """A YAML list of `n` numbers (any length when n is None), each checked by strict_float."""
     if not isinstance(value, (list, tuple)):
         raise error(f"{where}: expected a list of {n or 'some'} numbers, got {_show(value)}")
@@ -137,6 +156,7 @@ def csv_unsafe(cell: str) -> str:
 
 # ============================================================================ output
 
+
 @contextlib.contextmanager
 def atomic_open(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator:
     """Open a temporary sibling of `path` for writing; rename it onto `path` only on success."""
@@ -147,7 +167,7 @@ def atomic_open(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> 
         kwargs = {} if "b" in mode else {"encoding": encoding, "newline": ""}
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f
-        os.chmod(tmp, 0o666 & ~_umask())   # mkstemp makes 0600; give the usual permissions
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -241,7 +261,8 @@ class DirLock:
                         f"{self.path.parent}: in use by another fusion run ({who}"
                         f"{' on ' + host if host and host != _hostname() else ''}; lock file "
                         f"{self.path}); wait for it to finish, or delete the lock file if that "
-                        "run is gone") from None
+                        "run is gone"
+                    ) from None
                 # stale: its owner died; take it over unless someone else just did
                 if _read_lock(self.path) == (pid, host):
                     with contextlib.suppress(FileNotFoundError):
@@ -261,7 +282,7 @@ def _snapshot(folder: Path) -> dict[str, tuple[int, int, int]]:
     """{relative path: (inode, mtime_ns, size)} of every file under `folder` (links not followed),
     without our lock and manifest."""
     out = {}
-    for dirpath, dirnames, filenames in os.walk(folder):
+    for dirpath, _dirnames, filenames in os.walk(folder):
         for name in filenames:
             p = Path(dirpath) / name
             rel = p.relative_to(folder).as_posix()
@@ -276,8 +297,9 @@ def _snapshot(folder: Path) -> dict[str, tuple[int, int, int]]:
 
 
 def _dirs(folder: Path) -> set[str]:
-    return {(Path(d) / n).relative_to(folder).as_posix()
-            for d, dirnames, _ in os.walk(folder) for n in dirnames}
+    return {
+        (Path(d) / n).relative_to(folder).as_posix() for d, dirnames, _ in os.walk(folder) for n in dirnames
+    }
 
 
 def sha256_file(path: Path) -> str:
@@ -296,15 +318,18 @@ def read_manifest(folder: Path, error: type[FusionError] = OutputError) -> dict 
     try:
         with open_regular(path, error, newline=None) as f:
             data = json.load(f)
-        if not (isinstance(data, dict) and data.get("format") == MANIFEST_FORMAT
-                and isinstance(data.get("files"), list)
-                and all(isinstance(e, dict) and isinstance(e.get("path"), str)
-                        for e in data["files"])
-                and isinstance(data.get("preexisting", []), list)):
+        if not (
+            isinstance(data, dict)
+            and data.get("format") == MANIFEST_FORMAT
+            and isinstance(data.get("files"), list)
+            and all(isinstance(e, dict) and isinstance(e.get("path"), str) for e in data["files"])
+            and isinstance(data.get("preexisting", []), list)
+        ):
             raise ValueError("unexpected layout")
     except (ValueError, UnicodeDecodeError) as e:
-        raise error(f"{path}: not a fusion manifest ({e.__class__.__name__}); remove the previous "
-                    "outputs by hand") from None
+        raise error(
+            f"{path}: not a fusion manifest ({e.__class__.__name__}); remove the previous outputs by hand"
+        ) from None
     return data
 
 
@@ -312,8 +337,11 @@ def _inside(folder: Path, rel: str) -> Path | None:
     """`folder / rel` if it stays inside `folder` (a manifest is input too), else None."""
     p = Path(folder) / rel
     try:
-        if Path(os.path.realpath(p.parent)).is_relative_to(os.path.realpath(folder)) \
-                and not Path(rel).is_absolute() and ".." not in Path(rel).parts:
+        if (
+            Path(os.path.realpath(p.parent)).is_relative_to(os.path.realpath(folder))
+            and not Path(rel).is_absolute()
+            and ".." not in Path(rel).parts
+        ):
             return p
     except (OSError, ValueError):
         pass
@@ -349,7 +377,7 @@ def remove_listed(folder: Path, rels, keep: tuple[str, ...] = ()) -> list[str]:
         parents.update(Path(rel).parents)
     for d in sorted((str(d) for d in parents if str(d) != "."), key=len, reverse=True):
         with contextlib.suppress(OSError):
-            (Path(folder) / d).rmdir()        # only if empty
+            (Path(folder) / d).rmdir()  # only if empty
     return removed
 
 
@@ -367,8 +395,7 @@ class OutputFolder:
     If the body raises, every file the run created or changed is removed again (no half output)
     and an OSError (full disk, read-only folder) becomes one OutputError."""
 
-    def __init__(self, path: Path, force: bool = False, keep: tuple[str, ...] = (),
-                 meta: dict | None = None):
+    def __init__(self, path: Path, force: bool = False, keep: tuple[str, ...] = (), meta: dict | None = None):
         self.path = Path(path)
         self.force = force
         self.keep = tuple(keep)
@@ -380,7 +407,7 @@ class OutputFolder:
         self._before: dict = {}
         self._dirs_before: set[str] = set()
 
-    def __enter__(self) -> "OutputFolder":
+    def __enter__(self) -> OutputFolder:
         p = self.path
         if os.path.lexists(p) and not p.is_dir():
             raise OutputError(f"{p}: exists and is not a folder")
@@ -412,16 +439,17 @@ class OutputFolder:
         p = self.path
         others = [n for n in os.listdir(p) if n != LOCK_NAME]
         if others and not self.force:
-            raise OutputError(f"{p}: output folder exists; use --force to write into it "
-                              "(it removes the previous run's outputs and keeps other files)")
+            raise OutputError(
+                f"{p}: output folder exists; use --force to write into it "
+                "(it removes the previous run's outputs and keeps other files)"
+            )
         if others:
             self.removed_previous = remove_listed(p, previous_outputs(p), self.keep)
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(p / MANIFEST_NAME)
         self._before = _snapshot(p)
         self._dirs_before = _dirs(p)
-        self._write_manifest({"status": "running", "files": [],
-                              "preexisting": sorted(self._before)})
+        self._write_manifest({"status": "running", "files": [], "preexisting": sorted(self._before)})
 
     def changed_files(self) -> list[str]:
         """Files created or replaced since entering (relative paths, sorted)."""
@@ -435,11 +463,20 @@ class OutputFolder:
                     changed = self.changed_files()
                     reused = [k for k in self.keep if k not in changed and (self.path / k).is_file()]
                     self.written = sorted(changed + reused)
-                    self._write_manifest({"status": "complete", "files": [
-                        {"path": rel, "bytes": (self.path / rel).stat().st_size,
-                         "sha256": sha256_file(self.path / rel), **({"reused": True} if rel in reused
-                                                                     else {})}
-                        for rel in self.written]})
+                    self._write_manifest(
+                        {
+                            "status": "complete",
+                            "files": [
+                                {
+                                    "path": rel,
+                                    "bytes": (self.path / rel).stat().st_size,
+                                    "sha256": sha256_file(self.path / rel),
+                                    **({"reused": True} if rel in reused else {}),
+                                }
+                                for rel in self.written
+                            ],
+                        }
+                    )
                     return
                 except OSError as e:
                     self._roll_back()
@@ -454,8 +491,10 @@ class OutputFolder:
 
     def _os_message(self, e: OSError) -> str:
         where = f" ({e.filename})" if getattr(e, "filename", None) else ""
-        return (f"{self.path}: a file could not be written: {e.strerror or e}{where}; "
-                "this run's partial outputs were removed")
+        return (
+            f"{self.path}: a file could not be written: {e.strerror or e}{where}; "
+            "this run's partial outputs were removed"
+        )
 
     def _roll_back(self) -> None:
         with contextlib.suppress(OSError):

@@ -14,6 +14,7 @@ Estimation for Robotics" (2017), eqs. 7.14, 7.86; the adjoint as GTSAM's `Pose3:
 The hot paths (the PnP LM) use the hand-written `so3_exp` / `so3_exp_stack`; everything else
 uses scipy's `Rotation`.
 """
+
 from __future__ import annotations
 
 import math
@@ -88,14 +89,18 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     w0, w1, w2 = (float(v) for v in w)
     th2 = w0 * w0 + w1 * w1 + w2 * w2
     if th2 < 1e-8:
-        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0          # error O(th^4) < 1e-16
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0  # error O(th^4) < 1e-16
     else:
         th = math.sqrt(th2)
         a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
     b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
-    return np.array([[1.0 - b * (w1 * w1 + w2 * w2), b01 - a * w2, b02 + a * w1],
-                     [b01 + a * w2, 1.0 - b * (w0 * w0 + w2 * w2), b12 - a * w0],
-                     [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)]])
+    return np.array(
+        [
+            [1.0 - b * (w1 * w1 + w2 * w2), b01 - a * w2, b02 + a * w1],
+            [b01 + a * w2, 1.0 - b * (w0 * w0 + w2 * w2), b12 - a * w0],
+            [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)],
+        ]
+    )
 
 
 def so3_exp_stack(w: np.ndarray) -> np.ndarray:
@@ -203,8 +208,8 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     W2 = W @ W
     # V^-1 = I - W/2 + (1/theta^2) (1 - (theta sin theta) / (2 (1 - cos theta))) W^2
     with np.errstate(invalid="ignore", divide="ignore"):
-        c = (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta ** 2
-    c = np.where(theta < 1e-4, 1.0 / 12.0 + theta ** 2 / 720.0, c)
+        c = (1.0 - theta * np.sin(theta) / (2.0 * (1.0 - np.cos(theta)))) / theta**2
+    c = np.where(theta < 1e-4, 1.0 / 12.0 + theta**2 / 720.0, c)
     Vinv = np.eye(3) - 0.5 * W + c[:, None, None] * W2
     u = np.einsum("nij,nj->ni", Vinv, t)
     return np.hstack([w, u])
@@ -239,8 +244,9 @@ def yaw_gradient(R_world_body: np.ndarray) -> np.ndarray:
     yaw = atan2(R10, R00) by (R00 dR10 - R10 dR00) / (R00^2 + R10^2); w_x (roll) does not move it."""
     R = np.asarray(R_world_body, dtype=float)
     n = R[0, 0] ** 2 + R[1, 0] ** 2
-    return np.array([0.0, (R[1, 0] * R[0, 2] - R[0, 0] * R[1, 2]) / n,
-                     (R[0, 0] * R[1, 1] - R[1, 0] * R[0, 1]) / n])
+    return np.array(
+        [0.0, (R[1, 0] * R[0, 2] - R[0, 0] * R[1, 2]) / n, (R[0, 0] * R[1, 1] - R[1, 0] * R[0, 1]) / n]
+    )
 
 
 def level_frame_jacobian(T_world_body: np.ndarray) -> np.ndarray:

@@ -9,15 +9,17 @@ So `fn` must be a module-level function, and a script that calls this with worke
 usual `if __name__ == "__main__":` guard.  With workers <= 1 (or a single task) everything runs
 in this process, which is what the tests compare the parallel path against.
 """
+
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
 import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from itertools import repeat
-from typing import Any, Callable, Iterable, Iterator, Sequence, TypeVar
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -34,13 +36,13 @@ class ParallelError(FusionError):
     """A worker process died or could not start."""
 
 
-_WORKER_CONTEXT: Any = None   # set in each worker process by _start_worker, read by _call only
+_WORKER_CONTEXT: Any = None  # set in each worker process by _start_worker, read by _call only
 
 
 def _start_worker(context: Any) -> None:
     global _WORKER_CONTEXT
     _WORKER_CONTEXT = context
-    cv2.setNumThreads(1)      # one process per core already
+    cv2.setNumThreads(1)  # one process per core already
 
 
 def _call(fn: Callable[[Any, T], R], task: T) -> R:
@@ -59,8 +61,13 @@ def chunk_bounds(n_items: int, n_chunks: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
-def parallel_map(fn: Callable[[Any, T], R], tasks: Iterable[T], workers: int,
-                 context: Any = None, preload: Sequence[str] = ()) -> Iterator[R]:
+def parallel_map(
+    fn: Callable[[Any, T], R],
+    tasks: Iterable[T],
+    workers: int,
+    context: Any = None,
+    preload: Sequence[str] = (),
+) -> Iterator[R]:
     """Yield fn(context, task) for each task, in order, on `workers` processes.
 
     `preload`: modules the forkserver imports once, so that workers fork from it ready to run.
@@ -72,8 +79,10 @@ def parallel_map(fn: Callable[[Any, T], R], tasks: Iterable[T], workers: int,
             yield fn(context, task)
         return
     if mp.current_process().name != "MainProcess":
-        raise ParallelError("parallel work started inside a worker process; guard the calling "
-                            "script with `if __name__ == '__main__':` or use one worker")
+        raise ParallelError(
+            "parallel work started inside a worker process; guard the calling "
+            "script with `if __name__ == '__main__':` or use one worker"
+        )
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
         if preload:
@@ -81,14 +90,19 @@ def parallel_map(fn: Callable[[Any, T], R], tasks: Iterable[T], workers: int,
     else:
         ctx = mp.get_context("spawn")
     n = min(workers, len(tasks))
-    logger.debug("parallel_map %s: %d tasks on %d %s workers", getattr(fn, "__name__", fn),
-              len(tasks), n, ctx.get_start_method())
+    logger.debug(
+        "parallel_map %s: %d tasks on %d %s workers",
+        getattr(fn, "__name__", fn),
+        len(tasks),
+        n,
+        ctx.get_start_method(),
+    )
     try:
-        with ProcessPoolExecutor(n, mp_context=ctx, initializer=_start_worker,
-                                 initargs=(context,)) as pool:
+        with ProcessPoolExecutor(n, mp_context=ctx, initializer=_start_worker, initargs=(context,)) as pool:
             yield from pool.map(_call, repeat(fn), tasks)
     except BrokenProcessPool:
         raise ParallelError(
             "a worker process died; when calling fusion with several workers from a script, "
             "run it under `if __name__ == '__main__':` (the workers import the main module), "
-            "or use one worker") from None
+            "or use one worker"
+        ) from None

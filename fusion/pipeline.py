@@ -8,6 +8,7 @@ Each stage is a function with a typed result; the CLI only calls `run` / `demo` 
 `RunResult.summary()`.  Outputs are written atomically, file by file, into an output folder that
 the run locks, lists in `manifest.json` and rolls back on failure (`fusion.fileio.OutputFolder`).
 """
+
 from __future__ import annotations
 
 import logging
@@ -49,15 +50,16 @@ log_ = logging.getLogger(__name__)
 @dataclass
 class RunConfig:
     """Choices of a run; defaults are what `fusion run` uses."""
-    backend: str = "zxing"              # QR detector: zxing | aruco
-    workers: int | None = None          # detection processes (None: all cores)
-    progress: bool = True               # tqdm bars
-    force: bool = False                 # allow an existing output folder
-    robust: str = "huber"               # robust kernel on QR pose factors
-    tight: bool = False                 # corner reprojection factors instead of per-frame poses
-    incremental: bool = True            # also run the incremental (causal) smoother
-    th_px: float = 5.0                  # the paper's Th (Algorithms 1 and 4), pixels
-    corner_sigma_px: float = 0.15       # refined-corner noise, 1 sigma, pixels
+
+    backend: str = "zxing"  # QR detector: zxing | aruco
+    workers: int | None = None  # detection processes (None: all cores)
+    progress: bool = True  # tqdm bars
+    force: bool = False  # allow an existing output folder
+    robust: str = "huber"  # robust kernel on QR pose factors
+    tight: bool = False  # corner reprojection factors instead of per-frame poses
+    incremental: bool = True  # also run the incremental (causal) smoother
+    th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
+    corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
 
 
 @dataclass
@@ -71,9 +73,9 @@ class RunResult:
     notes: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     report_path: Path | None = None
-    warnings: list[LogWarning] = field(default_factory=list)   # the log's (FlightLog.warnings)
+    warnings: list[LogWarning] = field(default_factory=list)  # the log's (FlightLog.warnings)
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
-    health: dict[str, Health] = field(default_factory=dict)     # fused estimators (health.py)
+    health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
 
     @property
     def trusted(self) -> bool:
@@ -82,37 +84,45 @@ class RunResult:
 
     def summary(self) -> str:
         """A short table for the terminal."""
-        lines = [f"flight: {self.log_summary.get('path')}  "
-                 f"({self.log_summary.get('duration_s', 0):.1f} s, "
-                 f"{self.log_summary.get('floor_frames', 0)} floor frames)"]
+        lines = [
+            f"flight: {self.log_summary.get('path')}  "
+            f"({self.log_summary.get('duration_s', 0):.1f} s, "
+            f"{self.log_summary.get('floor_frames', 0)} floor frames)"
+        ]
         ds = self.detection_stats
         if ds:
-            lines.append(f"floor frames with a code: {ds.get('floor_frames_with_code', 0)}"
-                         f"/{ds.get('floor_frames', 0)}; skipped frames: {ds.get('frames_skipped', 0)};"
-                         f" rejected payloads: {ds.get('rejected_total', 0)}")
+            lines.append(
+                f"floor frames with a code: {ds.get('floor_frames_with_code', 0)}"
+                f"/{ds.get('floor_frames', 0)}; skipped frames: {ds.get('frames_skipped', 0)};"
+                f" rejected payloads: {ds.get('rejected_total', 0)}"
+            )
         per = (self.metrics or {}).get("trajectories", {})
-        header = (f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
-                  f"{'yaw deg':>8} {'ATE cm':>8} {'ATE@pnp cm':>11} {'health':>9}")
+        header = (
+            f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
+            f"{'yaw deg':>8} {'ATE cm':>8} {'ATE@pnp cm':>11} {'health':>9}"
+        )
         lines += ["", header, "-" * len(header)]
         for name, traj in self.trajectories.items():
             m = per.get(name, {})
             mae = m.get("mae_xyz_m")
 
-            def cm(i):
+            def cm(i, mae=mae):
                 return f"{100 * mae[i]:7.2f}" if mae else f"{'-':>7}"
+
             yaw = m.get("mae_yaw_deg")
             ate = m.get("ate_rmse_m")
             ate_ref = m.get("ate_rmse_on_reference_frames_m")
-            lines.append(f"{name:<12} {len(traj):>6} {cm(0)} {cm(1)} {cm(2)} "
-                         f"{(f'{yaw:8.3f}' if yaw is not None else f'{chr(45):>8}')} "
-                         f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')} "
-                         f"{(f'{100 * ate_ref:11.3f}' if ate_ref is not None else f'{chr(45):>11}')} "
-                         f"{str(self.health[name].status) if name in self.health else chr(45):>9}")
+            lines.append(
+                f"{name:<12} {len(traj):>6} {cm(0)} {cm(1)} {cm(2)} "
+                f"{(f'{yaw:8.3f}' if yaw is not None else f'{chr(45):>8}')} "
+                f"{(f'{100 * ate:8.2f}' if ate is not None else f'{chr(45):>8}')} "
+                f"{(f'{100 * ate_ref:11.3f}' if ate_ref is not None else f'{chr(45):>11}')} "
+                f"{str(self.health[name].status) if name in self.health else chr(45):>9}"
+            )
         for name, lm in self.load_maps.items():
             m = (self.metrics or {}).get("load_maps", {}).get(name, {})
             mae = m.get("mae_xyz_m")
-            err = (f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm"
-                   if mae else "")
+            err = f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm" if mae else ""
             lines.append(f"loads {name:<9} {len(lm.loads)} mapped{err}")
         for name, h in self.health.items():
             if h.status != Status.OK:
@@ -130,11 +140,16 @@ class RunResult:
 
 
 def log_summary(log: FlightLog) -> dict:
-    return {"path": str(log.root), "duration_s": log.duration_s,
-            "floor_frames": len(log.floor), "front_frames": len(log.front) if log.front else 0,
-            "imu_samples": len(log.imu.timestamps_ns) if log.imu else 0,
-            "has_velocity": log.velocity is not None, "has_groundtruth": log.groundtruth is not None,
-            "has_loads_groundtruth": log.loads_groundtruth is not None}
+    return {
+        "path": str(log.root),
+        "duration_s": log.duration_s,
+        "floor_frames": len(log.floor),
+        "front_frames": len(log.front) if log.front else 0,
+        "imu_samples": len(log.imu.timestamps_ns) if log.imu else 0,
+        "has_velocity": log.velocity is not None,
+        "has_groundtruth": log.groundtruth is not None,
+        "has_loads_groundtruth": log.loads_groundtruth is not None,
+    }
 
 
 def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> OutputFolder:
@@ -144,6 +159,7 @@ def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> 
     `manifest.json`, or on failure removes what the run wrote."""
     from fusion import __version__
     from fusion.qr.detect import CACHE_NAME
+
     meta = {"fusion_version": __version__, "log": str(log_dir) if log_dir is not None else None}
     return OutputFolder(Path(out_dir), force, keep=(CACHE_NAME,), meta=meta)
 
@@ -154,6 +170,7 @@ def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> 
 @dataclass
 class LocalizeResult:
     """Per-frame (raw) estimates: trajectories, load observations and load maps by estimator."""
+
     trajectories: dict[str, Trajectory]
     load_observations: dict[str, list[LoadObservation]]
     load_maps: dict[str, LoadMap]
@@ -167,6 +184,7 @@ class LocalizeResult:
 def detection_statistics(log: FlightLog, det, world) -> dict:
     """Frames with a (valid) floor code, codes per frame, rejected payloads by reason."""
     from fusion.qr.codes import classify, rejection_counts
+
     floor = det.by_frame("cam0")
     classified = {t: classify(d, world) for t, d in floor.items()}
     n_valid = [len(c.floor) for c in classified.values() if c.floor]
@@ -174,7 +192,8 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
     classified_front = [classify(d, world) for d in front.values()]
     rejected = rejection_counts(list(classified.values()) + classified_front)
     return {
-        "backend": det.backend, "from_cache": bool(det.from_cache),
+        "backend": det.backend,
+        "from_cache": bool(det.from_cache),
         "cache": getattr(det, "cache_status", "none"),
         "floor_frames": len(log.floor),
         "floor_frames_with_code": len(n_valid),
@@ -198,8 +217,15 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     notes: list[str] = []
     floor_frames = det.by_frame("cam0")
     workers = _worker_count(cfg.workers, len(floor_frames))
-    parts = list(parallel_map(_localize_floor_chunk, _chunks(floor_frames, workers), workers,
-                              (log.floor.camera, log.world, cfg), preload=_LOCALIZE_PRELOAD))
+    parts = list(
+        parallel_map(
+            _localize_floor_chunk,
+            _chunks(floor_frames, workers),
+            workers,
+            (log.floor.camera, log.world, cfg),
+            preload=_LOCALIZE_PRELOAD,
+        )
+    )
     trajectories: dict[str, Trajectory] = {}
     paper_errors = [p["paper_error"] for p in parts if p["paper_error"]]
     if paper_errors:
@@ -215,10 +241,17 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
         return LocalizeResult(trajectories, obs, maps, stats, notes)
     front_frames = det.by_frame("cam1")
-    parts = list(parallel_map(_localize_front_chunk, _chunks(front_frames, workers), workers,
-                              (log.front.camera, log.world, trajectories.get("paper"), traj_pnp,
-                               cfg), preload=_LOCALIZE_PRELOAD))
+    parts = list(
+        parallel_map(
+            _localize_front_chunk,
+            _chunks(front_frames, workers),
+            workers,
+            (log.front.camera, log.world, trajectories.get("paper"), traj_pnp, cfg),
+            preload=_LOCALIZE_PRELOAD,
+        )
+    )
     from fusion.qr import paper, pnp
+
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
         if errors:
@@ -240,6 +273,7 @@ _LOCALIZE_PRELOAD = ("fusion.pipeline",)
 def _localize_floor_chunk(context, frames: dict) -> dict:
     """Paper and PnP poses of the floor frames {timestamp_ns: detections} of one chunk."""
     from fusion.qr import paper, pnp
+
     camera, world, cfg = context
     out = {"paper": None, "paper_error": None}
     try:
@@ -254,17 +288,18 @@ def _localize_front_chunk(context, frames: dict) -> dict:
     """Paper and PnP load observations of the front frames {timestamp_ns: detections} of one
     chunk, placed with the raw trajectories."""
     from fusion.qr import paper, pnp
+
     camera, world, traj_paper, traj_pnp, cfg = context
     out = {"paper": [], "paper_error": None}
     if traj_paper is not None:
         try:
-            out["paper"] = paper.paper_load_observations(frames, camera, world, traj_paper,
-                                                         cfg.th_px)
+            out["paper"] = paper.paper_load_observations(frames, camera, world, traj_paper, cfg.th_px)
         except EstimationError as e:
             out["paper_error"] = str(e)
     out["pnp"] = pnp.pnp_load_observations(frames, camera, world, traj_pnp, cfg.corner_sigma_px)
-    out["unposed"] = _unposed_load_observations(frames, {o.timestamp_ns for o in out["pnp"]},
-                                                camera, world, cfg.corner_sigma_px)
+    out["unposed"] = _unposed_load_observations(
+        frames, {o.timestamp_ns for o in out["pnp"]}, camera, world, cfg.corner_sigma_px
+    )
     return out
 
 
@@ -293,17 +328,27 @@ def _concat(trajs: list[Trajectory], name: str) -> Trajectory:
     if not trajs:
         return Trajectory.empty(name)
     covs = [t.covariances for t in trajs]
-    return Trajectory(name, np.concatenate([t.timestamps_ns for t in trajs]),
-                      np.concatenate([t.T_world_body for t in trajs]),
-                      None if any(c is None for c in covs) else np.concatenate(covs))
+    return Trajectory(
+        name,
+        np.concatenate([t.timestamps_ns for t in trajs]),
+        np.concatenate([t.T_world_body for t in trajs]),
+        None if any(c is None for c in covs) else np.concatenate(covs),
+    )
 
 
 def _merge_pnp_stats(parts: list) -> dict:
     """Sum the per-chunk PnPStats (counts and per-key counts; the mean RMS weighted by poses)."""
     from collections import Counter
+
     out: dict = {}
-    for key in ("n_frames", "n_posed", "n_without_floor_code", "n_unsolved", "n_ambiguous",
-                "n_codes_dropped"):
+    for key in (
+        "n_frames",
+        "n_posed",
+        "n_without_floor_code",
+        "n_unsolved",
+        "n_ambiguous",
+        "n_codes_dropped",
+    ):
         out[key] = int(sum(getattr(p, key) for p in parts))
     for key in ("codes_per_pose", "rejections"):
         c: Counter = Counter()
@@ -311,17 +356,20 @@ def _merge_pnp_stats(parts: list) -> dict:
             c.update(getattr(p, key))
         out[key] = dict(sorted(c.items()))
     rms = [(p.mean_reprojection_rms_px, p.n_posed) for p in parts if p.n_posed]
-    out["mean_reprojection_rms_px"] = (float(sum(r * n for r, n in rms) / sum(n for _, n in rms))
-                                       if rms else float("nan"))
+    out["mean_reprojection_rms_px"] = (
+        float(sum(r * n for r, n in rms) / sum(n for _, n in rms)) if rms else float("nan")
+    )
     return out
 
 
-def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
-                               sigma_px) -> list[LoadObservation]:
+def _unposed_load_observations(
+    front_frames, posed_ns: set[int], camera, world, sigma_px
+) -> list[LoadObservation]:
     """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
     their p_world is meaningless (identity drone pose) and must not be used."""
     from fusion.qr.codes import classify
     from fusion.qr.pnp import estimate_load_observations_frames
+
     batch = []
     for ts in sorted(set(front_frames) - posed_ns):
         codes = classify(front_frames[ts], world)
@@ -336,14 +384,16 @@ def _unposed_load_observations(front_frames, posed_ns: set[int], camera, world,
 @dataclass
 class EstimatorFailure:
     """A fused estimator that produced no result, and why (summary, metrics.json)."""
+
     estimator: Estimator
-    reason: str                      # one line
-    error_type: str                  # the exception's class name
+    reason: str  # one line
+    error_type: str  # the exception's class name
 
 
 @dataclass
 class FuseStageResult:
     """The fused back ends' results, those that failed, and notes for the summary."""
+
     results: dict[Estimator, FusionResult] = field(default_factory=dict)
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -359,8 +409,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     out = FuseStageResult()
     raw = loc.trajectories[str(Estimator.PNP)]
     if len(raw) == 0:
-        out.notes.append("no floor code was read in this flight: nothing to fuse (no fused "
-                         "estimate)")
+        out.notes.append("no floor code was read in this flight: nothing to fuse (no fused estimate)")
         return out
     if log.imu is None and log.velocity is None:
         out.notes.append("the log has neither IMU nor velocity: raw per-frame estimates only")
@@ -371,10 +420,14 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     graph_kwargs = {"floor_camera": log.floor.camera}
     if cfg.tight:
         from fusion.qr.codes import classify
-        graph_kwargs["floor_frames"] = {t: classify(d, log.world).floor
-                                        for t, d in det.by_frame("cam0").items()}
-        out.notes.append("tight coupling: floor-code corners as reprojection factors in the "
-                         "smoothers (the EKF stays loosely coupled)")
+
+        graph_kwargs["floor_frames"] = {
+            t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
+        }
+        out.notes.append(
+            "tight coupling: floor-code corners as reprojection factors in the "
+            "smoothers (the EKF stays loosely coupled)"
+        )
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     frame_t = log.floor.timestamps_ns
@@ -384,16 +437,25 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     solvers.append((Estimator.EKF, run_ekf, {"floor_camera": log.floor.camera}))
     for name, fn, kwargs in solvers:
         try:
-            res = fn(frame_t, log.imu, raw, load_obs, front_camera=front, velocity=log.velocity,
-                     config=fcfg, **kwargs)
+            res = fn(
+                frame_t,
+                log.imu,
+                raw,
+                load_obs,
+                front_camera=front,
+                velocity=log.velocity,
+                config=fcfg,
+                **kwargs,
+            )
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
-        except Exception as e:          # a bug in one back end must not cost the others
+        except Exception as e:  # a bug in one back end must not cost the others
             log_.exception("%s failed", name)
+            first_line = str(e).strip().splitlines()[0] if str(e).strip() else ""
             out.failures[name] = EstimatorFailure(
-                name, f"internal error: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}",
-                type(e).__name__)
+                name, f"internal error: {type(e).__name__}: {first_line}", type(e).__name__
+            )
             continue
         res.trajectory.name = str(name)
         res.loads.name = str(name)
@@ -410,13 +472,20 @@ def write_load_observations_csv(path: Path, observations: list[LoadObservation])
     import csv
 
     from fusion.fileio import atomic_open
+
     with atomic_open(path) as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(["timestamp_ns", "id", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m"])
         for o in observations:
             sig = np.sqrt(np.diag(o.cov_world)) if o.cov_world is not None else None
-            w.writerow([int(o.timestamp_ns), csv_safe(o.load_id), *(f"{v:.6f}" for v in o.p_world),
-                        *(("", "", "") if sig is None else (f"{s:.6f}" for s in sig))])
+            w.writerow(
+                [
+                    int(o.timestamp_ns),
+                    csv_safe(o.load_id),
+                    *(f"{v:.6f}" for v in o.p_world),
+                    *(("", "", "") if sig is None else (f"{s:.6f}" for s in sig)),
+                ]
+            )
 
 
 def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str = "run") -> RunResult:
@@ -435,24 +504,31 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
     return result
 
 
-def _run_into(log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings: dict,
-              t: float) -> RunResult:
+def _run_into(
+    log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings: dict, t: float
+) -> RunResult:
     """`run`'s stages, writing into the prepared (locked) output folder."""
     from fusion.qr.detect import detect_flight
+
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
     timings["read_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    det = detect_flight(log, cache_path=out_dir / "detections.csv", backend=cfg.backend,
-                        workers=cfg.workers, progress=cfg.progress)
+    det = detect_flight(
+        log,
+        cache_path=out_dir / "detections.csv",
+        backend=cfg.backend,
+        workers=cfg.workers,
+        progress=cfg.progress,
+    )
     result.detection_stats = detection_statistics(log, det, log.world)
     timings["detect_s"] = time.perf_counter() - t
     if det.skipped:
-        result.notes.append(f"{len(det.skipped)} frame(s) skipped (missing or unreadable image); "
-                            f"first: {det.skipped[0]}")
+        result.notes.append(
+            f"{len(det.skipped)} frame(s) skipped (missing or unreadable image); first: {det.skipped[0]}"
+        )
     if det.from_cache:
-        result.notes.append(f"detections reused from {out_dir / 'detections.csv'} (log and "
-                            "images unchanged)")
+        result.notes.append(f"detections reused from {out_dir / 'detections.csv'} (log and images unchanged)")
     if until == "detect":
         result.timings_s = timings
         return result
@@ -501,6 +577,7 @@ def _progress(cfg: RunConfig, what: str) -> None:
 
 def _write_estimates(out_dir: Path, result: RunResult) -> None:
     from fusion.estimate import write_sigmas_csv
+
     for name, traj in result.trajectories.items():
         write_tum(out_dir / f"trajectory_{name}.tum", traj)
         if traj.covariances is not None and len(traj):
@@ -510,8 +587,7 @@ def _write_estimates(out_dir: Path, result: RunResult) -> None:
         write_loads_json(out_dir / f"loads_{name}.json", lm)
 
 
-def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
-                         raw_stats: dict) -> None:
+def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, raw_stats: dict) -> None:
     from fusion.evaluate.metrics import (
         evaluate,
         export_groundtruth_tum,
@@ -519,15 +595,23 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
         write_metrics,
     )
     from fusion.evaluate.report import write_report
+
     out_dir = result.out_dir
     gt = log.groundtruth
     if gt is None:
         result.notes.append("no ground truth in this log: no metrics (report without errors)")
-    metrics = evaluate(gt, result.trajectories, result.load_maps, log.loads_groundtruth,
-                       log.blackouts, result.detection_stats)
+    metrics = evaluate(
+        gt,
+        result.trajectories,
+        result.load_maps,
+        log.loads_groundtruth,
+        log.blackouts,
+        result.detection_stats,
+    )
     metrics["estimator_stats"] = to_jsonable({**raw_stats, **fused_stats})
-    metrics["estimator_failures"] = {name: {"reason": f.reason, "error_type": f.error_type}
-                                     for name, f in result.failures.items()}
+    metrics["estimator_failures"] = {
+        name: {"reason": f.reason, "error_type": f.error_type} for name, f in result.failures.items()
+    }
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
@@ -537,13 +621,22 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict,
     if gt is not None:
         export_groundtruth_tum(gt, out_dir / "trajectory_groundtruth.tum")
     floor_xy = _floor_codes_seen(out_dir, log)
-    summary = dict(result.log_summary, payload_unit_m=log.world.payload_unit_m,
-                   detection=result.detection_stats)
+    summary = dict(
+        result.log_summary, payload_unit_m=log.world.payload_unit_m, detection=result.detection_stats
+    )
     if result.warnings:
         summary["warnings"] = [str(w) for w in result.warnings]
-    result.report_path = write_report(out_dir, metrics, result.trajectories, result.load_maps,
-                                      gt, log.loads_groundtruth, log.blackouts, summary,
-                                      floor_codes_xy_m=floor_xy)
+    result.report_path = write_report(
+        out_dir,
+        metrics,
+        result.trajectories,
+        result.load_maps,
+        gt,
+        log.loads_groundtruth,
+        log.blackouts,
+        summary,
+        floor_codes_xy_m=floor_xy,
+    )
 
 
 def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
@@ -551,6 +644,7 @@ def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     from fusion.conventions import FloorPayload, parse_payload
     from fusion.errors import PayloadError
     from fusion.qr.detect import read_cache
+
     cached = read_cache(out_dir / "detections.csv")
     if cached is None:
         return None
@@ -565,17 +659,20 @@ def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     return np.array(sorted(xy)) if xy else None
 
 
-def demo(folder: Path = Path("demo-flight"), duration_s: float | None = None, seed: int = 0,
-         progress: bool = True) -> RunResult:
+def demo(
+    folder: Path = Path("demo-flight"), duration_s: float | None = None, seed: int = 0, progress: bool = True
+) -> RunResult:
     """Simulate the default flight into `folder/log` (kept and reused if it is already there and
     complete) and run the whole pipeline into `folder/out` (the previous demo's outputs are
     replaced).  Nothing the demo did not create is deleted: other files in `folder/log` and
     `folder/out` stay, and files of a log layout it did not write are refused, not replaced."""
     from fusion.sim.simulate import simulate
+
     folder = Path(folder)
     log_dir = folder / "log"
     if not (log_dir / "world.yaml").exists():
         _progress(RunConfig(progress=progress), f"simulating the default flight into {log_dir}")
-        simulate(log_dir, scenario="default", duration_s=duration_s, seed=seed, overwrite=True,
-                 progress=progress)
+        simulate(
+            log_dir, scenario="default", duration_s=duration_s, seed=seed, overwrite=True, progress=progress
+        )
     return run(log_dir, folder / "out", RunConfig(progress=progress, force=True))

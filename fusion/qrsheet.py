@@ -5,11 +5,12 @@ figure whose size is the paper size, so the symbol's side (its outer edge, quiet
 DESIGN.md "Conventions") is exactly `side_m` on paper when printed at 100 % ("actual size", not
 "fit to page").  Every page carries a 10 cm scale bar to check the printer with a ruler.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import cv2
 import numpy as np
@@ -23,13 +24,18 @@ from fusion.errors import PayloadError, QRSheetError
 from fusion.fileio import atomic_open
 
 MM_PER_INCH = 25.4
-PAGES_MM = {"A3": (297.0, 420.0), "A4": (210.0, 297.0), "A5": (148.0, 210.0),
-            "Letter": (215.9, 279.4), "Legal": (215.9, 355.6)}
-MARGIN_MM = 10.0          # printers cannot print to the edge
-HEADER_MM = 10.0          # title line
-FOOTER_MM = 16.0          # scale bar
-LABEL_MM = 11.0           # two text lines under each code
-QUIET_ZONE_MODULES = 4    # ISO/IEC 18004 quiet zone
+PAGES_MM = {
+    "A3": (297.0, 420.0),
+    "A4": (210.0, 297.0),
+    "A5": (148.0, 210.0),
+    "Letter": (215.9, 279.4),
+    "Legal": (215.9, 355.6),
+}
+MARGIN_MM = 10.0  # printers cannot print to the edge
+HEADER_MM = 10.0  # title line
+FOOTER_MM = 16.0  # scale bar
+LABEL_MM = 11.0  # two text lines under each code
+QUIET_ZONE_MODULES = 4  # ISO/IEC 18004 quiet zone
 
 
 def symbol_modules(payload: str) -> np.ndarray:
@@ -43,7 +49,7 @@ def symbol_modules(payload: str) -> np.ndarray:
         raise QRSheetError(f"cannot encode {payload!r} as a QR code")
     dark = np.argwhere(img < 128)
     (r0, c0), (r1, c1) = dark.min(axis=0), dark.max(axis=0)
-    sym = img[r0:r1 + 1, c0:c1 + 1] < 128
+    sym = img[r0 : r1 + 1, c0 : c1 + 1] < 128
     if sym.shape[0] != sym.shape[1] or (sym.shape[0] - 17) % 4:
         raise QRSheetError(f"unexpected QR symbol size {sym.shape} for {payload!r}")
     return sym
@@ -61,8 +67,7 @@ def _modules_path(sym: np.ndarray) -> MplPath:
         y0, y1 = n - r - 1, n - r
         for a, b in zip(starts, ends):
             verts += [(a, y0), (b, y0), (b, y1), (a, y1), (a, y0)]
-            codes += [MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO,
-                      MplPath.CLOSEPOLY]
+            codes += [MplPath.MOVETO, MplPath.LINETO, MplPath.LINETO, MplPath.LINETO, MplPath.CLOSEPOLY]
     return MplPath(np.asarray(verts, dtype=float), codes)
 
 
@@ -70,6 +75,7 @@ def _modules_path(sym: np.ndarray) -> MplPath:
 class SheetCode:
     """One code to print: payload, symbol side (m), caption lines, and its place on the page
     (symbol's lower-left corner, inches from the page's lower-left corner)."""
+
     payload: str
     side_m: float
     caption: tuple[str, str]
@@ -101,13 +107,23 @@ def _check_load_id(load_id) -> str:
     return text
 
 
-def _codes(grid: tuple[int, int], spacing_m: float, side_m: float, payload_unit_m: float,
-           load_ids: Iterable[str], load_side_m: float) -> tuple[list[SheetCode], list[SheetCode]]:
+def _codes(
+    grid: tuple[int, int],
+    spacing_m: float,
+    side_m: float,
+    payload_unit_m: float,
+    load_ids: Iterable[str],
+    load_side_m: float,
+) -> tuple[list[SheetCode], list[SheetCode]]:
     nx, ny = (int(v) for v in grid)
     if nx < 0 or ny < 0:
         raise QRSheetError(f"grid {grid} has a negative size")
-    for name, v in (("spacing_m", spacing_m), ("side_m", side_m),
-                    ("payload_unit_m", payload_unit_m), ("load_side_m", load_side_m)):
+    for name, v in (
+        ("spacing_m", spacing_m),
+        ("side_m", side_m),
+        ("payload_unit_m", payload_unit_m),
+        ("load_side_m", load_side_m),
+    ):
         if not (np.isfinite(v) and v > 0):
             raise QRSheetError(f"{name} must be a positive number, got {v!r}")
     floor = []
@@ -117,10 +133,16 @@ def _codes(grid: tuple[int, int], spacing_m: float, side_m: float, payload_unit_
             payload = floor_payload(round(x_m / payload_unit_m, 6), round(y_m / payload_unit_m, 6))
             p = parse_payload(payload).position_m(payload_unit_m)
             if abs(p[0] - x_m) > 1e-6 or abs(p[1] - y_m) > 1e-6:
-                raise QRSheetError(f"position ({x_m}, {y_m}) m is not a payload number of "
-                                   f"{payload_unit_m} m units to 1 um")
-            floor.append(SheetCode(payload, side_m, (
-                payload, f"x = {x_m:.3f} m, y = {y_m:.3f} m; symbol top toward world +y")))
+                raise QRSheetError(
+                    f"position ({x_m}, {y_m}) m is not a payload number of {payload_unit_m} m units to 1 um"
+                )
+            floor.append(
+                SheetCode(
+                    payload,
+                    side_m,
+                    (payload, f"x = {x_m:.3f} m, y = {y_m:.3f} m; symbol top toward world +y"),
+                )
+            )
     loads = []
     seen = set()
     for load_id in load_ids:
@@ -128,8 +150,9 @@ def _codes(grid: tuple[int, int], spacing_m: float, side_m: float, payload_unit_
         if load_id in seen:
             raise QRSheetError(f"load id {load_id!r} is listed twice")
         seen.add(load_id)
-        loads.append(SheetCode(text, load_side_m, (
-            text, f"load {load_id}; hang upright, this text below the code")))
+        loads.append(
+            SheetCode(text, load_side_m, (text, f"load {load_id}; hang upright, this text below the code"))
+        )
     return floor, loads
 
 
@@ -159,13 +182,14 @@ def layout_pages(codes: list[SheetCode], page: str, title: str) -> list[SheetPag
                 f"a {code.side_m * 100:g} cm code needs {cw * MM_PER_INCH:.0f} x "
                 f"{ch * MM_PER_INCH:.0f} mm with its quiet zone and caption, more than the "
                 f"{(right - left) * MM_PER_INCH:.0f} x {(top - bottom) * MM_PER_INCH:.0f} mm "
-                f"printable on {page}; use a larger page or smaller codes")
+                f"printable on {page}; use a larger page or smaller codes"
+            )
         if not pages:
             pages.append(SheetPage((W, H), title))
             x, y_top, row_h = left, top, 0.0
-        if x + cw > right + 1e-9:                  # next row
+        if x + cw > right + 1e-9:  # next row
             x, y_top, row_h = left, y_top - row_h, 0.0
-        if y_top - ch < bottom - 1e-9:             # next page
+        if y_top - ch < bottom - 1e-9:  # next page
             pages.append(SheetPage((W, H), title))
             x, y_top, row_h = left, top, 0.0
         code.x_in = x + q
@@ -190,63 +214,103 @@ def page_figure(page: SheetPage, page_no: int = 1, n_pages: int = 1) -> Figure:
         ax.add_patch(PathPatch(_modules_path(sym), facecolor="black", edgecolor="none", lw=0))
         q = code.side_in * QUIET_ZONE_MODULES / n
         # cut guide around the quiet zone (light, outside the code)
-        fig.add_artist(_rect_in(fig, code.x_in - q, code.y_in - q, code.side_in + 2 * q,
-                                code.side_in + 2 * q))
+        fig.add_artist(
+            _rect_in(fig, code.x_in - q, code.y_in - q, code.side_in + 2 * q, code.side_in + 2 * q)
+        )
         cx = (code.x_in + code.side_in / 2) / W
-        fig.text(cx, (code.y_in - q - 0.12) / H, code.caption[0], ha="center", va="top",
-                 family="monospace", fontsize=9, weight="bold")
-        fig.text(cx, (code.y_in - q - 0.27) / H, code.caption[1], ha="center", va="top",
-                 fontsize=6)
+        fig.text(
+            cx,
+            (code.y_in - q - 0.12) / H,
+            code.caption[0],
+            ha="center",
+            va="top",
+            family="monospace",
+            fontsize=9,
+            weight="bold",
+        )
+        fig.text(cx, (code.y_in - q - 0.27) / H, code.caption[1], ha="center", va="top", fontsize=6)
     m = MARGIN_MM / MM_PER_INCH
-    fig.text(m / W, (H - m) / H, f"{page.title} (page {page_no}/{n_pages})", ha="left",
-             va="top", fontsize=7)
+    fig.text(m / W, (H - m) / H, f"{page.title} (page {page_no}/{n_pages})", ha="left", va="top", fontsize=7)
     _scale_bar(fig, m, m + 0.15)
-    fig.text(m / W, m / H, "Print at 100 % (actual size, no fit-to-page): the bar above must "
-             "measure 10 cm.", ha="left", va="bottom", fontsize=6)
+    fig.text(
+        m / W,
+        m / H,
+        "Print at 100 % (actual size, no fit-to-page): the bar above must measure 10 cm.",
+        ha="left",
+        va="bottom",
+        fontsize=6,
+    )
     return fig
 
 
 def _rect_in(fig: Figure, x: float, y: float, w: float, h: float):
     from matplotlib.patches import Rectangle
+
     W, H = fig.get_size_inches()
-    return Rectangle((x / W, y / H), w / W, h / H, transform=fig.transFigure, fill=False,
-                     ec="#c8c8c8", lw=0.4, ls=(0, (4, 4)))
+    return Rectangle(
+        (x / W, y / H),
+        w / W,
+        h / H,
+        transform=fig.transFigure,
+        fill=False,
+        ec="#c8c8c8",
+        lw=0.4,
+        ls=(0, (4, 4)),
+    )
 
 
 def _scale_bar(fig: Figure, x_in: float, y_in: float) -> None:
     """A 10 cm bar with 1 cm ticks, lower-left corner at (x_in, y_in) inches."""
     from matplotlib.lines import Line2D
+
     W, H = fig.get_size_inches()
     L = 100.0 / MM_PER_INCH
     tr = fig.transFigure
-    fig.add_artist(Line2D([x_in / W, (x_in + L) / W], [y_in / H, y_in / H], transform=tr,
-                          color="black", lw=0.8))
+    fig.add_artist(
+        Line2D([x_in / W, (x_in + L) / W], [y_in / H, y_in / H], transform=tr, color="black", lw=0.8)
+    )
     for k in range(11):
-        t = (0.12 if k in (0, 5, 10) else 0.06)
+        t = 0.12 if k in (0, 5, 10) else 0.06
         xk = (x_in + k * 10.0 / MM_PER_INCH) / W
-        fig.add_artist(Line2D([xk, xk], [y_in / H, (y_in + t) / H], transform=tr, color="black",
-                              lw=0.6))
+        fig.add_artist(Line2D([xk, xk], [y_in / H, (y_in + t) / H], transform=tr, color="black", lw=0.6))
     fig.text((x_in + L + 0.1) / W, y_in / H, "10 cm", va="bottom", fontsize=7)
 
 
-def sheet_pages(grid=(10, 6), spacing_m: float = 1.0, side_m: float = 0.20,
-                payload_unit_m: float = 1.0, load_ids: Iterable[str] = (),
-                load_side_m: float = 0.15, page: str = "A4") -> list[SheetPage]:
+def sheet_pages(
+    grid=(10, 6),
+    spacing_m: float = 1.0,
+    side_m: float = 0.20,
+    payload_unit_m: float = 1.0,
+    load_ids: Iterable[str] = (),
+    load_side_m: float = 0.15,
+    page: str = "A4",
+) -> list[SheetPage]:
     """The laid-out pages (floor codes first, load labels from a new page)."""
     floor, loads = _codes(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m)
     pages = []
     if floor:
-        pages += layout_pages(floor, page, f"fusion floor codes: {grid[0]} x {grid[1]} grid, "
-                              f"spacing {spacing_m:g} m, payload unit {payload_unit_m:g} m, "
-                              f"side {side_m * 100:g} cm")
+        pages += layout_pages(
+            floor,
+            page,
+            f"fusion floor codes: {grid[0]} x {grid[1]} grid, "
+            f"spacing {spacing_m:g} m, payload unit {payload_unit_m:g} m, "
+            f"side {side_m * 100:g} cm",
+        )
     if loads:
         pages += layout_pages(loads, page, f"fusion load labels: side {load_side_m * 100:g} cm")
     return pages
 
 
-def write_qr_sheet(path: Path, grid=(10, 6), spacing_m: float = 1.0, side_m: float = 0.20,
-                   payload_unit_m: float = 1.0, load_ids: Iterable[str] = (),
-                   load_side_m: float = 0.15, page: str = "A4") -> int:
+def write_qr_sheet(
+    path: Path,
+    grid=(10, 6),
+    spacing_m: float = 1.0,
+    side_m: float = 0.20,
+    payload_unit_m: float = 1.0,
+    load_ids: Iterable[str] = (),
+    load_side_m: float = 0.15,
+    page: str = "A4",
+) -> int:
     """Write a multi-page PDF of floor codes `0/<x>/<y>` at every grid point (x = i * spacing_m,
     y = j * spacing_m, payload in units of payload_unit_m) and load labels `1/<id>`, each symbol
     exactly `side_m` (`load_side_m`) wide on paper.  Returns the number of pages written.

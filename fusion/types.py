@@ -6,6 +6,7 @@ pixel coordinates as seen in the image.  Pose covariances are 6x6 in GTSAM's Pos
 [rx, ry, rz, tx, ty, tz] (rad, m), expressed in the body frame (right perturbation
 T = T_hat * Exp(xi)).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,22 +24,22 @@ class Choice(str, Enum):
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: "str | Choice", what: str) -> "Choice":
+    def parse(cls, value: str | Choice, what: str) -> Choice:
         """The member named `value`; ValueError naming `what` and the choices otherwise."""
         try:
             return cls(value)
         except ValueError:
-            raise ValueError(f"{what} {value!r} is not one of "
-                             f"{', '.join(m.value for m in cls)}") from None
+            raise ValueError(f"{what} {value!r} is not one of {', '.join(m.value for m in cls)}") from None
 
 
 class Estimator(Choice):
     """Who produced a trajectory / load map: raw per-frame estimators, then fused back ends."""
-    PAPER = "paper"              # Kang & Jung, Algorithms 1-6
-    PNP = "pnp"                  # our PnP with covariance
-    SMOOTHER = "smoother"        # GTSAM batch
+
+    PAPER = "paper"  # Kang & Jung, Algorithms 1-6
+    PNP = "pnp"  # our PnP with covariance
+    SMOOTHER = "smoother"  # GTSAM batch
     INCREMENTAL = "incremental"  # GTSAM fixed-lag (causal)
-    EKF = "ekf"                  # filterpy error-state EKF (causal)
+    EKF = "ekf"  # filterpy error-state EKF (causal)
 
     @property
     def raw(self) -> bool:
@@ -51,12 +52,14 @@ FUSED_ESTIMATORS = (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF)
 
 class Mount(Choice):
     """How a camera hangs on the airframe (CameraModel)."""
+
     BODY_FIXED = "body_fixed"
-    GIMBALED = "gimbaled"        # keeps its attitude to the level, yaw-only body frame
+    GIMBALED = "gimbaled"  # keeps its attitude to the level, yaw-only body frame
 
 
 class RobustKernel(Choice):
     """Robust kernel on QR pose and load factors (GTSAM's mEstimator names)."""
+
     NONE = "none"
     HUBER = "huber"
     CAUCHY = "cauchy"
@@ -65,19 +68,21 @@ class RobustKernel(Choice):
 
 class CameraRole(Choice):
     """Which camera of a flight log: EuRoC folder names."""
-    FLOOR = "cam0"               # down-looking, floor codes
-    FRONT = "cam1"               # forward-looking, load codes
+
+    FLOOR = "cam0"  # down-looking, floor codes
+    FRONT = "cam1"  # forward-looking, load codes
 
 
 @dataclass
 class QRDetection:
     """One decoded QR code in one frame."""
-    camera: str                 # "cam0" (floor) or "cam1" (front)
+
+    camera: str  # "cam0" (floor) or "cam1" (front)
     timestamp_ns: int
-    payload: str                # raw decoded text (untrusted)
-    corners_px: np.ndarray      # (4, 2) refined corners, symbol TL, TR, BR, BL
+    payload: str  # raw decoded text (untrusted)
+    corners_px: np.ndarray  # (4, 2) refined corners, symbol TL, TR, BR, BL
     corners_raw_px: np.ndarray  # (4, 2) corners as the decoder returned them
-    corner_sigma_px: float | None = None   # 1-sigma noise per corner coordinate (px), if known
+    corner_sigma_px: float | None = None  # 1-sigma noise per corner coordinate (px), if known
     # (8, 8) covariance of corners_px flattened TL u, TL v, TR u, TR v, BR u, ..., BL v (px^2):
     # the corners come from one fit, so their errors are correlated; None when unknown
     corner_cov_px2: np.ndarray | None = None
@@ -103,10 +108,11 @@ def diagonal_intersection(corners_px: np.ndarray) -> np.ndarray:
 @dataclass
 class Trajectory:
     """A pose per timestamp, optionally with a 6x6 covariance each."""
+
     name: str
-    timestamps_ns: np.ndarray                 # (N,) int64
-    T_world_body: np.ndarray                  # (N, 4, 4)
-    covariances: np.ndarray | None = None     # (N, 6, 6), [rx, ry, rz, tx, ty, tz], body frame
+    timestamps_ns: np.ndarray  # (N,) int64
+    T_world_body: np.ndarray  # (N, 4, 4)
+    covariances: np.ndarray | None = None  # (N, 6, 6), [rx, ry, rz, tx, ty, tz], body frame
 
     def __len__(self) -> int:
         return len(self.timestamps_ns)
@@ -128,7 +134,7 @@ class Trajectory:
         return np.asarray(self.timestamps_ns, dtype=np.int64) * 1e-9
 
     @classmethod
-    def empty(cls, name: str) -> "Trajectory":
+    def empty(cls, name: str) -> Trajectory:
         return cls(name, np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
 
 
@@ -139,21 +145,23 @@ class LoadObservation:
     `p_cam` / `cov_cam`: the code centre in the camera frame (m) and its 3x3 covariance, the
     measurement a landmark factor uses; `p_world` / `cov_world`: the same combined with the
     drone pose estimate at that frame (what the per-frame estimators report)."""
+
     timestamp_ns: int
     load_id: str
-    p_world: np.ndarray                       # (3,)
-    cov_world: np.ndarray | None = None       # (3, 3)
-    p_cam: np.ndarray | None = None           # (3,)
-    cov_cam: np.ndarray | None = None         # (3, 3)
-    corners_px: np.ndarray | None = None      # (4, 2)
+    p_world: np.ndarray  # (3,)
+    cov_world: np.ndarray | None = None  # (3, 3)
+    p_cam: np.ndarray | None = None  # (3,)
+    cov_cam: np.ndarray | None = None  # (3, 3)
+    corners_px: np.ndarray | None = None  # (4, 2)
 
 
 @dataclass
 class LoadEstimate:
     """One mapped load code."""
+
     load_id: str
-    p_world: np.ndarray                       # (3,)
-    cov_world: np.ndarray | None              # (3, 3) or None when unknown
+    p_world: np.ndarray  # (3,)
+    cov_world: np.ndarray | None  # (3, 3) or None when unknown
     n_obs: int
 
 

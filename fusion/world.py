@@ -9,6 +9,7 @@
 Load code positions are what we map, so they are not in `world.yaml`; a simulated flight writes
 them to `loads_groundtruth.csv`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from fusion.geometry import R_world_loadsymbol, make_T, transform_points
 @dataclass(frozen=True)
 class LoadCode:
     """A load QR code: id, symbol-centre position in W (m), heading of its face's outward normal (rad)."""
+
     id: str
     p_world: tuple[float, float, float]
     normal_yaw: float
@@ -37,6 +39,7 @@ class LoadCode:
 @dataclass
 class World:
     """What is known of the warehouse before flying."""
+
     floor_side_m: float = 0.20
     payload_unit_m: float = 1.0
     load_side_m: float = 0.15
@@ -58,10 +61,12 @@ class World:
         """True if (x, y) lies inside the known bounds (always True when no bounds are set)."""
         x, y = float(p_world[0]), float(p_world[1])
         if self.bounds_x_m is not None and not (
-                self.bounds_x_m[0] - margin_m <= x <= self.bounds_x_m[1] + margin_m):
+            self.bounds_x_m[0] - margin_m <= x <= self.bounds_x_m[1] + margin_m
+        ):
             return False
         if self.bounds_y_m is not None and not (
-                self.bounds_y_m[0] - margin_m <= y <= self.bounds_y_m[1] + margin_m):
+            self.bounds_y_m[0] - margin_m <= y <= self.bounds_y_m[1] + margin_m
+        ):
             return False
         return True
 
@@ -75,30 +80,39 @@ class World:
 
     # ---------------------------------------------------------------- world.yaml
     def to_yaml(self) -> dict:
-        data = {"floor_qr": {"side_m": float(self.floor_side_m),
-                             "payload_unit_m": float(self.payload_unit_m)},
-                "load_qr": {"side_m": float(self.load_side_m)}}
+        data = {
+            "floor_qr": {"side_m": float(self.floor_side_m), "payload_unit_m": float(self.payload_unit_m)},
+            "load_qr": {"side_m": float(self.load_side_m)},
+        }
         if self.bounds_x_m is not None and self.bounds_y_m is not None:
-            data["bounds_m"] = {"x": [float(v) for v in self.bounds_x_m],
-                                "y": [float(v) for v in self.bounds_y_m]}
+            data["bounds_m"] = {
+                "x": [float(v) for v in self.bounds_x_m],
+                "y": [float(v) for v in self.bounds_y_m],
+            }
         return data
 
     @classmethod
-    def from_yaml(cls, data: dict, source: str = "world.yaml") -> "World":
+    def from_yaml(cls, data: dict, source: str = "world.yaml") -> World:
         """Build from parsed world.yaml.  Numbers are parsed strictly (a bool or a string is not
         a number: `side_m: true` would otherwise read as 1 m); every error names the field."""
         floor = _section(data, "floor_qr", source, required=True)
         load = _section(data, "load_qr", source)
         if "side_m" not in floor:
             raise WorldError(f"{source}: floor_qr.side_m is missing")
-        kwargs = {"floor_side_m": strict_float(floor["side_m"], f"{source}: floor_qr.side_m",
-                                               WorldError, positive=True),
-                  "payload_unit_m": strict_float(floor.get("payload_unit_m", 1.0),
-                                                 f"{source}: floor_qr.payload_unit_m", WorldError,
-                                                 positive=True),
-                  "load_side_m": strict_float(load.get("side_m", 0.15),
-                                              f"{source}: load_qr.side_m", WorldError,
-                                              positive=True)}
+        kwargs = {
+            "floor_side_m": strict_float(
+                floor["side_m"], f"{source}: floor_qr.side_m", WorldError, positive=True
+            ),
+            "payload_unit_m": strict_float(
+                floor.get("payload_unit_m", 1.0),
+                f"{source}: floor_qr.payload_unit_m",
+                WorldError,
+                positive=True,
+            ),
+            "load_side_m": strict_float(
+                load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
+            ),
+        }
         bounds = data.get("bounds_m")
         if bounds is not None:
             if not isinstance(bounds, dict):
@@ -108,8 +122,10 @@ class World:
                     raise WorldError(f"{source}: bounds_m.{axis} is missing")
                 lo, hi = strict_floats(bounds[axis], 2, f"{source}: bounds_m.{axis}", WorldError)
                 if not lo < hi:
-                    raise WorldError(f"{source}: bounds_m.{axis} is [{lo:g}, {hi:g}]: the minimum "
-                                     "must come first and be below the maximum (reversed?)")
+                    raise WorldError(
+                        f"{source}: bounds_m.{axis} is [{lo:g}, {hi:g}]: the minimum "
+                        "must come first and be below the maximum (reversed?)"
+                    )
                 kwargs[f"bounds_{axis}_m"] = (lo, hi)
         try:
             return cls(**kwargs)
@@ -117,7 +133,7 @@ class World:
             raise WorldError(f"{source}: {e}") from None
 
     @classmethod
-    def load(cls, path: Path) -> "World":
+    def load(cls, path: Path) -> World:
         return cls.from_yaml(load_yaml(path, WorldError), str(path))
 
     def save(self, path: Path) -> None:
@@ -141,6 +157,7 @@ class Layout:
     """Where every code actually is: what the simulator renders and the evaluation compares to.
 
     `floor_codes`: (N, 2) payload coordinates (x, y) in payload units; `loads`: load codes."""
+
     world: World
     floor_codes_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     loads: list[LoadCode] = field(default_factory=list)

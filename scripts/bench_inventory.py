@@ -13,6 +13,7 @@ i.e. the P face of the rack, levels 2 and 3; the Q face is never flown), run the
 Usage:  PYTHONPATH=$PWD python3 scripts/bench_inventory.py --seeds 0 1 2 --dir /tmp/bench-inv
 Targets: 0 false moved; a 5 cm move detected >= 95 %; missing / not surveyed told apart.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,20 +29,34 @@ from fusion.warehouse.inventory import Status, inventory
 from fusion.warehouse.manifest import DEFAULT_TOLERANCE_M, ExpectedLoad
 from fusion.warehouse.runs import load_run
 
-PHANTOMS = {"PH-1": (2.5, 2.7, 1.4), "PH-2": (4.5, 2.7, 1.4), "PH-3": (6.5, 2.7, 1.4),
-            "PH-4": (2.5, 2.7, 2.1), "PH-5": (4.5, 2.7, 2.1)}
+PHANTOMS = {
+    "PH-1": (2.5, 2.7, 1.4),
+    "PH-2": (4.5, 2.7, 1.4),
+    "PH-3": (6.5, 2.7, 1.4),
+    "PH-4": (2.5, 2.7, 2.1),
+    "PH-5": (4.5, 2.7, 2.1),
+}
 
 
 def _expected(truth: dict) -> list[ExpectedLoad]:
-    return [ExpectedLoad(k, np.asarray(v, float), DEFAULT_TOLERANCE_M, None, i + 2)
-            for i, (k, v) in enumerate(sorted(truth.items()))]
+    return [
+        ExpectedLoad(k, np.asarray(v, float), DEFAULT_TOLERANCE_M, None, i + 2)
+        for i, (k, v) in enumerate(sorted(truth.items()))
+    ]
 
 
 def bench_seed(seed: int, root: Path, duration: float, move_m: float, directions: int) -> dict:
     log_dir, out = root / f"seed{seed}" / "log", root / f"seed{seed}" / "out"
     if not (log_dir / "world.yaml").exists():
-        simulate(log_dir, scenario="default", duration_s=duration, seed=seed, overwrite=True,
-                 progress=False, workers=1)
+        simulate(
+            log_dir,
+            scenario="default",
+            duration_s=duration,
+            seed=seed,
+            overwrite=True,
+            progress=False,
+            workers=1,
+        )
     if not (out / "run.json").exists():
         run(log_dir, out, RunConfig(workers=1, progress=False, force=True, incremental=False))
     truth = read_flight(log_dir).loads_groundtruth
@@ -63,14 +78,18 @@ def bench_seed(seed: int, root: Path, duration: float, move_m: float, directions
     phantom_ok = sum(st[k] == Status.MISSING for k in PHANTOMS)
     q = [k for k in truth if k.startswith("Q-")]
     q_ok = sum(st[k] == Status.NOT_SURVEYED for k in q)
-    return {"seed": seed, "clean_counts": clean.counts(),
-            "false_moved": sum(row.status == Status.MOVED for row in clean.rows),
-            "max_clean_chi2": max((row.chi2 or 0.0) for row in clean.rows),
-            "max_clean_distance_cm": 100 * max((row.distance_m or 0.0) for row in clean.rows),
-            "move_trials": trials, "move_detected": int(detected),
-            "phantoms_missing": f"{phantom_ok}/{len(PHANTOMS)}",
-            "q_face_not_surveyed": f"{q_ok}/{len(q)}",
-            "p_face_statuses": {k: str(st[k]) for k in sorted(truth) if k.startswith("P-")}}
+    return {
+        "seed": seed,
+        "clean_counts": clean.counts(),
+        "false_moved": sum(row.status == Status.MOVED for row in clean.rows),
+        "max_clean_chi2": max((row.chi2 or 0.0) for row in clean.rows),
+        "max_clean_distance_cm": 100 * max((row.distance_m or 0.0) for row in clean.rows),
+        "move_trials": trials,
+        "move_detected": int(detected),
+        "phantoms_missing": f"{phantom_ok}/{len(PHANTOMS)}",
+        "q_face_not_surveyed": f"{q_ok}/{len(q)}",
+        "p_face_statuses": {k: str(st[k]) for k in sorted(truth) if k.startswith("P-")},
+    }
 
 
 def main() -> None:
@@ -81,17 +100,18 @@ def main() -> None:
     ap.add_argument("--move-m", type=float, default=0.05)
     ap.add_argument("--directions", type=int, default=4)
     args = ap.parse_args()
-    results = [bench_seed(s, args.dir, args.duration, args.move_m, args.directions)
-               for s in args.seeds]
+    results = [bench_seed(s, args.dir, args.duration, args.move_m, args.directions) for s in args.seeds]
     for res in results:
         print(json.dumps(res))
     trials = sum(r["move_trials"] for r in results)
     det = sum(r["move_detected"] for r in results)
-    print(f"false moved on clean flights: {sum(r['false_moved'] for r in results)}; "
-          f"{100 * args.move_m:.0f} cm moves detected: {det}/{trials} "
-          f"({100 * det / max(trials, 1):.1f} %); phantoms missing: "
-          f"{[r['phantoms_missing'] for r in results]}; Q face not surveyed: "
-          f"{[r['q_face_not_surveyed'] for r in results]}")
+    print(
+        f"false moved on clean flights: {sum(r['false_moved'] for r in results)}; "
+        f"{100 * args.move_m:.0f} cm moves detected: {det}/{trials} "
+        f"({100 * det / max(trials, 1):.1f} %); phantoms missing: "
+        f"{[r['phantoms_missing'] for r in results]}; Q face not surveyed: "
+        f"{[r['q_face_not_surveyed'] for r in results]}"
+    )
 
 
 if __name__ == "__main__":

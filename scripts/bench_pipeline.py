@@ -7,6 +7,7 @@ and the peak memory of the main process and of the detection workers.
 The flight is simulated once into WORKDIR/log-<minutes>min and reused on later runs.
 Prints a Markdown table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,14 @@ def main() -> None:
     t_sim = None
     if not (log / "world.yaml").exists():
         t = time.perf_counter()
-        simulate(log, scenario="default", duration_s=60 * args.minutes, seed=args.seed,
-                 overwrite=True, progress=True)
+        simulate(
+            log,
+            scenario="default",
+            duration_s=60 * args.minutes,
+            seed=args.seed,
+            overwrite=True,
+            progress=True,
+        )
         t_sim = time.perf_counter() - t
     out = args.workdir / f"out-{args.minutes:g}min"
     shutil.rmtree(out, ignore_errors=True)
@@ -46,10 +53,14 @@ def main() -> None:
     self_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     flight_s = res.log_summary["duration_s"]
-    print(f"\n{time.strftime('%Y-%m-%d %H:%M')} UTC, {platform.machine()}, {os.cpu_count()} cores, "
-          f"python {platform.python_version()}")
-    print(f"flight: {flight_s:.0f} s, {res.log_summary['floor_frames']} frames per camera (640x480, "
-          f"two cameras), {res.log_summary['imu_samples']} IMU samples")
+    print(
+        f"\n{time.strftime('%Y-%m-%d %H:%M')} UTC, {platform.machine()}, {os.cpu_count()} cores, "
+        f"python {platform.python_version()}"
+    )
+    print(
+        f"flight: {flight_s:.0f} s, {res.log_summary['floor_frames']} frames per camera (640x480, "
+        f"two cameras), {res.log_summary['imu_samples']} IMU samples"
+    )
     if t_sim is not None:
         print(f"simulation: {t_sim:.1f} s")
     print("\n| stage | time [s] |\n|---|--:|")

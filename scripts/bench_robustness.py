@@ -28,6 +28,7 @@ target [0.5, 2] x 6).  Prints Markdown.
     PYTHONPATH=$PWD python3 scripts/bench_robustness.py [--seeds 20] [--scenarios default gimbaled]
         [--duration 25] [--quick]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -52,7 +53,7 @@ from fusion.types import CameraRole, Estimator, LoadObservation, Mount, Trajecto
 SCENARIOS = ("default", "gimbaled", "fps10", "mems_bias", "blackout10", "misread5", "misprint")
 SIGMA_POS_M = 0.002
 SIGMA_ROT_RAD = math.radians(0.05)
-GIMBAL_ROLL_PITCH_SIGMA_RAD = math.radians(10.0)   # as fusion.qr.pnp
+GIMBAL_ROLL_PITCH_SIGMA_RAD = math.radians(10.0)  # as fusion.qr.pnp
 MEMS_ACCEL_BIAS_M_S2 = 0.3
 MEMS_GYRO_BIAS_RAD_S = 0.02
 BLACKOUT_S = (8.0, 18.0)
@@ -65,7 +66,7 @@ NEES_BAND = (0.5 * 6, 2.0 * 6)
 
 
 def pnp_like_cov() -> np.ndarray:
-    cov = np.diag([SIGMA_ROT_RAD ** 2] * 3 + [SIGMA_POS_M ** 2] * 3)
+    cov = np.diag([SIGMA_ROT_RAD**2] * 3 + [SIGMA_POS_M**2] * 3)
     c = 0.8 * SIGMA_ROT_RAD * SIGMA_POS_M
     cov[0, 4] = cov[4, 0] = -c
     cov[1, 3] = cov[3, 1] = c
@@ -75,7 +76,7 @@ def pnp_like_cov() -> np.ndarray:
 def gimbal_cov(cov: np.ndarray) -> np.ndarray:
     """Level-frame covariance of a gimbaled camera's PnP pose (fusion.qr.pnp, estimate_floor_poses)."""
     keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
-    return keep @ cov @ keep + np.diag([GIMBAL_ROLL_PITCH_SIGMA_RAD ** 2] * 2 + [0.0] * 4)
+    return keep @ cov @ keep + np.diag([GIMBAL_ROLL_PITCH_SIGMA_RAD**2] * 2 + [0.0] * 4)
 
 
 def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
@@ -90,10 +91,15 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
         if kf[-1].t_s >= duration_s + 0.5:
             break
         prev = wps[-1]
-        wps.append((float(np.clip(prev[0] + rng.uniform(-4, 4), -10, 10)),
-                    float(np.clip(prev[1] + rng.uniform(-3, 3), -5, 5)),
-                    float(rng.uniform(1.0, 2.5)), prev[3] + float(rng.uniform(-1.5, 1.5)),
-                    float(rng.choice([0.0, 1.0]))))
+        wps.append(
+            (
+                float(np.clip(prev[0] + rng.uniform(-4, 4), -10, 10)),
+                float(np.clip(prev[1] + rng.uniform(-3, 3), -5, 5)),
+                float(rng.uniform(1.0, 2.5)),
+                prev[3] + float(rng.uniform(-1.5, 1.5)),
+                float(rng.choice([0.0, 1.0])),
+            )
+        )
     traj = KeyframeTrajectory(kf)
     mount = Mount.GIMBALED if scenario == "gimbaled" else Mount.BODY_FIXED
     cams = make_cameras(mount=str(mount))
@@ -114,7 +120,7 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
     cov = pnp_like_cov()
     xi = rng.multivariate_normal(np.zeros(6), cov, size=int(keep.sum()))
     raw_T = np.array([T @ gtsam.Pose3.Expmap(x).matrix() for T, x in zip(T_true[keep], xi)])
-    if floor_cam.gimbaled:        # as pnp.py: the level frame of the estimate, roll/pitch unobserved
+    if floor_cam.gimbaled:  # as pnp.py: the level frame of the estimate, roll/pitch unobserved
         cov = gimbal_cov(cov)
         raw_T = level_frame(raw_T)
     if scenario == "misread5":
@@ -138,13 +144,25 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
     for k in range(0, len(frame_t), step):
         T_cw = inv_T(front_cam.T_world_cam(T_true[k]))
         pc = P @ T_cw[:3, :3].T + T_cw[:3, 3]
-        vis = (pc[:, 2] > 0.5) & (np.linalg.norm(pc, axis=1) < 4.0) & \
-              (np.abs(pc[:, 0]) < pc[:, 2]) & (np.abs(pc[:, 1]) < pc[:, 2])
+        vis = (
+            (pc[:, 2] > 0.5)
+            & (np.linalg.norm(pc, axis=1) < 4.0)
+            & (np.abs(pc[:, 0]) < pc[:, 2])
+            & (np.abs(pc[:, 1]) < pc[:, 2])
+        )
         for j in np.flatnonzero(vis):
             z = pc[j] + rng.standard_normal(3) * np.sqrt(np.diag(cov_cam))
             obs.append(LoadObservation(int(frame_t[k]), ids[j], np.zeros(3), None, z, cov_cam))
-    return {"frame_t": frame_t, "imu": imu, "raw": raw, "load_obs": obs, "T_true": T_true,
-            "loads": loads, "floor_camera": floor_cam, "front_camera": front_cam}
+    return {
+        "frame_t": frame_t,
+        "imu": imu,
+        "raw": raw,
+        "load_obs": obs,
+        "T_true": T_true,
+        "loads": loads,
+        "floor_camera": floor_cam,
+        "front_camera": front_cam,
+    }
 
 
 def call_backend(fn, fl: dict, config: FusionConfig):
@@ -161,9 +179,13 @@ def call_backend(fn, fl: dict, config: FusionConfig):
 
 def pose_nees(traj: Trajectory, T_true: np.ndarray) -> float:
     """Mean over frames of xi^T P^-1 xi, xi = Log(T_est^-1 T_true) (body frame, Pose3 order)."""
-    ne = [x @ np.linalg.solve(P, x) for x, P in
-          ((gtsam.Pose3.Logmap(gtsam.Pose3(Te).between(gtsam.Pose3(Tt))), P)
-           for Te, Tt, P in zip(traj.T_world_body, T_true, traj.covariances))]
+    ne = [
+        x @ np.linalg.solve(P, x)
+        for x, P in (
+            (gtsam.Pose3.Logmap(gtsam.Pose3(Te).between(gtsam.Pose3(Tt))), P)
+            for Te, Tt, P in zip(traj.T_world_body, T_true, traj.covariances)
+        )
+    ]
     return float(np.mean(ne))
 
 
@@ -187,11 +209,17 @@ def run_one(scenario: str, seed: int, duration_s: float, estimators) -> dict:
         common = [i for i, kk in enumerate(kraw.tolist()) if kk in pos]
         err = np.array([pos[kraw[i]] - T_true[kraw[i], :3, 3] for i in common])
         raw_err = raw.positions_xyz[common] - T_true[kraw[common], :3, 3]
-        ratio = math.sqrt(np.mean(np.sum(err ** 2, 1))) / max(math.sqrt(np.mean(np.sum(raw_err ** 2, 1))), 1e-12)
+        ratio = math.sqrt(np.mean(np.sum(err**2, 1))) / max(math.sqrt(np.mean(np.sum(raw_err**2, 1))), 1e-12)
         h = assess_result(res, raw, max_iterations=FusionConfig().lm_max_iterations)
-        out[est] = {"ratio": ratio, "nees": pose_nees(tr, T_true[k]), "status": h.status,
-                    "reason": h.reason, "resets": res.stats.get("resets", 0),
-                    "frames": len(tr) / len(frame_t), "time_s": time.perf_counter() - t0}
+        out[est] = {
+            "ratio": ratio,
+            "nees": pose_nees(tr, T_true[k]),
+            "status": h.status,
+            "reason": h.reason,
+            "resets": res.stats.get("resets", 0),
+            "frames": len(tr) / len(frame_t),
+            "time_s": time.perf_counter() - t0,
+        }
     return out
 
 
@@ -203,8 +231,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="runs per scenario (default 20)")
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
-    ap.add_argument("--estimators", nargs="+", default=[str(e) for e in
-                    (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF)])
+    ap.add_argument(
+        "--estimators",
+        nargs="+",
+        default=[str(e) for e in (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF)],
+    )
     ap.add_argument("--duration", type=float, default=25.0, help="flight length, s (default 25)")
     ap.add_argument("--quick", action="store_true", help="3 seeds of 20 s flights")
     ap.add_argument("--verbose", action="store_true", help="one line per run")
@@ -213,13 +244,16 @@ def main(argv=None) -> int:
         a.seeds, a.duration = 3, 20.0
     ests = [Estimator.parse(e, "estimator") for e in a.estimators]
     print(f"# Robustness benchmark ({datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC)\n")
-    print(f"{a.seeds} seeds x {a.duration:.0f} s per scenario.  ratio = fused / raw PnP position RMSE on "
-          f"PnP's frames (max and median over runs; targets: smoother <= {TARGET_SMOOTHER}, "
-          f"incremental and EKF <= {TARGET_CAUSAL}); div = runs diverged (health.py), "
-          f"not ok = runs degraded or diverged; NEES = 6-dof pose NEES, median over runs "
-          f"(target {NEES_BAND[0]:.0f}..{NEES_BAND[1]:.0f}).\n")
+    print(
+        f"{a.seeds} seeds x {a.duration:.0f} s per scenario.  ratio = fused / raw PnP position RMSE on "
+        f"PnP's frames (max and median over runs; targets: smoother <= {TARGET_SMOOTHER}, "
+        f"incremental and EKF <= {TARGET_CAUSAL}); div = runs diverged (health.py), "
+        f"not ok = runs degraded or diverged; NEES = 6-dof pose NEES, median over runs "
+        f"(target {NEES_BAND[0]:.0f}..{NEES_BAND[1]:.0f}).\n"
+    )
     head = "| scenario | raw PnP RMSE cm |" + "".join(
-        f" {e} ratio max / med | {e} div / not ok | {e} NEES |" for e in ests)
+        f" {e} ratio max / med | {e} div / not ok | {e} NEES |" for e in ests
+    )
     print(head)
     print("|" + "---|" * (2 + 3 * len(ests)))
     misses = []
@@ -229,11 +263,21 @@ def main(argv=None) -> int:
             r = run_one(sc, 1000 + s, a.duration, ests)
             runs.append(r)
             if a.verbose:
-                print(f"<!-- {sc} seed {1000 + s}: " + "; ".join(
-                    f"{e}: " + (r[e]['error'] if 'error' in r[e] else
-                                f"ratio {r[e]['ratio']:.3f} NEES {r[e]['nees']:.1f} "
-                                f"{r[e]['status']} ({r[e]['reason']}) resets {r[e]['resets']}")
-                    for e in ests) + " -->", flush=True)
+                print(
+                    f"<!-- {sc} seed {1000 + s}: "
+                    + "; ".join(
+                        f"{e}: "
+                        + (
+                            r[e]['error']
+                            if 'error' in r[e]
+                            else f"ratio {r[e]['ratio']:.3f} NEES {r[e]['nees']:.1f} "
+                            f"{r[e]['status']} ({r[e]['reason']}) resets {r[e]['resets']}"
+                        )
+                        for e in ests
+                    )
+                    + " -->",
+                    flush=True,
+                )
         row = f"| {sc} | {100 * np.median([r['raw_rmse_m'] for r in runs]):.3f} |"
         for e in ests:
             ok = [r[e] for r in runs if "error" not in r[e]]
@@ -246,13 +290,17 @@ def main(argv=None) -> int:
             div = sum(o["status"] == Status.DIVERGED for o in ok)
             bad = sum(o["status"] != Status.OK for o in ok)
             nees = float(np.median([o["nees"] for o in ok]))
-            row += (f" {fmt(ratios.max())} / {fmt(np.median(ratios))}"
-                    + (f" ({failed} failed)" if failed else "")
-                    + f" | {div} / {bad} | {fmt(nees)} |")
+            row += (
+                f" {fmt(ratios.max())} / {fmt(np.median(ratios))}"
+                + (f" ({failed} failed)" if failed else "")
+                + f" | {div} / {bad} | {fmt(nees)} |"
+            )
             target = TARGET_SMOOTHER if e == Estimator.SMOOTHER else TARGET_CAUSAL
             if ratios.max() > target:
-                misses.append(f"{sc}/{e}: ratio {ratios.max():.3g} > {target} in "
-                              f"{int((ratios > target).sum())} of {len(ratios)} runs")
+                misses.append(
+                    f"{sc}/{e}: ratio {ratios.max():.3g} > {target} in "
+                    f"{int((ratios > target).sum())} of {len(ratios)} runs"
+                )
             if div or failed:
                 misses.append(f"{sc}/{e}: {div} diverged, {failed} failed")
             if not NEES_BAND[0] <= nees <= NEES_BAND[1]:

@@ -6,6 +6,7 @@ Low sensor noise (0.4 DN) and PNG level 9 keep it small.
 
     /work/venv/bin/python scripts/make_sample_flight.py [--out data/sample-flight]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,12 +21,24 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "data" / "sample-flight")
     args = ap.parse_args()
-    r = simulate(args.out, "default", duration_s=5.0, start_s=6.0, seed=0, overwrite=True,
-                 camera_rate_hz=10.0, noise_sigma_dn=0.4, png_compression=9, check_readable=True)
+    r = simulate(
+        args.out,
+        "default",
+        duration_s=5.0,
+        start_s=6.0,
+        seed=0,
+        overwrite=True,
+        camera_rate_hz=10.0,
+        noise_sigma_dn=0.4,
+        png_compression=9,
+        check_readable=True,
+    )
     size = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
-    print(f"{r.root}: {r.n_frames} frames per camera, {r.n_imu} IMU samples, blackouts "
-          f"{r.blackouts}, readable floor fraction {r.readable_floor_fraction:.2f}, "
-          f"{size / 1e6:.1f} MB")
+    print(
+        f"{r.root}: {r.n_frames} frames per camera, {r.n_imu} IMU samples, blackouts "
+        f"{r.blackouts}, readable floor fraction {r.readable_floor_fraction:.2f}, "
+        f"{size / 1e6:.1f} MB"
+    )
 
 
 if __name__ == "__main__":

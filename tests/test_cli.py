@@ -1,6 +1,7 @@
 """Smoke tests: every `fusion` command end to end on the committed sample flight (as evo's
 CLI smoke tests do), and the run-level bad inputs (no front camera, no IMU, no ground truth,
 an existing output folder)."""
+
 import json
 import shutil
 import subprocess
@@ -48,17 +49,34 @@ def test_existing_output_is_refused_then_forced_with_cache(run_out, capsys):
     assert len(err) == 1 and "use --force" in err[0]
     assert main(["detect", str(SAMPLE), "--out", str(run_out), "--quiet", "--force"]) == 0
     from fusion.pipeline import RunConfig, run
+
     again = run(SAMPLE, run_out, RunConfig(progress=False, force=True), until="detect")
     assert again.detection_stats["from_cache"]
 
 
-@pytest.mark.parametrize("stage, expect, absent", [
-    ("detect", ["detections.csv"], ["trajectory_pnp.tum"]),
-    ("localize", ["trajectory_paper.tum", "trajectory_pnp.tum", "loads_pnp.csv",
-                  "load_observations_pnp.csv"], ["trajectory_smoother.tum"]),
-    ("smooth", ["trajectory_smoother.tum", "trajectory_incremental.tum", "trajectory_ekf.tum",
-                "sigmas_smoother.csv", "loads_smoother.csv", "loads_ekf.csv"], ["report.md"]),
-])
+@pytest.mark.parametrize(
+    "stage, expect, absent",
+    [
+        ("detect", ["detections.csv"], ["trajectory_pnp.tum"]),
+        (
+            "localize",
+            ["trajectory_paper.tum", "trajectory_pnp.tum", "loads_pnp.csv", "load_observations_pnp.csv"],
+            ["trajectory_smoother.tum"],
+        ),
+        (
+            "smooth",
+            [
+                "trajectory_smoother.tum",
+                "trajectory_incremental.tum",
+                "trajectory_ekf.tum",
+                "sigmas_smoother.csv",
+                "loads_smoother.csv",
+                "loads_ekf.csv",
+            ],
+            ["report.md"],
+        ),
+    ],
+)
 def test_stage_commands(tmp_path, stage, expect, absent):
     out = tmp_path / stage
     assert main([stage, str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1"]) == 0
@@ -78,8 +96,9 @@ def _copy_sample(tmp_path, drop):
 
 
 def test_run_without_front_camera_imu_or_groundtruth(tmp_path, capsys):
-    log = _copy_sample(tmp_path, ["mav0/cam1", "mav0/imu0", "mav0/state_groundtruth_estimate0",
-                                  "loads_groundtruth.csv"])
+    log = _copy_sample(
+        tmp_path, ["mav0/cam1", "mav0/imu0", "mav0/state_groundtruth_estimate0", "loads_groundtruth.csv"]
+    )
     out = tmp_path / "out"
     assert main(["run", str(log), "--out", str(out), "--quiet", "--workers", "1"]) == 0
     text = capsys.readouterr().out
@@ -113,8 +132,22 @@ def test_bad_log_is_one_line_and_exit_1(tmp_path, capsys):
 
 
 def test_simulate_and_demo(tmp_path):
-    assert main(["simulate", str(tmp_path / "sim"), "--duration", "1.0", "--seed", "3",
-                 "--quiet", "--workers", "1"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(tmp_path / "sim"),
+                "--duration",
+                "1.0",
+                "--seed",
+                "3",
+                "--quiet",
+                "--workers",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "sim" / "mav0" / "cam0" / "data.csv").exists()
     assert main(["simulate", str(tmp_path / "sim"), "--duration", "1.0", "--quiet"]) == 1
     assert main(["simulate", str(tmp_path / "x"), "--scenario", "nope", "--quiet"]) == 1
@@ -138,8 +171,22 @@ def test_console_script_version():
 
 def test_smooth_tight_coupling(tmp_path):
     out = tmp_path / "tight"
-    assert main(["smooth", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--tight",
-                 "--no-incremental"]) == 0
+    assert (
+        main(
+            [
+                "smooth",
+                str(SAMPLE),
+                "--out",
+                str(out),
+                "--quiet",
+                "--workers",
+                "1",
+                "--tight",
+                "--no-incremental",
+            ]
+        )
+        == 0
+    )
     tight = read_tum(out / "trajectory_smoother.tum")
     raw = read_tum(out / "trajectory_pnp.tum")
     assert len(tight) > len(raw) > 0
@@ -148,14 +195,16 @@ def test_smooth_tight_coupling(tmp_path):
 def test_strict_exits_3_when_an_estimate_is_not_ok(tmp_path, capsys, monkeypatch):
     from fusion import pipeline
     from fusion.estimate import Health, Status
+
     out = tmp_path / "out"
     args = ["run", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--strict"]
-    assert main(args) == 0                          # the sample flight is healthy
-    monkeypatch.setattr(pipeline, "assess_result",
-                        lambda res, raw, **kw: Health(Status.DEGRADED, ["test: made degraded"]))
+    assert main(args) == 0  # the sample flight is healthy
+    monkeypatch.setattr(
+        pipeline, "assess_result", lambda res, raw, **kw: Health(Status.DEGRADED, ["test: made degraded"])
+    )
     assert main(args + ["--force"]) == 3
     text = capsys.readouterr()
     assert "health: smoother degraded: test: made degraded" in text.out
     assert "--strict" in text.err
-    assert main(args[:-1] + ["--force"]) == 0       # without --strict the run still succeeds
+    assert main(args[:-1] + ["--force"]) == 0  # without --strict the run still succeeds
     assert "degraded" in (out / "report.md").read_text().split("## Summary")[0]

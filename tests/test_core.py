@@ -1,4 +1,5 @@
 """Core model: payload grammar, camera model, world.yaml, SE(3) helpers."""
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -36,9 +37,27 @@ def test_payloads_parse():
     assert floor_payload(4.0, 7.0) == "0/4/7"
 
 
-@pytest.mark.parametrize("raw", ["", "0/1", "0/1/2/3", "0/a/b", "2/1/1", "1/", "1/ x", "1/a\nb",
-                                 "1/" + "x" * 65, "0/1/2" + " " * 200, b"\xff\xfe", 42, None,
-                                 "0/1e400/2", "0/nan/1", "http://evil/../../etc"])
+@pytest.mark.parametrize(
+    "raw",
+    [
+        "",
+        "0/1",
+        "0/1/2/3",
+        "0/a/b",
+        "2/1/1",
+        "1/",
+        "1/ x",
+        "1/a\nb",
+        "1/" + "x" * 65,
+        "0/1/2" + " " * 200,
+        b"\xff\xfe",
+        42,
+        None,
+        "0/1e400/2",
+        "0/nan/1",
+        "http://evil/../../etc",
+    ],
+)
 def test_bad_payloads_are_typed_errors(raw):
     with pytest.raises(PayloadError):
         parse_payload(raw)
@@ -87,8 +106,9 @@ def test_se3_and_quaternion_round_trips():
 
 
 def make_camera(dist=(-0.28, 0.07, 2e-4, -1e-4)):
-    return CameraModel(640, 480, 600.0, 601.0, 322.0, 241.0, np.array(dist),
-                       make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.03]))
+    return CameraModel(
+        640, 480, 600.0, 601.0, 322.0, 241.0, np.array(dist), make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.03])
+    )
 
 
 def test_camera_project_undistort_round_trip():
@@ -102,6 +122,7 @@ def test_camera_project_undistort_round_trip():
 
 def test_camera_project_matches_opencv():
     import cv2
+
     cam = make_camera()
     rng = np.random.default_rng(2)
     p = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(-0.7, 0.7, 50), rng.uniform(1.5, 3, 50)])

@@ -1,5 +1,6 @@
 """QR detection and sub-pixel corners on rendered frames (fusion.sim.render), flight detection,
 the detections.csv cache."""
+
 from __future__ import annotations
 
 import math
@@ -34,7 +35,7 @@ from fusion.sim.render import (
 )
 from fusion.world import World
 
-R_DOWN = np.diag([1.0, -1.0, -1.0])       # camera z = world -z (looking at the floor)
+R_DOWN = np.diag([1.0, -1.0, -1.0])  # camera z = world -z (looking at the floor)
 
 
 def _camera(distortion=(0.0, 0.0, 0.0, 0.0)) -> CameraModel:
@@ -43,6 +44,7 @@ def _camera(distortion=(0.0, 0.0, 0.0, 0.0)) -> CameraModel:
 
 def _pose(yaw: float, xy=(0.0, 0.0), height=0.8, tilt=(0.0, 0.0)) -> np.ndarray:
     from scipy.spatial.transform import Rotation
+
     R_tilt = Rotation.from_euler("xy", tilt).as_matrix()
     return make_T(rot_z(yaw) @ R_tilt @ R_DOWN, [xy[0], xy[1], height])
 
@@ -53,8 +55,9 @@ def _code(payload: str, side_m: float = 0.2, xy=(0.0, 0.0)) -> PlacedCode:
 
 def _render(camera, T_world_cam, codes, seed=0, noise=0.0, blur=0.0):
     rng = np.random.default_rng(seed)
-    img = render_view(camera, T_world_cam, codes, rng,
-                      RenderEffects(noise_sigma_dn=noise, blur_px=blur, blur_angle_rad=0.7))
+    img = render_view(
+        camera, T_world_cam, codes, rng, RenderEffects(noise_sigma_dn=noise, blur_px=blur, blur_angle_rad=0.7)
+    )
     truth = {c.payload: project_code_corners(camera, T_world_cam, c) for c in codes}
     return img, truth
 
@@ -89,15 +92,19 @@ def test_refined_corners_within_a_fraction_of_a_pixel_on_clean_renders():
     codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.35, 0.2)
     err_raw, err_ref = [], []
     for _ in range(6):
-        T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(0.0, 0.35, 2), rng.uniform(0.7, 1.3),
-                  rng.normal(0.0, 0.12, 2))
+        T = _pose(
+            rng.uniform(-np.pi, np.pi),
+            rng.uniform(0.0, 0.35, 2),
+            rng.uniform(0.7, 1.3),
+            rng.normal(0.0, 0.12, 2),
+        )
         img, truth = _render(camera, T, codes, noise=0.5)
         for d in detect_frame(img, "cam0", 0, camera):
             err_raw.append(np.linalg.norm(d.corners_raw_px - truth[d.payload], axis=1))
             err_ref.append(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))
     err_raw, err_ref = np.array(err_raw), np.array(err_ref)
     assert len(err_ref) >= 10
-    assert err_ref.mean() < 0.1            # measured 0.02 px (raw zxing: 0.7-1.0 px)
+    assert err_ref.mean() < 0.1  # measured 0.02 px (raw zxing: 0.7-1.0 px)
     assert err_ref.max() < 0.25
     assert err_raw.mean() > 3 * err_ref.mean()
 
@@ -137,11 +144,10 @@ def test_finder_homography_improves_the_bottom_right_corner():
         img, truth = _render(camera, T, [_code("0/7/7", 0.2)], noise=1.0, seed=int(10 * yaw))
         [raw] = detect_image(img)
         for fh in err:
-            c = refine_code(img, raw.corners_px, raw.modules, camera,
-                            finder_homography=fh).corners_px
+            c = refine_code(img, raw.corners_px, raw.modules, camera, finder_homography=fh).corners_px
             err[fh].append(np.linalg.norm(c - truth["0/7/7"], axis=1))
     with_h, lines_only = np.array(err[True]), np.array(err[False])
-    assert with_h[:, 2].mean() < 0.75 * lines_only[:, 2].mean()     # measured 0.025 vs 0.038 px
+    assert with_h[:, 2].mean() < 0.75 * lines_only[:, 2].mean()  # measured 0.025 vs 0.038 px
     assert with_h.mean() < 0.03 and with_h.max() < 0.15
 
 
@@ -156,11 +162,19 @@ def _blurred_renders(blurs, n_per_blur, seed, noise=2.0):
     out = []
     for blur in blurs:
         for _ in range(n_per_blur):
-            T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2, 2), rng.uniform(0.9, 1.5),
-                      rng.normal(0.0, 0.05, 2))
-            img = render_view(camera, T, [code], rng,
-                              RenderEffects(noise_sigma_dn=noise, blur_px=blur,
-                                            blur_angle_rad=rng.uniform(0.0, np.pi)))
+            T = _pose(
+                rng.uniform(-np.pi, np.pi),
+                rng.uniform(-0.2, 0.2, 2),
+                rng.uniform(0.9, 1.5),
+                rng.normal(0.0, 0.05, 2),
+            )
+            img = render_view(
+                camera,
+                T,
+                [code],
+                rng,
+                RenderEffects(noise_sigma_dn=noise, blur_px=blur, blur_angle_rad=rng.uniform(0.0, np.pi)),
+            )
             truth = project_code_corners(camera, T, code)
             raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
             out.append((camera, img, raw, truth, code.modules, blur))
@@ -181,9 +195,9 @@ def test_motion_blur_does_not_push_the_corners_outwards():
         outward.append(np.sum((c - truth) * radial, axis=1))
         err.append(np.linalg.norm(c - truth, axis=1))
     outward, err = np.array(outward), np.array(err)
-    assert abs(outward.mean()) < 0.1          # measured +0.004 px
-    assert err.mean() < 0.2                   # measured 0.041 px
-    assert err[-6:].mean() < 0.2              # 8 px blur alone: measured 0.095 px
+    assert abs(outward.mean()) < 0.1  # measured +0.004 px
+    assert err.mean() < 0.2  # measured 0.041 px
+    assert err[-6:].mean() < 0.2  # 8 px blur alone: measured 0.095 px
 
 
 def test_refining_frames_together_equals_one_at_a_time():
@@ -201,7 +215,7 @@ def test_refining_frames_together_equals_one_at_a_time():
 
 
 def test_refinement_failure_gives_none():
-    img = np.full((120, 160), 200, np.uint8)          # nothing to fit
+    img = np.full((120, 160), 200, np.uint8)  # nothing to fit
     raw = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]])
     assert refine_code(img, raw, 21) is None
     assert refine_frames([img, img], [[(raw, 21)], []]) == [[None], []]
@@ -278,8 +292,9 @@ def test_parallel_equals_serial(flight):
     log = read_flight(flight)
     a = detect_flight(log, workers=1, progress=False)
     b = detect_flight(read_flight(flight), workers=2, progress=False, chunk_frames=1)
-    assert [(d.camera, d.timestamp_ns, d.payload) for d in a.detections] == \
-        [(d.camera, d.timestamp_ns, d.payload) for d in b.detections]
+    assert [(d.camera, d.timestamp_ns, d.payload) for d in a.detections] == [
+        (d.camera, d.timestamp_ns, d.payload) for d in b.detections
+    ]
     assert all(np.array_equal(x.corners_px, y.corners_px) for x, y in zip(a.detections, b.detections))
     assert a.stats == b.stats and a.skipped == b.skipped
 
@@ -292,17 +307,17 @@ def test_cache_round_trip_and_invalidation(tmp_path):
     again = detect_flight(read_flight(root), cache, workers=1, progress=False)
     assert again.from_cache
     assert again.stats == first.stats and again.skipped == first.skipped
-    assert [(d.camera, d.timestamp_ns, d.payload) for d in again.detections] == \
-        [(d.camera, d.timestamp_ns, d.payload) for d in first.detections]
+    assert [(d.camera, d.timestamp_ns, d.payload) for d in again.detections] == [
+        (d.camera, d.timestamp_ns, d.payload) for d in first.detections
+    ]
     for x, y in zip(first.detections, again.detections):
-        assert np.array_equal(x.corners_px, y.corners_px)          # repr() floats round-trip
+        assert np.array_equal(x.corners_px, y.corners_px)  # repr() floats round-trip
         assert np.array_equal(x.corners_raw_px, y.corners_raw_px)
         assert x.corner_sigma_px == y.corner_sigma_px and x.corner_sigma_px > 0
         assert np.array_equal(x.corner_cov_px2, y.corner_cov_px2)
         assert x.corner_cov_px2.shape == (8, 8)
     # another backend: recomputed
-    assert not detect_flight(read_flight(root), cache, backend="aruco", workers=1,
-                             progress=False).from_cache
+    assert not detect_flight(read_flight(root), cache, backend="aruco", workers=1, progress=False).from_cache
     # a changed data.csv (last frame dropped): recomputed, and the new counts are right
     detect_flight(read_flight(root), cache, workers=1, progress=False)
     csv_path = root / "mav0" / "cam0" / "data.csv"
@@ -340,15 +355,24 @@ def _calibration_renders(n, seed):
     out = []
     for i in range(n):
         code = _code(["0/2/5", "1/" + "x" * 20][i % 2], 0.3)
-        T = _pose(rng.uniform(-np.pi, np.pi), rng.uniform(-0.2, 0.2, 2), rng.uniform(0.8, 2.5),
-                  rng.normal(0.0, 0.08, 2))
+        T = _pose(
+            rng.uniform(-np.pi, np.pi),
+            rng.uniform(-0.2, 0.2, 2),
+            rng.uniform(0.8, 2.5),
+            rng.normal(0.0, 0.08, 2),
+        )
         blur = rng.uniform(0.0, 8.0)
-        img = render_view(camera, T, [code], rng,
-                          RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur,
-                                        blur_angle_rad=rng.uniform(0.0, np.pi)))
+        img = render_view(
+            camera,
+            T,
+            [code],
+            rng,
+            RenderEffects(
+                noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=blur, blur_angle_rad=rng.uniform(0.0, np.pi)
+            ),
+        )
         truth = project_code_corners(camera, T, code)
-        res = refine_code(img, np.round(truth + rng.normal(0.0, 0.7, truth.shape)), code.modules,
-                          camera)
+        res = refine_code(img, np.round(truth + rng.normal(0.0, 0.7, truth.shape)), code.modules, camera)
         if res is not None:
             out.append(((res.corners_px - truth).reshape(-1), res, blur))
     return out
@@ -368,11 +392,13 @@ def test_corner_covariance_is_calibrated_over_heights_blur_and_noise():
         nees.append(e @ np.linalg.solve(C, e))
         blur.append(b)
     nees, blur = np.array(nees), np.array(blur)
-    assert 0.7 * 8 <= nees.mean() <= 1.4 * 8, nees.mean()          # measured 7.3
+    assert 0.7 * 8 <= nees.mean() <= 1.4 * 8, nees.mean()  # measured 7.3
     for lo in (0, 4):
         sel = (blur >= lo) & (blur < lo + 4)
         assert 0.6 * 8 <= nees[sel].mean() <= 1.5 * 8, (lo, nees[sel].mean())
     # one homography: the corners' errors are correlated (largest |rho| per code 0.35-0.94)
-    rho = [np.max(np.abs(C / np.sqrt(np.outer(np.diag(C), np.diag(C))) - np.eye(8)))
-           for C in (res.corner_cov_px2 for _, res, _ in data)]
+    rho = [
+        np.max(np.abs(C / np.sqrt(np.outer(np.diag(C), np.diag(C))) - np.eye(8)))
+        for C in (res.corner_cov_px2 for _, res, _ in data)
+    ]
     assert np.median(rho) > 0.3

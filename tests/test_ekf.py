@@ -7,6 +7,7 @@ acceleration) with the simulator's IMU (Kalibr noise, random-walk biases); raw f
 Exp(n), n ~ N(0, C) with a PnP-like covariance, or the level-frame pose of a gimbaled floor
 camera (pnp.py: roll/pitch unobserved, (10 deg)^2).
 """
+
 from __future__ import annotations
 
 import math
@@ -32,12 +33,18 @@ SIGMA_ROT_RAD = math.radians(0.05)
 GIMBAL_SIGMA_RAD = math.radians(10.0)
 PAPER_SIGMA_YAW_RAD = math.radians(0.5)
 # a brisk survey (tilts of several degrees) whose yaw crosses +-pi twice (2.7 -> 3.7 -> 2.8 rad)
-WAYPOINTS = [(0.0, 0.0, 1.5, 2.7, 0.5), (3.0, 1.5, 1.8, 3.7), (5.0, -1.0, 1.2, 3.3),
-             (2.0, -2.0, 2.0, 2.8), (0.0, 1.0, 1.5, 3.6), (3.0, 2.0, 1.4, 3.0)]
+WAYPOINTS = [
+    (0.0, 0.0, 1.5, 2.7, 0.5),
+    (3.0, 1.5, 1.8, 3.7),
+    (5.0, -1.0, 1.2, 3.3),
+    (2.0, -2.0, 2.0, 2.8),
+    (0.0, 1.0, 1.5, 3.6),
+    (3.0, 2.0, 1.4, 3.0),
+]
 
 
 def pnp_cov() -> np.ndarray:
-    cov = np.diag([SIGMA_ROT_RAD ** 2] * 3 + [SIGMA_POS_M ** 2] * 3)
+    cov = np.diag([SIGMA_ROT_RAD**2] * 3 + [SIGMA_POS_M**2] * 3)
     c = 0.8 * SIGMA_ROT_RAD * SIGMA_POS_M
     cov[0, 4] = cov[4, 0] = -c
     cov[1, 3] = cov[3, 1] = c
@@ -62,11 +69,19 @@ def make_flight(seed=0, duration_s=12.0, fps=30.0, gimbaled=False, gaps=(), spee
     cams = make_cameras(mount=mount)
     if gimbaled:
         keep6 = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
-        cov = keep6 @ cov @ keep6 + np.diag([GIMBAL_SIGMA_RAD ** 2] * 2 + [0.0] * 4)
+        cov = keep6 @ cov @ keep6 + np.diag([GIMBAL_SIGMA_RAD**2] * 2 + [0.0] * 4)
         raw_T = level_frame(raw_T)
     raw = Trajectory("pnp", frame_t[keep], raw_T, np.repeat(cov[None], keep.sum(), 0))
-    return {"traj": traj, "frame_t": frame_t, "imu": imu, "raw": raw, "T_true": T_true, "rng": rng,
-            "floor": cams["cam0"], "front": cams["cam1"]}
+    return {
+        "traj": traj,
+        "frame_t": frame_t,
+        "imu": imu,
+        "raw": raw,
+        "T_true": T_true,
+        "rng": rng,
+        "floor": cams["cam0"],
+        "front": cams["cam1"],
+    }
 
 
 def errors(res, fl):
@@ -80,7 +95,7 @@ def errors(res, fl):
 def raw_rmse(fl) -> float:
     k = np.searchsorted(fl["frame_t"], fl["raw"].timestamps_ns)
     d = fl["raw"].positions_xyz - fl["T_true"][k, :3, 3]
-    return math.sqrt(np.mean(np.sum(d ** 2, axis=1)))
+    return math.sqrt(np.mean(np.sum(d**2, axis=1)))
 
 
 def rmse(x) -> float:
@@ -138,15 +153,22 @@ def test_gimbaled_front_camera_maps_loads(gimbaled_flight):
     for k in range(0, len(fl["frame_t"]), 3):
         p_cam = (inv_T(cam.T_world_cam(fl["T_true"][k])) @ np.r_[load, 1.0])[:3]
         if p_cam[2] > 0.3:
-            obs.append(LoadObservation(int(fl["frame_t"][k]), "L1", np.zeros(3), None,
-                                       p_cam + rng.standard_normal(3) * np.sqrt(np.diag(cov_cam)),
-                                       cov_cam))
+            obs.append(
+                LoadObservation(
+                    int(fl["frame_t"][k]),
+                    "L1",
+                    np.zeros(3),
+                    None,
+                    p_cam + rng.standard_normal(3) * np.sqrt(np.diag(cov_cam)),
+                    cov_cam,
+                )
+            )
     assert len(obs) > 20
     res = ekf(fl, floor_camera=fl["floor"], front_camera=cam, load_obs=obs)
     est = res.loads.by_id()["L1"]
     assert np.linalg.norm(est.p_world - load) < 0.01
     d = est.p_world - load
-    assert d @ np.linalg.solve(est.cov_world, d) < 16.3          # chi2(3) 99.9 %
+    assert d @ np.linalg.solve(est.cov_world, d) < 16.3  # chi2(3) 99.9 %
     rigid = make_cameras(mount="body_fixed")["cam1"]
     off = ekf(fl, floor_camera=fl["floor"], front_camera=rigid, load_obs=obs).loads.by_id()["L1"]
     assert np.linalg.norm(off.p_world - load) > 0.03
@@ -157,7 +179,7 @@ def test_gimbaled_front_camera_maps_loads(gimbaled_flight):
 
 def faulty(fl, kind):
     imu = fl["imu"]
-    if kind == "dead_band":          # true rates below 0.05 rad/s read 0
+    if kind == "dead_band":  # true rates below 0.05 rad/s read 0
         g = imu.gyro_rad_s.copy()
         g[np.abs(g) < 0.05] = 0.0
         imu.gyro_rad_s = g
@@ -197,13 +219,13 @@ def test_reset_after_blackout_with_dead_imu():
     assert res.stats["resets"] == 1
     pos, _ = errors(res, fl)
     t = res.trajectory.timestamps_ns * 1e-9
-    assert pos[(t > 4.0) & (t < 7.0)].max() > 10.0        # the blackout itself is lost
-    assert pos[t > 7.5].max() < 0.02                      # re-initialised within 0.5 s of the fixes
+    assert pos[(t > 4.0) & (t < 7.0)].max() > 10.0  # the blackout itself is lost
+    assert pos[t > 7.5].max() < 0.02  # re-initialised within 0.5 s of the fixes
     h = assess_result(res, fl["raw"])
     assert h.status != Status.OK and h.resets == 1
     locked = ekf(fl, recovery=EkfRecovery(enabled=False))
     pos_l, _ = errors(locked, fl)
-    assert pos_l[t > 7.5].min() > 10.0                    # the plain gate never comes back
+    assert pos_l[t > 7.5].min() > 10.0  # the plain gate never comes back
     assert assess_result(locked, fl["raw"]).status == Status.DIVERGED
 
 
@@ -261,7 +283,7 @@ def test_huber_inflation_downweights_outliers():
     e_h, e_p = rmse(errors(huber, fl)[0]), rmse(errors(plain, fl)[0])
     assert huber.stats["rejected_pose_factors"] >= 0.8 * len(bad)
     assert huber.stats["inflated_updates"] == 0 and huber.stats["resets"] == 0
-    assert e_h < 0.0025              # 1.8 mm measured; 3.6 mm without the inflation
+    assert e_h < 0.0025  # 1.8 mm measured; 3.6 mm without the inflation
     assert e_h < 0.6 * e_p
 
 
@@ -271,6 +293,7 @@ def _capture_update(f: _Ekf):
 
     def rec(z, H, hx, Rm, residual=np.subtract):
         seen.update(z=z, H=H, hx=hx)
+
     f._update = rec
     return seen
 
@@ -301,11 +324,11 @@ def test_velocity_update_jacobian_matches_numerical():
             s2 = _capture_update(f)
             f.update_body_velocity(np.zeros(3), 0.1)
             vals.append(s2["hx"])
-        np.testing.assert_allclose((vals[0] - vals[1]) / (2 * h), H[:, i], atol=1e-6,
-                                   err_msg=f"column {i}")
+        np.testing.assert_allclose((vals[0] - vals[1]) / (2 * h), H[:, i], atol=1e-6, err_msg=f"column {i}")
     f.R, f.p, f.v = base
-    np.testing.assert_allclose(hx, inv_T(T_bi)[:3, :3].T @ f.R.T @ (
-        f.v + f.R @ np.cross(f.omega, inv_T(T_bi)[:3, 3])))
+    np.testing.assert_allclose(
+        hx, inv_T(T_bi)[:3, :3].T @ f.R.T @ (f.v + f.R @ np.cross(f.omega, inv_T(T_bi)[:3, 3]))
+    )
 
 
 def test_velocity_updates_track_truth_without_imu():
@@ -315,12 +338,16 @@ def test_velocity_updates_track_truth_without_imu():
     vel = synthesize_velocity(fl["traj"], 30.0, 0.02, np.random.default_rng(1))
     raw = fl["raw"]
     sel = np.arange(0, len(raw), 15)
-    fl["raw"] = Trajectory("pnp", raw.timestamps_ns[sel], raw.T_world_body[sel],
-                           raw.covariances[sel])
+    fl["raw"] = Trajectory("pnp", raw.timestamps_ns[sel], raw.T_world_body[sel], raw.covariances[sel])
     res = run_ekf(fl["frame_t"], None, fl["raw"], [], velocity=vel)
     pos, _ = errors(res, fl)
-    no_vel = run_ekf(fl["frame_t"], None, fl["raw"], [],
-                     velocity=VelocityData(vel.timestamps_ns[:2], vel.v_body_m_s[:2], 0.02))
+    no_vel = run_ekf(
+        fl["frame_t"],
+        None,
+        fl["raw"],
+        [],
+        velocity=VelocityData(vel.timestamps_ns[:2], vel.v_body_m_s[:2], 0.02),
+    )
     assert rmse(pos) < 0.03
     assert rmse(pos) < 0.5 * rmse(errors(no_vel, fl)[0])
 
@@ -373,7 +400,7 @@ def test_inlier_mask_works_in_time_across_a_20s_gap():
     ok = inlier_raw_mask(raw, cfg, frame_t)
     assert not ok[bad]
     assert ok.sum() == len(idx) - 1
-    ok_frames = inlier_raw_mask(raw, cfg)          # frame-index window: also in time
+    ok_frames = inlier_raw_mask(raw, cfg)  # frame-index window: also in time
     assert ok_frames.sum() == len(idx) - 1
 
 

@@ -5,6 +5,7 @@ with analytic acceleration; body rate by a central difference of the analytic ro
 ~1e-10 rad/s); specific force f = R^T (a - g).  Raw poses = truth * Exp(n), n ~ N(0, cov) with
 a stated (correlated) covariance; blackouts = intervals with no raw pose.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,7 @@ from fusion.estimate import (
     smooth_incremental,
     write_sigmas_csv,
 )
-from fusion.estimate import graph as G
+from fusion.estimate import factors
 from fusion.estimate.common import RawPoseInput, TightCoupling
 from fusion.geometry import inv_T, make_T, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, ImuNoise, VelocityData
@@ -41,8 +42,7 @@ FRONT_CAM = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, T_body_cam=T_BODY_
 
 
 def front_camera(T_body_cam: np.ndarray, mount: Mount = Mount.BODY_FIXED) -> CameraModel:
-    return CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, T_body_cam=T_body_cam,
-                       mount=str(mount))
+    return CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, T_body_cam=T_body_cam, mount=str(mount))
 
 
 # =========================================================================== synthetic flight
@@ -56,7 +56,7 @@ def truth_state(t: np.ndarray):
     ph = np.array([0.0, 0.5, 1.0])
     p = A * np.sin(w * t[:, None] + ph) + np.array([2.0, 3.0, 1.5])
     v = A * w * np.cos(w * t[:, None] + ph)
-    a = -A * w ** 2 * np.sin(w * t[:, None] + ph)
+    a = -A * w**2 * np.sin(w * t[:, None] + ph)
     R = rot(t)
     T = np.tile(np.eye(4), (len(t), 1, 1))
     T[:, :3, :3] = R
@@ -86,12 +86,21 @@ class Flight:
     v_true: np.ndarray
     loads_true: dict
     load_obs: list
-    gap_mask: np.ndarray      # frames inside a blackout
+    gap_mask: np.ndarray  # frames inside a blackout
 
 
-def make_flight(seed=0, duration_s=20.0, frame_hz=30.0, imu_hz=200.0, gaps=((8.0, 10.0),),
-                sigma_rot_rad=math.radians(0.05), sigma_pos_m=0.002, imu_noise=ImuNoise(),
-                bias_acc=(0.05, -0.03, 0.02), bias_gyr=(0.002, -0.001, 0.0015)) -> Flight:
+def make_flight(
+    seed=0,
+    duration_s=20.0,
+    frame_hz=30.0,
+    imu_hz=200.0,
+    gaps=((8.0, 10.0),),
+    sigma_rot_rad=math.radians(0.05),
+    sigma_pos_m=0.002,
+    imu_noise=ImuNoise(),
+    bias_acc=(0.05, -0.03, 0.02),
+    bias_gyr=(0.002, -0.001, 0.0015),
+) -> Flight:
     rng = np.random.default_rng(seed)
     frame_t = np.round(np.arange(0.0, duration_s, 1.0 / frame_hz) * 1e9).astype(np.int64) + 10**9
     imu_t = np.round(np.arange(-0.1, duration_s + 0.1, 1.0 / imu_hz) * 1e9).astype(np.int64) + 10**9
@@ -103,8 +112,14 @@ def make_flight(seed=0, duration_s=20.0, frame_hz=30.0, imu_hz=200.0, gaps=((8.0
     w = body_rate(ts)
     dt = 1.0 / imu_hz
     n = len(ts)
-    acc = f + np.asarray(bias_acc) + rng.normal(size=(n, 3)) * imu_noise.accelerometer_noise_density / math.sqrt(dt)
-    gyr = w + np.asarray(bias_gyr) + rng.normal(size=(n, 3)) * imu_noise.gyroscope_noise_density / math.sqrt(dt)
+    acc = (
+        f
+        + np.asarray(bias_acc)
+        + rng.normal(size=(n, 3)) * imu_noise.accelerometer_noise_density / math.sqrt(dt)
+    )
+    gyr = (
+        w + np.asarray(bias_gyr) + rng.normal(size=(n, 3)) * imu_noise.gyroscope_noise_density / math.sqrt(dt)
+    )
     imu = ImuData(imu_t, gyr, acc, imu_noise, np.eye(4), imu_hz)
 
     fs = frame_t * 1e-9 - 1.0
@@ -117,7 +132,7 @@ def make_flight(seed=0, duration_s=20.0, frame_hz=30.0, imu_hz=200.0, gaps=((8.0
         gap_mask |= (fs >= g0) & (fs < g1)
     keep = ~gap_mask
     # correlated PnP-like covariance: roll <-> y shift, pitch <-> x shift
-    cov = np.diag([sigma_rot_rad ** 2] * 3 + [sigma_pos_m ** 2] * 3)
+    cov = np.diag([sigma_rot_rad**2] * 3 + [sigma_pos_m**2] * 3)
     c = 0.8 * sigma_rot_rad * sigma_pos_m
     cov[0, 4] = cov[4, 0] = -c
     cov[1, 3] = cov[3, 1] = c
@@ -128,8 +143,11 @@ def make_flight(seed=0, duration_s=20.0, frame_hz=30.0, imu_hz=200.0, gaps=((8.0
         raw_T.append(T_true[k] @ gtsam.Pose3.Expmap(xi).matrix())
     raw = Trajectory("pnp", frame_t[keep], np.array(raw_T), np.repeat(cov[None], keep.sum(), 0))
 
-    loads_true = {"A1": np.array([4.0, 3.0, 1.2]), "B7": np.array([3.0, 5.0, 2.0]),
-                  "C3": np.array([0.0, 2.0, 1.0])}
+    loads_true = {
+        "A1": np.array([4.0, 3.0, 1.2]),
+        "B7": np.array([3.0, 5.0, 2.0]),
+        "C3": np.array([0.0, 2.0, 1.0]),
+    }
     cov_cam = np.diag([0.01, 0.01, 0.02]) ** 2
     Lcam = np.linalg.cholesky(cov_cam)
     obs = []
@@ -176,15 +194,14 @@ def test_position_yaw_jacobian_matches_numerical():
     for _ in range(5):
         pose = _rand_pose(rng)
         p_meas, yaw_meas = rng.normal(size=3), rng.uniform(-3, 3)
-        _, H = G.position_yaw_error(p_meas, yaw_meas, pose, True)
-        Hn = numericalDerivative11(lambda x: G.position_yaw_error(p_meas, yaw_meas, x, False)[0],
-                                   pose)
+        _, H = factors.position_yaw_error(p_meas, yaw_meas, pose, True)
+        Hn = numericalDerivative11(lambda x: factors.position_yaw_error(p_meas, yaw_meas, x, False)[0], pose)
         np.testing.assert_allclose(H, Hn, atol=1e-6)
 
 
 def test_yaw_residual_wraps_around():
     pose = gtsam.Pose3(gtsam.Rot3.Yaw(math.pi - 0.01), np.zeros(3))
-    e, _ = G.position_yaw_error(np.zeros(3), -math.pi + 0.01, pose, False)
+    e, _ = factors.position_yaw_error(np.zeros(3), -math.pi + 0.01, pose, False)
     assert abs(e[3] + 0.02) < 1e-9
 
 
@@ -192,8 +209,8 @@ def test_body_velocity_jacobians_match_numerical():
     rng = np.random.default_rng(3)
     for _ in range(5):
         pose, v, vm = _rand_pose(rng), rng.normal(size=3), rng.normal(size=3)
-        _, Hx, Hv = G.body_velocity_error(vm, pose, v, True)
-        f = lambda x, vv: G.body_velocity_error(vm, x, vv, False)[0]
+        _, Hx, Hv = factors.body_velocity_error(vm, pose, v, True)
+        f = lambda x, vv: factors.body_velocity_error(vm, x, vv, False)[0]
         np.testing.assert_allclose(Hx, numericalDerivative21(f, pose, v), atol=1e-6)
         np.testing.assert_allclose(Hv, numericalDerivative22(f, pose, v), atol=1e-6)
 
@@ -203,8 +220,8 @@ def test_load_jacobians_match_numerical():
     for _ in range(5):
         pose, l, pm = _rand_pose(rng), rng.normal(size=3) * 3, rng.normal(size=3)
         cam = front_camera(_rand_pose(rng).matrix())
-        _, Hx, Hl = G.load_error(pm, cam, pose, l, True)
-        f = lambda x, ll: G.load_error(pm, cam, x, ll, False)[0]
+        _, Hx, Hl = factors.load_error(pm, cam, pose, l, True)
+        f = lambda x, ll: factors.load_error(pm, cam, x, ll, False)[0]
         np.testing.assert_allclose(Hx, numericalDerivative21(f, pose, l), atol=1e-6)
         np.testing.assert_allclose(Hl, numericalDerivative22(f, pose, l), atol=1e-6)
 
@@ -213,23 +230,25 @@ def test_load_error_zero_at_truth():
     rng = np.random.default_rng(5)
     pose, T_bc, l = _rand_pose(rng), _rand_pose(rng).matrix(), rng.normal(size=3)
     p_cam = (inv_T(pose.matrix() @ T_bc) @ np.r_[l, 1])[:3]
-    e, _, _ = G.load_error(p_cam, front_camera(T_bc), pose, l, False)
+    e, _, _ = factors.load_error(p_cam, front_camera(T_bc), pose, l, False)
     np.testing.assert_allclose(e, 0, atol=1e-12)
 
 
 def test_constant_velocity_jacobians_match_numerical():
     rng = np.random.default_rng(6)
     p0, p1, v0, v1 = _rand_pose(rng), _rand_pose(rng), rng.normal(size=3), rng.normal(size=3)
-    _, H = G.constant_velocity_error(0.1, p0, p1, v0, v1, True)
+    _, H = factors.constant_velocity_error(0.1, p0, p1, v0, v1, True)
     from gtsam.utils.numerical_derivative import (
         numericalDerivative41,
         numericalDerivative42,
         numericalDerivative43,
         numericalDerivative44,
     )
-    f = lambda a, b, c, d: G.constant_velocity_error(0.1, a, b, c, d, False)[0]
-    for Hi, nd in zip(H, (numericalDerivative41, numericalDerivative42, numericalDerivative43,
-                          numericalDerivative44)):
+
+    f = lambda a, b, c, d: factors.constant_velocity_error(0.1, a, b, c, d, False)[0]
+    for Hi, nd in zip(
+        H, (numericalDerivative41, numericalDerivative42, numericalDerivative43, numericalDerivative44)
+    ):
         np.testing.assert_allclose(Hi, nd(f, p0, p1, v0, v1), atol=1e-6)
 
 
@@ -237,12 +256,12 @@ def test_custom_factor_linearizes_with_our_jacobian():
     """The CustomFactor wrapper passes the Jacobian through (compare with the function)."""
     rng = np.random.default_rng(7)
     pose, v = _rand_pose(rng), rng.normal(size=3)
-    f = G.body_velocity_factor(0, np.zeros(3), 1.0)
+    f = factors.body_velocity_factor(0, np.zeros(3), 1.0)
     vals = gtsam.Values()
-    vals.insert(G.X(0), pose)
-    vals.insert(G.V(0), v)
+    vals.insert(factors.X(0), pose)
+    vals.insert(factors.V(0), v)
     A, b = f.linearize(vals).jacobian()
-    _, Hx, Hv = G.body_velocity_error(np.zeros(3), pose, v, True)
+    _, Hx, Hv = factors.body_velocity_error(np.zeros(3), pose, v, True)
     np.testing.assert_allclose(A, np.hstack([Hx, Hv]), atol=1e-12)
 
 
@@ -256,7 +275,7 @@ def test_smoother_beats_raw(flight, smoothed):
     fused_rmse = np.sqrt(np.mean(fused[k_raw] ** 2))
     assert fused_rmse < 0.6 * raw_rmse, (fused_rmse, raw_rmse)
     yaw_err = wrap_angle(smoothed.trajectory.yaw_rad - yaw_of(flight.T_true[:, :3, :3]))
-    assert np.degrees(np.sqrt(np.mean(yaw_err ** 2))) < 0.1
+    assert np.degrees(np.sqrt(np.mean(yaw_err**2))) < 0.1
 
 
 def test_smoother_bridges_2s_gap(flight, smoothed):
@@ -277,7 +296,7 @@ def test_smoother_maps_loads(flight, smoothed):
         d = est[lid].p_world - l
         assert np.linalg.norm(d) < 0.01
         assert est[lid].cov_world.shape == (3, 3)
-        assert d @ np.linalg.solve(est[lid].cov_world, d) < 20.0   # chi2(3) 99.98 %
+        assert d @ np.linalg.solve(est[lid].cov_world, d) < 20.0  # chi2(3) 99.98 %
 
 
 def test_smoother_stats(smoothed):
@@ -322,7 +341,7 @@ def test_paper_input_position_yaw_only():
     res = smooth(fl.frame_t, fl.imu, raw, [], FRONT_CAM, config=cfg)
     assert res.stats["raw_pose_input"] is RawPoseInput.POSITION_YAW
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
-    assert np.sqrt(np.mean(err ** 2)) < 0.01
+    assert np.sqrt(np.mean(err**2)) < 0.01
     # roll / pitch recovered from gravity although the raw poses say 0
     R_err = np.einsum("nji,njk->nik", res.trajectory.T_world_body[:, :3, :3], fl.T_true[:, :3, :3])
     ang = np.degrees(np.linalg.norm(Rotation.from_matrix(R_err).as_rotvec(), axis=1))
@@ -339,8 +358,7 @@ def test_velocity_only_mode():
 
 
 def test_imu_with_velocity_factors(flight):
-    res = smooth(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM,
-                 velocity=flight.velocity)
+    res = smooth(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM, velocity=flight.velocity)
     assert res.stats["velocity_factors"] == len(flight.frame_t)
     err = pos_err(res.trajectory.T_world_body, flight.T_true)
     assert err[flight.gap_mask].max() < 0.02
@@ -348,8 +366,14 @@ def test_imu_with_velocity_factors(flight):
 
 def test_imu_offset_body_P_sensor_is_honoured():
     """The same motion measured by an IMU rotated and offset from the body frame."""
-    fl = make_flight(seed=6, duration_s=8.0, gaps=((3.0, 5.0),), imu_noise=ImuNoise(),
-                     bias_acc=(0, 0, 0), bias_gyr=(0, 0, 0))
+    fl = make_flight(
+        seed=6,
+        duration_s=8.0,
+        gaps=((3.0, 5.0),),
+        imu_noise=ImuNoise(),
+        bias_acc=(0, 0, 0),
+        bias_gyr=(0, 0, 0),
+    )
     R_bi = Rotation.from_euler("xyz", [0.1, -0.2, 1.2]).as_matrix()
     t_bi = np.array([0.05, -0.03, 0.02])
     T_bi = make_T(R_bi, t_bi)
@@ -372,8 +396,7 @@ def test_imu_offset_body_P_sensor_is_honoured():
 
 
 def test_incremental_is_causal_and_tracks(flight):
-    res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs,
-                             FRONT_CAM)
+    res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
     tr = res.trajectory
     k0 = res.stats["frames_before_first_fix"]
     np.testing.assert_array_equal(tr.timestamps_ns, flight.frame_t[k0:])
@@ -414,8 +437,7 @@ def test_ekf_paper_input_wraps_yaw():
         T[i, :3, :3] = Rotation.from_euler("z", yaw_of(T[i, :3, :3])).as_matrix()
     raw = Trajectory("paper", fl.raw.timestamps_ns, T, None)
     # world rotated by the flip: gravity unchanged (rotation about z); IMU unchanged (body frame)
-    res = run_ekf(fl.frame_t, fl.imu, raw, [],
-                  config=FusionConfig(paper_sigma_xyz_m=(0.003,) * 3))
+    res = run_ekf(fl.frame_t, fl.imu, raw, [], config=FusionConfig(paper_sigma_xyz_m=(0.003,) * 3))
     k0 = res.stats["frames_before_first_fix"]
     yaw_err = wrap_angle(res.trajectory.yaw_rad - yaw_of(T_true[k0:, :3, :3]))
     assert np.degrees(np.abs(yaw_err[30:])).max() < 1.0
@@ -461,26 +483,24 @@ def test_imu_gap_is_bridged_and_counted():
     imu = fl.imu
     t = imu.timestamps_ns * 1e-9 - 1.0
     keep = ~((t > 4.0) & (t < 4.5))
-    gapped = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep],
-                     imu.noise)
+    gapped = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep], imu.noise)
     res = smooth(fl.frame_t, gapped, fl.raw, [], FRONT_CAM)
     assert res.stats["imu_segments"] == 2
     assert 14 <= res.stats["bridged_intervals"] <= 17
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
-    assert np.sqrt(np.mean(err ** 2)) < 0.004
+    assert np.sqrt(np.mean(err**2)) < 0.004
 
 
 def test_imu_stops_early():
     fl = make_flight(seed=10, duration_s=10.0, gaps=())
     imu = fl.imu
     keep = imu.timestamps_ns < fl.frame_t[200]
-    short = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep],
-                    imu.noise)
+    short = ImuData(imu.timestamps_ns[keep], imu.gyro_rad_s[keep], imu.accel_m_s2[keep], imu.noise)
     res = smooth(fl.frame_t, short, fl.raw, [], FRONT_CAM, velocity=fl.velocity)
     assert res.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
     assert res.stats["imu_segments"] == 1
     err = pos_err(res.trajectory.T_world_body, fl.T_true)
-    assert np.sqrt(np.mean(err ** 2)) < 0.005
+    assert np.sqrt(np.mean(err**2)) < 0.005
     ekf = run_ekf(fl.frame_t, short, fl.raw, [], velocity=fl.velocity)
     assert len(ekf.trajectory) == len(fl.frame_t)
     assert ekf.stats["frames_outside_imu"] >= len(fl.frame_t) - 201
@@ -491,8 +511,9 @@ def test_raw_pose_off_frame_time_raises(flight):
     t = raw.timestamps_ns.copy()
     t[3] += 7_000_000
     with pytest.raises(EstimationError, match="pose 3"):
-        smooth(flight.frame_t, flight.imu, Trajectory("pnp", t, raw.T_world_body,
-                                                      raw.covariances), [], FRONT_CAM)
+        smooth(
+            flight.frame_t, flight.imu, Trajectory("pnp", t, raw.T_world_body, raw.covariances), [], FRONT_CAM
+        )
 
 
 def test_no_imu_no_velocity_raises(flight):
@@ -515,8 +536,7 @@ def test_write_sigmas_csv(tmp_path, smoothed):
     assert lines[0].startswith("t_ns,sigma_rx_rad")
     assert len(lines) == len(smoothed.trajectory) + 1
     vals = np.array([float(v) for v in lines[1].split(",")[1:]])
-    np.testing.assert_allclose(vals, np.sqrt(np.diag(smoothed.trajectory.covariances[0])),
-                               rtol=1e-5)
+    np.testing.assert_allclose(vals, np.sqrt(np.diag(smoothed.trajectory.covariances[0])), rtol=1e-5)
 
 
 # =========================================================================== speed-path equivalences
@@ -532,11 +552,11 @@ def test_load_factor_body_frame_equals_camera_frame_residual():
         p_cam = rng.normal(size=3)
         Lc = rng.normal(size=(3, 3)) * 0.01
         cov = Lc @ Lc.T + 1e-5 * np.eye(3)
-        f = G.load_factor(0, 0, p_cam, cov, cam, RobustKernel.NONE, 1.0)
+        f = factors.load_factor(0, 0, p_cam, cov, cam, RobustKernel.NONE, 1.0)
         vals = gtsam.Values()
-        vals.insert(G.X(0), pose)
-        vals.insert(G.L(0), l)
-        e, Hx, Hl = G.load_error(p_cam, cam, pose, l, True)
+        vals.insert(factors.X(0), pose)
+        vals.insert(factors.L(0), l)
+        e, Hx, Hl = factors.load_error(p_cam, cam, pose, l, True)
         info = np.linalg.inv(cov)
         np.testing.assert_allclose(f.error(vals), 0.5 * e @ info @ e, rtol=1e-9)
         A, b = f.linearize(vals).jacobian()
@@ -549,25 +569,28 @@ def test_load_factor_body_frame_equals_camera_frame_residual():
 def test_bulk_marginals_equal_gtsam(mode):
     from fusion.estimate.marginals import chain_marginals
     from fusion.estimate.smoother import build_problem, levenberg_marquardt
+
     fl = make_flight(seed=12, duration_s=6.0, gaps=((2.0, 3.0),))
     imu = None if mode == "velocity_only" else fl.imu
     pb = build_problem(fl.frame_t, imu, fl.raw, fl.load_obs, FRONT_CAM, fl.velocity)
     graph = pb.graph()
     values = levenberg_marquardt(graph, pb.initial).values
     lin = graph.linearize(values)
-    cov, lcov = chain_marginals(lin, len(fl.frame_t), imu is not None, len(pb.load_ids),
-                                work_mb=0.01, group=7)  # load chunks; 180 frames: 26 blocks, 2 pad
+    cov, lcov = chain_marginals(
+        lin, len(fl.frame_t), imu is not None, len(pb.load_ids), work_mb=0.01, group=7
+    )  # load chunks; 180 frames: 26 blocks, 2 pad
     marg = gtsam.Marginals(graph, values)
     for k in range(0, len(fl.frame_t), 7):
-        ref = marg.marginalCovariance(G.X(k))
+        ref = marg.marginalCovariance(factors.X(k))
         np.testing.assert_allclose(cov[k], ref, rtol=1e-7, atol=1e-7 * np.abs(ref).max())
     for j in range(len(pb.load_ids)):
-        ref = marg.marginalCovariance(G.L(j))
+        ref = marg.marginalCovariance(factors.L(j))
         np.testing.assert_allclose(lcov[j], ref, rtol=1e-7, atol=1e-7 * np.abs(ref).max())
 
 
 def test_blackout_initial_rotation_follows_gyro(flight):
     from fusion.estimate.smoother import build_problem
+
     pb = build_problem(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM)
     gap = np.flatnonzero(flight.gap_mask)
     R_err = np.einsum("nji,njk->nik", pb.T_init[gap, :3, :3], flight.T_true[gap, :3, :3])
@@ -578,8 +601,14 @@ def test_blackout_initial_rotation_follows_gyro(flight):
 def test_incremental_short_lag_recreates_loads(flight):
     """With a lag shorter than the time between sightings every load leaves the window and comes
     back as a new variable with its marginal as prior; the map stays accurate."""
-    res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs,
-                             FRONT_CAM, config=FusionConfig(incremental_lag_s=0.1))
+    res = smooth_incremental(
+        flight.frame_t,
+        flight.imu,
+        flight.raw,
+        flight.load_obs,
+        FRONT_CAM,
+        config=FusionConfig(incremental_lag_s=0.1),
+    )
     assert res.stats["load_generations"] > 10
     est = res.loads.by_id()
     assert set(est) == set(flight.loads_true)
@@ -593,12 +622,14 @@ def test_incremental_short_lag_recreates_loads(flight):
 # =========================================================================== tight coupling
 
 
-def floor_sightings(fl: Flight, camera, seed: int, sigma_px: float = 0.15,
-                    spacing_m: float = 0.6, side_m: float = 0.12) -> dict:
+def floor_sightings(
+    fl: Flight, camera, seed: int, sigma_px: float = 0.15, spacing_m: float = 0.6, side_m: float = 0.12
+) -> dict:
     """{frame timestamp_ns: [FloorSighting]}: floor codes on a grid, corners projected through
     the truth with N(0, sigma_px) pixel noise, at frames outside the blackouts."""
     from fusion.qr.codes import FloorSighting
     from fusion.types import QRDetection
+
     rng = np.random.default_rng(seed)
     half = side_m / 2
     offs = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
@@ -616,11 +647,11 @@ def floor_sightings(fl: Flight, camera, seed: int, sigma_px: float = 0.15,
                 if np.any(pc[:, 2] < 0.3):
                     continue
                 uv = camera.project(pc)
-                if np.all(np.isfinite(uv)) and np.all((uv > 5) & (uv < [camera.width - 5,
-                                                                        camera.height - 5])):
+                if np.all(np.isfinite(uv)) and np.all(
+                    (uv > 5) & (uv < [camera.width - 5, camera.height - 5])
+                ):
                     uv = uv + rng.normal(size=uv.shape) * sigma_px
-                    det = QRDetection("cam0", int(fl.frame_t[k]), f"0/{x:g}/{y:g}", uv, uv.round(),
-                                      sigma_px)
+                    det = QRDetection("cam0", int(fl.frame_t[k]), f"0/{x:g}/{y:g}", uv, uv.round(), sigma_px)
                     found.append(FloorSighting(det, None, np.array([x, y, 0.0]), P))
         if found:
             out[int(fl.frame_t[k])] = found
@@ -629,12 +660,21 @@ def floor_sightings(fl: Flight, camera, seed: int, sigma_px: float = 0.15,
 
 def test_tight_coupling_uses_corners_and_is_consistent():
     from fusion.sim.scenarios import make_cameras
+
     cam = make_cameras()["cam0"]
     fl = make_flight(seed=13, duration_s=6.0, gaps=((2.5, 3.5),))
     floor = floor_sightings(fl, cam, seed=14)
     loose = smooth(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM)
-    tight = smooth(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM,
-                   config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
+    tight = smooth(
+        fl.frame_t,
+        fl.imu,
+        fl.raw,
+        [],
+        FRONT_CAM,
+        config=FusionConfig(tight=True),
+        floor_frames=floor,
+        floor_camera=cam,
+    )
     assert tight.stats["tight"] is TightCoupling.ON and loose.stats["tight"] is TightCoupling.OFF
     assert tight.stats["corner_factors"] == len(floor) > 100
     assert tight.stats["pose_factors"] == len(fl.raw) - len(floor)
@@ -646,16 +686,31 @@ def test_tight_coupling_uses_corners_and_is_consistent():
     e = nees(tight.trajectory, fl.T_true)
     assert 0.5 * 6 < e.mean() < 2.0 * 6, e.mean()
     # the causal mode takes the same factors
-    inc = smooth_incremental(fl.frame_t, fl.imu, fl.raw, [], FRONT_CAM,
-                             config=FusionConfig(tight=True), floor_frames=floor, floor_camera=cam)
+    inc = smooth_incremental(
+        fl.frame_t,
+        fl.imu,
+        fl.raw,
+        [],
+        FRONT_CAM,
+        config=FusionConfig(tight=True),
+        floor_frames=floor,
+        floor_camera=cam,
+    )
     k0 = inc.stats["frames_before_first_fix"]
     err = pos_err(inc.trajectory.T_world_body, fl.T_true[k0:])
     assert np.sqrt(np.mean(err[30:][~fl.gap_mask[k0:][30:]] ** 2)) < 0.002
 
 
 def test_tight_without_sightings_falls_back(flight):
-    res = smooth(flight.frame_t[:90], flight.imu, Trajectory(
-        "pnp", flight.raw.timestamps_ns[:90], flight.raw.T_world_body[:90],
-        flight.raw.covariances[:90]), [], FRONT_CAM, config=FusionConfig(tight=True))
+    res = smooth(
+        flight.frame_t[:90],
+        flight.imu,
+        Trajectory(
+            "pnp", flight.raw.timestamps_ns[:90], flight.raw.T_world_body[:90], flight.raw.covariances[:90]
+        ),
+        [],
+        FRONT_CAM,
+        config=FusionConfig(tight=True),
+    )
     assert res.stats["tight"] is TightCoupling.NO_SIGHTINGS
     assert res.stats["pose_factors"] == 90

@@ -1,4 +1,5 @@
 """Evaluation: metrics on synthetic trajectories (seeded), evo interop, report and plots."""
+
 from __future__ import annotations
 
 import json
@@ -100,7 +101,7 @@ def test_yaw_wraps_around():
     a = M.associate(t, T_gt, est)
     y = M.yaw_errors(a)
     assert y.yaw_mae_deg == pytest.approx(2.0)
-    assert y.yaw_bias_deg == pytest.approx(2.0)   # +2 deg, not -358
+    assert y.yaw_bias_deg == pytest.approx(2.0)  # +2 deg, not -358
 
 
 def test_yaw_only_estimator_ignores_roll_pitch():
@@ -120,10 +121,12 @@ def test_blackout_split_and_duration_groups():
     gt = make_gt()
     est = sample(gt, every=1)
     t0 = int(gt.timestamps_ns[0])
-    blackouts = [(t0 + 2 * NS, t0 + 2 * NS + NS // 2, "floor"),     # 0.5 s
-                 (t0 + 5 * NS, t0 + 6 * NS, "floor"),               # 1 s
-                 (t0 + 10 * NS, t0 + 12 * NS, "floor"),             # 2 s
-                 (t0 + 14 * NS, t0 + 19 * NS, "floor")]             # 5 s
+    blackouts = [
+        (t0 + 2 * NS, t0 + 2 * NS + NS // 2, "floor"),  # 0.5 s
+        (t0 + 5 * NS, t0 + 6 * NS, "floor"),  # 1 s
+        (t0 + 10 * NS, t0 + 12 * NS, "floor"),  # 2 s
+        (t0 + 14 * NS, t0 + 19 * NS, "floor"),
+    ]  # 5 s
     inside = M.inside_intervals(est.timestamps_ns, blackouts)
     # error grows linearly inside each blackout: 1 cm per s since its start
     err = np.zeros(len(est))
@@ -141,8 +144,7 @@ def test_blackout_split_and_duration_groups():
     assert got == pytest.approx([0.005, 0.01, 0.02, 0.05])
     # an estimator silent inside the blackouts has no error there, and says so
     raw = Trajectory("raw", est.timestamps_ns[~inside], gt.T_world_body[::1][~inside])
-    m2 = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, raw, blackouts,
-                              coverage_tolerance_s=0.01)
+    m2 = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, raw, blackouts, coverage_tolerance_s=0.01)
     assert m2["blackouts"]["n_inside"] == 0
     assert all(g["n_with_estimates"] == 0 for g in m2["blackouts"]["by_duration"].values())
     # 8.5 s of 20 s blacked out, less 10 ms at each of the 8 blackout ends
@@ -154,12 +156,13 @@ def test_nees_of_samples_from_the_stated_covariance_is_near_dof():
     gt = make_gt(duration_s=20.0)
     est = sample(gt, every=2)
     n = len(est)
-    sig = np.array([0.01, 0.01, 0.03, 0.02, 0.02, 0.05])     # rad, rad, rad, m, m, m
+    sig = np.array([0.01, 0.01, 0.03, 0.02, 0.02, 0.05])  # rad, rad, rad, m, m, m
     A = rng.normal(size=(6, 6)) * 0.3 + np.eye(6)
-    P = (A * sig[:, None]) @ (A * sig[:, None]).T               # correlated, SPD
+    P = (A * sig[:, None]) @ (A * sig[:, None]).T  # correlated, SPD
     L = np.linalg.cholesky(P)
     xi = rng.normal(size=(n, 6)) @ L.T
     import gtsam
+
     for k in range(n):
         est.T_world_body[k] = est.T_world_body[k] @ gtsam.Pose3.Expmap(xi[k]).matrix()
     est.covariances = np.tile(P, (n, 1, 1))
@@ -176,28 +179,36 @@ def test_nees_of_samples_from_the_stated_covariance_is_near_dof():
 
 def test_se3_log_matches_gtsam():
     import gtsam
+
     rng = np.random.default_rng(7)
     for scale in (1e-7, 1e-3, 0.3, 2.0):
         xi = np.r_[rng.normal(size=3) * scale, rng.normal(size=3)]
         T = gtsam.Pose3.Expmap(xi).matrix()
-        np.testing.assert_allclose(M.se3_log(T[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T)),
-                                   atol=1e-9)
+        np.testing.assert_allclose(M.se3_log(T[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(T)), atol=1e-9)
 
 
 def test_load_map_errors_per_axis_and_nees():
-    loads_gt = {"A": np.array([1.0, 2.0, 1.0]), "B": np.array([4.0, 0.0, 2.0]),
-                "C": np.array([0.0, 5.0, 0.5])}
+    loads_gt = {
+        "A": np.array([1.0, 2.0, 1.0]),
+        "B": np.array([4.0, 0.0, 2.0]),
+        "C": np.array([0.0, 5.0, 0.5]),
+    }
     cov = np.diag([0.01, 0.02, 0.04]) ** 2
-    lm = LoadMap("pnp", [LoadEstimate("A", loads_gt["A"] + [0.01, 0.02, -0.04], cov, 5),
-                         LoadEstimate("B", loads_gt["B"] + [-0.01, 0.0, 0.02], None, 3),
-                         LoadEstimate("Z", np.zeros(3), None, 1)])
+    lm = LoadMap(
+        "pnp",
+        [
+            LoadEstimate("A", loads_gt["A"] + [0.01, 0.02, -0.04], cov, 5),
+            LoadEstimate("B", loads_gt["B"] + [-0.01, 0.0, 0.02], None, 3),
+            LoadEstimate("Z", np.zeros(3), None, 1),
+        ],
+    )
     r = M.load_map_errors(lm, loads_gt)
     assert r["n_mapped"] == 2 and r["missing_ids"] == ["C"] and r["extra_ids"] == ["Z"]
     assert r["axis"]["mae_x_cm"] == pytest.approx(1.0)
     assert r["axis"]["mae_y_cm"] == pytest.approx(1.0)
     assert r["axis"]["mae_z_cm"] == pytest.approx(3.0)
     assert r["mae_xyz_m"] == pytest.approx([0.01, 0.01, 0.03])
-    assert r["per_load"]["A"]["nees"] == pytest.approx(3.0)   # one sigma on each axis
+    assert r["per_load"]["A"]["nees"] == pytest.approx(3.0)  # one sigma on each axis
     assert r["per_load"]["B"]["nees"] is None
     assert r["nees_3dof"]["n"] == 1
 
@@ -207,9 +218,15 @@ def test_evaluate_is_json_ready_and_written_atomically(tmp_path):
     est = sample(gt)
     est.covariances = np.tile(np.eye(6) * 1e-4, (len(est), 1, 1))
     t0 = int(gt.timestamps_ns[0])
-    res = M.evaluate(gt, {"pnp": est, "smoother": est, "empty": Trajectory.empty("empty")},
-                     {"pnp": LoadMap("pnp", [])}, {"A": np.zeros(3)},
-                     [(t0 + NS, t0 + 2 * NS, "floor")], {"frames": 10}, align=True)
+    res = M.evaluate(
+        gt,
+        {"pnp": est, "smoother": est, "empty": Trajectory.empty("empty")},
+        {"pnp": LoadMap("pnp", [])},
+        {"A": np.zeros(3)},
+        [(t0 + NS, t0 + 2 * NS, "floor")],
+        {"frames": 10},
+        align=True,
+    )
     path = M.write_metrics(tmp_path / "metrics.json", res)
     back = json.loads(path.read_text())
     assert back["schema"] == M.SCHEMA and back["detection"] == {"frames": 10}
@@ -218,9 +235,20 @@ def test_evaluate_is_json_ready_and_written_atomically(tmp_path):
     assert back["load_maps"]["pnp"]["missing_ids"] == ["A"]
     assert not list(tmp_path.glob(".*part"))
     with pytest.raises(EvaluationError):
-        M.evaluate(GroundTruth(gt.timestamps_ns[:1], gt.p_world[:1], gt.q_world_body_wxyz[:1],
-                               gt.v_world[:1], gt.bias_gyro[:1], gt.bias_accel[:1]),
-                   {"pnp": est}, {}, None, None)
+        M.evaluate(
+            GroundTruth(
+                gt.timestamps_ns[:1],
+                gt.p_world[:1],
+                gt.q_world_body_wxyz[:1],
+                gt.v_world[:1],
+                gt.bias_gyro[:1],
+                gt.bias_accel[:1],
+            ),
+            {"pnp": est},
+            {},
+            None,
+            None,
+        )
 
 
 # ---------------------------------------------------------------------------- evo interop
@@ -249,15 +277,18 @@ def test_ate_equals_evo_ape(tmp_path):
     ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
     ape.process_data((ref_e, est_e))
     ours = M.trajectory_metrics(gt.timestamps_ns, gt.T_world_body, est, align=True)
-    assert ours["ate"]["ate_rmse_m"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.rmse),
-                                                      abs=1e-6)
-    assert ours["ate"]["ate_max_m"] == pytest.approx(ape.get_statistic(evo_metrics.StatisticsType.max),
-                                                     abs=1e-6)
+    assert ours["ate"]["ate_rmse_m"] == pytest.approx(
+        ape.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6
+    )
+    assert ours["ate"]["ate_max_m"] == pytest.approx(
+        ape.get_statistic(evo_metrics.StatisticsType.max), abs=1e-6
+    )
     # evo -a: SE(3) Umeyama alignment
     est_e.align(ref_e, correct_scale=False)
     ape.process_data((ref_e, est_e))
     assert ours["ate_aligned"]["ate_rmse_m"] == pytest.approx(
-        ape.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6)
+        ape.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6
+    )
 
 
 # ---------------------------------------------------------------------------- report and plots
@@ -279,26 +310,43 @@ def _run_outputs(seed: int = 5):
         e.T_world_body[:, :3, 3] += rng.normal(scale=0.01, size=(len(e), 3))
         trajs[name] = e
     loads_gt = {"A1": np.array([1.0, 4.5, 0.8]), "B2": np.array([3.0, 4.5, 1.2])}
-    lms = {"pnp": LoadMap("pnp", [LoadEstimate(k, v + 0.01, np.eye(3) * 1e-4, 4)
-                                  for k, v in loads_gt.items()])}
+    lms = {
+        "pnp": LoadMap("pnp", [LoadEstimate(k, v + 0.01, np.eye(3) * 1e-4, 4) for k, v in loads_gt.items()])
+    }
     return gt, trajs, lms, loads_gt, blackouts
 
 
 def test_report_with_groundtruth(tmp_path):
     from fusion.evaluate.report import write_report
+
     gt, trajs, lms, loads_gt, blackouts = _run_outputs()
     m = M.evaluate(gt, trajs, lms, loads_gt, blackouts, {"frames_floor": 80, "decoded": 75})
-    path = write_report(tmp_path, m, trajs, lms, gt, loads_gt, blackouts,
-                        {"log": "sim/flight", "duration_s": 8.0}, dpi=40)
+    path = write_report(
+        tmp_path, m, trajs, lms, gt, loads_gt, blackouts, {"log": "sim/flight", "duration_s": 8.0}, dpi=40
+    )
     text = path.read_text()
     assert path == tmp_path / "report.md"
-    for needle in ("| pnp | raw |", "| smoother | fused |", "0.83 | 0.32 | 2.95 | 1.08",
-                   "0.87 | 1.64 | 2.11", "Floor-code blackouts", "NEES", "`decoded` | 75",
-                   "ATE RMSE [cm]", "RPE 1 m"):
+    for needle in (
+        "| pnp | raw |",
+        "| smoother | fused |",
+        "0.83 | 0.32 | 2.95 | 1.08",
+        "0.87 | 1.64 | 2.11",
+        "Floor-code blackouts",
+        "NEES",
+        "`decoded` | 75",
+        "ATE RMSE [cm]",
+        "RPE 1 m",
+    ):
         assert needle in text, needle
     assert "No ground truth" not in text
-    for png in ("trajectories.png", "position_errors.png", "position_errors_zoom.png",
-                "error_boxplots.png", "load_map.png", "load_errors.png"):
+    for png in (
+        "trajectories.png",
+        "position_errors.png",
+        "position_errors_zoom.png",
+        "error_boxplots.png",
+        "load_map.png",
+        "load_errors.png",
+    ):
         assert (tmp_path / png).stat().st_size > 1000
         assert text.count(f"]({png})") == 1, png
         assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -308,15 +356,31 @@ def test_report_with_groundtruth(tmp_path):
     assert summary < text.index("](position_errors.png)") < text.index("## Localization")
     assert summary < text.index("](position_errors_zoom.png)") < text.index("## Localization")
     assert text.index("## Localization") < text.index("## Flight log")
-    head = text[summary:text.index("## Localization")]
+    head = text[summary : text.index("## Localization")]
     assert "| pnp | raw | " in head and "| smoother | fused | 100.0 |" in head
     assert "Best raw:" in head and "Best fused: smoother" in head
     # raw estimators have no pose in the blackout, the fused one covers all of it
     assert "| 1 | 2.00 | 1.00 | floor | no pose | no pose |" in text
     # every numeric column of every table names its unit (or is a count / name / ratio)
-    unitless = {"estimator", "kind", "poses", "#", "load id", "item", "value", "covariance",
-                "mapped/true", "loads mapped/true", "ids not in the truth", "observations",
-                "paper", "pnp", "smoother", "loads mapped", "poses inside"}
+    unitless = {
+        "estimator",
+        "kind",
+        "poses",
+        "#",
+        "load id",
+        "item",
+        "value",
+        "covariance",
+        "mapped/true",
+        "loads mapped/true",
+        "ids not in the truth",
+        "observations",
+        "paper",
+        "pnp",
+        "smoother",
+        "loads mapped",
+        "poses inside",
+    }
     lines = text.splitlines()
     headers = [h for h, nxt in zip(lines, lines[1:]) if nxt.startswith("|---")]
     assert len(headers) >= 8
@@ -327,18 +391,18 @@ def test_report_with_groundtruth(tmp_path):
 
 def test_report_without_groundtruth(tmp_path):
     from fusion.evaluate.report import write_report
+
     _, trajs, lms, _, _ = _run_outputs()
     m = M.evaluate(None, trajs, lms, None, None, {"frames_floor": 80})
     path = write_report(tmp_path, m, trajs, lms, None, None, None, {"log": "real/flight"}, dpi=40)
     text = path.read_text()
     assert "No ground truth" in text and "`frames_floor` | 80" in text
     assert "MAE x [cm]" not in text and "ATE" not in text
-    assert "| `A1` |" in text                      # the load map is listed
+    assert "| `A1` |" in text  # the load map is listed
     assert (tmp_path / "trajectories.png").exists() and (tmp_path / "load_map.png").exists()
-    assert (tmp_path / "position_sigma.png").exists()         # the smoother has covariances
+    assert (tmp_path / "position_sigma.png").exists()  # the smoother has covariances
     assert "](position_sigma.png)" in text and "longest gap [s]" in text
-    for png in ("position_errors.png", "position_errors_zoom.png", "error_boxplots.png",
-                "load_errors.png"):
+    for png in ("position_errors.png", "position_errors_zoom.png", "error_boxplots.png", "load_errors.png"):
         assert not (tmp_path / png).exists()
     # metrics None behaves the same
     path = write_report(tmp_path / "b", None, trajs, {}, None, None, None, {}, dpi=40)
@@ -347,6 +411,7 @@ def test_report_without_groundtruth(tmp_path):
 
 def test_estimator_colours_are_stable():
     from fusion.evaluate.plots import estimator_colour
+
     names = ("paper", "pnp", "smoother", "incremental", "ekf")
     assert len({estimator_colour(n) for n in names}) == 5
     assert estimator_colour("other") == estimator_colour("other")
@@ -371,56 +436,69 @@ def test_nonfinite_and_unsorted_estimates():
 
 def test_fmt_keeps_three_significant_digits():
     from fusion.evaluate.report import DASH, fmt
-    assert [fmt(v) for v in (15.3249, 0.31849, 0.0051249, 123.4, 26224.35, 0)] == \
-        ["15.3", "0.318", "0.00512", "123", "26224", "0"]
+
+    assert [fmt(v) for v in (15.3249, 0.31849, 0.0051249, 123.4, 26224.35, 0)] == [
+        "15.3",
+        "0.318",
+        "0.00512",
+        "123",
+        "26224",
+        "0",
+    ]
     assert fmt(0.0015, 100) == "0.150" and fmt(-2.5e-3, 100) == "-0.250"
     assert fmt(None) == DASH and fmt(float("nan")) == DASH and fmt("n/a") == "n/a"
-    assert fmt(1e-9) == "0.00000"                       # capped decimals, no exponent
+    assert fmt(1e-9) == "0.00000"  # capped decimals, no exponent
 
 
 def test_decimate_minmax_keeps_every_bin_extreme():
     from fusion.evaluate.plots import decimate_minmax
+
     rng = np.random.default_rng(3)
     y = rng.normal(size=100_003)
-    y[[17, 50_000, 99_999]] = [40.0, -35.0, 25.0]           # spikes that must survive
+    y[[17, 50_000, 99_999]] = [40.0, -35.0, 25.0]  # spikes that must survive
     i = decimate_minmax(y, 1000)
     assert len(i) <= 1002 and np.all(np.diff(i) > 0)
     assert {17, 50_000, 99_999} <= set(i.tolist())
     np.testing.assert_array_equal(decimate_minmax(y[:500], 1000), np.arange(500))
-    y[10:20] = np.nan                                        # NaN never chosen over a number
+    y[10:20] = np.nan  # NaN never chosen over a number
     assert np.all(np.isfinite(y[decimate_minmax(y, 1000)]))
 
 
 def test_zoom_limits_ignore_excluded_estimator_and_spikes():
     from fusion.evaluate.plots import zoom_limits_cm
+
     rng = np.random.default_rng(4)
-    fine = rng.normal(scale=0.05, size=(5000, 3))           # cm
-    fine[100] = [30.0, -30.0, 30.0]                          # one spike
+    fine = rng.normal(scale=0.05, size=(5000, 3))  # cm
+    fine[100] = [30.0, -30.0, 30.0]  # one spike
     lim = zoom_limits_cm([fine], [np.full((5000, 3), 0.1)])
-    assert np.all(lim < 0.5) and np.all(lim > 0.13)          # set by the bulk, not the spike
+    assert np.all(lim < 0.5) and np.all(lim > 0.13)  # set by the bulk, not the spike
     wide_sigma = np.full((5000, 3), 0.1)
-    wide_sigma[:1000] = 3.0                                  # a long blackout: 20 % of samples
+    wide_sigma[:1000] = 3.0  # a long blackout: 20 % of samples
     assert np.all(zoom_limits_cm([fine], [wide_sigma]) > 3.0)
 
 
 def test_load_rows_put_unseen_loads_last():
     from fusion.evaluate.plots import load_rows
+
     gt = {k: np.zeros(3) for k in ("A1", "A2", "B1", "B2")}
-    maps = {"pnp": LoadMap("pnp", [LoadEstimate("B1", np.zeros(3), None, 3),
-                                   LoadEstimate("ZZ", np.zeros(3), None, 1)]),
-            "smoother": LoadMap("smoother", [LoadEstimate("A2", np.zeros(3), None, 3)])}
+    maps = {
+        "pnp": LoadMap(
+            "pnp", [LoadEstimate("B1", np.zeros(3), None, 3), LoadEstimate("ZZ", np.zeros(3), None, 1)]
+        ),
+        "smoother": LoadMap("smoother", [LoadEstimate("A2", np.zeros(3), None, 3)]),
+    }
     assert load_rows(maps, gt) == (["A2", "B1", "A1", "B2"], 2)
     assert load_rows(maps, gt, max_unseen_rows=1) == (["A2", "B1", "2 loads not seen"], 2)
 
 
 def test_load_error_plot_and_boxplots_with_unseen_and_covariance_free_loads(tmp_path):
     from fusion.evaluate.plots import plot_error_boxplots, plot_load_errors
+
     gt, trajs, lms, loads_gt, _ = _run_outputs()
     loads_gt = dict(loads_gt, C3=np.array([5.0, 4.5, 2.0]))  # never seen
     lms["paper"] = LoadMap("paper", [LoadEstimate("A1", loads_gt["A1"] + 0.1, None, 2)])
     assert plot_load_errors(tmp_path / "e.png", lms, None) is None
     p = plot_load_errors(tmp_path / "e.png", lms, loads_gt, dpi=40)
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    p = plot_error_boxplots(tmp_path / "b.png", trajs, gt, load_maps=lms, loads_gt=loads_gt,
-                            dpi=40)
+    p = plot_error_boxplots(tmp_path / "b.png", trajs, gt, load_maps=lms, loads_gt=loads_gt, dpi=40)
     assert p.stat().st_size > 1000

@@ -1,4 +1,5 @@
 """fusion.estimate.health: the consistency monitor's statuses on runs whose truth is known."""
+
 from __future__ import annotations
 
 import math
@@ -34,7 +35,7 @@ def fused_from_truth(fl, sigma_pos=0.001, sigma_rot=SIGMA_ROT_RAD, seed=0, drift
     """A fused trajectory = truth * Exp(n) with a stated covariance; `drift` (m/s) moves it away
     from the truth linearly in time."""
     rng = np.random.default_rng(seed)
-    cov = np.diag([sigma_rot ** 2] * 3 + [sigma_pos ** 2] * 3)
+    cov = np.diag([sigma_rot**2] * 3 + [sigma_pos**2] * 3)
     xi = rng.multivariate_normal(np.zeros(6), cov, size=len(fl["frame_t"]))
     T = np.array([Tt @ gtsam.Pose3.Expmap(x).matrix() for Tt, x in zip(fl["T_true"], xi)])
     if drift is not None:
@@ -76,8 +77,7 @@ def test_iteration_limit_resets_and_inflation_degrade(healthy):
     assert assess(res.trajectory, fl["raw"], resets=2).status == Status.DEGRADED
     assert assess(res.trajectory, fl["raw"], inflated_fraction=0.2).status == Status.DEGRADED
     stats = dict(res.stats, iterations=100)
-    hit = assess_result(FusionResult(res.trajectory, LoadMap("ekf"), stats), fl["raw"],
-                        max_iterations=100)
+    hit = assess_result(FusionResult(res.trajectory, LoadMap("ekf"), stats), fl["raw"], max_iterations=100)
     assert hit.iteration_limit_hits == 1 and hit.status == Status.DEGRADED
 
 
@@ -130,13 +130,17 @@ def test_covariance_growth_and_coverage(healthy):
     fl, res = healthy
     tr = res.trajectory
     grown = Trajectory(tr.name, tr.timestamps_ns, tr.T_world_body, tr.covariances.copy())
-    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3)              # 1 m sigma once
+    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3)  # 1 m sigma once
     h = assess(grown, fl["raw"])
     assert h.status == Status.DEGRADED and h.max_sigma_m == pytest.approx(1.0)
-    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3) * 400.0      # 20 m
+    grown.covariances[len(tr) // 2, 3:, 3:] = np.eye(3) * 400.0  # 20 m
     assert assess(grown, fl["raw"]).status == Status.DIVERGED
-    half = Trajectory(tr.name, tr.timestamps_ns[len(tr) // 2:], tr.T_world_body[len(tr) // 2:],
-                      tr.covariances[len(tr) // 2:])
+    half = Trajectory(
+        tr.name,
+        tr.timestamps_ns[len(tr) // 2 :],
+        tr.T_world_body[len(tr) // 2 :],
+        tr.covariances[len(tr) // 2 :],
+    )
     h = assess(half, fl["raw"])
     assert h.status == Status.DEGRADED and h.coverage == pytest.approx(0.5, abs=0.01)
     assert assess(Trajectory.empty("ekf"), fl["raw"]).status == Status.DIVERGED

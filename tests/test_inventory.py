@@ -1,5 +1,6 @@
 """`fusion inventory`: manifest parsing and its bad input, the moved test's statistics, the
 field-of-view test, ambiguous ids, escaping, and the command end to end on the sample flight."""
+
 import csv
 import math
 import shutil
@@ -37,8 +38,7 @@ def _write(path: Path, text: str) -> Path:
 
 
 def test_plain_manifest_with_and_without_tolerance(tmp_path):
-    m = read_manifest(_write(tmp_path / "m.csv", "id,x_m,y_m,z_m,tolerance_m\n"
-                             "A,1,2,3,0.05\nB, 4 ,5,6,\n"))
+    m = read_manifest(_write(tmp_path / "m.csv", "id,x_m,y_m,z_m,tolerance_m\nA,1,2,3,0.05\nB, 4 ,5,6,\n"))
     assert [e.load_id for e in m] == ["A", "B"]
     np.testing.assert_allclose(m[1].p_world, [4, 5, 6])
     assert m[0].tolerance_m == 0.05 and m[1].tolerance_m == DEFAULT_TOLERANCE_M
@@ -46,27 +46,34 @@ def test_plain_manifest_with_and_without_tolerance(tmp_path):
 
 
 def test_wms_export_units_converted(tmp_path):
-    m = read_manifest(_write(tmp_path / "wms.csv", "\ufeffLocation;Pallet_ID;X;Y;Z;Unit;Tolerance\n"
-                             "A-01-01;PAL-1;1500;2700;700;mm;20\n"
-                             "A-01-02;PAL-2;150;270;140;CM;\n"
-                             "A-01-03;PAL-3;1.5;2.7;2.1;m;0.01\n"))
-    np.testing.assert_allclose([e.p_world for e in m], [[1.5, 2.7, 0.7], [1.5, 2.7, 1.4],
-                                                        [1.5, 2.7, 2.1]])
+    m = read_manifest(
+        _write(
+            tmp_path / "wms.csv",
+            "\ufeffLocation;Pallet_ID;X;Y;Z;Unit;Tolerance\n"
+            "A-01-01;PAL-1;1500;2700;700;mm;20\n"
+            "A-01-02;PAL-2;150;270;140;CM;\n"
+            "A-01-03;PAL-3;1.5;2.7;2.1;m;0.01\n",
+        )
+    )
+    np.testing.assert_allclose([e.p_world for e in m], [[1.5, 2.7, 0.7], [1.5, 2.7, 1.4], [1.5, 2.7, 2.1]])
     assert [e.location for e in m] == ["A-01-01", "A-01-02", "A-01-03"]
     assert m[0].tolerance_m == pytest.approx(0.02) and m[1].tolerance_m == DEFAULT_TOLERANCE_M
 
 
-@pytest.mark.parametrize("text, line, words", [
-    ("id,x_m,y_m,z_m\nA,1,2,3\nB,1,2,3\nA,4,5,6\n", 4, "duplicate id 'A' (first on line 2)"),
-    ("id,x_m,z_m\nA,1,2\n", 1, "missing column(s) y_m"),
-    ("id,x_m,y_m,z_m\nA,1,two,3\n", 2, "column y_m: 'two' is not a number"),
-    ("id,x_m,y_m,z_m\nA,1,2,nan\n", 2, "not finite"),
-    ("id,x_m,y_m,z_m\nA,1,2\n", 2, "expected 4 fields, found 3"),
-    ("id,x_m,y_m,z_m\n,1,2,3\n", 2, "empty id"),
-    ("id,x_m,y_m,z_m,tolerance_m\nA,1,2,3,-1\n", 2, "negative tolerance"),
-    ("location,pallet_id,x,y,z,unit\nL1,P1,1,2,3,m\nL2,P2,1,2,3,in\n", 3, "unit: 'in' is not one of"),
-    ("location,pallet_id,x,y,z\nL1,P1,1,2,3\n", 1, "missing column(s) unit"),
-])
+@pytest.mark.parametrize(
+    "text, line, words",
+    [
+        ("id,x_m,y_m,z_m\nA,1,2,3\nB,1,2,3\nA,4,5,6\n", 4, "duplicate id 'A' (first on line 2)"),
+        ("id,x_m,z_m\nA,1,2\n", 1, "missing column(s) y_m"),
+        ("id,x_m,y_m,z_m\nA,1,two,3\n", 2, "column y_m: 'two' is not a number"),
+        ("id,x_m,y_m,z_m\nA,1,2,nan\n", 2, "not finite"),
+        ("id,x_m,y_m,z_m\nA,1,2\n", 2, "expected 4 fields, found 3"),
+        ("id,x_m,y_m,z_m\n,1,2,3\n", 2, "empty id"),
+        ("id,x_m,y_m,z_m,tolerance_m\nA,1,2,3,-1\n", 2, "negative tolerance"),
+        ("location,pallet_id,x,y,z,unit\nL1,P1,1,2,3,m\nL2,P2,1,2,3,in\n", 3, "unit: 'in' is not one of"),
+        ("location,pallet_id,x,y,z\nL1,P1,1,2,3\n", 1, "missing column(s) unit"),
+    ],
+)
 def test_bad_manifest_one_line_error_naming_line(tmp_path, text, line, words):
     path = _write(tmp_path / "bad.csv", text)
     with pytest.raises(WarehouseError) as e:
@@ -99,7 +106,7 @@ def test_moved_test_false_alarm_rate_and_5cm_power():
     false = detected = 0
     for _ in range(n):
         cov = _random_cov(rng, 0.003)
-        S = cov + DEFAULT_TOLERANCE_M ** 2 * np.eye(3)
+        S = cov + DEFAULT_TOLERANCE_M**2 * np.eye(3)
         err = np.linalg.cholesky(S) @ rng.normal(size=3)
         false += moved_test(err, cov, np.zeros(3), DEFAULT_TOLERANCE_M)[3] < MOVED_ALPHA
         u = rng.normal(size=3)
@@ -111,7 +118,7 @@ def test_moved_test_false_alarm_rate_and_5cm_power():
 
 
 def test_moved_test_reports_distance_and_sigma_along_it():
-    cov = np.diag([0.01 ** 2, 0.02 ** 2, 0.03 ** 2])
+    cov = np.diag([0.01**2, 0.02**2, 0.03**2])
     dist, sigma, stat, p = moved_test(np.array([0.0, 0.1, 0.0]), cov, np.zeros(3), 0.0)
     assert dist == pytest.approx(0.1) and sigma == pytest.approx(0.02)
     assert stat == pytest.approx(25.0) and p < MOVED_ALPHA
@@ -124,13 +131,17 @@ def _hover_trajectory(x0, x1, n=30, y=1.5, z=1.4, yaw=math.pi / 2):
 
 
 def test_visibility_field_of_view_and_readable_range():
-    camera = make_cameras()["cam1"]                   # front camera, f = 550 px, 640x480
-    traj = _hover_trajectory(1.5, 1.5)                # hovering 1.2 m in front of the P face
-    pts = np.array([[1.5, 2.7, 1.4],                  # straight ahead: in view, 69 px
-                    [1.5, 0.5, 1.4],                  # behind the drone
-                    [1.5, 2.7, 0.7],                  # below the vertical field of view
-                    [1.5, 4.5, 1.4],                  # ahead but 3 m away: 27 px
-                    [3.0, 2.7, 1.4]])                 # 51 deg to the side: outside 60 deg FOV
+    camera = make_cameras()["cam1"]  # front camera, f = 550 px, 640x480
+    traj = _hover_trajectory(1.5, 1.5)  # hovering 1.2 m in front of the P face
+    pts = np.array(
+        [
+            [1.5, 2.7, 1.4],  # straight ahead: in view, 69 px
+            [1.5, 0.5, 1.4],  # behind the drone
+            [1.5, 2.7, 0.7],  # below the vertical field of view
+            [1.5, 4.5, 1.4],  # ahead but 3 m away: 27 px
+            [3.0, 2.7, 1.4],
+        ]
+    )  # 51 deg to the side: outside 60 deg FOV
     n, side = visibility(pts, traj, camera, 0.15)
     assert n.tolist() == [30, 0, 0, 0, 0]
     assert side[0] == pytest.approx(camera.fu * 0.15 / (1.2 - 0.12), rel=1e-3)
@@ -161,8 +172,7 @@ def test_escape_csv_and_markdown():
 @pytest.fixture(scope="module")
 def sample_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("inv") / "out"
-    assert main(["run", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1",
-                 "--no-incremental"]) == 0
+    assert main(["run", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--no-incremental"]) == 0
     return out
 
 
@@ -181,7 +191,7 @@ def _manifest(path: Path, loads: dict) -> Path:
 
 
 def test_run_writes_report_html_and_record(sample_run):
-    assert (sample_run / "report.html").stat().st_size > 1_000_000     # plotly.js embedded
+    assert (sample_run / "report.html").stat().st_size > 1_000_000  # plotly.js embedded
     assert "](report.html)" in (sample_run / "report.md").read_text(encoding="utf-8")
     assert (sample_run / "run.json").exists()
 
@@ -221,8 +231,7 @@ def test_inventory_ambiguous_from_raw_observations(sample_run, tmp_path):
     shutil.copytree(sample_run, run)
     path = run / "load_observations_pnp.csv"
     rows = list(csv.reader(open(path, encoding="utf-8")))
-    extra = [[r[0], r[1], f"{float(r[2]) + 1.0:.6f}", *r[3:]] for r in rows[1:]
-             if r[1] == "P-01-2"]
+    extra = [[r[0], r[1], f"{float(r[2]) + 1.0:.6f}", *r[3:]] for r in rows[1:] if r[1] == "P-01-2"]
     with open(path, "a", encoding="utf-8", newline="") as f:
         csv.writer(f).writerows(extra)
     res = run_inventory(run, _manifest(tmp_path / "m.csv", _truth()), write=False)
@@ -241,8 +250,7 @@ def test_inventory_log_option_and_no_record(sample_run, tmp_path):
     manifest = _manifest(tmp_path / "m.csv", {"PHANTOM": [2.5, 2.7, 1.4]})
     res = run_inventory(run, manifest, write=False)
     assert res.statuses()["PHANTOM"] == Status.NOT_SURVEYED and "front camera unknown" in res.notes[0]
-    assert main(["inventory", str(run), "--expected", str(manifest), "--log", str(SAMPLE),
-                 "-q"]) == 0
+    assert main(["inventory", str(run), "--expected", str(manifest), "--log", str(SAMPLE), "-q"]) == 0
     with open(run / "inventory.csv", encoding="utf-8") as f:
         rows = {r["id"]: r["status"] for r in csv.DictReader(f)}
     assert rows == {"PHANTOM": "missing", "P-01-2": "unexpected", "P-02-2": "unexpected"}

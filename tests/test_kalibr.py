@@ -1,5 +1,6 @@
 """Kalibr camchain-imucam.yaml / imu.yaml: the meaning of T_cam_imu and timeshift_cam_imu,
 round trips, bad files."""
+
 import numpy as np
 import pytest
 import yaml
@@ -52,7 +53,7 @@ def _orthonormalise(T):
 
 def test_camchain_meaning(tmp_path):
     data = yaml.safe_load(CAMCHAIN)
-    for k in ("cam0", "cam1"):      # the published numbers are orthonormal to 1e-9 only
+    for k in ("cam0", "cam1"):  # the published numbers are orthonormal to 1e-9 only
         data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
     path = tmp_path / "camchain-imucam.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -61,12 +62,11 @@ def test_camchain_meaning(tmp_path):
     c0 = cams["cam0"]
     assert c0.rostopic == "/cam0/image_raw" and c0.timeshift_ns == 2_100_000
     assert cams["cam1"].timeshift_ns == -500_000
-    assert (c0.camera.width, c0.camera.height, c0.camera.fu, c0.camera.cv) == (752, 480, 458.654,
-                                                                               248.375)
+    assert (c0.camera.width, c0.camera.height, c0.camera.fu, c0.camera.cv) == (752, 480, 458.654, 248.375)
     # T_cam_imu maps IMU-frame points into the camera: the IMU origin sits at its translation
     T_cam_imu = np.array(data["cam0"]["T_cam_imu"])
     p_cam_of_imu_origin = T_cam_imu[:3, 3]
-    T_body_cam = c0.camera.T_body_cam             # body = IMU here
+    T_body_cam = c0.camera.T_body_cam  # body = IMU here
     np.testing.assert_allclose(inv_T(T_body_cam)[:3, 3], p_cam_of_imu_origin, atol=1e-12)
     # with an FRD IMU (PX4) the body (FLU) pose composes: T_body_cam = T_FLU_FRD inv(T_cam_imu)
     c0_frd = read_camchain(path, T_FLU_FRD)["cam0"].camera
@@ -75,10 +75,31 @@ def test_camchain_meaning(tmp_path):
 
 def test_camchain_round_trip(tmp_path):
     rng = np.random.default_rng(4)
-    cams = {"cam0": CameraModel(640, 480, 500.0, 501.0, 320.5, 239.5, rng.normal(0, 0.01, 4),
-                                make_T(R_BODY_FLOORCAM, [0.01, 0.02, -0.03]), rate_hz=30.0),
-            "cam1": CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, np.zeros(4),
-                                make_T(rot_z(0.3), [0.1, 0, 0]), rate_hz=15.0, mount="gimbaled")}
+    cams = {
+        "cam0": CameraModel(
+            640,
+            480,
+            500.0,
+            501.0,
+            320.5,
+            239.5,
+            rng.normal(0, 0.01, 4),
+            make_T(R_BODY_FLOORCAM, [0.01, 0.02, -0.03]),
+            rate_hz=30.0,
+        ),
+        "cam1": CameraModel(
+            640,
+            480,
+            400.0,
+            400.0,
+            320.0,
+            240.0,
+            np.zeros(4),
+            make_T(rot_z(0.3), [0.1, 0, 0]),
+            rate_hz=15.0,
+            mount="gimbaled",
+        ),
+    }
     path = tmp_path / "c.yaml"
     T_bi = make_T(rot_z(0.1), [0.0, 0.01, 0.0])
     write_camchain(path, cams, {"cam0": "/a", "cam1": "/b"}, T_bi, {"cam1": 3_000_000})
@@ -86,8 +107,14 @@ def test_camchain_round_trip(tmp_path):
     for k, cam in cams.items():
         got = back[k].camera
         np.testing.assert_allclose(got.T_body_cam, cam.T_body_cam, atol=1e-14)
-        assert (got.fu, got.fv, got.cu, got.cv, got.rate_hz, got.mount) == \
-            (cam.fu, cam.fv, cam.cu, cam.cv, cam.rate_hz, cam.mount)
+        assert (got.fu, got.fv, got.cu, got.cv, got.rate_hz, got.mount) == (
+            cam.fu,
+            cam.fv,
+            cam.cu,
+            cam.cv,
+            cam.rate_hz,
+            cam.mount,
+        )
         np.testing.assert_array_equal(got.distortion, cam.distortion)
     assert back["cam1"].timeshift_ns == 3_000_000 and back["cam0"].rostopic == "/a"
 
@@ -103,15 +130,18 @@ def test_imu_yaml_both_layouts(tmp_path):
     assert read_imu_yaml(nested).noise == noise
 
 
-@pytest.mark.parametrize("edit,match", [
-    (lambda d: d["cam0"].pop("T_cam_imu"), r"cam0: missing key 'T_cam_imu'"),
-    (lambda d: d["cam0"].update(camera_model="omni"), r"cam0.camera_model: 'omni'"),
-    (lambda d: d["cam0"].update(distortion_model="equidistant"), r"cam0.distortion_model"),
-    (lambda d: d["cam0"].update(intrinsics=[1, 2, 3]), r"cam0.intrinsics: expected a list of 4"),
-    (lambda d: d["cam0"]["T_cam_imu"][0].__setitem__(0, 2.0), r"cam0.T_cam_imu: not a rigid"),
-    (lambda d: d["cam0"].update(timeshift_cam_imu="soon"), r"timeshift_cam_imu: not a number"),
-    (lambda d: d.clear() or d.update(foo=1), r"no 'cam0' block"),
-])
+@pytest.mark.parametrize(
+    "edit,match",
+    [
+        (lambda d: d["cam0"].pop("T_cam_imu"), r"cam0: missing key 'T_cam_imu'"),
+        (lambda d: d["cam0"].update(camera_model="omni"), r"cam0.camera_model: 'omni'"),
+        (lambda d: d["cam0"].update(distortion_model="equidistant"), r"cam0.distortion_model"),
+        (lambda d: d["cam0"].update(intrinsics=[1, 2, 3]), r"cam0.intrinsics: expected a list of 4"),
+        (lambda d: d["cam0"]["T_cam_imu"][0].__setitem__(0, 2.0), r"cam0.T_cam_imu: not a rigid"),
+        (lambda d: d["cam0"].update(timeshift_cam_imu="soon"), r"timeshift_cam_imu: not a number"),
+        (lambda d: d.clear() or d.update(foo=1), r"no 'cam0' block"),
+    ],
+)
 def test_bad_camchain_names_file_and_key(tmp_path, edit, match):
     data = yaml.safe_load(CAMCHAIN)
     data["cam0"]["T_cam_imu"] = np.eye(4).tolist()

@@ -1,4 +1,5 @@
 """Flight-log reader / writer: round trip and every documented bad-log case."""
+
 import shutil
 
 import cv2
@@ -24,19 +25,39 @@ from fusion.world import World
 
 def write_small_log(root, n_frames=5, n_imu=50, seed=0):
     rng = np.random.default_rng(seed)
-    cam = CameraModel(64, 48, 60.0, 60.0, 32.0, 24.0, np.array([-0.1, 0.01, 0, 0]),
-                      make_T(R_BODY_FLOORCAM, [0, 0, -0.02]), rate_hz=10)
+    cam = CameraModel(
+        64,
+        48,
+        60.0,
+        60.0,
+        32.0,
+        24.0,
+        np.array([-0.1, 0.01, 0, 0]),
+        make_T(R_BODY_FLOORCAM, [0, 0, -0.02]),
+        rate_hz=10,
+    )
     t_cam = (np.arange(n_frames) * 1e8).astype(np.int64) + 1_000_000_000
     t_imu = (np.arange(n_imu) * 5e6).astype(np.int64) + 1_000_000_000
     # a plausible resting IMU (check_log flags units by magnitude and noise)
-    imu = ImuData(t_imu, rng.normal(scale=1.4e-3, size=(n_imu, 3)),
-                  np.array([0, 0, 9.81]) + rng.normal(scale=0.03, size=(n_imu, 3)),
-                  ImuNoise(1e-4, 2e-5, 2e-3, 3e-3), np.eye(4), 200.0)
+    imu = ImuData(
+        t_imu,
+        rng.normal(scale=1.4e-3, size=(n_imu, 3)),
+        np.array([0, 0, 9.81]) + rng.normal(scale=0.03, size=(n_imu, 3)),
+        ImuNoise(1e-4, 2e-5, 2e-3, 3e-3),
+        np.eye(4),
+        200.0,
+    )
     q = rng.normal(size=(n_imu, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q *= np.sign(q[:, :1])
-    gt = GroundTruth(t_imu, rng.normal(size=(n_imu, 3)), q, rng.normal(size=(n_imu, 3)),
-                     rng.normal(size=(n_imu, 3)), rng.normal(size=(n_imu, 3)))
+    gt = GroundTruth(
+        t_imu,
+        rng.normal(size=(n_imu, 3)),
+        q,
+        rng.normal(size=(n_imu, 3)),
+        rng.normal(size=(n_imu, 3)),
+        rng.normal(size=(n_imu, 3)),
+    )
     vel = VelocityData(t_cam, rng.normal(size=(n_frames, 3)), 0.03)
     images = [rng.integers(0, 255, size=(48, 64), dtype=np.uint8) for _ in t_cam]
     with FlightLogWriter(root) as w:
@@ -98,22 +119,25 @@ def edit_line(path, lineno, new):
     path.write_text("\n".join(lines) + "\n")
 
 
-@pytest.mark.parametrize("case, match", [
-    ("cam_duplicate", r"cam0/data.csv:3: duplicate timestamp"),
-    ("cam_backwards", r"cam0/data.csv:3: non-monotonic timestamp"),
-    ("cam_outside", r"cam0/data.csv:2: file name .* points outside"),
-    ("cam_short_row", r"cam0/data.csv:4: expected 2 fields, found 1"),
-    ("cam_bad_ts", r"cam0/data.csv:2: timestamp .* is not an integer"),
-    ("imu_nan", r"imu0/data.csv:5: NaN or infinite value"),
-    ("imu_short", r"imu0/data.csv:6: expected 7 fields, found 4"),
-    ("imu_text", r"imu0/data.csv:7: a value is not a number"),
-    ("imu_missing_key", r"imu0/sensor.yaml: missing key 'gyroscope_noise_density'"),
-    ("cam_missing_key", r"cam0/sensor.yaml: missing key 'intrinsics'"),
-    ("gt_short", r"state_groundtruth_estimate0/data.csv:3: expected 17 fields"),
-    ("no_world", r"world.yaml: file not found"),
-    ("no_cam0", r"floor camera folder is missing"),
-    ("loads_dup", r"loads_groundtruth.csv:3: duplicate load id"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("cam_duplicate", r"cam0/data.csv:3: duplicate timestamp"),
+        ("cam_backwards", r"cam0/data.csv:3: non-monotonic timestamp"),
+        ("cam_outside", r"cam0/data.csv:2: file name .* points outside"),
+        ("cam_short_row", r"cam0/data.csv:4: expected 2 fields, found 1"),
+        ("cam_bad_ts", r"cam0/data.csv:2: timestamp .* is not an integer"),
+        ("imu_nan", r"imu0/data.csv:5: NaN or infinite value"),
+        ("imu_short", r"imu0/data.csv:6: expected 7 fields, found 4"),
+        ("imu_text", r"imu0/data.csv:7: a value is not a number"),
+        ("imu_missing_key", r"imu0/sensor.yaml: missing key 'gyroscope_noise_density'"),
+        ("cam_missing_key", r"cam0/sensor.yaml: missing key 'intrinsics'"),
+        ("gt_short", r"state_groundtruth_estimate0/data.csv:3: expected 17 fields"),
+        ("no_world", r"world.yaml: file not found"),
+        ("no_cam0", r"floor camera folder is missing"),
+        ("loads_dup", r"loads_groundtruth.csv:3: duplicate load id"),
+    ],
+)
 def test_bad_logs_name_file_and_line(log_dir, case, match):
     mav = log_dir / "mav0"
     cam_csv = mav / "cam0" / "data.csv"
@@ -139,8 +163,9 @@ def test_bad_logs_name_file_and_line(log_dir, case, match):
         edit_line(imu_csv, 7, ",".join(parts[:6] + ["abc"]))
     elif case == "imu_missing_key":
         y = mav / "imu0" / "sensor.yaml"
-        y.write_text("\n".join(l for l in y.read_text().splitlines()
-                               if not l.startswith("gyroscope_noise_density")))
+        y.write_text(
+            "\n".join(l for l in y.read_text().splitlines() if not l.startswith("gyroscope_noise_density"))
+        )
     elif case == "cam_missing_key":
         y = mav / "cam0" / "sensor.yaml"
         y.write_text("\n".join(l for l in y.read_text().splitlines() if not l.startswith("intrinsics")))
@@ -188,8 +213,13 @@ def test_tum_round_trip(tmp_path):
 
 
 def test_loads_csv_round_trip(tmp_path):
-    m = LoadMap("pnp", [LoadEstimate("a,b", np.array([1.0, 2, 3]), np.diag([1e-4, 4e-4, 9e-4]), 7),
-                        LoadEstimate("c", np.array([4.0, 5, 6]), None, 1)])
+    m = LoadMap(
+        "pnp",
+        [
+            LoadEstimate("a,b", np.array([1.0, 2, 3]), np.diag([1e-4, 4e-4, 9e-4]), 7),
+            LoadEstimate("c", np.array([4.0, 5, 6]), None, 1),
+        ],
+    )
     write_loads_csv(tmp_path / "l.csv", m)
     back = read_loads_csv(tmp_path / "l.csv").by_id()
     assert np.allclose(back["a,b"].p_world, [1, 2, 3]) and back["a,b"].n_obs == 7
@@ -212,28 +242,39 @@ def _rewrite_csv(path, fn):
     rows = np.array([[float(v) for v in l.split(",")] for l in lines[1:]])
     t = np.array([int(l.split(",")[0]) for l in lines[1:]], dtype=object)
     t2, vals = fn(t, rows[:, 1:])
-    path.write_text("\n".join([lines[0]] + [",".join([str(a)] + [repr(float(x)) for x in v])
-                                            for a, v in zip(t2, vals)]) + "\n")
+    path.write_text(
+        "\n".join([lines[0]] + [",".join([str(a)] + [repr(float(x)) for x in v]) for a, v in zip(t2, vals)])
+        + "\n"
+    )
 
 
-@pytest.mark.parametrize("case, match", [
-    ("ts_overflow", r"cam0/data.csv:3: timestamp 99999999999999999999 is too large"),
-    ("ts_plus", r"imu0/data.csv:4: timestamp '\+1010000000' is not an integer"),
-    ("gt_zero_quat", r"state_groundtruth_estimate0/data.csv:4: quaternion q_RS_wxyz "
-                     r"\(0, 0, 0, 0\) is not a rotation"),
-    ("world_side_bool", r"world.yaml: floor_qr.side_m: expected a number, got bool True"),
-    ("world_unit_text", r"world.yaml: floor_qr.payload_unit_m: expected a number, got str"),
-    ("world_bounds_reversed", r"world.yaml: bounds_m.x is \[10, 0\]: the minimum must come first"),
-    ("cam_rate_text", r"cam0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
-    ("cam_resolution_bool", r"cam0/sensor.yaml: resolution\[0\]: expected a number, got bool"),
-    ("imu_rate_text", r"imu0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
-    ("imu_noise_bool", r"imu0/sensor.yaml: gyroscope_noise_density: expected a number, got bool"),
-    ("vel_noise_text", r"vel0/sensor.yaml: noise_m_s: expected a number"),
-    ("imu_microseconds", r"imu0/data.csv: timestamps advance 5000 per sample .* rate_hz 200: "
-                         r"they look like microseconds"),
-    ("cam_milliseconds", r"cam0/data.csv: timestamps advance 100 per sample .* like milliseconds"),
-    ("accel_in_g", r"imu0/data.csv: the accelerometer's median magnitude is 0.999, .* look like g"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("ts_overflow", r"cam0/data.csv:3: timestamp 99999999999999999999 is too large"),
+        ("ts_plus", r"imu0/data.csv:4: timestamp '\+1010000000' is not an integer"),
+        (
+            "gt_zero_quat",
+            r"state_groundtruth_estimate0/data.csv:4: quaternion q_RS_wxyz "
+            r"\(0, 0, 0, 0\) is not a rotation",
+        ),
+        ("world_side_bool", r"world.yaml: floor_qr.side_m: expected a number, got bool True"),
+        ("world_unit_text", r"world.yaml: floor_qr.payload_unit_m: expected a number, got str"),
+        ("world_bounds_reversed", r"world.yaml: bounds_m.x is \[10, 0\]: the minimum must come first"),
+        ("cam_rate_text", r"cam0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
+        ("cam_resolution_bool", r"cam0/sensor.yaml: resolution\[0\]: expected a number, got bool"),
+        ("imu_rate_text", r"imu0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
+        ("imu_noise_bool", r"imu0/sensor.yaml: gyroscope_noise_density: expected a number, got bool"),
+        ("vel_noise_text", r"vel0/sensor.yaml: noise_m_s: expected a number"),
+        (
+            "imu_microseconds",
+            r"imu0/data.csv: timestamps advance 5000 per sample .* rate_hz 200: "
+            r"they look like microseconds",
+        ),
+        ("cam_milliseconds", r"cam0/data.csv: timestamps advance 100 per sample .* like milliseconds"),
+        ("accel_in_g", r"imu0/data.csv: the accelerometer's median magnitude is 0.999, .* look like g"),
+    ],
+)
 def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
     mav = log_dir / "mav0"
     cam_csv, imu_csv = mav / "cam0" / "data.csv", mav / "imu0" / "data.csv"
@@ -267,8 +308,12 @@ def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
         _rewrite_csv(imu_csv, lambda t, v: ([x // 1000 for x in t], v))
     elif case == "cam_milliseconds":
         lines = cam_csv.read_text().splitlines()
-        cam_csv.write_text("\n".join([lines[0]] + [f"{int(l.split(',')[0]) // 1_000_000},"
-                                                   f"{l.split(',')[1]}" for l in lines[1:]]) + "\n")
+        cam_csv.write_text(
+            "\n".join(
+                [lines[0]] + [f"{int(l.split(',')[0]) // 1_000_000},{l.split(',')[1]}" for l in lines[1:]]
+            )
+            + "\n"
+        )
     elif case == "accel_in_g":
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :3], v[:, 3:] / 9.81]))
     with pytest.raises(LogError, match=match):
@@ -283,19 +328,38 @@ def test_clean_log_has_no_warnings(log_dir):
     assert read_flight(log_dir).warnings == []
 
 
-@pytest.mark.parametrize("case, name, match", [
-    ("gyro_deg_s", "gyroscope_units", r"imu0/data.csv: white noise .*x sensor.yaml's "
-                                      r"gyroscope_noise_density: the gyro looks like deg/s"),
-    ("imu_10hz", "rate_mismatch", r"imu0: samples every 100 ms \(10 Hz\) but sensor.yaml says "
-                                  r"rate_hz 200"),
-    ("imu_offset", "clock_offset", r"imu0 \(1001-1001.25 s\) does not overlap cam0"),
-    ("gt_offset", "clock_offset", r"groundtruth \(1.6-1.845 s\) does not overlap cam0 \(1-1.4 s\)"),
-    ("tbs_mm", "T_BS_translation", r"cam1/sensor.yaml: T_BS puts cam1 20 m from the body origin"),
-    ("gt_quat_scaled", "groundtruth_quaternion_not_unit", r"50 quaternion\(s\) not of unit norm "
-                                                          r"\(first: line 2, norm 2\)"),
-    ("accel_clipped", "imu_saturated", r"imu0/data.csv: 10 sample value\(s\) sit at an axis' "
-                                       r"extreme"),
-])
+@pytest.mark.parametrize(
+    "case, name, match",
+    [
+        (
+            "gyro_deg_s",
+            "gyroscope_units",
+            r"imu0/data.csv: white noise .*x sensor.yaml's "
+            r"gyroscope_noise_density: the gyro looks like deg/s",
+        ),
+        (
+            "imu_10hz",
+            "rate_mismatch",
+            r"imu0: samples every 100 ms \(10 Hz\) but sensor.yaml says "
+            r"rate_hz 200",
+        ),
+        ("imu_offset", "clock_offset", r"imu0 \(1001-1001.25 s\) does not overlap cam0"),
+        ("gt_offset", "clock_offset", r"groundtruth \(1.6-1.845 s\) does not overlap cam0 \(1-1.4 s\)"),
+        ("tbs_mm", "T_BS_translation", r"cam1/sensor.yaml: T_BS puts cam1 20 m from the body origin"),
+        (
+            "gt_quat_scaled",
+            "groundtruth_quaternion_not_unit",
+            r"50 quaternion\(s\) not of unit norm "
+            r"\(first: line 2, norm 2\)",
+        ),
+        (
+            "accel_clipped",
+            "imu_saturated",
+            r"imu0/data.csv: 10 sample value\(s\) sit at an axis' "
+            r"extreme",
+        ),
+    ],
+)
 def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
     mav = log_dir / "mav0"
     imu_csv = mav / "imu0" / "data.csv"
@@ -304,10 +368,17 @@ def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[np.degrees(v[:, :3]), v[:, 3:]]))
     elif case == "imu_10hz":
         _rewrite_csv(imu_csv, lambda t, v: (t[::20], v[::20]))
-        lines = imu_csv.read_text().splitlines()       # keep the flight's span: 0.1 s steps
-        imu_csv.write_text("\n".join([lines[0]] + [f"{1_000_000_000 + 100_000_000 * i},"
-                                                   + l.split(",", 1)[1]
-                                                   for i, l in enumerate(lines[1:])]) + "\n")
+        lines = imu_csv.read_text().splitlines()  # keep the flight's span: 0.1 s steps
+        imu_csv.write_text(
+            "\n".join(
+                [lines[0]]
+                + [
+                    f"{1_000_000_000 + 100_000_000 * i}," + l.split(",", 1)[1]
+                    for i, l in enumerate(lines[1:])
+                ]
+            )
+            + "\n"
+        )
     elif case == "imu_offset":
         _rewrite_csv(imu_csv, lambda t, v: ([x + 1000 * 10**9 for x in t], v))
     elif case == "gt_offset":
@@ -325,6 +396,7 @@ def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
     assert name in found, log.warnings
     assert found[name].count >= 1
     import re
+
     assert re.search(match, found[name].message), found[name].message
     if case == "gt_quat_scaled":
         assert np.allclose(np.linalg.norm(log.groundtruth.q_world_body_wxyz, axis=1), 1.0)
@@ -335,6 +407,7 @@ def test_image_header_is_checked_before_decoding(log_dir, monkeypatch):
     without being decoded (OpenCV would raise on it)."""
     import struct
     import zlib
+
     files = sorted((log_dir / "mav0" / "cam0" / "data").iterdir())
     ok, buf = cv2.imencode(".png", np.zeros((48, 64), np.uint8))
     b = bytearray(buf.tobytes())
@@ -354,6 +427,7 @@ def test_image_header_is_checked_before_decoding(log_dir, monkeypatch):
 
 def test_image_size_from_header_png_and_jpeg():
     from fusion.log.euroc import image_size_from_header
+
     img = np.zeros((37, 53), np.uint8)
     for ext in (".png", ".jpg"):
         ok, buf = cv2.imencode(ext, img)
@@ -363,11 +437,13 @@ def test_image_size_from_header_png_and_jpeg():
 
 def test_load_ids_round_trip_spreadsheet_safe(tmp_path):
     from fusion.fileio import csv_safe, csv_unsafe
+
     assert csv_safe("\rx") == "'\rx" and csv_unsafe(csv_safe("\rx")) == "\rx"
     ids = ["=cmd|' /C calc'!A0", "+1", "-2", "@SUM(A1)", "\tx", "'quoted", "plain"]
     m = LoadMap("pnp", [LoadEstimate(i, np.array([1.0, 2, 3]), None, 1) for i in ids])
     write_loads_csv(tmp_path / "l.csv", m)
     import csv
+
     with open(tmp_path / "l.csv", newline="") as f:
         first = [row[0] for row in csv.reader(f)][1:]
     for cell in first:

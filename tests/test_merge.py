@@ -1,6 +1,7 @@
 """`fusion map merge`: information-weighted fusion, the changes between flights (moved, appeared,
 disappeared vs. not surveyed), refusal of different warehouses, escaped ids; on synthetic run
 folders written in the formats `fusion run` writes."""
+
 import csv
 import json
 import math
@@ -30,34 +31,41 @@ def _fake_run(root: Path, loads: dict, world: dict = WORLD, x_range=(1.5, 1.5)) 
     root.mkdir(parents=True)
     xs = np.linspace(*x_range, 20)
     T = np.array([make_T(rot_z(math.pi / 2), [x, 1.5, 1.4]) for x in xs])
-    write_tum(root / "trajectory_smoother.tum",
-              Trajectory("smoother", np.arange(20, dtype=np.int64) * 100_000_000, T))
-    write_loads_json(root / "loads_smoother.json",
-                     LoadMap("smoother", [LoadEstimate(k, np.asarray(v, float), COV, 10)
-                                          for k, v in loads.items()]))
-    (root / RUN_RECORD).write_text(json.dumps({"log": "x", "world_yaml": world,
-                                               "front_camera_sensor_yaml": FRONT}))
+    write_tum(
+        root / "trajectory_smoother.tum",
+        Trajectory("smoother", np.arange(20, dtype=np.int64) * 100_000_000, T),
+    )
+    write_loads_json(
+        root / "loads_smoother.json",
+        LoadMap("smoother", [LoadEstimate(k, np.asarray(v, float), COV, 10) for k, v in loads.items()]),
+    )
+    (root / RUN_RECORD).write_text(
+        json.dumps({"log": "x", "world_yaml": world, "front_camera_sensor_yaml": FRONT})
+    )
     return root
 
 
 def test_merge_fuses_and_lists_changes(tmp_path):
     rng = np.random.default_rng(5)
-    a = np.array([1.5, 2.7, 1.4])              # in view of every flight
-    b = np.array([1.3, 2.7, 1.4])              # in view; moves 5 cm in flight 1
-    far = np.array([5.5, 4.3, 0.7])            # never in view after flight 0
+    a = np.array([1.5, 2.7, 1.4])  # in view of every flight
+    b = np.array([1.3, 2.7, 1.4])  # in view; moves 5 cm in flight 1
+    far = np.array([5.5, 4.3, 0.7])  # never in view after flight 0
     a1 = a + 0.002 * rng.normal(size=3)
     r0 = _fake_run(tmp_path / "r0", {"A": a, "B": b, "FAR": far})
     r1 = _fake_run(tmp_path / "r1", {"A": a1, "B": b + [0.05, 0, 0], "NEW": [1.7, 2.7, 1.4]})
     r2 = _fake_run(tmp_path / "r2", {"B": b + [0.05, 0, 0], "NEW": [1.7, 2.7, 1.4]})
     res = merge_runs([load_run(r) for r in (r0, r1, r2)])
     changes = {(c.load_id, c.kind, c.run_index) for c in res.changes}
-    assert changes == {("B", ChangeKind.MOVED, 1), ("NEW", ChangeKind.APPEARED, 1),
-                       ("A", ChangeKind.DISAPPEARED, 2)}
+    assert changes == {
+        ("B", ChangeKind.MOVED, 1),
+        ("NEW", ChangeKind.APPEARED, 1),
+        ("A", ChangeKind.DISAPPEARED, 2),
+    }
     merged = {l.load_id: l for l in res.loads}
-    assert set(merged) == {"B", "FAR", "NEW"}          # FAR kept: never in view again
-    np.testing.assert_allclose(merged["B"].p_world, b + [0.05, 0, 0])   # fused since the move
+    assert set(merged) == {"B", "FAR", "NEW"}  # FAR kept: never in view again
+    np.testing.assert_allclose(merged["B"].p_world, b + [0.05, 0, 0])  # fused since the move
     assert merged["B"].n_runs == 2 and merged["FAR"].n_runs == 1
-    np.testing.assert_allclose(merged["B"].cov_world, COV / 2)          # two equal informations
+    np.testing.assert_allclose(merged["B"].cov_world, COV / 2)  # two equal informations
     moved = next(c for c in res.changes if c.kind == ChangeKind.MOVED)
     assert moved.distance_m == pytest.approx(0.05) and moved.p_value < 1e-6
 
@@ -65,27 +73,32 @@ def test_merge_fuses_and_lists_changes(tmp_path):
 def test_information_weighted_mean():
     """Two estimates with different covariances: P = (P1^-1 + P2^-1)^-1, p = P (P1^-1 p1 + ...)."""
     from fusion.warehouse.merge import _fuse
+
     rng = np.random.default_rng(1)
     P1, P2 = np.diag([1e-4, 4e-4, 1e-4]), np.diag([4e-4, 1e-4, 1e-4])
     p1, p2 = rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.01
     p, P = _fuse(p1, P1, p2, P2)
     np.testing.assert_allclose(P, np.diag([0.8e-4, 0.8e-4, 0.5e-4]))
-    np.testing.assert_allclose(p, [(4 * p1[0] + p2[0]) / 5, (p1[1] + 4 * p2[1]) / 5,
-                                   (p1[2] + p2[2]) / 2])
+    np.testing.assert_allclose(p, [(4 * p1[0] + p2[0]) / 5, (p1[1] + 4 * p2[1]) / 5, (p1[2] + p2[2]) / 2])
 
 
 def test_merge_no_false_moves_on_repeated_flights(tmp_path):
     """Ten flights re-mapping the same loads with errors drawn from their covariance."""
     rng = np.random.default_rng(8)
     truth = {f"L{i}": np.array([1.0 + 0.1 * i, 2.7, 1.4]) for i in range(8)}
-    runs = [_fake_run(tmp_path / f"r{k}", {i: p + np.linalg.cholesky(COV) @ rng.normal(size=3)
-                                           for i, p in truth.items()}) for k in range(10)]
+    runs = [
+        _fake_run(
+            tmp_path / f"r{k}",
+            {i: p + np.linalg.cholesky(COV) @ rng.normal(size=3) for i, p in truth.items()},
+        )
+        for k in range(10)
+    ]
     res = merge_runs([load_run(r) for r in runs])
     assert res.changes == []
     for l in res.loads:
         assert l.n_runs == 10
         d = l.p_world - truth[l.load_id]
-        assert d @ np.linalg.solve(l.cov_world, d) < 16.3     # chi2(3) at 0.999
+        assert d @ np.linalg.solve(l.cov_world, d) < 16.3  # chi2(3) at 0.999
 
 
 def test_merge_refuses_other_warehouse_one_line(tmp_path, capsys):
@@ -115,4 +128,4 @@ def test_cli_merge_writes_map_with_escaped_ids(tmp_path, capsys):
     assert "B\\|x" in (out / "changes.md").read_text(encoding="utf-8")
     data = json.loads((out / "map.json").read_text(encoding="utf-8"))
     assert len(data["loads"]) == 2 and load_yaml(out / "world.yaml") == WORLD
-    assert main(["map", "merge", str(r0), "--out", str(out), "-q"]) == 1    # exists, no --force
+    assert main(["map", "merge", str(r0), "--out", str(out), "-q"]) == 1  # exists, no --force

@@ -1,5 +1,6 @@
 """The paper's Algorithms 1-6 (fusion.qr.paper): hand-computed cases from its equations and an
 end-to-end check with corners projected by the camera model; the transcribed tables."""
+
 from __future__ import annotations
 
 import csv
@@ -24,8 +25,7 @@ FC = np.array([(W - 1) / 2, (H - 1) / 2])
 
 
 def floor_camera(**kw) -> CameraModel:
-    args = dict(cu=FC[0], cv=FC[1], T_body_cam=make_T(R_BODY_FLOORCAM, np.zeros(3)),
-                mount="gimbaled")
+    args = dict(cu=FC[0], cv=FC[1], T_body_cam=make_T(R_BODY_FLOORCAM, np.zeros(3)), mount="gimbaled")
     args.update(kw)
     return CameraModel(W, H, FL, FL, **args)
 
@@ -40,7 +40,7 @@ WORLD = World(floor_side_m=0.20, payload_unit_m=1.0, load_side_m=0.15)
 def square_corners(centre_px, side_px: float, beta_rad: float) -> np.ndarray:
     """Corners TL, TR, BR, BL (u right, v down) of a square whose symbol 'right' points at angle
     beta counter-clockwise from image right in y-up image coordinates."""
-    r = 0.5 * side_px * np.array([math.cos(beta_rad), -math.sin(beta_rad)])    # v down
+    r = 0.5 * side_px * np.array([math.cos(beta_rad), -math.sin(beta_rad)])  # v down
     up = 0.5 * side_px * np.array([-math.sin(beta_rad), -math.cos(beta_rad)])
     c = np.asarray(centre_px, float)
     return np.array([c - r + up, c + r + up, c + r - up, c - r - up])
@@ -62,28 +62,31 @@ def project_floor(camera, payload, xy, T_world_body, t=0):
 
 def test_matched_code_under_centre_gives_eq2_height():
     side_px = 80.0
-    corners = square_corners(FC, side_px, math.pi / 2)           # yaw 0: world +x is image up
+    corners = square_corners(FC, side_px, math.pi / 2)  # yaw 0: world +x is image up
     pose = paper.localize_frame([floor_det("0/3/4", corners)], floor_camera(), WORLD)
     assert pose.case == paper.MATCHED
-    assert pose.z == pytest.approx(0.20 * FL / side_px)            # Eq. 2
-    assert (pose.x, pose.y) == (3.0, 4.0)                          # Alg. 2 lines 4-5
+    assert pose.z == pytest.approx(0.20 * FL / side_px)  # Eq. 2
+    assert (pose.x, pose.y) == (3.0, 4.0)  # Alg. 2 lines 4-5
     assert pose.yaw_rad == pytest.approx(0.0, abs=1e-12)
     assert pose.floor_payload == "0/3/4"
 
 
-@pytest.mark.parametrize("yaw_deg, expected_dxy", [
-    (0, (0.0, +1.0)),     # heading +x: image right = world -y, so the drone is at +y of the code
-    (90, (-1.0, 0.0)),    # heading +y: image right = world +x
-    (180, (0.0, -1.0)),
-    (270, (+1.0, 0.0)),
-])
+@pytest.mark.parametrize(
+    "yaw_deg, expected_dxy",
+    [
+        (0, (0.0, +1.0)),  # heading +x: image right = world -y, so the drone is at +y of the code
+        (90, (-1.0, 0.0)),  # heading +y: image right = world +x
+        (180, (0.0, -1.0)),
+        (270, (+1.0, 0.0)),
+    ],
+)
 def test_not_matched_offset_to_the_right(yaw_deg, expected_dxy):
     side_px, du = 50.0, 40.0
     yaw = math.radians(yaw_deg)
     corners = square_corners(FC + [du, 0.0], side_px, math.pi / 2 - yaw)
     pose = paper.localize_frame([floor_det("0/2/5", corners)], floor_camera(), WORLD)
     assert pose.case == paper.NOT_MATCHED
-    d = 0.20 * du / side_px                                         # Eq. 7
+    d = 0.20 * du / side_px  # Eq. 7
     assert pose.x == pytest.approx(2.0 + expected_dxy[0] * d, abs=1e-12)
     assert pose.y == pytest.approx(5.0 + expected_dxy[1] * d, abs=1e-12)
     assert pose.z == pytest.approx((0.20 / math.sqrt(2)) * FL / (side_px / math.sqrt(2)))  # Eq. 5
@@ -117,7 +120,7 @@ def test_no_valid_floor_code_returns_none():
     cam = floor_camera()
     assert paper.localize_frame([], cam, WORLD) is None
     assert paper.localize_frame([floor_det("hello", c)], cam, WORLD) is None
-    assert paper.localize_frame([floor_det("1/box", c)], cam, WORLD) is None   # load on cam0
+    assert paper.localize_frame([floor_det("1/box", c)], cam, WORLD) is None  # load on cam0
     bounded = World(bounds_x_m=(0.0, 5.0), bounds_y_m=(0.0, 5.0))
     assert paper.localize_frame([floor_det("0/50/1", c)], cam, bounded) is None
     # a bad code next to a good one is ignored
@@ -132,8 +135,10 @@ def test_a_camera_mount_unlike_the_papers_is_refused():
 
 
 def random_level_pose(rng):
-    return make_T(rot_z(rng.uniform(-math.pi, math.pi)),
-                  [rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), rng.uniform(0.8, 3.0)])
+    return make_T(
+        rot_z(rng.uniform(-math.pi, math.pi)),
+        [rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), rng.uniform(0.8, 3.0)],
+    )
 
 
 def test_end_to_end_projected_perpendicular_camera_is_exact_when_not_matched():
@@ -148,8 +153,9 @@ def test_end_to_end_projected_perpendicular_camera_is_exact_when_not_matched():
         pose = paper.localize_frame(dets, cam, WORLD, th_px=0.0)
         assert pose is not None and pose.case == paper.NOT_MATCHED
         np.testing.assert_allclose(pose.xyz, T[:3, 3], atol=1e-9)
-        assert math.remainder(pose.yaw_rad - math.atan2(T[1, 0], T[0, 0]), 2 * math.pi) \
-            == pytest.approx(0.0, abs=1e-9)
+        assert math.remainder(pose.yaw_rad - math.atan2(T[1, 0], T[0, 0]), 2 * math.pi) == pytest.approx(
+            0.0, abs=1e-9
+        )
 
 
 def test_matched_case_error_is_bounded_by_th_times_depth_over_fl():
@@ -165,7 +171,7 @@ def test_matched_case_error_is_bounded_by_th_times_depth_over_fl():
         pose = paper.localize_frame([project_floor(cam, "0/0/0", (0, 0), T)], cam, WORLD, th)
         assert pose.case == paper.MATCHED
         assert np.hypot(pose.x - T[0, 3], pose.y - T[1, 3]) <= th * h / FL + 1e-12
-        assert pose.z == pytest.approx(h, rel=1e-9)          # Eq. 2 is exact when perpendicular
+        assert pose.z == pytest.approx(h, rel=1e-9)  # Eq. 2 is exact when perpendicular
 
 
 def test_geometric_centre_vs_principal_point_and_distortion():
@@ -176,7 +182,7 @@ def test_geometric_centre_vs_principal_point_and_distortion():
     faithful = paper.localize_frame([det], off, WORLD, th_px=0.0)
     principal = paper.localize_frame([det], off, WORLD, th_px=0.0, centre="principal")
     np.testing.assert_allclose(principal.xyz, T[:3, 3], atol=1e-9)
-    assert np.hypot(*(faithful.xyz - T[:3, 3])[:2]) > 0.01      # 14 px * h / FL
+    assert np.hypot(*(faithful.xyz - T[:3, 3])[:2]) > 0.01  # 14 px * h / FL
     dist = floor_camera(distortion=[-0.25, 0.08, 0.001, -0.0005])
     det = project_floor(dist, "0/0/0", (0, 0), T)
     raw = paper.localize_frame([det], dist, WORLD, th_px=0.0)
@@ -188,7 +194,11 @@ def test_geometric_centre_vs_principal_point_and_distortion():
 def test_paper_trajectory_skips_frames_without_floor_codes():
     cam = floor_camera()
     T = make_T(rot_z(0.3), [0.1, 0.2, 1.5])
-    frames = {200: [project_floor(cam, "0/0/0", (0, 0), T, 200)], 100: [], 300: [floor_det("x", np.zeros((4, 2)))]}
+    frames = {
+        200: [project_floor(cam, "0/0/0", (0, 0), T, 200)],
+        100: [],
+        300: [floor_det("x", np.zeros((4, 2)))],
+    }
     traj = paper.paper_trajectory(frames, cam, WORLD)
     assert traj.name == "paper" and traj.timestamps_ns.tolist() == [200]
     assert traj.covariances is None
@@ -199,8 +209,8 @@ def test_paper_trajectory_skips_frames_without_floor_codes():
 
 DRONE = np.array([1.0, 2.0, 1.5])
 SIDE_PX = 50.0
-S = 0.15 / SIDE_PX            # m per px on the load's face
-DQW = 0.15 * FL / SIDE_PX     # Alg. 6 line 4 for a square: VC_r FL / VC_f = QR_Lr FL / QR_Lf
+S = 0.15 / SIDE_PX  # m per px on the load's face
+DQW = 0.15 * FL / SIDE_PX  # Alg. 6 line 4 for a square: VC_r FL / VC_f = QR_Lr FL / QR_Lf
 
 
 def load_det(du, dv, side_px=SIDE_PX):
@@ -208,18 +218,25 @@ def load_det(du, dv, side_px=SIDE_PX):
     return QRDetection("cam1", 7, "1/box-1", c, c)
 
 
-@pytest.mark.parametrize("yaw_deg, expected", [
-    # code 30 px right of and 20 px above the centre: right of the heading is heading - 90 deg
-    (0, (1.0 + DQW, 2.0 - 30 * S)),
-    (90, (1.0 + 30 * S, 2.0 + DQW)),
-    (180, (1.0 - DQW, 2.0 + 30 * S)),
-    (270, (1.0 - 30 * S, 2.0 - DQW)),
-    (45, (1.0 + DQW * math.cos(math.pi / 4) + 30 * S * math.cos(-math.pi / 4),
-          2.0 + DQW * math.sin(math.pi / 4) + 30 * S * math.sin(-math.pi / 4))),
-])
+@pytest.mark.parametrize(
+    "yaw_deg, expected",
+    [
+        # code 30 px right of and 20 px above the centre: right of the heading is heading - 90 deg
+        (0, (1.0 + DQW, 2.0 - 30 * S)),
+        (90, (1.0 + 30 * S, 2.0 + DQW)),
+        (180, (1.0 - DQW, 2.0 + 30 * S)),
+        (270, (1.0 - 30 * S, 2.0 - DQW)),
+        (
+            45,
+            (
+                1.0 + DQW * math.cos(math.pi / 4) + 30 * S * math.cos(-math.pi / 4),
+                2.0 + DQW * math.sin(math.pi / 4) + 30 * S * math.sin(-math.pi / 4),
+            ),
+        ),
+    ],
+)
 def test_not_matched_mapping_branches(yaw_deg, expected):
-    obs = paper.map_loads_frame([load_det(30.0, -20.0)], front_camera(), WORLD, DRONE,
-                                math.radians(yaw_deg))
+    obs = paper.map_loads_frame([load_det(30.0, -20.0)], front_camera(), WORLD, DRONE, math.radians(yaw_deg))
     assert len(obs) == 1 and obs[0].load_id == "box-1" and obs[0].timestamp_ns == 7
     np.testing.assert_allclose(obs[0].p_world, [*expected, 1.5 + 20 * S], atol=1e-12)
 
@@ -230,8 +247,9 @@ def test_not_matched_mapping_left_side_below_and_on_the_centre_column(yaw_deg):
     fwd = np.array([math.cos(yaw), math.sin(yaw)])
     right = np.array([math.sin(yaw), -math.cos(yaw)])
     obs = paper.map_loads_frame([load_det(-25.0, 15.0)], front_camera(), WORLD, DRONE, yaw)
-    np.testing.assert_allclose(obs[0].p_world, [*(DRONE[:2] + DQW * fwd - 25 * S * right),
-                                                1.5 - 15 * S], atol=1e-12)
+    np.testing.assert_allclose(
+        obs[0].p_world, [*(DRONE[:2] + DQW * fwd - 25 * S * right), 1.5 - 15 * S], atol=1e-12
+    )
     obs = paper.map_loads_frame([load_det(0.0, 15.0)], front_camera(), WORLD, DRONE, yaw)
     np.testing.assert_allclose(obs[0].p_world[:2], DRONE[:2] + DQW * fwd, atol=1e-12)
 
@@ -241,11 +259,11 @@ def test_matched_mapping_and_axis_tolerance():
     obs = paper.map_loads_frame([load_det(3.0, -2.0)], front_camera(), WORLD, DRONE, 0.0)
     np.testing.assert_allclose(obs[0].p_world, [1.0 + DQW, 2.0, 1.5], atol=1e-12)
     # 90.3 deg is within AXIS_TOL_DEG of 90: the axis branch snaps the heading
-    obs = paper.map_loads_frame([load_det(30.0, 0.0)], front_camera(), WORLD, DRONE,
-                                math.radians(90.3))
+    obs = paper.map_loads_frame([load_det(30.0, 0.0)], front_camera(), WORLD, DRONE, math.radians(90.3))
     np.testing.assert_allclose(obs[0].p_world[:2], [1.0 + 30 * S, 2.0 + DQW], atol=1e-12)
-    obs = paper.map_loads_frame([load_det(30.0, 0.0)], front_camera(), WORLD, DRONE,
-                                math.radians(90.3), axis_tol_deg=0.0)
+    obs = paper.map_loads_frame(
+        [load_det(30.0, 0.0)], front_camera(), WORLD, DRONE, math.radians(90.3), axis_tol_deg=0.0
+    )
     assert abs(obs[0].p_world[0] - (1.0 + 30 * S)) > 1e-3
 
 
@@ -257,13 +275,18 @@ def test_end_to_end_load_mapping_perpendicular_is_exact():
         fwd = np.array([math.cos(yaw), math.sin(yaw), 0])
         right = np.array([math.sin(yaw), -math.cos(yaw), 0])
         drone = np.array([*rng.uniform(-3, 3, 2), rng.uniform(0.5, 3)])
-        p = drone + rng.uniform(0.8, 2.5) * fwd + rng.uniform(-0.4, 0.4) * right \
+        p = (
+            drone
+            + rng.uniform(0.8, 2.5) * fwd
+            + rng.uniform(-0.4, 0.4) * right
             + [0, 0, rng.uniform(-0.3, 0.3)]
+        )
         code = LoadCode("L", tuple(p), yaw + math.pi)
         T_world_cam = make_T(rot_z(yaw), drone) @ cam.T_body_cam
         uv = cam.project(transform_points(inv_T(T_world_cam), WORLD.load_corners_world(code)))
-        obs = paper.map_loads_frame([QRDetection("cam1", 0, "1/L", uv, uv)], cam, WORLD, drone,
-                                    yaw, th_px=0.0, axis_tol_deg=1e-9)
+        obs = paper.map_loads_frame(
+            [QRDetection("cam1", 0, "1/L", uv, uv)], cam, WORLD, drone, yaw, th_px=0.0, axis_tol_deg=1e-9
+        )
         np.testing.assert_allclose(obs[0].p_world, p, atol=1e-9)
 
 
@@ -302,9 +325,23 @@ def test_tables_a1_a4_cover_50_images_and_only_the_listed_rows_disagree():
             d = min(d, 360 - d)
         if abs(d - float(r["abs_error"])) > 0.015:
             bad.add((int(r["image"]), r["axis"]))
-    assert bad == {(1, "y"), (2, "y"), (2, "z"), (3, "z"), (4, "z"), (7, "z"), (9, "yaw"),
-                   (14, "z"), (17, "x"), (18, "z"), (19, "z"), (27, "z"), (28, "z"),
-                   (32, "yaw"), (33, "yaw")}
+    assert bad == {
+        (1, "y"),
+        (2, "y"),
+        (2, "z"),
+        (3, "z"),
+        (4, "z"),
+        (7, "z"),
+        (9, "yaw"),
+        (14, "z"),
+        (17, "x"),
+        (18, "z"),
+        (19, "z"),
+        (27, "z"),
+        (28, "z"),
+        (32, "yaw"),
+        (33, "yaw"),
+    }
     means = {ax: np.mean([float(r["abs_error"]) for r in rows if r["axis"] == ax]) for ax in "xyz"}
     assert means == pytest.approx({"x": 0.83, "y": 0.32, "z": 2.95}, abs=0.08)
 
@@ -315,17 +352,18 @@ def test_table_a5_averages_are_the_mean_of_five_results():
     for r in rows:
         res = [float(r[f"result{k}"]) for k in range(1, 6)]
         assert np.mean(res) == pytest.approx(float(r["average"]), abs=0.011)
-        assert abs(float(r["real"]) - float(r["average"])) == pytest.approx(float(r["abs_error"]),
-                                                                            abs=0.011)
+        assert abs(float(r["real"]) - float(r["average"])) == pytest.approx(float(r["abs_error"]), abs=0.011)
     means = [np.mean([float(r["abs_error"]) for r in rows if r["axis"] == ax]) for ax in "xyz"]
     assert means == pytest.approx([0.93, 1.64, 2.11], abs=0.005)
 
 
 def test_paper_load_observations_use_the_nearest_floor_pose():
-    traj = paper.paper_trajectory({0: [project_floor(floor_camera(), "0/0/0", (0, 0),
-                                                     make_T(rot_z(0.0), DRONE - [1, 2, 0]))]},
-                                  floor_camera(), WORLD)
+    traj = paper.paper_trajectory(
+        {0: [project_floor(floor_camera(), "0/0/0", (0, 0), make_T(rot_z(0.0), DRONE - [1, 2, 0]))]},
+        floor_camera(),
+        WORLD,
+    )
     frames = {10_000_000: [load_det(0.0, 0.0)], 900_000_000: [load_det(0.0, 0.0)]}
     obs = paper.paper_load_observations(frames, front_camera(), WORLD, traj)
-    assert [o.timestamp_ns for o in obs] == [7]          # the second frame has no pose near it
+    assert [o.timestamp_ns for o in obs] == [7]  # the second frame has no pose near it
     np.testing.assert_allclose(obs[0].p_world, [0.0 + DQW, 0.0, 1.5], atol=1e-9)

@@ -1,5 +1,6 @@
 """The one parallel helper (fusion.parallel) and the stages that use it: workers=2 must give
 exactly what workers=1 gives (simulate and detect have theirs in test_sim / test_detect)."""
+
 from pathlib import Path
 
 import numpy as np
@@ -49,12 +50,9 @@ def test_localize_on_two_workers_equals_one_worker(sample_detections):
         np.testing.assert_allclose(traj.T_world_body, other.T_world_body, atol=1e-12)
     for name, obs in one.load_observations.items():
         other = two.load_observations[name]
-        assert [(o.timestamp_ns, o.load_id) for o in obs] == \
-            [(o.timestamp_ns, o.load_id) for o in other]
-        np.testing.assert_allclose([o.p_world for o in obs], [o.p_world for o in other],
-                                   atol=1e-12)
+        assert [(o.timestamp_ns, o.load_id) for o in obs] == [(o.timestamp_ns, o.load_id) for o in other]
+        np.testing.assert_allclose([o.p_world for o in obs], [o.p_world for o in other], atol=1e-12)
     a, b = dict(one.stats["pnp"]), dict(two.stats["pnp"])
     # a weighted mean over chunks: equal up to the order of summation
-    assert a.pop("mean_reprojection_rms_px") == pytest.approx(b.pop("mean_reprojection_rms_px"),
-                                                              rel=1e-9)
+    assert a.pop("mean_reprojection_rms_px") == pytest.approx(b.pop("mean_reprojection_rms_px"), rel=1e-9)
     assert a == b

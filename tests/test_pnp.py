@@ -1,6 +1,7 @@
 """PnP estimator (fusion/qr/pnp/) and its measurement model / CRB (fusion/qr/reprojection.py).
 
 Corners are projected with CameraModel.project from known poses plus seeded Gaussian noise."""
+
 import math
 
 import cv2
@@ -26,12 +27,6 @@ from fusion.geometry import (
     yaw_of,
 )
 from fusion.qr.codes import classify
-from fusion.qr.reprojection import (
-    floor_pose_crb,
-    floor_reprojection,
-    load_position_crb,
-    symbol_reprojection,
-)
 from fusion.qr.pnp import (
     aggregate_load_observations,
     edge_implied_yaw,
@@ -43,16 +38,43 @@ from fusion.qr.pnp import (
     pnp_trajectory,
     pose_at,
 )
+from fusion.qr.reprojection import (
+    floor_pose_crb,
+    floor_reprojection,
+    load_position_crb,
+    symbol_reprojection,
+)
 from fusion.types import QRDetection, Trajectory
 from fusion.world import LoadCode, World
 
-WORLD = World(floor_side_m=0.20, payload_unit_m=1.0, load_side_m=0.15,
-              bounds_x_m=(-10.0, 10.0), bounds_y_m=(-10.0, 10.0))
+WORLD = World(
+    floor_side_m=0.20,
+    payload_unit_m=1.0,
+    load_side_m=0.15,
+    bounds_x_m=(-10.0, 10.0),
+    bounds_y_m=(-10.0, 10.0),
+)
 DIST = [-0.12, 0.03, 0.0008, -0.0005]
-FLOOR_CAM = CameraModel(640, 480, 600.0, 602.0, 321.0, 238.5, distortion=DIST,
-                        T_body_cam=make_T(R_BODY_FLOORCAM, [0.06, -0.02, -0.04]))
-FRONT_CAM = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
-                        T_body_cam=make_T(R_BODY_FRONTCAM, [0.10, 0.0, 0.02]))
+FLOOR_CAM = CameraModel(
+    640,
+    480,
+    600.0,
+    602.0,
+    321.0,
+    238.5,
+    distortion=DIST,
+    T_body_cam=make_T(R_BODY_FLOORCAM, [0.06, -0.02, -0.04]),
+)
+FRONT_CAM = CameraModel(
+    640,
+    480,
+    600.0,
+    600.0,
+    319.5,
+    239.5,
+    distortion=DIST,
+    T_body_cam=make_T(R_BODY_FRONTCAM, [0.10, 0.0, 0.02]),
+)
 SIGMA = 0.15
 
 
@@ -126,18 +148,31 @@ def test_floor_jacobian_matches_numerical_derivative_through_gtsam_expmap():
     pts = np.vstack([WORLD.floor_corners_world(np.array([x, y, 0.0])) for x, y in [(0, 0), (1, 0)]])
     _, J = floor_reprojection(FLOOR_CAM, T, pts)
     h = 1e-6
-    Jn = np.column_stack([
-        (FLOOR_CAM.project(transform_points(inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(d))
-                                                  .matrix() @ FLOOR_CAM.T_body_cam), pts))
-         - FLOOR_CAM.project(transform_points(inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(-d))
-                                                    .matrix() @ FLOOR_CAM.T_body_cam), pts))
-         ).reshape(-1) / (2 * h) for d in np.eye(6) * h])
+    Jn = np.column_stack(
+        [
+            (
+                FLOOR_CAM.project(
+                    transform_points(
+                        inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(d)).matrix() @ FLOOR_CAM.T_body_cam), pts
+                    )
+                )
+                - FLOOR_CAM.project(
+                    transform_points(
+                        inv_T((gtsam.Pose3(T) * gtsam.Pose3.Expmap(-d)).matrix() @ FLOOR_CAM.T_body_cam), pts
+                    )
+                )
+            ).reshape(-1)
+            / (2 * h)
+            for d in np.eye(6) * h
+        ]
+    )
     np.testing.assert_allclose(J, Jn, atol=1e-4 * np.abs(J).max())
 
 
 def test_symbol_jacobian_matches_numerical_derivative():
     from fusion.conventions import symbol_corners_S
     from fusion.geometry import so3_exp
+
     T = make_T(Rotation.from_rotvec([0.2, -2.9, 0.1]).as_matrix(), [0.3, -0.1, 2.0])
     S = symbol_corners_S(0.15)
     _, J = symbol_reprojection(FRONT_CAM, T, S)
@@ -168,14 +203,24 @@ def test_exact_recovery_without_noise_body_fixed(centres, yaw_deg):
     assert res.reprojection_rms_px < 1e-8
     assert sorted(res.payloads) == sorted(floor_payload(*c) for c in centres)
     # The covariance at a noise-free solution is the CRB there.
-    crb = floor_pose_crb(FLOOR_CAM, T, [WORLD.floor_corners_world(np.array([x, y, 0.0]))
-                                        for x, y in centres], SIGMA)
+    crb = floor_pose_crb(
+        FLOOR_CAM, T, [WORLD.floor_corners_world(np.array([x, y, 0.0])) for x, y in centres], SIGMA
+    )
     np.testing.assert_allclose(res.covariance, crb, rtol=1e-6, atol=1e-15)
 
 
 def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
-    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
-                      T_body_cam=FLOOR_CAM.T_body_cam, mount="gimbaled")
+    cam = CameraModel(
+        640,
+        480,
+        600.0,
+        600.0,
+        319.5,
+        239.5,
+        distortion=DIST,
+        T_body_cam=FLOOR_CAM.T_body_cam,
+        mount="gimbaled",
+    )
     T_tilted = body_pose(0.5, 0.5, 2.6, -60.0, roll_deg=12.0, pitch_deg=8.0)
     res = estimate_floor_pose(floor_of(floor_dets(T_tilted, FOUR, camera=cam)), cam)
     level = make_T(rot_z(math.radians(-60.0)), [0.5, 0.5, 2.6])
@@ -187,16 +232,26 @@ def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
 
 
 def test_gimbaled_yaw_and_position_covariance_is_consistent():
-    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, distortion=DIST,
-                      T_body_cam=FLOOR_CAM.T_body_cam, mount="gimbaled")
+    cam = CameraModel(
+        640,
+        480,
+        600.0,
+        600.0,
+        319.5,
+        239.5,
+        distortion=DIST,
+        T_body_cam=FLOOR_CAM.T_body_cam,
+        mount="gimbaled",
+    )
     rng = np.random.default_rng(17)
     nees = []
     for _ in range(150):
         T_tilted = body_pose(0.5, 0.5, 2.6, -60.0, roll_deg=rng.normal(0, 8), pitch_deg=rng.normal(0, 8))
-        res = estimate_floor_pose(floor_of(floor_dets(T_tilted, FOUR, camera=cam, rng=rng,
-                                                      sigma=SIGMA)), cam, SIGMA)
+        res = estimate_floor_pose(
+            floor_of(floor_dets(T_tilted, FOUR, camera=cam, rng=rng, sigma=SIGMA)), cam, SIGMA
+        )
         xi = local(make_T(rot_z(math.radians(-60.0)), [0.5, 0.5, 2.6]), res.T_world_body)
-        assert abs(xi[0]) < 1e-9 and abs(xi[1]) < 1e-9        # the level frame, exactly
+        assert abs(xi[0]) < 1e-9 and abs(xi[1]) < 1e-9  # the level frame, exactly
         nees.append(xi[2:] @ np.linalg.solve(res.covariance[2:, 2:], xi[2:]))
     assert 0.5 * 4 <= np.mean(nees) <= 2.0 * 4, np.mean(nees)
 
@@ -215,8 +270,7 @@ def _floor_draws(T, centres, n, seed):
     rng = np.random.default_rng(seed)
     xis, nees, covs = [], [], []
     for _ in range(n):
-        res = estimate_floor_pose(floor_of(floor_dets(T, centres, rng=rng, sigma=SIGMA)),
-                                  FLOOR_CAM, SIGMA)
+        res = estimate_floor_pose(floor_of(floor_dets(T, centres, rng=rng, sigma=SIGMA)), FLOOR_CAM, SIGMA)
         xi = local(T, res.T_world_body)
         xis.append(xi)
         covs.append(res.covariance)
@@ -224,10 +278,13 @@ def _floor_draws(T, centres, n, seed):
     return np.array(xis), np.array(nees), np.array(covs)
 
 
-@pytest.mark.parametrize("centres,T", [
-    (FOUR, T_FOUR),
-    ([(0, 0)], body_pose(0.15, -0.1, 0.9, -20.0, roll_deg=3.0, pitch_deg=8.0)),
-])
+@pytest.mark.parametrize(
+    "centres,T",
+    [
+        (FOUR, T_FOUR),
+        ([(0, 0)], body_pose(0.15, -0.1, 0.9, -20.0, roll_deg=3.0, pitch_deg=8.0)),
+    ],
+)
 def test_pose_nees_is_consistent(centres, T):
     xis, nees, _ = _floor_draws(T, centres, 200, seed=7)
     assert 0.5 * 6 <= nees.mean() <= 2.0 * 6, nees.mean()
@@ -254,13 +311,12 @@ def test_covariance_convention_is_gtsams_body_frame_right_perturbation():
     # sampling T * Exp(xi), xi ~ N(0, cov), reproduces the estimates' world-frame position spread
     rng = np.random.default_rng(3)
     samples = rng.multivariate_normal(np.zeros(6), cov, 2000)
-    p_samp = np.array([(gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(s)).translation()
-                       for s in samples])
+    p_samp = np.array([(gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(s)).translation() for s in samples])
     p_est = np.array([(gtsam.Pose3(T_FOUR) * gtsam.Pose3.Expmap(x)).translation() for x in xis])
     ratio = np.sqrt(np.diag(np.cov(p_est.T)) / np.diag(np.cov(p_samp.T)))
     assert np.all((0.75 < ratio) & (ratio < 1.33)), ratio
     # wrong conventions fail the same consistency check
-    Ad = gtsam.Pose3(T_FOUR).AdjointMap()               # body -> world (left) perturbation
+    Ad = gtsam.Pose3(T_FOUR).AdjointMap()  # body -> world (left) perturbation
     swap = np.r_[3, 4, 5, 0, 1, 2]
     for bad in (Ad @ cov @ Ad.T, cov[np.ix_(swap, swap)]):
         bad_nees = np.mean([x @ np.linalg.solve(bad, x) for x in xis])
@@ -275,12 +331,17 @@ def test_single_code_fronto_parallel_never_flips_yaw():
     for k in range(250):
         yaw = rng.uniform(-180.0, 180.0)
         h = rng.uniform(2.0, 3.0)
-        T = body_pose(rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), h, yaw,
-                      roll_deg=rng.normal(0, 2.0), pitch_deg=rng.normal(0, 2.0))
+        T = body_pose(
+            rng.uniform(-0.05, 0.05),
+            rng.uniform(-0.05, 0.05),
+            h,
+            yaw,
+            roll_deg=rng.normal(0, 2.0),
+            pitch_deg=rng.normal(0, 2.0),
+        )
         # shift the body so that the camera (not the body origin) is over the code
         T[:2, 3] -= (T @ FLOOR_CAM.T_body_cam)[:2, 3] - T[:2, 3]
-        res = estimate_floor_pose(floor_of(floor_dets(T, [(0, 0)], rng=rng, sigma=SIGMA)),
-                                  FLOOR_CAM, SIGMA)
+        res = estimate_floor_pose(floor_of(floor_dets(T, [(0, 0)], rng=rng, sigma=SIGMA)), FLOOR_CAM, SIGMA)
         assert res is not None
         yaw_err.append(abs(wrap_angle(yaw_of(res.T_world_body[:3, :3]) - math.radians(yaw))))
     assert max(yaw_err) < math.radians(10.0), math.degrees(max(yaw_err))
@@ -295,19 +356,20 @@ def test_rejected_codes_are_not_used():
     # a code outside the world's bounds, a duplicated floor code (both copies dropped), a load code
     # on the floor camera and a foreign payload, all with corners that would wreck the pose
     junk_uv = good[0].corners_px + np.array([40.0, -25.0])
-    junk = [QRDetection("cam0", 0, "0/500/0", junk_uv, junk_uv),
-            QRDetection("cam0", 0, "0/1/1", junk_uv + 5, junk_uv),
-            QRDetection("cam0", 0, "0/1/1", junk_uv + 9, junk_uv),
-            QRDetection("cam0", 0, "1/box-7", junk_uv, junk_uv),
-            QRDetection("cam0", 0, "http://example.com", junk_uv, junk_uv)]
+    junk = [
+        QRDetection("cam0", 0, "0/500/0", junk_uv, junk_uv),
+        QRDetection("cam0", 0, "0/1/1", junk_uv + 5, junk_uv),
+        QRDetection("cam0", 0, "0/1/1", junk_uv + 9, junk_uv),
+        QRDetection("cam0", 0, "1/box-7", junk_uv, junk_uv),
+        QRDetection("cam0", 0, "http://example.com", junk_uv, junk_uv),
+    ]
     codes = classify(good + junk, WORLD)
     assert len(codes.floor) == 2 and len(codes.rejected) == 5
     res = estimate_floor_pose(codes.floor, FLOOR_CAM)
     np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
     traj, stats = pnp_trajectory({5: good + junk}, FLOOR_CAM, WORLD)
     np.testing.assert_allclose(traj.T_world_body[0], T, atol=1e-9)
-    assert stats.rejections == {"outside_world": 1, "duplicate_floor": 2, "wrong_camera": 1,
-                                "not_ours": 1}
+    assert stats.rejections == {"outside_world": 1, "duplicate_floor": 2, "wrong_camera": 1, "not_ours": 1}
 
 
 def test_misplaced_code_is_dropped_as_outlier():
@@ -356,10 +418,12 @@ def test_load_positions_exact_without_noise():
     for o, code in zip(obs, LOADS):
         np.testing.assert_allclose(o.p_world, code.p_world, atol=1e-9)
         T_cam_world = inv_T(FRONT_CAM.T_world_cam(T_FRONT))
-        np.testing.assert_allclose(o.p_cam, transform_points(T_cam_world, np.array([code.p_world]))[0],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            o.p_cam, transform_points(T_cam_world, np.array([code.p_world]))[0], atol=1e-9
+        )
         T_cam_sym = T_cam_world @ code.T_world_symbol
         from fusion.conventions import symbol_corners_S
+
         crb = load_position_crb(FRONT_CAM, T_cam_sym, symbol_corners_S(WORLD.load_side_m), SIGMA)
         np.testing.assert_allclose(o.cov_cam, crb, rtol=1e-6)
 
@@ -367,17 +431,17 @@ def test_load_positions_exact_without_noise():
 def test_load_position_nees_with_drone_pose_uncertainty():
     rng = np.random.default_rng(5)
     cov_body = np.diag([0.01, 0.01, 0.004, 0.02, 0.02, 0.01]) ** 2
-    cov_body[3, 1] = cov_body[1, 3] = 0.5 * 0.01 * 0.02   # some roll/lateral coupling
+    cov_body[3, 1] = cov_body[1, 3] = 0.5 * 0.01 * 0.02  # some roll/lateral coupling
     nees_cam, nees_world = [], []
     for _ in range(200):
         # truth: the drone is at T_true; the estimator believes T_hat = T_true * Exp(-xi)
         xi = rng.multivariate_normal(np.zeros(6), cov_body)
         T_hat = (gtsam.Pose3(T_FRONT) * gtsam.Pose3.Expmap(-xi)).matrix()
         dets = load_dets(T_FRONT, LOADS[:1], rng=rng, sigma=SIGMA)
-        (o,) = estimate_load_observations(classify(dets, WORLD).loads, FRONT_CAM, WORLD, T_hat,
-                                          cov_body, SIGMA)
-        p_cam_true = transform_points(inv_T(FRONT_CAM.T_world_cam(T_FRONT)),
-                                      np.array([LOADS[0].p_world]))[0]
+        (o,) = estimate_load_observations(
+            classify(dets, WORLD).loads, FRONT_CAM, WORLD, T_hat, cov_body, SIGMA
+        )
+        p_cam_true = transform_points(inv_T(FRONT_CAM.T_world_cam(T_FRONT)), np.array([LOADS[0].p_world]))[0]
         e = o.p_cam - p_cam_true
         nees_cam.append(e @ np.linalg.solve(o.cov_cam, e))
         e = o.p_world - np.array(LOADS[0].p_world)
@@ -395,12 +459,15 @@ def test_load_observations_along_a_flight_and_the_map():
         T = body_pose(1.0 + 0.05 * k, 0.5, 2.2, 0.0, roll_deg=1.0)
         truth[ts] = T
         floor_frames[ts] = floor_dets(T, [(1, 0), (1, 1)], rng=rng, sigma=SIGMA, ts=ts)
-        if k % 2 == 1:       # front frames between floor frames: poses interpolated
+        if k % 2 == 1:  # front frames between floor frames: poses interpolated
             front_frames[ts + 25_000_000] = load_dets(
                 body_pose(1.025 + 0.05 * k, 0.5, 2.2, 0.0, roll_deg=1.0),
-                [LoadCode("box-1", (3.5, 0.6, 2.0), math.pi)], rng=rng, sigma=SIGMA,
-                ts=ts + 25_000_000)
-    front_frames[0] = front_frames[1_075_000_000]   # before the first pose: skipped
+                [LoadCode("box-1", (3.5, 0.6, 2.0), math.pi)],
+                rng=rng,
+                sigma=SIGMA,
+                ts=ts + 25_000_000,
+            )
+    front_frames[0] = front_frames[1_075_000_000]  # before the first pose: skipped
     traj, _ = pnp_trajectory(floor_frames, FLOOR_CAM, WORLD)
     obs = pnp_load_observations(front_frames, FRONT_CAM, WORLD, traj)
     assert len(obs) == 3
@@ -415,14 +482,15 @@ def test_load_observations_along_a_flight_and_the_map():
 
 def test_pose_at_interpolates_and_refuses_gaps():
     T0, T1 = body_pose(0, 0, 1, 0.0), body_pose(1, 0, 1, 90.0)
-    traj = Trajectory("t", np.array([0, 100_000_000]), np.stack([T0, T1]),
-                      np.stack([np.eye(6), 2 * np.eye(6)]))
+    traj = Trajectory(
+        "t", np.array([0, 100_000_000]), np.stack([T0, T1]), np.stack([np.eye(6), 2 * np.eye(6)])
+    )
     T, cov = pose_at(traj, 75_000_000)
     np.testing.assert_allclose(T, body_pose(0.75, 0, 1, 67.5), atol=1e-12)
     np.testing.assert_allclose(cov, 2 * np.eye(6))
     assert pose_at(traj, 50_000_000, max_gap_s=0.05) is None
     assert pose_at(traj, 200_000_000) is None
-    np.testing.assert_array_equal(pose_at(traj, 100_000_500)[0], T1)   # within 1 ms: that pose
+    np.testing.assert_array_equal(pose_at(traj, 100_000_500)[0], T1)  # within 1 ms: that pose
 
 
 def test_per_detection_corner_sigmas_weight_the_fit_and_the_covariance():
@@ -430,6 +498,7 @@ def test_per_detection_corner_sigmas_weight_the_fit_and_the_covariance():
     covariance (J^T W J)^-1 with W = diag(1/sigma_i^2), consistent (NEES) where a single sigma
     would not be, and closer to the truth than the unweighted fit."""
     import dataclasses
+
     T = aim(body_pose(0, 0, 2.4, 25.0, roll_deg=2.0, pitch_deg=-3.0), (0.35, 0.35))
     centres = [(0, 0), (1, 0), (0, 1)]
     sig = np.array([0.03, 0.6, 0.6])
@@ -437,11 +506,16 @@ def test_per_detection_corner_sigmas_weight_the_fit_and_the_covariance():
     nees_w, nees_1, err_w, err_1 = [], [], [], []
     for _ in range(80):
         dets = floor_dets(T, centres)
-        dets = [dataclasses.replace(d, corners_px=d.corners_px + rng.normal(0.0, s, (4, 2)),
-                                    corner_sigma_px=float(s)) for d, s in zip(dets, sig)]
+        dets = [
+            dataclasses.replace(
+                d, corners_px=d.corners_px + rng.normal(0.0, s, (4, 2)), corner_sigma_px=float(s)
+            )
+            for d, s in zip(dets, sig)
+        ]
         res = estimate_floor_pose(floor_of(dets), FLOOR_CAM, 0.2)
-        plain = estimate_floor_pose(floor_of([dataclasses.replace(d, corner_sigma_px=None)
-                                              for d in dets]), FLOOR_CAM, 0.2)
+        plain = estimate_floor_pose(
+            floor_of([dataclasses.replace(d, corner_sigma_px=None) for d in dets]), FLOOR_CAM, 0.2
+        )
         xi, xi1 = local(T, res.T_world_body), local(T, plain.T_world_body)
         nees_w.append(xi @ np.linalg.solve(res.covariance, xi))
         nees_1.append(xi1 @ np.linalg.solve(plain.covariance, xi1))
@@ -453,14 +527,19 @@ def test_per_detection_corner_sigmas_weight_the_fit_and_the_covariance():
     w = 1.0 / np.repeat(sig, 8) ** 2
     assert np.allclose(res.covariance, np.linalg.inv(J.T @ (J * w[:, None])), rtol=1e-6, atol=1e-14)
     assert 0.5 * 6 <= np.mean(nees_w) <= 2.0 * 6
-    assert np.mean(nees_1) > 3.0 * 6            # one sigma for all: overconfident here
+    assert np.mean(nees_1) > 3.0 * 6  # one sigma for all: overconfident here
     assert np.mean(err_w) < 0.7 * np.mean(err_1)
 
 
 # ============================================================================ rendered corners
 
-RENDER_WORLD = World(floor_side_m=0.30, payload_unit_m=0.5, load_side_m=0.30,
-                     bounds_x_m=(-10.0, 10.0), bounds_y_m=(-10.0, 10.0))
+RENDER_WORLD = World(
+    floor_side_m=0.30,
+    payload_unit_m=0.5,
+    load_side_m=0.30,
+    bounds_x_m=(-10.0, 10.0),
+    bounds_y_m=(-10.0, 10.0),
+)
 
 
 def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
@@ -481,6 +560,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
         project_code_corners,
         render_view,
     )
+
     rng = np.random.default_rng(seed)
     grid = np.array([[x, y] for x in range(-4, 5) for y in range(-4, 5)], float)
     floor = placed_floor_codes(grid, RENDER_WORLD.payload_unit_m, RENDER_WORLD.floor_side_m)
@@ -493,24 +573,43 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
             truth = project_code_corners(camera, T_world_cam, c)
             centre = truth.mean(axis=0)
             outline = centre + (1.0 + 2.0 * QUIET_ZONE_MODULES / c.modules) * (truth - centre)
-            if np.all(np.isfinite(outline)) and np.all(outline >= 1) and \
-                    np.all(outline < np.array([camera.width, camera.height]) - 2):
+            if (
+                np.all(np.isfinite(outline))
+                and np.all(outline >= 1)
+                and np.all(outline < np.array([camera.width, camera.height]) - 2)
+            ):
                 cand.append((c, np.round(truth + rng.normal(0.0, 0.7, truth.shape))))
         [res] = refine_frames([img], [[(raw, c.modules) for c, raw in cand]], camera)
         for (c, raw), r in zip(cand, res):
             if r is not None and r.stage == 2:
-                d = QRDetection(camera.name if hasattr(camera, "name") else "cam", 0, c.payload,
-                                r.corners_px, raw, r.corner_sigma_px, r.corner_cov_px2)
+                d = QRDetection(
+                    camera.name if hasattr(camera, "name") else "cam",
+                    0,
+                    c.payload,
+                    r.corners_px,
+                    raw,
+                    r.corner_sigma_px,
+                    r.corner_cov_px2,
+                )
                 dets.append(d if use_cov else dataclasses.replace(d, corner_cov_px2=None))
         return dets
 
     def effects():
-        return RenderEffects(noise_sigma_dn=rng.uniform(0.5, 4.0), blur_px=rng.uniform(0.0, 8.0),
-                             blur_angle_rad=rng.uniform(0.0, np.pi))
+        return RenderEffects(
+            noise_sigma_dn=rng.uniform(0.5, 4.0),
+            blur_px=rng.uniform(0.0, 8.0),
+            blur_angle_rad=rng.uniform(0.0, np.pi),
+        )
 
     for _ in range(n_frames):
-        T = body_pose(rng.uniform(-0.25, 0.25), rng.uniform(-0.25, 0.25), rng.uniform(0.8, 2.5),
-                      rng.uniform(-180, 180), roll_deg=rng.normal(0, 3), pitch_deg=rng.normal(0, 3))
+        T = body_pose(
+            rng.uniform(-0.25, 0.25),
+            rng.uniform(-0.25, 0.25),
+            rng.uniform(0.8, 2.5),
+            rng.uniform(-180, 180),
+            roll_deg=rng.normal(0, 3),
+            pitch_deg=rng.normal(0, 3),
+        )
         T_wc = FLOOR_CAM.T_world_cam(T)
         img = render_view(FLOOR_CAM, T_wc, floor, rng, effects())
         dets = [dataclasses.replace(d, camera="cam0") for d in refined(FLOOR_CAM, T_wc, floor, img)]
@@ -532,8 +631,7 @@ def rendered_nees(n_frames: int, seed: int, use_cov: bool = True):
         placed = PlacedCode(load_payload(code.id), code.T_world_symbol, RENDER_WORLD.load_side_m)
         img = render_view(FRONT_CAM, T_wc1, [placed], rng, effects())
         dets = [dataclasses.replace(d, camera="cam1") for d in refined(FRONT_CAM, T_wc1, [placed], img)]
-        obs = estimate_load_observations(classify(dets, RENDER_WORLD).loads, FRONT_CAM,
-                                         RENDER_WORLD, T)
+        obs = estimate_load_observations(classify(dets, RENDER_WORLD).loads, FRONT_CAM, RENDER_WORLD, T)
         if obs:
             e = obs[0].p_cam - transform_points(inv_T(T_wc1), p[None])[0]
             out["load"].append(float(e @ np.linalg.solve(obs[0].cov_cam, e)))
@@ -560,14 +658,23 @@ def test_many_frames_at_once_equal_one_at_a_time():
     what estimate_floor_pose gives frame by frame (OpenCV's IPPE there), to well within a tenth of
     a standard deviation; an empty frame and a frame with a misplaced code are handled alike."""
     import dataclasses
+
     rng = np.random.default_rng(41)
     frames = []
     for i in range(14):
         centres = [FOUR[:1], FOUR[:2], FOUR[:3], FOUR][i % 4]
         cx, cy = np.mean(centres, axis=0)
-        T = aim(body_pose(0, 0, 1.3 if len(centres) == 1 else 2.7, rng.uniform(-180, 180),
-                          roll_deg=rng.normal(0, 4), pitch_deg=rng.normal(0, 4)),
-                (cx + rng.uniform(-0.1, 0.1), cy + rng.uniform(-0.1, 0.1)))
+        T = aim(
+            body_pose(
+                0,
+                0,
+                1.3 if len(centres) == 1 else 2.7,
+                rng.uniform(-180, 180),
+                roll_deg=rng.normal(0, 4),
+                pitch_deg=rng.normal(0, 4),
+            ),
+            (cx + rng.uniform(-0.1, 0.1), cy + rng.uniform(-0.1, 0.1)),
+        )
         frames.append(floor_of(floor_dets(T, centres, rng=rng, sigma=SIGMA)))
     bad = floor_dets(T_FOUR, FOUR)
     wrong = floor_dets(T_FOUR, [(0.7, 0.8)])[0]
@@ -584,14 +691,22 @@ def test_many_frames_at_once_equal_one_at_a_time():
         xi = local(one.T_world_body, b.T_world_body)
         assert xi @ np.linalg.solve(one.covariance, xi) < 1e-4
         assert np.linalg.norm(b.covariance - one.covariance) < 1e-3 * np.linalg.norm(one.covariance)
-        assert (b.payloads, b.dropped_payloads, b.ambiguous) == \
-            (one.payloads, one.dropped_payloads, one.ambiguous)
+        assert (b.payloads, b.dropped_payloads, b.ambiguous) == (
+            one.payloads,
+            one.dropped_payloads,
+            one.ambiguous,
+        )
     # load codes: many frames together = one frame at a time
     items = []
     for k in range(6):
         T = body_pose(1.2 + 0.1 * k, 0.05 * k, 1.1, 5.0 - 3 * k, roll_deg=2.0, pitch_deg=3.0)
-        items.append((classify(load_dets(T, LOADS[:1 + k % 2], rng=rng, sigma=SIGMA), WORLD).loads,
-                      T, np.diag([1e-4] * 3 + [4e-4] * 3) if k % 2 else None))
+        items.append(
+            (
+                classify(load_dets(T, LOADS[: 1 + k % 2], rng=rng, sigma=SIGMA), WORLD).loads,
+                T,
+                np.diag([1e-4] * 3 + [4e-4] * 3) if k % 2 else None,
+            )
+        )
     many = estimate_load_observations_frames(items, FRONT_CAM, WORLD, SIGMA)
     for (loads, T, cov), obs in zip(items, many):
         one = estimate_load_observations(loads, FRONT_CAM, WORLD, T, cov, SIGMA)
@@ -607,30 +722,34 @@ def test_vectorised_ippe_matches_opencv(n_points):
     """_ippe's two poses are OpenCV's SOLVEPNP_IPPE ones (its homography estimate differs slightly
     from ours beyond 4 points), and one of them is the true pose for noise-free points."""
     from fusion.qr.pnp.ippe import ippe as _ippe
+
     rng = np.random.default_rng(n_points)
     K = 30
     if n_points == 4:
         X = np.array([[-0.1, 0.1], [0.1, 0.1], [0.1, -0.1], [-0.1, -0.1]]) + rng.uniform(-1, 1, (K, 1, 2))
     else:
         X = rng.uniform(-1.0, 1.0, (K, n_points, 2))
-    R_true = np.array([Rotation.from_rotvec([math.pi, 0, 0] + rng.normal(0, 0.3, 3)).as_matrix()
-                       for _ in range(K)])
+    R_true = np.array(
+        [Rotation.from_rotvec([math.pi, 0, 0] + rng.normal(0, 0.3, 3)).as_matrix() for _ in range(K)]
+    )
     t_true = np.column_stack([rng.uniform(-0.5, 0.5, (K, 2)), rng.uniform(1.5, 3.0, K)])
     P = np.concatenate([X, np.zeros((K, n_points, 1))], axis=2)
     p_cam = P @ R_true.transpose(0, 2, 1) + t_true[:, None]
     xn = p_cam[..., :2] / p_cam[..., 2:]
     R, t = _ippe(X, xn)
     for k in range(K):
-        err = min(np.abs(R[k, j] - R_true[k]).max() + np.abs(t[k, j] - t_true[k]).max()
-                  for j in range(2))
+        err = min(np.abs(R[k, j] - R_true[k]).max() + np.abs(t[k, j] - t_true[k]).max() for j in range(2))
         assert err < 1e-9
         noisy = xn[k] + rng.normal(0.0, 3e-4, xn[k].shape)
-        R2, t2 = _ippe(X[k:k + 1], noisy[None])
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(P[k].reshape(-1, 1, 3), noisy.reshape(-1, 1, 2),
-                                                 np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+        R2, t2 = _ippe(X[k : k + 1], noisy[None])
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            P[k].reshape(-1, 1, 3), noisy.reshape(-1, 1, 2), np.eye(3), None, flags=cv2.SOLVEPNP_IPPE
+        )
         for rv, tv in zip(rvecs[:n], tvecs[:n]):
-            err = min(np.abs(R2[0, j] - cv2.Rodrigues(rv)[0]).max() +
-                      np.abs(t2[0, j] - tv.ravel()).max() for j in range(2))
+            err = min(
+                np.abs(R2[0, j] - cv2.Rodrigues(rv)[0]).max() + np.abs(t2[0, j] - tv.ravel()).max()
+                for j in range(2)
+            )
             assert err < (1e-8 if n_points == 4 else 1e-4), err
 
 
@@ -638,8 +757,8 @@ def test_vectorised_ippe_matches_opencv(n_points):
 def test_load_position_jacobian_matches_numerical_derivative(mount):
     from fusion.geometry import se3_exp
     from fusion.qr.pnp import position_jacobian_wrt_body
-    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, T_body_cam=FRONT_CAM.T_body_cam,
-                      mount=mount)
+
+    cam = CameraModel(640, 480, 600.0, 600.0, 319.5, 239.5, T_body_cam=FRONT_CAM.T_body_cam, mount=mount)
     T = body_pose(1.0, -0.5, 1.4, 130.0, roll_deg=7.0, pitch_deg=-9.0)
     p_cam = np.array([0.2, -0.3, 2.1])
 
@@ -656,8 +775,9 @@ def test_fast_model_pieces_match_their_references():
     so3_exp / so3_exp_stack = GTSAM's Rot3.Expmap; pnp.undistort = CameraModel.undistort_normalized,
     also where OpenCV's iteration fails (strong distortion: the Newton fallback)."""
     from fusion.geometry import so3_exp, so3_exp_stack
-    from fusion.qr.reprojection import Projector
     from fusion.qr.pnp import undistort
+    from fusion.qr.reprojection import Projector
+
     rng = np.random.default_rng(8)
     p = np.column_stack([rng.uniform(-1, 1, (50, 2)), rng.uniform(0.5, 3.0, 50)])
     p[0, 2] = -1.0
@@ -665,15 +785,18 @@ def test_fast_model_pieces_match_their_references():
     np.testing.assert_array_equal(np.isnan(uv), np.isnan(FLOOR_CAM.project(p)))
     np.testing.assert_allclose(uv[1:], FLOOR_CAM.project(p)[1:], atol=1e-9)
     h = 1e-6
-    Jn = np.stack([(FLOOR_CAM.project(p + d) - FLOOR_CAM.project(p - d)) / (2 * h)
-                   for d in np.eye(3) * h], axis=-1)
+    Jn = np.stack(
+        [(FLOOR_CAM.project(p + d) - FLOOR_CAM.project(p - d)) / (2 * h) for d in np.eye(3) * h], axis=-1
+    )
     np.testing.assert_allclose(J[1:], Jn[1:], atol=1e-4 * np.abs(J[1:]).max())
     w = np.vstack([rng.normal(0, 1.0, (5, 3)), rng.normal(0, 1e-5, (3, 3)), np.zeros((1, 3))])
     for wk, Rk in zip(w, so3_exp_stack(w)):
         np.testing.assert_allclose(so3_exp(wk), gtsam.Rot3.Expmap(wk).matrix(), atol=1e-15)
         np.testing.assert_allclose(Rk, gtsam.Rot3.Expmap(wk).matrix(), atol=1e-15)
-    for cam in (FLOOR_CAM, CameraModel(640, 480, 300.0, 300.0, 320.0, 240.0,
-                                       distortion=[-0.45, 0.2, 0.0, 0.0])):
+    for cam in (
+        FLOOR_CAM,
+        CameraModel(640, 480, 300.0, 300.0, 320.0, 240.0, distortion=[-0.45, 0.2, 0.0, 0.0]),
+    ):
         px = np.vstack([rng.uniform([0, 0], [640, 480], (40, 2)), [[0.0, 0.0], [639.0, 479.0]]])
         np.testing.assert_allclose(undistort(cam, px), cam.undistort_normalized(px), atol=1e-10)
 
@@ -684,14 +807,17 @@ def test_whitening_of_a_batch_with_one_bad_covariance():
     import dataclasses
 
     from fusion.qr.pnp import corner_whitening
+
     rng = np.random.default_rng(2)
     A = rng.normal(0, 0.1, (8, 8))
     C = A @ A.T + 0.01 * np.eye(8)
     d = floor_dets(T_FOUR, FOUR)
-    dets = [dataclasses.replace(d[0], corner_cov_px2=C),
-            dataclasses.replace(d[1], corner_cov_px2=-C, corner_sigma_px=0.3),
-            dataclasses.replace(d[2], corner_cov_px2=np.full((8, 8), np.nan)),
-            d[3]]
+    dets = [
+        dataclasses.replace(d[0], corner_cov_px2=C),
+        dataclasses.replace(d[1], corner_cov_px2=-C, corner_sigma_px=0.3),
+        dataclasses.replace(d[2], corner_cov_px2=np.full((8, 8), np.nan)),
+        d[3],
+    ]
     W = corner_whitening(dets, 0.2)
     np.testing.assert_allclose(W[0] @ C @ W[0].T, np.eye(8), atol=1e-9)
     np.testing.assert_allclose(W[1], np.eye(8) / 0.3)
@@ -706,19 +832,21 @@ def test_lm_reports_which_starts_converged():
     from fusion.qr.pnp import corner_whitening
     from fusion.qr.pnp.floor import FloorProblems
     from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
+
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]
     W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
-    problems = FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, 2, axis=0),
-                                        np.repeat(z, 2, axis=0), np.repeat(W, 2, axis=0))
+    problems = FloorProblems.for_camera(
+        FLOOR_CAM, np.repeat(P, 2, axis=0), np.repeat(z, 2, axis=0), np.repeat(W, 2, axis=0)
+    )
     R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.25, -0.2, 0.3])])
     t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [0.3, -0.2, 0.4]])
     normal = problems.normal_equations(R0, t0)
     res = levenberg_marquardt(problems, R0, t0, normal, max_iter=3)
     assert res.converged.tolist() == [True, False] and res.normal.cost[1] > res.normal.cost[0]
     res = levenberg_marquardt(problems, R0, t0, normal)
-    assert res.converged.all()                              # both at the same minimum:
+    assert res.converged.all()  # both at the same minimum:
     assert same_minimum(res.R[0], res.t[0], res.normal.H[0], res.R[1], res.t[1])  # < 0.1 sigma
 
 
@@ -729,12 +857,17 @@ def _four_code_problems(n_starts: int):
     """`n_starts` copies of one noisy four-code floor view as LM problems (FloorProblems)."""
     from fusion.qr.pnp import corner_whitening
     from fusion.qr.pnp.floor import FloorProblems
+
     sightings = floor_of(floor_dets(T_FOUR, FOUR, rng=np.random.default_rng(4), sigma=SIGMA))
     P = np.vstack([s.corners_world for s in sightings])[None]
     z = np.vstack([s.detection.corners_px for s in sightings])[None]
     W = corner_whitening([s.detection for s in sightings], SIGMA)[None]
-    return FloorProblems.for_camera(FLOOR_CAM, np.repeat(P, n_starts, axis=0),
-                                    np.repeat(z, n_starts, axis=0), np.repeat(W, n_starts, axis=0))
+    return FloorProblems.for_camera(
+        FLOOR_CAM,
+        np.repeat(P, n_starts, axis=0),
+        np.repeat(z, n_starts, axis=0),
+        np.repeat(W, n_starts, axis=0),
+    )
 
 
 def test_lm_damps_a_step_that_raises_the_cost():
@@ -743,6 +876,7 @@ def test_lm_damps_a_step_that_raises_the_cost():
     reaches the minimum that the start at the truth reaches."""
     from fusion.geometry import so3_exp
     from fusion.qr.pnp.lm import levenberg_marquardt, same_minimum
+
     problems = _four_code_problems(2)
     R0 = np.stack([T_FOUR[:3, :3], T_FOUR[:3, :3] @ so3_exp([0.475, 0.396, 0.19])])
     t0 = np.stack([T_FOUR[:3, 3], T_FOUR[:3, 3] + [-0.447, 0.266, 0.117]])
@@ -764,10 +898,13 @@ def test_level_body_single_frame_is_recovered_exactly(yaw_deg, offset):
     (no SQPnP fallback) and for two."""
     T = aim(body_pose(0, 0, 2.0, yaw_deg), offset)
     for centres in ([(0, 0)], [(0, 0), (1, 0)]):
-        T_view = T if len(centres) == 1 else aim(body_pose(0, 0, 2.6, yaw_deg),
-                                                 (0.5 + 0.3 * offset[0], 0.3 * offset[1]))
+        T_view = (
+            T
+            if len(centres) == 1
+            else aim(body_pose(0, 0, 2.6, yaw_deg), (0.5 + 0.3 * offset[0], 0.3 * offset[1]))
+        )
         res = estimate_floor_pose(floor_of(floor_dets(T_view, centres)), FLOOR_CAM)
-        assert res is not None                  # exact to the LM's tolerance (the bug: 0.1-2 rad)
+        assert res is not None  # exact to the LM's tolerance (the bug: 0.1-2 rad)
         np.testing.assert_allclose(res.T_world_body, T_view, atol=1e-6)
 
 
@@ -789,8 +926,9 @@ def test_ambiguous_load_code_takes_the_solution_with_up_along_world_z(distance_m
     other's is 3-4 mm off)."""
     code = LoadCode("box-1", (distance_m, 0.3, 1.3), math.pi)
     T = body_pose(0.0, 0.0, 1.1, 0.0)
-    obs = estimate_load_observations(classify(load_dets(T, [code]), WORLD).loads, FRONT_CAM,
-                                     WORLD, T, None, 0.3)
+    obs = estimate_load_observations(
+        classify(load_dets(T, [code]), WORLD).loads, FRONT_CAM, WORLD, T, None, 0.3
+    )
     assert len(obs) == 1
     np.testing.assert_allclose(obs[0].p_world, code.p_world, atol=1e-9)
 
@@ -804,8 +942,9 @@ def test_sqpnp_start_finds_the_misplaced_code_where_ippe_does_not(yaw_deg):
     dropped and the pose is exact."""
     T = body_pose(0.70, -0.98, 2.65, yaw_deg, roll_deg=2.9, pitch_deg=16.5)
     misplaced = floor_dets(T, [(0.21, -1.51)])[0]
-    dets = [QRDetection("cam0", 0, floor_payload(0, -2), misplaced.corners_px,
-                        misplaced.corners_px)] + floor_dets(T, [(2, -1)])
+    dets = [
+        QRDetection("cam0", 0, floor_payload(0, -2), misplaced.corners_px, misplaced.corners_px)
+    ] + floor_dets(T, [(2, -1)])
     res = estimate_floor_pose(floor_of(dets), FLOOR_CAM)
     assert res.dropped_payloads == [floor_payload(0, -2)]
     np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)

@@ -1,4 +1,5 @@
 """Printable QR sheets: page count, exact physical symbol size, payloads decode, bad ids refused."""
+
 from __future__ import annotations
 
 import re
@@ -24,9 +25,10 @@ def _pdf_page_count(path) -> int:
 def test_pdf_written_with_expected_page_count(tmp_path):
     # 0.20 m codes need A3 (276 mm with the quiet zone): one per page; loads from a new page
     path = tmp_path / "sheet.pdf"
-    n = write_qr_sheet(path, grid=(2, 2), side_m=0.20, page="A3", load_ids=["A1", "B-7", "C3"],
-                       load_side_m=0.10)
-    assert n == 4 + 1            # 10 cm labels (138 mm with quiet zone): 2 x 2 per A3 page
+    n = write_qr_sheet(
+        path, grid=(2, 2), side_m=0.20, page="A3", load_ids=["A1", "B-7", "C3"], load_side_m=0.10
+    )
+    assert n == 4 + 1  # 10 cm labels (138 mm with quiet zone): 2 x 2 per A3 page
     assert path.read_bytes()[:5] == b"%PDF-"
     assert _pdf_page_count(path) == n
     assert not list(tmp_path.glob(".*part"))
@@ -52,6 +54,7 @@ def test_symbol_side_is_exact_on_paper():
 def test_rendered_page_decodes_and_measures_true_size():
     import zxingcpp
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     dpi = 150
     pages = sheet_pages(grid=(2, 1), side_m=0.05)
     fig = page_figure(pages[0])
@@ -65,7 +68,7 @@ def test_rendered_page_decodes_and_measures_true_size():
     r0 = int(round(H_px - (code.y_in + code.side_in) * dpi))
     c0 = int(round(code.x_in * dpi))
     s = code.side_in * dpi
-    win = img[r0 - 10:r0 + int(s) + 10, c0 - 10:c0 + int(s) + 10] < 128
+    win = img[r0 - 10 : r0 + int(s) + 10, c0 - 10 : c0 + int(s) + 10] < 128
     ys, xs = np.nonzero(win)
     # measured dark extent = 5 cm at 150 dpi = 295.3 px (within a pixel of rasterisation)
     assert abs(xs.max() - xs.min() + 1 - s) <= 1.0 and abs(ys.max() - ys.min() + 1 - s) <= 1.0
@@ -74,9 +77,9 @@ def test_rendered_page_decodes_and_measures_true_size():
 def test_symbol_modules_crop_is_the_symbol():
     sym = symbol_modules("0/3/4")
     n = sym.shape[0]
-    assert sym.shape == (21, 21)                   # version 1, no quiet zone
+    assert sym.shape == (21, 21)  # version 1, no quiet zone
     for r, c in ((0, 0), (0, n - 7), (n - 7, 0)):  # the three finder patterns' outer rings
-        assert sym[r, c:c + 7].all() and sym[r:r + 7, c].all()
+        assert sym[r, c : c + 7].all() and sym[r : r + 7, c].all()
 
 
 @pytest.mark.parametrize("bad", ["", " lead", "tab\there", "new\nline", "x" * 65, "bell\x07"])

@@ -1,5 +1,6 @@
 """ROS bags: round trip (EuRoC -> bag -> FlightLog) with the same frames, detections and
 estimates; image encodings; roles by type and overrides; stamps; bad bags end in one line."""
+
 import shutil
 from pathlib import Path
 
@@ -9,13 +10,11 @@ import pytest
 
 from fusion.cli import main
 from fusion.errors import LogError
-from fusion.log import LogOptions, StampSource, open_flight
-from fusion.log import euroc
+from fusion.log import LogOptions, StampSource, euroc, open_flight
 from fusion.log.convert import export_flight, import_flight
 from fusion.log.inspect import inspect_log
 from fusion.log.kalibr import write_camchain
-from fusion.log.rosbag import (BAYER_TO_GRAY, COMPRESSED, IMAGE, IMU, decode_image, typestore_for,
-                               _header)
+from fusion.log.rosbag import BAYER_TO_GRAY, COMPRESSED, IMAGE, IMU, _header, decode_image, typestore_for
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 
@@ -28,19 +27,24 @@ def sample():
 def short_flight(n_frames=8):
     """The sample flight with its first frames only (IMU, velocity, ground truth whole)."""
     f = euroc.read_flight(SAMPLE)
-    f.cameras = {name: euroc.CameraStream(name, s.camera, s.timestamps_ns[:n_frames],
-                                          s.paths[:n_frames], s.csv_lines[:n_frames])
-                 for name, s in f.cameras.items()}
+    f.cameras = {
+        name: euroc.CameraStream(
+            name, s.camera, s.timestamps_ns[:n_frames], s.paths[:n_frames], s.csv_lines[:n_frames]
+        )
+        for name, s in f.cameras.items()
+    }
     return f
 
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory, sample):
     d = tmp_path_factory.mktemp("bags")
-    return {"mcap": export_flight(sample, d / "f.mcap"),
-            "bag": export_flight(sample, d / "f.bag"),
-            "png": export_flight(sample, d / "png.mcap", image_format="png"),
-            "jpeg": export_flight(sample, d / "jpeg.bag", image_format="jpeg")}
+    return {
+        "mcap": export_flight(sample, d / "f.mcap"),
+        "bag": export_flight(sample, d / "f.bag"),
+        "png": export_flight(sample, d / "png.mcap", image_format="png"),
+        "jpeg": export_flight(sample, d / "jpeg.bag", image_format="jpeg"),
+    }
 
 
 def _same_flight(a, b, lossless=True):
@@ -85,8 +89,17 @@ def test_import_gives_back_the_euroc_folder(sample, bags, tmp_path):
 # ---------------------------------------------------------------------------- hand-made bags
 
 
-def _write_bag(path, images=(), imu=True, camera_info=False, ros1=None, stamps=None,
-               log_times=None, encoding="mono8", topic="/cam/image_raw"):
+def _write_bag(
+    path,
+    images=(),
+    imu=True,
+    camera_info=False,
+    ros1=None,
+    stamps=None,
+    log_times=None,
+    encoding="mono8",
+    topic="/cam/image_raw",
+):
     """A small bag: `images` (list of uint8 arrays) on `topic` with header `stamps` and receive
     `log_times`, an IMU at 100 Hz, optionally a CameraInfo."""
     from rosbags.rosbag1 import Writer as W1
@@ -94,18 +107,18 @@ def _write_bag(path, images=(), imu=True, camera_info=False, ros1=None, stamps=N
     from rosbags.rosbag2 import Writer as W2
 
     from fusion.log.rosbag import CAMERA_INFO, camera_info_msg
+
     ros1 = path.suffix == ".bag" if ros1 is None else ros1
     ts = typestore_for(ros1)
     ser = ts.serialize_ros1 if ros1 else ts.serialize_cdr
     n = len(images)
-    stamps = list(stamps) if stamps is not None else [1_000_000_000 + k * 100_000_000
-                                                      for k in range(n)]
+    stamps = list(stamps) if stamps is not None else [1_000_000_000 + k * 100_000_000 for k in range(n)]
     log_times = list(log_times) if log_times is not None else stamps
     target = path if ros1 else path.with_name(path.stem + "_dir")
     w = W1(target) if ros1 else W2(target, version=9, storage_plugin=StoragePlugin.MCAP)
-    queue = []                                      # (receive time, order, connection, bytes)
+    queue = []  # (receive time, order, connection, bytes)
 
-    class TimeOrdered:                              # write in receive-time order, as recorded
+    class TimeOrdered:  # write in receive-time order, as recorded
         def __init__(self, writer):
             self.w = writer
 
@@ -121,35 +134,40 @@ def _write_bag(path, images=(), imu=True, camera_info=False, ros1=None, stamps=N
             c = w.add_connection(topic, IMAGE, typestore=ts)
             for img, t, tl in zip(images, stamps, log_times):
                 ch = 1 if img.ndim == 2 else img.shape[2]
-                msg = ts.types[IMAGE](header=_header(ts, t, "cam", ros1), height=img.shape[0],
-                                      width=img.shape[1], encoding=encoding, is_bigendian=0,
-                                      step=img.shape[1] * ch * img.itemsize,
-                                      data=np.frombuffer(img.tobytes(), np.uint8))
+                msg = ts.types[IMAGE](
+                    header=_header(ts, t, "cam", ros1),
+                    height=img.shape[0],
+                    width=img.shape[1],
+                    encoding=encoding,
+                    is_bigendian=0,
+                    step=img.shape[1] * ch * img.itemsize,
+                    data=np.frombuffer(img.tobytes(), np.uint8),
+                )
                 w.write(c, tl, ser(msg, IMAGE))
         if camera_info:
             from fusion.camera import CameraModel
-            ci = w.add_connection(topic.rsplit("/", 1)[0] + "/camera_info", CAMERA_INFO,
-                                  typestore=ts)
+
+            ci = w.add_connection(topic.rsplit("/", 1)[0] + "/camera_info", CAMERA_INFO, typestore=ts)
             cam = CameraModel(images[0].shape[1], images[0].shape[0], 50.0, 50.0, 16.0, 12.0)
-            w.write(ci, stamps[0], ser(camera_info_msg(cam, stamps[0], "cam", ros1, ts),
-                                       CAMERA_INFO))
+            w.write(ci, stamps[0], ser(camera_info_msg(cam, stamps[0], "cam", ros1, ts), CAMERA_INFO))
         if imu:
             ci = w.add_connection("/imu", IMU, typestore=ts)
             V = ts.types["geometry_msgs/msg/Vector3"]
             for k in range(30):
                 t = 1_000_000_000 + k * 10_000_000
-                m = ts.types[IMU](header=_header(ts, t, "imu", ros1),
-                                  orientation=ts.types["geometry_msgs/msg/Quaternion"](
-                                      x=0.0, y=0.0, z=0.0, w=1.0),
-                                  orientation_covariance=np.zeros(9),
-                                  angular_velocity=V(x=0.01, y=0.0, z=0.0),
-                                  angular_velocity_covariance=np.zeros(9),
-                                  linear_acceleration=V(x=0.0, y=0.0, z=9.81),
-                                  linear_acceleration_covariance=np.zeros(9))
+                m = ts.types[IMU](
+                    header=_header(ts, t, "imu", ros1),
+                    orientation=ts.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                    orientation_covariance=np.zeros(9),
+                    angular_velocity=V(x=0.01, y=0.0, z=0.0),
+                    angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=V(x=0.0, y=0.0, z=9.81),
+                    linear_acceleration_covariance=np.zeros(9),
+                )
                 w.write(ci, t, ser(m, IMU))
         for t, _, con, data in sorted(queue, key=lambda q: q[:2]):
             real.write(con, t, data)
-    if not ros1:                                   # one .mcap file, as `ros2 bag` can read
+    if not ros1:  # one .mcap file, as `ros2 bag` can read
         (target / f"{target.name}.mcap").replace(path)
         shutil.rmtree(target)
     return path
@@ -160,10 +178,10 @@ def world_and_calib(tmp_path, sample):
     """world.yaml beside the bags and a Kalibr camchain for a 32x24 camera on /cam/image_raw."""
     sample.world.save(tmp_path / "world.yaml")
     from fusion.camera import CameraModel
+
     cam = CameraModel(32, 24, 50.0, 50.0, 16.0, 12.0)
     calib = tmp_path / "camchain-imucam.yaml"
-    write_camchain(calib, {"cam0": cam}, {"cam0": "/cam/image_raw"},
-                   timeshift_ns={"cam0": 2_000_000})
+    write_camchain(calib, {"cam0": cam}, {"cam0": "/cam/image_raw"}, timeshift_ns={"cam0": 2_000_000})
     return calib
 
 
@@ -173,8 +191,7 @@ def _images(n, seed=0):
 
 
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
-def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, world_and_calib,
-                                                                   suffix):
+def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, world_and_calib, suffix):
     imgs = _images(5)
     stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
     logt = [2_000_000_000 + k * 1000 for k in range(5)]
@@ -182,9 +199,10 @@ def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, worl
     flight = open_flight(bag, LogOptions(calib=world_and_calib))
     cam = flight.floor
     # sorted, duplicate dropped, Kalibr timeshift (2 ms) added: t_imu = t_cam + shift
-    np.testing.assert_array_equal(cam.timestamps_ns,
-                                  np.array([1.0e9, 1.1e9, 1.2e9, 1.3e9]).astype(np.int64) + 2_000_000)
-    for i, k in enumerate([0, 2, 1, 3]):          # frame i is the bag's message k
+    np.testing.assert_array_equal(
+        cam.timestamps_ns, np.array([1.0e9, 1.1e9, 1.2e9, 1.3e9]).astype(np.int64) + 2_000_000
+    )
+    for i, k in enumerate([0, 2, 1, 3]):  # frame i is the bag's message k
         np.testing.assert_array_equal(cam.load_image(i), imgs[k])
     np.testing.assert_array_equal(list(f.image for f in cam.frames())[1], imgs[2])
     rep = inspect_log(bag, LogOptions(calib=world_and_calib))
@@ -207,17 +225,19 @@ def test_image_encodings_decode_to_gray():
             self.data, self.is_bigendian = np.frombuffer(data, np.uint8), big
 
     np.testing.assert_array_equal(decode_image(Msg("bgr8", bgr.tobytes(), 30), IMAGE), gray)
-    np.testing.assert_array_equal(decode_image(Msg("rgb8", bgr[..., ::-1].tobytes(), 30), IMAGE),
-                                  gray)
+    np.testing.assert_array_equal(decode_image(Msg("rgb8", bgr[..., ::-1].tobytes(), 30), IMAGE), gray)
     padded = np.zeros((8, 16), np.uint8)
     padded[:, :10] = gray
     np.testing.assert_array_equal(decode_image(Msg("mono8", padded.tobytes(), 16), IMAGE), gray)
-    img16 = gray.astype(np.uint16) * 257             # full 16-bit range -> the same 8 bits
-    np.testing.assert_array_equal(decode_image(Msg("mono16", img16.tobytes(), 20), IMAGE),
-                                  np.round(img16 * 255.0 / img16.max()).astype(np.uint8))
+    img16 = gray.astype(np.uint16) * 257  # full 16-bit range -> the same 8 bits
+    np.testing.assert_array_equal(
+        decode_image(Msg("mono16", img16.tobytes(), 20), IMAGE),
+        np.round(img16 * 255.0 / img16.max()).astype(np.uint8),
+    )
     np.testing.assert_array_equal(
         decode_image(Msg("mono16", img16.astype(">u2").tobytes(), 20, big=1), IMAGE),
-        decode_image(Msg("mono16", img16.tobytes(), 20), IMAGE))
+        decode_image(Msg("mono16", img16.tobytes(), 20), IMAGE),
+    )
     # Bayer: mosaic a flat colour; demosaicing must give back its gray level (ROS names the
     # pattern from the top-left pixel: rggb = R at (0, 0))
     b, g, r = 40, 120, 200
@@ -234,7 +254,8 @@ def test_image_encodings_decode_to_gray():
     class Comp:
         format = "jpeg"
         data = np.frombuffer(cv2.imencode(".png", gray)[1].tobytes(), np.uint8)
-    np.testing.assert_array_equal(decode_image(Comp, COMPRESSED), gray)   # png inside "jpeg"
+
+    np.testing.assert_array_equal(decode_image(Comp, COMPRESSED), gray)  # png inside "jpeg"
     Comp.format = "rgb8; compressedDepth"
     with pytest.raises(ValueError, match="compressedDepth"):
         decode_image(Comp, COMPRESSED)
@@ -251,8 +272,11 @@ def test_bad_bags_end_in_one_line(tmp_path, world_and_calib):
     with pytest.raises(LogError, match=r"nocam.mcap: no camera topic .* holds /imu"):
         open_flight(bag, opts)
     bag = _write_bag(tmp_path / "enc.bag", [np.zeros((24, 64), np.uint8)], encoding="yuv422")
-    with pytest.raises(LogError, match=r"enc.bag: topic /cam/image_raw message 0: image "
-                                       r"encoding 'yuv422' is not supported"):
+    with pytest.raises(
+        LogError,
+        match=r"enc.bag: topic /cam/image_raw message 0: image "
+        r"encoding 'yuv422' is not supported",
+    ):
         open_flight(bag, opts)
     bag = _write_bag(tmp_path / "ok.bag", _images(3))
     with pytest.raises(LogError, match=r"ok.bag: IMU topic /nope is not in the bag; it holds"):
@@ -267,16 +291,19 @@ def test_bad_bags_end_in_one_line(tmp_path, world_and_calib):
     good = _write_bag(tmp_path / "full.bag", _images(3))
     cut = tmp_path / "cut.bag"
     cut.write_bytes(good.read_bytes()[:200])
-    with pytest.raises(LogError, match=r"cut.bag: truncated or unindexed ROS 1 bag with no "
-                                       r"complete message"):
+    with pytest.raises(
+        LogError,
+        match=r"cut.bag: truncated or unindexed ROS 1 bag with no "
+        r"complete message",
+    ):
         open_flight(cut, opts)
 
 
 @pytest.mark.parametrize("fraction", [0.3, 0.8])
-def test_truncated_ros1_bag_reads_up_to_the_damage(tmp_path, world_and_calib, monkeypatch,
-                                                   caplog, fraction):
+def test_truncated_ros1_bag_reads_up_to_the_damage(tmp_path, world_and_calib, monkeypatch, caplog, fraction):
     import tempfile
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))     # the recovered copy goes here
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # the recovered copy goes here
     imgs = _images(20)
     good = _write_bag(tmp_path / "full.bag", imgs)
     cut = tmp_path / "cut.bag"
@@ -311,20 +338,18 @@ def test_cli_inspect_import_export(tmp_path, bags, capsys):
     assert "/cam0/image_raw" in out and "floor camera" in out and "accel OK" in out
     assert main(["export", str(SAMPLE), str(tmp_path / "x.bag")]) == 0
     assert main(["inspect", str(tmp_path / "x.bag")]) == 0
-    assert "/cam0/image_raw              sensor_msgs/msg/Image                 51" in \
-        capsys.readouterr().out
+    assert "/cam0/image_raw              sensor_msgs/msg/Image                 51" in capsys.readouterr().out
     assert main(["import", str(bags["png"]), str(tmp_path / "x")]) == 0
     assert euroc.read_flight(tmp_path / "x").floor.timestamps_ns.size == 8
     assert main(["inspect", str(tmp_path / "nothing.bag")]) == 1
     assert "nothing.bag: not found" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("fmt,name", [("rosbag2", "s.mcap"), ("rosbag1", "s.bag"),
-                                      ("video", "s")])
+@pytest.mark.parametrize("fmt,name", [("rosbag2", "s.mcap"), ("rosbag1", "s.bag"), ("video", "s")])
 def test_simulate_writes_every_format(tmp_path, fmt, name):
     from fusion.sim.simulate import simulate
-    res = simulate(tmp_path / "s", duration_s=0.2, camera_rate_hz=10, workers=1, progress=False,
-                   fmt=fmt)
+
+    res = simulate(tmp_path / "s", duration_s=0.2, camera_rate_hz=10, workers=1, progress=False, fmt=fmt)
     assert res.root == tmp_path / name and res.root.exists()
     assert not (tmp_path / "s.euroc").exists()
     flight = open_flight(res.root)
@@ -334,14 +359,20 @@ def test_simulate_writes_every_format(tmp_path, fmt, name):
 
 def test_roles_by_type_and_overrides(tmp_path):
     from fusion.log.rosbag import ODOMETRY, TWIST, assign_roles
-    types = {"/a/image": IMAGE, "/b/image": COMPRESSED, "/imu": IMU, "/odom": ODOMETRY,
-             "/fusion/groundtruth": ODOMETRY}
+
+    types = {
+        "/a/image": IMAGE,
+        "/b/image": COMPRESSED,
+        "/imu": IMU,
+        "/odom": ODOMETRY,
+        "/fusion/groundtruth": ODOMETRY,
+    }
     r = assign_roles(tmp_path, types, LogOptions())
     assert (r.floor, r.front, r.imu, r.velocity) == ("/a/image", "/b/image", "/imu", "/odom")
     r = assign_roles(tmp_path, types, LogOptions(floor_topic="/b/image"))
     assert (r.floor, r.front) == ("/b/image", "/a/image")
     r = assign_roles(tmp_path, types, LogOptions(front_topic="none", velocity_topic="none"))
-    assert (r.floor, r.front, r.velocity) == ("/a/image", None, None)    # e.g. EuRoC's stereo
+    assert (r.floor, r.front, r.velocity) == ("/a/image", None, None)  # e.g. EuRoC's stereo
     # Kalibr's rostopic names the floor camera (cam0)
     r = assign_roles(tmp_path, types, LogOptions(), kalibr_topics={"cam0": "/b/image"})
     assert (r.floor, r.front) == ("/b/image", "/a/image")
@@ -350,8 +381,7 @@ def test_roles_by_type_and_overrides(tmp_path):
     assert r.velocity == "/tw"
     with pytest.raises(LogError, match=r"2 IMU topics \(/imu, /imu2\); say which with --imu-topic"):
         assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions())
-    assert assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions(imu_topic="/imu2")).imu \
-        == "/imu2"
+    assert assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions(imu_topic="/imu2")).imu == "/imu2"
     with pytest.raises(LogError, match=r"3 image topics"):
         assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions())
 
@@ -361,14 +391,18 @@ def test_euroc_folder_as_calibration_for_a_bag(tmp_path, sample):
     sensor.yaml files (--calib FOLDER)."""
     from fusion.camera import CameraModel
     from fusion.geometry import make_T, rot_z
+
     sample.world.save(tmp_path / "world.yaml")
     cam = CameraModel(32, 24, 50.0, 50.0, 16.0, 12.0, T_body_cam=make_T(rot_z(0.2), [0, 0, 0.1]))
     calib = tmp_path / "calib"
     (calib / "mav0" / "cam0").mkdir(parents=True)
     cam.save(calib / "mav0" / "cam0" / "sensor.yaml")
-    with euroc.FlightLogWriter(tmp_path / "tmp") as w:          # just for its imu0/sensor.yaml
-        w.write_imu(euroc.ImuData(np.arange(3), np.zeros((3, 3)), np.zeros((3, 3)),
-                                  euroc.ImuNoise(1e-4, 1e-5, 1e-3, 1e-4)))
+    with euroc.FlightLogWriter(tmp_path / "tmp") as w:  # just for its imu0/sensor.yaml
+        w.write_imu(
+            euroc.ImuData(
+                np.arange(3), np.zeros((3, 3)), np.zeros((3, 3)), euroc.ImuNoise(1e-4, 1e-5, 1e-3, 1e-4)
+            )
+        )
     shutil.copytree(tmp_path / "tmp" / "mav0" / "imu0", calib / "mav0" / "imu0")
     bag = _write_bag(tmp_path / "euroc.bag", _images(4))
     flight = open_flight(bag, LogOptions(calib=calib))
@@ -383,17 +417,19 @@ def test_detection_in_worker_processes_after_the_parent_read(bags, tmp_path):
     """Forked detection workers must not read through a reader the parent left open (shared
     file offsets): same detections as in one process."""
     from fusion.qr.detect import detect_flight
+
     flight = open_flight(bags["mcap"])
     for s in flight.cameras.values():
-        s.load_image(3)                     # parent opens its reader, iterator mid-bag
+        s.load_image(3)  # parent opens its reader, iterator mid-bag
     par = detect_flight(flight, workers=2, progress=False, chunk_frames=3)
     one = detect_flight(open_flight(bags["mcap"]), workers=1, progress=False)
     assert len(one.detections) > 5 and not par.skipped
-    assert [(d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in par.detections] \
-        == [(d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in one.detections]
+    assert [(d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in par.detections] == [
+        (d.camera, d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in one.detections
+    ]
     # the guard itself: a stream used from another process id reopens its reader
     s = flight.floor
     reader = s._reader
-    s._pid = -1                             # as seen from a forked child
+    s._pid = -1  # as seen from a forked child
     np.testing.assert_array_equal(s.load_image(4), open_flight(bags["mcap"]).floor.load_image(4))
     assert s._reader is not reader and s._pid > 0

@@ -1,5 +1,6 @@
 """Tests of the flight simulator: rendering geometry, trajectory derivatives, IMU synthesis,
 determinism and the written flight log."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,14 +24,31 @@ from fusion.world import LoadCode
 
 # ============================================================================ rendering
 
+
 def _floor_camera(distortion=(-0.08, 0.02, 0.001, -0.0005)) -> CameraModel:
-    return CameraModel(640, 480, 600.0, 600.0, 321.3, 238.7, distortion=list(distortion),
-                       T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.05]))
+    return CameraModel(
+        640,
+        480,
+        600.0,
+        600.0,
+        321.3,
+        238.7,
+        distortion=list(distortion),
+        T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.05]),
+    )
 
 
 def _front_camera() -> CameraModel:
-    return CameraModel(640, 480, 550.0, 550.0, 318.2, 242.6, distortion=[-0.06, 0.01, -0.0008, 0.0006],
-                       T_body_cam=make_T(R_BODY_FRONTCAM, [0.1, 0.0, 0.0]))
+    return CameraModel(
+        640,
+        480,
+        550.0,
+        550.0,
+        318.2,
+        242.6,
+        distortion=[-0.06, 0.01, -0.0008, 0.0006],
+        T_body_cam=make_T(R_BODY_FRONTCAM, [0.1, 0.0, 0.0]),
+    )
 
 
 def _bilinear(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -49,6 +67,7 @@ def refine_corners(img: np.ndarray, rough: np.ndarray, n_modules: int, camera: C
     edges of the three finder patterns along their normals (mid-level crossing), undistort those
     edge points, fit the four outer lines, intersect them and distort the corners back."""
     import cv2
+
     img = img.astype(float)
     src = np.array([[0, 0], [n_modules, 0], [n_modules, n_modules], [0, n_modules]], float)
     H = cv2.getPerspectiveTransform(src.astype(np.float32), rough.astype(np.float32)).astype(float)
@@ -77,7 +96,7 @@ def refine_corners(img: np.ndarray, rough: np.ndarray, n_modules: int, camera: C
                 offs = np.linspace(-0.6 * module_px, 0.6 * module_px, 121)
                 prof = _bilinear(img, p0 + offs[:, None] * normal)
                 mid = 0.5 * (prof.min() + prof.max())
-                above = prof > mid                          # outward = white quiet zone
+                above = prof > mid  # outward = white quiet zone
                 k = np.flatnonzero(above[1:] != above[:-1])
                 if len(k) != 1 or prof.max() - prof.min() < 40:
                     continue
@@ -95,17 +114,31 @@ def refine_corners(img: np.ndarray, rough: np.ndarray, n_modules: int, camera: C
         t = np.linalg.solve(np.column_stack([d1, -d2]), c2 - c1)
         return c1 + t[0] * d1
 
-    corners_und = np.array([meet(lines["top"], lines["left"]), meet(lines["top"], lines["right"]),
-                            meet(lines["bottom"], lines["right"]), meet(lines["bottom"], lines["left"])])
-    xy = np.column_stack([(corners_und[:, 0] - camera.cu) / camera.fu,
-                          (corners_und[:, 1] - camera.cv) / camera.fv, np.ones(4)])
+    corners_und = np.array(
+        [
+            meet(lines["top"], lines["left"]),
+            meet(lines["top"], lines["right"]),
+            meet(lines["bottom"], lines["right"]),
+            meet(lines["bottom"], lines["left"]),
+        ]
+    )
+    xy = np.column_stack(
+        [(corners_und[:, 0] - camera.cu) / camera.fu, (corners_und[:, 1] - camera.cv) / camera.fv, np.ones(4)]
+    )
     return camera.project(xy)
 
 
 def _zxing_corners(result) -> np.ndarray:
     p = result.position
-    return np.array([[p.top_left.x, p.top_left.y], [p.top_right.x, p.top_right.y],
-                     [p.bottom_right.x, p.bottom_right.y], [p.bottom_left.x, p.bottom_left.y]], float)
+    return np.array(
+        [
+            [p.top_left.x, p.top_left.y],
+            [p.top_right.x, p.top_right.y],
+            [p.bottom_right.x, p.bottom_right.y],
+            [p.bottom_left.x, p.bottom_left.y],
+        ],
+        float,
+    )
 
 
 def test_code_texture_finders_at_symbol_corners():
@@ -116,8 +149,8 @@ def test_code_texture_finders_at_symbol_corners():
     finder[[0, 6], :] = finder[:, [0, 6]] = True
     finder[2:5, 2:5] = True
     for r, c in [(0, 0), (0, n - 7), (n - 7, 0)]:
-        assert np.array_equal(sym[r:r + 7, c:c + 7] < 128, finder)
-    assert not np.array_equal(sym[n - 7:, n - 7:] < 128, finder)   # no finder bottom-right
+        assert np.array_equal(sym[r : r + 7, c : c + 7] < 128, finder)
+    assert not np.array_equal(sym[n - 7 :, n - 7 :] < 128, finder)  # no finder bottom-right
 
 
 def _views():
@@ -130,6 +163,7 @@ def _views():
         yaw = rng.uniform(-np.pi, np.pi)
         tilt = rng.normal(0, 0.08, 2)
         from scipy.spatial.transform import Rotation
+
         R = rot_z(yaw) @ Rotation.from_rotvec([tilt[0], tilt[1], 0]).as_matrix()
         T_wb = make_T(R, [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), rng.uniform(0.9, 1.3)])
         views.append((floor, floor.T_world_cam(T_wb), grid))
@@ -154,7 +188,11 @@ def test_rendered_corners_match_projection_within_half_pixel():
         for res in found:
             code = by_payload[res.text]
             truth = project_code_corners(camera, T_wc, code)
-            if np.any(truth < 3) or np.any(truth[:, 0] > camera.width - 4) or np.any(truth[:, 1] > camera.height - 4):
+            if (
+                np.any(truth < 3)
+                or np.any(truth[:, 0] > camera.width - 4)
+                or np.any(truth[:, 1] > camera.height - 4)
+            ):
                 continue
             rough = _zxing_corners(res)
             # finder order: the decoder's top-left is the symbol's top-left (TL, TR, BR, BL)
@@ -173,6 +211,7 @@ def test_projection_is_full_camera_model():
     uv = project_code_corners(camera, T_wc, code)
     p_cam = (symbol_corners_S(0.2) - T_wc[:3, 3]) @ T_wc[:3, :3]
     import cv2
+
     ref, _ = cv2.projectPoints(p_cam, np.zeros(3), np.zeros(3), camera.K, camera.dist_cv)
     np.testing.assert_allclose(uv, ref.reshape(4, 2), atol=1e-9)
 
@@ -205,8 +244,14 @@ from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes  # noqa: 
 
 
 def _test_trajectory() -> KeyframeTrajectory:
-    wps = [(0.0, 0.0, 0.0, 0.0, 0.5), (0.0, 0.0, 1.5, 0.3), (2.0, 0.5, 1.5, 1.6, 0.7),
-           (2.5, 2.0, 2.2, -0.5), (1.0, 1.0, 1.2, 0.2, 0.5), (0.0, 0.5, 1.8, 0.0)]
+    wps = [
+        (0.0, 0.0, 0.0, 0.0, 0.5),
+        (0.0, 0.0, 1.5, 0.3),
+        (2.0, 0.5, 1.5, 1.6, 0.7),
+        (2.5, 2.0, 2.2, -0.5),
+        (1.0, 1.0, 1.2, 0.2, 0.5),
+        (0.0, 0.5, 1.8, 0.0),
+    ]
     return KeyframeTrajectory(survey_keyframes(wps, speed_m_s=0.9, yaw_rate_rad_s=0.8))
 
 
@@ -227,15 +272,19 @@ def test_trajectory_derivatives_match_finite_differences():
     np.testing.assert_allclose(s.omega_body, omega_fd, atol=1e-6)
     # attitude: thrust along body z, heading from the plan, rotations orthonormal
     thrust = s.a_world + [0, 0, 9.81]
-    np.testing.assert_allclose(s.R_world_body[:, :, 2], thrust / np.linalg.norm(thrust, axis=1)[:, None],
-                               atol=1e-12)
-    np.testing.assert_allclose(np.einsum("nji,njk->nik", s.R_world_body, s.R_world_body),
-                               np.broadcast_to(np.eye(3), (len(t), 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        s.R_world_body[:, :, 2], thrust / np.linalg.norm(thrust, axis=1)[:, None], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.einsum("nji,njk->nik", s.R_world_body, s.R_world_body),
+        np.broadcast_to(np.eye(3), (len(t), 3, 3)),
+        atol=1e-12,
+    )
     # continuity of the angular rate at keyframes (jerk is continuous)
     tk = np.array([k.t_s for k in traj.keyframes[1:-1]])
     jump = traj.state(tk + 1e-7).omega_body - traj.state(tk - 1e-7).omega_body
     assert np.abs(jump).max() < 1e-4
-    assert np.abs(s.omega_body).max() > 0.1 and np.abs(s.a_world).max() > 0.3   # it does move
+    assert np.abs(s.omega_body).max() > 0.1 and np.abs(s.a_world).max() > 0.3  # it does move
 
 
 def _integrate_rk4(imu, R0, v0, p0):
@@ -271,9 +320,12 @@ def test_noise_free_imu_integrates_to_ground_truth_within_1mm():
     traj = _test_trajectory()
     assert traj.duration_s >= 10.0
     imu, bg, ba = synthesize_imu(traj, rate_hz=200.0, noise_free=True)
-    n = 2001                                              # 10 s at 200 Hz
-    imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (imu.timestamps_ns[:n], imu.gyro_rad_s[:n],
-                                                         imu.accel_m_s2[:n])
+    n = 2001  # 10 s at 200 Hz
+    imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (
+        imu.timestamps_ns[:n],
+        imu.gyro_rad_s[:n],
+        imu.accel_m_s2[:n],
+    )
     s0 = traj.state(np.array([0.0]))
     p = _integrate_rk4(imu, s0.R_world_body[0], s0.v_world[0], s0.p_world[0])
     truth = traj.state(imu.timestamps_ns[::2] * 1e-9).p_world
@@ -287,6 +339,7 @@ def test_noise_free_imu_integrates_to_ground_truth_within_1mm():
 def test_imu_noise_statistics():
     traj = _test_trajectory()
     from fusion.log import ImuNoise
+
     noise = ImuNoise(1e-3, 1e-4, 1e-2, 1e-3)
     clean, _, _ = synthesize_imu(traj, 200.0, noise_free=True)
     imu, bg, ba = synthesize_imu(traj, 200.0, noise, np.random.default_rng(2))
@@ -334,14 +387,24 @@ def test_simulate_writes_a_readable_deterministic_log(tmp_path):
     # another seed gives other noise
     r3 = simulate(tmp_path / "c", workers=1, **{**kw, "seed": 5, "duration_s": 0.5})
     log3 = read_flight(r3.root)
-    assert not np.array_equal(log3.imu.accel_m_s2, log.imu.accel_m_s2[:len(log3.imu.accel_m_s2)])
+    assert not np.array_equal(log3.imu.accel_m_s2, log.imu.accel_m_s2[: len(log3.imu.accel_m_s2)])
     assert not np.array_equal(log3.floor.load_image(3), log.floor.load_image(3))
 
 
-@pytest.mark.parametrize("kwargs", [dict(scenario="mars"), dict(duration_s=-1.0), dict(duration_s=0),
-                                    dict(duration_s=float("nan")), dict(duration_s=1e6),
-                                    dict(duration_s="long"), dict(seed=-1), dict(start_s=-2.0),
-                                    dict(resolution="800x600")])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(scenario="mars"),
+        dict(duration_s=-1.0),
+        dict(duration_s=0),
+        dict(duration_s=float("nan")),
+        dict(duration_s=1e6),
+        dict(duration_s="long"),
+        dict(seed=-1),
+        dict(start_s=-2.0),
+        dict(resolution="800x600"),
+    ],
+)
 def test_simulate_rejects_bad_input(tmp_path, kwargs):
     with pytest.raises(SimulationError):
         simulate(tmp_path / "x", progress=False, workers=1, **kwargs)
@@ -350,6 +413,7 @@ def test_simulate_rejects_bad_input(tmp_path, kwargs):
 
 def test_simulate_refuses_to_overwrite(tmp_path):
     from fusion.errors import FusionError
+
     (tmp_path / "x").mkdir()
     with pytest.raises(FusionError):
         simulate(tmp_path / "x", duration_s=0.2, progress=False, workers=1)
@@ -369,9 +433,9 @@ def test_scenarios_build_and_gimbal_keeps_cameras_level():
     gim = build_scenario("gimbaled")
     st = gim.trajectory.state(np.linspace(5, 30, 50))
     tilt = [gim.cameras["cam0"].T_world_cam(T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
-    np.testing.assert_allclose(tilt, 1.0, atol=1e-12)            # floor camera looks straight down
+    np.testing.assert_allclose(tilt, 1.0, atol=1e-12)  # floor camera looks straight down
     body = [sc.cameras["cam0"].T_world_cam(T)[:3, 2] @ [0, 0, -1] for T in st.T_world_body]
-    assert min(body) < 0.999                                      # a body-fixed one tilts
+    assert min(body) < 0.999  # a body-fixed one tilts
     with pytest.raises(SimulationError):
         build_scenario("default", resolution=(0, 10))
 
@@ -379,6 +443,7 @@ def test_scenarios_build_and_gimbal_keeps_cameras_level():
 def test_default_blackouts_hide_codes_that_would_be_readable():
     """Each blackout of the default scenario sits where the floor camera would read a code."""
     from fusion.sim.simulate import floor_code_readable
+
     sc = build_scenario("default")
     cam = sc.cameras["cam0"]
     codes = sc.codes()

@@ -9,6 +9,7 @@ IndeterminantLinearSystem): a floor code printed with a neighbour's payload, a p
 disagrees with where the code is, one load id on two loads 2 m apart, a wrong side_m or
 payload_unit_m in world.yaml, an IMU that reads all zeros, a gyro in deg/s, timestamps in us.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,15 +29,15 @@ from test_estimate import (
 )
 
 from fusion.errors import EstimationError
-from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
-from fusion.estimate import graph as G
+from fusion.estimate import FusionConfig, smooth, smooth_incremental
+from fusion.estimate import factors
 from fusion.estimate.common import RawPoseInput, SolveMode
 from fusion.estimate.smoother import LMStop, build_problem, levenberg_marquardt
 from fusion.geometry import inv_T, level_frame, make_T
 from fusion.log.euroc import ImuData
 from fusion.types import Estimator, LoadObservation, Mount, RobustKernel, Trajectory
 
-GRID_M = 1.0        # floor codes on a 1 m grid (the default scenario's)
+GRID_M = 1.0  # floor codes on a 1 m grid (the default scenario's)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ def rmse(res, fl, mask=None) -> float:
     e = pos_err(res.trajectory.T_world_body, fl.T_true[k0:])
     if mask is not None:
         e = e[mask[k0:]]
-    return float(np.sqrt(np.mean(e ** 2)))
+    return float(np.sqrt(np.mean(e**2)))
 
 
 def with_raw_positions(raw: Trajectory, p_new: np.ndarray) -> Trajectory:
@@ -60,9 +61,13 @@ def with_raw_positions(raw: Trajectory, p_new: np.ndarray) -> Trajectory:
 
 def both_smoothers(fl, imu=None, raw=None, load_obs=None, frame_t=None, config=None):
     """smooth and smooth_incremental on the flight (with substitutions); neither may raise."""
-    args = (fl.frame_t if frame_t is None else frame_t, fl.imu if imu is None else imu,
-            fl.raw if raw is None else raw, fl.load_obs if load_obs is None else load_obs,
-            FRONT_CAM)
+    args = (
+        fl.frame_t if frame_t is None else frame_t,
+        fl.imu if imu is None else imu,
+        fl.raw if raw is None else raw,
+        fl.load_obs if load_obs is None else load_obs,
+        FRONT_CAM,
+    )
     return smooth(*args, config=config), smooth_incremental(*args, config=config)
 
 
@@ -100,7 +105,7 @@ def test_same_load_id_on_two_loads(short):
         obs.append(o)
     res, inc = both_smoothers(short, load_obs=obs)
     assert res.health.loads_dropped == ["A1"]
-    assert res.health.linear_fallbacks == 0      # its variable keeps a weak prior
+    assert res.health.linear_fallbacks == 0  # its variable keeps a weak prior
     assert "A1" not in res.loads.by_id()
     for lid in ("B7", "C3"):
         assert np.linalg.norm(res.loads.by_id()[lid].p_world - short.loads_true[lid]) < 0.01
@@ -126,8 +131,10 @@ def test_wrong_world_yaml_does_not_crash(short, fault):
     obs = short.load_obs
     if fault == "side_m":
         p_bad = c + 1.25 * (p - c)
-        obs = [LoadObservation(o.timestamp_ns, o.load_id, o.p_world, None, 1.25 * o.p_cam,
-                               o.cov_cam) for o in obs]
+        obs = [
+            LoadObservation(o.timestamp_ns, o.load_id, o.p_world, None, 1.25 * o.p_cam, o.cov_cam)
+            for o in obs
+        ]
     else:
         p_bad = p + 0.1 * c
     res, inc = both_smoothers(short, raw=with_raw_positions(short.raw, p_bad), load_obs=obs)
@@ -147,8 +154,9 @@ def test_wrong_world_yaml_does_not_crash(short, fault):
 def test_faulty_imu_does_not_crash(short, fault):
     imu = short.imu
     if fault == "zeros":
-        bad = ImuData(imu.timestamps_ns, np.zeros_like(imu.gyro_rad_s),
-                      np.zeros_like(imu.accel_m_s2), imu.noise)
+        bad = ImuData(
+            imu.timestamps_ns, np.zeros_like(imu.gyro_rad_s), np.zeros_like(imu.accel_m_s2), imu.noise
+        )
     else:
         bad = ImuData(imu.timestamps_ns, np.degrees(imu.gyro_rad_s), imu.accel_m_s2, imu.noise)
     res, inc = both_smoothers(short, imu=bad)
@@ -165,16 +173,18 @@ def test_faulty_imu_does_not_crash(short, fault):
 
 def test_timestamps_in_microseconds_do_not_crash(short):
     """Every clock in us read as ns: 1000x faster motion than the IMU says."""
+
     def us(t):
         return (np.asarray(t) // 1000).astype(np.int64)
+
     imu = short.imu
     bad_imu = ImuData(us(imu.timestamps_ns), imu.gyro_rad_s, imu.accel_m_s2, imu.noise)
-    raw = Trajectory("pnp", us(short.raw.timestamps_ns), short.raw.T_world_body,
-                     short.raw.covariances)
-    obs = [LoadObservation(int(us(o.timestamp_ns)), o.load_id, o.p_world, None, o.p_cam,
-                           o.cov_cam) for o in short.load_obs]
-    res, inc = both_smoothers(short, imu=bad_imu, raw=raw, load_obs=obs,
-                              frame_t=us(short.frame_t))
+    raw = Trajectory("pnp", us(short.raw.timestamps_ns), short.raw.T_world_body, short.raw.covariances)
+    obs = [
+        LoadObservation(int(us(o.timestamp_ns)), o.load_id, o.p_world, None, o.p_cam, o.cov_cam)
+        for o in short.load_obs
+    ]
+    res, inc = both_smoothers(short, imu=bad_imu, raw=raw, load_obs=obs, frame_t=us(short.frame_t))
     for r in (res, inc):
         assert np.all(np.isfinite(r.trajectory.T_world_body))
     assert res.health.reasons
@@ -185,12 +195,13 @@ def test_gtsam_failure_is_retried_with_weak_priors(short, monkeypatch):
     QR alike: the smoother retries with weak priors on every state, counts both retries, and
     still returns the estimate."""
     import fusion.estimate.smoother as S
+
     real = S.levenberg_marquardt
     calls = []
 
     def flaky(graph, values, config=None, ordering=None, errors=None, qr=False):
         calls.append(graph.size())
-        if len(calls) <= 2:      # Cholesky, then QR
+        if len(calls) <= 2:  # Cholesky, then QR
             raise RuntimeError("Indeterminant linear system detected near variable x42")
         return real(graph, values, config, ordering, errors, qr)
 
@@ -198,8 +209,8 @@ def test_gtsam_failure_is_retried_with_weak_priors(short, monkeypatch):
     res = S.smooth(short.frame_t, short.imu, short.raw, short.load_obs, FRONT_CAM)
     assert res.health.linear_fallbacks == 2
     assert res.health.weak_prior_states > 3 * len(short.frame_t)
-    assert calls[2] > calls[0]                   # the last retry carries the priors
-    assert rmse(res, short) < 0.003              # weak priors do not bias the estimate
+    assert calls[2] > calls[0]  # the last retry carries the priors
+    assert rmse(res, short) < 0.003  # weak priors do not bias the estimate
 
 
 # =========================================================================== few fixes
@@ -210,8 +221,9 @@ def test_single_fix_is_dead_reckoned_with_honest_sigma():
     covariance that covers the drift."""
     fl = make_flight(seed=32, duration_s=20.0, gaps=())
     k = 150
-    raw = Trajectory("pnp", fl.raw.timestamps_ns[k:k + 1], fl.raw.T_world_body[k:k + 1],
-                     fl.raw.covariances[k:k + 1])
+    raw = Trajectory(
+        "pnp", fl.raw.timestamps_ns[k : k + 1], fl.raw.T_world_body[k : k + 1], fl.raw.covariances[k : k + 1]
+    )
     res = smooth(fl.frame_t, fl.imu, raw, [], FRONT_CAM)
     h = res.health
     assert h.mode is SolveMode.DEAD_RECKONED and h.fixes == 1
@@ -225,7 +237,7 @@ def test_single_fix_is_dead_reckoned_with_honest_sigma():
     e_body = np.einsum("nji,nj->ni", res.trajectory.T_world_body[:, :3, :3], e)
     sig = np.sqrt(np.diagonal(res.trajectory.covariances[:, 3:, 3:], axis1=1, axis2=2))
     assert np.mean(np.abs(e_body) <= 3 * sig) > 0.95
-    assert np.linalg.norm(e[k]) < 0.01           # at the fix itself
+    assert np.linalg.norm(e[k]) < 0.01  # at the fix itself
 
 
 # =========================================================================== incremental
@@ -242,8 +254,9 @@ def test_incremental_reinitialises_after_lockout():
     acc[(t > 3.0) & (t < 23.0), 0] += 2.0
     imu = ImuData(fl.imu.timestamps_ns, fl.imu.gyro_rad_s, acc, fl.imu.noise)
     res = smooth_incremental(fl.frame_t, imu, fl.raw, [], FRONT_CAM)
-    locked = smooth_incremental(fl.frame_t, imu, fl.raw, [], FRONT_CAM,
-                                config=FusionConfig(reinit_rejected_fixes=10 ** 6))
+    locked = smooth_incremental(
+        fl.frame_t, imu, fl.raw, [], FRONT_CAM, config=FusionConfig(reinit_rejected_fixes=10**6)
+    )
     assert res.health.resets >= 1 and locked.health.resets == 0
     assert len(res.trajectory) >= 0.9 * len(fl.frame_t)
     ts = res.trajectory.timestamps_ns * 1e-9 - 1.0
@@ -269,10 +282,8 @@ def gimbaled_flight(seed: int):
     for k in range(0, len(fl.frame_t), 6):
         T_wc = cam.T_world_cam(fl.T_true[k])
         for lid, l in fl.loads_true.items():
-            p_cam = (inv_T(T_wc) @ np.r_[l, 1.0])[:3] + rng.normal(size=3) * np.sqrt(
-                np.diag(cov_cam))
-            obs.append(LoadObservation(int(fl.frame_t[k]), lid, np.zeros(3), None, p_cam,
-                                       cov_cam))
+            p_cam = (inv_T(T_wc) @ np.r_[l, 1.0])[:3] + rng.normal(size=3) * np.sqrt(np.diag(cov_cam))
+            obs.append(LoadObservation(int(fl.frame_t[k]), lid, np.zeros(3), None, p_cam, cov_cam))
     cov = fl.raw.covariances.copy()
     cov[:, :2, :] = 0.0
     cov[:, :, :2] = 0.0
@@ -297,13 +308,14 @@ def test_gimbaled_cameras_fused_like_for_like():
     assert rmse(inc, fl, mask) <= raw_err
     for lid, l in fl.loads_true.items():
         assert np.linalg.norm(res.loads.by_id()[lid].p_world - l) < 0.01
-    rigid = smooth(fl.frame_t, fl.imu, raw, obs, front_camera(T_BODY_FRONTCAM),
-                   floor_camera=front_camera(np.eye(4)))
+    rigid = smooth(
+        fl.frame_t, fl.imu, raw, obs, front_camera(T_BODY_FRONTCAM), floor_camera=front_camera(np.eye(4))
+    )
     assert rigid.stats["raw_pose_input"] is RawPoseInput.POSE6
-    worst = max(np.linalg.norm(res.loads.by_id()[lid].p_world - l)
-                for lid, l in fl.loads_true.items())
-    worst_rigid = max(np.linalg.norm(rigid.loads.by_id()[lid].p_world - l)
-                      for lid, l in fl.loads_true.items())
+    worst = max(np.linalg.norm(res.loads.by_id()[lid].p_world - l) for lid, l in fl.loads_true.items())
+    worst_rigid = max(
+        np.linalg.norm(rigid.loads.by_id()[lid].p_world - l) for lid, l in fl.loads_true.items()
+    )
     assert worst_rigid > 3 * worst, (worst_rigid, worst)
 
 
@@ -314,19 +326,20 @@ def test_load_jacobians_match_numerical_for_each_mount(mount):
         numericalDerivative21,
         numericalDerivative22,
     )
+
     rng = np.random.default_rng(34)
     for _ in range(4):
         pose, l, pm = _rand_pose(rng), rng.normal(size=3) * 3, rng.normal(size=3)
         cam = front_camera(_rand_pose(rng).matrix(), mount)
-        _, Hx, Hl = G.load_error(pm, cam, pose, l, True)
-        f = lambda x, ll: G.load_error(pm, cam, x, ll, False)[0]
+        _, Hx, Hl = factors.load_error(pm, cam, pose, l, True)
+        f = lambda x, ll: factors.load_error(pm, cam, x, ll, False)[0]
         np.testing.assert_allclose(Hx, numericalDerivative21(f, pose, l), atol=1e-6)
         np.testing.assert_allclose(Hl, numericalDerivative22(f, pose, l), atol=1e-6)
         # the factor (residual in the parent frame) linearises with the same normal equations
-        factor = G.load_factor(0, 0, pm, np.eye(3) * 1e-4, cam, RobustKernel.NONE, 1.0)
+        factor = factors.load_factor(0, 0, pm, np.eye(3) * 1e-4, cam, RobustKernel.NONE, 1.0)
         vals = gtsam.Values()
-        vals.insert(G.X(0), pose)
-        vals.insert(G.L(0), l)
+        vals.insert(factors.X(0), pose)
+        vals.insert(factors.L(0), l)
         A, _ = factor.linearize(vals).jacobian()
         J = np.hstack([Hx, Hl]) / 1e-2
         np.testing.assert_allclose(A.T @ A, J.T @ J, rtol=1e-6, atol=1e-4)
@@ -337,7 +350,7 @@ def test_load_error_zero_at_truth_gimbaled():
     pose, l = _rand_pose(rng), rng.normal(size=3)
     cam = front_camera(_rand_pose(rng).matrix(), Mount.GIMBALED)
     p_cam = (inv_T(cam.T_world_cam(pose.matrix())) @ np.r_[l, 1])[:3]
-    e, _, _ = G.load_error(p_cam, cam, pose, l, False)
+    e, _, _ = factors.load_error(p_cam, cam, pose, l, False)
     np.testing.assert_allclose(e, 0, atol=1e-12)
 
 
@@ -346,32 +359,36 @@ def test_level_pose_jacobian_matches_numerical():
     for _ in range(5):
         pose = _rand_pose(rng)
         T_meas = level_frame(_rand_pose(rng).matrix())
-        _, H = G.level_pose_error(T_meas, pose, True)
-        Hn = numericalDerivative11(lambda x: G.level_pose_error(T_meas, x, False)[0], pose)
+        _, H = factors.level_pose_error(T_meas, pose, True)
+        Hn = numericalDerivative11(lambda x: factors.level_pose_error(T_meas, x, False)[0], pose)
         np.testing.assert_allclose(H, Hn, atol=1e-6)
 
 
 def test_floor_corner_factor_gimbaled_jacobian_matches_numerical():
     from fusion.sim.scenarios import make_cameras
+
     cam0 = make_cameras()["cam0"]
     cam = type(cam0)(**{**cam0.__dict__, "mount": str(Mount.GIMBALED)})
     rng = np.random.default_rng(37)
     T_wb = make_T(gtsam.Rot3.Ypr(0.7, 0.05, -0.04).matrix(), [1.0, 2.0, 1.5])
     T_wc = cam.T_world_cam(T_wb)
     half = 0.1
-    P = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]]) + \
-        np.r_[T_wb[:2, 3] + rng.normal(size=2) * 0.1, 0.0]
+    P = (
+        np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
+        + np.r_[T_wb[:2, 3] + rng.normal(size=2) * 0.1, 0.0]
+    )
     uv = cam.project((P - T_wc[:3, 3]) @ T_wc[:3, :3]) + rng.normal(size=(4, 2))
-    f = G.floor_corner_factor(0, cam, P, uv, np.eye(8)[None], RobustKernel.NONE, 1.0, 1e3)
+    f = factors.floor_corner_factor(0, cam, P, uv, np.eye(8)[None], RobustKernel.NONE, 1.0, 1e3)
     pose = gtsam.Pose3(T_wb)
     vals = gtsam.Values()
-    vals.insert(G.X(0), pose)
+    vals.insert(factors.X(0), pose)
     A, b = f.linearize(vals).jacobian()
 
     def err(x):
         v = gtsam.Values()
-        v.insert(G.X(0), x)
+        v.insert(factors.X(0), x)
         return f.unwhitenedError(v)
+
     np.testing.assert_allclose(A, numericalDerivative11(err, pose), rtol=1e-5, atol=1e-4)
 
 
@@ -423,14 +440,20 @@ def test_smoother_lm_from_poor_initial_guess():
     assert res.stop is LMStop.CONVERGED
     assert np.all(np.diff(errors) <= 0)
     assert graph.error(res.values) <= graph.error(good.values) * (1 + 1e-4)
-    T_good = np.array([good.values.atPose3(G.X(k)).matrix() for k in range(len(fl.frame_t))])
-    T_poor = np.array([res.values.atPose3(G.X(k)).matrix() for k in range(len(fl.frame_t))])
+    T_good = np.array([good.values.atPose3(factors.X(k)).matrix() for k in range(len(fl.frame_t))])
+    T_poor = np.array([res.values.atPose3(factors.X(k)).matrix() for k in range(len(fl.frame_t))])
     assert np.abs(T_good - T_poor).max() < 1e-5
 
 
 def test_iteration_limit_is_counted(short):
-    res = smooth(short.frame_t, short.imu, short.raw, [], FRONT_CAM,
-                 config=FusionConfig(lm_max_iterations=1, lm_relative_tol=1e-15))
+    res = smooth(
+        short.frame_t,
+        short.imu,
+        short.raw,
+        [],
+        FRONT_CAM,
+        config=FusionConfig(lm_max_iterations=1, lm_relative_tol=1e-15),
+    )
     assert res.health.iteration_limit_hits >= 1
     assert any("iteration limit" in r for r in res.health.reasons)
     ok = smooth(short.frame_t, short.imu, short.raw, [], FRONT_CAM)
@@ -458,11 +481,14 @@ def test_fuse_stage_survives_one_failing_estimator(short, monkeypatch):
 
     monkeypatch.setattr(P, "smooth", broken)
     monkeypatch.setattr(P, "smooth_incremental", crashing)
-    log = SimpleNamespace(floor=SimpleNamespace(timestamps_ns=short.frame_t, camera=None),
-                          front=SimpleNamespace(camera=FRONT_CAM), imu=short.imu,
-                          velocity=None, world=None)
-    loc = SimpleNamespace(trajectories={"pnp": short.raw},
-                          camera_frame_observations=short.load_obs)
+    log = SimpleNamespace(
+        floor=SimpleNamespace(timestamps_ns=short.frame_t, camera=None),
+        front=SimpleNamespace(camera=FRONT_CAM),
+        imu=short.imu,
+        velocity=None,
+        world=None,
+    )
+    loc = SimpleNamespace(trajectories={"pnp": short.raw}, camera_frame_observations=short.load_obs)
     out = P.fuse_stage(log, loc, P.RunConfig(progress=False))
     assert set(out.failures) == {Estimator.SMOOTHER, Estimator.INCREMENTAL}
     assert out.failures[Estimator.SMOOTHER].reason.startswith("the factor graph cannot")
@@ -470,14 +496,3 @@ def test_fuse_stage_survives_one_failing_estimator(short, monkeypatch):
     assert "Indeterminant" in out.failures[Estimator.INCREMENTAL].reason
     assert set(out.results) == {Estimator.EKF}
     assert len(out.results[Estimator.EKF].trajectory) > 0
-
-
-def test_ekf_still_takes_body_fixed_camera(short):
-    """Until the EKF takes front_camera itself, its input check accepts a body-fixed
-    CameraModel or the bare T_body_frontcam (same result) and refuses a gimbaled one."""
-    a = run_ekf(short.frame_t, short.imu, short.raw, short.load_obs, FRONT_CAM)
-    b = run_ekf(short.frame_t, short.imu, short.raw, short.load_obs, T_BODY_FRONTCAM)
-    np.testing.assert_allclose(a.trajectory.T_world_body, b.trajectory.T_world_body)
-    with pytest.raises(EstimationError, match="gimbaled"):
-        run_ekf(short.frame_t, short.imu, short.raw, short.load_obs,
-                front_camera(T_BODY_FRONTCAM, Mount.GIMBALED))

@@ -1,6 +1,7 @@
 """Trust (issue #8): output folders (manifest, --force, lock, roll-back on a full or read-only
 disk), simulate / demo never deleting what they did not create, the detection cache keyed on the
 images, log warnings in the summary and metrics.json, and untrusted ids in CSV and Markdown."""
+
 import csv
 import errno
 import json
@@ -60,11 +61,11 @@ def test_manifest_and_force_keep_user_files(tmp_path, capsys):
     assert "use --force" in _one_error_line(capsys)
     assert main(["detect", str(SAMPLE), "--out", str(out), "--quiet", "--force"]) == 0
     names = {p.name for p in out.iterdir()}
-    assert names == {"notes.txt", "detections.csv", MANIFEST_NAME}       # previous run gone
+    assert names == {"notes.txt", "detections.csv", MANIFEST_NAME}  # previous run gone
     assert (out / "notes.txt").read_text() == "mine"
     m2 = _manifest(out)
     assert [e["path"] for e in m2["files"]] == ["detections.csv"]
-    assert m2["files"][0].get("reused") is True                     # the cache checked itself
+    assert m2["files"][0].get("reused") is True  # the cache checked itself
     assert "detections reused" in capsys.readouterr().out
 
 
@@ -77,13 +78,13 @@ def test_force_after_a_run_that_died(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         with OutputFolder(out, force=True):
             (out / "trajectory_pnp.tum").write_text("x")
-            raise KeyboardInterrupt          # rolled back: like a clean interruption
+            raise KeyboardInterrupt  # rolled back: like a clean interruption
     assert {p.name for p in out.iterdir()} == {"notes.txt"}
     # a hard kill leaves the running manifest: simulate it
     folder = OutputFolder(out, force=True)
     folder.__enter__()
     (out / "trajectory_pnp.tum").write_text("x")
-    folder.lock.release()                     # the process is gone; its lock is stale
+    folder.lock.release()  # the process is gone; its lock is stale
     assert _manifest(out)["status"] == "running"
     with OutputFolder(out, force=True) as again:
         assert again.removed_previous == ["trajectory_pnp.tum"]
@@ -95,9 +96,15 @@ def test_hostile_manifest_cannot_delete_outside(tmp_path):
     out.mkdir()
     victim = tmp_path / "victim.txt"
     victim.write_text("keep")
-    (out / MANIFEST_NAME).write_text(json.dumps({"format": "fusion-outputs/1", "status": "complete",
-                                                 "files": [{"path": "../victim.txt"},
-                                                           {"path": str(victim)}]}))
+    (out / MANIFEST_NAME).write_text(
+        json.dumps(
+            {
+                "format": "fusion-outputs/1",
+                "status": "complete",
+                "files": [{"path": "../victim.txt"}, {"path": str(victim)}],
+            }
+        )
+    )
     with OutputFolder(out, force=True):
         pass
     assert victim.read_text() == "keep"
@@ -110,7 +117,7 @@ def test_hostile_manifest_cannot_delete_outside(tmp_path):
 def test_lock_refuses_a_second_run_and_takes_over_a_stale_one(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
-    (out / LOCK_NAME).write_text(f"{os.getpid()}\n{os.uname().nodename}\n")   # alive: this process
+    (out / LOCK_NAME).write_text(f"{os.getpid()}\n{os.uname().nodename}\n")  # alive: this process
     assert main(["detect", str(SAMPLE), "--out", str(out), "--quiet", "--force"]) == 1
     line = _one_error_line(capsys)
     assert "in use by another fusion run" in line and f"pid {os.getpid()}" in line
@@ -140,30 +147,32 @@ def test_unwritable_output_folder_is_one_clean_error(tmp_path, capsys, monkeypat
 
     def refuse(path, text):
         raise OSError(code, os.strerror(code), str(path))
+
     monkeypatch.setattr(fileio, "_create_exclusive", refuse)
     out = tmp_path / "ro"
     assert main(["detect", str(SAMPLE), "--out", str(out), "--quiet"]) == 1
     line = _one_error_line(capsys)
     assert f"{out}: cannot write here ({os.strerror(code)})" in line
-    assert not out.exists()                         # the folder the run made is gone again
+    assert not out.exists()  # the folder the run made is gone again
 
 
 def test_full_disk_mid_run_leaves_no_half_output(tmp_path, capsys, monkeypatch):
     """ENOSPC on the first trajectory file, after the cache and the load observations were
     written: one error line, and only the user's file is left."""
     import fusion.log.files as files
+
     real = files.atomic_open
 
     def full(path, *a, **k):
         if str(path).endswith(".tum"):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *a, **k)
+
     monkeypatch.setattr(files, "atomic_open", full)
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
-    assert main(["localize", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1",
-                 "--force"]) == 1
+    assert main(["localize", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1", "--force"]) == 1
     line = _one_error_line(capsys)
     assert "No space left on device" in line and "partial outputs were removed" in line
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
@@ -192,8 +201,7 @@ def test_simulate_force_keeps_the_users_files(tmp_path, capsys):
     log = read_flight(d)
     assert len(log.floor) == sum(p.startswith("mav0/cam0/data/") for p in first) > 0
     on_disk = {p.relative_to(d).as_posix() for p in d.rglob("*") if p.is_file()}
-    assert on_disk == {e["path"] for e in _manifest(d)["files"]} | {
-        MANIFEST_NAME, "notes.txt", "mine/x.txt"}
+    assert on_disk == {e["path"] for e in _manifest(d)["files"]} | {MANIFEST_NAME, "notes.txt", "mine/x.txt"}
 
 
 def test_simulate_refuses_a_folder_holding_a_log_it_did_not_write(tmp_path, capsys):
@@ -243,6 +251,7 @@ def test_detection_cache_is_keyed_on_the_images(tmp_path, caplog):
     import logging
 
     from fusion.qr.detect import detect_flight
+
     log_dir = _copy_sample(tmp_path)
     cache = tmp_path / "detections.csv"
     first = detect_flight(read_flight(log_dir), cache, workers=1, progress=False)
@@ -253,6 +262,7 @@ def test_detection_cache_is_keyed_on_the_images(tmp_path, caplog):
     assert "detections reused from" in caplog.text
     # replace one floor image by a blank one: same data.csv, other content
     import cv2
+
     img_path = sorted((log_dir / "mav0" / "cam0" / "data").iterdir())[0]
     img = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
     cv2.imwrite(str(img_path), np.full_like(img, 255))
@@ -266,9 +276,12 @@ def test_detection_cache_is_keyed_on_the_images(tmp_path, caplog):
 def test_cache_round_trips_hostile_payloads(tmp_path):
     from fusion.qr.detect import DetectionResult, read_cache, write_cache
     from fusion.types import QRDetection
+
     payloads = ["=cmd|' /C calc'!A0", "1/+SUM(1)", "'x", "-1", "0/1/2"]
-    dets = [QRDetection("cam1", 10 + i, p, np.zeros((4, 2)), np.zeros((4, 2)), 1.0)
-            for i, p in enumerate(payloads)]
+    dets = [
+        QRDetection("cam1", 10 + i, p, np.zeros((4, 2)), np.zeros((4, 2)), 1.0)
+        for i, p in enumerate(payloads)
+    ]
     write_cache(DetectionResult(dets, {}), tmp_path / "d.csv", "f")
     rows = list(csv.reader((tmp_path / "d.csv").read_text().splitlines()[3:]))
     assert all(not r[2].startswith(("=", "+", "-", "@")) for r in rows)
@@ -292,8 +305,9 @@ def test_log_warnings_reach_summary_and_metrics(tmp_path, capsys):
         out_lines.append(",".join(parts))
     gt.write_text("\n".join(out_lines) + "\n")
     out = tmp_path / "out"
-    assert main(["run", str(log_dir), "--out", str(out), "--quiet", "--workers", "1",
-                 "--no-incremental"]) == 0
+    assert (
+        main(["run", str(log_dir), "--out", str(out), "--quiet", "--workers", "1", "--no-incremental"]) == 0
+    )
     text = capsys.readouterr().out
     assert "warning: [clock_offset] x1: groundtruth starts and ends 0.6 s later than cam0" in text
     assert "warning: [groundtruth_quaternion_not_unit]" in text
@@ -301,7 +315,7 @@ def test_log_warnings_reach_summary_and_metrics(tmp_path, capsys):
     names = {w["name"]: w for w in metrics["warnings"]}
     assert set(names) == {"clock_offset", "groundtruth_quaternion_not_unit"}
     assert names["groundtruth_quaternion_not_unit"]["count"] == len(lines) - 1
-    assert "\\[clock\\_offset\\] x1" in (out / "report.md").read_text()   # Markdown-escaped
+    assert "\\[clock\\_offset\\] x1" in (out / "report.md").read_text()  # Markdown-escaped
 
 
 @pytest.mark.parametrize("rel", ["world.yaml", "mav0/imu0/data.csv", "mav0/cam0/sensor.yaml"])
@@ -311,12 +325,18 @@ def test_named_pipe_inputs_are_refused_not_hung(tmp_path, rel):
     os.mkfifo(log_dir / rel)
     # in a subprocess with a hang-guard only (a reader blocked on a pipe never returns); the
     # expected run takes about a second
-    proc = subprocess.run([sys.executable, "-m", "fusion.cli", "run", str(log_dir), "--out",
-                           str(tmp_path / "out"), "--quiet"], capture_output=True, text=True, check=False,
-                          timeout=300, env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    proc = subprocess.run(
+        [sys.executable, "-m", "fusion.cli", "run", str(log_dir), "--out", str(tmp_path / "out"), "--quiet"],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])},
+    )
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [
-        f"fusion: error: {log_dir / rel}: is a named pipe, expected a regular file"]
+        f"fusion: error: {log_dir / rel}: is a named pipe, expected a regular file"
+    ]
 
 
 # ---------------------------------------------------------------- untrusted ids in outputs
@@ -326,18 +346,24 @@ def test_load_ids_are_neutralised_in_csv_and_escaped_in_markdown(tmp_path):
     from fusion.evaluate.report import write_report
     from fusion.pipeline import write_load_observations_csv
     from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
+
     hostile = "=cmd|' /C calc'!A0"
     obs = [LoadObservation(5, hostile, np.array([1.0, 2, 3]), np.eye(3) * 1e-4)]
     write_load_observations_csv(tmp_path / "obs.csv", obs)
     row = list(csv.reader((tmp_path / "obs.csv").read_text().splitlines()))[1]
     assert row[1] == "'" + hostile
-    lm = LoadMap("pnp", [LoadEstimate(hostile, np.array([1.0, 2, 3]), None, 2),
-                         LoadEstimate("a`b|c", np.array([1.0, 2, 3]), None, 2)])
+    lm = LoadMap(
+        "pnp",
+        [
+            LoadEstimate(hostile, np.array([1.0, 2, 3]), None, 2),
+            LoadEstimate("a`b|c", np.array([1.0, 2, 3]), None, 2),
+        ],
+    )
     traj = Trajectory("pnp", np.array([0, 10**9], dtype=np.int64), np.tile(np.eye(4), (2, 1, 1)))
     report = write_report(tmp_path / "rep", None, {"pnp": traj}, {"pnp": lm}, dpi=40)
     rows = [l for l in report.read_text().splitlines() if l.startswith("| pnp |") and "`" in l]
     assert len(rows) == 2
-    for l in rows:       # GFM: a cell boundary is an unescaped |
+    for l in rows:  # GFM: a cell boundary is an unescaped |
         cells = re.split(r"(?<!\\)\|", l)[1:-1]
         assert len(cells) == 9, l
     assert any("`` a`b\\|c ``" in l for l in rows)
@@ -345,12 +371,14 @@ def test_load_ids_are_neutralised_in_csv_and_escaped_in_markdown(tmp_path):
 
 def test_simulate_on_a_full_disk_is_one_error_and_leaves_nothing(tmp_path, capsys, monkeypatch):
     import fusion.log.euroc as euroc
+
     real = euroc.atomic_open
 
     def full(path, *a, **k):
         if str(path).endswith("data.csv"):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *a, **k)
+
     monkeypatch.setattr(euroc, "atomic_open", full)
     assert _simulate(tmp_path / "f") == 1
     line = _one_error_line(capsys)

@@ -1,5 +1,6 @@
 """Video logs: lossless round trip, frame times (CSV, constant rate, ULog capture topic), PX4
 ULog IMU, and the refusals (variable frame rate without times, no sensor_combined)."""
+
 import shutil
 import struct
 from fractions import Fraction
@@ -20,9 +21,12 @@ N_FRAMES = 6
 
 def short_flight(n_frames=N_FRAMES):
     f = euroc.read_flight(SAMPLE)
-    f.cameras = {name: euroc.CameraStream(name, s.camera, s.timestamps_ns[:n_frames],
-                                          s.paths[:n_frames], s.csv_lines[:n_frames])
-                 for name, s in f.cameras.items()}
+    f.cameras = {
+        name: euroc.CameraStream(
+            name, s.camera, s.timestamps_ns[:n_frames], s.paths[:n_frames], s.csv_lines[:n_frames]
+        )
+        for name, s in f.cameras.items()
+    }
     return f
 
 
@@ -40,7 +44,7 @@ def test_ffv1_round_trip_is_pixel_exact(video_dir):
         np.testing.assert_array_equal(g.timestamps_ns, s.timestamps_ns)
         assert g.camera.to_sensor_yaml()["intrinsics"] == s.camera.to_sensor_yaml()["intrinsics"]
         np.testing.assert_allclose(g.camera.T_body_cam, s.camera.T_body_cam, atol=1e-15)
-        for i in (0, 4, 2, 3, N_FRAMES - 1):          # in and out of order
+        for i in (0, 4, 2, 3, N_FRAMES - 1):  # in and out of order
             np.testing.assert_array_equal(g.load_image(i), s.load_image(i))
     np.testing.assert_array_equal(got.imu.accel_m_s2, ref.imu.accel_m_s2)
     assert got.imu.noise == ref.imu.noise and got.world == ref.world
@@ -63,8 +67,9 @@ def test_constant_rate_needs_a_start_time(video_dir, tmp_path):
         open_flight(d)
     flight = open_flight(d, LogOptions(video_start_ns=5_000_000_000))
     # the container's rate (10 Hz, as written) from the given start
-    np.testing.assert_array_equal(flight.floor.timestamps_ns,
-                                  5_000_000_000 + np.arange(N_FRAMES) * 100_000_000)
+    np.testing.assert_array_equal(
+        flight.floor.timestamps_ns, 5_000_000_000 + np.arange(N_FRAMES) * 100_000_000
+    )
     flight = open_flight(d, LogOptions(video_start_ns=0, video_fps=20.0))
     assert flight.floor.timestamps_ns[1] == 50_000_000
 
@@ -73,7 +78,7 @@ def test_frame_times_shorter_than_video_use_the_first_frames(video_dir, tmp_path
     d = tmp_path / "v"
     shutil.copytree(video_dir, d)
     lines = (d / "cam0.csv").read_text().splitlines()
-    (d / "cam0.csv").write_text("\n".join(lines[:4]) + "\n")        # header + 3 times
+    (d / "cam0.csv").write_text("\n".join(lines[:4]) + "\n")  # header + 3 times
     flight = open_flight(d)
     assert len(flight.floor) == 3 and "6 frames but 3 times" in caplog.text
     (d / "cam0.csv").write_text(lines[0] + "\n" + lines[2] + "\n" + lines[1] + "\n")
@@ -83,6 +88,7 @@ def test_frame_times_shorter_than_video_use_the_first_frames(video_dir, tmp_path
 
 def _vfr_video(path, images, pts):
     import av
+
     with av.open(str(path), mode="w") as c:
         vs = c.add_stream("ffv1", rate=30)
         vs.width, vs.height, vs.pix_fmt = images[0].shape[1], images[0].shape[0], "gray"
@@ -122,7 +128,7 @@ def test_truncated_video_reads_up_to_the_damage(video_dir, tmp_path):
     ref = short_flight()
     for i in range(n):
         img = flight.floor.load_image(i)
-        if img is not None:          # the last, cut frame may be reported unreadable
+        if img is not None:  # the last, cut frame may be reported unreadable
             np.testing.assert_array_equal(img, ref.floor.load_image(i))
     assert len(flight.floor.skipped) <= 1
 
@@ -130,9 +136,13 @@ def test_truncated_video_reads_up_to_the_damage(video_dir, tmp_path):
 # ---------------------------------------------------------------------------- PX4 ULog
 
 _CODES = {"uint64_t": "Q", "float": "f", "int32_t": "i", "uint32_t": "I"}
-SENSOR_COMBINED = [("uint64_t", "timestamp"), ("float[3]", "gyro_rad"),
-                   ("uint32_t", "gyro_integral_dt"), ("int32_t", "accelerometer_timestamp_relative"),
-                   ("float[3]", "accelerometer_m_s2")]
+SENSOR_COMBINED = [
+    ("uint64_t", "timestamp"),
+    ("float[3]", "gyro_rad"),
+    ("uint32_t", "gyro_integral_dt"),
+    ("int32_t", "accelerometer_timestamp_relative"),
+    ("float[3]", "accelerometer_m_s2"),
+]
 CAMERA_CAPTURE = [("uint64_t", "timestamp"), ("uint32_t", "seq")]
 
 
@@ -150,8 +160,9 @@ def write_ulog(path, topics):
     for k, name in enumerate(topics):
         msg("A", struct.pack("<BH", 0, k) + name.encode())
     for k, (fields, rows) in enumerate(topics.values()):
-        fmt = "<" + "".join(_CODES[t.split("[")[0]] * (int(t.split("[")[1][:-1]) if "[" in t else 1)
-                            for t, _ in fields)
+        fmt = "<" + "".join(
+            _CODES[t.split("[")[0]] * (int(t.split("[")[1][:-1]) if "[" in t else 1) for t, _ in fields
+        )
         for r in rows:
             msg("D", struct.pack("<H", k) + struct.pack(fmt, *r))
     Path(path).write_bytes(bytes(out))
@@ -165,23 +176,30 @@ def test_ulog_imu_and_capture_times(video_dir, tmp_path):
     # FRD samples: gravity reads -9.81 on z (specific force points up = -z in FRD)
     rows = [(1_000_000 + 5000 * k, 0.1, 0.2, 0.3, 5000, 0, 0.5, 0.0, -9.81) for k in range(400)]
     capture = [(1_000_000 + 100_000 * k + 7, k) for k in range(N_FRAMES)]
-    write_ulog(d / "flight.ulg", {"sensor_combined": (SENSOR_COMBINED, rows),
-                                  "camera_capture": (CAMERA_CAPTURE, capture)})
+    write_ulog(
+        d / "flight.ulg",
+        {"sensor_combined": (SENSOR_COMBINED, rows), "camera_capture": (CAMERA_CAPTURE, capture)},
+    )
     flight = open_flight(d)
     imu = flight.imu
     assert len(imu.timestamps_ns) == 400 and imu.timestamps_ns[1] - imu.timestamps_ns[0] == 5_000_000
     np.testing.assert_allclose(imu.gyro_rad_s[0], [0.1, 0.2, 0.3], rtol=1e-6)
     np.testing.assert_array_equal(imu.T_body_imu, T_FLU_FRD)
     # in the FLU body frame the specific force is +z up
-    a_body = (imu.T_body_imu[:3, :3] @ imu.accel_m_s2[0])
+    a_body = imu.T_body_imu[:3, :3] @ imu.accel_m_s2[0]
     np.testing.assert_allclose(a_body, [0.5, 0.0, 9.81], rtol=1e-6)
-    np.testing.assert_array_equal(flight.floor.timestamps_ns,
-                                  [(1_000_000 + 100_000 * k + 7) * 1000 for k in range(N_FRAMES)])
+    np.testing.assert_array_equal(
+        flight.floor.timestamps_ns, [(1_000_000 + 100_000 * k + 7) * 1000 for k in range(N_FRAMES)]
+    )
     # the camchain was written for an identity T_body_imu: composed with FRD now
-    np.testing.assert_allclose(flight.floor.camera.T_body_cam,
-                               T_FLU_FRD @ short_flight().floor.camera.T_body_cam, atol=1e-12)
+    np.testing.assert_allclose(
+        flight.floor.camera.T_body_cam, T_FLU_FRD @ short_flight().floor.camera.T_body_cam, atol=1e-12
+    )
 
     write_ulog(d / "flight.ulg", {"camera_capture": (CAMERA_CAPTURE, capture)})
-    with pytest.raises(LogError, match=r"flight.ulg: no 'sensor_combined' topic; the ULog holds "
-                                       r"camera_capture"):
+    with pytest.raises(
+        LogError,
+        match=r"flight.ulg: no 'sensor_combined' topic; the ULog holds "
+        r"camera_capture",
+    ):
         open_flight(d)

@@ -2,6 +2,7 @@
 a real headless browser (Debian's chromium driven by selenium) with no JavaScript error and a
 screenshot that is not blank.  The browser test is skipped only outside CI when chromium,
 chromedriver or selenium is absent; in CI (CI set) it must run."""
+
 import math
 import os
 import re
@@ -20,10 +21,18 @@ from fusion.warehouse.manifest import ExpectedLoad
 from fusion.warehouse.view3d import REPORT_HTML, build_figure, write_html
 
 EVIL_ID = "</script><img src=x onerror=alert(1)>"
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync", "--no-first-run",
-                  "--enable-unsafe-swiftshader", "--window-size=1200,900")
-MIN_COLOURED_PIXELS = 500      # trace colours (saturated) a drawn 3D scene shows at least
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--enable-unsafe-swiftshader",
+    "--window-size=1200,900",
+)
+MIN_COLOURED_PIXELS = 500  # trace colours (saturated) a drawn 3D scene shows at least
 
 
 def _trajectory(name, rng, n=300):
@@ -38,14 +47,24 @@ def _trajectory(name, rng, n=300):
 def page(tmp_path_factory):
     rng = np.random.default_rng(0)
     trajs = {"pnp": _trajectory("pnp", rng), "smoother": _trajectory("smoother", rng)}
-    loads = LoadMap("smoother", [
-        LoadEstimate("P-01-1", np.array([1.5, 2.7, 0.7]), np.diag([1e-4, 4e-4, 1e-4]), 12),
-        LoadEstimate(EVIL_ID, np.array([3.5, 2.7, 1.4]), np.diag([4e-4, 1e-4, 1e-4]), 5),
-        LoadEstimate("Q-01-1", np.array([1.5, 4.3, 0.7]), None, 3)])
-    statuses = {"P-01-1": Status.PRESENT, EVIL_ID: Status.MOVED, "Q-01-1": Status.UNEXPECTED,
-                "GONE": Status.MISSING}
-    expected = [ExpectedLoad("GONE", np.array([5.5, 2.7, 1.4]), 0.01, "A-01-03", 2),
-                ExpectedLoad(EVIL_ID, np.array([3.4, 2.7, 1.4]), 0.01, None, 3)]
+    loads = LoadMap(
+        "smoother",
+        [
+            LoadEstimate("P-01-1", np.array([1.5, 2.7, 0.7]), np.diag([1e-4, 4e-4, 1e-4]), 12),
+            LoadEstimate(EVIL_ID, np.array([3.5, 2.7, 1.4]), np.diag([4e-4, 1e-4, 1e-4]), 5),
+            LoadEstimate("Q-01-1", np.array([1.5, 4.3, 0.7]), None, 3),
+        ],
+    )
+    statuses = {
+        "P-01-1": Status.PRESENT,
+        EVIL_ID: Status.MOVED,
+        "Q-01-1": Status.UNEXPECTED,
+        "GONE": Status.MISSING,
+    }
+    expected = [
+        ExpectedLoad("GONE", np.array([5.5, 2.7, 1.4]), 0.01, "A-01-03", 2),
+        ExpectedLoad(EVIL_ID, np.array([3.4, 2.7, 1.4]), 0.01, None, 3),
+    ]
     floor = np.array([(x, y) for x in range(7) for y in range(6)], dtype=float)
     fig = build_figure(trajs, loads, floor, 1.0, statuses, expected)
     return write_html(tmp_path_factory.mktemp("view") / REPORT_HTML, fig), fig
@@ -54,15 +73,19 @@ def page(tmp_path_factory):
 def test_html_self_contained_and_escaped(page):
     path, fig = page
     html = path.read_text(encoding="utf-8")
-    assert re.search(r"<script[^>]*\bsrc\s*=", html) is None     # nothing fetched
-    assert len(html) > 1_000_000                       # plotly.js itself is in the file
+    assert re.search(r"<script[^>]*\bsrc\s*=", html) is None  # nothing fetched
+    assert len(html) > 1_000_000  # plotly.js itself is in the file
     assert EVIL_ID not in html and "<img src=x" not in html
-    assert "load &lt;\\u002fscript&gt;&lt;img" in html          # escaped, then JSON-encoded
+    assert "load &lt;\\u002fscript&gt;&lt;img" in html  # escaped, then JSON-encoded
     names = [t.name for t in fig.data]
     assert "floor codes" in names and "smoother trajectory" in names
-    assert len(fig.layout.sliders[0].steps) > 10       # the time slider
-    hover = " ".join(str(h) for t in fig.data if t.hovertext is not None for h in
-                     (t.hovertext if isinstance(t.hovertext, tuple) else [t.hovertext]))
+    assert len(fig.layout.sliders[0].steps) > 10  # the time slider
+    hover = " ".join(
+        str(h)
+        for t in fig.data
+        if t.hovertext is not None
+        for h in (t.hovertext if isinstance(t.hovertext, tuple) else [t.hovertext])
+    )
     assert "floor code 0/3/2" in hover and "load P-01-1" in hover and "expected GONE" in hover
 
 
@@ -75,8 +98,10 @@ def _browser_or_skip():
         selenium = None
     if chromium and driver and selenium is not None:
         return chromium, driver
-    reason = (f"headless browser test needs Debian's chromium and chromium-driver and selenium "
-              f"(chromium: {chromium}, chromedriver: {driver}, selenium: {selenium is not None})")
+    reason = (
+        f"headless browser test needs Debian's chromium and chromium-driver and selenium "
+        f"(chromium: {chromium}, chromedriver: {driver}, selenium: {selenium is not None})"
+    )
     if os.environ.get("CI"):
         pytest.fail(reason + " - required in CI")
     pytest.skip(reason + "; not in CI")
@@ -88,6 +113,7 @@ def _load_in_chromium(path: Path):
     chromium, driver_path = _browser_or_skip()
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
+
     profile = tempfile.mkdtemp(prefix="fusion-chromium-")
     opts = webdriver.ChromeOptions()
     opts.binary_location = chromium
@@ -101,7 +127,8 @@ def _load_in_chromium(path: Path):
         state = driver.execute_script(
             "const gd = document.querySelector('.js-plotly-plot');"
             "return [typeof Plotly, gd ? gd.data.length : -1,"
-            " document.querySelectorAll('canvas').length];")
+            " document.querySelectorAll('canvas').length];"
+        )
         errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
         png = driver.get_screenshot_as_png()
     finally:
@@ -116,15 +143,16 @@ def test_report_html_in_headless_chromium(page):
     assert state[0] == "object" and state[1] > 5 and state[2] >= 1
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
     saturation = img.max(axis=2) - img.min(axis=2)
-    assert img.std() > 5.0                                       # not one flat colour
-    assert np.count_nonzero(saturation > 80) >= MIN_COLOURED_PIXELS   # traces were drawn
+    assert img.std() > 5.0  # not one flat colour
+    assert np.count_nonzero(saturation > 80) >= MIN_COLOURED_PIXELS  # traces were drawn
 
 
 def test_browser_check_sees_errors_and_blank_pages(tmp_path):
     """The control: a page that throws and draws nothing fails both checks."""
     path = tmp_path / "broken.html"
-    path.write_text("<!doctype html><html><body><script>throw new Error('boom');</script>"
-                    "</body></html>", encoding="utf-8")
+    path.write_text(
+        "<!doctype html><html><body><script>throw new Error('boom');</script></body></html>", encoding="utf-8"
+    )
     state, errors, png = _load_in_chromium(path)
     assert any("boom" in e["message"] for e in errors) and state[0] == "undefined"
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)

@@ -5,6 +5,7 @@ observations, the front camera's CameraModel (mount-aware), optional velocity, F
 the smoothers also the floor camera's CameraModel) and return a FusionResult whose `health`
 (SolveHealth) says what happened inside: dead-reckoned, iteration-limit stops, singular solves
 and their fallbacks, fixes the gate kept, loads dropped, re-initialisations."""
+
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,

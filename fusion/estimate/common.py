@@ -4,6 +4,7 @@ Frames and layouts as in fusion.types: poses are T_world_body (4x4), pose covari
 GTSAM's Pose3 tangent order [rx, ry, rz, tx, ty, tz] in the body frame (right perturbation
 T = T_hat * Exp(xi)); positions in m, angles in rad, timestamps in int64 ns.
 """
+
 from __future__ import annotations
 
 import math
@@ -22,24 +23,27 @@ from fusion.types import Choice, LoadMap, LoadObservation, RobustKernel, Traject
 
 class RawPoseInput(Choice):
     """What the raw per-frame poses constrain (chosen once per flight in build_problem)."""
-    POSE6 = "pose6"                  # full 6-dof pose with covariance (PnP, body-fixed camera)
-    POSITION_YAW = "position_yaw"    # the paper's output: position + yaw, configured sigmas
-    LEVEL_POSE = "level_pose"        # gimbaled floor camera: yaw + position, PnP covariance
+
+    POSE6 = "pose6"  # full 6-dof pose with covariance (PnP, body-fixed camera)
+    POSITION_YAW = "position_yaw"  # the paper's output: position + yaw, configured sigmas
+    LEVEL_POSE = "level_pose"  # gimbaled floor camera: yaw + position, PnP covariance
 
 
 class TightCoupling(Choice):
     """Whether floor-code corners entered the graph as reprojection factors (config.tight)."""
-    OFF = "off"                      # not asked for
+
+    OFF = "off"  # not asked for
     ON = "on"
-    NO_SIGHTINGS = "no_sightings"    # asked for, but no floor sightings / floor camera given
+    NO_SIGHTINGS = "no_sightings"  # asked for, but no floor sightings / floor camera given
 
 
 class SolveMode(Choice):
     """How much the fixes constrain the estimate, and by what."""
-    FUSED = "fused"                  # fixes and motion model
+
+    FUSED = "fused"  # fixes and motion model
     DEAD_RECKONED = "dead_reckoned"  # at most config.dead_reckoning_max_fixes fixes: IMU /
     #                                  velocity integration from them, sigma grows accordingly
-    IMU_REJECTED = "imu_rejected"    # most fixes disagreed with the IMU beyond the gate: fused
+    IMU_REJECTED = "imu_rejected"  # most fixes disagreed with the IMU beyond the gate: fused
     #                                  without it (random-walk model, velocity if any)
 
 
@@ -54,6 +58,7 @@ class SolveHealth:
     gate would have removed more than config.max_gated_fraction of the fixes, so it was not
     applied (the motion model, not the fixes, is suspect); `loads_dropped`: load ids whose every
     sighting was gated; `resets`: incremental re-initialisations from agreeing fixes."""
+
     mode: SolveMode = SolveMode.FUSED
     reasons: list[str] = field(default_factory=list)
     fixes: int = 0
@@ -92,6 +97,7 @@ class FusionConfig:
     Huber's bounded but non-zero pull of a misread code 1-3 m away otherwise still bends the
     trajectory by ~0.1 mm per outlier.  None disables it.
     """
+
     robust_kernel: RobustKernel = RobustKernel.HUBER
     robust_threshold: float | None = None
     robust_quantile: float = 0.999
@@ -119,7 +125,7 @@ class FusionConfig:
     first_velocity_window_s: float = 0.5
     # IMU coverage: a sample holds until the next one if that comes within `max_imu_gap_s`.
     max_imu_gap_s: float = 0.05
-    integration_sigma: float = 1e-4          # GTSAM integration covariance (sigma^2 * I)
+    integration_sigma: float = 1e-4  # GTSAM integration covariance (sigma^2 * I)
     # Weak random-walk model used where there is no IMU (gaps, no-IMU flights): white
     # acceleration `bridge_accel_sigma_m_s2` (m/s^2/sqrt(Hz)), white angular rate
     # `bridge_rate_sigma_rad_s` (rad/s/sqrt(Hz)); the bridge's pose link leaves the
@@ -188,16 +194,16 @@ class FusionConfig:
         try:
             self.robust_kernel = RobustKernel.parse(self.robust_kernel, "robust kernel")
         except ValueError:
-            raise EstimationError(f"unknown robust kernel {self.robust_kernel!r}; "
-                                  f"choose one of {', '.join(k.value for k in RobustKernel)}"
-                                  ) from None
+            raise EstimationError(
+                f"unknown robust kernel {self.robust_kernel!r}; "
+                f"choose one of {', '.join(k.value for k in RobustKernel)}"
+            ) from None
         if self.outlier_gate is not None and not self.outlier_gate > 0:
             raise EstimationError(f"outlier_gate must be > 0, got {self.outlier_gate}")
         if self.robust_threshold is not None and not self.robust_threshold > 0:
             raise EstimationError(f"robust_threshold must be > 0, got {self.robust_threshold}")
         if not 0 < self.max_gated_fraction <= 1:
-            raise EstimationError(f"max_gated_fraction must be in (0, 1], got "
-                                  f"{self.max_gated_fraction}")
+            raise EstimationError(f"max_gated_fraction must be in (0, 1], got {self.max_gated_fraction}")
 
     def threshold(self, dim: int) -> float:
         """Robust-kernel threshold (Mahalanobis units) for a factor of dimension `dim`."""
@@ -211,6 +217,7 @@ class FusionResult:
     """Output of every fusion back end: trajectory at frame times with (N, 6, 6) covariances,
     load map with 3x3 covariances, statistics (counts and times, JSON-ready) and what happened
     inside (`health`)."""
+
     trajectory: Trajectory
     loads: LoadMap
     stats: dict = field(default_factory=dict)
@@ -277,8 +284,11 @@ def match_to_frames(frame_t: np.ndarray, t: np.ndarray, max_sync_s: float) -> np
     t = np.asarray(t, dtype=np.int64)
     if len(frame_t) == 0 or len(t) == 0:
         return np.full(len(t), -1, dtype=np.int64)
-    j = np.clip(np.searchsorted(frame_t, t), 1, len(frame_t) - 1) if len(frame_t) > 1 \
+    j = (
+        np.clip(np.searchsorted(frame_t, t), 1, len(frame_t) - 1)
+        if len(frame_t) > 1
         else np.zeros(len(t), dtype=np.int64)
+    )
     if len(frame_t) > 1:
         left = j - 1
         use_left = np.abs(t - frame_t[left]) <= np.abs(frame_t[j] - t)
@@ -290,8 +300,9 @@ def match_to_frames(frame_t: np.ndarray, t: np.ndarray, max_sync_s: float) -> np
 @dataclass
 class RawPoses:
     """Raw per-frame poses matched to frame indices."""
-    frame_idx: np.ndarray          # (M,) index into frame times
-    T_world_body: np.ndarray       # (M, 4, 4)
+
+    frame_idx: np.ndarray  # (M,) index into frame times
+    T_world_body: np.ndarray  # (M, 4, 4)
     covariances: np.ndarray | None  # (M, 6, 6) or None (paper input: position + yaw)
 
     @property
@@ -318,18 +329,22 @@ def prepare_raw(frame_t: np.ndarray, raw: Trajectory, config: FusionConfig) -> R
         ev_min = np.linalg.eigvalsh(cov)[:, 0]
         bad = np.flatnonzero(ev_min <= 0)
         if bad.size:
-            raise EstimationError(f"raw trajectory {raw.name!r}: covariance {int(bad[0])} is not "
-                                  "positive definite")
+            raise EstimationError(
+                f"raw trajectory {raw.name!r}: covariance {int(bad[0])} is not positive definite"
+            )
     idx = match_to_frames(frame_t, t, config.max_sync_s)
     bad = np.flatnonzero(idx < 0)
     if bad.size:
-        raise EstimationError(f"raw trajectory {raw.name!r}: pose {int(bad[0])} (t={t[bad[0]]} ns) "
-                              "is at no floor-camera frame time")
+        raise EstimationError(
+            f"raw trajectory {raw.name!r}: pose {int(bad[0])} (t={t[bad[0]]} ns) "
+            "is at no floor-camera frame time"
+        )
     return RawPoses(idx, T, cov)
 
 
-def velocity_at_frames(frame_t: np.ndarray, vel: VelocityData | None,
-                       config: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
+def velocity_at_frames(
+    frame_t: np.ndarray, vel: VelocityData | None, config: FusionConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """Body velocity linearly interpolated to frame times: (mask (N,), v_body (N, 3))."""
     n = len(frame_t)
     out = np.zeros((n, 3))
@@ -356,8 +371,7 @@ INLIER_WINDOW_S = 0.25
 one-sided window (at the edge of a gap) lags a 1.3 m/s drone by 0.16 m < init_outlier_m."""
 
 
-def inlier_raw_mask(raw: RawPoses, config: FusionConfig,
-                    frame_t: np.ndarray | None = None) -> np.ndarray:
+def inlier_raw_mask(raw: RawPoses, config: FusionConfig, frame_t: np.ndarray | None = None) -> np.ndarray:
     """Raw poses whose position lies within init_outlier_m of the median position of its
     neighbours in time: the raw poses within +-INLIER_WINDOW_S of it (at most init_window on
     each side, nearest first), itself included.  Without frame_t (frame times, ns) the window is
@@ -376,21 +390,22 @@ def inlier_raw_mask(raw: RawPoses, config: FusionConfig,
         t = np.asarray(raw.frame_idx, dtype=np.int64)
         half = w
     offs = np.arange(-w, w + 1)
-    nb = np.arange(m)[:, None] + offs[None, :]                   # (m, 2w+1) neighbour indices
+    nb = np.arange(m)[:, None] + offs[None, :]  # (m, 2w+1) neighbour indices
     valid = (nb >= 0) & (nb < m)
     nbc = np.clip(nb, 0, m - 1)
     valid &= np.abs(t[nbc] - t[:, None]) <= half
-    P = np.where(valid[:, :, None], p[nbc], np.nan)               # (m, 2w+1, 3)
+    P = np.where(valid[:, :, None], p[nbc], np.nan)  # (m, 2w+1, 3)
     med = np.nanmedian(P, axis=1)
-    judged = valid.sum(axis=1) >= 3                                # itself and two neighbours
+    judged = valid.sum(axis=1) >= 3  # itself and two neighbours
     ok = ~judged | (np.linalg.norm(p - med, axis=1) <= config.init_outlier_m)
     if not ok.any():
         ok[:] = True
     return ok
 
 
-def initial_poses(frame_t: np.ndarray, raw: RawPoses, config: FusionConfig,
-                  use: np.ndarray | None = None) -> np.ndarray:
+def initial_poses(
+    frame_t: np.ndarray, raw: RawPoses, config: FusionConfig, use: np.ndarray | None = None
+) -> np.ndarray:
     """(N, 4, 4) initial T_world_body at every frame: raw poses, interpolated (linear position,
     slerp rotation) through gaps and held at the ends.  `use` masks out outliers."""
     use = inlier_raw_mask(raw, config) if use is None else use
@@ -412,9 +427,14 @@ def initial_velocities(frame_t: np.ndarray, T_init: np.ndarray) -> np.ndarray:
     return np.gradient(p, frame_t * 1e-9, axis=0)
 
 
-def first_velocity(frame_t: np.ndarray, raw: RawPoses, use: np.ndarray, k0: int,
-                   n_fit: int = FusionConfig.first_velocity_fixes,
-                   window_s: float = FusionConfig.first_velocity_window_s) -> np.ndarray:
+def first_velocity(
+    frame_t: np.ndarray,
+    raw: RawPoses,
+    use: np.ndarray,
+    k0: int,
+    n_fit: int = FusionConfig.first_velocity_fixes,
+    window_s: float = FusionConfig.first_velocity_window_s,
+) -> np.ndarray:
     """World velocity at frame k0 from a least-squares line through the first inlier raw
     positions (up to `n_fit`, within `window_s` of k0); zeros when there are fewer than two."""
     idx = raw.frame_idx[use]
@@ -442,19 +462,26 @@ def write_sigmas_csv(path, traj: Trajectory) -> None:
             f.write(f"{int(t)}," + ",".join(f"{v:.6e}" for v in s) + "\n")
 
 
-def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
-                   config: FusionConfig) -> tuple[dict[str, list[tuple[int, LoadObservation]]], int]:
+def group_load_obs(
+    frame_t: np.ndarray, load_obs: list[LoadObservation], config: FusionConfig
+) -> tuple[dict[str, list[tuple[int, LoadObservation]]], int]:
     """Load observations with a camera-frame measurement, grouped by id, matched to frames.
     Returns ({id: [(frame index, obs)]}, number skipped: no p_cam / non-finite / no frame)."""
     groups: dict[str, list] = {}
     skipped = 0
     if not load_obs:
         return groups, 0
-    idx = match_to_frames(frame_t, np.array([o.timestamp_ns for o in load_obs], dtype=np.int64),
-                          config.max_sync_s)
-    usable = [k >= 0 and o.p_cam is not None and o.cov_cam is not None
-              and np.shape(o.p_cam) == (3,) and np.shape(o.cov_cam) == (3, 3)
-              for k, o in zip(idx.tolist(), load_obs)]
+    idx = match_to_frames(
+        frame_t, np.array([o.timestamp_ns for o in load_obs], dtype=np.int64), config.max_sync_s
+    )
+    usable = [
+        k >= 0
+        and o.p_cam is not None
+        and o.cov_cam is not None
+        and np.shape(o.p_cam) == (3,)
+        and np.shape(o.cov_cam) == (3, 3)
+        for k, o in zip(idx.tolist(), load_obs)
+    ]
     sel = [i for i, u in enumerate(usable) if u]
     skipped = len(load_obs) - len(sel)
     if not sel:
@@ -476,7 +503,8 @@ def group_load_obs(frame_t: np.ndarray, load_obs: list[LoadObservation],
 @dataclass
 class FusionInputs:
     """Checked inputs of a back end (prepare_inputs)."""
-    frame_t: np.ndarray                 # (N,) int64 ns, strictly increasing
+
+    frame_t: np.ndarray  # (N,) int64 ns, strictly increasing
     raw: RawPoses
     imu: ImuData | None
     velocity: VelocityData | None
@@ -490,13 +518,20 @@ def check_front_camera(front_camera) -> CameraModel | None:
         if front_camera is not None and not np.all(np.isfinite(front_camera.T_body_cam)):
             raise EstimationError("front camera: T_body_cam must be finite")
         return front_camera
-    raise EstimationError(f"front_camera must be a CameraModel (its mount matters), got "
-                          f"{type(front_camera).__name__}")
+    raise EstimationError(
+        f"front_camera must be a CameraModel (its mount matters), got {type(front_camera).__name__}"
+    )
 
 
-def prepare_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                   velocity: VelocityData | None, front_camera: CameraModel | None,
-                   config: FusionConfig, require_motion: bool = True) -> FusionInputs:
+def prepare_inputs(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None,
+    front_camera: CameraModel | None,
+    config: FusionConfig,
+    require_motion: bool = True,
+) -> FusionInputs:
     """The checks every back end starts with, or EstimationError naming the bad input.
     `require_motion=False` accepts neither IMU nor velocity (the random-walk model alone)."""
     frame_t = check_timestamps(frame_times_ns, "floor-camera frames")
@@ -508,20 +543,3 @@ def prepare_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     if imu is None and velocity is None and require_motion:
         raise EstimationError("neither IMU nor velocity data: nothing to fuse the QR poses with")
     return FusionInputs(frame_t, rawp, imu, velocity, check_front_camera(front_camera))
-
-
-def check_inputs(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                 velocity: VelocityData | None, front, config: FusionConfig):
-    """prepare_inputs as the tuple (frame_t, RawPoses, imu or None, velocity or None,
-    T_body_frontcam (4, 4)) for back ends that still take a bare body-fixed T_body_frontcam
-    (`front` may be that 4x4 or a body-fixed CameraModel; identity when None)."""
-    camera = front if isinstance(front, CameraModel) or front is None else None
-    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, camera, config)
-    if camera is not None:
-        if camera.gimbaled:
-            raise EstimationError("a gimbaled front camera is not supported by this back end")
-        return inp.frame_t, inp.raw, inp.imu, inp.velocity, camera.T_body_cam.copy()
-    T_bc = np.eye(4) if front is None else np.asarray(front, float)
-    if T_bc.shape != (4, 4) or not np.all(np.isfinite(T_bc)):
-        raise EstimationError("T_body_frontcam must be a finite 4x4 transform")
-    return inp.frame_t, inp.raw, inp.imu, inp.velocity, T_bc

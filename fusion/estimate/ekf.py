@@ -48,6 +48,7 @@ central differences on the body pose, mount-agnostic), and the observations of o
 fused by information weighting (this ignores the correlation of pose errors between frames, so
 the load covariance is optimistic).
 """
+
 from __future__ import annotations
 
 import logging
@@ -62,14 +63,14 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.estimate import graph as G
+from fusion.estimate import factors
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
-    check_inputs,
     first_velocity,
     group_load_obs,
     inlier_raw_mask,
+    prepare_inputs,
     velocity_at_frames,
 )
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
@@ -83,8 +84,8 @@ log = logging.getLogger(__name__)
 
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
 _TH, _P, _V, _BG, _BA = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
-_LOAD_JACOBIAN_STEP = 1e-6          # body-pose perturbation (rad, m) for the load-point Jacobian
-_TILT_SIGMA_RAD = 0.05              # roll / pitch 1-sigma of a start or reset from position + yaw
+_LOAD_JACOBIAN_STEP = 1e-6  # body-pose perturbation (rad, m) for the load-point Jacobian
+_TILT_SIGMA_RAD = 0.05  # roll / pitch 1-sigma of a start or reset from position + yaw
 
 
 @dataclass
@@ -101,6 +102,7 @@ class EkfRecovery:
     reset_sigma_accel_m_s2: bias 1-sigma after a reset (a faulty IMU: dead band, saturation, wrong
     unit, so large biases must be learnable); reset_velocity_sigma_m_s: floor of the velocity
     1-sigma after a reset.  enabled=False gives the plain gated filter (it can lock out)."""
+
     enabled: bool = True
     window_s: float = 1.5
     lookback_s: float = 3.0
@@ -119,15 +121,16 @@ class EkfRecovery:
 class _Fix:
     """One raw fix as the recovery logic sees it: time (s), world position (3,), yaw (rad),
     their 1-sigma (position per axis (3,), yaw), the fix itself (for a reset) and its outcome."""
+
     t_s: float
     p_world: np.ndarray
     yaw: float
     sigma_p: np.ndarray
     sigma_yaw: float
     T_meas: np.ndarray
-    cov: np.ndarray          # 6x6 body-frame (full pose) or level-frame covariance
-    over: bool = False       # beyond the robust threshold
-    gated: bool = False      # beyond the gate
+    cov: np.ndarray  # 6x6 body-frame (full pose) or level-frame covariance
+    over: bool = False  # beyond the robust threshold
+    gated: bool = False  # beyond the gate
 
 
 class _FixWindow:
@@ -162,8 +165,7 @@ class _FixWindow:
         P = np.array([x.p_world for x in f])
         sp = np.array([np.linalg.norm(x.sigma_p) for x in f])
         step = np.linalg.norm(np.diff(P, axis=0), axis=1)
-        allowed = self.rec.max_speed_m_s * np.diff(t) + 3.0 * (sp[1:] + sp[:-1]) \
-            + self.rec.consistency_m
+        allowed = self.rec.max_speed_m_s * np.diff(t) + 3.0 * (sp[1:] + sp[:-1]) + self.rec.consistency_m
         return bool(np.all(step <= allowed))
 
     def consistent(self) -> bool:
@@ -184,8 +186,10 @@ class _FixWindow:
         res = np.abs(Y - A @ coef)
         sp = np.array([f.sigma_p for f in fixes])
         sy = np.array([f.sigma_yaw for f in fixes])
-        ok = bool(np.all(res[:, :3] <= 3.0 * sp + self.rec.consistency_m)
-                  and np.all(res[:, 3] <= 3.0 * sy + self.rec.consistency_rad))
+        ok = bool(
+            np.all(res[:, :3] <= 3.0 * sp + self.rec.consistency_m)
+            and np.all(res[:, 3] <= 3.0 * sy + self.rec.consistency_rad)
+        )
         velocity = coef[-2, :3] if deg >= 1 else np.zeros(3)
         return ok, velocity
 
@@ -198,8 +202,7 @@ class _FixWindow:
 
     def all_gated(self) -> bool:
         recent = self.recent()
-        return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) \
-            and self.consistent()
+        return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) and self.consistent()
 
 
 class _Ekf:
@@ -210,12 +213,12 @@ class _Ekf:
         self.Ad_bi = adjoint(T_body_imu)
         self.config = config
         self.recovery = recovery
-        self.R = np.eye(3)          # R_world_imu
-        self.p = np.zeros(3)        # p_world_imu
-        self.v = np.zeros(3)        # v_world_imu
+        self.R = np.eye(3)  # R_world_imu
+        self.p = np.zeros(3)  # p_world_imu
+        self.v = np.zeros(3)  # v_world_imu
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
-        self.omega = np.zeros(3)    # last bias-corrected rate (IMU frame), for velocity updates
+        self.omega = np.zeros(3)  # last bias-corrected rate (IMU frame), for velocity updates
         self.rejected = 0
         self.gated = 0
         self.inflated = 0
@@ -267,11 +270,11 @@ class _Ekf:
         F[_V, _TH] = -R @ skew(f) * dt
         F[_V, _BA] = -R * dt
         q = np.empty(15)
-        q[_TH] = noise.gyroscope_noise_density ** 2 * dt
-        q[_P] = (self.config.integration_sigma ** 2) * dt
-        q[_V] = noise.accelerometer_noise_density ** 2 * dt
-        q[_BG] = noise.gyroscope_random_walk ** 2 * dt
-        q[_BA] = noise.accelerometer_random_walk ** 2 * dt
+        q[_TH] = noise.gyroscope_noise_density**2 * dt
+        q[_P] = (self.config.integration_sigma**2) * dt
+        q[_V] = noise.accelerometer_noise_density**2 * dt
+        q[_BG] = noise.gyroscope_random_walk**2 * dt
+        q[_BA] = noise.accelerometer_random_walk**2 * dt
         self.kf.F = F
         self.kf.Q = np.diag(q)
         self.kf.predict()
@@ -281,14 +284,14 @@ class _Ekf:
         self.p = self.p + self.v * dt
         F = np.eye(15)
         F[_P, _V] = np.eye(3) * dt
-        qa = self.config.bridge_accel_sigma_m_s2 ** 2
+        qa = self.config.bridge_accel_sigma_m_s2**2
         q = np.zeros(15)
-        q[_TH] = self.config.bridge_rate_sigma_rad_s ** 2 * dt
+        q[_TH] = self.config.bridge_rate_sigma_rad_s**2 * dt
         q[_V] = qa * dt
-        q[_P] = qa * dt ** 3 / 3.0
+        q[_P] = qa * dt**3 / 3.0
         if noise is not None:
-            q[_BG] = noise.gyroscope_random_walk ** 2 * dt
-            q[_BA] = noise.accelerometer_random_walk ** 2 * dt
+            q[_BG] = noise.gyroscope_random_walk**2 * dt
+            q[_BA] = noise.accelerometer_random_walk**2 * dt
         self.kf.F = F
         self.kf.Q = np.diag(q)
         self.kf.predict()
@@ -313,7 +316,7 @@ class _Ekf:
             return Rm * (d / k)
         if kernel == "cauchy":
             return Rm * (1.0 + (d / k) ** 2)
-        return None    # tukey: weight 0
+        return None  # tukey: weight 0
 
     def _apply(self, z, H, hx, Rm, residual) -> None:
         self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
@@ -335,12 +338,12 @@ class _Ekf:
         def d2(log_lam):
             return float(y @ np.linalg.solve(math.exp(log_lam) * HPH + Rm, y))
 
-        if d2(hi) > d_target ** 2:
+        if d2(hi) > d_target**2:
             lo = hi
         else:
             for _ in range(40):
                 mid = 0.5 * (lo + hi)
-                if d2(mid) > d_target ** 2:
+                if d2(mid) > d_target**2:
                     lo = mid
                 else:
                     hi = mid
@@ -386,19 +389,19 @@ class _Ekf:
         self.kf.P = P
         if fix.cov.shape == (6, 6):
             self.set_pose(fix.T_meas, fix.cov)
-        else:                                   # position + yaw fix: keep the filter's roll/pitch
+        else:  # position + yaw fix: keep the filter's roll/pitch
             R_b = self.T_world_body()[:3, :3]
             T = np.eye(4)
             T[:3, :3] = rot_z(fix.yaw - float(yaw_of(R_b))) @ R_b
             T[:3, 3] = fix.p_world
-            cov = np.diag(np.r_[[_TILT_SIGMA_RAD ** 2] * 2, fix.sigma_yaw ** 2, fix.sigma_p ** 2])
+            cov = np.diag(np.r_[[_TILT_SIGMA_RAD**2] * 2, fix.sigma_yaw**2, fix.sigma_p**2])
             self.set_pose(T, cov)
         self.v = v - self.R @ np.cross(self.omega, self.T_ib[:3, 3])
         rec = self.recovery
         sigma_v = max(rec.reset_velocity_sigma_m_s, self.config.velocity_prior_sigma_m_s)
-        self.kf.P[_V, _V] = np.eye(3) * sigma_v ** 2
-        self.kf.P[_BG, _BG] = np.eye(3) * rec.reset_sigma_gyro_rad_s ** 2
-        self.kf.P[_BA, _BA] = np.eye(3) * rec.reset_sigma_accel_m_s2 ** 2
+        self.kf.P[_V, _V] = np.eye(3) * sigma_v**2
+        self.kf.P[_BG, _BG] = np.eye(3) * rec.reset_sigma_gyro_rad_s**2
+        self.kf.P[_BA, _BA] = np.eye(3) * rec.reset_sigma_accel_m_s2**2
         self.kf.x = np.zeros(15)
         self.resets += 1
         self.window.clear()
@@ -420,17 +423,25 @@ class _Ekf:
         H[:, :6] = self.J_body()
         R_m = T_meas[:3, :3]
         sigma_p = np.sqrt(np.maximum(np.diag(R_m @ cov[3:, 3:] @ R_m.T), 0.0))
-        fix = _Fix(t_s, T_meas[:3, 3].copy(), float(yaw_of(R_m)), sigma_p,
-                   math.sqrt(max(cov[2, 2], 0.0)), T_meas, cov)
+        fix = _Fix(
+            t_s,
+            T_meas[:3, 3].copy(),
+            float(yaw_of(R_m)),
+            sigma_p,
+            math.sqrt(max(cov[2, 2], 0.0)),
+            T_meas,
+            cov,
+        )
         self._fix_update(fix, z, H, np.zeros(6), cov, np.subtract)
 
-    def update_position_yaw(self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray,
-                            cov6: np.ndarray | None = None) -> None:
+    def update_position_yaw(
+        self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
+    ) -> None:
         """z = [p_world_body (3), yaw (1)] with 4x4 covariance Rm; the residual hook wraps yaw
         to (-pi, pi].  cov6: the level-frame 6x6 covariance it came from (kept for a reset)."""
         T_hat = gtsam.Pose3(self.T_world_body())
         z = np.r_[T_meas[:3, 3], yaw_of(T_meas[:3, :3])]
-        e, Hb = G.position_yaw_error(np.zeros(3), 0.0, T_hat, True)   # e = h(T_hat)
+        e, Hb = factors.position_yaw_error(np.zeros(3), 0.0, T_hat, True)  # e = h(T_hat)
         H = np.zeros((4, 15))
         H[:, :6] = Hb @ self.J_body()
 
@@ -440,8 +451,9 @@ class _Ekf:
             return r
 
         sd = np.sqrt(np.maximum(np.diag(Rm), 0.0))
-        fix = _Fix(t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas,
-                   cov6 if cov6 is not None else Rm)
+        fix = _Fix(
+            t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas, cov6 if cov6 is not None else Rm
+        )
         self._fix_update(fix, z, H, e, Rm, residual)
 
     def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
@@ -455,7 +467,7 @@ class _Ekf:
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
-        self._update(v_meas, H, hx, np.eye(3) * sigma ** 2)
+        self._update(v_meas, H, hx, np.eye(3) * sigma**2)
 
 
 def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
@@ -468,16 +480,23 @@ def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarr
     return J @ cov_level @ J.T
 
 
-def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-            load_obs: list[LoadObservation] | None = None, *,
-            front_camera: CameraModel | None = None, floor_camera: CameraModel | None = None,
-            velocity: VelocityData | None = None, config: FusionConfig | None = None,
-            recovery: EkfRecovery | None = None) -> FusionResult:
+def run_ekf(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    load_obs: list[LoadObservation] | None = None,
+    *,
+    front_camera: CameraModel | None = None,
+    floor_camera: CameraModel | None = None,
+    velocity: VelocityData | None = None,
+    config: FusionConfig | None = None,
+    recovery: EkfRecovery | None = None,
+) -> FusionResult:
     """Causal error-state EKF over a flight; same inputs and result as `smooth`.
 
     front_camera: maps load observations to the world (its mount: camera.T_world_cam); None:
-    no load map (a warning when there are load observations).  floor_camera: only its mount is used; a gimbaled floor
-    camera's raw poses are level-frame poses (pnp.py), fused as position + yaw.
+    no load map (a warning when there are load observations).  floor_camera: only its mount is
+    used; a gimbaled floor camera's raw poses are level-frame poses (pnp.py), fused as position + yaw.
     The filter starts at the first (inlier) raw pose (`stats['frames_before_first_fix']` earlier
     frames have no estimate), with the velocity from a line through the first 0.5 s of raw
     positions (start-up look-ahead, as smooth_incremental).  Trajectory at the remaining frame
@@ -486,8 +505,8 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     config = config or FusionConfig()
     recovery = recovery or EkfRecovery()
     t_start = time.perf_counter()
-    T_front = front_camera.T_body_cam if front_camera is not None else np.eye(4)
-    frame_t, rawp, imu, velocity, _ = check_inputs(frame_times_ns, imu, raw, velocity, T_front, config)
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config)
+    frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     if load_obs and front_camera is None:
         log.warning("%d load observations but no front camera: the EKF maps no loads", len(load_obs))
     level_fixes = floor_camera is not None and floor_camera.gimbaled
@@ -505,13 +524,21 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     if rawp.full_pose:
         f.set_pose(rawp.T_world_body[m0], rawp.covariances[m0])
     else:
-        f.set_pose(rawp.T_world_body[m0],
-                   np.diag(np.r_[_TILT_SIGMA_RAD ** 2, _TILT_SIGMA_RAD ** 2, config.paper_sigma_yaw_rad ** 2,
-                                 np.asarray(config.paper_sigma_xyz_m, float) ** 2]))
+        f.set_pose(
+            rawp.T_world_body[m0],
+            np.diag(
+                np.r_[
+                    _TILT_SIGMA_RAD**2,
+                    _TILT_SIGMA_RAD**2,
+                    config.paper_sigma_yaw_rad**2,
+                    np.asarray(config.paper_sigma_xyz_m, float) ** 2,
+                ]
+            ),
+        )
     f.v = first_velocity(frame_t, rawp, use, k0)
-    f.kf.P[_V, _V] = np.eye(3) * config.velocity_prior_sigma_m_s ** 2
-    f.kf.P[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s ** 2
-    f.kf.P[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2 ** 2
+    f.kf.P[_V, _V] = np.eye(3) * config.velocity_prior_sigma_m_s**2
+    f.kf.P[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s**2
+    f.kf.P[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2**2
     paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
@@ -520,8 +547,9 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
         cut = np.flatnonzero(np.diff(k_of)) + 1
-        for ks, ds, gs, as_ in zip(np.split(k_of, cut), np.split(dts, cut), np.split(gyr, cut),
-                                   np.split(acc, cut)):
+        for ks, ds, gs, as_ in zip(
+            np.split(k_of, cut), np.split(dts, cut), np.split(gyr, cut), np.split(acc, cut)
+        ):
             if len(ks):
                 sub[int(ks[0])] = list(zip(as_, gs, ds.tolist()))
     noise = imu.noise if imu is not None else None
@@ -543,8 +571,9 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             if rawp.full_pose and not level_fixes:
                 f.update_pose(t_s, T_m, rawp.covariances[m])
             elif rawp.full_pose:
-                f.update_position_yaw(t_s, T_m, level_fix_covariance(T_m, rawp.covariances[m]),
-                                      rawp.covariances[m])
+                f.update_position_yaw(
+                    t_s, T_m, level_fix_covariance(T_m, rawp.covariances[m]), rawp.covariances[m]
+                )
             else:
                 f.update_position_yaw(t_s, T_m, paper_Rm)
             n_pose_updates += 1
@@ -554,14 +583,21 @@ def run_ekf(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         cov_out[k - k0] = f.body_cov()
         cov_out[k - k0] = 0.5 * (cov_out[k - k0] + cov_out[k - k0].T)
 
-    loads = _map_loads(frame_t, load_obs if front_camera is not None else None, front_camera,
-                       T_out, cov_out, k0, config)
-    stats = {"frames_before_first_fix": k0, "pose_updates": n_pose_updates,
-             "rejected_pose_factors": f.rejected, "gated_updates": f.gated,
-             "inflated_updates": f.inflated, "resets": f.resets,
-             "robust_kernel": config.robust_kernel,
-             "imu_intervals": int(covered.sum()), "bridged_intervals": int((~covered).sum()),
-             "time_s": time.perf_counter() - t_start}
+    loads = _map_loads(
+        frame_t, load_obs if front_camera is not None else None, front_camera, T_out, cov_out, k0, config
+    )
+    stats = {
+        "frames_before_first_fix": k0,
+        "pose_updates": n_pose_updates,
+        "rejected_pose_factors": f.rejected,
+        "gated_updates": f.gated,
+        "inflated_updates": f.inflated,
+        "resets": f.resets,
+        "robust_kernel": config.robust_kernel,
+        "imu_intervals": int(covered.sum()),
+        "bridged_intervals": int((~covered).sum()),
+        "time_s": time.perf_counter() - t_start,
+    }
     if imu is not None:
         t0, t1 = imu.timestamps_ns[0], imu.timestamps_ns[-1]
         stats["frames_outside_imu"] = int(((frame_t < t0) | (frame_t > t1)).sum())
@@ -574,6 +610,7 @@ def load_point_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.nd
     """World point of a camera-frame point through the camera's mount, and its 3x6 Jacobian
     with respect to the body pose (right perturbation, Pose3 order) by central differences
     (step _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path."""
+
     def point(T_wb):
         T_wc = camera.T_world_cam(T_wb)
         return T_wc[:3, :3] @ p_cam + T_wc[:3, 3]

@@ -27,6 +27,7 @@ rightly ignored a short run of wrong ones, e.g. a misprinted code), the gated sh
 `gated_diverged`, or a position sigma exceeds `sigma_diverged_m`; otherwise DEGRADED when any
 test above fails its (lower) threshold; otherwise OK.
 """
+
 from __future__ import annotations
 
 import math
@@ -48,6 +49,7 @@ __all__ = ["Health", "HealthConfig", "Status", "assess", "assess_result", "fix_n
 
 class Status(str, Enum):
     """Health of one estimate (str-valued: `Status.OK == "ok"`)."""
+
     OK = "ok"
     DEGRADED = "degraded"
     DIVERGED = "diverged"
@@ -59,38 +61,40 @@ class Status(str, Enum):
 @dataclass(frozen=True)
 class HealthConfig:
     """Thresholds of `assess` (shares are fractions of the raw fixes)."""
+
     window_s: float = 2.0
     min_window_fixes: int = 5
-    fix_quantile: float = 0.999          # per-fix and per-window chi-square quantile
-    lost_share: float = 0.5              # inconsistent fixes that make a window lost
-    inconsistent_degraded: float = 0.1   # inconsistent fixes over the flight -> degraded
-    overconfident_share: float = 0.1     # overconfident windows (share of windows) -> degraded
-    diverged_share: float = 0.1          # fixes in lost windows -> diverged, if also
-    diverged_run: int = 2                # ... this many consecutive windows were lost
+    fix_quantile: float = 0.999  # per-fix and per-window chi-square quantile
+    lost_share: float = 0.5  # inconsistent fixes that make a window lost
+    inconsistent_degraded: float = 0.1  # inconsistent fixes over the flight -> degraded
+    overconfident_share: float = 0.1  # overconfident windows (share of windows) -> degraded
+    diverged_share: float = 0.1  # fixes in lost windows -> diverged, if also
+    diverged_run: int = 2  # ... this many consecutive windows were lost
     gated_degraded: float = 0.1
     gated_diverged: float = 0.5
     inflated_degraded: float = 0.05
     sigma_degraded_m: float = 0.5
     sigma_diverged_m: float = 10.0
     coverage_degraded: float = 0.9
-    max_sync_s: float = 0.002            # raw fix <-> fused frame matching
-    raw_sigma_xyz_m: float = 0.02        # fixes without covariance (the paper's estimator)
+    max_sync_s: float = 0.002  # raw fix <-> fused frame matching
+    raw_sigma_xyz_m: float = 0.02  # fixes without covariance (the paper's estimator)
     raw_sigma_yaw_rad: float = math.radians(1.0)
 
 
 @dataclass
 class Health:
     """Result of `assess`.  `reasons`: one short sentence per failed test (empty when OK)."""
+
     status: Status
     reasons: list[str] = field(default_factory=list)
-    n_fixes: int = 0                     # raw fixes with a fused estimate at their frame
-    coverage: float = 1.0                # n_fixes / raw fixes
-    inconsistent_share: float = 0.0      # fixes beyond the per-fix chi-square bound
-    lost_share: float = 0.0              # fixes in lost windows
-    lost_run: int = 0                    # longest run of consecutive lost windows
+    n_fixes: int = 0  # raw fixes with a fused estimate at their frame
+    coverage: float = 1.0  # n_fixes / raw fixes
+    inconsistent_share: float = 0.0  # fixes beyond the per-fix chi-square bound
+    lost_share: float = 0.0  # fixes in lost windows
+    lost_run: int = 0  # longest run of consecutive lost windows
     overconfident_windows: int = 0
     windows: int = 0
-    window_nis: np.ndarray = field(default_factory=lambda: np.zeros(0))   # mean NIS / dim
+    window_nis: np.ndarray = field(default_factory=lambda: np.zeros(0))  # mean NIS / dim
     gated_fraction: float = 0.0
     inflated_fraction: float = 0.0
     iteration_limit_hits: int = 0
@@ -103,14 +107,22 @@ class Health:
 
     def to_dict(self) -> dict:
         """JSON-ready summary (for metrics.json)."""
-        return {"status": str(self.status), "reason": self.reason, "n_fixes": self.n_fixes,
-                "coverage": self.coverage, "inconsistent_share": self.inconsistent_share,
-                "lost_share": self.lost_share, "lost_run": self.lost_run,
-                "overconfident_windows": self.overconfident_windows,
-                "windows": self.windows, "gated_fraction": self.gated_fraction,
-                "inflated_fraction": self.inflated_fraction,
-                "iteration_limit_hits": self.iteration_limit_hits, "resets": self.resets,
-                "max_sigma_m": self.max_sigma_m}
+        return {
+            "status": str(self.status),
+            "reason": self.reason,
+            "n_fixes": self.n_fixes,
+            "coverage": self.coverage,
+            "inconsistent_share": self.inconsistent_share,
+            "lost_share": self.lost_share,
+            "lost_run": self.lost_run,
+            "overconfident_windows": self.overconfident_windows,
+            "windows": self.windows,
+            "gated_fraction": self.gated_fraction,
+            "inflated_fraction": self.inflated_fraction,
+            "iteration_limit_hits": self.iteration_limit_hits,
+            "resets": self.resets,
+            "max_sigma_m": self.max_sigma_m,
+        }
 
 
 def _match(t_fused: np.ndarray, t_raw: np.ndarray, max_sync_ns: int) -> np.ndarray:
@@ -139,10 +151,12 @@ def fix_nis(fused: Trajectory, raw: Trajectory, config: HealthConfig | None = No
         S = np.asarray(raw.covariances)[idx] + (Pf if Pf is not None else 0.0)
         dim = 6
     else:
-        e = np.column_stack([Tr[:, :3, 3] - Tf[:, :3, 3],
-                             wrap_angle(yaw_of(Tr[:, :3, :3]) - yaw_of(Tf[:, :3, :3]))])
-        S = np.tile(np.diag([config.raw_sigma_xyz_m ** 2] * 3 + [config.raw_sigma_yaw_rad ** 2]),
-                    (len(idx), 1, 1))
+        e = np.column_stack(
+            [Tr[:, :3, 3] - Tf[:, :3, 3], wrap_angle(yaw_of(Tr[:, :3, :3]) - yaw_of(Tf[:, :3, :3]))]
+        )
+        S = np.tile(
+            np.diag([config.raw_sigma_xyz_m**2] * 3 + [config.raw_sigma_yaw_rad**2]), (len(idx), 1, 1)
+        )
         if Pf is not None:
             # fused body-frame covariance -> world position + yaw (first order; yaw ~ rz of a
             # near-level body)
@@ -157,9 +171,16 @@ def fix_nis(fused: Trajectory, raw: Trajectory, config: HealthConfig | None = No
     return idx, nis, dim
 
 
-def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
-           inflated_fraction: float = 0.0, iteration_limit_hits: int = 0, resets: int = 0,
-           config: HealthConfig | None = None) -> Health:
+def assess(
+    fused: Trajectory,
+    raw: Trajectory,
+    *,
+    gated_fraction: float = 0.0,
+    inflated_fraction: float = 0.0,
+    iteration_limit_hits: int = 0,
+    resets: int = 0,
+    config: HealthConfig | None = None,
+) -> Health:
     """Health of `fused` judged against the raw fixes `raw` it was computed from (module
     docstring).  gated_fraction: share of raw fixes the back end gated / rejected / removed;
     inflated_fraction: share at which it inflated its own covariance (EKF); iteration_limit_hits:
@@ -168,13 +189,24 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
     if len(raw) == 0:
         raise EstimationError("health: no raw fix to judge the fused estimate against")
     if len(fused) == 0:
-        return Health(Status.DIVERGED, ["no fused estimate at all"], coverage=0.0,
-                      gated_fraction=gated_fraction, iteration_limit_hits=iteration_limit_hits,
-                      resets=resets)
+        return Health(
+            Status.DIVERGED,
+            ["no fused estimate at all"],
+            coverage=0.0,
+            gated_fraction=gated_fraction,
+            iteration_limit_hits=iteration_limit_hits,
+            resets=resets,
+        )
     idx, nis, dim = fix_nis(fused, raw, config)
-    h = Health(Status.OK, n_fixes=len(idx), coverage=len(idx) / len(raw),
-               gated_fraction=float(gated_fraction), inflated_fraction=float(inflated_fraction),
-               iteration_limit_hits=int(iteration_limit_hits), resets=int(resets))
+    h = Health(
+        Status.OK,
+        n_fixes=len(idx),
+        coverage=len(idx) / len(raw),
+        gated_fraction=float(gated_fraction),
+        inflated_fraction=float(inflated_fraction),
+        iteration_limit_hits=int(iteration_limit_hits),
+        resets=int(resets),
+    )
     bound_fix = chi2.ppf(config.fix_quantile, dim)
     bad = nis > bound_fix
     h.inconsistent_share = float(bad.mean()) if len(bad) else 0.0
@@ -207,31 +239,42 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
     h.window_nis = np.array(means)
     h.lost_share = lost_fixes / max(len(idx), 1)
     if fused.covariances is not None:
-        sig = np.sqrt(np.maximum(np.diagonal(np.asarray(fused.covariances)[:, 3:, 3:],
-                                             axis1=1, axis2=2), 0.0))
+        sig = np.sqrt(
+            np.maximum(np.diagonal(np.asarray(fused.covariances)[:, 3:, 3:], axis1=1, axis2=2), 0.0)
+        )
         h.max_sigma_m = float(sig.max())
 
     diverged, degraded = [], []
     if h.lost_share >= config.diverged_share and h.lost_run >= config.diverged_run:
-        diverged.append(f"lost the raw fixes in {100 * h.lost_share:.0f} % of them "
-                        f"(windowed innovation beyond chi-square {config.fix_quantile}, "
-                        f"{h.lost_run} windows in a row)")
+        diverged.append(
+            f"lost the raw fixes in {100 * h.lost_share:.0f} % of them "
+            f"(windowed innovation beyond chi-square {config.fix_quantile}, "
+            f"{h.lost_run} windows in a row)"
+        )
     elif h.lost_share > 0:
-        degraded.append(f"lost the raw fixes in {100 * h.lost_share:.1f} % of them, for at most "
-                        f"{h.lost_run * config.window_s:.0f} s (wrong fixes, or a transient)")
+        degraded.append(
+            f"lost the raw fixes in {100 * h.lost_share:.1f} % of them, for at most "
+            f"{h.lost_run * config.window_s:.0f} s (wrong fixes, or a transient)"
+        )
     if h.inconsistent_share >= config.inconsistent_degraded:
-        degraded.append(f"{100 * h.inconsistent_share:.0f} % of the fixes disagree with the estimate "
-                        f"(beyond chi-square {config.fix_quantile})")
+        degraded.append(
+            f"{100 * h.inconsistent_share:.0f} % of the fixes disagree with the estimate "
+            f"(beyond chi-square {config.fix_quantile})"
+        )
     if h.windows and h.overconfident_windows / h.windows >= config.overconfident_share:
-        degraded.append(f"overconfident: windowed NIS beyond its chi-square bound in "
-                        f"{h.overconfident_windows} of {h.windows} windows")
+        degraded.append(
+            f"overconfident: windowed NIS beyond its chi-square bound in "
+            f"{h.overconfident_windows} of {h.windows} windows"
+        )
     if h.gated_fraction >= config.gated_diverged:
         diverged.append(f"{100 * h.gated_fraction:.0f} % of the fixes gated or rejected")
     elif h.gated_fraction >= config.gated_degraded:
         degraded.append(f"{100 * h.gated_fraction:.0f} % of the fixes gated or rejected")
     if h.inflated_fraction >= config.inflated_degraded:
-        degraded.append(f"covariance inflated at {100 * h.inflated_fraction:.0f} % of the fixes "
-                        "(the motion model disagrees with the fixes: faulty IMU?)")
+        degraded.append(
+            f"covariance inflated at {100 * h.inflated_fraction:.0f} % of the fixes "
+            "(the motion model disagrees with the fixes: faulty IMU?)"
+        )
     if h.iteration_limit_hits:
         degraded.append(f"iteration limit hit {h.iteration_limit_hits} time(s)")
     if h.resets:
@@ -248,8 +291,9 @@ def assess(fused: Trajectory, raw: Trajectory, *, gated_fraction: float = 0.0,
     return h
 
 
-def assess_result(result, raw: Trajectory, *, max_iterations: int | None = None,
-                  config: HealthConfig | None = None) -> Health:
+def assess_result(
+    result, raw: Trajectory, *, max_iterations: int | None = None, config: HealthConfig | None = None
+) -> Health:
     """`assess` of a back end's FusionResult, its inputs read from `result.stats`: gated fixes
     (gated_updates / gated_pose_factors), inflated updates, resets, and an iteration-limit hit
     when stats['iterations'] reached `max_iterations` (FusionConfig.lm_max_iterations) or
@@ -261,13 +305,19 @@ def assess_result(result, raw: Trajectory, *, max_iterations: int | None = None,
     if max_iterations is not None and "iterations" in st:
         hits += int(st["iterations"] >= max_iterations)
     resets = int(st.get("resets", 0))
-    solve = getattr(result, "health", None)        # the smoothers' SolveHealth
+    solve = getattr(result, "health", None)  # the smoothers' SolveHealth
     if solve is not None:
         hits += int(solve.iteration_limit_hits)
         resets += int(solve.resets)
-    health = assess(result.trajectory, raw, gated_fraction=gated / n,
-                    inflated_fraction=st.get("inflated_updates", 0) / n,
-                    iteration_limit_hits=hits, resets=resets, config=config)
+    health = assess(
+        result.trajectory,
+        raw,
+        gated_fraction=gated / n,
+        inflated_fraction=st.get("inflated_updates", 0) / n,
+        iteration_limit_hits=hits,
+        resets=resets,
+        config=config,
+    )
     mode = str(getattr(solve, "mode", "fused"))
     if mode != "fused":
         # dead-reckoned from at most a few fixes, or fused without the IMU: usable, not ok

@@ -20,6 +20,7 @@ Pose covariances (exact, same numbers as gtsam.Marginals on the same linearisati
 gtsam.Marginals computes each of the N pose marginals separately from the Bayes tree
 (~0.1-0.2 ms each here); the recursion above costs a few numpy calls per frame.
 """
+
 from __future__ import annotations
 
 import gtsam
@@ -32,9 +33,14 @@ _X, _V, _B, _L = ord("x"), ord("v"), ord("b"), ord("l")
 __all__ = ["chain_marginals"]
 
 
-def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: bool, n_loads: int,
-                    work_mb: float = 64.0, group: int = 1
-                    ) -> tuple[np.ndarray, np.ndarray] | None:
+def chain_marginals(
+    lin: gtsam.GaussianFactorGraph,
+    n_frames: int,
+    has_bias: bool,
+    n_loads: int,
+    work_mb: float = 64.0,
+    group: int = 1,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Marginal covariances of X(0..n_frames-1) ((N, 6, 6), Pose3 order, body frame) and of
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
     unconstrained Gaussian factors on X/V/B of one or two consecutive frames and at most one L.
@@ -66,11 +72,11 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
         unique = len(np.unique(base)) == len(base)
         for ca, ra, oa, da in cols:
             for cb, rb, ob, db in cols:
-                blk = H[:, oa:oa + da, ob:ob + db]
+                blk = H[:, oa : oa + da, ob : ob + db]
                 if ca == _L and cb == _L:
                     np.add.at(Dl, lid, blk)
                 elif ca == _L or (cb != _L and ra > rb):
-                    continue                      # the transposed pair adds it
+                    continue  # the transposed pair adds it
                 elif cb == _L:
                     r = (base + ra)[:, None, None] * s + slot[ca][0] + np.arange(da)[None, :, None]
                     cc = 3 * lid[:, None, None] + np.arange(3)[None, None, :]
@@ -82,10 +88,17 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
                     sa, sb = slot[ca][0], slot[cb][0]
                     target, k = (D, base + ra) if ra == rb else (E, base)
                     if unique:
-                        target[k, sa:sa + da, sb:sb + db] += blk
+                        target[k, sa : sa + da, sb : sb + db] += blk
                     else:
-                        np.add.at(target, (k[:, None, None], np.arange(sa, sa + da)[None, :, None],
-                                           np.arange(sb, sb + db)[None, None, :]), blk)
+                        np.add.at(
+                            target,
+                            (
+                                k[:, None, None],
+                                np.arange(sa, sa + da)[None, :, None],
+                                np.arange(sb, sb + db)[None, None, :],
+                            ),
+                            blk,
+                        )
 
     keys_of, jac_of = [], []
     for i in range(lin.size()):
@@ -95,7 +108,7 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
         if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
             return None
         keys_of.append(f.keys())
-        jac_of.append(f.jacobian()[0])           # whitened (robust weights included)
+        jac_of.append(f.jacobian()[0])  # whitened (robust weights included)
     if not keys_of:
         return None
     # key signatures, vectorised: (chr, frame offset from the factor's first frame) per key
@@ -127,12 +140,12 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     sigs, group_of = np.unique(code, axis=0, return_inverse=True)
     order = np.argsort(group_of.ravel(), kind="stable")
     bounds = np.searchsorted(group_of.ravel()[order], np.arange(len(sigs) + 1))
-    batch = 2048                                 # factors per Hessian batch (bounds memory)
+    batch = 2048  # factors per Hessian batch (bounds memory)
     for gi, row in enumerate(sigs):
         sig = tuple((int(c) // 2, int(c) % 2) for c in row[:8] if c >= 0)
-        members = order[bounds[gi]:bounds[gi + 1]]
+        members = order[bounds[gi] : bounds[gi + 1]]
         for b0 in range(0, len(members), batch):
-            part = members[b0:b0 + batch]
+            part = members[b0 : b0 + batch]
             flush(sig, [(int(base[i]), int(lidx[i]), jac_of[i]) for i in part])
     del keys_of, jac_of
     # ---- group `group` consecutive frames per block (fewer, larger numpy steps; the matrix
@@ -144,21 +157,21 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     Dp[:n] = D
     Dp[n:] = np.eye(s)
     Ep = np.zeros((ng * g, s, s))
-    Ep[:n - 1] = E
-    del D, E
+    Ep[: n - 1] = E
+    D = E = None  # release the blocks (flush, above, is done with them)
     Dg = np.zeros((ng, S, S))
     for i in range(g):
-        Dg[:, i * s:(i + 1) * s, i * s:(i + 1) * s] = Dp[i::g]
+        Dg[:, i * s : (i + 1) * s, i * s : (i + 1) * s] = Dp[i::g]
         if i < g - 1:
-            Dg[:, i * s:(i + 1) * s, (i + 1) * s:(i + 2) * s] = Ep[i::g]
-            Dg[:, (i + 1) * s:(i + 2) * s, i * s:(i + 1) * s] = Ep[i::g].transpose(0, 2, 1)
+            Dg[:, i * s : (i + 1) * s, (i + 1) * s : (i + 2) * s] = Ep[i::g]
+            Dg[:, (i + 1) * s : (i + 2) * s, i * s : (i + 1) * s] = Ep[i::g].transpose(0, 2, 1)
     Eg = np.zeros((max(ng - 1, 0), S, S))
-    Eg[:, (g - 1) * s:, :s] = Ep[g - 1::g][:ng - 1]
+    Eg[:, (g - 1) * s :, :s] = Ep[g - 1 :: g][: ng - 1]
     del Dp, Ep
-    xrows = (np.arange(g)[:, None] * s + np.arange(6)[None, :]).ravel()    # pose rows in a block
+    xrows = (np.arange(g)[:, None] * s + np.arange(6)[None, :]).ravel()  # pose rows in a block
     # ---- block LDL^T of A, forward
     Pinv = np.empty((ng, S, S))
-    G = np.empty((ng, S, S))                     # G[b] = P_{b-1}^-1 E_{b-1}, b >= 1
+    G = np.empty((ng, S, S))  # G[b] = P_{b-1}^-1 E_{b-1}, b >= 1
     inv = np.linalg.inv
     Pinv[0] = inv(Dg[0])
     for b in range(1, ng):
@@ -173,7 +186,7 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
             Gb = G[b + 1]
             Sk = Pinv[b] + Gb @ Sk @ Gb.T
         for i in range(g):
-            cov[b * g + i] = Sk[i * s:i * s + 6, i * s:i * s + 6]
+            cov[b * g + i] = Sk[i * s : i * s + 6, i * s : i * s + 6]
     cov = cov[:n].copy()
     if m == 0:
         return _sym(cov), np.zeros((0, 3, 3))
@@ -191,13 +204,16 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     pblk, pcol = pair // m, pair % m
     cut = np.flatnonzero(np.diff(pblk)) + 1
     # (no entries at all: every load factor was removed and weak priors hold the loads)
-    c_blocks = {int(pblk[a]): (pcol[a:e], dense[a:e].T.copy())
-                for a, e in zip(np.r_[0, cut], np.r_[cut, len(pair)])} if len(pair) else {}
+    c_blocks = (
+        {int(pblk[a]): (pcol[a:e], dense[a:e].T.copy()) for a, e in zip(np.r_[0, cut], np.r_[cut, len(pair)])}
+        if len(pair)
+        else {}
+    )
     del rows, cols, vals, blk, loc, pair, pair_of, dense
     K = max(1, int(np.ceil(np.sqrt(ng))))
     ck = np.empty((-(-ng // K), S, m))
     Y = np.zeros((S, m))
-    for b in range(ng):                                  # forward: Y_b = C_b - G_b^T Y_{b-1}
+    for b in range(ng):  # forward: Y_b = C_b - G_b^T Y_{b-1}
         if b > 0:
             Y = -(G[b].T @ Y)
         if b in c_blocks:
@@ -207,8 +223,7 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
             ck[b // K] = Y
     # pose rows of W; float32 when float64 would pass work_mb * 4 (relative error ~1e-7 on the
     # load term of the pose covariance, far below anything it is used for)
-    WX = np.empty((ng, 6 * g, m),
-                  np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2 ** 20 else np.float32)
+    WX = np.empty((ng, 6 * g, m), np.float64 if n * 6 * m * 8 <= work_mb * 4 * 2**20 else np.float32)
     CtW = np.zeros((m, m))
     seg = np.empty((K, S, m))
     W_next = None
@@ -222,7 +237,7 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
                 cb, db = c_blocks[b]
                 Y[:, cb] += db
             seg[b - a] = Y
-        for b in range(e - 1, a - 1, -1):            # backward: W_b = P_b^-1 Y_b - G_{b+1} W_{b+1}
+        for b in range(e - 1, a - 1, -1):  # backward: W_b = P_b^-1 Y_b - G_{b+1} W_{b+1}
             W = Pinv[b] @ seg[b - a]
             if W_next is not None:
                 W -= G[b + 1] @ W_next
@@ -234,12 +249,12 @@ def chain_marginals(lin: gtsam.GaussianFactorGraph, n_frames: int, has_bias: boo
     WX = WX.reshape(ng * g, 6, m)[:n]
     Dl_full = np.zeros((m, m))
     for j in range(n_loads):
-        Dl_full[3 * j:3 * j + 3, 3 * j:3 * j + 3] = Dl[j]
+        Dl_full[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = Dl[j]
     Sc_inv = _spd_inv(Dl_full - 0.5 * (CtW + CtW.T))
-    for a in range(0, n, 4096):         # in frame blocks: WX @ Sc^-1 would be another WX
-        w = WX[a:a + 4096].astype(np.float64)
-        cov[a:a + 4096] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
-    lcov = np.stack([Sc_inv[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(n_loads)])
+    for a in range(0, n, 4096):  # in frame blocks: WX @ Sc^-1 would be another WX
+        w = WX[a : a + 4096].astype(np.float64)
+        cov[a : a + 4096] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
+    lcov = np.stack([Sc_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in range(n_loads)])
     return _sym(cov), _sym(lcov)
 
 

@@ -1,7 +1,7 @@
 """GTSAM fusion of per-frame QR poses with IMU / velocity and load observations.
 
 One state per floor-camera frame: X(k) Pose3 T_world_body, V(k) world velocity, B(k) IMU bias
-(when there is an IMU).  Factors (see fusion.estimate.graph):
+(when there is an IMU).  Factors (see fusion.estimate.factors):
 
 - CombinedImuFactor between consecutive frames whose interval the IMU covers (preintegration,
   Forster et al. 2017, GTSAM's PreintegratedCombinedMeasurements; the IMU signal at the
@@ -20,6 +20,7 @@ One state per floor-camera frame: X(k) Pose3 T_world_body, V(k) world velocity, 
 `smooth` = batch Levenberg-Marquardt over the whole flight + marginal covariances;
 `smooth_incremental` = iSAM2 (QR factorization), the estimate as known at each frame (causal).
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -34,7 +35,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
-from fusion.estimate import graph as G
+from fusion.estimate import factors
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
@@ -52,7 +53,7 @@ from fusion.estimate.common import (
     prepare_inputs,
     velocity_at_frames,
 )
-from fusion.estimate.graph import B, L, V, X
+from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
 from fusion.geometry import make_T, rot_z, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
@@ -99,12 +100,12 @@ def imu_coverage(frame_t: np.ndarray, imu: ImuData, max_gap_s: float) -> np.ndar
     end_last = t[-1] + min(nominal, gap)
     a, b = frame_t[:-1], frame_t[1:]
     ok = (a >= t[0]) & (b <= end_last)
-    hole = np.flatnonzero(d > gap)                      # hole (t[i] + nominal, t[i+1])
+    hole = np.flatnonzero(d > gap)  # hole (t[i] + nominal, t[i+1])
     if hole.size:
         h0 = t[hole] + min(nominal, gap)
         h1 = t[hole + 1]
         # interval overlaps a hole if a < h1 and b > h0
-        j = np.searchsorted(h1, a, side="right")        # first hole ending after a
+        j = np.searchsorted(h1, a, side="right")  # first hole ending after a
         jj = np.clip(j, 0, len(h1) - 1)
         overlaps = (j < len(h1)) & (b > h0[jj])
         ok &= ~overlaps
@@ -140,8 +141,9 @@ def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
     return k_of, (e - s) * 1e-9, gyr, acc
 
 
-def preintegrate(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray,
-                 params: gtsam.PreintegrationCombinedParams) -> dict[int, gtsam.PreintegratedCombinedMeasurements]:
+def preintegrate(
+    frame_t: np.ndarray, imu: ImuData, covered: np.ndarray, params: gtsam.PreintegrationCombinedParams
+) -> dict[int, gtsam.PreintegratedCombinedMeasurements]:
     """Preintegrated measurements for each covered interval k (between frames k and k+1), with
     zero bias as the linearisation point (sub-intervals from imu_subintervals)."""
     k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
@@ -184,32 +186,35 @@ def gyro_fill_rotations(T_init: np.ndarray, known: np.ndarray, pims: dict) -> in
 
 class FactorKind(Choice):
     """Robust factors, by what they measure (gated and counted per kind)."""
-    POSE = "pose"                # per-frame QR pose (6-dof, position + yaw, or level pose)
-    LOAD = "load"                # load-code centre in the front camera
-    CORNERS = "corners"          # floor-code corners of one frame (tight coupling)
+
+    POSE = "pose"  # per-frame QR pose (6-dof, position + yaw, or level pose)
+    LOAD = "load"  # load-code centre in the front camera
+    CORNERS = "corners"  # floor-code corners of one frame (tight coupling)
 
 
 @dataclass
 class RobustFactor:
     kind: FactorKind
-    threshold: float             # kernel threshold, Mahalanobis units
+    threshold: float  # kernel threshold, Mahalanobis units
 
 
 @dataclass
 class LoadFactorArgs:
     """What a load factor was built from (the incremental smoother rebuilds it on a new key)."""
-    k: int                       # frame
-    j: int                       # load index
-    p_cam: np.ndarray            # (3,) m, camera frame
-    cov_cam: np.ndarray          # (3, 3) m^2
+
+    k: int  # frame
+    j: int  # load index
+    p_cam: np.ndarray  # (3,) m, camera frame
+    cov_cam: np.ndarray  # (3, 3) m^2
 
 
 @dataclass
 class LoadTrack:
     """One load id's sightings in the flight."""
+
     load_id: str
-    init_world: np.ndarray                       # (3,) initial position (median of sightings)
-    sightings: list[tuple[int, np.ndarray]]      # (frame, p_cam (3,)) in time order
+    init_world: np.ndarray  # (3,) initial position (median of sightings)
+    sightings: list[tuple[int, np.ndarray]]  # (frame, p_cam (3,)) in time order
 
     @property
     def n_obs(self) -> int:
@@ -219,6 +224,7 @@ class LoadTrack:
 @dataclass
 class GraphCounts:
     """What build_problem put into the graph (FusionResult.stats, JSON-ready via as_dict)."""
+
     raw_pose_input: RawPoseInput = RawPoseInput.POSE6
     tight: TightCoupling = TightCoupling.OFF
     imu_intervals: int = 0
@@ -242,21 +248,22 @@ class GraphCounts:
 class Problem:
     """The factor graph of one flight, with each factor tagged by the frame at which it becomes
     available (the newest frame among its keys), and the initial values."""
-    frame_t: np.ndarray                                   # (N,) int64 ns
+
+    frame_t: np.ndarray  # (N,) int64 ns
     front_camera: CameraModel | None
     raw_input: RawPoseInput
     has_imu: bool
-    k_first: int                                          # first frame with an inlier raw pose
-    fix_frames: np.ndarray                                # frames with a raw pose (sorted, unique)
-    fix_T: dict[int, np.ndarray]                          # frame -> raw T_world_body (4, 4)
+    k_first: int  # first frame with an inlier raw pose
+    fix_frames: np.ndarray  # frames with a raw pose (sorted, unique)
+    fix_T: dict[int, np.ndarray]  # frame -> raw T_world_body (4, 4)
     pose_threshold: float
     load_threshold: float
-    T_init: np.ndarray                                    # (N, 4, 4)
-    v_init: np.ndarray                                    # (N, 3)
-    factors: list = field(default_factory=list)           # gtsam factors
+    T_init: np.ndarray  # (N, 4, 4)
+    v_init: np.ndarray  # (N, 3)
+    factors: list = field(default_factory=list)  # gtsam factors
     factor_frame: list[int] = field(default_factory=list)  # frame index per factor
-    robust: dict[int, RobustFactor] = field(default_factory=dict)   # by factor index
-    load_args: dict[int, LoadFactorArgs] = field(default_factory=dict)   # by factor index
+    robust: dict[int, RobustFactor] = field(default_factory=dict)  # by factor index
+    load_args: dict[int, LoadFactorArgs] = field(default_factory=dict)  # by factor index
     loads: list[LoadTrack] = field(default_factory=list)  # by load index j
     pims: dict[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
     initial: gtsam.Values = field(default_factory=gtsam.Values)
@@ -266,8 +273,7 @@ class Problem:
     def load_ids(self) -> list[str]:
         return [t.load_id for t in self.loads]
 
-    def add(self, factor, k: int, kind: FactorKind | None = None,
-            threshold: float | None = None) -> None:
+    def add(self, factor, k: int, kind: FactorKind | None = None, threshold: float | None = None) -> None:
         if kind is not None:
             if threshold is None:
                 threshold = self.load_threshold if kind is FactorKind.LOAD else self.pose_threshold
@@ -283,9 +289,9 @@ class Problem:
         return g
 
 
-def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None,
-                      floor_camera: CameraModel | None, config: FusionConfig
-                      ) -> tuple[dict, TightCoupling]:
+def tight_corner_data(
+    frame_t: np.ndarray, floor_frames: dict | None, floor_camera: CameraModel | None, config: FusionConfig
+) -> tuple[dict, TightCoupling]:
     """({frame index: (corners_world (4c, 3), corners_px (4c, 2), whitening (c, 8, 8))},
     TightCoupling) for tight coupling; {} when it is off or impossible."""
     if not config.tight:
@@ -296,13 +302,13 @@ def tight_corner_data(frame_t: np.ndarray, floor_frames: dict | None,
     idx = match_to_frames(frame_t, t, config.max_sync_s)
     out = {}
     for ts, k in zip(t.tolist(), idx.tolist()):
-        sightings = [s for s in floor_frames[ts]
-                     if np.all(np.isfinite(np.asarray(s.detection.corners_px, float)))]
+        sightings = [
+            s for s in floor_frames[ts] if np.all(np.isfinite(np.asarray(s.detection.corners_px, float)))
+        ]
         if k < 0 or not sightings:
             continue
         P = np.concatenate([np.asarray(s.corners_world, float).reshape(4, 3) for s in sightings])
-        uv = np.concatenate([np.asarray(s.detection.corners_px, float).reshape(4, 2)
-                             for s in sightings])
+        uv = np.concatenate([np.asarray(s.detection.corners_px, float).reshape(4, 2) for s in sightings])
         W = corner_whitening([s.detection for s in sightings], config.corner_sigma_px)
         out[k] = (P, uv, W)
     return out, TightCoupling.ON
@@ -318,8 +324,9 @@ def raw_pose_input(rawp: RawPoses, floor_camera: CameraModel | None) -> RawPoseI
     return RawPoseInput.POSE6
 
 
-def dead_reckon(frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int,
-                pims: dict, v_anchor: np.ndarray) -> None:
+def dead_reckon(
+    frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int, pims: dict, v_anchor: np.ndarray
+) -> None:
     """Initial values by IMU dead reckoning from frame `anchor` (in place), forward and
     backward through the preintegrated intervals (zero bias); intervals without IMU hold the
     pose and velocity.  Forward (Forster et al. 2017, eq. 33): R1 = R0 dR, v1 = v0 + g dt +
@@ -328,8 +335,7 @@ def dead_reckon(frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int,
     for k in range(anchor, len(frame_t) - 1):
         T[k + 1], v[k + 1] = T[k], v[k]
         if k in pims:
-            nav = pims[k].predict(gtsam.NavState(gtsam.Pose3(T[k]), v[k]),
-                                  gtsam.imuBias.ConstantBias())
+            nav = pims[k].predict(gtsam.NavState(gtsam.Pose3(T[k]), v[k]), gtsam.imuBias.ConstantBias())
             T[k + 1], v[k + 1] = nav.pose().matrix(), nav.velocity()
     for k in range(anchor - 1, -1, -1):
         T[k], v[k] = T[k + 1], v[k + 1]
@@ -338,24 +344,30 @@ def dead_reckon(frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int,
             dt = pim.deltaTij()
             R0 = T[k + 1, :3, :3] @ pim.deltaRij().matrix().T
             v0 = v[k + 1] - GRAVITY_W * dt - R0 @ pim.deltaVij()
-            p0 = T[k + 1, :3, 3] - v0 * dt - 0.5 * GRAVITY_W * dt ** 2 - R0 @ pim.deltaPij()
+            p0 = T[k + 1, :3, 3] - v0 * dt - 0.5 * GRAVITY_W * dt**2 - R0 @ pim.deltaPij()
             T[k] = np.eye(4)
             T[k, :3, :3], T[k, :3, 3], v[k] = R0, p0, v0
 
 
-def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                  load_obs: list[LoadObservation] | None, front_camera: CameraModel | None,
-                  velocity: VelocityData | None = None,
-                  config: FusionConfig | None = None, floor_frames: dict | None = None,
-                  floor_camera: CameraModel | None = None,
-                  require_motion: bool = True) -> Problem:
+def build_problem(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    load_obs: list[LoadObservation] | None,
+    front_camera: CameraModel | None,
+    velocity: VelocityData | None = None,
+    config: FusionConfig | None = None,
+    floor_frames: dict | None = None,
+    floor_camera: CameraModel | None = None,
+    require_motion: bool = True,
+) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
     front_camera: the load camera (CameraModel, mount-aware), None without one (load
     observations are then skipped and counted).  floor_camera: the floor camera; with a
     gimbaled one the PnP poses are level-frame poses (RawPoseInput.LEVEL_POSE), and with
     `config.tight` and `floor_frames` {frame timestamp_ns: [FloorSighting]} the known world
-    corners are reprojection factors on X(k) (graph.floor_corner_factor) instead of the raw
+    corners are reprojection factors on X(k) (factors.floor_corner_factor) instead of the raw
     pose factor at frames with floor sightings; the raw poses still give the initial values
     and the factors elsewhere.
 
@@ -363,30 +375,36 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
     poses at no frame time, neither IMU nor velocity, a front camera that is not a CameraModel."""
     config = config or FusionConfig()
-    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config,
-                         require_motion)
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config, require_motion)
     frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     n = len(frame_t)
     use = inlier_raw_mask(rawp, config)
     raw_input = raw_pose_input(rawp, floor_camera)
     T_init = initial_poses(frame_t, rawp, config, use)
-    pb = Problem(frame_t=frame_t, front_camera=inp.front_camera, raw_input=raw_input,
-                 has_imu=imu is not None, k_first=int(rawp.frame_idx[use].min()),
-                 fix_frames=np.unique(rawp.frame_idx),
-                 fix_T={int(k): T for k, T in zip(rawp.frame_idx.tolist(), rawp.T_world_body)},
-                 pose_threshold=config.threshold(6 if raw_input is RawPoseInput.POSE6 else 4),
-                 load_threshold=config.threshold(3), T_init=T_init,
-                 v_init=initial_velocities(frame_t, T_init))
+    pb = Problem(
+        frame_t=frame_t,
+        front_camera=inp.front_camera,
+        raw_input=raw_input,
+        has_imu=imu is not None,
+        k_first=int(rawp.frame_idx[use].min()),
+        fix_frames=np.unique(rawp.frame_idx),
+        fix_T={int(k): T for k, T in zip(rawp.frame_idx.tolist(), rawp.T_world_body)},
+        pose_threshold=config.threshold(6 if raw_input is RawPoseInput.POSE6 else 4),
+        load_threshold=config.threshold(3),
+        T_init=T_init,
+        v_init=initial_velocities(frame_t, T_init),
+    )
     pb.counts.raw_pose_input = raw_input
 
     # ---- motion model between consecutive frames
     covered = np.zeros(max(n - 1, 0), bool)
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
-        params = G.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
+        params = factors.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
         pb.pims = preintegrate(frame_t, imu, covered, params)
-    v0 = first_velocity(frame_t, rawp, use, pb.k_first, config.first_velocity_fixes,
-                        config.first_velocity_window_s)
+    v0 = first_velocity(
+        frame_t, rawp, use, pb.k_first, config.first_velocity_fixes, config.first_velocity_window_s
+    )
     inlier_frames = np.unique(rawp.frame_idx[use])
     if len(inlier_frames) <= config.dead_reckoning_max_fixes:
         dead_reckon(frame_t, pb.T_init, pb.v_init, pb.k_first, pb.pims, v0)
@@ -394,15 +412,21 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         gyro_fill_rotations(pb.T_init, inlier_frames, pb.pims)
     for k in range(n - 1):
         if covered[k]:
-            pb.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1),
-                                           pb.pims[k]), k + 1)
+            pb.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pb.pims[k]), k + 1)
         else:
             dt = (frame_t[k + 1] - frame_t[k]) * 1e-9
-            for f in G.bridge_factors(k, k + 1, dt, config.bridge_accel_sigma_m_s2,
-                                      config.bridge_rate_sigma_rad_s, imu is not None,
-                                      imu.noise if imu is not None else None,
-                                      config.bridge_free_sigma_m, config.bridge_min_dt_s,
-                                      config.bridge_min_sigma):
+            for f in factors.bridge_factors(
+                k,
+                k + 1,
+                dt,
+                config.bridge_accel_sigma_m_s2,
+                config.bridge_rate_sigma_rad_s,
+                imu is not None,
+                imu.noise if imu is not None else None,
+                config.bridge_free_sigma_m,
+                config.bridge_min_dt_s,
+                config.bridge_min_sigma,
+            ):
                 pb.add(f, k + 1)
     # segments = maximal runs of IMU-covered intervals
     edges = np.diff(np.r_[0, covered.astype(int), 0])
@@ -416,47 +440,65 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     # ---- priors
     # the first velocity comes from a line through the first fixes; with fewer than two of them
     # it is unknown (zero, with the sigma of a drone's speed)
-    near = np.abs(frame_t[inlier_frames] - frame_t[pb.k_first]) <= \
-        config.first_velocity_window_s * 1e9
-    v_sigma = config.velocity_prior_sigma_m_s if near.sum() >= 2 else \
-        config.unknown_velocity_sigma_m_s
-    pb.add(gtsam.PriorFactorVector(V(pb.k_first), v0, gtsam.noiseModel.Isotropic.Sigma(
-        3, v_sigma)), pb.k_first)
+    near = np.abs(frame_t[inlier_frames] - frame_t[pb.k_first]) <= config.first_velocity_window_s * 1e9
+    v_sigma = config.velocity_prior_sigma_m_s if near.sum() >= 2 else config.unknown_velocity_sigma_m_s
+    pb.add(
+        gtsam.PriorFactorVector(V(pb.k_first), v0, gtsam.noiseModel.Isotropic.Sigma(3, v_sigma)), pb.k_first
+    )
     if imu is not None:
-        pb.add(gtsam.PriorFactorConstantBias(B(pb.k_first), gtsam.imuBias.ConstantBias(),
-                                             gtsam.noiseModel.Diagonal.Sigmas(np.r_[
-                                                 np.full(3, config.bias_prior_sigma_accel_m_s2),
-                                                 np.full(3, config.bias_prior_sigma_gyro_rad_s)])),
-               pb.k_first)
+        pb.add(
+            gtsam.PriorFactorConstantBias(
+                B(pb.k_first),
+                gtsam.imuBias.ConstantBias(),
+                gtsam.noiseModel.Diagonal.Sigmas(
+                    np.r_[
+                        np.full(3, config.bias_prior_sigma_accel_m_s2),
+                        np.full(3, config.bias_prior_sigma_gyro_rad_s),
+                    ]
+                ),
+            ),
+            pb.k_first,
+        )
 
     # ---- QR pose factors (or, tightly coupled, corner reprojection factors)
-    corner_frames, pb.counts.tight = tight_corner_data(frame_t, floor_frames, floor_camera,
-                                                       config)
+    corner_frames, pb.counts.tight = tight_corner_data(frame_t, floor_frames, floor_camera, config)
     kernel = config.robust_kernel
     for m, k in enumerate(rawp.frame_idx.tolist()):
         if k in corner_frames:
             continue
         T = rawp.T_world_body[m]
         if raw_input is RawPoseInput.POSE6:
-            f = G.pose_prior_factor(k, T, rawp.covariances[m], kernel, pb.pose_threshold)
+            f = factors.pose_prior_factor(k, T, rawp.covariances[m], kernel, pb.pose_threshold)
         elif raw_input is RawPoseInput.LEVEL_POSE:
-            f = G.level_pose_factor(k, T, rawp.covariances[m][2:, 2:], kernel, pb.pose_threshold)
+            f = factors.level_pose_factor(k, T, rawp.covariances[m][2:, 2:], kernel, pb.pose_threshold)
         else:
-            f = G.position_yaw_factor(k, T[:3, 3], float(yaw_of(T[:3, :3])),
-                                      config.paper_sigma_xyz_m, config.paper_sigma_yaw_rad,
-                                      kernel, pb.pose_threshold)
+            f = factors.position_yaw_factor(
+                k,
+                T[:3, 3],
+                float(yaw_of(T[:3, :3])),
+                config.paper_sigma_xyz_m,
+                config.paper_sigma_yaw_rad,
+                kernel,
+                pb.pose_threshold,
+            )
         pb.add(f, k, FactorKind.POSE)
         pb.counts.pose_factors += 1
     for k, (P, uv, W) in sorted(corner_frames.items()):
         thr = config.threshold(8 * len(W))
-        pb.add(G.floor_corner_factor(k, floor_camera, P, uv, W, kernel, thr,
-                                     config.corner_behind_residual), k, FactorKind.CORNERS, thr)
+        pb.add(
+            factors.floor_corner_factor(
+                k, floor_camera, P, uv, W, kernel, thr, config.corner_behind_residual
+            ),
+            k,
+            FactorKind.CORNERS,
+            thr,
+        )
     pb.counts.corner_factors = len(corner_frames)
 
     # ---- velocity factors
     vmask, v_body = velocity_at_frames(frame_t, velocity, config)
     for k in np.flatnonzero(vmask).tolist():
-        pb.add(G.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
+        pb.add(factors.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
     pb.counts.velocity_factors = int(vmask.sum())
 
     # ---- loads
@@ -471,13 +513,13 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         p_cam = np.array([np.asarray(o.p_cam, float) for _, o in obs])
         for (k, o), pc in zip(obs, p_cam):
             pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, np.asarray(o.cov_cam, float))
-            pb.add(G.load_factor(k, j, pc, o.cov_cam, cam, kernel, pb.load_threshold), k,
-                   FactorKind.LOAD)
+            pb.add(
+                factors.load_factor(k, j, pc, o.cov_cam, cam, kernel, pb.load_threshold), k, FactorKind.LOAD
+            )
         T_wc = cam.T_world_cam(pb.T_init[k_obs])
         pts = np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
         order = np.argsort(k_obs, kind="stable")
-        pb.loads.append(LoadTrack(lid, np.median(pts, axis=0),
-                                  [(int(k_obs[i]), p_cam[i]) for i in order]))
+        pb.loads.append(LoadTrack(lid, np.median(pts, axis=0), [(int(k_obs[i]), p_cam[i]) for i in order]))
     pb.counts.load_observations_skipped = skipped
     pb.counts.load_factors = sum(t.n_obs for t in pb.loads)
 
@@ -492,8 +534,7 @@ def build_problem(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     return pb
 
 
-def robust_distances(pb: Problem, values: gtsam.Values,
-                     skip: set[int] = frozenset()) -> dict[int, float]:
+def robust_distances(pb: Problem, values: gtsam.Values, skip: set[int] = frozenset()) -> dict[int, float]:
     """Mahalanobis distance (whitened residual norm before the kernel) of each robust factor."""
     return {i: mahalanobis(pb.factors[i], values) for i in pb.robust if i not in skip}
 
@@ -501,8 +542,11 @@ def robust_distances(pb: Problem, values: gtsam.Values,
 def mahalanobis(factor, values: gtsam.Values) -> float:
     e = factor.unwhitenedError(values)
     nm = factor.noiseModel()
-    return nm.noise().mahalanobisDistance(e) if isinstance(nm, gtsam.noiseModel.Robust) \
+    return (
+        nm.noise().mahalanobisDistance(e)
+        if isinstance(nm, gtsam.noiseModel.Robust)
         else nm.mahalanobisDistance(e)
+    )
 
 
 def count_rejections(pb: Problem, dist: dict[int, float]) -> dict[FactorKind, int]:
@@ -526,8 +570,10 @@ def fix_health(pb: Problem, config: FusionConfig, health: SolveHealth) -> None:
     if health.fixes <= config.dead_reckoning_max_fixes:
         health.mode = SolveMode.DEAD_RECKONED
         span = (pb.frame_t[-1] - pb.frame_t[0]) * 1e-9
-        health.note(f"dead-reckoned: {health.fixes} fix(es) in {span:.1f} s; the estimate is "
-                    "IMU / velocity integration from it, sigma grows with the distance in time")
+        health.note(
+            f"dead-reckoned: {health.fixes} fix(es) in {span:.1f} s; the estimate is "
+            "IMU / velocity integration from it, sigma grows with the distance in time"
+        )
 
 
 # =========================================================================== batch
@@ -535,9 +581,10 @@ def fix_health(pb: Problem, config: FusionConfig, health: SolveHealth) -> None:
 
 class LMStop(Choice):
     """Why levenberg_marquardt stopped."""
+
     CONVERGED = "converged"
     ITERATION_LIMIT = "iteration_limit"
-    STALLED = "stalled"          # no damping up to lambda_max lowered the error
+    STALLED = "stalled"  # no damping up to lambda_max lowered the error
 
 
 @dataclass
@@ -550,10 +597,14 @@ class LMResult:
     stop: LMStop
 
 
-def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                        config: FusionConfig | None = None,
-                        ordering: gtsam.Ordering | None = None,
-                        errors: list | None = None, qr: bool = False) -> LMResult:
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    config: FusionConfig | None = None,
+    ordering: gtsam.Ordering | None = None,
+    errors: list | None = None,
+    qr: bool = False,
+) -> LMResult:
     """Levenberg-Marquardt (Nocedal & Wright 2006, Sec. 10.3; GTSAM's defaults: lambda0 1e-5,
     factor 10, identity damping) driven from Python around GTSAM's linearize / multifrontal
     elimination, with one COLAMD ordering computed up front and reused.  Each iteration first
@@ -580,7 +631,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     err = graph.error(values)
     if errors is not None:
         errors.append(err)
-    lam = 0.0      # try the Gauss-Newton step first; damp only when it fails to descend
+    lam = 0.0  # try the Gauss-Newton step first; damp only when it fails to descend
     keys = [int(k) for k in values.keys()]
     it = 0
     stop = LMStop.ITERATION_LIMIT
@@ -594,8 +645,11 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             if lam > 0:
                 system = lin.clone()
                 _add_damping(system, keys, lam)
-            tree = system.eliminateMultifrontal(ordering, gtsam.EliminateQR) if qr else \
-                system.eliminateMultifrontal(ordering)
+            tree = (
+                system.eliminateMultifrontal(ordering, gtsam.EliminateQR)
+                if qr
+                else system.eliminateMultifrontal(ordering)
+            )
             delta = tree.optimize()
             trial = values.retract(delta)
             new_err = graph.error(trial)
@@ -614,7 +668,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             predicted = lin.error(gtsam.VectorValues.Zero(delta)) - lin.error(delta)
             if abs((err - new_err) - predicted) <= config.lm_relative_tol * max(new_err, 1e-300):
                 converged = True
-                lin = None              # the covariance pass linearises at the solution
+                lin = None  # the covariance pass linearises at the solution
         values, err = trial, new_err
         if errors is not None:
             errors.append(err)
@@ -629,8 +683,7 @@ def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
     s = math.sqrt(lam)
     for k in keys:
         d = _dim_of(k)
-        lin.push_back(gtsam.JacobianFactor(k, s * np.eye(d), np.zeros(d),
-                                           gtsam.noiseModel.Unit.Create(d)))
+        lin.push_back(gtsam.JacobianFactor(k, s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
 
 
 def _dim_of(key: int) -> int:
@@ -648,23 +701,36 @@ def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
         if c == ord("x"):
             out.append(gtsam.PriorFactorPose3(key, values.atPose3(key), pose_model))
         elif c == ord("v"):
-            out.append(gtsam.PriorFactorVector(key, values.atVector(key),
-                                               gtsam.noiseModel.Isotropic.Sigma(
-                                                   3, config.fallback_sigma_vel_m_s)))
+            out.append(
+                gtsam.PriorFactorVector(
+                    key,
+                    values.atVector(key),
+                    gtsam.noiseModel.Isotropic.Sigma(3, config.fallback_sigma_vel_m_s),
+                )
+            )
         elif c == ord("b"):
-            out.append(gtsam.PriorFactorConstantBias(key, values.atConstantBias(key),
-                                                     gtsam.noiseModel.Isotropic.Sigma(
-                                                         6, config.fallback_sigma_bias)))
+            out.append(
+                gtsam.PriorFactorConstantBias(
+                    key,
+                    values.atConstantBias(key),
+                    gtsam.noiseModel.Isotropic.Sigma(6, config.fallback_sigma_bias),
+                )
+            )
         elif c == ord("l"):
-            out.append(gtsam.PriorFactorPoint3(key, values.atPoint3(key),
-                                               gtsam.noiseModel.Isotropic.Sigma(3, pos)))
+            out.append(
+                gtsam.PriorFactorPoint3(key, values.atPoint3(key), gtsam.noiseModel.Isotropic.Sigma(3, pos))
+            )
     return out
 
 
-def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: FusionConfig,
-          health: SolveHealth, ordering: gtsam.Ordering | None = None,
-          errors: list | None = None) -> tuple[LMResult, gtsam.NonlinearFactorGraph,
-                                                 gtsam.Ordering]:
+def solve(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    config: FusionConfig,
+    health: SolveHealth,
+    ordering: gtsam.Ordering | None = None,
+    errors: list | None = None,
+) -> tuple[LMResult, gtsam.NonlinearFactorGraph, gtsam.Ordering]:
     """levenberg_marquardt with the failures recorded in `health`.  A singular linear system
     (IndeterminantLinearSystem, an ordering variable in no factor) is retried with QR
     elimination (nearly indeterminate for Cholesky only, e.g. seconds of IMU-only motion), then
@@ -683,11 +749,13 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: Fusio
         try:
             res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
         except (RuntimeError, ValueError) as e2:
-            log.warning("singular linear system (%s): retrying with weak priors on every state",
-                        _first_line(e2))
+            log.warning(
+                "singular linear system (%s): retrying with weak priors on every state", _first_line(e2)
+            )
             health.linear_fallbacks += 1
-            health.note(f"singular linear system ({_first_line(e2)}): solved again with weak "
-                        "priors on every state")
+            health.note(
+                f"singular linear system ({_first_line(e2)}): solved again with weak priors on every state"
+            )
             priors = weak_priors(values, config)
             health.weak_prior_states += len(priors)
             graph = gtsam.NonlinearFactorGraph(graph)
@@ -697,12 +765,15 @@ def solve(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, config: Fusio
             try:
                 res = levenberg_marquardt(graph, values, config, ordering, errors, qr=True)
             except (RuntimeError, ValueError) as e3:
-                raise EstimationError("the factor graph cannot be solved even with weak priors: "
-                                      f"{_first_line(e3)}") from None
+                raise EstimationError(
+                    f"the factor graph cannot be solved even with weak priors: {_first_line(e3)}"
+                ) from None
     if res.stop is LMStop.ITERATION_LIMIT:
         health.iteration_limit_hits += 1
-        health.note(f"Levenberg-Marquardt stopped at its iteration limit "
-                    f"({config.lm_max_iterations}) before converging")
+        health.note(
+            f"Levenberg-Marquardt stopped at its iteration limit "
+            f"({config.lm_max_iterations}) before converging"
+        )
     elif res.stop is LMStop.STALLED:
         health.lm_stalls += 1
         health.note("Levenberg-Marquardt stalled: no damping lowered the error")
@@ -717,8 +788,9 @@ def _first_line(e: Exception) -> str:
     return " ".join(lines[:2]) if lines[0].endswith("variable") else lines[0]
 
 
-def gate_outliers(pb: Problem, dist: dict[int, float], config: FusionConfig,
-                  health: SolveHealth) -> tuple[set[int], list, dict[FactorKind, int]]:
+def gate_outliers(
+    pb: Problem, dist: dict[int, float], config: FusionConfig, health: SolveHealth
+) -> tuple[set[int], list, dict[FactorKind, int]]:
     """Factors to remove after the robust solve (Mahalanobis distance beyond outlier_gate),
     weak priors that keep their variables constrained, and the counts per kind.
 
@@ -735,8 +807,10 @@ def gate_outliers(pb: Problem, dist: dict[int, float], config: FusionConfig,
     bad_fixes = [i for i in fixes if i in beyond]
     if fixes and len(bad_fixes) > config.max_gated_fraction * len(fixes):
         health.gate_skipped += len(bad_fixes)
-        health.note(f"{len(bad_fixes)} of {len(fixes)} fixes disagree with the motion model "
-                    "beyond the outlier gate: not removed (IMU units, scale or clock suspect)")
+        health.note(
+            f"{len(bad_fixes)} of {len(fixes)} fixes disagree with the motion model "
+            "beyond the outlier gate: not removed (IMU units, scale or clock suspect)"
+        )
         beyond -= set(bad_fixes)
     for i in beyond:
         gated[pb.robust[i].kind] += 1
@@ -749,8 +823,10 @@ def gate_outliers(pb: Problem, dist: dict[int, float], config: FusionConfig,
             health.loads_dropped.append(pb.loads[j].load_id)
             priors.append(j)
     if health.loads_dropped:
-        health.note(f"{len(health.loads_dropped)} load(s) with every sighting beyond the "
-                    f"outlier gate left out of the map: {', '.join(health.loads_dropped[:5])}")
+        health.note(
+            f"{len(health.loads_dropped)} load(s) with every sighting beyond the "
+            f"outlier gate left out of the map: {', '.join(health.loads_dropped[:5])}"
+        )
     return beyond, priors, gated
 
 
@@ -765,7 +841,7 @@ def release_heap() -> None:
 
 def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
     """(n, 4, 4) T_world_body of X(0..n-1) (the only Pose3 keys in the graph)."""
-    rows = gtsam.utilities.extractPose3(values)      # per pose: R row-major (9), t (3)
+    rows = gtsam.utilities.extractPose3(values)  # per pose: R row-major (9), t (3)
     if rows.shape[0] != n:
         raise EstimationError(f"expected {n} poses in the solution, found {rows.shape[0]}")
     T = np.tile(np.eye(4), (n, 1, 1))
@@ -774,11 +850,17 @@ def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
     return T
 
 
-def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-           load_obs: list[LoadObservation] | None, front_camera: CameraModel | None = None,
-           velocity: VelocityData | None = None,
-           config: FusionConfig | None = None, floor_frames: dict | None = None,
-           floor_camera: CameraModel | None = None) -> FusionResult:
+def smooth(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    load_obs: list[LoadObservation] | None,
+    front_camera: CameraModel | None = None,
+    velocity: VelocityData | None = None,
+    config: FusionConfig | None = None,
+    floor_frames: dict | None = None,
+    floor_camera: CameraModel | None = None,
+) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
     frame_times_ns (N,) int64: floor-camera frame times (one state each); imu: ImuData or None
@@ -798,22 +880,40 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     beyond the outlier gate (config.reject_disagreeing_imu), the flight is solved again
     without the IMU (random-walk model and velocity): health.mode IMU_REJECTED."""
     config = config or FusionConfig()
-    res = _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
-                       floor_frames, floor_camera)
+    res = _smooth_once(
+        frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera
+    )
     if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
         return res
     # most fixes disagree with the IMU: its units, the world's scale or a clock are wrong, and
     # the IMU's confident factors would drag the trajectory away from every fix
     log.warning("smoother: most fixes disagree with the IMU; solving again without it")
-    alt = _smooth_once(frame_times_ns, None, raw, load_obs, front_camera, velocity, config,
-                       floor_frames, floor_camera, require_motion=False)
+    alt = _smooth_once(
+        frame_times_ns,
+        None,
+        raw,
+        load_obs,
+        front_camera,
+        velocity,
+        config,
+        floor_frames,
+        floor_camera,
+        require_motion=False,
+    )
     h = alt.health
     h.mode = SolveMode.IMU_REJECTED
-    h.reasons = list(dict.fromkeys([
-        f"{res.health.gate_skipped} of {res.health.fixes} fixes disagreed with the IMU beyond "
-        "the outlier gate: solved again without the IMU (random-walk motion model"
-        + (", velocity" if velocity is not None else "") + "); check the IMU's units and "
-        "clock, and world.yaml's side_m / payload_unit_m"] + h.reasons))
+    h.reasons = list(
+        dict.fromkeys(
+            [
+                f"{res.health.gate_skipped} of {res.health.fixes} fixes disagreed with the IMU beyond "
+                "the outlier gate: solved again without the IMU (random-walk motion model"
+                + (", velocity" if velocity is not None else "")
+                + "); check the IMU's units and "
+                "clock, and world.yaml's side_m / payload_unit_m"
+            ]
+            + h.reasons
+        )
+    )
     h.gate_skipped += res.health.gate_skipped
     h.iteration_limit_hits += res.health.iteration_limit_hits
     h.lm_stalls += res.health.lm_stalls
@@ -823,12 +923,32 @@ def smooth(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     return alt
 
 
-def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
-                 floor_frames, floor_camera, require_motion: bool = True) -> FusionResult:
+def _smooth_once(
+    frame_times_ns,
+    imu,
+    raw,
+    load_obs,
+    front_camera,
+    velocity,
+    config,
+    floor_frames,
+    floor_camera,
+    require_motion: bool = True,
+) -> FusionResult:
     """One batch solve (smooth without the IMU-rejection retry)."""
     t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
-                       floor_frames, floor_camera, require_motion)
+    pb = build_problem(
+        frame_times_ns,
+        imu,
+        raw,
+        load_obs,
+        front_camera,
+        velocity,
+        config,
+        floor_frames,
+        floor_camera,
+        require_motion,
+    )
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
@@ -843,9 +963,13 @@ def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, con
     if drop:
         graph = pb.graph(drop)
         for j in dropped_loads:
-            graph.add(gtsam.PriorFactorPoint3(L(j), values.atPoint3(L(j)),
-                                              gtsam.noiseModel.Isotropic.Sigma(
-                                                  3, config.fallback_sigma_pos_m)))
+            graph.add(
+                gtsam.PriorFactorPoint3(
+                    L(j),
+                    values.atPoint3(L(j)),
+                    gtsam.noiseModel.Isotropic.Sigma(3, config.fallback_sigma_pos_m),
+                )
+            )
         res, graph, ordering = solve(graph, values, config, health, ordering, errors)
         values, lin = res.values, res.linear
         iterations += res.iterations
@@ -857,7 +981,7 @@ def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, con
     lcov = {}
     covariance_method = "none"
     if config.compute_covariances:
-        if lin is None:         # the last step was damped: linearise at the solution
+        if lin is None:  # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
         try:
             bulk = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
@@ -866,7 +990,7 @@ def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, con
         if bulk is not None:
             cov, lc = bulk
             lcov = dict(enumerate(lc))
-        else:                   # not the chain structure: gtsam's Bayes tree, key by key
+        else:  # not the chain structure: gtsam's Bayes tree, key by key
             try:
                 tree = lin.eliminateMultifrontal(ordering, gtsam.EliminateQR)
                 cov = np.empty((n, 6, 6))
@@ -877,21 +1001,32 @@ def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, con
             except (RuntimeError, ValueError) as e:
                 cov, lcov = None, {}
                 health.note(f"no covariances: the linearised system is singular ({e})")
-        covariance_method = "chain" if bulk is not None else (
-            "bayes_tree" if cov is not None else "none")
+        covariance_method = "chain" if bulk is not None else ("bayes_tree" if cov is not None else "none")
     t_cov = time.perf_counter() - t0 - t_build - t_opt
     dropped = set(health.loads_dropped)
-    loads = LoadMap(str(Estimator.SMOOTHER),
-                    [LoadEstimate(t.load_id, values.atPoint3(L(j)).copy(), lcov.get(j), t.n_obs)
-                     for j, t in enumerate(pb.loads) if t.load_id not in dropped])
-    stats = dict(pb.counts.as_dict(), iterations=iterations, initial_error=float(err0),
-                 final_error=float(errors[-1]), robust_kernel=config.robust_kernel,
-                 pose_threshold=pb.pose_threshold, n_factors=len(pb.factors),
-                 covariance_method=covariance_method,
-                 time_build_s=t_build, time_optimize_s=t_opt, time_covariance_s=t_cov,
-                 time_s=time.perf_counter() - t0)
-    for kind, word in ((FactorKind.POSE, "pose"), (FactorKind.LOAD, "load"),
-                       (FactorKind.CORNERS, "corner")):
+    loads = LoadMap(
+        str(Estimator.SMOOTHER),
+        [
+            LoadEstimate(t.load_id, values.atPoint3(L(j)).copy(), lcov.get(j), t.n_obs)
+            for j, t in enumerate(pb.loads)
+            if t.load_id not in dropped
+        ],
+    )
+    stats = dict(
+        pb.counts.as_dict(),
+        iterations=iterations,
+        initial_error=float(err0),
+        final_error=float(errors[-1]),
+        robust_kernel=config.robust_kernel,
+        pose_threshold=pb.pose_threshold,
+        n_factors=len(pb.factors),
+        covariance_method=covariance_method,
+        time_build_s=t_build,
+        time_optimize_s=t_opt,
+        time_covariance_s=t_cov,
+        time_s=time.perf_counter() - t0,
+    )
+    for kind, word in ((FactorKind.POSE, "pose"), (FactorKind.LOAD, "load"), (FactorKind.CORNERS, "corner")):
         stats[f"gated_{word}_factors"] = gated[kind]
         stats[f"rejected_{word}_factors"] = rej[kind]
     stats["health"] = health.as_dict()
@@ -902,7 +1037,7 @@ def _smooth_once(frame_times_ns, imu, raw, load_obs, front_camera, velocity, con
 # =========================================================================== incremental
 
 
-LOAD_GENERATION_STRIDE = 10 ** 9       # L(j + g * stride): generation g of load j's variable
+LOAD_GENERATION_STRIDE = 10**9  # L(j + g * stride): generation g of load j's variable
 _CHR_SHIFT, _IDX_MASK = 56, (1 << 56) - 1
 
 
@@ -914,8 +1049,9 @@ def _frame_of(key: int) -> int:
 @dataclass
 class _Streak:
     """Consecutive fixes beyond the kernel threshold at the predicted state (incremental)."""
+
     frames: list[int] = field(default_factory=list)
-    offsets_m: list[np.ndarray] = field(default_factory=list)   # fix - prediction, world
+    offsets_m: list[np.ndarray] = field(default_factory=list)  # fix - prediction, world
     offsets_yaw: list[float] = field(default_factory=list)
 
     def clear(self) -> None:
@@ -928,8 +1064,8 @@ class _Streak:
         fixes move as the IMU says, so the estimate (not the fixes) is off."""
         if len(self.frames) < config.reinit_rejected_fixes:
             return False
-        d = np.array(self.offsets_m[-config.reinit_rejected_fixes:])
-        y = np.array(self.offsets_yaw[-config.reinit_rejected_fixes:])
+        d = np.array(self.offsets_m[-config.reinit_rejected_fixes :])
+        y = np.array(self.offsets_yaw[-config.reinit_rejected_fixes :])
         spread_m = np.linalg.norm(d - np.median(d, axis=0), axis=1).max()
         spread_yaw = np.abs(wrap_angle(y - np.median(y))).max()
         return spread_m <= config.reinit_agreement_m and spread_yaw <= config.reinit_agreement_rad
@@ -941,16 +1077,20 @@ def _new_engine(config: FusionConfig):
     params.setRelinearizeThreshold(config.isam_relinearize_threshold)
     params.relinearizeSkip = config.isam_relinearize_skip
     lag = config.incremental_lag_s
-    return gtsam.ISAM2(params) if lag is None else \
-        gtsam.IncrementalFixedLagSmoother(float(lag), params)
+    return gtsam.ISAM2(params) if lag is None else gtsam.IncrementalFixedLagSmoother(float(lag), params)
 
 
-def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
-                       load_obs: list[LoadObservation] | None,
-                       front_camera: CameraModel | None = None,
-                       velocity: VelocityData | None = None,
-                       config: FusionConfig | None = None, floor_frames: dict | None = None,
-                       floor_camera: CameraModel | None = None) -> FusionResult:
+def smooth_incremental(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    load_obs: list[LoadObservation] | None,
+    front_camera: CameraModel | None = None,
+    velocity: VelocityData | None = None,
+    config: FusionConfig | None = None,
+    floor_frames: dict | None = None,
+    floor_camera: CameraModel | None = None,
+) -> FusionResult:
     """Causal incremental fusion: frame by frame, the factors available at that frame are added
     and the pose estimate and marginal covariance of X(k) *as known at frame k* are recorded (a
     filter-like output from a smoother).  Same inputs as `smooth`.
@@ -978,8 +1118,9 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     variable at the end of the flight."""
     config = config or FusionConfig()
     t0 = time.perf_counter()
-    pb = build_problem(frame_times_ns, imu, raw, load_obs, front_camera, velocity, config,
-                       floor_frames, floor_camera)
+    pb = build_problem(
+        frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera
+    )
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
@@ -997,19 +1138,18 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
     lag = config.incremental_lag_s
     engine = _new_engine(config)
     t_rel = (pb.frame_t - pb.frame_t[0]) * 1e-9
-    gen: dict[int, int] = {}            # load j -> generation of its current variable
-    last_seen: dict[int, float] = {}    # load j -> time stamp of its current variable
-    left: dict[int, tuple] = {}         # load j -> (estimate, covariance) when it left the window
+    gen: dict[int, int] = {}  # load j -> generation of its current variable
+    last_seen: dict[int, float] = {}  # load j -> time stamp of its current variable
+    left: dict[int, tuple] = {}  # load j -> (estimate, covariance) when it left the window
     n_generations = 0
-    start = k0                          # factors on states before `start` are left out
+    start = k0  # factors on states before `start` are left out
 
     # the pose factor of each frame with a fix (for the re-initialisation test)
     pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
     streak = _Streak()
     # a fix counts towards a restart when the estimate is this far from it (Mahalanobis): the
     # outlier gate, else the kernel threshold
-    reinit_distance = config.outlier_gate if config.outlier_gate is not None else \
-        pb.pose_threshold
+    reinit_distance = config.outlier_gate if config.outlier_gate is not None else pb.pose_threshold
     T_out = np.empty((n - k0, 4, 4))
     cov_out = np.empty((n - k0, 6, 6))
     pose_k = gtsam.Pose3(pb.T_init[k0])
@@ -1025,8 +1165,7 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         for j in list(gen):
             if j not in left:
                 try:
-                    left[j] = (engine.calculateEstimatePoint3(lkey(j)),
-                               engine.marginalCovariance(lkey(j)))
+                    left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
                 except (RuntimeError, ValueError, IndexError):
                     # never estimated (the failed update that brought it): start it afresh
                     left.pop(j, None)
@@ -1053,21 +1192,49 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             # restart: the state carries over as priors (velocity, bias at their estimates;
             # attitude at the guess, loosely, as a position + yaw fix leaves roll / pitch
             # free); the position comes from this frame's fix (or, singular, a weak prior)
-            g.add(gtsam.PriorFactorPose3(X(k), pose_guess, gtsam.noiseModel.Diagonal.Sigmas(
-                np.r_[np.full(3, config.reinit_sigma_rot_rad),
-                      np.full(3, config.reinit_sigma_pos_m)])))
-            g.add(gtsam.PriorFactorVector(V(k), vel_guess, gtsam.noiseModel.Isotropic.Sigma(
-                3, config.reinit_velocity_sigma_m_s)))
+            g.add(
+                gtsam.PriorFactorPose3(
+                    X(k),
+                    pose_guess,
+                    gtsam.noiseModel.Diagonal.Sigmas(
+                        np.r_[np.full(3, config.reinit_sigma_rot_rad), np.full(3, config.reinit_sigma_pos_m)]
+                    ),
+                )
+            )
+            g.add(
+                gtsam.PriorFactorVector(
+                    V(k), vel_guess, gtsam.noiseModel.Isotropic.Sigma(3, config.reinit_velocity_sigma_m_s)
+                )
+            )
             if pb.has_imu:
-                g.add(gtsam.PriorFactorConstantBias(B(k), bias_guess, gtsam.noiseModel.Diagonal.Sigmas(
-                    np.r_[np.full(3, config.bias_prior_sigma_accel_m_s2),
-                          np.full(3, config.bias_prior_sigma_gyro_rad_s)])))
+                g.add(
+                    gtsam.PriorFactorConstantBias(
+                        B(k),
+                        bias_guess,
+                        gtsam.noiseModel.Diagonal.Sigmas(
+                            np.r_[
+                                np.full(3, config.bias_prior_sigma_accel_m_s2),
+                                np.full(3, config.bias_prior_sigma_gyro_rad_s),
+                            ]
+                        ),
+                    )
+                )
         if k == k0 and pb.raw_input is not RawPoseInput.POSE6:
             # position + yaw fixes leave the first roll / pitch to the IMU, which has not
             # spoken yet: a prior at the initial guess (sigma: the gimbal convention's)
-            g.add(gtsam.PriorFactorPose3(X(k), pose_guess, gtsam.noiseModel.Diagonal.Sigmas(
-                np.r_[np.full(2, config.initial_roll_pitch_sigma_rad),
-                      config.fallback_sigma_rot_rad, np.full(3, config.fallback_sigma_pos_m)])))
+            g.add(
+                gtsam.PriorFactorPose3(
+                    X(k),
+                    pose_guess,
+                    gtsam.noiseModel.Diagonal.Sigmas(
+                        np.r_[
+                            np.full(2, config.initial_roll_pitch_sigma_rad),
+                            config.fallback_sigma_rot_rad,
+                            np.full(3, config.fallback_sigma_pos_m),
+                        ]
+                    ),
+                )
+            )
         if weak or (fresh and k > k0 and k not in pose_at):
             for f in weak_priors(vals, config):
                 if gtsam.Symbol(f.keys()[0]).chr() == ord("x"):
@@ -1076,15 +1243,14 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             # loads whose variable leaves the window in this update: keep their last marginal
             cutoff = tk - lag
             for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
-                left[j] = (engine.calculateEstimatePoint3(lkey(j)),
-                           engine.marginalCovariance(lkey(j)))
+                left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
         for i in by_frame[k]:
             if oldest[i] < start:
                 continue
             f = pb.factors[i]
             j = load_of[i]
             if j >= 0:
-                if j not in gen or j in left:        # first sighting, or back after leaving
+                if j not in gen or j in left:  # first sighting, or back after leaving
                     if j not in gen:
                         gen[j] = 0
                         a = pb.load_args[i]
@@ -1094,14 +1260,24 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                         gen[j] += 1
                         n_generations += 1
                         guess, cov = left.pop(j)
-                        g.add(gtsam.PriorFactorPoint3(
-                            lkey(j), guess,
-                            gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))))
+                        g.add(
+                            gtsam.PriorFactorPoint3(
+                                lkey(j), guess, gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+                            )
+                        )
                     vals.insert(lkey(j), guess)
                 if gen[j] > 0:
                     a = pb.load_args[i]
-                    f = G.load_factor(a.k, j, a.p_cam, a.cov_cam, cam, config.robust_kernel,
-                                      pb.load_threshold, load_key=lkey(j))
+                    f = factors.load_factor(
+                        a.k,
+                        j,
+                        a.p_cam,
+                        a.cov_cam,
+                        cam,
+                        config.robust_kernel,
+                        pb.load_threshold,
+                        load_key=lkey(j),
+                    )
                 last_seen[j] = tk
                 new_keys.append(lkey(j))
             g.add(f)
@@ -1136,8 +1312,9 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
             try:
                 _incremental_step(k, tk, True, pose_guess, vel_guess, bias_k, weak=True)
             except (RuntimeError, ValueError) as e2:
-                raise EstimationError(f"incremental smoother: the update at frame {k} failed "
-                                      f"again after a restart: {e2}") from None
+                raise EstimationError(
+                    f"incremental smoother: the update at frame {k} failed again after a restart: {e2}"
+                ) from None
         # a fix the estimate rejects (beyond the kernel threshold after the update): part of a
         # streak that may call for a restart from the fixes
         if k in pose_at and not fresh:
@@ -1153,13 +1330,20 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
                 streak.offsets_yaw.append(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est)))
                 if streak.agrees(config):
                     # roll / pitch: the fix's when it has them, else the estimate's
-                    R_new = T_fix[:3, :3] if pb.raw_input is RawPoseInput.POSE6 else \
-                        rot_z(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est))) @ R_est
+                    R_new = (
+                        T_fix[:3, :3]
+                        if pb.raw_input is RawPoseInput.POSE6
+                        else rot_z(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est))) @ R_est
+                    )
                     log.info("incremental: re-initialised at t=%.2f s", tk)
-                    restart(k, f"re-initialised from {config.reinit_rejected_fixes} agreeing "
-                               "fixes that the estimate had rejected (count: resets)")
-                    _incremental_step(k, tk, True, gtsam.Pose3(make_T(R_new, T_fix[:3, 3])),
-                                      vel_guess, bias_k)
+                    restart(
+                        k,
+                        f"re-initialised from {config.reinit_rejected_fixes} agreeing "
+                        "fixes that the estimate had rejected (count: resets)",
+                    )
+                    _incremental_step(
+                        k, tk, True, gtsam.Pose3(make_T(R_new, T_fix[:3, 3])), vel_guess, bias_k
+                    )
             else:
                 streak.clear()
         pose_k = engine.calculateEstimatePose3(X(k))
@@ -1181,9 +1365,15 @@ def smooth_incremental(frame_times_ns, imu: ImuData | None, raw: Trajectory,
         loads.append(LoadEstimate(track.load_id, np.asarray(p, float).copy(), c, track.n_obs))
     elapsed = time.perf_counter() - t0
     duration = (pb.frame_t[-1] - pb.frame_t[k0]) * 1e-9
-    stats = dict(pb.counts.as_dict(), frames_before_first_fix=k0, time_build_s=t_build,
-                 time_s=elapsed, incremental_lag_s=lag, load_generations=n_generations,
-                 realtime_factor=duration / max(elapsed - t_build, 1e-9),
-                 health=health.as_dict())
+    stats = dict(
+        pb.counts.as_dict(),
+        frames_before_first_fix=k0,
+        time_build_s=t_build,
+        time_s=elapsed,
+        incremental_lag_s=lag,
+        load_generations=n_generations,
+        realtime_factor=duration / max(elapsed - t_build, 1e-9),
+        health=health.as_dict(),
+    )
     traj = Trajectory(str(Estimator.INCREMENTAL), pb.frame_t[k0:].copy(), T_out, cov_out)
     return FusionResult(traj, LoadMap(str(Estimator.INCREMENTAL), loads), stats, health)

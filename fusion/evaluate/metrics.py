@@ -9,13 +9,14 @@ order [rx, ry, rz, tx, ty, tz], body frame.  Every record's keys carry their uni
 Estimators named in `position_yaw_only` (default: the paper's, Alg. 1-3, which gives position and
 yaw D_r-theta only) are compared on position and yaw; their roll/pitch are treated as unknown.
 """
+
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 from scipy.stats import chi2
@@ -45,13 +46,14 @@ class Association:
     """An estimate matched to ground truth interpolated at the estimate's timestamps.
 
     Only estimate samples inside the ground-truth time span are kept (`index_est` says which)."""
+
     name: str
-    timestamps_ns: np.ndarray            # (M,)
-    T_world_body_est: np.ndarray         # (M, 4, 4)
-    T_world_body_gt: np.ndarray          # (M, 4, 4)
-    covariances: np.ndarray | None       # (M, 6, 6) or None
-    index_est: np.ndarray                # (M,) indices into the estimate
-    n_outside_gt: int                    # estimate samples outside the ground-truth span
+    timestamps_ns: np.ndarray  # (M,)
+    T_world_body_est: np.ndarray  # (M, 4, 4)
+    T_world_body_gt: np.ndarray  # (M, 4, 4)
+    covariances: np.ndarray | None  # (M, 6, 6) or None
+    index_est: np.ndarray  # (M,) indices into the estimate
+    n_outside_gt: int  # estimate samples outside the ground-truth span
 
     def __len__(self) -> int:
         return len(self.timestamps_ns)
@@ -64,12 +66,12 @@ class Association:
     @property
     def yaw_errors_rad(self) -> np.ndarray:
         """(M,) yaw_est - yaw_gt wrapped to (-pi, pi]."""
-        return wrap_angle(yaw_of(self.T_world_body_est[:, :3, :3])
-                          - yaw_of(self.T_world_body_gt[:, :3, :3]))
+        return wrap_angle(yaw_of(self.T_world_body_est[:, :3, :3]) - yaw_of(self.T_world_body_gt[:, :3, :3]))
 
 
-def interpolate_poses(timestamps_ns: np.ndarray, T_world_body: np.ndarray,
-                      query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_poses(
+    timestamps_ns: np.ndarray, T_world_body: np.ndarray, query_ns: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Poses at `query_ns` (M,): linear in position, slerp in rotation.
 
     Returns (T (K, 4, 4), mask (M,) of queries inside [t_0, t_end]); K = mask.sum()."""
@@ -85,8 +87,7 @@ def interpolate_poses(timestamps_ns: np.ndarray, T_world_body: np.ndarray,
     return _interpolate_sampled(ts, T_world_body, qs), mask
 
 
-def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
-              traj: Trajectory) -> Association:
+def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray, traj: Trajectory) -> Association:
     """Interpolate the ground truth (200 Hz) at the estimate's timestamps.  Estimate samples with
     a non-finite pose are dropped (counted in `n_outside_gt`); unsorted timestamps raise."""
     t_est = np.asarray(traj.timestamps_ns, dtype=np.int64)
@@ -99,9 +100,15 @@ def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
     cov = None
     if traj.covariances is not None and len(traj.covariances) == len(traj):
         cov = np.asarray(traj.covariances)[idx]
-    return Association(traj.name, np.asarray(traj.timestamps_ns, dtype=np.int64)[idx],
-                       np.asarray(traj.T_world_body)[idx], T_gt, cov, idx,
-                       int(len(traj) - len(idx)))
+    return Association(
+        traj.name,
+        np.asarray(traj.timestamps_ns, dtype=np.int64)[idx],
+        np.asarray(traj.T_world_body)[idx],
+        T_gt,
+        cov,
+        idx,
+        int(len(traj) - len(idx)),
+    )
 
 
 # ============================================================================ SE(3) helpers
@@ -127,8 +134,15 @@ def align_association(a: Association) -> tuple[Association, np.ndarray]:
     R, t = umeyama_alignment(a.T_world_body_est[:, :3, 3], a.T_world_body_gt[:, :3, 3])
     T_align = np.eye(4)
     T_align[:3, :3], T_align[:3, 3] = R, t
-    aligned = Association(a.name, a.timestamps_ns, T_align @ a.T_world_body_est,
-                          a.T_world_body_gt, a.covariances, a.index_est, a.n_outside_gt)
+    aligned = Association(
+        a.name,
+        a.timestamps_ns,
+        T_align @ a.T_world_body_est,
+        a.T_world_body_gt,
+        a.covariances,
+        a.index_est,
+        a.n_outside_gt,
+    )
     return aligned, T_align
 
 
@@ -140,13 +154,19 @@ def _stats(x: np.ndarray) -> dict[str, float | None]:
     x = np.asarray(x, dtype=float)
     if len(x) == 0:
         return {"rmse": None, "mean": None, "median": None, "std": None, "max": None}
-    return {"rmse": float(np.sqrt(np.mean(x ** 2))), "mean": float(np.mean(x)),
-            "median": float(np.median(x)), "std": float(np.std(x)), "max": float(np.max(x))}
+    return {
+        "rmse": float(np.sqrt(np.mean(x**2))),
+        "mean": float(np.mean(x)),
+        "median": float(np.median(x)),
+        "std": float(np.std(x)),
+        "max": float(np.max(x)),
+    }
 
 
 @dataclass
 class AxisErrors:
     """Per-axis error of p_est - p_gt (world frame): the paper's metric is the mean absolute error."""
+
     n: int
     mae_x_m: float | None
     mae_y_m: float | None
@@ -168,17 +188,19 @@ def axis_errors(err_xyz_m: np.ndarray) -> AxisErrors:
     if len(e) == 0:
         return AxisErrors(0, *([None] * 12))
     mae = np.mean(np.abs(e), axis=0)
-    rmse = np.sqrt(np.mean(e ** 2, axis=0))
+    rmse = np.sqrt(np.mean(e**2, axis=0))
     bias = np.mean(e, axis=0)
-    return AxisErrors(len(e), *map(float, mae), *map(float, 100.0 * mae), *map(float, rmse),
-                      *map(float, bias))
+    return AxisErrors(
+        len(e), *map(float, mae), *map(float, 100.0 * mae), *map(float, rmse), *map(float, bias)
+    )
 
 
 @dataclass
 class ATE:
     """Absolute trajectory error: |p_est - p_gt| (evo APE, translation part)."""
+
     n: int
-    alignment: str                      # "none" or "se3"
+    alignment: str  # "none" or "se3"
     ate_rmse_m: float | None
     ate_mean_m: float | None
     ate_median_m: float | None
@@ -190,13 +212,13 @@ def ate(a: Association, align: bool = False) -> ATE:
     if align:
         a, _ = align_association(a)
     s = _stats(np.linalg.norm(a.position_errors_m, axis=1))
-    return ATE(len(a), "se3" if align else "none", s["rmse"], s["mean"], s["median"], s["std"],
-               s["max"])
+    return ATE(len(a), "se3" if align else "none", s["rmse"], s["mean"], s["median"], s["std"], s["max"])
 
 
 @dataclass
 class Yaw:
     """Heading error yaw_est - yaw_gt, wrapped (degrees)."""
+
     n: int
     yaw_mae_deg: float | None
     yaw_rmse_deg: float | None
@@ -208,8 +230,13 @@ def yaw_errors(a: Association) -> Yaw:
     e = np.degrees(a.yaw_errors_rad)
     if len(e) == 0:
         return Yaw(0, None, None, None, None)
-    return Yaw(len(e), float(np.mean(np.abs(e))), float(np.sqrt(np.mean(e ** 2))),
-               float(np.max(np.abs(e))), float(np.mean(e)))
+    return Yaw(
+        len(e),
+        float(np.mean(np.abs(e))),
+        float(np.sqrt(np.mean(e**2))),
+        float(np.max(np.abs(e))),
+        float(np.mean(e)),
+    )
 
 
 def rotation_errors_deg(a: Association) -> np.ndarray:
@@ -227,8 +254,9 @@ class RPE:
     error at i is zero).  Rotation: angle of (R_gt_i^T R_gt_j)^T (R_est_i^T R_est_j) (None for
     yaw-only estimators); yaw: drift of the heading change.  Pairs: each i with the first j whose
     distance (or time) from i reaches `delta`, kept if it overshoots by at most `tolerance`."""
+
     delta: float
-    delta_unit: str                      # "m" (travelled, along the truth) or "s"
+    delta_unit: str  # "m" (travelled, along the truth) or "s"
     n_pairs: int
     rpe_trans_rmse_m: float | None
     rpe_trans_mean_m: float | None
@@ -239,8 +267,9 @@ class RPE:
     rpe_yaw_max_deg: float | None
 
 
-def travelled_distance_m(gt_timestamps_ns: np.ndarray, gt_p_world: np.ndarray,
-                         query_ns: np.ndarray) -> np.ndarray:
+def travelled_distance_m(
+    gt_timestamps_ns: np.ndarray, gt_p_world: np.ndarray, query_ns: np.ndarray
+) -> np.ndarray:
     """Path length of the truth from its start to each query time (m), (M,)."""
     step = np.linalg.norm(np.diff(gt_p_world, axis=0), axis=1)
     cum = np.concatenate([[0.0], np.cumsum(step)])
@@ -248,8 +277,9 @@ def travelled_distance_m(gt_timestamps_ns: np.ndarray, gt_p_world: np.ndarray,
     return np.interp((np.asarray(query_ns, dtype=np.int64) - t[0]) * 1e-9, (t - t[0]) * 1e-9, cum)
 
 
-def rpe(a: Association, along: np.ndarray, delta: float, unit: str, full_attitude: bool,
-        tolerance: float = 0.2) -> RPE:
+def rpe(
+    a: Association, along: np.ndarray, delta: float, unit: str, full_attitude: bool, tolerance: float = 0.2
+) -> RPE:
     """RPE with pairs chosen along a monotonic coordinate `along` (M,) (distance m or time s)."""
     along = np.asarray(along, dtype=float)
     j = np.searchsorted(along, along + delta, side="left")
@@ -270,10 +300,19 @@ def rpe(a: Association, along: np.ndarray, delta: float, unit: str, full_attitud
         rel_e = np.swapaxes(Re[i], 1, 2) @ Re[j]
         rel_g = np.swapaxes(Rg[i], 1, 2) @ Rg[j]
         ang = np.degrees(np.linalg.norm(so3_log(np.swapaxes(rel_g, 1, 2) @ rel_e), axis=1))
-        rot_rmse, rot_max = float(np.sqrt(np.mean(ang ** 2))), float(np.max(ang))
-    return RPE(delta, unit, len(i), float(np.sqrt(np.mean(d ** 2))), float(np.mean(d)),
-               float(np.max(d)), rot_rmse, rot_max, float(np.sqrt(np.mean(dyaw ** 2))),
-               float(np.max(dyaw)))
+        rot_rmse, rot_max = float(np.sqrt(np.mean(ang**2))), float(np.max(ang))
+    return RPE(
+        delta,
+        unit,
+        len(i),
+        float(np.sqrt(np.mean(d**2))),
+        float(np.mean(d)),
+        float(np.max(d)),
+        rot_rmse,
+        rot_max,
+        float(np.sqrt(np.mean(dyaw**2))),
+        float(np.max(dyaw)),
+    )
 
 
 @dataclass
@@ -281,6 +320,7 @@ class NEES:
     """Normalised estimation error squared e^T P^-1 e: its mean should be `dof` for a consistent
     estimator; `fraction_inside_95` of samples should lie below the chi2(dof) 95% quantile
     (filterpy.stats.NEES; Bar-Shalom, Li & Kirubarajan, Sec. 5.4)."""
+
     dof: int
     n: int
     nees_mean: float | None
@@ -298,7 +338,7 @@ def nees_from_errors(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     cov = np.asarray(cov, dtype=float)
     if len(err) == 0:
         return np.zeros(0)
-    try:                                   # batched; one singular matrix makes it fall back
+    try:  # batched; one singular matrix makes it fall back
         x = np.linalg.solve(cov, err[..., None])[..., 0]
         return np.einsum("ni,ni->n", err, x)
     except np.linalg.LinAlgError:
@@ -320,8 +360,15 @@ def nees_record(values: np.ndarray, dof: int) -> NEES:
         return NEES(dof, 0, None, None, bound, None, None)
     n = len(v)
     lo, hi = chi2.ppf([0.025, 0.975], n * dof) / n
-    return NEES(dof, n, float(np.mean(v)), float(np.median(v)), bound,
-                float(np.mean(v <= bound)), (float(lo), float(hi)))
+    return NEES(
+        dof,
+        n,
+        float(np.mean(v)),
+        float(np.median(v)),
+        bound,
+        float(np.mean(v <= bound)),
+        (float(lo), float(hi)),
+    )
 
 
 def pose_nees(a: Association) -> tuple[np.ndarray, np.ndarray]:
@@ -369,14 +416,22 @@ def blackout_errors(a: Association, blackouts: list[tuple[int, int, str]]) -> di
     per = []
     for start, end, kind in blackouts:
         m = (a.timestamps_ns >= start) & (a.timestamps_ns <= end)
-        per.append({"start_ns": int(start), "end_ns": int(end), "kind": str(kind),
-                    "duration_s": (end - start) * 1e-9, "n_estimates": int(m.sum()),
-                    "max_error_m": float(err[m].max()) if m.any() else None})
+        per.append(
+            {
+                "start_ns": int(start),
+                "end_ns": int(end),
+                "kind": str(kind),
+                "duration_s": (end - start) * 1e-9,
+                "n_estimates": int(m.sum()),
+                "max_error_m": float(err[m].max()) if m.any() else None,
+            }
+        )
     groups: dict[str, dict] = {}
     for b in per:
         key = f"{nominal_duration_s(b['duration_s']):g}"
-        g = groups.setdefault(key, {"nominal_duration_s": float(key), "n_blackouts": 0,
-                                    "n_with_estimates": 0, "_max": []})
+        g = groups.setdefault(
+            key, {"nominal_duration_s": float(key), "n_blackouts": 0, "n_with_estimates": 0, "_max": []}
+        )
         g["n_blackouts"] += 1
         if b["max_error_m"] is not None:
             g["n_with_estimates"] += 1
@@ -385,15 +440,19 @@ def blackout_errors(a: Association, blackouts: list[tuple[int, int, str]]) -> di
         m = g.pop("_max")
         g["max_error_max_m"] = float(np.max(m)) if m else None
         g["max_error_mean_m"] = float(np.mean(m)) if m else None
-    return {"n_inside": int(inside.sum()), "n_outside": int((~inside).sum()),
-            "inside": {f"{k}_m": v for k, v in s_in.items()},
-            "outside": {f"{k}_m": v for k, v in s_out.items()},
-            "per_blackout": per,
-            "by_duration": dict(sorted(groups.items(), key=lambda kv: float(kv[0])))}
+    return {
+        "n_inside": int(inside.sum()),
+        "n_outside": int((~inside).sum()),
+        "inside": {f"{k}_m": v for k, v in s_in.items()},
+        "outside": {f"{k}_m": v for k, v in s_out.items()},
+        "per_blackout": per,
+        "by_duration": dict(sorted(groups.items(), key=lambda kv: float(kv[0]))),
+    }
 
 
-def coverage_fraction(gt_timestamps_ns: np.ndarray, est_timestamps_ns: np.ndarray,
-                      tolerance_s: float = 0.1) -> float:
+def coverage_fraction(
+    gt_timestamps_ns: np.ndarray, est_timestamps_ns: np.ndarray, tolerance_s: float = 0.1
+) -> float:
     """Fraction of ground-truth samples (uniform in time) with an estimate within `tolerance_s`."""
     g = np.asarray(gt_timestamps_ns, dtype=np.int64)
     e = np.sort(np.asarray(est_timestamps_ns, dtype=np.int64))
@@ -421,9 +480,14 @@ def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
     for lid in common:
         e = np.asarray(est[lid].p_world, dtype=float) - np.asarray(loads_gt[lid], dtype=float)
         errs.append(e)
-        rec = {"error_x_m": float(e[0]), "error_y_m": float(e[1]), "error_z_m": float(e[2]),
-               "error_norm_m": float(np.linalg.norm(e)), "n_obs": int(est[lid].n_obs),
-               "nees": None}
+        rec = {
+            "error_x_m": float(e[0]),
+            "error_y_m": float(e[1]),
+            "error_z_m": float(e[2]),
+            "error_norm_m": float(np.linalg.norm(e)),
+            "n_obs": int(est[lid].n_obs),
+            "nees": None,
+        }
         cov = est[lid].cov_world
         if cov is not None:
             v = nees_from_errors(e[None], np.asarray(cov, dtype=float)[None])[0]
@@ -433,30 +497,41 @@ def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
         per_load[lid] = rec
     E = np.asarray(errs).reshape(-1, 3)
     norm = _stats(np.linalg.norm(E, axis=1))
-    return {"n_loads_gt": len(loads_gt), "n_mapped": len(common),
-            "missing_ids": sorted(set(loads_gt) - set(est)),
-            "extra_ids": sorted(set(est) - set(loads_gt)),
-            "axis": asdict(axis_errors(E)),
-            "mae_xyz_m": [float(v) for v in np.mean(np.abs(E), axis=0)] if len(E) else None,
-            "error_norm": {f"{k}_m": v for k, v in norm.items()},
-            "nees_3dof": asdict(nees_record(np.asarray(nees), 3)),
-            "per_load": per_load}
+    return {
+        "n_loads_gt": len(loads_gt),
+        "n_mapped": len(common),
+        "missing_ids": sorted(set(loads_gt) - set(est)),
+        "extra_ids": sorted(set(est) - set(loads_gt)),
+        "axis": asdict(axis_errors(E)),
+        "mae_xyz_m": [float(v) for v in np.mean(np.abs(E), axis=0)] if len(E) else None,
+        "error_norm": {f"{k}_m": v for k, v in norm.items()},
+        "nees_3dof": asdict(nees_record(np.asarray(nees), 3)),
+        "per_load": per_load,
+    }
 
 
 # ============================================================================ evaluate
 
 
-def trajectory_metrics(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray,
-                       traj: Trajectory, blackouts: list[tuple[int, int, str]] | None = None,
-                       full_attitude: bool = True, align: bool = False,
-                       coverage_tolerance_s: float = 0.1) -> dict:
+def trajectory_metrics(
+    gt_timestamps_ns: np.ndarray,
+    gt_T_world_body: np.ndarray,
+    traj: Trajectory,
+    blackouts: list[tuple[int, int, str]] | None = None,
+    full_attitude: bool = True,
+    align: bool = False,
+    coverage_tolerance_s: float = 0.1,
+) -> dict:
     """All metrics of one estimated trajectory against the truth, as a JSON-ready dict."""
     a = associate(gt_timestamps_ns, gt_T_world_body, traj)
-    out: dict = {"n_poses": len(traj), "n_matched": len(a), "n_outside_groundtruth": a.n_outside_gt,
-                 "compared": "position+yaw" if not full_attitude else "pose",
-                 "coverage_fraction": coverage_fraction(gt_timestamps_ns, traj.timestamps_ns,
-                                                        coverage_tolerance_s),
-                 "coverage_tolerance_s": coverage_tolerance_s}
+    out: dict = {
+        "n_poses": len(traj),
+        "n_matched": len(a),
+        "n_outside_groundtruth": a.n_outside_gt,
+        "compared": "position+yaw" if not full_attitude else "pose",
+        "coverage_fraction": coverage_fraction(gt_timestamps_ns, traj.timestamps_ns, coverage_tolerance_s),
+        "coverage_tolerance_s": coverage_tolerance_s,
+    }
     if len(a) == 0:
         return out
     out["axis"] = asdict(axis_errors(a.position_errors_m))
@@ -470,12 +545,14 @@ def trajectory_metrics(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray
     out["yaw"] = asdict(yaw_errors(a))
     if full_attitude:
         r = rotation_errors_deg(a)
-        out["rotation"] = {"rot_rmse_deg": float(np.sqrt(np.mean(r ** 2))),
-                           "rot_mean_deg": float(np.mean(r)), "rot_max_deg": float(np.max(r))}
+        out["rotation"] = {
+            "rot_rmse_deg": float(np.sqrt(np.mean(r**2))),
+            "rot_mean_deg": float(np.mean(r)),
+            "rot_max_deg": float(np.max(r)),
+        }
     dist = travelled_distance_m(gt_timestamps_ns, gt_T_world_body[:, :3, 3], a.timestamps_ns)
     out["rpe_1m"] = asdict(rpe(a, dist, 1.0, "m", full_attitude))
-    out["rpe_1s"] = asdict(rpe(a, (a.timestamps_ns - a.timestamps_ns[0]) * 1e-9, 1.0, "s",
-                               full_attitude))
+    out["rpe_1s"] = asdict(rpe(a, (a.timestamps_ns - a.timestamps_ns[0]) * 1e-9, 1.0, "s", full_attitude))
     if blackouts:
         out["blackouts"] = blackout_errors(a, blackouts)
     if a.covariances is not None:
@@ -486,11 +563,19 @@ def trajectory_metrics(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray
     return out
 
 
-def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadMap],
-             loads_gt: dict[str, np.ndarray] | None, blackouts: list[tuple[int, int, str]] | None,
-             detection_stats: dict | None = None, *, align: bool = False,
-             position_yaw_only: Iterable[str] = ("paper",),
-             coverage_tolerance_s: float = 0.1, common_reference: str = "pnp") -> dict:
+def evaluate(
+    gt,
+    trajectories: dict[str, Trajectory],
+    load_maps: dict[str, LoadMap],
+    loads_gt: dict[str, np.ndarray] | None,
+    blackouts: list[tuple[int, int, str]] | None,
+    detection_stats: dict | None = None,
+    *,
+    align: bool = False,
+    position_yaw_only: Iterable[str] = ("paper",),
+    coverage_tolerance_s: float = 0.1,
+    common_reference: str = "pnp",
+) -> dict:
     """Compare every trajectory and load map with the truth; returns a JSON-ready dict.
 
     gt: `fusion.log.GroundTruth` (or None: only detection statistics and counts are returned).
@@ -499,18 +584,25 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
     position_yaw_only: estimators whose roll/pitch are unknown (compared on position and yaw)."""
     yaw_only = set(position_yaw_only)
     blackouts = list(blackouts or [])
-    out: dict = {"schema": SCHEMA,
-                 "paper_simulator_reference": {
-                     "localization_mae_cm": PAPER_SIM_LOCALIZATION_MAE_CM,
-                     "yaw_mae_deg": PAPER_SIM_YAW_MAE_DEG,
-                     "loadmap_mae_cm": PAPER_SIM_LOADMAP_MAE_CM},
-                 "has_groundtruth": gt is not None,
-                 "trajectories": {}, "load_maps": {},
-                 "detection": detection_stats}
+    out: dict = {
+        "schema": SCHEMA,
+        "paper_simulator_reference": {
+            "localization_mae_cm": PAPER_SIM_LOCALIZATION_MAE_CM,
+            "yaw_mae_deg": PAPER_SIM_YAW_MAE_DEG,
+            "loadmap_mae_cm": PAPER_SIM_LOADMAP_MAE_CM,
+        },
+        "has_groundtruth": gt is not None,
+        "trajectories": {},
+        "load_maps": {},
+        "detection": detection_stats,
+    }
     if blackouts:
         d = [(b - a) * 1e-9 for a, b, _ in blackouts]
-        out["blackouts"] = {"n": len(blackouts), "total_s": float(np.sum(d)),
-                            "durations_s": [float(x) for x in d]}
+        out["blackouts"] = {
+            "n": len(blackouts),
+            "total_s": float(np.sum(d)),
+            "durations_s": [float(x) for x in d],
+        }
     if gt is not None:
         t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
         T_gt = gt.T_world_body
@@ -519,12 +611,20 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
         if np.any(np.diff(t_gt) <= 0):
             raise EvaluationError("ground-truth timestamps are not strictly increasing")
         out["groundtruth"] = {
-            "n_samples": int(len(t_gt)), "duration_s": float((t_gt[-1] - t_gt[0]) * 1e-9),
-            "path_length_m": float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1)))}
+            "n_samples": int(len(t_gt)),
+            "duration_s": float((t_gt[-1] - t_gt[0]) * 1e-9),
+            "path_length_m": float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1))),
+        }
         for name, traj in trajectories.items():
             out["trajectories"][name] = trajectory_metrics(
-                t_gt, T_gt, traj, blackouts, full_attitude=name not in yaw_only, align=align,
-                coverage_tolerance_s=coverage_tolerance_s)
+                t_gt,
+                T_gt,
+                traj,
+                blackouts,
+                full_attitude=name not in yaw_only,
+                align=align,
+                coverage_tolerance_s=coverage_tolerance_s,
+            )
         # Like-for-like: every estimator on the frames where the reference raw estimator has a
         # pose (a fused trajectory also covers blackouts and the time before the first fix,
         # where errors are larger by nature).
@@ -535,8 +635,7 @@ def evaluate(gt, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadM
                 if len(sub):
                     a = associate(t_gt, T_gt, sub)
                     if len(a):
-                        out["trajectories"][name]["ate_rmse_on_reference_frames_m"] = \
-                            ate(a).ate_rmse_m
+                        out["trajectories"][name]["ate_rmse_on_reference_frames_m"] = ate(a).ate_rmse_m
             out["common_reference"] = common_reference
     else:
         for name, traj in trajectories.items():
@@ -586,6 +685,6 @@ def write_metrics(path: Path, metrics: dict) -> Path:
 def export_groundtruth_tum(gt, path: Path) -> Path:
     """Write the ground truth (`fusion.log.GroundTruth`) as a TUM file for evo."""
     from fusion.log.files import write_tum
-    write_tum(path, Trajectory("groundtruth", np.asarray(gt.timestamps_ns, dtype=np.int64),
-                               gt.T_world_body))
+
+    write_tum(path, Trajectory("groundtruth", np.asarray(gt.timestamps_ns, dtype=np.int64), gt.T_world_body))
     return Path(path)

@@ -1,5 +1,6 @@
 """Format conversion: `import_flight` (any log -> EuRoC folder) and `export_flight` (any log ->
 ROS 1 bag, ROS 2 MCAP bag or a video folder).  Both stream the frames."""
+
 from __future__ import annotations
 
 import logging
@@ -17,8 +18,7 @@ def _as_flight(src, opts: LogOptions | None) -> FlightLog:
     return src if isinstance(src, FlightLog) else open_flight(Path(src), opts)
 
 
-def import_flight(src, out: Path, opts: LogOptions | None = None,
-                  overwrite: bool = False) -> Path:
+def import_flight(src, out: Path, opts: LogOptions | None = None, overwrite: bool = False) -> Path:
     """Write the EuRoC layout of `src` (a path or a FlightLog) to `out`; images as PNG, frames
     that cannot be read are skipped (their messages logged)."""
     flight = _as_flight(src, opts)
@@ -55,20 +55,28 @@ def export_format(out: Path) -> LogFormat:
     return LogFormat.VIDEO
 
 
-def export_flight(src, out: Path, opts: LogOptions | None = None, image_format: str = "raw",
-                  video_codec: str = "ffv1", overwrite: bool = False,
-                  fmt: LogFormat | None = None) -> Path:
+def export_flight(
+    src,
+    out: Path,
+    opts: LogOptions | None = None,
+    image_format: str = "raw",
+    video_codec: str = "ffv1",
+    overwrite: bool = False,
+    fmt: LogFormat | None = None,
+) -> Path:
     """Write `src` (a path or a FlightLog) as OUT.bag (ROS 1), OUT.mcap (ROS 2, MCAP storage) or
     a video folder (`fmt=LogFormat.VIDEO`, or any other name)."""
     flight = _as_flight(src, opts)
     fmt = fmt or export_format(out)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import write_bag
+
         want = ".bag" if fmt == LogFormat.ROSBAG1 else ".mcap"
         if Path(out).suffix.lower() != want:
             raise LogError(f"{out}: a {fmt.value} export must end in {want}")
         return write_bag(flight, Path(out), image_format=image_format, overwrite=overwrite)
     if fmt == LogFormat.VIDEO:
         from fusion.log.video import write_video_flight
+
         return write_video_flight(flight, Path(out), codec=video_codec, overwrite=overwrite)
     raise LogError(f"cannot export to {fmt.value}; use `fusion import` for the EuRoC layout")

@@ -18,6 +18,7 @@ checked against sensor.yaml before it is decoded.  Only regular files are opened
 would hang the reader).  After reading, plausibility checks look for unit and clock mistakes
 (`check_log`): certain ones raise LogError, the others become `FlightLog.warnings`.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -28,9 +29,9 @@ import os
 import re
 import shutil
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -56,15 +57,35 @@ from fusion.geometry import R_from_quat_wxyz
 from fusion.world import World
 
 CAMERA_NAMES = ("cam0", "cam1")
-IMU_HEADER = ("#timestamp [ns]", "w_RS_S_x [rad s^-1]", "w_RS_S_y [rad s^-1]",
-              "w_RS_S_z [rad s^-1]", "a_RS_S_x [m s^-2]", "a_RS_S_y [m s^-2]",
-              "a_RS_S_z [m s^-2]")
+IMU_HEADER = (
+    "#timestamp [ns]",
+    "w_RS_S_x [rad s^-1]",
+    "w_RS_S_y [rad s^-1]",
+    "w_RS_S_z [rad s^-1]",
+    "a_RS_S_x [m s^-2]",
+    "a_RS_S_y [m s^-2]",
+    "a_RS_S_z [m s^-2]",
+)
 VEL_HEADER = ("#timestamp [ns]", "v_RS_S_x [m s^-1]", "v_RS_S_y [m s^-1]", "v_RS_S_z [m s^-1]")
-GT_HEADER = ("#timestamp", " p_RS_R_x [m]", " p_RS_R_y [m]", " p_RS_R_z [m]", " q_RS_w []",
-             " q_RS_x []", " q_RS_y []", " q_RS_z []", " v_RS_R_x [m s^-1]", " v_RS_R_y [m s^-1]",
-             " v_RS_R_z [m s^-1]", " b_w_RS_S_x [rad s^-1]", " b_w_RS_S_y [rad s^-1]",
-             " b_w_RS_S_z [rad s^-1]", " b_a_RS_S_x [m s^-2]", " b_a_RS_S_y [m s^-2]",
-             " b_a_RS_S_z [m s^-2]")
+GT_HEADER = (
+    "#timestamp",
+    " p_RS_R_x [m]",
+    " p_RS_R_y [m]",
+    " p_RS_R_z [m]",
+    " q_RS_w []",
+    " q_RS_x []",
+    " q_RS_y []",
+    " q_RS_z []",
+    " v_RS_R_x [m s^-1]",
+    " v_RS_R_y [m s^-1]",
+    " v_RS_R_z [m s^-1]",
+    " b_w_RS_S_x [rad s^-1]",
+    " b_w_RS_S_y [rad s^-1]",
+    " b_w_RS_S_z [rad s^-1]",
+    " b_a_RS_S_x [m s^-2]",
+    " b_a_RS_S_y [m s^-2]",
+    " b_a_RS_S_z [m s^-2]",
+)
 LOADS_HEADER = ("id", "x_m", "y_m", "z_m")
 BLACKOUTS_HEADER = ("#start_ns", "end_ns", "kind")
 INT64_MAX = 2**63 - 1
@@ -72,23 +93,23 @@ _DIGITS = re.compile(r"[0-9]+")
 
 # plausibility limits (check_log)
 GRAVITY_M_S2 = 9.80665
-ACCEL_NORM_RANGE_M_S2 = (7.0, 12.5)    # median |specific force| of a flying or resting drone
-ACCEL_IN_G_RANGE = (0.7, 1.3)          # the same median when the accelerometer reports g
-GYRO_MAX_PLAUSIBLE_RAD_S = 8.7         # 500 deg/s: beyond any warehouse flight's 99th percentile
-GYRO_NOISE_RATIO_SUSPECT = 30.0        # measured / stated white noise (deg/s: 57x; rotor vibration
-                                       # and conservative Kalibr densities stay well below)
-SATURATION_MIN_SAMPLES = 10            # repeats of an axis' extreme value that mean clipping
+ACCEL_NORM_RANGE_M_S2 = (7.0, 12.5)  # median |specific force| of a flying or resting drone
+ACCEL_IN_G_RANGE = (0.7, 1.3)  # the same median when the accelerometer reports g
+GYRO_MAX_PLAUSIBLE_RAD_S = 8.7  # 500 deg/s: beyond any warehouse flight's 99th percentile
+GYRO_NOISE_RATIO_SUSPECT = 30.0  # measured / stated white noise (deg/s: 57x; rotor vibration
+# and conservative Kalibr densities stay well below)
+SATURATION_MIN_SAMPLES = 10  # repeats of an axis' extreme value that mean clipping
 SATURATION_MIN_FRACTION = 0.005
-RATE_MISMATCH_FACTOR = 1.5             # measured vs sensor.yaml rate_hz
-UNIT_MATCH_DECADES = 0.3               # |log10(ratio) - 3k| below this: a factor 1000^k (units)
-MIN_PLAUSIBLE_DT_NS = 100_000          # faster than 10 kHz: timestamps are not nanoseconds
-CLOCK_OFFSET_MAX_S = 0.5               # streams shifted by more than this: a clock offset
-T_BS_MAX_TRANSLATION_M = 1.0           # a sensor farther than this from the IMU: millimetres?
-QUAT_NORM_TOLERANCE = 1e-3             # ground-truth quaternions further from unit: renormalised
-QUAT_NORM_MIN = 1e-6                   # below this a quaternion is no rotation at all
+RATE_MISMATCH_FACTOR = 1.5  # measured vs sensor.yaml rate_hz
+UNIT_MATCH_DECADES = 0.3  # |log10(ratio) - 3k| below this: a factor 1000^k (units)
+MIN_PLAUSIBLE_DT_NS = 100_000  # faster than 10 kHz: timestamps are not nanoseconds
+CLOCK_OFFSET_MAX_S = 0.5  # streams shifted by more than this: a clock offset
+T_BS_MAX_TRANSLATION_M = 1.0  # a sensor farther than this from the IMU: millimetres?
+QUAT_NORM_TOLERANCE = 1e-3  # ground-truth quaternions further from unit: renormalised
+QUAT_NORM_MIN = 1e-6  # below this a quaternion is no rotation at all
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-IMAGE_HEADER_BYTES = 64 * 1024         # enough to reach a JPEG's frame header (after EXIF)
-PARTIAL_MARKER = ".fusion-partial"     # inside `<log>.partial/`: written by FlightLogWriter
+IMAGE_HEADER_BYTES = 64 * 1024  # enough to reach a JPEG's frame header (after EXIF)
+PARTIAL_MARKER = ".fusion-partial"  # inside `<log>.partial/`: written by FlightLogWriter
 LOG_CONFLICT_NAMES = ("world.yaml", "loads_groundtruth.csv", "blackouts_groundtruth.csv", "mav0")
 
 
@@ -99,6 +120,7 @@ LOG_CONFLICT_NAMES = ("world.yaml", "loads_groundtruth.csv", "blackouts_groundtr
 class LogWarning:
     """A named, counted problem of a flight log that does not stop the run (e.g. a suspected
     unit mistake); `count` is how many rows / streams / files it concerns."""
+
     name: str
     count: int
     message: str
@@ -113,18 +135,20 @@ class LogWarning:
 @dataclass
 class ImuNoise:
     """Continuous-time IMU noise as in Kalibr's imu.yaml (units per sqrt(Hz))."""
-    gyroscope_noise_density: float = 1.7e-4       # rad / s / sqrt(Hz)
-    gyroscope_random_walk: float = 1.9e-5         # rad / s^2 / sqrt(Hz)
-    accelerometer_noise_density: float = 2.0e-3   # m / s^2 / sqrt(Hz)
-    accelerometer_random_walk: float = 3.0e-3     # m / s^3 / sqrt(Hz)
+
+    gyroscope_noise_density: float = 1.7e-4  # rad / s / sqrt(Hz)
+    gyroscope_random_walk: float = 1.9e-5  # rad / s^2 / sqrt(Hz)
+    accelerometer_noise_density: float = 2.0e-3  # m / s^2 / sqrt(Hz)
+    accelerometer_random_walk: float = 3.0e-3  # m / s^3 / sqrt(Hz)
 
 
 @dataclass
 class ImuData:
     """IMU samples in the IMU frame S; `T_body_imu` is its T_BS (identity when B is the IMU)."""
-    timestamps_ns: np.ndarray     # (N,) int64
-    gyro_rad_s: np.ndarray        # (N, 3) angular rate w_RS_S
-    accel_m_s2: np.ndarray        # (N, 3) specific force a_RS_S (gravity included)
+
+    timestamps_ns: np.ndarray  # (N,) int64
+    gyro_rad_s: np.ndarray  # (N, 3) angular rate w_RS_S
+    accel_m_s2: np.ndarray  # (N, 3) specific force a_RS_S (gravity included)
     noise: ImuNoise = field(default_factory=ImuNoise)
     T_body_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
     rate_hz: float = 200.0
@@ -133,20 +157,22 @@ class ImuData:
 @dataclass
 class VelocityData:
     """Body-frame velocity (e.g. optical flow + range), `noise_m_s` per axis (1 sigma)."""
-    timestamps_ns: np.ndarray     # (N,)
-    v_body_m_s: np.ndarray        # (N, 3)
+
+    timestamps_ns: np.ndarray  # (N,)
+    v_body_m_s: np.ndarray  # (N, 3)
     noise_m_s: float = 0.05
 
 
 @dataclass
 class GroundTruth:
     """EuRoC ground truth: body pose in W, world velocity, IMU biases."""
-    timestamps_ns: np.ndarray     # (N,)
-    p_world: np.ndarray           # (N, 3)
+
+    timestamps_ns: np.ndarray  # (N,)
+    p_world: np.ndarray  # (N, 3)
     q_world_body_wxyz: np.ndarray  # (N, 4)
-    v_world: np.ndarray           # (N, 3)
-    bias_gyro: np.ndarray         # (N, 3)
-    bias_accel: np.ndarray        # (N, 3)
+    v_world: np.ndarray  # (N, 3)
+    bias_gyro: np.ndarray  # (N, 3)
+    bias_accel: np.ndarray  # (N, 3)
 
     @property
     def T_world_body(self) -> np.ndarray:
@@ -160,19 +186,20 @@ class GroundTruth:
 @dataclass
 class Frame:
     timestamp_ns: int
-    image: np.ndarray | None      # uint8 grayscale (H, W); None when skipped
+    image: np.ndarray | None  # uint8 grayscale (H, W); None when skipped
     path: Path
 
 
 @dataclass
 class CameraStream:
     """One camera's frames; iterate `frames()` to stream images."""
+
     name: str
     camera: CameraModel
     timestamps_ns: np.ndarray
     paths: list[Path]
     csv_lines: list[int]
-    skipped: list[str] = field(default_factory=list)   # one message per skipped frame
+    skipped: list[str] = field(default_factory=list)  # one message per skipped frame
 
     def __len__(self) -> int:
         return len(self.timestamps_ns)
@@ -192,16 +219,20 @@ class CameraStream:
                 size = image_size_from_header(data)
                 limit = (self.camera.width, self.camera.height)
                 if size is not None and size != limit:
-                    self.skipped.append(f"{where}: image {path.name} is {size[0]}x{size[1]} "
-                                        f"(header), sensor.yaml says {limit[0]}x{limit[1]}")
+                    self.skipped.append(
+                        f"{where}: image {path.name} is {size[0]}x{size[1]} "
+                        f"(header), sensor.yaml says {limit[0]}x{limit[1]}"
+                    )
                     return None
                 if size is None and data.startswith(PNG_SIGNATURE):
-                    self.skipped.append(f"{where}: image {path.name} is unreadable (PNG header "
-                                        "truncated or malformed)")
+                    self.skipped.append(
+                        f"{where}: image {path.name} is unreadable (PNG header truncated or malformed)"
+                    )
                     return None
                 if size is None and os.fstat(f.fileno()).st_size > _max_image_bytes(*limit):
-                    self.skipped.append(f"{where}: image {path.name} is too large for "
-                                        f"{limit[0]}x{limit[1]} px")
+                    self.skipped.append(
+                        f"{where}: image {path.name} is too large for {limit[0]}x{limit[1]} px"
+                    )
                     return None
                 data += f.read()
         except LogError as e:
@@ -218,8 +249,10 @@ class CameraStream:
             self.skipped.append(f"{where}: image {path.name} is unreadable")
             return None
         if img.shape != (self.camera.height, self.camera.width):
-            self.skipped.append(f"{where}: image {path.name} is {img.shape[1]}x{img.shape[0]}, "
-                                f"sensor.yaml says {self.camera.width}x{self.camera.height}")
+            self.skipped.append(
+                f"{where}: image {path.name} is {img.shape[1]}x{img.shape[0]}, "
+                f"sensor.yaml says {self.camera.width}x{self.camera.height}"
+            )
             return None
         return img
 
@@ -242,15 +275,15 @@ def image_size_from_header(data: bytes) -> tuple[int, int] | None:
             if data[i] != 0xFF:
                 return (0, 0)
             marker = data[i + 1]
-            if marker == 0xFF:            # fill byte
+            if marker == 0xFF:  # fill byte
                 i += 1
                 continue
             if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
                 i += 2
                 continue
-            (length,) = struct.unpack(">H", data[i + 2:i + 4])
+            (length,) = struct.unpack(">H", data[i + 2 : i + 4])
             if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-                h, w = struct.unpack(">HH", data[i + 5:i + 9])
+                h, w = struct.unpack(">HH", data[i + 5 : i + 9])
                 return int(w), int(h)
             i += 2 + length
         return None
@@ -271,8 +304,8 @@ class FlightLog:
     velocity: VelocityData | None = None
     groundtruth: GroundTruth | None = None
     loads_groundtruth: dict[str, np.ndarray] | None = None
-    blackouts: list[tuple[int, int, str]] | None = None   # (start_ns, end_ns, kind)
-    warnings: list[LogWarning] = field(default_factory=list)   # plausibility (check_log)
+    blackouts: list[tuple[int, int, str]] | None = None  # (start_ns, end_ns, kind)
+    warnings: list[LogWarning] = field(default_factory=list)  # plausibility (check_log)
 
     @property
     def floor(self) -> CameraStream:
@@ -316,11 +349,14 @@ def _timestamp(text: str, path: Path, lineno: int) -> int:
         raise LogError(f"{path}:{lineno}: negative timestamp {text[:30]}")
     if not _DIGITS.fullmatch(text):
         hint = " (seconds with a fraction?)" if re.fullmatch(r"[0-9]+\.[0-9]*", text) else ""
-        raise LogError(f"{path}:{lineno}: timestamp {text[:30]!r} is not an integer "
-                       f"number of nanoseconds{hint}")
+        raise LogError(
+            f"{path}:{lineno}: timestamp {text[:30]!r} is not an integer number of nanoseconds{hint}"
+        )
     if len(text) > 19 or int(text) > INT64_MAX:
-        raise LogError(f"{path}:{lineno}: timestamp {text[:30]}{'...' if len(text) > 30 else ''} "
-                       "is too large (beyond int64 nanoseconds, year 2262)")
+        raise LogError(
+            f"{path}:{lineno}: timestamp {text[:30]}{'...' if len(text) > 30 else ''} "
+            "is too large (beyond int64 nanoseconds, year 2262)"
+        )
     return int(text)
 
 
@@ -393,8 +429,7 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
             raise LogError(f"{csv_path}:{lineno}: empty file name")
         path = (data_dir / fname).resolve()
         if data_dir not in path.parents:
-            raise LogError(f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside "
-                           f"{cam_dir / 'data'}")
+            raise LogError(f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside {cam_dir / 'data'}")
         ts.append(t)
         paths.append(path)
         lines.append(lineno)
@@ -408,13 +443,16 @@ def _read_imu(imu_dir: Path) -> ImuData:
     cfg = load_yaml(sensor_path, LogError)
     _check_sensor_numbers(cfg, str(sensor_path), camera=False)
     noise = {}
-    for key in ("gyroscope_noise_density", "gyroscope_random_walk",
-                "accelerometer_noise_density", "accelerometer_random_walk"):
+    for key in (
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+    ):
         if key not in cfg:
             raise LogError(f"{sensor_path}: missing key '{key}'")
         noise[key] = strict_float(cfg[key], f"{sensor_path}: {key}", LogError, positive=True)
-    T = read_T_BS(cfg.get("T_BS", {"data": np.eye(4).reshape(-1).tolist()}), str(sensor_path),
-                  LogError)
+    T = read_T_BS(cfg.get("T_BS", {"data": np.eye(4).reshape(-1).tolist()}), str(sensor_path), LogError)
     ts, vals = _numeric_csv(imu_dir / "data.csv", 7)
     if cfg.get("rate_hz") is not None:
         rate = float(cfg["rate_hz"])
@@ -429,8 +467,9 @@ def _read_velocity(vel_dir: Path) -> VelocityData:
     sensor_path = vel_dir / "sensor.yaml"
     if sensor_path.exists():
         cfg = load_yaml(sensor_path, LogError)
-        noise = strict_float(cfg.get("noise_m_s", noise), f"{sensor_path}: noise_m_s", LogError,
-                             positive=True)
+        noise = strict_float(
+            cfg.get("noise_m_s", noise), f"{sensor_path}: noise_m_s", LogError, positive=True
+        )
     ts, vals = _numeric_csv(vel_dir / "data.csv", 4)
     return VelocityData(ts, vals, noise)
 
@@ -443,18 +482,24 @@ def _read_groundtruth(path: Path) -> tuple[GroundTruth, list[LogWarning]]:
     norm = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(norm < QUAT_NORM_MIN)
     if len(bad):
-        raise LogError(f"{path}:{lines[bad[0]]}: quaternion q_RS_wxyz "
-                       f"({', '.join(f'{x:g}' for x in q[bad[0]])}) is not a rotation")
+        raise LogError(
+            f"{path}:{lines[bad[0]]}: quaternion q_RS_wxyz "
+            f"({', '.join(f'{x:g}' for x in q[bad[0]])}) is not a rotation"
+        )
     warnings = []
     off = np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE
     if off.any():
         i = int(np.flatnonzero(off)[0])
-        warnings.append(LogWarning(
-            "groundtruth_quaternion_not_unit", int(off.sum()),
-            f"{path}: {int(off.sum())} quaternion(s) not of unit norm (first: line {lines[i]}, "
-            f"norm {norm[i]:.4g}); renormalised"))
+        warnings.append(
+            LogWarning(
+                "groundtruth_quaternion_not_unit",
+                int(off.sum()),
+                f"{path}: {int(off.sum())} quaternion(s) not of unit norm (first: line {lines[i]}, "
+                f"norm {norm[i]:.4g}); renormalised",
+            )
+        )
         q = q.copy()
-        q[off] /= norm[off, None]       # unit ones stay bit-exact
+        q[off] /= norm[off, None]  # unit ones stay bit-exact
     return GroundTruth(ts, v[:, 0:3], q, v[:, 7:10], v[:, 10:13], v[:, 13:16]), warnings
 
 
@@ -522,8 +567,7 @@ def _declared_rate(sensor_path: Path) -> float | None:
 _UNIT_NAMES = {1: "microseconds", 2: "milliseconds", 3: "seconds"}
 
 
-def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
-                ) -> list[LogWarning]:
+def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None) -> list[LogWarning]:
     """Timestamp units from the sample interval against sensor.yaml's rate_hz: a ratio of
     1e-3 / 1e-6 / 1e-9 is a unit mistake (LogError); any other mismatch a warning."""
     if len(ts) < 2:
@@ -531,22 +575,34 @@ def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
     dt = float(np.median(np.diff(ts)))
     if rate_hz is None:
         if dt < MIN_PLAUSIBLE_DT_NS:
-            return [LogWarning("timestamp_units", 1,
-                               f"{csv_path}: timestamps advance {dt:g} per sample, i.e. faster "
-                               f"than {1e9 / MIN_PLAUSIBLE_DT_NS:g} Hz if they were nanoseconds: "
-                               "are they in another unit?")]
+            return [
+                LogWarning(
+                    "timestamp_units",
+                    1,
+                    f"{csv_path}: timestamps advance {dt:g} per sample, i.e. faster "
+                    f"than {1e9 / MIN_PLAUSIBLE_DT_NS:g} Hz if they were nanoseconds: "
+                    "are they in another unit?",
+                )
+            ]
         return []
     expected = 1e9 / rate_hz
     decades = math.log10(dt / expected)
     k = round(-decades / 3)
     if k in _UNIT_NAMES and abs(decades + 3 * k) < UNIT_MATCH_DECADES:
-        raise LogError(f"{csv_path}: timestamps advance {dt:g} per sample while "
-                       f"{csv_path.parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
-                       f"like {_UNIT_NAMES[k]}; EuRoC timestamps are nanoseconds")
+        raise LogError(
+            f"{csv_path}: timestamps advance {dt:g} per sample while "
+            f"{csv_path.parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
+            f"like {_UNIT_NAMES[k]}; EuRoC timestamps are nanoseconds"
+        )
     if abs(decades) > math.log10(RATE_MISMATCH_FACTOR):
-        return [LogWarning("rate_mismatch", 1,
-                           f"{name}: samples every {dt * 1e-6:.4g} ms ({1e9 / dt:.4g} Hz) but "
-                           f"sensor.yaml says rate_hz {rate_hz:g}")]
+        return [
+            LogWarning(
+                "rate_mismatch",
+                1,
+                f"{name}: samples every {dt * 1e-6:.4g} ms ({1e9 / dt:.4g} Hz) but "
+                f"sensor.yaml says rate_hz {rate_hz:g}",
+            )
+        ]
     return []
 
 
@@ -558,13 +614,20 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
     n = len(imu.timestamps_ns)
     a_norm = float(np.median(np.linalg.norm(imu.accel_m_s2, axis=1)))
     if ACCEL_IN_G_RANGE[0] <= a_norm <= ACCEL_IN_G_RANGE[1]:
-        raise LogError(f"{csv_path}: the accelerometer's median magnitude is {a_norm:.3g}, gravity "
-                       f"is {GRAVITY_M_S2} m s^-2: the a_RS_S columns look like g; convert them "
-                       "to m s^-2")
+        raise LogError(
+            f"{csv_path}: the accelerometer's median magnitude is {a_norm:.3g}, gravity "
+            f"is {GRAVITY_M_S2} m s^-2: the a_RS_S columns look like g; convert them "
+            "to m s^-2"
+        )
     if not ACCEL_NORM_RANGE_M_S2[0] <= a_norm <= ACCEL_NORM_RANGE_M_S2[1]:
-        out.append(LogWarning("accelerometer_magnitude", 1,
-                              f"{csv_path}: median |a_RS_S| is {a_norm:.3g} m s^-2, gravity is "
-                              f"{GRAVITY_M_S2}: wrong units, scale or a broken sensor?"))
+        out.append(
+            LogWarning(
+                "accelerometer_magnitude",
+                1,
+                f"{csv_path}: median |a_RS_S| is {a_norm:.3g} m s^-2, gravity is "
+                f"{GRAVITY_M_S2}: wrong units, scale or a broken sensor?",
+            )
+        )
     w_norm = np.linalg.norm(imu.gyro_rad_s, axis=1)
     p99 = float(np.percentile(w_norm, 99))
     ratio = None
@@ -572,11 +635,19 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
         sigma_d = float(np.median(np.std(np.diff(imu.gyro_rad_s, axis=0), axis=0))) / math.sqrt(2)
         ratio = sigma_d / (imu.noise.gyroscope_noise_density * math.sqrt(imu.rate_hz))
     if p99 > GYRO_MAX_PLAUSIBLE_RAD_S or (ratio is not None and ratio > GYRO_NOISE_RATIO_SUSPECT):
-        why = (f"99th percentile of |w| {p99:.3g} rad/s" if p99 > GYRO_MAX_PLAUSIBLE_RAD_S
-               else f"white noise {ratio:.3g}x sensor.yaml's gyroscope_noise_density")
-        out.append(LogWarning("gyroscope_units", 1,
-                              f"{csv_path}: {why}: the gyro looks like deg/s (rad/s expected), or "
-                              "sensor.yaml's noise is wrong"))
+        why = (
+            f"99th percentile of |w| {p99:.3g} rad/s"
+            if p99 > GYRO_MAX_PLAUSIBLE_RAD_S
+            else f"white noise {ratio:.3g}x sensor.yaml's gyroscope_noise_density"
+        )
+        out.append(
+            LogWarning(
+                "gyroscope_units",
+                1,
+                f"{csv_path}: {why}: the gyro looks like deg/s (rad/s expected), or "
+                "sensor.yaml's noise is wrong",
+            )
+        )
     clipped = 0
     for col in np.hstack([imu.gyro_rad_s, imu.accel_m_s2]).T:
         m = float(np.max(np.abs(col)))
@@ -584,9 +655,14 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
         if hits >= max(SATURATION_MIN_SAMPLES, SATURATION_MIN_FRACTION * n):
             clipped += hits
     if clipped:
-        out.append(LogWarning("imu_saturated", clipped,
-                              f"{csv_path}: {clipped} sample value(s) sit at an axis' extreme: the "
-                              "IMU saturates (clipped motion)"))
+        out.append(
+            LogWarning(
+                "imu_saturated",
+                clipped,
+                f"{csv_path}: {clipped} sample value(s) sit at an axis' extreme: the "
+                "IMU saturates (clipped motion)",
+            )
+        )
     return out
 
 
@@ -603,20 +679,29 @@ def check_log(log: FlightLog) -> list[LogWarning]:
     out: list[LogWarning] = []
     streams: dict[str, np.ndarray] = {}
     for name, cam in log.cameras.items():
-        out += _check_rate(name, mav / name / "data.csv", cam.timestamps_ns,
-                           _declared_rate(mav / name / "sensor.yaml"))
+        out += _check_rate(
+            name, mav / name / "data.csv", cam.timestamps_ns, _declared_rate(mav / name / "sensor.yaml")
+        )
         streams[name] = cam.timestamps_ns
     if log.imu is not None:
-        out += _check_rate("imu0", mav / "imu0" / "data.csv", log.imu.timestamps_ns,
-                           _declared_rate(mav / "imu0" / "sensor.yaml"))
+        out += _check_rate(
+            "imu0",
+            mav / "imu0" / "data.csv",
+            log.imu.timestamps_ns,
+            _declared_rate(mav / "imu0" / "sensor.yaml"),
+        )
         out += _check_imu(log.imu, mav / "imu0" / "data.csv")
         streams["imu0"] = log.imu.timestamps_ns
     if log.velocity is not None:
         out += _check_rate("vel0", mav / "vel0" / "data.csv", log.velocity.timestamps_ns, None)
         streams["vel0"] = log.velocity.timestamps_ns
     if log.groundtruth is not None:
-        out += _check_rate("groundtruth", mav / "state_groundtruth_estimate0" / "data.csv",
-                           log.groundtruth.timestamps_ns, None)
+        out += _check_rate(
+            "groundtruth",
+            mav / "state_groundtruth_estimate0" / "data.csv",
+            log.groundtruth.timestamps_ns,
+            None,
+        )
         streams["groundtruth"] = log.groundtruth.timestamps_ns
     ref0, ref1 = _span(streams["cam0"])
     for name, ts in streams.items():
@@ -625,27 +710,41 @@ def check_log(log: FlightLog) -> list[LogWarning]:
         a0, a1 = _span(ts)
         d0, d1 = (a0 - ref0) * 1e-9, (a1 - ref1) * 1e-9
         if a0 > ref1 or a1 < ref0:
-            out.append(LogWarning("clock_offset", 1,
-                                  f"{name} ({a0 * 1e-9:.6g}-{a1 * 1e-9:.6g} s) does not overlap "
-                                  f"cam0 ({ref0 * 1e-9:.6g}-{ref1 * 1e-9:.6g} s): its clock is "
-                                  "offset or in other units"))
+            out.append(
+                LogWarning(
+                    "clock_offset",
+                    1,
+                    f"{name} ({a0 * 1e-9:.6g}-{a1 * 1e-9:.6g} s) does not overlap "
+                    f"cam0 ({ref0 * 1e-9:.6g}-{ref1 * 1e-9:.6g} s): its clock is "
+                    "offset or in other units",
+                )
+            )
         elif d0 * d1 > 0 and min(abs(d0), abs(d1)) > CLOCK_OFFSET_MAX_S:
             off = d0 if abs(d0) < abs(d1) else d1
-            out.append(LogWarning("clock_offset", 1,
-                                  f"{name} starts and ends {abs(off):.3g} s "
-                                  f"{'later' if off > 0 else 'earlier'} than cam0: its clock "
-                                  f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)"))
-    mounts = {name: (mav / name / "sensor.yaml", cam.camera.T_body_cam)
-              for name, cam in log.cameras.items()}
+            out.append(
+                LogWarning(
+                    "clock_offset",
+                    1,
+                    f"{name} starts and ends {abs(off):.3g} s "
+                    f"{'later' if off > 0 else 'earlier'} than cam0: its clock "
+                    f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)",
+                )
+            )
+    mounts = {name: (mav / name / "sensor.yaml", cam.camera.T_body_cam) for name, cam in log.cameras.items()}
     if log.imu is not None:
         mounts["imu0"] = (mav / "imu0" / "sensor.yaml", log.imu.T_body_imu)
     for name, (path, T) in mounts.items():
         d = float(np.linalg.norm(np.asarray(T)[:3, 3]))
         if d > T_BS_MAX_TRANSLATION_M:
-            out.append(LogWarning("T_BS_translation", 1,
-                                  f"{path}: T_BS puts {name} {d:.4g} m from the body origin "
-                                  f"(more than {T_BS_MAX_TRANSLATION_M:g} m): millimetres "
-                                  "instead of metres?"))
+            out.append(
+                LogWarning(
+                    "T_BS_translation",
+                    1,
+                    f"{path}: T_BS puts {name} {d:.4g} m from the body origin "
+                    f"(more than {T_BS_MAX_TRANSLATION_M:g} m): millimetres "
+                    "instead of metres?",
+                )
+            )
     return out
 
 
@@ -702,17 +801,21 @@ class FlightLogWriter:
         if os.path.lexists(self.tmp):
             marker = self.tmp / PARTIAL_MARKER
             try:
-                pid = int(marker.read_text(encoding="utf-8").split()[0]) \
-                    if self.tmp.is_dir() and not self.tmp.is_symlink() else None
+                pid = (
+                    int(marker.read_text(encoding="utf-8").split()[0])
+                    if self.tmp.is_dir() and not self.tmp.is_symlink()
+                    else None
+                )
             except (OSError, ValueError, IndexError):
                 pid = None
             if pid is None:
-                raise LogError(f"{self.tmp}: exists and was not made by fusion; move or remove it "
-                               f"to write {self.root.name}")
+                raise LogError(
+                    f"{self.tmp}: exists and was not made by fusion; move or remove it "
+                    f"to write {self.root.name}"
+                )
             if pid_alive(pid):
-                raise LogError(f"{self.tmp}: another fusion process (pid {pid}) is writing this "
-                               "flight log")
-            shutil.rmtree(self.tmp)          # a dead writer's leftover: ours to remove
+                raise LogError(f"{self.tmp}: another fusion process (pid {pid}) is writing this flight log")
+            shutil.rmtree(self.tmp)  # a dead writer's leftover: ours to remove
         self.tmp.mkdir()
         self._owns_tmp = True
         (self.tmp / PARTIAL_MARKER).write_text(f"{os.getpid()}\n", encoding="utf-8")
@@ -723,7 +826,7 @@ class FlightLogWriter:
             self._owns_tmp = False
 
     # context manager: commit on success, discard on error
-    def __enter__(self) -> "FlightLogWriter":
+    def __enter__(self) -> FlightLogWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -768,33 +871,47 @@ class FlightLogWriter:
         d = self.tmp / "mav0" / "imu0"
         d.mkdir(parents=True, exist_ok=True)
         n = imu.noise
-        dump_yaml({"sensor_type": "imu", "comment": "fusion flight log",
-                   "T_BS": {"cols": 4, "rows": 4,
-                            "data": [float(v) for v in np.asarray(imu.T_body_imu).reshape(-1)]},
-                   "rate_hz": float(imu.rate_hz),
-                   "gyroscope_noise_density": n.gyroscope_noise_density,
-                   "gyroscope_random_walk": n.gyroscope_random_walk,
-                   "accelerometer_noise_density": n.accelerometer_noise_density,
-                   "accelerometer_random_walk": n.accelerometer_random_walk},
-                  d / "sensor.yaml")
-        rows = ([str(int(t))] + [_fmt(v) for v in np.r_[w, a]]
-                for t, w, a in zip(imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2))
+        dump_yaml(
+            {
+                "sensor_type": "imu",
+                "comment": "fusion flight log",
+                "T_BS": {
+                    "cols": 4,
+                    "rows": 4,
+                    "data": [float(v) for v in np.asarray(imu.T_body_imu).reshape(-1)],
+                },
+                "rate_hz": float(imu.rate_hz),
+                "gyroscope_noise_density": n.gyroscope_noise_density,
+                "gyroscope_random_walk": n.gyroscope_random_walk,
+                "accelerometer_noise_density": n.accelerometer_noise_density,
+                "accelerometer_random_walk": n.accelerometer_random_walk,
+            },
+            d / "sensor.yaml",
+        )
+        rows = (
+            [str(int(t))] + [_fmt(v) for v in np.r_[w, a]]
+            for t, w, a in zip(imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2)
+        )
         _write_csv(d / "data.csv", IMU_HEADER, rows)
 
     def write_velocity(self, vel: VelocityData) -> None:
         d = self.tmp / "mav0" / "vel0"
         d.mkdir(parents=True, exist_ok=True)
-        dump_yaml({"sensor_type": "velocity", "frame": "body", "noise_m_s": float(vel.noise_m_s)},
-                  d / "sensor.yaml")
+        dump_yaml(
+            {"sensor_type": "velocity", "frame": "body", "noise_m_s": float(vel.noise_m_s)}, d / "sensor.yaml"
+        )
         rows = ([str(int(t))] + [_fmt(x) for x in v] for t, v in zip(vel.timestamps_ns, vel.v_body_m_s))
         _write_csv(d / "data.csv", VEL_HEADER, rows)
 
     def write_groundtruth(self, gt: GroundTruth) -> None:
         d = self.tmp / "mav0" / "state_groundtruth_estimate0"
         d.mkdir(parents=True, exist_ok=True)
-        rows = ([str(int(t))] + [_fmt(x) for x in np.r_[p, q, v, bw, ba]]
-                for t, p, q, v, bw, ba in zip(gt.timestamps_ns, gt.p_world, gt.q_world_body_wxyz,
-                                              gt.v_world, gt.bias_gyro, gt.bias_accel))
+        rows = (
+            [str(int(t))] + [_fmt(x) for x in np.r_[p, q, v, bw, ba]]
+            for t, p, q, v, bw, ba in zip(
+                gt.timestamps_ns, gt.p_world, gt.q_world_body_wxyz, gt.v_world, gt.bias_gyro, gt.bias_accel
+            )
+        )
         _write_csv(d / "data.csv", GT_HEADER, rows)
 
     def write_loads_groundtruth(self, loads: dict[str, np.ndarray]) -> None:
@@ -802,21 +919,34 @@ class FlightLogWriter:
         _write_csv(self.tmp / "loads_groundtruth.csv", LOADS_HEADER, rows)
 
     def write_blackouts(self, blackouts: list[tuple[int, int, str]]) -> None:
-        _write_csv(self.tmp / "blackouts_groundtruth.csv", BLACKOUTS_HEADER,
-                   ([str(int(a)), str(int(b)), k] for a, b, k in blackouts))
+        _write_csv(
+            self.tmp / "blackouts_groundtruth.csv",
+            BLACKOUTS_HEADER,
+            ([str(int(a)), str(int(b)), k] for a, b, k in blackouts),
+        )
 
     def close(self) -> Path:
         """Finish the log: frame lists and manifest, then move it to `root` (replacing only the
         previous log's own files)."""
         for name, frames in self._frames.items():
-            _write_csv(self.tmp / "mav0" / name / "data.csv", ("#timestamp [ns]", "filename"),
-                       ([str(t), f] for t, f in frames))
+            _write_csv(
+                self.tmp / "mav0" / name / "data.csv",
+                ("#timestamp [ns]", "filename"),
+                ([str(t), f] for t, f in frames),
+            )
         os.unlink(self.tmp / PARTIAL_MARKER)
-        files = sorted(str(p.relative_to(self.tmp).as_posix())
-                       for p in self.tmp.rglob("*") if p.is_file())
+        files = sorted(str(p.relative_to(self.tmp).as_posix()) for p in self.tmp.rglob("*") if p.is_file())
         with atomic_open(self.tmp / MANIFEST_NAME) as f:
-            json.dump({"format": MANIFEST_FORMAT, "written_by": "fusion simulate",
-                       "status": "complete", "files": [{"path": r} for r in files]}, f, indent=0)
+            json.dump(
+                {
+                    "format": MANIFEST_FORMAT,
+                    "written_by": "fusion simulate",
+                    "status": "complete",
+                    "files": [{"path": r} for r in files],
+                },
+                f,
+                indent=0,
+            )
         if not os.path.lexists(self.root):
             self.tmp.rename(self.root)
         else:
@@ -846,14 +976,19 @@ def _previous_log_files(root: Path) -> list[str]:
     for name in LOG_CONFLICT_NAMES:
         p = root / name
         if p.is_dir() and not p.is_symlink():
-            foreign += [q.relative_to(root).as_posix() for q in p.rglob("*")
-                        if not q.is_dir() and q.relative_to(root).as_posix() not in ours]
+            foreign += [
+                q.relative_to(root).as_posix()
+                for q in p.rglob("*")
+                if not q.is_dir() and q.relative_to(root).as_posix() not in ours
+            ]
         elif os.path.lexists(p) and name not in ours:
             foreign.append(name)
     if foreign:
-        raise LogError(f"{root}: holds {len(foreign)} file(s) that fusion did not write "
-                       f"(e.g. {', '.join(sorted(foreign)[:3])}); refusing to overwrite them: "
-                       "choose another folder or move them away")
+        raise LogError(
+            f"{root}: holds {len(foreign)} file(s) that fusion did not write "
+            f"(e.g. {', '.join(sorted(foreign)[:3])}); refusing to overwrite them: "
+            "choose another folder or move them away"
+        )
     return sorted(ours)
 
 
@@ -866,4 +1001,3 @@ def _merge_into(src: Path, dst: Path) -> None:
             entry.rmdir()
         else:
             os.replace(entry, target)
-

@@ -3,6 +3,7 @@
 TUM line: `t_s tx ty tz qx qy qz qw` of T_world_body.  The quaternion order is rolled
 (wxyz <-> xyzw) here, at the file boundary, and nowhere else.
 """
+
 from __future__ import annotations
 
 import csv
@@ -27,9 +28,11 @@ def write_tum(path: Path, traj: Trajectory) -> None:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         for t, p, qi in zip(traj.timestamps_ns, traj.positions_xyz, q):
             t = int(t)
-            f.write(f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} "
-                    f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
-                    f"{qi[1]:.12f} {qi[2]:.12f} {qi[3]:.12f} {qi[0]:.12f}\n")
+            f.write(
+                f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} "
+                f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+                f"{qi[1]:.12f} {qi[2]:.12f} {qi[3]:.12f} {qi[0]:.12f}\n"
+            )
 
 
 def read_tum(path: Path, name: str | None = None) -> Trajectory:
@@ -55,15 +58,17 @@ def read_tum(path: Path, name: str | None = None) -> Trajectory:
         if not all(math.isfinite(v) for v in vals):
             raise LogError(f"{path}:{lineno}: NaN or infinite value")
         sec, _, frac = parts[0].partition(".")
-        t_ns = int(sec) * 1_000_000_000 + int((frac + "000000000")[:9]) if sec.lstrip("-").isdigit() \
+        t_ns = (
+            int(sec) * 1_000_000_000 + int((frac + "000000000")[:9])
+            if sec.lstrip("-").isdigit()
             else int(round(vals[0] * 1e9))
+        )
         M = np.eye(4)
         M[:3, :3] = R_from_quat_wxyz(np.array([vals[7], vals[4], vals[5], vals[6]]))
         M[:3, 3] = vals[1:4]
         ts.append(t_ns)
         T.append(M)
-    return Trajectory(name or path.stem, np.asarray(ts, dtype=np.int64),
-                      np.asarray(T).reshape(-1, 4, 4))
+    return Trajectory(name or path.stem, np.asarray(ts, dtype=np.int64), np.asarray(T).reshape(-1, 4, 4))
 
 
 def write_loads_csv(path: Path, load_map: LoadMap) -> None:
@@ -73,9 +78,15 @@ def write_loads_csv(path: Path, load_map: LoadMap) -> None:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(LOADS_COLUMNS)
         for l in sorted(load_map.loads, key=lambda l: l.load_id):
-            sig = (np.sqrt(np.diag(l.cov_world)) if l.cov_world is not None else [None] * 3)
-            w.writerow([csv_safe(l.load_id), *(f"{v:.6f}" for v in l.p_world),
-                        *("" if s is None else f"{s:.6f}" for s in sig), l.n_obs])
+            sig = np.sqrt(np.diag(l.cov_world)) if l.cov_world is not None else [None] * 3
+            w.writerow(
+                [
+                    csv_safe(l.load_id),
+                    *(f"{v:.6f}" for v in l.p_world),
+                    *("" if s is None else f"{s:.6f}" for s in sig),
+                    l.n_obs,
+                ]
+            )
 
 
 def read_loads_csv(path: Path, name: str | None = None) -> LoadMap:
@@ -99,10 +110,19 @@ def read_loads_csv(path: Path, name: str | None = None) -> LoadMap:
 
 
 def write_loads_json(path: Path, load_map: LoadMap) -> None:
-    data = {"estimator": load_map.name, "frame": "world", "unit": "m",
-            "loads": [{"id": l.load_id, "p_world_m": [float(v) for v in l.p_world],
-                       "cov_world_m2": None if l.cov_world is None
-                       else np.asarray(l.cov_world).tolist(), "n_obs": int(l.n_obs)}
-                      for l in sorted(load_map.loads, key=lambda l: l.load_id)]}
+    data = {
+        "estimator": load_map.name,
+        "frame": "world",
+        "unit": "m",
+        "loads": [
+            {
+                "id": l.load_id,
+                "p_world_m": [float(v) for v in l.p_world],
+                "cov_world_m2": None if l.cov_world is None else np.asarray(l.cov_world).tolist(),
+                "n_obs": int(l.n_obs),
+            }
+            for l in sorted(load_map.loads, key=lambda l: l.load_id)
+        ],
+    }
     with atomic_open(path) as f:
         json.dump(data, f, indent=1)

@@ -1,6 +1,7 @@
 """`inspect_log`: what a log holds, whatever its format - streams (topics), types, counts, rates,
 durations, gaps, out-of-order and duplicate stamps, which stream fills which role, and whether
 the IMU's units look like rad/s and m/s^2."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -16,17 +17,22 @@ from fusion.types import CameraRole
 
 GAP_FACTOR = 2.5
 """A step longer than this many median steps is a gap."""
-ACCEL_G_RANGE_M_S2 = (0.5, 1.5)        # median |a| here: the accelerometer logs in g
+ACCEL_G_RANGE_M_S2 = (0.5, 1.5)  # median |a| here: the accelerometer logs in g
 ACCEL_OK_RANGE_M_S2 = (0.8 * GRAVITY_M_S2, 1.2 * GRAVITY_M_S2)
-GYRO_DEG_S_SUSPECT_RAD_S = 20.0        # 99th percentile |w| above this: probably deg/s
+GYRO_DEG_S_SUSPECT_RAD_S = 20.0  # 99th percentile |w| above this: probably deg/s
 GYRO_PERCENTILE = 99
-ROLE_NAMES = {CameraRole.FLOOR.value: "floor camera", CameraRole.FRONT.value: "front camera",
-              "imu0": "IMU", "vel0": "velocity", "groundtruth": "ground truth"}
+ROLE_NAMES = {
+    CameraRole.FLOOR.value: "floor camera",
+    CameraRole.FRONT.value: "front camera",
+    "imu0": "IMU",
+    "vel0": "velocity",
+    "groundtruth": "ground truth",
+}
 
 
 @dataclass
 class StreamStats:
-    name: str                   # topic or stream name
+    name: str  # topic or stream name
     msgtype: str
     count: int
     rate_hz: float | None
@@ -44,7 +50,7 @@ class LogReport:
     format: LogFormat
     stamps: StampSource
     streams: list[StreamStats] = field(default_factory=list)
-    roles: dict[str, str] = field(default_factory=dict)      # role -> stream
+    roles: dict[str, str] = field(default_factory=dict)  # role -> stream
     imu_units: str = ""
     problems: list[str] = field(default_factory=list)
 
@@ -52,14 +58,18 @@ class LogReport:
         bag = self.format in (LogFormat.ROSBAG1, LogFormat.ROSBAG2)
         clock = 'header stamps' if self.stamps == StampSource.HEADER else 'receive time'
         lines = [f"{self.path}: {self.format.value} log" + (f", times from {clock}" if bag else "")]
-        head = (f"{'stream':<28} {'type':<32} {'count':>7} {'rate Hz':>8} {'dur s':>8} "
-                f"{'gaps':>5} {'max gap s':>9} {'back':>5} {'dup':>5}  role")
+        head = (
+            f"{'stream':<28} {'type':<32} {'count':>7} {'rate Hz':>8} {'dur s':>8} "
+            f"{'gaps':>5} {'max gap s':>9} {'back':>5} {'dup':>5}  role"
+        )
         lines.append(head)
         for s in self.streams:
             rate = f"{s.rate_hz:8.2f}" if s.rate_hz else f"{'-':>8}"
-            lines.append(f"{s.name[:28]:<28} {s.msgtype[:32]:<32} {s.count:7d} {rate} "
-                         f"{s.duration_s:8.2f} {s.n_gaps:5d} {s.max_gap_s:9.3f} "
-                         f"{s.n_out_of_order:5d} {s.n_duplicates:5d}  {s.role}")
+            lines.append(
+                f"{s.name[:28]:<28} {s.msgtype[:32]:<32} {s.count:7d} {rate} "
+                f"{s.duration_s:8.2f} {s.n_gaps:5d} {s.max_gap_s:9.3f} "
+                f"{s.n_out_of_order:5d} {s.n_duplicates:5d}  {s.role}"
+            )
         for role in (CameraRole.FLOOR.value, CameraRole.FRONT.value, "imu0", "vel0"):
             lines.append(f"{ROLE_NAMES[role]:<13}: {self.roles.get(role, '(none)')}")
         if self.imu_units:
@@ -81,10 +91,18 @@ def time_stats(name: str, msgtype: str, t_ns, role: str = "") -> StreamStats:
     pos = steps[steps > 0]
     med = float(np.median(pos)) if len(pos) else 0.0
     gaps = steps[steps > GAP_FACTOR * med] if med > 0 else np.zeros(0)
-    return StreamStats(name, msgtype, n, 1e9 / med if med > 0 else None,
-                       float(ts[-1] - ts[0]) * 1e-9, int(len(gaps)),
-                       float(gaps.max()) * 1e-9 if len(gaps) else 0.0,
-                       int(np.sum(d < 0)), int(np.sum(steps == 0)), role)
+    return StreamStats(
+        name,
+        msgtype,
+        n,
+        1e9 / med if med > 0 else None,
+        float(ts[-1] - ts[0]) * 1e-9,
+        int(len(gaps)),
+        float(gaps.max()) * 1e-9 if len(gaps) else 0.0,
+        int(np.sum(d < 0)),
+        int(np.sum(steps == 0)),
+        role,
+    )
 
 
 def imu_units_verdict(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> str:
@@ -97,8 +115,10 @@ def imu_units_verdict(gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray) -> str:
     elif ACCEL_G_RANGE_M_S2[0] <= a <= ACCEL_G_RANGE_M_S2[1]:
         notes.append(f"accel looks like g, not m/s^2 (median |a| {a:.2f})")
     else:
-        notes.append(f"accel suspicious (median |a| {a:.2f}, expected about {GRAVITY_M_S2}: "
-                     "gravity missing or wrong units)")
+        notes.append(
+            f"accel suspicious (median |a| {a:.2f}, expected about {GRAVITY_M_S2}: "
+            "gravity missing or wrong units)"
+        )
     if w > GYRO_DEG_S_SUSPECT_RAD_S:
         notes.append(f"gyro looks like deg/s ({GYRO_PERCENTILE}th percentile |w| {w:.1f})")
     else:
@@ -123,20 +143,19 @@ def _inspect_flight(path: Path, opts: LogOptions, report: LogReport) -> None:
     flight = open_flight(path, opts)
     for name, cam in sorted(flight.cameras.items()):
         kind = type(cam).__name__.replace("CameraStream", "").lower() or "images"
-        report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns,
-                                         ROLE_NAMES[name]))
+        report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns, ROLE_NAMES[name]))
         report.roles[name] = name
     if flight.imu is not None:
         report.streams.append(time_stats("imu0", "imu", flight.imu.timestamps_ns, "IMU"))
         report.roles["imu0"] = "imu0"
         report.imu_units = imu_units_verdict(flight.imu.gyro_rad_s, flight.imu.accel_m_s2)
     if flight.velocity is not None:
-        report.streams.append(time_stats("vel0", "velocity", flight.velocity.timestamps_ns,
-                                         "velocity"))
+        report.streams.append(time_stats("vel0", "velocity", flight.velocity.timestamps_ns, "velocity"))
         report.roles["vel0"] = "vel0"
     if flight.groundtruth is not None:
-        report.streams.append(time_stats("groundtruth", "pose", flight.groundtruth.timestamps_ns,
-                                         "ground truth"))
+        report.streams.append(
+            time_stats("groundtruth", "pose", flight.groundtruth.timestamps_ns, "ground truth")
+        )
 
 
 def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
@@ -144,6 +163,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
 
     from fusion.log import rosbag as rb
     from fusion.log.sources import external_calibration
+
     path = rb.readable_bag(path)
     first = rb.scan_bag(path, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
     meta = {}
@@ -160,9 +180,12 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
         report.problems.append(str(e))
     role_of = {}
     if roles is not None:
-        for key, topic in ((CameraRole.FLOOR.value, roles.floor),
-                           (CameraRole.FRONT.value, roles.front), ("imu0", roles.imu),
-                           ("vel0", roles.velocity)):
+        for key, topic in (
+            (CameraRole.FLOOR.value, roles.floor),
+            (CameraRole.FRONT.value, roles.front),
+            ("imu0", roles.imu),
+            ("vel0", roles.velocity),
+        ):
             if topic:
                 report.roles[key] = topic
                 role_of[topic] = ROLE_NAMES[key]
@@ -177,8 +200,9 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
         t = rb.choose_times(s, opts.stamps, str(path)) if s.log_ns else []
         stats = time_stats(topic, scan.types[topic], t, role_of.get(topic, ""))
         if scan.counts.get(topic, stats.count) != stats.count:
-            report.problems.append(f"{topic}: the index lists {scan.counts[topic]} messages, "
-                                   f"{stats.count} could be read")
+            report.problems.append(
+                f"{topic}: the index lists {scan.counts[topic]} messages, {stats.count} could be read"
+            )
         report.streams.append(stats)
     if imu_topic and scan.topics[imu_topic].data:
         ga = np.array(scan.topics[imu_topic].data, dtype=float)

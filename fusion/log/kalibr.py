@@ -23,6 +23,7 @@ imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block)
 accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
 gyroscope_random_walk, rostopic, update_rate.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,15 +40,20 @@ from fusion.log.euroc import ImuNoise
 from fusion.types import CameraRole
 
 KALIBR_DISTORTION_MODELS = ("radtan", "radial-tangential", "plumb_bob")
-NOISE_KEYS = ("gyroscope_noise_density", "gyroscope_random_walk",
-              "accelerometer_noise_density", "accelerometer_random_walk")
+NOISE_KEYS = (
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+)
 
 
 @dataclass
 class KalibrCamera:
     """One `camN` block: the camera model (T_body_cam already composed), its topic and the
     camera-to-IMU clock shift in ns (t_imu = t_cam + timeshift_ns)."""
-    key: str                  # "cam0", "cam1", ...
+
+    key: str  # "cam0", "cam1", ...
     camera: CameraModel
     rostopic: str | None
     timeshift_ns: int
@@ -68,8 +74,11 @@ def _matrix(value, where: str) -> np.ndarray:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise LogError(f"{where}: not a 4x4 matrix of finite numbers")
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or abs(np.linalg.det(R) - 1) > 1e-5 \
-            or not np.allclose(T[3], [0, 0, 0, 1]):
+    if (
+        not np.allclose(R @ R.T, np.eye(3), atol=1e-5)
+        or abs(np.linalg.det(R) - 1) > 1e-5
+        or not np.allclose(T[3], [0, 0, 0, 1])
+    ):
         raise LogError(f"{where}: not a rigid transform")
     return T
 
@@ -101,18 +110,21 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             raise LogError(f"{where}.camera_model: {model!r} is not supported (pinhole only)")
         dmodel = block.get("distortion_model", "radtan")
         if dmodel not in KALIBR_DISTORTION_MODELS:
-            raise LogError(f"{where}.distortion_model: {dmodel!r} is not supported "
-                           f"(one of {', '.join(KALIBR_DISTORTION_MODELS)})")
+            raise LogError(
+                f"{where}.distortion_model: {dmodel!r} is not supported "
+                f"(one of {', '.join(KALIBR_DISTORTION_MODELS)})"
+            )
         for need in ("intrinsics", "resolution"):
             if need not in block:
                 raise LogError(f"{where}: missing key '{need}'")
         intr = _numbers(block["intrinsics"], 4, f"{where}.intrinsics")
         res = _numbers(block["resolution"], 2, f"{where}.resolution")
-        dist = _numbers(block.get("distortion_coeffs", [0, 0, 0, 0]), 4,
-                        f"{where}.distortion_coeffs")
+        dist = _numbers(block.get("distortion_coeffs", [0, 0, 0, 0]), 4, f"{where}.distortion_coeffs")
         if "T_cam_imu" not in block:
-            raise LogError(f"{where}: missing key 'T_cam_imu' (a camchain-imucam.yaml from "
-                           "kalibr_calibrate_imu_camera is needed for the camera-IMU extrinsics)")
+            raise LogError(
+                f"{where}: missing key 'T_cam_imu' (a camchain-imucam.yaml from "
+                "kalibr_calibrate_imu_camera is needed for the camera-IMU extrinsics)"
+            )
         T_cam_imu = _matrix(block["T_cam_imu"], f"{where}.T_cam_imu")
         try:
             shift_s = float(block.get("timeshift_cam_imu", 0.0))
@@ -125,34 +137,45 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             raise LogError(f"{where}.mount: {mount!r} is not one of {MOUNTS}")
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise LogError(f"{where}: resolution and focal lengths must be positive")
-        cam = CameraModel(int(res[0]), int(res[1]), *intr, distortion=np.array(dist),
-                          T_body_cam=T_bi @ inv_T(T_cam_imu),
-                          rate_hz=float(block.get("rate_hz", 30.0)), mount=mount)
+        cam = CameraModel(
+            int(res[0]),
+            int(res[1]),
+            *intr,
+            distortion=np.array(dist),
+            T_body_cam=T_bi @ inv_T(T_cam_imu),
+            rate_hz=float(block.get("rate_hz", 30.0)),
+            mount=mount,
+        )
         topic = block.get("rostopic")
-        out[str(key)] = KalibrCamera(str(key), cam, str(topic) if topic else None,
-                                     int(round(shift_s * 1e9)))
+        out[str(key)] = KalibrCamera(str(key), cam, str(topic) if topic else None, int(round(shift_s * 1e9)))
     if not out:
         raise LogError(f"{path}: no 'cam0' block (not a Kalibr camchain)")
     return out
 
 
-def write_camchain(path: Path, cameras: dict[str, CameraModel], topics: dict[str, str],
-                   T_body_imu: np.ndarray | None = None,
-                   timeshift_ns: dict[str, int] | None = None) -> None:
+def write_camchain(
+    path: Path,
+    cameras: dict[str, CameraModel],
+    topics: dict[str, str],
+    T_body_imu: np.ndarray | None = None,
+    timeshift_ns: dict[str, int] | None = None,
+) -> None:
     """Write Kalibr camchain-imucam.yaml for cameras {"cam0": model, ...}."""
     T_bi = np.eye(4) if T_body_imu is None else np.asarray(T_body_imu, float)
     data = {}
     for key, cam in sorted(cameras.items()):
-        T_cam_imu = inv_T(cam.T_body_cam) @ T_bi      # T_body_cam = T_body_imu * T_imu_cam
-        block = {"camera_model": "pinhole",
-                 "intrinsics": [float(cam.fu), float(cam.fv), float(cam.cu), float(cam.cv)],
-                 "distortion_model": "radtan",
-                 "distortion_coeffs": [float(v) for v in cam.distortion],
-                 "resolution": [int(cam.width), int(cam.height)],
-                 "T_cam_imu": [[float(v) for v in row] for row in T_cam_imu],
-                 "timeshift_cam_imu": float((timeshift_ns or {}).get(key, 0)) * 1e-9,
-                 "rostopic": topics.get(key, f"/{key}/image_raw"),
-                 "rate_hz": float(cam.rate_hz)}
+        T_cam_imu = inv_T(cam.T_body_cam) @ T_bi  # T_body_cam = T_body_imu * T_imu_cam
+        block = {
+            "camera_model": "pinhole",
+            "intrinsics": [float(cam.fu), float(cam.fv), float(cam.cu), float(cam.cv)],
+            "distortion_model": "radtan",
+            "distortion_coeffs": [float(v) for v in cam.distortion],
+            "resolution": [int(cam.width), int(cam.height)],
+            "T_cam_imu": [[float(v) for v in row] for row in T_cam_imu],
+            "timeshift_cam_imu": float((timeshift_ns or {}).get(key, 0)) * 1e-9,
+            "rostopic": topics.get(key, f"/{key}/image_raw"),
+            "rate_hz": float(cam.rate_hz),
+        }
         if cam.mount != MOUNTS[0]:
             block["mount"] = cam.mount
         data[key] = block

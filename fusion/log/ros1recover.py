@@ -9,6 +9,7 @@ info, 0x07 connection (conn, topic; data = topic, type, md5sum, message_definiti
 A recording cut short has no index (`index_pos` = 0 or pointing past the end), which rosbags
 refuses; the records before the cut are intact.
 """
+
 from __future__ import annotations
 
 import bz2
@@ -32,7 +33,7 @@ def _fields(raw: bytes) -> dict[str, bytes]:
     out, off = {}, 0
     while off + 4 <= len(raw):
         (n,) = struct.unpack_from("<I", raw, off)
-        field = raw[off + 4: off + 4 + n]
+        field = raw[off + 4 : off + 4 + n]
         if len(field) != n:
             raise EOFError
         name, _, value = field.partition(b"=")
@@ -74,6 +75,7 @@ def _decompress(kind: bytes, data: bytes) -> bytes:
         return bz2.decompress(data)
     if kind == b"lz4":
         import lz4.frame
+
         return lz4.frame.decompress(data)
     raise ValueError(f"chunk compression {kind!r}")
 
@@ -87,6 +89,7 @@ def recover_ros1(src: Path, dst: Path) -> tuple[int, str]:
     """Copy the complete messages of the ROS 1 bag `src` into the indexed bag `dst`; returns
     (messages copied, where the copy stopped)."""
     from rosbags.rosbag1 import Writer
+
     src, dst = Path(src), Path(dst)
     conns: dict[int, object] = {}
     n, note = 0, "end of file"
@@ -102,10 +105,12 @@ def recover_ros1(src: Path, dst: Path) -> tuple[int, str]:
                 if cid not in conns:
                     info = _fields(data)
                     conns[cid] = writer.add_connection(
-                        info["topic"].decode(), _msgtype(info["type"].decode()),
+                        info["topic"].decode(),
+                        _msgtype(info["type"].decode()),
                         msgdef=info.get("message_definition", b"").decode(),
                         md5sum=info["md5sum"].decode(),
-                        callerid=info["callerid"].decode() if "callerid" in info else None)
+                        callerid=info["callerid"].decode() if "callerid" in info else None,
+                    )
             elif op == OP_MESSAGE:
                 cid = struct.unpack("<I", fields["conn"])[0]
                 sec, nsec = struct.unpack("<II", fields["time"])
@@ -124,9 +129,11 @@ def recover_ros1(src: Path, dst: Path) -> tuple[int, str]:
                 else:
                     handle(fields, data)
         except _Cut as cut:
-            if cut.fields.get("op", b"\0")[0] == OP_CHUNK and \
-                    cut.fields.get("compression", b"none") == b"none":
-                try:                       # an uncompressed chunk cut short: keep its messages
+            if (
+                cut.fields.get("op", b"\0")[0] == OP_CHUNK
+                and cut.fields.get("compression", b"none") == b"none"
+            ):
+                try:  # an uncompressed chunk cut short: keep its messages
                     chunk_records(cut.data)
                 except _Cut:
                     pass
@@ -153,6 +160,7 @@ def recovered_copy(src: Path) -> Path:
             tmp.unlink(missing_ok=True)
             raise LogError(f"{src}: truncated or unindexed ROS 1 bag with no complete message")
         tmp.replace(dst)
-        log.warning("%s: truncated or unindexed ROS 1 bag, %s; read %d messages from the copy "
-                    "%s", src, note, n, dst)
+        log.warning(
+            "%s: truncated or unindexed ROS 1 bag, %s; read %d messages from the copy %s", src, note, n, dst
+        )
     return dst

@@ -18,6 +18,7 @@ CameraInfo, Imu, TwistStamped velocity, ground truth as nav_msgs/Odometry on
 `/fusion/groundtruth`, and one std_msgs/String `/fusion/metadata` holding world.yaml, each
 sensor.yaml, the load ground truth and the blackouts, so an exported bag reads back exactly.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -27,9 +28,9 @@ import os
 import shutil
 import struct
 import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -38,8 +39,7 @@ import yaml
 from fusion.camera import CameraModel
 from fusion.errors import CameraModelError, LogError
 from fusion.geometry import R_from_quat_wxyz
-from fusion.log.euroc import (CameraStream, FlightLog, Frame, GroundTruth, ImuData, ImuNoise,
-                              VelocityData)
+from fusion.log.euroc import CameraStream, FlightLog, Frame, GroundTruth, ImuData, ImuNoise, VelocityData
 from fusion.log.options import LogOptions, StampSource
 from fusion.types import CameraRole
 
@@ -53,28 +53,32 @@ TWIST = "geometry_msgs/msg/TwistStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 STRING = "std_msgs/msg/String"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
-VELOCITY_TYPES = (TWIST, ODOMETRY)        # preference order
-NO_TOPIC = "none"                         # --front-topic none / --velocity-topic none
+VELOCITY_TYPES = (TWIST, ODOMETRY)  # preference order
+NO_TOPIC = "none"  # --front-topic none / --velocity-topic none
 METADATA_TOPIC = "/fusion/metadata"
 GROUNDTRUTH_TOPIC = "/fusion/groundtruth"
 METADATA_VERSION = 1
 DEFAULT_VELOCITY_NOISE_M_S = 0.05
-HEADER_STAMP_OFFSET = 4        # sec (4 bytes) + nsec (4 bytes) after the CDR encapsulation header
-                               # (ROS 2) or after the uint32 seq (ROS 1)
+HEADER_STAMP_OFFSET = 4  # sec (4 bytes) + nsec (4 bytes) after the CDR encapsulation header
+# (ROS 2) or after the uint32 seq (ROS 1)
 MIN_MESSAGE_BYTES = 12
-CDR_HEADER_BYTES = 4           # CDR alignment counts from the end of the encapsulation header
-BAYER_TO_GRAY = {              # ROS names the first two pixels; OpenCV the 2nd row's 2nd/3rd
-    "bayer_rggb8": cv2.COLOR_BayerBG2GRAY,   # (cv_bridge's mapping)
+CDR_HEADER_BYTES = 4  # CDR alignment counts from the end of the encapsulation header
+BAYER_TO_GRAY = {  # ROS names the first two pixels; OpenCV the 2nd row's 2nd/3rd
+    "bayer_rggb8": cv2.COLOR_BayerBG2GRAY,  # (cv_bridge's mapping)
     "bayer_bggr8": cv2.COLOR_BayerRG2GRAY,
     "bayer_gbrg8": cv2.COLOR_BayerGR2GRAY,
     "bayer_grbg8": cv2.COLOR_BayerGB2GRAY,
 }
-COLOR_TO_GRAY = {"bgr8": cv2.COLOR_BGR2GRAY, "rgb8": cv2.COLOR_RGB2GRAY,
-                 "bgra8": cv2.COLOR_BGRA2GRAY, "rgba8": cv2.COLOR_RGBA2GRAY}
+COLOR_TO_GRAY = {
+    "bgr8": cv2.COLOR_BGR2GRAY,
+    "rgb8": cv2.COLOR_RGB2GRAY,
+    "bgra8": cv2.COLOR_BGRA2GRAY,
+    "rgba8": cv2.COLOR_RGBA2GRAY,
+}
 GRAY_ENCODINGS = ("mono8", "8UC1", "mono16", "16UC1")
 SUPPORTED_ENCODINGS = GRAY_ENCODINGS + tuple(COLOR_TO_GRAY) + tuple(BAYER_TO_GRAY)
 COMPRESSED_FORMATS = ("jpeg", "jpg", "png")
-IMAGE_FORMATS = ("raw", "png", "jpeg")    # write_bag image_format
+IMAGE_FORMATS = ("raw", "png", "jpeg")  # write_bag image_format
 JPEG_QUALITY = 95
 
 
@@ -83,6 +87,7 @@ JPEG_QUALITY = 95
 
 def typestore_for(ros1: bool):
     from rosbags.typesys import Stores, get_typestore
+
     return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
 
 
@@ -94,7 +99,7 @@ def header_stamp_ns(raw: bytes | memoryview, ros1: bool) -> int | None:
     """header.stamp of a raw message whose first field is a std_msgs/Header, or None if short."""
     if len(raw) < MIN_MESSAGE_BYTES:
         return None
-    little = True if ros1 else raw[1] == 1          # CDR encapsulation: 0x0001 = little endian
+    little = True if ros1 else raw[1] == 1  # CDR encapsulation: 0x0001 = little endian
     sec, nsec = struct.unpack_from("<iI" if little else ">iI", raw, HEADER_STAMP_OFFSET)
     return sec * 1_000_000_000 + nsec
 
@@ -113,11 +118,11 @@ def raw_doubles(raw, ros1: bool, n_strings: int, count: int) -> np.ndarray:
     Imu, TwistStamped and Odometry are fixed-size after those, so this reads their numbers
     without deserialising (about 100x faster than rosbags' generic deserialiser)."""
     little = True if ros1 else raw[1] == 1
-    off = HEADER_STAMP_OFFSET + 8                      # past stamp sec, nsec
-    for _ in range(1 + n_strings):                     # header.frame_id, then the others
+    off = HEADER_STAMP_OFFSET + 8  # past stamp sec, nsec
+    for _ in range(1 + n_strings):  # header.frame_id, then the others
         off = _after_string(raw, off, ros1, little)
     if not ros1:
-        off += -(off - CDR_HEADER_BYTES) % 8           # float64 alignment
+        off += -(off - CDR_HEADER_BYTES) % 8  # float64 alignment
     return np.frombuffer(raw, dtype="<f8" if little else ">f8", count=count, offset=off)
 
 
@@ -126,9 +131,9 @@ def raw_doubles(raw, ros1: bool, n_strings: int, count: int) -> np.ndarray:
 # linear_acceleration 3), geometry_msgs/TwistStamped (linear 3, angular 3) and nav_msgs/Odometry
 # (child_frame_id; position 3, orientation xyzw 4, covariance 36, twist linear 3, ...).
 RAW_LAYOUTS = {
-    IMU: (0, 28, np.r_[13:16, 25:28]),                  # gyro xyz, accel xyz
-    TWIST: (0, 3, np.r_[0:3]),                          # linear xyz
-    ODOMETRY: (1, 46, np.r_[0:7, 43:46]),               # p xyz, q xyzw, twist linear xyz
+    IMU: (0, 28, np.r_[13:16, 25:28]),  # gyro xyz, accel xyz
+    TWIST: (0, 3, np.r_[0:3]),  # linear xyz
+    ODOMETRY: (1, 46, np.r_[0:7, 43:46]),  # p xyz, q xyzw, twist linear xyz
 }
 
 
@@ -151,8 +156,7 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
     if msgtype == COMPRESSED:
         fmt = str(msg.format).lower()
         if not any(f in fmt for f in COMPRESSED_FORMATS):
-            raise ValueError(f"CompressedImage format {msg.format!r} is not supported "
-                             f"(jpeg or png)")
+            raise ValueError(f"CompressedImage format {msg.format!r} is not supported (jpeg or png)")
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE)
         if img is None:
             raise ValueError(f"CompressedImage ({msg.format}) does not decode")
@@ -160,22 +164,20 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
     enc, h, w, step = str(msg.encoding), int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
     if enc not in SUPPORTED_ENCODINGS:
-        raise ValueError(f"image encoding {enc!r} is not supported "
-                         f"(one of {', '.join(SUPPORTED_ENCODINGS)})")
+        raise ValueError(f"image encoding {enc!r} is not supported (one of {', '.join(SUPPORTED_ENCODINGS)})")
     if h < 1 or w < 1 or step * h > data.size:
         raise ValueError(f"image {w}x{h} step {step} holds {data.size} bytes")
-    rows = data[:step * h].reshape(h, step)
+    rows = data[: step * h].reshape(h, step)
     if enc in ("mono16", "16UC1"):
-        img16 = rows[:, :2 * w].copy().view(">u2" if msg.is_bigendian else "<u2").astype(np.float64)
+        img16 = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2").astype(np.float64)
         top = img16.max()
         # full scale of a 16-bit container whatever the sensor's bit depth: stretch to 8 bits
-        return np.zeros((h, w), np.uint8) if top <= 0 else \
-            np.round(img16 * (255.0 / top)).astype(np.uint8)
+        return np.zeros((h, w), np.uint8) if top <= 0 else np.round(img16 * (255.0 / top)).astype(np.uint8)
     if enc in ("mono8", "8UC1") or enc in BAYER_TO_GRAY:
         img = np.ascontiguousarray(rows[:, :w])
         return img if enc in ("mono8", "8UC1") else cv2.cvtColor(img, BAYER_TO_GRAY[enc])
     ch = 4 if enc in ("bgra8", "rgba8") else 3
-    img = np.ascontiguousarray(rows[:, :w * ch]).reshape(h, w, ch)
+    img = np.ascontiguousarray(rows[:, : w * ch]).reshape(h, w, ch)
     return cv2.cvtColor(img, COLOR_TO_GRAY[enc])
 
 
@@ -185,12 +187,13 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
 @dataclass
 class TopicScan:
     """Every message of one topic, in the bag's (receive-time) order."""
+
     topic: str
     msgtype: str
     log_ns: list[int] = field(default_factory=list)
     header_ns: list[int | None] = field(default_factory=list)
-    first: object = None            # first message, deserialised (images, CameraInfo, String)
-    data: list = field(default_factory=list)   # deserialised messages (IMU, velocity, GT)
+    first: object = None  # first message, deserialised (images, CameraInfo, String)
+    data: list = field(default_factory=list)  # deserialised messages (IMU, velocity, GT)
 
 
 @dataclass
@@ -198,24 +201,31 @@ class BagScan:
     path: Path
     ros1: bool
     topics: dict[str, TopicScan]
-    types: dict[str, str]                 # every topic in the bag -> msgtype
-    counts: dict[str, int]                # every topic -> message count (from the index)
-    truncated: str | None = None          # where reading stopped early, if it did
+    types: dict[str, str]  # every topic in the bag -> msgtype
+    counts: dict[str, int]  # every topic -> message count (from the index)
+    truncated: str | None = None  # where reading stopped early, if it did
 
 
 def _open_reader(path: Path):
     from rosbags.highlevel import AnyReader
+
     try:
         reader = AnyReader([Path(path)], default_typestore=typestore_for(is_ros1(path)))
         reader.open()
     except FileNotFoundError:
         raise LogError(f"{path}: not found") from None
     except Exception as e:  # noqa: BLE001 - rosbags raises many types for a damaged bag
-        fix = ("if it is truncated, `rosbag reindex` it" if is_ros1(path) else
-               "if it is truncated, `mcap recover` it" if Path(path).suffix == ".mcap" else
-               "is metadata.yaml intact?")
-        raise LogError(f"{path}: cannot open as a {'ROS 1' if is_ros1(path) else 'ROS 2'} bag "
-                       f"({e.__class__.__name__}: {str(e)[:160]}); {fix}") from None
+        fix = (
+            "if it is truncated, `rosbag reindex` it"
+            if is_ros1(path)
+            else "if it is truncated, `mcap recover` it"
+            if Path(path).suffix == ".mcap"
+            else "is metadata.yaml intact?"
+        )
+        raise LogError(
+            f"{path}: cannot open as a {'ROS 1' if is_ros1(path) else 'ROS 2'} bag "
+            f"({e.__class__.__name__}: {str(e)[:160]}); {fix}"
+        ) from None
     return reader
 
 
@@ -226,16 +236,22 @@ def readable_bag(path: Path) -> Path:
     if not is_ros1(path) or not path.is_file():
         return path
     from rosbags.rosbag1 import Reader as Reader1
+
     try:
         with Reader1(path):
             return path
     except Exception:  # noqa: BLE001 - rosbags' ReaderError and struct errors of a cut header
         from fusion.log.ros1recover import recovered_copy
+
         return recovered_copy(path)
 
 
-def scan_bag(path: Path, vectors: set[str] | None = None,
-             first_of: set[str] | None = None, topics: set[str] | None = None) -> BagScan:
+def scan_bag(
+    path: Path,
+    vectors: set[str] | None = None,
+    first_of: set[str] | None = None,
+    topics: set[str] | None = None,
+) -> BagScan:
     """One pass over the bag: stamps of every message of `topics` (all when None), the numbers
     of `vectors` topics (Imu, TwistStamped, Odometry: RAW_LAYOUTS) in `TopicScan.data`, the
     first message of `first_of` topics deserialised.  A read error part-way stops the pass with
@@ -251,15 +267,17 @@ def scan_bag(path: Path, vectors: set[str] | None = None,
         scans = {t: TopicScan(t, types[t]) for t in types if topics is None or t in topics}
         truncated = None
         n = 0
-        it = reader.messages(connections=want) if want else iter(())   # () would mean all
+        it = reader.messages(connections=want) if want else iter(())  # () would mean all
         while True:
             try:
                 item = next(it)
             except StopIteration:
                 break
             except Exception as e:  # noqa: BLE001
-                truncated = (f"{path}: read error after {n} messages "
-                             f"({e.__class__.__name__}: {str(e)[:120]}); using what came before")
+                truncated = (
+                    f"{path}: read error after {n} messages "
+                    f"({e.__class__.__name__}: {str(e)[:120]}); using what came before"
+                )
                 log.warning(truncated)
                 break
             con, t_log, raw = item
@@ -292,8 +310,7 @@ def choose_times(scan: TopicScan, stamps: StampSource, where: str) -> np.ndarray
         return log_ns
     hdr = scan.header_ns
     if any(h is None for h in hdr) or (len(hdr) and all(h == 0 for h in hdr)):
-        log.warning("%s: topic %s has no header stamps; using the bag's receive time", where,
-                    scan.topic)
+        log.warning("%s: topic %s has no header stamps; using the bag's receive time", where, scan.topic)
         return log_ns
     return np.asarray(hdr, dtype=np.int64)
 
@@ -332,21 +349,24 @@ def _listing(types: dict[str, str]) -> str:
     return ", ".join(f"{t} ({ty})" for t, ty in sorted(types.items())) or "nothing"
 
 
-def assign_roles(path: Path, types: dict[str, str], opts: LogOptions,
-                 kalibr_topics: dict[str, str] | None = None,
-                 metadata: dict | None = None) -> Roles:
+def assign_roles(
+    path: Path,
+    types: dict[str, str],
+    opts: LogOptions,
+    kalibr_topics: dict[str, str] | None = None,
+    metadata: dict | None = None,
+) -> Roles:
     """Which topic fills which role.  Overrides first, then our metadata / Kalibr's rostopic,
     then by type (cameras in name order: floor first).  Raises LogError listing the bag's
     topics when a needed role is empty or ambiguous."""
+
     def check(topic, wanted, what):
         if topic is None:
             return None
         if topic not in types:
-            raise LogError(f"{path}: {what} topic {topic} is not in the bag; it holds "
-                           f"{_listing(types)}")
+            raise LogError(f"{path}: {what} topic {topic} is not in the bag; it holds {_listing(types)}")
         if types[topic] not in wanted:
-            raise LogError(f"{path}: {what} topic {topic} is {types[topic]}, expected "
-                           f"{' or '.join(wanted)}")
+            raise LogError(f"{path}: {what} topic {topic} is {types[topic]}, expected {' or '.join(wanted)}")
         return topic
 
     named = dict((metadata or {}).get("topics", {}) or {})
@@ -357,40 +377,46 @@ def assign_roles(path: Path, types: dict[str, str], opts: LogOptions,
     no_front = opts.front_topic == NO_TOPIC
     front = None if no_front else opts.front_topic or named.get(CameraRole.FRONT.value)
     floor = check(floor if floor in types or opts.floor_topic else None, IMAGE_TYPES, "floor")
-    front = check(front if front in types or (opts.front_topic and not no_front) else None,
-                  IMAGE_TYPES, "front")
+    front = check(
+        front if front in types or (opts.front_topic and not no_front) else None, IMAGE_TYPES, "front"
+    )
     rest = [t for t in images if t not in (floor, front)]
     if floor is None:
         if not rest:
-            raise LogError(f"{path}: no camera topic (sensor_msgs/Image or CompressedImage); "
-                           f"the bag holds {_listing(types)}")
+            raise LogError(
+                f"{path}: no camera topic (sensor_msgs/Image or CompressedImage); "
+                f"the bag holds {_listing(types)}"
+            )
         if len(rest) > 2 and front is None and not no_front:
-            raise LogError(f"{path}: {len(rest)} image topics ({', '.join(rest)}); say which with "
-                           "--floor-topic and --front-topic")
+            raise LogError(
+                f"{path}: {len(rest)} image topics ({', '.join(rest)}); say which with "
+                "--floor-topic and --front-topic"
+            )
         floor = rest.pop(0)
     if no_front:
         pass
     elif front is None and len(rest) == 1:
         front = rest.pop(0)
     elif front is None and rest:
-        log.warning("%s: image topics %s not used; --front-topic picks the front camera", path,
-                    ", ".join(rest))
+        log.warning(
+            "%s: image topics %s not used; --front-topic picks the front camera", path, ", ".join(rest)
+        )
     imu = check(opts.imu_topic or named.get("imu0"), (IMU,), "IMU")
     if imu is None:
         imus = _topics_of(types, (IMU,))
         if len(imus) > 1:
-            raise LogError(f"{path}: {len(imus)} IMU topics ({', '.join(imus)}); say which with "
-                           "--imu-topic")
+            raise LogError(f"{path}: {len(imus)} IMU topics ({', '.join(imus)}); say which with --imu-topic")
         imu = imus[0] if imus else None
     no_vel = opts.velocity_topic == NO_TOPIC
-    vel = None if no_vel else check(opts.velocity_topic or named.get("vel0"), VELOCITY_TYPES,
-                                    "velocity")
+    vel = None if no_vel else check(opts.velocity_topic or named.get("vel0"), VELOCITY_TYPES, "velocity")
     if vel is None and not no_vel:
         for ty in VELOCITY_TYPES:
             cands = _topics_of(types, (ty,), exclude=(GROUNDTRUTH_TOPIC,))
             if len(cands) > 1:
-                raise LogError(f"{path}: {len(cands)} {ty} topics ({', '.join(cands)}); say "
-                               "which is the velocity with --velocity-topic")
+                raise LogError(
+                    f"{path}: {len(cands)} {ty} topics ({', '.join(cands)}); say "
+                    "which is the velocity with --velocity-topic"
+                )
             if cands:
                 vel = cands[0]
                 break
@@ -405,18 +431,27 @@ class BagCameraStream(CameraStream):
     otherwise by seeking to the message's receive time.  Picklable (the reader is reopened in
     each process)."""
 
-    def __init__(self, name: str, camera: CameraModel, timestamps_ns: np.ndarray, bag: Path,
-                 topic: str, msgtype: str, seq: np.ndarray, log_by_seq: np.ndarray,
-                 stamps: StampSource):
+    def __init__(
+        self,
+        name: str,
+        camera: CameraModel,
+        timestamps_ns: np.ndarray,
+        bag: Path,
+        topic: str,
+        msgtype: str,
+        seq: np.ndarray,
+        log_by_seq: np.ndarray,
+        stamps: StampSource,
+    ):
         super().__init__(name, camera, np.asarray(timestamps_ns, np.int64), [], [])
         self.bag, self.topic, self.msgtype = Path(bag), topic, msgtype
-        self.seq = np.asarray(seq, np.int64)              # message number of frame i
+        self.seq = np.asarray(seq, np.int64)  # message number of frame i
         self.log_by_seq = np.asarray(log_by_seq, np.int64)  # receive time of message k
         self.stamps = stamps
         self._reader = None
         self._iter = None
         self._next_seq = -1
-        self._pid = None                                  # process that opened _reader
+        self._pid = None  # process that opened _reader
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -433,8 +468,7 @@ class BagCameraStream(CameraStream):
         stamps and camera model."""
         h = hashlib.sha256()
         st = self.bag.stat()
-        h.update(f"{self.bag.resolve()}|{st.st_size}|{st.st_mtime_ns}|{self.topic}|"
-                 f"{self.stamps}\n".encode())
+        h.update(f"{self.bag.resolve()}|{st.st_size}|{st.st_mtime_ns}|{self.topic}|{self.stamps}\n".encode())
         h.update(self.timestamps_ns.tobytes())
         h.update(yaml.safe_dump(self.camera.to_sensor_yaml(), sort_keys=True).encode())
         return h.digest()
@@ -480,8 +514,10 @@ class BagCameraStream(CameraStream):
             self._iter = None
             return None
         if img.shape != (self.camera.height, self.camera.width):
-            self.skipped.append(f"{where}: image is {img.shape[1]}x{img.shape[0]}, the "
-                                f"calibration says {self.camera.width}x{self.camera.height}")
+            self.skipped.append(
+                f"{where}: image is {img.shape[1]}x{img.shape[0]}, the "
+                f"calibration says {self.camera.width}x{self.camera.height}"
+            )
             return None
         return img
 
@@ -500,16 +536,18 @@ def camera_from_info(info, where: str) -> CameraModel:
     K = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
     D = np.asarray(_field(info, "d", "D"), float).reshape(-1)
     model = str(info.distortion_model)
-    if model not in ("plumb_bob", "rational_polynomial", "") or \
-            (len(D) > 4 and np.any(np.abs(D[4:]) > 1e-12)):
-        raise LogError(f"{where}: distortion {model!r} with coefficients {D.tolist()} is not "
-                       "supported (radial-tangential k1, k2, p1, p2)")
+    if model not in ("plumb_bob", "rational_polynomial", "") or (
+        len(D) > 4 and np.any(np.abs(D[4:]) > 1e-12)
+    ):
+        raise LogError(
+            f"{where}: distortion {model!r} with coefficients {D.tolist()} is not "
+            "supported (radial-tangential k1, k2, p1, p2)"
+        )
     dist = np.zeros(4)
-    dist[:min(4, len(D))] = D[:4]
+    dist[: min(4, len(D))] = D[:4]
     if K[0, 0] <= 0 or K[1, 1] <= 0 or int(info.width) < 1 or int(info.height) < 1:
         raise LogError(f"{where}: CameraInfo has no calibration (zero K or size)")
-    return CameraModel(int(info.width), int(info.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-                       distortion=dist)
+    return CameraModel(int(info.width), int(info.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], distortion=dist)
 
 
 def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, ts):
@@ -520,10 +558,16 @@ def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, 
     arrays = {"d": np.r_[cam.distortion, 0.0], "k": K, "r": np.eye(3).reshape(-1), "p": P}
     if ros1:
         arrays = {k.upper(): v for k, v in arrays.items()}
-    return Info(header=_header(ts, stamp_ns, frame_id, ros1), height=cam.height, width=cam.width,
-                distortion_model="plumb_bob", binning_x=0, binning_y=0,
-                roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-                **{k: np.asarray(v, float) for k, v in arrays.items()})
+    return Info(
+        header=_header(ts, stamp_ns, frame_id, ros1),
+        height=cam.height,
+        width=cam.width,
+        distortion_model="plumb_bob",
+        binning_x=0,
+        binning_y=0,
+        roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+        **{k: np.asarray(v, float) for k, v in arrays.items()},
+    )
 
 
 def _header(ts, stamp_ns: int, frame_id: str, ros1: bool):
@@ -548,10 +592,11 @@ def _metadata_cameras(meta: dict, where: str) -> dict[str, CameraModel]:
 
 def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     """Open a ROS 1 (.bag) or ROS 2 (folder or .mcap) bag as a FlightLog; images stream."""
-    from fusion.log.sources import external_calibration, find_world   # cycle: sources -> rosbag
+    from fusion.log.sources import external_calibration, find_world  # cycle: sources -> rosbag
+
     opts = opts or LogOptions()
     path = Path(path)
-    bag = readable_bag(path)          # errors name `path`; reading goes through `bag`
+    bag = readable_bag(path)  # errors name `path`; reading goes through `bag`
     first = scan_bag(bag, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(METADATA_TOPIC) and first.topics[METADATA_TOPIC].first is not None:
@@ -563,8 +608,9 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     calib = external_calibration(opts)
     roles = assign_roles(path, types, opts, calib.topics if calib else None, meta)
     if roles.imu is None and roles.velocity is None:
-        raise LogError(f"{path}: no IMU topic (sensor_msgs/Imu) and no velocity topic; the bag "
-                       f"holds {_listing(types)}")
+        raise LogError(
+            f"{path}: no IMU topic (sensor_msgs/Imu) and no velocity topic; the bag holds {_listing(types)}"
+        )
     cam_topics = {CameraRole.FLOOR.value: roles.floor}
     if roles.front:
         cam_topics[CameraRole.FRONT.value] = roles.front
@@ -574,8 +620,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     if gt_topic:
         deser.add(gt_topic)
     want = set(cam_topics.values()) | deser | set(infos)
-    scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos),
-                    topics=want)
+    scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos), topics=want)
 
     meta_cams = _metadata_cameras(meta, f"{path}: {METADATA_TOPIC}")
     cameras = {}
@@ -594,10 +639,21 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if len(order) > 1 and name not in meta_cams:
             cam.rate_hz = float(1e9 / np.median(np.diff(t[order])))
         if img.shape != (cam.height, cam.width):
-            raise LogError(f"{where} message 0: image is {img.shape[1]}x{img.shape[0]}, the "
-                           f"calibration says {cam.width}x{cam.height}")
-        cameras[name] = BagCameraStream(name, cam, t[order], bag, topic, ts_scan.msgtype, order,
-                                        np.asarray(ts_scan.log_ns, np.int64), opts.stamps)
+            raise LogError(
+                f"{where} message 0: image is {img.shape[1]}x{img.shape[0]}, the "
+                f"calibration says {cam.width}x{cam.height}"
+            )
+        cameras[name] = BagCameraStream(
+            name,
+            cam,
+            t[order],
+            bag,
+            topic,
+            ts_scan.msgtype,
+            order,
+            np.asarray(ts_scan.log_ns, np.int64),
+            opts.stamps,
+        )
 
     imu = None
     if roles.imu:
@@ -607,10 +663,12 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         vel = _velocity_from_scan(scan.topics[roles.velocity], opts, meta, path)
     gt = _groundtruth_from_scan(scan.topics[gt_topic], path) if gt_topic else None
     world = find_world(path, opts, meta.get("world"), f"{path}: {METADATA_TOPIC}")
-    loads = {str(k): np.asarray(v, float) for k, v in (meta.get("loads_groundtruth") or {}).items()} \
-        or None
-    blackouts = [(int(a), int(b), str(k)) for a, b, k in meta["blackouts"]] \
-        if meta.get("blackouts") is not None else None
+    loads = {str(k): np.asarray(v, float) for k, v in (meta.get("loads_groundtruth") or {}).items()} or None
+    blackouts = (
+        [(int(a), int(b), str(k)) for a, b, k in meta["blackouts"]]
+        if meta.get("blackouts") is not None
+        else None
+    )
     return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
 
 
@@ -622,15 +680,18 @@ def _camera_for(name, topic, calib, meta_cams, scan, infos, where) -> tuple[Came
         return meta_cams[name], 0
     # CameraInfo in the camera's namespace (…/image_raw -> …/camera_info), else the only one
     ns = topic.rsplit("/", 1)[0]
-    cands = [t for t in infos if t.rsplit("/", 1)[0] == ns] or (list(infos) if len(infos) == 1
-                                                                 else [])
+    cands = [t for t in infos if t.rsplit("/", 1)[0] == ns] or (list(infos) if len(infos) == 1 else [])
     if cands and scan.topics[cands[0]].first is not None:
         cam = camera_from_info(scan.topics[cands[0]].first, f"{where}: CameraInfo {cands[0]}")
-        raise LogError(f"{where}: CameraInfo {cands[0]} gives the intrinsics ({cam.width}x"
-                       f"{cam.height}, fu {cam.fu:g}) but not where the camera sits on the drone; "
-                       "give a Kalibr camchain-imucam.yaml (--calib)")
-    raise LogError(f"{where}: no calibration (no CameraInfo in the bag); give a Kalibr "
-                   "camchain-imucam.yaml or an EuRoC folder with --calib")
+        raise LogError(
+            f"{where}: CameraInfo {cands[0]} gives the intrinsics ({cam.width}x"
+            f"{cam.height}, fu {cam.fu:g}) but not where the camera sits on the drone; "
+            "give a Kalibr camchain-imucam.yaml (--calib)"
+        )
+    raise LogError(
+        f"{where}: no calibration (no CameraInfo in the bag); give a Kalibr "
+        "camchain-imucam.yaml or an EuRoC folder with --calib"
+    )
 
 
 def _imu_from_scan(s: TopicScan, opts, calib, meta, path) -> ImuData:
@@ -686,10 +747,10 @@ def _groundtruth_from_scan(s: TopicScan, path) -> GroundTruth | None:
         return None
     t = choose_times(s, StampSource.HEADER, str(path))
     x = np.array(s.data, dtype=float)
-    p, q, v_body = x[:, 0:3], x[:, [6, 3, 4, 5]], x[:, 7:10]     # q: xyzw -> wxyz
+    p, q, v_body = x[:, 0:3], x[:, [6, 3, 4, 5]], x[:, 7:10]  # q: xyzw -> wxyz
     order, _, _ = sort_unique(t, f"{path}: topic {s.topic}")
     v_world = np.einsum("nij,nj->ni", R_from_quat_wxyz(q), v_body)
-    zeros = np.zeros_like(p)        # IMU biases are not carried by the bag
+    zeros = np.zeros_like(p)  # IMU biases are not carried by the bag
     return GroundTruth(t[order], p[order], q[order], v_world[order], zeros[order], zeros[order])
 
 
@@ -700,30 +761,38 @@ def _image_msg(img: np.ndarray, stamp_ns: int, frame_id: str, ros1: bool, ts, im
     header = _header(ts, stamp_ns, frame_id, ros1)
     if image_format == "raw":
         Image = ts.types[IMAGE]
-        return IMAGE, Image(header=header, height=img.shape[0], width=img.shape[1],
-                            encoding="mono8", is_bigendian=0, step=img.shape[1],
-                            data=np.ascontiguousarray(img, np.uint8).reshape(-1))
-    ext, params = (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1]) if image_format == "png" else \
-        (".jpg", [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        return IMAGE, Image(
+            header=header,
+            height=img.shape[0],
+            width=img.shape[1],
+            encoding="mono8",
+            is_bigendian=0,
+            step=img.shape[1],
+            data=np.ascontiguousarray(img, np.uint8).reshape(-1),
+        )
+    ext, params = (
+        (".png", [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if image_format == "png"
+        else (".jpg", [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    )
     ok, buf = cv2.imencode(ext, img, params)
     if not ok:
         raise LogError(f"cannot encode a {image_format} frame at {stamp_ns}")
     Comp = ts.types[COMPRESSED]
-    return COMPRESSED, Comp(header=header, format=image_format,
-                            data=np.frombuffer(buf.tobytes(), np.uint8))
+    return COMPRESSED, Comp(header=header, format=image_format, data=np.frombuffer(buf.tobytes(), np.uint8))
 
 
 def _vec3(ts, v):
     return ts.types["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
-def write_bag(flight: FlightLog, out: Path, image_format: str = "raw",
-              overwrite: bool = False) -> Path:
+def write_bag(flight: FlightLog, out: Path, image_format: str = "raw", overwrite: bool = False) -> Path:
     """Write `flight` as a ROS 1 bag (`out` ends in .bag) or a ROS 2 MCAP bag (`out` ends in
     .mcap: one file; otherwise a bag folder).  Streams the frames; returns `out`."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
+
     out = Path(out)
     if image_format not in IMAGE_FORMATS:
         raise LogError(f"image format {image_format!r} is not one of {IMAGE_FORMATS}")
@@ -738,8 +807,7 @@ def write_bag(flight: FlightLog, out: Path, image_format: str = "raw",
     tmpdir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     target = tmpdir / (out.name if ros1 else out.stem)
     try:
-        writer = Writer1(target) if ros1 else \
-            Writer2(target, version=9, storage_plugin=StoragePlugin.MCAP)
+        writer = Writer1(target) if ros1 else Writer2(target, version=9, storage_plugin=StoragePlugin.MCAP)
         with writer:
             _write_messages(flight, writer, ts, ser, ros1, image_format)
         if ros1:
@@ -759,27 +827,36 @@ def _write_messages(flight: FlightLog, writer, ts, ser, ros1: bool, image_format
 
     cam_topic = {name: f"/{name}/image_raw" for name in flight.cameras}
     imu_topic, vel_topic = "/imu0", "/vel0"
-    meta = {"fusion_metadata": METADATA_VERSION, "world": flight.world.to_yaml(),
-            "topics": {**cam_topic, **({"imu0": imu_topic} if flight.imu else {}),
-                       **({"vel0": vel_topic} if flight.velocity else {})},
-            "cameras": {n: s.camera.to_sensor_yaml() for n, s in flight.cameras.items()}}
+    meta = {
+        "fusion_metadata": METADATA_VERSION,
+        "world": flight.world.to_yaml(),
+        "topics": {
+            **cam_topic,
+            **({"imu0": imu_topic} if flight.imu else {}),
+            **({"vel0": vel_topic} if flight.velocity else {}),
+        },
+        "cameras": {n: s.camera.to_sensor_yaml() for n, s in flight.cameras.items()},
+    }
     if flight.imu is not None:
         n = flight.imu.noise
-        meta["imu"] = {**{k: float(getattr(n, k)) for k in vars(ImuNoise())},
-                       "T_BS": {"rows": 4, "cols": 4, "data": [float(v) for v in np.asarray(
-                           flight.imu.T_body_imu).reshape(-1)]}}
+        meta["imu"] = {
+            **{k: float(getattr(n, k)) for k in vars(ImuNoise())},
+            "T_BS": {
+                "rows": 4,
+                "cols": 4,
+                "data": [float(v) for v in np.asarray(flight.imu.T_body_imu).reshape(-1)],
+            },
+        }
     if flight.velocity is not None:
         meta["velocity"] = {"noise_m_s": float(flight.velocity.noise_m_s), "frame": "body"}
     if flight.loads_groundtruth is not None:
-        meta["loads_groundtruth"] = {k: [float(x) for x in v]
-                                     for k, v in flight.loads_groundtruth.items()}
+        meta["loads_groundtruth"] = {k: [float(x) for x in v] for k, v in flight.loads_groundtruth.items()}
     if flight.blackouts is not None:
         meta["blackouts"] = [[int(a), int(b), str(k)] for a, b, k in flight.blackouts]
 
     t0 = min(int(s.timestamps_ns[0]) for s in flight.cameras.values())
     c_meta = con(METADATA_TOPIC, STRING)
-    writer.write(c_meta, t0, ser(ts.types[STRING](data=yaml.safe_dump(meta, sort_keys=False)),
-                                 STRING))
+    writer.write(c_meta, t0, ser(ts.types[STRING](data=yaml.safe_dump(meta, sort_keys=False)), STRING))
     cons = {}
     image_type = IMAGE if image_format == "raw" else COMPRESSED
     for name in flight.cameras:
@@ -805,7 +882,7 @@ def _write_messages(flight: FlightLog, writer, ts, ser, ros1: bool, image_format
     def gt_items():
         gt = flight.groundtruth
         R = R_from_quat_wxyz(gt.q_world_body_wxyz)
-        v_body = np.einsum("nji,nj->ni", R, gt.v_world)       # R^T v_world
+        v_body = np.einsum("nji,nj->ni", R, gt.v_world)  # R^T v_world
         for k, t in enumerate(gt.timestamps_ns):
             yield int(t), 3, "gt", (gt.p_world[k], gt.q_world_body_wxyz[k], v_body[k])
 
@@ -832,31 +909,36 @@ def _write_messages(flight: FlightLog, writer, ts, ser, ros1: bool, image_format
             writer.write(cons[kind], t, ser(msg, msgtype))
         elif kind == "imu":
             w, a = item
-            msg = T[IMU](header=_header(ts, t, "imu0", ros1),
-                         orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                         orientation_covariance=np.r_[-1.0, np.zeros(8)],   # -1: no orientation
-                         angular_velocity=_vec3(ts, w), angular_velocity_covariance=np.zeros(9),
-                         linear_acceleration=_vec3(ts, a),
-                         linear_acceleration_covariance=np.zeros(9))
+            msg = T[IMU](
+                header=_header(ts, t, "imu0", ros1),
+                orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.r_[-1.0, np.zeros(8)],  # -1: no orientation
+                angular_velocity=_vec3(ts, w),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=_vec3(ts, a),
+                linear_acceleration_covariance=np.zeros(9),
+            )
             writer.write(c_imu, t, ser(msg, IMU))
         elif kind == "vel":
-            msg = T[TWIST](header=_header(ts, t, "body", ros1),
-                           twist=T["geometry_msgs/msg/Twist"](linear=_vec3(ts, item),
-                                                              angular=_vec3(ts, np.zeros(3))))
+            msg = T[TWIST](
+                header=_header(ts, t, "body", ros1),
+                twist=T["geometry_msgs/msg/Twist"](linear=_vec3(ts, item), angular=_vec3(ts, np.zeros(3))),
+            )
             writer.write(c_vel, t, ser(msg, TWIST))
         else:
             p, q, vb = item
             pose = T["geometry_msgs/msg/PoseWithCovariance"](
                 pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]),
-                                                          z=float(p[2])),
-                    orientation=Quat(w=float(q[0]), x=float(q[1]), y=float(q[2]), z=float(q[3]))),
-                covariance=np.zeros(36))
+                    position=T["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                    orientation=Quat(w=float(q[0]), x=float(q[1]), y=float(q[2]), z=float(q[3])),
+                ),
+                covariance=np.zeros(36),
+            )
             twist = T["geometry_msgs/msg/TwistWithCovariance"](
-                twist=T["geometry_msgs/msg/Twist"](linear=_vec3(ts, vb),
-                                                   angular=_vec3(ts, np.zeros(3))),
-                covariance=np.zeros(36))
-            msg = T[ODOMETRY](header=_header(ts, t, "world", ros1), child_frame_id="body",
-                              pose=pose, twist=twist)
+                twist=T["geometry_msgs/msg/Twist"](linear=_vec3(ts, vb), angular=_vec3(ts, np.zeros(3))),
+                covariance=np.zeros(36),
+            )
+            msg = T[ODOMETRY](
+                header=_header(ts, t, "world", ros1), child_frame_id="body", pose=pose, twist=twist
+            )
             writer.write(c_gt, t, ser(msg, ODOMETRY))
-

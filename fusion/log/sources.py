@@ -9,6 +9,7 @@
 Also here: the calibration given next to a log (Kalibr camchain / imu.yaml, or an EuRoC
 folder's sensor.yaml files) and the world.yaml lookup shared by every non-EuRoC reader.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -41,8 +42,7 @@ def detect_format(path: Path) -> LogFormat:
             return LogFormat.ROSBAG2
         if any((path / f"cam0{s}").is_file() for s in VIDEO_SUFFIXES):
             return LogFormat.VIDEO
-        raise LogError(f"{path}: not a flight log (no mav0/ folder, no ROS 2 metadata.yaml, "
-                       f"no cam0 video)")
+        raise LogError(f"{path}: not a flight log (no mav0/ folder, no ROS 2 metadata.yaml, no cam0 video)")
     suffix = path.suffix.lower()
     if suffix == ".bag":
         return LogFormat.ROSBAG1
@@ -50,8 +50,10 @@ def detect_format(path: Path) -> LogFormat:
         return LogFormat.ROSBAG2
     if suffix in VIDEO_SUFFIXES:
         return LogFormat.VIDEO
-    raise LogError(f"{path}: unknown log type (expected an EuRoC folder, .bag, a ROS 2 bag "
-                   f"folder or .mcap, or a {'/'.join(VIDEO_SUFFIXES)} video)")
+    raise LogError(
+        f"{path}: unknown log type (expected an EuRoC folder, .bag, a ROS 2 bag "
+        f"folder or .mcap, or a {'/'.join(VIDEO_SUFFIXES)} video)"
+    )
 
 
 def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
@@ -62,9 +64,11 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         return euroc.read_flight(path)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import read_bag
+
         log = read_bag(path, opts)
     else:
         from fusion.log.video import read_video_flight
+
         log = read_video_flight(path, opts)
     # the same unit, rate and clock plausibility checks as an EuRoC folder gets
     log.warnings += euroc.check_log(log)
@@ -77,15 +81,17 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 @dataclass
 class ExternalCalibration:
     """Calibration given beside a log: cameras by role name ("cam0" floor, "cam1" front)."""
+
     cameras: dict[str, CameraModel] = field(default_factory=dict)
-    timeshift_ns: dict[str, int] = field(default_factory=dict)   # t_imu = t_cam + shift
-    topics: dict[str, str] = field(default_factory=dict)         # role name -> rostopic
+    timeshift_ns: dict[str, int] = field(default_factory=dict)  # t_imu = t_cam + shift
+    topics: dict[str, str] = field(default_factory=dict)  # role name -> rostopic
     imu_noise: ImuNoise | None = None
     T_body_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
 
 
-def external_calibration(opts: LogOptions, T_body_imu: np.ndarray | None = None
-                         ) -> ExternalCalibration | None:
+def external_calibration(
+    opts: LogOptions, T_body_imu: np.ndarray | None = None
+) -> ExternalCalibration | None:
     """Read LogOptions.calib (Kalibr camchain yaml, or an EuRoC folder's mav0/*/sensor.yaml) and
     LogOptions.imu_calib (Kalibr imu.yaml); None when neither is given."""
     if opts.calib is None and opts.imu_calib is None:
@@ -154,5 +160,6 @@ def find_world(path: Path, opts: LogOptions, embedded: dict | None, embedded_whe
                 return World.load(cand)
     except WorldError as e:
         raise LogError(str(e)) from None
-    raise LogError(f"{path}: no world.yaml (looked for {', '.join(str(c) for c in tried)}); "
-                   "give one with --world")
+    raise LogError(
+        f"{path}: no world.yaml (looked for {', '.join(str(c) for c in tried)}); give one with --world"
+    )

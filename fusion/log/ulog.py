@@ -5,6 +5,7 @@ PX4's body frame is FRD (x forward, y right, z down); ours is FLU, so the sample
 IMU frame S = FRD and `ImuData.T_body_imu` = T_FLU_FRD (a 180 degree turn about x).  ULog
 timestamps are microseconds since boot.
 """
+
 from __future__ import annotations
 
 import logging
@@ -18,7 +19,7 @@ from fusion.log.euroc import ImuData, ImuNoise
 log = logging.getLogger(__name__)
 
 IMU_TOPIC = "sensor_combined"
-CAPTURE_TOPICS = ("camera_capture", "camera_trigger")     # preference order
+CAPTURE_TOPICS = ("camera_capture", "camera_trigger")  # preference order
 NS_PER_US = 1000
 T_FLU_FRD = np.diag([1.0, -1.0, -1.0, 1.0])
 """Pose of PX4's FRD body/IMU frame in our FLU body frame (rotation by pi about x)."""
@@ -26,13 +27,13 @@ T_FLU_FRD = np.diag([1.0, -1.0, -1.0, 1.0])
 
 def _open(path: Path, topics: list[str]):
     from pyulog import ULog
+
     try:
         return ULog(str(path), topics)
     except FileNotFoundError:
         raise LogError(f"{path}: not found") from None
     except Exception as e:  # noqa: BLE001 - pyulog raises several types for a damaged file
-        raise LogError(f"{path}: not a readable PX4 ULog ({e.__class__.__name__}: "
-                       f"{str(e)[:120]})") from None
+        raise LogError(f"{path}: not a readable PX4 ULog ({e.__class__.__name__}: {str(e)[:120]})") from None
 
 
 def _dataset(ulog, name: str):
@@ -47,8 +48,7 @@ def read_ulog_imu(path: Path, noise: ImuNoise | None = None) -> ImuData:
     ds = _dataset(ulog, IMU_TOPIC)
     if ds is None:
         names = sorted({d.name for d in _open(path, None).data_list})
-        raise LogError(f"{path}: no '{IMU_TOPIC}' topic; the ULog holds "
-                       f"{', '.join(names) or 'no data'}")
+        raise LogError(f"{path}: no '{IMU_TOPIC}' topic; the ULog holds {', '.join(names) or 'no data'}")
     d = ds.data
     try:
         t = np.asarray(d["timestamp"], np.int64) * NS_PER_US
@@ -62,8 +62,12 @@ def read_ulog_imu(path: Path, noise: ImuNoise | None = None) -> ImuData:
     order = np.argsort(t, kind="stable")
     keep = np.r_[True, np.diff(t[order]) > 0] if len(t) else np.zeros(0, bool)
     if (~keep).sum() or np.any(np.diff(t) < 0):
-        log.warning("%s: %s had %d duplicate / out-of-order samples (sorted, duplicates dropped)",
-                    path, IMU_TOPIC, int((~keep).sum() + np.sum(np.diff(t) < 0)))
+        log.warning(
+            "%s: %s had %d duplicate / out-of-order samples (sorted, duplicates dropped)",
+            path,
+            IMU_TOPIC,
+            int((~keep).sum() + np.sum(np.diff(t) < 0)),
+        )
     idx = order[keep]
     if not len(idx):
         raise LogError(f"{path}: '{IMU_TOPIC}' has no samples")

@@ -20,6 +20,7 @@ LogOptions.video_start_ns.  A variable-frame-rate video without frame times is r
 Frames decode lazily: sequentially when read in order, by seeking to the previous key frame
 otherwise.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -37,8 +38,17 @@ from fusion.errors import LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T
 from fusion.log import euroc
-from fusion.log.euroc import (CameraStream, FlightLog, Frame, ImuData, ImuNoise, VelocityData,
-                              _numeric_csv, _timestamp, _write_csv)
+from fusion.log.euroc import (
+    CameraStream,
+    FlightLog,
+    Frame,
+    ImuData,
+    ImuNoise,
+    VelocityData,
+    _numeric_csv,
+    _timestamp,
+    _write_csv,
+)
 from fusion.log.kalibr import read_camchain, read_imu_yaml, write_camchain, write_imu_yaml
 from fusion.log.options import LogOptions
 from fusion.log.sources import VIDEO_SUFFIXES, find_world
@@ -55,10 +65,10 @@ GROUNDTRUTH_FILE = "groundtruth.csv"
 LOADS_FILE = "loads_groundtruth.csv"
 BLACKOUTS_FILE = "blackouts_groundtruth.csv"
 FRAME_TIMES_HEADER = ("#timestamp [ns]",)
-VFR_TOLERANCE_TICKS = 1          # pts steps may differ by one tick of rounding and stay CFR
-CODECS = {                       # codec -> (container suffix, pixel format, encoder options)
-    "ffv1": (".mkv", "gray", {}),                              # lossless
-    "h264": (".mp4", "yuv420p", {"crf": "18", "preset": "veryfast"}),   # lossy, everywhere
+VFR_TOLERANCE_TICKS = 1  # pts steps may differ by one tick of rounding and stay CFR
+CODECS = {  # codec -> (container suffix, pixel format, encoder options)
+    "ffv1": (".mkv", "gray", {}),  # lossless
+    "h264": (".mp4", "yuv420p", {"crf": "18", "preset": "veryfast"}),  # lossy, everywhere
 }
 DEFAULT_VIDEO_RATE_HZ = 30.0
 
@@ -70,16 +80,23 @@ class VideoCameraStream(CameraStream):
     """Frames of one video file, decoded on demand.  `frame_index[i]` is the decoded frame
     number of timestamp i.  Picklable (the container is reopened in each process)."""
 
-    def __init__(self, name: str, camera: CameraModel, timestamps_ns: np.ndarray, video: Path,
-                 pts: np.ndarray, frame_index: np.ndarray):
+    def __init__(
+        self,
+        name: str,
+        camera: CameraModel,
+        timestamps_ns: np.ndarray,
+        video: Path,
+        pts: np.ndarray,
+        frame_index: np.ndarray,
+    ):
         super().__init__(name, camera, np.asarray(timestamps_ns, np.int64), [], [])
         self.video = Path(video)
-        self.pts = np.asarray(pts, np.int64)               # presentation order
+        self.pts = np.asarray(pts, np.int64)  # presentation order
         self.frame_index = np.asarray(frame_index, np.int64)
         self._container = None
         self._frames = None
         self._next = -1
-        self._pid = None                                  # process that opened _container
+        self._pid = None  # process that opened _container
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -101,6 +118,7 @@ class VideoCameraStream(CameraStream):
 
     def _seek(self, k: int) -> None:
         import av
+
         if self._container is not None and self._pid != os.getpid():
             # a forked worker shares the parent's file offsets: never read through them
             self._container, self._frames = None, None
@@ -114,7 +132,7 @@ class VideoCameraStream(CameraStream):
         else:
             self._container.seek(target, stream=vs, backward=True, any_frame=False)
         self._frames = self._container.decode(vs)
-        self._next = None            # unknown until the first frame at or after the target
+        self._next = None  # unknown until the first frame at or after the target
 
     def _decode(self, k: int):
         if self._frames is None or self._next != k or self._pid != os.getpid():
@@ -145,8 +163,10 @@ class VideoCameraStream(CameraStream):
             self._frames = None
             return None
         if img.shape != (self.camera.height, self.camera.width):
-            self.skipped.append(f"{where}: image is {img.shape[1]}x{img.shape[0]}, the "
-                                f"calibration says {self.camera.width}x{self.camera.height}")
+            self.skipped.append(
+                f"{where}: image is {img.shape[1]}x{img.shape[0]}, the "
+                f"calibration says {self.camera.width}x{self.camera.height}"
+            )
             return None
         return np.ascontiguousarray(img)
 
@@ -163,6 +183,7 @@ def probe_video(path: Path) -> tuple[np.ndarray, Fraction, float | None, str | N
     """(pts of every frame in presentation order, time base, the container's average rate in Hz
     or None, a warning if demuxing stopped at damage)."""
     import av
+
     try:
         container = av.open(str(path))
     except FileNotFoundError:
@@ -180,8 +201,9 @@ def probe_video(path: Path) -> tuple[np.ndarray, Fraction, float | None, str | N
                 if t is not None and pkt.size > 0:
                     pts.append(int(t))
         except Exception as e:  # noqa: BLE001
-            warning = (f"{path}: damaged after {len(pts)} frames ({e.__class__.__name__}); "
-                       "using the frames before")
+            warning = (
+                f"{path}: damaged after {len(pts)} frames ({e.__class__.__name__}); using the frames before"
+            )
             log.warning(warning)
         rate = float(vs.average_rate) if vs.average_rate else None
         tb = vs.time_base
@@ -205,8 +227,10 @@ def read_frame_times(path: Path) -> np.ndarray:
                 continue
             t = _timestamp(text.split(",")[0].strip(), path, lineno)
             if prev is not None and t <= prev:
-                raise LogError(f"{path}:{lineno}: {'duplicate' if t == prev else 'non-monotonic'}"
-                               f" timestamp {t} (previous {prev})")
+                raise LogError(
+                    f"{path}:{lineno}: {'duplicate' if t == prev else 'non-monotonic'}"
+                    f" timestamp {t} (previous {prev})"
+                )
             ts.append(t)
             prev = t
     if not ts:
@@ -214,9 +238,15 @@ def read_frame_times(path: Path) -> np.ndarray:
     return np.asarray(ts, np.int64)
 
 
-def _frame_times(video: Path, pts: np.ndarray, tb: Fraction, rate: float | None,
-                 times_csv: Path | None, ulog_times: np.ndarray | None,
-                 opts: LogOptions) -> tuple[np.ndarray, np.ndarray]:
+def _frame_times(
+    video: Path,
+    pts: np.ndarray,
+    tb: Fraction,
+    rate: float | None,
+    times_csv: Path | None,
+    ulog_times: np.ndarray | None,
+    opts: LogOptions,
+) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps_ns, frame index) for the decodable frames of `video`."""
     n = len(pts)
     if times_csv is not None:
@@ -226,20 +256,25 @@ def _frame_times(video: Path, pts: np.ndarray, tb: Fraction, rate: float | None,
     else:
         steps = np.diff(pts)
         if len(steps) and steps.max() - steps.min() > VFR_TOLERANCE_TICKS:
-            raise LogError(f"{video}: variable frame rate (frame steps {steps.min()}..{steps.max()}"
-                           f" x {tb} s) and no frame times file; give one with --frame-times")
+            raise LogError(
+                f"{video}: variable frame rate (frame steps {steps.min()}..{steps.max()}"
+                f" x {tb} s) and no frame times file; give one with --frame-times"
+            )
         if opts.video_start_ns is None:
-            raise LogError(f"{video}: no frame times file ({video.with_suffix('.csv').name}) and "
-                           "no camera capture topic; give --frame-times, or --video-start-ns "
-                           "(the first frame's time in the IMU clock) for a constant-rate video")
+            raise LogError(
+                f"{video}: no frame times file ({video.with_suffix('.csv').name}) and "
+                "no camera capture topic; give --frame-times, or --video-start-ns "
+                "(the first frame's time in the IMU clock) for a constant-rate video"
+            )
         fps = opts.video_fps or (float(1 / (steps[0] * tb)) if len(steps) else rate)
         if not fps:
             raise LogError(f"{video}: frame rate unknown; give --video-fps")
         t = int(opts.video_start_ns) + np.round(np.arange(n) * 1e9 / fps).astype(np.int64)
         return t, np.arange(n)
     if len(t) != n:
-        log.warning("%s: %d frames but %d times in %s; using the first %d", video, n, len(t),
-                    source, min(n, len(t)))
+        log.warning(
+            "%s: %d frames but %d times in %s; using the first %d", video, n, len(t), source, min(n, len(t))
+        )
     m = min(n, len(t))
     return t[:m], np.arange(m)
 
@@ -247,8 +282,7 @@ def _frame_times(video: Path, pts: np.ndarray, tb: Fraction, rate: float | None,
 # ============================================================================ reading
 
 
-def _find(folder: Path, given: Path | None, name: str | None, pattern: str | None = None
-          ) -> Path | None:
+def _find(folder: Path, given: Path | None, name: str | None, pattern: str | None = None) -> Path | None:
     if given is not None:
         return Path(given)
     if name and (folder / name).is_file():
@@ -275,8 +309,9 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     path = Path(path)
     folder = path if path.is_dir() else path.parent
     videos = {CameraRole.FLOOR.value: _video_of(folder, "cam0") if path.is_dir() else path}
-    front = Path(opts.front_video) if opts.front_video else \
-        (_video_of(folder, "cam1") if path.is_dir() else None)
+    front = (
+        Path(opts.front_video) if opts.front_video else (_video_of(folder, "cam1") if path.is_dir() else None)
+    )
     if front is not None:
         videos[CameraRole.FRONT.value] = front
 
@@ -286,6 +321,7 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     kimu = read_imu_yaml(imu_yaml) if imu_yaml else None
     if imu_path is not None and imu_path.suffix.lower() == ".ulg":
         from fusion.log.ulog import read_ulog_frame_times, read_ulog_imu
+
         imu = read_ulog_imu(imu_path, kimu.noise if kimu else None)
         ulog_times = read_ulog_frame_times(imu_path)
     elif imu_path is not None:
@@ -295,10 +331,13 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     calib_path = _find(folder, opts.calib, CAMCHAIN_FILE, "*camchain*.yaml")
     if calib_path is None:
-        raise LogError(f"{path}: no camera calibration ({CAMCHAIN_FILE}); give a Kalibr "
-                       "camchain-imucam.yaml with --calib")
+        raise LogError(
+            f"{path}: no camera calibration ({CAMCHAIN_FILE}); give a Kalibr "
+            "camchain-imucam.yaml with --calib"
+        )
     if Path(calib_path).is_dir():
         from fusion.log.sources import external_calibration
+
         ext = external_calibration(LogOptions(calib=calib_path))
         kal = {k: (cam, ext.timeshift_ns.get(k, 0)) for k, cam in ext.cameras.items()}
     else:
@@ -314,10 +353,14 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         cam, shift_ns = kal[name]
         pts, tb, rate, _ = probe_video(video)
         times = opts.frame_times if name == CameraRole.FLOOR.value else opts.front_frame_times
-        times = Path(times) if times else (video.with_suffix(".csv")
-                                           if video.with_suffix(".csv").is_file() else None)
-        t, idx = _frame_times(video, pts, tb, rate, times,
-                              ulog_times if name == CameraRole.FLOOR.value else None, opts)
+        times = (
+            Path(times)
+            if times
+            else (video.with_suffix(".csv") if video.with_suffix(".csv").is_file() else None)
+        )
+        t, idx = _frame_times(
+            video, pts, tb, rate, times, ulog_times if name == CameraRole.FLOOR.value else None, opts
+        )
         t = t + shift_ns
         if "rate_hz" not in _camchain_keys(calib_path, name) and len(t) > 1:
             cam.rate_hz = float(1e9 / np.median(np.diff(t)))
@@ -331,11 +374,15 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if (folder / VELOCITY_YAML_FILE).is_file():
             noise = float(load_yaml(folder / VELOCITY_YAML_FILE, LogError).get("noise_m_s", noise))
         vel = VelocityData(ts, v, noise)
-    gt, gt_warnings = euroc._read_groundtruth(folder / GROUNDTRUTH_FILE) \
-        if (folder / GROUNDTRUTH_FILE).is_file() else (None, [])
+    gt, gt_warnings = (
+        euroc._read_groundtruth(folder / GROUNDTRUTH_FILE)
+        if (folder / GROUNDTRUTH_FILE).is_file()
+        else (None, [])
+    )
     loads = euroc._read_loads(folder / LOADS_FILE) if (folder / LOADS_FILE).is_file() else None
-    blackouts = euroc._read_blackouts(folder / BLACKOUTS_FILE) \
-        if (folder / BLACKOUTS_FILE).is_file() else None
+    blackouts = (
+        euroc._read_blackouts(folder / BLACKOUTS_FILE) if (folder / BLACKOUTS_FILE).is_file() else None
+    )
     world = find_world(path, opts, None, "")
     if imu is None and vel is None:
         log.warning("%s: no IMU (imu.csv or a .ulg) and no velocity.csv", path)
@@ -360,20 +407,24 @@ def _read_imu_csv(path: Path, kimu, folder: Path) -> ImuData:
         block = data.get("imu0", data) if isinstance(data.get("imu0"), dict) else data
         if "T_i_b" in block:
             from fusion.log.kalibr import _matrix
+
             T_bi = inv_T(_matrix(block["T_i_b"], f"{imu_yaml}: T_i_b"))
-    rate = kimu.rate_hz if kimu is not None and kimu.rate_hz else \
-        (float(1e9 / np.median(np.diff(t))) if len(t) > 1 else 200.0)
+    rate = (
+        kimu.rate_hz
+        if kimu is not None and kimu.rate_hz
+        else (float(1e9 / np.median(np.diff(t))) if len(t) > 1 else 200.0)
+    )
     return ImuData(t, vals[:, :3], vals[:, 3:], kimu.noise if kimu else ImuNoise(), T_bi, rate)
 
 
 # ============================================================================ writing
 
 
-def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1",
-                       overwrite: bool = False) -> Path:
+def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1", overwrite: bool = False) -> Path:
     """Write `flight` as a video folder (module docstring).  `codec` "ffv1" is lossless (gray
     MKV), "h264" lossy (MP4, yuv420p, CRF 18).  Written to OUT.partial, renamed when complete."""
     import av
+
     out = Path(out)
     if codec not in CODECS:
         raise LogError(f"video codec {codec!r} is not one of {', '.join(CODECS)}")
@@ -386,12 +437,16 @@ def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1",
     try:
         for name, stream in sorted(flight.cameras.items()):
             cam = stream.camera
-            rate = Fraction(cam.rate_hz).limit_denominator(1001) if cam.rate_hz > 0 else \
-                Fraction(int(DEFAULT_VIDEO_RATE_HZ))
+            rate = (
+                Fraction(cam.rate_hz).limit_denominator(1001)
+                if cam.rate_hz > 0
+                else Fraction(int(DEFAULT_VIDEO_RATE_HZ))
+            )
             times = []
             with av.open(str(tmp / f"{name}{suffix}"), mode="w") as container:
-                vs = container.add_stream("libx264" if codec == "h264" else codec, rate=rate,
-                                          options=dict(options))
+                vs = container.add_stream(
+                    "libx264" if codec == "h264" else codec, rate=rate, options=dict(options)
+                )
                 vs.width, vs.height, vs.pix_fmt = cam.width, cam.height, pix_fmt
                 for frame in stream.frames():
                     if frame.image is None:
@@ -406,9 +461,12 @@ def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1",
                 for pkt in vs.encode():
                     container.mux(pkt)
             _write_csv(tmp / f"{name}.csv", FRAME_TIMES_HEADER, ([str(t)] for t in times))
-        write_camchain(tmp / CAMCHAIN_FILE, {n: s.camera for n, s in flight.cameras.items()},
-                       {n: f"/{n}/image_raw" for n in flight.cameras},
-                       flight.imu.T_body_imu if flight.imu is not None else None)
+        write_camchain(
+            tmp / CAMCHAIN_FILE,
+            {n: s.camera for n, s in flight.cameras.items()},
+            {n: f"/{n}/image_raw" for n in flight.cameras},
+            flight.imu.T_body_imu if flight.imu is not None else None,
+        )
         flight.world.save(tmp / "world.yaml")
         if flight.imu is not None:
             imu = flight.imu
@@ -417,30 +475,54 @@ def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1",
                 data = load_yaml(tmp / IMU_YAML_FILE, LogError)
                 data["T_i_b"] = [[float(v) for v in r] for r in inv_T(imu.T_body_imu)]
                 dump_yaml(data, tmp / IMU_YAML_FILE)
-            _write_csv(tmp / IMU_CSV_FILE, euroc.IMU_HEADER,
-                       ([str(int(t))] + [repr(float(v)) for v in np.r_[w, a]]
-                        for t, w, a in zip(imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2)))
+            _write_csv(
+                tmp / IMU_CSV_FILE,
+                euroc.IMU_HEADER,
+                (
+                    [str(int(t))] + [repr(float(v)) for v in np.r_[w, a]]
+                    for t, w, a in zip(imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2)
+                ),
+            )
         if flight.velocity is not None:
             v = flight.velocity
-            _write_csv(tmp / VELOCITY_CSV_FILE, euroc.VEL_HEADER,
-                       ([str(int(t))] + [repr(float(x)) for x in row]
-                        for t, row in zip(v.timestamps_ns, v.v_body_m_s)))
-            dump_yaml({"noise_m_s": float(v.noise_m_s), "frame": "body"},
-                      tmp / VELOCITY_YAML_FILE)
+            _write_csv(
+                tmp / VELOCITY_CSV_FILE,
+                euroc.VEL_HEADER,
+                (
+                    [str(int(t))] + [repr(float(x)) for x in row]
+                    for t, row in zip(v.timestamps_ns, v.v_body_m_s)
+                ),
+            )
+            dump_yaml({"noise_m_s": float(v.noise_m_s), "frame": "body"}, tmp / VELOCITY_YAML_FILE)
         gt = flight.groundtruth
         if gt is not None:
-            _write_csv(tmp / GROUNDTRUTH_FILE, euroc.GT_HEADER,
-                       ([str(int(t))] + [repr(float(x)) for x in np.r_[p, q, vw, bw, ba]]
-                        for t, p, q, vw, bw, ba in zip(gt.timestamps_ns, gt.p_world,
-                                                       gt.q_world_body_wxyz, gt.v_world,
-                                                       gt.bias_gyro, gt.bias_accel)))
+            _write_csv(
+                tmp / GROUNDTRUTH_FILE,
+                euroc.GT_HEADER,
+                (
+                    [str(int(t))] + [repr(float(x)) for x in np.r_[p, q, vw, bw, ba]]
+                    for t, p, q, vw, bw, ba in zip(
+                        gt.timestamps_ns,
+                        gt.p_world,
+                        gt.q_world_body_wxyz,
+                        gt.v_world,
+                        gt.bias_gyro,
+                        gt.bias_accel,
+                    )
+                ),
+            )
         if flight.loads_groundtruth is not None:
-            _write_csv(tmp / LOADS_FILE, euroc.LOADS_HEADER,
-                       ([k] + [repr(float(x)) for x in p]
-                        for k, p in flight.loads_groundtruth.items()))
+            _write_csv(
+                tmp / LOADS_FILE,
+                euroc.LOADS_HEADER,
+                ([k] + [repr(float(x)) for x in p] for k, p in flight.loads_groundtruth.items()),
+            )
         if flight.blackouts is not None:
-            _write_csv(tmp / BLACKOUTS_FILE, euroc.BLACKOUTS_HEADER,
-                       ([str(a), str(b), k] for a, b, k in flight.blackouts))
+            _write_csv(
+                tmp / BLACKOUTS_FILE,
+                euroc.BLACKOUTS_HEADER,
+                ([str(a), str(b), k] for a, b, k in flight.blackouts),
+            )
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

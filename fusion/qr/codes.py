@@ -9,6 +9,7 @@ counted and never used for estimation (issue: "Bad input"):
   at most one of them can be right and we cannot tell which,
 - a load id that is not printable ("bad_load_id", via the payload grammar).
 """
+
 from __future__ import annotations
 
 from collections import Counter
@@ -28,10 +29,11 @@ FRONT_CAMERA = "cam1"
 @dataclass
 class FloorSighting:
     """A floor code in a floor-camera frame, with its known world position."""
+
     detection: QRDetection
     payload: FloorPayload
-    centre_world: np.ndarray          # (3,) symbol centre, z = 0
-    corners_world: np.ndarray         # (4, 3) TL, TR, BR, BL
+    centre_world: np.ndarray  # (3,) symbol centre, z = 0
+    corners_world: np.ndarray  # (4, 3) TL, TR, BR, BL
 
 
 @dataclass
@@ -43,9 +45,10 @@ class LoadSighting:
 @dataclass
 class FrameCodes:
     """One frame's codes, sorted."""
+
     floor: list[FloorSighting] = field(default_factory=list)
     loads: list[LoadSighting] = field(default_factory=list)
-    rejected: list[tuple[QRDetection, str]] = field(default_factory=list)   # (detection, reason)
+    rejected: list[tuple[QRDetection, str]] = field(default_factory=list)  # (detection, reason)
 
 
 def classify(detections: list[QRDetection], world: World) -> FrameCodes:

@@ -24,6 +24,7 @@ cache is recomputed when any image changes.  Payloads (untrusted) are stored spr
 (`fusion.fileio.csv_safe`, undone on reading).  `DetectionResult.cache_status` and a log
 message say whether a run reused the cache.
 """
+
 from __future__ import annotations
 
 import csv
@@ -47,15 +48,35 @@ from fusion.qr.refine import modules_for_version, refine_frames
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
-FORMAT_VERSION = 4          # 4: payloads spreadsheet-safe; image sizes and mtimes in the key
+FORMAT_VERSION = 4  # 4: payloads spreadsheet-safe; image sizes and mtimes in the key
 CACHE_NAME = "detections.csv"
-REFINE_METHOD = "finder-crossings+finder-model-homography/7"   # change when refine.py's output changes
-CACHE_HEADER = ("camera", "timestamp_ns", "payload",
-                "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
-                "raw_tl_x", "raw_tl_y", "raw_tr_x", "raw_tr_y", "raw_br_x", "raw_br_y",
-                "raw_bl_x", "raw_bl_y", "refined", "corner_sigma_px", "corner_cov_px2")
+REFINE_METHOD = "finder-crossings+finder-model-homography/7"  # change when refine.py's output changes
+CACHE_HEADER = (
+    "camera",
+    "timestamp_ns",
+    "payload",
+    "tl_x",
+    "tl_y",
+    "tr_x",
+    "tr_y",
+    "br_x",
+    "br_y",
+    "bl_x",
+    "bl_y",
+    "raw_tl_x",
+    "raw_tl_y",
+    "raw_tr_x",
+    "raw_tr_y",
+    "raw_br_x",
+    "raw_br_y",
+    "raw_bl_x",
+    "raw_bl_y",
+    "refined",
+    "corner_sigma_px",
+    "corner_cov_px2",
+)
 _MAGIC = "# fusion-detections"
-RAW_CORNER_SIGMA_PX = 1.0   # decoder corners (refinement failed): whole pixels, 0.7-1 px off
+RAW_CORNER_SIGMA_PX = 1.0  # decoder corners (refinement failed): whole pixels, 0.7-1 px off
 CACHE_REUSED, CACHE_WRITTEN, CACHE_STALE, CACHE_NONE = "reused", "written", "recomputed", "none"
 
 logger = logging.getLogger(__name__)
@@ -64,28 +85,30 @@ logger = logging.getLogger(__name__)
 # try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
 # per module) and save ~40 % of the time; try_rotate only concerns 1-D symbologies; the
 # GlobalHistogram binarizer is ~2x faster but lost 7-23 % of the codes, so LocalAverage stays.
-ZXING_OPTIONS = dict(try_rotate=False, try_downscale=False, try_invert=False,
-                     binarizer=zxingcpp.Binarizer.LocalAverage)
+ZXING_OPTIONS = dict(
+    try_rotate=False, try_downscale=False, try_invert=False, binarizer=zxingcpp.Binarizer.LocalAverage
+)
 
 
 @dataclass
 class RawCode:
     """One decoded symbol as the decoder gave it."""
+
     payload: str
-    corners_px: np.ndarray        # (4, 2) TL, TR, BR, BL (OpenCV pixel convention)
-    modules: int | None           # modules per side when the decoder reports the version
+    corners_px: np.ndarray  # (4, 2) TL, TR, BR, BL (OpenCV pixel convention)
+    modules: int | None  # modules per side when the decoder reports the version
 
 
 @dataclass
 class CameraStats:
     frames_total: int = 0
-    frames_skipped: int = 0        # missing / unreadable images
-    frames_with_code: int = 0      # frames with at least one kept detection
+    frames_skipped: int = 0  # missing / unreadable images
+    frames_with_code: int = 0  # frames with at least one kept detection
     detections: int = 0
-    payloads_dropped: int = 0      # non-UTF-8 payloads (aruco: frames where OpenCV's decoder threw)
-    refine_failed: int = 0         # detections whose corners stayed the decoder's
+    payloads_dropped: int = 0  # non-UTF-8 payloads (aruco: frames where OpenCV's decoder threw)
+    refine_failed: int = 0  # detections whose corners stayed the decoder's
 
-    def add(self, other: "CameraStats") -> None:
+    def add(self, other: CameraStats) -> None:
         for k in self.__dataclass_fields__:
             setattr(self, k, getattr(self, k) + getattr(other, k))
 
@@ -94,12 +117,13 @@ class CameraStats:
 class DetectionResult:
     """Every detection of a flight; `stats[camera]` counts frames; `skipped` says why frames were
     skipped (file and line of data.csv)."""
+
     detections: list[QRDetection]
     stats: dict[str, CameraStats]
     skipped: list[str] = field(default_factory=list)
     backend: str = "zxing"
     from_cache: bool = False
-    cache_status: str = CACHE_NONE   # reused | written (no cache) | recomputed (stale) | none
+    cache_status: str = CACHE_NONE  # reused | written (no cache) | recomputed (stale) | none
 
     def for_camera(self, camera: str) -> list[QRDetection]:
         return [d for d in self.detections if d.camera == camera]
@@ -132,9 +156,18 @@ def _zxing(image: np.ndarray) -> tuple[list[RawCode], int]:
             continue
         p = b.position
         # zxing's pixel corners are at integer coordinates: shift by half a pixel to OpenCV's
-        corners = np.array([[p.top_left.x, p.top_left.y], [p.top_right.x, p.top_right.y],
-                            [p.bottom_right.x, p.bottom_right.y],
-                            [p.bottom_left.x, p.bottom_left.y]], dtype=np.float64) - 0.5
+        corners = (
+            np.array(
+                [
+                    [p.top_left.x, p.top_left.y],
+                    [p.top_right.x, p.top_right.y],
+                    [p.bottom_right.x, p.bottom_right.y],
+                    [p.bottom_left.x, p.bottom_left.y],
+                ],
+                dtype=np.float64,
+            )
+            - 0.5
+        )
         modules = None
         try:
             version = int(b.extra.get("Version", ""))
@@ -163,7 +196,7 @@ def _aruco(image: np.ndarray) -> tuple[list[RawCode], int]:
         return [], 0
     codes = []
     for text, pts in zip(texts, points):
-        if not text:            # located but not decoded
+        if not text:  # located but not decoded
             continue
         # OpenCV's corners are the centres of the outermost module pixels, not the symbol's outer
         # edge; refinement moves them onto the edge.
@@ -185,9 +218,14 @@ def _detect_image(image: np.ndarray, backend: str) -> tuple[list[RawCode], int]:
     raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")
 
 
-def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0,
-                 camera: CameraModel | None = None, backend: str = "zxing",
-                 stats: CameraStats | None = None) -> list[QRDetection]:
+def detect_frame(
+    image: np.ndarray,
+    camera_name: str = "",
+    timestamp_ns: int = 0,
+    camera: CameraModel | None = None,
+    backend: str = "zxing",
+    stats: CameraStats | None = None,
+) -> list[QRDetection]:
     """Decode and refine one frame: QRDetections with `corners_px` refined (sub-pixel, see
     fusion.qr.refine), `corners_raw_px` as decoded, `corner_cov_px2` the refinement's calibrated
     (8, 8) corner covariance and `corner_sigma_px` the square root of its mean diagonal
@@ -196,16 +234,22 @@ def detect_frame(image: np.ndarray, camera_name: str = "", timestamp_ns: int = 0
     return detect_frames([image], camera_name, [timestamp_ns], camera, backend, stats)[0]
 
 
-def detect_frames(images: list[np.ndarray], camera_name: str = "", timestamps_ns=None,
-                  camera: CameraModel | None = None, backend: str = "zxing",
-                  stats: CameraStats | None = None) -> list[list[QRDetection]]:
+def detect_frames(
+    images: list[np.ndarray],
+    camera_name: str = "",
+    timestamps_ns=None,
+    camera: CameraModel | None = None,
+    backend: str = "zxing",
+    stats: CameraStats | None = None,
+) -> list[list[QRDetection]]:
     """`detect_frame` for several frames of one camera: each decoded on its own, all their codes
     refined together (fusion.qr.refine.refine_frames: the array work is shared, ~2x cheaper per
     frame than one frame at a time).  Returns one list of detections per image."""
     timestamps_ns = [0] * len(images) if timestamps_ns is None else list(timestamps_ns)
     decoded = [_detect_image(image, backend) for image in images]
-    refined_all = refine_frames(list(images), [[(c.corners_px, c.modules) for c in codes]
-                                               for codes, _ in decoded], camera)
+    refined_all = refine_frames(
+        list(images), [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded], camera
+    )
     out = []
     for (codes, dropped), refined_frame, ts in zip(decoded, refined_all, timestamps_ns):
         dets = []
@@ -216,8 +260,9 @@ def detect_frames(images: list[np.ndarray], camera_name: str = "", timestamps_ns
                 refined, sigma, cov = code.corners_px.copy(), RAW_CORNER_SIGMA_PX, None
             else:
                 refined, sigma, cov = res.corners_px, res.corner_sigma_px, res.corner_cov_px2
-            dets.append(QRDetection(camera_name, int(ts), code.payload, refined,
-                                    code.corners_px, float(sigma), cov))
+            dets.append(
+                QRDetection(camera_name, int(ts), code.payload, refined, code.corners_px, float(sigma), cov)
+            )
         if stats is not None:
             stats.payloads_dropped += dropped
             stats.refine_failed += failed
@@ -233,8 +278,10 @@ REFINE_BATCH_FRAMES = 8
 
 # ============================================================================ a whole flight
 
-def _detect_chunk(context: tuple[dict, str], task: tuple[str, int, int]
-                  ) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
+
+def _detect_chunk(
+    context: tuple[dict, str], task: tuple[str, int, int]
+) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
     """Frames [start, stop) of one camera, read from their paths in the calling process;
     `context` = ({camera name: CameraStream}, backend)."""
     streams, backend = context
@@ -253,8 +300,7 @@ def _detect_chunk(context: tuple[dict, str], task: tuple[str, int, int]
             images.append(image)
             stamps.append(int(stream.timestamps_ns[i]))
         if len(images) == REFINE_BATCH_FRAMES or (i == stop - 1 and images):
-            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera,
-                                            backend, stats):
+            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera, backend, stats):
                 dets.extend(frame_dets)
             images, stamps = [], []
     skipped = stream.skipped[skipped_before:]
@@ -270,7 +316,7 @@ def flight_fingerprint(log, backend: str) -> str:
     for name in sorted(log.cameras):
         cam_dir = Path(log.root) / "mav0" / name
         h.update(f"{name}\n".encode())
-        if hasattr(log.cameras[name], "fingerprint"):     # bag / video streams (fusion.log)
+        if hasattr(log.cameras[name], "fingerprint"):  # bag / video streams (fusion.log)
             h.update(log.cameras[name].fingerprint())
             continue
         for fname in ("data.csv", "sensor.yaml"):
@@ -288,9 +334,14 @@ def flight_fingerprint(log, backend: str) -> str:
     return h.hexdigest()
 
 
-def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
-                  workers: int | None = None, progress: bool = True,
-                  chunk_frames: int = 32) -> DetectionResult:
+def detect_flight(
+    log,
+    cache_path: Path | None = None,
+    backend: str = "zxing",
+    workers: int | None = None,
+    progress: bool = True,
+    chunk_frames: int = 32,
+) -> DetectionResult:
     """Detections of every frame of every camera of `log` (fusion.log.FlightLog).
 
     Frames are processed in parallel by `workers` processes (default: all cores; 1 = in this
@@ -307,15 +358,23 @@ def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
         if cached is not None:
             cached.backend = backend
             cached.cache_status = CACHE_REUSED
-            logger.info("detections reused from %s (same data.csv, sensor.yaml, image sizes and "
-                        "times, backend %s)", cache_path, backend)
+            logger.info(
+                "detections reused from %s (same data.csv, sensor.yaml, image sizes and times, backend %s)",
+                cache_path,
+                backend,
+            )
             return cached
         status = CACHE_STALE
-        logger.info("detection cache %s is stale (the log, its images or the settings changed): "
-                    "detecting again", cache_path)
+        logger.info(
+            "detection cache %s is stale (the log, its images or the settings changed): detecting again",
+            cache_path,
+        )
     streams = {name: log.cameras[name] for name in sorted(log.cameras)}
-    tasks = [(name, s, min(s + chunk_frames, len(stream)))
-             for name, stream in streams.items() for s in range(0, len(stream), chunk_frames)]
+    tasks = [
+        (name, s, min(s + chunk_frames, len(stream)))
+        for name, stream in streams.items()
+        for s in range(0, len(stream), chunk_frames)
+    ]
     n_frames = sum(len(s) for s in streams.values())
     workers = worker_count(workers)
     stats = {name: CameraStats() for name in streams}
@@ -323,8 +382,9 @@ def detect_flight(log, cache_path: Path | None = None, backend: str = "zxing",
     skipped: list[str] = []
     bar = _progress_bar(n_frames, progress)
     try:
-        results = parallel_map(_detect_chunk, tasks, workers, (streams, backend),
-                               preload=["fusion.qr.detect"])
+        results = parallel_map(
+            _detect_chunk, tasks, workers, (streams, backend), preload=["fusion.qr.detect"]
+        )
         _collect(results, dets, stats, skipped, bar)
     finally:
         if bar is not None:
@@ -351,6 +411,7 @@ def _progress_bar(total: int, enabled: bool):
     if not enabled:
         return None
     from tqdm import tqdm
+
     return tqdm(total=total, unit="frame", desc="detect", leave=False)
 
 
@@ -359,9 +420,11 @@ def _progress_bar(total: int, enabled: bool):
 
 def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
     """Write `detections.csv` atomically (see the module docstring for the layout)."""
-    meta = {"backend": result.backend,
-            "stats": {k: vars(v) for k, v in sorted(result.stats.items())},
-            "skipped": result.skipped}
+    meta = {
+        "backend": result.backend,
+        "stats": {k: vars(v) for k, v in sorted(result.stats.items())},
+        "skipped": result.skipped,
+    }
     with atomic_open(Path(path)) as f:
         f.write(f"{_MAGIC} v{FORMAT_VERSION} fingerprint={fingerprint}\n")
         f.write("# meta " + json.dumps(meta, ensure_ascii=True) + "\n")
@@ -369,12 +432,16 @@ def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
         w.writerow(CACHE_HEADER)
         for d in result.detections:
             refined = int(not np.array_equal(d.corners_px, d.corners_raw_px))
-            w.writerow([d.camera, str(int(d.timestamp_ns)), csv_safe(d.payload)]
-                       + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
-                       + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
-                       + [str(refined),
-                          "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px)),
-                          _cov_text(d.corner_cov_px2)])
+            w.writerow(
+                [d.camera, str(int(d.timestamp_ns)), csv_safe(d.payload)]
+                + [repr(float(v)) for v in np.asarray(d.corners_px).reshape(-1)]
+                + [repr(float(v)) for v in np.asarray(d.corners_raw_px).reshape(-1)]
+                + [
+                    str(refined),
+                    "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px)),
+                    _cov_text(d.corner_cov_px2),
+                ]
+            )
 
 
 _TRIU = np.triu_indices(8)
@@ -413,19 +480,22 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
             first = f.readline()
             if not first.startswith(_MAGIC + " "):
                 raise DetectionError(f"{path}:1: not a fusion detection cache")
-            fields = dict(tok.split("=", 1) if "=" in tok else (tok, "")
-                          for tok in first[len(_MAGIC):].split())
+            fields = dict(
+                tok.split("=", 1) if "=" in tok else (tok, "") for tok in first[len(_MAGIC) :].split()
+            )
             if f"v{FORMAT_VERSION}" not in fields:
-                return None          # another format version: recompute
+                return None  # another format version: recompute
             if expected_fingerprint is not None and fields.get("fingerprint") != expected_fingerprint:
                 return None
             second = f.readline()
             if not second.startswith("# meta "):
                 raise DetectionError(f"{path}:2: missing '# meta' line")
             try:
-                meta = json.loads(second[len("# meta "):])
-                stats = {str(k): CameraStats(**{kk: int(vv) for kk, vv in v.items()})
-                         for k, v in meta["stats"].items()}
+                meta = json.loads(second[len("# meta ") :])
+                stats = {
+                    str(k): CameraStats(**{kk: int(vv) for kk, vv in v.items()})
+                    for k, v in meta["stats"].items()
+                }
                 skipped = [str(m) for m in meta["skipped"]]
                 backend = str(meta["backend"])
             except (ValueError, TypeError, KeyError, AttributeError):

@@ -31,6 +31,7 @@ What the paper leaves open, and what we chose (each choice is repeated where it 
   Algorithms 2 and 5 are approximations: they drop the image offset of up to Th pixels, i.e. up
   to Th * depth / FL metres in x/y (Alg. 2) or in the lateral position and height (Alg. 5).
 """
+
 from __future__ import annotations
 
 import math
@@ -72,13 +73,14 @@ axis down / forward) is refused: the paper's yaw rule cannot know about it."""
 class PaperPose:
     """Output of Algorithm 1: the drone (= floor camera) position in the world (m) and yaw (rad,
     counter-clockwise from world x, in (-pi, pi]); which branch ran and which floor code it used."""
+
     x: float
     y: float
     z: float
     yaw_rad: float
-    case: str                 # MATCHED (Alg. 2) or NOT_MATCHED (Alg. 3)
-    floor_payload: str        # raw payload of MinQR
-    min_dist_px: float        # MinDist of Algorithm 1
+    case: str  # MATCHED (Alg. 2) or NOT_MATCHED (Alg. 3)
+    floor_payload: str  # raw payload of MinQR
+    min_dist_px: float  # MinDist of Algorithm 1
 
     @property
     def xyz(self) -> np.ndarray:
@@ -134,8 +136,8 @@ def yaw_from_floor_corners(corners_px: np.ndarray) -> float:
     yaw = 90 deg - beta.
     """
     tl, tr, _, bl = np.asarray(corners_px, dtype=float)
-    right = tr - tl                       # world +x in the image
-    up = tl - bl                          # world +y in the image
+    right = tr - tl  # world +x in the image
+    up = tl - bl  # world +y in the image
     right_up = np.array([right[0], -right[1]])
     up_up = np.array([up[0], -up[1]])
     combined = right_up / np.linalg.norm(right_up) + np.array([up_up[1], -up_up[0]]) / np.linalg.norm(up_up)
@@ -146,8 +148,9 @@ def yaw_from_floor_corners(corners_px: np.ndarray) -> float:
 # --------------------------------------------------------------------------- Algorithms 1-3
 
 
-def matched_localization(qr_world_xy: np.ndarray, side_m: float, corners_px: np.ndarray,
-                         fl_px: float) -> tuple[float, float, float, float]:
+def matched_localization(
+    qr_world_xy: np.ndarray, side_m: float, corners_px: np.ndarray, fl_px: float
+) -> tuple[float, float, float, float]:
     """Algorithm 2 (MatchedLocalization) -> (D_rx, D_ry, D_rz, D_r-theta rad).
 
     line 1: D_r-theta from the code's shape (`yaw_from_floor_corners`);
@@ -164,9 +167,14 @@ def matched_localization(qr_world_xy: np.ndarray, side_m: float, corners_px: np.
     return float(qr_world_xy[0]), float(qr_world_xy[1]), float(d_rz), yaw
 
 
-def not_matched_localization(qr_world_xy: np.ndarray, side_m: float, corners_px: np.ndarray,
-                             centre_px: np.ndarray, fc_px: np.ndarray,
-                             fl_px: float) -> tuple[float, float, float, float]:
+def not_matched_localization(
+    qr_world_xy: np.ndarray,
+    side_m: float,
+    corners_px: np.ndarray,
+    centre_px: np.ndarray,
+    fc_px: np.ndarray,
+    fl_px: float,
+) -> tuple[float, float, float, float]:
     """Algorithm 3 (NotMatchedLocalization) -> (D_rx, D_ry, D_rz, D_r-theta rad).
 
     line 1: VC_f = mean distance from (MQR_fx, MQR_fy) to the four vertices (px);
@@ -207,7 +215,8 @@ def _check_mount(camera: CameraModel, R_nominal: np.ndarray, what: str) -> None:
     if angle > MOUNT_TOL_DEG:
         raise EstimationError(
             f"paper method: the {what} camera mount is {angle:.1f} deg from the paper's "
-            f"(image 12 o'clock = body forward); its yaw rule cannot be applied")
+            f"(image 12 o'clock = body forward); its yaw rule cannot be applied"
+        )
 
 
 def _pixels(camera: CameraModel, corners_px: np.ndarray, undistort: bool) -> np.ndarray:
@@ -215,9 +224,15 @@ def _pixels(camera: CameraModel, corners_px: np.ndarray, undistort: bool) -> np.
     return camera.undistort_pixels(c) if undistort else c
 
 
-def localize_frame(detections: list[QRDetection], camera: CameraModel, world: World,
-                   th_px: float = 5.0, *, undistort: bool = False,
-                   centre: str = "geometric") -> PaperPose | None:
+def localize_frame(
+    detections: list[QRDetection],
+    camera: CameraModel,
+    world: World,
+    th_px: float = 5.0,
+    *,
+    undistort: bool = False,
+    centre: str = "geometric",
+) -> PaperPose | None:
     """Algorithm 1 (Drone 3D Localization) on one floor-camera frame.
 
     detections: the frame's decoded codes (camera "cam0"); only valid floor codes are used
@@ -250,15 +265,23 @@ def localize_frame(detections: list[QRDetection], camera: CameraModel, world: Wo
         x, y, z, yaw = matched_localization(qr_xy, world.floor_side_m, min_corners, camera.fu)
         case = MATCHED
     else:
-        x, y, z, yaw = not_matched_localization(qr_xy, world.floor_side_m, min_corners,
-                                                min_centre, fc, camera.fu)
+        x, y, z, yaw = not_matched_localization(
+            qr_xy, world.floor_side_m, min_corners, min_centre, fc, camera.fu
+        )
         case = NOT_MATCHED
     return PaperPose(x, y, z, yaw, case, min_qr.detection.payload, min_dist)
 
 
-def paper_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, world: World,
-                     th_px: float = 5.0, *, undistort: bool = False,
-                     centre: str = "geometric", name: str = "paper") -> Trajectory:
+def paper_trajectory(
+    frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    th_px: float = 5.0,
+    *,
+    undistort: bool = False,
+    centre: str = "geometric",
+    name: str = "paper",
+) -> Trajectory:
     """Algorithm 1 on every floor frame {timestamp_ns: detections}; frames without a valid floor
     code are left out.  T_world_body has roll = pitch = 0; covariances None (the paper gives none).
     """
@@ -268,8 +291,7 @@ def paper_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, 
         if pose is not None:
             ts.append(int(t))
             Ts.append(pose.T_world_body)
-    return Trajectory(name, np.asarray(ts, dtype=np.int64), np.asarray(Ts).reshape(-1, 4, 4),
-                      None)
+    return Trajectory(name, np.asarray(ts, dtype=np.int64), np.asarray(Ts).reshape(-1, 4, 4), None)
 
 
 # --------------------------------------------------------------------------- Algorithms 4-6
@@ -283,8 +305,9 @@ def _axis_branch(yaw_deg: float, tol_deg: float) -> int | None:
     return None
 
 
-def matched_mapping(drone_xyz: np.ndarray, yaw_rad: float, side_m: float, corners_px: np.ndarray,
-                    fl_px: float) -> np.ndarray:
+def matched_mapping(
+    drone_xyz: np.ndarray, yaw_rad: float, side_m: float, corners_px: np.ndarray, fl_px: float
+) -> np.ndarray:
     """Algorithm 5 (MatchedMapping) -> (QR_rx, QR_ry, QR_rz) in m.
 
     line 1: DQ_rxy = FL * QR_Lr / QR_Lf (Fig. 24; QR_Lf = mean side, px; the paper names the
@@ -293,14 +316,21 @@ def matched_mapping(drone_xyz: np.ndarray, yaw_rad: float, side_m: float, corner
     Approximation of the paper: the up-to-Th-pixel image offset is dropped.
     """
     dq = fl_px * side_m / side_length_px(corners_px)
-    return np.array([drone_xyz[0] + dq * math.cos(yaw_rad),
-                     drone_xyz[1] + dq * math.sin(yaw_rad),
-                     float(drone_xyz[2])])
+    return np.array(
+        [drone_xyz[0] + dq * math.cos(yaw_rad), drone_xyz[1] + dq * math.sin(yaw_rad), float(drone_xyz[2])]
+    )
 
 
-def not_matched_mapping(drone_xyz: np.ndarray, yaw_rad: float, side_m: float,
-                        corners_px: np.ndarray, centre_px: np.ndarray, fc_px: np.ndarray,
-                        fl_px: float, axis_tol_deg: float = AXIS_TOL_DEG) -> np.ndarray:
+def not_matched_mapping(
+    drone_xyz: np.ndarray,
+    yaw_rad: float,
+    side_m: float,
+    corners_px: np.ndarray,
+    centre_px: np.ndarray,
+    fc_px: np.ndarray,
+    fl_px: float,
+    axis_tol_deg: float = AXIS_TOL_DEG,
+) -> np.ndarray:
     """Algorithm 6 (NotMatchedMapping) -> (QR_rx, QR_ry, QR_rz) in m.
 
     line 1: (QRFC_fx, QRFC_fy) = (|FC_fx - QR_fx|, |FC_fy - QR_fy|) px;
@@ -335,31 +365,31 @@ def not_matched_mapping(drone_xyz: np.ndarray, yaw_rad: float, side_m: float,
     """
     fc = np.asarray(fc_px, float)
     qr_f = np.asarray(centre_px, float)
-    qrfc_f = np.abs(fc - qr_f)                                        # line 1
+    qrfc_f = np.abs(fc - qr_f)  # line 1
     scale = side_m / side_length_px(corners_px)
-    qrfc_rx, qrfc_ry = qrfc_f * scale                                 # line 2
-    vc_f = vertex_centre_px(corners_px, qr_f)                         # line 3
-    dqw = (side_m / math.sqrt(2.0)) * fl_px / vc_f                    # line 4
+    qrfc_rx, qrfc_ry = qrfc_f * scale  # line 2
+    vc_f = vertex_centre_px(corners_px, qr_f)  # line 3
+    dqw = (side_m / math.sqrt(2.0)) * fl_px / vc_f  # line 4
     yaw_deg = math.degrees(yaw_rad) % 360.0
     d_rx, d_ry, d_rz = (float(v) for v in drone_xyz)
-    inter = (d_rx + dqw * math.cos(yaw_rad), d_ry + dqw * math.sin(yaw_rad))   # line 5
-    qrw_deg = (yaw_deg - 90.0) % 360.0                                # line 6 (sign: see above)
-    qr_rz = d_rz + qrfc_ry if fc[1] > qr_f[1] else d_rz - qrfc_ry     # lines 7-10
+    inter = (d_rx + dqw * math.cos(yaw_rad), d_ry + dqw * math.sin(yaw_rad))  # line 5
+    qrw_deg = (yaw_deg - 90.0) % 360.0  # line 6 (sign: see above)
+    qr_rz = d_rz + qrfc_ry if fc[1] > qr_f[1] else d_rz - qrfc_ry  # lines 7-10
     right = qr_f[0] > fc[0]
     axis = _axis_branch(yaw_deg, axis_tol_deg)
-    if axis == 0:                                                     # lines 11-16
+    if axis == 0:  # lines 11-16
         qr_rx = d_rx + dqw
         qr_ry = d_ry - qrfc_rx if right else d_ry + qrfc_rx
-    elif axis == 90:                                                  # lines 17-22
+    elif axis == 90:  # lines 17-22
         qr_ry = d_ry + dqw
         qr_rx = d_rx + qrfc_rx if right else d_rx - qrfc_rx
-    elif axis == 180:                                                 # lines 23-28
+    elif axis == 180:  # lines 23-28
         qr_rx = d_rx - dqw
         qr_ry = d_ry + qrfc_rx if right else d_ry - qrfc_rx
-    elif axis == 270:                                                 # lines 29-34
+    elif axis == 270:  # lines 29-34
         qr_ry = d_ry - dqw
         qr_rx = d_rx - qrfc_rx if right else d_rx + qrfc_rx
-    else:                                                             # lines 35-44
+    else:  # lines 35-44
         if right:
             a = math.radians(qrw_deg)
         elif qr_f[0] == fc[0]:
@@ -371,10 +401,18 @@ def not_matched_mapping(drone_xyz: np.ndarray, yaw_rad: float, side_m: float,
     return np.array([qr_rx, qr_ry, qr_rz])
 
 
-def map_loads_frame(detections: list[QRDetection], camera: CameraModel, world: World,
-                    drone_xyz: np.ndarray, drone_yaw_rad: float, th_px: float = 5.0, *,
-                    undistort: bool = False, centre: str = "geometric",
-                    axis_tol_deg: float = AXIS_TOL_DEG) -> list[LoadObservation]:
+def map_loads_frame(
+    detections: list[QRDetection],
+    camera: CameraModel,
+    world: World,
+    drone_xyz: np.ndarray,
+    drone_yaw_rad: float,
+    th_px: float = 5.0,
+    *,
+    undistort: bool = False,
+    centre: str = "geometric",
+    axis_tol_deg: float = AXIS_TOL_DEG,
+) -> list[LoadObservation]:
     """Algorithm 4 (LoadMapping) on one front-camera frame: every valid load code (camera "cam1";
     fusion.qr.codes.classify) -> a LoadObservation with p_world only (m).
 
@@ -397,10 +435,17 @@ def map_loads_frame(detections: list[QRDetection], camera: CameraModel, world: W
         if float(np.hypot(*(qr_f - fc))) <= th_px:
             p = matched_mapping(drone_xyz, drone_yaw_rad, world.load_side_m, corners, camera.fu)
         else:
-            p = not_matched_mapping(drone_xyz, drone_yaw_rad, world.load_side_m, corners, qr_f,
-                                    fc, camera.fu, axis_tol_deg)
-        out.append(LoadObservation(int(s.detection.timestamp_ns), s.load_id, p,
-                                   corners_px=np.asarray(s.detection.corners_px, float)))
+            p = not_matched_mapping(
+                drone_xyz, drone_yaw_rad, world.load_side_m, corners, qr_f, fc, camera.fu, axis_tol_deg
+            )
+        out.append(
+            LoadObservation(
+                int(s.detection.timestamp_ns),
+                s.load_id,
+                p,
+                corners_px=np.asarray(s.detection.corners_px, float),
+            )
+        )
     return out
 
 
@@ -419,10 +464,17 @@ def aggregate_loads(observations: list[LoadObservation], name: str = "paper") ->
     return LoadMap(name, loads)
 
 
-def paper_load_observations(front_frames: dict[int, list[QRDetection]], front_camera: CameraModel,
-                            world: World, trajectory: Trajectory, th_px: float = 5.0, *,
-                            max_gap_s: float = 0.05, undistort: bool = False,
-                            centre: str = "geometric") -> list[LoadObservation]:
+def paper_load_observations(
+    front_frames: dict[int, list[QRDetection]],
+    front_camera: CameraModel,
+    world: World,
+    trajectory: Trajectory,
+    th_px: float = 5.0,
+    *,
+    max_gap_s: float = 0.05,
+    undistort: bool = False,
+    centre: str = "geometric",
+) -> list[LoadObservation]:
     """Algorithm 4 on every front frame {timestamp_ns: detections}, with the drone pose of the
     `trajectory` frame nearest in time (the paper records both cameras together, Sec. 4.1.1);
     frames with no pose within `max_gap_s` are skipped.  Position and yaw come from the pose;
@@ -439,6 +491,9 @@ def paper_load_observations(front_frames: dict[int, list[QRDetection]], front_ca
             continue
         T = trajectory.T_world_body[j]
         yaw = math.atan2(T[1, 0], T[0, 0])
-        out.extend(map_loads_frame(front_frames[t], front_camera, world, T[:3, 3], yaw, th_px,
-                                   undistort=undistort, centre=centre))
+        out.extend(
+            map_loads_frame(
+                front_frames[t], front_camera, world, T[:3, 3], yaw, th_px, undistort=undistort, centre=centre
+            )
+        )
     return out

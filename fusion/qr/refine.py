@@ -44,6 +44,7 @@ normalised ray).  Without a camera the image is taken as distortion-free.
 
 Pixel convention: OpenCV's (pixel centres at integer coordinates).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,11 +56,11 @@ import numpy as np
 from fusion.camera import CameraModel
 
 FINDER_MODULES = 7
-_SPAN_MARGIN = 0.6          # modules kept clear of a finder's ends (neighbouring edge, corner blur)
-_MIN_CONTRAST = 20.0        # grey levels between quiet zone and finder ring for a usable profile
-_PROFILES_PER_SPAN = 12     # intensity profiles across each finder edge
-_COARSE_SAMPLES = 25        # samples per profile in the first pass (wide window, coarse step)
-_FINE_STEP_PX = 0.25        # sample spacing of the final pass
+_SPAN_MARGIN = 0.6  # modules kept clear of a finder's ends (neighbouring edge, corner blur)
+_MIN_CONTRAST = 20.0  # grey levels between quiet zone and finder ring for a usable profile
+_PROFILES_PER_SPAN = 12  # intensity profiles across each finder edge
+_COARSE_SAMPLES = 25  # samples per profile in the first pass (wide window, coarse step)
+_FINE_STEP_PX = 0.25  # sample spacing of the final pass
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-14)
 
 
@@ -87,8 +88,13 @@ def _sample(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x = xy[..., 0].astype(np.float32)
     y = xy[..., 1].astype(np.float32)
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    vals = cv2.remap(image, x.reshape(x.shape[0], -1), y.reshape(y.shape[0], -1),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    vals = cv2.remap(
+        image,
+        x.reshape(x.shape[0], -1),
+        y.reshape(y.shape[0], -1),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
     return vals.reshape(x.shape).astype(np.float32), inside
 
 
@@ -140,10 +146,14 @@ def _layout(n: float, per_span: int) -> tuple[np.ndarray, ...]:
     3 left) and module position (P, 2).  The six finder edges on the symbol's boundary:
     top (TL and TR finders), right (TR), bottom (BL), left (TL and BL)."""
     m0, m1 = _SPAN_MARGIN, FINDER_MODULES - _SPAN_MARGIN
-    spans = [(0, (m0, 0.0), (m1, 0.0), (0.0, -1.0)), (0, (n - m1, 0.0), (n - m0, 0.0), (0.0, -1.0)),
-             (1, (n, m0), (n, m1), (1.0, 0.0)),
-             (2, (m0, n), (m1, n), (0.0, 1.0)),
-             (3, (0.0, m0), (0.0, m1), (-1.0, 0.0)), (3, (0.0, n - m1), (0.0, n - m0), (-1.0, 0.0))]
+    spans = [
+        (0, (m0, 0.0), (m1, 0.0), (0.0, -1.0)),
+        (0, (n - m1, 0.0), (n - m0, 0.0), (0.0, -1.0)),
+        (1, (n, m0), (n, m1), (1.0, 0.0)),
+        (2, (m0, n), (m1, n), (0.0, 1.0)),
+        (3, (0.0, m0), (0.0, m1), (-1.0, 0.0)),
+        (3, (0.0, n - m1), (0.0, n - m0), (-1.0, 0.0)),
+    ]
     a = np.array([sp[1] for sp in spans])
     b = np.array([sp[2] for sp in spans])
     out = np.array([sp[3] for sp in spans])
@@ -154,8 +164,15 @@ def _layout(n: float, per_span: int) -> tuple[np.ndarray, ...]:
     return a, b, out, span_of, line_of, uv
 
 
-def _edge_points(image, dist: _Distortion, H: np.ndarray, n: float, half_width_px: float,
-                 n_offsets: int, per_span: int = _PROFILES_PER_SPAN) -> tuple[np.ndarray, np.ndarray]:
+def _edge_points(
+    image,
+    dist: _Distortion,
+    H: np.ndarray,
+    n: float,
+    half_width_px: float,
+    n_offsets: int,
+    per_span: int = _PROFILES_PER_SPAN,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel points on the symbol's finder edges (undistorted px) and their line index
     (0 top, 1 right, 2 bottom, 3 left): ((M, 2), (M,)).  Each profile runs from `half_width_px`
     outside the expected edge to as far inside in `n_offsets` samples; the edge point is its first
@@ -171,17 +188,17 @@ def _edge_points(image, dist: _Distortion, H: np.ndarray, n: float, half_width_p
     normal = np.stack([d[:, 1], -d[:, 0]], axis=1) / length[:, None]
     flip = np.sum(normal * (po - 0.5 * (pa + pb)), axis=1) < 0
     normal[flip] *= -1.0
-    base = _apply_h(H, uv)                                                    # (P, 2)
-    nrm = normal[span_of]                                                     # (P, 2)
-    offsets = np.linspace(half_width_px, -half_width_px, n_offsets)           # outside -> inside
+    base = _apply_h(H, uv)  # (P, 2)
+    nrm = normal[span_of]  # (P, 2)
+    offsets = np.linspace(half_width_px, -half_width_px, n_offsets)  # outside -> inside
     step = offsets[0] - offsets[1]
-    pts = base[:, None, :] + offsets[None, :, None] * nrm[:, None, :]         # (P, K, 2)
+    pts = base[:, None, :] + offsets[None, :, None] * nrm[:, None, :]  # (P, K, 2)
     vals, inside = _sample(image, dist.distort(pts))
     light = vals[:, :3].mean(axis=1)
     dark = vals.min(axis=1)
     thr = 0.5 * (light + dark)
     below = vals < thr[:, None]
-    first = np.argmax(below, axis=1)                                          # first dark sample
+    first = np.argmax(below, axis=1)  # first dark sample
     ok = inside.all(axis=1) & ((light - dark) > _MIN_CONTRAST) & (first > 0)
     # a crossing in the last sample step belongs to a neighbouring feature, not this edge
     ok &= first < n_offsets - 1
@@ -193,8 +210,9 @@ def _edge_points(image, dist: _Distortion, H: np.ndarray, n: float, half_width_p
     return base[idx] + s[:, None] * nrm[idx], line_of[idx]
 
 
-def _fit_lines(points: np.ndarray, line_of: np.ndarray, n_lines: int = 4,
-               min_points: int = 4) -> np.ndarray | None:
+def _fit_lines(
+    points: np.ndarray, line_of: np.ndarray, n_lines: int = 4, min_points: int = 4
+) -> np.ndarray | None:
     """Total-least-squares lines (n_lines, 3), rows (a, b, c) with a x + b y + c = 0 and (a, b)
     unit, for the points (M, 2) labelled by `line_of` (M,); None if a line has too few points.
 
@@ -207,14 +225,16 @@ def _fit_lines(points: np.ndarray, line_of: np.ndarray, n_lines: int = 4,
         count = np.bincount(lab, minlength=n_lines)
         if np.any(count < min_points):
             return None
-        mean = np.stack([np.bincount(lab, p[:, 0], n_lines), np.bincount(lab, p[:, 1], n_lines)],
-                        axis=1) / count[:, None]
+        mean = (
+            np.stack([np.bincount(lab, p[:, 0], n_lines), np.bincount(lab, p[:, 1], n_lines)], axis=1)
+            / count[:, None]
+        )
         q = p - mean[lab]
         sxx = np.bincount(lab, q[:, 0] * q[:, 0], n_lines)
         syy = np.bincount(lab, q[:, 1] * q[:, 1], n_lines)
         sxy = np.bincount(lab, q[:, 0] * q[:, 1], n_lines)
         # the normal is the eigenvector of the 2x2 scatter matrix with the smaller eigenvalue
-        theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)          # direction of each line
+        theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of each line
         normal = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
         lines = np.column_stack([normal, -np.sum(normal * mean, axis=1)])
         if round_ == 1:
@@ -243,20 +263,20 @@ def _intersect(l1: np.ndarray, l2: np.ndarray) -> np.ndarray | None:
 # modules (unknown) for the six edges facing the symbol's interior.  Profiles are taken in the
 # central band of each edge (2.25..4.75 modules along it), where this 1-D sequence holds for every
 # point a blur of up to ~1 module along the edge can reach.
-_MODEL_ALONG = np.linspace(2.75, 4.25, 6)       # profile positions along the finder (modules)
-_MODEL_GROUP = 3             # consecutive profiles averaged into one before the fit
-_MODEL_WINDOW = (-2.0, 3.0)                     # sampled span (modules, + inwards)
-_MODEL_INNER_LO = -1.0                          # interior edges: data modules beyond this
-_MODEL_UNIFORM = 11                             # samples spread evenly over the window ...
-_MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)    # ... and 8 within 2 px of the edge
+_MODEL_ALONG = np.linspace(2.75, 4.25, 6)  # profile positions along the finder (modules)
+_MODEL_GROUP = 3  # consecutive profiles averaged into one before the fit
+_MODEL_WINDOW = (-2.0, 3.0)  # sampled span (modules, + inwards)
+_MODEL_INNER_LO = -1.0  # interior edges: data modules beyond this
+_MODEL_UNIFORM = 11  # samples spread evenly over the window ...
+_MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)  # ... and 8 within 2 px of the edge
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
-_MODEL_ITERATIONS = (0, 3, 1)   # Gauss-Newton iterations per pass (0: 50 % crossings only)
+_MODEL_ITERATIONS = (0, 3, 1)  # Gauss-Newton iterations per pass (0: 50 % crossings only)
 _MODEL_STEP_CLIP = (0.35, 0.1)  # largest edge step per iteration (modules): first / later passes
 STAGE2_PASSES = len(_MODEL_ITERATIONS)
 _WIDTH_GRID_PX = np.array([2.0, 4.5, 8.0])  # start of the width search (first model pass)
-_MODEL_MIN_WIDTH_PX = 0.5    # floor of the fitted motion-blur box width (px)
-_MODEL_PSF_PX = 1.5          # fixed second box (px): lens / pixel PSF and the bilinear sampling
-_MIN_GOOD_PROFILES = 10      # of 24 (averaged) per code
+_MODEL_MIN_WIDTH_PX = 0.5  # floor of the fitted motion-blur box width (px)
+_MODEL_PSF_PX = 1.5  # fixed second box (px): lens / pixel PSF and the bilinear sampling
+_MIN_GOOD_PROFILES = 10  # of 24 (averaged) per code
 
 
 @lru_cache(maxsize=64)
@@ -267,26 +287,34 @@ def _model_layout(n: float) -> tuple[np.ndarray, ...]:
     constant (modules), and whether the edge is on the symbol boundary."""
     f = float(FINDER_MODULES)
     # (axis, const, finder start along the edge, outward sign, boundary?)
-    edges = [(1, 0.0, 0.0, -1, True), (0, 0.0, 0.0, -1, True),               # TL: top, left
-             (0, f, 0.0, +1, False), (1, f, 0.0, +1, False),                 # TL: right, bottom
-             (1, 0.0, n - f, -1, True), (0, n, 0.0, +1, True),               # TR: top, right
-             (0, n - f, 0.0, -1, False), (1, f, n - f, +1, False),           # TR: left, bottom
-             (0, 0.0, n - f, -1, True), (1, n, 0.0, +1, True),               # BL: left, bottom
-             (0, f, n - f, +1, False), (1, n - f, 0.0, -1, False)]           # BL: right, top
+    edges = [
+        (1, 0.0, 0.0, -1, True),
+        (0, 0.0, 0.0, -1, True),  # TL: top, left
+        (0, f, 0.0, +1, False),
+        (1, f, 0.0, +1, False),  # TL: right, bottom
+        (1, 0.0, n - f, -1, True),
+        (0, n, 0.0, +1, True),  # TR: top, right
+        (0, n - f, 0.0, -1, False),
+        (1, f, n - f, +1, False),  # TR: left, bottom
+        (0, 0.0, n - f, -1, True),
+        (1, n, 0.0, +1, True),  # BL: left, bottom
+        (0, f, n - f, +1, False),
+        (1, n - f, 0.0, -1, False),
+    ]  # BL: right, top
     k = len(_MODEL_ALONG)
     uv, inward, axis, const, boundary = [], [], [], [], []
     for ax, c, start, sign, bnd in edges:
         along = start + _MODEL_ALONG
-        uv.append(np.column_stack([np.full(k, c), along]) if ax == 0
-                  else np.column_stack([along, np.full(k, c)]))
+        uv.append(
+            np.column_stack([np.full(k, c), along]) if ax == 0 else np.column_stack([along, np.full(k, c)])
+        )
         d = np.zeros(2)
         d[ax] = -sign
         inward.append(np.tile(d, (k, 1)))
         axis += [ax] * k
         const += [c] * k
         boundary += [bnd] * k
-    return (np.concatenate(uv), np.concatenate(inward), np.array(axis), np.array(const),
-            np.array(boundary))
+    return (np.concatenate(uv), np.concatenate(inward), np.array(axis), np.array(const), np.array(boundary))
 
 
 def _blurred_steps(x: np.ndarray, a: np.ndarray, b: np.ndarray, derivatives: bool = True):
@@ -343,7 +371,7 @@ def _levels(D, Dd, y, m):
     return lev[..., 0], r, A, Ninv
 
 
-_LEVEL_REG = np.diag([1e-9, 1e-9, 1e-6])      # the data level g: absent on boundary edges
+_LEVEL_REG = np.diag([1e-9, 1e-9, 1e-6])  # the data level g: absent on boundary edges
 
 
 def _inv3_sym(N: np.ndarray) -> np.ndarray:
@@ -382,13 +410,14 @@ def _inv(M: np.ndarray) -> np.ndarray:
 class _Profiles:
     """The stage-2 profiles of a batch of codes, each the average of _MODEL_GROUP sampled ones
     (24 per code, see _model_layout); per averaged profile the middle one's position."""
-    code: np.ndarray          # (P,) index of the code
-    uv0: np.ndarray           # (P, 2) module position on the edge
-    inward: np.ndarray        # (P, 2) inward module direction
-    axis: np.ndarray          # (P,) 0: edge on u = const, 1: on v = const
-    const: np.ndarray         # (P,) the constant (modules)
-    boundary: np.ndarray      # (P,) bool: edge on the symbol boundary (quiet zone outside)
-    uv_sampled: np.ndarray    # (P * _MODEL_GROUP, 2) the sampled profiles' positions
+
+    code: np.ndarray  # (P,) index of the code
+    uv0: np.ndarray  # (P, 2) module position on the edge
+    inward: np.ndarray  # (P, 2) inward module direction
+    axis: np.ndarray  # (P,) 0: edge on u = const, 1: on v = const
+    const: np.ndarray  # (P,) the constant (modules)
+    boundary: np.ndarray  # (P,) bool: edge on the symbol boundary (quiet zone outside)
+    uv_sampled: np.ndarray  # (P * _MODEL_GROUP, 2) the sampled profiles' positions
 
 
 def _profiles(ns: list[float]) -> _Profiles:
@@ -413,6 +442,7 @@ class _ModelFit:
     """Stage-2 edge points of a batch: points (P, 2) undistorted px, `good` (P,) usable, the
     edge-position sigma (P,) px, modules per px across each edge g (P,), the fitted box widths
     (C, 2) px across u-edges and v-edges."""
+
     points: np.ndarray
     good: np.ndarray
     sigma_px: np.ndarray
@@ -420,9 +450,15 @@ class _ModelFit:
     width_px: np.ndarray
 
 
-def _sample_profiles(images: list[np.ndarray], image_rows: np.ndarray, dist: _Distortion,
-                     H: np.ndarray, uv: np.ndarray, step: np.ndarray, s: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _sample_profiles(
+    images: list[np.ndarray],
+    image_rows: np.ndarray,
+    dist: _Distortion,
+    H: np.ndarray,
+    uv: np.ndarray,
+    step: np.ndarray,
+    s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Image values along profiles: row i samples images[image_rows[i]] at the module
     coordinates uv[i] + s[i, k] step[i] mapped by H[i] (module -> undistorted px) and distorted.
     Returns (y (R, K) float32, inside (R, K)).  float32 and separate x / y arrays: this runs
@@ -437,7 +473,7 @@ def _sample_profiles(images: list[np.ndarray], image_rows: np.ndarray, dist: _Di
     x, y = dist.distort_xy(x, y)
     vals = np.empty(x.shape, np.float32)
     inside = np.empty(x.shape, bool)
-    for i in (np.unique(image_rows) if len(images) > 1 else [0]):
+    for i in np.unique(image_rows) if len(images) > 1 else [0]:
         rows = slice(None) if len(images) == 1 else image_rows == i
         img = images[i]
         xi, yi = x[rows], y[rows]
@@ -446,10 +482,17 @@ def _sample_profiles(images: list[np.ndarray], image_rows: np.ndarray, dist: _Di
     return vals, inside
 
 
-def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
-                       Hs: np.ndarray, module_px: np.ndarray, pr: _Profiles,
-                       width0_px: np.ndarray | None, iterations: int,
-                       step_clip: float = _MODEL_STEP_CLIP[0]) -> _ModelFit:
+def _model_edge_points(
+    images: list[np.ndarray],
+    image_of: np.ndarray,
+    dist: _Distortion,
+    Hs: np.ndarray,
+    module_px: np.ndarray,
+    pr: _Profiles,
+    width0_px: np.ndarray | None,
+    iterations: int,
+    step_clip: float = _MODEL_STEP_CLIP[0],
+) -> _ModelFit:
     """Fit the finder's known profile across each of the 12 finder edges of every code of a
     batch (module docstring), all codes' profiles in one array; code c is in images[image_of[c]].
 
@@ -471,30 +514,43 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
     J = (Hp[:, :2, :2] - xy0[:, :, None] * Hp[:, 2, None, :2]) / w3[:, None, None]
     det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
     # rows of J^-1 are grad u = (J11, -J01) / det and grad v = (-J10, J00) / det (modules / px)
-    g = np.where(pr.axis == 0, np.hypot(J[:, 1, 1], J[:, 0, 1]),
-                 np.hypot(J[:, 1, 0], J[:, 0, 0])) / np.abs(det)
+    g = np.where(pr.axis == 0, np.hypot(J[:, 1, 1], J[:, 0, 1]), np.hypot(J[:, 1, 0], J[:, 0, 0])) / np.abs(
+        det
+    )
     bad_geom = ~(np.isfinite(g) & (g > 0))
     g = np.where(bad_geom, 1.0, g)
     # samples: 11 over the window, 8 dense within 2 px of the predicted edge (per code)
     lo, hi = _MODEL_WINDOW
-    s_code = np.sort(np.concatenate([np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM),
-                                                     (C, _MODEL_UNIFORM)),
-                                     _MODEL_DENSE_PX[None] / module_px[:, None]], axis=1), axis=1)
-    s = s_code[pr.code]                                                       # (P, K)
+    s_code = np.sort(
+        np.concatenate(
+            [
+                np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM), (C, _MODEL_UNIFORM)),
+                _MODEL_DENSE_PX[None] / module_px[:, None],
+            ],
+            axis=1,
+        ),
+        axis=1,
+    )
+    s = s_code[pr.code]  # (P, K)
     K = s.shape[1]
     # (the crossings pass too: one profile per group was measurably worse on a flight)
-    y, inside = _sample_profiles(images, np.repeat(image_of[pr.code], _MODEL_GROUP), dist,
-                                 np.repeat(Hp, _MODEL_GROUP, axis=0), pr.uv_sampled,
-                                 np.repeat(pr.inward, _MODEL_GROUP, axis=0),
-                                 np.repeat(s, _MODEL_GROUP, axis=0))
+    y, inside = _sample_profiles(
+        images,
+        np.repeat(image_of[pr.code], _MODEL_GROUP),
+        dist,
+        np.repeat(Hp, _MODEL_GROUP, axis=0),
+        pr.uv_sampled,
+        np.repeat(pr.inward, _MODEL_GROUP, axis=0),
+        np.repeat(s, _MODEL_GROUP, axis=0),
+    )
     # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
     y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
     s = s.astype(np.float32)
     ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
     m = (np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]).astype(np.float32)
     inner = (~pr.boundary).astype(np.float32)[:, None]
-    lbl = 2 * pr.code + pr.axis                                               # width groups
-    max_w = 4.0 * module_px + 2.0                                             # (C,)
+    lbl = 2 * pr.code + pr.axis  # width groups
+    max_w = 4.0 * module_px + 2.0  # (C,)
     g32 = g.astype(np.float32)[:, None]
     psf = np.float32(_MODEL_PSF_PX) * g32
     if width0_px is None:
@@ -519,18 +575,30 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
         G = len(_WIDTH_GRID_PX)
         xs = np.tile((s - e[:, None])[sub], (G, 1))
         gs = np.tile(g32[sub], (G, 1))
-        F = _blurred_steps(xs, np.repeat(_WIDTH_GRID_PX.astype(np.float32), sub.sum())[:, None] * gs,
-                           np.tile(psf[sub], (G, 1)), derivatives=False)[0]
-        _, r, _, _ = _levels(_dark(F), (1.0 - F[..., 0]) * np.tile(inner[sub], (G, 1)),
-                             np.tile(y[sub], (G, 1)), np.tile(m[sub], (G, 1)))
-        cost = np.bincount(np.tile(lbl[sub], G) + 2 * C * np.repeat(np.arange(G), sub.sum()),
-                           np.sum(r * r, axis=1), 2 * C * G).reshape(G, 2 * C)
+        F = _blurred_steps(
+            xs,
+            np.repeat(_WIDTH_GRID_PX.astype(np.float32), sub.sum())[:, None] * gs,
+            np.tile(psf[sub], (G, 1)),
+            derivatives=False,
+        )[0]
+        _, r, _, _ = _levels(
+            _dark(F),
+            (1.0 - F[..., 0]) * np.tile(inner[sub], (G, 1)),
+            np.tile(y[sub], (G, 1)),
+            np.tile(m[sub], (G, 1)),
+        )
+        cost = np.bincount(
+            np.tile(lbl[sub], G) + 2 * C * np.repeat(np.arange(G), sub.sum()),
+            np.sum(r * r, axis=1),
+            2 * C * G,
+        ).reshape(G, 2 * C)
         width_px = _WIDTH_GRID_PX[np.argmin(cost, axis=0)].astype(float)
         width_px = np.minimum(width_px, np.repeat(max_w, 2))
     else:
         e = np.zeros(P, np.float32)
-        width_px = np.clip(np.asarray(width0_px, dtype=float).reshape(-1), _MODEL_MIN_WIDTH_PX,
-                           np.repeat(max_w, 2))
+        width_px = np.clip(
+            np.asarray(width0_px, dtype=float).reshape(-1), _MODEL_MIN_WIDTH_PX, np.repeat(max_w, 2)
+        )
     for _ in range(iterations):
         wmod = width_px[lbl].astype(np.float32)[:, None] * g32
         F, F_x, F_a = _blurred_steps(s - e[:, None], wmod, psf)
@@ -538,14 +606,14 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
         D, Dd = _dark(F), (1.0 - F[..., 0]) * inner
         lev, r, A, Ninv = _levels(D, Dd, y, m)
         Cl, gam = lev[:, 1:2], lev[:, 2:3] * inner
-        Je = -(Cl * _dark(F_x) - gam * F_x[..., 0]) * m                   # d model / d e
-        Jw = (Cl * _dark(F_a) - gam * F_a[..., 0]) * (m * g32)            # d model / d width_px
+        Je = -(Cl * _dark(F_x) - gam * F_x[..., 0]) * m  # d model / d e
+        Jw = (Cl * _dark(F_a) - gam * F_a[..., 0]) * (m * g32)  # d model / d width_px
         # project out the levels (variable projection): J <- (I - A N^-1 A^T) J
-        JJ = np.stack([Je, Jw], axis=-1)                                        # (P, K, 2)
+        JJ = np.stack([Je, Jw], axis=-1)  # (P, K, 2)
         JJt = JJ.transpose(0, 2, 1)
-        q = A.transpose(0, 2, 1) @ JJ                                           # (P, 3, 2)
-        G2 = JJt @ JJ - q.transpose(0, 2, 1) @ (Ninv @ q)                       # (P, 2, 2)
-        grad = (JJt @ r[..., None])[..., 0]                                     # (P, 2)
+        q = A.transpose(0, 2, 1) @ JJ  # (P, 3, 2)
+        G2 = JJt @ JJ - q.transpose(0, 2, 1) @ (Ninv @ q)  # (P, 2, 2)
+        grad = (JJt @ r[..., None])[..., 0]  # (P, 2)
         a, b, c = G2[:, 0, 0] + 1e-9, G2[:, 0, 1], G2[:, 1, 1]
         ge, gw = grad[:, 0], grad[:, 1]
         S = np.bincount(lbl, c - b * b / a, 2 * C) + 1e-6
@@ -557,9 +625,8 @@ def _model_edge_points(images: list[np.ndarray], image_of: np.ndarray, dist: _Di
     rms = np.sqrt(np.sum(r * r, axis=1) / dof)
     contrast = -lev[:, 1]
     e = e.astype(np.float64)
-    sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12))).astype(np.float64) / g   # px
-    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e) \
-        & (sigma_e > 0)
+    sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12))).astype(np.float64) / g  # px
+    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e) & (sigma_e > 0)
     # per code: drop profiles whose residual is far above the code's median (occlusion, glare)
     med = _masked_median(rms.reshape(C, -1), good.reshape(C, -1))
     good &= rms <= 3.0 * med[pr.code] + 1.0
@@ -594,20 +661,21 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
     p = fit.points.reshape(C, -1, 2)
     good = fit.good.reshape(C, -1)
     ax = pr.axis.reshape(C, -1)
-    cn = pr.const.reshape(C, -1) / ns[:, None]                  # normalised module coordinates
-    gm = ns[:, None] / fit.g.reshape(C, -1)                    # px per normalised module
-    sig = fit.sigma_px.reshape(C, -1) / gm                     # sigma in normalised modules
+    cn = pr.const.reshape(C, -1) / ns[:, None]  # normalised module coordinates
+    gm = ns[:, None] / fit.g.reshape(C, -1)  # px per normalised module
+    sig = fit.sigma_px.reshape(C, -1) / gm  # sigma in normalised modules
     wgood = good.astype(float)
     cnt = np.maximum(wgood.sum(axis=1), 1.0)
     mean = (wgood[:, None, :] @ p)[:, 0] / cnt[:, None]
     d2 = np.sum(wgood * np.sum((p - mean[:, None]) ** 2, axis=2), axis=1) / cnt
     scale = np.sqrt(2.0) / np.maximum(np.sqrt(d2), 1e-9)
-    q = np.concatenate([(p - mean[:, None]) * scale[:, None, None], np.ones(p.shape[:2] + (1,))],
-                       axis=2)                                  # (C, M, 3)
+    q = np.concatenate(
+        [(p - mean[:, None]) * scale[:, None, None], np.ones(p.shape[:2] + (1,))], axis=2
+    )  # (C, M, 3)
     on_u = (ax == 0)[..., None]
-    A = np.concatenate([q * on_u, q * ~on_u, -cn[..., None] * q], axis=2)   # (C, M, 9)
+    A = np.concatenate([q * on_u, q * ~on_u, -cn[..., None] * q], axis=2)  # (C, M, 9)
     keep = good
-    for round_ in range(2):     # (a degenerate code gives NaN here and fails `ok` below)
+    for round_ in range(2):  # (a degenerate code gives NaN here and fails `ok` below)
         Wk = keep.astype(float)
         M = (A * Wk[..., None]).transpose(0, 2, 1) @ A
         Gv = np.linalg.eigh(M)[1][:, :, 0].reshape(C, 3, 3)
@@ -628,24 +696,24 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
         mG = q @ G.transpose(0, 2, 1)
         coord = np.where(ax == 0, mG[..., 0], mG[..., 1]) / mG[..., 2]
         r = coord - cn
-        Ga = np.where(on_u, G[:, None, 0, :], G[:, None, 1, :])               # (C, M, 3)
+        Ga = np.where(on_u, G[:, None, 0, :], G[:, None, 1, :])  # (C, M, 3)
         v = Ga - coord[..., None] * G[:, None, 2, :]
         Jh = -(v[..., :, None] * mG[..., None, :]).reshape(C, -1, 9)[..., :8] / mG[..., 2:3]
-        w = keep / sig ** 2
+        w = keep / sig**2
         info = (Jh * w[..., None]).transpose(0, 2, 1) @ Jh
         cov_h = _inv(info)
         dh = -(cov_h @ (Jh.transpose(0, 2, 1) @ (w * r)[..., None]))[..., 0]
         Hn = Hn + np.concatenate([dh, np.zeros((C, 1))], axis=1).reshape(C, 3, 3)
         # corners in normalised coordinates and their Jacobian in h
-        sq = np.column_stack([_SQUARE01, np.ones(4)])                          # (4, 3)
-        hq = sq @ Hn.transpose(0, 2, 1)                                        # (C, 4, 3)
+        sq = np.column_stack([_SQUARE01, np.ones(4)])  # (4, 3)
+        hq = sq @ Hn.transpose(0, 2, 1)  # (C, 4, 3)
         xy = hq[..., :2] / hq[..., 2:3]
         Jc = np.zeros((C, 4, 2, 9))
         Jc[:, :, 0, 0:3] = sq[None] / hq[..., 2:3]
         Jc[:, :, 1, 3:6] = sq[None] / hq[..., 2:3]
         Jc[:, :, :, 6:9] = -xy[..., None] * sq[None, :, None, :] / hq[..., 2:3, None]
         Jc = Jc.reshape(C, 8, 9)[..., :8]
-        cov = Jc @ cov_h @ Jc.transpose(0, 2, 1) / (scale ** 2)[:, None, None]
+        cov = Jc @ cov_h @ Jc.transpose(0, 2, 1) / (scale**2)[:, None, None]
         corners = xy / scale[:, None, None] + mean[:, None, :]
         T_inv = np.zeros((C, 3, 3))
         T_inv[:, 0, 0] = T_inv[:, 1, 1] = 1.0 / scale
@@ -655,9 +723,12 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
         S[:, 0, 0] = S[:, 1, 1] = 1.0 / ns
         H = T_inv @ Hn @ S
         H = H / H[:, 2:3, 2:3]
-    ok = (keep.sum(axis=1) >= _MIN_GOOD_PROFILES) & np.all(np.isfinite(H).reshape(C, -1), axis=1) \
-        & np.all(np.isfinite(cov).reshape(C, -1), axis=1) \
+    ok = (
+        (keep.sum(axis=1) >= _MIN_GOOD_PROFILES)
+        & np.all(np.isfinite(H).reshape(C, -1), axis=1)
+        & np.all(np.isfinite(cov).reshape(C, -1), axis=1)
         & np.all(np.isfinite(corners).reshape(C, -1), axis=1)
+    )
     return H, corners, cov, ok
 
 
@@ -668,6 +739,7 @@ class RefineResult:
     1-sigma noise per coordinate (sqrt of its mean diagonal), the fitted blur+PSF box widths (px)
     across the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage
     produced the corners (1: boundary lines, 2: finder-model homography)."""
+
     corners_px: np.ndarray
     corner_sigma_px: float
     width_px: np.ndarray
@@ -685,7 +757,7 @@ class RefineResult:
 # per-profile residuals do not reveal.  A is therefore chosen for the MEAN pose NEES of PnP on
 # rendered frames (tests/test_pnp.py `rendered_nees`; `scripts/bench_detect.py --calibrate`
 # prints the mean-matching A on single-code renders): 8-D corner NEES out of sample ~7.3.
-STAGE1_SIGMA_PX = 0.6       # corners from the boundary lines only (stage 2 failed or disabled)
+STAGE1_SIGMA_PX = 0.6  # corners from the boundary lines only (stage 2 failed or disabled)
 
 
 @dataclass(frozen=True)
@@ -693,6 +765,7 @@ class CornerCovarianceModel:
     """Sigma = k^2 Sigma_stat + a_px^2 I_8 (the model above); the defaults are the calibrated
     values.  `CornerCovarianceModel(1.0, 0.0)` leaves Sigma_stat as it is (what
     `scripts/bench_detect.py --calibrate` fits k and a_px to)."""
+
     k: float = 1.05
     a_px: float = 0.005
 
@@ -718,12 +791,13 @@ def _distort_cov(dist: _Distortion, corners_u: np.ndarray, cov_u: np.ndarray) ->
     C = len(corners_u)
     Jb = np.zeros((C, 8, 8))
     for k in range(4):
-        Jb[:, 2 * k:2 * k + 2, 2 * k:2 * k + 2] = Jd[:, k]
+        Jb[:, 2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = Jd[:, k]
     return Jb @ cov_u @ Jb.transpose(0, 2, 1)
 
 
-def _stage1(image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: int,
-            finder_homography: bool) -> np.ndarray | None:
+def _stage1(
+    image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: int, finder_homography: bool
+) -> np.ndarray | None:
     """Boundary-line corners (4, 2) undistorted px from the decoder's (module docstring), or None."""
     corners_u = raw_u
     for it in range(iterations):
@@ -747,8 +821,12 @@ def _stage1(image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: i
         if lines is None:
             return None
         top, right, bottom, left = lines
-        new = [_intersect(top, left), _intersect(top, right), _intersect(right, bottom),
-               _intersect(bottom, left)]
+        new = [
+            _intersect(top, left),
+            _intersect(top, right),
+            _intersect(right, bottom),
+            _intersect(bottom, left),
+        ]
         if any(p is None for p in new):
             return None
         new = np.array(new)
@@ -759,9 +837,13 @@ def _stage1(image, dist: _Distortion, raw_u: np.ndarray, n: float, iterations: i
     return corners_u
 
 
-def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
-            starts_u: list[np.ndarray], ns: list[float]
-            ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+def _stage2(
+    images: list[np.ndarray],
+    image_of: np.ndarray,
+    dist: _Distortion,
+    starts_u: list[np.ndarray],
+    ns: list[float],
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
     width_px (2,)) or None."""
@@ -770,16 +852,24 @@ def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
     nsa = np.asarray(ns, dtype=float)
     Hs = np.stack([homography_from_corners(c, n) for c, n in zip(starts_u, ns)]).astype(float)
     prev = np.stack(starts_u)
-    module_px = np.array([np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))
-                          for c in starts_u]) / nsa
+    module_px = np.array([np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)) for c in starts_u]) / nsa
     raw = prev
     out: list = [None] * C
     width = None
     alive = np.ones(C, dtype=bool)
     model_passes = 0
-    for pass_, iterations in enumerate(_MODEL_ITERATIONS):
-        fit = _model_edge_points(images, image_of, dist, Hs, module_px, pr, width, iterations,
-                                 _MODEL_STEP_CLIP[min(model_passes, 1)])
+    for _pass, iterations in enumerate(_MODEL_ITERATIONS):
+        fit = _model_edge_points(
+            images,
+            image_of,
+            dist,
+            Hs,
+            module_px,
+            pr,
+            width,
+            iterations,
+            _MODEL_STEP_CLIP[min(model_passes, 1)],
+        )
         H, corners, cov, ok = _fit_homographies(fit, pr, nsa)
         wmax = np.nan_to_num(np.max(fit.width_px, axis=1))
         if iterations == 0 or model_passes == 0:
@@ -803,16 +893,22 @@ def _stage2(images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion,
         width = fit.width_px if width is None else np.where(alive[:, None], fit.width_px, width)
         Hs = np.where(alive[:, None, None], H, Hs)
         prev = np.where(alive[:, None, None], corners, prev)
-        module_px = np.where(alive, np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=1),
-                                                           axis=2), axis=1) / nsa, module_px)
+        module_px = np.where(
+            alive,
+            np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1) / nsa,
+            module_px,
+        )
     return out
 
 
-def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, int | None]]],
-                  camera: CameraModel | None = None, iterations: int = 1,
-                  finder_homography: bool = True,
-                  cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL
-                  ) -> list[list[RefineResult | None]]:
+def refine_frames(
+    images: list[np.ndarray],
+    codes: list[list[tuple[np.ndarray, int | None]]],
+    camera: CameraModel | None = None,
+    iterations: int = 1,
+    finder_homography: bool = True,
+    cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL,
+) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
     RefineResult or None (finder edges not measurable) per code.  Stage 2
@@ -830,7 +926,7 @@ def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, i
             raise ValueError("refine_frames expects (H, W) uint8 images")
     dist = _Distortion(camera)
     results: list[list[RefineResult | None]] = [[None] * len(c) for c in codes]
-    todo, raws, ns = [], [], []          # todo: (image, code) of each code refined
+    todo, raws, ns = [], [], []  # todo: (image, code) of each code refined
     for i, (image, image_codes) in enumerate(zip(images, codes)):
         for k, (corners_raw_px, modules) in enumerate(image_codes):
             corners = np.asarray(corners_raw_px, dtype=np.float64).reshape(4, 2)
@@ -847,8 +943,7 @@ def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, i
         return results
     raw_u = dist.undistort(np.concatenate(raws)).reshape(-1, 4, 2)
     image_of = np.array([i for i, _ in todo])
-    stage2 = _stage2(images, image_of, dist, list(raw_u), ns) if finder_homography \
-        else [None] * len(todo)
+    stage2 = _stage2(images, image_of, dist, list(raw_u), ns) if finder_homography else [None] * len(todo)
     done = [j for j, s in enumerate(stage2) if s is not None]
     if done:
         cu = np.stack([stage2[j][0] for j in done])
@@ -864,15 +959,25 @@ def refine_frames(images: list[np.ndarray], codes: list[list[tuple[np.ndarray, i
             continue
         corners_u = _stage1(images[i], dist, raw_u[j], ns[j], iterations, finder_homography)
         if corners_u is not None:
-            results[i][c] = RefineResult(dist.distort(corners_u), STAGE1_SIGMA_PX,
-                                         np.full(2, np.nan), 1, STAGE1_SIGMA_PX ** 2 * np.eye(8))
+            results[i][c] = RefineResult(
+                dist.distort(corners_u),
+                STAGE1_SIGMA_PX,
+                np.full(2, np.nan),
+                1,
+                STAGE1_SIGMA_PX**2 * np.eye(8),
+            )
     return results
 
 
-def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | None = None,
-                camera: CameraModel | None = None, iterations: int = 1,
-                finder_homography: bool = True,
-                cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL) -> RefineResult | None:
+def refine_code(
+    image: np.ndarray,
+    corners_raw_px: np.ndarray,
+    modules: int | None = None,
+    camera: CameraModel | None = None,
+    iterations: int = 1,
+    finder_homography: bool = True,
+    cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL,
+) -> RefineResult | None:
     """Sub-pixel corners of one QR symbol's outer edge with their covariance and the fitted
     blur, or None when the finder edges cannot be measured (too little contrast, symbol at the
     image border, ...): `refine_frames` of one image with one code.
@@ -882,12 +987,14 @@ def refine_code(image: np.ndarray, corners_raw_px: np.ndarray, modules: int | No
     from the finder patterns when None; `iterations` passes of boundary-line fits (stage 1,
     module docstring), and with `finder_homography` the homography fits to the twelve finder
     edges located by the blurred-profile model (stage 2)."""
-    return refine_frames([image], [[(corners_raw_px, modules)]], camera, iterations,
-                         finder_homography, cov_model)[0][0]
+    return refine_frames(
+        [image], [[(corners_raw_px, modules)]], camera, iterations, finder_homography, cov_model
+    )[0][0]
 
 
-def estimate_modules(image: np.ndarray, corners_px: np.ndarray,
-                     camera: CameraModel | None = None) -> int | None:
+def estimate_modules(
+    image: np.ndarray, corners_px: np.ndarray, camera: CameraModel | None = None
+) -> int | None:
     """Modules per side (17 + 4 v) from the three finder patterns, or None.
 
     Along the diagonal from a finder's outer corner towards the symbol centre the modules (k, k),
@@ -913,7 +1020,7 @@ def estimate_modules(image: np.ndarray, corners_px: np.ndarray,
         changes = np.nonzero(np.diff(dark[start:].astype(np.int8)))[0] + start + 1
         if len(changes) < 5:
             continue
-        end_t = t[changes[4]]        # dark, light, dark, light, dark -> 5th change ends the finder
+        end_t = t[changes[4]]  # dark, light, dark, light, dark -> 5th change ends the finder
         if end_t <= 0.0:
             continue
         estimates.append(FINDER_MODULES / end_t)

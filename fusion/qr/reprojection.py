@@ -16,6 +16,7 @@ the CRB of any unbiased pose estimator is sigma^2 (J^T J)^-1 (Barfoot, "State Es
 Robotics", 2017, Sec. 7.3 for the perturbation; Kay, "Fundamentals of Statistical Signal
 Processing I", 1993, eq. 3.31 for the Gaussian Fisher information).
 """
+
 from __future__ import annotations
 
 from typing import Literal, overload
@@ -32,6 +33,7 @@ from fusion.geometry import cross_rows
 class Projector:
     """CameraModel.project with its Jacobian, the camera's constants read once: the PnP
     estimator's LM evaluates it a few times per frame, so it is written out entry by entry."""
+
     __slots__ = ("k1", "k2", "f", "c", "p12", "p21", "M_tangential")
 
     def __init__(self, camera: CameraModel):
@@ -45,14 +47,12 @@ class Projector:
         self.M_tangential = np.array([[6.0 * p2, 2.0 * p2], [2.0 * p1, 6.0 * p1]])
 
     @overload
-    def project(self, p_cam: np.ndarray, jacobian: Literal[True] = ...
-                ) -> tuple[np.ndarray, np.ndarray]: ...
+    def project(self, p_cam: np.ndarray, jacobian: Literal[True] = ...) -> tuple[np.ndarray, np.ndarray]: ...
 
     @overload
     def project(self, p_cam: np.ndarray, jacobian: Literal[False]) -> tuple[np.ndarray, None]: ...
 
-    def project(self, p_cam: np.ndarray, jacobian: bool = True
-                ) -> tuple[np.ndarray, np.ndarray | None]:
+    def project(self, p_cam: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3)
         (None when not `jacobian`).  Points at or behind the camera (z <= 1e-9) give NaN.
 
@@ -62,17 +62,17 @@ class Projector:
         D = d(x_d, y_d)/d(x, y), P = d(x, y)/d(X, Y, Z) = [[1, 0, -x], [0, 1, -y]] / Z.  Written
         on (N, 2) arrays: the LM evaluates it a few times per frame."""
         Z = p_cam[:, 2:3]
-        iz = 1.0 / np.where(Z > 1e-9, Z, np.nan)         # (N, 1)
-        xy = p_cam[:, :2] * iz                             # (N, 2) x, y
+        iz = 1.0 / np.where(Z > 1e-9, Z, np.nan)  # (N, 1)
+        xy = p_cam[:, :2] * iz  # (N, 2) x, y
         sq = xy * xy
         r2 = sq[:, 0:1] + sq[:, 1:2]
         radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
-        cross = xy[:, 0:1] * xy[:, 1:2]                    # x y
+        cross = xy[:, 0:1] * xy[:, 1:2]  # x y
         xy_d = xy * radial + (2.0 * cross) * self.p12 + (r2 + 2.0 * sq) * self.p21
         uv = xy_d * self.f + self.c
         if not jacobian:
             return uv, None
-        dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2)          # d(radial)/dx = dr x
+        dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2)  # d(radial)/dx = dr x
         D = np.empty((len(p_cam), 2, 2))
         diag = radial + dr * sq + xy @ self.M_tangential
         D[:, 0, 0] = diag[:, 0]
@@ -80,15 +80,16 @@ class Projector:
         d01 = dr * cross + 2.0 * (xy @ self.p12)[:, None]  # = D[1, 0]
         D[:, 0, 1:] = d01
         D[:, 1, :1] = d01
-        FD = D * (self.f * iz)[:, :, None]                 # rows fu / Z D[0], fv / Z D[1]
+        FD = D * (self.f * iz)[:, :, None]  # rows fu / Z D[0], fv / Z D[1]
         J = np.empty((len(p_cam), 2, 3))
         J[:, :, :2] = FD
         J[:, :, 2] = -(FD @ xy[:, :, None])[:, :, 0]
         return uv, J
 
 
-def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def floor_reprojection(
+    camera: CameraModel, T_world_body: np.ndarray, points_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Distorted pixels (N, 2) of world points (N, 3) seen from body pose T_world_body, and the
     Jacobian (2N, 6) of the stacked [u0, v0, u1, v1, ...] w.r.t. the body-frame right perturbation
     xi = [rx, ry, rz, tx, ty, tz] (T_world_body * Exp(xi)).
@@ -99,18 +100,20 @@ def floor_reprojection(camera: CameraModel, T_world_body: np.ndarray, points_wor
     T_body_cam = np.asarray(camera.T_body_cam, dtype=float)
     T_world_body = np.asarray(T_world_body, dtype=float)
     R_cb = T_body_cam[:3, :3].T
-    p_body = (np.asarray(points_world, dtype=float).reshape(-1, 3) - T_world_body[:3, 3]) \
-        @ T_world_body[:3, :3]
+    p_body = (np.asarray(points_world, dtype=float).reshape(-1, 3) - T_world_body[:3, 3]) @ T_world_body[
+        :3, :3
+    ]
     uv, J_proj = Projector(camera).project((p_body - T_body_cam[:3, 3]) @ T_body_cam[:3, :3])
-    A = J_proj @ R_cb                                  # d(pixels)/d(p_body)
+    A = J_proj @ R_cb  # d(pixels)/d(p_body)
     J = np.empty((len(p_body), 2, 6))
-    J[:, :, :3] = cross_rows(A, p_body)                # A [p_body]x
+    J[:, :, :3] = cross_rows(A, p_body)  # A [p_body]x
     J[:, :, 3:] = -A
     return uv, J.reshape(-1, 6)
 
 
-def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_symbol: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray]:
+def symbol_reprojection(
+    camera: CameraModel, T_cam_symbol: np.ndarray, points_symbol: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Distorted pixels (N, 2) of points given in a code's symbol frame, and the Jacobian (2N, 6)
     w.r.t. [w (3), dt (3)] where R_cam_symbol <- R_cam_symbol exp([w]x) (symbol frame) and
     t_cam_symbol <- t_cam_symbol + dt (camera frame, m): the last three are the code centre p_cam.
@@ -120,7 +123,7 @@ def symbol_reprojection(camera: CameraModel, T_cam_symbol: np.ndarray, points_sy
     p_S = np.asarray(points_symbol, dtype=float).reshape(-1, 3)
     uv, J_proj = Projector(camera).project(p_S @ R.T + T_cam_symbol[:3, 3])
     J = np.empty((len(p_S), 2, 6))
-    J[:, :, :3] = -cross_rows(J_proj @ R, p_S)         # -J_proj R [p_S]x
+    J[:, :, :3] = -cross_rows(J_proj @ R, p_S)  # -J_proj R [p_S]x
     J[:, :, 3:] = J_proj
     return uv, J.reshape(-1, 6)
 
@@ -140,7 +143,7 @@ def covariance_from_information(H: np.ndarray, sigma_px: float = 1.0) -> np.ndar
         raise EstimationError("singular information matrix (degenerate view)")
     if lam[-1] > 1e14 * lam[0]:
         raise EstimationError("ill-conditioned information matrix (degenerate view)")
-    C = (sigma_px ** 2) * ((V / lam) @ V.T)
+    C = (sigma_px**2) * ((V / lam) @ V.T)
     return 0.5 * (C + C.T)
 
 
@@ -149,9 +152,12 @@ def covariance_from_jacobian(J: np.ndarray, sigma_px: float) -> np.ndarray:
     return covariance_from_information(J.T @ J, sigma_px)
 
 
-def floor_pose_crb(camera: CameraModel, T_world_body: np.ndarray,
-                   corners_world_list: list[np.ndarray], corner_sigma_px: float = 0.15
-                   ) -> np.ndarray:
+def floor_pose_crb(
+    camera: CameraModel,
+    T_world_body: np.ndarray,
+    corners_world_list: list[np.ndarray],
+    corner_sigma_px: float = 0.15,
+) -> np.ndarray:
     """6x6 Cramér–Rao bound of the body pose, [rx, ry, rz, tx, ty, tz] in the body frame (rad, m),
     from the floor codes' world corners (each (4, 3)) seen at the TRUE pose with i.i.d. corner noise
     of `corner_sigma_px` per pixel coordinate: sigma^2 (J^T J)^-1."""
@@ -160,8 +166,9 @@ def floor_pose_crb(camera: CameraModel, T_world_body: np.ndarray,
     return covariance_from_jacobian(J, corner_sigma_px)
 
 
-def load_position_crb(camera: CameraModel, T_cam_symbol: np.ndarray, corners_symbol: np.ndarray,
-                      corner_sigma_px: float = 0.15) -> np.ndarray:
+def load_position_crb(
+    camera: CameraModel, T_cam_symbol: np.ndarray, corners_symbol: np.ndarray, corner_sigma_px: float = 0.15
+) -> np.ndarray:
     """3x3 Cramér–Rao bound of a load code's centre in the camera frame (m), from its four corners
     (symbol frame, (4, 3)) at the true symbol pose T_cam_symbol."""
     _, J = symbol_reprojection(camera, T_cam_symbol, corners_symbol)

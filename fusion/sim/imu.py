@@ -5,6 +5,7 @@ Noise as Kalibr / GTSAM define it (https://github.com/ethz-asl/kalibr/wiki/IMU-N
 white noise of continuous density sigma_c gives per-sample sigma_d = sigma_c * sqrt(rate); a bias
 random walk of density sigma_bc gives per-step increments of sigma_bc * sqrt(dt).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -43,10 +44,17 @@ def true_imu(traj, t_s: np.ndarray, T_body_imu: np.ndarray | None = None):
     return st.omega_body @ R_bs, f_body @ R_bs
 
 
-def synthesize_imu(traj, rate_hz: float = 200.0, noise: ImuNoise | None = None,
-                   rng: np.random.Generator | None = None, T_body_imu: np.ndarray | None = None,
-                   t0_ns: int = 0, noise_free: bool = False, initial_bias_gyro_rad_s: float = 0.002,
-                   initial_bias_accel_m_s2: float = 0.03):
+def synthesize_imu(
+    traj,
+    rate_hz: float = 200.0,
+    noise: ImuNoise | None = None,
+    rng: np.random.Generator | None = None,
+    T_body_imu: np.ndarray | None = None,
+    t0_ns: int = 0,
+    noise_free: bool = False,
+    initial_bias_gyro_rad_s: float = 0.002,
+    initial_bias_accel_m_s2: float = 0.03,
+):
     """IMU samples over [0, traj.duration_s].
 
     Returns (ImuData, bias_gyro (N, 3), bias_accel (N, 3)): measurement = truth + bias + white
@@ -72,13 +80,21 @@ def synthesize_imu(traj, rate_hz: float = 200.0, noise: ImuNoise | None = None,
     bias_gyro = walk(initial_bias_gyro_rad_s, noise.gyroscope_random_walk)
     bias_accel = walk(initial_bias_accel_m_s2, noise.accelerometer_random_walk)
     gyro = gyro + bias_gyro + rng.standard_normal((n, 3)) * (noise.gyroscope_noise_density * np.sqrt(rate_hz))
-    accel = accel + bias_accel + rng.standard_normal((n, 3)) * (
-        noise.accelerometer_noise_density * np.sqrt(rate_hz))
+    accel = (
+        accel
+        + bias_accel
+        + rng.standard_normal((n, 3)) * (noise.accelerometer_noise_density * np.sqrt(rate_hz))
+    )
     return ImuData(ts_ns, gyro, accel, noise, T_body_imu, rate_hz), bias_gyro, bias_accel
 
 
-def synthesize_velocity(traj, rate_hz: float = 30.0, noise_m_s: float = 0.05,
-                        rng: np.random.Generator | None = None, t0_ns: int = 0) -> VelocityData:
+def synthesize_velocity(
+    traj,
+    rate_hz: float = 30.0,
+    noise_m_s: float = 0.05,
+    rng: np.random.Generator | None = None,
+    t0_ns: int = 0,
+) -> VelocityData:
     """Body-frame velocity v_B = R_world_body^T v_world plus white noise of `noise_m_s` per axis
     (what optical flow with a range sensor provides)."""
     rng = rng if rng is not None else np.random.default_rng(0)

@@ -9,6 +9,7 @@ white texel therefore crosses mid-grey exactly at the module edge, so rendered e
 
 Pixel coordinates follow OpenCV: the centre of pixel (col, row) is at (u, v) = (col, row).
 """
+
 from __future__ import annotations
 
 import math
@@ -24,8 +25,8 @@ from fusion.errors import SimulationError
 from fusion.geometry import inv_T
 
 QUIET_ZONE_MODULES = 4
-BLACK_DN = 30.0          # printed black under nominal exposure
-WHITE_DN = 220.0         # printed white (paper) under nominal exposure
+BLACK_DN = 30.0  # printed black under nominal exposure
+WHITE_DN = 220.0  # printed white (paper) under nominal exposure
 BLACKOUT_KINDS = ("shadow", "glare", "torn")
 _MAX_TEXELS_PER_MODULE = 16
 
@@ -49,7 +50,7 @@ def _code_texture_cached(payload: str) -> np.ndarray:
         raise SimulationError(f"cannot encode QR payload {payload!r}")
     dark = np.argwhere(img < 128)
     (r0, c0), (r1, c1) = dark.min(axis=0), dark.max(axis=0)
-    sym = np.ascontiguousarray(img[r0:r1 + 1, c0:c1 + 1])
+    sym = np.ascontiguousarray(img[r0 : r1 + 1, c0 : c1 + 1])
     if sym.shape[0] != sym.shape[1] or (sym.shape[0] - 17) % 4:
         raise SimulationError(f"unexpected QR symbol size {sym.shape} for {payload!r}")
     return sym
@@ -62,13 +63,13 @@ def _mip(payload: str, texels_per_module: int) -> np.ndarray:
     q = QUIET_ZONE_MODULES
     full = np.pad(sym, q, constant_values=255)
     tex = np.where(full > 127, WHITE_DN, BLACK_DN).astype(np.float32)
-    return np.ascontiguousarray(np.kron(tex, np.ones((texels_per_module, texels_per_module),
-                                                     np.float32)))
+    return np.ascontiguousarray(np.kron(tex, np.ones((texels_per_module, texels_per_module), np.float32)))
 
 
 @dataclass
 class PlacedCode:
     """A QR code in the world: payload, symbol frame S in W (conventions.py), symbol side (m)."""
+
     payload: str
     T_world_symbol: np.ndarray
     side_m: float
@@ -104,6 +105,7 @@ class RenderEffects:
     exposure) and image direction; blackout: None or one of BLACKOUT_KINDS, which makes every
     floor code in view unreadable ('shadow': a deep shadow over the codes, 'glare': saturated
     specular glare over them, 'torn': the top half of each symbol torn off)."""
+
     noise_sigma_dn: float = 1.5
     gain: float = 1.0
     blur_px: float = 0.0
@@ -112,8 +114,9 @@ class RenderEffects:
 
     def __post_init__(self):
         if self.blackout is not None and self.blackout not in BLACKOUT_KINDS:
-            raise SimulationError(f"unknown blackout kind {self.blackout!r}; "
-                                  f"expected one of {BLACKOUT_KINDS}")
+            raise SimulationError(
+                f"unknown blackout kind {self.blackout!r}; expected one of {BLACKOUT_KINDS}"
+            )
         if not (self.noise_sigma_dn >= 0 and self.gain > 0 and self.blur_px >= 0):
             raise SimulationError("render effects: noise >= 0, gain > 0 and blur >= 0 required")
 
@@ -154,23 +157,27 @@ class _CameraRays:
         self.xn = np.ascontiguousarray(xy[..., 0], dtype=np.float64)
         self.yn = np.ascontiguousarray(xy[..., 1], dtype=np.float64)
         # largest normalised radius inside the image: projections farther out may fold back
-        self.r_max = float(np.sqrt(self.xn ** 2 + self.yn ** 2).max())
+        self.r_max = float(np.sqrt(self.xn**2 + self.yn**2).max())
         self.half_size = ((w + 1) // 2, (h + 1) // 2)
-        uh, vh = np.meshgrid(2.0 * np.arange(self.half_size[0]) + 0.5,
-                             2.0 * np.arange(self.half_size[1]) + 0.5)
+        uh, vh = np.meshgrid(
+            2.0 * np.arange(self.half_size[0]) + 0.5, 2.0 * np.arange(self.half_size[1]) + 0.5
+        )
         xyh = camera.undistort_normalized(np.stack([uh, vh], axis=-1))
         self.half_x = np.ascontiguousarray(xyh[..., 0], dtype=np.float32)
         self.half_y = np.ascontiguousarray(xyh[..., 1], dtype=np.float32)
-        self.bounds_xy = (float(self.xn.min()), float(self.xn.max()), float(self.yn.min()),
-                          float(self.yn.max()))
+        self.bounds_xy = (
+            float(self.xn.min()),
+            float(self.xn.max()),
+            float(self.yn.min()),
+            float(self.yn.max()),
+        )
 
 
 _RAYS: dict[tuple, _CameraRays] = {}
 
 
 def _camera_key(camera: CameraModel) -> tuple:
-    return (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv,
-            tuple(camera.distortion))
+    return (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv, tuple(camera.distortion))
 
 
 def _rays(camera: CameraModel) -> _CameraRays:
@@ -189,26 +196,28 @@ def _floor_texture(seed: int = 7, size: int = 512) -> np.ndarray:
     rng = np.random.default_rng(seed)
     low = rng.normal(0.0, 1.0, (16, 16)).astype(np.float32)
     low = np.tile(low, (3, 3))
-    low = cv2.resize(low, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[size:2 * size,
-                                                                               size:2 * size]
+    low = cv2.resize(low, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[
+        size : 2 * size, size : 2 * size
+    ]
     low = low / (np.abs(low).max() + 1e-9)
     grain = cv2.GaussianBlur(rng.normal(0.0, 1.0, (size, size)).astype(np.float32), (0, 0), 1.0)
     return np.ascontiguousarray(120.0 + 18.0 * low + 6.0 * grain / (grain.std() + 1e-9))
 
 
-FLOOR_TEXEL_M = 0.02     # floor texture resolution (m per texel), repeats every 10.24 m
-FAR_DN = 105.0           # what rays that miss the floor see (far walls / shelving, unlit)
+FLOOR_TEXEL_M = 0.02  # floor texture resolution (m per texel), repeats every 10.24 m
+FAR_DN = 105.0  # what rays that miss the floor see (far walls / shelving, unlit)
 
 
-RACK_DN = (92.0, 84.0, 100.0)   # rack box faces normal to world x, y, z
-RACK_BEAM_PITCH_M = 0.7         # horizontal beams (darker) every 0.7 m of height
+RACK_DN = (92.0, 84.0, 100.0)  # rack box faces normal to world x, y, z
+RACK_BEAM_PITCH_M = 0.7  # horizontal beams (darker) every 0.7 m of height
 
 
 def _box_may_be_in_view(lo, hi, T_world_cam: np.ndarray, rays: _CameraRays) -> bool:
     """False when all 8 corners of the box are in front of the camera and beyond one side of the
     field of view (then no ray meets it); True otherwise (conservative)."""
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])], dtype=float)
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=float
+    )
     p = (corners - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
     if np.any(p[:, 2] <= 1e-6):
         return True
@@ -217,8 +226,7 @@ def _box_may_be_in_view(lo, hi, T_world_cam: np.ndarray, rays: _CameraRays) -> b
     return not (np.all(x < x0) or np.all(x > x1) or np.all(y < y0) or np.all(y > y1))
 
 
-def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
-                occluders=()) -> np.ndarray:
+def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray, occluders=()) -> np.ndarray:
     """float32 (H, W) background at half resolution, upsampled (it is low frequency): the
     textured floor plane z = 0 where the ray meets it within 60 m, else a flat far-wall grey;
     in front of both, the occluder boxes (racks) as flat grey faces with darker beams."""
@@ -244,8 +252,9 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
             t1 = [(np.float32(hi[i]) - c[i]) / d[i] for i in range(3)]
             near = [np.minimum(a, b) for a, b in zip(t0, t1)]
             tmin = np.maximum(np.maximum(near[0], near[1]), near[2])
-            tmax = np.minimum(np.minimum(np.maximum(t0[0], t1[0]), np.maximum(t0[1], t1[1])),
-                              np.maximum(t0[2], t1[2]))
+            tmax = np.minimum(
+                np.minimum(np.maximum(t0[0], t1[0]), np.maximum(t0[1], t1[1])), np.maximum(t0[2], t1[2])
+            )
             box = (tmin <= tmax) & (tmin > 0.0) & (tmin < depth)
             if not box.any():
                 continue
@@ -262,12 +271,15 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
 
 
 # quiet-zone outline in units of its half side: corners TL, TR, BR, BL, then edge midpoints
-_OUTLINE_UNIT = np.array([[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0],
-                          [0, 1, 0], [1, 0, 0], [0, -1, 0], [-1, 0, 0]], dtype=float)
+_OUTLINE_UNIT = np.array(
+    [[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0], [0, 1, 0], [1, 0, 0], [0, -1, 0], [-1, 0, 0]],
+    dtype=float,
+)
 
 
-def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_world: np.ndarray,
-               code: PlacedCode) -> np.ndarray | None:
+def _draw_code(
+    img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_world: np.ndarray, code: PlacedCode
+) -> np.ndarray | None:
     """Composite one code (with its quiet zone) into `img` in place; returns the (4, 2) distorted
     pixel corners of the quiet-zone outline if drawn, else None."""
     T_cam_symbol = T_cam_world @ code.T_world_symbol
@@ -277,7 +289,7 @@ def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_wo
         return None
     n_mod = code.modules
     q = QUIET_ZONE_MODULES
-    m = code.side_m / n_mod                      # module size (m)
+    m = code.side_m / n_mod  # module size (m)
     half_outer = 0.5 * code.side_m + q * m
     # the quiet-zone outline (corners and edge midpoints) bounds the projection; then the
     # symbol's own corners give the scale (pixels per module)
@@ -285,7 +297,7 @@ def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_wo
     pts_S = np.vstack([pts_S, _OUTLINE_UNIT[:4, :2] * (0.5 * code.side_m)])
     p_cam = pts_S @ R[:, :2].T + t
     if np.any(p_cam[:, 2] < 0.02):
-        return None                              # (partly) behind the camera: not renderable
+        return None  # (partly) behind the camera: not renderable
     h, w = img.shape
     r_xy = np.hypot(p_cam[:, 0], p_cam[:, 1]) / p_cam[:, 2]
     uv = camera.project(p_cam)
@@ -314,14 +326,18 @@ def _draw_code(img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_wo
     H_sc = np.linalg.inv(H_cs)
     # symbol (x_S, y_S) -> texture (u_t, v_t); texel centres at integers, so the symbol's
     # outer edge (q modules in) is at q * tpm - 0.5
-    A = np.array([[tpm / m, 0.0, half_outer * tpm / m - 0.5],
-                  [0.0, -tpm / m, half_outer * tpm / m - 0.5],
-                  [0.0, 0.0, 1.0]])
+    A = np.array(
+        [
+            [tpm / m, 0.0, half_outer * tpm / m - 0.5],
+            [0.0, -tpm / m, half_outer * tpm / m - 0.5],
+            [0.0, 0.0, 1.0],
+        ]
+    )
     H = A @ H_sc
     xn = rays.xn[y0:y1, x0:x1]
     yn = rays.yn[y0:y1, x0:x1]
     den = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
-    lam = H_sc[2, 0] * xn + H_sc[2, 1] * yn + H_sc[2, 2]   # 1/depth sign: rays hitting in front
+    lam = H_sc[2, 0] * xn + H_sc[2, 1] * yn + H_sc[2, 2]  # 1/depth sign: rays hitting in front
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(lam > 0, 1.0 / den, np.nan)
         mx = ((H[0, 0] * xn + H[0, 1] * yn + H[0, 2]) * inv).astype(np.float32)
@@ -356,16 +372,16 @@ def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) ->
             img *= 1.0 - a
             img += a * torn
             continue
-        big = centre + 1.6 * (quad - centre)     # well beyond the quiet zone
+        big = centre + 1.6 * (quad - centre)  # well beyond the quiet zone
         mask = np.zeros((h, w), np.uint8)
         cv2.fillConvexPoly(mask, np.round(big * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
         radius = max(3.0, 0.15 * float(np.linalg.norm(quad[0] - quad[2])))
         a = cv2.GaussianBlur(mask.astype(np.float32) / 255.0, (0, 0), radius)
-        a = np.clip(1.6 * a, 0.0, 1.0)           # plateau of 1 over the code itself
+        a = np.clip(1.6 * a, 0.0, 1.0)  # plateau of 1 over the code itself
         if kind == "glare":
             img *= 1.0 - a
-            img += a * 300.0                     # saturates after clipping
-        else:                                    # shadow: almost no light, contrast below noise
+            img += a * 300.0  # saturates after clipping
+        else:  # shadow: almost no light, contrast below noise
             img *= 1.0 - a * 0.985
             img += a * 4.0
             img += (a * 3.0) * rng.standard_normal((h, w)).astype(np.float32)
@@ -375,8 +391,7 @@ def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) ->
 def _noise_pool(shape: tuple[int, int]) -> np.ndarray:
     """float32 standard-normal pool of twice the image size (fixed seed): each frame adds a window
     at a random offset, ten times cheaper than drawing fresh noise for every pixel."""
-    return np.random.default_rng(12345).standard_normal((2 * shape[0], 2 * shape[1]),
-                                                       dtype=np.float32)
+    return np.random.default_rng(12345).standard_normal((2 * shape[0], 2 * shape[1]), dtype=np.float32)
 
 
 def _noise(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
@@ -385,7 +400,7 @@ def _noise(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
     pool = _noise_pool(tuple(shape))
     r0 = int(rng.integers(0, shape[0]))
     c0 = int(rng.integers(0, shape[1]))
-    win = pool[r0:r0 + shape[0], c0:c0 + shape[1]]
+    win = pool[r0 : r0 + shape[0], c0 : c0 + shape[1]]
     flip = int(rng.integers(0, 4))
     if flip & 1:
         win = win[::-1]
@@ -394,11 +409,12 @@ def _noise(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
     return win
 
 
-MIN_CODE_PX = 6.0   # codes whose quiet-zone outline spans fewer pixels are not drawn
+MIN_CODE_PX = 6.0  # codes whose quiet-zone outline spans fewer pixels are not drawn
 
 
-def _visible_far_to_near(codes: list[PlacedCode], T_cam_world: np.ndarray,
-                         rays: _CameraRays, focal_px: float) -> np.ndarray:
+def _visible_far_to_near(
+    codes: list[PlacedCode], T_cam_world: np.ndarray, rays: _CameraRays, focal_px: float
+) -> np.ndarray:
     """Indices of the codes that may appear in the image (a conservative view-cone test on the
     bounding sphere of each code with its quiet zone) and span at least MIN_CODE_PX pixels,
     farthest first (painter's order)."""
@@ -416,8 +432,7 @@ def _visible_far_to_near(codes: list[PlacedCode], T_cam_world: np.ndarray,
     return idx[np.argsort(-p[idx, 2], kind="stable")]
 
 
-def _occluded(T_world_cam: np.ndarray, codes: list[PlacedCode], idx: np.ndarray,
-              occluders) -> np.ndarray:
+def _occluded(T_world_cam: np.ndarray, codes: list[PlacedCode], idx: np.ndarray, occluders) -> np.ndarray:
     """Mask over `idx`: the segment from the camera centre to the code centre crosses one of the
     axis-aligned boxes (lo (3,), hi (3,)) in W (slab test)."""
     c = T_world_cam[:3, 3]
@@ -435,8 +450,14 @@ def _occluded(T_world_cam: np.ndarray, codes: list[PlacedCode], idx: np.ndarray,
     return hidden
 
 
-def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[PlacedCode], rng=None,
-                effects: RenderEffects | None = None, occluders=None) -> np.ndarray:
+def render_view(
+    camera: CameraModel,
+    T_world_cam: np.ndarray,
+    codes: list[PlacedCode],
+    rng=None,
+    effects: RenderEffects | None = None,
+    occluders=None,
+) -> np.ndarray:
     """uint8 (H, W) grayscale image seen by `camera` at pose T_world_cam (camera frame: OpenCV).
 
     Background: the textured floor plane (z = 0), grey elsewhere; then every code in front of the
@@ -476,6 +497,7 @@ def render_view(camera: CameraModel, T_world_cam: np.ndarray, codes: list[Placed
 def placed_floor_codes(xy_payload: np.ndarray, payload_unit_m: float, side_m: float) -> list[PlacedCode]:
     """PlacedCodes for floor codes at payload coordinates (N, 2) (symbol frame = world axes)."""
     from fusion.conventions import floor_payload
+
     out = []
     for x, y in np.asarray(xy_payload, dtype=float).reshape(-1, 2):
         T = np.eye(4)

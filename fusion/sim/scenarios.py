@@ -4,6 +4,7 @@ A `Scenario` is everything `simulate()` needs: the world (floor grid, load codes
 the trajectory, the IMU noise, the photometric effects and the floor-camera blackouts.
 Scenarios: "default", "gimbaled", "paper_a5" (see each builder's docstring).
 """
+
 from __future__ import annotations
 
 import math
@@ -27,42 +28,45 @@ RESOLUTIONS = {"640x480": (640, 480), "1280x720": (1280, 720)}
 # decodes our renders down to about 2.1 px per module, so a 0.20 m version-1 floor code (9.5 mm
 # modules) reads up to about 2.5 m above the floor, and a 0.15 m load code from up to 1.6 m.
 FOCAL_640_PX = 550.0
-GROUND_Z_M = 0.15          # body height standing on the floor (landing gear)
+GROUND_Z_M = 0.15  # body height standing on the floor (landing gear)
 MAX_SURVEY_S = 4 * 3600.0  # the repeating survey is built up to this length
 
 
 @dataclass
 class Scenario:
     """A warehouse, a drone and a flight."""
+
     name: str
     layout: Layout
-    cameras: dict[str, CameraModel]          # "cam0" floor, "cam1" front
+    cameras: dict[str, CameraModel]  # "cam0" floor, "cam1" front
     trajectory: KeyframeTrajectory
     duration_s: float
-    blackouts: list[tuple[float, float, str]] = field(default_factory=list)   # (t0_s, t1_s, kind)
+    blackouts: list[tuple[float, float, str]] = field(default_factory=list)  # (t0_s, t1_s, kind)
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     imu_rate_hz: float = 200.0
     velocity_rate_hz: float = 30.0
     velocity_noise_m_s: float = 0.05
     noise_sigma_dn: float = 2.0
-    gain_swing: float = 0.15               # exposure gain 1 +- this, slowly varying
-    exposure_s: float = 0.008              # motion blur = image motion during the exposure
-    occluders: list = field(default_factory=list)   # axis-aligned boxes (lo, hi) in W: racks
+    gain_swing: float = 0.15  # exposure gain 1 +- this, slowly varying
+    exposure_s: float = 0.008  # motion blur = image motion during the exposure
+    occluders: list = field(default_factory=list)  # axis-aligned boxes (lo, hi) in W: racks
 
     def codes(self) -> list[PlacedCode]:
         """Every code to render: floor grid and load codes."""
         w = self.layout.world
         out = placed_floor_codes(self.layout.floor_codes_xy, w.payload_unit_m, w.floor_side_m)
-        out += [PlacedCode(load_payload(l.id), l.T_world_symbol, w.load_side_m)
-                for l in self.layout.loads]
+        out += [PlacedCode(load_payload(l.id), l.T_world_symbol, w.load_side_m) for l in self.layout.loads]
         return out
 
-    def effects(self, camera_name: str, t_s: float, blur_px: float = 0.0,
-                blur_angle_rad: float = 0.0) -> RenderEffects:
+    def effects(
+        self, camera_name: str, t_s: float, blur_px: float = 0.0, blur_angle_rad: float = 0.0
+    ) -> RenderEffects:
         """Photometric effects of one frame (blur measured by the caller)."""
         phase = 0.7 if camera_name == "cam1" else 0.0
-        gain = 1.0 + self.gain_swing * (0.7 * math.sin(2 * math.pi * t_s / 17.0 + phase)
-                                        + 0.3 * math.sin(2 * math.pi * t_s / 5.3 + 2 * phase))
+        gain = 1.0 + self.gain_swing * (
+            0.7 * math.sin(2 * math.pi * t_s / 17.0 + phase)
+            + 0.3 * math.sin(2 * math.pi * t_s / 5.3 + 2 * phase)
+        )
         blackout = None
         if camera_name == "cam0":
             for t0, t1, kind in self.blackouts:
@@ -77,12 +81,28 @@ def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, 
     w, h = resolution
     f = FOCAL_640_PX * w / 640.0
     s = w / 640.0
-    floor = CameraModel(w, h, f, f * 1.0005, w / 2 + 1.3 * s, h / 2 - 0.8 * s,
-                        distortion=[-0.05, 0.012, 4e-4, -3e-4],
-                        T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.06]), mount=mount)
-    front = CameraModel(w, h, f, f * 0.9995, w / 2 - 1.8 * s, h / 2 + 2.6 * s,
-                        distortion=[-0.07, 0.02, -5e-4, 4e-4],
-                        T_body_cam=make_T(R_BODY_FRONTCAM, [0.12, 0.0, 0.0]), mount=mount)
+    floor = CameraModel(
+        w,
+        h,
+        f,
+        f * 1.0005,
+        w / 2 + 1.3 * s,
+        h / 2 - 0.8 * s,
+        distortion=[-0.05, 0.012, 4e-4, -3e-4],
+        T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.06]),
+        mount=mount,
+    )
+    front = CameraModel(
+        w,
+        h,
+        f,
+        f * 0.9995,
+        w / 2 - 1.8 * s,
+        h / 2 + 2.6 * s,
+        distortion=[-0.07, 0.02, -5e-4, 4e-4],
+        T_body_cam=make_T(R_BODY_FRONTCAM, [0.12, 0.0, 0.0]),
+        mount=mount,
+    )
     return {"cam0": floor, "cam1": front}
 
 
@@ -104,54 +124,76 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
     along x = 0.5 to aisle 1 and flying the same passes with the same four blackouts at the same
     places, so a 10-minute flight is eight or nine laps of the same warehouse."""
     world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0))
-    floor = [(x, y) for x in range(0, 11) for y in range(0, 8)
-             if not (y in (3, 4) and 1 <= x <= 9)]
+    floor = [(x, y) for x in range(0, 11) for y in range(0, 8) if not (y in (3, 4) and 1 <= x <= 9)]
     loads = []
     for col, x in enumerate([1.5, 3.5, 5.5, 7.5], start=1):
         for level, z in enumerate([0.7, 1.4, 2.1], start=1):
             loads.append(LoadCode(f"P-{col:02d}-{level}", (x, 2.7, z), -math.pi / 2))
             loads.append(LoadCode(f"Q-{col:02d}-{level}", (x, 4.3, z), math.pi / 2))
     layout = Layout(world, np.array(floor, dtype=float), loads)
-    up, down = math.pi / 2, -math.pi / 2
+    up = math.pi / 2
     g = GROUND_Z_M
-    wps = [(0.5, 1.5, g, up, 0.8), (0.5, 1.5, 1.4, up, 0.4),
-           (1.5, 1.5, 1.4, up, 0.8), (3.5, 1.5, 1.4, up, 0.8), (5.5, 1.5, 1.4, up, 0.8),
-           (7.5, 1.5, 1.4, up, 0.8), (7.5, 1.5, 2.1, up, 0.5), (5.5, 1.4, 2.1, up, 0.5),
-           (3.5, 1.6, 2.1, up, 0.5), (1.5, 1.5, 2.1, up, 0.3), (0.5, 2.0, 2.6, up + 0.4),
-           (0.5, 4.5, 2.6, up + math.pi / 2), (0.6, 5.5, 1.6, 3 * math.pi / 2, 0.5),
-           (2.5, 5.5, 1.6, 3 * math.pi / 2, 0.6), (4.5, 5.4, 1.6, 3 * math.pi / 2, 0.6),
-           (6.5, 5.5, 1.6, 3 * math.pi / 2, 0.6), (8.0, 5.6, 0.9, 3 * math.pi / 2, 0.5),
-           (5.5, 5.5, 0.9, 3 * math.pi / 2 + 0.3, 0.3), (3.0, 5.5, 1.3, 3 * math.pi / 2),
-           (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5)]
-    lap = wps[2:]                       # from the first hover in aisle 1 to the end
+    wps = [
+        (0.5, 1.5, g, up, 0.8),
+        (0.5, 1.5, 1.4, up, 0.4),
+        (1.5, 1.5, 1.4, up, 0.8),
+        (3.5, 1.5, 1.4, up, 0.8),
+        (5.5, 1.5, 1.4, up, 0.8),
+        (7.5, 1.5, 1.4, up, 0.8),
+        (7.5, 1.5, 2.1, up, 0.5),
+        (5.5, 1.4, 2.1, up, 0.5),
+        (3.5, 1.6, 2.1, up, 0.5),
+        (1.5, 1.5, 2.1, up, 0.3),
+        (0.5, 2.0, 2.6, up + 0.4),
+        (0.5, 4.5, 2.6, up + math.pi / 2),
+        (0.6, 5.5, 1.6, 3 * math.pi / 2, 0.5),
+        (2.5, 5.5, 1.6, 3 * math.pi / 2, 0.6),
+        (4.5, 5.4, 1.6, 3 * math.pi / 2, 0.6),
+        (6.5, 5.5, 1.6, 3 * math.pi / 2, 0.6),
+        (8.0, 5.6, 0.9, 3 * math.pi / 2, 0.5),
+        (5.5, 5.5, 0.9, 3 * math.pi / 2 + 0.3, 0.3),
+        (3.0, 5.5, 1.3, 3 * math.pi / 2),
+        (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5),
+    ]
+    lap = wps[2:]  # from the first hover in aisle 1 to the end
     all_wps = list(wps)
-    if min_duration_s is not None and not (math.isfinite(min_duration_s)
-                                           and min_duration_s <= MAX_SURVEY_S):
-        min_duration_s = None           # simulate() refuses it with a clear message
+    if min_duration_s is not None and not (math.isfinite(min_duration_s) and min_duration_s <= MAX_SURVEY_S):
+        min_duration_s = None  # simulate() refuses it with a clear message
     while True:
         traj = KeyframeTrajectory(survey_keyframes(all_wps, speed_m_s=0.55, yaw_rate_rad_s=0.5))
         if min_duration_s is None or traj.duration_s >= min_duration_s:
             break
         k = (len(all_wps) - len(wps)) // (len(lap) + 2) + 1
-        turn = 2.0 * math.pi * k        # keep yaw continuous: each lap turns the same way
+        turn = 2.0 * math.pi * k  # keep yaw continuous: each lap turns the same way
         all_wps += [(0.5, 5.0, 2.0, all_wps[-1][3]), (0.5, 1.5, 1.4, up + turn, 0.4)]
         all_wps += [(x, y, z, yaw + turn, *rest) for x, y, z, yaw, *rest in lap]
     if traj.duration_s < 60.0:
         raise SimulationError(f"scenario {name}: trajectory only {traj.duration_s:.1f} s")
-    lap_blackouts = [(9.0, 9.5, "shadow"), (17.0, 18.0, "glare"), (27.0, 29.0, "torn"),
-                     (40.0, 45.0, "shadow")]
+    lap_blackouts = [
+        (9.0, 9.5, "shadow"),
+        (17.0, 18.0, "glare"),
+        (27.0, 29.0, "torn"),
+        (40.0, 45.0, "shadow"),
+    ]
     # the same blackouts at the same places of every lap: shift by the arrival times at the
     # lap's first hover (1.5, 1.5, 1.4)
-    arrivals = [kf.t_s for i, kf in enumerate(traj.keyframes)
-                if np.allclose(kf.p_world, (1.5, 1.5, 1.4))
-                and not np.allclose(traj.keyframes[i - 1].p_world, (1.5, 1.5, 1.4))]
-    blackouts = [(a + arr - arrivals[0], b + arr - arrivals[0], kind)
-                 for arr in arrivals for a, b, kind in lap_blackouts
-                 if b + arr - arrivals[0] <= traj.duration_s]
-    rack = (np.array([1.0, 2.72, 0.0]), np.array([9.0, 4.28, 2.6]))   # just behind the faces
+    arrivals = [
+        kf.t_s
+        for i, kf in enumerate(traj.keyframes)
+        if np.allclose(kf.p_world, (1.5, 1.5, 1.4))
+        and not np.allclose(traj.keyframes[i - 1].p_world, (1.5, 1.5, 1.4))
+    ]
+    blackouts = [
+        (a + arr - arrivals[0], b + arr - arrivals[0], kind)
+        for arr in arrivals
+        for a, b, kind in lap_blackouts
+        if b + arr - arrivals[0] <= traj.duration_s
+    ]
+    rack = (np.array([1.0, 2.72, 0.0]), np.array([9.0, 4.28, 2.6]))  # just behind the faces
     duration = 60.0 if min_duration_s is None or min_duration_s <= 60.0 else traj.duration_s
-    return Scenario(name, layout, make_cameras(resolution, mount), traj, duration, blackouts,
-                    occluders=[rack])
+    return Scenario(
+        name, layout, make_cameras(resolution, mount), traj, duration, blackouts, occluders=[rack]
+    )
 
 
 # ============================================================================ paper Table A5
@@ -161,10 +203,18 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
 # 6.8 m and below 2.9 m height, and QR 9 then sits right under QR 8 (x = 3.83 m, y = 6.75 m), so we
 # read those two rows as y and z swapped: QR 9 = (387.40, 681.17, 190.90), QR 10 = (808.10,
 # 682.70, 180.30).
-PAPER_A5_CM = [(32.50, 285.30, 236.50), (32.50, 286.40, 126.40), (823.46, 291.40, 75.60),
-               (399.20, 291.20, 171.31), (27.00, 500.10, 82.40), (604.00, 498.20, 73.54),
-               (26.50, 683.80, 78.10), (382.90, 675.10, 286.30), (387.40, 681.17, 190.90),
-               (808.10, 682.70, 180.30)]
+PAPER_A5_CM = [
+    (32.50, 285.30, 236.50),
+    (32.50, 286.40, 126.40),
+    (823.46, 291.40, 75.60),
+    (399.20, 291.20, 171.31),
+    (27.00, 500.10, 82.40),
+    (604.00, 498.20, 73.54),
+    (26.50, 683.80, 78.10),
+    (382.90, 675.10, 286.30),
+    (387.40, 681.17, 190.90),
+    (808.10, 682.70, 180.30),
+]
 
 
 def _paper_a5(name: str, resolution, mount: str) -> Scenario:
@@ -181,8 +231,10 @@ def _paper_a5(name: str, resolution, mount: str) -> Scenario:
     on the floor camera during three transits (0.5, 1, 2 s)."""
     world = World(0.25, 0.5, 0.15, (-1.0, 9.5), (0.0, 7.0))
     floor = [(i, j) for i in range(-2, 20) for j in range(0, 15)]
-    loads = [LoadCode(f"QR{k + 1}", (x / 100, y / 100, z / 100), -math.pi / 2)
-             for k, (x, y, z) in enumerate(PAPER_A5_CM)]
+    loads = [
+        LoadCode(f"QR{k + 1}", (x / 100, y / 100, z / 100), -math.pi / 2)
+        for k, (x, y, z) in enumerate(PAPER_A5_CM)
+    ]
     layout = Layout(world, np.array(floor, dtype=float), loads)
     up = math.pi / 2
     g = GROUND_Z_M
@@ -196,13 +248,17 @@ def _paper_a5(name: str, resolution, mount: str) -> Scenario:
     kf = traj.keyframes
     # blackouts in the middle of three transits (between the hover keyframes)
     mids = [0.5 * (kf[i].t_s + kf[i + 1].t_s) for i in (4, 8, 12)]
-    blackouts = [(mids[0] - 0.25, mids[0] + 0.25, "glare"), (mids[1] - 0.5, mids[1] + 0.5, "torn"),
-                 (mids[2] - 1.0, mids[2] + 1.0, "shadow")]
+    blackouts = [
+        (mids[0] - 0.25, mids[0] + 0.25, "glare"),
+        (mids[1] - 0.5, mids[1] + 0.5, "torn"),
+        (mids[2] - 1.0, mids[2] + 1.0, "shadow"),
+    ]
     return Scenario(name, layout, make_cameras(resolution, mount), traj, traj.duration_s, blackouts)
 
 
-def build_scenario(name: str = "default", resolution=(640, 480),
-                   min_duration_s: float | None = None) -> Scenario:
+def build_scenario(
+    name: str = "default", resolution=(640, 480), min_duration_s: float | None = None
+) -> Scenario:
     """The scenario called `name` at camera `resolution` (width, height), flying at least
     `min_duration_s` where the scenario can repeat (default, gimbaled); raises SimulationError."""
     if isinstance(resolution, str):

@@ -4,6 +4,7 @@ Frames are rendered by `workers` processes in chunks, PNG-encoded there and stre
 order; the whole flight is never held in memory.  Every random draw comes from a generator seeded
 by (seed, stream, index), so the log is the same for a seed whatever the number of workers.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,20 +31,22 @@ _STREAM_IMU, _STREAM_VEL, _STREAM_FRAME = 1, 2, 3
 @dataclass
 class SimulationResult:
     """What `simulate()` wrote."""
+
     root: Path
     scenario: str
     duration_s: float
-    n_frames: int                           # per camera (synchronised)
+    n_frames: int  # per camera (synchronised)
     n_imu: int
-    blackouts: list[tuple[int, int, str]]   # (start_ns, end_ns, kind)
-    readable_floor_fraction: float | None   # frames of cam0 with a decodable floor code
+    blackouts: list[tuple[int, int, str]]  # (start_ns, end_ns, kind)
+    readable_floor_fraction: float | None  # frames of cam0 with a decodable floor code
     readable_floor_fraction_outside_blackouts: float | None
     wall_time_s: float
     cameras: list[str] = field(default_factory=list)
-    render_cpu_s: float = 0.0               # CPU time of rendering + PNG encoding, all workers
+    render_cpu_s: float = 0.0  # CPU time of rendering + PNG encoding, all workers
 
 
 # ---------------------------------------------------------------------------- worker side
+
 
 class _RenderJob:
     """What every rendering task needs (sent once to each worker process); the scene's code
@@ -53,10 +56,10 @@ class _RenderJob:
         self.scenario, self.seed, self.check_readable = scenario, seed, check_readable
         # sensor noise defeats LZ matching: Huffman-only coding is as small and several times
         # faster than deflate at level >= 3; level 9 with the default strategy for the smallest
-        strategy = cv2.IMWRITE_PNG_STRATEGY_DEFAULT if png_level >= 9 else \
-            cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
-        self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, png_level, cv2.IMWRITE_PNG_STRATEGY,
-                           strategy]
+        strategy = (
+            cv2.IMWRITE_PNG_STRATEGY_DEFAULT if png_level >= 9 else cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
+        )
+        self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, png_level, cv2.IMWRITE_PNG_STRATEGY, strategy]
         self._codes = None
 
     def __getstate__(self) -> dict:
@@ -73,7 +76,7 @@ def _blur(camera, T_a: np.ndarray, T_b: np.ndarray, depth_hint_m: float) -> tupl
     """Image motion (px, direction) of the scene point on the optical axis between two poses."""
     R, c = T_a[:3, :3], T_a[:3, 3]
     axis = R[:, 2]
-    depth = -c[2] / axis[2] if axis[2] < -0.2 else depth_hint_m   # floor, else a face ahead
+    depth = -c[2] / axis[2] if axis[2] < -0.2 else depth_hint_m  # floor, else a face ahead
     p_world = c + min(max(depth, 0.2), 20.0) * axis
     uv = []
     for T in (T_a, T_b):
@@ -120,12 +123,14 @@ def frame_renderer(scenario: Scenario, seed: int = 0, png_compression: int = 1):
 
     def render(k: int, t_s: float) -> list[bytes]:
         return _render_frame(job, k, t_s)[1]
+
     return render
 
 
 def floor_code_readable(img: np.ndarray) -> bool:
     """True if zxing-cpp decodes at least one floor code (payload '0/...') in `img`."""
     import zxingcpp
+
     res = zxingcpp.read_barcodes(img, formats=zxingcpp.BarcodeFormat.QRCode)
     return any(r.text.startswith("0/") for r in res)
 
@@ -133,12 +138,22 @@ def floor_code_readable(img: np.ndarray) -> bool:
 # ---------------------------------------------------------------------------- main side
 
 
-def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None = None,
-             seed: int = 0, overwrite: bool = False, progress: bool = True,
-             workers: int | None = None, resolution=(640, 480), camera_rate_hz: float = CAMERA_RATE_HZ,
-             noise_sigma_dn: float | None = None, png_compression: int = 1,
-             check_readable: bool = False, start_s: float = 0.0,
-             fmt: str = "euroc") -> SimulationResult:
+def simulate(
+    out_dir: Path,
+    scenario: str = "default",
+    duration_s: float | None = None,
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: bool = True,
+    workers: int | None = None,
+    resolution=(640, 480),
+    camera_rate_hz: float = CAMERA_RATE_HZ,
+    noise_sigma_dn: float | None = None,
+    png_compression: int = 1,
+    check_readable: bool = False,
+    start_s: float = 0.0,
+    fmt: str = "euroc",
+) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
     synchronised; imu0 200 Hz; vel0 30 Hz; ground truth at the IMU rate with the true biases;
@@ -158,17 +173,30 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     or "video" (a folder of lossless FFV1 videos); the EuRoC folder is written first and
     converted once complete (fusion.log.convert.export_flight)."""
     from fusion.log import LogFormat
+
     try:
         fmt = LogFormat(fmt)
     except ValueError:
-        raise SimulationError(f"unknown format {fmt!r}; expected one of "
-                              f"{', '.join(f.value for f in LogFormat)}") from None
+        raise SimulationError(
+            f"unknown format {fmt!r}; expected one of {', '.join(f.value for f in LogFormat)}"
+        ) from None
     if fmt != LogFormat.EUROC:
-        return _simulate_as(fmt, out_dir, overwrite, scenario=scenario, duration_s=duration_s,
-                            seed=seed, progress=progress, workers=workers, resolution=resolution,
-                            camera_rate_hz=camera_rate_hz, noise_sigma_dn=noise_sigma_dn,
-                            png_compression=png_compression, check_readable=check_readable,
-                            start_s=start_s)
+        return _simulate_as(
+            fmt,
+            out_dir,
+            overwrite,
+            scenario=scenario,
+            duration_s=duration_s,
+            seed=seed,
+            progress=progress,
+            workers=workers,
+            resolution=resolution,
+            camera_rate_hz=camera_rate_hz,
+            noise_sigma_dn=noise_sigma_dn,
+            png_compression=png_compression,
+            check_readable=check_readable,
+            start_s=start_s,
+        )
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
@@ -189,8 +217,10 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     if not (isinstance(start_s, (int, float)) and math.isfinite(start_s) and start_s >= 0):
         raise SimulationError(f"start must be a non-negative number of seconds, got {start_s!r}")
     if start_s + duration_s > sc.trajectory.duration_s + 1e-9:
-        raise SimulationError(f"scenario {scenario!r} flies {sc.trajectory.duration_s:.1f} s; "
-                              f"start {start_s} s + duration {duration_s} s is longer")
+        raise SimulationError(
+            f"scenario {scenario!r} flies {sc.trajectory.duration_s:.1f} s; "
+            f"start {start_s} s + duration {duration_s} s is longer"
+        )
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
     if noise_sigma_dn is not None:
@@ -198,36 +228,51 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
     workers = worker_count(workers)
     if workers > 1 and mp.current_process().name != "MainProcess":
         # most likely a worker re-importing an unguarded main script: stop before touching disk
-        raise SimulationError("simulate(workers > 1) called inside a child process; guard the "
-                              "calling script with `if __name__ == '__main__':` or use workers=1")
+        raise SimulationError(
+            "simulate(workers > 1) called inside a child process; guard the "
+            "calling script with `if __name__ == '__main__':` or use workers=1"
+        )
     for cam in sc.cameras.values():
         cam.rate_hz = camera_rate_hz
     traj = sc.trajectory
 
-    imu, bias_g, bias_a = synthesize_imu(traj, sc.imu_rate_hz, sc.imu_noise,
-                                         np.random.default_rng([seed, _STREAM_IMU]))
+    imu, bias_g, bias_a = synthesize_imu(
+        traj, sc.imu_rate_hz, sc.imu_noise, np.random.default_rng([seed, _STREAM_IMU])
+    )
     t0_ns, t1_ns = int(round(start_s * 1e9)), int(round((start_s + duration_s) * 1e9))
     keep = (imu.timestamps_ns >= t0_ns) & (imu.timestamps_ns <= t1_ns)
-    imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (imu.timestamps_ns[keep],
-                                                         imu.gyro_rad_s[keep], imu.accel_m_s2[keep])
+    imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (
+        imu.timestamps_ns[keep],
+        imu.gyro_rad_s[keep],
+        imu.accel_m_s2[keep],
+    )
     bias_g, bias_a = bias_g[keep], bias_a[keep]
-    vel = synthesize_velocity(traj, sc.velocity_rate_hz, sc.velocity_noise_m_s,
-                              np.random.default_rng([seed, _STREAM_VEL]))
+    vel = synthesize_velocity(
+        traj, sc.velocity_rate_hz, sc.velocity_noise_m_s, np.random.default_rng([seed, _STREAM_VEL])
+    )
     keep = (vel.timestamps_ns >= t0_ns) & (vel.timestamps_ns <= t1_ns)
     vel.timestamps_ns, vel.v_body_m_s = vel.timestamps_ns[keep], vel.v_body_m_s[keep]
     st = traj.state(imu.timestamps_ns * 1e-9)
-    gt = GroundTruth(imu.timestamps_ns, st.p_world, quat_wxyz_from_R(st.R_world_body), st.v_world,
-                     bias_g, bias_a)
-    blackouts = [(max(int(round(a * 1e9)), t0_ns), min(int(round(b * 1e9)), t1_ns), kind)
-                 for a, b, kind in sc.blackouts if a * 1e9 < t1_ns and b * 1e9 > t0_ns]
+    gt = GroundTruth(
+        imu.timestamps_ns, st.p_world, quat_wxyz_from_R(st.R_world_body), st.v_world, bias_g, bias_a
+    )
+    blackouts = [
+        (max(int(round(a * 1e9)), t0_ns), min(int(round(b * 1e9)), t1_ns), kind)
+        for a, b, kind in sc.blackouts
+        if a * 1e9 < t1_ns and b * 1e9 > t0_ns
+    ]
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
 
     readable: list[bool] = []
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
         writer.write_world(sc.layout.world)
         for name, cam in sc.cameras.items():
-            writer.add_camera(name, cam, comment=f"fusion simulator, scenario {scenario}, "
-                                                 f"{'floor' if name == 'cam0' else 'front'} camera")
+            writer.add_camera(
+                name,
+                cam,
+                comment=f"fusion simulator, scenario {scenario}, "
+                f"{'floor' if name == 'cam0' else 'front'} camera",
+            )
         writer.write_imu(imu)
         writer.write_velocity(vel)
         writer.write_groundtruth(gt)
@@ -236,10 +281,11 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
 
         tasks = [(k, t * 1e-9) for k, t in enumerate(frame_ns)]
         chunk = 8
-        chunks = [tasks[i:i + chunk] for i in range(0, len(tasks), chunk)]
+        chunks = [tasks[i : i + chunk] for i in range(0, len(tasks), chunk)]
         bar = None
         if progress:
             from tqdm import tqdm
+
             bar = tqdm(total=len(tasks), unit="frame", desc=f"simulate {scenario}")
         names = list(sc.cameras)
 
@@ -258,8 +304,7 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
 
         job = _RenderJob(sc, seed, int(png_compression), check_readable)
         try:
-            for res in parallel_map(_render_chunk, chunks, workers, job,
-                                    preload=["fusion.sim.simulate"]):
+            for res in parallel_map(_render_chunk, chunks, workers, job, preload=["fusion.sim.simulate"]):
                 consume(res)
         finally:
             if bar is not None:
@@ -273,9 +318,19 @@ def simulate(out_dir: Path, scenario: str = "default", duration_s: float | None 
         for a, b, _ in blackouts:
             inside |= (frame_ns >= a) & (frame_ns <= b)
         frac_out = float(r[~inside].mean()) if (~inside).any() else None
-    return SimulationResult(Path(out_dir), scenario, duration_s, len(frame_ns), len(imu.timestamps_ns),
-                            blackouts, frac, frac_out, time.perf_counter() - t_wall, names,
-                            cpu_s[0])
+    return SimulationResult(
+        Path(out_dir),
+        scenario,
+        duration_s,
+        len(frame_ns),
+        len(imu.timestamps_ns),
+        blackouts,
+        frac,
+        frac_out,
+        time.perf_counter() - t_wall,
+        names,
+        cpu_s[0],
+    )
 
 
 _FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}
@@ -287,6 +342,7 @@ def _simulate_as(fmt, out: Path, overwrite: bool, **kwargs) -> SimulationResult:
 
     from fusion.errors import LogError
     from fusion.log.convert import export_flight
+
     out = Path(out)
     suffix = _FORMAT_SUFFIX[fmt.value]
     if suffix and out.suffix != suffix:

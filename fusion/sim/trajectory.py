@@ -10,6 +10,7 @@ z_B = (a + g z_W) / |a + g z_W|, heading x_C = (cos yaw, sin yaw, 0), y_B = z_B 
 x_B = y_B x z_B.  The angular rate is the exact derivative of that construction (chain rule with
 the jerk and the yaw rate), omega_body = vee(R^T dR/dt).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ for _ in range(3):
 @dataclass
 class Keyframe:
     """The drone at rest at time t_s: position p_world (m) and yaw (rad, unwrapped)."""
+
     t_s: float
     p_world: tuple[float, float, float]
     yaw_rad: float
@@ -36,12 +38,13 @@ class Keyframe:
 @dataclass
 class TrueState:
     """Ground truth at N times.  Frames: W (z up), B (FLU body = IMU)."""
-    t_s: np.ndarray            # (N,)
-    p_world: np.ndarray        # (N, 3) m
-    v_world: np.ndarray        # (N, 3) m/s
-    a_world: np.ndarray        # (N, 3) m/s^2 (kinematic acceleration, no gravity)
-    R_world_body: np.ndarray   # (N, 3, 3)
-    omega_body: np.ndarray     # (N, 3) rad/s, angular rate in B
+
+    t_s: np.ndarray  # (N,)
+    p_world: np.ndarray  # (N, 3) m
+    v_world: np.ndarray  # (N, 3) m/s
+    a_world: np.ndarray  # (N, 3) m/s^2 (kinematic acceleration, no gravity)
+    R_world_body: np.ndarray  # (N, 3, 3)
+    omega_body: np.ndarray  # (N, 3) rad/s, angular rate in B
 
     @property
     def T_world_body(self) -> np.ndarray:
@@ -80,7 +83,7 @@ class KeyframeTrajectory:
         tau = (t - self._t[i]) / T
         dp = self._p[i + 1] - self._p[i]
         dyaw = self._yaw[i + 1] - self._yaw[i]
-        s = [_S[k](tau) / T ** k for k in range(4)]
+        s = [_S[k](tau) / T**k for k in range(4)]
         p = self._p[i] + s[0][:, None] * dp
         v, a, j = (s[k][:, None] * dp for k in (1, 2, 3))
         yaw = self._yaw[i] + s[0] * dyaw
@@ -106,8 +109,9 @@ class KeyframeTrajectory:
         x_dot = np.cross(y_dot, z) + np.cross(y, z_dot)
         R = np.stack([x, y, z], axis=-1)
         # omega = vee(R^T R_dot), (R^T R_dot)_ij = r_i . r_j_dot: (z . y_dot, x . z_dot, y . x_dot)
-        omega = np.column_stack([np.sum(z * y_dot, axis=1), np.sum(x * z_dot, axis=1),
-                                 np.sum(y * x_dot, axis=1)])
+        omega = np.column_stack(
+            [np.sum(z * y_dot, axis=1), np.sum(x * z_dot, axis=1), np.sum(y * x_dot, axis=1)]
+        )
         return TrueState(t, p, v, a, R, omega)
 
     def jerk(self, t: np.ndarray) -> np.ndarray:
@@ -115,11 +119,13 @@ class KeyframeTrajectory:
         return self._flat(t)[4]
 
 
-def survey_keyframes(waypoints, speed_m_s: float = 0.6, yaw_rate_rad_s: float = 0.6,
-                     min_segment_s: float = 0.8) -> list[Keyframe]:
+def survey_keyframes(
+    waypoints, speed_m_s: float = 0.6, yaw_rate_rad_s: float = 0.6, min_segment_s: float = 0.8
+) -> list[Keyframe]:
     """Keyframes through waypoints (x, y, z, yaw) or (x, y, z, yaw, hover_s): each segment is timed
-    from its length so that its mean speed is `speed_m_s` (the peak on a
-    smootherstep is 2.1875x the mean) and its mean yaw rate `yaw_rate_rad_s`; a hover_s > 0 holds that pose."""
+    from its length so that its mean speed is `speed_m_s` (the peak on a smootherstep is 2.1875x
+    the mean) and its mean yaw rate `yaw_rate_rad_s`; a hover_s > 0 holds that pose."""
+
     def hover(wp):
         return float(wp[4]) if len(wp) > 4 else 0.0
 

@@ -6,6 +6,7 @@
   an id cannot open a link, a table cell, an image or raw HTML.
 - HTML (plotly hover text is rendered as HTML): `html.escape`.
 """
+
 from __future__ import annotations
 
 import html

@@ -1,6 +1,7 @@
 """What `fusion run`'s report writer calls (fusion.evaluate.report.write_report): the 3D view
 report.html, the run record run.json, and the lines report.md gets (a link to the view and the
 markers the inventory section goes between)."""
+
 from __future__ import annotations
 
 import logging
@@ -16,20 +17,41 @@ from fusion.warehouse.view3d import REPORT_HTML, write_report_html
 logger = logging.getLogger(__name__)
 
 
-def report_hook(out_dir: Path, trajectories: dict[str, Trajectory], load_maps: dict[str, LoadMap],
-                floor_codes_xy_m: np.ndarray | None, log_summary: dict, gt=None) -> list[str]:
+def report_hook(
+    out_dir: Path,
+    trajectories: dict[str, Trajectory],
+    load_maps: dict[str, LoadMap],
+    floor_codes_xy_m: np.ndarray | None,
+    log_summary: dict,
+    gt=None,
+) -> list[str]:
     """Write `out_dir/report.html` (and `out_dir/run.json` when log_summary names the log);
     return the Markdown lines for report.md."""
     out_dir = Path(out_dir)
     if "path" in log_summary and (Path(log_summary["path"]) / WORLD_YAML).exists():
         write_run_record(out_dir, log_summary["path"])
     else:
-        logger.info("%s: no flight log with a world.yaml named in the report facts: no %s "
-                       "(fusion inventory / map merge will need --log)", out_dir, RUN_RECORD)
+        logger.info(
+            "%s: no flight log with a world.yaml named in the report facts: no %s "
+            "(fusion inventory / map merge will need --log)",
+            out_dir,
+            RUN_RECORD,
+        )
     gt_traj = None
     if gt is not None:
         gt_traj = Trajectory("groundtruth", np.asarray(gt.timestamps_ns), gt.T_world_body)
-    write_report_html(out_dir, trajectories, load_maps, floor_codes_xy_m,
-                      float(log_summary.get("payload_unit_m") or 1.0), gt_traj)
-    return [f"Interactive 3D view (opens offline): [{REPORT_HTML}]({REPORT_HTML})", "",
-            REPORT_BEGIN, REPORT_END, ""]
+    write_report_html(
+        out_dir,
+        trajectories,
+        load_maps,
+        floor_codes_xy_m,
+        float(log_summary.get("payload_unit_m") or 1.0),
+        gt_traj,
+    )
+    return [
+        f"Interactive 3D view (opens offline): [{REPORT_HTML}]({REPORT_HTML})",
+        "",
+        REPORT_BEGIN,
+        REPORT_END,
+        "",
+    ]

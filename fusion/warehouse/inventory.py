@@ -20,6 +20,7 @@ Limits: the run knows no rack geometry and the manifest no face orientation, so 
 behind a rack or seen from behind its face counts as in view when it is in the image at
 readable range (the readable-range limit keeps the far face of a rack out in our warehouses).
 """
+
 from __future__ import annotations
 
 import csv
@@ -78,9 +79,26 @@ class Status(str, Enum):
         return str(self.value)
 
 
-INVENTORY_COLUMNS = ("id", "status", "location", "expected_x_m", "expected_y_m", "expected_z_m",
-                     "mapped_x_m", "mapped_y_m", "mapped_z_m", "distance_m", "sigma_m", "chi2",
-                     "p_value", "tolerance_m", "n_obs", "frames_in_view", "max_side_px", "places")
+INVENTORY_COLUMNS = (
+    "id",
+    "status",
+    "location",
+    "expected_x_m",
+    "expected_y_m",
+    "expected_z_m",
+    "mapped_x_m",
+    "mapped_y_m",
+    "mapped_z_m",
+    "distance_m",
+    "sigma_m",
+    "chi2",
+    "p_value",
+    "tolerance_m",
+    "n_obs",
+    "frames_in_view",
+    "max_side_px",
+    "places",
+)
 
 
 @dataclass
@@ -88,15 +106,15 @@ class InventoryRow:
     load_id: str
     status: Status
     expected: ExpectedLoad | None = None
-    p_map: np.ndarray | None = None          # (3,) m
+    p_map: np.ndarray | None = None  # (3,) m
     distance_m: float | None = None
     sigma_m: float | None = None
     chi2: float | None = None
     p_value: float | None = None
     n_obs: int = 0
-    frames_in_view: int | None = None        # None: visibility unknown (no camera)
+    frames_in_view: int | None = None  # None: visibility unknown (no camera)
     max_side_px: float | None = None
-    places: list[np.ndarray] = field(default_factory=list)   # ambiguous: cluster centres
+    places: list[np.ndarray] = field(default_factory=list)  # ambiguous: cluster centres
 
 
 @dataclass
@@ -115,26 +133,28 @@ class InventoryResult:
 # ============================================================================ the tests
 
 
-def moved_test(p_map: np.ndarray, cov_map: np.ndarray | None, p_expected: np.ndarray,
-               tolerance_m: float) -> tuple[float, float, float, float]:
+def moved_test(
+    p_map: np.ndarray, cov_map: np.ndarray | None, p_expected: np.ndarray, tolerance_m: float
+) -> tuple[float, float, float, float]:
     """(distance_m, sigma_m, chi2, p_value) of d = p_map - p_expected with covariance
     Sigma_map + tolerance^2 I (module docstring); sigma_m is the map's sigma along d."""
     d = np.asarray(p_map, dtype=float) - np.asarray(p_expected, dtype=float)
     cov_map = np.zeros((3, 3)) if cov_map is None else np.asarray(cov_map, dtype=float)
-    S = cov_map + tolerance_m ** 2 * np.eye(3)
+    S = cov_map + tolerance_m**2 * np.eye(3)
     dist = float(np.linalg.norm(d))
     u = d / dist if dist > 0 else np.array([1.0, 0.0, 0.0])
     sigma = float(np.sqrt(max(u @ cov_map @ u, 0.0)))
     if dist == 0.0:
         return 0.0, sigma, 0.0, 1.0
-    if np.linalg.matrix_rank(S) < 3:        # zero tolerance and no covariance: any offset moved
+    if np.linalg.matrix_rank(S) < 3:  # zero tolerance and no covariance: any offset moved
         return dist, sigma, float("inf"), 0.0
     stat = float(d @ np.linalg.solve(S, d))
     return dist, sigma, stat, float(chi2.sf(stat, 3))
 
 
-def visibility(points_world: np.ndarray, trajectory: Trajectory, camera: CameraModel,
-               side_m: float) -> tuple[np.ndarray, np.ndarray]:
+def visibility(
+    points_world: np.ndarray, trajectory: Trajectory, camera: CameraModel, side_m: float
+) -> tuple[np.ndarray, np.ndarray]:
     """For each of (M, 3) code centres: the number of trajectory poses at which the front camera
     sees it inside the image (the whole symbol, approximated by its projected half side as the
     margin), in front of the camera, at readable range (projected side >= MIN_READABLE_SIDE_PX),
@@ -144,7 +164,7 @@ def visibility(points_world: np.ndarray, trajectory: Trajectory, camera: CameraM
     best = np.zeros(len(pts))
     if len(trajectory) == 0 or len(pts) == 0:
         return counts, best
-    T_cam_world = inv_T(camera.T_world_cam(trajectory.T_world_body))      # (N, 4, 4)
+    T_cam_world = inv_T(camera.T_world_cam(trajectory.T_world_body))  # (N, 4, 4)
     f = min(camera.fu, camera.fv)
     for j, p in enumerate(pts):
         p_cam = np.einsum("nij,j->ni", T_cam_world[:, :3, :3], p) + T_cam_world[:, :3, 3]
@@ -153,8 +173,13 @@ def visibility(points_world: np.ndarray, trajectory: Trajectory, camera: CameraM
         side_px = np.where(ahead, f * side_m / np.where(ahead, z, 1.0), 0.0)
         uv = camera.project(np.where(ahead[:, None], p_cam, np.nan))
         margin = 0.5 * side_px
-        inside = (ahead & (uv[:, 0] >= margin) & (uv[:, 0] <= camera.width - 1 - margin)
-                  & (uv[:, 1] >= margin) & (uv[:, 1] <= camera.height - 1 - margin))
+        inside = (
+            ahead
+            & (uv[:, 0] >= margin)
+            & (uv[:, 0] <= camera.width - 1 - margin)
+            & (uv[:, 1] >= margin)
+            & (uv[:, 1] <= camera.height - 1 - margin)
+        )
         readable = inside & (side_px >= MIN_READABLE_SIDE_PX)
         counts[j] = int(np.count_nonzero(readable))
         best[j] = float(np.max(np.where(inside, side_px, 0.0), initial=0.0))
@@ -168,10 +193,12 @@ def ambiguous_places(points_world: np.ndarray) -> list[np.ndarray]:
     pts = np.asarray(points_world, dtype=float).reshape(-1, 3)
     if len(pts) < 2 * MIN_CLUSTER_OBS:
         return [np.median(pts, axis=0)] if len(pts) else []
-    labels = fcluster(linkage(pts, method="single"), t=AMBIGUITY_SEPARATION_M,
-                      criterion="distance")
-    places = [np.median(pts[labels == k], axis=0) for k in np.unique(labels)
-              if np.count_nonzero(labels == k) >= MIN_CLUSTER_OBS]
+    labels = fcluster(linkage(pts, method="single"), t=AMBIGUITY_SEPARATION_M, criterion="distance")
+    places = [
+        np.median(pts[labels == k], axis=0)
+        for k in np.unique(labels)
+        if np.count_nonzero(labels == k) >= MIN_CLUSTER_OBS
+    ]
     return sorted(places, key=lambda p: tuple(p))
 
 
@@ -189,42 +216,61 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
     world = run.world
     if not_read:
         if run.front_camera is None or world is None:
-            notes.append("front camera unknown (no run.json and no --log): expected loads that "
-                         "were not read are all reported as not surveyed")
+            notes.append(
+                "front camera unknown (no run.json and no --log): expected loads that "
+                "were not read are all reported as not surveyed"
+            )
         else:
-            frames, best = visibility(np.array([e.p_world for e in not_read]), run.trajectory,
-                                      run.front_camera, world.load_side_m)
-            view = {e.load_id: (int(n), float(b)) for e, n, b in zip(not_read, frames, best,
-                                                                    strict=True)}
+            frames, best = visibility(
+                np.array([e.p_world for e in not_read]), run.trajectory, run.front_camera, world.load_side_m
+            )
+            view = {e.load_id: (int(n), float(b)) for e, n, b in zip(not_read, frames, best, strict=True)}
     rows: list[InventoryRow] = []
     for e in expected:
         est = mapped.get(e.load_id)
         if e.load_id in ambiguous:
-            rows.append(InventoryRow(e.load_id, Status.AMBIGUOUS, e,
-                                     est.p_world if est else None, n_obs=est.n_obs if est else 0,
-                                     places=places[e.load_id]))
+            rows.append(
+                InventoryRow(
+                    e.load_id,
+                    Status.AMBIGUOUS,
+                    e,
+                    est.p_world if est else None,
+                    n_obs=est.n_obs if est else 0,
+                    places=places[e.load_id],
+                )
+            )
         elif est is not None:
-            dist, sigma, stat, pval = moved_test(est.p_world, est.cov_world, e.p_world,
-                                                 e.tolerance_m)
+            dist, sigma, stat, pval = moved_test(est.p_world, est.cov_world, e.p_world, e.tolerance_m)
             status = Status.MOVED if pval < MOVED_ALPHA else Status.PRESENT
-            rows.append(InventoryRow(e.load_id, status, e, est.p_world, dist, sigma, stat, pval,
-                                     est.n_obs))
+            rows.append(InventoryRow(e.load_id, status, e, est.p_world, dist, sigma, stat, pval, est.n_obs))
         else:
             n_view, side = view[e.load_id]
             status = Status.MISSING if (n_view or 0) >= MIN_FRAMES_IN_VIEW else Status.NOT_SURVEYED
-            rows.append(InventoryRow(e.load_id, status, e, frames_in_view=n_view,
-                                     max_side_px=side))
+            rows.append(InventoryRow(e.load_id, status, e, frames_in_view=n_view, max_side_px=side))
     expected_ids = {e.load_id for e in expected}
     for lid in sorted(set(mapped) - expected_ids):
         est = mapped[lid]
         status = Status.AMBIGUOUS if lid in ambiguous else Status.UNEXPECTED
-        rows.append(InventoryRow(lid, status, None, est.p_world, n_obs=est.n_obs,
-                                 places=places.get(lid, []) if lid in ambiguous else []))
+        rows.append(
+            InventoryRow(
+                lid,
+                status,
+                None,
+                est.p_world,
+                n_obs=est.n_obs,
+                places=places.get(lid, []) if lid in ambiguous else [],
+            )
+        )
     return InventoryResult(rows, run.estimator, notes)
 
 
-def run_inventory(run_out: Path, manifest: Path, estimator: str = Estimator.SMOOTHER,
-                  log: Path | None = None, write: bool = True) -> InventoryResult:
+def run_inventory(
+    run_out: Path,
+    manifest: Path,
+    estimator: str = Estimator.SMOOTHER,
+    log: Path | None = None,
+    write: bool = True,
+) -> InventoryResult:
     """`fusion inventory`: read the run and the manifest, classify, and (with `write`) write
     `inventory.csv` and `inventory.md` into the run folder, put the section into report.md and
     re-draw report.html with the inventory colours."""
@@ -239,6 +285,7 @@ def run_inventory(run_out: Path, manifest: Path, estimator: str = Estimator.SMOO
             f.write("\n".join(section) + "\n")
         attach_to_report(out / "report.md", section)
         from fusion.warehouse.view3d import write_run_html
+
         write_run_html(out, result, log=log)
     return result
 
@@ -258,41 +305,79 @@ def write_inventory_csv(path: Path, result: InventoryResult) -> None:
         w.writerow(INVENTORY_COLUMNS)
         for r in result.rows:
             e = r.expected
-            w.writerow([escape.csv_cell(r.load_id), str(r.status),
-                         escape.csv_cell(e.location) if e is not None and e.location else "",
-                         *((_f(v) for v in e.p_world) if e is not None else ("",) * 3),
-                         *((_f(v) for v in r.p_map) if r.p_map is not None else ("",) * 3),
-                         _f(r.distance_m), _f(r.sigma_m), _f(r.chi2, "{:.3f}"),
-                         _f(r.p_value, "{:.3g}"), _f(e.tolerance_m if e else None),
-                         r.n_obs, "" if r.frames_in_view is None else r.frames_in_view,
-                         _f(r.max_side_px, "{:.1f}"),
-                         ";".join(" ".join(f"{v:.3f}" for v in p) for p in r.places)])
+            w.writerow(
+                [
+                    escape.csv_cell(r.load_id),
+                    str(r.status),
+                    escape.csv_cell(e.location) if e is not None and e.location else "",
+                    *((_f(v) for v in e.p_world) if e is not None else ("",) * 3),
+                    *((_f(v) for v in r.p_map) if r.p_map is not None else ("",) * 3),
+                    _f(r.distance_m),
+                    _f(r.sigma_m),
+                    _f(r.chi2, "{:.3f}"),
+                    _f(r.p_value, "{:.3g}"),
+                    _f(e.tolerance_m if e else None),
+                    r.n_obs,
+                    "" if r.frames_in_view is None else r.frames_in_view,
+                    _f(r.max_side_px, "{:.1f}"),
+                    ";".join(" ".join(f"{v:.3f}" for v in p) for p in r.places),
+                ]
+            )
 
 
 def inventory_markdown(result: InventoryResult) -> list[str]:
     """The report section: counts per status, then a table of every load (ids escaped)."""
     counts = result.counts()
-    lines = ["## Inventory", "",
-             f"Load map `{escape.markdown(result.estimator)}` against the manifest: "
-             + ", ".join(f"{n} {s.replace('_', ' ')}" for s, n in counts.items()) + ".",
-             "", f"Moved: chi-square test (3 dof, alpha {MOVED_ALPHA:g}) of the difference with "
-             "the map covariance plus the placement tolerance. Missing: not read although in the "
-             f"front camera's view with the code spanning at least {MIN_READABLE_SIDE_PX:.0f} px "
-             f"in at least {MIN_FRAMES_IN_VIEW} poses; not surveyed otherwise.", ""]
+    lines = [
+        "## Inventory",
+        "",
+        f"Load map `{escape.markdown(result.estimator)}` against the manifest: "
+        + ", ".join(f"{n} {s.replace('_', ' ')}" for s, n in counts.items())
+        + ".",
+        "",
+        f"Moved: chi-square test (3 dof, alpha {MOVED_ALPHA:g}) of the difference with "
+        "the map covariance plus the placement tolerance. Missing: not read although in the "
+        f"front camera's view with the code spanning at least {MIN_READABLE_SIDE_PX:.0f} px "
+        f"in at least {MIN_FRAMES_IN_VIEW} poses; not surveyed otherwise.",
+        "",
+    ]
     for note in result.notes:
         lines += [f"> {escape.markdown(note)}", ""]
-    lines += ["| id | location | status | distance [cm] | σ [cm] | χ² | n obs | frames in view |",
-              "|---|---|---|---:|---:|---:|---:|---:|"]
-    order = {s: i for i, s in enumerate([Status.MOVED, Status.MISSING, Status.AMBIGUOUS,
-                                         Status.UNEXPECTED, Status.NOT_SURVEYED, Status.PRESENT])}
+    lines += [
+        "| id | location | status | distance [cm] | σ [cm] | χ² | n obs | frames in view |",
+        "|---|---|---|---:|---:|---:|---:|---:|",
+    ]
+    order = {
+        s: i
+        for i, s in enumerate(
+            [
+                Status.MOVED,
+                Status.MISSING,
+                Status.AMBIGUOUS,
+                Status.UNEXPECTED,
+                Status.NOT_SURVEYED,
+                Status.PRESENT,
+            ]
+        )
+    }
     for r in sorted(result.rows, key=lambda r: (order[r.status], r.load_id)):
         loc = r.expected.location if r.expected is not None and r.expected.location else ""
-        lines.append("| " + " | ".join([
-            escape.markdown(r.load_id), escape.markdown(loc), str(r.status).replace("_", " "),
-            _f(None if r.distance_m is None else 100 * r.distance_m, "{:.2f}"),
-            _f(None if r.sigma_m is None else 100 * r.sigma_m, "{:.2f}"),
-            _f(r.chi2, "{:.1f}"), str(r.n_obs) if r.n_obs else "",
-            "" if r.frames_in_view is None else str(r.frames_in_view)]) + " |")
+        lines.append(
+            "| "
+            + " | ".join(
+                [
+                    escape.markdown(r.load_id),
+                    escape.markdown(loc),
+                    str(r.status).replace("_", " "),
+                    _f(None if r.distance_m is None else 100 * r.distance_m, "{:.2f}"),
+                    _f(None if r.sigma_m is None else 100 * r.sigma_m, "{:.2f}"),
+                    _f(r.chi2, "{:.1f}"),
+                    str(r.n_obs) if r.n_obs else "",
+                    "" if r.frames_in_view is None else str(r.frames_in_view),
+                ]
+            )
+            + " |"
+        )
     lines.append("")
     return lines
 
@@ -311,7 +396,7 @@ def attach_to_report(report_md: Path, section: list[str]) -> None:
     block = "\n".join([REPORT_BEGIN, *section, REPORT_END])
     a, b = text.find(REPORT_BEGIN), text.find(REPORT_END)
     if a >= 0 and b > a:
-        text = text[:a] + block + text[b + len(REPORT_END):]
+        text = text[:a] + block + text[b + len(REPORT_END) :]
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     with atomic_open(report_md) as f:
@@ -320,11 +405,27 @@ def attach_to_report(report_md: Path, section: list[str]) -> None:
 
 def status_colours() -> dict[Status, str]:
     """Colours of the statuses in report.html."""
-    return {Status.PRESENT: "#2ca02c", Status.MOVED: "#ff7f0e", Status.MISSING: "#d62728",
-            Status.NOT_SURVEYED: "#7f7f7f", Status.UNEXPECTED: "#9467bd",
-            Status.AMBIGUOUS: "#e377c2"}
+    return {
+        Status.PRESENT: "#2ca02c",
+        Status.MOVED: "#ff7f0e",
+        Status.MISSING: "#d62728",
+        Status.NOT_SURVEYED: "#7f7f7f",
+        Status.UNEXPECTED: "#9467bd",
+        Status.AMBIGUOUS: "#e377c2",
+    }
 
 
-__all__ = ["Status", "InventoryRow", "InventoryResult", "inventory", "run_inventory",
-           "moved_test", "visibility", "ambiguous_places", "write_inventory_csv",
-           "inventory_markdown", "attach_to_report", "LoadMap"]
+__all__ = [
+    "Status",
+    "InventoryRow",
+    "InventoryResult",
+    "inventory",
+    "run_inventory",
+    "moved_test",
+    "visibility",
+    "ambiguous_places",
+    "write_inventory_csv",
+    "inventory_markdown",
+    "attach_to_report",
+    "LoadMap",
+]

@@ -24,6 +24,7 @@ the system knows where a pallet stands); DEFAULT_TOLERANCE_M when absent.
 Bad input (duplicate ids, missing columns, short rows, non-numeric or non-finite cells, foreign
 units, empty or unprintable ids) raises WarehouseError with one line naming file and line.
 """
+
 from __future__ import annotations
 
 import csv
@@ -55,6 +56,7 @@ WMS_OPTIONAL = ("tolerance",)
 class ExpectedLoad:
     """One manifest entry: `p_world` (3,) in m, `tolerance_m` 1-sigma per axis, the WMS location
     code (None for a plain manifest) and the 1-based line it came from."""
+
     load_id: str
     p_world: np.ndarray
     tolerance_m: float
@@ -86,8 +88,9 @@ def read_manifest(path: Path) -> list[ExpectedLoad]:
         layout, required, optional = "plain", PLAIN_COLUMNS, PLAIN_OPTIONAL
     missing = [c for c in required if c not in header]
     if missing:
-        raise WarehouseError(f"{path}:1: missing column(s) {', '.join(missing)} "
-                             f"({layout} manifest needs {','.join(required)})")
+        raise WarehouseError(
+            f"{path}:1: missing column(s) {', '.join(missing)} ({layout} manifest needs {','.join(required)})"
+        )
     dup = sorted({h for h in header if header.count(h) > 1 and h})
     if dup:
         raise WarehouseError(f"{path}:1: column(s) {', '.join(dup)} appear twice")
@@ -102,8 +105,9 @@ def read_manifest(path: Path) -> list[ExpectedLoad]:
         cells = {name: row[i].strip() for name, i in col.items()}
         entry = (_plain_row if layout == "plain" else _wms_row)(cells, path, lineno)
         if entry.load_id in first_line:
-            raise WarehouseError(f"{path}:{lineno}: duplicate id {entry.load_id!r} (first on line "
-                                 f"{first_line[entry.load_id]})")
+            raise WarehouseError(
+                f"{path}:{lineno}: duplicate id {entry.load_id!r} (first on line {first_line[entry.load_id]})"
+            )
         first_line[entry.load_id] = lineno
         out.append(entry)
     return out
@@ -120,8 +124,9 @@ def _wms_row(cells: dict, path: Path, lineno: int) -> ExpectedLoad:
     load_id = _load_id(cells["pallet_id"], "pallet_id", path, lineno)
     unit = cells["unit"].lower()
     if unit not in UNIT_TO_M:
-        raise WarehouseError(f"{path}:{lineno}: column unit: {cells['unit'][:20]!r} is not one of "
-                             f"{', '.join(UNIT_TO_M)}")
+        raise WarehouseError(
+            f"{path}:{lineno}: column unit: {cells['unit'][:20]!r} is not one of {', '.join(UNIT_TO_M)}"
+        )
     scale = UNIT_TO_M[unit]
     p = np.array([_number(cells[c], c, path, lineno) * scale for c in ("x", "y", "z")])
     tol = _tolerance(cells.get("tolerance", ""), "tolerance", scale, path, lineno)
@@ -132,8 +137,10 @@ def _load_id(text: str, column: str, path: Path, lineno: int) -> str:
     if not text:
         raise WarehouseError(f"{path}:{lineno}: column {column}: empty id")
     if len(text) > MAX_LOAD_ID_CHARS or not text.isprintable():
-        raise WarehouseError(f"{path}:{lineno}: column {column}: not a load id (printable, at most "
-                             f"{MAX_LOAD_ID_CHARS} characters): {text[:20]!r}")
+        raise WarehouseError(
+            f"{path}:{lineno}: column {column}: not a load id (printable, at most "
+            f"{MAX_LOAD_ID_CHARS} characters): {text[:20]!r}"
+        )
     return text
 
 
@@ -141,8 +148,7 @@ def _number(text: str, column: str, path: Path, lineno: int) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise WarehouseError(f"{path}:{lineno}: column {column}: {text[:20]!r} is not a number") \
-            from None
+        raise WarehouseError(f"{path}:{lineno}: column {column}: {text[:20]!r} is not a number") from None
     if not math.isfinite(v):
         raise WarehouseError(f"{path}:{lineno}: column {column}: {text[:20]!r} is not finite")
     return v

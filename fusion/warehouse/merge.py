@@ -19,6 +19,7 @@ Between the state and a new flight's estimate (p_k, P_k) of the same id the chan
 
 Runs of different warehouses (their world.yaml differ) are refused.
 """
+
 from __future__ import annotations
 
 import csv
@@ -57,18 +58,18 @@ class ChangeKind(str, Enum):
 @dataclass
 class MergedLoad:
     load_id: str
-    p_world: np.ndarray          # (3,) m
-    cov_world: np.ndarray        # (3, 3) m^2
+    p_world: np.ndarray  # (3,) m
+    cov_world: np.ndarray  # (3, 3) m^2
     n_obs: int
-    n_runs: int                  # flights fused into this estimate (since its last change)
-    last_run: int                # index of the last flight that read it
+    n_runs: int  # flights fused into this estimate (since its last change)
+    last_run: int  # index of the last flight that read it
 
 
 @dataclass
 class Change:
     load_id: str
     kind: ChangeKind
-    run_index: int               # the flight where the change shows
+    run_index: int  # the flight where the change shows
     p_before: np.ndarray | None = None
     p_after: np.ndarray | None = None
     distance_m: float | None = None
@@ -94,15 +95,18 @@ def check_same_warehouse(runs: list[RunOutputs]) -> dict:
     worlds = []
     for r in runs:
         if r.world_yaml is None:
-            raise WarehouseError(f"{r.out_dir}: no run.json (world.yaml unknown): re-run "
-                                 "`fusion run` on its log to record it")
+            raise WarehouseError(
+                f"{r.out_dir}: no run.json (world.yaml unknown): re-run `fusion run` on its log to record it"
+            )
         worlds.append(r.world_yaml)
     ref = worlds[0]
     for r, w in zip(runs[1:], worlds[1:], strict=True):
         if w != ref:
             keys = sorted(k for k in set(ref) | set(w) if ref.get(k) != w.get(k))
-            raise WarehouseError(f"{r.out_dir}: a different warehouse than {runs[0].out_dir} "
-                                 f"(world.yaml differs in {', '.join(keys)}); refusing to merge")
+            raise WarehouseError(
+                f"{r.out_dir}: a different warehouse than {runs[0].out_dir} "
+                f"(world.yaml differs in {', '.join(keys)}); refusing to merge"
+            )
     return ref
 
 
@@ -124,8 +128,10 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
     for k, run in enumerate(runs):
         for l in run.load_map.loads:
             if l.cov_world is None:
-                raise WarehouseError(f"{run.out_dir}: load map {run.estimator!r} has no "
-                                     "covariances; merge a fused estimator's map")
+                raise WarehouseError(
+                    f"{run.out_dir}: load map {run.estimator!r} has no "
+                    "covariances; merge a fused estimator's map"
+                )
         seen = run.load_map.by_id()
         for lid, l in sorted(seen.items()):
             cur = state.get(lid)
@@ -135,11 +141,11 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
                     changes.append(Change(lid, ChangeKind.APPEARED, k, None, p_new, n_obs=l.n_obs))
                 state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k)
                 continue
-            dist, sigma, stat, pval = moved_test(p_new, cur.cov_world + P_new, cur.p_world,
-                                                 MERGE_TOLERANCE_M)
+            dist, sigma, stat, pval = moved_test(p_new, cur.cov_world + P_new, cur.p_world, MERGE_TOLERANCE_M)
             if pval < MOVED_ALPHA:
-                changes.append(Change(lid, ChangeKind.MOVED, k, cur.p_world, p_new, dist, sigma,
-                                      stat, pval, l.n_obs))
+                changes.append(
+                    Change(lid, ChangeKind.MOVED, k, cur.p_world, p_new, dist, sigma, stat, pval, l.n_obs)
+                )
                 state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k)
             else:
                 p, P = _fuse(cur.p_world, cur.cov_world, p_new, P_new)
@@ -151,19 +157,31 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
         if run.front_camera is None or world is None:
             notes.append(f"{run.out_dir}: front camera unknown: loads it did not read are kept")
             continue
-        frames, _ = visibility(np.array([state[lid].p_world for lid in unseen]), run.trajectory,
-                               run.front_camera, world.load_side_m)
+        frames, _ = visibility(
+            np.array([state[lid].p_world for lid in unseen]),
+            run.trajectory,
+            run.front_camera,
+            world.load_side_m,
+        )
         for lid, n in zip(unseen, frames, strict=False):
             if n >= MIN_FRAMES_IN_VIEW:
-                changes.append(Change(lid, ChangeKind.DISAPPEARED, k, state[lid].p_world, None,
-                                      frames_in_view=int(n)))
+                changes.append(
+                    Change(lid, ChangeKind.DISAPPEARED, k, state[lid].p_world, None, frames_in_view=int(n))
+                )
                 del state[lid]
-    return MergeResult([str(r.out_dir) for r in runs], runs[0].estimator,
-                       [state[k] for k in sorted(state)], changes, world_yaml, notes)
+    return MergeResult(
+        [str(r.out_dir) for r in runs],
+        runs[0].estimator,
+        [state[k] for k in sorted(state)],
+        changes,
+        world_yaml,
+        notes,
+    )
 
 
-def run_merge(run_outs: list[Path], out: Path, estimator: str = Estimator.SMOOTHER,
-              force: bool = False) -> MergeResult:
+def run_merge(
+    run_outs: list[Path], out: Path, estimator: str = Estimator.SMOOTHER, force: bool = False
+) -> MergeResult:
     """`fusion map merge`: read the runs, merge, write `out/` (map.json, loads_merged.csv,
     changes.csv, changes.md, world.yaml)."""
     out = Path(out)
@@ -179,56 +197,113 @@ def run_merge(run_outs: list[Path], out: Path, estimator: str = Estimator.SMOOTH
 def write_merge(out: Path, result: MergeResult) -> None:
     out = Path(out)
     dump_yaml(result.world_yaml, out / "world.yaml")
-    data = {"estimator": result.estimator, "frame": "world", "unit": "m", "runs": result.runs,
-            "loads": [{"id": l.load_id, "p_world_m": l.p_world.tolist(),
-                       "cov_world_m2": l.cov_world.tolist(), "n_obs": int(l.n_obs),
-                       "n_runs": int(l.n_runs), "last_run": int(l.last_run)}
-                      for l in result.loads]}
+    data = {
+        "estimator": result.estimator,
+        "frame": "world",
+        "unit": "m",
+        "runs": result.runs,
+        "loads": [
+            {
+                "id": l.load_id,
+                "p_world_m": l.p_world.tolist(),
+                "cov_world_m2": l.cov_world.tolist(),
+                "n_obs": int(l.n_obs),
+                "n_runs": int(l.n_runs),
+                "last_run": int(l.last_run),
+            }
+            for l in result.loads
+        ],
+    }
     with atomic_open(out / "map.json") as f:
         json.dump(data, f, indent=1)
     with atomic_open(out / "loads_merged.csv") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(LOADS_COLUMNS)
         for l in result.loads:
-            w.writerow([escape.csv_cell(l.load_id), *(f"{v:.6f}" for v in l.p_world),
-                        *(f"{s:.6f}" for s in np.sqrt(np.diag(l.cov_world))), l.n_obs])
+            w.writerow(
+                [
+                    escape.csv_cell(l.load_id),
+                    *(f"{v:.6f}" for v in l.p_world),
+                    *(f"{s:.6f}" for s in np.sqrt(np.diag(l.cov_world))),
+                    l.n_obs,
+                ]
+            )
 
     def f6(v):
         return "" if v is None else f"{v:.6f}"
+
     with atomic_open(out / "changes.csv") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(["id", "change", "run", "before_x_m", "before_y_m", "before_z_m", "after_x_m",
-                    "after_y_m", "after_z_m", "distance_m", "sigma_m", "chi2", "p_value", "n_obs",
-                    "frames_in_view"])
+        w.writerow(
+            [
+                "id",
+                "change",
+                "run",
+                "before_x_m",
+                "before_y_m",
+                "before_z_m",
+                "after_x_m",
+                "after_y_m",
+                "after_z_m",
+                "distance_m",
+                "sigma_m",
+                "chi2",
+                "p_value",
+                "n_obs",
+                "frames_in_view",
+            ]
+        )
         for c in result.changes:
-            w.writerow([escape.csv_cell(c.load_id), str(c.kind), escape.csv_cell(result.runs[c.run_index]),
-                        *((f6(v) for v in c.p_before) if c.p_before is not None else ("",) * 3),
-                        *((f6(v) for v in c.p_after) if c.p_after is not None else ("",) * 3),
-                        f6(c.distance_m), f6(c.sigma_m),
-                        "" if c.chi2 is None else f"{c.chi2:.3f}",
-                        "" if c.p_value is None else f"{c.p_value:.3g}",
-                        "" if c.n_obs is None else c.n_obs,
-                        "" if c.frames_in_view is None else c.frames_in_view])
-    lines = ["# Merged load map", "",
-             f"{len(result.loads)} loads from {len(result.runs)} flights "
-             f"(`{escape.markdown(result.estimator)}` maps, information-weighted).", ""]
+            w.writerow(
+                [
+                    escape.csv_cell(c.load_id),
+                    str(c.kind),
+                    escape.csv_cell(result.runs[c.run_index]),
+                    *((f6(v) for v in c.p_before) if c.p_before is not None else ("",) * 3),
+                    *((f6(v) for v in c.p_after) if c.p_after is not None else ("",) * 3),
+                    f6(c.distance_m),
+                    f6(c.sigma_m),
+                    "" if c.chi2 is None else f"{c.chi2:.3f}",
+                    "" if c.p_value is None else f"{c.p_value:.3g}",
+                    "" if c.n_obs is None else c.n_obs,
+                    "" if c.frames_in_view is None else c.frames_in_view,
+                ]
+            )
+    lines = [
+        "# Merged load map",
+        "",
+        f"{len(result.loads)} loads from {len(result.runs)} flights "
+        f"(`{escape.markdown(result.estimator)}` maps, information-weighted).",
+        "",
+    ]
     lines += ["| # | run |", "|---:|---|"]
     lines += [f"| {i} | {escape.markdown(r)} |" for i, r in enumerate(result.runs)]
     lines += ["", "## Changes between flights", ""]
     if not result.changes:
         lines += ["None.", ""]
     else:
-        lines += ["| id | change | run | distance [cm] | σ [cm] | χ² | p | sightings | "
-                  "frames in view |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            "| id | change | run | distance [cm] | σ [cm] | χ² | p | sightings | frames in view |",
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         for c in result.changes:
-            lines.append("| " + " | ".join([
-                escape.markdown(c.load_id), str(c.kind), str(c.run_index),
-                "" if c.distance_m is None else f"{100 * c.distance_m:.2f}",
-                "" if c.sigma_m is None else f"{100 * c.sigma_m:.2f}",
-                "" if c.chi2 is None else f"{c.chi2:.1f}",
-                "" if c.p_value is None else f"{c.p_value:.2g}",
-                "" if c.n_obs is None else str(c.n_obs),
-                "" if c.frames_in_view is None else str(c.frames_in_view)]) + " |")
+            lines.append(
+                "| "
+                + " | ".join(
+                    [
+                        escape.markdown(c.load_id),
+                        str(c.kind),
+                        str(c.run_index),
+                        "" if c.distance_m is None else f"{100 * c.distance_m:.2f}",
+                        "" if c.sigma_m is None else f"{100 * c.sigma_m:.2f}",
+                        "" if c.chi2 is None else f"{c.chi2:.1f}",
+                        "" if c.p_value is None else f"{c.p_value:.2g}",
+                        "" if c.n_obs is None else str(c.n_obs),
+                        "" if c.frames_in_view is None else str(c.frames_in_view),
+                    ]
+                )
+                + " |"
+            )
         lines.append("")
     for n in result.notes:
         lines += [f"> {escape.markdown(n)}", ""]

@@ -6,6 +6,7 @@ neither the log nor a --log option (both still accept one, which wins).  Without
 without --log, the front camera is unknown and places that were not read cannot be told
 "missing" from "not surveyed".
 """
+
 from __future__ import annotations
 
 import csv
@@ -37,6 +38,7 @@ class RunOutputs:
     """What the warehouse tools use of one run: its load map (full 3x3 covariances when
     loads_<estimator>.json is there), the fused trajectory, the raw PnP load observations
     {id: (n, 3) p_world}, and the warehouse (world.yaml as a dict) and front camera, if known."""
+
     out_dir: Path
     estimator: str
     load_map: LoadMap
@@ -48,8 +50,11 @@ class RunOutputs:
 
     @property
     def world(self) -> World | None:
-        return None if self.world_yaml is None else World.from_yaml(self.world_yaml,
-                                                                    f"{self.out_dir}/{RUN_RECORD}")
+        return (
+            None
+            if self.world_yaml is None
+            else World.from_yaml(self.world_yaml, f"{self.out_dir}/{RUN_RECORD}")
+        )
 
 
 def write_run_record(out_dir: Path, log_path: str | Path) -> Path:
@@ -57,8 +62,11 @@ def write_run_record(out_dir: Path, log_path: str | Path) -> Path:
     log_path = Path(log_path).resolve()
     world = load_yaml(log_path / WORLD_YAML, WarehouseError)
     front = log_path / FRONT_SENSOR_YAML
-    record = {"log": str(log_path), "world_yaml": world,
-              "front_camera_sensor_yaml": load_yaml(front, WarehouseError) if front.exists() else None}
+    record = {
+        "log": str(log_path),
+        "world_yaml": world,
+        "front_camera_sensor_yaml": load_yaml(front, WarehouseError) if front.exists() else None,
+    }
     path = Path(out_dir) / RUN_RECORD
     with atomic_open(path) as f:
         json.dump(record, f, indent=1, default=_jsonable)
@@ -71,8 +79,7 @@ def _jsonable(v):
     raise TypeError(type(v).__name__)
 
 
-def load_run(out_dir: Path, estimator: str = Estimator.SMOOTHER, log: Path | None = None
-             ) -> RunOutputs:
+def load_run(out_dir: Path, estimator: str = Estimator.SMOOTHER, log: Path | None = None) -> RunOutputs:
     """Read a run folder; WarehouseError naming the file when an output is missing or bad.
 
     `log`: the flight log to take world.yaml and the front camera from (default: run.json)."""
@@ -83,8 +90,9 @@ def load_run(out_dir: Path, estimator: str = Estimator.SMOOTHER, log: Path | Non
     load_map = read_load_map(out_dir, estimator)
     tum = out_dir / f"trajectory_{estimator}.tum"
     if not tum.exists():
-        raise WarehouseError(f"{tum}: not found (was `fusion run` complete, and did the "
-                             f"{estimator} estimator run?)")
+        raise WarehouseError(
+            f"{tum}: not found (was `fusion run` complete, and did the {estimator} estimator run?)"
+        )
     try:
         traj = read_tum(tum, estimator)
     except FusionError as e:

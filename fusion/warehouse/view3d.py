@@ -7,6 +7,7 @@ covariance ellipsoids, coloured by inventory status once `fusion inventory` has 
 the page), the expected places of loads that were not read, and hover text naming each code and
 load (ids HTML-escaped: plotly renders hover text as HTML).
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,15 +28,19 @@ logger = logging.getLogger(__name__)
 REPORT_HTML = "report.html"
 ELLIPSOID_SIGMAS = 3.0
 """Ellipsoids are drawn at 3 sigma (a 3D Gaussian puts 97 % of its mass inside)."""
-ELLIPSOID_LAT, ELLIPSOID_LON = 8, 12       # mesh resolution of an ellipsoid
-SLIDER_STEPS = 60                          # positions of the time slider
-MAX_DISPLAY_POSES = 2000                   # trajectories are decimated to this many points
-MAP_PREFERENCE = (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF, Estimator.PNP,
-                  Estimator.PAPER)
-TRAJECTORY_COLOURS = {Estimator.PAPER: "#8c564b", Estimator.PNP: "#1f77b4",
-                      Estimator.SMOOTHER: "#d62728", Estimator.INCREMENTAL: "#ff7f0e",
-                      Estimator.EKF: "#2ca02c", "groundtruth": "#555555"}
-LOAD_COLOUR = "#17becf"                    # loads without an inventory
+ELLIPSOID_LAT, ELLIPSOID_LON = 8, 12  # mesh resolution of an ellipsoid
+SLIDER_STEPS = 60  # positions of the time slider
+MAX_DISPLAY_POSES = 2000  # trajectories are decimated to this many points
+MAP_PREFERENCE = (Estimator.SMOOTHER, Estimator.INCREMENTAL, Estimator.EKF, Estimator.PNP, Estimator.PAPER)
+TRAJECTORY_COLOURS = {
+    Estimator.PAPER: "#8c564b",
+    Estimator.PNP: "#1f77b4",
+    Estimator.SMOOTHER: "#d62728",
+    Estimator.INCREMENTAL: "#ff7f0e",
+    Estimator.EKF: "#2ca02c",
+    "groundtruth": "#555555",
+}
+LOAD_COLOUR = "#17becf"  # loads without an inventory
 FLOOR_COLOUR = "#bbbbbb"
 
 
@@ -47,8 +52,7 @@ def _ellipsoid_mesh(p: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndar
     """Vertices (V, 3) and triangles (F, 3) of the ELLIPSOID_SIGMAS-sigma ellipsoid of (p, cov)."""
     lat = np.linspace(0.0, np.pi, ELLIPSOID_LAT + 1)
     lon = np.linspace(0.0, 2 * np.pi, ELLIPSOID_LON, endpoint=False)
-    sphere = np.array([[np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)]
-                       for a in lat for b in lon])
+    sphere = np.array([[np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)] for a in lat for b in lon])
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     A = V @ np.diag(ELLIPSOID_SIGMAS * np.sqrt(np.clip(w, 0.0, None)))
     verts = p + sphere @ A.T
@@ -61,33 +65,55 @@ def _ellipsoid_mesh(p: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndar
     return verts, np.array(tris)
 
 
-def _load_hover(load_id: str, p: np.ndarray, cov: np.ndarray | None, n_obs: int,
-                status: str | None) -> str:
-    sig = "" if cov is None else "<br>σ " + " / ".join(
-        f"{100 * s:.2f}" for s in np.sqrt(np.clip(np.diag(cov), 0, None))) + " cm"
+def _load_hover(load_id: str, p: np.ndarray, cov: np.ndarray | None, n_obs: int, status: str | None) -> str:
+    sig = (
+        ""
+        if cov is None
+        else "<br>σ " + " / ".join(f"{100 * s:.2f}" for s in np.sqrt(np.clip(np.diag(cov), 0, None))) + " cm"
+    )
     st = "" if status is None else f"<br>{escape.html_text(status).replace('_', ' ')}"
-    return (f"load {escape.html_text(load_id)}{st}<br>x {p[0]:.3f} y {p[1]:.3f} z {p[2]:.3f} m"
-            f"{sig}<br>{n_obs} sightings")
+    return (
+        f"load {escape.html_text(load_id)}{st}<br>x {p[0]:.3f} y {p[1]:.3f} z {p[2]:.3f} m"
+        f"{sig}<br>{n_obs} sightings"
+    )
 
 
-def build_figure(trajectories: dict[str, Trajectory], load_map: LoadMap | None,
-                 floor_codes_xy_m: np.ndarray | None = None, payload_unit_m: float = 1.0,
-                 statuses: dict | None = None, expected: list | None = None,
-                 groundtruth: Trajectory | None = None, title: str = "fusion: 3D view"
-                 ) -> go.Figure:
+def build_figure(
+    trajectories: dict[str, Trajectory],
+    load_map: LoadMap | None,
+    floor_codes_xy_m: np.ndarray | None = None,
+    payload_unit_m: float = 1.0,
+    statuses: dict | None = None,
+    expected: list | None = None,
+    groundtruth: Trajectory | None = None,
+    title: str = "fusion: 3D view",
+) -> go.Figure:
     """The figure: floor codes, trajectories (raw: dots, fused: lines, truth: grey), a marker per
     trajectory driven by the time slider, the loads of `load_map` with their ellipsoids, coloured
     by `statuses` {id: Status} when given, and `expected` (ExpectedLoad list) places not read."""
     from fusion.warehouse.inventory import Status, status_colours
+
     colours = status_colours()
     fig = go.Figure()
     if floor_codes_xy_m is not None and len(floor_codes_xy_m):
         xy = np.asarray(floor_codes_xy_m, dtype=float).reshape(-1, 2)
-        hover = [f"floor code {escape.html_text(floor_payload(x / payload_unit_m, y / payload_unit_m))}"
-                 f"<br>x {x:.3f} y {y:.3f} m" for x, y in xy]
-        fig.add_trace(go.Scatter3d(x=xy[:, 0], y=xy[:, 1], z=np.zeros(len(xy)), mode="markers",
-                                   marker={"symbol": "square", "size": 5, "color": FLOOR_COLOUR},
-                                   name="floor codes", hovertext=hover, hoverinfo="text"))
+        hover = [
+            f"floor code {escape.html_text(floor_payload(x / payload_unit_m, y / payload_unit_m))}"
+            f"<br>x {x:.3f} y {y:.3f} m"
+            for x, y in xy
+        ]
+        fig.add_trace(
+            go.Scatter3d(
+                x=xy[:, 0],
+                y=xy[:, 1],
+                z=np.zeros(len(xy)),
+                mode="markers",
+                marker={"symbol": "square", "size": 5, "color": FLOOR_COLOUR},
+                name="floor codes",
+                hovertext=hover,
+                hoverinfo="text",
+            )
+        )
     trajs = dict(trajectories)
     if groundtruth is not None and len(groundtruth):
         trajs = {"groundtruth": groundtruth, **trajs}
@@ -97,13 +123,22 @@ def build_figure(trajectories: dict[str, Trajectory], load_map: LoadMap | None,
         p = traj.positions_xyz[idx]
         t_s = traj.timestamps_s[idx]
         raw = name in (Estimator.PAPER, Estimator.PNP)
-        fig.add_trace(go.Scatter3d(
-            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers" if raw else "lines",
-            name=f"{escape.html_text(name)} trajectory",
-            marker={"size": 1.5, "color": TRAJECTORY_COLOURS.get(name, "#000000")},
-            line={"width": 3 if name != "groundtruth" else 2,
-                  "color": TRAJECTORY_COLOURS.get(name, "#000000")},
-            hovertext=[f"{escape.html_text(name)} t {v:.2f} s" for v in t_s], hoverinfo="text"))
+        fig.add_trace(
+            go.Scatter3d(
+                x=p[:, 0],
+                y=p[:, 1],
+                z=p[:, 2],
+                mode="markers" if raw else "lines",
+                name=f"{escape.html_text(name)} trajectory",
+                marker={"size": 1.5, "color": TRAJECTORY_COLOURS.get(name, "#000000")},
+                line={
+                    "width": 3 if name != "groundtruth" else 2,
+                    "color": TRAJECTORY_COLOURS.get(name, "#000000"),
+                },
+                hovertext=[f"{escape.html_text(name)} t {v:.2f} s" for v in t_s],
+                hoverinfo="text",
+            )
+        )
     # time slider: a marker per trajectory at the pose nearest (at or before) each step's time
     marker_traces = []
     if shown:
@@ -115,62 +150,126 @@ def build_figure(trajectories: dict[str, Trajectory], load_map: LoadMap | None,
             k = np.clip(np.searchsorted(traj.timestamps_s, times, side="right") - 1, 0, len(traj) - 1)
             positions.append(traj.positions_xyz[k])
             marker_traces.append(len(fig.data))
-            fig.add_trace(go.Scatter3d(
-                x=[positions[-1][0, 0]], y=[positions[-1][0, 1]], z=[positions[-1][0, 2]],
-                mode="markers", showlegend=False, name=f"{escape.html_text(name)} at t",
-                marker={"size": 6, "color": TRAJECTORY_COLOURS.get(name, "#000000"),
-                        "symbol": "diamond"}, hoverinfo="name"))
-        steps = [{"method": "restyle", "label": f"{times[i] - t0:.1f}",
-                  "args": [{"x": [[p[i, 0]] for p in positions], "y": [[p[i, 1]] for p in positions],
-                            "z": [[p[i, 2]] for p in positions]}, marker_traces]}
-                 for i in range(SLIDER_STEPS)]
-        fig.update_layout(sliders=[{"active": 0, "steps": steps,
-                                    "currentvalue": {"prefix": "time since start [s]: "},
-                                    "pad": {"t": 20}}])
+            fig.add_trace(
+                go.Scatter3d(
+                    x=[positions[-1][0, 0]],
+                    y=[positions[-1][0, 1]],
+                    z=[positions[-1][0, 2]],
+                    mode="markers",
+                    showlegend=False,
+                    name=f"{escape.html_text(name)} at t",
+                    marker={"size": 6, "color": TRAJECTORY_COLOURS.get(name, "#000000"), "symbol": "diamond"},
+                    hoverinfo="name",
+                )
+            )
+        steps = [
+            {
+                "method": "restyle",
+                "label": f"{times[i] - t0:.1f}",
+                "args": [
+                    {
+                        "x": [[p[i, 0]] for p in positions],
+                        "y": [[p[i, 1]] for p in positions],
+                        "z": [[p[i, 2]] for p in positions],
+                    },
+                    marker_traces,
+                ],
+            }
+            for i in range(SLIDER_STEPS)
+        ]
+        fig.update_layout(
+            sliders=[
+                {
+                    "active": 0,
+                    "steps": steps,
+                    "currentvalue": {"prefix": "time since start [s]: "},
+                    "pad": {"t": 20},
+                }
+            ]
+        )
     # loads
     if load_map is not None and load_map.loads:
         loads = sorted(load_map.loads, key=lambda l: l.load_id)
         p = np.array([l.p_world for l in loads])
         st = [statuses.get(l.load_id) if statuses else None for l in loads]
         cols = [colours.get(s, LOAD_COLOUR) if s is not None else LOAD_COLOUR for s in st]
-        fig.add_trace(go.Scatter3d(
-            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers",
-            name=f"loads ({escape.html_text(load_map.name)})",
-            marker={"size": 5, "color": cols, "line": {"width": 1, "color": "#000000"}},
-            hovertext=[_load_hover(l.load_id, l.p_world, l.cov_world, l.n_obs,
-                                   None if s is None else str(s)) for l, s in zip(loads, st, strict=False)],
-            hoverinfo="text"))
+        fig.add_trace(
+            go.Scatter3d(
+                x=p[:, 0],
+                y=p[:, 1],
+                z=p[:, 2],
+                mode="markers",
+                name=f"loads ({escape.html_text(load_map.name)})",
+                marker={"size": 5, "color": cols, "line": {"width": 1, "color": "#000000"}},
+                hovertext=[
+                    _load_hover(l.load_id, l.p_world, l.cov_world, l.n_obs, None if s is None else str(s))
+                    for l, s in zip(loads, st, strict=False)
+                ],
+                hoverinfo="text",
+            )
+        )
         first = True
         for l, c in zip(loads, cols, strict=False):
             if l.cov_world is None:
                 continue
             v, f = _ellipsoid_mesh(np.asarray(l.p_world, dtype=float), np.asarray(l.cov_world))
-            fig.add_trace(go.Mesh3d(x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1],
-                                    k=f[:, 2], color=c, opacity=0.35, legendgroup="ellipsoids",
-                                    name=f"{ELLIPSOID_SIGMAS:g}σ ellipsoids", showlegend=first,
-                                    hovertext=escape.html_text(l.load_id), hoverinfo="text"))
+            fig.add_trace(
+                go.Mesh3d(
+                    x=v[:, 0],
+                    y=v[:, 1],
+                    z=v[:, 2],
+                    i=f[:, 0],
+                    j=f[:, 1],
+                    k=f[:, 2],
+                    color=c,
+                    opacity=0.35,
+                    legendgroup="ellipsoids",
+                    name=f"{ELLIPSOID_SIGMAS:g}σ ellipsoids",
+                    showlegend=first,
+                    hovertext=escape.html_text(l.load_id),
+                    hoverinfo="text",
+                )
+            )
             first = False
     if expected and statuses:
         mapped = set(load_map.by_id()) if load_map is not None else set()
         for status in (Status.MISSING, Status.NOT_SURVEYED, Status.MOVED):
-            es = [e for e in expected if statuses.get(e.load_id) == status
-                  and (status != Status.MOVED or e.load_id in mapped)]
+            es = [
+                e
+                for e in expected
+                if statuses.get(e.load_id) == status and (status != Status.MOVED or e.load_id in mapped)
+            ]
             if not es:
                 continue
             q = np.array([e.p_world for e in es])
-            fig.add_trace(go.Scatter3d(
-                x=q[:, 0], y=q[:, 1], z=q[:, 2], mode="markers",
-                name=("expected place of moved loads" if status == Status.MOVED
-                      else f"expected, {str(status).replace('_', ' ')}"),
-                marker={"size": 6, "symbol": "circle-open", "color": colours[status]},
-                hovertext=[f"expected {escape.html_text(e.load_id)}"
-                           + (f" at {escape.html_text(e.location)}" if e.location else "")
-                           + f"<br>{str(status).replace('_', ' ')}"
-                           f"<br>x {e.p_world[0]:.3f} y {e.p_world[1]:.3f} z {e.p_world[2]:.3f} m"
-                           for e in es], hoverinfo="text"))
-    fig.update_layout(title=escape.html_text(title), scene={"aspectmode": "data",
-                      "xaxis_title": "x [m]", "yaxis_title": "y [m]", "zaxis_title": "z [m]"},
-                      legend={"itemsizing": "constant"}, margin={"l": 0, "r": 0, "t": 40, "b": 0})
+            fig.add_trace(
+                go.Scatter3d(
+                    x=q[:, 0],
+                    y=q[:, 1],
+                    z=q[:, 2],
+                    mode="markers",
+                    name=(
+                        "expected place of moved loads"
+                        if status == Status.MOVED
+                        else f"expected, {str(status).replace('_', ' ')}"
+                    ),
+                    marker={"size": 6, "symbol": "circle-open", "color": colours[status]},
+                    hovertext=[
+                        f"expected {escape.html_text(e.load_id)}"
+                        + (f" at {escape.html_text(e.location)}" if e.location else "")
+                        + f"<br>{str(status).replace('_', ' ')}"
+                        f"<br>x {e.p_world[0]:.3f} y {e.p_world[1]:.3f} z {e.p_world[2]:.3f} m"
+                        for e in es
+                    ],
+                    hoverinfo="text",
+                )
+            )
+    fig.update_layout(
+        title=escape.html_text(title),
+        scene={"aspectmode": "data", "xaxis_title": "x [m]", "yaxis_title": "y [m]", "zaxis_title": "z [m]"},
+        legend={"itemsizing": "constant"},
+        margin={"l": 0, "r": 0, "t": 40, "b": 0},
+    )
     return fig
 
 
@@ -190,18 +289,30 @@ def pick_load_map(load_maps: dict[str, LoadMap]) -> LoadMap | None:
     return next(iter(load_maps.values()), None)
 
 
-def write_report_html(out_dir: Path, trajectories: dict[str, Trajectory],
-                      load_maps: dict[str, LoadMap], floor_codes_xy_m: np.ndarray | None = None,
-                      payload_unit_m: float = 1.0, groundtruth: Trajectory | None = None) -> Path:
+def write_report_html(
+    out_dir: Path,
+    trajectories: dict[str, Trajectory],
+    load_maps: dict[str, LoadMap],
+    floor_codes_xy_m: np.ndarray | None = None,
+    payload_unit_m: float = 1.0,
+    groundtruth: Trajectory | None = None,
+) -> Path:
     """`out_dir/report.html` of a run (no inventory yet)."""
-    fig = build_figure(trajectories, pick_load_map(load_maps), floor_codes_xy_m, payload_unit_m,
-                       groundtruth=groundtruth, title=f"fusion: {Path(out_dir).name}")
+    fig = build_figure(
+        trajectories,
+        pick_load_map(load_maps),
+        floor_codes_xy_m,
+        payload_unit_m,
+        groundtruth=groundtruth,
+        title=f"fusion: {Path(out_dir).name}",
+    )
     return write_html(Path(out_dir) / REPORT_HTML, fig)
 
 
 def floor_codes_from_detections(out_dir: Path, payload_unit_m: float) -> np.ndarray | None:
     """World (x, y) of every floor code in the run's detections.csv (None without it)."""
     from fusion.qr.detect import read_cache
+
     cached = read_cache(Path(out_dir) / "detections.csv")
     if cached is None:
         return None
@@ -216,11 +327,13 @@ def floor_codes_from_detections(out_dir: Path, payload_unit_m: float) -> np.ndar
     return np.array(sorted(xy)) if xy else None
 
 
-def write_run_html(out_dir: Path, inventory_result=None, expected: list | None = None,
-                   log: Path | None = None) -> Path:
+def write_run_html(
+    out_dir: Path, inventory_result=None, expected: list | None = None, log: Path | None = None
+) -> Path:
     """Redraw `out_dir/report.html` from the run's files (trajectory_*.tum, loads_*.json,
     detections.csv, run.json or `log`), with the inventory's colours when given."""
     from fusion.warehouse.runs import load_run
+
     out_dir = Path(out_dir)
     trajectories = {}
     for name in Estimator:
@@ -236,6 +349,14 @@ def write_run_html(out_dir: Path, inventory_result=None, expected: list | None =
     statuses = inventory_result.statuses() if inventory_result is not None else None
     if expected is None and inventory_result is not None:
         expected = [r.expected for r in inventory_result.rows if r.expected is not None]
-    fig = build_figure(trajectories, run.load_map, floor_codes_from_detections(out_dir, unit),
-                       unit, statuses, expected, gt, title=f"fusion: {out_dir.name}")
+    fig = build_figure(
+        trajectories,
+        run.load_map,
+        floor_codes_from_detections(out_dir, unit),
+        unit,
+        statuses,
+        expected,
+        gt,
+        title=f"fusion: {out_dir.name}",
+    )
     return write_html(out_dir / REPORT_HTML, fig)

@@ -21,6 +21,7 @@ right perturbation T = T_hat * Exp(xi) (gtsam.Pose3.Expmap) -- ready for a Prior
 Where this departs from the paper (Alg. 1-3, 4-6): the paper uses the single code nearest the image
 centre and assumes a level camera; we use all codes in view and estimate the full 6-DOF pose.
 """
+
 from fusion.qr.pnp.flight import (
     FRAMES_PER_BATCH,
     PnPStats,

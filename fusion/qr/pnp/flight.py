@@ -1,5 +1,6 @@
 """Whole flights: per-frame PnP over a flight's detections, batched; load observations placed
 with the drone trajectory; the information-weighted load map; and what happened (PnPStats)."""
+
 from __future__ import annotations
 
 from collections import Counter
@@ -28,18 +29,19 @@ S_PER_NS = 1e-9
 @dataclass
 class PnPStats:
     """What happened to a flight's floor-camera frames."""
+
     n_frames: int = 0
     n_posed: int = 0
     n_without_floor_code: int = 0
-    n_unsolved: int = 0                  # floor codes in view but no acceptable pose
-    n_ambiguous: int = 0                 # decided by the near-level rule
-    n_codes_dropped: int = 0             # outlier codes left out of a pose
-    codes_per_pose: dict[int, int] = field(default_factory=dict)   # n_codes -> n_frames
-    rejections: dict[str, int] = field(default_factory=dict)       # classify() reason -> count
-    mean_reprojection_rms_px: float = float("nan")                 # over the posed frames
+    n_unsolved: int = 0  # floor codes in view but no acceptable pose
+    n_ambiguous: int = 0  # decided by the near-level rule
+    n_codes_dropped: int = 0  # outlier codes left out of a pose
+    codes_per_pose: dict[int, int] = field(default_factory=dict)  # n_codes -> n_frames
+    rejections: dict[str, int] = field(default_factory=dict)  # classify() reason -> count
+    mean_reprojection_rms_px: float = float("nan")  # over the posed frames
 
     @classmethod
-    def merged(cls, parts: list["PnPStats"]) -> "PnPStats":
+    def merged(cls, parts: list[PnPStats]) -> PnPStats:
         """The stats of a flight solved in parts: counts summed, the mean RMS weighted by the
         parts' posed frames."""
         codes: Counter = Counter()
@@ -49,21 +51,30 @@ class PnPStats:
             rejections.update(p.rejections)
         posed = [p for p in parts if p.n_posed]
         n_posed = sum(p.n_posed for p in parts)
-        return cls(n_frames=sum(p.n_frames for p in parts), n_posed=n_posed,
-                   n_without_floor_code=sum(p.n_without_floor_code for p in parts),
-                   n_unsolved=sum(p.n_unsolved for p in parts),
-                   n_ambiguous=sum(p.n_ambiguous for p in parts),
-                   n_codes_dropped=sum(p.n_codes_dropped for p in parts),
-                   codes_per_pose=dict(sorted(codes.items())),
-                   rejections=dict(sorted(rejections.items())),
-                   mean_reprojection_rms_px=(
-                       float(sum(p.mean_reprojection_rms_px * p.n_posed for p in posed) / n_posed)
-                       if n_posed else float("nan")))
+        return cls(
+            n_frames=sum(p.n_frames for p in parts),
+            n_posed=n_posed,
+            n_without_floor_code=sum(p.n_without_floor_code for p in parts),
+            n_unsolved=sum(p.n_unsolved for p in parts),
+            n_ambiguous=sum(p.n_ambiguous for p in parts),
+            n_codes_dropped=sum(p.n_codes_dropped for p in parts),
+            codes_per_pose=dict(sorted(codes.items())),
+            rejections=dict(sorted(rejections.items())),
+            mean_reprojection_rms_px=(
+                float(sum(p.mean_reprojection_rms_px * p.n_posed for p in posed) / n_posed)
+                if n_posed
+                else float("nan")
+            ),
+        )
 
 
-def pnp_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, world: World,
-                   corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, name: str = "pnp"
-                   ) -> tuple[Trajectory, PnPStats]:
+def pnp_trajectory(
+    frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    name: str = "pnp",
+) -> tuple[Trajectory, PnPStats]:
     """Per-frame PnP body poses of a floor-camera flight: {timestamp_ns: detections} ->
     (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
     left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used.
@@ -83,9 +94,8 @@ def pnp_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, wo
         else:
             stats.n_without_floor_code += 1
     for b in range(0, len(with_floor), FRAMES_PER_BATCH):
-        batch = with_floor[b:b + FRAMES_PER_BATCH]
-        for (ts, _), res in zip(batch, estimate_floor_poses([f for _, f in batch], camera,
-                                                            corner_sigma_px)):
+        batch = with_floor[b : b + FRAMES_PER_BATCH]
+        for (ts, _), res in zip(batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px)):
             if res is None:
                 stats.n_unsolved += 1
                 continue
@@ -103,12 +113,12 @@ def pnp_trajectory(frames: dict[int, list[QRDetection]], camera: CameraModel, wo
         stats.mean_reprojection_rms_px = float(np.mean(rms))
     if not ts_out:
         return Trajectory.empty(name), stats
-    return Trajectory(name, np.asarray(ts_out, dtype=np.int64), np.stack(T_out),
-                      np.stack(cov_out)), stats
+    return Trajectory(name, np.asarray(ts_out, dtype=np.int64), np.stack(T_out), np.stack(cov_out)), stats
 
 
-def pose_at(trajectory: Trajectory, timestamp_ns: int, max_gap_s: float = MAX_POSE_GAP_S
-            ) -> tuple[np.ndarray, np.ndarray | None] | None:
+def pose_at(
+    trajectory: Trajectory, timestamp_ns: int, max_gap_s: float = MAX_POSE_GAP_S
+) -> tuple[np.ndarray, np.ndarray | None] | None:
     """(T_world_body, cov or None) at `timestamp_ns`: the pose stamped within SAME_STAMP_NS of
     it, or the interpolation (linear position, geodesic rotation; covariance of the nearer pose)
     between the poses on either side when they are at most `max_gap_s` apart; None otherwise."""
@@ -129,10 +139,14 @@ def pose_at(trajectory: Trajectory, timestamp_ns: int, max_gap_s: float = MAX_PO
     return T, cov
 
 
-def pnp_load_observations(front_frames: dict[int, list[QRDetection]], front_camera: CameraModel,
-                          world: World, trajectory: Trajectory,
-                          corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
-                          max_gap_s: float = MAX_POSE_GAP_S) -> list[LoadObservation]:
+def pnp_load_observations(
+    front_frames: dict[int, list[QRDetection]],
+    front_camera: CameraModel,
+    world: World,
+    trajectory: Trajectory,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    max_gap_s: float = MAX_POSE_GAP_S,
+) -> list[LoadObservation]:
     """Load observations of a flight's front-camera frames ({timestamp_ns: detections}), placed
     with the drone pose of `trajectory` at each frame (`pose_at`); frames without a pose are
     skipped.  Rejected payloads (classify) are never used.  Solved FRAMES_PER_BATCH frames at a
@@ -148,8 +162,9 @@ def pnp_load_observations(front_frames: dict[int, list[QRDetection]], front_came
         todo.append(LoadFrame(codes.loads, pose[0], pose[1]))
     out: list[LoadObservation] = []
     for b in range(0, len(todo), FRAMES_PER_BATCH):
-        for obs in estimate_load_observations_frames(todo[b:b + FRAMES_PER_BATCH], front_camera,
-                                                     world, corner_sigma_px):
+        for obs in estimate_load_observations_frames(
+            todo[b : b + FRAMES_PER_BATCH], front_camera, world, corner_sigma_px
+        ):
             out.extend(obs)
     return out
 
@@ -177,6 +192,5 @@ def aggregate_load_observations(observations: list[LoadObservation], name: str =
             P = np.linalg.inv(info)
             loads.append(LoadEstimate(load_id, P @ vec, 0.5 * (P + P.T), len(obs)))
         else:
-            loads.append(LoadEstimate(load_id, np.mean([o.p_world for o in obs], axis=0), None,
-                                      len(obs)))
+            loads.append(LoadEstimate(load_id, np.mean([o.p_world for o in obs], axis=0), None, len(obs)))
     return LoadMap(name, loads)

@@ -8,6 +8,7 @@ batched LM (fusion/qr/pnp/lm.py) on the whitened reprojection error in DISTORTED
 Where this departs from the paper (Alg. 1-3): the paper uses the single code nearest the image
 centre and assumes a level camera; we use all codes in view and estimate the full 6-DOF pose.
 """
+
 from __future__ import annotations
 
 import math
@@ -58,6 +59,7 @@ class PnPResult:
     perturbation; `T_world_cam` (4, 4); `reprojection_rms_px` over all corners used (distorted px).
     `ambiguous`: two solutions fitted the corners equally well and the more level one was taken.
     `dropped_payloads`: codes left out as outliers (their corners did not fit the others)."""
+
     T_world_body: np.ndarray
     covariance: np.ndarray
     T_world_cam: np.ndarray
@@ -73,6 +75,7 @@ class FloorCandidate:
     """A refined body pose of one view: R_world_body (3, 3), t_world_body (3,), the information
     H (6, 6) = J^T W^T W J there, the whitened cost (chi-square), the px residuals (4n, 2) and
     their RMS."""
+
     R_world_body: np.ndarray
     t_world_body: np.ndarray
     information: np.ndarray
@@ -85,6 +88,7 @@ class FloorCandidate:
 class FloorSolution:
     """The candidate chosen for a view; `ambiguous` when another fitted within the ambiguity
     margin and the near-level rule decided."""
+
     candidate: FloorCandidate
     ambiguous: bool
 
@@ -95,21 +99,26 @@ class FloorProblems:
     T_world_body, perturbed on the right by [w, v] (fusion/qr/reprojection.floor_reprojection),
     retracted as R exp(w), t + R v."""
 
-    def __init__(self, projector: Projector, R_cb: np.ndarray, t_cb: np.ndarray, P: np.ndarray,
-                 z: np.ndarray, W: np.ndarray):
+    def __init__(
+        self,
+        projector: Projector,
+        R_cb: np.ndarray,
+        t_cb: np.ndarray,
+        P: np.ndarray,
+        z: np.ndarray,
+        W: np.ndarray,
+    ):
         self.projector, self.R_cb, self.t_cb = projector, R_cb, t_cb
         self.P, self.z, self.W = P, z, W
 
     @classmethod
-    def for_camera(cls, camera: CameraModel, P: np.ndarray, z: np.ndarray, W: np.ndarray
-                   ) -> "FloorProblems":
+    def for_camera(cls, camera: CameraModel, P: np.ndarray, z: np.ndarray, W: np.ndarray) -> FloorProblems:
         """Problems of `camera` (its T_body_cam inverted once)."""
         R_cb = np.ascontiguousarray(camera.T_body_cam[:3, :3].T)
         return cls(Projector(camera), R_cb, -R_cb @ camera.T_body_cam[:3, 3], P, z, W)
 
-    def subset(self, idx: np.ndarray) -> "FloorProblems":
-        return FloorProblems(self.projector, self.R_cb, self.t_cb, self.P[idx], self.z[idx],
-                             self.W[idx])
+    def subset(self, idx: np.ndarray) -> FloorProblems:
+        return FloorProblems(self.projector, self.R_cb, self.t_cb, self.P[idx], self.z[idx], self.W[idx])
 
     def residual_px(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """(K, 4n, 2) reprojection errors in pixels of poses R (K, 3, 3), t (K, 3)."""
@@ -120,11 +129,11 @@ class FloorProblems:
     def normal_equations(self, R: np.ndarray, t: np.ndarray) -> NormalEquations:
         """Whitened normal equations; d p_cam / d xi = R_cb [[p_body]x, -I]."""
         K, N = self.P.shape[:2]
-        p_body = ((self.P - t[:, None, :]) @ R).reshape(-1, 3)          # (K N, 3)
+        p_body = ((self.P - t[:, None, :]) @ R).reshape(-1, 3)  # (K N, 3)
         uv, J_proj = self.projector.project(p_body @ self.R_cb.T + self.t_cb)
-        A = J_proj @ self.R_cb                                           # d px / d p_body
-        Jr = np.empty((K * N, 2, 7))                                     # [J | r]
-        Jr[:, :, :3] = cross_rows(A, p_body)                             # A [p_body]x
+        A = J_proj @ self.R_cb  # d px / d p_body
+        Jr = np.empty((K * N, 2, 7))  # [J | r]
+        Jr[:, :, :3] = cross_rows(A, p_body)  # A [p_body]x
         Jr[:, :, 3:6] = -A
         Jr[:, :, 6] = uv - self.z.reshape(-1, 2)
         return NormalEquations.from_augmented(Jr.reshape(K, N, 2, 7), self.W)
@@ -141,7 +150,7 @@ def _edge_vectors(xn: np.ndarray, camera: CameraModel) -> np.ndarray:
     """(n, 4, 2) undistorted corners of n floor codes -> (n, 2) each code's estimate of the
     direction of world +x in a level, yaw-0 body frame (`edge_implied_yaw`); zero for a code
     whose rays do not all meet the floor."""
-    d = xn @ camera.T_body_cam[:3, :2].T + camera.T_body_cam[:3, 2]   # rays in the body frame
+    d = xn @ camera.T_body_cam[:3, :2].T + camera.T_body_cam[:3, 2]  # rays in the body frame
     ok = np.all(np.isfinite(d), axis=(1, 2)) & np.all(d[:, :, 2] < -MIN_RAY_DOWN, axis=1)
     f = d[:, :, :2] / np.where(ok[:, None, None], -d[:, :, 2:3], 1.0)  # floor points
     tl, tr, br, bl = f[:, 0], f[:, 1], f[:, 2], f[:, 3]
@@ -150,8 +159,9 @@ def _edge_vectors(xn: np.ndarray, camera: CameraModel) -> np.ndarray:
     return np.where(ok[:, None], e, 0.0)
 
 
-def edge_implied_yaw(sightings: list[FloorSighting], camera: CameraModel,
-                     xn: np.ndarray | None = None) -> float | None:
+def edge_implied_yaw(
+    sightings: list[FloorSighting], camera: CameraModel, xn: np.ndarray | None = None
+) -> float | None:
     """Body yaw (rad) implied by the floor codes' edge directions in the image, for a level body.
 
     Each code's corners are cast onto a floor below a level body at yaw 0; the symbol's "right"
@@ -162,8 +172,9 @@ def edge_implied_yaw(sightings: list[FloorSighting], camera: CameraModel,
     if not sightings:
         return None
     if xn is None:
-        xn = undistort(camera, np.vstack([np.asarray(s.detection.corners_px, dtype=float)
-                                          for s in sightings]))
+        xn = undistort(
+            camera, np.vstack([np.asarray(s.detection.corners_px, dtype=float) for s in sightings])
+        )
     e = _edge_vectors(np.asarray(xn).reshape(-1, 4, 2), camera).sum(axis=0)
     return float(-math.atan2(e[1], e[0])) if np.any(e) else None
 
@@ -174,8 +185,7 @@ def edge_implied_yaw(sightings: list[FloorSighting], camera: CameraModel,
 def chi2_bound(dof: int) -> float:
     """A loose upper bound of a chi-square(dof) draw (Wilson-Hilferty, CHI2_BOUND_SIGMAS sigma):
     a whitened cost above it means the start does not fit."""
-    return dof * (1.0 - 2.0 / (9.0 * dof)
-                  + CHI2_BOUND_SIGMAS * math.sqrt(2.0 / (9.0 * dof))) ** 3
+    return dof * (1.0 - 2.0 / (9.0 * dof) + CHI2_BOUND_SIGMAS * math.sqrt(2.0 / (9.0 * dof))) ** 3
 
 
 class FloorCodes:
@@ -184,19 +194,21 @@ class FloorCodes:
     vectors E (c, 2) (`_edge_vectors`)."""
 
     def __init__(self, sightings: list[FloorSighting], camera: CameraModel, sigma: float):
-        self.P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)
-                           for s in sightings]).reshape(-1, 4, 3)
-        self.centres = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)
-                                 for s in sightings]).reshape(-1, 3)
-        self.uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2)
-                            for s in sightings]).reshape(-1, 4, 2)
+        self.P = np.array(
+            [np.asarray(s.corners_world, dtype=float).reshape(4, 3) for s in sightings]
+        ).reshape(-1, 4, 3)
+        self.centres = np.array(
+            [np.asarray(s.centre_world, dtype=float).reshape(3) for s in sightings]
+        ).reshape(-1, 3)
+        self.uv = np.array(
+            [np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings]
+        ).reshape(-1, 4, 2)
         self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
         self.W = corner_whitening([s.detection for s in sightings], sigma)
         self.E = _edge_vectors(self.xn, camera)
 
 
-def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], sqpnp: bool
-                  ) -> Starts:
+def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], sqpnp: bool) -> Starts:
     """Candidate T_cam_world (R_cam_world, t_cam_world) of views `which`, owner = view index.
     IPPE's two solutions per view (`ippe` on all views with the same number of codes, one view
     at a time when the batch is degenerate, and OpenCV's IPPE / IPPE_SQUARE for a view `ippe`
@@ -208,10 +220,8 @@ def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], 
     def opencv(k: int, method: int) -> None:
         v = views[k]
         # one code with IPPE_SQUARE: about its centre (the floor symbol frame has the world axes)
-        origin = codes.centres[v[0]] if len(v) == 1 and method == cv2.SOLVEPNP_IPPE_SQUARE \
-            else None
-        for R, t in opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin,
-                                  method):
+        origin = codes.centres[v[0]] if len(v) == 1 and method == cv2.SOLVEPNP_IPPE_SQUARE else None
+        for R, t in opencv_starts(codes.P[v].reshape(-1, 3), codes.xn[v].reshape(-1, 2), origin, method):
             owner.append(k)
             R_cw.append(R)
             t_cw.append(t)
@@ -219,7 +229,7 @@ def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], 
     def vectorised(ks: list[int], n: int) -> bool:
         idx = np.array([views[k] for k in ks])
         P = codes.P[idx].reshape(-1, 4 * n, 3)
-        if np.any(P[:, :, 2] != 0.0):                 # not on the floor z = 0
+        if np.any(P[:, :, 2] != 0.0):  # not on the floor z = 0
             return False
         poses = ippe_or_none(P[:, :, :2], codes.xn[idx].reshape(-1, 4 * n, 2))
         if poses is None:
@@ -239,11 +249,12 @@ def camera_starts(codes: FloorCodes, views: list[np.ndarray], which: list[int], 
         for n, ks in by_n.items():
             if len(ks) > 1 and vectorised(ks, n):
                 continue
-            for k in ks:                                # a degenerate view: one at a time
+            for k in ks:  # a degenerate view: one at a time
                 if not vectorised([k], n):
                     opencv(k, cv2.SOLVEPNP_IPPE_SQUARE if n == 1 else cv2.SOLVEPNP_IPPE)
-    return Starts(np.asarray(owner, dtype=int), np.array(R_cw).reshape(-1, 3, 3),
-                  np.array(t_cw).reshape(-1, 3))
+    return Starts(
+        np.asarray(owner, dtype=int), np.array(R_cw).reshape(-1, 3, 3), np.array(t_cw).reshape(-1, 3)
+    )
 
 
 def _choose(cands: list[FloorCandidate], ambiguity_chi2: float) -> FloorSolution | None:
@@ -252,13 +263,17 @@ def _choose(cands: list[FloorCandidate], ambiguity_chi2: float) -> FloorSolution
     if len(cands) < 2:
         return FloorSolution(cands[0], False) if cands else None
     best = min(c.cost for c in cands)
-    close = [c for c in cands if c.cost <= best + ambiguity_chi2]        # whitened: chi^2
+    close = [c for c in cands if c.cost <= best + ambiguity_chi2]  # whitened: chi^2
     return FloorSolution(max(close, key=lambda c: c.R_world_body[2, 2]), len(close) > 1)
 
 
-def solve_floor_views(codes: FloorCodes, views: list[np.ndarray], camera: CameraModel,
-                      ambiguity_chi2: float, sqpnp_fallback: bool = True
-                      ) -> list[FloorSolution | None]:
+def solve_floor_views(
+    codes: FloorCodes,
+    views: list[np.ndarray],
+    camera: CameraModel,
+    ambiguity_chi2: float,
+    sqpnp_fallback: bool = True,
+) -> list[FloorSolution | None]:
     """Best refined body pose of each view (an array of code indices into `codes`), or None.
 
     Starts: IPPE (`camera_starts`), and SQPnP when no IPPE start refined to a fit whose
@@ -270,11 +285,13 @@ def solve_floor_views(codes: FloorCodes, views: list[np.ndarray], camera: Camera
     R_bc, t_bc = camera.T_body_cam[:3, :3], camera.T_body_cam[:3, 3]
     R_cb = np.ascontiguousarray(R_bc.T)
     t_cb = -R_cb @ t_bc
-    E = np.add.reduceat(codes.E[np.concatenate(views)],           # each view's sum of its codes'
-                        np.cumsum([0] + [len(v) for v in views[:-1]]))   # edge vectors
+    E = np.add.reduceat(
+        codes.E[np.concatenate(views)],  # each view's sum of its codes'
+        np.cumsum([0] + [len(v) for v in views[:-1]]),
+    )  # edge vectors
     hints = np.where(np.any(E != 0.0, axis=1), -np.arctan2(E[:, 1], E[:, 0]), np.nan)
     finite = np.isfinite(codes.xn).all(axis=(1, 2))
-    starts: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in views]   # (R_wb, t_wb)
+    starts: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in views]  # (R_wb, t_wb)
     cands: list[list[FloorCandidate]] = [[] for _ in views]
 
     def add_starts(which: list[int], sqpnp: bool) -> None:
@@ -283,65 +300,86 @@ def solve_floor_views(codes: FloorCodes, views: list[np.ndarray], camera: Camera
         if len(cam.owner) == 0:
             return
         R_wc = cam.R.transpose(0, 2, 1)
-        R_wb = R_wc @ R_cb                          # T_world_body = T_cam_world^-1 T_cam_body
+        R_wb = R_wc @ R_cb  # T_world_body = T_cam_world^-1 T_cam_body
         t_wb = -(R_wc @ cam.t[:, :, None])[:, :, 0] - R_wb @ t_bc
         owner = cam.owner
-        new = np.ones(len(owner), dtype=bool)     # not a duplicate of another start
-        if sqpnp:                                   # SQPnP's is usually one of IPPE's
+        new = np.ones(len(owner), dtype=bool)  # not a duplicate of another start
+        if sqpnp:  # SQPnP's is usually one of IPPE's
             for i, k in enumerate(owner.tolist()):
-                new[i] = not any(same_pose(R_wb[i], t_wb[i], R, t, DUPLICATE_START_RAD,
-                                           DUPLICATE_START_M) for R, t in starts[k])
-        else:                                       # IPPE's two of a view (consecutive)
+                new[i] = not any(
+                    same_pose(R_wb[i], t_wb[i], R, t, DUPLICATE_START_RAD, DUPLICATE_START_M)
+                    for R, t in starts[k]
+                )
+        else:  # IPPE's two of a view (consecutive)
             pair = np.flatnonzero(owner[1:] == owner[:-1])
             cos = 0.5 * (np.einsum("kij,kij->k", R_wb[pair], R_wb[pair + 1]) - 1.0)
-            new[pair + 1] = ~((cos >= math.cos(DUPLICATE_START_RAD)) &
-                              (np.linalg.norm(t_wb[pair] - t_wb[pair + 1], axis=1)
-                               <= DUPLICATE_START_M))
+            new[pair + 1] = ~(
+                (cos >= math.cos(DUPLICATE_START_RAD))
+                & (np.linalg.norm(t_wb[pair] - t_wb[pair + 1], axis=1) <= DUPLICATE_START_M)
+            )
         by_n: dict[int, list[int]] = {}
         for i in np.flatnonzero(new).tolist():
             k = int(owner[i])
             starts[k].append((R_wb[i], t_wb[i]))
             by_n.setdefault(len(views[k]), []).append(i)
         for n, group in by_n.items():
-            idx = np.array([views[k] for k in owner[group]])                     # (K, n)
-            problems = FloorProblems(projector, R_cb, t_cb, codes.P[idx].reshape(-1, 4 * n, 3),
-                                     codes.uv[idx].reshape(-1, 4 * n, 2), codes.W[idx])
-            _add_candidates(refine_starts(problems, Starts(owner[group], R_wb[group],
-                                                           t_wb[group])))
+            idx = np.array([views[k] for k in owner[group]])  # (K, n)
+            problems = FloorProblems(
+                projector,
+                R_cb,
+                t_cb,
+                codes.P[idx].reshape(-1, 4 * n, 3),
+                codes.uv[idx].reshape(-1, 4 * n, 2),
+                codes.W[idx],
+            )
+            _add_candidates(refine_starts(problems, Starts(owner[group], R_wb[group], t_wb[group])))
 
     def _add_candidates(ref: RefinedStarts) -> None:
         """Keep the refined poses above the floor and near the edge-implied yaw, once each."""
         R, t, hint = ref.R, ref.t, hints[ref.owner]
-        ok = ref.normal.finite() \
-            & (R[:, 2] @ t_bc + t[:, 2] > 0.0) \
-            & (np.isnan(hint) | (np.abs(wrap_angle(np.arctan2(R[:, 1, 0], R[:, 0, 0]) - hint))
-                                 <= MAX_YAW_DEVIATION_RAD))
+        ok = (
+            ref.normal.finite()
+            & (R[:, 2] @ t_bc + t[:, 2] > 0.0)
+            & (
+                np.isnan(hint)
+                | (np.abs(wrap_angle(np.arctan2(R[:, 1, 0], R[:, 0, 0]) - hint)) <= MAX_YAW_DEVIATION_RAD)
+            )
+        )
         # (camera above the floor: else mirrored corners; yaw near the edges': no flip)
         rms = ref.rms_px
         for i in np.flatnonzero(ok).tolist():
             k = int(ref.owner[i])
-            if any(same_minimum(c.R_world_body, c.t_world_body, c.information, R[i], t[i])
-                   for c in cands[k]):
+            if any(same_minimum(c.R_world_body, c.t_world_body, c.information, R[i], t[i]) for c in cands[k]):
                 continue
-            cands[k].append(FloorCandidate(R[i], t[i], ref.normal.H[i], float(ref.normal.cost[i]),
-                                           ref.residual_px[i], float(rms[i])))
+            cands[k].append(
+                FloorCandidate(
+                    R[i], t[i], ref.normal.H[i], float(ref.normal.cost[i]), ref.residual_px[i], float(rms[i])
+                )
+            )
 
     add_starts(list(range(len(views))), sqpnp=False)
-    if sqpnp_fallback:              # SQPnP (a global solver) only where IPPE found no plausible fit
-        retry = [k for k, v in enumerate(views) if len(v) > 1 and
-                 min((c.cost for c in cands[k]), default=math.inf)
-                 > chi2_bound(CORNER_COORDINATES * len(v))]
+    if sqpnp_fallback:  # SQPnP (a global solver) only where IPPE found no plausible fit
+        retry = [
+            k
+            for k, v in enumerate(views)
+            if len(v) > 1
+            and min((c.cost for c in cands[k]), default=math.inf) > chi2_bound(CORNER_COORDINATES * len(v))
+        ]
         if retry:
             add_starts(retry, sqpnp=True)
     return [_choose(cs, ambiguity_chi2) for cs in cands]
 
 
-def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
-                         corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, *,
-                         max_rms_px: float = MAX_REPROJECTION_RMS_PX,
-                         ambiguity_chi2: float = AMBIGUITY_CHI2,
-                         gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
-                         sqpnp_fallback: bool = True) -> list[PnPResult | None]:
+def estimate_floor_poses(
+    frames: list[list[FloorSighting]],
+    camera: CameraModel,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    *,
+    max_rms_px: float = MAX_REPROJECTION_RMS_PX,
+    ambiguity_chi2: float = AMBIGUITY_CHI2,
+    gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
+    sqpnp_fallback: bool = True,
+) -> list[PnPResult | None]:
     """`estimate_floor_pose` of many frames (each a list of floor sightings), computed together:
     the corners undistorted and whitened at once, and the views refined in batches (one
     vectorised evaluation per LM step for all frames with the same number of codes)."""
@@ -358,18 +396,17 @@ def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
     first = np.cumsum([0] + [len(frames[i]) for i in owner])
     views = [np.arange(a, b) for a, b in zip(first[:-1], first[1:])]
     dropped: list[list[str]] = [[] for _ in owner]
-    done: dict[int, FloorSolution] = {}                 # view -> accepted solution
+    done: dict[int, FloorSolution] = {}  # view -> accepted solution
     pending = list(range(len(owner)))
     while pending:
-        sols = solve_floor_views(codes, [views[k] for k in pending], camera, ambiguity_chi2,
-                                 sqpnp_fallback)
+        sols = solve_floor_views(codes, [views[k] for k in pending], camera, ambiguity_chi2, sqpnp_fallback)
         retry = []
         for k, sol in zip(pending, sols):
             if sol is None:
                 continue
             if sol.candidate.rms_px <= max_rms_px:
                 done[k] = sol
-            elif len(views[k]) > 1:          # leave out the worst-fitting code and solve again
+            elif len(views[k]) > 1:  # leave out the worst-fitting code and solve again
                 r = sol.candidate.residual_px
                 worst = int(np.argmax((r.reshape(-1, CORNER_COORDINATES) ** 2).sum(axis=1)))
                 dropped[k].append(all_sightings[views[k][worst]].detection.payload)
@@ -393,21 +430,30 @@ def estimate_floor_poses(frames: list[list[FloorSighting]], camera: CameraModel,
         if gimbaled:
             T = level_frame(T)
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
-            cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad ** 2] * 2 + [0.0] * 4)
+            cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad**2] * 2 + [0.0] * 4)
         out[owner[k]] = PnPResult(
-            T_world_body=T, covariance=cov, T_world_cam=T_world_cam, n_codes=len(views[k]),
+            T_world_body=T,
+            covariance=cov,
+            T_world_cam=T_world_cam,
+            n_codes=len(views[k]),
             payloads=[all_sightings[c].detection.payload for c in views[k]],
-            reprojection_rms_px=sol.candidate.rms_px, ambiguous=sol.ambiguous,
-            dropped_payloads=dropped[k])
+            reprojection_rms_px=sol.candidate.rms_px,
+            ambiguous=sol.ambiguous,
+            dropped_payloads=dropped[k],
+        )
     return out
 
 
-def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
-                        corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX, *,
-                        max_rms_px: float = MAX_REPROJECTION_RMS_PX,
-                        ambiguity_chi2: float = AMBIGUITY_CHI2,
-                        gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
-                        sqpnp_fallback: bool = True) -> PnPResult | None:
+def estimate_floor_pose(
+    sightings: list[FloorSighting],
+    camera: CameraModel,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    *,
+    max_rms_px: float = MAX_REPROJECTION_RMS_PX,
+    ambiguity_chi2: float = AMBIGUITY_CHI2,
+    gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
+    sqpnp_fallback: bool = True,
+) -> PnPResult | None:
     """Body pose from all floor codes of one floor-camera frame, or None (no code, no solution,
     or reprojection RMS above `max_rms_px` even after leaving out the worst-fitting codes).
 
@@ -432,7 +478,12 @@ def estimate_floor_pose(sightings: list[FloorSighting], camera: CameraModel,
     variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no correlation.
 
     Many frames: `estimate_floor_poses` (the same, far cheaper per frame: scripts/bench_pnp.py)."""
-    return estimate_floor_poses([sightings], camera, corner_sigma_px, max_rms_px=max_rms_px,
-                                ambiguity_chi2=ambiguity_chi2,
-                                gimbal_roll_pitch_sigma_rad=gimbal_roll_pitch_sigma_rad,
-                                sqpnp_fallback=sqpnp_fallback)[0]
+    return estimate_floor_poses(
+        [sightings],
+        camera,
+        corner_sigma_px,
+        max_rms_px=max_rms_px,
+        ambiguity_chi2=ambiguity_chi2,
+        gimbal_roll_pitch_sigma_rad=gimbal_roll_pitch_sigma_rad,
+        sqpnp_fallback=sqpnp_fallback,
+    )[0]

@@ -1,6 +1,7 @@
 """Distorted pixels -> ideal normalised coordinates, fast: OpenCV's iterative undistortPoints,
 verified once per camera against CameraModel.undistort_normalized (and checked per call where it
 was not verified), with CameraModel's Newton inversion as the fallback."""
+
 from __future__ import annotations
 
 import cv2
@@ -16,7 +17,7 @@ ROUND_TRIP_TOL_PX = 1e-8
 IMAGE_MARGIN = 0.1
 """Fraction of the image size beyond its edges where a verified OpenCV undistortion is trusted."""
 
-_VERIFIED: dict[tuple, bool] = {}          # `opencv_undistorts`, per camera parameters
+_VERIFIED: dict[tuple, bool] = {}  # `opencv_undistorts`, per camera parameters
 
 
 def cv_points(a: np.ndarray) -> np.ndarray:
@@ -28,13 +29,19 @@ def opencv_undistorts(camera: CameraModel) -> bool:
     """Whether OpenCV's iterative undistortPoints reproduces CameraModel.undistort_normalized
     (to ROUND_TRIP_TOL_PX on distorting back) over a grid covering the image and an
     IMAGE_MARGIN margin; cached per camera parameters."""
-    key = (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv,
-           *camera.distortion.tolist())
+    key = (
+        camera.width,
+        camera.height,
+        camera.fu,
+        camera.fv,
+        camera.cu,
+        camera.cv,
+        *camera.distortion.tolist(),
+    )
     ok = _VERIFIED.get(key)
     if ok is None:
         lo, hi = -IMAGE_MARGIN, 1.0 + IMAGE_MARGIN
-        u, v = np.meshgrid(np.linspace(lo, hi, 25) * camera.width,
-                           np.linspace(lo, hi, 19) * camera.height)
+        u, v = np.meshgrid(np.linspace(lo, hi, 25) * camera.width, np.linspace(lo, hi, 19) * camera.height)
         ok = undistort_checked(camera, np.column_stack([u.ravel(), v.ravel()])) is not None
         _VERIFIED[key] = ok
     return ok
@@ -43,8 +50,9 @@ def opencv_undistorts(camera: CameraModel) -> bool:
 def undistort_checked(camera: CameraModel, uv: np.ndarray) -> np.ndarray | None:
     """OpenCV's undistortPoints of (N, 2) pixels, or None where distorting back misses by more
     than ROUND_TRIP_TOL_PX."""
-    xn = cv2.undistortPoints(cv_points(uv), camera.K, camera.dist_cv, None, None, None,
-                             UNDISTORT_CRITERIA).reshape(-1, 2)
+    xn = cv2.undistortPoints(
+        cv_points(uv), camera.K, camera.dist_cv, None, None, None, UNDISTORT_CRITERIA
+    ).reshape(-1, 2)
     back, _ = Projector(camera).project(np.column_stack([xn, np.ones(len(xn))]), jacobian=False)
     return xn if np.all(np.abs(back - uv) < ROUND_TRIP_TOL_PX) else None
 
@@ -58,9 +66,13 @@ def undistort(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
     if len(uv) == 0 or not np.all(np.isfinite(uv)):
         return camera.undistort_normalized(uv)
     size = np.array([camera.width, camera.height])
-    if opencv_undistorts(camera) and np.all(uv >= -IMAGE_MARGIN * size) \
-            and np.all(uv <= (1.0 + IMAGE_MARGIN) * size):
-        return cv2.undistortPoints(cv_points(uv), camera.K, camera.dist_cv, None, None, None,
-                                   UNDISTORT_CRITERIA).reshape(-1, 2)
+    if (
+        opencv_undistorts(camera)
+        and np.all(uv >= -IMAGE_MARGIN * size)
+        and np.all(uv <= (1.0 + IMAGE_MARGIN) * size)
+    ):
+        return cv2.undistortPoints(
+            cv_points(uv), camera.K, camera.dist_cv, None, None, None, UNDISTORT_CRITERIA
+        ).reshape(-1, 2)
     xn = undistort_checked(camera, uv)
     return camera.undistort_normalized(uv) if xn is None else xn

@@ -1,5 +1,6 @@
 """Corner noise of QR detections as whitening matrices: W_i (z_i - h_i) has identity covariance,
 so every solver minimises (and every covariance uses) the same weighted reprojection error."""
+
 from __future__ import annotations
 
 import math
@@ -40,12 +41,12 @@ def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
             C = 0.5 * (C + np.swapaxes(C, 1, 2))
             try:
                 out[with_cov] = np.linalg.inv(np.linalg.cholesky(C))
-            except np.linalg.LinAlgError:          # one is not positive definite: one at a time
+            except np.linalg.LinAlgError:  # one is not positive definite: one at a time
                 for i, Ci in zip(with_cov, C):
                     try:
                         out[i] = np.linalg.inv(np.linalg.cholesky(Ci))
                     except np.linalg.LinAlgError:
-                        pass                           # keeps diag(1 / sigma)
+                        pass  # keeps diag(1 / sigma)
     return out
 
 
@@ -55,6 +56,5 @@ def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
     out = []
     for d in detections:
         s = getattr(d, "corner_sigma_px", None)
-        out.append(float(s) if s is not None and math.isfinite(s) and s > 0
-                   else float(default_sigma_px))
+        out.append(float(s) if s is not None and math.isfinite(s) and s > 0 else float(default_sigma_px))
     return np.repeat(np.asarray(out, dtype=float), CORNER_COORDINATES)

@@ -8,6 +8,7 @@ derivatives in tests/test_estimate.py).  Jacobians are with respect to GTSAM's l
 at the current value: for Pose3 a right perturbation [dr, dt] with R' = R Exp(dr), t' = t + R dt
 (first order), for vectors / points plain addition.
 """
+
 from __future__ import annotations
 
 import math
@@ -52,8 +53,9 @@ __all__ = [
 # =========================================================================== noise models
 
 
-def imu_params(noise: ImuNoise, T_body_imu: np.ndarray,
-               integration_sigma: float = 1e-4) -> gtsam.PreintegrationCombinedParams:
+def imu_params(
+    noise: ImuNoise, T_body_imu: np.ndarray, integration_sigma: float = 1e-4
+) -> gtsam.PreintegrationCombinedParams:
     """CombinedImuFactor parameters from Kalibr continuous-time densities.
 
     GTSAM expects continuous-time covariances: sigma_density^2 * I for the measurement noise
@@ -62,40 +64,40 @@ def imu_params(noise: ImuNoise, T_body_imu: np.ndarray,
     the IMU may be offset / rotated from the body frame."""
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(GRAVITY_M_S2)
     I3 = np.eye(3)
-    p.setGyroscopeCovariance(noise.gyroscope_noise_density ** 2 * I3)
-    p.setAccelerometerCovariance(noise.accelerometer_noise_density ** 2 * I3)
-    p.setBiasOmegaCovariance(noise.gyroscope_random_walk ** 2 * I3)
-    p.setBiasAccCovariance(noise.accelerometer_random_walk ** 2 * I3)
-    p.setIntegrationCovariance(integration_sigma ** 2 * I3)
+    p.setGyroscopeCovariance(noise.gyroscope_noise_density**2 * I3)
+    p.setAccelerometerCovariance(noise.accelerometer_noise_density**2 * I3)
+    p.setBiasOmegaCovariance(noise.gyroscope_random_walk**2 * I3)
+    p.setBiasAccCovariance(noise.accelerometer_random_walk**2 * I3)
+    p.setIntegrationCovariance(integration_sigma**2 * I3)
     if not np.allclose(T_body_imu, np.eye(4)):
         p.setBodyPSensor(gtsam.Pose3(np.asarray(T_body_imu, float)))
     return p
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: RobustKernel,
-           threshold: float) -> gtsam.noiseModel.Base:
+def robust(base: gtsam.noiseModel.Base, kernel: RobustKernel, threshold: float) -> gtsam.noiseModel.Base:
     """Wrap a Gaussian model in an M-estimator acting on the whitened residual norm."""
     est = gtsam.noiseModel.mEstimator
     kernel = RobustKernel(kernel)
     if kernel is RobustKernel.NONE:
         return base
-    make = {RobustKernel.HUBER: est.Huber, RobustKernel.CAUCHY: est.Cauchy,
-            RobustKernel.TUKEY: est.Tukey}[kernel]
+    make = {RobustKernel.HUBER: est.Huber, RobustKernel.CAUCHY: est.Cauchy, RobustKernel.TUKEY: est.Tukey}[
+        kernel
+    ]
     return gtsam.noiseModel.Robust.Create(make.Create(threshold), base)
 
 
 # =========================================================================== factors
 
 
-def pose_prior_factor(k: int, T_world_body: np.ndarray, cov: np.ndarray, kernel: str,
-                      threshold: float) -> gtsam.PriorFactorPose3:
+def pose_prior_factor(
+    k: int, T_world_body: np.ndarray, cov: np.ndarray, kernel: str, threshold: float
+) -> gtsam.PriorFactorPose3:
     """Per-frame QR pose (6-dof, covariance in Pose3 order, body frame) as a robust prior on X(k)."""
     model = robust(gtsam.noiseModel.Gaussian.Covariance(cov), kernel, threshold)
     return gtsam.PriorFactorPose3(X(k), gtsam.Pose3(T_world_body), model)
 
 
-def position_yaw_error(p_meas: np.ndarray, yaw_meas: float, pose: gtsam.Pose3,
-                       want_jacobian: bool):
+def position_yaw_error(p_meas: np.ndarray, yaw_meas: float, pose: gtsam.Pose3, want_jacobian: bool):
     """Residual [p - p_meas (world, m), wrap(yaw - yaw_meas) (rad)] (4,) and its 4x6 Jacobian."""
     R = pose.rotation().matrix()
     t = pose.translation()
@@ -108,17 +110,18 @@ def position_yaw_error(p_meas: np.ndarray, yaw_meas: float, pose: gtsam.Pose3,
     return e, H
 
 
-def position_yaw_factor(k: int, p_world: np.ndarray, yaw: float, sigma_xyz, sigma_yaw: float,
-                        kernel: str, threshold: float) -> gtsam.CustomFactor:
+def position_yaw_factor(
+    k: int, p_world: np.ndarray, yaw: float, sigma_xyz, sigma_yaw: float, kernel: str, threshold: float
+) -> gtsam.CustomFactor:
     """The paper's per-frame output (position + yaw, no roll/pitch: those come from the IMU)."""
     p_meas = np.asarray(p_world, float).copy()
     yaw_meas = float(yaw)
-    model = robust(gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.asarray(sigma_xyz, float), sigma_yaw]),
-                   kernel, threshold)
+    model = robust(
+        gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.asarray(sigma_xyz, float), sigma_yaw]), kernel, threshold
+    )
 
     def error(this, values, jacobians):
-        e, H = position_yaw_error(p_meas, yaw_meas, values.atPose3(this.keys()[0]),
-                                  jacobians is not None)
+        e, H = position_yaw_error(p_meas, yaw_meas, values.atPose3(this.keys()[0]), jacobians is not None)
         if jacobians is not None:
             jacobians[0] = H
         return e
@@ -134,8 +137,9 @@ def level_pose_error(T_meas_level: np.ndarray, pose: gtsam.Pose3, want_jacobian:
     R = pose.rotation().matrix()
     t = pose.translation()
     Rz_meas = T_meas_level[:3, :3]
-    e = np.concatenate([[float(wrap_angle(yaw_of(R) - yaw_of(Rz_meas)))],
-                        Rz_meas.T @ (t - T_meas_level[:3, 3])])
+    e = np.concatenate(
+        [[float(wrap_angle(yaw_of(R) - yaw_of(Rz_meas)))], Rz_meas.T @ (t - T_meas_level[:3, 3])]
+    )
     if not want_jacobian:
         return e, None
     H = np.zeros((4, 6))
@@ -144,8 +148,9 @@ def level_pose_error(T_meas_level: np.ndarray, pose: gtsam.Pose3, want_jacobian:
     return e, H
 
 
-def level_pose_factor(k: int, T_world_level: np.ndarray, cov_level: np.ndarray,
-                      kernel: RobustKernel, threshold: float) -> gtsam.CustomFactor:
+def level_pose_factor(
+    k: int, T_world_level: np.ndarray, cov_level: np.ndarray, kernel: RobustKernel, threshold: float
+) -> gtsam.CustomFactor:
     """A gimbaled floor camera's per-frame pose on X(k): yaw + position of the level frame with
     the PnP covariance's [rz, tx, ty, tz] block (cov_level 4x4; PnP's rx, ry are placeholders)."""
     T_meas = np.asarray(T_world_level, float).copy()
@@ -162,8 +167,7 @@ def level_pose_factor(k: int, T_world_level: np.ndarray, cov_level: np.ndarray,
     return gtsam.CustomFactor(model, [X(k)], error)
 
 
-def body_velocity_error(v_meas_body: np.ndarray, pose: gtsam.Pose3, v_world: np.ndarray,
-                        want_jacobian: bool):
+def body_velocity_error(v_meas_body: np.ndarray, pose: gtsam.Pose3, v_world: np.ndarray, want_jacobian: bool):
     """Residual R^T v - v_meas (body frame, m/s) (3,), Jacobians wrt pose (3x6) and v (3x3)."""
     R = pose.rotation().matrix()
     vb = R.T @ v_world
@@ -171,7 +175,7 @@ def body_velocity_error(v_meas_body: np.ndarray, pose: gtsam.Pose3, v_world: np.
     if not want_jacobian:
         return e, None, None
     Hx = np.zeros((3, 6))
-    Hx[:, :3] = skew(vb)           # (R Exp(dr))^T v = (I - [dr]x) R^T v = vb + [vb]x dr
+    Hx[:, :3] = skew(vb)  # (R Exp(dr))^T v = (I - [dr]x) R^T v = vb + [vb]x dr
     return e, Hx, R.T
 
 
@@ -182,8 +186,9 @@ def body_velocity_factor(k: int, v_body: np.ndarray, sigma_m_s: float) -> gtsam.
 
     def error(this, values, jacobians):
         kx, kv = this.keys()
-        e, Hx, Hv = body_velocity_error(v_meas, values.atPose3(kx), values.atVector(kv),
-                                        jacobians is not None)
+        e, Hx, Hv = body_velocity_error(
+            v_meas, values.atPose3(kx), values.atVector(kv), jacobians is not None
+        )
         if jacobians is not None:
             jacobians[0] = Hx
             jacobians[1] = Hv
@@ -192,8 +197,9 @@ def body_velocity_factor(k: int, v_body: np.ndarray, sigma_m_s: float) -> gtsam.
     return gtsam.CustomFactor(model, [X(k), V(k)], error)
 
 
-def load_error(p_cam_meas: np.ndarray, camera: CameraModel, pose: gtsam.Pose3,
-               l_world: np.ndarray, want_jacobian: bool):
+def load_error(
+    p_cam_meas: np.ndarray, camera: CameraModel, pose: gtsam.Pose3, l_world: np.ndarray, want_jacobian: bool
+):
     """Residual T_world_cam^-1 l - p_cam (camera frame, m) (3,) with T_world_cam =
     camera.T_world_cam(T_world_body) (mount-aware), Jacobians wrt pose (3x6) and landmark (3x3).
 
@@ -205,7 +211,7 @@ def load_error(p_cam_meas: np.ndarray, camera: CameraModel, pose: gtsam.Pose3,
     T_wp = level_frame(T_wb) if camera.gimbaled else T_wb
     T_bc = camera.T_body_cam
     R_bc, t_bc = T_bc[:3, :3], T_bc[:3, 3]
-    q = T_wp[:3, :3].T @ (l_world - T_wp[:3, 3])     # landmark in the parent frame
+    q = T_wp[:3, :3].T @ (l_world - T_wp[:3, 3])  # landmark in the parent frame
     e = R_bc.T @ (q - t_bc) - p_cam_meas
     if not want_jacobian:
         return e, None, None
@@ -217,9 +223,16 @@ def load_error(p_cam_meas: np.ndarray, camera: CameraModel, pose: gtsam.Pose3,
     return e, Hx, R_bc.T @ T_wp[:3, :3].T
 
 
-def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, camera: CameraModel,
-                kernel: RobustKernel, threshold: float,
-                load_key: int | None = None) -> gtsam.CustomFactor:
+def load_factor(
+    k: int,
+    j: int,
+    p_cam: np.ndarray,
+    cov_cam: np.ndarray,
+    camera: CameraModel,
+    kernel: RobustKernel,
+    threshold: float,
+    load_key: int | None = None,
+) -> gtsam.CustomFactor:
     """A load-code centre measured in the front camera at frame k, on X(k) and L(j) (or on
     `load_key` instead of L(j)).
 
@@ -234,11 +247,11 @@ def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, camera: 
     R_bc = T_bc[:3, :3]
     p_parent = R_bc @ np.asarray(p_cam, float) + T_bc[:3, 3]
     cov_parent = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
-    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_parent + cov_parent.T)),
-                   kernel, threshold)
+    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_parent + cov_parent.T)), kernel, threshold)
     kx, kl = X(k), (L(j) if load_key is None else load_key)
 
     if not camera.gimbaled:
+
         def error(this, values, jacobians):
             pose, l_world = values.atPose3(kx), values.atPoint3(kl)
             if jacobians is None:
@@ -249,6 +262,7 @@ def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, camera: 
             jacobians[1] = Hl
             return q - p_parent
     else:
+
         def error(this, values, jacobians):
             T_wb = values.atPose3(kx).matrix()
             level = gtsam.Pose3(level_frame(T_wb))
@@ -264,8 +278,9 @@ def load_factor(k: int, j: int, p_cam: np.ndarray, cov_cam: np.ndarray, camera: 
     return gtsam.CustomFactor(model, [kx, kl], error)
 
 
-def constant_velocity_error(dt: float, pose0: gtsam.Pose3, pose1: gtsam.Pose3, v0: np.ndarray,
-                            v1: np.ndarray, want_jacobian: bool):
+def constant_velocity_error(
+    dt: float, pose0: gtsam.Pose3, pose1: gtsam.Pose3, v0: np.ndarray, v1: np.ndarray, want_jacobian: bool
+):
     """Residual p1 - p0 - (v0 + v1) dt / 2 (world, m) (3,) and Jacobians wrt X0, X1, V0, V1."""
     e = pose1.translation() - pose0.translation() - 0.5 * dt * (v0 + v1)
     if not want_jacobian:
@@ -284,9 +299,14 @@ def constant_velocity_factor(k0: int, k1: int, dt: float, sigma_m: float) -> gts
 
     def error(this, values, jacobians):
         x0, x1, v0, v1 = this.keys()
-        e, H = constant_velocity_error(dt, values.atPose3(x0), values.atPose3(x1),
-                                       values.atVector(v0), values.atVector(v1),
-                                       jacobians is not None)
+        e, H = constant_velocity_error(
+            dt,
+            values.atPose3(x0),
+            values.atPose3(x1),
+            values.atVector(v0),
+            values.atVector(v1),
+            jacobians is not None,
+        )
         if jacobians is not None:
             for i in range(4):
                 jacobians[i] = H[i]
@@ -295,9 +315,18 @@ def constant_velocity_factor(k0: int, k1: int, dt: float, sigma_m: float) -> gts
     return gtsam.CustomFactor(model, [X(k0), X(k1), V(k0), V(k1)], error)
 
 
-def bridge_factors(k0: int, k1: int, dt: float, accel_sigma: float, rate_sigma: float,
-                   with_bias: bool, noise: ImuNoise | None, free_sigma_m: float,
-                   min_dt_s: float, min_sigma: float) -> list:
+def bridge_factors(
+    k0: int,
+    k1: int,
+    dt: float,
+    accel_sigma: float,
+    rate_sigma: float,
+    with_bias: bool,
+    noise: ImuNoise | None,
+    free_sigma_m: float,
+    min_dt_s: float,
+    min_sigma: float,
+) -> list:
     """Weak random-walk link between frames k0 and k1 where no IMU data covers the interval:
     rotation random walk (white rate, sigma rate*sqrt(dt)), velocity random walk (white
     acceleration, sigma accel*sqrt(dt)), position-velocity consistency (sigma accel*dt^1.5/2;
@@ -306,24 +335,41 @@ def bridge_factors(k0: int, k1: int, dt: float, accel_sigma: float, rate_sigma: 
     dt = max(dt, min_dt_s)
     rot_sigma = rate_sigma * math.sqrt(dt)
     out = [
-        gtsam.BetweenFactorPose3(X(k0), X(k1), gtsam.Pose3(), gtsam.noiseModel.Diagonal.Sigmas(
-            np.r_[np.full(3, rot_sigma), np.full(3, free_sigma_m)])),
-        gtsam.BetweenFactorVector(V(k0), V(k1), np.zeros(3),
-                                  gtsam.noiseModel.Isotropic.Sigma(3, accel_sigma * math.sqrt(dt))),
-        constant_velocity_factor(k0, k1, dt, 0.5 * accel_sigma * dt ** 1.5 + min_sigma),
+        gtsam.BetweenFactorPose3(
+            X(k0),
+            X(k1),
+            gtsam.Pose3(),
+            gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, rot_sigma), np.full(3, free_sigma_m)]),
+        ),
+        gtsam.BetweenFactorVector(
+            V(k0), V(k1), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, accel_sigma * math.sqrt(dt))
+        ),
+        constant_velocity_factor(k0, k1, dt, 0.5 * accel_sigma * dt**1.5 + min_sigma),
     ]
     if with_bias:
         sg = max(noise.gyroscope_random_walk * math.sqrt(dt), min_sigma)
         sa = max(noise.accelerometer_random_walk * math.sqrt(dt), min_sigma)
-        out.append(gtsam.BetweenFactorConstantBias(
-            B(k0), B(k1), gtsam.imuBias.ConstantBias(),
-            gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sa), np.full(3, sg)])))
+        out.append(
+            gtsam.BetweenFactorConstantBias(
+                B(k0),
+                B(k1),
+                gtsam.imuBias.ConstantBias(),
+                gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, sa), np.full(3, sg)]),
+            )
+        )
     return out
 
 
-def floor_corner_factor(k: int, camera: CameraModel, corners_world: np.ndarray,
-                        corners_px: np.ndarray, whitening: np.ndarray, kernel: RobustKernel,
-                        threshold: float, behind_residual: float) -> gtsam.CustomFactor:
+def floor_corner_factor(
+    k: int,
+    camera: CameraModel,
+    corners_world: np.ndarray,
+    corners_px: np.ndarray,
+    whitening: np.ndarray,
+    kernel: RobustKernel,
+    threshold: float,
+    behind_residual: float,
+) -> gtsam.CustomFactor:
     """Tight coupling: the floor codes' known world corners reprojected into the floor camera at
     frame k, one factor on X(k) for all codes of the frame.
 
