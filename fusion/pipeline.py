@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +40,7 @@ from fusion.types import (
     Estimator,
     LoadMap,
     LoadObservation,
+    RobustKernel,
     Trajectory,
 )
 
@@ -275,7 +278,7 @@ def _localize_floor_chunk(context, frames: dict) -> dict:
     from fusion.qr import paper, pnp
 
     camera, world, cfg = context
-    out = {"paper": None, "paper_error": None}
+    out: dict[str, Any] = {"paper": None, "paper_error": None}
     try:
         out["paper"] = paper.paper_trajectory(frames, camera, world, cfg.th_px)
     except EstimationError as e:
@@ -290,7 +293,7 @@ def _localize_front_chunk(context, frames: dict) -> dict:
     from fusion.qr import paper, pnp
 
     camera, world, traj_paper, traj_pnp, cfg = context
-    out = {"paper": [], "paper_error": None}
+    out: dict[str, Any] = {"paper": [], "paper_error": None}
     if traj_paper is not None:
         try:
             out["paper"] = paper.paper_load_observations(frames, camera, world, traj_paper, cfg.th_px)
@@ -327,12 +330,12 @@ def _concat(trajs: list[Trajectory], name: str) -> Trajectory:
     trajs = [t for t in trajs if len(t)]
     if not trajs:
         return Trajectory.empty(name)
-    covs = [t.covariances for t in trajs]
+    covs = [t.covariances for t in trajs if t.covariances is not None]
     return Trajectory(
         name,
         np.concatenate([t.timestamps_ns for t in trajs]),
         np.concatenate([t.T_world_body for t in trajs]),
-        None if any(c is None for c in covs) else np.concatenate(covs),
+        np.concatenate(covs) if len(covs) == len(trajs) else None,
     )
 
 
@@ -368,13 +371,13 @@ def _unposed_load_observations(
     """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
     their p_world is meaningless (identity drone pose) and must not be used."""
     from fusion.qr.codes import classify
-    from fusion.qr.pnp import estimate_load_observations_frames
+    from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 
-    batch = []
+    batch: list[LoadFrame] = []
     for ts in sorted(set(front_frames) - posed_ns):
         codes = classify(front_frames[ts], world)
         if codes.loads:
-            batch.append((codes.loads, np.eye(4), None))
+            batch.append(LoadFrame(codes.loads, np.eye(4), None))
     if not batch:
         return []
     per_frame = estimate_load_observations_frames(batch, camera, world, sigma_px)
@@ -416,8 +419,12 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         return out
     if log.imu is None:
         out.notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
-    fcfg = FusionConfig(robust_kernel=cfg.robust, tight=cfg.tight)
-    graph_kwargs = {"floor_camera": log.floor.camera}
+    try:
+        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+    fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
+    graph_kwargs: dict[str, Any] = {"floor_camera": log.floor.camera}
     if cfg.tight:
         from fusion.qr.codes import classify
 
@@ -431,7 +438,9 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     frame_t = log.floor.timestamps_ns
-    solvers = [(Estimator.SMOOTHER, smooth, graph_kwargs)]
+    solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
+        (Estimator.SMOOTHER, smooth, graph_kwargs)
+    ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
     solvers.append((Estimator.EKF, run_ekf, {"floor_camera": log.floor.camera}))

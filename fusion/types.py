@@ -11,10 +11,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import TypeVar
 
 import numpy as np
 
 from fusion.geometry import quat_wxyz_from_R, yaw_of
+
+_C = TypeVar("_C", bound="Choice")
 
 
 class Choice(str, Enum):
@@ -24,7 +27,7 @@ class Choice(str, Enum):
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: str | Choice, what: str) -> Choice:
+    def parse(cls: type[_C], value: str | Choice, what: str) -> _C:
         """The member named `value`; ValueError naming `what` and the choices otherwise."""
         try:
             return cls(value)

@@ -56,6 +56,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -63,6 +64,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
+from fusion.errors import EstimationError
 from fusion.estimate import factors
 from fusion.estimate.common import (
     FusionConfig,
@@ -198,7 +200,7 @@ class _FixWindow:
         if len(recent) < self.rec.min_fixes:
             return False
         share = np.mean([f.over for f in recent])
-        return share >= self.rec.fault_share and self.consistent()
+        return bool(share >= self.rec.fault_share) and self.consistent()
 
     def all_gated(self) -> bool:
         recent = self.recent()
@@ -507,6 +509,7 @@ def run_ekf(
     t_start = time.perf_counter()
     inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config)
     frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
+    raw_cov = rawp.covariances  # None: paper input (position + yaw), i.e. not rawp.full_pose
     if load_obs and front_camera is None:
         log.warning("%d load observations but no front camera: the EKF maps no loads", len(load_obs))
     level_fixes = floor_camera is not None and floor_camera.gimbaled
@@ -521,8 +524,8 @@ def run_ekf(
     f = _Ekf(T_bi, config, recovery)
     f.kf.x = np.zeros(15)
     f.kf.P = np.zeros((15, 15))
-    if rawp.full_pose:
-        f.set_pose(rawp.T_world_body[m0], rawp.covariances[m0])
+    if raw_cov is not None:
+        f.set_pose(rawp.T_world_body[m0], raw_cov[m0])
     else:
         f.set_pose(
             rawp.T_world_body[m0],
@@ -568,16 +571,16 @@ def run_ekf(
         if m is not None and k > k0:
             t_s = frame_t[k] * 1e-9
             T_m = rawp.T_world_body[m]
-            if rawp.full_pose and not level_fixes:
-                f.update_pose(t_s, T_m, rawp.covariances[m])
-            elif rawp.full_pose:
-                f.update_position_yaw(
-                    t_s, T_m, level_fix_covariance(T_m, rawp.covariances[m]), rawp.covariances[m]
-                )
+            if raw_cov is not None and not level_fixes:
+                f.update_pose(t_s, T_m, raw_cov[m])
+            elif raw_cov is not None:
+                f.update_position_yaw(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
             else:
                 f.update_position_yaw(t_s, T_m, paper_Rm)
             n_pose_updates += 1
         if vmask[k]:
+            if velocity is None:  # velocity_at_frames masks no frame without velocity data
+                raise EstimationError(f"frame {k}: a velocity update without velocity data")
             f.update_body_velocity(v_body[k], velocity.noise_m_s)
         T_out[k - k0] = f.T_world_body()
         cov_out[k - k0] = f.body_cov()
@@ -586,7 +589,7 @@ def run_ekf(
     loads = _map_loads(
         frame_t, load_obs if front_camera is not None else None, front_camera, T_out, cov_out, k0, config
     )
-    stats = {
+    stats: dict[str, Any] = {
         "frames_before_first_fix": k0,
         "pose_updates": n_pose_updates,
         "rejected_pose_factors": f.rejected,

@@ -158,7 +158,7 @@ def chain_marginals(
     Dp[n:] = np.eye(s)
     Ep = np.zeros((ng * g, s, s))
     Ep[: n - 1] = E
-    D = E = None  # release the blocks (flush, above, is done with them)
+    D = E = np.empty((0, s, s))  # release the blocks (flush, above, is done with them)
     Dg = np.zeros((ng, S, S))
     for i in range(g):
         Dg[:, i * s : (i + 1) * s, i * s : (i + 1) * s] = Dp[i::g]

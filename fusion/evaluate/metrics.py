@@ -17,6 +17,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -413,7 +414,7 @@ def blackout_errors(a: Association, blackouts: list[tuple[int, int, str]]) -> di
     err = np.linalg.norm(a.position_errors_m, axis=1)
     inside = inside_intervals(a.timestamps_ns, blackouts)
     s_in, s_out = _stats(err[inside]), _stats(err[~inside])
-    per = []
+    per: list[dict[str, Any]] = []
     for start, end, kind in blackouts:
         m = (a.timestamps_ns >= start) & (a.timestamps_ns <= end)
         per.append(

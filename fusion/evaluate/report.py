@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -118,7 +119,8 @@ def _get(d: dict | None, *keys):
     return d
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+def _table(header: list[str], rows: Sequence[Sequence[object]]) -> list[str]:
+    """Markdown table; each cell is written with str()."""
     out = [
         "| " + " | ".join(header) + " |",
         "|" + "|".join("---" if i == 0 else "--:" for i in range(len(header))) + "|",
@@ -697,7 +699,7 @@ def write_report(
     )
     lines += warehouse_lines[:2]  # link to report.html
     lines += _health_lines(metrics or {})
-    if has_truth:
+    if has_truth and metrics is not None:  # has_truth implies metrics; the check narrows it
         lines += _summary_section(metrics, trajectories, gt, blackouts)
         lines += _plots(plots, "summary")
         gtm = metrics.get("groundtruth", {})

@@ -194,7 +194,7 @@ def _rays(camera: CameraModel) -> _CameraRays:
 def _floor_texture(seed: int = 7, size: int = 512) -> np.ndarray:
     """Periodic float32 floor texture (DN): mid grey, mild low-frequency variation, fine grain."""
     rng = np.random.default_rng(seed)
-    low = rng.normal(0.0, 1.0, (16, 16)).astype(np.float32)
+    low: np.ndarray = rng.normal(0.0, 1.0, (16, 16)).astype(np.float32)
     low = np.tile(low, (3, 3))
     low = cv2.resize(low, (3 * size, 3 * size), interpolation=cv2.INTER_CUBIC)[
         size : 2 * size, size : 2 * size
@@ -367,7 +367,7 @@ def _apply_blackout(img: np.ndarray, kind: str, quads: list[np.ndarray], rng) ->
             top = centre + 1.02 * (top - centre)
             mask = np.zeros((h, w), np.uint8)
             cv2.fillConvexPoly(mask, np.round(top * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
-            a = mask.astype(np.float32) / 255.0
+            a: np.ndarray = mask.astype(np.float32) / 255.0
             torn = 118.0 + 4.0 * rng.standard_normal((h, w)).astype(np.float32)
             img *= 1.0 - a
             img += a * torn

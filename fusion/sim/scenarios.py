@@ -88,8 +88,8 @@ def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, 
         f * 1.0005,
         w / 2 + 1.3 * s,
         h / 2 - 0.8 * s,
-        distortion=[-0.05, 0.012, 4e-4, -3e-4],
-        T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.06]),
+        distortion=np.array([-0.05, 0.012, 4e-4, -3e-4]),
+        T_body_cam=make_T(R_BODY_FLOORCAM, np.array([0.05, 0.0, -0.06])),
         mount=mount,
     )
     front = CameraModel(
@@ -99,8 +99,8 @@ def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, 
         f * 0.9995,
         w / 2 - 1.8 * s,
         h / 2 + 2.6 * s,
-        distortion=[-0.07, 0.02, -5e-4, 4e-4],
-        T_body_cam=make_T(R_BODY_FRONTCAM, [0.12, 0.0, 0.0]),
+        distortion=np.array([-0.07, 0.02, -5e-4, 4e-4]),
+        T_body_cam=make_T(R_BODY_FRONTCAM, np.array([0.12, 0.0, 0.0])),
         mount=mount,
     )
     return {"cam0": floor, "cam1": front}

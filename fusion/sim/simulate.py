@@ -131,7 +131,7 @@ def floor_code_readable(img: np.ndarray) -> bool:
     """True if zxing-cpp decodes at least one floor code (payload '0/...') in `img`."""
     import zxingcpp
 
-    res = zxingcpp.read_barcodes(img, formats=zxingcpp.BarcodeFormat.QRCode)
+    res = zxingcpp.read_barcodes(img, formats=zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode))
     return any(r.text.startswith("0/") for r in res)
 
 

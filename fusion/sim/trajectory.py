@@ -126,10 +126,13 @@ def survey_keyframes(
     from its length so that its mean speed is `speed_m_s` (the peak on a smootherstep is 2.1875x
     the mean) and its mean yaw rate `yaw_rate_rad_s`; a hover_s > 0 holds that pose."""
 
-    def hover(wp):
+    def hover(wp) -> float:
         return float(wp[4]) if len(wp) > 4 else 0.0
 
-    kfs = [Keyframe(0.0, tuple(map(float, waypoints[0][:3])), float(waypoints[0][3]))]
+    def xyz(wp) -> tuple[float, float, float]:
+        return (float(wp[0]), float(wp[1]), float(wp[2]))
+
+    kfs = [Keyframe(0.0, xyz(waypoints[0]), float(waypoints[0][3]))]
     if hover(waypoints[0]) > 0:
         kfs.append(Keyframe(hover(waypoints[0]), kfs[0].p_world, kfs[0].yaw_rad))
     for wp in waypoints[1:]:
@@ -137,7 +140,7 @@ def survey_keyframes(
         dist = float(np.linalg.norm(np.subtract(wp[:3], prev.p_world)))
         dyaw = abs(float(wp[3]) - prev.yaw_rad)
         dt = max(dist / speed_m_s, dyaw / yaw_rate_rad_s, min_segment_s)
-        kfs.append(Keyframe(prev.t_s + dt, tuple(map(float, wp[:3])), float(wp[3])))
+        kfs.append(Keyframe(prev.t_s + dt, xyz(wp), float(wp[3])))
         if hover(wp) > 0:
             kfs.append(Keyframe(kfs[-1].t_s + hover(wp), kfs[-1].p_world, kfs[-1].yaw_rad))
     return kfs
