@@ -198,9 +198,8 @@ class TopicScan:
     msgtype: str
     log_ns: list[int] = field(default_factory=list)
     header_ns: list[int | None] = field(default_factory=list)
-    first: Any = (
-        None  # first message, deserialised (images, CameraInfo, String): rosbags builds its class at run time
-    )
+    # first message, deserialised (images, CameraInfo, String); Any: rosbags makes its class at run time
+    first: Any = None
     data: list = field(default_factory=list)  # deserialised messages (IMU, velocity, GT)
 
 

@@ -83,21 +83,23 @@ CACHE_REUSED, CACHE_WRITTEN, CACHE_STALE, CACHE_NONE = "reused", "written", "rec
 logger = logging.getLogger(__name__)
 
 
-# zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
-# try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
-# per module) and save ~40 % of the time; try_rotate only concerns 1-D symbologies; the
-# GlobalHistogram binarizer is ~2x faster but lost 7-23 % of the codes, so LocalAverage stays.
 class _ZxingOptions(TypedDict):
+    """Keyword arguments of zxingcpp.read_barcodes that we set."""
+
     try_rotate: bool
     try_downscale: bool
     try_invert: bool
     binarizer: zxingcpp.Binarizer
 
 
+# zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
+# try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
+# per module) and save ~40 % of the time; try_rotate only concerns 1-D symbologies; the
+# GlobalHistogram binarizer is ~2x faster but lost 7-23 % of the codes, so LocalAverage stays.
 ZXING_OPTIONS = _ZxingOptions(
     try_rotate=False, try_downscale=False, try_invert=False, binarizer=zxingcpp.Binarizer.LocalAverage
 )
-ZXING_FORMATS = zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode)
+ZXING_FORMATS = zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode)  # QR only (typed: BarcodeFormats)
 
 
 @dataclass
