@@ -189,7 +189,19 @@ class CameraModel:
         mount = data.get("mount", "body_fixed")
         if mount not in MOUNTS:
             raise CameraModelError(f"{source}: mount {mount!r} is not one of {MOUNTS}")
-        return cls(int(res[0]), int(res[1]), *intr, distortion=dist, T_body_cam=T, rate_hz=rate, mount=mount)
+        fu, fv, cu, cv = intr
+        return cls(
+            int(res[0]),
+            int(res[1]),
+            fu,
+            fv,
+            cu,
+            cv,
+            distortion=np.asarray(dist),
+            T_body_cam=T,
+            rate_hz=rate,
+            mount=mount,
+        )
 
     @classmethod
     def load(cls, path: Path) -> CameraModel:

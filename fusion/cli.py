@@ -391,12 +391,12 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "map" and args.map_command == "merge":
             from fusion.warehouse.merge import run_merge
 
-            res = run_merge(args.run_outs, args.out, args.estimator, args.force)
+            merged = run_merge(args.run_outs, args.out, args.estimator, args.force)
             kinds: dict[str, int] = {}
-            for c in res.changes:
+            for c in merged.changes:
                 kinds[str(c.kind)] = kinds.get(str(c.kind), 0) + 1
             print(
-                f"merged {len(res.runs)} runs: {len(res.loads)} loads; changes: "
+                f"merged {len(merged.runs)} runs: {len(merged.loads)} loads; changes: "
                 + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
             )
             print(f"wrote {args.out}")

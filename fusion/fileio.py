@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import io
 import json
 import math
 import os
@@ -17,6 +16,7 @@ import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO, Any, BinaryIO, Literal, TextIO, overload
 
 import yaml
 
@@ -25,13 +25,34 @@ from fusion.errors import FusionError, OutputError
 # ============================================================================ input
 
 
+@overload
+def open_regular(
+    path: Path,
+    error: type[FusionError] = ...,
+    binary: Literal[False] = ...,
+    encoding: str = ...,
+    newline: str | None = ...,
+) -> TextIO: ...
+
+
+@overload
+def open_regular(
+    path: Path,
+    error: type[FusionError] = ...,
+    *,
+    binary: Literal[True],
+    encoding: str = ...,
+    newline: str | None = ...,
+) -> BinaryIO: ...
+
+
 def open_regular(
     path: Path,
     error: type[FusionError] = FusionError,
     binary: bool = False,
     encoding: str = "utf-8",
     newline: str | None = "",
-) -> io.IOBase:
+) -> IO[Any]:
     """Open `path` for reading only if it is a regular file (symlinks followed).
 
     The file is opened non-blocking and checked with fstat on the open descriptor, so a named
@@ -96,6 +117,28 @@ def load_yaml(path: Path, error: type[FusionError] = FusionError) -> dict:
     return data
 
 
+@overload
+def strict_float(
+    value,
+    where: str,
+    error: type[FusionError] = ...,
+    *,
+    positive: bool = ...,
+    allow_none: Literal[False] = ...,
+) -> float: ...
+
+
+@overload
+def strict_float(
+    value,
+    where: str,
+    error: type[FusionError] = ...,
+    *,
+    positive: bool = ...,
+    allow_none: bool,
+) -> float | None: ...
+
+
 def strict_float(
     value,
     where: str,
@@ -158,14 +201,16 @@ def csv_unsafe(cell: str) -> str:
 
 
 @contextlib.contextmanager
-def atomic_open(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator:
+def atomic_open(path: Path, mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO[Any]]:
     """Open a temporary sibling of `path` for writing; rename it onto `path` only on success."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
     try:
-        kwargs = {} if "b" in mode else {"encoding": encoding, "newline": ""}
-        with os.fdopen(fd, mode, **kwargs) as f:
+        f: IO[Any] = (
+            os.fdopen(fd, mode) if "b" in mode else os.fdopen(fd, mode, encoding=encoding, newline="")
+        )
+        with f:
             yield f
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
         os.replace(tmp, path)
@@ -365,7 +410,7 @@ def remove_listed(folder: Path, rels, keep: tuple[str, ...] = ()) -> list[str]:
     """Delete the regular files `rels` (relative to `folder`) except `keep`, then the folders they
     leave empty; paths outside `folder` are ignored.  Returns what was deleted."""
     removed = []
-    parents = set()
+    parents: set[Path] = set()
     for rel in rels:
         if rel in keep or rel in (LOCK_NAME,):
             continue

@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from itertools import repeat
+from multiprocessing.context import BaseContext
 from typing import Any, TypeVar
 
 import cv2
@@ -83,10 +84,12 @@ def parallel_map(
             "parallel work started inside a worker process; guard the calling "
             "script with `if __name__ == '__main__':` or use one worker"
         )
+    ctx: BaseContext
     if "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
+        forkserver = mp.get_context("forkserver")
         if preload:
-            ctx.set_forkserver_preload(list(preload))
+            forkserver.set_forkserver_preload(list(preload))
+        ctx = forkserver
     else:
         ctx = mp.get_context("spawn")
     n = min(workers, len(tasks))

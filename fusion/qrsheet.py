@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import PathPatch
 from matplotlib.path import Path as MplPath
 
-from fusion.conventions import LoadPayload, floor_payload, load_payload, parse_payload
+from fusion.conventions import FloorPayload, LoadPayload, floor_payload, load_payload, parse_payload
 from fusion.errors import PayloadError, QRSheetError
 from fusion.fileio import atomic_open
 
@@ -131,7 +131,10 @@ def _codes(
         for i in range(nx):
             x_m, y_m = i * spacing_m, j * spacing_m
             payload = floor_payload(round(x_m / payload_unit_m, 6), round(y_m / payload_unit_m, 6))
-            p = parse_payload(payload).position_m(payload_unit_m)
+            parsed = parse_payload(payload)
+            if not isinstance(parsed, FloorPayload):
+                raise QRSheetError(f"floor payload {payload!r} does not parse as a floor code")
+            p = parsed.position_m(payload_unit_m)
             if abs(p[0] - x_m) > 1e-6 or abs(p[1] - y_m) > 1e-6:
                 raise QRSheetError(
                     f"position ({x_m}, {y_m}) m is not a payload number of {payload_unit_m} m units to 1 um"
@@ -173,7 +176,7 @@ def layout_pages(codes: list[SheetCode], page: str, title: str) -> list[SheetPag
     left, right = m, W - m
     top, bottom = H - m - HEADER_MM / MM_PER_INCH, m + FOOTER_MM / MM_PER_INCH
     pages: list[SheetPage] = []
-    x = y_top = row_h = None
+    x, y_top, row_h = left, top, 0.0  # the first code opens the first page at its top-left
     for code in codes:
         n = symbol_modules(code.payload).shape[0]
         cw, ch, q = _cell_in(code, n)
@@ -186,7 +189,6 @@ def layout_pages(codes: list[SheetCode], page: str, title: str) -> list[SheetPag
             )
         if not pages:
             pages.append(SheetPage((W, H), title))
-            x, y_top, row_h = left, top, 0.0
         if x + cw > right + 1e-9:  # next row
             x, y_top, row_h = left, y_top - row_h, 0.0
         if y_top - ch < bottom - 1e-9:  # next page

@@ -33,7 +33,7 @@ class LoadCode:
 
     @property
     def T_world_symbol(self) -> np.ndarray:
-        return make_T(R_world_loadsymbol(self.normal_yaw), self.p_world)
+        return make_T(R_world_loadsymbol(self.normal_yaw), np.asarray(self.p_world, dtype=float))
 
 
 @dataclass
@@ -80,7 +80,7 @@ class World:
 
     # ---------------------------------------------------------------- world.yaml
     def to_yaml(self) -> dict:
-        data = {
+        data: dict[str, dict[str, float | list[float]]] = {
             "floor_qr": {"side_m": float(self.floor_side_m), "payload_unit_m": float(self.payload_unit_m)},
             "load_qr": {"side_m": float(self.load_side_m)},
         }
@@ -99,20 +99,17 @@ class World:
         load = _section(data, "load_qr", source)
         if "side_m" not in floor:
             raise WorldError(f"{source}: floor_qr.side_m is missing")
-        kwargs = {
-            "floor_side_m": strict_float(
-                floor["side_m"], f"{source}: floor_qr.side_m", WorldError, positive=True
-            ),
-            "payload_unit_m": strict_float(
-                floor.get("payload_unit_m", 1.0),
-                f"{source}: floor_qr.payload_unit_m",
-                WorldError,
-                positive=True,
-            ),
-            "load_side_m": strict_float(
-                load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
-            ),
-        }
+        floor_side_m = strict_float(floor["side_m"], f"{source}: floor_qr.side_m", WorldError, positive=True)
+        payload_unit_m = strict_float(
+            floor.get("payload_unit_m", 1.0),
+            f"{source}: floor_qr.payload_unit_m",
+            WorldError,
+            positive=True,
+        )
+        load_side_m = strict_float(
+            load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
+        )
+        bounds_m: dict[str, tuple[float, float]] = {}
         bounds = data.get("bounds_m")
         if bounds is not None:
             if not isinstance(bounds, dict):
@@ -126,9 +123,15 @@ class World:
                         f"{source}: bounds_m.{axis} is [{lo:g}, {hi:g}]: the minimum "
                         "must come first and be below the maximum (reversed?)"
                     )
-                kwargs[f"bounds_{axis}_m"] = (lo, hi)
+                bounds_m[axis] = (lo, hi)
         try:
-            return cls(**kwargs)
+            return cls(
+                floor_side_m=floor_side_m,
+                payload_unit_m=payload_unit_m,
+                load_side_m=load_side_m,
+                bounds_x_m=bounds_m.get("x"),
+                bounds_y_m=bounds_m.get("y"),
+            )
         except WorldError as e:
             raise WorldError(f"{source}: {e}") from None
 

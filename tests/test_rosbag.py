@@ -345,6 +345,27 @@ def test_cli_inspect_import_export(tmp_path, bags, capsys):
     assert "nothing.bag: not found" in capsys.readouterr().err
 
 
+def test_inspect_names_a_topic_recorded_with_two_message_types(tmp_path, capsys):
+    """rosbags gives such a topic the msgtype None; `fusion inspect` used to end in a TypeError
+    traceback formatting it.  Now the topic is listed as MIXED_MSGTYPES and the run ends normally."""
+    from rosbags.rosbag1 import Writer
+
+    from fusion.log.rosbag import MIXED_MSGTYPES
+
+    ts = typestore_for(True)
+    bag = tmp_path / "mixed.bag"
+    with Writer(bag) as w:
+        for k, (ty, value) in enumerate([("std_msgs/msg/String", "ok"), ("std_msgs/msg/Int32", 3)]):
+            con = w.add_connection("/status", ty, typestore=ts)
+            w.write(con, 1_000_000_000 + k * 100_000_000, ts.serialize_ros1(ts.types[ty](data=value), ty))
+    rep = inspect_log(bag, LogOptions())
+    assert [(s.name, s.msgtype, s.count) for s in rep.streams] == [("/status", MIXED_MSGTYPES, 2)]
+    assert main(["inspect", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert f"/status                      {MIXED_MSGTYPES}" in out
+    assert f"the bag holds /status ({MIXED_MSGTYPES})" in out
+
+
 @pytest.mark.parametrize("fmt,name", [("rosbag2", "s.mcap"), ("rosbag1", "s.bag"), ("video", "s")])
 def test_simulate_writes_every_format(tmp_path, fmt, name):
     from fusion.sim.simulate import simulate

@@ -166,7 +166,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
 
     path = rb.readable_bag(path)
     first = rb.scan_bag(path, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
-    meta = {}
+    meta: dict = {}
     if first.topics.get(rb.METADATA_TOPIC) and first.topics[rb.METADATA_TOPIC].first is not None:
         try:
             meta = yaml.safe_load(first.topics[rb.METADATA_TOPIC].first.data) or {}
@@ -197,7 +197,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
         report.problems.append(scan.truncated)
     for topic in sorted(scan.types):
         s = scan.topics[topic]
-        t = rb.choose_times(s, opts.stamps, str(path)) if s.log_ns else []
+        t = rb.choose_times(s, opts.stamps, str(path)) if s.log_ns else np.zeros(0, np.int64)
         stats = time_stats(topic, scan.types[topic], t, role_of.get(topic, ""))
         if scan.counts.get(topic, stats.count) != stats.count:
             report.problems.append(

@@ -137,10 +137,14 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             raise LogError(f"{where}.mount: {mount!r} is not one of {MOUNTS}")
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise LogError(f"{where}: resolution and focal lengths must be positive")
+        fu, fv, cu, cv = intr
         cam = CameraModel(
             int(res[0]),
             int(res[1]),
-            *intr,
+            fu,
+            fv,
+            cu,
+            cv,
             distortion=np.array(dist),
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
@@ -207,7 +211,7 @@ def read_imu_yaml(path: Path) -> KalibrImu:
 
 
 def write_imu_yaml(path: Path, noise: ImuNoise, rate_hz: float, rostopic: str = "/imu0") -> None:
-    data = {key: float(getattr(noise, key)) for key in NOISE_KEYS}
+    data: dict[str, float | str] = {key: float(getattr(noise, key)) for key in NOISE_KEYS}
     data.update(rostopic=rostopic, update_rate=float(rate_hz))
     dump_yaml(data, path)
 

@@ -31,6 +31,7 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -42,6 +43,10 @@ from fusion.geometry import R_from_quat_wxyz
 from fusion.log.euroc import CameraStream, FlightLog, Frame, GroundTruth, ImuData, ImuNoise, VelocityData
 from fusion.log.options import LogOptions, StampSource
 from fusion.types import CameraRole
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import Connection
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +60,7 @@ STRING = "std_msgs/msg/String"
 IMAGE_TYPES = (IMAGE, COMPRESSED)
 VELOCITY_TYPES = (TWIST, ODOMETRY)  # preference order
 NO_TOPIC = "none"  # --front-topic none / --velocity-topic none
+MIXED_MSGTYPES = "(several message types)"  # a topic whose connections differ in type (rosbags: None)
 METADATA_TOPIC = "/fusion/metadata"
 GROUNDTRUTH_TOPIC = "/fusion/groundtruth"
 METADATA_VERSION = 1
@@ -192,7 +198,8 @@ class TopicScan:
     msgtype: str
     log_ns: list[int] = field(default_factory=list)
     header_ns: list[int | None] = field(default_factory=list)
-    first: object = None  # first message, deserialised (images, CameraInfo, String)
+    # first message, deserialised (images, CameraInfo, String); Any: rosbags makes its class at run time
+    first: Any = None
     data: list = field(default_factory=list)  # deserialised messages (IMU, velocity, GT)
 
 
@@ -206,7 +213,7 @@ class BagScan:
     truncated: str | None = None  # where reading stopped early, if it did
 
 
-def _open_reader(path: Path):
+def _open_reader(path: Path) -> AnyReader:
     from rosbags.highlevel import AnyReader
 
     try:
@@ -261,7 +268,7 @@ def scan_bag(
     reader = _open_reader(path)
     ros1 = is_ros1(path)
     try:
-        types = {t: info.msgtype for t, info in reader.topics.items()}
+        types = {t: info.msgtype or MIXED_MSGTYPES for t, info in reader.topics.items()}
         counts = {t: int(info.msgcount) for t, info in reader.topics.items()}
         want = [c for c in reader.connections if topics is None or c.topic in topics]
         scans = {t: TopicScan(t, types[t]) for t in types if topics is None or t in topics}
@@ -335,7 +342,7 @@ def sort_unique(t: np.ndarray, what: str) -> tuple[np.ndarray, int, int]:
 
 @dataclass
 class Roles:
-    floor: str | None
+    floor: str  # always found (assign_roles raises otherwise)
     front: str | None
     imu: str | None
     velocity: str | None
@@ -448,10 +455,10 @@ class BagCameraStream(CameraStream):
         self.seq = np.asarray(seq, np.int64)  # message number of frame i
         self.log_by_seq = np.asarray(log_by_seq, np.int64)  # receive time of message k
         self.stamps = stamps
-        self._reader = None
-        self._iter = None
+        self._reader: AnyReader | None = None
+        self._iter: Iterator[tuple[Connection, int, bytes]] | None = None
         self._next_seq = -1
-        self._pid = None  # process that opened _reader
+        self._pid: int | None = None  # process that opened _reader
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -473,7 +480,7 @@ class BagCameraStream(CameraStream):
         h.update(yaml.safe_dump(self.camera.to_sensor_yaml(), sort_keys=True).encode())
         return h.digest()
 
-    def _seek(self, k: int) -> None:
+    def _seek(self, k: int) -> Iterator[tuple[Connection, int, bytes]]:
         if self._reader is not None and self._pid != os.getpid():
             # a forked worker shares the parent's file offsets: never read through them
             self._reader, self._iter = None, None
@@ -483,16 +490,18 @@ class BagCameraStream(CameraStream):
         cons = [c for c in self._reader.connections if c.topic == self.topic]
         start = int(self.log_by_seq[k])
         first = int(np.searchsorted(self.log_by_seq, start, side="left"))
-        self._iter = self._reader.messages(connections=cons, start=start)
+        it = self._iter = self._reader.messages(connections=cons, start=start)
         self._next_seq = first
         while self._next_seq < k:
-            next(self._iter)
+            next(it)
             self._next_seq += 1
+        return it
 
-    def _raw(self, k: int):
-        if self._iter is None or self._next_seq != k or self._pid != os.getpid():
-            self._seek(k)
-        con, _, raw = next(self._iter)
+    def _raw(self, k: int) -> tuple[Connection, bytes]:
+        it = self._iter
+        if it is None or self._next_seq != k or self._pid != os.getpid():
+            it = self._seek(k)
+        con, _, raw = next(it)
         self._next_seq += 1
         return con, raw
 
@@ -501,6 +510,8 @@ class BagCameraStream(CameraStream):
         where = f"{self.bag}: topic {self.topic} message {k}"
         try:
             con, raw = self._raw(k)
+            if self._reader is None:  # _raw opened it
+                raise LogError(f"{where}: the bag reader is not open")
             img = decode_image(self._reader.deserialize(raw, con.msgtype), con.msgtype)
         except StopIteration:
             self.skipped.append(f"{where}: missing (bag ends early)")
@@ -623,7 +634,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos), topics=want)
 
     meta_cams = _metadata_cameras(meta, f"{path}: {METADATA_TOPIC}")
-    cameras = {}
+    cameras: dict[str, CameraStream] = {}
     for name, topic in cam_topics.items():
         ts_scan = scan.topics[topic]
         where = f"{path}: topic {topic}"

@@ -25,7 +25,8 @@ T_FLU_FRD = np.diag([1.0, -1.0, -1.0, 1.0])
 """Pose of PX4's FRD body/IMU frame in our FLU body frame (rotation by pi about x)."""
 
 
-def _open(path: Path, topics: list[str]):
+def _open(path: Path, topics: list[str] | None):
+    """The ULog at `path`, reading only `topics` (every topic when None)."""
     from pyulog import ULog
 
     try:

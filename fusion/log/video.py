@@ -27,8 +27,10 @@ import hashlib
 import logging
 import os
 import shutil
+from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -53,6 +55,10 @@ from fusion.log.kalibr import read_camchain, read_imu_yaml, write_camchain, writ
 from fusion.log.options import LogOptions
 from fusion.log.sources import VIDEO_SUFFIXES, find_world
 from fusion.types import CameraRole
+
+if TYPE_CHECKING:
+    from av.container import InputContainer
+    from av.video.frame import VideoFrame
 
 log = logging.getLogger(__name__)
 
@@ -93,10 +99,10 @@ class VideoCameraStream(CameraStream):
         self.video = Path(video)
         self.pts = np.asarray(pts, np.int64)  # presentation order
         self.frame_index = np.asarray(frame_index, np.int64)
-        self._container = None
-        self._frames = None
-        self._next = -1
-        self._pid = None  # process that opened _container
+        self._container: InputContainer | None = None
+        self._frames: Iterator[VideoFrame] | None = None
+        self._next: int | None = -1  # None: unknown (just seeked)
+        self._pid: int | None = None  # process that opened _container
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -116,7 +122,7 @@ class VideoCameraStream(CameraStream):
         h.update(yaml.safe_dump(self.camera.to_sensor_yaml(), sort_keys=True).encode())
         return h.digest()
 
-    def _seek(self, k: int) -> None:
+    def _seek(self, k: int) -> Iterator[VideoFrame]:
         import av
 
         if self._container is not None and self._pid != os.getpid():
@@ -131,21 +137,23 @@ class VideoCameraStream(CameraStream):
             self._container.seek(0)
         else:
             self._container.seek(target, stream=vs, backward=True, any_frame=False)
-        self._frames = self._container.decode(vs)
+        frames = self._frames = self._container.decode(vs)
         self._next = None  # unknown until the first frame at or after the target
+        return frames
 
-    def _decode(self, k: int):
-        if self._frames is None or self._next != k or self._pid != os.getpid():
-            self._seek(k)
+    def _decode(self, k: int) -> VideoFrame:
+        frames = self._frames
+        if frames is None or self._next != k or self._pid != os.getpid():
+            frames = self._seek(k)
             target = int(self.pts[k])
-            for frame in self._frames:
+            for frame in frames:
                 if frame.pts is not None and frame.pts >= target:
                     if frame.pts != target:
                         raise ValueError(f"seek landed on pts {frame.pts}, wanted {target}")
                     self._next = k + 1
                     return frame
             raise StopIteration
-        frame = next(self._frames)
+        frame = next(frames)
         self._next = k + 1
         return frame
 
@@ -209,6 +217,8 @@ def probe_video(path: Path) -> tuple[np.ndarray, Fraction, float | None, str | N
         tb = vs.time_base
     if not pts:
         raise LogError(f"{path}: no video frames")
+    if tb is None:
+        raise LogError(f"{path}: the video stream has no time base")
     return np.sort(np.asarray(pts, np.int64)), tb, rate, warning
 
 
@@ -339,12 +349,14 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         from fusion.log.sources import external_calibration
 
         ext = external_calibration(LogOptions(calib=calib_path))
+        if ext is None:  # only when no calibration is given, and calib_path is one
+            raise LogError(f"{calib_path}: no camera calibration read")
         kal = {k: (cam, ext.timeshift_ns.get(k, 0)) for k, cam in ext.cameras.items()}
     else:
         T_bi = imu.T_body_imu if imu is not None else None
         kal = {k: (kc.camera, kc.timeshift_ns) for k, kc in read_camchain(calib_path, T_bi).items()}
 
-    cameras = {}
+    cameras: dict[str, CameraStream] = {}
     for name, video in videos.items():
         if video is None or not Path(video).is_file():
             raise LogError(f"{video or folder / 'cam0.mkv'}: video not found")
@@ -442,7 +454,7 @@ def write_video_flight(flight: FlightLog, out: Path, codec: str = "ffv1", overwr
                 if cam.rate_hz > 0
                 else Fraction(int(DEFAULT_VIDEO_RATE_HZ))
             )
-            times = []
+            times: list[int] = []
             with av.open(str(tmp / f"{name}{suffix}"), mode="w") as container:
                 vs = container.add_stream(
                     "libx264" if codec == "h264" else codec, rate=rate, options=dict(options)

@@ -35,6 +35,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypedDict
 
 import cv2
 import numpy as np
@@ -81,13 +82,24 @@ CACHE_REUSED, CACHE_WRITTEN, CACHE_STALE, CACHE_NONE = "reused", "written", "rec
 
 logger = logging.getLogger(__name__)
 
+
+class _ZxingOptions(TypedDict):
+    """Keyword arguments of zxingcpp.read_barcodes that we set."""
+
+    try_rotate: bool
+    try_downscale: bool
+    try_invert: bool
+    binarizer: zxingcpp.Binarizer
+
+
 # zxing-cpp options, measured on rendered 640x480 / 1280x720 frames (scripts/bench_detect.py):
 # try_invert=False and try_downscale=False cost no decodes on our codes (dark on light, >= 3 px
 # per module) and save ~40 % of the time; try_rotate only concerns 1-D symbologies; the
 # GlobalHistogram binarizer is ~2x faster but lost 7-23 % of the codes, so LocalAverage stays.
-ZXING_OPTIONS = dict(
+ZXING_OPTIONS = _ZxingOptions(
     try_rotate=False, try_downscale=False, try_invert=False, binarizer=zxingcpp.Binarizer.LocalAverage
 )
+ZXING_FORMATS = zxingcpp.BarcodeFormats(zxingcpp.BarcodeFormat.QRCode)  # QR only (typed: BarcodeFormats)
 
 
 @dataclass
@@ -149,7 +161,7 @@ def _payload_text(raw: bytes, fallback: str | None) -> str | None:
 
 def _zxing(image: np.ndarray) -> tuple[list[RawCode], int]:
     codes, dropped = [], 0
-    for b in zxingcpp.read_barcodes(image, formats=zxingcpp.BarcodeFormat.QRCode, **ZXING_OPTIONS):
+    for b in zxingcpp.read_barcodes(image, formats=ZXING_FORMATS, **ZXING_OPTIONS):
         text = _payload_text(b.bytes, b.text if b.content_type == zxingcpp.ContentType.Text else None)
         if text is None:
             dropped += 1
@@ -169,12 +181,14 @@ def _zxing(image: np.ndarray) -> tuple[list[RawCode], int]:
             - 0.5
         )
         modules = None
-        try:
-            version = int(b.extra.get("Version", ""))
-            if 1 <= version <= 40:
-                modules = modules_for_version(version)
-        except (TypeError, ValueError, AttributeError):
-            pass
+        extra = b.extra  # a dict of symbology-specific facts (the stub says object)
+        if isinstance(extra, dict):
+            try:
+                version = int(extra.get("Version", ""))
+                if 1 <= version <= 40:
+                    modules = modules_for_version(version)
+            except (TypeError, ValueError):
+                pass
         codes.append(RawCode(text, corners, modules))
     return codes, dropped
 
@@ -379,7 +393,7 @@ def detect_flight(
     workers = worker_count(workers)
     stats = {name: CameraStats() for name in streams}
     dets: list[QRDetection] = []
-    skipped: list[str] = []
+    skipped: list[tuple[str, str]] = []  # (camera, message)
     bar = _progress_bar(n_frames, progress)
     try:
         results = parallel_map(
@@ -480,9 +494,9 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
             first = f.readline()
             if not first.startswith(_MAGIC + " "):
                 raise DetectionError(f"{path}:1: not a fusion detection cache")
-            fields = dict(
-                tok.split("=", 1) if "=" in tok else (tok, "") for tok in first[len(_MAGIC) :].split()
-            )
+            fields = {
+                key: value for key, _, value in (tok.partition("=") for tok in first[len(_MAGIC) :].split())
+            }
             if f"v{FORMAT_VERSION}" not in fields:
                 return None  # another format version: recompute
             if expected_fingerprint is not None and fields.get("fingerprint") != expected_fingerprint:

@@ -258,7 +258,7 @@ def localize_frame(
         dist = float(np.hypot(*(centre_px - fc)))
         if min_dist > dist:
             min_dist, min_qr, min_corners, min_centre = dist, s, corners, centre_px
-    if min_qr is None:
+    if min_qr is None or min_corners is None or min_centre is None:  # set together: no usable code
         return None
     qr_xy = min_qr.centre_world[:2]
     if min_dist <= th_px:

@@ -425,7 +425,8 @@ def _profiles(ns: list[float]) -> _Profiles:
     cat = [np.concatenate([p[i] for p in parts]) for i in range(5)]
     mid = slice(_MODEL_GROUP // 2, None, _MODEL_GROUP)
     code = np.repeat(np.arange(len(ns)), [len(p[0]) // _MODEL_GROUP for p in parts])
-    return _Profiles(code, *(a[mid] for a in cat), cat[0])
+    uv0, inward, axis, const, boundary = (a[mid] for a in cat)
+    return _Profiles(code, uv0, inward, axis, const, boundary, cat[0])
 
 
 def _apply_hs(Hp: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -829,11 +830,11 @@ def _stage1(
         ]
         if any(p is None for p in new):
             return None
-        new = np.array(new)
+        corners_new = np.array(new)
         # a corner that moved by more than 1.5 modules (or 4 px) from the decoder's is a bad fit
-        if np.max(np.linalg.norm(new - raw_u, axis=1)) > max(4.0, 1.5 * module_px):
+        if np.max(np.linalg.norm(corners_new - raw_u, axis=1)) > max(4.0, 1.5 * module_px):
             return None
-        corners_u = new
+        corners_u = corners_new
     return corners_u
 
 
@@ -944,16 +945,16 @@ def refine_frames(
     raw_u = dist.undistort(np.concatenate(raws)).reshape(-1, 4, 2)
     image_of = np.array([i for i, _ in todo])
     stage2 = _stage2(images, image_of, dist, list(raw_u), ns) if finder_homography else [None] * len(todo)
-    done = [j for j, s in enumerate(stage2) if s is not None]
+    done = [(j, s) for j, s in enumerate(stage2) if s is not None]
     if done:
-        cu = np.stack([stage2[j][0] for j in done])
-        cov_u = np.stack([stage2[j][1] for j in done])
+        cu = np.stack([s[0] for _, s in done])
+        cov_u = np.stack([s[1] for _, s in done])
         cd = dist.distort(cu)
         cov_d = cov_model.apply(_distort_cov(dist, cu, cov_u))
         sig = np.sqrt(np.mean(np.diagonal(cov_d, axis1=1, axis2=2), axis=1))
-        for k, j in enumerate(done):
+        for k, (j, s) in enumerate(done):
             i, c = todo[j]
-            results[i][c] = RefineResult(cd[k], float(sig[k]), stage2[j][2], 2, cov_d[k])
+            results[i][c] = RefineResult(cd[k], float(sig[k]), s[2], 2, cov_d[k])
     for j, (i, c) in enumerate(todo):
         if stage2[j] is not None:
             continue
