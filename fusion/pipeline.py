@@ -563,7 +563,9 @@ def _run_into(
         raw = loc.trajectories[str(Estimator.PNP)]
         max_iterations = FusionConfig().lm_max_iterations
         for name, res in fused_stage.results.items():
-            result.health[str(name)] = assess_result(res, raw, max_iterations=max_iterations)
+            result.health[str(name)] = assess_result(
+                res, raw, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
+            )
             result.trajectories[name] = res.trajectory
             if log.front is not None:
                 result.load_maps[name] = res.loads

@@ -135,9 +135,22 @@ def _match(t_fused: np.ndarray, t_raw: np.ndarray, max_sync_ns: int) -> np.ndarr
     return np.where(np.abs(t_fused[j] - t_raw) <= max_sync_ns, j, -1)
 
 
-def fix_nis(fused: Trajectory, raw: Trajectory, config: HealthConfig | None = None):
+def _position_yaw_jacobian(T: np.ndarray) -> np.ndarray:
+    """(N, 4, 6): body-frame Pose3 perturbation [rx, ry, rz, tx, ty, tz] -> world position and
+    yaw (first order; yaw ~ rz of a near-level frame)."""
+    J = np.zeros((len(T), 4, 6))
+    J[:, :3, 3:] = T[:, :3, :3]
+    J[:, 3, 2] = 1.0
+    return J
+
+
+def fix_nis(
+    fused: Trajectory, raw: Trajectory, config: HealthConfig | None = None, level_fixes: bool = False
+):
     """Normalised innovation squared of each raw fix against the fused estimate at its frame.
-    Returns (raw indices (M,), NIS (M,), dim): 6 with raw covariances, else 4 (position + yaw)."""
+    Returns (raw indices (M,), NIS (M,), dim): 6 with raw covariances, else 4 (position + yaw).
+    `level_fixes`: the raw poses are level-frame poses (a gimbaled floor camera: PnP knows
+    nothing of the airframe's roll and pitch), so only position and yaw are compared (dim 4)."""
     config = config or HealthConfig()
     t_f = np.asarray(fused.timestamps_ns, dtype=np.int64)
     t_r = np.asarray(raw.timestamps_ns, dtype=np.int64)
@@ -146,7 +159,17 @@ def fix_nis(fused: Trajectory, raw: Trajectory, config: HealthConfig | None = No
     jf = j[idx]
     Tf, Tr = np.asarray(fused.T_world_body)[jf], np.asarray(raw.T_world_body)[idx]
     Pf = None if fused.covariances is None else np.asarray(fused.covariances)[jf]
-    if raw.covariances is not None:
+    if level_fixes and raw.covariances is not None:
+        e = np.column_stack(
+            [Tr[:, :3, 3] - Tf[:, :3, 3], wrap_angle(yaw_of(Tr[:, :3, :3]) - yaw_of(Tf[:, :3, :3]))]
+        )
+        Jr = _position_yaw_jacobian(Tr)
+        S = Jr @ np.asarray(raw.covariances)[idx] @ np.swapaxes(Jr, 1, 2)
+        if Pf is not None:
+            Jf = _position_yaw_jacobian(Tf)
+            S = S + Jf @ Pf @ np.swapaxes(Jf, 1, 2)
+        dim = 4
+    elif raw.covariances is not None:
         e = se3_log(inv_T(Tf) @ Tr)
         S = np.asarray(raw.covariances)[idx] + (Pf if Pf is not None else 0.0)
         dim = 6
@@ -158,12 +181,8 @@ def fix_nis(fused: Trajectory, raw: Trajectory, config: HealthConfig | None = No
             np.diag([config.raw_sigma_xyz_m**2] * 3 + [config.raw_sigma_yaw_rad**2]), (len(idx), 1, 1)
         )
         if Pf is not None:
-            # fused body-frame covariance -> world position + yaw (first order; yaw ~ rz of a
-            # near-level body)
-            J = np.zeros((len(idx), 4, 6))
-            J[:, :3, 3:] = Tf[:, :3, :3]
-            J[:, 3, 2] = 1.0
-            S = S + J @ Pf @ np.swapaxes(J, 1, 2)
+            Jf = _position_yaw_jacobian(Tf)
+            S = S + Jf @ Pf @ np.swapaxes(Jf, 1, 2)
         dim = 4
     if len(idx) == 0:
         return idx, np.zeros(0), dim
@@ -180,11 +199,13 @@ def assess(
     iteration_limit_hits: int = 0,
     resets: int = 0,
     config: HealthConfig | None = None,
+    level_fixes: bool = False,
 ) -> Health:
     """Health of `fused` judged against the raw fixes `raw` it was computed from (module
-    docstring).  gated_fraction: share of raw fixes the back end gated / rejected / removed;
-    inflated_fraction: share at which it inflated its own covariance (EKF); iteration_limit_hits:
-    solves that stopped at their iteration limit; resets: re-initialisations."""
+    docstring); `level_fixes`: as in fix_nis.  gated_fraction: share of raw fixes the back end
+    gated / rejected / removed; inflated_fraction: share at which it inflated its own covariance
+    (EKF); iteration_limit_hits: solves that stopped at their iteration limit; resets:
+    re-initialisations."""
     config = config or HealthConfig()
     if len(raw) == 0:
         raise EstimationError("health: no raw fix to judge the fused estimate against")
@@ -197,7 +218,7 @@ def assess(
             iteration_limit_hits=iteration_limit_hits,
             resets=resets,
         )
-    idx, nis, dim = fix_nis(fused, raw, config)
+    idx, nis, dim = fix_nis(fused, raw, config, level_fixes)
     h = Health(
         Status.OK,
         n_fixes=len(idx),
@@ -292,7 +313,12 @@ def assess(
 
 
 def assess_result(
-    result, raw: Trajectory, *, max_iterations: int | None = None, config: HealthConfig | None = None
+    result,
+    raw: Trajectory,
+    *,
+    max_iterations: int | None = None,
+    config: HealthConfig | None = None,
+    level_fixes: bool = False,
 ) -> Health:
     """`assess` of a back end's FusionResult, its inputs read from `result.stats`: gated fixes
     (gated_updates / gated_pose_factors), inflated updates, resets, and an iteration-limit hit
@@ -317,6 +343,7 @@ def assess_result(
         iteration_limit_hits=hits,
         resets=resets,
         config=config,
+        level_fixes=level_fixes,
     )
     mode = str(getattr(solve, "mode", "fused"))
     if mode != "fused":
