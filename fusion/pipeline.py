@@ -31,6 +31,7 @@ from fusion.estimate import (
     smooth,
     smooth_incremental,
 )
+from fusion.estimate.common import match_to_frames
 from fusion.fileio import OutputFolder, csv_safe
 from fusion.log import FlightLog, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
@@ -562,6 +563,9 @@ def _run_into(
         result.failures = {str(k): v for k, v in fused_stage.failures.items()}
         raw = loc.trajectories[str(Estimator.PNP)]
         max_iterations = FusionConfig().lm_max_iterations
+        unsynced = _unsynchronised_load_sightings(log, loc)
+        if unsynced is not None:
+            result.warnings.append(unsynced)
         for name, res in fused_stage.results.items():
             result.health[str(name)] = assess_result(
                 res, raw, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
@@ -580,6 +584,27 @@ def _run_into(
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
+
+
+def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
+    """A warning when front-camera load sightings lie further than FusionConfig.max_sync_s from
+    every floor-camera frame: the back ends cannot place them (no load factor), so a front
+    camera whose clock is offset would silently empty the fused load maps."""
+    obs = loc.camera_frame_observations
+    if log.front is None or not obs:
+        return None
+    max_sync_s = FusionConfig().max_sync_s
+    t = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
+    unmatched = int((match_to_frames(log.floor.timestamps_ns, t, max_sync_s) < 0).sum())
+    if unmatched == 0:
+        return None
+    return LogWarning(
+        "load_sightings_unsynchronised",
+        unmatched,
+        f"{unmatched} of {len(obs)} front-camera load sightings are more than "
+        f"{max_sync_s * 1e3:.0f} ms from every floor-camera frame: the fused load maps leave "
+        "them out (are the cameras triggered together? a clock offset on cam1?)",
+    )
 
 
 def _progress(cfg: RunConfig, what: str) -> None:

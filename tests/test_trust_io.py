@@ -384,3 +384,21 @@ def test_simulate_on_a_full_disk_is_one_error_and_leaves_nothing(tmp_path, capsy
     line = _one_error_line(capsys)
     assert "cannot write the flight log: No space left on device" in line
     assert list(tmp_path.iterdir()) == []
+
+
+def test_front_camera_clock_offset_is_a_named_warning_not_an_empty_map(tmp_path, capsys):
+    """A 15 ms offset on cam1's clock puts every load sighting outside the 2 ms frame match: the
+    fused load maps lose them, and the run must say so (issue #8, 'silently wrong')."""
+    log = _copy_sample(tmp_path)
+    csv_path = log / "mav0" / "cam1" / "data.csv"
+    lines = csv_path.read_text().splitlines()
+    shifted = [lines[0]] + [
+        f"{int(t) + 15_000_000},{name}" for t, name in (line.split(",") for line in lines[1:])
+    ]
+    csv_path.write_text("\n".join(shifted) + "\n")
+    out = tmp_path / "out"
+    assert main(["run", str(log), "--out", str(out), "--quiet", "--workers", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "load_sightings_unsynchronised" in text
+    names = [w["name"] for w in json.loads((out / "metrics.json").read_text())["warnings"]]
+    assert "load_sightings_unsynchronised" in names
