@@ -496,3 +496,31 @@ def test_fuse_stage_survives_one_failing_estimator(short, monkeypatch):
     assert "Indeterminant" in out.failures[Estimator.INCREMENTAL].reason
     assert set(out.results) == {Estimator.EKF}
     assert len(out.results[Estimator.EKF].trajectory) > 0
+
+
+# =========================================================================== outlier mask in time
+
+
+def test_smoother_keeps_the_fixes_before_a_20s_camera_dropout():
+    """The floor camera is off for 20 s (no frames at all) after its first 0.2 s: by frame index
+    the six early fixes were judged against the fixes after the dropout (metres away) and
+    discarded from the initial guess; in time they have no neighbours across it and are kept,
+    so the problem starts at the first frame and its initial pose is the first fix."""
+    fl = make_flight(seed=34, duration_s=25.0, gaps=())
+    t = (fl.frame_t - fl.frame_t[0]) * 1e-9
+    keep = (t < 0.2) | (t >= 20.2)
+    frame_t = fl.frame_t[keep]
+    k_raw = np.searchsorted(fl.frame_t, fl.raw.timestamps_ns)
+    in_raw = keep[k_raw]
+    raw = Trajectory(
+        "pnp", fl.raw.timestamps_ns[in_raw], fl.raw.T_world_body[in_raw], fl.raw.covariances[in_raw]
+    )
+    p = raw.T_world_body[:, :3, 3]
+    assert np.linalg.norm(p[0] - p[-1]) > 1.0  # the fixes across the dropout disagree
+    pb = build_problem(frame_t, fl.imu, raw, [], FRONT_CAM)
+    assert pb.k_first == 0
+    np.testing.assert_allclose(pb.T_init[0], raw.T_world_body[0], atol=1e-9)
+    res = smooth(frame_t, fl.imu, raw, [], FRONT_CAM)
+    assert len(res.trajectory) == len(frame_t)
+    e = pos_err(res.trajectory.T_world_body, fl.T_true[keep])
+    assert e[t[keep] < 0.2].max() < 0.02, e[t[keep] < 0.2].max()

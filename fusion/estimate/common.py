@@ -408,7 +408,7 @@ def initial_poses(
 ) -> np.ndarray:
     """(N, 4, 4) initial T_world_body at every frame: raw poses, interpolated (linear position,
     slerp rotation) through gaps and held at the ends.  `use` masks out outliers."""
-    use = inlier_raw_mask(raw, config) if use is None else use
+    use = inlier_raw_mask(raw, config, frame_t) if use is None else use
     idx = raw.frame_idx[use]
     T = raw.T_world_body[use]
     # several raw poses at one frame (not expected): keep the first

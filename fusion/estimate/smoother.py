@@ -378,7 +378,7 @@ def build_problem(
     inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config, require_motion)
     frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     n = len(frame_t)
-    use = inlier_raw_mask(rawp, config)
+    use = inlier_raw_mask(rawp, config, frame_t)
     raw_input = raw_pose_input(rawp, floor_camera)
     T_init = initial_poses(frame_t, rawp, config, use)
     pb = Problem(
