@@ -1071,6 +1071,21 @@ class _Streak:
         return spread_m <= config.reinit_agreement_m and spread_yaw <= config.reinit_agreement_rad
 
 
+def fixes_jumped(pb: Problem, k: int, config: FusionConfig) -> bool:
+    """Whether two consecutive raw fixes within config.reinit_lookback_s before frame k (k
+    included) are further apart than config.reinit_max_speed_m_s allows: the fixes jumped (a
+    misprinted or misread code), so a streak of rejected fixes is no reason to restart."""
+    t = pb.frame_t
+    ks = pb.fix_frames[
+        (t[pb.fix_frames] <= t[k]) & (t[pb.fix_frames] >= t[k] - config.reinit_lookback_s * 1e9)
+    ]
+    if len(ks) < 2:
+        return False
+    p = np.array([pb.fix_T[int(j)][:3, 3] for j in ks])
+    dt = np.diff(t[ks]) * 1e-9
+    return bool(np.any(np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * dt))
+
+
 def _new_engine(config: FusionConfig):
     params = gtsam.ISAM2Params()
     params.setFactorization("QR")
@@ -1107,8 +1122,9 @@ def smooth_incremental(
 
     Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
-    from the prediction match: they move as the IMU says), e.g. after a long blackout, the
-    engine restarts at the latest fix: that fix's factor, priors on velocity and bias at their
+    from the prediction match: they move as the IMU says) and no two consecutive fixes of the
+    last reinit_lookback_s jumped faster than reinit_max_speed_m_s (fixes_jumped: a misprinted
+    code read while crossing it), e.g. after a long blackout, the engine restarts at the latest fix: that fix's factor, priors on velocity and bias at their
     current estimates, loads carried over as priors.  A singular update is handled the same way
     (health.linear_fallbacks).
 
@@ -1328,7 +1344,7 @@ def smooth_incremental(
                 streak.frames.append(k)
                 streak.offsets_m.append(T_fix[:3, 3] - pose_est.translation())
                 streak.offsets_yaw.append(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est)))
-                if streak.agrees(config):
+                if streak.agrees(config) and not fixes_jumped(pb, k, config):
                     # roll / pitch: the fix's when it has them, else the estimate's
                     R_new = (
                         T_fix[:3, :3]
