@@ -55,7 +55,7 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
-from fusion.geometry import make_T, rot_z, wrap_angle, yaw_of
+from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
 from fusion.types import (
@@ -1051,23 +1051,36 @@ class _Streak:
     """Consecutive fixes beyond the kernel threshold at the predicted state (incremental)."""
 
     frames: list[int] = field(default_factory=list)
+    t_s: list[float] = field(default_factory=list)
     offsets_m: list[np.ndarray] = field(default_factory=list)  # fix - prediction, world
     offsets_yaw: list[float] = field(default_factory=list)
+    # d(offset)/dt of the last agreeing streak (world, m/s): the estimate's velocity error
+    velocity_offset_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def clear(self) -> None:
         self.frames.clear()
+        self.t_s.clear()
         self.offsets_m.clear()
         self.offsets_yaw.clear()
 
     def agrees(self, config: FusionConfig) -> bool:
-        """Enough fixes, and their offsets from the IMU prediction agree with each other: the
-        fixes move as the IMU says, so the estimate (not the fixes) is off."""
-        if len(self.frames) < config.reinit_rejected_fixes:
+        """Enough fixes, and their offsets from the IMU prediction agree with each other up to a
+        position and velocity error of the estimate (a line in time fits them: the fixes move
+        as the IMU says, so the estimate, not the fixes, is off; an estimate left with a wrong
+        velocity after a blackout drifts from the fixes linearly)."""
+        m = config.reinit_rejected_fixes
+        if len(self.frames) < m:
             return False
-        d = np.array(self.offsets_m[-config.reinit_rejected_fixes :])
-        y = np.array(self.offsets_yaw[-config.reinit_rejected_fixes :])
-        spread_m = np.linalg.norm(d - np.median(d, axis=0), axis=1).max()
-        spread_yaw = np.abs(wrap_angle(y - np.median(y))).max()
+        t = np.array(self.t_s[-m:])
+        t = t - t.mean()
+        A = np.c_[np.ones(m), t]
+        d = np.array(self.offsets_m[-m:])
+        y = np.unwrap(np.array(self.offsets_yaw[-m:]))
+        cd, *_ = np.linalg.lstsq(A, d, rcond=None)
+        cy, *_ = np.linalg.lstsq(A, y, rcond=None)
+        spread_m = np.linalg.norm(d - A @ cd, axis=1).max()
+        spread_yaw = np.abs(y - A @ cy).max()
+        self.velocity_offset_m_s = cd[1]
         return spread_m <= config.reinit_agreement_m and spread_yaw <= config.reinit_agreement_rad
 
 
@@ -1084,6 +1097,37 @@ def fixes_jumped(pb: Problem, k: int, config: FusionConfig) -> bool:
     p = np.array([pb.fix_T[int(j)][:3, 3] for j in ks])
     dt = np.diff(t[ks]) * 1e-9
     return bool(np.any(np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * dt))
+
+
+def fix_position_cov_world(pb: Problem, k: int, i: int) -> np.ndarray:
+    """3x3 world-frame covariance of the position of frame k's fix (its pose factor i's noise
+    model: body frame for a 6-dof pose, the level frame for a gimbaled camera's level pose,
+    world for the paper's position + yaw)."""
+    nm = pb.factors[i].noiseModel()
+    C = (nm.noise() if isinstance(nm, gtsam.noiseModel.Robust) else nm).covariance()
+    T = pb.fix_T[k]
+    if pb.raw_input is RawPoseInput.POSE6:
+        R = T[:3, :3]
+        return R @ C[3:, 3:] @ R.T
+    if pb.raw_input is RawPoseInput.LEVEL_POSE:
+        R = rot_z(float(yaw_of(T[:3, :3])))
+        return R @ C[1:, 1:] @ R.T
+    return C[:3, :3]
+
+
+def innovation_distance(
+    pb: Problem, k: int, i: int, pose_pred: gtsam.Pose3, cov_prev: np.ndarray, R_prev: np.ndarray
+) -> float:
+    """Mahalanobis distance of frame k's fix position (pose factor i) from the IMU prediction pose_pred: the
+    innovation covariance is the previous frame's marginal position covariance (body frame,
+    R_prev its attitude) plus the preintegrated position covariance of the interval plus the
+    fix's own (Bar-Shalom et al. 2001, Sec. 5.4: S = H P H^T + R, position rows only)."""
+    P = R_prev @ cov_prev[3:, 3:] @ R_prev.T
+    if (k - 1) in pb.pims:
+        P = P + R_prev @ pb.pims[k - 1].preintMeasCov()[3:6, 3:6] @ R_prev.T
+    S = P + fix_position_cov_world(pb, k, i)
+    d = pb.fix_T[k][:3, 3] - pose_pred.translation()
+    return float(np.sqrt(max(d @ np.linalg.solve(S, d), 0.0)))
 
 
 def _new_engine(config: FusionConfig):
@@ -1124,9 +1168,12 @@ def smooth_incremental(
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
     from the prediction match: they move as the IMU says) and no two consecutive fixes of the
     last reinit_lookback_s jumped faster than reinit_max_speed_m_s (fixes_jumped: a misprinted
-    code read while crossing it), e.g. after a long blackout, the engine restarts at the latest fix: that fix's factor, priors on velocity and bias at their
-    current estimates, loads carried over as priors.  A singular update is handled the same way
-    (health.linear_fallbacks).
+    code read while crossing it), e.g. after a long blackout, the engine restarts at the latest
+    fix: that fix's factor, priors on velocity and bias at their current estimates, loads
+    carried over as priors.  A singular update is handled the same way (health.linear_fallbacks).
+    Innovation gate: a fix whose position lies beyond config.outlier_gate (Mahalanobis, against
+    the IMU prediction, innovation_distance) is not added (stats['gated_pose_factors']); it
+    still counts towards a re-initialisation streak.
 
     Output starts at the first raw-pose frame (`stats['frames_before_first_fix']` earlier
     frames have no estimate).  The velocity prior at the start uses the first 0.5 s of raw poses
@@ -1163,6 +1210,8 @@ def smooth_incremental(
     # the pose factor of each frame with a fix (for the re-initialisation test)
     pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
     streak = _Streak()
+    gate = config.outlier_gate
+    n_gated = 0
     # a fix counts towards a restart when the estimate is this far from it (Mahalanobis): the
     # outlier gate, else the kernel threshold
     reinit_distance = config.outlier_gate if config.outlier_gate is not None else pb.pose_threshold
@@ -1193,7 +1242,7 @@ def smooth_incremental(
         health.resets += 1
         health.note(reason)
 
-    def _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_guess, weak=False):
+    def _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_guess, weak=False, skip=-1):
         nonlocal n_generations
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
@@ -1261,7 +1310,7 @@ def smooth_incremental(
             for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
                 left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
         for i in by_frame[k]:
-            if oldest[i] < start:
+            if oldest[i] < start or i == skip:
                 continue
             f = pb.factors[i]
             j = load_of[i]
@@ -1318,8 +1367,26 @@ def smooth_incremental(
         if k == k0:
             pose_guess = gtsam.Pose3(pb.T_init[k0])
         fresh = k == start
+        # innovation gate (as the EKF's): a fix beyond the outlier gate of the IMU prediction
+        # is not added (a misprinted code pulls a fixed-lag window through any kernel); it
+        # still counts towards a re-initialisation streak below
+        skip = -1
+        if (
+            gate is not None
+            and k in pose_at
+            and not fresh
+            and k > start
+            and pb.has_imu
+            and (k - 1) in pb.pims
+            and innovation_distance(
+                pb, k, pose_at[k], pose_guess, cov_out[k - 1 - k0], pose_k.rotation().matrix()
+            )
+            > gate
+        ):
+            skip = pose_at[k]
+            n_gated += 1
         try:
-            _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k)
+            _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k, skip=skip)
         except (RuntimeError, ValueError) as e:
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             health.linear_fallbacks += 1
@@ -1342,6 +1409,7 @@ def smooth_incremental(
                 T_fix = pb.fix_T[k]
                 R_est = pose_est.rotation().matrix()
                 streak.frames.append(k)
+                streak.t_s.append(tk)
                 streak.offsets_m.append(T_fix[:3, 3] - pose_est.translation())
                 streak.offsets_yaw.append(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est)))
                 if streak.agrees(config) and not fixes_jumped(pb, k, config):
@@ -1358,7 +1426,12 @@ def smooth_incremental(
                         "fixes that the estimate had rejected (count: resets)",
                     )
                     _incremental_step(
-                        k, tk, True, gtsam.Pose3(make_T(R_new, T_fix[:3, 3])), vel_guess, bias_k
+                        k,
+                        tk,
+                        True,
+                        gtsam.Pose3(make_T(R_new, T_fix[:3, 3])),
+                        vel_guess + streak.velocity_offset_m_s,
+                        bias_k,
                     )
             else:
                 streak.clear()
@@ -1388,6 +1461,7 @@ def smooth_incremental(
         time_s=elapsed,
         incremental_lag_s=lag,
         load_generations=n_generations,
+        gated_pose_factors=n_gated,
         realtime_factor=duration / max(elapsed - t_build, 1e-9),
         health=health.as_dict(),
     )
