@@ -830,6 +830,34 @@ def gate_outliers(
     return beyond, priors, gated
 
 
+def jumped_fixes(pb: Problem, config: FusionConfig) -> set[int]:
+    """Pose factors left out of the first batch solve: the fixes of short segments between
+    physical impossibilities.  Consecutive fixes further apart than reinit_max_speed_m_s allows
+    split the fixes into segments; one side of each split is wrong (a misprinted or misread
+    code).  A segment shorter than reinit_lookback_s is suspect (a code read while crossing it:
+    Huber's linear pull of a consistent run would otherwise bend the IMU chain towards it,
+    worst at the flight's ends); `_smooth_once` takes suspects back when the solution without
+    them agrees with them.  None when the suspects would exceed max_gated_fraction of the fixes."""
+    pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
+    ks = np.array(sorted(pose_at), dtype=np.int64)
+    if len(ks) < 2:
+        return set()
+    t = pb.frame_t[ks] * 1e-9
+    p = np.array([pb.fix_T[int(k)][:3, 3] for k in ks])
+    jump = np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * np.diff(t)
+    if not jump.any():
+        return set()
+    seg = np.r_[0, np.cumsum(jump)]
+    suspects = []
+    for g in range(int(seg[-1]) + 1):
+        members = np.flatnonzero(seg == g)
+        if t[members[-1]] - t[members[0]] < config.reinit_lookback_s:
+            suspects.extend(pose_at[int(ks[m])] for m in members)
+    if len(suspects) > config.max_gated_fraction * len(ks):
+        return set()
+    return set(suspects)
+
+
 def release_heap() -> None:
     """Hand the heap freed by GTSAM's eliminations back to the OS (glibc keeps it otherwise:
     ~250 MB after a 10-minute flight), so the covariance pass does not stack on top of it."""
@@ -952,7 +980,8 @@ def _smooth_once(
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
-    graph = pb.graph()
+    suspects = jumped_fixes(pb, config)
+    graph = pb.graph(suspects)
     errors: list[float] = []
     res, graph, ordering = solve(graph, pb.initial, config, health, errors=errors)
     values, iterations, lin = res.values, res.iterations, res.linear
@@ -960,7 +989,7 @@ def _smooth_once(
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
     drop, dropped_loads, gated = gate_outliers(pb, dist, config, health)
-    if drop:
+    if drop != suspects or dropped_loads:
         graph = pb.graph(drop)
         for j in dropped_loads:
             graph.add(
