@@ -27,7 +27,9 @@ import ctypes
 import logging
 import math
 import time
+from collections.abc import Set as AbstractSet
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -149,13 +151,12 @@ def preintegrate(
     k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
     out: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
     bias0 = gtsam.imuBias.ConstantBias()
-    pim, cur = None, -1
+    cur = -1
     for j, (k, dt) in enumerate(zip(k_of.tolist(), dts.tolist())):
         if k != cur:
-            pim = gtsam.PreintegratedCombinedMeasurements(params, bias0)
-            out[k] = pim
+            out[k] = gtsam.PreintegratedCombinedMeasurements(params, bias0)
             cur = k
-        pim.integrateMeasurement(acc[j], gyr[j], dt)
+        out[k].integrateMeasurement(acc[j], gyr[j], dt)
     return out
 
 
@@ -281,7 +282,7 @@ class Problem:
         self.factors.append(factor)
         self.factor_frame.append(int(k))
 
-    def graph(self, skip: set[int] = frozenset()) -> gtsam.NonlinearFactorGraph:
+    def graph(self, skip: AbstractSet[int] = frozenset()) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for i, f in enumerate(self.factors):
             if i not in skip:
@@ -468,8 +469,10 @@ def build_problem(
             continue
         T = rawp.T_world_body[m]
         if raw_input is RawPoseInput.POSE6:
+            assert rawp.covariances is not None  # full_pose
             f = factors.pose_prior_factor(k, T, rawp.covariances[m], kernel, pb.pose_threshold)
         elif raw_input is RawPoseInput.LEVEL_POSE:
+            assert rawp.covariances is not None  # full_pose
             f = factors.level_pose_factor(k, T, rawp.covariances[m][2:, 2:], kernel, pb.pose_threshold)
         else:
             f = factors.position_yaw_factor(
@@ -484,6 +487,7 @@ def build_problem(
         pb.add(f, k, FactorKind.POSE)
         pb.counts.pose_factors += 1
     for k, (P, uv, W) in sorted(corner_frames.items()):
+        assert floor_camera is not None  # corner_frames exist only with a floor camera
         thr = config.threshold(8 * len(W))
         pb.add(
             factors.floor_corner_factor(
@@ -498,6 +502,7 @@ def build_problem(
     # ---- velocity factors
     vmask, v_body = velocity_at_frames(frame_t, velocity, config)
     for k in np.flatnonzero(vmask).tolist():
+        assert velocity is not None  # vmask is all False without velocity
         pb.add(factors.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
     pb.counts.velocity_factors = int(vmask.sum())
 
@@ -508,14 +513,14 @@ def build_problem(
         skipped += sum(len(obs) for obs in groups.values())
         groups = {}
     for j, lid in enumerate(sorted(groups)):
+        assert cam is not None  # groups is empty without a front camera
         obs = groups[lid]
         k_obs = np.array([k for k, _ in obs])
         p_cam = np.array([np.asarray(o.p_cam, float) for _, o in obs])
         for (k, o), pc in zip(obs, p_cam):
-            pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, np.asarray(o.cov_cam, float))
-            pb.add(
-                factors.load_factor(k, j, pc, o.cov_cam, cam, kernel, pb.load_threshold), k, FactorKind.LOAD
-            )
+            cov_cam = np.asarray(o.cov_cam, float)
+            pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, cov_cam)
+            pb.add(factors.load_factor(k, j, pc, cov_cam, cam, kernel, pb.load_threshold), k, FactorKind.LOAD)
         T_wc = cam.T_world_cam(pb.T_init[k_obs])
         pts = np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
         order = np.argsort(k_obs, kind="stable")
@@ -534,7 +539,9 @@ def build_problem(
     return pb
 
 
-def robust_distances(pb: Problem, values: gtsam.Values, skip: set[int] = frozenset()) -> dict[int, float]:
+def robust_distances(
+    pb: Problem, values: gtsam.Values, skip: AbstractSet[int] = frozenset()
+) -> dict[int, float]:
     """Mahalanobis distance (whitened residual norm before the kernel) of each robust factor."""
     return {i: mahalanobis(pb.factors[i], values) for i in pb.robust if i not in skip}
 
@@ -693,7 +700,7 @@ def _dim_of(key: int) -> int:
 def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
     """A weak prior at its current value on every variable (FusionConfig.fallback_sigma_*):
     keeps a singular system solvable without moving a well-constrained estimate."""
-    out = []
+    out: list = []
     rot, pos = config.fallback_sigma_rot_rad, config.fallback_sigma_pos_m
     pose_model = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, rot), np.full(3, pos)])
     for key in values.keys():
@@ -848,7 +855,7 @@ def jumped_fixes(pb: Problem, config: FusionConfig) -> set[int]:
     if not jump.any():
         return set()
     seg = np.r_[0, np.cumsum(jump)]
-    suspects = []
+    suspects: list[int] = []
     for g in range(int(seg[-1]) + 1):
         members = np.flatnonzero(seg == g)
         if t[members[-1]] - t[members[0]] < config.reinit_lookback_s:
@@ -1133,7 +1140,8 @@ def fix_position_cov_world(pb: Problem, k: int, i: int) -> np.ndarray:
     model: body frame for a 6-dof pose, the level frame for a gimbaled camera's level pose,
     world for the paper's position + yaw)."""
     nm = pb.factors[i].noiseModel()
-    C = (nm.noise() if isinstance(nm, gtsam.noiseModel.Robust) else nm).covariance()
+    base: Any = nm.noise() if isinstance(nm, gtsam.noiseModel.Robust) else nm
+    C = base.covariance()
     T = pb.fix_T[k]
     if pb.raw_input is RawPoseInput.POSE6:
         R = T[:3, :3]
@@ -1156,7 +1164,7 @@ def innovation_distance(
         P = P + R_prev @ pb.pims[k - 1].preintMeasCov()[3:6, 3:6] @ R_prev.T
     S = P + fix_position_cov_world(pb, k, i)
     d = pb.fix_T[k][:3, 3] - pose_pred.translation()
-    return float(np.sqrt(max(d @ np.linalg.solve(S, d), 0.0)))
+    return math.sqrt(max(float(d @ np.linalg.solve(S, d)), 0.0))
 
 
 def _new_engine(config: FusionConfig):
