@@ -161,7 +161,7 @@ def load_rmse_cm(res, fl) -> float:
 
 def accuracy_table(duration_s: float, seed: int, raw_scale: float = 1.0) -> None:
     fl = make_flight(duration_s, seed, raw_scale=raw_scale)
-    args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], FRONT_CAMERA)
+    args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"])
     raw_m = metrics(fl["raw"], fl)
     rows = [("raw (PnP-like)", raw_m, float("nan"), float("nan"))]
     solvers = (
@@ -172,7 +172,7 @@ def accuracy_table(duration_s: float, seed: int, raw_scale: float = 1.0) -> None
     )
     for name, fn, cfg in solvers:
         t0 = time.perf_counter()
-        res = fn(*args, config=cfg)
+        res = fn(*args, front_camera=FRONT_CAMERA, config=cfg)
         rows.append((name, metrics(res.trajectory, fl), load_rmse_cm(res, fl), time.perf_counter() - t0))
     print(
         f"\n### Accuracy, {duration_s:.0f} s flight, seed {seed}, raw noise x{raw_scale:g} "
@@ -207,8 +207,8 @@ def outlier_table(duration_s: float, seed: int) -> None:
     for name, fn in (("smoother", smooth), ("ekf", run_ekf)):
         for kernel in ("huber", "cauchy"):
             cfg = FusionConfig(robust_kernel=kernel)
-            a = fn(fl["frame_t"], fl["imu"], fl["raw"], [], FRONT_CAMERA, config=cfg)
-            b = fn(fl["frame_t"], fl["imu"], bad, [], FRONT_CAMERA, config=cfg)
+            a = fn(fl["frame_t"], fl["imu"], fl["raw"], [], front_camera=FRONT_CAMERA, config=cfg)
+            b = fn(fl["frame_t"], fl["imu"], bad, [], front_camera=FRONT_CAMERA, config=cfg)
             ea, eb = metrics(a.trajectory, fl)["ate_cm"], metrics(b.trajectory, fl)["ate_cm"]
             print(
                 f"| {name} | {kernel} | {ea:.3f} | {eb:.3f} | {100 * (eb / ea - 1):+.1f} % | "
@@ -232,10 +232,10 @@ def max_rss_mb() -> float:
 def speed_one(d_min: float) -> dict:
     """Time and memory of one flight length (run in a fresh process so max RSS is its own)."""
     fl = make_flight(60.0 * d_min, seed=int(d_min))
-    args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"], FRONT_CAMERA)
+    args = (fl["frame_t"], fl["imu"], fl["raw"], fl["load_obs"])
     rss0 = max_rss_mb()
     c0, t0 = time.process_time(), time.perf_counter()
-    res = smooth(*args)
+    res = smooth(*args, front_camera=FRONT_CAMERA)
     out = dict(
         frames=len(fl["frame_t"]),
         loads=len(res.loads.loads),
@@ -253,8 +253,8 @@ def speed_one(d_min: float) -> dict:
     )
     del res
     if d_min <= 10:
-        out["inc_rt"] = smooth_incremental(*args).stats["realtime_factor"]
-        out["ekf_rt"] = run_ekf(*args).stats["realtime_factor"]
+        out["inc_rt"] = smooth_incremental(*args, front_camera=FRONT_CAMERA).stats["realtime_factor"]
+        out["ekf_rt"] = run_ekf(*args, front_camera=FRONT_CAMERA).stats["realtime_factor"]
     return out
 
 

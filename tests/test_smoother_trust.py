@@ -496,3 +496,52 @@ def test_fuse_stage_survives_one_failing_estimator(short, monkeypatch):
     assert "Indeterminant" in out.failures[Estimator.INCREMENTAL].reason
     assert set(out.results) == {Estimator.EKF}
     assert len(out.results[Estimator.EKF].trajectory) > 0
+
+
+# =========================================================================== outlier mask in time
+
+
+def test_smoother_keeps_the_fixes_before_a_20s_camera_dropout():
+    """The floor camera is off for 20 s (no frames at all) after its first 0.2 s: by frame index
+    the six early fixes were judged against the fixes after the dropout (metres away) and
+    discarded from the initial guess; in time they have no neighbours across it and are kept,
+    so the problem starts at the first frame and its initial pose is the first fix."""
+    fl = make_flight(seed=34, duration_s=25.0, gaps=())
+    t = (fl.frame_t - fl.frame_t[0]) * 1e-9
+    keep = (t < 0.2) | (t >= 20.2)
+    frame_t = fl.frame_t[keep]
+    k_raw = np.searchsorted(fl.frame_t, fl.raw.timestamps_ns)
+    in_raw = keep[k_raw]
+    raw = Trajectory(
+        "pnp", fl.raw.timestamps_ns[in_raw], fl.raw.T_world_body[in_raw], fl.raw.covariances[in_raw]
+    )
+    p = raw.T_world_body[:, :3, 3]
+    assert np.linalg.norm(p[0] - p[-1]) > 1.0  # the fixes across the dropout disagree
+    pb = build_problem(frame_t, fl.imu, raw, [], FRONT_CAM)
+    assert pb.k_first == 0
+    np.testing.assert_allclose(pb.T_init[0], raw.T_world_body[0], atol=1e-9)
+    res = smooth(frame_t, fl.imu, raw, [], FRONT_CAM)
+    assert len(res.trajectory) == len(frame_t)
+    e = pos_err(res.trajectory.T_world_body, fl.T_true[keep])
+    assert e[t[keep] < 0.2].max() < 0.02, e[t[keep] < 0.2].max()
+
+
+def test_misprinted_code_at_the_flights_end_is_left_out():
+    """The last 1.5 s of fixes come from a misprinted code (1 m off in x, consistent with each
+    other): the batch smoother leaves the jumped segment out of its first solve and the
+    incremental smoother gates it against the IMU prediction, so neither bends towards it
+    (before: the batch estimate ended ~1 m off, the incremental one re-initialised onto it)."""
+    fl = make_flight(seed=35, duration_s=10.0, gaps=())
+    t = (fl.raw.timestamps_ns - fl.frame_t[0]) * 1e-9
+    bad = t >= t[-1] - 1.5
+    p = fl.raw.T_world_body[:, :3, 3].copy()
+    p[bad, 0] += 1.0
+    raw = with_raw_positions(fl.raw, p)
+    batch, inc = both_smoothers(fl, raw=raw)
+    for res in (batch, inc):
+        k0 = len(fl.frame_t) - len(res.trajectory)
+        e = pos_err(res.trajectory.T_world_body, fl.T_true[k0:])
+        assert e.max() < 0.05, (res.trajectory.name, e.max())
+        assert res.health.resets == 0
+    assert batch.stats["gated_pose_factors"] == int(bad.sum())
+    assert inc.stats["gated_pose_factors"] == int(bad.sum())

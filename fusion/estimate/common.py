@@ -189,6 +189,12 @@ class FusionConfig:
     reinit_sigma_pos_m: float = 1.0
     reinit_agreement_m: float = 0.05
     reinit_agreement_rad: float = math.radians(2.0)
+    # ... unless two consecutive fixes of the last `reinit_lookback_s` are further apart than
+    # `reinit_max_speed_m_s` allows (a warehouse drone's top speed with margin; as the EKF's
+    # EkfRecovery): the fixes jumped, not the estimate (a misprinted code read while crossing
+    # it), so the streak is theirs to explain.  A lock-out after a blackout has no such jump.
+    reinit_lookback_s: float = 3.0
+    reinit_max_speed_m_s: float = 5.0
 
     def __post_init__(self):
         try:
@@ -408,7 +414,7 @@ def initial_poses(
 ) -> np.ndarray:
     """(N, 4, 4) initial T_world_body at every frame: raw poses, interpolated (linear position,
     slerp rotation) through gaps and held at the ends.  `use` masks out outliers."""
-    use = inlier_raw_mask(raw, config) if use is None else use
+    use = inlier_raw_mask(raw, config, frame_t) if use is None else use
     idx = raw.frame_idx[use]
     T = raw.T_world_body[use]
     # several raw poses at one frame (not expected): keep the first

@@ -12,6 +12,7 @@ at the current value: for Pose3 a right perturbation [dr, dt] with R' = R Exp(dr
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -74,15 +75,20 @@ def imu_params(
     return p
 
 
-def robust(base: gtsam.noiseModel.Base, kernel: RobustKernel, threshold: float) -> gtsam.noiseModel.Base:
+def robust(
+    base: gtsam.noiseModel.Base, kernel: RobustKernel | str, threshold: float
+) -> gtsam.noiseModel.Base:
     """Wrap a Gaussian model in an M-estimator acting on the whitened residual norm."""
     est = gtsam.noiseModel.mEstimator
-    kernel = RobustKernel(kernel)
-    if kernel is RobustKernel.NONE:
+    kind = RobustKernel(kernel)
+    if kind is RobustKernel.NONE:
         return base
-    make = {RobustKernel.HUBER: est.Huber, RobustKernel.CAUCHY: est.Cauchy, RobustKernel.TUKEY: est.Tukey}[
-        kernel
-    ]
+    makers: dict[RobustKernel, Any] = {
+        RobustKernel.HUBER: est.Huber,
+        RobustKernel.CAUCHY: est.Cauchy,
+        RobustKernel.TUKEY: est.Tukey,
+    }
+    make = makers[kind]
     return gtsam.noiseModel.Robust.Create(make.Create(threshold), base)
 
 
@@ -347,6 +353,7 @@ def bridge_factors(
         constant_velocity_factor(k0, k1, dt, 0.5 * accel_sigma * dt**1.5 + min_sigma),
     ]
     if with_bias:
+        assert noise is not None  # bias states exist only with an IMU (and its noise)
         sg = max(noise.gyroscope_random_walk * math.sqrt(dt), min_sigma)
         sa = max(noise.accelerometer_random_walk * math.sqrt(dt), min_sigma)
         out.append(

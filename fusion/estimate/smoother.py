@@ -27,7 +27,9 @@ import ctypes
 import logging
 import math
 import time
+from collections.abc import Set as AbstractSet
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -55,7 +57,7 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals
-from fusion.geometry import make_T, rot_z, wrap_angle, yaw_of
+from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
 from fusion.types import (
@@ -149,13 +151,12 @@ def preintegrate(
     k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
     out: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
     bias0 = gtsam.imuBias.ConstantBias()
-    pim, cur = None, -1
+    cur = -1
     for j, (k, dt) in enumerate(zip(k_of.tolist(), dts.tolist())):
         if k != cur:
-            pim = gtsam.PreintegratedCombinedMeasurements(params, bias0)
-            out[k] = pim
+            out[k] = gtsam.PreintegratedCombinedMeasurements(params, bias0)
             cur = k
-        pim.integrateMeasurement(acc[j], gyr[j], dt)
+        out[k].integrateMeasurement(acc[j], gyr[j], dt)
     return out
 
 
@@ -281,7 +282,7 @@ class Problem:
         self.factors.append(factor)
         self.factor_frame.append(int(k))
 
-    def graph(self, skip: set[int] = frozenset()) -> gtsam.NonlinearFactorGraph:
+    def graph(self, skip: AbstractSet[int] = frozenset()) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
         for i, f in enumerate(self.factors):
             if i not in skip:
@@ -378,7 +379,7 @@ def build_problem(
     inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config, require_motion)
     frame_t, rawp, imu, velocity = inp.frame_t, inp.raw, inp.imu, inp.velocity
     n = len(frame_t)
-    use = inlier_raw_mask(rawp, config)
+    use = inlier_raw_mask(rawp, config, frame_t)
     raw_input = raw_pose_input(rawp, floor_camera)
     T_init = initial_poses(frame_t, rawp, config, use)
     pb = Problem(
@@ -468,8 +469,10 @@ def build_problem(
             continue
         T = rawp.T_world_body[m]
         if raw_input is RawPoseInput.POSE6:
+            assert rawp.covariances is not None  # full_pose
             f = factors.pose_prior_factor(k, T, rawp.covariances[m], kernel, pb.pose_threshold)
         elif raw_input is RawPoseInput.LEVEL_POSE:
+            assert rawp.covariances is not None  # full_pose
             f = factors.level_pose_factor(k, T, rawp.covariances[m][2:, 2:], kernel, pb.pose_threshold)
         else:
             f = factors.position_yaw_factor(
@@ -484,6 +487,7 @@ def build_problem(
         pb.add(f, k, FactorKind.POSE)
         pb.counts.pose_factors += 1
     for k, (P, uv, W) in sorted(corner_frames.items()):
+        assert floor_camera is not None  # corner_frames exist only with a floor camera
         thr = config.threshold(8 * len(W))
         pb.add(
             factors.floor_corner_factor(
@@ -498,6 +502,7 @@ def build_problem(
     # ---- velocity factors
     vmask, v_body = velocity_at_frames(frame_t, velocity, config)
     for k in np.flatnonzero(vmask).tolist():
+        assert velocity is not None  # vmask is all False without velocity
         pb.add(factors.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
     pb.counts.velocity_factors = int(vmask.sum())
 
@@ -508,14 +513,14 @@ def build_problem(
         skipped += sum(len(obs) for obs in groups.values())
         groups = {}
     for j, lid in enumerate(sorted(groups)):
+        assert cam is not None  # groups is empty without a front camera
         obs = groups[lid]
         k_obs = np.array([k for k, _ in obs])
         p_cam = np.array([np.asarray(o.p_cam, float) for _, o in obs])
         for (k, o), pc in zip(obs, p_cam):
-            pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, np.asarray(o.cov_cam, float))
-            pb.add(
-                factors.load_factor(k, j, pc, o.cov_cam, cam, kernel, pb.load_threshold), k, FactorKind.LOAD
-            )
+            cov_cam = np.asarray(o.cov_cam, float)
+            pb.load_args[len(pb.factors)] = LoadFactorArgs(k, j, pc, cov_cam)
+            pb.add(factors.load_factor(k, j, pc, cov_cam, cam, kernel, pb.load_threshold), k, FactorKind.LOAD)
         T_wc = cam.T_world_cam(pb.T_init[k_obs])
         pts = np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
         order = np.argsort(k_obs, kind="stable")
@@ -534,7 +539,9 @@ def build_problem(
     return pb
 
 
-def robust_distances(pb: Problem, values: gtsam.Values, skip: set[int] = frozenset()) -> dict[int, float]:
+def robust_distances(
+    pb: Problem, values: gtsam.Values, skip: AbstractSet[int] = frozenset()
+) -> dict[int, float]:
     """Mahalanobis distance (whitened residual norm before the kernel) of each robust factor."""
     return {i: mahalanobis(pb.factors[i], values) for i in pb.robust if i not in skip}
 
@@ -693,7 +700,7 @@ def _dim_of(key: int) -> int:
 def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
     """A weak prior at its current value on every variable (FusionConfig.fallback_sigma_*):
     keeps a singular system solvable without moving a well-constrained estimate."""
-    out = []
+    out: list = []
     rot, pos = config.fallback_sigma_rot_rad, config.fallback_sigma_pos_m
     pose_model = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, rot), np.full(3, pos)])
     for key in values.keys():
@@ -830,6 +837,34 @@ def gate_outliers(
     return beyond, priors, gated
 
 
+def jumped_fixes(pb: Problem, config: FusionConfig) -> set[int]:
+    """Pose factors left out of the first batch solve: the fixes of short segments between
+    physical impossibilities.  Consecutive fixes further apart than reinit_max_speed_m_s allows
+    split the fixes into segments; one side of each split is wrong (a misprinted or misread
+    code).  A segment shorter than reinit_lookback_s is suspect (a code read while crossing it:
+    Huber's linear pull of a consistent run would otherwise bend the IMU chain towards it,
+    worst at the flight's ends); `_smooth_once` takes suspects back when the solution without
+    them agrees with them.  None when the suspects would exceed max_gated_fraction of the fixes."""
+    pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
+    ks = np.array(sorted(pose_at), dtype=np.int64)
+    if len(ks) < 2:
+        return set()
+    t = pb.frame_t[ks] * 1e-9
+    p = np.array([pb.fix_T[int(k)][:3, 3] for k in ks])
+    jump = np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * np.diff(t)
+    if not jump.any():
+        return set()
+    seg = np.r_[0, np.cumsum(jump)]
+    suspects: list[int] = []
+    for g in range(int(seg[-1]) + 1):
+        members = np.flatnonzero(seg == g)
+        if t[members[-1]] - t[members[0]] < config.reinit_lookback_s:
+            suspects.extend(pose_at[int(ks[m])] for m in members)
+    if len(suspects) > config.max_gated_fraction * len(ks):
+        return set()
+    return set(suspects)
+
+
 def release_heap() -> None:
     """Hand the heap freed by GTSAM's eliminations back to the OS (glibc keeps it otherwise:
     ~250 MB after a 10-minute flight), so the covariance pass does not stack on top of it."""
@@ -952,7 +987,8 @@ def _smooth_once(
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
-    graph = pb.graph()
+    suspects = jumped_fixes(pb, config)
+    graph = pb.graph(suspects)
     errors: list[float] = []
     res, graph, ordering = solve(graph, pb.initial, config, health, errors=errors)
     values, iterations, lin = res.values, res.iterations, res.linear
@@ -960,7 +996,7 @@ def _smooth_once(
     dist = robust_distances(pb, values)
     rej = count_rejections(pb, dist)
     drop, dropped_loads, gated = gate_outliers(pb, dist, config, health)
-    if drop:
+    if drop != suspects or dropped_loads:
         graph = pb.graph(drop)
         for j in dropped_loads:
             graph.add(
@@ -1051,24 +1087,84 @@ class _Streak:
     """Consecutive fixes beyond the kernel threshold at the predicted state (incremental)."""
 
     frames: list[int] = field(default_factory=list)
+    t_s: list[float] = field(default_factory=list)
     offsets_m: list[np.ndarray] = field(default_factory=list)  # fix - prediction, world
     offsets_yaw: list[float] = field(default_factory=list)
+    # d(offset)/dt of the last agreeing streak (world, m/s): the estimate's velocity error
+    velocity_offset_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def clear(self) -> None:
         self.frames.clear()
+        self.t_s.clear()
         self.offsets_m.clear()
         self.offsets_yaw.clear()
 
     def agrees(self, config: FusionConfig) -> bool:
-        """Enough fixes, and their offsets from the IMU prediction agree with each other: the
-        fixes move as the IMU says, so the estimate (not the fixes) is off."""
-        if len(self.frames) < config.reinit_rejected_fixes:
+        """Enough fixes, and their offsets from the IMU prediction agree with each other up to a
+        position and velocity error of the estimate (a line in time fits them: the fixes move
+        as the IMU says, so the estimate, not the fixes, is off; an estimate left with a wrong
+        velocity after a blackout drifts from the fixes linearly)."""
+        m = config.reinit_rejected_fixes
+        if len(self.frames) < m:
             return False
-        d = np.array(self.offsets_m[-config.reinit_rejected_fixes :])
-        y = np.array(self.offsets_yaw[-config.reinit_rejected_fixes :])
-        spread_m = np.linalg.norm(d - np.median(d, axis=0), axis=1).max()
-        spread_yaw = np.abs(wrap_angle(y - np.median(y))).max()
+        t = np.array(self.t_s[-m:])
+        t = t - t.mean()
+        A = np.c_[np.ones(m), t]
+        d = np.array(self.offsets_m[-m:])
+        y = np.unwrap(np.array(self.offsets_yaw[-m:]))
+        cd, *_ = np.linalg.lstsq(A, d, rcond=None)
+        cy, *_ = np.linalg.lstsq(A, y, rcond=None)
+        spread_m = np.linalg.norm(d - A @ cd, axis=1).max()
+        spread_yaw = np.abs(y - A @ cy).max()
+        self.velocity_offset_m_s = cd[1]
         return spread_m <= config.reinit_agreement_m and spread_yaw <= config.reinit_agreement_rad
+
+
+def fixes_jumped(pb: Problem, k: int, config: FusionConfig) -> bool:
+    """Whether two consecutive raw fixes within config.reinit_lookback_s before frame k (k
+    included) are further apart than config.reinit_max_speed_m_s allows: the fixes jumped (a
+    misprinted or misread code), so a streak of rejected fixes is no reason to restart."""
+    t = pb.frame_t
+    ks = pb.fix_frames[
+        (t[pb.fix_frames] <= t[k]) & (t[pb.fix_frames] >= t[k] - config.reinit_lookback_s * 1e9)
+    ]
+    if len(ks) < 2:
+        return False
+    p = np.array([pb.fix_T[int(j)][:3, 3] for j in ks])
+    dt = np.diff(t[ks]) * 1e-9
+    return bool(np.any(np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * dt))
+
+
+def fix_position_cov_world(pb: Problem, k: int, i: int) -> np.ndarray:
+    """3x3 world-frame covariance of the position of frame k's fix (its pose factor i's noise
+    model: body frame for a 6-dof pose, the level frame for a gimbaled camera's level pose,
+    world for the paper's position + yaw)."""
+    nm = pb.factors[i].noiseModel()
+    base: Any = nm.noise() if isinstance(nm, gtsam.noiseModel.Robust) else nm
+    C = base.covariance()
+    T = pb.fix_T[k]
+    if pb.raw_input is RawPoseInput.POSE6:
+        R = T[:3, :3]
+        return R @ C[3:, 3:] @ R.T
+    if pb.raw_input is RawPoseInput.LEVEL_POSE:
+        R = rot_z(float(yaw_of(T[:3, :3])))
+        return R @ C[1:, 1:] @ R.T
+    return C[:3, :3]
+
+
+def innovation_distance(
+    pb: Problem, k: int, i: int, pose_pred: gtsam.Pose3, cov_prev: np.ndarray, R_prev: np.ndarray
+) -> float:
+    """Mahalanobis distance of frame k's fix position (pose factor i) from the IMU prediction pose_pred: the
+    innovation covariance is the previous frame's marginal position covariance (body frame,
+    R_prev its attitude) plus the preintegrated position covariance of the interval plus the
+    fix's own (Bar-Shalom et al. 2001, Sec. 5.4: S = H P H^T + R, position rows only)."""
+    P = R_prev @ cov_prev[3:, 3:] @ R_prev.T
+    if (k - 1) in pb.pims:
+        P = P + R_prev @ pb.pims[k - 1].preintMeasCov()[3:6, 3:6] @ R_prev.T
+    S = P + fix_position_cov_world(pb, k, i)
+    d = pb.fix_T[k][:3, 3] - pose_pred.translation()
+    return math.sqrt(max(float(d @ np.linalg.solve(S, d)), 0.0))
 
 
 def _new_engine(config: FusionConfig):
@@ -1107,10 +1203,14 @@ def smooth_incremental(
 
     Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
-    from the prediction match: they move as the IMU says), e.g. after a long blackout, the
-    engine restarts at the latest fix: that fix's factor, priors on velocity and bias at their
-    current estimates, loads carried over as priors.  A singular update is handled the same way
-    (health.linear_fallbacks).
+    from the prediction match: they move as the IMU says) and no two consecutive fixes of the
+    last reinit_lookback_s jumped faster than reinit_max_speed_m_s (fixes_jumped: a misprinted
+    code read while crossing it), e.g. after a long blackout, the engine restarts at the latest
+    fix: that fix's factor, priors on velocity and bias at their current estimates, loads
+    carried over as priors.  A singular update is handled the same way (health.linear_fallbacks).
+    Innovation gate: a fix whose position lies beyond config.outlier_gate (Mahalanobis, against
+    the IMU prediction, innovation_distance) is not added (stats['gated_pose_factors']); it
+    still counts towards a re-initialisation streak.
 
     Output starts at the first raw-pose frame (`stats['frames_before_first_fix']` earlier
     frames have no estimate).  The velocity prior at the start uses the first 0.5 s of raw poses
@@ -1147,6 +1247,8 @@ def smooth_incremental(
     # the pose factor of each frame with a fix (for the re-initialisation test)
     pose_at = {pb.factor_frame[i]: i for i, r in pb.robust.items() if r.kind is FactorKind.POSE}
     streak = _Streak()
+    gate = config.outlier_gate
+    n_gated = 0
     # a fix counts towards a restart when the estimate is this far from it (Mahalanobis): the
     # outlier gate, else the kernel threshold
     reinit_distance = config.outlier_gate if config.outlier_gate is not None else pb.pose_threshold
@@ -1177,7 +1279,7 @@ def smooth_incremental(
         health.resets += 1
         health.note(reason)
 
-    def _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_guess, weak=False):
+    def _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_guess, weak=False, skip=-1):
         nonlocal n_generations
         g = gtsam.NonlinearFactorGraph()
         vals = gtsam.Values()
@@ -1245,7 +1347,7 @@ def smooth_incremental(
             for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
                 left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
         for i in by_frame[k]:
-            if oldest[i] < start:
+            if oldest[i] < start or i == skip:
                 continue
             f = pb.factors[i]
             j = load_of[i]
@@ -1302,8 +1404,26 @@ def smooth_incremental(
         if k == k0:
             pose_guess = gtsam.Pose3(pb.T_init[k0])
         fresh = k == start
+        # innovation gate (as the EKF's): a fix beyond the outlier gate of the IMU prediction
+        # is not added (a misprinted code pulls a fixed-lag window through any kernel); it
+        # still counts towards a re-initialisation streak below
+        skip = -1
+        if (
+            gate is not None
+            and k in pose_at
+            and not fresh
+            and k > start
+            and pb.has_imu
+            and (k - 1) in pb.pims
+            and innovation_distance(
+                pb, k, pose_at[k], pose_guess, cov_out[k - 1 - k0], pose_k.rotation().matrix()
+            )
+            > gate
+        ):
+            skip = pose_at[k]
+            n_gated += 1
         try:
-            _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k)
+            _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k, skip=skip)
         except (RuntimeError, ValueError) as e:
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             health.linear_fallbacks += 1
@@ -1326,9 +1446,10 @@ def smooth_incremental(
                 T_fix = pb.fix_T[k]
                 R_est = pose_est.rotation().matrix()
                 streak.frames.append(k)
+                streak.t_s.append(tk)
                 streak.offsets_m.append(T_fix[:3, 3] - pose_est.translation())
                 streak.offsets_yaw.append(float(yaw_of(T_fix[:3, :3]) - yaw_of(R_est)))
-                if streak.agrees(config):
+                if streak.agrees(config) and not fixes_jumped(pb, k, config):
                     # roll / pitch: the fix's when it has them, else the estimate's
                     R_new = (
                         T_fix[:3, :3]
@@ -1342,7 +1463,12 @@ def smooth_incremental(
                         "fixes that the estimate had rejected (count: resets)",
                     )
                     _incremental_step(
-                        k, tk, True, gtsam.Pose3(make_T(R_new, T_fix[:3, 3])), vel_guess, bias_k
+                        k,
+                        tk,
+                        True,
+                        gtsam.Pose3(make_T(R_new, T_fix[:3, 3])),
+                        vel_guess + streak.velocity_offset_m_s,
+                        bias_k,
                     )
             else:
                 streak.clear()
@@ -1372,6 +1498,7 @@ def smooth_incremental(
         time_s=elapsed,
         incremental_lag_s=lag,
         load_generations=n_generations,
+        gated_pose_factors=n_gated,
         realtime_factor=duration / max(elapsed - t_build, 1e-9),
         health=health.as_dict(),
     )
