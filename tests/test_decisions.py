@@ -13,8 +13,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion.estimate import FusionConfig, run_ekf
-from fusion.estimate import factors, smoother
+from fusion.estimate import FusionConfig, factors, run_ekf, smoother
 from fusion.estimate.ekf import EkfRecovery, _Ekf, load_point_world
 from fusion.geometry import make_T, skew, so3_exp
 from fusion.log.euroc import ImuNoise, VelocityData
