@@ -17,6 +17,8 @@ from fusion.estimate import FusionConfig, factors, run_ekf, smoother
 from fusion.estimate.ekf import EkfRecovery, _Ekf, load_point_world
 from fusion.geometry import make_T, skew, so3_exp
 from fusion.log.euroc import ImuNoise, VelocityData
+from fusion.qr.pnp.flight import pose_at
+from fusion.qr.pnp.lm import same_pose
 from fusion.sim.scenarios import make_cameras
 from fusion.types import CameraRole, LoadObservation, RobustKernel, Trajectory
 
@@ -262,3 +264,29 @@ def test_smoother_bayes_tree_fallback_agrees_with_the_chain(monkeypatch):
     np.testing.assert_allclose(c1, c0, rtol=1e-6, atol=1e-6 * np.abs(c0).max())
     (l0,), (l1,) = chain.loads.loads, tree.loads.loads
     np.testing.assert_allclose(l1.cov_world, l0.cov_world, rtol=1e-6, atol=1e-6 * np.abs(l0.cov_world).max())
+
+
+# --------------------------------------------------------------------------- PnP helpers
+
+
+def test_same_pose_needs_both_rotation_and_position_within_tolerance():
+    """cos(angle) = (trace(R_a^T R_b) - 1) / 2; both tolerances must hold."""
+    R = so3_exp(np.array([0.3, -0.2, 1.0]))
+    t = np.array([1.0, 2.0, 3.0])
+    tol = math.radians(2.0)
+    axis = np.array([0.0, 0.6, 0.8])
+    assert same_pose(R, t, R @ so3_exp(0.9 * tol * axis), t, tol, 0.01)
+    assert not same_pose(R, t, R @ so3_exp(1.1 * tol * axis), t, tol, 0.01)
+    assert not same_pose(R, t, R, t + [0.0, 0.011, 0.0], tol, 0.01)  # same rotation, too far
+    assert not same_pose(R, t, R @ so3_exp(1.1 * tol * axis), t + 0.001, tol, 0.01)
+
+
+def test_pose_at_interpolates_linearly_in_time():
+    """Between two poses 0.1 s apart (stamped ~1.7e18 ns, as a real log): position at a of the way."""
+    t0 = 1_700_000_000_000_000_000
+    ts = np.array([t0, t0 + 100_000_000], np.int64)
+    T = np.stack([make_T(np.eye(3), [0.0, 0.0, 1.0]), make_T(np.eye(3), [1.0, 2.0, 1.0])])
+    traj = Trajectory("pnp", ts, T, None)
+    got, cov = pose_at(traj, t0 + 25_000_000)
+    assert cov is None
+    np.testing.assert_allclose(got[:3, 3], [0.25, 0.5, 1.0], atol=1e-9)
