@@ -7,6 +7,7 @@ hand and seeing the test fail.  Small and fast on purpose: mutmut runs them once
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gtsam
@@ -14,13 +15,15 @@ import numpy as np
 import pytest
 
 from fusion.estimate import FusionConfig, factors, run_ekf, smoother
+from fusion.estimate.common import FusionResult
 from fusion.estimate.ekf import EkfRecovery, _Ekf, load_point_world
+from fusion.estimate.health import Health, assess_result
 from fusion.geometry import make_T, skew, so3_exp
 from fusion.log.euroc import ImuNoise, VelocityData
 from fusion.qr.pnp.flight import pose_at
 from fusion.qr.pnp.lm import same_pose
 from fusion.sim.scenarios import make_cameras
-from fusion.types import CameraRole, LoadObservation, RobustKernel, Trajectory
+from fusion.types import CameraRole, LoadMap, LoadObservation, RobustKernel, Trajectory
 
 # --------------------------------------------------------------------------- factors.robust
 
@@ -290,3 +293,21 @@ def test_pose_at_interpolates_linearly_in_time():
     got, cov = pose_at(traj, t0 + 25_000_000)
     assert cov is None
     np.testing.assert_allclose(got[:3, 3], [0.25, 0.5, 1.0], atol=1e-9)
+
+
+# --------------------------------------------------------------------------- health summary
+
+
+def test_health_summary_keys_are_the_field_names_and_fractions_are_per_fix():
+    """metrics.json readers key on the Health field names; inflated / gated fractions are per
+    raw fix (assess_result)."""
+    frame_t, raw, _, _ = _static_flight(n=20, first_fix=0)
+    res = FusionResult(raw, LoadMap("ekf"), {"inflated_updates": 5, "gated_updates": 2})
+    h = assess_result(res, raw)
+    assert h.inflated_fraction == pytest.approx(5 / 20)
+    assert h.gated_fraction == pytest.approx(2 / 20)
+    d = h.to_dict()
+    fields = {f.name for f in dataclasses.fields(Health)} - {"reasons", "window_nis"}
+    assert set(d) == fields | {"reason"}
+    for k in fields - {"status"}:
+        assert d[k] == getattr(h, k) or (d[k] != d[k] and getattr(h, k) != getattr(h, k))  # nan
