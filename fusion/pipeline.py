@@ -11,6 +11,7 @@ the run locks, lists in `manifest.json` and rolls back on failure (`fusion.filei
 
 from __future__ import annotations
 
+import csv
 import logging
 import time
 from collections.abc import Callable
@@ -20,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from fusion.errors import EstimationError, FusionError
+from fusion import __version__
+from fusion.conventions import FloorPayload, parse_payload
+from fusion.errors import EstimationError, FusionError, PayloadError
 from fusion.estimate import (
     FusionConfig,
     FusionResult,
@@ -30,12 +33,20 @@ from fusion.estimate import (
     run_ekf,
     smooth,
     smooth_incremental,
+    write_sigmas_csv,
 )
 from fusion.estimate.common import match_to_frames
-from fusion.fileio import OutputFolder, csv_safe
+from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
+from fusion.evaluate.report import write_report
+from fusion.fileio import OutputFolder, atomic_open, csv_safe
 from fusion.log import FlightLog, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
+from fusion.qr import paper, pnp
+from fusion.qr.codes import classify, rejection_counts
+from fusion.qr.detect import CACHE_NAME, detect_flight, read_cache
+from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
+from fusion.sim.simulate import simulate
 from fusion.types import (
     RAW_ESTIMATORS,
     Estimator,
@@ -161,8 +172,6 @@ def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> 
     refuses a non-empty one unless `force` (then deletes the previous run's outputs from its
     manifest, keeps the user's files and the self-checking detection cache); leaving writes
     `manifest.json`, or on failure removes what the run wrote."""
-    from fusion import __version__
-    from fusion.qr.detect import CACHE_NAME
 
     meta = {"fusion_version": __version__, "log": str(log_dir) if log_dir is not None else None}
     return OutputFolder(Path(out_dir), force, keep=(CACHE_NAME,), meta=meta)
@@ -187,7 +196,6 @@ class LocalizeResult:
 
 def detection_statistics(log: FlightLog, det, world) -> dict:
     """Frames with a (valid) floor code, codes per frame, rejected payloads by reason."""
-    from fusion.qr.codes import classify, rejection_counts
 
     floor = det.by_frame("cam0")
     classified = {t: classify(d, world) for t, d in floor.items()}
@@ -254,7 +262,6 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
             preload=_LOCALIZE_PRELOAD,
         )
     )
-    from fusion.qr import paper, pnp
 
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
@@ -276,7 +283,6 @@ _LOCALIZE_PRELOAD = ("fusion.pipeline",)
 
 def _localize_floor_chunk(context, frames: dict) -> dict:
     """Paper and PnP poses of the floor frames {timestamp_ns: detections} of one chunk."""
-    from fusion.qr import paper, pnp
 
     camera, world, cfg = context
     out: dict[str, Any] = {"paper": None, "paper_error": None}
@@ -291,7 +297,6 @@ def _localize_floor_chunk(context, frames: dict) -> dict:
 def _localize_front_chunk(context, frames: dict) -> dict:
     """Paper and PnP load observations of the front frames {timestamp_ns: detections} of one
     chunk, placed with the raw trajectories."""
-    from fusion.qr import paper, pnp
 
     camera, world, traj_paper, traj_pnp, cfg = context
     out: dict[str, Any] = {"paper": [], "paper_error": None}
@@ -371,8 +376,6 @@ def _unposed_load_observations(
 ) -> list[LoadObservation]:
     """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
     their p_world is meaningless (identity drone pose) and must not be used."""
-    from fusion.qr.codes import classify
-    from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 
     batch: list[LoadFrame] = []
     for ts in sorted(set(front_frames) - posed_ns):
@@ -427,8 +430,6 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
     graph_kwargs: dict[str, Any] = {"floor_camera": log.floor.camera}
     if cfg.tight:
-        from fusion.qr.codes import classify
-
         graph_kwargs["floor_frames"] = {
             t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
         }
@@ -479,9 +480,6 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
 
 def write_load_observations_csv(path: Path, observations: list[LoadObservation]) -> None:
     """Raw per-frame load observations: `timestamp_ns,id,x_m,y_m,z_m,sigma_x_m,sigma_y_m,sigma_z_m`."""
-    import csv
-
-    from fusion.fileio import atomic_open
 
     with atomic_open(path) as f:
         w = csv.writer(f, lineterminator="\n")
@@ -518,7 +516,6 @@ def _run_into(
     log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings: dict, t: float
 ) -> RunResult:
     """`run`'s stages, writing into the prepared (locked) output folder."""
-    from fusion.qr.detect import detect_flight
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
     timings["read_s"] = time.perf_counter() - t
@@ -612,7 +609,6 @@ def _progress(cfg: RunConfig, what: str) -> None:
 
 
 def _write_estimates(out_dir: Path, result: RunResult) -> None:
-    from fusion.estimate import write_sigmas_csv
 
     for name, traj in result.trajectories.items():
         write_tum(out_dir / f"trajectory_{name}.tum", traj)
@@ -624,13 +620,6 @@ def _write_estimates(out_dir: Path, result: RunResult) -> None:
 
 
 def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, raw_stats: dict) -> None:
-    from fusion.evaluate.metrics import (
-        evaluate,
-        export_groundtruth_tum,
-        to_jsonable,
-        write_metrics,
-    )
-    from fusion.evaluate.report import write_report
 
     out_dir = result.out_dir
     gt = log.groundtruth
@@ -677,9 +666,6 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
 
 def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
-    from fusion.conventions import FloorPayload, parse_payload
-    from fusion.errors import PayloadError
-    from fusion.qr.detect import read_cache
 
     cached = read_cache(out_dir / "detections.csv")
     if cached is None:
@@ -702,7 +688,6 @@ def demo(
     complete) and run the whole pipeline into `folder/out` (the previous demo's outputs are
     replaced).  Nothing the demo did not create is deleted: other files in `folder/log` and
     `folder/out` stay, and files of a log layout it did not write are refused, not replaced."""
-    from fusion.sim.simulate import simulate
 
     folder = Path(folder)
     log_dir = folder / "log"
