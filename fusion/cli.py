@@ -1,7 +1,11 @@
 """`fusion` command line: parse arguments, call the library, print.  No maths here.
 
 Known errors (fusion.errors.FusionError) become one line on stderr and exit code 1; anything else
-keeps its traceback, because it is a bug.
+keeps its traceback, because it is a bug.  `--strict` runs exit 3 when an estimate is not trusted.
+
+Each subcommand imports its library module when it runs (the one place where imports sit inside
+functions on purpose): `fusion --help` or `fusion qr-sheet` should not load GTSAM, OpenCV,
+rosbags and PyAV.
 """
 
 from __future__ import annotations
