@@ -22,8 +22,7 @@ from typing import Any
 import numpy as np
 
 from fusion import __version__
-from fusion.conventions import FloorPayload, parse_payload
-from fusion.errors import EstimationError, FusionError, PayloadError
+from fusion.errors import EstimationError, FusionError
 from fusion.estimate import (
     FusionConfig,
     FusionResult,
@@ -44,7 +43,7 @@ from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.detect import CACHE_NAME, detect_flight, read_cache
+from fusion.qr.detect import CACHE_NAME, detect_flight
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 from fusion.sim.simulate import simulate
 from fusion.types import (
@@ -55,6 +54,7 @@ from fusion.types import (
     RobustKernel,
     Trajectory,
 )
+from fusion.warehouse.view3d import floor_codes_from_detections
 
 logger = logging.getLogger(__name__)
 
@@ -666,19 +666,7 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
 
 def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
-
-    cached = read_cache(out_dir / "detections.csv")
-    if cached is None:
-        return None
-    xy = set()
-    for d in cached.for_camera("cam0"):
-        try:
-            p = parse_payload(d.payload)
-        except PayloadError:
-            continue
-        if isinstance(p, FloorPayload):
-            xy.add((p.x * log.world.payload_unit_m, p.y * log.world.payload_unit_m))
-    return np.array(sorted(xy)) if xy else None
+    return floor_codes_from_detections(out_dir, log.world.payload_unit_m)
 
 
 def demo(
