@@ -311,3 +311,20 @@ def test_health_summary_keys_are_the_field_names_and_fractions_are_per_fix():
     assert set(d) == fields | {"reason"}
     for k in fields - {"status"}:
         assert d[k] == getattr(h, k) or (d[k] != d[k] and getattr(h, k) != getattr(h, k))  # nan
+
+
+def test_pnp_counts_every_frame_without_a_floor_code_and_merges_stats_by_sum():
+    """Survivors of the mutation sample: the counter of frames without a floor code (`+= 1`
+    -> `= 1`) and PnPStats.merged (never called by the subset)."""
+    from tests.test_pnp import FLOOR_CAM, WORLD
+
+    from fusion.qr.pnp.flight import PnPStats, pnp_trajectory
+
+    traj, stats = pnp_trajectory({t: [] for t in (10, 20, 30)}, FLOOR_CAM, WORLD)
+    assert len(traj) == 0 and stats.n_frames == 3 and stats.n_without_floor_code == 3
+    a = PnPStats(n_frames=4, n_posed=2, mean_reprojection_rms_px=0.1, codes_per_pose={1: 2})
+    b = PnPStats(n_frames=6, n_posed=6, mean_reprojection_rms_px=0.3, codes_per_pose={1: 1, 2: 5})
+    m = PnPStats.merged([a, b, PnPStats()])
+    assert (m.n_frames, m.n_posed) == (10, 8)
+    assert m.codes_per_pose == {1: 3, 2: 5}
+    assert m.mean_reprojection_rms_px == pytest.approx((2 * 0.1 + 6 * 0.3) / 8)
