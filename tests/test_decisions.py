@@ -316,9 +316,8 @@ def test_health_summary_keys_are_the_field_names_and_fractions_are_per_fix():
 def test_pnp_counts_every_frame_without_a_floor_code_and_merges_stats_by_sum():
     """Survivors of the mutation sample: the counter of frames without a floor code (`+= 1`
     -> `= 1`) and PnPStats.merged (never called by the subset)."""
-    from tests.test_pnp import FLOOR_CAM, WORLD
-
     from fusion.qr.pnp.flight import PnPStats, pnp_trajectory
+    from tests.test_pnp import FLOOR_CAM, WORLD
 
     traj, stats = pnp_trajectory({t: [] for t in (10, 20, 30)}, FLOOR_CAM, WORLD)
     assert len(traj) == 0 and stats.n_frames == 3 and stats.n_without_floor_code == 3
