@@ -17,7 +17,7 @@ import numpy as np
 
 from fusion.errors import CameraModelError
 from fusion.fileio import dump_yaml, load_yaml
-from fusion.geometry import inv_T, level_frame
+from fusion.geometry import inv_T, is_rigid_transform, level_frame
 
 MOUNTS = ("body_fixed", "gimbaled")
 
@@ -228,11 +228,6 @@ def read_T_BS(value, source: str, error=CameraModelError) -> np.ndarray:
         raise error(f"{source}: 'T_BS' must have rows, cols and data")
     data = _floats(value["data"], 16, "T_BS.data", source, error)
     T = np.array(data).reshape(4, 4)
-    R = T[:3, :3]
-    if (
-        not np.allclose(R @ R.T, np.eye(3), atol=1e-6)
-        or abs(np.linalg.det(R) - 1) > 1e-6
-        or not np.allclose(T[3], [0, 0, 0, 1])
-    ):
+    if not is_rigid_transform(T, atol=1e-6):
         raise error(f"{source}: 'T_BS' is not a rigid transform")
     return T

@@ -215,6 +215,17 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     return np.hstack([w, u])
 
 
+def is_rigid_transform(T: np.ndarray, atol: float = 1e-6) -> bool:
+    """Whether a 4x4 matrix is a rigid transform: orthonormal rotation with det +1 and the last row
+    [0, 0, 0, 1], within `atol` (files print a limited number of digits)."""
+    R = T[:3, :3]
+    return bool(
+        np.allclose(R @ R.T, np.eye(3), atol=atol)
+        and abs(np.linalg.det(R) - 1) <= atol
+        and np.allclose(T[3], [0, 0, 0, 1])
+    )
+
+
 def adjoint(T: np.ndarray) -> np.ndarray:
     """6x6 adjoint of a pose in GTSAM's [r, t] order: [[R, 0], [[t]x R, R]]
     (gtsam.Pose3.AdjointMap): xi_a = Ad(T_a_b) xi_b."""

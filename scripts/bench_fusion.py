@@ -32,7 +32,7 @@ from fusion.estimate import FusionConfig, run_ekf, smooth, smooth_incremental
 from fusion.geometry import inv_T, make_T, wrap_angle, yaw_of
 from fusion.log.euroc import ImuNoise
 from fusion.sim.imu import synthesize_imu
-from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
+from fusion.sim.trajectory import random_aisle_survey
 from fusion.types import LoadObservation, Trajectory
 
 T_BODY_FRONTCAM = make_T(R_BODY_FRONTCAM, [0.1, 0.0, 0.05])
@@ -58,22 +58,7 @@ def make_flight(
     `raw_scale` multiplies the raw-pose noise (sigmas) of pnp_like_cov()."""
     rng = np.random.default_rng(seed)
     # random survey waypoints in a 20 m x 10 m aisle area, 1-2.5 m high
-    wps = [(0.0, 0.0, 1.5, 0.0, 1.0)]
-    while True:
-        kf = survey_keyframes(wps, speed_m_s=0.6, yaw_rate_rad_s=0.6)
-        if kf[-1].t_s >= duration_s:
-            break
-        prev = wps[-1]
-        wps.append(
-            (
-                float(np.clip(prev[0] + rng.uniform(-4, 4), -10, 10)),
-                float(np.clip(prev[1] + rng.uniform(-3, 3), -5, 5)),
-                float(rng.uniform(1.0, 2.5)),
-                prev[3] + float(rng.uniform(-1.5, 1.5)),
-                float(rng.choice([0.0, 1.0])),
-            )
-        )
-    traj = KeyframeTrajectory(kf)
+    traj = random_aisle_survey(duration_s, rng)
     imu, _, _ = synthesize_imu(traj, 200.0, ImuNoise(), rng)
     frame_t = np.round(np.arange(0.0, duration_s, 1 / 30.0) * 1e9).astype(np.int64)
     st = traj.state(frame_t * 1e-9)

@@ -47,7 +47,7 @@ from fusion.geometry import inv_T, level_frame
 from fusion.log.euroc import ImuNoise
 from fusion.sim.imu import synthesize_imu
 from fusion.sim.scenarios import make_cameras
-from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
+from fusion.sim.trajectory import random_aisle_survey
 from fusion.types import CameraRole, Estimator, LoadObservation, Mount, Trajectory
 
 SCENARIOS = ("default", "gimbaled", "fps10", "mems_bias", "blackout10", "misread5", "misprint")
@@ -85,22 +85,7 @@ def make_flight(scenario: str, seed: int, duration_s: float = 25.0) -> dict:
     if scenario not in SCENARIOS:
         raise SystemExit(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
     rng = np.random.default_rng(seed)
-    wps = [(0.0, 0.0, 1.5, 0.0, 1.0)]
-    while True:
-        kf = survey_keyframes(wps, speed_m_s=0.6, yaw_rate_rad_s=0.6)
-        if kf[-1].t_s >= duration_s + 0.5:
-            break
-        prev = wps[-1]
-        wps.append(
-            (
-                float(np.clip(prev[0] + rng.uniform(-4, 4), -10, 10)),
-                float(np.clip(prev[1] + rng.uniform(-3, 3), -5, 5)),
-                float(rng.uniform(1.0, 2.5)),
-                prev[3] + float(rng.uniform(-1.5, 1.5)),
-                float(rng.choice([0.0, 1.0])),
-            )
-        )
-    traj = KeyframeTrajectory(kf)
+    traj = random_aisle_survey(duration_s + 0.5, rng)
     mount = Mount.GIMBALED if scenario == "gimbaled" else Mount.BODY_FIXED
     cams = make_cameras(mount=str(mount))
     floor_cam, front_cam = cams[str(CameraRole.FLOOR)], cams[str(CameraRole.FRONT)]

@@ -468,6 +468,14 @@ def write_sigmas_csv(path, traj: Trajectory) -> None:
             f.write(f"{int(t)}," + ",".join(f"{v:.6e}" for v in s) + "\n")
 
 
+def fix_jumps(t_s: np.ndarray, p_world: np.ndarray, max_speed_m_s: float, slack_m=0.0) -> np.ndarray:
+    """(N-1,) whether each step between consecutive fixes (times `t_s` (N,), positions
+    `p_world` (N, 3)) is longer than a drone at `max_speed_m_s` can fly in that time, plus
+    `slack_m` (a scalar or (N-1,) tolerance for the fixes' own noise): the fixes jumped."""
+    step = np.linalg.norm(np.diff(p_world, axis=0), axis=1)
+    return step > max_speed_m_s * np.diff(t_s) + slack_m
+
+
 def group_load_obs(
     frame_t: np.ndarray, load_obs: list[LoadObservation], config: FusionConfig
 ) -> tuple[dict[str, list[tuple[int, LoadObservation]]], int]:

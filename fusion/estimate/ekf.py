@@ -70,6 +70,7 @@ from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
     first_velocity,
+    fix_jumps,
     group_load_obs,
     inlier_raw_mask,
     prepare_inputs,
@@ -166,9 +167,8 @@ class _FixWindow:
         t = np.array([x.t_s for x in f])
         P = np.array([x.p_world for x in f])
         sp = np.array([np.linalg.norm(x.sigma_p) for x in f])
-        step = np.linalg.norm(np.diff(P, axis=0), axis=1)
-        allowed = self.rec.max_speed_m_s * np.diff(t) + 3.0 * (sp[1:] + sp[:-1]) + self.rec.consistency_m
-        return bool(np.all(step <= allowed))
+        slack = 3.0 * (sp[1:] + sp[:-1]) + self.rec.consistency_m
+        return not bool(np.any(fix_jumps(t, P, self.rec.max_speed_m_s, slack)))
 
     def consistent(self) -> bool:
         return self.fit(self.recent())[0] and self.jump_free()

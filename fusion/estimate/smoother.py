@@ -47,6 +47,7 @@ from fusion.estimate.common import (
     SolveMode,
     TightCoupling,
     first_velocity,
+    fix_jumps,
     group_load_obs,
     initial_poses,
     initial_velocities,
@@ -851,7 +852,7 @@ def jumped_fixes(pb: Problem, config: FusionConfig) -> set[int]:
         return set()
     t = pb.frame_t[ks] * 1e-9
     p = np.array([pb.fix_T[int(k)][:3, 3] for k in ks])
-    jump = np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * np.diff(t)
+    jump = fix_jumps(t, p, config.reinit_max_speed_m_s)
     if not jump.any():
         return set()
     seg = np.r_[0, np.cumsum(jump)]
@@ -1131,8 +1132,7 @@ def fixes_jumped(pb: Problem, k: int, config: FusionConfig) -> bool:
     if len(ks) < 2:
         return False
     p = np.array([pb.fix_T[int(j)][:3, 3] for j in ks])
-    dt = np.diff(t[ks]) * 1e-9
-    return bool(np.any(np.linalg.norm(np.diff(p, axis=0), axis=1) > config.reinit_max_speed_m_s * dt))
+    return bool(np.any(fix_jumps(t[ks] * 1e-9, p, config.reinit_max_speed_m_s)))
 
 
 def fix_position_cov_world(pb: Problem, k: int, i: int) -> np.ndarray:

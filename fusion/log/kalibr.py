@@ -35,7 +35,7 @@ import numpy as np
 from fusion.camera import MOUNTS, CameraModel
 from fusion.errors import LogError
 from fusion.fileio import dump_yaml, load_yaml
-from fusion.geometry import inv_T
+from fusion.geometry import inv_T, is_rigid_transform
 from fusion.log.euroc import ImuNoise
 from fusion.types import CameraRole
 
@@ -73,12 +73,7 @@ def _matrix(value, where: str) -> np.ndarray:
         raise LogError(f"{where}: not a 4x4 matrix of numbers") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise LogError(f"{where}: not a 4x4 matrix of finite numbers")
-    R = T[:3, :3]
-    if (
-        not np.allclose(R @ R.T, np.eye(3), atol=1e-5)
-        or abs(np.linalg.det(R) - 1) > 1e-5
-        or not np.allclose(T[3], [0, 0, 0, 1])
-    ):
+    if not is_rigid_transform(T, atol=1e-5):
         raise LogError(f"{where}: not a rigid transform")
     return T
 

@@ -119,6 +119,27 @@ class KeyframeTrajectory:
         return self._flat(t)[4]
 
 
+def random_aisle_survey(duration_s: float, rng: np.random.Generator) -> KeyframeTrajectory:
+    """A random survey at least `duration_s` long: waypoints wandering in a 20 m x 10 m aisle
+    area, 1-2.5 m high, at 0.6 m/s and 0.6 rad/s, hovering at random ones (the fusion
+    benchmarks' flights; deterministic for the state of `rng`)."""
+    wps = [(0.0, 0.0, 1.5, 0.0, 1.0)]
+    while True:
+        kf = survey_keyframes(wps, speed_m_s=0.6, yaw_rate_rad_s=0.6)
+        if kf[-1].t_s >= duration_s:
+            return KeyframeTrajectory(kf)
+        prev = wps[-1]
+        wps.append(
+            (
+                float(np.clip(prev[0] + rng.uniform(-4, 4), -10, 10)),
+                float(np.clip(prev[1] + rng.uniform(-3, 3), -5, 5)),
+                float(rng.uniform(1.0, 2.5)),
+                prev[3] + float(rng.uniform(-1.5, 1.5)),
+                float(rng.choice([0.0, 1.0])),
+            )
+        )
+
+
 def survey_keyframes(
     waypoints, speed_m_s: float = 0.6, yaw_rate_rad_s: float = 0.6, min_segment_s: float = 0.8
 ) -> list[Keyframe]:
