@@ -305,6 +305,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("A4", "A3", "letter"),
         help="paper size (default A3: a 0.20 m code with its quiet zone exceeds A4)",
     )
+    p.add_argument(
+        "--ecc",
+        default="H",
+        choices=("L", "M", "Q", "H"),
+        help="error-correction level (default H: floor codes survive dirt, tyre marks and glare)",
+    )
     return parser
 
 
@@ -416,6 +422,7 @@ def main(argv: list[str] | None = None) -> int:
                 load_ids=args.loads,
                 load_side_m=args.load_side,
                 page=args.page,
+                ecc=args.ecc,
             )
             print(f"wrote {args.out} ({pages} pages)")
     except FusionError as e:

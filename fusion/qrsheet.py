@@ -12,7 +12,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure
@@ -22,6 +21,7 @@ from matplotlib.path import Path as MplPath
 from fusion.conventions import FloorPayload, LoadPayload, floor_payload, load_payload, parse_payload
 from fusion.errors import PayloadError, QRSheetError
 from fusion.fileio import atomic_open
+from fusion.qr.symbol import ECC_LEVELS, SHEET_ECC, encode_symbol
 
 MM_PER_INCH = 25.4
 PAGES_MM = {
@@ -38,21 +38,17 @@ LABEL_MM = 11.0  # two text lines under each code
 QUIET_ZONE_MODULES = 4  # ISO/IEC 18004 quiet zone
 
 
-def symbol_modules(payload: str) -> np.ndarray:
-    """(n, n) bool, True = dark module, of the QR symbol for `payload` (cv2.QRCodeEncoder, the
-    simulator's encoder), cropped to the symbol's outer edge (no quiet zone); row 0 is the top."""
+def symbol_modules(payload: str, ecc: str = SHEET_ECC) -> np.ndarray:
+    """(n, n) bool, True = dark module, of the QR symbol for `payload` at error-correction level
+    `ecc` (L, M, Q, H; fusion.qr.symbol, the simulator's encoder), cropped to the symbol's outer
+    edge (no quiet zone); row 0 is the top."""
     try:
-        img = cv2.QRCodeEncoder.create().encode(payload)
-    except cv2.error as e:
-        raise QRSheetError(f"cannot encode {payload!r} as a QR code ({e})") from None
-    if img is None or img.size == 0:
+        img = encode_symbol(payload, ecc)
+    except ValueError as e:
+        raise QRSheetError(str(e)) from None
+    if img is None:
         raise QRSheetError(f"cannot encode {payload!r} as a QR code")
-    dark = np.argwhere(img < 128)
-    (r0, c0), (r1, c1) = dark.min(axis=0), dark.max(axis=0)
-    sym = img[r0 : r1 + 1, c0 : c1 + 1] < 128
-    if sym.shape[0] != sym.shape[1] or (sym.shape[0] - 17) % 4:
-        raise QRSheetError(f"unexpected QR symbol size {sym.shape} for {payload!r}")
-    return sym
+    return img < 128
 
 
 def _modules_path(sym: np.ndarray) -> MplPath:
@@ -79,6 +75,7 @@ class SheetCode:
     payload: str
     side_m: float
     caption: tuple[str, str]
+    ecc: str = SHEET_ECC  # error-correction level (fusion.qr.symbol.ECC_LEVELS)
     x_in: float = 0.0
     y_in: float = 0.0
 
@@ -114,7 +111,10 @@ def _codes(
     payload_unit_m: float,
     load_ids: Iterable[str],
     load_side_m: float,
+    ecc: str = SHEET_ECC,
 ) -> tuple[list[SheetCode], list[SheetCode]]:
+    if ecc not in ECC_LEVELS:
+        raise QRSheetError(f"error-correction level {ecc!r} is not one of {', '.join(ECC_LEVELS)}")
     nx, ny = (int(v) for v in grid)
     if nx < 0 or ny < 0:
         raise QRSheetError(f"grid {grid} has a negative size")
@@ -144,6 +144,7 @@ def _codes(
                     payload,
                     side_m,
                     (payload, f"x = {x_m:.3f} m, y = {y_m:.3f} m; symbol top toward world +y"),
+                    ecc,
                 )
             )
     loads = []
@@ -154,7 +155,9 @@ def _codes(
             raise QRSheetError(f"load id {load_id!r} is listed twice")
         seen.add(load_id)
         loads.append(
-            SheetCode(text, load_side_m, (text, f"load {load_id}; hang upright, this text below the code"))
+            SheetCode(
+                text, load_side_m, (text, f"load {load_id}; hang upright, this text below the code"), ecc
+            )
         )
     return floor, loads
 
@@ -178,7 +181,7 @@ def layout_pages(codes: list[SheetCode], page: str, title: str) -> list[SheetPag
     pages: list[SheetPage] = []
     x, y_top, row_h = left, top, 0.0  # the first code opens the first page at its top-left
     for code in codes:
-        n = symbol_modules(code.payload).shape[0]
+        n = symbol_modules(code.payload, code.ecc).shape[0]
         cw, ch, q = _cell_in(code, n)
         if cw > right - left or ch > top - bottom:
             raise QRSheetError(
@@ -207,7 +210,7 @@ def page_figure(page: SheetPage, page_no: int = 1, n_pages: int = 1) -> Figure:
     W, H = page.size_in
     fig = Figure(figsize=(W, H))
     for code in page.codes:
-        sym = symbol_modules(code.payload)
+        sym = symbol_modules(code.payload, code.ecc)
         n = sym.shape[0]
         ax = fig.add_axes((code.x_in / W, code.y_in / H, code.side_in / W, code.side_in / H))
         ax.set_xlim(0, n)
@@ -286,9 +289,11 @@ def sheet_pages(
     load_ids: Iterable[str] = (),
     load_side_m: float = 0.15,
     page: str = "A4",
+    ecc: str = SHEET_ECC,
 ) -> list[SheetPage]:
-    """The laid-out pages (floor codes first, load labels from a new page)."""
-    floor, loads = _codes(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m)
+    """The laid-out pages (floor codes first, load labels from a new page); every code at
+    error-correction level `ecc` (default H: fusion.qr.symbol says why)."""
+    floor, loads = _codes(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m, ecc)
     pages = []
     if floor:
         pages += layout_pages(
@@ -296,7 +301,7 @@ def sheet_pages(
             page,
             f"fusion floor codes: {grid[0]} x {grid[1]} grid, "
             f"spacing {spacing_m:g} m, payload unit {payload_unit_m:g} m, "
-            f"side {side_m * 100:g} cm",
+            f"side {side_m * 100:g} cm, error correction {ecc}",
         )
     if loads:
         pages += layout_pages(loads, page, f"fusion load labels: side {load_side_m * 100:g} cm")
@@ -312,12 +317,15 @@ def write_qr_sheet(
     load_ids: Iterable[str] = (),
     load_side_m: float = 0.15,
     page: str = "A4",
+    ecc: str = SHEET_ECC,
 ) -> int:
     """Write a multi-page PDF of floor codes `0/<x>/<y>` at every grid point (x = i * spacing_m,
     y = j * spacing_m, payload in units of payload_unit_m) and load labels `1/<id>`, each symbol
-    exactly `side_m` (`load_side_m`) wide on paper.  Returns the number of pages written.
+    exactly `side_m` (`load_side_m`) wide on paper, at error-correction level `ecc` (default H,
+    fusion.qr.symbol: a floor code still reads with up to ~30 % of it dirty or glared).
+    Returns the number of pages written.
     Raises QRSheetError for codes larger than the page, unprintable ids or an unknown page."""
-    pages = sheet_pages(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m, page)
+    pages = sheet_pages(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m, page, ecc)
     if not pages:
         raise QRSheetError("nothing to print: the grid is empty and no load ids were given")
     path = Path(path)

@@ -23,6 +23,7 @@ from fusion.camera import CameraModel
 from fusion.conventions import symbol_corners_S
 from fusion.errors import SimulationError
 from fusion.geometry import inv_T
+from fusion.qr.symbol import SIM_ECC, encode_symbol
 
 QUIET_ZONE_MODULES = 4
 BLACK_DN = 30.0  # printed black under nominal exposure
@@ -34,32 +35,29 @@ _MAX_TEXELS_PER_MODULE = 16
 # ============================================================================ codes
 
 
-def code_texture(payload: str) -> np.ndarray:
+def code_texture(payload: str, ecc: str = SIM_ECC) -> np.ndarray:
     """(N, N) uint8 module bitmap of the QR symbol for `payload` (0 = dark, 255 = light), one pixel
     per module, cropped to the symbol (no quiet zone).  Row 0 is the symbol's top: finders sit at
     [0, 0] (top-left), [0, N-1] (top-right) and [N-1, 0] (bottom-left)."""
     if not isinstance(payload, str) or not payload:
         raise SimulationError(f"cannot encode QR payload {payload!r}")
-    return _code_texture_cached(payload).copy()
+    return _code_texture_cached(payload, ecc).copy()
 
 
-@lru_cache(maxsize=4096)
-def _code_texture_cached(payload: str) -> np.ndarray:
-    img = cv2.QRCodeEncoder.create().encode(payload)
-    if img is None or img.size == 0:
+def _code_texture_cached(payload: str, ecc: str = SIM_ECC) -> np.ndarray:
+    try:
+        sym = encode_symbol(payload, ecc)  # cached there
+    except ValueError as e:
+        raise SimulationError(str(e)) from None
+    if sym is None:
         raise SimulationError(f"cannot encode QR payload {payload!r}")
-    dark = np.argwhere(img < 128)
-    (r0, c0), (r1, c1) = dark.min(axis=0), dark.max(axis=0)
-    sym = np.ascontiguousarray(img[r0 : r1 + 1, c0 : c1 + 1])
-    if sym.shape[0] != sym.shape[1] or (sym.shape[0] - 17) % 4:
-        raise SimulationError(f"unexpected QR symbol size {sym.shape} for {payload!r}")
     return sym
 
 
 @lru_cache(maxsize=8192)
-def _mip(payload: str, texels_per_module: int) -> np.ndarray:
+def _mip(payload: str, texels_per_module: int, ecc: str = SIM_ECC) -> np.ndarray:
     """float32 texture with a white quiet zone, `texels_per_module` texels per module, in DN."""
-    sym = _code_texture_cached(payload)
+    sym = _code_texture_cached(payload, ecc)
     q = QUIET_ZONE_MODULES
     full = np.pad(sym, q, constant_values=255)
     tex = np.where(full > 127, WHITE_DN, BLACK_DN).astype(np.float32)
@@ -73,10 +71,11 @@ class PlacedCode:
     payload: str
     T_world_symbol: np.ndarray
     side_m: float
+    ecc: str = SIM_ECC  # error-correction level (fusion.qr.symbol.ECC_LEVELS)
 
     @property
     def modules(self) -> int:
-        return _code_texture_cached(self.payload).shape[0]
+        return _code_texture_cached(self.payload, self.ecc).shape[0]
 
     @property
     def is_floor(self) -> bool:
@@ -320,7 +319,7 @@ def _draw_code(
     tpm = 1
     while tpm * 2 <= min(px_per_module, _MAX_TEXELS_PER_MODULE):
         tpm *= 2
-    tex = _mip(code.payload, tpm)
+    tex = _mip(code.payload, tpm, code.ecc)
     # ray (xn, yn, 1) meets the plane at symbol coordinates H_sc @ ray, H_cs = [r1 r2 t]
     H_cs = np.column_stack([R[:, 0], R[:, 1], t])
     H_sc = np.linalg.inv(H_cs)
@@ -494,7 +493,9 @@ def render_view(
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
 
-def placed_floor_codes(xy_payload: np.ndarray, payload_unit_m: float, side_m: float) -> list[PlacedCode]:
+def placed_floor_codes(
+    xy_payload: np.ndarray, payload_unit_m: float, side_m: float, ecc: str = SIM_ECC
+) -> list[PlacedCode]:
     """PlacedCodes for floor codes at payload coordinates (N, 2) (symbol frame = world axes)."""
     from fusion.conventions import floor_payload
 
@@ -502,5 +503,5 @@ def placed_floor_codes(xy_payload: np.ndarray, payload_unit_m: float, side_m: fl
     for x, y in np.asarray(xy_payload, dtype=float).reshape(-1, 2):
         T = np.eye(4)
         T[:2, 3] = (x * payload_unit_m, y * payload_unit_m)
-        out.append(PlacedCode(floor_payload(x, y), T, side_m))
+        out.append(PlacedCode(floor_payload(x, y), T, side_m, ecc))
     return out

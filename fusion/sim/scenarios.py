@@ -17,6 +17,7 @@ from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload
 from fusion.errors import SimulationError
 from fusion.geometry import make_T
 from fusion.log import ImuNoise
+from fusion.qr.symbol import SIM_ECC
 from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes
 from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
 from fusion.world import Layout, LoadCode, World
@@ -50,11 +51,12 @@ class Scenario:
     gain_swing: float = 0.15  # exposure gain 1 +- this, slowly varying
     exposure_s: float = 0.008  # motion blur = image motion during the exposure
     occluders: list = field(default_factory=list)  # axis-aligned boxes (lo, hi) in W: racks
+    floor_ecc: str = SIM_ECC  # floor codes' error-correction level (fusion.qr.symbol)
 
     def codes(self) -> list[PlacedCode]:
         """Every code to render: floor grid and load codes."""
         w = self.layout.world
-        out = placed_floor_codes(self.layout.floor_codes_xy, w.payload_unit_m, w.floor_side_m)
+        out = placed_floor_codes(self.layout.floor_codes_xy, w.payload_unit_m, w.floor_side_m, self.floor_ecc)
         out += [PlacedCode(load_payload(l.id), l.T_world_symbol, w.load_side_m) for l in self.layout.loads]
         return out
 
