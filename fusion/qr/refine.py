@@ -57,7 +57,18 @@ from fusion.camera import CameraModel
 
 FINDER_MODULES = 7
 _SPAN_MARGIN = 0.6  # modules kept clear of a finder's ends (neighbouring edge, corner blur)
-_MIN_CONTRAST = 20.0  # grey levels between quiet zone and finder ring for a usable profile
+# A profile is usable when its edge contrast is a fair share of the code's typical contrast
+# (glare, shadow or occlusion over part of a code lowers it there) and above the quantisation
+# floor of 8-bit images: adapts to exposure and print contrast (no fixed grey-level cutoff).
+_MIN_CONTRAST_FRACTION = 0.35  # of the median contrast of the code's profiles
+_CONTRAST_FLOOR_DN = 3.0  # a few quantisation steps of an 8-bit image
+_MIN_EDGE_SNR = 4.0  # stage 2: edge contrast over the profile's residual RMS
+# Clipped (saturated) samples carry no edge position: a clipped light level pulls the 50 %
+# crossing and the model's level fit.  Samples within _CLIP_MARGIN_DN of the image's top value
+# (or whose bilinear footprint touches such a pixel) are left out of the model fit, unless too
+# few samples would remain (a sharp, noise-free synthetic edge: clipping moves no crossing there).
+_CLIP_MARGIN_DN = 1
+_MIN_UNCLIPPED_SAMPLES = 10
 _PROFILES_PER_SPAN = 12  # intensity profiles across each finder edge
 _COARSE_SAMPLES = 25  # samples per profile in the first pass (wide window, coarse step)
 _FINE_STEP_PX = 0.25  # sample spacing of the final pass
@@ -199,7 +210,8 @@ def _edge_points(
     thr = 0.5 * (light + dark)
     below = vals < thr[:, None]
     first = np.argmax(below, axis=1)  # first dark sample
-    ok = inside.all(axis=1) & ((light - dark) > _MIN_CONTRAST) & (first > 0)
+    contrast = light - dark
+    ok = inside.all(axis=1) & _contrast_ok(contrast[None])[0] & (first > 0)
     # a crossing in the last sample step belongs to a neighbouring feature, not this edge
     ok &= first < n_offsets - 1
     idx = np.nonzero(ok)[0]
@@ -208,6 +220,15 @@ def _edge_points(
     frac = (v0 - thr[idx]) / np.maximum(v0 - vals[idx, k], 1e-6)
     s = offsets[k - 1] - frac * step
     return base[idx] + s[:, None] * nrm[idx], line_of[idx]
+
+
+def _contrast_ok(contrast: np.ndarray) -> np.ndarray:
+    """Usable profiles of codes (C, M) by contrast (module comment above _MIN_CONTRAST_FRACTION):
+    at least that fraction of the code's median contrast and above the quantisation floor."""
+    contrast = np.where(np.isfinite(contrast), contrast, 0.0)
+    pos = contrast > _CONTRAST_FLOOR_DN
+    med = _masked_median(contrast, pos)
+    return pos & (contrast >= _MIN_CONTRAST_FRACTION * med[:, None])
 
 
 def _fit_lines(
@@ -449,6 +470,8 @@ class _ModelFit:
     sigma_px: np.ndarray
     g: np.ndarray
     width_px: np.ndarray
+    contrast: np.ndarray  # (P,) fitted edge contrast (grey levels)
+    rms: np.ndarray  # (P,) the profile's residual RMS (grey levels; NaN in the crossings pass)
 
 
 def _sample_profiles(
@@ -462,8 +485,9 @@ def _sample_profiles(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Image values along profiles: row i samples images[image_rows[i]] at the module
     coordinates uv[i] + s[i, k] step[i] mapped by H[i] (module -> undistorted px) and distorted.
-    Returns (y (R, K) float32, inside (R, K)).  float32 and separate x / y arrays: this runs
-    for every sample of every pass."""
+    Returns (y (R, K) float32, inside (R, K), clipped (R, K): the sample's bilinear footprint
+    touches a pixel within _CLIP_MARGIN_DN of the image's top value).  float32 and separate
+    x / y arrays: this runs for every sample of every pass."""
     H = H.astype(np.float32)
     s = s.astype(np.float32)
     u = uv[:, 0:1].astype(np.float32) + s * step[:, 0:1].astype(np.float32)
@@ -474,13 +498,18 @@ def _sample_profiles(
     x, y = dist.distort_xy(x, y)
     vals = np.empty(x.shape, np.float32)
     inside = np.empty(x.shape, bool)
+    clipped = np.zeros(x.shape, bool)
+    top = np.iinfo(np.uint8).max - _CLIP_MARGIN_DN
     for i in np.unique(image_rows) if len(images) > 1 else [0]:
         rows = slice(None) if len(images) == 1 else image_rows == i
         img = images[i]
         xi, yi = x[rows], y[rows]
         vals[rows] = cv2.remap(img, xi, yi, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         inside[rows] = (xi >= 0) & (yi >= 0) & (xi <= img.shape[1] - 1) & (yi <= img.shape[0] - 1)
-    return vals, inside
+        if np.any(vals[rows] >= top - 2 * _CLIP_MARGIN_DN):  # (cheap pre-check on the samples)
+            mask = cv2.compare(img, top, cv2.CMP_GE)  # 255 where clipped
+            clipped[rows] = cv2.remap(mask, xi, yi, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) > 0
+    return vals, inside, clipped
 
 
 def _model_edge_points(
@@ -535,7 +564,7 @@ def _model_edge_points(
     s = s_code[pr.code]  # (P, K)
     K = s.shape[1]
     # (the crossings pass too: one profile per group was measurably worse on a flight)
-    y, inside = _sample_profiles(
+    y, inside, clipped = _sample_profiles(
         images,
         np.repeat(image_of[pr.code], _MODEL_GROUP),
         dist,
@@ -546,9 +575,14 @@ def _model_edge_points(
     )
     # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
     y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
+    clipped = clipped.reshape(P, _MODEL_GROUP, K).any(axis=1)
     s = s.astype(np.float32)
     ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
-    m = (np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]).astype(np.float32)
+    used = np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]
+    # clipped samples out of the fit where enough remain (module comment at _CLIP_MARGIN_DN)
+    unclipped = used & ~clipped
+    drop_clipped = np.sum(unclipped, axis=1) >= _MIN_UNCLIPPED_SAMPLES
+    m = np.where(drop_clipped[:, None], unclipped, used).astype(np.float32)
     inner = (~pr.boundary).astype(np.float32)[:, None]
     lbl = 2 * pr.code + pr.axis  # width groups
     max_w = 4.0 * module_px + 2.0  # (C,)
@@ -568,9 +602,12 @@ def _model_edge_points(
         if iterations == 0:
             # a first look: the crossings alone (biased outwards by blur, but local, so free of
             # the decoder corners' scale errors that the model's later transitions would feel)
-            good = ok & (out_lvl - dark > _MIN_CONTRAST) & below.any(axis=1) & (np.abs(e) < 0.7)
+            contrast0 = (out_lvl - dark).astype(float)
+            good = ok & _contrast_ok(contrast0.reshape(C, -1)).reshape(-1) & below.any(axis=1) & (np.abs(e) < 0.7)
             points = _apply_hs(Hp, pr.uv0 + e[:, None].astype(np.float64) * pr.inward)
-            return _ModelFit(points, good, np.full(P, 0.3), g, np.full((C, 2), np.nan))
+            return _ModelFit(
+                points, good, np.full(P, 0.3), g, np.full((C, 2), np.nan), contrast0, np.full(P, np.nan)
+            )
         # widths: the best of a few, on every third profile
         sub = np.arange(P) % 3 == 0
         G = len(_WIDTH_GRID_PX)
@@ -627,12 +664,137 @@ def _model_edge_points(
     contrast = -lev[:, 1]
     e = e.astype(np.float64)
     sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12))).astype(np.float64) / g  # px
-    good = ok & (contrast > _MIN_CONTRAST) & (np.abs(e) < 1.0) & np.isfinite(sigma_e) & (sigma_e > 0)
+    good = (
+        ok
+        & _contrast_ok(np.where(ok, contrast, 0.0).reshape(C, -1)).reshape(-1)
+        & (contrast > _MIN_EDGE_SNR * rms)
+        & (np.abs(e) < 1.0)
+        & np.isfinite(sigma_e)
+        & (sigma_e > 0)
+    )
     # per code: drop profiles whose residual is far above the code's median (occlusion, glare)
     med = _masked_median(rms.reshape(C, -1), good.reshape(C, -1))
     good &= rms <= 3.0 * med[pr.code] + 1.0
     points = _apply_hs(Hp, pr.uv0 + e[:, None] * pr.inward)
-    return _ModelFit(points, good, np.where(good, sigma_e, 1.0), g, width_px.reshape(C, 2))
+    return _ModelFit(
+        points, good, np.where(good, sigma_e, 1.0), g, width_px.reshape(C, 2), contrast.astype(float), rms.astype(float)
+    )
+
+
+# The alignment pattern (versions >= 2; ISO/IEC 18004 6.3.6, Annex E: the one nearest the
+# bottom-right corner is centred on module (N - 7, N - 7), i.e. at (N - 6.5, N - 6.5) in corner
+# coordinates) puts a measurable point near the bottom-right corner, which the finders leave to
+# extrapolation: on real photographs (lens distortion, paper that is not flat) that corner was
+# the one refinement got wrong (scripts/bench_refine_real.py).  Its 5x5 module pattern (dark
+# ring, light ring, dark centre) is point-symmetric, so the centre is found without bias under
+# any symmetric blur by Gauss-Newton on the shift d that best matches a + b T(x) to the image
+# sampled at H(c + x + d), x over the pattern's own 5x5 modules (data modules outside excluded).
+_ALIGN_SAMPLES_PER_MODULE = 5
+_ALIGN_HALF = 2.4  # modules: sampled square (the pattern's 2.5, less a margin for blur)
+_ALIGN_ITERATIONS = 4
+_ALIGN_MAX_SHIFT = 0.6  # modules from where the finders' homography predicts it
+_ALIGN_MIN_CORR = 0.6  # correlation of the matched template
+_LOCAL_FIT_SCALE = 0.5  # per-corner fits: weight exp(-d^2 / 2 L^2), d in symbol sides
+
+
+@lru_cache(maxsize=1)
+def _align_template() -> tuple[np.ndarray, np.ndarray]:
+    """Sample offsets (S, 2) in modules around the pattern centre and the pattern there (S,):
+    1 dark, 0 light."""
+    k = int(round(2 * _ALIGN_HALF * _ALIGN_SAMPLES_PER_MODULE))
+    t = np.linspace(-_ALIGN_HALF, _ALIGN_HALF, k)
+    x = np.stack(np.meshgrid(t, t), axis=-1).reshape(-1, 2)
+    r = np.max(np.abs(x), axis=1)
+    return x, ((r < 0.5) | (r >= 1.5)).astype(float)
+
+
+def alignment_centres(n: int) -> np.ndarray:
+    """(A, 2) module coordinates (u, v) of the centres of the alignment patterns of a symbol of
+    n modules (ISO/IEC 18004 Annex E, Table E.1, by its construction rule: row / column centres
+    6, then evenly spaced from n - 7 down, step rounded up to even; none where a finder is)."""
+    version = (int(n) - 17) // 4
+    if version < 2:
+        return np.zeros((0, 2))
+    count = version // 7 + 2
+    step = 26 if version == 32 else (version * 4 + count * 2 + 1) // (count * 2 - 2) * 2
+    pos = sorted([int(n) - 7 - i * step for i in range(count - 1)] + [6])
+    last = pos[-1]
+    centres = [
+        (u, v)
+        for v in pos
+        for u in pos
+        if not ((u == 6 and v == 6) or (u == 6 and v == last) or (u == last and v == 6))
+    ]
+    return np.array(centres, dtype=float) + 0.5
+
+
+def _alignment_points(
+    images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion, Hs: np.ndarray, ns: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The alignment patterns of each code: centres (C, A) in modules (padded), their measured
+    centres (C, A, 2) undistorted px, 1-sigma (C, A) px, and found (C, A) (the pattern exists,
+    correlation >= _ALIGN_MIN_CORR, within _ALIGN_MAX_SHIFT modules of where Hs, module ->
+    undistorted px, puts it)."""
+    C = len(ns)
+    lists = [alignment_centres(int(n)) for n in ns]
+    A = max(len(c) for c in lists)
+    centre = np.zeros((C, A, 2))
+    found = np.zeros((C, A), bool)
+    for i, c in enumerate(lists):
+        centre[i, : len(c)] = c
+        found[i, : len(c)] = True
+    x, T = _align_template()
+    S = len(x)
+    d = np.zeros((C, A, 2))
+    h = 0.25  # modules: central differences for the image gradient
+    offs = np.array([[0.0, 0.0], [h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
+    Tc = T - T.mean()
+    corr = np.zeros((C, A))
+    sigma_mod = np.full((C, A), np.inf)
+    for _ in range(_ALIGN_ITERATIONS):
+        uv = (centre + d)[:, :, None, None, :] + offs[None, None, :, None, :] + x[None, None, None]
+        y, inside = _sample_points(images, image_of, dist, Hs, uv.reshape(C, A * 5, S, 2))
+        y = y.reshape(C, A, 5, S).astype(float)
+        found &= inside.reshape(C, A, -1).all(axis=2)
+        y0 = y[:, :, 0]
+        grad = np.stack([y[:, :, 1] - y[:, :, 2], y[:, :, 3] - y[:, :, 4]], axis=-1) / (2 * h)
+        # levels a + b T by least squares, then a Gauss-Newton step in d on r = a + b T - y(d)
+        yc = y0 - y0.mean(axis=2, keepdims=True)
+        b = (yc @ Tc) / (Tc @ Tc)
+        r = b[..., None] * Tc - yc
+        J = grad - grad.mean(axis=2, keepdims=True)  # d(-r)/dd, the offset a projected out
+        JtJ = np.swapaxes(J, -1, -2) @ J + 1e-9 * np.eye(2)
+        JtJ_inv = _inv(JtJ)
+        step = (JtJ_inv @ (np.swapaxes(J, -1, -2) @ r[..., None]))[..., 0]
+        d = d + np.clip(np.nan_to_num(step), -0.3, 0.3)
+        with np.errstate(all="ignore"):
+            corr = -b * np.linalg.norm(Tc) / np.linalg.norm(yc, axis=2)
+        cov = JtJ_inv * (np.sum(r * r, axis=2) / max(S - 4, 1))[..., None, None]  # modules^2
+        sigma_mod = np.sqrt(np.maximum(0.5 * (cov[..., 0, 0] + cov[..., 1, 1]), 0.0))
+    found &= (corr >= _ALIGN_MIN_CORR) & np.all(np.abs(d) <= _ALIGN_MAX_SHIFT, axis=2) & np.isfinite(sigma_mod)
+    pts = _apply_hs(Hs, centre + d)
+    half = np.array([0.5, 0.0])
+    scale = np.linalg.norm(_apply_hs(Hs, centre + d + half) - _apply_hs(Hs, centre + d - half), axis=2)
+    return centre, pts, np.where(found, sigma_mod * scale, np.inf), found
+
+
+def _sample_points(
+    images: list[np.ndarray], image_of: np.ndarray, dist: _Distortion, Hs: np.ndarray, uv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Image values at module coordinates uv (C, R, K, 2) of each code (H: module -> undistorted
+    px), (C, R, K) float32, and whether inside the image."""
+    C, R, K, _ = uv.shape
+    xy = _apply_hs(Hs, uv)
+    xd, yd = dist.distort_xy(xy[..., 0].astype(np.float32), xy[..., 1].astype(np.float32))
+    out = np.empty((C, R, K), np.float32)
+    ins = np.empty((C, R, K), bool)
+    for i in np.unique(image_of):
+        rows = image_of == i
+        img = images[i]
+        xr, yr = xd[rows].reshape(-1, K), yd[rows].reshape(-1, K)
+        out[rows] = cv2.remap(img, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, R, K)
+        ins[rows] = (xd[rows] >= 0) & (yd[rows] >= 0) & (xd[rows] <= img.shape[1] - 1) & (yd[rows] <= img.shape[0] - 1)
+    return out, ins
 
 
 def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -646,7 +808,7 @@ def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
 _SQUARE01 = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 
 
-def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
+def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray, protected: np.ndarray | None = None):
     """Per code, H (module coordinates -> undistorted px) from the edge points on module lines
     u = const (axis 0) or v = const (axis 1), and the (8, 8) covariance of the corners
     H (0,0), H (n,0), H (n,n), H (0,n) that the edge-point sigmas imply.
@@ -657,7 +819,9 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
     the geometric residuals (module coordinate of G p minus c, weights 1 / (sigma_i g_i)^2).
     The corner covariance is Jc (J^T W J)^-1 Jc^T with J = d residual / d h and Jc = d corners / d h
     (h: the 8 entries of the normalised H, H33 = 1).  All codes at once: arrays (C, 60, ...).
-    Returns (H (C, 3, 3), corners (C, 4, 2), cov (C, 8, 8), ok (C,)); rows with ok False are junk."""
+    Returns (H (C, 3, 3), corners (C, 4, 2), cov (C, 8, 8), ok (C,), (chi2 per degree of
+    freedom of the weighted geometric residuals, their RMS in px, edge points used) each (C,));
+    rows with ok False are junk.  `protected` (C, M): points exempt from the outlier round."""
     C = len(ns)
     p = fit.points.reshape(C, -1, 2)
     good = fit.good.reshape(C, -1)
@@ -689,6 +853,8 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
         med = _masked_median(res_px, good)
         keep = good & (res_px <= np.maximum(0.25, 3.0 * med)[:, None])
         keep = np.where((keep.sum(axis=1) >= _MIN_GOOD_PROFILES)[:, None], keep, good)
+        if protected is not None:  # points of another kind (alignment pattern): no outlier test
+            keep |= good & protected
     with np.errstate(all="ignore"):
         Hn = _inv(Gv)
         Hn = Hn / Hn[:, 2:3, 2:3]
@@ -701,6 +867,9 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
         v = Ga - coord[..., None] * G[:, None, 2, :]
         Jh = -(v[..., :, None] * mG[..., None, :]).reshape(C, -1, 9)[..., :8] / mG[..., 2:3]
         w = keep / sig**2
+        n_used = keep.sum(axis=1)
+        chi2_dof = np.sum(w * r * r, axis=1) / np.maximum(n_used - 8, 1)
+        resid_px = np.sqrt(np.sum(keep * (r * gm) ** 2, axis=1) / np.maximum(n_used, 1))
         info = (Jh * w[..., None]).transpose(0, 2, 1) @ Jh
         cov_h = _inv(info)
         dh = -(cov_h @ (Jh.transpose(0, 2, 1) @ (w * r)[..., None]))[..., 0]
@@ -730,7 +899,79 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray):
         & np.all(np.isfinite(cov).reshape(C, -1), axis=1)
         & np.all(np.isfinite(corners).reshape(C, -1), axis=1)
     )
-    return H, corners, cov, ok
+    return H, corners, cov, ok, (chi2_dof, resid_px, n_used)
+
+
+@dataclass(frozen=True)
+class RefineQuality:
+    """How well stage 2 fitted one code (undistorted px): the median edge contrast over the
+    profile residual RMS of the edge profiles used, the chi^2 per degree of freedom and RMS (px)
+    of the edge points about the fitted homography, the share of the 24 edge profiles used, and
+    the largest distance of a refined corner from the decoder's (px), the module size (px)."""
+
+    edge_snr: float
+    chi2_dof: float
+    residual_px: float
+    used_fraction: float
+    decoder_move_px: float
+    module_px: float
+
+    def failure(self, checks: RefineChecks) -> str | None:
+        """The first check (a RefineStats counter name) this fit fails, or None."""
+        if not (self.edge_snr >= checks.min_edge_snr):
+            return "low_contrast"
+        if not (self.used_fraction >= checks.min_used_fraction):
+            return "few_edges"
+        if not (self.chi2_dof <= checks.max_chi2_dof and self.residual_px <= checks.max_residual_px):
+            return "high_residual"
+        limit = max(checks.max_decoder_move_px, checks.max_decoder_move_modules * self.module_px)
+        if not (self.decoder_move_px <= limit):
+            return "far_from_decoder"
+        return None
+
+
+@dataclass(frozen=True)
+class RefineChecks:
+    """Thresholds of refinement's self-check (RefineQuality.failure): a fit that fails one keeps
+    the decoder's corners with FALLBACK_SIGMA_PX (measured on real photographs,
+    scripts/bench_refine_real.py, and renders, scripts/bench_detect.py; NOTES-refine.md)."""
+
+    # clean renders (scripts/bench_detect.py frames): edge SNR >= 30, chi2/dof <= 6.4, residual
+    # <= 0.035 px, >= 92 % of the edges used, decoder within 0.9 module; real photographs that
+    # refinement got wrong: chi2/dof 18, residual 0.40 px, 58 % of the edges (NOTES-refine.md)
+    min_edge_snr: float = 7.0
+    min_used_fraction: float = 0.6
+    max_chi2_dof: float = 9.0
+    max_residual_px: float = 0.35
+    max_decoder_move_px: float = 4.0
+    max_decoder_move_modules: float = 1.5
+
+
+DEFAULT_CHECKS = RefineChecks()
+FALLBACK_SIGMA_PX = 1.5  # decoder corners: whole pixels; 1.4 px median error on real photographs
+
+
+@dataclass
+class RefineStats:
+    """What refinement did with each code (named counters; detect.CameraStats adds them up):
+    refined by stage 2 and passing its checks, by stage 1 (boundary lines), kept at the decoder's
+    corners because a check failed (by the failed check), or not measurable at all."""
+
+    refined: int = 0
+    stage1: int = 0
+    low_contrast: int = 0
+    few_edges: int = 0
+    high_residual: int = 0
+    far_from_decoder: int = 0
+    unmeasurable: int = 0
+
+    @property
+    def fell_back(self) -> int:
+        return self.low_contrast + self.few_edges + self.high_residual + self.far_from_decoder
+
+    def add(self, other: RefineStats) -> None:
+        for k in self.__dataclass_fields__:
+            setattr(self, k, getattr(self, k) + getattr(other, k))
 
 
 @dataclass
@@ -739,13 +980,15 @@ class RefineResult:
     order TL u, TL v, TR u, ..., BL v; calibrated on rendered codes, see `CornerCovarianceModel`), the
     1-sigma noise per coordinate (sqrt of its mean diagonal), the fitted blur+PSF box widths (px)
     across the symbol's u-edges and v-edges (NaN when stage 2 did not run), and which stage
-    produced the corners (1: boundary lines, 2: finder-model homography)."""
+    produced the corners (0: the decoder's, kept because stage 2 failed its self-check,
+    RefineChecks; 1: boundary lines; 2: finder-model homography)."""
 
     corners_px: np.ndarray
     corner_sigma_px: float
     width_px: np.ndarray
     stage: int
     corner_cov_px2: np.ndarray | None = None
+    quality: RefineQuality | None = None  # stage 2's fit quality (None: stages 0 and 1)
 
 
 # corner covariance model:  Sigma = K^2 Sigma_stat + A^2 I_8,  Sigma_stat the edge-point noise
@@ -847,7 +1090,7 @@ def _stage2(
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
-    width_px (2,)) or None."""
+    width_px (2,), RefineQuality) or None."""
     C = len(ns)
     pr = _profiles(ns)
     nsa = np.asarray(ns, dtype=float)
@@ -859,6 +1102,7 @@ def _stage2(
     width = None
     alive = np.ones(C, dtype=bool)
     model_passes = 0
+    kept_fit: _ModelFit | None = None  # per code, the profiles of its last accepted pass
     for _pass, iterations in enumerate(_MODEL_ITERATIONS):
         fit = _model_edge_points(
             images,
@@ -871,7 +1115,7 @@ def _stage2(
             iterations,
             _MODEL_STEP_CLIP[min(model_passes, 1)],
         )
-        H, corners, cov, ok = _fit_homographies(fit, pr, nsa)
+        H, corners, cov, ok, fit_stats = _fit_homographies(fit, pr, nsa)
         wmax = np.nan_to_num(np.max(fit.width_px, axis=1))
         if iterations == 0 or model_passes == 0:
             # against the decoder's corners: no corner moves by more than 1.5 modules (or 4 px),
@@ -889,8 +1133,21 @@ def _stage2(
         # a code that fails a model pass keeps the previous model pass's result
         alive &= ok
         model_passes += 1
+        snr = fit.contrast / np.maximum(fit.rms, 1e-6)
+        good = fit.good.reshape(C, -1)
+        edge_snr = _masked_median(snr.reshape(C, -1), good)
+        used = fit_stats[2] / good.shape[1]
+        to_raw = np.max(np.linalg.norm(corners - raw, axis=2), axis=1)
         for ci in np.nonzero(alive)[0]:
-            out[ci] = (corners[ci], cov[ci], fit.width_px[ci])
+            quality = RefineQuality(
+                float(edge_snr[ci]),
+                float(fit_stats[0][ci]),
+                float(fit_stats[1][ci]),
+                float(used[ci]),
+                float(to_raw[ci]),
+                float(module_px[ci]),
+            )
+            out[ci] = (corners[ci], cov[ci], fit.width_px[ci], quality)
         width = fit.width_px if width is None else np.where(alive[:, None], fit.width_px, width)
         Hs = np.where(alive[:, None, None], H, Hs)
         prev = np.where(alive[:, None, None], corners, prev)
@@ -899,7 +1156,103 @@ def _stage2(
             np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1) / nsa,
             module_px,
         )
+        kept_fit = fit if kept_fit is None else _merge_fit(kept_fit, fit, alive)
+    has = np.array([o is not None for o in out], bool)
+    if kept_fit is not None and np.any(has & (nsa >= modules_for_version(2))):
+        _add_alignment(images, image_of, dist, Hs, nsa, pr, kept_fit, has, raw, module_px, out)
     return out
+
+
+def _merge_fit(old: _ModelFit, new: _ModelFit, take: np.ndarray) -> _ModelFit:
+    """Per code, `new`'s profiles where take (C,), else `old`'s."""
+    C = len(take)
+
+    def pick(a, b):
+        return np.where(take.reshape((C,) + (1,) * (b.ndim)), b.reshape(C, -1, *b.shape[1:]), a.reshape(C, -1, *a.shape[1:])).reshape(b.shape)
+
+    return _ModelFit(
+        pick(old.points, new.points),
+        pick(old.good, new.good),
+        pick(old.sigma_px, new.sigma_px),
+        pick(old.g, new.g),
+        np.where(take[:, None], new.width_px, old.width_px),
+        pick(old.contrast, new.contrast),
+        pick(old.rms, new.rms),
+    )
+
+
+def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_px, out) -> None:
+    """Refit the homography of codes of version >= 2 with their alignment patterns' centres as
+    more points (each two equations: u = const, v = const), where found (see
+    _ALIGN_SAMPLES_PER_MODULE); updates `out` in place (corners, covariance, widths, quality)."""
+    C = len(nsa)
+    centre, pts, sig, found = _alignment_points(images, image_of, dist, Hs, nsa)
+    found &= alive[:, None]
+    if not np.any(found):
+        return
+    M = len(pr.code) // C
+    A = centre.shape[1]
+
+    def cat(a, extra):
+        """Per-code arrays (C * M, ...) with (C, 2A, ...) appended per code -> (C * (M + 2A), ...)."""
+        return np.concatenate([a.reshape(C, M, *a.shape[1:]), extra], axis=1).reshape(
+            C * (M + 2 * A), *a.shape[1:]
+        )
+
+    def twice(a):  # each alignment point enters as two equations, u = const and v = const
+        return np.repeat(a, 2, axis=1)
+
+    local_g = 1.0 / np.maximum(module_px, 1e-9)  # modules per px at the pattern
+    fit2 = _ModelFit(
+        cat(fit.points, twice(pts)),
+        cat(fit.good, twice(found)),
+        cat(fit.sigma_px, twice(np.where(found, sig, 1.0))),
+        cat(fit.g, np.repeat(local_g[:, None], 2 * A, axis=1)),
+        fit.width_px,
+        cat(fit.contrast, np.full((C, 2 * A), np.nan)),
+        cat(fit.rms, np.full((C, 2 * A), np.nan)),
+    )
+    pr2 = _Profiles(
+        np.repeat(np.arange(C), M + 2 * A),
+        cat(pr.uv0, twice(centre)),
+        cat(pr.inward, np.zeros((C, 2 * A, 2))),
+        cat(pr.axis, np.tile([0, 1], (C, A))),
+        cat(pr.const, twice(centre).reshape(C, 2 * A, 2)[:, np.arange(2 * A), np.tile([0, 1], A)]),
+        cat(pr.boundary, np.zeros((C, 2 * A), bool)),
+        pr.uv_sampled,
+    )
+    protected = np.zeros((C, M + 2 * A), bool)
+    protected[:, M:] = True
+    # one fit per corner, each point's weight falling with its distance (modules) from that
+    # corner: a printed symbol is not always flat, nor the lens model perfect, and a single
+    # homography then errs most at the corner farthest from the finders (module comment above)
+    uv = pr2.uv0.reshape(C, M + 2 * A, 2)
+    corners = np.zeros((C, 4, 2))
+    cov = np.zeros((C, 8, 8))
+    ok = np.ones(C, bool)
+    for k in range(4):
+        d = np.linalg.norm(uv - (_SQUARE01[k] * nsa[:, None])[:, None, :], axis=2) / nsa[:, None]
+        weight = np.exp(-0.5 * (d / _LOCAL_FIT_SCALE) ** 2)
+        fit_k = _ModelFit(
+            fit2.points,
+            fit2.good,
+            fit2.sigma_px / np.sqrt(np.maximum(weight.reshape(-1), 1e-12)),
+            fit2.g,
+            fit2.width_px,
+            fit2.contrast,
+            fit2.rms,
+        )
+        corners_k, cov_k, ok_k = _fit_homographies(fit_k, pr2, nsa, protected)[1:4]
+        corners[:, k] = corners_k[:, k]
+        cov[:, 2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov_k[:, 2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
+        ok &= ok_k
+    move = np.max(np.linalg.norm(corners - raw, axis=2), axis=1)
+    ok &= found.any(axis=1) & (move < np.maximum(4.0, 1.5 * module_px))
+    for ci in np.nonzero(ok)[0]:
+        c_old, _, width, q = out[ci]
+        # (chi^2 and residual stay those of the finder edges' single homography)
+        quality = RefineQuality(q.edge_snr, q.chi2_dof, q.residual_px, q.used_fraction, float(move[ci]), q.module_px)
+        out[ci] = (corners[ci], cov[ci], width, quality)
 
 
 def refine_frames(
@@ -909,6 +1262,8 @@ def refine_frames(
     iterations: int = 1,
     finder_homography: bool = True,
     cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL,
+    checks: RefineChecks | None = DEFAULT_CHECKS,
+    stats: RefineStats | None = None,
 ) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
@@ -917,7 +1272,9 @@ def refine_frames(
     (the array work is shared, only the sampling is per image: batching frames is what makes it
     fast); a code it fails on, or every code without it, gets `iterations` passes of stage 1.
     `camera`: fit in undistorted coordinates (None: no distortion); `cov_model`: the corner
-    covariance model applied to stage 2's propagated covariance.
+    covariance model applied to stage 2's propagated covariance.  `checks`: stage 2's
+    self-check (RefineQuality.failure); a code that fails it keeps its decoder corners with
+    FALLBACK_SIGMA_PX (stage 0), counted by reason in `stats` (None: no checks).
 
     One code: `refine_code`."""
     if len(images) != len(codes):
@@ -954,11 +1311,25 @@ def refine_frames(
         sig = np.sqrt(np.mean(np.diagonal(cov_d, axis1=1, axis2=2), axis=1))
         for k, (j, s) in enumerate(done):
             i, c = todo[j]
-            results[i][c] = RefineResult(cd[k], float(sig[k]), s[2], 2, cov_d[k])
+            reason = None if checks is None else s[3].failure(checks)
+            if reason is None:
+                results[i][c] = RefineResult(cd[k], float(sig[k]), s[2], 2, cov_d[k], s[3])
+                _count(stats, "refined")
+            else:
+                results[i][c] = RefineResult(
+                    raws[j].copy(), FALLBACK_SIGMA_PX, s[2], 0, FALLBACK_SIGMA_PX**2 * np.eye(8), s[3]
+                )
+                _count(stats, reason)
     for j, (i, c) in enumerate(todo):
         if stage2[j] is not None:
             continue
+        if checks is not None and finder_homography:
+            # stage 1 has no self-check: with checks on, a code stage 2 cannot measure keeps the
+            # decoder's corners (on real photographs stage 1 was worse than them)
+            _count(stats, "unmeasurable")
+            continue
         corners_u = _stage1(images[i], dist, raw_u[j], ns[j], iterations, finder_homography)
+        _count(stats, "unmeasurable" if corners_u is None else "stage1")
         if corners_u is not None:
             results[i][c] = RefineResult(
                 dist.distort(corners_u),
@@ -968,6 +1339,11 @@ def refine_frames(
                 STAGE1_SIGMA_PX**2 * np.eye(8),
             )
     return results
+
+
+def _count(stats: RefineStats | None, name: str) -> None:
+    if stats is not None:
+        setattr(stats, name, getattr(stats, name) + 1)
 
 
 def refine_code(
