@@ -89,6 +89,9 @@ class QRDetection:
     # (8, 8) covariance of corners_px flattened TL u, TL v, TR u, TR v, BR u, ..., BL v (px^2):
     # the corners come from one fit, so their errors are correlated; None when unknown
     corner_cov_px2: np.ndarray | None = None
+    # not decoded in this frame: found near where an earlier decode of the same code predicted it
+    # (fusion.qr.track); corners_raw_px then holds the prediction
+    tracked: bool = False
 
     @property
     def centre_px(self) -> np.ndarray:

@@ -333,13 +333,13 @@ def test_malformed_cache_raises_naming_file_and_line(tmp_path, flight):
     assert len(lines) == 3 + len(res.detections)
     bad = lines[:4] + ["cam0,12,x,1,2,3\n"] + lines[4:]
     cache.write_text("".join(bad))
-    with pytest.raises(DetectionError, match=r"detections\.csv:5: expected 22 fields"):
+    with pytest.raises(DetectionError, match=r"detections\.csv:5: expected 23 fields"):
         detect_flight(read_flight(flight), cache, workers=1, progress=False)
-    cache.write_text("".join(lines[:4] + ['cam0,12,"p",' + ",".join(["nan"] * 16) + ",1,0.1,\n"]))
+    cache.write_text("".join(lines[:4] + ['cam0,12,"p",' + ",".join(["nan"] * 16) + ",1,0.1,,0\n"]))
     with pytest.raises(DetectionError, match=r"detections\.csv:5: .*non-finite"):
         read_cache(cache)
-    good_row = lines[3].rstrip("\n").rsplit(",", 1)[0]
-    cache.write_text("".join(lines[:3] + [good_row + ",1 2 3\n"]))
+    good_row = lines[3].rstrip("\n").rsplit(",", 2)[0]
+    cache.write_text("".join(lines[:3] + [good_row + ",1 2 3,0\n"]))
     with pytest.raises(DetectionError, match=r"detections\.csv:4: corner_cov_px2 needs 36"):
         read_cache(cache)
     cache.write_text("timestamp,whatever\n")

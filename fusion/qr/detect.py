@@ -45,13 +45,14 @@ from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe, open_regular
 from fusion.parallel import parallel_map, worker_count
-from fusion.qr.refine import modules_for_version, refine_frames
+from fusion.qr.refine import FALLBACK_SIGMA_PX, RefineStats, modules_for_version, refine_frames
+from fusion.qr.track import CodeTracker
 from fusion.types import QRDetection
 
 BACKENDS = ("zxing", "aruco")
-FORMAT_VERSION = 4  # 4: payloads spreadsheet-safe; image sizes and mtimes in the key
+FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image sizes and mtimes in the key
 CACHE_NAME = "detections.csv"
-REFINE_METHOD = "finder-crossings+finder-model-homography/7"  # change when refine.py's output changes
+REFINE_METHOD = "finder-crossings+finder-model-homography+alignment+checks/8"  # change when refine.py's output changes
 CACHE_HEADER = (
     "camera",
     "timestamp_ns",
@@ -75,9 +76,10 @@ CACHE_HEADER = (
     "refined",
     "corner_sigma_px",
     "corner_cov_px2",
+    "tracked",
 )
 _MAGIC = "# fusion-detections"
-RAW_CORNER_SIGMA_PX = 1.0  # decoder corners (refinement failed): whole pixels, 0.7-1 px off
+RAW_CORNER_SIGMA_PX = FALLBACK_SIGMA_PX  # decoder corners (refinement failed or self-check failed)
 CACHE_REUSED, CACHE_WRITTEN, CACHE_STALE, CACHE_NONE = "reused", "written", "recomputed", "none"
 
 logger = logging.getLogger(__name__)
@@ -118,7 +120,15 @@ class CameraStats:
     frames_with_code: int = 0  # frames with at least one kept detection
     detections: int = 0
     payloads_dropped: int = 0  # non-UTF-8 payloads (aruco: frames where OpenCV's decoder threw)
-    refine_failed: int = 0  # detections whose corners stayed the decoder's
+    refine_failed: int = 0  # detections whose corners stayed the decoder's (sum of the next five)
+    # why (fusion.qr.refine.RefineStats): refinement's self-check failed on ...
+    refine_low_contrast: int = 0  # ... edge contrast over noise
+    refine_few_edges: int = 0  # ... share of finder edges usable
+    refine_high_residual: int = 0  # ... edge-point misfit of the homography
+    refine_far_from_decoder: int = 0  # ... corners far from the decoder's
+    refine_unmeasurable: int = 0  # finder edges not measurable at all
+    tracked: int = 0  # detections not decoded but tracked from earlier frames (fusion.qr.track)
+    frames_with_tracked_only: int = 0  # frames whose only codes were tracked ones
 
     def add(self, other: CameraStats) -> None:
         for k in self.__dataclass_fields__:
@@ -255,39 +265,57 @@ def detect_frames(
     camera: CameraModel | None = None,
     backend: str = "zxing",
     stats: CameraStats | None = None,
+    tracker: CodeTracker | None = None,
 ) -> list[list[QRDetection]]:
     """`detect_frame` for several frames of one camera: each decoded on its own, all their codes
     refined together (fusion.qr.refine.refine_frames: the array work is shared, ~2x cheaper per
-    frame than one frame at a time).  Returns one list of detections per image."""
+    frame than one frame at a time).  Returns one list of detections per image.
+
+    A code whose refinement fails its self-check keeps the decoder's corners with
+    RAW_CORNER_SIGMA_PX (and that sigma squared times I_8 as covariance), counted by reason in
+    `stats`.  With `tracker` (fusion.qr.track.CodeTracker, fed the frames in time order) codes
+    decoded in earlier frames and not decoded in a frame are tracked into it (`tracked=True`)."""
     timestamps_ns = [0] * len(images) if timestamps_ns is None else list(timestamps_ns)
     decoded = [_detect_image(image, backend) for image in images]
+    rstats = RefineStats()
     refined_all = refine_frames(
-        list(images), [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded], camera
+        list(images), [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded], camera, stats=rstats
     )
     out = []
-    for (codes, dropped), refined_frame, ts in zip(decoded, refined_all, timestamps_ns):
+    for image, (codes, dropped), refined_frame, ts in zip(images, decoded, refined_all, timestamps_ns):
         dets = []
-        failed = 0
         for code, res in zip(codes, refined_frame):
             if res is None:
-                failed += 1
-                refined, sigma, cov = code.corners_px.copy(), RAW_CORNER_SIGMA_PX, None
+                refined, sigma = code.corners_px.copy(), RAW_CORNER_SIGMA_PX
+                cov = RAW_CORNER_SIGMA_PX**2 * np.eye(8)
             else:
                 refined, sigma, cov = res.corners_px, res.corner_sigma_px, res.corner_cov_px2
             dets.append(
                 QRDetection(camera_name, int(ts), code.payload, refined, code.corners_px, float(sigma), cov)
             )
+        tracked = [] if tracker is None else tracker.step(image, camera_name, int(ts), dets, [c.modules for c in codes])
         if stats is not None:
             stats.payloads_dropped += dropped
-            stats.refine_failed += failed
-            stats.detections += len(dets)
-            stats.frames_with_code += bool(dets)
-        out.append(dets)
+            stats.detections += len(dets) + len(tracked)
+            stats.tracked += len(tracked)
+            stats.frames_with_code += bool(dets or tracked)
+            stats.frames_with_tracked_only += bool(tracked and not dets)
+        out.append(dets + tracked)
+    if stats is not None:
+        stats.refine_low_contrast += rstats.low_contrast
+        stats.refine_few_edges += rstats.few_edges
+        stats.refine_high_residual += rstats.high_residual
+        stats.refine_far_from_decoder += rstats.far_from_decoder
+        stats.refine_unmeasurable += rstats.unmeasurable
+        stats.refine_failed += rstats.fell_back + rstats.unmeasurable
     return out
 
 
 REFINE_BATCH_FRAMES = 8
 """Frames refined together in a flight (measured fastest per frame: 8; 32 is no faster)."""
+TRACK_SEED_FRAMES = 8
+"""Frames before a chunk that its tracker sees first (fusion.qr.track: a track lives through
+TRACK_MAX_MISSES missed frames, so a few frames carry every live track across)."""
 
 
 # ============================================================================ a whole flight
@@ -297,13 +325,30 @@ def _detect_chunk(
     context: tuple[dict, str], task: tuple[str, int, int]
 ) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
     """Frames [start, stop) of one camera, read from their paths in the calling process;
-    `context` = ({camera name: CameraStream}, backend)."""
-    streams, backend = context
+    `context` = ({camera name: CameraStream}, backend, track).  With `track`, the tracker is
+    first run over the TRACK_SEED_FRAMES frames before `start` (their detections discarded), so
+    chunks do not cut tracks."""
+    streams, backend, track = context
     camera_name, start, stop = task
     stream = streams[camera_name]
     stats = CameraStats()
     skipped_before = len(stream.skipped)
     dets: list[QRDetection] = []
+    tracker = CodeTracker(stream.camera) if track else None
+    if tracker is not None and start > 0:
+        seed = [(i, stream.load_image(i)) for i in range(max(0, start - TRACK_SEED_FRAMES), start)]
+        seed = [(i, im) for i, im in seed if im is not None]
+        if seed:
+            detect_frames(
+                [im for _, im in seed],
+                camera_name,
+                [int(stream.timestamps_ns[i]) for i, _ in seed],
+                stream.camera,
+                backend,
+                None,
+                tracker,
+            )
+        del stream.skipped[skipped_before:]  # (the seed frames' own chunk reports them)
     images, stamps = [], []
     for i in range(start, stop):
         stats.frames_total += 1
@@ -314,7 +359,7 @@ def _detect_chunk(
             images.append(image)
             stamps.append(int(stream.timestamps_ns[i]))
         if len(images) == REFINE_BATCH_FRAMES or (i == stop - 1 and images):
-            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera, backend, stats):
+            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera, backend, stats, tracker):
                 dets.extend(frame_dets)
             images, stamps = [], []
     skipped = stream.skipped[skipped_before:]
@@ -322,11 +367,11 @@ def _detect_chunk(
     return camera_name, dets, stats, skipped
 
 
-def flight_fingerprint(log, backend: str) -> str:
+def flight_fingerprint(log, backend: str, track: bool = True) -> str:
     """sha256 over the cache format, backend, refinement, each camera's data.csv + sensor.yaml
     and the (size, mtime_ns) of each of its images (a stat per image: no image is read)."""
     h = hashlib.sha256()
-    h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/{REFINE_METHOD}\n".encode())
+    h.update(f"fusion-detections/{FORMAT_VERSION}/{backend}/{REFINE_METHOD}/track={int(track)}\n".encode())
     for name in sorted(log.cameras):
         cam_dir = Path(log.root) / "mav0" / name
         h.update(f"{name}\n".encode())
@@ -355,6 +400,7 @@ def detect_flight(
     workers: int | None = None,
     progress: bool = True,
     chunk_frames: int = 32,
+    track: bool = True,
 ) -> DetectionResult:
     """Detections of every frame of every camera of `log` (fusion.log.FlightLog).
 
@@ -362,10 +408,11 @@ def detect_flight(
     process), each reading its own images.  With `cache_path` (a `detections.csv`), a cache whose
     fingerprint matches is reused; a stale one (other data.csv / sensor.yaml / backend / format)
     is recomputed and overwritten; a malformed one raises DetectionError naming file and line.
+    `track`: codes tracked through frames where they do not decode (fusion.qr.track).
     """
     if backend not in BACKENDS:
         raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")
-    fingerprint = flight_fingerprint(log, backend)
+    fingerprint = flight_fingerprint(log, backend, track)
     status = CACHE_NONE if cache_path is None else CACHE_WRITTEN
     if cache_path is not None and os.path.lexists(cache_path):
         cached = read_cache(cache_path, expected_fingerprint=fingerprint)
@@ -397,7 +444,7 @@ def detect_flight(
     bar = _progress_bar(n_frames, progress)
     try:
         results = parallel_map(
-            _detect_chunk, tasks, workers, (streams, backend), preload=["fusion.qr.detect"]
+            _detect_chunk, tasks, workers, (streams, backend, track), preload=["fusion.qr.detect"]
         )
         _collect(results, dets, stats, skipped, bar)
     finally:
@@ -454,6 +501,7 @@ def write_cache(result: DetectionResult, path: Path, fingerprint: str) -> None:
                     str(refined),
                     "" if d.corner_sigma_px is None else repr(float(d.corner_sigma_px)),
                     _cov_text(d.corner_cov_px2),
+                    str(int(d.tracked)),
                 ]
             )
 
@@ -552,4 +600,6 @@ def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
             raise DetectionError(f"{path}:{lineno}: corner_sigma_px is not a number") from None
         if not (math.isfinite(sigma) and sigma > 0):
             raise DetectionError(f"{path}:{lineno}: corner_sigma_px must be positive and finite")
-    return QRDetection(camera, t, payload, corners, raw, sigma, _cov_parse(row[21], path, lineno))
+    if row[22] not in ("0", "1"):
+        raise DetectionError(f"{path}:{lineno}: tracked must be 0 or 1")
+    return QRDetection(camera, t, payload, corners, raw, sigma, _cov_parse(row[21], path, lineno), row[22] == "1")

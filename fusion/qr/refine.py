@@ -695,6 +695,8 @@ _ALIGN_ITERATIONS = 4
 _ALIGN_MAX_SHIFT = 0.6  # modules from where the finders' homography predicts it
 _ALIGN_MIN_CORR = 0.6  # correlation of the matched template
 _LOCAL_FIT_SCALE = 0.5  # per-corner fits: weight exp(-d^2 / 2 L^2), d in symbol sides
+_ALIGN_MISFIT_SIGMA = 3.0  # an alignment centre this many sigmas ...
+_ALIGN_MISFIT_MODULES = 0.05  # ... and this many modules off the single homography: not flat
 
 
 @lru_cache(maxsize=1)
@@ -1223,14 +1225,18 @@ def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_
     )
     protected = np.zeros((C, M + 2 * A), bool)
     protected[:, M:] = True
-    # one fit per corner, each point's weight falling with its distance (modules) from that
+    # one homography through the finder edges and the alignment centres; where the centres do
+    # not fit it (misfit beyond _ALIGN_MISFIT_SIGMA sigmas and _ALIGN_MISFIT_MODULES), one fit
+    # per corner instead, each point's weight falling with its distance (modules) from that
     # corner: a printed symbol is not always flat, nor the lens model perfect, and a single
     # homography then errs most at the corner farthest from the finders (module comment above)
+    H, corners, cov, ok, _ = _fit_homographies(fit2, pr2, nsa, protected)
+    misfit = np.linalg.norm(_apply_hs(H, centre) - pts, axis=2)  # (C, A) px
+    with np.errstate(all="ignore"):
+        bad_fit = (misfit > _ALIGN_MISFIT_SIGMA * sig) & (misfit > _ALIGN_MISFIT_MODULES * module_px[:, None])
+    local = np.any(found & bad_fit, axis=1)
     uv = pr2.uv0.reshape(C, M + 2 * A, 2)
-    corners = np.zeros((C, 4, 2))
-    cov = np.zeros((C, 8, 8))
-    ok = np.ones(C, bool)
-    for k in range(4):
+    for k in range(4) if np.any(local) else ():
         d = np.linalg.norm(uv - (_SQUARE01[k] * nsa[:, None])[:, None, :], axis=2) / nsa[:, None]
         weight = np.exp(-0.5 * (d / _LOCAL_FIT_SCALE) ** 2)
         fit_k = _ModelFit(
@@ -1243,9 +1249,12 @@ def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_
             fit2.rms,
         )
         corners_k, cov_k, ok_k = _fit_homographies(fit_k, pr2, nsa, protected)[1:4]
-        corners[:, k] = corners_k[:, k]
-        cov[:, 2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov_k[:, 2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
-        ok &= ok_k
+        corners[local, k] = corners_k[local, k]
+        block = slice(2 * k, 2 * k + 2)
+        if k == 0:
+            cov[local] = 0.0  # the per-corner fits' errors: taken as independent
+        cov[local, block, block] = cov_k[local, block, block]
+        ok &= ~local | ok_k
     move = np.max(np.linalg.norm(corners - raw, axis=2), axis=1)
     ok &= found.any(axis=1) & (move < np.maximum(4.0, 1.5 * module_px))
     for ci in np.nonzero(ok)[0]:

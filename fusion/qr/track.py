@@ -1,0 +1,187 @@
+"""Codes tracked through blur, glare and occlusion: a code decoded in an earlier frame of the same
+camera whose symbol is still visible but no longer decodes is found again near where its motion
+predicts it, its corners refined (fusion.qr.refine, with its self-check), and its identity taken
+from the prediction, gated by the innovation; never guessed.
+
+Per camera, frames in time order (`CodeTracker.step`):
+
+1. Predict each live track's corners at this frame: constant pixel velocity from its last two
+   sightings (decoded or tracked), or its last corners when it has one.  The prediction's
+   1-sigma per coordinate: TRACK_MIN_SIGMA_PX plus TRACK_VELOCITY_SIGMA of the motion since the
+   last sighting.
+2. Skip tracks decoded in this frame, tracks whose predicted symbol (with the quiet zone) leaves
+   the image, and tracks whose prediction overlaps a code decoded in this frame (identity would
+   be ambiguous).
+3. Refine the finder edges from the predicted corners (refine_frames: stage 2 only, with its
+   self-check, RefineChecks).  Accept when it passes, no corner moved more than
+   TRACK_GATE_MODULES modules from the prediction (codes are separated by at least their quiet
+   zones, 4 modules, so a code cannot take another's identity), and the innovation
+   e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
+4. A track lives TRACK_MAX_MISSES frames without a sighting and at most TRACK_MAX_RUN tracked
+   sightings in a row (then it needs a decode again).
+
+Tracked detections carry `QRDetection.tracked = True` and the prediction as `corners_raw_px`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.qr.refine import DEFAULT_CHECKS, RefineChecks, RefineStats, refine_frames
+from fusion.types import QRDetection
+
+TRACK_MIN_SIGMA_PX = 1.5  # prediction 1-sigma floor per coordinate (px)
+TRACK_VELOCITY_SIGMA = 0.5  # plus this share of the predicted motion since the last sighting
+TRACK_GATE_MODULES = 1.0  # largest corner innovation (modules): below half a quiet zone
+TRACK_GATE_CHI2 = 26.12  # chi^2 with 8 degrees of freedom, 99.9 %
+TRACK_MAX_MISSES = 2  # frames a track survives without a sighting
+TRACK_MAX_RUN = 30  # tracked sightings in a row before a decode is needed again
+TRACK_QUIET_MODULES = 2.0  # the predicted symbol and this much quiet zone must be in the image
+
+
+@dataclass
+class _Track:
+    modules: int
+    times_ns: list[int]  # the last two sightings
+    corners: list[np.ndarray]
+    misses: int = 0
+    run: int = 0  # tracked sightings since the last decode
+
+
+@dataclass
+class TrackStats:
+    """Tracking counters: attempts (live tracks not decoded in a frame and in view), accepted
+    sightings, and rejections by reason."""
+
+    attempts: int = 0
+    tracked: int = 0
+    refine_failed: int = 0  # refinement found no finder edges or failed its self-check
+    gated: int = 0  # innovation too large: not the predicted code
+    ambiguous: int = 0  # a decoded code where the prediction lies
+    refine: RefineStats = field(default_factory=RefineStats)
+
+
+class CodeTracker:
+    """Tracks one camera's codes through frames given in time order (module docstring)."""
+
+    def __init__(self, camera: CameraModel | None = None, checks: RefineChecks = DEFAULT_CHECKS):
+        self.camera = camera
+        self.checks = checks
+        self.tracks: dict[str, _Track] = {}
+        self.stats = TrackStats()
+
+    def _predict(self, tr: _Track, t_ns: int) -> tuple[np.ndarray, float]:
+        c1 = tr.corners[-1]
+        if len(tr.corners) < 2 or tr.times_ns[-1] == tr.times_ns[-2]:
+            return c1, TRACK_MIN_SIGMA_PX
+        v = (c1 - tr.corners[-2]) / (tr.times_ns[-1] - tr.times_ns[-2])
+        step = v * (t_ns - tr.times_ns[-1])
+        pred = c1 + step
+        return pred, TRACK_MIN_SIGMA_PX + TRACK_VELOCITY_SIGMA * float(np.max(np.linalg.norm(step, axis=1)))
+
+    def _in_view(self, corners: np.ndarray, modules: int, shape: tuple[int, int]) -> bool:
+        side = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+        margin = TRACK_QUIET_MODULES * side / modules
+        h, w = shape
+        return bool(
+            np.all(corners[:, 0] >= margin)
+            and np.all(corners[:, 1] >= margin)
+            and np.all(corners[:, 0] <= w - 1 - margin)
+            and np.all(corners[:, 1] <= h - 1 - margin)
+        )
+
+    def step(
+        self,
+        image: np.ndarray,
+        camera_name: str,
+        timestamp_ns: int,
+        decoded: list[QRDetection],
+        modules: list[int | None],
+    ) -> list[QRDetection]:
+        """Tracked detections of this frame (codes not in `decoded`); then update the tracks with
+        `decoded` (its codes' modules per side in `modules`, None when unknown) and them."""
+        t = int(timestamp_ns)
+        seen = {d.payload for d in decoded}
+        centres = [d.corners_px.mean(axis=0) for d in decoded]
+        candidates = []
+        for payload, tr in self.tracks.items():
+            if payload in seen or tr.run >= TRACK_MAX_RUN:
+                continue
+            pred, sigma = self._predict(tr, t)
+            if not (np.all(np.isfinite(pred)) and self._in_view(pred, tr.modules, image.shape)):
+                continue
+            self.stats.attempts += 1
+            side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
+            if any(np.linalg.norm(c - pred.mean(axis=0)) < side for c in centres):
+                self.stats.ambiguous += 1
+                continue
+            candidates.append((payload, tr, pred, sigma))
+        out = []
+        if candidates:
+            results = refine_frames(
+                [image],
+                [[(pred, tr.modules) for _, tr, pred, _ in candidates]],
+                self.camera,
+                checks=self.checks,
+                stats=self.stats.refine,
+            )[0]
+            for (payload, tr, pred, sigma), res in zip(candidates, results):
+                if res is None or res.stage != 2 or res.corner_cov_px2 is None:
+                    self.stats.refine_failed += 1
+                    continue
+                e = (res.corners_px - pred).reshape(8)
+                module_px = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1))) / tr.modules
+                S = sigma * sigma * np.eye(8) + res.corner_cov_px2
+                chi2 = float(e @ np.linalg.solve(S, e))
+                if np.max(np.linalg.norm(e.reshape(4, 2), axis=1)) > TRACK_GATE_MODULES * module_px or chi2 > TRACK_GATE_CHI2:
+                    self.stats.gated += 1
+                    continue
+                self.stats.tracked += 1
+                out.append(
+                    QRDetection(
+                        camera_name,
+                        t,
+                        payload,
+                        res.corners_px,
+                        pred,
+                        float(res.corner_sigma_px),
+                        res.corner_cov_px2,
+                        tracked=True,
+                    )
+                )
+        self._update(t, decoded, modules, out)
+        return out
+
+    def _update(self, t: int, decoded, modules, tracked) -> None:
+        sighted = set()
+        for d, n in zip(decoded, modules):
+            if n is None:
+                n = self.tracks[d.payload].modules if d.payload in self.tracks else None
+            if n is None:
+                continue
+            tr = self.tracks.get(d.payload)
+            if tr is None:
+                tr = self.tracks[d.payload] = _Track(int(n), [], [])
+            tr.modules = int(n)
+            self._sight(tr, t, d.corners_px)
+            tr.run = 0
+            sighted.add(d.payload)
+        for d in tracked:
+            tr = self.tracks[d.payload]
+            self._sight(tr, t, d.corners_px)
+            tr.run += 1
+            sighted.add(d.payload)
+        for payload in list(self.tracks):
+            if payload not in sighted:
+                self.tracks[payload].misses += 1
+                if self.tracks[payload].misses > TRACK_MAX_MISSES:
+                    del self.tracks[payload]
+
+    @staticmethod
+    def _sight(tr: _Track, t: int, corners: np.ndarray) -> None:
+        tr.times_ns = (tr.times_ns + [t])[-2:]
+        tr.corners = (tr.corners + [np.asarray(corners, dtype=float).copy()])[-2:]
+        tr.misses = 0
