@@ -51,10 +51,18 @@ def decode(image: np.ndarray):
     out = []
     for b in zxingcpp.read_barcodes(image, formats=ZXING_FORMATS):
         p = b.position
-        c = np.array(
-            [[p.top_left.x, p.top_left.y], [p.top_right.x, p.top_right.y],
-             [p.bottom_right.x, p.bottom_right.y], [p.bottom_left.x, p.bottom_left.y]], float
-        ) - 0.5
+        c = (
+            np.array(
+                [
+                    [p.top_left.x, p.top_left.y],
+                    [p.top_right.x, p.top_right.y],
+                    [p.bottom_right.x, p.bottom_right.y],
+                    [p.bottom_left.x, p.bottom_left.y],
+                ],
+                float,
+            )
+            - 0.5
+        )
         bits = np.array(b.to_image(scale=1, add_quiet_zones=False))
         out.append((b.text, c, bits.shape[0], bits))
     return out
@@ -88,7 +96,9 @@ def read_reference(path: Path) -> dict[str, list[np.ndarray]]:
     out: dict[str, list[np.ndarray]] = {}
     with open(path, newline="") as f:
         for row in csv.DictReader(f):
-            c = np.array([float(row[k]) for k in ("tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")])
+            c = np.array(
+                [float(row[k]) for k in ("tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")]
+            )
             out.setdefault(row["file"], []).append(c.reshape(4, 2))
     return out
 
@@ -112,17 +122,24 @@ def measure(dirs: list[Path], reference: dict[str, list[np.ndarray]] | None = No
             if not codes:
                 continue
             res = refine_frames([image], [[(c, n) for _, c, n, _ in codes]], stats=STATS)[0]
-            for (text, raw, n, bits), r in zip(codes, res):
+            for (_text, raw, n, bits), r in zip(codes, res):
                 name = f"{path.parent.name}/{path.name}"
                 if reference is not None:
                     module = float(np.mean(np.linalg.norm(raw - np.roll(raw, 1, axis=0), axis=1))) / n
                     truth = _match(reference.get(name, []), raw, module)
                     rows.append(
-                        dict(file=name, n=n, ok=truth is not None, corr=np.nan, truth=truth, raw=raw,
-                             refined=None if r is None else r.corners_px,
-                             sigma=None if r is None else r.corner_sigma_px,
-                             quality=None if r is None else r.quality,
-                             stage=None if r is None else r.stage)
+                        dict(
+                            file=name,
+                            n=n,
+                            ok=truth is not None,
+                            corr=np.nan,
+                            truth=truth,
+                            raw=raw,
+                            refined=None if r is None else r.corners_px,
+                            sigma=None if r is None else r.corner_sigma_px,
+                            quality=None if r is None else r.quality,
+                            stage=None if r is None else r.stage,
+                        )
                     )
                     continue
                 ref_c = r.corners_px if r is not None else raw
@@ -153,19 +170,29 @@ def measure(dirs: list[Path], reference: dict[str, list[np.ndarray]] | None = No
 
 def summarise(rows) -> None:
     good = [r for r in rows if r["ok"]]
-    print(f"codes decoded: {len(rows)}; with a reference (ECC corr >= {REF_MIN_CORR}, "
-          f"agreeing within {REF_AGREE_PX} px from both starts): {len(good)}")
+    print(
+        f"codes decoded: {len(rows)}; with a reference (ECC corr >= {REF_MIN_CORR}, "
+        f"agreeing within {REF_AGREE_PX} px from both starts): {len(good)}"
+    )
     e_raw = np.array([np.linalg.norm(r["raw"] - r["truth"], axis=1) for r in good])
-    out = np.array([np.linalg.norm((r["refined"] if r["refined"] is not None else r["raw"]) - r["truth"], axis=1)
-                    for r in good])
+    out = np.array(
+        [
+            np.linalg.norm((r["refined"] if r["refined"] is not None else r["raw"]) - r["truth"], axis=1)
+            for r in good
+        ]
+    )
     kept = np.array([r["refined"] is not None for r in good])
     print("| corners | codes | median px | mean px | p90 px | max px |\n|---|---|---|---|---|---|")
     for name, e in (("decoder (zxing)", e_raw), ("refined (fallback: decoder)", out)):
-        print(f"| {name} | {len(e)} | {np.median(e):.3f} | {np.mean(e):.3f} | "
-              f"{np.percentile(e, 90):.3f} | {np.max(e):.3f} |")
+        print(
+            f"| {name} | {len(e)} | {np.median(e):.3f} | {np.mean(e):.3f} | "
+            f"{np.percentile(e, 90):.3f} | {np.max(e):.3f} |"
+        )
     worse = np.max(out - e_raw, axis=1) > WORSE_PX
-    print(f"refined (kept {kept.sum()} / {len(kept)}) worse than the decoder by > {WORSE_PX} px on a corner: "
-          f"{worse.sum()} codes ({100.0 * worse.mean():.1f} %)")
+    print(
+        f"refined (kept {kept.sum()} / {len(kept)}) worse than the decoder by > {WORSE_PX} px on a corner: "
+        f"{worse.sum()} codes ({100.0 * worse.mean():.1f} %)"
+    )
     print(f"refinement counters (all {len(rows)} codes): {STATS}")
     for r, w in zip(good, worse):
         if w:
@@ -175,10 +202,14 @@ def summarise(rows) -> None:
 def write_csv(rows, path: Path) -> None:
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["file", "modules", "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y", "ecc_corr"])
+        w.writerow(
+            ["file", "modules", "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y", "ecc_corr"]
+        )
         for r in rows:
             if r["ok"]:
-                w.writerow([r["file"], r["n"]] + [f"{v:.3f}" for v in r["truth"].reshape(-1)] + [f"{r['corr']:.3f}"])
+                w.writerow(
+                    [r["file"], r["n"]] + [f"{v:.3f}" for v in r["truth"].reshape(-1)] + [f"{r['corr']:.3f}"]
+                )
 
 
 def main(argv=None) -> int:

@@ -52,7 +52,9 @@ from fusion.types import QRDetection
 BACKENDS = ("zxing", "aruco")
 FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image sizes and mtimes in the key
 CACHE_NAME = "detections.csv"
-REFINE_METHOD = "finder-crossings+finder-model-homography+alignment+checks/8"  # change when refine.py's output changes
+REFINE_METHOD = (
+    "finder-crossings+finder-model-homography+alignment+checks/8"  # change when refine.py's output changes
+)
 CACHE_HEADER = (
     "camera",
     "timestamp_ns",
@@ -279,7 +281,10 @@ def detect_frames(
     decoded = [_detect_image(image, backend) for image in images]
     rstats = RefineStats()
     refined_all = refine_frames(
-        list(images), [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded], camera, stats=rstats
+        list(images),
+        [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded],
+        camera,
+        stats=rstats,
     )
     out = []
     for image, (codes, dropped), refined_frame, ts in zip(images, decoded, refined_all, timestamps_ns):
@@ -293,7 +298,11 @@ def detect_frames(
             dets.append(
                 QRDetection(camera_name, int(ts), code.payload, refined, code.corners_px, float(sigma), cov)
             )
-        tracked = [] if tracker is None else tracker.step(image, camera_name, int(ts), dets, [c.modules for c in codes])
+        tracked = (
+            []
+            if tracker is None
+            else tracker.step(image, camera_name, int(ts), dets, [c.modules for c in codes])
+        )
         if stats is not None:
             stats.payloads_dropped += dropped
             stats.detections += len(dets) + len(tracked)
@@ -359,7 +368,9 @@ def _detect_chunk(
             images.append(image)
             stamps.append(int(stream.timestamps_ns[i]))
         if len(images) == REFINE_BATCH_FRAMES or (i == stop - 1 and images):
-            for frame_dets in detect_frames(images, camera_name, stamps, stream.camera, backend, stats, tracker):
+            for frame_dets in detect_frames(
+                images, camera_name, stamps, stream.camera, backend, stats, tracker
+            ):
                 dets.extend(frame_dets)
             images, stamps = [], []
     skipped = stream.skipped[skipped_before:]
@@ -602,4 +613,6 @@ def _cache_row(row: list[str], path: Path, lineno: int) -> QRDetection:
             raise DetectionError(f"{path}:{lineno}: corner_sigma_px must be positive and finite")
     if row[22] not in ("0", "1"):
         raise DetectionError(f"{path}:{lineno}: tracked must be 0 or 1")
-    return QRDetection(camera, t, payload, corners, raw, sigma, _cov_parse(row[21], path, lineno), row[22] == "1")
+    return QRDetection(
+        camera, t, payload, corners, raw, sigma, _cov_parse(row[21], path, lineno), row[22] == "1"
+    )

@@ -603,7 +603,12 @@ def _model_edge_points(
             # a first look: the crossings alone (biased outwards by blur, but local, so free of
             # the decoder corners' scale errors that the model's later transitions would feel)
             contrast0 = (out_lvl - dark).astype(float)
-            good = ok & _contrast_ok(contrast0.reshape(C, -1)).reshape(-1) & below.any(axis=1) & (np.abs(e) < 0.7)
+            good = (
+                ok
+                & _contrast_ok(contrast0.reshape(C, -1)).reshape(-1)
+                & below.any(axis=1)
+                & (np.abs(e) < 0.7)
+            )
             points = _apply_hs(Hp, pr.uv0 + e[:, None].astype(np.float64) * pr.inward)
             return _ModelFit(
                 points, good, np.full(P, 0.3), g, np.full((C, 2), np.nan), contrast0, np.full(P, np.nan)
@@ -677,7 +682,13 @@ def _model_edge_points(
     good &= rms <= 3.0 * med[pr.code] + 1.0
     points = _apply_hs(Hp, pr.uv0 + e[:, None] * pr.inward)
     return _ModelFit(
-        points, good, np.where(good, sigma_e, 1.0), g, width_px.reshape(C, 2), contrast.astype(float), rms.astype(float)
+        points,
+        good,
+        np.where(good, sigma_e, 1.0),
+        g,
+        width_px.reshape(C, 2),
+        contrast.astype(float),
+        rms.astype(float),
     )
 
 
@@ -773,7 +784,9 @@ def _alignment_points(
             corr = -b * np.linalg.norm(Tc) / np.linalg.norm(yc, axis=2)
         cov = JtJ_inv * (np.sum(r * r, axis=2) / max(S - 4, 1))[..., None, None]  # modules^2
         sigma_mod = np.sqrt(np.maximum(0.5 * (cov[..., 0, 0] + cov[..., 1, 1]), 0.0))
-    found &= (corr >= _ALIGN_MIN_CORR) & np.all(np.abs(d) <= _ALIGN_MAX_SHIFT, axis=2) & np.isfinite(sigma_mod)
+    found &= (
+        (corr >= _ALIGN_MIN_CORR) & np.all(np.abs(d) <= _ALIGN_MAX_SHIFT, axis=2) & np.isfinite(sigma_mod)
+    )
     pts = _apply_hs(Hs, centre + d)
     half = np.array([0.5, 0.0])
     scale = np.linalg.norm(_apply_hs(Hs, centre + d + half) - _apply_hs(Hs, centre + d - half), axis=2)
@@ -794,8 +807,15 @@ def _sample_points(
         rows = image_of == i
         img = images[i]
         xr, yr = xd[rows].reshape(-1, K), yd[rows].reshape(-1, K)
-        out[rows] = cv2.remap(img, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, R, K)
-        ins[rows] = (xd[rows] >= 0) & (yd[rows] >= 0) & (xd[rows] <= img.shape[1] - 1) & (yd[rows] <= img.shape[0] - 1)
+        out[rows] = cv2.remap(img, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(
+            -1, R, K
+        )
+        ins[rows] = (
+            (xd[rows] >= 0)
+            & (yd[rows] >= 0)
+            & (xd[rows] <= img.shape[1] - 1)
+            & (yd[rows] <= img.shape[0] - 1)
+        )
     return out, ins
 
 
@@ -1170,7 +1190,11 @@ def _merge_fit(old: _ModelFit, new: _ModelFit, take: np.ndarray) -> _ModelFit:
     C = len(take)
 
     def pick(a, b):
-        return np.where(take.reshape((C,) + (1,) * (b.ndim)), b.reshape(C, -1, *b.shape[1:]), a.reshape(C, -1, *a.shape[1:])).reshape(b.shape)
+        return np.where(
+            take.reshape((C,) + (1,) * (b.ndim)),
+            b.reshape(C, -1, *b.shape[1:]),
+            a.reshape(C, -1, *a.shape[1:]),
+        ).reshape(b.shape)
 
     return _ModelFit(
         pick(old.points, new.points),
@@ -1260,7 +1284,9 @@ def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_
     for ci in np.nonzero(ok)[0]:
         c_old, _, width, q = out[ci]
         # (chi^2 and residual stay those of the finder edges' single homography)
-        quality = RefineQuality(q.edge_snr, q.chi2_dof, q.residual_px, q.used_fraction, float(move[ci]), q.module_px)
+        quality = RefineQuality(
+            q.edge_snr, q.chi2_dof, q.residual_px, q.used_fraction, float(move[ci]), q.module_px
+        )
         out[ci] = (corners[ci], cov[ci], width, quality)
 
 

@@ -133,10 +133,15 @@ class CodeTracker:
                     self.stats.refine_failed += 1
                     continue
                 e = (res.corners_px - pred).reshape(8)
-                module_px = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1))) / tr.modules
+                module_px = (
+                    float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1))) / tr.modules
+                )
                 S = sigma * sigma * np.eye(8) + res.corner_cov_px2
                 chi2 = float(e @ np.linalg.solve(S, e))
-                if np.max(np.linalg.norm(e.reshape(4, 2), axis=1)) > TRACK_GATE_MODULES * module_px or chi2 > TRACK_GATE_CHI2:
+                if (
+                    np.max(np.linalg.norm(e.reshape(4, 2), axis=1)) > TRACK_GATE_MODULES * module_px
+                    or chi2 > TRACK_GATE_CHI2
+                ):
                     self.stats.gated += 1
                     continue
                 self.stats.tracked += 1
