@@ -290,6 +290,7 @@ def detect_frames(
     for image, (codes, dropped), refined_frame, ts in zip(images, decoded, refined_all, timestamps_ns):
         dets = []
         for code, res in zip(codes, refined_frame):
+            cov: np.ndarray | None
             if res is None:
                 refined, sigma = code.corners_px.copy(), RAW_CORNER_SIGMA_PX
                 cov = RAW_CORNER_SIGMA_PX**2 * np.eye(8)
@@ -331,7 +332,7 @@ TRACK_MAX_MISSES missed frames, so a few frames carry every live track across)."
 
 
 def _detect_chunk(
-    context: tuple[dict, str], task: tuple[str, int, int]
+    context: tuple[dict, str, bool], task: tuple[str, int, int]
 ) -> tuple[str, list[QRDetection], CameraStats, list[str]]:
     """Frames [start, stop) of one camera, read from their paths in the calling process;
     `context` = ({camera name: CameraStream}, backend, track).  With `track`, the tracker is

@@ -482,7 +482,7 @@ def _sample_profiles(
     uv: np.ndarray,
     step: np.ndarray,
     s: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Image values along profiles: row i samples images[image_rows[i]] at the module
     coordinates uv[i] + s[i, k] step[i] mapped by H[i] (module -> undistorted px) and distorted.
     Returns (y (R, K) float32, inside (R, K), clipped (R, K): the sample's bilinear footprint
@@ -507,7 +507,7 @@ def _sample_profiles(
         vals[rows] = cv2.remap(img, xi, yi, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         inside[rows] = (xi >= 0) & (yi >= 0) & (xi <= img.shape[1] - 1) & (yi <= img.shape[0] - 1)
         if np.any(vals[rows] >= top - 2 * _CLIP_MARGIN_DN):  # (cheap pre-check on the samples)
-            mask = cv2.compare(img, top, cv2.CMP_GE)  # 255 where clipped
+            mask = np.where(img >= top, np.uint8(255), np.uint8(0))  # 255 where clipped
             clipped[rows] = cv2.remap(mask, xi, yi, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) > 0
     return vals, inside, clipped
 
@@ -575,12 +575,12 @@ def _model_edge_points(
     )
     # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
     y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
-    clipped = clipped.reshape(P, _MODEL_GROUP, K).any(axis=1)
+    clipped_any = np.any(clipped.reshape(P, _MODEL_GROUP, K), axis=1)
     s = s.astype(np.float32)
     ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
     used = np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]
     # clipped samples out of the fit where enough remain (module comment at _CLIP_MARGIN_DN)
-    unclipped = used & ~clipped
+    unclipped = used & ~clipped_any
     drop_clipped = np.sum(unclipped, axis=1) >= _MIN_UNCLIPPED_SAMPLES
     m = np.where(drop_clipped[:, None], unclipped, used).astype(np.float32)
     inner = (~pr.boundary).astype(np.float32)[:, None]
@@ -1109,7 +1109,7 @@ def _stage2(
     dist: _Distortion,
     starts_u: list[np.ndarray],
     ns: list[float],
-) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, RefineQuality] | None]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
     width_px (2,), RefineQuality) or None."""
