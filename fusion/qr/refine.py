@@ -846,7 +846,8 @@ def _fit_homographies(fit: _ModelFit, pr: _Profiles, ns: np.ndarray, protected: 
     rows with ok False are junk.  `protected` (C, M): points exempt from the outlier round."""
     C = len(ns)
     p = fit.points.reshape(C, -1, 2)
-    good = fit.good.reshape(C, -1)
+    good = fit.good.reshape(C, -1) & np.all(np.isfinite(p), axis=2)
+    p = np.where(good[..., None], p, 0.0)  # (unused points: finite, weight 0)
     ax = pr.axis.reshape(C, -1)
     cn = pr.const.reshape(C, -1) / ns[:, None]  # normalised module coordinates
     gm = ns[:, None] / fit.g.reshape(C, -1)  # px per normalised module

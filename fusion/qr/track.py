@@ -15,7 +15,8 @@ Per camera, frames in time order (`CodeTracker.step`):
 3. Refine the finder edges from the predicted corners (refine_frames: stage 2 only, with its
    self-check, RefineChecks).  Accept when it passes, no corner moved more than
    TRACK_GATE_MODULES modules from the prediction (codes are separated by at least their quiet
-   zones, 4 modules, so a code cannot take another's identity), and the innovation
+   zones, 4 modules, so a code cannot take another's identity; several starts around the
+   prediction, TRACK_START_OFFSETS_PX, the passing result nearest it kept), and the innovation
    e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
 4. A track lives TRACK_MAX_MISSES frames without a sighting and at most TRACK_MAX_RUN tracked
    sightings in a row (then it needs a decode again).
@@ -25,17 +26,20 @@ Tracked detections carry `QRDetection.tracked = True` and the prediction as `cor
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.qr.refine import DEFAULT_CHECKS, RefineChecks, RefineStats, refine_frames
+from fusion.qr.refine import DEFAULT_CHECKS, RefineChecks, refine_frames
 from fusion.types import QRDetection
 
 TRACK_MIN_SIGMA_PX = 1.5  # prediction 1-sigma floor per coordinate (px)
 TRACK_VELOCITY_SIGMA = 0.5  # plus this share of the predicted motion since the last sighting
-TRACK_GATE_MODULES = 1.0  # largest corner innovation (modules): below half a quiet zone
+TRACK_GATE_MODULES = 2.0  # largest corner innovation (modules): half the quiet zone (4 modules)
+TRACK_START_OFFSETS_PX = np.array(
+    [[0.0, 0.0], [3.0, 0.0], [-3.0, 0.0], [0.0, 3.0], [0.0, -3.0]]
+)  # refinement starts around a prediction, scaled by its sigma over TRACK_MIN_SIGMA_PX
 TRACK_GATE_CHI2 = 26.12  # chi^2 with 8 degrees of freedom, 99.9 %
 TRACK_MAX_MISSES = 2  # frames a track survives without a sighting
 TRACK_MAX_RUN = 30  # tracked sightings in a row before a decode is needed again
@@ -61,7 +65,6 @@ class TrackStats:
     refine_failed: int = 0  # refinement found no finder edges or failed its self-check
     gated: int = 0  # innovation too large: not the predicted code
     ambiguous: int = 0  # a decoded code where the prediction lies
-    refine: RefineStats = field(default_factory=RefineStats)
 
 
 class CodeTracker:
@@ -100,17 +103,31 @@ class CodeTracker:
         timestamp_ns: int,
         decoded: list[QRDetection],
         modules: list[int | None],
+        predicted: dict[str, tuple[np.ndarray, float, int]] | None = None,
     ) -> list[QRDetection]:
         """Tracked detections of this frame (codes not in `decoded`); then update the tracks with
-        `decoded` (its codes' modules per side in `modules`, None when unknown) and them."""
+        `decoded` (its codes' modules per side in `modules`, None when unknown) and them.
+
+        `predicted`: payload -> (corners (4, 2) px, 1-sigma px, modules per side) of codes that a
+        predicted camera pose puts in view (e.g. the floor grid projected with the pose
+        extrapolated from the last PnP poses); preferred to a track's own pixel-motion
+        prediction (a pose uses every code of the frame)."""
         t = int(timestamp_ns)
         seen = {d.payload for d in decoded}
         centres = [d.corners_px.mean(axis=0) for d in decoded]
+        predicted = predicted or {}
+        sources = [
+            (p, tr, *self._predict(tr, t))
+            for p, tr in self.tracks.items()
+            if tr.run < TRACK_MAX_RUN and p not in predicted
+        ]
+        for payload, (corners, sigma, n) in predicted.items():
+            tr = self.tracks.get(payload) or _Track(int(n), [], [])
+            sources.append((payload, tr, np.asarray(corners, float), float(sigma)))
         candidates = []
-        for payload, tr in self.tracks.items():
-            if payload in seen or tr.run >= TRACK_MAX_RUN:
+        for payload, tr, pred, sigma in sources:
+            if payload in seen:
                 continue
-            pred, sigma = self._predict(tr, t)
             if not (np.all(np.isfinite(pred)) and self._in_view(pred, tr.modules, image.shape)):
                 continue
             self.stats.attempts += 1
@@ -119,46 +136,59 @@ class CodeTracker:
                 self.stats.ambiguous += 1
                 continue
             candidates.append((payload, tr, pred, sigma))
-        out = []
+        out: list[tuple[QRDetection, _Track]] = []
         if candidates:
-            results = refine_frames(
-                [image],
-                [[(pred, tr.modules) for _, tr, pred, _ in candidates]],
-                self.camera,
-                checks=self.checks,
-                stats=self.stats.refine,
-            )[0]
-            for (payload, tr, pred, sigma), res in zip(candidates, results):
-                if res is None or res.stage != 2 or res.corner_cov_px2 is None:
+            # several starts per candidate: refinement's capture range under heavy blur (~2 px)
+            # is below a prediction's error; the passing result nearest the prediction is kept
+            starts: list[tuple[np.ndarray, int | None]] = [
+                (pred + off * (sigma / TRACK_MIN_SIGMA_PX), tr.modules)
+                for _, tr, pred, sigma in candidates
+                for off in TRACK_START_OFFSETS_PX
+            ]
+            flat = refine_frames([image], [starts], self.camera, checks=self.checks)[0]
+            n_starts = len(TRACK_START_OFFSETS_PX)
+            for i, (payload, tr, pred, sigma) in enumerate(candidates):
+                passed = [
+                    r
+                    for r in flat[i * n_starts : (i + 1) * n_starts]
+                    if r is not None
+                    and r.stage == 2
+                    and r.corner_cov_px2 is not None
+                    and r.quality is not None
+                ]
+                if not passed:
                     self.stats.refine_failed += 1
                     continue
-                e = (res.corners_px - pred).reshape(8)
-                module_px = (
-                    float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1))) / tr.modules
+                # the start at the prediction itself first (a shifted start can lock onto the
+                # finder's 2-module alias under heavy blur), else the result nearest the prediction
+                first = flat[i * n_starts]
+                res = (
+                    first
+                    if first is not None and first.stage == 2 and first.corner_cov_px2 is not None
+                    else min(passed, key=lambda r: float(np.max(np.linalg.norm(r.corners_px - pred, axis=1))))
                 )
-                S = sigma * sigma * np.eye(8) + res.corner_cov_px2
+                e = (res.corners_px - pred).reshape(8)
+                side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
+                S = sigma * sigma * np.eye(8) + np.asarray(res.corner_cov_px2)
                 chi2 = float(e @ np.linalg.solve(S, e))
-                if (
-                    np.max(np.linalg.norm(e.reshape(4, 2), axis=1)) > TRACK_GATE_MODULES * module_px
-                    or chi2 > TRACK_GATE_CHI2
-                ):
+                worst = float(np.max(np.linalg.norm(e.reshape(4, 2), axis=1)))
+                if worst > TRACK_GATE_MODULES * side / tr.modules or chi2 > TRACK_GATE_CHI2:
                     self.stats.gated += 1
                     continue
                 self.stats.tracked += 1
-                out.append(
-                    QRDetection(
-                        camera_name,
-                        t,
-                        payload,
-                        res.corners_px,
-                        pred,
-                        float(res.corner_sigma_px),
-                        res.corner_cov_px2,
-                        tracked=True,
-                    )
+                det = QRDetection(
+                    camera_name,
+                    t,
+                    payload,
+                    res.corners_px,
+                    pred,
+                    float(res.corner_sigma_px),
+                    res.corner_cov_px2,
+                    tracked=True,
                 )
+                out.append((det, tr))
         self._update(t, decoded, modules, out)
-        return out
+        return [d for d, _ in out]
 
     def _update(self, t: int, decoded, modules, tracked) -> None:
         sighted = set()
@@ -174,8 +204,8 @@ class CodeTracker:
             self._sight(tr, t, d.corners_px)
             tr.run = 0
             sighted.add(d.payload)
-        for d in tracked:
-            tr = self.tracks[d.payload]
+        for d, tr_new in tracked:
+            tr = self.tracks.setdefault(d.payload, tr_new)
             self._sight(tr, t, d.corners_px)
             tr.run += 1
             sighted.add(d.payload)
