@@ -3,15 +3,17 @@ frames still give a PnP pose, and whether any code is given a wrong identity.
 
 Frames: the "default" scenario's floor camera (640x480) at 30 Hz over 5 s windows of its survey
 (one window per seed; its first SEED_FRAMES frames clean, as the earlier frames where the codes
-were decoded, and not counted), rendered with 10 px motion blur along the image motion (RenderEffects) and,
-separately, with 10 % of each floor symbol hidden in every frame (a rectangle of a tenth of the
-symbol's area at a random place, random grey: drawn here over the rendered image, since the
-renderer has no occluders on codes).  Each condition runs detection frame by frame in time order
-(detect_frames, batches of REFINE_BATCH_FRAMES) without and with the tracker, then
+were decoded, and not counted), rendered with 10 px motion blur along the image motion
+(RenderEffects) and, separately, with 10 % of each floor symbol hidden in every frame (a square
+of a tenth of the symbol's area at a random place, random grey: drawn here over the rendered
+image, since the renderer has no occluders on codes).  Each condition runs detection frame by
+frame in time order (detect_frames) in three modes (TRACK_MODES): no tracker; the tracker with
+its own pixel-motion prediction only (what detect_flight runs); and the tracker also fed the
+floor codes that the pose extrapolated from the last PnP poses puts in view.  Then
 estimate_floor_pose per frame.  "Floor frames": frames with at least one floor code entirely in
-view.  A detection's identity is wrong when its corners are more than WRONG_ID_PX from the true
-corners of the code its payload names (or that code is not in view).  Also: zxing-cpp's
-try_downscale (its default, off in fusion) on the same frames: codes read and time.
+view.  A detection's identity is wrong when the code it names is not in view or another code's
+true centre is nearer to it.  Also: zxing-cpp's try_downscale (its default, off in fusion) on
+the same frames: codes read and time.
 
     PYTHONPATH=. python3 scripts/bench_track.py [--seeds 3] [--seconds 5]
 """
@@ -36,11 +38,11 @@ from fusion.sim.scenarios import build_scenario
 RATE_HZ = 30.0
 BLUR_PX = 10.0
 OCCLUDED_FRACTION = 0.10
-WRONG_ID_PX = 3.0
 NOISE_DN = 2.0
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma of corners predicted from the extrapolated pose
 MAX_PREDICTION_S = 0.5  # no prediction from poses older than this
 VELOCITY_BASELINE_S = 0.05
+TRACK_MODES = ("off", "motion", "pose")  # no tracker; own pixel motion only; + pose-predicted codes
 SEED_FRAMES = 3  # first frames of a window: no blur, no occlusion (the earlier decode); not counted
 
 
@@ -126,13 +128,13 @@ def _predictions(cam, codes, poses, t_ns: int) -> dict:
     return out
 
 
-def run(scenario, frames, stamps, truths, centres_all, track: bool):
+def run(scenario, frames, stamps, truths, centres_all, track: str):
     """Frame by frame in time order: detection (with the tracker: fed the codes that the pose
     extrapolated from the last two PnP poses puts in view), PnP, identity check."""
     cam = scenario.cameras["cam0"]
     world = scenario.layout.world
     codes = [c for c in scenario.codes() if c.is_floor]
-    tracker = CodeTracker(cam) if track else None
+    tracker = CodeTracker(cam) if track != "off" else None
     stats = CameraStats()
     out = dict(floor_frames=0, poses=0, wrong_ids=0, tracked=0, decoded=0, pos_err=[])
     poses: list[tuple[int, np.ndarray]] = []
@@ -140,7 +142,8 @@ def run(scenario, frames, stamps, truths, centres_all, track: bool):
         dets = detect_frames([img], "cam0", [ts], cam, "zxing", stats, None)[0]
         if tracker is not None:
             modules = [next((c.modules for c in codes if c.payload == d.payload), None) for d in dets]
-            dets = dets + tracker.step(img, "cam0", ts, dets, modules, _predictions(cam, codes, poses, ts))
+            predicted = _predictions(cam, codes, poses, ts) if track == "pose" else None
+            dets = dets + tracker.step(img, "cam0", ts, dets, modules, predicted)
         for d in dets:
             # wrong identity: the code it names is not in view, or another code's true centre is
             # nearer to its centre than that code's
@@ -191,18 +194,18 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|---|---|")
     down_rows = []
     for condition in ("blur", "occlusion"):
-        tot = {False: None, True: None}
+        tot: dict = {mode: None for mode in TRACK_MODES}
         for seed in range(args.seeds):
             frames, stamps, truths, centres = render(scenario, seed, args.seconds, condition)
             down_rows.append((condition, seed) + downscale_cost(frames[SEED_FRAMES:]))
-            for track in (False, True):
+            for track in TRACK_MODES:
                 r = run(scenario, frames, stamps, truths, centres, track)
                 if tot[track] is None:
                     tot[track] = r
                 else:
                     for k in r:
                         tot[track][k] += r[k]
-        for track in (False, True):
+        for track in TRACK_MODES:
             r = tot[track]
             e = 100 * np.array(r["pos_err"]) if r["pos_err"] else np.array([np.nan])
             print(
@@ -212,7 +215,7 @@ def main(argv=None) -> int:
                 end="",
             )
             print(
-                f" | {'on' if track else 'off'} | {r['floor_frames']} | {r['poses']} "
+                f" | {track} | {r['floor_frames']} | {r['poses']} "
                 f"({100 * r['poses'] / max(r['floor_frames'], 1):.0f} %) | {r['decoded']} | {r['tracked']} "
                 f"| {r['wrong_ids']} | {np.median(e):.2f} / {np.max(e):.2f} |"
             )

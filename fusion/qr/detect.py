@@ -379,7 +379,7 @@ def _detect_chunk(
     return camera_name, dets, stats, skipped
 
 
-def flight_fingerprint(log, backend: str, track: bool = True) -> str:
+def flight_fingerprint(log, backend: str, track: bool = False) -> str:
     """sha256 over the cache format, backend, refinement, each camera's data.csv + sensor.yaml
     and the (size, mtime_ns) of each of its images (a stat per image: no image is read)."""
     h = hashlib.sha256()
@@ -412,7 +412,7 @@ def detect_flight(
     workers: int | None = None,
     progress: bool = True,
     chunk_frames: int = 32,
-    track: bool = True,
+    track: bool = False,
 ) -> DetectionResult:
     """Detections of every frame of every camera of `log` (fusion.log.FlightLog).
 
@@ -420,7 +420,8 @@ def detect_flight(
     process), each reading its own images.  With `cache_path` (a `detections.csv`), a cache whose
     fingerprint matches is reused; a stale one (other data.csv / sensor.yaml / backend / format)
     is recomputed and overwritten; a malformed one raises DetectionError naming file and line.
-    `track`: codes tracked through frames where they do not decode (fusion.qr.track).
+    `track`: codes tracked through frames where they do not decode (fusion.qr.track; off by
+    default until the pipeline feeds it pose predictions: NOTES-refine.md).
     """
     if backend not in BACKENDS:
         raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")

@@ -36,6 +36,14 @@ are H applied to the module square; their (8, 8) covariance (`RefineResult.corne
 propagates each edge point's noise (its profile's residual RMS over its information) through that
 fit, Jc (J^T W J)^-1 Jc^T, and the lens distortion, calibrated on rendered codes (`CornerCovarianceModel`).
 
+Third (versions >= 2): the alignment patterns' centres join the homography fit, and where they do
+not fit one homography (a curled print, an imperfect lens model), each corner comes from its own
+distance-weighted fit (`_add_alignment`).  Then the self-check: every stage-2 result carries a
+`RefineQuality` (edge contrast over noise, misfit of the edge points, share of edges used,
+distance to the decoder's corners); one that fails `RefineChecks` keeps the decoder's corners
+with FALLBACK_SIGMA_PX (stage 0), counted in `RefineStats`.  Profiles are used by contrast
+relative to the code's own (no fixed grey-level cutoff) and clipped samples stay out of the fit.
+
 Lens distortion bends the edges.  With a `CameraModel` the whole construction runs in
 undistorted pixel coordinates: the raw corners are undistorted, the profiles are laid out in
 undistorted space and each sample point is distorted to read the image, the lines are fitted and
@@ -1390,6 +1398,7 @@ def refine_code(
     iterations: int = 1,
     finder_homography: bool = True,
     cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL,
+    checks: RefineChecks | None = DEFAULT_CHECKS,
 ) -> RefineResult | None:
     """Sub-pixel corners of one QR symbol's outer edge with their covariance and the fitted
     blur, or None when the finder edges cannot be measured (too little contrast, symbol at the
@@ -1401,7 +1410,7 @@ def refine_code(
     module docstring), and with `finder_homography` the homography fits to the twelve finder
     edges located by the blurred-profile model (stage 2)."""
     return refine_frames(
-        [image], [[(corners_raw_px, modules)]], camera, iterations, finder_homography, cov_model
+        [image], [[(corners_raw_px, modules)]], camera, iterations, finder_homography, cov_model, checks
     )[0][0]
 
 
