@@ -185,6 +185,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
     )
     p.add_argument(
+        "--readout-ms",
+        type=float,
+        default=None,
+        help="rolling shutter: whole-frame readout time of both cameras, ms, stamped at the "
+        "first row (default: the scenario's, 0 = global shutter)",
+    )
+    p.add_argument(
         "--force",
         action="store_true",
         help="replace a log that `fusion simulate` wrote there (other files are kept)",
@@ -341,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
                 camera_rate_hz=args.fps,
                 start_s=args.start,
                 fmt=args.format,
+                readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
