@@ -117,6 +117,13 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
         default=None,
         help="processes for detection and per-frame estimates (default: all cores)",
     )
+    if p.prog.split()[-1] != "detect":
+        p.add_argument(
+            "--calibrate-readout",
+            action="store_true",
+            help="estimate the floor camera's rolling-shutter readout time from the flight "
+            "(PnP reprojection cost profile, golden section; reported with its sigma) and use it",
+        )
     if stages:
         p.add_argument(
             "--robust",
@@ -326,6 +333,7 @@ def _run_config(args):
         robust=getattr(args, "robust", "huber"),
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
+        calibrate_readout=getattr(args, "calibrate_readout", False),
     )
 
 

@@ -50,18 +50,29 @@ from fusion.world import World
 
 log_ = logging.getLogger(__name__)
 
-CORRECTION_PASSES = 2
+CORRECTION_PASSES = 4
 """PnP -> motion -> corrected corners rounds of `correct_flight` after the first PnP."""
-FIT_HALF_WINDOW = 3
+FIT_HALF_WINDOW = 8
 """Poses each side of a stamp in the local quadratic fit of the position (velocity)."""
-FIT_MAX_SPAN_S = 0.3
+FIT_MAX_SPAN_S = 0.5
 """Poses further than this from the stamp are left out of the fit."""
 MIN_FIT_POSES = 3
+FIT_DEGREE = 2
+"""Degree of the local polynomial fit of the positions (2: velocity and acceleration)."""
+FIT_ROBUST_ROUNDS = 3
+FIT_TRIM_MAD = 3.0
+FIT_TRIM_MIN_M = 0.003
+"""Trimmed fit: poses further than FIT_TRIM_MAD robust sigmas (at least FIT_TRIM_MIN_M) from the
+fit are left out, up to FIT_ROBUST_ROUNDS times."""
 """Fewer poses in the window: no velocity (the frame's corners are not corrected)."""
 MIN_VELOCITY_SIGMA_M_S = 0.005
 """Floor under the velocity fit's own standard deviation."""
 MAX_CALIBRATION_FRAMES = 300
 """`calibrate_readout` uses at most this many frames: those whose image moves most."""
+CALIBRATION_ROUNDS = 2
+"""`calibrate_readout`: motion re-estimated with the previous estimate this many times."""
+CALIBRATION_BLOCKS = 6
+"""Contiguous blocks of frames whose minima's spread gives the readout's sigma (a lower bound)."""
 GOLDEN_TOL_S = 5e-5
 """Golden-section search stops when the bracket is narrower than this (s)."""
 CURVATURE_STEP_FRACTION = 0.1
@@ -164,10 +175,20 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         idx, dt = idx[np.abs(dt) <= FIT_MAX_SPAN_S], dt[np.abs(dt) <= FIT_MAX_SPAN_S]
         if len(idx) < MIN_FIT_POSES or dt.min() > 0 or dt.max() < 0:
             continue  # too few poses, or all on one side (extrapolation)
-        A = np.column_stack([np.ones_like(dt), dt, 0.5 * dt**2])
+        A = np.column_stack([dt**j / math.factorial(j) for j in range(FIT_DEGREE + 1)])
+        keep = np.ones(len(idx), bool)
+        for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
+            coef, *_ = np.linalg.lstsq(A[keep], T[idx[keep], :3, 3], rcond=None)
+            r = np.linalg.norm(T[idx, :3, 3] - A @ coef, axis=1)
+            scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
+            new_keep = r <= scale
+            if new_keep.sum() < FIT_DEGREE + 2 or np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        A, idx, dt = A[keep], idx[keep], dt[keep]
         coef, *_ = np.linalg.lstsq(A, T[idx, :3, 3], rcond=None)
         resid = T[idx, :3, 3] - A @ coef
-        dof = len(idx) - 3
+        dof = len(idx) - FIT_DEGREE - 1
         var = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
         AtA_inv = np.linalg.pinv(A.T @ A)
         sig2 = max(var * AtA_inv[1, 1], MIN_VELOCITY_SIGMA_M_S**2)
@@ -185,7 +206,7 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         back = float((t - ts[near]) * 1e-9)
         out.T_world_body[k, :3, :3] = R @ so3_exp_stack(out.omega_body[k][None] * back)[0]
         out.T_world_body[k, :3, 3] = coef[0]
-        out.v_world[k], out.a_world[k] = coef[1], coef[2]
+        out.v_world[k], out.a_world[k] = coef[1], coef[2] if FIT_DEGREE >= 2 else 0.0
         out.v_cov[k] = sig2 * np.eye(3)
         out.valid[k] = True
     return out
@@ -195,75 +216,97 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
 
 
 def _body_poses_at(T_world_body: np.ndarray, omega: np.ndarray, v: np.ndarray, a: np.ndarray, dt: np.ndarray):
-    """(M, 4, 4) body poses at offsets dt (M,) from the stamp's T_world_body: constant body
-    rate and world acceleration, R exp(omega dt), p + v dt + a dt^2 / 2."""
+    """(M, 4, 4) body poses at offsets dt (M,) from the stamp poses T_world_body (M, 4, 4):
+    constant body rate omega (M, 3) and world acceleration, R exp(omega dt), p + v dt + a dt^2/2."""
     out = np.tile(np.eye(4), (len(dt), 1, 1))
-    out[:, :3, :3] = T_world_body[:3, :3] @ so3_exp_stack(omega[None, :] * dt[:, None])
-    out[:, :3, 3] = T_world_body[:3, 3] + v * dt[:, None] + 0.5 * a * (dt**2)[:, None]
+    out[:, :3, :3] = T_world_body[:, :3, :3] @ so3_exp_stack(omega * dt[:, None])
+    out[:, :3, 3] = T_world_body[:, :3, 3] + v * dt[:, None] + 0.5 * a * (dt**2)[:, None]
     return out
 
 
-def _moved_corners(
-    camera: CameraModel,
-    uv: np.ndarray,
-    depth_point_world: np.ndarray | None,
-    depth_fallback: np.ndarray,
-    T_world_body: np.ndarray,
-    omega: np.ndarray,
-    v: np.ndarray,
-    a: np.ndarray,
-) -> np.ndarray:
-    """(M, 2) corners `uv` (M, 2) moved to the stamp: each ray at its row's camera pose, at the
-    depth of `depth_point_world` (M, 3) (or `depth_fallback` (M,) where None/NaN), projected with
-    the stamp's camera pose."""
-    dt = camera.row_time_offset_s(uv[:, 1])
-    T_wc_rows = camera.T_world_cam(_body_poses_at(T_world_body, omega, v, a, dt))
-    depth = np.asarray(depth_fallback, float).copy()
-    if depth_point_world is not None:
+@dataclass
+class CornerBatch:
+    """Corners of many detections, stacked (M = 4 per detection): observed px uv (M, 2), their
+    normalised rays xn (M, 2), the known world point P (M, 3) (NaN for load codes), the
+    size-implied depth (M,), the motion index of their frame (M,); `where` [(timestamp_ns,
+    position in the frame)] per detection."""
+
+    uv: np.ndarray
+    xn: np.ndarray
+    P: np.ndarray
+    depth_fallback: np.ndarray
+    k: np.ndarray
+    where: list[tuple[int, int]]
+
+    def moved(self, camera: CameraModel, motion: FrameMotion) -> np.ndarray:
+        """(M, 2) corners moved to their frame's stamp (module docstring, steps 1-3): each ray at
+        its row's camera pose, at the depth of its world point (else the size-implied depth),
+        projected with the stamp's camera pose."""
+        k = self.k
+        T_wb = motion.T_world_body[k]
+        dt = camera.row_time_offset_s(self.uv[:, 1])
+        T_wc_rows = camera.T_world_cam(
+            _body_poses_at(T_wb, motion.omega_body[k], motion.v_world[k], motion.a_world[k], dt)
+        )
         T_cw_rows = inv_T(T_wc_rows)
-        z = np.einsum("mj,mj->m", T_cw_rows[:, 2, :3], depth_point_world) + T_cw_rows[:, 2, 3]
-        depth = np.where(np.isfinite(z) & (z > 0), z, depth)
-    xn = camera.undistort_normalized(uv)
-    p_cam = np.column_stack([xn, np.ones(len(xn))]) * depth[:, None]
-    p_world = np.einsum("mij,mj->mi", T_wc_rows[:, :3, :3], p_cam) + T_wc_rows[:, :3, 3]
-    T_cw = inv_T(camera.T_world_cam(T_world_body))
-    return camera.project(p_world @ T_cw[:3, :3].T + T_cw[:3, 3])
+        with np.errstate(invalid="ignore"):
+            z = np.einsum("mj,mj->m", T_cw_rows[:, 2, :3], self.P) + T_cw_rows[:, 2, 3]
+        depth = np.where(np.isfinite(z) & (z > 0), z, self.depth_fallback)
+        p_cam = np.column_stack([self.xn, np.ones(len(self.xn))]) * depth[:, None]
+        p_world = np.einsum("mij,mj->mi", T_wc_rows[:, :3, :3], p_cam) + T_wc_rows[:, :3, 3]
+        T_cw = inv_T(camera.T_world_cam(T_wb))
+        p_stamp = np.einsum("mij,mj->mi", T_cw[:, :3, :3], p_world) + T_cw[:, :3, 3]
+        return camera.project(p_stamp)
 
 
-def correct_frame(
-    detections: list[QRDetection],
-    camera: CameraModel,
-    world: World,
-    motion: FrameMotion,
-    k: int,
-) -> list[QRDetection]:
-    """The detections of one frame (motion index k) with their corners moved to the stamp time
-    (module docstring); codes that are neither floor nor load codes are returned as they were."""
-    if not camera.rolling_shutter or not motion.valid[k] or not detections:
-        return list(detections)
-    codes = classify(detections, world)
-    points: dict[int, np.ndarray] = {id(s.detection): np.asarray(s.corners_world, float) for s in codes.floor}
-    sides: dict[int, float] = {id(s.detection): world.floor_side_m for s in codes.floor}
-    sides.update({id(s.detection): world.load_side_m for s in codes.loads})
-    T_wb, omega, v, a = motion.T_world_body[k], motion.omega_body[k], motion.v_world[k], motion.a_world[k]
+def corner_batch(
+    frames: dict[int, list[QRDetection]], camera: CameraModel, world: World, motion: FrameMotion
+) -> CornerBatch:
+    """The floor and load codes' corners of the frames that have a motion estimate, stacked."""
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     f = 0.5 * (camera.fu + camera.fv)
-    out = []
-    for d in detections:
-        if id(d) not in sides:
-            out.append(d)
+    uv, P, fallback, ks, where = [], [], [], [], []
+    for ts, dets in frames.items():
+        k = index.get(int(ts))
+        if k is None or not motion.valid[k]:
             continue
-        uv = np.asarray(d.corners_px, float).reshape(4, 2)
-        if not np.all(np.isfinite(uv)):
-            out.append(d)
-            continue
-        edge = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
-        fallback = np.full(4, f * sides[id(d)] / max(edge, 1.0))
-        P = points.get(id(d))
-        new = _moved_corners(camera, uv, P, fallback, T_wb, omega, v, a)
-        if not np.all(np.isfinite(new)):
-            out.append(d)
-            continue
-        out.append(replace(d, corners_px=new))
+        codes = classify(dets, world)
+        known = {id(s.detection): np.asarray(s.corners_world, float) for s in codes.floor}
+        sides = {id(s.detection): world.floor_side_m for s in codes.floor}
+        sides.update({id(s.detection): world.load_side_m for s in codes.loads})
+        for i, d in enumerate(dets):
+            c = np.asarray(d.corners_px, float).reshape(4, 2)
+            if id(d) not in sides or not np.all(np.isfinite(c)):
+                continue
+            edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+            uv.append(c)
+            P.append(known.get(id(d), np.full((4, 3), np.nan)))
+            fallback.append(np.full(4, f * sides[id(d)] / max(edge, 1.0)))
+            ks.append(np.full(4, k))
+            where.append((int(ts), i))
+    if not uv:
+        e = np.zeros((0, 2))
+        return CornerBatch(e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [])
+    uv_all = np.concatenate(uv)
+    return CornerBatch(
+        uv_all,
+        camera.undistort_normalized(uv_all),
+        np.concatenate(P),
+        np.concatenate(fallback),
+        np.concatenate(ks),
+        where,
+    )
+
+
+def apply_corners(
+    frames: dict[int, list[QRDetection]], batch: CornerBatch, corners_px: np.ndarray
+) -> dict[int, list[QRDetection]]:
+    """`frames` with the batch's detections given `corners_px` (M, 2) (non-finite ones kept)."""
+    out = {ts: list(dets) for ts, dets in frames.items()}
+    new = corners_px.reshape(-1, 4, 2)
+    for (ts, i), c in zip(batch.where, new):
+        if np.all(np.isfinite(c)):
+            out[ts][i] = replace(out[ts][i], corners_px=c)
     return out
 
 
@@ -273,18 +316,38 @@ def correct_frames(
     world: World,
     motion: FrameMotion,
 ) -> tuple[dict[int, list[QRDetection]], int]:
-    """`correct_frame` of every frame {timestamp_ns: detections} (stamps as in `motion`);
-    returns the corrected frames and how many had a motion estimate."""
+    """Every frame {timestamp_ns: detections} with its floor and load codes' corners moved to the
+    stamp time (module docstring; stamps as in `motion`); other codes, and frames without a
+    motion estimate, as they were.  Also returns how many frames had a motion estimate."""
+    if not camera.rolling_shutter:
+        return {ts: list(d) for ts, d in frames.items()}, 0
+    batch = corner_batch(frames, camera, world, motion)
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
-    out, n = {}, 0
-    for ts, dets in frames.items():
-        k = index.get(int(ts))
-        if k is None or not motion.valid[k]:
-            out[ts] = list(dets)
-            continue
-        out[ts] = correct_frame(dets, camera, world, motion, k)
-        n += 1
-    return out, n
+    n = sum(1 for ts in frames if index.get(int(ts)) is not None and motion.valid[index[int(ts)]])
+    return apply_corners(frames, batch, batch.moved(camera, motion)), n
+
+
+def corrected_trajectory(
+    floor_frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    imu=None,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    passes: int = CORRECTION_PASSES,
+) -> Trajectory:
+    """PnP trajectory of the floor frames {timestamp_ns: detections} with their corners moved
+    to the stamp: PnP on the raw corners, then `passes` rounds of motion (`frame_motion`),
+    correction, PnP (the raw poses' rolling-shutter errors bias the first velocity fit; each
+    round roughly halves what is left, measured)."""
+    traj, _ = pnp_trajectory(floor_frames, camera, world, corner_sigma_px)
+    if not camera.rolling_shutter:
+        return traj
+    stamps = np.array(sorted(floor_frames), dtype=np.int64)
+    for _ in range(passes):
+        motion = frame_motion(traj, stamps, camera, imu)
+        fixed, _ = correct_frames(floor_frames, camera, world, motion)
+        traj, _ = pnp_trajectory(fixed, camera, world, corner_sigma_px)
+    return traj
 
 
 def correct_flight(
@@ -305,14 +368,7 @@ def correct_flight(
     floor_cam = cameras.get("cam0")
     if not rs or floor_cam is None:
         return det, report
-    raw_floor = det.by_frame("cam0")
-    traj, _ = pnp_trajectory(raw_floor, floor_cam, world, corner_sigma_px)
-    stamps = np.array(sorted(raw_floor), dtype=np.int64)
-    if floor_cam.rolling_shutter:
-        for _ in range(passes):
-            motion = frame_motion(traj, stamps, floor_cam, imu)
-            fixed, _ = correct_frames(raw_floor, floor_cam, world, motion)
-            traj, _ = pnp_trajectory(fixed, floor_cam, world, corner_sigma_px)
+    traj = corrected_trajectory(det.by_frame("cam0"), floor_cam, world, imu, corner_sigma_px, passes)
     corrected: list[QRDetection] = []
     for name in sorted({d.camera for d in det.detections}):
         frames = det.by_frame(name)
@@ -335,13 +391,14 @@ def correct_flight(
 # ============================================================================ calibration
 
 
-def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple[float, int]:
-    """Whitened reprojection cost (chi^2) of the PnP poses of `frames` (each a list of floor
-    sightings) and its degrees of freedom (8 per code - 6 per posed frame)."""
+def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened reprojection cost (chi^2) of the PnP pose of each of `frames` (each a list of
+    floor sightings) and its degrees of freedom (8 per code - 6; 0, 0 for an unposed frame or
+    one with a code left out)."""
     results = estimate_floor_poses(frames, camera, sigma)
-    cost, dof = 0.0, 0
-    for sightings, res in zip(frames, results):
-        if res is None:
+    cost, dof = np.zeros(len(frames)), np.zeros(len(frames), dtype=int)
+    for i, (sightings, res) in enumerate(zip(frames, results)):
+        if res is None or res.dropped_payloads:
             continue
         P = np.concatenate([np.asarray(s.corners_world, float) for s in sightings])
         T_cw = inv_T(res.T_world_cam)
@@ -349,10 +406,8 @@ def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple
         z = np.concatenate([np.asarray(s.detection.corners_px, float) for s in sightings]).reshape(-1, 8)
         W = corner_whitening([s.detection for s in sightings], sigma)
         r = np.einsum("cij,cj->ci", W, z - pred)
-        if res.dropped_payloads or not np.all(np.isfinite(r)):
-            continue
-        cost += float(np.sum(r**2))
-        dof += r.size - 6
+        if np.all(np.isfinite(r)):
+            cost[i], dof[i] = float(np.sum(r**2)), r.size - 6
     return cost, dof
 
 
@@ -364,23 +419,44 @@ def calibrate_readout(
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
     max_readout_s: float | None = None,
     max_frames: int = MAX_CALIBRATION_FRAMES,
+    rounds: int = CALIBRATION_ROUNDS,
 ) -> ReadoutCalibration:
     """Readout time (s, whole frame) of the floor camera `camera` from a flight's floor
     detections: the minimum over [0, max_readout_s] (default: one frame period) of the whitened
     PnP reprojection cost of the up to `max_frames` frames whose image moves most, after moving
-    the corners to the stamp with that readout (`correct_frame`; motion from PnP on the raw
-    corners and the IMU's gyro); golden-section search; sigma from the profile's curvature.
-    Raises EstimationError when too few frames are posed or the camera does not move."""
+    the corners to the stamp with that readout (`correct_frames`); golden-section search; sigma
+    from the profile's curvature.  The motion comes from the poses corrected with the previous
+    round's estimate (the first round: the camera's own readout, usually 0, i.e. raw PnP),
+    `rounds` times.  Raises EstimationError when too few frames have a motion estimate."""
     upper = float(max_readout_s) if max_readout_s is not None else 1.0 / max(camera.rate_hz, 1e-3)
     if not upper > 0:
         raise EstimationError(f"readout search bound must be positive, got {upper!r}")
     frames = det.by_frame("cam0")
-    probe = replace(camera, line_delay_s=0.0)
-    traj, _ = pnp_trajectory(frames, probe, world, corner_sigma_px)
     stamps = np.array(sorted(frames), dtype=np.int64)
-    # the gyro sampled half way through a readout of upper / 2
-    motion = frame_motion(traj, stamps, replace(camera, line_delay_s=0.5 * upper / camera.height), imu)
-    # image speed of each frame: rate plus velocity over height (px per s, roughly)
+    readout = min(camera.readout_s, upper)
+    result = None
+    for _ in range(max(rounds, 1)):
+        cam = replace(camera, line_delay_s=readout / camera.height)
+        traj = corrected_trajectory(frames, cam, world, imu, corner_sigma_px)
+        result = _golden_readout(
+            frames,
+            stamps,
+            frame_motion(traj, stamps, cam, imu),
+            camera,
+            world,
+            imu,
+            corner_sigma_px,
+            upper,
+            max_frames,
+        )
+        readout = result.readout_s
+    assert result is not None
+    return result
+
+
+def _golden_readout(frames, stamps, motion: FrameMotion, camera, world, imu, sigma_px, upper, max_frames):
+    """One round of `calibrate_readout` with a fixed motion estimate."""
+    # image speed of each frame: rate plus velocity over height (rad/s, roughly)
     speed = np.full(len(stamps), -1.0)
     for k in np.flatnonzero(motion.valid):
         h = max(float(motion.T_world_body[k, 2, 3]), 0.3)
@@ -388,21 +464,20 @@ def calibrate_readout(
     order = [k for k in np.argsort(-speed) if speed[k] > 0][:max_frames]
     if len(order) < MIN_FIT_POSES:
         raise EstimationError(f"readout calibration: only {len(order)} frame(s) with a motion estimate")
-    chosen = [(int(stamps[k]), k) for k in sorted(order)]
+    chosen = {int(stamps[k]): frames[int(stamps[k])] for k in sorted(order)}
+    batch = corner_batch(chosen, camera, world, motion)
+    cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
-    cache: dict[float, tuple[float, int]] = {}
-
-    def cost(readout_s: float) -> float:
+    def per_frame(readout_s: float) -> tuple[np.ndarray, np.ndarray]:
         if readout_s not in cache:
             cam = replace(camera, line_delay_s=readout_s / camera.height)
-            views = []
-            for ts, k in chosen:
-                fixed = correct_frame(frames[ts], cam, world, motion, k)
-                floor = classify(fixed, world).floor
-                if floor:
-                    views.append(floor)
-            cache[readout_s] = _frames_cost(views, cam, corner_sigma_px)
-        return cache[readout_s][0]
+            fixed = apply_corners(chosen, batch, batch.moved(cam, motion))
+            views = [classify(fixed[ts], world).floor for ts in chosen]
+            cache[readout_s] = _frames_cost(views, cam, sigma_px)
+        return cache[readout_s]
+
+    def cost(readout_s: float) -> float:
+        return float(per_frame(readout_s)[0].sum())
 
     a, b = 0.0, upper
     c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
@@ -417,14 +492,25 @@ def calibrate_readout(
             d = a + _GOLDEN * (b - a)
             fd = cost(d)
     best = 0.5 * (a + b)
-    cost(best)
-    chi2, dof = cache[best]
+    chi2, dof = float(per_frame(best)[0].sum()), int(per_frame(best)[1].sum())
     h = CURVATURE_STEP_FRACTION * upper
     x0 = min(max(best, h), upper - h)  # keep the stencil inside [0, upper]
-    curv = (cost(x0 + h) - 2.0 * cost(x0) + cost(x0 - h)) / h**2
+    stencil = [per_frame(x)[0] for x in (x0 - h, x0, x0 + h)]
+    curv = (stencil[2].sum() - 2.0 * stencil[1].sum() + stencil[0].sum()) / h**2
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
     sigma = math.sqrt(2.0 * scale / curv) if curv > 0 else math.inf
+    # the frames' errors are not independent (the motion estimate is shared by neighbours):
+    # the spread of the minima of CALIBRATION_BLOCKS contiguous blocks (their parabolas through
+    # the stencil) bounds sigma from below, sigma_blocks = std / sqrt(blocks)
+    minima = []
+    for block in np.array_split(np.arange(len(chosen)), CALIBRATION_BLOCKS):
+        c0, c1, c2 = (float(st[block].sum()) for st in stencil)
+        cb = (c2 - 2.0 * c1 + c0) / h**2
+        if cb > 0:
+            minima.append(x0 - (c2 - c0) / (2.0 * h) / cb)
+    if len(minima) > 1:
+        sigma = max(sigma, float(np.std(minima, ddof=1)) / math.sqrt(len(minima)))
     if not math.isfinite(sigma):
         log_.warning("readout calibration: flat cost profile (does the camera move?)")
-    profile = sorted((x, v[0]) for x, v in cache.items())
+    profile = sorted((x, float(v[0].sum())) for x, v in cache.items())
     return ReadoutCalibration(best, sigma, len(chosen), chi2 / dof if dof > 0 else math.nan, profile)
