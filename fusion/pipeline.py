@@ -45,7 +45,13 @@ from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.detect import CACHE_NAME, detect_flight
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
-from fusion.qr.rolling_shutter import ReadoutCalibration, calibrate_readout, correct_flight
+from fusion.qr.rolling_shutter import (
+    ReadoutCalibration,
+    RollingShutterReport,
+    add_pose_covariance,
+    calibrate_readout,
+    correct_flight,
+)
 from fusion.sim.simulate import simulate
 from fusion.types import (
     RAW_ESTIMATORS,
@@ -95,6 +101,7 @@ class RunResult:
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
     health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
     readout_calibration: ReadoutCalibration | None = None  # --calibrate-readout's estimate
+    rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
 
     @property
     def trusted(self) -> bool:
@@ -551,6 +558,12 @@ def _run_into(
     t = time.perf_counter()
     _progress(cfg, "per-frame estimators (paper, pnp)")
     loc = localize_stage(log, det, cfg)
+    if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
+        # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
+        pnp_key = str(Estimator.PNP)
+        loc.trajectories[pnp_key] = add_pose_covariance(
+            loc.trajectories[pnp_key], result.rolling_shutter.pose_cov_added
+        )
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -604,6 +617,7 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     cameras = {name: stream.camera for name, stream in log.cameras.items()}
     det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px)
     result.notes += report.notes()
+    result.rolling_shutter = report
     return det
 
 
