@@ -6,11 +6,25 @@ k3 = 0 (Kalibr's `radial-tangential`: [k1, k2, p1, p2]):
     x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
     y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
     u = fu x_d + cu,   v = fv y_d + cv
+
+Rolling shutter (optional `sensor.yaml` keys, both absent for a global shutter):
+
+    line_delay_s: 3.0e-5      # row readout time, s per row (0 = global shutter)
+    stamp_row: first          # which row the image timestamp belongs to: first | middle
+
+Row v (distorted pixel coordinate, OpenCV convention: row centres at integers) is exposed at
+t_stamp + line_delay_s * (v - v_stamp), v_stamp = 0 (first) or (height - 1) / 2 (middle); the
+whole readout lasts line_delay_s * height.  This is Kalibr's rolling-shutter model (aslam
+`RollingShutter::temporalOffset` = lineDelay * v; Oth et al., "Rolling Shutter Camera
+Calibration", CVPR 2013), whose stamp is the first row; `stamp_row: middle` is for drivers that
+stamp mid-exposure of the frame.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +34,15 @@ from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform, level_frame
 
 MOUNTS = ("body_fixed", "gimbaled")
+MAX_READOUT_S = 1.0
+"""A whole-frame readout longer than this (s) is a unit mistake (line delay given in ms or us)."""
+
+
+class StampRow(str, Enum):
+    """Which image row the frame's timestamp belongs to (rolling shutter)."""
+
+    FIRST = "first"
+    MIDDLE = "middle"
 
 
 @dataclass
@@ -42,12 +65,26 @@ class CameraModel:
     T_body_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     rate_hz: float = 30.0
     mount: str = "body_fixed"
+    line_delay_s: float = 0.0  # rolling shutter: row readout time (s per row); 0 = global
+    stamp_row: StampRow = StampRow.FIRST  # the row the image timestamp belongs to
 
     def __post_init__(self):
         self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
         self.T_body_cam = np.asarray(self.T_body_cam, dtype=float).reshape(4, 4)
         if self.mount not in MOUNTS:
             raise CameraModelError(f"unknown camera mount {self.mount!r}; expected one of {MOUNTS}")
+        try:
+            self.stamp_row = StampRow(self.stamp_row)
+        except ValueError:
+            raise CameraModelError(
+                f"unknown stamp_row {self.stamp_row!r}; expected one of {[r.value for r in StampRow]}"
+            ) from None
+        self.line_delay_s = float(self.line_delay_s)
+        if not (math.isfinite(self.line_delay_s) and 0.0 <= self.line_delay_s * self.height <= MAX_READOUT_S):
+            raise CameraModelError(
+                f"line_delay_s {self.line_delay_s!r} must be >= 0 with a readout of at most "
+                f"{MAX_READOUT_S} s over {self.height} rows"
+            )
 
     # ------------------------------------------------------------------ matrices
     @property
@@ -86,6 +123,26 @@ class CameraModel:
     @property
     def gimbaled(self) -> bool:
         return self.mount == "gimbaled"
+
+    # ------------------------------------------------------------------ rolling shutter
+    @property
+    def rolling_shutter(self) -> bool:
+        return self.line_delay_s > 0.0
+
+    @property
+    def readout_s(self) -> float:
+        """Time to read the whole frame out (s): line_delay_s * height (0 for a global shutter)."""
+        return self.line_delay_s * self.height
+
+    @property
+    def stamp_row_px(self) -> float:
+        """Row coordinate (px) exposed at the image timestamp."""
+        return 0.0 if self.stamp_row == StampRow.FIRST else (self.height - 1) / 2.0
+
+    def row_time_offset_s(self, v_px) -> np.ndarray:
+        """Exposure time of pixel row(s) `v_px` (distorted px, any shape) relative to the image
+        stamp (s): line_delay_s * (v - stamp_row_px); zeros for a global shutter."""
+        return self.line_delay_s * (np.asarray(v_px, dtype=float) - self.stamp_row_px)
 
     # ------------------------------------------------------------------ projection
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
@@ -158,6 +215,12 @@ class CameraModel:
             "distortion_model": "radial-tangential",
             "distortion_coefficients": [float(v) for v in self.distortion],
             "mount": self.mount,
+            # written only for a rolling shutter, so global-shutter files stay as they were
+            **(
+                {"line_delay_s": float(self.line_delay_s), "stamp_row": self.stamp_row.value}
+                if self.rolling_shutter
+                else {}
+            ),
         }
 
     @classmethod
@@ -189,6 +252,20 @@ class CameraModel:
         mount = data.get("mount", "body_fixed")
         if mount not in MOUNTS:
             raise CameraModelError(f"{source}: mount {mount!r} is not one of {MOUNTS}")
+        try:
+            line_delay = float(data.get("line_delay_s", 0.0))
+        except (TypeError, ValueError):
+            raise CameraModelError(f"{source}: 'line_delay_s' must be a number") from None
+        if not (math.isfinite(line_delay) and 0.0 <= line_delay * res[1] <= MAX_READOUT_S):
+            raise CameraModelError(
+                f"{source}: 'line_delay_s' {line_delay!r} must be >= 0 s per row with a readout of "
+                f"at most {MAX_READOUT_S} s (is it in ms or us?)"
+            )
+        stamp_row = data.get("stamp_row", StampRow.FIRST.value)
+        if stamp_row not in [r.value for r in StampRow]:
+            raise CameraModelError(
+                f"{source}: 'stamp_row' {stamp_row!r} is not one of {[r.value for r in StampRow]}"
+            )
         fu, fv, cu, cv = intr
         return cls(
             int(res[0]),
@@ -201,6 +278,8 @@ class CameraModel:
             T_body_cam=T,
             rate_hz=rate,
             mount=mount,
+            line_delay_s=line_delay,
+            stamp_row=StampRow(stamp_row),
         )
 
     @classmethod

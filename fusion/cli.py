@@ -117,6 +117,13 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
         default=None,
         help="processes for detection and per-frame estimates (default: all cores)",
     )
+    if p.prog.split()[-1] != "detect":
+        p.add_argument(
+            "--calibrate-readout",
+            action="store_true",
+            help="estimate the floor camera's rolling-shutter readout time from the flight "
+            "(PnP reprojection cost profile, golden section; reported with its sigma) and use it",
+        )
     if stages:
         p.add_argument(
             "--robust",
@@ -183,6 +190,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
     p.add_argument(
         "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
+    )
+    p.add_argument(
+        "--readout-ms",
+        type=float,
+        default=None,
+        help="rolling shutter: whole-frame readout time of both cameras, ms, stamped at the "
+        "first row (default: the scenario's, 0 = global shutter)",
     )
     p.add_argument(
         "--force",
@@ -325,6 +339,7 @@ def _run_config(args):
         robust=getattr(args, "robust", "huber"),
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
+        calibrate_readout=getattr(args, "calibrate_readout", False),
     )
 
 
@@ -347,6 +362,7 @@ def main(argv: list[str] | None = None) -> int:
                 camera_rate_hz=args.fps,
                 start_s=args.start,
                 fmt=args.format,
+                readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

@@ -45,9 +45,17 @@ from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.detect import CACHE_NAME, detect_flight
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
+from fusion.qr.rolling_shutter import (
+    ReadoutCalibration,
+    RollingShutterReport,
+    add_pose_covariance,
+    calibrate_readout,
+    correct_flight,
+)
 from fusion.sim.simulate import simulate
 from fusion.types import (
     RAW_ESTIMATORS,
+    CameraRole,
     Estimator,
     LoadMap,
     LoadObservation,
@@ -75,6 +83,7 @@ class RunConfig:
     incremental: bool = True  # also run the incremental (causal) smoother
     th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
+    calibrate_readout: bool = False  # estimate the floor camera's rolling-shutter readout time
 
 
 @dataclass
@@ -91,6 +100,8 @@ class RunResult:
     warnings: list[LogWarning] = field(default_factory=list)  # the log's (FlightLog.warnings)
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
     health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
+    readout_calibration: ReadoutCalibration | None = None  # --calibrate-readout's estimate
+    rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
 
     @property
     def trusted(self) -> bool:
@@ -541,8 +552,18 @@ def _run_into(
         return result
 
     t = time.perf_counter()
+    det = _rolling_shutter(log, det, cfg, result)
+    timings["rolling_shutter_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     _progress(cfg, "per-frame estimators (paper, pnp)")
     loc = localize_stage(log, det, cfg)
+    if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
+        # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
+        pnp_key = str(Estimator.PNP)
+        loc.trajectories[pnp_key] = add_pose_covariance(
+            loc.trajectories[pnp_key], result.rolling_shutter.pose_cov_added
+        )
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -581,6 +602,23 @@ def _run_into(
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
+
+
+def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
+    """With `cfg.calibrate_readout`, the floor camera's readout time estimated from the flight
+    (and used); then every rolling-shutter camera's corners moved to their frame's stamp
+    (fusion.qr.rolling_shutter), so PnP, the tight corner factors and the load observations see
+    global-shutter corners.  Returns the detections to use."""
+    if cfg.calibrate_readout:
+        calib = calibrate_readout(det, log.floor.camera, log.world, log.imu, cfg.corner_sigma_px)
+        log.floor.camera.line_delay_s = calib.readout_s / log.floor.camera.height
+        result.readout_calibration = calib
+        result.notes.append(calib.note(CameraRole.FLOOR.value))
+    cameras = {name: stream.camera for name, stream in log.cameras.items()}
+    det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px)
+    result.notes += report.notes()
+    result.rolling_shutter = report
+    return det
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:

@@ -11,13 +11,14 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
       resolution: [w, h]
       T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
       timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
+      line_delay: 0.0                  # s per row, rolling shutter (optional; stamp = row 0)
       rostopic: /cam0/image_raw
     cam1: ...
 
 Kalibr's cam0 is our floor camera, cam1 the front camera (CameraRole).  The body frame is the
 IMU frame rotated by `T_body_imu` (identity unless the IMU is mounted otherwise, e.g. PX4's FRD),
-so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`) are
-ignored by Kalibr.
+so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`,
+`stamp_row` for a camera stamped at its middle row) are ignored by Kalibr.
 
 imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block), keys
 accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
@@ -32,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MOUNTS, CameraModel
-from fusion.errors import LogError
+from fusion.camera import MOUNTS, CameraModel, StampRow
+from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
 from fusion.log.euroc import ImuNoise
@@ -133,6 +134,15 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise LogError(f"{where}: resolution and focal lengths must be positive")
         fu, fv, cu, cv = intr
+        try:
+            line_delay = float(block.get("line_delay", 0.0))
+        except (TypeError, ValueError):
+            raise LogError(f"{where}.line_delay: not a number") from None
+        try:
+            rs = {"line_delay_s": line_delay, "stamp_row": block.get("stamp_row", StampRow.FIRST.value)}
+            CameraModel(int(res[0]), int(res[1]), 1.0, 1.0, 0.0, 0.0, **rs)
+        except CameraModelError as e:
+            raise LogError(f"{where}.line_delay/stamp_row: {e}") from None
         cam = CameraModel(
             int(res[0]),
             int(res[1]),
@@ -144,6 +154,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
             mount=mount,
+            **rs,
         )
         topic = block.get("rostopic")
         out[str(key)] = KalibrCamera(str(key), cam, str(topic) if topic else None, int(round(shift_s * 1e9)))
@@ -177,6 +188,10 @@ def write_camchain(
         }
         if cam.mount != MOUNTS[0]:
             block["mount"] = cam.mount
+        if cam.rolling_shutter:
+            block["line_delay"] = float(cam.line_delay_s)
+            if cam.stamp_row != StampRow.FIRST:
+                block["stamp_row"] = cam.stamp_row.value
         data[key] = block
     dump_yaml(data, path)
 

@@ -228,9 +228,18 @@ def _box_may_be_in_view(lo, hi, T_world_cam: np.ndarray, rays: _CameraRays) -> b
 def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray, occluders=()) -> np.ndarray:
     """float32 (H, W) background at half resolution, upsampled (it is low frequency): the
     textured floor plane z = 0 where the ray meets it within 60 m, else a flat far-wall grey;
-    in front of both, the occluder boxes (racks) as flat grey faces with darker beams."""
-    R, c = T_world_cam[:3, :3].astype(np.float32), T_world_cam[:3, 3].astype(np.float32)
+    in front of both, the occluder boxes (racks) as flat grey faces with darker beams.
+    `T_world_cam`: (4, 4), or (H, 4, 4) one pose per image row (rolling shutter; half-resolution
+    row j takes the pose of full row 2 j)."""
     xh, yh = rays.half_x, rays.half_y
+    if T_world_cam.ndim == 3:  # rolling shutter: per-row entries broadcast as (rows, 1) columns
+        rows_T = T_world_cam[np.minimum(2 * np.arange(xh.shape[0]), len(T_world_cam) - 1)]
+        R = rows_T[:, :3, :3].astype(np.float32).transpose(1, 2, 0)[..., None]
+        c = rows_T[:, :3, 3].astype(np.float32).T[..., None]
+        T_ends: list[np.ndarray] = [T_world_cam[0], T_world_cam[-1]]
+    else:
+        R, c = T_world_cam[:3, :3].astype(np.float32), T_world_cam[:3, 3].astype(np.float32)
+        T_ends = [T_world_cam]
     d = [xh * R[i, 0] + yh * R[i, 1] + R[i, 2] for i in range(3)]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t_floor = np.where(d[2] < -1e-6, -c[2] / d[2], np.inf)
@@ -245,7 +254,7 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
             bg[~hit] = FAR_DN
         depth = t_floor
         for lo, hi in occluders or ():
-            if not _box_may_be_in_view(lo, hi, T_world_cam, rays):
+            if not any(_box_may_be_in_view(lo, hi, T, rays) for T in T_ends):
                 continue
             t0 = [(np.float32(lo[i]) - c[i]) / d[i] for i in range(3)]
             t1 = [(np.float32(hi[i]) - c[i]) / d[i] for i in range(3)]
@@ -260,7 +269,8 @@ def _background(camera: CameraModel, rays: _CameraRays, T_world_cam: np.ndarray,
             tb = tmin[box]
             n0, n1 = near[0][box], near[1][box]
             shade = np.where(tb == n0, RACK_DN[0], np.where(tb == n1, RACK_DN[1], RACK_DN[2]))
-            beam = np.mod(c[2] + tb * d[2][box], RACK_BEAM_PITCH_M) < 0.06
+            cz = np.broadcast_to(c[2], box.shape)[box] if np.ndim(c[2]) else c[2]
+            beam = np.mod(cz + tb * d[2][box], RACK_BEAM_PITCH_M) < 0.06
             bg[box] = shade - 35.0 * beam
             depth = np.where(box, tmin, depth)
     return cv2.resize(bg, (camera.width, camera.height), interpolation=cv2.INTER_LINEAR)
@@ -280,7 +290,14 @@ def _draw_code(
     img: np.ndarray, camera: CameraModel, rays: _CameraRays, T_cam_world: np.ndarray, code: PlacedCode
 ) -> np.ndarray | None:
     """Composite one code (with its quiet zone) into `img` in place; returns the (4, 2) distorted
-    pixel corners of the quiet-zone outline if drawn, else None."""
+    pixel corners of the quiet-zone outline if drawn, else None.  `T_cam_world`: (4, 4), or
+    (H, 4, 4) one pose per image row (rolling shutter: each row's rays meet the code's plane as
+    that row's pose sees it; culling, bounds and mip level from the middle row's pose, the bounds
+    widened to the first and last rows')."""
+    rows_T = None
+    if T_cam_world.ndim == 3:
+        rows_T = T_cam_world
+        T_cam_world = rows_T[len(rows_T) // 2]
     T_cam_symbol = T_cam_world @ code.T_world_symbol
     R, t = T_cam_symbol[:3, :3], T_cam_symbol[:3, 3]
     # back face culling: the camera must be on the printed side (z_S) of the plane
@@ -306,10 +323,16 @@ def _draw_code(
             return None
         x0, y0, x1, y1 = 0, 0, w, h
     else:
-        x0 = max(int(uv[:8, 0].min()) - 2, 0)
-        y0 = max(int(uv[:8, 1].min()) - 2, 0)
-        x1 = min(int(uv[:8, 0].max()) + 3, w)
-        y1 = min(int(uv[:8, 1].max()) + 3, h)
+        box_uv = uv[:8]
+        if rows_T is not None:  # the outline as the first and last rows' poses see it too
+            ends = [(T @ code.T_world_symbol) for T in (rows_T[0], rows_T[-1])]
+            box_uv = np.vstack([box_uv] + [camera.project(pts_S[:8] @ T[:3, :2].T + T[:3, 3]) for T in ends])
+            if not np.all(np.isfinite(box_uv)):
+                box_uv = uv[:8]
+        x0 = max(int(box_uv[:, 0].min()) - 2, 0)
+        y0 = max(int(box_uv[:, 1].min()) - 2, 0)
+        x1 = min(int(box_uv[:, 0].max()) + 3, w)
+        y1 = min(int(box_uv[:, 1].max()) + 3, h)
     if x1 <= x0 or y1 <= y0:
         return None
     # mip level: texels per module ~ pixels per module (power of two, magnifying)
@@ -332,7 +355,13 @@ def _draw_code(
             [0.0, 0.0, 1.0],
         ]
     )
-    H = A @ H_sc
+    if rows_T is not None:  # one plane-to-ray homography per row, entries as (rows, 1) columns
+        T_rows = rows_T[y0:y1] @ code.T_world_symbol
+        H_sc = np.linalg.inv(np.concatenate([T_rows[:, :3, :2], T_rows[:, :3, 3:]], axis=2))
+        H_sc = H_sc.transpose(1, 2, 0)[..., None]
+        H = np.einsum("ij,jk...->ik...", A, H_sc)
+    else:
+        H = A @ H_sc
     xn = rays.xn[y0:y1, x0:x1]
     yn = rays.yn[y0:y1, x0:x1]
     den = H[2, 0] * xn + H[2, 1] * yn + H[2, 2]
@@ -464,18 +493,29 @@ def render_view(
     (blackout, motion blur, exposure gain, sensor noise).  `rng` (np.random.Generator) drives the
     noise; None means no randomness (noise-free unless effects ask for noise, then seed 0).
     `occluders`: optional axis-aligned boxes [(lo (3,), hi (3,))] in W (racks), drawn as flat
-    grey boxes; a code whose centre they hide from the camera is not drawn."""
+    grey boxes; a code whose centre they hide from the camera is not drawn.
+
+    Rolling shutter: `T_world_cam` (H, 4, 4) gives one camera pose per image row (row r's
+    exposure; `rolling_shutter_poses`); every pixel's ray is then cast from its row's pose, so
+    the image is exactly what a rolling-shutter sensor records of the moving scene (visibility
+    and occlusion tests use the middle row's pose)."""
     effects = effects or RenderEffects(noise_sigma_dn=0.0)
     if rng is None:
         rng = np.random.default_rng(0)
     rays = _rays(camera)
     T_world_cam = np.asarray(T_world_cam, dtype=float)
+    if T_world_cam.ndim == 3 and T_world_cam.shape[0] != camera.height:
+        raise SimulationError(
+            f"rolling-shutter render needs one pose per row ({camera.height}), got {T_world_cam.shape[0]}"
+        )
     T_cam_world = inv_T(T_world_cam)
     img = _background(camera, rays, T_world_cam, occluders)
     floor_quads = []
-    visible = _visible_far_to_near(codes, T_cam_world, rays, max(camera.fu, camera.fv))
+    T_world_cam_mid = T_world_cam[len(T_world_cam) // 2] if T_world_cam.ndim == 3 else T_world_cam
+    T_cam_world_mid = inv_T(T_world_cam_mid)
+    visible = _visible_far_to_near(codes, T_cam_world_mid, rays, max(camera.fu, camera.fv))
     if occluders and len(visible):
-        visible = visible[~_occluded(T_world_cam, codes, visible, occluders)]
+        visible = visible[~_occluded(T_world_cam_mid, codes, visible, occluders)]
     for i in visible:
         code = codes[i]
         quad = _draw_code(img, camera, rays, T_cam_world, code)
@@ -491,6 +531,40 @@ def render_view(
     if effects.noise_sigma_dn > 0:
         img += _noise(img.shape, rng) * np.float32(effects.noise_sigma_dn)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+
+
+def rolling_shutter_poses(camera: CameraModel, T_world_body_at, t_stamp_s: float) -> np.ndarray:
+    """(H, 4, 4) T_world_cam of every image row of a frame stamped `t_stamp_s`: row r is exposed
+    at t_stamp_s + camera.row_time_offset_s(r); `T_world_body_at(times_s (N,)) -> (N, 4, 4)` is
+    the true body trajectory.  A global-shutter camera gives H copies of the stamp's pose."""
+    times = t_stamp_s + camera.row_time_offset_s(np.arange(camera.height, dtype=float))
+    return camera.T_world_cam(T_world_body_at(times))
+
+
+ROLLING_CORNER_ITERATIONS = 6
+"""Fixed-point iterations of `project_code_corners_rolling` (each shrinks the row error by the
+image motion per row, far below 1 px/row)."""
+
+
+def project_code_corners_rolling(
+    camera: CameraModel, T_world_body_at, t_stamp_s: float, code: PlacedCode
+) -> np.ndarray:
+    """(4, 2) distorted pixel corners (TL, TR, BR, BL) of `code` as a rolling-shutter camera
+    records them: each corner at the row v that is exposed when the camera, at the body pose
+    `T_world_body_at(times_s (N,)) -> (N, 4, 4)` of that row's time, projects it onto row v
+    (fixed-point iteration from the stamp's pose)."""
+    corners_S = symbol_corners_S(code.side_m)
+    p_world = corners_S @ code.T_world_symbol[:3, :3].T + code.T_world_symbol[:3, 3]
+    dt = np.zeros(len(p_world))
+    uv = np.full((len(p_world), 2), np.nan)
+    for _ in range(ROLLING_CORNER_ITERATIONS):
+        T_cam_world = inv_T(camera.T_world_cam(T_world_body_at(t_stamp_s + dt)))
+        p_cam = np.einsum("nij,nj->ni", T_cam_world[:, :3, :3], p_world) + T_cam_world[:, :3, 3]
+        uv = camera.project(p_cam)
+        if not np.all(np.isfinite(uv)):
+            return uv
+        dt = camera.row_time_offset_s(uv[:, 1])
+    return uv
 
 
 def placed_floor_codes(

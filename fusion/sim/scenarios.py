@@ -52,6 +52,16 @@ class Scenario:
     exposure_s: float = 0.008  # motion blur = image motion during the exposure
     occluders: list = field(default_factory=list)  # axis-aligned boxes (lo, hi) in W: racks
     floor_ecc: str = SIM_ECC  # floor codes' error-correction level (fusion.qr.symbol)
+    readout_s: float = 0.0  # rolling shutter: whole-frame readout time of every camera (0: global)
+
+    def apply_readout(self) -> None:
+        """Give every camera the line delay of `readout_s` (stamp at the first row)."""
+        if not (math.isfinite(self.readout_s) and self.readout_s >= 0.0):
+            raise SimulationError(
+                f"readout time must be a non-negative number of seconds, got {self.readout_s!r}"
+            )
+        for cam in self.cameras.values():
+            cam.line_delay_s = self.readout_s / cam.height
 
     def codes(self) -> list[PlacedCode]:
         """Every code to render: floor grid and load codes."""

@@ -21,7 +21,7 @@ from fusion.geometry import inv_T, quat_wxyz_from_R
 from fusion.log import FlightLogWriter, GroundTruth
 from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
-from fusion.sim.render import render_view
+from fusion.sim.render import render_view, rolling_shutter_poses
 from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
 
 CAMERA_RATE_HZ = 30.0
@@ -99,7 +99,10 @@ def _render_frame(job: _RenderJob, k: int, t_s: float) -> tuple[int, list[bytes]
         blur_px, blur_dir = _blur(cam, poses[0], poses[2], 1.2)
         fx = sc.effects(name, t_s, blur_px, blur_dir)
         rng = np.random.default_rng([job.seed, _STREAM_FRAME, ci, k])
-        img = render_view(cam, poses[1], job.codes, rng, fx, sc.occluders)
+        view = poses[1]
+        if cam.rolling_shutter:  # one true pose per row (the stamp is the camera's stamp_row)
+            view = rolling_shutter_poses(cam, lambda t: sc.trajectory.state(t).T_world_body, t_s)
+        img = render_view(cam, view, job.codes, rng, fx, sc.occluders)
         ok, buf = cv2.imencode(".png", img, job.png_params)
         if not ok:
             raise SimulationError(f"PNG encoding failed for {name} frame {k}")
@@ -140,7 +143,7 @@ def floor_code_readable(img: np.ndarray) -> bool:
 
 def simulate(
     out_dir: Path,
-    scenario: str = "default",
+    scenario: str | Scenario = "default",
     duration_s: float | None = None,
     seed: int = 0,
     overwrite: bool = False,
@@ -153,6 +156,7 @@ def simulate(
     check_readable: bool = False,
     start_s: float = 0.0,
     fmt: str = "euroc",
+    readout_s: float | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -171,7 +175,13 @@ def simulate(
 
     `fmt` (fusion.log.LogFormat): "euroc" (default), "rosbag1" (OUT.bag), "rosbag2" (OUT.mcap)
     or "video" (a folder of lossless FFV1 videos); the EuRoC folder is written first and
-    converted once complete (fusion.log.convert.export_flight)."""
+    converted once complete (fusion.log.convert.export_flight).
+
+    `scenario` may also be a built `Scenario` (benchmarks flying their own trajectories; its
+    cameras are then modified in place).  `readout_s` (None: the scenario's `readout_s`) makes
+    both cameras rolling-shutter with that whole-frame readout time, stamped at the first row:
+    each frame is rendered with one true pose per row (`render.rolling_shutter_poses`) and the
+    line delay is written to the cameras' sensor.yaml (`line_delay_s`)."""
     from fusion.log import LogFormat
 
     try:
@@ -196,16 +206,23 @@ def simulate(
             png_compression=png_compression,
             check_readable=check_readable,
             start_s=start_s,
+            readout_s=readout_s,
         )
     t_wall = time.perf_counter()
-    if scenario not in SCENARIOS:
+    if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise SimulationError(f"seed must be a non-negative integer, got {seed!r}")
     want_s = None
     if isinstance(duration_s, (int, float)) and isinstance(start_s, (int, float)):
         want_s = float(start_s) + float(duration_s)
-    sc = build_scenario(scenario, resolution, min_duration_s=want_s)
+    if isinstance(scenario, Scenario):
+        sc, scenario = scenario, scenario.name
+    else:
+        sc = build_scenario(scenario, resolution, min_duration_s=want_s)
+    if readout_s is not None:
+        sc.readout_s = float(readout_s)
+    sc.apply_readout()
     if duration_s is None:
         duration_s = sc.duration_s
     try:

@@ -1,0 +1,673 @@
+"""Rolling shutter: corners timed per row, moved to the image stamp; the readout time estimated.
+
+A rolling-shutter camera (CameraModel.line_delay_s > 0) exposes row v at
+t = t_stamp + dt(v), dt(v) = line_delay_s (v - v_stamp) (`CameraModel.row_time_offset_s`).
+The body moves during the readout, so a frame's corners are not one pinhole view.  Here each
+corner is moved to where a global-shutter camera at the stamp would have seen it, once, where the
+corners are formed; PnP, the tight corner factors and the load observations then need no change:
+
+1. body motion over the readout, to first order: constant body rate omega (the gyro at mid
+   readout, or the PnP poses' rotation rate without IMU) and a local quadratic fit of the PnP
+   positions around the stamp (velocity v_world, acceleration a_world):
+   T_world_body(t + dt) = [R exp(omega dt),  p + v dt + a dt^2 / 2]   (geometry.so3_exp_stack);
+2. each corner's point: its ray at its row's camera pose (`camera.T_world_cam`, mount-aware),
+   at the depth of the floor code's known world corner (floor codes) or of the code's apparent
+   size (load codes: f side / edge length);
+3. that point projected with the stamp's camera pose: the corrected corner.  Its covariance is
+   kept: an error dv, dw of the motion moves a corner at row time dt by the image of dt (dv, dw),
+   the same for all codes of a frame, i.e. about a pose error of dt dv (0.15 mm for 15 ms and
+   0.01 m/s) -- far below PnP's own (~1 mm at 1.5 m).  Adding it per code to the (8, 8) corner
+   covariance would model it as independent between codes and cost PnP 2-3x its accuracy
+   (measured), so it is left out.
+
+`correct_flight` runs PnP on the raw corners, then CORRECTION_PASSES times: motion from the
+last poses, corners corrected, PnP again (the poses' RS bias only enters the depths and the
+velocity fit, so one pass leaves a second-order error).  The same approach as Kalibr's
+(Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) uses a continuous-time spline;
+a constant twist over one readout (<= 33 ms) is its first-order case.
+
+`calibrate_readout`: the readout time minimising the whitened PnP reprojection cost of the
+flight's moving frames (golden-section search, Kiefer 1953), its sigma from the profile's
+curvature, sigma^2 = 2 / cost'' (cost = chi^2 = -2 log L), scaled by chi^2_min / dof when the
+corners scatter more than their covariance says.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.conventions import GRAVITY_M_S2
+from fusion.errors import EstimationError
+from fusion.geometry import interpolate_poses, inv_T, se3_log, so3_exp_stack, so3_log
+from fusion.qr.codes import classify
+from fusion.qr.pnp import DEFAULT_CORNER_SIGMA_PX, corner_whitening, estimate_floor_poses, pnp_trajectory
+from fusion.types import QRDetection, Trajectory
+from fusion.world import World
+
+log_ = logging.getLogger(__name__)
+
+CORRECTION_PASSES = 4
+"""PnP -> motion -> corrected corners rounds of `correct_flight` after the first PnP."""
+FIT_HALF_WINDOW = 8
+"""Poses each side of a stamp in the local quadratic fit of the position (velocity)."""
+FIT_MAX_SPAN_S = 0.5
+"""Poses further than this from the stamp are left out of the fit."""
+MIN_FIT_POSES = 3
+FIT_DEGREE = 2
+"""Degree of the local polynomial fit of the positions (2: velocity and acceleration)."""
+FIT_ROBUST_ROUNDS = 3
+FIT_TRIM_MAD = 3.0
+FIT_TRIM_MIN_M = 0.003
+"""Trimmed fit: poses further than FIT_TRIM_MAD robust sigmas (at least FIT_TRIM_MIN_M) from the
+fit are left out, up to FIT_ROBUST_ROUNDS times."""
+"""Fewer poses in the window: no velocity (the frame's corners are not corrected)."""
+MIN_VELOCITY_SIGMA_M_S = 0.003
+"""Floor under the velocity fit's own standard deviation (its residuals are correlated, so the
+fit's own sigma is optimistic: 0.85 mm/s predicted against 2.75 mm/s measured at 2 m/s)."""
+MOTION_STEP = 1e-3
+"""Central-difference step of `motion_pose_covariance` (rad/s, m/s)."""
+DEFORMATION_SIGMA_FRACTION = 0.02
+"""Corner sigma added per px of a code's readout deformation (`apply_corners`).  Measured on
+scripts/bench_rolling_shutter.py's 2 m/s, 20 ms flight: the refined corners' chi^2 / 8 against
+the true rolling-shutter corners 6.1 (mean) / 1.7 (median) without it, 0.81 / 0.62 with it
+(global shutter: 0.68 / 0.58)."""
+FIT_HALF_WINDOW_IMU = 15
+FIT_MAX_SPAN_IMU_S = 0.6
+"""With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
+BIAS_MAX_GAP_S = 0.1
+"""Gyro bias: only consecutive poses at most this far apart give a rotation rate."""
+OMEGA_BIAS_PRIOR_RAD_S = 0.005
+"""Gyro bias sigma when it cannot be estimated (too few poses)."""
+OMEGA_POSE_SIGMA_RAD_S = 0.02
+"""Body-rate sigma when it comes from pose differences (no IMU)."""
+MAX_CALIBRATION_FRAMES = 300
+"""`calibrate_readout` uses at most this many frames: those whose image moves most."""
+CALIBRATION_ROUNDS = 2
+"""`calibrate_readout`: motion re-estimated with the previous estimate this many times."""
+CALIBRATION_BLOCKS = 6
+"""Contiguous blocks of frames whose minima's spread gives the readout's sigma (a lower bound)."""
+GOLDEN_TOL_S = 5e-5
+"""Golden-section search stops when the bracket is narrower than this (s)."""
+CURVATURE_STEP_FRACTION = 0.1
+"""Step of the profile's second difference, as a fraction of the readout upper bound."""
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+@dataclass
+class FrameMotion:
+    """Body motion at frame stamps (for one camera's frames): approximate poses (N, 4, 4), body
+    rate omega_body (N, 3) rad/s, world velocity and acceleration (N, 3), the (N, 3, 3)
+    covariances of the velocity and of the body rate; `valid` (N,) False where no motion is
+    known."""
+
+    timestamps_ns: np.ndarray
+    T_world_body: np.ndarray
+    omega_body: np.ndarray
+    v_world: np.ndarray
+    a_world: np.ndarray
+    v_cov: np.ndarray
+    valid: np.ndarray
+    omega_cov: np.ndarray  # (N, 3, 3)
+
+
+@dataclass
+class RollingShutterReport:
+    """What `correct_flight` did: per camera, frames corrected / left as they were."""
+
+    readout_s: dict[str, float] = field(default_factory=dict)
+    frames_corrected: dict[str, int] = field(default_factory=dict)
+    frames_uncorrected: dict[str, int] = field(default_factory=dict)
+    motion_source: str = ""
+    pose_cov_added: dict[int, np.ndarray] = field(default_factory=dict)  # cam0 PnP, by stamp
+
+    def notes(self) -> list[str]:
+        return [
+            f"rolling shutter {cam}: readout {1e3 * self.readout_s[cam]:.2f} ms, corners of "
+            f"{self.frames_corrected[cam]} frame(s) moved to the stamp time ({self.motion_source}); "
+            f"{self.frames_uncorrected[cam]} frame(s) without a motion estimate left as read"
+            for cam in self.readout_s
+        ]
+
+
+@dataclass
+class ReadoutCalibration:
+    """`calibrate_readout`'s estimate: readout time and its sigma (s), frames used, the
+    chi^2 / dof at the optimum, and the profile [(readout_s, cost)] evaluated."""
+
+    readout_s: float
+    sigma_s: float
+    n_frames: int
+    chi2_per_dof: float
+    profile: list[tuple[float, float]] = field(default_factory=list)
+
+    def note(self, camera: str) -> str:
+        return (
+            f"calibrated readout of {camera}: {1e3 * self.readout_s:.2f} +- {1e3 * self.sigma_s:.2f} ms "
+            f"({self.n_frames} frames, chi2/dof {self.chi2_per_dof:.2f})"
+        )
+
+
+# ============================================================================ motion
+
+
+class _ImuTrack:
+    """The IMU's body rate and world acceleration integrated on its own time grid: cumulative
+    gyro integral (body rate means over any window), and the world acceleration
+    a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses) integrated twice
+    (trapezoid), so that positions can be fitted with the IMU's short-term motion removed."""
+
+    def __init__(self, imu, trajectory: Trajectory):
+        self.t = imu.timestamps_ns * 1e-9
+        R_bs = np.asarray(imu.T_body_imu, float)[:3, :3]
+        self.gyro = imu.gyro_rad_s @ R_bs.T
+        dt = np.diff(self.t)[:, None]
+        self.G = np.vstack([np.zeros(3), np.cumsum(0.5 * (self.gyro[1:] + self.gyro[:-1]) * dt, axis=0)])
+        ts = trajectory.timestamps_ns * 1e-9
+        R = interpolate_poses(ts, trajectory.T_world_body, np.clip(self.t, ts[0], ts[-1]))[:, :3, :3]
+        f_body = imu.accel_m_s2 @ R_bs.T
+        self.a_world = np.einsum("nij,nj->ni", R, f_body) - np.array([0.0, 0.0, GRAVITY_M_S2])
+        self.V = np.vstack(
+            [np.zeros(3), np.cumsum(0.5 * (self.a_world[1:] + self.a_world[:-1]) * dt, axis=0)]
+        )
+        self.P = np.vstack([np.zeros(3), np.cumsum(0.5 * (self.V[1:] + self.V[:-1]) * dt, axis=0)])
+        self.noise_density = imu.noise.gyroscope_noise_density
+
+    def _at(self, X: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.interp(t, self.t, X[:, i]) for i in range(3)])
+
+    def mean_rate(self, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+        """(N, 3) mean body rate over [t0, t1] (the sample at t0 where t1 == t0)."""
+        span = np.asarray(t1, float) - np.asarray(t0, float)
+        point = self._at(self.gyro, t0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = (self._at(self.G, t1) - self._at(self.G, t0)) / span[:, None]
+        return np.where((span > 0)[:, None], mean, point)
+
+    def displacement(self, t0: float, t: np.ndarray) -> np.ndarray:
+        """(N, 3) position change from t0 to t of a body at rest at t0 with the IMU's world
+        acceleration: P(t) - P(t0) - V(t0) (t - t0)."""
+        P0, V0 = self._at(self.P, np.array([t0]))[0], self._at(self.V, np.array([t0]))[0]
+        return self._at(self.P, t) - P0 - V0 * (t - t0)[:, None]
+
+
+def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
+    """Gyro bias (3,) and its 1-sigma (rad/s): the median over consecutive poses (at most
+    BIAS_MAX_GAP_S apart) of the gyro's mean rate minus the poses' rotation rate (so3_log)."""
+    ts = trajectory.timestamps_ns * 1e-9
+    T = trajectory.T_world_body
+    ok = np.flatnonzero((np.diff(ts) > 0) & (np.diff(ts) <= BIAS_MAX_GAP_S))
+    if len(ok) < MIN_FIT_POSES:
+        return np.zeros(3), OMEGA_BIAS_PRIOR_RAD_S
+    rel = np.einsum("nji,njk->nik", T[ok, :3, :3], T[ok + 1, :3, :3])
+    w_pose = so3_log(rel) / np.diff(ts)[ok, None]
+    d = track.mean_rate(ts[ok], ts[ok + 1]) - w_pose
+    bias = np.median(d, axis=0)
+    mad = 1.4826 * np.median(np.abs(d - bias), axis=0)
+    return bias, float(np.max(mad) / math.sqrt(len(ok)))
+
+
+def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraModel, imu=None) -> FrameMotion:
+    """Body motion at `stamps_ns` from the poses of `trajectory` (e.g. PnP) and the IMU.
+
+    With an IMU: body rate = the gyro's mean over the frame's readout minus the gyro bias
+    (`_gyro_bias`); velocity = a trimmed quadratic fit of the positions of up to
+    2 FIT_HALF_WINDOW_IMU poses within FIT_MAX_SPAN_IMU_S, after removing the IMU's
+    double-integrated world acceleration (`_ImuTrack.displacement`; the quadratic term takes
+    up the accelerometer bias), acceleration = the IMU's at the stamp plus that term.
+    Without: a trimmed quadratic fit of the positions of 2 FIT_HALF_WINDOW poses within
+    FIT_MAX_SPAN_S, and the rotation rate between the nearest poses either side.
+    Velocity covariance from the fit residuals; body-rate covariance (`omega_cov`) from the gyro
+    noise density over the readout and the bias's sigma (or OMEGA_POSE_SIGMA_RAD_S)."""
+    ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
+    stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+    n = len(stamps_ns)
+    out = FrameMotion(
+        stamps_ns,
+        np.tile(np.eye(4), (n, 1, 1)),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+        np.tile(np.eye(3), (n, 1, 1)),
+        np.zeros(n, bool),
+        np.tile(OMEGA_POSE_SIGMA_RAD_S**2 * np.eye(3), (n, 1, 1)),
+    )
+    if len(ts) < MIN_FIT_POSES:
+        return out
+    T = trajectory.T_world_body
+    track = None
+    half, span_max = FIT_HALF_WINDOW, FIT_MAX_SPAN_S
+    t_s = stamps_ns * 1e-9
+    if imu is not None and len(imu.timestamps_ns) > 1:
+        track = _ImuTrack(imu, trajectory)
+        bias, bias_sigma = _gyro_bias(track, trajectory)
+        t0 = t_s + float(camera.row_time_offset_s(0.0))
+        t1 = t_s + float(camera.row_time_offset_s(camera.height - 1.0))
+        out.omega_body = track.mean_rate(t0, t1) - bias
+        readout = max(camera.readout_s, 1.0 / imu.rate_hz)
+        var = track.noise_density**2 / readout + bias_sigma**2
+        out.omega_cov = np.tile(var * np.eye(3), (n, 1, 1))
+        half, span_max = FIT_HALF_WINDOW_IMU, FIT_MAX_SPAN_IMU_S
+    for k, t in enumerate(stamps_ns.tolist()):
+        i = int(np.searchsorted(ts, t))
+        lo, hi = max(0, i - half), min(len(ts), i + half)
+        idx = np.arange(lo, hi)
+        dt = (ts[idx] - t) * 1e-9
+        idx, dt = idx[np.abs(dt) <= span_max], dt[np.abs(dt) <= span_max]
+        if len(idx) < MIN_FIT_POSES or dt.min() > 0 or dt.max() < 0:
+            continue  # too few poses, or all on one side (extrapolation)
+        y = T[idx, :3, 3]
+        if track is not None:
+            y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
+        A = np.column_stack([dt**j / math.factorial(j) for j in range(FIT_DEGREE + 1)])
+        keep = np.ones(len(idx), bool)
+        for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
+            coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
+            r = np.linalg.norm(y - A @ coef, axis=1)
+            scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
+            new_keep = r <= scale
+            if new_keep.sum() < FIT_DEGREE + 2 or np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        A, idx, dt, y = A[keep], idx[keep], dt[keep], y[keep]
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        resid = y - A @ coef
+        dof = len(idx) - FIT_DEGREE - 1
+        var_p = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
+        sig2 = max(var_p * float(np.linalg.pinv(A.T @ A)[1, 1]), MIN_VELOCITY_SIGMA_M_S**2)
+        near = idx[int(np.argmin(np.abs(dt)))]
+        if track is None:
+            a, b = idx[dt <= 0][-1], idx[dt >= 0][0]
+            if a == b:
+                a, b = (a - 1, a) if a > 0 else (a, a + 1)
+            span = (ts[b] - ts[a]) * 1e-9
+            if span <= 0:
+                continue
+            out.omega_body[k] = so3_log(T[a, :3, :3].T @ T[b, :3, :3]) / span
+        # the pose at the stamp: the nearest pose's rotation turned back by the body rate
+        back = float((t - ts[near]) * 1e-9)
+        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(out.omega_body[k][None] * back)[0]
+        out.T_world_body[k, :3, 3] = coef[0]
+        out.v_world[k] = coef[1]
+        out.a_world[k] = coef[2]
+        if track is not None:
+            out.a_world[k] += track._at(track.a_world, np.array([t * 1e-9]))[0]
+        out.v_cov[k] = sig2 * np.eye(3)
+        out.valid[k] = True
+    return out
+
+
+# ============================================================================ corners
+
+
+def _body_poses_at(T_world_body: np.ndarray, omega: np.ndarray, v: np.ndarray, a: np.ndarray, dt: np.ndarray):
+    """(M, 4, 4) body poses at offsets dt (M,) from the stamp poses T_world_body (M, 4, 4):
+    constant body rate omega (M, 3) and world acceleration, R exp(omega dt), p + v dt + a dt^2/2."""
+    out = np.tile(np.eye(4), (len(dt), 1, 1))
+    out[:, :3, :3] = T_world_body[:, :3, :3] @ so3_exp_stack(omega * dt[:, None])
+    out[:, :3, 3] = T_world_body[:, :3, 3] + v * dt[:, None] + 0.5 * a * (dt**2)[:, None]
+    return out
+
+
+@dataclass
+class CornerBatch:
+    """Corners of many detections, stacked (M = 4 per detection): observed px uv (M, 2), their
+    normalised rays xn (M, 2), the known world point P (M, 3) (NaN for load codes), the
+    size-implied depth (M,), the motion index of their frame (M,); `where` [(timestamp_ns,
+    position in the frame)] per detection."""
+
+    uv: np.ndarray
+    xn: np.ndarray
+    P: np.ndarray
+    depth_fallback: np.ndarray
+    k: np.ndarray
+    where: list[tuple[int, int]]
+
+    def moved(self, camera: CameraModel, motion: FrameMotion) -> np.ndarray:
+        """(M, 2) corners moved to their frame's stamp (module docstring, steps 1-3): each ray at
+        its row's camera pose, at the depth of its world point (else the size-implied depth),
+        projected with the stamp's camera pose."""
+        k = self.k
+        T_wb = motion.T_world_body[k]
+        dt = camera.row_time_offset_s(self.uv[:, 1])
+        T_wc_rows = camera.T_world_cam(
+            _body_poses_at(T_wb, motion.omega_body[k], motion.v_world[k], motion.a_world[k], dt)
+        )
+        T_cw_rows = inv_T(T_wc_rows)
+        with np.errstate(invalid="ignore"):
+            z = np.einsum("mj,mj->m", T_cw_rows[:, 2, :3], self.P) + T_cw_rows[:, 2, 3]
+        depth = np.where(np.isfinite(z) & (z > 0), z, self.depth_fallback)
+        p_cam = np.column_stack([self.xn, np.ones(len(self.xn))]) * depth[:, None]
+        p_world = np.einsum("mij,mj->mi", T_wc_rows[:, :3, :3], p_cam) + T_wc_rows[:, :3, 3]
+        T_cw = inv_T(camera.T_world_cam(T_wb))
+        p_stamp = np.einsum("mij,mj->mi", T_cw[:, :3, :3], p_world) + T_cw[:, :3, 3]
+        return camera.project(p_stamp)
+
+
+def corner_batch(
+    frames: dict[int, list[QRDetection]], camera: CameraModel, world: World, motion: FrameMotion
+) -> CornerBatch:
+    """The floor and load codes' corners of the frames that have a motion estimate, stacked."""
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
+    f = 0.5 * (camera.fu + camera.fv)
+    uv, P, fallback, ks, where = [], [], [], [], []
+    for ts, dets in frames.items():
+        k = index.get(int(ts))
+        if k is None or not motion.valid[k]:
+            continue
+        codes = classify(dets, world)
+        known = {id(s.detection): np.asarray(s.corners_world, float) for s in codes.floor}
+        sides = {id(s.detection): world.floor_side_m for s in codes.floor}
+        sides.update({id(s.detection): world.load_side_m for s in codes.loads})
+        for i, d in enumerate(dets):
+            c = np.asarray(d.corners_px, float).reshape(4, 2)
+            if id(d) not in sides or not np.all(np.isfinite(c)):
+                continue
+            edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+            uv.append(c)
+            P.append(known.get(id(d), np.full((4, 3), np.nan)))
+            fallback.append(np.full(4, f * sides[id(d)] / max(edge, 1.0)))
+            ks.append(np.full(4, k))
+            where.append((int(ts), i))
+    if not uv:
+        e = np.zeros((0, 2))
+        return CornerBatch(e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [])
+    uv_all = np.concatenate(uv)
+    return CornerBatch(
+        uv_all,
+        camera.undistort_normalized(uv_all),
+        np.concatenate(P),
+        np.concatenate(fallback),
+        np.concatenate(ks),
+        where,
+    )
+
+
+def apply_corners(
+    frames: dict[int, list[QRDetection]], batch: CornerBatch, corners_px: np.ndarray
+) -> dict[int, list[QRDetection]]:
+    """`frames` with the batch's detections given `corners_px` (M, 2) (non-finite ones kept).
+
+    A code the readout deformed (its corners moved by different amounts: shear, stretch) is
+    refined less well than a pinhole view of it (fusion.qr.refine fits one homography and
+    extrapolates the fourth corner); its `corner_cov_px2` gains (DEFORMATION_SIGMA_FRACTION d)^2 I,
+    d the largest corner displacement about the code's mean displacement (px)."""
+    out = {ts: list(dets) for ts, dets in frames.items()}
+    new = corners_px.reshape(-1, 4, 2)
+    old = batch.uv.reshape(-1, 4, 2)
+    for (ts, i), c, c0 in zip(batch.where, new, old):
+        if np.all(np.isfinite(c)):
+            d = out[ts][i]
+            cov = d.corner_cov_px2
+            if cov is not None:
+                move = c - c0
+                deform = float(np.max(np.linalg.norm(move - move.mean(axis=0), axis=1)))
+                cov = np.asarray(cov, float) + (DEFORMATION_SIGMA_FRACTION * deform) ** 2 * np.eye(8)
+            out[ts][i] = replace(d, corners_px=c, corner_cov_px2=cov)
+    return out
+
+
+def correct_frames(
+    frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    motion: FrameMotion,
+) -> tuple[dict[int, list[QRDetection]], int]:
+    """Every frame {timestamp_ns: detections} with its floor and load codes' corners moved to the
+    stamp time (module docstring; stamps as in `motion`); other codes, and frames without a
+    motion estimate, as they were.  Also returns how many frames had a motion estimate."""
+    if not camera.rolling_shutter:
+        return {ts: list(d) for ts, d in frames.items()}, 0
+    batch = corner_batch(frames, camera, world, motion)
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
+    n = sum(1 for ts in frames if index.get(int(ts)) is not None and motion.valid[index[int(ts)]])
+    return apply_corners(frames, batch, batch.moved(camera, motion)), n
+
+
+def corrected_trajectory(
+    floor_frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    imu=None,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    passes: int = CORRECTION_PASSES,
+) -> Trajectory:
+    """PnP trajectory of the floor frames {timestamp_ns: detections} with their corners moved
+    to the stamp: PnP on the raw corners, then `passes` rounds of motion (`frame_motion`),
+    correction, PnP (the raw poses' rolling-shutter errors bias the first velocity fit; each
+    round roughly halves what is left, measured)."""
+    traj, _ = pnp_trajectory(floor_frames, camera, world, corner_sigma_px)
+    if not camera.rolling_shutter:
+        return traj
+    stamps = np.array(sorted(floor_frames), dtype=np.int64)
+    for _ in range(passes):
+        motion = frame_motion(traj, stamps, camera, imu)
+        fixed, _ = correct_frames(floor_frames, camera, world, motion)
+        traj, _ = pnp_trajectory(fixed, camera, world, corner_sigma_px)
+    return traj
+
+
+def correct_flight(
+    det,
+    cameras: dict[str, CameraModel],
+    world: World,
+    imu=None,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    passes: int = CORRECTION_PASSES,
+):
+    """(DetectionResult with every rolling-shutter camera's corners moved to their frame's stamp,
+    RollingShutterReport).  The motion comes from the floor camera (`cameras["cam0"]`): PnP on
+    the raw corners, then `passes` rounds of motion (`frame_motion`), correction, PnP.  Other
+    cameras use the same poses and gyro at their own stamps.  Without a rolling-shutter camera
+    the result is `det` itself."""
+    report = RollingShutterReport(motion_source="IMU gyro + PnP velocity" if imu is not None else "PnP poses")
+    rs = {name: cam for name, cam in cameras.items() if cam is not None and cam.rolling_shutter}
+    floor_cam = cameras.get("cam0")
+    if not rs or floor_cam is None:
+        return det, report
+    traj = corrected_trajectory(det.by_frame("cam0"), floor_cam, world, imu, corner_sigma_px, passes)
+    corrected: list[QRDetection] = []
+    for name in sorted({d.camera for d in det.detections}):
+        frames = det.by_frame(name)
+        cam = rs.get(name)
+        if cam is None:
+            corrected.extend(d for ds in frames.values() for d in ds)
+            continue
+        stamps = np.array(sorted(frames), dtype=np.int64)
+        motion = frame_motion(traj, stamps, cam, imu)
+        fixed, n = correct_frames(frames, cam, world, motion)
+        corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
+        if name == "cam0" and not cam.gimbaled:
+            report.pose_cov_added = motion_pose_covariance(frames, cam, world, motion, corner_sigma_px)
+        report.readout_s[name] = cam.readout_s
+        report.frames_corrected[name] = n
+        report.frames_uncorrected[name] = len(frames) - n
+    for note in report.notes():
+        log_.info(note)
+    return replace(det, detections=corrected), report
+
+
+def motion_pose_covariance(
+    frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    motion: FrameMotion,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+) -> dict[int, np.ndarray]:
+    """{timestamp_ns: (6, 6)} the PnP pose covariance ([rx, ry, rz, tx, ty, tz], body frame,
+    right perturbation) that the motion's uncertainty adds: G S G^T, G = d(pose) / d(omega, v)
+    by central differences of the whole correct-then-PnP map (each motion component of every
+    frame perturbed by MOTION_STEP at once: the frames are independent), S = the motion's
+    covariance.  The motion's error moves all codes of a frame alike, i.e. the image shift
+    PnP determines best (~0.003 px at 1.5 m), so it must enter the pose, not the corners."""
+    base = _pnp_by_stamp(frames, camera, world, motion, corner_sigma_px)
+    G = {ts: np.zeros((6, 6)) for ts in base}
+    for j in range(6):
+        poses = []
+        for sign in (1.0, -1.0):
+            m = replace(motion, omega_body=motion.omega_body.copy(), v_world=motion.v_world.copy())
+            (m.omega_body if j < 3 else m.v_world)[:, j % 3] += sign * MOTION_STEP
+            poses.append(_pnp_by_stamp(frames, camera, world, m, corner_sigma_px))
+        for ts in base:
+            if ts in poses[0] and ts in poses[1]:
+                d = se3_log(inv_T(poses[1][ts]) @ poses[0][ts])[0]
+                G[ts][:, j] = d / (2.0 * MOTION_STEP)
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
+    out = {}
+    for ts, g in G.items():
+        k = index[int(ts)]
+        S = np.zeros((6, 6))
+        S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
+        out[int(ts)] = g @ S @ g.T
+    return out
+
+
+def _pnp_by_stamp(frames, camera, world, motion, sigma) -> dict[int, np.ndarray]:
+    """{timestamp_ns: T_world_body} of PnP on the corrected frames (posed ones only)."""
+    fixed, _ = correct_frames(frames, camera, world, motion)
+    traj, _ = pnp_trajectory(fixed, camera, world, sigma)
+    return {int(t): T for t, T in zip(traj.timestamps_ns, traj.T_world_body)}
+
+
+def add_pose_covariance(trajectory: Trajectory, added: dict[int, np.ndarray]) -> Trajectory:
+    """`trajectory` with `added[timestamp_ns]` added to the covariance of each pose stamped so."""
+    if not added or trajectory.covariances is None:
+        return trajectory
+    covs = trajectory.covariances.copy()
+    for i, t in enumerate(trajectory.timestamps_ns.tolist()):
+        extra = added.get(int(t))
+        if extra is not None:
+            covs[i] = covs[i] + extra
+    return replace(trajectory, covariances=covs)
+
+
+# ============================================================================ calibration
+
+
+def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened reprojection cost (chi^2) of the PnP pose of each of `frames` (each a list of
+    floor sightings) and its degrees of freedom (8 per code - 6; 0, 0 for an unposed frame or
+    one with a code left out)."""
+    results = estimate_floor_poses(frames, camera, sigma)
+    cost, dof = np.zeros(len(frames)), np.zeros(len(frames), dtype=int)
+    for i, (sightings, res) in enumerate(zip(frames, results)):
+        if res is None or res.dropped_payloads:
+            continue
+        P = np.concatenate([np.asarray(s.corners_world, float) for s in sightings])
+        T_cw = inv_T(res.T_world_cam)
+        pred = camera.project(P @ T_cw[:3, :3].T + T_cw[:3, 3]).reshape(-1, 8)
+        z = np.concatenate([np.asarray(s.detection.corners_px, float) for s in sightings]).reshape(-1, 8)
+        W = corner_whitening([s.detection for s in sightings], sigma)
+        r = np.einsum("cij,cj->ci", W, z - pred)
+        if np.all(np.isfinite(r)):
+            cost[i], dof[i] = float(np.sum(r**2)), r.size - 6
+    return cost, dof
+
+
+def calibrate_readout(
+    det,
+    camera: CameraModel,
+    world: World,
+    imu=None,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    max_readout_s: float | None = None,
+    max_frames: int = MAX_CALIBRATION_FRAMES,
+    rounds: int = CALIBRATION_ROUNDS,
+) -> ReadoutCalibration:
+    """Readout time (s, whole frame) of the floor camera `camera` from a flight's floor
+    detections: the minimum over [0, max_readout_s] (default: one frame period) of the whitened
+    PnP reprojection cost of the up to `max_frames` frames whose image moves most, after moving
+    the corners to the stamp with that readout (`correct_frames`); golden-section search; sigma
+    from the profile's curvature.  The motion comes from the poses corrected with the previous
+    round's estimate (the first round: the camera's own readout, usually 0, i.e. raw PnP),
+    `rounds` times.  Raises EstimationError when too few frames have a motion estimate."""
+    upper = float(max_readout_s) if max_readout_s is not None else 1.0 / max(camera.rate_hz, 1e-3)
+    if not upper > 0:
+        raise EstimationError(f"readout search bound must be positive, got {upper!r}")
+    frames = det.by_frame("cam0")
+    stamps = np.array(sorted(frames), dtype=np.int64)
+    readout = min(camera.readout_s, upper)
+    result = None
+    for _ in range(max(rounds, 1)):
+        cam = replace(camera, line_delay_s=readout / camera.height)
+        traj = corrected_trajectory(frames, cam, world, imu, corner_sigma_px)
+        result = _golden_readout(
+            frames,
+            stamps,
+            frame_motion(traj, stamps, cam, imu),
+            camera,
+            world,
+            imu,
+            corner_sigma_px,
+            upper,
+            max_frames,
+        )
+        readout = result.readout_s
+    assert result is not None
+    return result
+
+
+def _golden_readout(frames, stamps, motion: FrameMotion, camera, world, imu, sigma_px, upper, max_frames):
+    """One round of `calibrate_readout` with a fixed motion estimate."""
+    # image speed of each frame: rate plus velocity over height (rad/s, roughly)
+    speed = np.full(len(stamps), -1.0)
+    for k in np.flatnonzero(motion.valid):
+        h = max(float(motion.T_world_body[k, 2, 3]), 0.3)
+        speed[k] = np.linalg.norm(motion.omega_body[k]) + np.linalg.norm(motion.v_world[k]) / h
+    order = [k for k in np.argsort(-speed) if speed[k] > 0][:max_frames]
+    if len(order) < MIN_FIT_POSES:
+        raise EstimationError(f"readout calibration: only {len(order)} frame(s) with a motion estimate")
+    chosen = {int(stamps[k]): frames[int(stamps[k])] for k in sorted(order)}
+    batch = corner_batch(chosen, camera, world, motion)
+    cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+    def per_frame(readout_s: float) -> tuple[np.ndarray, np.ndarray]:
+        if readout_s not in cache:
+            cam = replace(camera, line_delay_s=readout_s / camera.height)
+            fixed = apply_corners(chosen, batch, batch.moved(cam, motion))
+            views = [classify(fixed[ts], world).floor for ts in chosen]
+            cache[readout_s] = _frames_cost(views, cam, sigma_px)
+        return cache[readout_s]
+
+    def cost(readout_s: float) -> float:
+        return float(per_frame(readout_s)[0].sum())
+
+    a, b = 0.0, upper
+    c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
+    fc, fd = cost(c), cost(d)
+    while b - a > GOLDEN_TOL_S:
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - _GOLDEN * (b - a)
+            fc = cost(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + _GOLDEN * (b - a)
+            fd = cost(d)
+    best = 0.5 * (a + b)
+    chi2, dof = float(per_frame(best)[0].sum()), int(per_frame(best)[1].sum())
+    h = CURVATURE_STEP_FRACTION * upper
+    x0 = min(max(best, h), upper - h)  # keep the stencil inside [0, upper]
+    stencil = [per_frame(x)[0] for x in (x0 - h, x0, x0 + h)]
+    curv = (stencil[2].sum() - 2.0 * stencil[1].sum() + stencil[0].sum()) / h**2
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
+    sigma = math.sqrt(2.0 * scale / curv) if curv > 0 else math.inf
+    # the frames' errors are not independent (the motion estimate is shared by neighbours):
+    # the spread of the minima of CALIBRATION_BLOCKS contiguous blocks (their parabolas through
+    # the stencil) bounds sigma from below, sigma_blocks = std / sqrt(blocks)
+    minima = []
+    for block in np.array_split(np.arange(len(chosen)), CALIBRATION_BLOCKS):
+        c0, c1, c2 = (float(st[block].sum()) for st in stencil)
+        cb = (c2 - 2.0 * c1 + c0) / h**2
+        if cb > 0:
+            minima.append(x0 - (c2 - c0) / (2.0 * h) / cb)
+    if len(minima) > 1:
+        sigma = max(sigma, float(np.std(minima, ddof=1)) / math.sqrt(len(minima)))
+    if not math.isfinite(sigma):
+        log_.warning("readout calibration: flat cost profile (does the camera move?)")
+    profile = sorted((x, float(v[0].sum())) for x, v in cache.items())
+    return ReadoutCalibration(best, sigma, len(chosen), chi2 / dof if dof > 0 else math.nan, profile)
