@@ -167,6 +167,8 @@ def connect(cfg: BatchConfig) -> Iterator[Client]:
     processes, not threads).  FleetError within `connect_timeout_s` when the scheduler does not
     answer."""
     if cfg.scheduler:
+        if cfg.workers is not None:
+            logger.warning("--workers sizes a local cluster; ignored with a scheduler (%s)", cfg.scheduler)
         try:
             client = Client(cfg.scheduler, timeout=cfg.connect_timeout_s, set_as_default=False)
         except (OSError, TimeoutError, ValueError, TypeError) as e:
@@ -349,6 +351,7 @@ class _Driver:
         rec.status, rec.reason, rec.error_type = FlightStatus.OK, "", ""
         rec.compute_s = done.compute_s
         rec.timings_s = done.timings_s
+        rec.task_s = done.task_s
         rec.wall_s = time.perf_counter() - fl.t_start
         self._finish(fl, f"ok in {rec.wall_s:.1f} s ({rec.compute_s:.1f} task-s)")
 

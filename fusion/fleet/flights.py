@@ -48,6 +48,7 @@ class FlightRecord:
     compute_s: float | None = None  # task seconds summed over the flight's tasks
     wall_s: float | None = None  # from the flight's first task to its report
     timings_s: dict[str, float] = field(default_factory=dict)  # the report task's stages
+    task_s: dict[str, float] = field(default_factory=dict)  # task seconds by kind (tasks.FlightDone)
 
 
 def expand_flights(args: list[Path]) -> list[Path]:
