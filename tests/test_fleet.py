@@ -103,6 +103,9 @@ def test_same_folder_names_get_distinct_stable_names(tmp_path):
     previous = {"f": FlightRecord("f", str(a))}
     assert output_names([b, a], previous)[a] == "f"
     assert output_names([b, a], previous)[b] != "f"
+    # the fleet folder's own files are never a flight's folder
+    for own in ("fleet.json", "fleet.md", "fusion.lock"):
+        assert output_names([tmp_path / own])[tmp_path / own] == f"flight-{own}"
 
 
 # ============================================================================ a batch

@@ -96,7 +96,7 @@ class BatchResult:
         ok = sum(r.status == FlightStatus.OK for r in self.records)
         lines = [
             f"fleet: {len(self.records)} flights in {self.out_dir}: {ok} ok, {len(self.failed)} failed; "
-            f"this batch ran {len(self.ran)} and skipped {len(self.skipped)} (done before) "
+            f"this batch ran {len(self.ran)} and skipped {len(self.skipped)} (finished or failed before) "
             f"in {self.wall_s:.1f} s"
         ]
         lines += [f"FAILED {r.name}: {r.reason}" for r in self.failed]

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from fusion.errors import FleetError, LogError
-from fusion.fileio import atomic_open, is_regular_file, open_regular
+from fusion.fileio import LOCK_NAME, atomic_open, is_regular_file, open_regular
 from fusion.log.sources import detect_format
 
 STATE_NAME = "fleet.json"
@@ -124,9 +124,13 @@ def output_names(paths: list[Path], previous: dict[str, FlightRecord] | None = N
     return names
 
 
+RESERVED_NAMES = (STATE_NAME, "fleet.csv", "fleet.md", "fleet_time.png", "fleet_ate.png", LOCK_NAME)
+"""Files of the fleet folder itself (summary.py's names): never a flight's folder name."""
+
+
 def _base_name(path: Path) -> str:
     name = _UNSAFE.sub("_", path.name).strip("._") or "flight"
-    return name if name not in (STATE_NAME,) else "flight"
+    return name if name not in RESERVED_NAMES else f"flight-{name}"
 
 
 # ============================================================================ fleet.json
