@@ -21,6 +21,8 @@ from fusion.types import Estimator
 
 EXIT_NOT_TRUSTED = 3
 """`--strict`: the run finished and wrote its outputs, but an estimate cannot be trusted."""
+EXIT_FLIGHTS_FAILED = 4
+"""`batch`: the batch finished and wrote its summary, but some flights failed (fleet.md says why)."""
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -222,6 +224,43 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_options(p)
 
     p = sub.add_parser(
+        "batch",
+        parents=[common],
+        help="many flights on a dask cluster: OUT/<flight>/ as `run` writes it, and OUT/fleet.md",
+    )
+    p.add_argument(
+        "flights",
+        type=Path,
+        nargs="+",
+        metavar="FLIGHT_OR_LIST",
+        help="flight logs (as `run` takes), or text files listing them one a line",
+    )
+    p.add_argument("--out", type=Path, required=True, help="fleet output folder")
+    p.add_argument(
+        "--scheduler", default=None, help="address of a running dask scheduler, e.g. tcp://host:8786"
+    )
+    p.add_argument(
+        "--workers", type=int, default=None, help="local cluster: worker processes (default: all cores)"
+    )
+    p.add_argument(
+        "--retry-failed", action="store_true", help="run again the flights that failed in an earlier batch"
+    )
+    p.add_argument("--chunk-frames", type=int, default=None, help="frames per detection task (default 256)")
+    p.add_argument(
+        "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
+    )
+    p.add_argument(
+        "--robust",
+        choices=("none", "huber", "cauchy", "tukey"),
+        default="huber",
+        help="robust kernel on QR pose factors (default: huber)",
+    )
+    p.add_argument(
+        "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
+    )
+    p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+
+    p = sub.add_parser(
         "inspect", parents=[common], help="what a log holds: streams, rates, gaps, roles, IMU units"
     )
     p.add_argument("log", type=Path, help="EuRoC folder, ROS bag or video log")
@@ -335,7 +374,7 @@ def _run_config(args):
         backend=args.backend,
         workers=args.workers,
         progress=not args.quiet,
-        force=args.force,
+        force=getattr(args, "force", False),
         robust=getattr(args, "robust", "huber"),
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
@@ -378,6 +417,23 @@ def main(argv: list[str] | None = None) -> int:
             if getattr(args, "strict", False) and not result.trusted:
                 print("fusion: --strict: an estimate is not trusted (see health above)", file=sys.stderr)
                 return EXIT_NOT_TRUSTED
+        elif args.command == "batch":
+            from fusion.fleet import BatchConfig, run_batch
+
+            bcfg = BatchConfig(
+                scheduler=args.scheduler,
+                workers=args.workers,
+                retry_failed=args.retry_failed,
+                run=_run_config(args),
+            )
+            if args.chunk_frames is not None:
+                if args.chunk_frames < 1:
+                    raise FusionError("--chunk-frames must be at least 1")
+                bcfg.chunk_frames = args.chunk_frames
+            batch = run_batch(args.flights, args.out, bcfg)
+            print(batch.summary())
+            if batch.failed:
+                return EXIT_FLIGHTS_FAILED
         elif args.command == "inspect":
             from fusion.log.inspect import inspect_log
 

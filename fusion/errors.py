@@ -52,3 +52,8 @@ class QRSheetError(FusionError):
 class WarehouseError(FusionError):
     """Inventory / map-merge inputs that cannot be used (bad manifest line, runs of different
     warehouses, a run folder without its outputs)."""
+
+
+class FleetError(FusionError):
+    """A batch of flights that cannot run (unreachable scheduler, a locked fleet folder, an
+    unreadable flight list); one bad flight is not an error of the batch."""

@@ -43,7 +43,7 @@ from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.detect import CACHE_NAME, detect_flight
+from fusion.qr.detect import CACHE_NAME, DetectionResult, detect_flight, flight_fingerprint, write_cache
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 from fusion.qr.rolling_shutter import (
     ReadoutCalibration,
@@ -236,44 +236,71 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     """The two per-frame estimators on every floor frame, and load observations from cam1.
 
     Frames are independent, so both phases (floor poses, then load codes placed with those
-    poses) run on `cfg.workers` processes over contiguous chunks of the flight."""
-    notes: list[str] = []
+    poses) run on `cfg.workers` processes over contiguous chunks of the flight.  The phases'
+    chunk functions and their merges are public so a task graph (fusion.fleet) can run them."""
     floor_frames = det.by_frame("cam0")
     workers = _worker_count(cfg.workers, len(floor_frames))
     parts = list(
         parallel_map(
-            _localize_floor_chunk,
+            localize_floor_chunk,
             _chunks(floor_frames, workers),
             workers,
-            (log.floor.camera, log.world, cfg),
+            floor_context(log, cfg),
             preload=_LOCALIZE_PRELOAD,
         )
     )
+    floor = merge_floor_parts(parts)
+    if log.front is None:
+        return merge_front_parts(log, floor, [])
+    parts = list(
+        parallel_map(
+            localize_front_chunk,
+            _chunks(det.by_frame("cam1"), workers),
+            workers,
+            front_context(log, floor, cfg),
+            preload=_LOCALIZE_PRELOAD,
+        )
+    )
+    return merge_front_parts(log, floor, parts)
+
+
+def floor_context(log: FlightLog, cfg: RunConfig) -> tuple:
+    """What every `localize_floor_chunk` needs: (floor camera, world, cfg)."""
+    return (log.floor.camera, log.world, cfg)
+
+
+def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tuple:
+    """What every `localize_front_chunk` needs: (front camera, world, paper and PnP trajectories,
+    cfg); `floor` is `merge_floor_parts`' result."""
+    assert log.front is not None
+    return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
+
+
+def merge_floor_parts(parts: list[dict]) -> LocalizeResult:
+    """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
+    results, in time order (no load observations yet)."""
+    notes: list[str] = []
     trajectories: dict[str, Trajectory] = {}
     paper_errors = [p["paper_error"] for p in parts if p["paper_error"]]
     if paper_errors:
         notes.append(f"paper estimator not run: {paper_errors[0]}")
     else:
         trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
-    traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
-    trajectories["pnp"] = traj_pnp
+    trajectories["pnp"] = _concat([p["pnp"] for p in parts], "pnp")
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
+    return LocalizeResult(trajectories, {}, {}, stats, notes)
+
+
+def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) -> LocalizeResult:
+    """`floor` (merge_floor_parts) completed with the load observations and maps of the
+    `localize_front_chunk` results, in time order."""
+    notes = list(floor.notes)
+    trajectories = dict(floor.trajectories)
     obs: dict[str, list[LoadObservation]] = {}
     maps: dict[str, LoadMap] = {}
     if log.front is None:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
-        return LocalizeResult(trajectories, obs, maps, stats, notes)
-    front_frames = det.by_frame("cam1")
-    parts = list(
-        parallel_map(
-            _localize_front_chunk,
-            _chunks(front_frames, workers),
-            workers,
-            (log.front.camera, log.world, trajectories.get("paper"), traj_pnp, cfg),
-            preload=_LOCALIZE_PRELOAD,
-        )
-    )
-
+        return LocalizeResult(trajectories, obs, maps, floor.stats, notes)
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
         if errors:
@@ -286,13 +313,13 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     # The landmark factors of the fusion back end need only the camera-frame measurement, so
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
     camera_frame = obs["pnp"] + [o for p in parts for o in p["unposed"]]
-    return LocalizeResult(trajectories, obs, maps, stats, notes, camera_frame)
+    return LocalizeResult(trajectories, obs, maps, floor.stats, notes, camera_frame)
 
 
 _LOCALIZE_PRELOAD = ("fusion.pipeline",)
 
 
-def _localize_floor_chunk(context, frames: dict) -> dict:
+def localize_floor_chunk(context, frames: dict) -> dict:
     """Paper and PnP poses of the floor frames {timestamp_ns: detections} of one chunk."""
 
     camera, world, cfg = context
@@ -305,7 +332,7 @@ def _localize_floor_chunk(context, frames: dict) -> dict:
     return out
 
 
-def _localize_front_chunk(context, frames: dict) -> dict:
+def localize_front_chunk(context, frames: dict) -> dict:
     """Paper and PnP load observations of the front frames {timestamp_ns: detections} of one
     chunk, placed with the raw trajectories."""
 
@@ -507,9 +534,19 @@ def write_load_observations_csv(path: Path, observations: list[LoadObservation])
             )
 
 
-def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str = "run") -> RunResult:
+def run(
+    log_dir: Path | FlightLog,
+    out_dir: Path,
+    cfg: RunConfig | None = None,
+    until: str = "run",
+    *,
+    detections: DetectionResult | None = None,
+    localized: LocalizeResult | None = None,
+) -> RunResult:
     """Run the pipeline on a logged flight up to stage `until` (detect, localize, smooth, run).
 
+    `detections` / `localized`: the detect and localize stages' results when they were computed
+    elsewhere (fusion.fleet runs them as tasks on a cluster); the outputs are the same files.
     The output folder is locked for the run; `manifest.json` lists what it wrote; on any failure
     the run's partial outputs are removed (a file-system error becomes one OutputError)."""
     cfg = cfg or RunConfig()
@@ -519,12 +556,19 @@ def run(log_dir: Path, out_dir: Path, cfg: RunConfig | None = None, until: str =
     t = time.perf_counter()
     log = log_dir if isinstance(log_dir, FlightLog) else read_flight(log_dir)
     with prepare_out_dir(out_dir, cfg.force, log.root) as out:
-        result = _run_into(log, out.path, cfg, until, timings, t)
+        result = _run_into(log, out.path, cfg, until, timings, t, detections, localized)
     return result
 
 
 def _run_into(
-    log: FlightLog, out_dir: Path, cfg: RunConfig, until: str, timings: dict, t: float
+    log: FlightLog,
+    out_dir: Path,
+    cfg: RunConfig,
+    until: str,
+    timings: dict,
+    t: float,
+    detections: DetectionResult | None = None,
+    localized: LocalizeResult | None = None,
 ) -> RunResult:
     """`run`'s stages, writing into the prepared (locked) output folder."""
 
@@ -532,13 +576,17 @@ def _run_into(
     timings["read_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    det = detect_flight(
-        log,
-        cache_path=out_dir / "detections.csv",
-        backend=cfg.backend,
-        workers=cfg.workers,
-        progress=cfg.progress,
-    )
+    if detections is None:
+        det = detect_flight(
+            log,
+            cache_path=out_dir / CACHE_NAME,
+            backend=cfg.backend,
+            workers=cfg.workers,
+            progress=cfg.progress,
+        )
+    else:
+        det = detections
+        write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))
     result.detection_stats = detection_statistics(log, det, log.world)
     timings["detect_s"] = time.perf_counter() - t
     if det.skipped:
@@ -557,7 +605,13 @@ def _run_into(
 
     t = time.perf_counter()
     _progress(cfg, "per-frame estimators (paper, pnp)")
-    loc = localize_stage(log, det, cfg)
+    rs_active = cfg.calibrate_readout or any(s.camera.rolling_shutter for s in log.cameras.values())
+    if localized is not None and not rs_active:
+        loc = localized
+    else:
+        # a rolling-shutter flight's corners were just moved to their stamps: a localisation
+        # computed from the uncorrected detections (fusion batch's chunks) cannot be used
+        loc = localize_stage(log, det, cfg)
     if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
         pnp_key = str(Estimator.PNP)

@@ -27,6 +27,7 @@ message say whether a run reused the cache.
 
 from __future__ import annotations
 
+import copy
 import csv
 import hashlib
 import json
@@ -444,41 +445,70 @@ def detect_flight(
             cache_path,
         )
     streams = {name: log.cameras[name] for name in sorted(log.cameras)}
-    tasks = [
-        (name, s, min(s + chunk_frames, len(stream)))
-        for name, stream in streams.items()
-        for s in range(0, len(stream), chunk_frames)
-    ]
+    tasks = detection_chunks(log, chunk_frames)
     n_frames = sum(len(s) for s in streams.values())
     workers = worker_count(workers)
-    stats = {name: CameraStats() for name in streams}
-    dets: list[QRDetection] = []
-    skipped: list[tuple[str, str]] = []  # (camera, message)
     bar = _progress_bar(n_frames, progress)
     try:
         results = parallel_map(
             _detect_chunk, tasks, workers, (streams, backend, track), preload=["fusion.qr.detect"]
         )
-        _collect(results, dets, stats, skipped, bar)
+        result = assemble_detections(log, _counted(results, bar), backend, status)
     finally:
         if bar is not None:
             bar.close()
-    # each stream keeps its skip messages, as if it had been read here
-    for msg_cam, msg in skipped:
-        streams[msg_cam].skipped.append(msg)
-    result = DetectionResult(dets, stats, [m for _, m in skipped], backend, False, status)
     if cache_path is not None:
         write_cache(result, cache_path, fingerprint)
     return result
 
 
-def _collect(results, dets, stats, skipped, bar) -> None:
-    for name, chunk_dets, chunk_stats, chunk_skipped in results:
+DetectionPart = tuple[str, list[QRDetection], CameraStats, list[str]]
+"""One chunk's (camera, detections, counts, skip messages)."""
+
+
+def detection_chunks(log, chunk_frames: int) -> list[tuple[str, int, int]]:
+    """The flight's detection work as (camera, start, stop) frame ranges of at most
+    `chunk_frames` frames, cameras in name order: `detect_chunk`'s tasks."""
+    return [
+        (name, s, min(s + chunk_frames, len(log.cameras[name])))
+        for name in sorted(log.cameras)
+        for s in range(0, len(log.cameras[name]), chunk_frames)
+    ]
+
+
+def detect_chunk(
+    log, task: tuple[str, int, int], backend: str = "zxing", track: bool = False
+) -> DetectionPart:
+    """Detections of frames [start, stop) of one camera of `log` (task from `detection_chunks`),
+    read here; a copy of the stream takes the skip messages, so tasks sharing `log` may run
+    on threads."""
+    name = task[0]
+    stream = copy.copy(log.cameras[name])
+    stream.skipped = []
+    return _detect_chunk(({name: stream}, backend, track), task)
+
+
+def assemble_detections(log, parts, backend: str, status: str = CACHE_WRITTEN) -> DetectionResult:
+    """A flight's DetectionResult from its chunks' results (`detect_chunk`), given in
+    `detection_chunks` order; each stream of `log` keeps its skip messages, as if it had been
+    read here."""
+    stats = {name: CameraStats() for name in sorted(log.cameras)}
+    dets: list[QRDetection] = []
+    skipped: list[tuple[str, str]] = []  # (camera, message)
+    for name, chunk_dets, chunk_stats, chunk_skipped in parts:
         dets.extend(chunk_dets)
         stats[name].add(chunk_stats)
         skipped.extend((name, m) for m in chunk_skipped)
+    for msg_cam, msg in skipped:
+        log.cameras[msg_cam].skipped.append(msg)
+    return DetectionResult(dets, stats, [m for _, m in skipped], backend, False, status)
+
+
+def _counted(results, bar):
+    for part in results:
         if bar is not None:
-            bar.update(chunk_stats.frames_total)
+            bar.update(part[2].frames_total)
+        yield part
 
 
 def _progress_bar(total: int, enabled: bool):

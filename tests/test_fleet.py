@@ -1,0 +1,249 @@
+"""`fusion batch` (fusion.fleet) on a real multi-process dask LocalCluster and tiny simulated
+flights: the outputs equal `fusion run`'s, resume, --retry-failed, a bad flight among good
+ones, same-name flights, the fleet lock, an unreachable scheduler, a worker that dies."""
+
+import csv
+import json
+import os
+import shutil
+import socket
+import sys
+from pathlib import Path
+
+import cloudpickle
+import dask
+import pytest
+from distributed import Client, LocalCluster, WorkerPlugin
+
+from fusion.cli import EXIT_FLIGHTS_FAILED, main
+from fusion.errors import FleetError
+from fusion.fileio import LOCK_NAME, read_manifest
+from fusion.fleet import BatchConfig, FlightStatus, run_batch
+from fusion.fleet.flights import FlightRecord, expand_flights, output_names, read_state
+from fusion.pipeline import RunConfig, run
+from fusion.sim.simulate import simulate
+
+cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the worker plugin below
+
+FLIGHT_S = 3.0
+FPS = 10.0
+CHUNK = 8  # frames per detection task: several tasks per flight even at 31 frames a camera
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    """A flight and, under the same folder name elsewhere, a bad one (no log in it), listed."""
+    root = tmp_path_factory.mktemp("fleet")
+    simulate(
+        root / "a" / "flight", duration_s=FLIGHT_S, seed=3, progress=False, workers=1, camera_rate_hz=FPS
+    )
+    (root / "b" / "flight").mkdir(parents=True)
+    (root / "b" / "flight" / "readme.txt").write_text("not a flight\n")
+    listing = root / "flights.txt"
+    listing.write_text("# the morning's flights\na/flight\n\nb/flight\n")
+    return root
+
+
+def _names(flights: Path) -> tuple[str, str]:
+    names = output_names(expand_flights([flights / "flights.txt"]))
+    return names[(flights / "a/flight").resolve()], names[(flights / "b/flight").resolve()]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """2 single-threaded worker processes; a worker death fails its task at once, as the local
+    cluster of `fusion batch` does (batch.LOCAL_ALLOWED_FAILURES)."""
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = Client(lc)
+    yield lc, client
+    client.close()
+    lc.close()
+
+
+def _cfg(cluster, **kw) -> BatchConfig:
+    return BatchConfig(scheduler=cluster[0].scheduler_address, chunk_frames=CHUNK, **kw)
+
+
+def _rows(out: Path) -> dict[str, dict]:
+    with open(out / "fleet.csv", newline="") as f:
+        return {r["flight"]: r for r in csv.DictReader(f)}
+
+
+@pytest.fixture(scope="module")
+def batch(flights, cluster, tmp_path_factory):
+    """The listed flights, the good one's worker killed once as its report starts."""
+    out = tmp_path_factory.mktemp("out") / "fleet"
+    good, _ = _names(flights)
+    marker = out.parent / "killed-once"
+    cluster[1].register_plugin(_KillOnReport("", good, str(marker)), name="kill-once")
+    try:
+        res = run_batch([flights / "flights.txt"], out, _cfg(cluster))
+    finally:
+        cluster[1].unregister_worker_plugin("kill-once")
+    assert marker.exists()
+    return out, res
+
+
+# ============================================================================ flights and names
+
+
+def test_list_files_and_paths_expand_in_order_once(flights):
+    got = expand_flights([flights / "flights.txt", flights / "a" / "flight"])
+    assert got == [(flights / p).resolve() for p in ("a/flight", "b/flight")]
+
+
+def test_same_folder_names_get_distinct_stable_names(tmp_path):
+    a, b, c = tmp_path / "x" / "f", tmp_path / "y" / "f", tmp_path / "z" / "g"
+    names = output_names([a, b, c])
+    assert names[c] == "g"
+    assert names[a] != names[b] and names[a].startswith("f-") and names[b].startswith("f-")
+    assert output_names([b, a, c]) == names  # not by position
+    # a flight fleet.json already knows keeps its name, whatever else is in the batch
+    previous = {"f": FlightRecord("f", str(a))}
+    assert output_names([b, a], previous)[a] == "f"
+    assert output_names([b, a], previous)[b] != "f"
+    # the fleet folder's own files are never a flight's folder
+    for own in ("fleet.json", "fleet.md", "fusion.lock"):
+        assert output_names([tmp_path / own])[tmp_path / own] == f"flight-{own}"
+
+
+# ============================================================================ a batch
+
+
+def test_batch_writes_each_flight_as_run_does_and_records_the_bad_one(batch, flights, tmp_path):
+    out, res = batch
+    a, bad = _names(flights)
+    assert a != bad and a.startswith("flight-") and {a, bad} == {r.name for r in res.records}
+    recs = {r.name: r for r in res.records}
+    assert [r.name for r in res.failed] == [bad]
+    assert "not a flight log" in recs[bad].reason and recs[bad].attempts == 1
+    # its worker died once as the report started: the flight ran again, whole
+    assert recs[a].status == FlightStatus.OK and recs[a].attempts == 2
+    assert read_manifest(out / a)["status"] == "complete"
+    assert not (out / bad).exists()
+    # the detect and localize tasks give what `fusion run`'s stages give, byte for byte
+    ref = run(
+        flights / "a" / "flight", tmp_path / "ref", RunConfig(workers=1, progress=False), until="localize"
+    )
+    for f in ("detections.csv", "trajectory_pnp.tum", "trajectory_paper.tum", "load_observations_pnp.csv"):
+        assert (out / a / f).read_bytes() == (ref.out_dir / f).read_bytes(), f
+    for f in (
+        "metrics.json",
+        "report.md",
+        "trajectory_smoother.tum",
+        "trajectory_ekf.tum",
+        "loads_smoother.csv",
+    ):
+        assert (out / a / f).is_file()
+    rows = _rows(out)
+    assert rows[bad]["status"] == "failed" and "not a flight log" in rows[bad]["failure"]
+    metrics = json.loads((out / a / "metrics.json").read_text())
+    assert rows[a]["status"] == "ok"
+    assert rows[a]["health"] == max(
+        (h["status"] for h in metrics["health"].values()), key=["ok", "degraded", "diverged"].index
+    )
+    assert float(rows[a]["ate_rmse_m"]) == pytest.approx(metrics["trajectories"]["smoother"]["ate_rmse_m"])
+    assert float(rows[a]["coverage"]) == pytest.approx(
+        metrics["estimator_stats"]["pnp"]["n_posed"] / metrics["estimator_stats"]["pnp"]["n_frames"]
+    )
+    assert float(rows[a]["compute_s"]) > 0 and int(rows[a]["frames"]) == 2 * (1 + int(FLIGHT_S * FPS))
+    md = (out / "fleet.md").read_text()
+    assert f"[{a}]({a}/report.md)" in md and "fleet_time.png" in md and (out / "fleet_time.png").is_file()
+
+
+def test_a_second_batch_skips_completed_and_failed_flights(batch, flights, cluster):
+    out, first = batch
+    before = {
+        r.name: (out / r.name / "manifest.json").stat().st_mtime_ns for r in first.records if r.status == "ok"
+    }
+    again = run_batch([flights / "b" / "flight", flights / "flights.txt"], out, _cfg(cluster))
+    assert again.ran == [] and len(again.skipped) == 2
+    assert {
+        r.name: (out / r.name / "manifest.json").stat().st_mtime_ns for r in again.records if r.status == "ok"
+    } == before
+    assert [r.name for r in again.failed] == [_names(flights)[1]]
+
+
+def test_retry_failed_runs_only_the_failed_flights(batch, flights, cluster):
+    out, _ = batch
+    res = run_batch([flights / "flights.txt"], out, _cfg(cluster, retry_failed=True))
+    bad = _names(flights)[1]
+    assert res.ran == [bad] and len(res.skipped) == 1
+    assert read_state(out)[bad].status == FlightStatus.FAILED
+
+
+# ============================================================================ bad input
+
+
+def test_a_second_batch_on_the_same_folder_is_refused(flights, tmp_path):
+    out = tmp_path / "fleet"
+    out.mkdir()
+    (out / LOCK_NAME).write_text(f"{os.getpid()}\n{os.uname().nodename}\n")  # a live batch holds it
+    with pytest.raises(FleetError, match="in use"):
+        run_batch([flights / "a" / "flight"], out, BatchConfig(workers=1))
+    assert not (out / "fleet.json").exists()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_an_unreachable_scheduler_is_one_line(flights, tmp_path, capsys):
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    rc = main(
+        ["batch", str(flights / "a" / "flight"), "--out", str(tmp_path / "o"), "--scheduler", address, "-q"]
+    )
+    err = capsys.readouterr().err
+    assert rc == 1
+    line = [ln for ln in err.splitlines() if ln.startswith("fusion: error:")]
+    assert len(line) == 1 and "cannot reach the dask scheduler" in line[0] and address in line[0]
+    assert "Traceback" not in err
+
+
+class _KillOnReport(WorkerPlugin):
+    """Ends its worker process when a flight's report task starts: always for flight `always`,
+    the first time only for flight `once` (a marker file remembers it across worker restarts)."""
+
+    def __init__(self, always: str, once: str, marker: str):
+        self.always, self.once, self.marker = always, once, marker
+
+    def transition(self, key, start, finish, **kwargs):
+        if finish != "executing":
+            return
+        if self.always and str(key).startswith(f"report-{self.always}-"):
+            os._exit(1)
+        if self.once and str(key).startswith(f"report-{self.once}-") and not os.path.exists(self.marker):
+            open(self.marker, "w").close()
+            os._exit(1)
+
+
+def test_a_worker_dying_twice_fails_the_flight(flights, cluster, tmp_path):
+    shutil.copytree(flights / "a" / "flight", tmp_path / "dies")
+    cluster[1].register_plugin(_KillOnReport("dies", "", ""), name="kill")
+    try:
+        res = run_batch([tmp_path / "dies"], tmp_path / "out", _cfg(cluster))
+    finally:
+        cluster[1].unregister_worker_plugin("kill")
+    dies = res.records[0]
+    assert dies.status == FlightStatus.FAILED and dies.attempts == 2
+    assert "worker died" in dies.reason and dies.error_type == "KilledWorker"
+    assert not (tmp_path / "out" / "dies" / "manifest.json").exists()
+
+
+def test_cli_batch_exit_code_says_flights_failed(flights, cluster, tmp_path, capsys):
+    rc = main(
+        [
+            "batch",
+            str(flights / "b" / "flight"),
+            "--out",
+            str(tmp_path / "o"),
+            "-q",
+            "--scheduler",
+            cluster[0].scheduler_address,
+        ]
+    )
+    assert rc == EXIT_FLIGHTS_FAILED
+    assert "FAILED flight: " in capsys.readouterr().out
