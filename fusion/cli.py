@@ -129,6 +129,13 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
         )
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
         p.add_argument(
+            "--map",
+            type=Path,
+            default=None,
+            help="a merged map (`fusion map merge --out MAP`) of the same warehouse: its as-built "
+            "floor codes are the prior of this flight's",
+        )
+        p.add_argument(
             "--strict",
             action="store_true",
             help=f"exit {EXIT_NOT_TRUSTED} when a fused estimator failed or its health "
@@ -190,6 +197,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="replace a log that `fusion simulate` wrote there (other files are kept)",
     )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
+    p.add_argument(
+        "--placement-error-m",
+        type=float,
+        default=0.0,
+        help="floor codes stuck down off their grid by N(0, this) m per axis (default 0: exactly)",
+    )
+    p.add_argument(
+        "--placement-error-deg",
+        type=float,
+        default=0.0,
+        help="... and by N(0, this) degrees in yaw (default 0)",
+    )
     p.add_argument(
         "--format",
         choices=("euroc", "rosbag1", "rosbag2", "video"),
@@ -319,6 +338,7 @@ def _run_config(args):
         robust=getattr(args, "robust", "huber"),
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
+        floor_map=getattr(args, "map", None),
     )
 
 
@@ -341,6 +361,8 @@ def main(argv: list[str] | None = None) -> int:
                 camera_rate_hz=args.fps,
                 start_s=args.start,
                 fmt=args.format,
+                placement_error_m=args.placement_error_m,
+                placement_error_deg=args.placement_error_deg,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
@@ -402,6 +424,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"merged {len(merged.runs)} runs: {len(merged.loads)} loads; changes: "
                 + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
+                + (f"; {len(merged.floor_codes)} as-built floor codes" if merged.floor_codes else "")
             )
             print(f"wrote {args.out}")
         elif args.command == "qr-sheet":

@@ -46,8 +46,10 @@ from fusion.conventions import FloorPayload, floor_payload, parse_payload
 from fusion.errors import EstimationError, FusionError
 from fusion.estimate.common import match_to_frames
 from fusion.estimate.factors import X, robust
+from fusion.evaluate.metrics import umeyama_alignment
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe
-from fusion.geometry import inv_T, make_T, rot_z, wrap_angle, yaw_of
+from fusion.estimate.marginals import chain_marginals
+from fusion.geometry import adjoint, inv_T, make_T, rot_z, wrap_angle, yaw_of
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp import estimate_floor_poses
 from fusion.world import World
@@ -143,9 +145,7 @@ class Placement:
 def code_prior_cov(sigma_m: float, sigma_rad: float) -> np.ndarray:
     """(6, 6) prior covariance of F(c), Pose3 order [rx, ry, rz, tx, ty, tz], code frame."""
     s_m, s_r = max(sigma_m, ZERO_SIGMA_FLOOR), max(sigma_rad, ZERO_SIGMA_FLOOR)
-    return np.diag(
-        np.square([FLOOR_TILT_SIGMA_RAD, FLOOR_TILT_SIGMA_RAD, s_r, s_m, s_m, FLOOR_Z_SIGMA_M])
-    )
+    return np.diag(np.square([FLOOR_TILT_SIGMA_RAD, FLOOR_TILT_SIGMA_RAD, s_r, s_m, s_m, FLOOR_Z_SIGMA_M]))
 
 
 def xy_yaw_cov_to_pose_cov(T_world_code: np.ndarray, cov_xyyaw: np.ndarray) -> np.ndarray:
@@ -318,7 +318,9 @@ def add_factors(pb, as_built: AsBuiltInput, frame_t: np.ndarray, fix_frames, con
             v = var_of[c]
             pb.add(
                 gtsam.PriorFactorPose3(
-                    F(v), gtsam.Pose3(prior.T_world_prior), gtsam.noiseModel.Gaussian.Covariance(prior.cov_prior)
+                    F(v),
+                    gtsam.Pose3(prior.T_world_prior),
+                    gtsam.noiseModel.Gaussian.Covariance(prior.cov_prior),
                 ),
                 k,
             )
@@ -328,9 +330,7 @@ def add_factors(pb, as_built: AsBuiltInput, frame_t: np.ndarray, fix_frames, con
         out.frames.add(k)
         out.sighting_factors.append(len(pb.factors))
         model = robust(gtsam.noiseModel.Gaussian.Covariance(s.cov[i]), config.robust_kernel, thr)
-        pb.add(
-            gtsam.BetweenFactorPose3(F(v), X(k), gtsam.Pose3(s.T_code_body[i]), model), k, kind, thr
-        )
+        pb.add(gtsam.BetweenFactorPose3(F(v), X(k), gtsam.Pose3(s.T_code_body[i]), model), k, kind, thr)
     return out
 
 
@@ -343,6 +343,98 @@ def graph_stats(graph_info: AsBuiltGraph, gated: int, rejected: int) -> dict:
         "gated_floor_code_factors": gated,
         "rejected_floor_code_factors": rejected,
     }
+
+
+# =========================================================================== covariances
+
+EXACT_MARGINALS_MAX_CODES = 48
+"""Up to this many floor-code variables the covariances are exact (the codes as border
+variables of the chain recursion, fusion.estimate.marginals.chain_marginals_with_codes: its
+cost grows with frames x codes^2); beyond, `approximate_marginals`."""
+
+
+def approximate_marginals(
+    lin: gtsam.GaussianFactorGraph,
+    values: gtsam.Values,
+    n_frames: int,
+    has_bias: bool,
+    n_loads: int,
+    graph_info: AsBuiltGraph,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Pose (N, 6, 6), load (n_loads, 3, 3) and code (C, 6, 6) covariances without the cost of
+    the exact border recursion (EXACT_MARGINALS_MAX_CODES), in three approximations:
+
+    - poses and loads given the codes: the exact chain marginals of the graph with the codes
+      held at their estimates (every F column dropped from the linearised factors);
+    - code c: inv(Lambda_prior + sum_s A_F^T (I + A_X S_k A_X^T)^-1 A_F) over its sightings s
+      (whitened Jacobians A_F, A_X; S_k the pose covariance given the codes), plus the
+      covariance of the floor's common shift, which only the priors fix: inv(sum_c Lambda_prior)
+      (module docstring, "Gauge");
+    - pose k: S_k + Ad(M^-1) Cov(F_c) Ad(M^-1)^T, c the code seen at frame k that the flight saw
+      most, M = F_c^-1 X_k (the pose moves rigidly with the code it sees); frames without a
+      sighting take the term of the nearest frame with one.
+
+    Loads keep their covariance given the codes (an underestimate by the codes' share).
+    None when the conditional graph is not a chain (the caller falls back to gtsam)."""
+    n_codes = len(graph_info.code_of_var)
+    f_chr = ord("f")
+    cond = gtsam.GaussianFactorGraph()
+    prior_info = np.zeros((n_codes, 6, 6))
+    sight: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (code, frame, A_F, A_X)
+    for i in range(lin.size()):
+        f = lin.at(i)
+        if f is None:
+            continue
+        keys = list(f.keys())
+        is_f = [gtsam.Symbol(k).chr() == f_chr for k in keys]
+        if not any(is_f):
+            cond.push_back(f)
+            continue
+        A, b = f.jacobian()
+        if all(is_f):  # a code's prior
+            prior_info[gtsam.Symbol(keys[0]).index()] += A.T @ A
+            continue
+        # a sighting: keys (F(c), X(k)), both 6 columns
+        c, k = gtsam.Symbol(keys[0]).index(), gtsam.Symbol(keys[1]).index()
+        A_F, A_X = A[:, :6], A[:, 6:12]
+        cond.push_back(gtsam.JacobianFactor(keys[1], A_X, b, gtsam.noiseModel.Unit.Create(len(b))))
+        sight.append((c, k, A_F, A_X))
+    bulk = chain_marginals(cond, n_frames, has_bias, n_loads)
+    if bulk is None:
+        return None
+    S, lcov = bulk
+    info = prior_info.copy()
+    if sight:
+        cs = np.array([t[0] for t in sight])
+        ks = np.array([t[1] for t in sight])
+        AF = np.stack([t[2] for t in sight])
+        AX = np.stack([t[3] for t in sight])
+        eff = np.eye(AX.shape[1])[None] + AX @ S[ks] @ AX.transpose(0, 2, 1)
+        np.add.at(info, cs, AF.transpose(0, 2, 1) @ np.linalg.solve(eff, AF))
+    gauge = np.linalg.inv(prior_info.sum(axis=0))
+    ccov = np.linalg.inv(info) + gauge[None]
+    cov = S.copy()
+    if sight:
+        best: dict[int, int] = {}
+        for c, k in zip(cs.tolist(), ks.tolist()):
+            if k not in best or graph_info.n_obs[c] > graph_info.n_obs[best[k]]:
+                best[k] = c
+        seen = np.array(sorted(best), dtype=np.int64)
+        add = np.empty((len(seen), 6, 6))
+        for m, k in enumerate(seen.tolist()):
+            c = best[k]
+            T_fx = inv_T(values.atPose3(F(c)).matrix()) @ values.atPose3(X(k)).matrix()
+            Ad = adjoint(inv_T(T_fx))
+            add[m] = Ad @ ccov[c] @ Ad.T
+        # frames without a sighting (gaps): the term of the nearest frame with one
+        j = np.clip(np.searchsorted(seen, np.arange(n_frames)), 1, max(len(seen) - 1, 1))
+        j0 = np.minimum(j, len(seen) - 1)
+        jm = np.maximum(j - 1, 0)
+        near = np.where(
+            np.abs(seen[j0] - np.arange(n_frames)) < np.abs(seen[jm] - np.arange(n_frames)), j0, jm
+        )
+        cov += add[near]
+    return 0.5 * (cov + cov.transpose(0, 2, 1)), lcov, 0.5 * (ccov + ccov.transpose(0, 2, 1))
 
 
 # =========================================================================== results
@@ -517,7 +609,11 @@ def read_floor_codes_csv(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, 
         if cid in out:
             raise AsBuiltError(f"{path}:{line}: floor code {cid!r} listed twice")
         xyyaw = np.array(
-            [_num(row, "x_m", path, line), _num(row, "y_m", path, line), math.radians(_num(row, "yaw_deg", path, line))]
+            [
+                _num(row, "x_m", path, line),
+                _num(row, "y_m", path, line),
+                math.radians(_num(row, "yaw_deg", path, line)),
+            ]
         )
         sig = np.array(
             [
@@ -555,35 +651,55 @@ def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
         if not isinstance(p, FloorPayload):
             raise AsBuiltError(f"{path}:{line}: {raw!r} is not a floor code")
         out[code_id(p)] = np.array(
-            [_num(row, "x_m", path, line), _num(row, "y_m", path, line), math.radians(_num(row, "yaw_deg", path, line))]
+            [
+                _num(row, "x_m", path, line),
+                _num(row, "y_m", path, line),
+                math.radians(_num(row, "yaw_deg", path, line)),
+            ]
         )
     return out
 
 
+def gauge_transform(fmap: FloorCodeMap, truth: dict[str, np.ndarray]) -> np.ndarray | None:
+    """(4, 4) T_true_est: the rigid motion that best maps the estimated code centres onto the
+    true ones (Umeyama; all codes in both), i.e. the common shift and rotation of the floor
+    that no flight can observe (module docstring, "Gauge").  None with fewer than 3 codes."""
+    pairs = [(c.p_world, truth[c.code_id]) for c in fmap.codes if c.code_id in truth]
+    if len(pairs) < 3:
+        return None
+    p_est = np.array([p for p, _ in pairs])
+    p_gt = np.array([[t[0], t[1], 0.0] for _, t in pairs])
+    R, t = umeyama_alignment(p_est, p_gt)
+    return make_T(R, t)
+
+
 def groundtruth_errors(fmap: FloorCodeMap, truth: dict[str, np.ndarray], min_obs: int = 0) -> dict:
-    """Errors of the estimated offsets against the true ones (codes with >= min_obs sightings):
-    RMS of the (x, y) error (m), of the yaw error (deg), raw and after removing the common
-    shift (the gauge the priors fix; module docstring), and the true offsets' RMS."""
-    est, tru, nom, yaw_err = [], [], [], []
+    """Errors of the estimated codes against the true ones (codes with >= min_obs sightings):
+    RMS of the (x, y) error (m) and of the yaw error (deg), raw and after the gauge transform
+    (gauge_transform: the floor's unobservable common shift and rotation), and the RMS of the
+    true offsets from nominal."""
+    T_g = gauge_transform(fmap, truth)
+    est, est_g, tru, nom, yaw_err = [], [], [], [], []
     for c in fmap.codes:
         if c.code_id not in truth or c.n_obs < min_obs:
             continue
         t = truth[c.code_id]
         est.append(c.p_world[:2])
+        est_g.append((T_g[:3, :3] @ c.p_world + T_g[:3, 3])[:2] if T_g is not None else c.p_world[:2])
         tru.append(t[:2])
         nom.append(c.nominal_world[:2])
         yaw_err.append(float(wrap_angle(c.yaw_rad - t[2])))
     if not est:
         return {"n_codes": 0}
     e, t, n = np.array(est), np.array(tru), np.array(nom)
-    err = e - t
-    shift = err.mean(axis=0)
+    err, err_g = e - t, np.array(est_g) - t
     return {
         "n_codes": len(est),
         "min_obs": min_obs,
         "offset_error_rms_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
-        "offset_error_rms_shift_removed_m": float(np.sqrt(np.mean(np.sum((err - shift) ** 2, axis=1)))),
-        "common_shift_m": shift.tolist(),
+        "offset_error_rms_gauge_removed_m": float(np.sqrt(np.mean(np.sum(err_g**2, axis=1)))),
+        "gauge_shift_m": None if T_g is None else T_g[:2, 3].tolist(),
+        "gauge_yaw_deg": None if T_g is None else math.degrees(float(yaw_of(T_g[:3, :3]))),
         "yaw_error_rms_deg": float(math.degrees(math.sqrt(np.mean(np.square(yaw_err))))),
         "true_offset_rms_m": float(np.sqrt(np.mean(np.sum((t - n) ** 2, axis=1)))),
     }

@@ -1046,11 +1046,13 @@ def _smooth_once(
         if lin is None:  # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
         try:
-            bulk = (
-                chain_marginals_with_codes(lin, n, pb.has_imu, len(pb.loads), n_codes)
-                if n_codes
-                else chain_marginals(lin, n, pb.has_imu, len(pb.loads))
-            )
+            if n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None:
+                bulk = asbuilt.approximate_marginals(lin, values, n, pb.has_imu, len(pb.loads), pb.as_built)
+                covariance_method = "chain_given_codes"
+            elif n_codes:
+                bulk = chain_marginals_with_codes(lin, n, pb.has_imu, len(pb.loads), n_codes)
+            else:
+                bulk = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
         except np.linalg.LinAlgError:
             bulk = None
         if bulk is not None:
@@ -1070,7 +1072,8 @@ def _smooth_once(
             except (RuntimeError, ValueError) as e:
                 cov, lcov = None, {}
                 health.note(f"no covariances: the linearised system is singular ({e})")
-        covariance_method = "chain" if bulk is not None else ("bayes_tree" if cov is not None else "none")
+        if bulk is None or covariance_method == "none":
+            covariance_method = "chain" if bulk is not None else ("bayes_tree" if cov is not None else "none")
     t_cov = time.perf_counter() - t0 - t_build - t_opt
     dropped = set(health.loads_dropped)
     loads = LoadMap(
@@ -1105,7 +1108,9 @@ def _smooth_once(
         out.floor_codes = asbuilt.floor_code_estimates(
             values, pb.as_built, as_built, ccov, str(Estimator.SMOOTHER)
         )
-        stats.update(asbuilt.graph_stats(pb.as_built, gated[FactorKind.FLOOR_CODE], rej[FactorKind.FLOOR_CODE]))
+        stats.update(
+            asbuilt.graph_stats(pb.as_built, gated[FactorKind.FLOOR_CODE], rej[FactorKind.FLOOR_CODE])
+        )
     return out
 
 
