@@ -286,3 +286,18 @@ def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
     assert any("2 of" in n and "from the map" in n for n in res.notes)
     est = res.floor_codes["smoother"].by_id()["0/1/2"]
     assert est.offset_xy_m[0] > 0.005  # pulled towards the map's +2.2 cm
+
+
+def test_report_html_highlights_misplaced_codes():
+    from fusion.warehouse.view3d import build_figure
+
+    fig = build_figure(
+        {},
+        None,
+        np.array([[1.0, 2.0], [2.0, 2.0]]),
+        misplaced_codes=[("0/1/2<b>", np.array([1.03, 2.0, 0.0]), "offset 3.0 cm (4.1 sigma), 25 sightings")],
+    )
+    traces = [t for t in fig.data if t.name == "misplaced floor codes"]
+    assert len(traces) == 1 and traces[0].x[0] == pytest.approx(1.03)
+    assert "<b>" not in traces[0].hovertext[0] and "&lt;b&gt;" in traces[0].hovertext[0]
+    assert not [t for t in build_figure({}, None, np.zeros((1, 2))).data if t.name == "misplaced floor codes"]

@@ -46,9 +46,9 @@ from fusion.conventions import FloorPayload, floor_payload, parse_payload
 from fusion.errors import EstimationError, FusionError
 from fusion.estimate.common import match_to_frames
 from fusion.estimate.factors import X, robust
+from fusion.estimate.marginals import chain_marginals
 from fusion.evaluate.metrics import umeyama_alignment
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe
-from fusion.estimate.marginals import chain_marginals
 from fusion.geometry import adjoint, inv_T, make_T, rot_z, wrap_angle, yaw_of
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp import estimate_floor_poses

@@ -1045,6 +1045,7 @@ def _smooth_once(
     if config.compute_covariances:
         if lin is None:  # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
+        bulk: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None
         try:
             if n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None:
                 bulk = asbuilt.approximate_marginals(lin, values, n, pb.has_imu, len(pb.loads), pb.as_built)
@@ -1052,12 +1053,12 @@ def _smooth_once(
             elif n_codes:
                 bulk = chain_marginals_with_codes(lin, n, pb.has_imu, len(pb.loads), n_codes)
             else:
-                bulk = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
+                two = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
+                bulk = None if two is None else (two[0], two[1], None)
         except np.linalg.LinAlgError:
             bulk = None
         if bulk is not None:
-            cov, lc = bulk[0], bulk[1]
-            ccov = bulk[2] if n_codes else None  # type: ignore[misc]
+            cov, lc, ccov = bulk
             lcov = dict(enumerate(lc))
         else:  # not the chain structure: gtsam's Bayes tree, key by key
             try:
