@@ -34,7 +34,13 @@ from fusion.estimate import (
     smooth_incremental,
     write_sigmas_csv,
 )
-from fusion.estimate.asbuilt import FLOOR_CODES_CSV, FloorCodeMap, write_floor_codes_csv
+from fusion.estimate.asbuilt import (
+    FLOOR_CODES_CSV,
+    AsBuiltInput,
+    FloorCodeMap,
+    as_built_fixes,
+    write_floor_codes_csv,
+)
 from fusion.estimate.common import match_to_frames
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
@@ -421,6 +427,7 @@ class FuseStageResult:
     results: dict[Estimator, FusionResult] = field(default_factory=dict)
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    as_built: AsBuiltInput | None = None  # the smoother's as-built floor-code input
 
 
 def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) -> FuseStageResult:
@@ -471,6 +478,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         out.notes += notes
         if as_built is not None:
             smoother_kwargs["as_built"] = as_built
+            out.as_built = as_built
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
         (Estimator.SMOOTHER, smooth, smoother_kwargs)
     ]
@@ -601,8 +609,15 @@ def _run_into(
         if unsynced is not None:
             result.warnings.append(unsynced)
         for name, res in fused_stage.results.items():
+            # as built, the smoother's fixes are the sightings on the estimated codes, not PnP
+            # on the nominal ones
+            fixes = (
+                as_built_fixes(fused_stage.as_built, res.floor_codes)
+                if res.floor_codes is not None and fused_stage.as_built is not None
+                else raw
+            )
             result.health[str(name)] = assess_result(
-                res, raw, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
+                res, fixes, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
             )
             result.trajectories[name] = res.trajectory
             if log.front is not None:

@@ -229,6 +229,8 @@ def test_pipeline_writes_floor_codes(sample_runs):
     assert "## As-built floor codes" in report and "floor_code_offsets.png" in report
     assert (res.out_dir / "floor_code_offsets.png").stat().st_size > 1000
     assert "0 misplaced" in res.summary()
+    # the health monitor compares the smoother with the fixes on the as-built codes
+    assert str(res.health["smoother"].status) == "ok"
 
 
 def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Path:

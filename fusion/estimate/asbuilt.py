@@ -49,9 +49,10 @@ from fusion.estimate.factors import X, robust
 from fusion.estimate.marginals import chain_marginals
 from fusion.evaluate.metrics import umeyama_alignment
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe
-from fusion.geometry import adjoint, inv_T, make_T, rot_z, wrap_angle, yaw_of
+from fusion.geometry import adjoint, inv_T, make_T, rot_z, se3_exp, se3_log, wrap_angle, yaw_of
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp import estimate_floor_poses
+from fusion.types import Trajectory
 from fusion.world import World
 
 __all__ = [
@@ -542,6 +543,34 @@ def floor_code_estimates(
         out.append(est)
     out.sort(key=lambda e: e.code_id)
     return FloorCodeMap(estimator, out, as_built.placement)
+
+
+def as_built_fixes(as_built: AsBuiltInput, fmap: FloorCodeMap) -> Trajectory:
+    """The per-frame fixes as the as-built codes give them (what the health monitor compares the
+    smoother with, instead of PnP on the nominal codes): per frame, each sighting's
+    T_world_code (estimated) T_code_body, information-weighted in the tangent space of the
+    first (se3_log / se3_exp; the sightings' covariances share the body frame to first order),
+    covariance (sum_i Sigma_i^-1)^-1."""
+    est = fmap.by_id()
+    s = as_built.sightings
+    by_t: dict[int, list[int]] = {}
+    for i, (t, c) in enumerate(zip(s.timestamps_ns.tolist(), s.code.tolist())):
+        if as_built.codes[c].code_id in est:
+            by_t.setdefault(t, []).append(i)
+    ts = sorted(by_t)
+    T_out = np.empty((len(ts), 4, 4))
+    cov_out = np.empty((len(ts), 6, 6))
+    for m, t in enumerate(ts):
+        idx = by_t[t]
+        poses = np.array(
+            [est[as_built.codes[s.code[i]].code_id].T_world_code @ s.T_code_body[i] for i in idx]
+        )
+        ref = poses[0]
+        xi = se3_log(np.einsum("ij,njk->nik", inv_T(ref), poses))
+        info = np.linalg.inv(s.cov[idx])
+        cov_out[m] = np.linalg.inv(info.sum(axis=0))
+        T_out[m] = ref @ se3_exp(cov_out[m] @ np.einsum("nij,nj->i", info, xi))
+    return Trajectory("pnp", np.array(ts, dtype=np.int64), T_out, cov_out)
 
 
 # =========================================================================== files
