@@ -184,6 +184,9 @@ def sample_runs(tmp_path_factory):
         world = load_yaml(log / "world.yaml")
         if name == "zero":
             world["floor_qr"].update(placement_sigma_m=0.0, placement_sigma_deg=0.0)
+        else:  # world.yaml says nothing: the defaults, 1 cm and 1 deg
+            world["floor_qr"].pop("placement_sigma_m", None)
+            world["floor_qr"].pop("placement_sigma_deg", None)
         (log / "world.yaml").write_text(json.dumps(world))
         o = root / f"out_{name}"
         o.mkdir()
