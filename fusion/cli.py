@@ -138,6 +138,13 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
         )
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
         p.add_argument(
+            "--map",
+            type=Path,
+            default=None,
+            help="a merged map (`fusion map merge --out MAP`) of the same warehouse: its as-built "
+            "floor codes are the prior of this flight's",
+        )
+        p.add_argument(
             "--strict",
             action="store_true",
             help=f"exit {EXIT_NOT_TRUSTED} when a fused estimator failed or its health "
@@ -206,6 +213,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="replace a log that `fusion simulate` wrote there (other files are kept)",
     )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
+    p.add_argument(
+        "--placement-error-m",
+        type=float,
+        default=0.0,
+        help="floor codes stuck down off their grid by N(0, this) m per axis (default 0: exactly)",
+    )
+    p.add_argument(
+        "--placement-error-deg",
+        type=float,
+        default=0.0,
+        help="... and by N(0, this) degrees in yaw (default 0)",
+    )
     p.add_argument(
         "--format",
         choices=("euroc", "rosbag1", "rosbag2", "video"),
@@ -379,6 +398,7 @@ def _run_config(args):
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
         calibrate_readout=getattr(args, "calibrate_readout", False),
+        floor_map=getattr(args, "map", None),
     )
 
 
@@ -402,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
                 start_s=args.start,
                 fmt=args.format,
                 readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
+                placement_error_m=args.placement_error_m,
+                placement_error_deg=args.placement_error_deg,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
@@ -480,6 +502,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"merged {len(merged.runs)} runs: {len(merged.loads)} loads; changes: "
                 + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
+                + (f"; {len(merged.floor_codes)} as-built floor codes" if merged.floor_codes else "")
             )
             print(f"wrote {args.out}")
         elif args.command == "qr-sheet":

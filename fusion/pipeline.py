@@ -34,10 +34,17 @@ from fusion.estimate import (
     smooth_incremental,
     write_sigmas_csv,
 )
+from fusion.estimate.asbuilt import (
+    FLOOR_CODES_CSV,
+    AsBuiltInput,
+    FloorCodeMap,
+    as_built_fixes,
+    write_floor_codes_csv,
+)
 from fusion.estimate.common import match_to_frames
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
-from fusion.fileio import OutputFolder, atomic_open, csv_safe
+from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
 from fusion.log import FlightLog, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
@@ -62,6 +69,8 @@ from fusion.types import (
     RobustKernel,
     Trajectory,
 )
+from fusion.warehouse import floorcodes
+from fusion.warehouse.runs import WORLD_YAML
 from fusion.warehouse.view3d import floor_codes_from_detections
 
 logger = logging.getLogger(__name__)
@@ -84,6 +93,7 @@ class RunConfig:
     th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
     calibrate_readout: bool = False  # estimate the floor camera's rolling-shutter readout time
+    floor_map: Path | None = None  # `fusion run --map`: merged floor codes as the prior
 
 
 @dataclass
@@ -102,6 +112,7 @@ class RunResult:
     health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
     readout_calibration: ReadoutCalibration | None = None  # --calibrate-readout's estimate
     rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
+    floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
 
     @property
     def trusted(self) -> bool:
@@ -150,6 +161,18 @@ class RunResult:
             mae = m.get("mae_xyz_m")
             err = f"; MAE x/y/z {100 * mae[0]:.2f}/{100 * mae[1]:.2f}/{100 * mae[2]:.2f} cm" if mae else ""
             lines.append(f"loads {name:<9} {len(lm.loads)} mapped{err}")
+        for name, fmap in self.floor_codes.items():
+            bad = fmap.misplaced
+            lines.append(
+                f"floor codes {name}: {len(fmap.codes)} as built, {len(bad)} misplaced"
+                + (
+                    ": "
+                    + ", ".join(f"{c.code_id} {100 * np.linalg.norm(c.offset_xy_m):.1f} cm" for c in bad[:8])
+                    if bad
+                    else ""
+                )
+                + (" ..." if len(bad) > 8 else "")
+            )
         for name, h in self.health.items():
             if h.status != Status.OK:
                 lines.append(f"health: {name} {h.status}: {h.reason}")
@@ -442,6 +465,7 @@ class FuseStageResult:
     results: dict[Estimator, FusionResult] = field(default_factory=dict)
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    as_built: AsBuiltInput | None = None  # the smoother's as-built floor-code input
 
 
 def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) -> FuseStageResult:
@@ -478,8 +502,23 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     frame_t = log.floor.timestamps_ns
+    smoother_kwargs = dict(graph_kwargs)
+    if det is not None:
+        as_built, notes = floorcodes.as_built_input(
+            log.world,
+            _world_yaml(log),
+            {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()},
+            log.floor.camera,
+            cfg.corner_sigma_px,
+            cfg.tight,
+            cfg.floor_map,
+        )
+        out.notes += notes
+        if as_built is not None:
+            smoother_kwargs["as_built"] = as_built
+            out.as_built = as_built
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
-        (Estimator.SMOOTHER, smooth, graph_kwargs)
+        (Estimator.SMOOTHER, smooth, smoother_kwargs)
     ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
@@ -514,6 +553,12 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     for name, failure in out.failures.items():
         log_.warning("%s failed: %s", name, failure.reason)
     return out
+
+
+def _world_yaml(log: FlightLog) -> dict:
+    """The flight's world.yaml as written (what run.json records and map merge compares)."""
+    path = Path(log.root) / WORLD_YAML
+    return load_yaml(path, FusionError) if path.is_file() else log.world.to_yaml()
 
 
 def write_load_observations_csv(path: Path, observations: list[LoadObservation]) -> None:
@@ -639,12 +684,21 @@ def _run_into(
         if unsynced is not None:
             result.warnings.append(unsynced)
         for name, res in fused_stage.results.items():
+            # as built, the smoother's fixes are the sightings on the estimated codes, not PnP
+            # on the nominal ones
+            fixes = (
+                as_built_fixes(fused_stage.as_built, res.floor_codes)
+                if res.floor_codes is not None and fused_stage.as_built is not None
+                else raw
+            )
             result.health[str(name)] = assess_result(
-                res, raw, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
+                res, fixes, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
             )
             result.trajectories[name] = res.trajectory
             if log.front is not None:
                 result.load_maps[name] = res.loads
+            if res.floor_codes is not None:
+                result.floor_codes[str(name)] = res.floor_codes
             fused_stats[name] = res.stats
         timings["fuse_s"] = time.perf_counter() - t
 
@@ -709,6 +763,8 @@ def _write_estimates(out_dir: Path, result: RunResult) -> None:
     for name, lm in result.load_maps.items():
         write_loads_csv(out_dir / f"loads_{name}.csv", lm)
         write_loads_json(out_dir / f"loads_{name}.json", lm)
+    for name, fmap in result.floor_codes.items():
+        write_floor_codes_csv(out_dir / FLOOR_CODES_CSV.format(name), fmap)
 
 
 def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, raw_stats: dict) -> None:
@@ -732,6 +788,10 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
+    if result.floor_codes:
+        metrics["floor_codes"] = to_jsonable(
+            {name: floorcodes.floor_code_metrics(fmap, log.root) for name, fmap in result.floor_codes.items()}
+        )
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics
@@ -753,6 +813,7 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
         log.blackouts,
         summary,
         floor_codes_xy_m=floor_xy,
+        floor_codes=result.floor_codes.get(str(Estimator.SMOOTHER)),
     )
 
 

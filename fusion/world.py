@@ -2,7 +2,9 @@
 
 `world.yaml` holds what an estimator may know in advance (the paper's assumptions 1, 6 and 9):
 
-    floor_qr: {side_m: 0.20, payload_unit_m: 1.0}
+    floor_qr: {side_m: 0.20, payload_unit_m: 1.0,
+               placement_sigma_m: 0.01, placement_sigma_deg: 1.0}  # optional: how exactly the
+                                                    # codes were laid (0 and 0: exactly)
     load_qr:  {side_m: 0.15}
     bounds_m: {x: [xmin, xmax], y: [ymin, ymax]}      # optional: the size of the space
 
@@ -45,12 +47,22 @@ class World:
     load_side_m: float = 0.15
     bounds_x_m: tuple[float, float] | None = None
     bounds_y_m: tuple[float, float] | None = None
+    # how far floor codes lie off their payload's pose (1 sigma; fusion.estimate.asbuilt);
+    # None: not stated in world.yaml (the estimator's defaults, 1 cm and 1 deg)
+    placement_sigma_m: float | None = None
+    placement_sigma_deg: float | None = None
 
     def __post_init__(self):
         for name in ("floor_side_m", "payload_unit_m", "load_side_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise WorldError(f"world: {name} must be a positive number, got {v!r}")
+        for name in ("placement_sigma_m", "placement_sigma_deg"):
+            v = getattr(self, name)
+            if v is not None and (
+                isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0)
+            ):
+                raise WorldError(f"world: floor_qr.{name} must be a number >= 0, got {v!r}")
 
     # ---------------------------------------------------------------- floor codes
     def floor_code_position(self, payload: FloorPayload) -> np.ndarray:
@@ -84,6 +96,9 @@ class World:
             "floor_qr": {"side_m": float(self.floor_side_m), "payload_unit_m": float(self.payload_unit_m)},
             "load_qr": {"side_m": float(self.load_side_m)},
         }
+        for name in ("placement_sigma_m", "placement_sigma_deg"):
+            if getattr(self, name) is not None:
+                data["floor_qr"][name] = float(getattr(self, name))
         if self.bounds_x_m is not None and self.bounds_y_m is not None:
             data["bounds_m"] = {
                 "x": [float(v) for v in self.bounds_x_m],
@@ -106,6 +121,13 @@ class World:
             WorldError,
             positive=True,
         )
+        placement = {
+            name: strict_float(floor.get(name), f"{source}: floor_qr.{name}", WorldError, allow_none=True)
+            for name in ("placement_sigma_m", "placement_sigma_deg")
+        }
+        for name, v in placement.items():
+            if v is not None and v < 0:
+                raise WorldError(f"{source}: floor_qr.{name} must be >= 0, got {v!r}")
         load_side_m = strict_float(
             load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
         )
@@ -131,6 +153,7 @@ class World:
                 load_side_m=load_side_m,
                 bounds_x_m=bounds_m.get("x"),
                 bounds_y_m=bounds_m.get("y"),
+                **placement,
             )
         except WorldError as e:
             raise WorldError(f"{source}: {e}") from None
@@ -159,11 +182,14 @@ def _section(data: dict, key: str, source: str, required: bool = False) -> dict:
 class Layout:
     """Where every code actually is: what the simulator renders and the evaluation compares to.
 
-    `floor_codes`: (N, 2) payload coordinates (x, y) in payload units; `loads`: load codes."""
+    `floor_codes`: (N, 2) payload coordinates (x, y) in payload units; `loads`: load codes;
+    `floor_offsets`: (N, 3) where each floor code really lies off its payload's pose (dx m,
+    dy m, dyaw rad; None: exactly on it)."""
 
     world: World
     floor_codes_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     loads: list[LoadCode] = field(default_factory=list)
+    floor_offsets: np.ndarray | None = None
 
     def floor_centres_world(self) -> np.ndarray:
         """(N, 3) world positions of the floor codes' centres."""

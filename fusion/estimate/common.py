@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2
@@ -228,6 +229,7 @@ class FusionResult:
     loads: LoadMap
     stats: dict = field(default_factory=dict)
     health: SolveHealth = field(default_factory=SolveHealth)
+    floor_codes: Any = None  # fusion.estimate.asbuilt.FloorCodeMap (batch smoother, as-built)
 
 
 # =========================================================================== input checks

@@ -28,9 +28,10 @@ import numpy as np
 
 _CHR_SHIFT = 56
 _IDX_MASK = (1 << _CHR_SHIFT) - 1
-_X, _V, _B, _L = ord("x"), ord("v"), ord("b"), ord("l")
+_X, _V, _B, _L, _F = ord("x"), ord("v"), ord("b"), ord("l"), ord("f")
+_BORDER_DIMS = {_L: 3, _F: 6}  # variables outside the chain: loads (Point3), floor codes (Pose3)
 
-__all__ = ["chain_marginals"]
+__all__ = ["chain_marginals", "chain_marginals_with_codes"]
 
 
 def chain_marginals(
@@ -41,9 +42,39 @@ def chain_marginals(
     work_mb: float = 64.0,
     group: int = 1,
 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """See _chain_marginals (no floor-code variables)."""
+    out = _chain_marginals(lin, n_frames, has_bias, n_loads, 0, work_mb, group)
+    return None if out is None else (out[0], out[1])
+
+
+def chain_marginals_with_codes(
+    lin: gtsam.GaussianFactorGraph,
+    n_frames: int,
+    has_bias: bool,
+    n_loads: int,
+    n_codes: int,
+    work_mb: float = 64.0,
+    group: int = 1,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """chain_marginals plus the (n_codes, 6, 6) marginals of the as-built floor codes F(c)
+    (Pose3 order, code frame): like the loads, border variables of the chain
+    (fusion.estimate.asbuilt)."""
+    return _chain_marginals(lin, n_frames, has_bias, n_loads, n_codes, work_mb, group)
+
+
+def _chain_marginals(
+    lin: gtsam.GaussianFactorGraph,
+    n_frames: int,
+    has_bias: bool,
+    n_loads: int,
+    n_codes: int,
+    work_mb: float = 64.0,
+    group: int = 1,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Marginal covariances of X(0..n_frames-1) ((N, 6, 6), Pose3 order, body frame) and of
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
-    unconstrained Gaussian factors on X/V/B of one or two consecutive frames and at most one L.
+    unconstrained Gaussian factors on X/V/B of one or two consecutive frames and at most one L
+    or F (a floor code's Pose3, n_codes of them: border variables like the loads, 6 columns).
     Returns None when the graph does not have that structure (the caller then falls back to
     gtsam).  The pose rows of W = A^-1 C (N x 6 x 3 n_loads) are kept in float64 below
     4 * `work_mb` MB, else in float32; `group` frames form one block of the recursions (same
@@ -52,11 +83,12 @@ def chain_marginals(
     if has_bias:
         slot[_B] = (9, 6)
     s = 15 if has_bias else 9
-    n, m = n_frames, 3 * n_loads
+    n, m = n_frames, 3 * n_loads + 6 * n_codes
     D = np.zeros((n, s, s))
     E = np.zeros((max(n - 1, 0), s, s))
-    Dl = np.zeros((n_loads, 3, 3))
-    dims = {_X: 6, _V: 3, _B: 6, _L: 3}
+    Dl_full = np.zeros((m, m))
+    dims = {_X: 6, _V: 3, _B: 6, **_BORDER_DIMS}
+    border_first = {_L: 0, _F: 3 * n_loads}  # first border column of each kind
     c_rows, c_cols, c_vals = [], [], []
 
     def flush(sig: tuple, items: list) -> None:
@@ -73,13 +105,16 @@ def chain_marginals(
         for ca, ra, oa, da in cols:
             for cb, rb, ob, db in cols:
                 blk = H[:, oa : oa + da, ob : ob + db]
-                if ca == _L and cb == _L:
-                    np.add.at(Dl, lid, blk)
-                elif ca == _L or (cb != _L and ra > rb):
+                a_border, b_border = ca in _BORDER_DIMS, cb in _BORDER_DIMS
+                if a_border and b_border:
+                    ii = lid[:, None, None] + np.arange(da)[None, :, None]
+                    jj = lid[:, None, None] + np.arange(db)[None, None, :]
+                    np.add.at(Dl_full, (ii, jj), blk)
+                elif a_border or (not b_border and ra > rb):
                     continue  # the transposed pair adds it
-                elif cb == _L:
+                elif b_border:
                     r = (base + ra)[:, None, None] * s + slot[ca][0] + np.arange(da)[None, :, None]
-                    cc = 3 * lid[:, None, None] + np.arange(3)[None, None, :]
+                    cc = lid[:, None, None] + np.arange(db)[None, None, :]
                     r, cc = np.broadcast_arrays(r, cc)
                     c_rows.append(r.ravel())
                     c_cols.append(cc.ravel())
@@ -118,7 +153,7 @@ def chain_marginals(
     flat = np.array([key for k in keys_of for key in k], dtype=np.uint64)
     chrs = (flat >> np.uint64(_CHR_SHIFT)).astype(np.int64)
     idxs = (flat & np.uint64(_IDX_MASK)).astype(np.int64)
-    is_l = chrs == _L
+    is_l = np.isin(chrs, list(_BORDER_DIMS))
     if not np.all(is_l | np.isin(chrs, list(slot))):
         return None
     starts = np.r_[0, np.cumsum(lens)[:-1]]
@@ -130,8 +165,9 @@ def chain_marginals(
     base = np.where(no_frame, 0, base)
     if np.any(n_l > 1) or np.any(~no_frame & (top - base > 1)):
         return None
-    lidx = np.full(len(lens), -1)
-    lidx[np.repeat(np.arange(len(lens)), lens)[is_l]] = idxs[is_l]
+    lidx = np.full(len(lens), -1)  # first border column of the factor's L or F
+    first_col = np.where(chrs == _F, border_first[_F] + 6 * idxs, 3 * idxs)
+    lidx[np.repeat(np.arange(len(lens)), lens)[is_l]] = first_col[is_l]
     rel = np.where(is_l, 0, idxs - np.repeat(base, lens))
     code = np.full((len(lens), 9), -1, dtype=np.int64)
     pos = np.arange(len(flat)) - np.repeat(starts, lens)
@@ -189,7 +225,7 @@ def chain_marginals(
             cov[b * g + i] = Sk[i * s : i * s + 6, i * s : i * s + 6]
     cov = cov[:n].copy()
     if m == 0:
-        return _sym(cov), np.zeros((0, 3, 3))
+        return _sym(cov), np.zeros((0, 3, 3)), np.zeros((0, 6, 6))
     # ---- loads: W = A^-1 C, all load columns at once.  C is kept as, per block row with
     # entries, (its load columns, the dense S x k block); the forward sweep (Y = L^-1 C) keeps
     # every K-th Y only and the backward sweep recomputes each segment from its checkpoint
@@ -247,15 +283,16 @@ def chain_marginals(
                 CtW[cb] += db.T @ W
             W_next = W
     WX = WX.reshape(ng * g, 6, m)[:n]
-    Dl_full = np.zeros((m, m))
-    for j in range(n_loads):
-        Dl_full[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = Dl[j]
     Sc_inv = _spd_inv(Dl_full - 0.5 * (CtW + CtW.T))
     for a in range(0, n, 4096):  # in frame blocks: WX @ Sc^-1 would be another WX
         w = WX[a : a + 4096].astype(np.float64)
         cov[a : a + 4096] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
-    lcov = np.stack([Sc_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in range(n_loads)])
-    return _sym(cov), _sym(lcov)
+    lcov = np.array([Sc_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in range(n_loads)]).reshape(-1, 3, 3)
+    f0 = border_first[_F]
+    ccov = np.array(
+        [Sc_inv[f0 + 6 * c : f0 + 6 * c + 6, f0 + 6 * c : f0 + 6 * c + 6] for c in range(n_codes)]
+    ).reshape(-1, 6, 6)
+    return _sym(cov), _sym(lcov), _sym(ccov)
 
 
 def _spd_inv(M: np.ndarray) -> np.ndarray:

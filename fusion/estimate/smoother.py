@@ -37,7 +37,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
-from fusion.estimate import factors
+from fusion.estimate import asbuilt, factors
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
@@ -57,7 +57,7 @@ from fusion.estimate.common import (
     velocity_at_frames,
 )
 from fusion.estimate.factors import B, L, V, X
-from fusion.estimate.marginals import chain_marginals
+from fusion.estimate.marginals import chain_marginals, chain_marginals_with_codes
 from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
@@ -192,6 +192,7 @@ class FactorKind(Choice):
     POSE = "pose"  # per-frame QR pose (6-dof, position + yaw, or level pose)
     LOAD = "load"  # load-code centre in the front camera
     CORNERS = "corners"  # floor-code corners of one frame (tight coupling)
+    FLOOR_CODE = "floor_code"  # one floor code's pose in one frame (as-built floor codes)
 
 
 @dataclass
@@ -270,6 +271,7 @@ class Problem:
     pims: dict[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
     initial: gtsam.Values = field(default_factory=gtsam.Values)
     counts: GraphCounts = field(default_factory=GraphCounts)
+    as_built: asbuilt.AsBuiltGraph | None = None  # the as-built floor codes' variables
 
     @property
     def load_ids(self) -> list[str]:
@@ -362,6 +364,7 @@ def build_problem(
     floor_frames: dict | None = None,
     floor_camera: CameraModel | None = None,
     require_motion: bool = True,
+    as_built: asbuilt.AsBuiltInput | None = None,
 ) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
@@ -371,7 +374,8 @@ def build_problem(
     `config.tight` and `floor_frames` {frame timestamp_ns: [FloorSighting]} the known world
     corners are reprojection factors on X(k) (factors.floor_corner_factor) instead of the raw
     pose factor at frames with floor sightings; the raw poses still give the initial values
-    and the factors elsewhere.
+    and the factors elsewhere.  `as_built` (fusion.estimate.asbuilt): each floor code's pose is a
+    variable F(c) and each sighting a relative-pose factor, instead of the frame's pose factor.
 
     Raises EstimationError for: no raw pose at all ("no floor code was read in this flight"),
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
@@ -465,8 +469,11 @@ def build_problem(
     # ---- QR pose factors (or, tightly coupled, corner reprojection factors)
     corner_frames, pb.counts.tight = tight_corner_data(frame_t, floor_frames, floor_camera, config)
     kernel = config.robust_kernel
+    if as_built is not None and not corner_frames and raw_input is RawPoseInput.POSE6:
+        pb.as_built = asbuilt.add_factors(pb, as_built, frame_t, pb.fix_frames, config, FactorKind.FLOOR_CODE)
+    replaced = pb.as_built.frames if pb.as_built is not None else set()
     for m, k in enumerate(rawp.frame_idx.tolist()):
-        if k in corner_frames:
+        if k in corner_frames or k in replaced:
             continue
         T = rawp.T_world_body[m]
         if raw_input is RawPoseInput.POSE6:
@@ -695,7 +702,7 @@ def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
 
 
 def _dim_of(key: int) -> int:
-    return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3}[gtsam.Symbol(key).chr()]
+    return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3, ord("f"): 6}[gtsam.Symbol(key).chr()]
 
 
 def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
@@ -876,8 +883,9 @@ def release_heap() -> None:
 
 
 def poses_of(values: gtsam.Values, n: int) -> np.ndarray:
-    """(n, 4, 4) T_world_body of X(0..n-1) (the only Pose3 keys in the graph)."""
-    rows = gtsam.utilities.extractPose3(values)  # per pose: R row-major (9), t (3)
+    """(n, 4, 4) T_world_body of X(0..n-1) (the only Pose3 keys besides the floor codes' F)."""
+    rows = gtsam.utilities.extractPose3(values)  # per pose: R row-major (9), t (3), key order
+    rows = rows[max(rows.shape[0] - n, 0) :]  # as-built floor codes F(c) sort before X(k)
     if rows.shape[0] != n:
         raise EstimationError(f"expected {n} poses in the solution, found {rows.shape[0]}")
     T = np.tile(np.eye(4), (n, 1, 1))
@@ -896,6 +904,7 @@ def smooth(
     config: FusionConfig | None = None,
     floor_frames: dict | None = None,
     floor_camera: CameraModel | None = None,
+    as_built: asbuilt.AsBuiltInput | None = None,
 ) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
@@ -914,10 +923,21 @@ def smooth(
     Never raises a GTSAM exception: a singular system is retried by QR, then with weak priors,
     and only a third failure ends in EstimationError.  When most fixes disagree with the IMU
     beyond the outlier gate (config.reject_disagreeing_imu), the flight is solved again
-    without the IMU (random-walk model and velocity): health.mode IMU_REJECTED."""
+    without the IMU (random-walk model and velocity): health.mode IMU_REJECTED.
+    `as_built` (fusion.estimate.asbuilt.build_input): as-built floor codes, estimated in
+    FusionResult.floor_codes."""
     config = config or FusionConfig()
     res = _smooth_once(
-        frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera
+        frame_times_ns,
+        imu,
+        raw,
+        load_obs,
+        front_camera,
+        velocity,
+        config,
+        floor_frames,
+        floor_camera,
+        as_built=as_built,
     )
     if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
         return res
@@ -935,6 +955,7 @@ def smooth(
         floor_frames,
         floor_camera,
         require_motion=False,
+        as_built=as_built,
     )
     h = alt.health
     h.mode = SolveMode.IMU_REJECTED
@@ -970,6 +991,7 @@ def _smooth_once(
     floor_frames,
     floor_camera,
     require_motion: bool = True,
+    as_built: asbuilt.AsBuiltInput | None = None,
 ) -> FusionResult:
     """One batch solve (smooth without the IMU-rejection retry)."""
     t0 = time.perf_counter()
@@ -984,6 +1006,7 @@ def _smooth_once(
         floor_frames,
         floor_camera,
         require_motion,
+        as_built,
     )
     health = SolveHealth()
     fix_health(pb, config, health)
@@ -1016,16 +1039,26 @@ def _smooth_once(
     T = poses_of(values, n)
     cov = None
     lcov = {}
+    n_codes = len(pb.as_built.code_of_var) if pb.as_built is not None else 0
+    ccov = None  # (n_codes, 6, 6) as-built floor codes
     covariance_method = "none"
     if config.compute_covariances:
         if lin is None:  # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
+        bulk: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None
         try:
-            bulk = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
+            if n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None:
+                bulk = asbuilt.approximate_marginals(lin, values, n, pb.has_imu, len(pb.loads), pb.as_built)
+                covariance_method = "chain_given_codes"
+            elif n_codes:
+                bulk = chain_marginals_with_codes(lin, n, pb.has_imu, len(pb.loads), n_codes)
+            else:
+                two = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
+                bulk = None if two is None else (two[0], two[1], None)
         except np.linalg.LinAlgError:
             bulk = None
         if bulk is not None:
-            cov, lc = bulk
+            cov, lc, ccov = bulk
             lcov = dict(enumerate(lc))
         else:  # not the chain structure: gtsam's Bayes tree, key by key
             try:
@@ -1035,10 +1068,13 @@ def _smooth_once(
                     cov[k] = tree.marginalCovariance(X(k))
                 for j in range(len(pb.loads)):
                     lcov[j] = tree.marginalCovariance(L(j))
+                if n_codes:
+                    ccov = np.array([tree.marginalCovariance(asbuilt.F(c)) for c in range(n_codes)])
             except (RuntimeError, ValueError) as e:
                 cov, lcov = None, {}
                 health.note(f"no covariances: the linearised system is singular ({e})")
-        covariance_method = "chain" if bulk is not None else ("bayes_tree" if cov is not None else "none")
+        if bulk is None or covariance_method == "none":
+            covariance_method = "chain" if bulk is not None else ("bayes_tree" if cov is not None else "none")
     t_cov = time.perf_counter() - t0 - t_build - t_opt
     dropped = set(health.loads_dropped)
     loads = LoadMap(
@@ -1068,7 +1104,15 @@ def _smooth_once(
         stats[f"rejected_{word}_factors"] = rej[kind]
     stats["health"] = health.as_dict()
     traj = Trajectory(str(Estimator.SMOOTHER), pb.frame_t.copy(), T, cov)
-    return FusionResult(traj, loads, stats, health)
+    out = FusionResult(traj, loads, stats, health)
+    if pb.as_built is not None and as_built is not None:
+        out.floor_codes = asbuilt.floor_code_estimates(
+            values, pb.as_built, as_built, ccov, str(Estimator.SMOOTHER)
+        )
+        stats.update(
+            asbuilt.graph_stats(pb.as_built, gated[FactorKind.FLOOR_CODE], rej[FactorKind.FLOOR_CODE])
+        )
+    return out
 
 
 # =========================================================================== incremental

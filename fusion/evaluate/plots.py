@@ -857,3 +857,70 @@ __all__ = [
     "load_rows",
     "ZOOM_EXCLUDE",
 ]
+
+
+# ============================================================================ as-built floor codes
+
+FLOOR_OFFSET_ARROW_SCALE = 20.0
+"""Offset arrows of plot_floor_code_offsets are drawn this many times their length."""
+MISPLACED_COLOUR = "#d62728"
+
+
+def plot_floor_code_offsets(
+    path: Path,
+    nominal_xy_m: np.ndarray,
+    offsets_xy_m: np.ndarray,
+    misplaced: np.ndarray,
+    true_offsets_xy_m: np.ndarray | None = None,
+    *,
+    dpi: int = DEFAULT_DPI,
+) -> Path:
+    """Top view of the as-built floor codes (fusion.estimate.asbuilt): an arrow from each code's
+    nominal centre along its estimated offset, FLOOR_OFFSET_ARROW_SCALE times longer; misplaced
+    codes red; the true offsets (simulated floors) as grey arrows.  (N, 2) m arrays, misplaced
+    (N,) bool."""
+    xy = np.asarray(nominal_xy_m, float).reshape(-1, 2)
+    off = np.asarray(offsets_xy_m, float).reshape(-1, 2)
+    bad = np.asarray(misplaced, bool).reshape(-1)
+    k = FLOOR_OFFSET_ARROW_SCALE
+    fig = Figure(figsize=(9, 6), layout="constrained")
+    ax = fig.subplots()
+    ax.scatter(xy[:, 0], xy[:, 1], marker="s", s=14, color="#bbbbbb", label="nominal (payload)", zorder=1)
+    if true_offsets_xy_m is not None:
+        t = np.asarray(true_offsets_xy_m, float).reshape(-1, 2)
+        ax.quiver(
+            xy[:, 0],
+            xy[:, 1],
+            k * t[:, 0],
+            k * t[:, 1],
+            angles="xy",
+            scale_units="xy",
+            scale=1,
+            color=TRUTH_COLOUR,
+            alpha=0.35,
+            width=0.004,
+            label="true offset",
+            zorder=2,
+        )
+    for mask, colour, label in ((~bad, "#1f77b4", "estimated offset"), (bad, MISPLACED_COLOUR, "misplaced")):
+        if mask.any():
+            ax.quiver(
+                xy[mask, 0],
+                xy[mask, 1],
+                k * off[mask, 0],
+                k * off[mask, 1],
+                angles="xy",
+                scale_units="xy",
+                scale=1,
+                color=colour,
+                width=0.004,
+                label=label,
+                zorder=3,
+            )
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"As-built floor codes: offsets from nominal (arrows ×{k:g}; 1 cm = {k / 100:g} m)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    return _save(fig, path, dpi)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.estimate.asbuilt import FloorCodeMap
 from fusion.evaluate.metrics import (
     PAPER_SIM_LOADMAP_MAE_CM,
     PAPER_SIM_LOCALIZATION_MAE_CM,
@@ -26,6 +27,7 @@ from fusion.evaluate.metrics import (
 from fusion.evaluate.plots import DEFAULT_DPI, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory
+from fusion.warehouse.floorcodes import floor_code_section
 from fusion.warehouse.hook import report_hook
 
 DASH = "–"
@@ -661,13 +663,15 @@ def write_report(
     *,
     dpi: int = DEFAULT_DPI,
     floor_codes_xy_m: np.ndarray | None = None,
+    floor_codes: FloorCodeMap | None = None,
 ) -> Path:
     """Write `out_dir/report.md` and its PNG plots; returns the report's path.
 
     metrics: `evaluate(...)`'s dict (None, or has_groundtruth False: a report without errors).
     gt: `fusion.log.GroundTruth` or None.  log_summary: free key/value facts about the log
     (e.g. log path, duration_s, frames, payload_unit_m); a `detection` entry there is used when
-    `metrics` has none."""
+    `metrics` has none.  floor_codes: the as-built floor codes (a section with their offsets
+    plot; misplaced ones highlighted in report.html)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     log_summary = dict(log_summary or {})
@@ -695,7 +699,13 @@ def write_report(
     if any(facts):
         lines += ["Flight " + ", ".join(f for f in facts if f) + ".", ""]
     warehouse_lines = report_hook(
-        out_dir, trajectories, load_maps, floor_codes_xy_m, log_summary, gt if has_truth else None
+        out_dir,
+        trajectories,
+        load_maps,
+        floor_codes_xy_m,
+        log_summary,
+        gt if has_truth else None,
+        floor_codes,
     )
     lines += warehouse_lines[:2]  # link to report.html
     lines += _health_lines(metrics or {})
@@ -747,6 +757,8 @@ def write_report(
         lines += _table(["item", "value"], _kv_rows(detection))
     else:
         lines += ["No detection statistics were given.", ""]
+    if floor_codes is not None:
+        lines += floor_code_section(out_dir, floor_codes, log_summary.get("path"), dpi)
     lines += warehouse_lines[2:]  # where `fusion inventory` puts its section
     report = out_dir / "report.md"
     with atomic_open(report) as f:

@@ -18,6 +18,7 @@ from fusion.errors import SimulationError
 from fusion.geometry import make_T
 from fusion.log import ImuNoise
 from fusion.qr.symbol import SIM_ECC
+from fusion.sim.placement import true_code_poses
 from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes
 from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
 from fusion.world import Layout, LoadCode, World
@@ -67,8 +68,18 @@ class Scenario:
         """Every code to render: floor grid and load codes."""
         w = self.layout.world
         out = placed_floor_codes(self.layout.floor_codes_xy, w.payload_unit_m, w.floor_side_m, self.floor_ecc)
+        if self.layout.floor_offsets is not None:  # codes stuck down off their nominal poses
+            for code, T in zip(out, self.floor_codes_true_T()):
+                code.T_world_symbol = T
         out += [PlacedCode(load_payload(l.id), l.T_world_symbol, w.load_side_m) for l in self.layout.loads]
         return out
+
+    def floor_codes_true_T(self) -> np.ndarray:
+        """(N, 4, 4) where the floor codes really lie (nominal + Layout.floor_offsets)."""
+        w = self.layout.world
+        xy = np.asarray(self.layout.floor_codes_xy, float).reshape(-1, 2) * w.payload_unit_m
+        off = self.layout.floor_offsets if self.layout.floor_offsets is not None else np.zeros((len(xy), 3))
+        return true_code_poses(xy, off)
 
     def effects(
         self, camera_name: str, t_s: float, blur_px: float = 0.0, blur_angle_rad: float = 0.0

@@ -16,11 +16,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fusion.conventions import floor_payload
 from fusion.errors import SimulationError
-from fusion.geometry import inv_T, quat_wxyz_from_R
+from fusion.estimate.asbuilt import FLOOR_CODES_GROUNDTRUTH_CSV, write_groundtruth_csv
+from fusion.geometry import inv_T, quat_wxyz_from_R, yaw_of
 from fusion.log import FlightLogWriter, GroundTruth
 from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
+from fusion.sim.placement import placement_offsets
 from fusion.sim.render import render_view, rolling_shutter_poses
 from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
 
@@ -157,6 +160,8 @@ def simulate(
     start_s: float = 0.0,
     fmt: str = "euroc",
     readout_s: float | None = None,
+    placement_error_m: float = 0.0,
+    placement_error_deg: float = 0.0,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -181,7 +186,11 @@ def simulate(
     cameras are then modified in place).  `readout_s` (None: the scenario's `readout_s`) makes
     both cameras rolling-shutter with that whole-frame readout time, stamped at the first row:
     each frame is rendered with one true pose per row (`render.rolling_shutter_poses`) and the
-    line delay is written to the cameras' sensor.yaml (`line_delay_s`)."""
+    line delay is written to the cameras' sensor.yaml (`line_delay_s`).
+    `placement_error_m` / `placement_error_deg`: the floor codes are stuck down off their
+    payload's pose by N(0, sigma) per axis and in yaw (drawn from the seed); world.yaml then
+    states these sigmas as floor_qr.placement_sigma_m / _deg (0 and 0, the default: exactly
+    laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses."""
     from fusion.log import LogFormat
 
     try:
@@ -207,6 +216,8 @@ def simulate(
             check_readable=check_readable,
             start_s=start_s,
             readout_s=readout_s,
+            placement_error_m=placement_error_m,
+            placement_error_deg=placement_error_deg,
         )
     t_wall = time.perf_counter()
     if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
@@ -242,6 +253,18 @@ def simulate(
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
     if noise_sigma_dn is not None:
         sc.noise_sigma_dn = float(noise_sigma_dn)
+    for name, v in (
+        ("placement error (m)", placement_error_m),
+        ("placement error (deg)", placement_error_deg),
+    ):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+            raise SimulationError(f"{name} must be a number >= 0, got {v!r}")
+    sc.layout.world.placement_sigma_m = float(placement_error_m)
+    sc.layout.world.placement_sigma_deg = float(placement_error_deg)
+    if placement_error_m > 0 or placement_error_deg > 0:
+        sc.layout.floor_offsets = placement_offsets(
+            len(sc.layout.floor_codes_xy), placement_error_m, math.radians(placement_error_deg), seed
+        )
     workers = worker_count(workers)
     if workers > 1 and mp.current_process().name != "MainProcess":
         # most likely a worker re-importing an unguarded main script: stop before touching disk
@@ -295,6 +318,13 @@ def simulate(
         writer.write_groundtruth(gt)
         writer.write_loads_groundtruth({l.id: np.asarray(l.p_world) for l in sc.layout.loads})
         writer.write_blackouts(blackouts)
+        if sc.layout.floor_offsets is not None:
+            T_true = sc.floor_codes_true_T()
+            write_groundtruth_csv(
+                writer.tmp / FLOOR_CODES_GROUNDTRUTH_CSV,
+                [floor_payload(x, y) for x, y in np.asarray(sc.layout.floor_codes_xy).reshape(-1, 2)],
+                np.c_[T_true[:, :2, 3], yaw_of(T_true[:, :3, :3])],
+            )
 
         tasks = [(k, t * 1e-9) for k, t in enumerate(frame_ns)]
         chunk = 8

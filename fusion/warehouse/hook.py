@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.estimate.asbuilt import FloorCodeMap
 from fusion.types import LoadMap, Trajectory
 from fusion.warehouse.inventory import REPORT_BEGIN, REPORT_END
 from fusion.warehouse.runs import RUN_RECORD, WORLD_YAML, write_run_record
@@ -24,9 +25,11 @@ def report_hook(
     floor_codes_xy_m: np.ndarray | None,
     log_summary: dict,
     gt=None,
+    floor_codes: FloorCodeMap | None = None,
 ) -> list[str]:
     """Write `out_dir/report.html` (and `out_dir/run.json` when log_summary names the log);
-    return the Markdown lines for report.md."""
+    return the Markdown lines for report.md.  floor_codes: the as-built floor codes, whose
+    misplaced ones report.html highlights."""
     out_dir = Path(out_dir)
     if "path" in log_summary and (Path(log_summary["path"]) / WORLD_YAML).exists():
         write_run_record(out_dir, log_summary["path"])
@@ -47,6 +50,17 @@ def report_hook(
         floor_codes_xy_m,
         float(log_summary.get("payload_unit_m") or 1.0),
         gt_traj,
+        misplaced_codes=None
+        if floor_codes is None
+        else [
+            (
+                c.code_id,
+                c.p_world,
+                f"offset {100 * float(np.linalg.norm(c.offset_xy_m)):.1f} cm "
+                f"({c.mahalanobis_offset():.1f} sigma), {c.n_obs} sightings",
+            )
+            for c in floor_codes.misplaced
+        ],
     )
     return [
         f"Interactive 3D view (opens offline): [{REPORT_HTML}]({REPORT_HTML})",

@@ -36,8 +36,10 @@ from fusion.fileio import atomic_open, dump_yaml
 from fusion.log.files import LOADS_COLUMNS
 from fusion.types import Estimator
 from fusion.warehouse import escape
+from fusion.warehouse.floorcodes import MergedFloorCode, merge_floor_codes, write_merged_floor_codes
 from fusion.warehouse.inventory import MIN_FRAMES_IN_VIEW, MOVED_ALPHA, moved_test, visibility
 from fusion.warehouse.runs import RunOutputs, load_run
+from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +90,7 @@ class MergeResult:
     changes: list[Change]
     world_yaml: dict
     notes: list[str] = field(default_factory=list)
+    floor_codes: list[MergedFloorCode] = field(default_factory=list)  # as-built, fused
 
 
 def check_same_warehouse(runs: list[RunOutputs]) -> dict:
@@ -183,14 +186,22 @@ def run_merge(
     run_outs: list[Path], out: Path, estimator: str = Estimator.SMOOTHER, force: bool = False
 ) -> MergeResult:
     """`fusion map merge`: read the runs, merge, write `out/` (map.json, loads_merged.csv,
-    changes.csv, changes.md, world.yaml)."""
+    changes.csv, changes.md, world.yaml) and, when the runs estimated as-built floor codes,
+    floor_codes_merged.csv (floorcodes.merge_floor_codes: inverse-covariance weighted; what
+    `fusion run --map` reads)."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not force)):
         raise OutputError(f"{out}: exists; use --force to write into it")
     runs = [load_run(p, estimator) for p in run_outs]
     result = merge_runs(runs)
+    result.floor_codes, notes = merge_floor_codes([r.out_dir for r in runs], Estimator.SMOOTHER)
+    if result.floor_codes:
+        result.notes += notes
     out.mkdir(parents=True, exist_ok=True)
     write_merge(out, result)
+    if result.floor_codes:
+        world = World.from_yaml(result.world_yaml, f"{runs[0].out_dir}/run.json")
+        write_merged_floor_codes(out, result.floor_codes, world.payload_unit_m)
     return result
 
 

@@ -42,6 +42,7 @@ TRAJECTORY_COLOURS = {
 }
 LOAD_COLOUR = "#17becf"  # loads without an inventory
 FLOOR_COLOUR = "#bbbbbb"
+MISPLACED_COLOUR = "#d62728"  # as-built floor codes flagged misplaced
 
 
 def _decimate(n: int) -> np.ndarray:
@@ -87,10 +88,13 @@ def build_figure(
     expected: list | None = None,
     groundtruth: Trajectory | None = None,
     title: str = "fusion: 3D view",
+    misplaced_codes: list[tuple[str, np.ndarray, str]] | None = None,
 ) -> go.Figure:
     """The figure: floor codes, trajectories (raw: dots, fused: lines, truth: grey), a marker per
     trajectory driven by the time slider, the loads of `load_map` with their ellipsoids, coloured
-    by `statuses` {id: Status} when given, and `expected` (ExpectedLoad list) places not read."""
+    by `statuses` {id: Status} when given, and `expected` (ExpectedLoad list) places not read.
+    `misplaced_codes` [(id, (3,) estimated world centre, hover detail)]: as-built floor codes
+    flagged misplaced (fusion.estimate.asbuilt), drawn large and red."""
     from fusion.warehouse.inventory import Status, status_colours
 
     colours = status_colours()
@@ -111,6 +115,23 @@ def build_figure(
                 marker={"symbol": "square", "size": 5, "color": FLOOR_COLOUR},
                 name="floor codes",
                 hovertext=hover,
+                hoverinfo="text",
+            )
+        )
+    if misplaced_codes:
+        p = np.array([c[1] for c in misplaced_codes], dtype=float).reshape(-1, 3)
+        fig.add_trace(
+            go.Scatter3d(
+                x=p[:, 0],
+                y=p[:, 1],
+                z=p[:, 2],
+                mode="markers",
+                marker={"symbol": "square", "size": 9, "color": MISPLACED_COLOUR},
+                name="misplaced floor codes",
+                hovertext=[
+                    f"MISPLACED floor code {escape.html_text(cid)}<br>{escape.html_text(detail)}"
+                    for cid, _, detail in misplaced_codes
+                ],
                 hoverinfo="text",
             )
         )
@@ -296,8 +317,9 @@ def write_report_html(
     floor_codes_xy_m: np.ndarray | None = None,
     payload_unit_m: float = 1.0,
     groundtruth: Trajectory | None = None,
+    misplaced_codes: list[tuple[str, np.ndarray, str]] | None = None,
 ) -> Path:
-    """`out_dir/report.html` of a run (no inventory yet)."""
+    """`out_dir/report.html` of a run (no inventory yet); misplaced_codes as build_figure's."""
     fig = build_figure(
         trajectories,
         pick_load_map(load_maps),
@@ -305,6 +327,7 @@ def write_report_html(
         payload_unit_m,
         groundtruth=groundtruth,
         title=f"fusion: {Path(out_dir).name}",
+        misplaced_codes=misplaced_codes,
     )
     return write_html(Path(out_dir) / REPORT_HTML, fig)
 

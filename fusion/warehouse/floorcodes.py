@@ -1,0 +1,304 @@
+"""As-built floor codes in a run and across runs (issue #12, items 1 and 3): the pipeline's glue
+around fusion.estimate.asbuilt.
+
+- `as_built_input`: the batch smoother's as-built input of a flight (or None, with the reason),
+  from world.yaml's placement sigmas and, with `fusion run --map MAP`, a merged floor-code map as
+  the prior (refused when MAP's world.yaml is not the flight's);
+- `floor_code_metrics`: metrics.json's entry (misplaced codes; errors against the simulator's
+  floor_codes_groundtruth.csv when the log has one);
+- `markdown_lines`: report.md's section; `merge_floor_codes` / `write_merged_floor_codes`: the
+  inverse-covariance fusion of several runs' floor codes for `fusion map merge`.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.conventions import FloorPayload, parse_payload
+from fusion.errors import WarehouseError
+from fusion.estimate.asbuilt import (
+    FLOOR_CODE_COLUMNS,
+    FLOOR_CODES_CSV,
+    FLOOR_CODES_GROUNDTRUTH_CSV,
+    MISPLACED_MIN_OFFSET_M,
+    MISPLACED_SIGMAS,
+    AsBuiltError,
+    AsBuiltInput,
+    FloorCodeMap,
+    Placement,
+    PriorMap,
+    build_input,
+    groundtruth_errors,
+    read_floor_codes_csv,
+    read_groundtruth_csv,
+)
+from fusion.evaluate.plots import plot_floor_code_offsets
+from fusion.fileio import atomic_open, csv_safe, load_yaml
+from fusion.warehouse import escape
+from fusion.world import World
+
+__all__ = [
+    "MERGED_FLOOR_CODES_CSV",
+    "MergedFloorCode",
+    "as_built_input",
+    "floor_code_metrics",
+    "markdown_lines",
+    "merge_floor_codes",
+    "read_floor_map",
+    "write_merged_floor_codes",
+]
+
+logger = logging.getLogger(__name__)
+
+MERGED_FLOOR_CODES_CSV = "floor_codes_merged.csv"
+FLOOR_OFFSETS_PNG = "floor_code_offsets.png"
+WORLD_YAML = "world.yaml"
+MIN_OBS_FOR_ERRORS = 20
+"""metrics.json's ground-truth errors are also given over the codes seen in this many frames."""
+
+
+def read_floor_map(map_dir: Path, world_yaml: dict) -> PriorMap:
+    """The merged floor codes of `fusion map merge --out MAP` as a prior; WarehouseError when
+    MAP is not a merged map or is of another warehouse (its world.yaml differs from the flight's)."""
+    map_dir = Path(map_dir)
+    csv_path = map_dir / MERGED_FLOOR_CODES_CSV
+    if not csv_path.is_file():
+        raise WarehouseError(f"{csv_path}: not found (is {map_dir} the --out of `fusion map merge`?)")
+    theirs = load_yaml(map_dir / WORLD_YAML, WarehouseError)
+    if theirs != world_yaml:
+        keys = sorted(k for k in set(theirs) | set(world_yaml) if theirs.get(k) != world_yaml.get(k))
+        raise WarehouseError(
+            f"{map_dir}: a map of a different warehouse (world.yaml differs in {', '.join(keys)}); "
+            "refusing to use it as this flight's floor-code prior"
+        )
+    try:
+        codes = read_floor_codes_csv(csv_path)
+    except AsBuiltError as e:
+        raise WarehouseError(str(e)) from None
+    return PriorMap({cid: (xyyaw, cov) for cid, (xyyaw, cov, _) in codes.items()}, str(map_dir))
+
+
+def as_built_input(
+    world: World,
+    world_yaml: dict,
+    floor_frames: dict,
+    floor_camera: CameraModel,
+    corner_sigma_px: float,
+    tight: bool = False,
+    map_dir: Path | None = None,
+) -> tuple[AsBuiltInput | None, list[str]]:
+    """(AsBuiltInput or None, notes) of a flight for the batch smoother (module docstring).
+    floor_frames {timestamp_ns: [FloorSighting]}; world_yaml: the flight's world.yaml as read."""
+    notes: list[str] = []
+    placement = Placement.from_world(world)
+    prior_map = None
+    if map_dir is not None:
+        prior_map = read_floor_map(map_dir, world_yaml)
+    if not placement.enabled:
+        if prior_map is not None:
+            notes.append("--map given but world.yaml says the floor codes are laid exactly: map not used")
+        return None, notes
+    if tight:
+        notes.append("as-built floor codes are not estimated with --tight (corner factors use nominal codes)")
+        return None, notes
+    if floor_camera.gimbaled:
+        notes.append("as-built floor codes need a body-fixed floor camera: nominal codes used")
+        return None, notes
+    ab = build_input(floor_frames, floor_camera, world, placement, corner_sigma_px, prior_map)
+    notes += ab.notes
+    notes.append(
+        f"as-built floor codes (smoother): {len(ab.codes)} codes, placement sigma "
+        f"{100 * placement.sigma_m:.1f} cm / {math.degrees(placement.sigma_rad):.1f} deg"
+    )
+    return ab, notes
+
+
+def floor_code_metrics(fmap: FloorCodeMap, log_root: Path | None) -> dict:
+    """metrics.json's entry: FloorCodeMap.summary() plus, when the log has the simulator's
+    floor_codes_groundtruth.csv, errors against it (all codes, and those seen in
+    MIN_OBS_FOR_ERRORS frames or more)."""
+    out = fmap.summary()
+    gt_path = None if log_root is None else Path(log_root) / FLOOR_CODES_GROUNDTRUTH_CSV
+    if gt_path is not None and gt_path.is_file():
+        try:
+            truth = read_groundtruth_csv(gt_path)
+        except AsBuiltError as e:
+            logger.warning("%s", e)
+            return out
+        out["groundtruth"] = groundtruth_errors(fmap, truth)
+        out["groundtruth_min_obs"] = groundtruth_errors(fmap, truth, MIN_OBS_FOR_ERRORS)
+        true_bad = {
+            cid
+            for cid, t in truth.items()
+            if cid in fmap.by_id()
+            and np.linalg.norm(t[:2] - fmap.by_id()[cid].nominal_world[:2]) > MISPLACED_MIN_OFFSET_M
+        }
+        flagged = {c.code_id for c in fmap.misplaced}
+        out["flags_vs_truth"] = {
+            "truly_off_more_than_min_offset": len(true_bad),
+            "flagged": len(flagged),
+            "flagged_and_truly_off": len(flagged & true_bad),
+        }
+    return out
+
+
+def markdown_lines(fmap: FloorCodeMap, plot_file: str | None) -> list[str]:
+    """report.md's section on the as-built floor codes."""
+    s = fmap.summary()
+    lines = [
+        "## As-built floor codes",
+        "",
+        f"{s['n_codes']} floor codes estimated by the `{escape.markdown(fmap.estimator)}` "
+        f"(placement prior {100 * fmap.placement.sigma_m:.1f} cm, "
+        f"{math.degrees(fmap.placement.sigma_rad):.1f}°); offsets from nominal: RMS "
+        f"{100 * (s['offset_rms_m'] or 0):.2f} cm, max {100 * (s['offset_max_m'] or 0):.2f} cm. "
+        f"Misplaced (beyond {MISPLACED_SIGMAS:g} σ and {100 * MISPLACED_MIN_OFFSET_M:g} cm): "
+        f"**{len(s['misplaced'])}**.",
+        "",
+    ]
+    if plot_file:
+        lines += [f"![Floor-code offsets, top view]({plot_file})", ""]
+    if s["misplaced"]:
+        lines += [
+            "| code | offset x [cm] | offset y [cm] | offset [cm] | σ distance | sightings |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
+        for m in s["misplaced"]:
+            dx, dy = (100 * v for v in m["offset_xy_m"])
+            lines.append(
+                f"| {escape.markdown(m['id'])} | {dx:.2f} | {dy:.2f} "
+                f"| {100 * m['offset_m']:.2f} | {m['sigmas']:.1f} | {m['n_obs']} |"
+            )
+        lines.append("")
+    lines += [
+        f"Every code: [{FLOOR_CODES_CSV.format(fmap.estimator)}]({FLOOR_CODES_CSV.format(fmap.estimator)}).",
+        "",
+    ]
+    return lines
+
+
+def floor_code_section(out_dir: Path, fmap: FloorCodeMap, log_root: str | Path | None, dpi: int) -> list[str]:
+    """Draw FLOOR_OFFSETS_PNG into out_dir (true offsets too when the log has the simulator's
+    floor_codes_groundtruth.csv) and return report.md's section."""
+    truth = None
+    gt_path = None if log_root is None else Path(log_root) / FLOOR_CODES_GROUNDTRUTH_CSV
+    if gt_path is not None and gt_path.is_file():
+        try:
+            truth = read_groundtruth_csv(gt_path)
+        except AsBuiltError as e:
+            logger.warning("%s", e)
+    plot_file = None
+    if fmap.codes:
+        nominal = np.array([c.nominal_world[:2] for c in fmap.codes])
+        true_off = (
+            None
+            if truth is None
+            else np.array(
+                [
+                    truth[c.code_id][:2] - c.nominal_world[:2] if c.code_id in truth else (0.0, 0.0)
+                    for c in fmap.codes
+                ]
+            )
+        )
+        plot_floor_code_offsets(
+            Path(out_dir) / FLOOR_OFFSETS_PNG,
+            nominal,
+            np.array([c.offset_xy_m for c in fmap.codes]),
+            np.array([c.misplaced for c in fmap.codes]),
+            true_off,
+            dpi=dpi,
+        )
+        plot_file = FLOOR_OFFSETS_PNG
+    return markdown_lines(fmap, plot_file)
+
+
+# =========================================================================== merge
+
+
+@dataclass
+class MergedFloorCode:
+    code_id: str
+    xy_yaw: np.ndarray  # (3,) world x, y (m), yaw (rad)
+    cov: np.ndarray  # (3, 3)
+    n_obs: int
+    n_runs: int
+
+
+def merge_floor_codes(run_dirs: list[Path], estimator: str) -> tuple[list[MergedFloorCode], list[str]]:
+    """Information-weighted fusion of the runs' floor_codes_<estimator>.csv (Bar-Shalom et al.
+    2001, eq. 8.4-5, as merge.py's loads; the CSVs keep per-axis sigmas, so each run's
+    covariance is diagonal).  Runs without the file are noted and skipped."""
+    info: dict[str, list] = {}
+    notes = []
+    for d in run_dirs:
+        path = Path(d) / FLOOR_CODES_CSV.format(estimator)
+        if not path.is_file():
+            notes.append(f"{d}: no {path.name} (floor codes laid exactly, or not estimated): not merged")
+            continue
+        try:
+            codes = read_floor_codes_csv(path)
+        except AsBuiltError as e:
+            raise WarehouseError(str(e)) from None
+        for cid, (xyyaw, cov, n) in codes.items():
+            I = np.linalg.inv(cov)
+            acc = info.setdefault(cid, [np.zeros((3, 3)), np.zeros(3), 0, 0, None])
+            ref = acc[4] if acc[4] is not None else xyyaw[2]
+            acc[4] = ref
+            v = xyyaw.copy()
+            v[2] = ref + math.remainder(v[2] - ref, 2 * math.pi)  # yaw near the first run's
+            acc[0] += I
+            acc[1] += I @ v
+            acc[2] += n
+            acc[3] += 1
+    out = []
+    for cid in sorted(info):
+        I, b, n, runs, _ = info[cid]
+        P = np.linalg.inv(I)
+        out.append(MergedFloorCode(cid, P @ b, 0.5 * (P + P.T), n, runs))
+    return out, notes
+
+
+def write_merged_floor_codes(out_dir: Path, codes: list[MergedFloorCode], payload_unit_m: float) -> Path:
+    """MAP/floor_codes_merged.csv in the columns of floor_codes_<estimator>.csv (what
+    `fusion run --map` reads) plus n_runs; nominal and offset columns from the payload."""
+    path = Path(out_dir) / MERGED_FLOOR_CODES_CSV
+    with atomic_open(path) as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow([*FLOOR_CODE_COLUMNS, "n_runs"])
+        for c in codes:
+            p = parse_payload(c.code_id)
+            nominal = (
+                (p.x * payload_unit_m, p.y * payload_unit_m)
+                if isinstance(p, FloorPayload)
+                else (math.nan, math.nan)
+            )
+            sig = np.sqrt(np.diag(c.cov))
+            off = c.xy_yaw[:2] - np.asarray(nominal)
+            w.writerow(
+                [
+                    csv_safe(c.code_id),
+                    *(f"{v:.6f}" for v in nominal),
+                    f"{c.xy_yaw[0]:.6f}",
+                    f"{c.xy_yaw[1]:.6f}",
+                    "0.000000",
+                    f"{math.degrees(c.xy_yaw[2]):.6f}",
+                    f"{off[0]:.6f}",
+                    f"{off[1]:.6f}",
+                    f"{float(np.linalg.norm(off)):.6f}",
+                    f"{math.degrees(c.xy_yaw[2]):.6f}",
+                    f"{sig[0]:.6f}",
+                    f"{sig[1]:.6f}",
+                    f"{math.degrees(sig[2]):.6f}",
+                    c.n_obs,
+                    0,
+                    c.n_runs,
+                ]
+            )
+    return path

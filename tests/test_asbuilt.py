@@ -1,0 +1,308 @@
+"""As-built floor codes (issue #12, item 1; fusion/estimate/asbuilt.py): placement sigma 0 is
+today's model exactly, a misplaced code is recovered and flagged, a perfect floor flags nothing,
+the exact code marginals, the CSV (escaped ids, round trip), world.yaml's fields, the simulator's
+placement errors, and `fusion map merge` + `fusion run --map`."""
+
+import csv
+import json
+import math
+import shutil
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion import pipeline
+from fusion.conventions import floor_payload
+from fusion.errors import WarehouseError, WorldError
+from fusion.estimate import FusionConfig, smooth
+from fusion.estimate.asbuilt import (
+    F,
+    FloorCodeEstimate,
+    FloorCodeMap,
+    Placement,
+    read_floor_codes_csv,
+    read_groundtruth_csv,
+    write_floor_codes_csv,
+)
+from fusion.estimate.factors import X
+from fusion.estimate.marginals import chain_marginals_with_codes
+from fusion.estimate.smoother import build_problem, levenberg_marquardt
+from fusion.fileio import load_yaml
+from fusion.geometry import make_T, rot_z
+from fusion.log.euroc import ImuNoise
+from fusion.log.files import write_loads_json, write_tum
+from fusion.sim.imu import synthesize_imu
+from fusion.sim.placement import synthetic_sightings, true_code_poses
+from fusion.sim.trajectory import random_aisle_survey
+from fusion.types import LoadEstimate, LoadMap, Trajectory
+from fusion.warehouse import floorcodes
+from fusion.warehouse.merge import run_merge
+from fusion.warehouse.runs import RUN_RECORD
+from fusion.world import World
+
+SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+SIGHTING_COV = np.diag([math.radians(0.1)] * 3 + [0.003] * 3) ** 2
+
+
+def _flight(seed: int, duration_s: float, offsets_of, placement: Placement):
+    """A synthetic flight over a 1 m grid: frame_t, imu, raw (PnP from the nominal grid),
+    AsBuiltInput, ids, true offsets (N, 3)."""
+    rng = np.random.default_rng(seed)
+    traj = random_aisle_survey(duration_s, rng)
+    imu, _, _ = synthesize_imu(traj, 200.0, ImuNoise(), rng)
+    frame_t = np.round(np.arange(0.0, duration_s, 1 / 30.0) * 1e9).astype(np.int64)
+    T_true = traj.state(frame_t * 1e-9).T_world_body
+    xs, ys = np.meshgrid(np.arange(-6, 7), np.arange(-5, 6))
+    xy = np.c_[xs.ravel(), ys.ravel()].astype(float)
+    ids = [floor_payload(x, y) for x, y in xy]
+    offsets = offsets_of(ids)
+    ab, fk, fT, fcov = synthetic_sightings(
+        frame_t, T_true, ids, xy, true_code_poses(xy, offsets), SIGHTING_COV, placement, rng
+    )
+    return frame_t, imu, Trajectory("pnp", frame_t[fk], fT, fcov), ab, ids, offsets
+
+
+def _busiest(ab) -> int:
+    return int(np.bincount(ab.sightings.code).argmax())
+
+
+def test_misplaced_code_recovered_and_flagged():
+    seed = 3
+    probe = _flight(seed, 20.0, lambda ids: np.zeros((len(ids), 3)), Placement())
+    busiest = _busiest(probe[3])
+    true = np.zeros((len(probe[4]), 3))
+    true[busiest] = (0.05, -0.03, math.radians(1.0))  # 5.8 cm off
+    frame_t, imu, raw, ab, ids, _ = _flight(seed, 20.0, lambda ids: true, Placement())
+    res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
+    fmap = res.floor_codes
+    flagged = [c.code_id for c in fmap.misplaced]
+    assert flagged == [ids[busiest]]
+    est = fmap.by_id()[ids[busiest]]
+    # relative to the other codes (the floor's common shift is unobservable): within 5 mm
+    others = np.mean([c.offset_xy_m for c in fmap.codes if c.code_id != ids[busiest]], axis=0)
+    assert np.linalg.norm(est.offset_xy_m - others - true[busiest, :2]) < 0.005
+    assert est.n_obs >= 20 and est.mahalanobis_offset() > 3
+    # the misplaced code no longer drags the trajectory: nominal codes (today) err by cm
+    today = smooth(frame_t, imu, raw, [], config=FusionConfig())
+    T_true = random_aisle_survey(20.0, np.random.default_rng(seed)).state(frame_t * 1e-9).T_world_body
+
+    def rmse(traj):
+        return math.sqrt(np.mean(np.sum((traj.positions_xyz - T_true[:, :3, 3]) ** 2, axis=1)))
+
+    assert rmse(res.trajectory) < 0.6 * rmse(today.trajectory)
+
+
+def test_perfect_floor_flags_nothing():
+    frame_t, imu, raw, ab, _, _ = _flight(4, 20.0, lambda ids: np.zeros((len(ids), 3)), Placement())
+    res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
+    assert len(res.floor_codes.codes) > 10
+    assert res.floor_codes.misplaced == []
+    assert max(np.linalg.norm(c.offset_xy_m) for c in res.floor_codes.codes) < 0.01
+
+
+def test_code_marginals_equal_gtsam():
+    frame_t, imu, raw, ab, _, _ = _flight(
+        5, 4.0, lambda ids: np.random.default_rng(1).normal(0, 0.01, (len(ids), 3)), Placement()
+    )
+    pb = build_problem(frame_t, imu, raw, [], None, None, FusionConfig(), as_built=ab)
+    graph = pb.graph()
+    values = levenberg_marquardt(graph, pb.initial).values
+    n_codes = len(pb.as_built.code_of_var)
+    cov, _, ccov = chain_marginals_with_codes(graph.linearize(values), len(frame_t), True, 0, n_codes)
+    marg = gtsam.Marginals(graph, values)
+    for c in range(n_codes):
+        ref = marg.marginalCovariance(F(c))
+        np.testing.assert_allclose(ccov[c], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    for k in range(0, len(frame_t), 11):
+        ref = marg.marginalCovariance(X(k))
+        np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+
+
+def test_floor_codes_csv_escaped_round_trip(tmp_path):
+    cov = np.diag([1e-8, 1e-8, 1e-4, 4e-6, 9e-6, 1e-8])
+    codes = [
+        FloorCodeEstimate("=HYPERLINK(1)", np.zeros(3), make_T(rot_z(0.01), [0.03, 0.0, 0.0]), cov, 25),
+        FloorCodeEstimate("0/1/2", np.array([1.0, 2.0, 0.0]), make_T(np.eye(3), [1.0, 2.0, 0.0]), cov, 3),
+    ]
+    for c in codes:
+        c.misplaced = c.code_id.startswith("=")
+    path = tmp_path / "floor_codes_smoother.csv"
+    write_floor_codes_csv(path, FloorCodeMap("smoother", codes))
+    rows = list(csv.reader(path.read_text().splitlines()))
+    assert rows[1][0] == "'=HYPERLINK(1)" and rows[1][-1] == "1" and rows[2][-1] == "0"
+    back = read_floor_codes_csv(path)
+    xyyaw, c3, n = back["=HYPERLINK(1)"]
+    np.testing.assert_allclose(xyyaw, [0.03, 0.0, 0.01], atol=1e-6)
+    assert n == 25
+    np.testing.assert_allclose(np.sqrt(np.diag(c3)), [0.002, 0.003, 0.01], rtol=1e-3)
+
+
+def test_world_yaml_placement_fields():
+    w = World.from_yaml({"floor_qr": {"side_m": 0.2, "placement_sigma_m": 0.02, "placement_sigma_deg": 0}})
+    p = Placement.from_world(w)
+    assert p.sigma_m == 0.02 and p.sigma_rad == 0 and p.enabled
+    assert World.from_yaml(w.to_yaml()) == w
+    assert Placement.from_world(World()) == Placement()  # absent: 1 cm, 1 deg
+    assert not Placement.from_world(World(placement_sigma_m=0.0, placement_sigma_deg=0.0)).enabled
+    with pytest.raises(WorldError, match="floor_qr.placement_sigma_deg"):
+        World.from_yaml({"floor_qr": {"side_m": 0.2, "placement_sigma_deg": -1}})
+    with pytest.raises(WorldError, match="floor_qr.placement_sigma_m"):
+        World.from_yaml({"floor_qr": {"side_m": 0.2, "placement_sigma_m": "1cm"}})
+
+
+def test_simulator_places_codes_off_grid(tmp_path):
+    from fusion.sim.simulate import simulate
+
+    kw = dict(duration_s=0.2, camera_rate_hz=10, workers=1, progress=False)
+    simulate(tmp_path / "a", placement_error_m=0.02, placement_error_deg=1.0, seed=3, **kw)
+    floor = load_yaml(tmp_path / "a" / "world.yaml")["floor_qr"]
+    assert floor["placement_sigma_m"] == 0.02 and floor["placement_sigma_deg"] == 1.0
+    truth = read_groundtruth_csv(tmp_path / "a" / "floor_codes_groundtruth.csv")
+    off = np.array([t[:2] - np.array([float(v) for v in cid.split("/")[1:]]) for cid, t in truth.items()])
+    assert 0.01 < np.sqrt(np.mean(off**2)) < 0.03
+    simulate(tmp_path / "b", **kw)  # default: exactly laid, and it says so
+    floor = load_yaml(tmp_path / "b" / "world.yaml")["floor_qr"]
+    assert floor["placement_sigma_m"] == 0.0 and floor["placement_sigma_deg"] == 0.0
+    assert not (tmp_path / "b" / "floor_codes_groundtruth.csv").exists()
+
+
+# ============================================================================ pipeline, merge, --map
+
+
+@pytest.fixture(scope="module")
+def sample_runs(tmp_path_factory):
+    """The sample flight run (until the smoother) with placement 0 / 0, with today's code path,
+    and as built (world.yaml's defaults); the detections cache is shared."""
+    root = tmp_path_factory.mktemp("asbuilt")
+    out = {}
+    cache = None
+    for name in ("zero", "default"):
+        log = root / f"log_{name}"
+        shutil.copytree(SAMPLE, log)
+        world = load_yaml(log / "world.yaml")
+        if name == "zero":
+            world["floor_qr"].update(placement_sigma_m=0.0, placement_sigma_deg=0.0)
+        else:  # world.yaml says nothing: the defaults, 1 cm and 1 deg
+            world["floor_qr"].pop("placement_sigma_m", None)
+            world["floor_qr"].pop("placement_sigma_deg", None)
+        (log / "world.yaml").write_text(json.dumps(world))
+        o = root / f"out_{name}"
+        o.mkdir()
+        if cache is not None:
+            shutil.copy(cache, o / "detections.csv")
+        cfg = pipeline.RunConfig(progress=False, incremental=False, workers=1, force=True)
+        out[name] = pipeline.run(log, o, cfg, until="run")
+        cache = o / "detections.csv"
+    return out
+
+
+def test_placement_zero_is_todays_smoother_exactly(sample_runs, monkeypatch, tmp_path):
+    zero = sample_runs["zero"]
+    assert zero.floor_codes == {}
+    assert not (zero.out_dir / "floor_codes_smoother.csv").exists()
+    # today's code path: the fusion stage never builds an as-built input
+    monkeypatch.setattr(pipeline.floorcodes, "as_built_input", lambda *a, **k: (None, []))
+    shutil.copy(zero.out_dir / "detections.csv", tmp_path / "detections.csv")
+    today = pipeline.run(
+        zero.log_summary["path"],
+        tmp_path,
+        pipeline.RunConfig(progress=False, incremental=False, workers=1, force=True),
+        until="smooth",
+    )
+    a, b = zero.trajectories["smoother"], today.trajectories["smoother"]
+    assert np.array_equal(a.T_world_body, b.T_world_body)
+    assert np.array_equal(a.covariances, b.covariances)
+    # and the as-built model does change the solution (the comparison can fail)
+    c = sample_runs["default"].trajectories["smoother"]
+    assert not np.array_equal(a.T_world_body, c.T_world_body)
+
+
+def test_pipeline_writes_floor_codes(sample_runs):
+    res = sample_runs["default"]
+    fmap = res.floor_codes["smoother"]
+    assert len(fmap.codes) >= 3 and fmap.misplaced == []  # the sample floor is laid exactly
+    rows = list(csv.DictReader((res.out_dir / "floor_codes_smoother.csv").read_text().splitlines()))
+    assert [r["id"] for r in rows] == [c.code_id for c in fmap.codes]
+    assert all(int(r["n_obs"]) > 0 and float(r["offset_m"]) < 0.005 for r in rows)
+    metrics = json.loads((res.out_dir / "metrics.json").read_text())
+    assert metrics["floor_codes"]["smoother"]["n_codes"] == len(fmap.codes)
+    report = (res.out_dir / "report.md").read_text()
+    assert "## As-built floor codes" in report and "floor_code_offsets.png" in report
+    assert (res.out_dir / "floor_code_offsets.png").stat().st_size > 1000
+    assert "0 misplaced" in res.summary()
+    # the health monitor compares the smoother with the fixes on the as-built codes
+    assert str(res.health["smoother"].status) == "ok"
+
+
+def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Path:
+    """A run folder with the files map merge reads, and floor_codes_smoother.csv."""
+    root.mkdir(parents=True)
+    T = np.array([make_T(np.eye(3), [x, 1.5, 1.4]) for x in np.linspace(1, 2, 5)])
+    write_tum(root / "trajectory_smoother.tum", Trajectory("smoother", np.arange(5) * 10**8, T))
+    write_loads_json(
+        root / "loads_smoother.json",
+        LoadMap("smoother", [LoadEstimate("L1", np.ones(3), np.eye(3) * 1e-4, 5)]),
+    )
+    (root / RUN_RECORD).write_text(
+        json.dumps({"log": "x", "world_yaml": world, "front_camera_sensor_yaml": None})
+    )
+    cov = np.diag([1e-8, 1e-8, math.radians(0.2) ** 2, sigma**2, sigma**2, 1e-8])
+    codes = [
+        FloorCodeEstimate(cid, np.array([*xy, 0.0]), make_T(np.eye(3), [xy[0] + d, xy[1], 0.0]), cov, 30)
+        for cid, (xy, d) in offsets.items()
+    ]
+    write_floor_codes_csv(root / "floor_codes_smoother.csv", FloorCodeMap("smoother", codes))
+    return root
+
+
+def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
+    world = load_yaml(SAMPLE / "world.yaml")
+    a = _fake_floor_run(tmp_path / "a", world, {"0/1/2": ((1.0, 2.0), 0.02)}, 0.002)
+    b = _fake_floor_run(
+        tmp_path / "b", world, {"0/1/2": ((1.0, 2.0), 0.03), "0/2/2": ((2.0, 2.0), 0.0)}, 0.004
+    )
+    merged = run_merge([a, b], tmp_path / "map")
+    byid = {c.code_id: c for c in merged.floor_codes}
+    # inverse-covariance weights 1/0.002^2 : 1/0.004^2 = 4 : 1
+    assert byid["0/1/2"].xy_yaw[0] == pytest.approx(1.0 + (4 * 0.02 + 0.03) / 5, abs=1e-6)
+    assert byid["0/1/2"].n_runs == 2 and byid["0/2/2"].n_runs == 1
+    prior = floorcodes.read_floor_map(tmp_path / "map", world)
+    np.testing.assert_allclose(prior.codes["0/1/2"][0], byid["0/1/2"].xy_yaw, atol=1e-6)
+    # a map of another warehouse is refused, in one line
+    other = dict(world, floor_qr=dict(world["floor_qr"], side_m=0.25))
+    with pytest.raises(WarehouseError, match="different warehouse.*floor_qr"):
+        floorcodes.read_floor_map(tmp_path / "map", other)
+    # `fusion run --map`: the sample flight's codes 0/1/2 and 0/2/2 start from the map
+    log = Path(sample_runs["default"].log_summary["path"])
+    shutil.copy(log / "world.yaml", tmp_path / "map" / "world.yaml")  # the same warehouse
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(sample_runs["default"].out_dir / "detections.csv", out / "detections.csv")
+    res = pipeline.run(
+        log,
+        out,
+        pipeline.RunConfig(
+            progress=False, incremental=False, workers=1, floor_map=tmp_path / "map", force=True
+        ),
+        until="smooth",
+    )
+    assert any("2 of" in n and "from the map" in n for n in res.notes)
+    est = res.floor_codes["smoother"].by_id()["0/1/2"]
+    assert est.offset_xy_m[0] > 0.005  # pulled towards the map's +2.2 cm
+
+
+def test_report_html_highlights_misplaced_codes():
+    from fusion.warehouse.view3d import build_figure
+
+    fig = build_figure(
+        {},
+        None,
+        np.array([[1.0, 2.0], [2.0, 2.0]]),
+        misplaced_codes=[("0/1/2<b>", np.array([1.03, 2.0, 0.0]), "offset 3.0 cm (4.1 sigma), 25 sightings")],
+    )
+    traces = [t for t in fig.data if t.name == "misplaced floor codes"]
+    assert len(traces) == 1 and traces[0].x[0] == pytest.approx(1.03)
+    assert "<b>" not in traces[0].hovertext[0] and "&lt;b&gt;" in traces[0].hovertext[0]
+    assert not [t for t in build_figure({}, None, np.zeros((1, 2))).data if t.name == "misplaced floor codes"]
