@@ -35,6 +35,7 @@ from fusion.estimate import (
     write_sigmas_csv,
 )
 from fusion.estimate.common import match_to_frames
+from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe
@@ -75,6 +76,9 @@ class RunConfig:
     incremental: bool = True  # also run the incremental (causal) smoother
     th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
+    # camera-IMU time offsets fixed by hand {camera: s} (t_imu = t_cam + offset); the cameras
+    # not given are estimated (fusion.estimate.timeoffset); None: estimate both
+    time_offsets_s: dict[str, float] | None = None
 
 
 @dataclass
@@ -91,6 +95,7 @@ class RunResult:
     warnings: list[LogWarning] = field(default_factory=list)  # the log's (FlightLog.warnings)
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
     health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
+    time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
 
     @property
     def trusted(self) -> bool:
@@ -142,6 +147,8 @@ class RunResult:
         for name, h in self.health.items():
             if h.status != Status.OK:
                 lines.append(f"health: {name} {h.status}: {h.reason}")
+        if self.time_offsets is not None:
+            lines += self.time_offsets.lines()
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
@@ -543,6 +550,7 @@ def _run_into(
     t = time.perf_counter()
     _progress(cfg, "per-frame estimators (paper, pnp)")
     loc = localize_stage(log, det, cfg)
+    log, det, loc = _apply_time_offsets(log, det, loc, cfg, result)
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -581,6 +589,29 @@ def _run_into(
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
+
+
+def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+    """Each camera's time offset (fixed, else estimated: fusion.estimate.timeoffset) into
+    `result.time_offsets`; when one is applied, the log and detections in the IMU clock and the
+    per-frame estimates made again with them (so every output carries the corrected stamps)."""
+    _progress(cfg, "camera-IMU time offsets")
+    try:
+        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+    offsets = resolve_time_offsets(
+        log,
+        loc.trajectories.get(str(Estimator.PNP)),
+        loc.camera_frame_observations,
+        cfg.time_offsets_s,
+        fusion_config=FusionConfig(robust_kernel=kernel),
+    )
+    result.time_offsets = offsets
+    if not offsets.any_applied:
+        return log, det, loc
+    log, det = shift_log(log, offsets), shift_detections(det, offsets)
+    return log, det, localize_stage(log, det, cfg)
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
@@ -640,6 +671,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
+    if result.time_offsets is not None:
+        metrics["time_offsets"] = result.time_offsets.as_dict()
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics

@@ -153,6 +153,7 @@ def simulate(
     check_readable: bool = False,
     start_s: float = 0.0,
     fmt: str = "euroc",
+    time_offset_ms: dict[str, float] | float | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -171,7 +172,12 @@ def simulate(
 
     `fmt` (fusion.log.LogFormat): "euroc" (default), "rosbag1" (OUT.bag), "rosbag2" (OUT.mcap)
     or "video" (a folder of lossless FFV1 videos); the EuRoC folder is written first and
-    converted once complete (fusion.log.convert.export_flight)."""
+    converted once complete (fusion.log.convert.export_flight).
+
+    `time_offset_ms` ({"cam0": ms, "cam1": ms}, or one number for both): camera-IMU clock
+    offsets, Kalibr's sign (t_imu = t_cam + offset): each frame is rendered at its true time t
+    and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
+    frames whose stamp would fall before the flight's start are left out."""
     from fusion.log import LogFormat
 
     try:
@@ -196,6 +202,7 @@ def simulate(
             png_compression=png_compression,
             check_readable=check_readable,
             start_s=start_s,
+            time_offset_ms=time_offset_ms,
         )
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
@@ -262,6 +269,9 @@ def simulate(
         if a * 1e9 < t1_ns and b * 1e9 > t0_ns
     ]
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
+    offset_ns = _camera_offsets_ns(time_offset_ms, list(sc.cameras))
+    if offset_ns:
+        frame_ns = frame_ns[frame_ns - max(offset_ns.values()) >= t0_ns]
 
     readable: list[bool] = []
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
@@ -296,7 +306,7 @@ def simulate(
             cpu_s[0] += cpu
             for k, pngs, ok in results:
                 for name, png in zip(names, pngs):
-                    writer.write_frame_png(name, int(frame_ns[k]), png)
+                    writer.write_frame_png(name, int(frame_ns[k]) - offset_ns.get(name, 0), png)
                 if ok is not None:
                     readable.append(ok)
                 if bar is not None:
@@ -331,6 +341,26 @@ def simulate(
         names,
         cpu_s[0],
     )
+
+
+def _camera_offsets_ns(time_offset_ms, names: list[str]) -> dict[str, int]:
+    """{camera: offset ns} from `time_offset_ms` (a number for every camera, or a dict);
+    SimulationError for an unknown camera or a non-finite value."""
+    if time_offset_ms is None:
+        return {}
+    given = time_offset_ms if isinstance(time_offset_ms, dict) else {n: time_offset_ms for n in names}
+    out = {}
+    for name, ms in given.items():
+        if name not in names:
+            raise SimulationError(f"time offset for unknown camera {name!r}; cameras: {', '.join(names)}")
+        try:
+            v = float(ms)
+        except (TypeError, ValueError):
+            raise SimulationError(f"time offset of {name}: {ms!r} is not a number") from None
+        if not math.isfinite(v):
+            raise SimulationError(f"time offset of {name} must be finite, got {ms!r}")
+        out[name] = int(round(v * 1e6))
+    return out
 
 
 _FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}
