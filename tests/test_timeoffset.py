@@ -144,6 +144,19 @@ def test_kalibr_seed_and_fixed_offsets():
     assert fixed.as_dict()["cam0"]["effective_ms"] == pytest.approx(12.0)
 
 
+def test_long_flight_is_profiled_on_a_window():
+    """A flight longer than profile_window_s: the floor camera is profiled on a window, the
+    front camera on one smoother solve over the whole flight (its sightings all count)."""
+    fl = _flight(8.0, 7, -0.014, 0.011)
+    cfg = TimeOffsetConfig(profile_window_s=4.0)
+    fp = estimate_floor_offset(fl["t_floor"], fl["imu"], fl["raw"], floor_camera=FLOOR_CAM, config=cfg)
+    assert not fp.whole_flight and fp.trajectory is not None
+    assert (fp.trajectory.timestamps_ns[-1] - fp.trajectory.timestamps_ns[0]) * 1e-9 <= 4.0
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
+    assert abs(off.cameras["cam0"].offset_s + 0.014) < 1 * MS
+    assert abs(off.cameras["cam1"].offset_s - 0.011) < 1 * MS
+
+
 def test_zero_offset_is_not_applied():
     """No offset: the estimates are not significant, nothing is shifted (today's results)."""
     fl = _flight(8.0, 6, 0.0, 0.0)

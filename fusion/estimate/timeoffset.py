@@ -291,6 +291,7 @@ class FloorProfile:
     trajectory: Trajectory | None  # smoothed at the estimate, IMU clock (the front profile's)
     evaluations: int
     note: str = ""
+    whole_flight: bool = True  # False: profiled on a window of the flight (profile_window_s)
 
 
 def estimate_floor_offset(
@@ -372,6 +373,7 @@ def estimate_floor_offset(
         trajs[d_best],
         len(cache),
         note,
+        whole_flight=(t1 - t0) < int(config.profile_window_s * NS_PER_S),
     )
 
 
@@ -520,6 +522,7 @@ def resolve_time_offsets(
     out = TimeOffsets()
     floor, front = CameraRole.FLOOR.value, CameraRole.FRONT.value
     fused: Trajectory | None = None  # the drone in the IMU clock, for the front profile
+    fused_shift_ns = 0  # ... else solved with the floor stamps shifted by this
 
     seed = seeds.get(floor, 0.0)
     if floor in fixed_s:
@@ -539,7 +542,11 @@ def resolve_time_offsets(
                 config,
                 fusion_config,
             )
-            fused = fp.trajectory
+            # the profile's trajectory, unless it covers only a window of the flight
+            if fp.whole_flight:
+                fused = fp.trajectory
+            else:
+                fused_shift_ns = int(round(fp.residual_s * NS_PER_S))
             applied = fp.residual_s if _significant(fp.residual_s, fp.sigma_s, config) else 0.0
             out.cameras[floor] = CameraOffset(
                 floor,
@@ -564,7 +571,8 @@ def resolve_time_offsets(
         return out
     try:
         if fused is None:
-            fused = _fused_trajectory(log_, raw, out.shift_ns(floor), fusion_config)
+            fused_shift_ns = fused_shift_ns or out.shift_ns(floor)
+            fused = _fused_trajectory(log_, raw, fused_shift_ns, config, fusion_config)
         fr = estimate_front_offset(fused, sightings, log_.cameras[front].camera, config, fusion_config)
         # the trajectory's clock carries the floor estimate's error one to one
         sigma = fr.sigma_s
@@ -588,18 +596,26 @@ def resolve_time_offsets(
 
 
 def _fused_trajectory(
-    log_: FlightLog, raw: Trajectory | None, shift_ns: int, fusion_config: FusionConfig | None
+    log_: FlightLog,
+    raw: Trajectory | None,
+    shift_ns: int,
+    config: TimeOffsetConfig,
+    fusion_config: FusionConfig | None,
 ) -> Trajectory:
     """One smoother solve (no loads, no covariances) with the floor stamps shifted by
-    `shift_ns`: the drone in the IMU clock when the floor camera's offset was not profiled."""
+    `shift_ns`: the drone in the IMU clock over the whole flight (the floor profile covered only a
+    window, or none was made)."""
     if raw is None or len(raw) == 0:
         raise EstimationError("no floor-code fix: the front camera's offset cannot be estimated")
     if log_.imu is None and log_.velocity is None:
         raise EstimationError("neither IMU nor velocity: the front camera's offset cannot be estimated")
     pcfg = replace(fusion_config or FusionConfig(), compute_covariances=False, tight=False)
+    imu = log_.imu
+    if imu is not None:
+        imu = upsample_imu(imu, config.imu_upsample, pcfg.max_imu_gap_s)
     res = smooth(
         log_.floor.timestamps_ns + shift_ns,
-        log_.imu,
+        imu,
         _shift_traj(raw, shift_ns),
         None,
         velocity=log_.velocity,
