@@ -35,6 +35,23 @@ def _grid(text: str) -> tuple[int, int]:
     return nx, ny
 
 
+def _time_offsets_ms(text: str) -> dict[str, float]:
+    """--time-offset-ms: {camera: offset in s} (fusion.estimate.timeoffset.parse_time_offsets_ms)."""
+    from fusion.estimate.timeoffset import parse_time_offsets_ms
+
+    try:
+        return parse_time_offsets_ms(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+TIME_OFFSET_HELP = (
+    "camera-IMU clock offsets in ms, t_imu = t_cam + offset (Kalibr's timeshift_cam_imu sign): "
+    "MS for both cameras, or cam0=MS,cam1=MS (a camera left out is estimated).  Default: both "
+    "estimated around Kalibr's timeshift_cam_imu (--calib), or 0"
+)
+
+
 def _add_log_options(p: argparse.ArgumentParser) -> None:
     """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
     g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
@@ -98,7 +115,7 @@ def _flight_arg(args):
     return args.log if opts == LogOptions() else open_flight(args.log, opts)
 
 
-def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
+def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offset: bool = True) -> None:
     p.add_argument(
         "log", type=Path, help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video"
     )
@@ -126,6 +143,8 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
             help="estimate the floor camera's rolling-shutter readout time from the flight "
             "(PnP reprojection cost profile, golden section; reported with its sigma) and use it",
         )
+    if time_offset:
+        p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
     if stages:
         p.add_argument(
             "--robust",
@@ -232,9 +251,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
         "a folder of lossless videos + CSV + Kalibr yaml",
     )
+    p.add_argument(
+        "--time-offset-ms",
+        type=_time_offsets_ms,
+        default=None,
+        help="camera clock offsets to simulate, ms (t_imu = t_cam + offset: each frame is "
+        "stamped its true time minus the offset): MS for both cameras, or cam0=MS,cam1=MS",
+    )
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
-    _add_run_options(p, stages=False)
+    _add_run_options(p, stages=False, time_offset=False)
     p = sub.add_parser("localize", parents=[common], help="per-frame estimates: paper (Alg. 1-6) and PnP")
     _add_run_options(p, stages=False)
     p = sub.add_parser("smooth", parents=[common], help="fusion only: smoother, incremental, EKF (no report)")
@@ -399,6 +425,7 @@ def _run_config(args):
         incremental=not getattr(args, "no_incremental", False),
         calibrate_readout=getattr(args, "calibrate_readout", False),
         floor_map=getattr(args, "map", None),
+        time_offsets_s=getattr(args, "time_offset_ms", None),
     )
 
 
@@ -424,6 +451,9 @@ def main(argv: list[str] | None = None) -> int:
                 readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
                 placement_error_m=args.placement_error_m,
                 placement_error_deg=args.placement_error_deg,
+                time_offset_ms=(
+                    {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
+                ),
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

@@ -42,6 +42,7 @@ from fusion.estimate.asbuilt import (
     write_floor_codes_csv,
 )
 from fusion.estimate.common import match_to_frames
+from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
@@ -94,6 +95,9 @@ class RunConfig:
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
     calibrate_readout: bool = False  # estimate the floor camera's rolling-shutter readout time
     floor_map: Path | None = None  # `fusion run --map`: merged floor codes as the prior
+    # camera-IMU time offsets fixed by hand {camera: s} (t_imu = t_cam + offset); the cameras
+    # not given are estimated (fusion.estimate.timeoffset); None: estimate both
+    time_offsets_s: dict[str, float] | None = None
 
 
 @dataclass
@@ -113,6 +117,7 @@ class RunResult:
     readout_calibration: ReadoutCalibration | None = None  # --calibrate-readout's estimate
     rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
     floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
+    time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
 
     @property
     def trusted(self) -> bool:
@@ -176,6 +181,8 @@ class RunResult:
         for name, h in self.health.items():
             if h.status != Status.OK:
                 lines.append(f"health: {name} {h.status}: {h.reason}")
+        if self.time_offsets is not None:
+            lines += self.time_offsets.lines()
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
@@ -657,12 +664,14 @@ def _run_into(
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
         loc = localize_stage(log, det, cfg)
+    log, det, loc = _apply_time_offsets(log, det, loc, cfg, result)
     if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
+        # (keyed by the floor frames' stamps, shifted like them when a time offset was applied)
+        shift = 0 if result.time_offsets is None else result.time_offsets.shift_ns(CameraRole.FLOOR.value)
+        added = {t + shift: c for t, c in result.rolling_shutter.pose_cov_added.items()}
         pnp_key = str(Estimator.PNP)
-        loc.trajectories[pnp_key] = add_pose_covariance(
-            loc.trajectories[pnp_key], result.rolling_shutter.pose_cov_added
-        )
+        loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -729,6 +738,29 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     return det
 
 
+def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+    """Each camera's time offset (fixed, else estimated: fusion.estimate.timeoffset) into
+    `result.time_offsets`; when one is applied, the log and detections in the IMU clock and the
+    per-frame estimates made again with them (so every output carries the corrected stamps)."""
+    _progress(cfg, "camera-IMU time offsets")
+    try:
+        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+    offsets = resolve_time_offsets(
+        log,
+        loc.trajectories.get(str(Estimator.PNP)),
+        loc.camera_frame_observations,
+        cfg.time_offsets_s,
+        fusion_config=FusionConfig(robust_kernel=kernel),
+    )
+    result.time_offsets = offsets
+    if not offsets.any_applied:
+        return log, det, loc
+    log, det = shift_log(log, offsets), shift_detections(det, offsets)
+    return log, det, localize_stage(log, det, cfg)
+
+
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
     """A warning when front-camera load sightings lie further than FusionConfig.max_sync_s from
     every floor-camera frame: the back ends cannot place them (no load factor), so a front
@@ -792,6 +824,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
         metrics["floor_codes"] = to_jsonable(
             {name: floorcodes.floor_code_metrics(fmap, log.root) for name, fmap in result.floor_codes.items()}
         )
+    if result.time_offsets is not None:
+        metrics["time_offsets"] = result.time_offsets.as_dict()
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics

@@ -202,6 +202,7 @@ def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, worl
     np.testing.assert_array_equal(
         cam.timestamps_ns, np.array([1.0e9, 1.1e9, 1.2e9, 1.3e9]).astype(np.int64) + 2_000_000
     )
+    assert flight.timeshift_ns == {"cam0": 2_000_000}  # the time-offset estimate's seed
     for i, k in enumerate([0, 2, 1, 3]):  # frame i is the bag's message k
         np.testing.assert_array_equal(cam.load_image(i), imgs[k])
     np.testing.assert_array_equal(list(f.image for f in cam.frames())[1], imgs[2])

@@ -306,6 +306,9 @@ class FlightLog:
     loads_groundtruth: dict[str, np.ndarray] | None = None
     blackouts: list[tuple[int, int, str]] | None = None  # (start_ns, end_ns, kind)
     warnings: list[LogWarning] = field(default_factory=list)  # plausibility (check_log)
+    # Kalibr's timeshift_cam_imu the reader already added to each camera's stamps (ns, t_imu =
+    # t_cam + shift): the seed of the time-offset estimate (fusion.estimate.timeoffset)
+    timeshift_ns: dict[str, int] = field(default_factory=dict)
 
     @property
     def floor(self) -> CameraStream:

@@ -635,6 +635,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     meta_cams = _metadata_cameras(meta, f"{path}: {METADATA_TOPIC}")
     cameras: dict[str, CameraStream] = {}
+    shifts: dict[str, int] = {}  # Kalibr timeshift added to each camera's stamps
     for name, topic in cam_topics.items():
         ts_scan = scan.topics[topic]
         where = f"{path}: topic {topic}"
@@ -646,6 +647,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
             raise LogError(f"{where} message 0: {e}") from None
         cam, shift_ns = _camera_for(name, topic, calib, meta_cams, scan, infos, where)
         t = choose_times(ts_scan, opts.stamps, str(path)) + shift_ns
+        shifts[name] = int(shift_ns)
         order, _, _ = sort_unique(t, where)
         if len(order) > 1 and name not in meta_cams:
             cam.rate_hz = float(1e9 / np.median(np.diff(t[order])))
@@ -680,7 +682,9 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if meta.get("blackouts") is not None
         else None
     )
-    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
+    out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
+    out.timeshift_ns = shifts
+    return out
 
 
 def _camera_for(name, topic, calib, meta_cams, scan, infos, where) -> tuple[CameraModel, int]:

@@ -398,7 +398,9 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     world = find_world(path, opts, None, "")
     if imu is None and vel is None:
         log.warning("%s: no IMU (imu.csv or a .ulg) and no velocity.csv", path)
-    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, list(gt_warnings))
+    out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, list(gt_warnings))
+    out.timeshift_ns = {name: int(kal[name][1]) for name in cameras}  # added to the stamps above
+    return out
 
 
 def _camchain_keys(calib_path: Path, name: str) -> set:
