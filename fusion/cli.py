@@ -85,6 +85,7 @@ def _log_options(args):
         imu=args.imu,
         video_fps=args.video_fps,
         video_start_ns=args.video_start_ns,
+        cameras_optional=getattr(args, "fixes", None) is not None,
     )
 
 
@@ -128,6 +129,12 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
             "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
         )
         p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+        p.add_argument(
+            "--fixes",
+            type=Path,
+            help="external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, "
+            "mocap) fused beside the QR poses; a log without cameras is fused from IMU + fixes",
+        )
         p.add_argument(
             "--strict",
             action="store_true",
@@ -319,6 +326,7 @@ def _run_config(args):
         robust=getattr(args, "robust", "huber"),
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
+        fixes=getattr(args, "fixes", None),
     )
 
 

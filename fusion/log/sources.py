@@ -61,7 +61,7 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     opts = opts or LogOptions()
     fmt = detect_format(path)
     if fmt == LogFormat.EUROC:
-        return euroc.read_flight(path)
+        return euroc.read_flight(path, cameras_optional=opts.cameras_optional)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import read_bag
 
