@@ -390,9 +390,62 @@ def test_truncated_mcap_keeps_its_complete_compressed_chunks(tmp_path):
     assert 0 < len(got) < 40 and len(got) % 12 == 0 and got == stamps[: len(got)]
 
 
+def _as_sqlite3(mcap: Path, folder: Path) -> Path:
+    """The ROS 2 bag `mcap` rewritten with sqlite3 storage into `folder` (metadata.yaml + .db3)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as W2
+
+    ts = typestore_for(False)
+    with AnyReader([mcap], default_typestore=ts) as r, W2(
+        folder, version=8, storage_plugin=StoragePlugin.SQLITE3
+    ) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    return folder
+
+
+def test_damaged_sqlite3_bags_read_what_is_there(tmp_path, world_and_calib, monkeypatch):
+    """A .db3 cut short ("malformed" to SQLite) reads up to the damage; a folder whose recording
+    never wrote metadata.yaml reads whole; both with a bag_truncated warning."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    imgs = _images(30)
+    good = _as_sqlite3(_write_bag(tmp_path / "g.mcap", imgs), tmp_path / "good")
+    opts = LogOptions(calib=world_and_calib)
+    full = open_flight(good, opts)
+    assert len(full.floor) == 30 and not [w for w in full.warnings if w.name == "bag_truncated"]
+
+    def damage(f):
+        return [w.message for w in f.warnings if w.name == "bag_truncated"]
+    nometa = tmp_path / "nometa"
+    shutil.copytree(good, nometa)
+    (nometa / "metadata.yaml").unlink()
+    flight = open_flight(nometa, opts)
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns)
+    assert len(damage(flight)) == 1 and "no usable metadata.yaml" in damage(flight)[0]
+    cut = tmp_path / "cut"
+    shutil.copytree(good, cut)
+    db = next(cut.glob("*.db3"))
+    db.write_bytes(db.read_bytes()[: int(db.stat().st_size * 0.5)])
+    flight = open_flight(cut, opts)
+    n = len(flight.floor)
+    assert 0 < n < 30
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns[:n])
+    np.testing.assert_array_equal(flight.floor.load_image(n - 1), imgs[n - 1])
+    (note,) = damage(flight)
+    assert "stopped after" in note and "malformed" in note
+    db.write_bytes(b"SQLite format 3\x00" + bytes(50))
+    with pytest.raises(LogError, match=r"cut.*not an SQLite database"):
+        open_flight(cut, opts)
+
+
 def test_bag_stamp_problems_are_named_counted_warnings(tmp_path, world_and_calib):
     stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
-    bag = _write_bag(tmp_path / "b.mcap", _images(5), stamps=stamps)
+    logt = [2_000_000_000 + k * 1000 for k in range(5)]  # recorded in this (header-unsorted) order
+    bag = _write_bag(tmp_path / "b.mcap", _images(5), stamps=stamps, log_times=logt)
     flight = open_flight(bag, LogOptions(calib=world_and_calib))
     got = {(w.name, w.count) for w in flight.warnings}
     assert {("stamps_out_of_order", 1), ("stamps_duplicate", 1)} <= got

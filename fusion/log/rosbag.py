@@ -257,6 +257,8 @@ def readable_bag_and_note(path: Path) -> tuple[Path, str | None]:
     without its footer (a recording cut short) a copy of its complete records
     (fusion.log.mcaprecover), with a one-line note of what was read."""
     path = Path(path)
+    if path.is_dir() or path.suffix == ".db3":
+        return _readable_ros2(path)
     if not path.is_file():
         return path, None
     if is_ros1(path):
@@ -285,6 +287,31 @@ def readable_bag_and_note(path: Path) -> tuple[Path, str | None]:
             log.warning(note)
             return copy, note
     return path, None
+
+
+def _readable_ros2(path: Path) -> tuple[Path, str | None]:
+    """A ROS 2 bag folder (or .db3 file) as readable_bag_and_note: as it is when rosbags opens
+    it; a folder without metadata.yaml holding one .mcap file: that file; else, with .db3
+    files, a copy of their readable messages (fusion.log.sqliterecover)."""
+    from rosbags.highlevel import AnyReader
+
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) == 1 and not any(path.glob("*.db3")):
+            copy, note = readable_bag_and_note(mcaps[0])
+            return copy, note or f"{path}: no metadata.yaml; read {mcaps[0].name} alone"
+    elif path.is_dir():
+        try:
+            with AnyReader([path], default_typestore=typestore_for(False)):
+                return path, None
+        except Exception:  # noqa: BLE001 - rosbags raises many types for a damaged bag
+            if not any(path.glob("*.db3")):
+                return path, None  # _open_reader names the problem
+    from fusion.log.sqliterecover import recovered_sqlite_bag
+
+    copy, note = recovered_sqlite_bag(path)
+    log.warning(note)
+    return copy, note
 
 
 def scan_bag(

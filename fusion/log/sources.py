@@ -40,6 +40,8 @@ def detect_format(path: Path) -> LogFormat:
             return LogFormat.EUROC
         if (path / "metadata.yaml").is_file():
             return LogFormat.ROSBAG2
+        if any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+            return LogFormat.ROSBAG2  # a recording that never wrote its metadata.yaml
         if any((path / f"cam0{s}").is_file() for s in VIDEO_SUFFIXES):
             return LogFormat.VIDEO
         raise LogError(f"{path}: not a flight log (no mav0/ folder, no ROS 2 metadata.yaml, no cam0 video)")
