@@ -444,7 +444,8 @@ def fuse_stage(
     except ValueError as e:
         raise EstimationError(str(e)) from None
     fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
-    has_floor = "cam0" in log.cameras
+    # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
+    has_floor = fixes is None or "cam0" in log.cameras
     frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
     floor_camera = log.floor.camera if has_floor else None
     graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
