@@ -104,6 +104,7 @@ def _log_options(args):
         imu=args.imu,
         video_fps=args.video_fps,
         video_start_ns=args.video_start_ns,
+        cameras_optional=getattr(args, "fixes", None) is not None,
     )
 
 
@@ -162,6 +163,12 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
             default=None,
             help="a merged map (`fusion map merge --out MAP`) of the same warehouse: its as-built "
             "floor codes are the prior of this flight's",
+        )
+        p.add_argument(
+            "--fixes",
+            type=Path,
+            help="external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, "
+            "mocap) fused beside the QR poses; a log without cameras is fused from IMU + fixes",
         )
         p.add_argument(
             "--strict",
@@ -426,6 +433,7 @@ def _run_config(args):
         calibrate_readout=getattr(args, "calibrate_readout", False),
         floor_map=getattr(args, "map", None),
         time_offsets_s=getattr(args, "time_offset_ms", None),
+        fixes=getattr(args, "fixes", None),
     )
 
 

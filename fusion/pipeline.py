@@ -42,12 +42,14 @@ from fusion.estimate.asbuilt import (
     write_floor_codes_csv,
 )
 from fusion.estimate.common import match_to_frames
+from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
-from fusion.log import FlightLog, LogWarning, read_flight
+from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
+from fusion.log.fixes import PositionFixes, read_fixes
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
@@ -98,6 +100,9 @@ class RunConfig:
     # camera-IMU time offsets fixed by hand {camera: s} (t_imu = t_cam + offset); the cameras
     # not given are estimated (fusion.estimate.timeoffset); None: estimate both
     time_offsets_s: dict[str, float] | None = None
+    # external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, mocap), fused
+    # beside the QR poses, or instead of them in a log without cameras
+    fixes: Path | None = None
 
 
 @dataclass
@@ -199,7 +204,7 @@ def log_summary(log: FlightLog) -> dict:
     return {
         "path": str(log.root),
         "duration_s": log.duration_s,
-        "floor_frames": len(log.floor),
+        "floor_frames": len(log.floor) if "cam0" in log.cameras else 0,
         "front_frames": len(log.front) if log.front else 0,
         "imu_samples": len(log.imu.timestamps_ns) if log.imu else 0,
         "has_velocity": log.velocity is not None,
@@ -473,17 +478,28 @@ class FuseStageResult:
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     as_built: AsBuiltInput | None = None  # the smoother's as-built floor-code input
+    raw: Trajectory | None = None  # the raw poses the back ends fused (PnP, with any fixes)
 
 
-def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) -> FuseStageResult:
-    """Smoother, incremental smoother and EKF on the PnP poses.
+def fuse_stage(
+    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None, fixes: PositionFixes | None = None
+) -> FuseStageResult:
+    """Smoother, incremental smoother and EKF on the PnP poses (and the external `fixes`:
+    estimate.fixes.merge_fixes; a log without cameras is fused from the IMU and the fixes).
 
     Each back end runs on its own: one that raises is recorded in `failures` with its reason
     and the others still run.  The smoothers take both cameras' CameraModels (mount-aware);
     with `cfg.tight` they use each floor code's corners as reprojection factors (the floor
     sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled."""
     out = FuseStageResult()
-    raw = loc.trajectories[str(Estimator.PNP)]
+    raw = loc.trajectories.get(str(Estimator.PNP), Trajectory.empty(str(Estimator.PNP)))
+    merged = None
+    if fixes is not None:
+        camera_t = log.floor.timestamps_ns if "cam0" in log.cameras else None
+        merged = merge_fixes(camera_t, raw, fixes, log.imu)
+        raw = merged.raw
+        out.notes.append(merged.note())
+    out.raw = raw
     if len(raw) == 0:
         out.notes.append("no floor code was read in this flight: nothing to fuse (no fused estimate)")
         return out
@@ -497,8 +513,12 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     except ValueError as e:
         raise EstimationError(str(e)) from None
     fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
-    graph_kwargs: dict[str, Any] = {"floor_camera": log.floor.camera}
-    if cfg.tight:
+    # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
+    has_floor = fixes is None or "cam0" in log.cameras
+    frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
+    floor_camera = log.floor.camera if has_floor else None
+    graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
+    if cfg.tight and det is not None:
         graph_kwargs["floor_frames"] = {
             t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
         }
@@ -508,9 +528,8 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         )
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
-    frame_t = log.floor.timestamps_ns
     smoother_kwargs = dict(graph_kwargs)
-    if det is not None:
+    if det is not None and has_floor:
         as_built, notes = floorcodes.as_built_input(
             log.world,
             _world_yaml(log),
@@ -529,7 +548,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
-    solvers.append((Estimator.EKF, run_ekf, {"floor_camera": log.floor.camera}))
+    solvers.append((Estimator.EKF, run_ekf, {"floor_camera": floor_camera}))
     for name, fn, kwargs in solvers:
         try:
             res = fn(
@@ -606,7 +625,11 @@ def run(
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    log = log_dir if isinstance(log_dir, FlightLog) else read_flight(log_dir)
+    log = (
+        log_dir
+        if isinstance(log_dir, FlightLog)
+        else read_flight(log_dir, LogOptions(cameras_optional=cfg.fixes is not None))
+    )
     with prepare_out_dir(out_dir, cfg.force, log.root) as out:
         result = _run_into(log, out.path, cfg, until, timings, t, detections, localized)
     return result
@@ -625,7 +648,12 @@ def _run_into(
     """`run`'s stages, writing into the prepared (locked) output folder."""
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
+    fixes = read_fixes(cfg.fixes) if cfg.fixes is not None else None
+    if fixes is not None:
+        result.warnings += fixes.warnings
     timings["read_s"] = time.perf_counter() - t
+    if "cam0" not in log.cameras:
+        return _run_without_cameras(log, out_dir, cfg, until, timings, result, fixes)
 
     t = time.perf_counter()
     if detections is None:
@@ -680,35 +708,14 @@ def _run_into(
             write_load_observations_csv(out_dir / f"load_observations_{name}.csv", obs)
     timings["localize_s"] = time.perf_counter() - t
 
-    fused_stats = {}
+    fused_stats: dict = {}
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused_stage = fuse_stage(log, loc, cfg, det)
-        result.notes += fused_stage.notes
-        result.failures = {str(k): v for k, v in fused_stage.failures.items()}
-        raw = loc.trajectories[str(Estimator.PNP)]
-        max_iterations = FusionConfig().lm_max_iterations
+        fused_stats = _fuse_into_result(log, loc, cfg, det, fixes, result)
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
-        for name, res in fused_stage.results.items():
-            # as built, the smoother's fixes are the sightings on the estimated codes, not PnP
-            # on the nominal ones
-            fixes = (
-                as_built_fixes(fused_stage.as_built, res.floor_codes)
-                if res.floor_codes is not None and fused_stage.as_built is not None
-                else raw
-            )
-            result.health[str(name)] = assess_result(
-                res, fixes, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
-            )
-            result.trajectories[name] = res.trajectory
-            if log.front is not None:
-                result.load_maps[name] = res.loads
-            if res.floor_codes is not None:
-                result.floor_codes[str(name)] = res.floor_codes
-            fused_stats[name] = res.stats
         timings["fuse_s"] = time.perf_counter() - t
 
     _write_estimates(out_dir, result)
@@ -759,6 +766,68 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
         return log, det, loc
     log, det = shift_log(log, offsets), shift_detections(det, offsets)
     return log, det, localize_stage(log, det, cfg)
+
+
+def _fuse_into_result(
+    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det, fixes: PositionFixes | None, result: RunResult
+) -> dict:
+    """fuse_stage, its results, failures and health into `result`; returns the fused stats."""
+    fused_stage = fuse_stage(log, loc, cfg, det, fixes)
+    result.notes += fused_stage.notes
+    result.failures = {str(k): v for k, v in fused_stage.failures.items()}
+    raw = fused_stage.raw if fused_stage.raw is not None else loc.trajectories[str(Estimator.PNP)]
+    max_iterations = FusionConfig().lm_max_iterations
+    gimbaled = "cam0" in log.cameras and log.floor.camera.gimbaled
+    fused_stats = {}
+    for name, res in fused_stage.results.items():
+        # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
+        # the nominal ones
+        fixes_of = (
+            as_built_fixes(fused_stage.as_built, res.floor_codes)
+            if res.floor_codes is not None and fused_stage.as_built is not None
+            else raw
+        )
+        result.health[str(name)] = assess_result(
+            res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
+        )
+        result.trajectories[name] = res.trajectory
+        if log.front is not None:
+            result.load_maps[name] = res.loads
+        if res.floor_codes is not None:
+            result.floor_codes[str(name)] = res.floor_codes
+        fused_stats[name] = res.stats
+    return fused_stats
+
+
+def _run_without_cameras(
+    log: FlightLog,
+    out_dir: Path,
+    cfg: RunConfig,
+    until: str,
+    timings: dict,
+    result: RunResult,
+    fixes: PositionFixes | None,
+) -> RunResult:
+    """A log without cameras (read with cameras_optional): IMU + external fixes only, the same
+    outputs as a QR flight (no detections, no per-frame estimates, no load map)."""
+    if fixes is None:
+        raise FusionError(f"{log.root}: no floor camera and no --fixes: nothing to localise from")
+    result.notes.append("no camera in this log: fused from the IMU and the external fixes only")
+    loc = LocalizeResult({}, {}, {}, {})
+    fused_stats: dict = {}
+    if until in ("smooth", "run"):
+        t = time.perf_counter()
+        _progress(cfg, "fusion (smoother, incremental, ekf) on the external fixes")
+        fused_stats = _fuse_into_result(log, loc, cfg, None, fixes, result)
+        timings["fuse_s"] = time.perf_counter() - t
+    _write_estimates(out_dir, result)
+    if until == "run":
+        t = time.perf_counter()
+        _progress(cfg, "evaluation and report")
+        _evaluate_and_report(log, result, fused_stats, {})
+        timings["report_s"] = time.perf_counter() - t
+    result.timings_s = timings
+    return result
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
@@ -853,6 +922,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
 
 def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
+    if "cam0" not in log.cameras:  # camera-less: nothing was detected
+        return None
     return floor_codes_from_detections(out_dir, log.world.payload_unit_m)
 
 
