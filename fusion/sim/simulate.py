@@ -22,7 +22,7 @@ from fusion.log import FlightLogWriter, GroundTruth
 from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.render import render_view
-from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
+from fusion.sim.scenarios import SCENARIOS, CameraOptions, Scenario, apply_camera_options, build_scenario
 
 CAMERA_RATE_HZ = 30.0
 _STREAM_IMU, _STREAM_VEL, _STREAM_FRAME = 1, 2, 3
@@ -153,6 +153,7 @@ def simulate(
     check_readable: bool = False,
     start_s: float = 0.0,
     fmt: str = "euroc",
+    camera_options: CameraOptions | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -171,7 +172,9 @@ def simulate(
 
     `fmt` (fusion.log.LogFormat): "euroc" (default), "rosbag1" (OUT.bag), "rosbag2" (OUT.mcap)
     or "video" (a folder of lossless FFV1 videos); the EuRoC folder is written first and
-    converted once complete (fusion.log.convert.export_flight)."""
+    converted once complete (fusion.log.convert.export_flight).  `camera_options`
+    (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus, ...) and lens
+    changes (focal length, distortion) on top of the scenario's."""
     from fusion.log import LogFormat
 
     try:
@@ -196,6 +199,7 @@ def simulate(
             png_compression=png_compression,
             check_readable=check_readable,
             start_s=start_s,
+            camera_options=camera_options,
         )
     t_wall = time.perf_counter()
     if scenario not in SCENARIOS:
@@ -223,6 +227,8 @@ def simulate(
         )
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
+    if camera_options is not None:
+        apply_camera_options(sc, camera_options)
     if noise_sigma_dn is not None:
         sc.noise_sigma_dn = float(noise_sigma_dn)
     workers = worker_count(workers)
