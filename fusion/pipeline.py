@@ -15,7 +15,7 @@ import csv
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ from fusion.estimate import (
     run_ekf,
     smooth,
     smooth_incremental,
+    variance,
     write_sigmas_csv,
 )
 from fusion.estimate.common import match_to_frames
@@ -75,6 +76,7 @@ class RunConfig:
     incremental: bool = True  # also run the incremental (causal) smoother
     th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
+    estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
 
 
 @dataclass
@@ -245,8 +247,12 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     else:
         trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
     traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
-    trajectories["pnp"] = traj_pnp
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
+    # honest sigma (issue 10): the flight's reprojection chi2/dof scales the PnP covariances
+    traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory(
+        traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
+    )
+    trajectories["pnp"] = traj_pnp
     obs: dict[str, list[LoadObservation]] = {}
     maps: dict[str, LoadMap] = {}
     if log.front is None:
@@ -427,7 +433,11 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         kernel = RobustKernel.parse(cfg.robust, "robust kernel")
     except ValueError as e:
         raise EstimationError(str(e)) from None
-    fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
+    fcfg = FusionConfig(
+        robust_kernel=kernel,
+        tight=cfg.tight,
+        noise_scale_iterations=FusionConfig.noise_scale_iterations if cfg.estimate_noise_scale else 0,
+    )
     graph_kwargs: dict[str, Any] = {"floor_camera": log.floor.camera}
     if cfg.tight:
         graph_kwargs["floor_frames"] = {
@@ -471,6 +481,12 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         res.trajectory.name = str(name)
         res.loads.name = str(name)
         out.results[name] = res
+        if name == Estimator.SMOOTHER and cfg.estimate_noise_scale:
+            # the smoother's noise scales, estimated on the whole flight, for the other back ends
+            raw, load_obs, corner_scale = variance.apply_smoother_scales(
+                res.stats.get("noise_scales"), raw, load_obs
+            )
+            fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():
