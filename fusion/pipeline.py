@@ -93,6 +93,7 @@ class RunResult:
     warnings: list[LogWarning] = field(default_factory=list)  # the log's (FlightLog.warnings)
     failures: dict[str, EstimatorFailure] = field(default_factory=dict)
     health: dict[str, Health] = field(default_factory=dict)  # fused estimators (health.py)
+    noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
     @property
     def trusted(self) -> bool:
@@ -148,6 +149,9 @@ class RunResult:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
             lines.append(f"{name:<12} FAILED: {failure.reason}")
+        line = variance.summary_line(self.noise_scales)
+        if line:
+            lines.append(line)
         for note in self.notes:
             lines.append(f"note: {note}")
         if self.report_path is not None:
@@ -588,6 +592,7 @@ def _run_into(
                 result.load_maps[name] = res.loads
             fused_stats[name] = res.stats
         timings["fuse_s"] = time.perf_counter() - t
+    result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
 
     _write_estimates(out_dir, result)
     if until == "run":
@@ -656,6 +661,7 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
     metrics["notes"] = list(result.notes)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
+    metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics

@@ -419,3 +419,39 @@ def nis_component(nis: Sequence[float], dims: Sequence[int]) -> VarianceComponen
     consistent filter each update's NIS is chi-square with its dimension (Bar-Shalom, Li &
     Kirubarajan, 2001, sec. 5.4.2), so sum NIS / sum dim ~ 1 (gated as above)."""
     return gated_variance_component(nis, dims)
+
+
+def noise_summary(pnp_stats: dict, fused_stats: dict) -> dict:
+    """metrics.json's `noise_scales`: the variance factors (1 = the noise model is right) per
+    estimator and camera: PnP's (cam0, from its reprojection chi2/dof), the batch smoother's
+    per camera (relative to the PnP-scaled input) and the IMU's chi2/dof, the EKF's pose NIS."""
+    out: dict = {}
+    if "noise_scale" in pnp_stats:
+        out["pnp"] = pnp_stats["noise_scale"]
+    smoother = fused_stats.get("smoother", {}).get("noise_scales")
+    if smoother:
+        out["smoother"] = smoother
+    nis = fused_stats.get("ekf", {}).get("pose_nis")
+    if nis:
+        out["ekf_pose_nis"] = nis
+    return out
+
+
+def summary_line(summary: dict) -> str:
+    """One line for the terminal summary, '' when there is nothing to say."""
+    parts = []
+    pnp = summary.get("pnp")
+    if pnp and pnp.get("dof"):
+        parts.append(f"PnP cam0 {pnp['scale']:.2f} ({pnp['dof']:.0f} dof)")
+    sm = summary.get("smoother") or {}
+    for cam, c in sorted((sm.get("cameras") or {}).items()):
+        parts.append(f"smoother {cam} {c['scale']:.2f} ({c['dof']:.0f} dof)")
+    if "imu_chi2_per_dof" in sm:
+        parts.append(
+            f"IMU {sm['imu_chi2_per_dof']:.2f}"
+            + (" (check its noise densities)" if sm.get("imu_warning") else "")
+        )
+    nis = summary.get("ekf_pose_nis")
+    if nis and nis.get("dof"):
+        parts.append(f"EKF pose NIS/dim {nis['scale']:.2f}")
+    return ("noise chi2/dof (1 = as modelled; applied): " + ", ".join(parts)) if parts else ""
