@@ -169,16 +169,16 @@ def factor_chi2(factor, values: gtsam.Values) -> float:
     return float(nm.mahalanobisDistance(e)) ** 2
 
 
-def _rows(linear_factor: Any) -> int:
-    """Rows of a linearised (Jacobian) factor."""
-    return int(linear_factor.rows())
-
-
 def group_leverages(
-    lin: gtsam.GaussianFactorGraph, n_unknowns: int, factor_group: Sequence[int], n_groups: int
+    lin: gtsam.GaussianFactorGraph,
+    n_unknowns: int,
+    factor_group: Sequence[int],
+    n_groups: int,
+    factor_rows: Sequence[int],
 ) -> np.ndarray:
     """(n_groups,) sum over each group's rows of the hat-matrix diagonal h_ii of the whitened
-    Jacobian A of `lin` (factor i in group factor_group[i]), i.e. tr(A_g (A^T A)^-1 A_g^T).
+    Jacobian A of `lin` (factor i in group factor_group[i], with factor_rows[i] rows: its
+    nonlinear factor's dim()), i.e. tr(A_g (A^T A)^-1 A_g^T).
 
     A^T A is factored once (sparse LU, symmetric minimum-degree ordering); a group with at most
     HUTCHINSON_PROBES rows is summed exactly, row by row, a larger one by Hutchinson's estimator
@@ -189,7 +189,7 @@ def group_leverages(
     np.linalg.LinAlgError for a singular system."""
     trip = lin.sparseJacobian_()  # 3 x nnz, 1-based (row, column, value); column n+1 is b
     rows, cols, vals = trip[0].astype(int) - 1, trip[1].astype(int) - 1, trip[2]
-    sizes = np.array([_rows(lin.at(i)) for i in range(lin.size())], dtype=int)
+    sizes = np.asarray(factor_rows, dtype=int)
     m = int(sizes.sum())
     keep = cols < n_unknowns
     A = sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(m, n_unknowns))
@@ -232,12 +232,13 @@ def graph_variance_components(
         raise np.linalg.LinAlgError("linearised graph does not match its factors")
     order = list(dict.fromkeys(groups))
     index = {g: i for i, g in enumerate(order)}
-    lev = group_leverages(lin, values.dim(), [index[g] for g in groups], len(order))
+    rows = [int(f.dim()) for f in factors]
+    lev = group_leverages(lin, values.dim(), [index[g] for g in groups], len(order), rows)
     out = {g: VarianceComponent(0.0, -float(lev[index[g]]), 0) for g in order}
     for i, (f, g) in enumerate(zip(factors, groups)):
         comp = out[g]
         comp.chi2 += factor_chi2(f, values)
-        comp.dof += _rows(lin.at(i))
+        comp.dof += rows[i]
         comp.n += 1
     return out
 
