@@ -298,14 +298,20 @@ def solve_with_noise_scales(
     stats['variance_components'] maps NoiseGroup -> VarianceComponent at its solution): after
     each solve, every applicable group (pose, corners, load) with enough degrees of freedom has
     its scale multiplied by its chi2/dof and the flight is solved again, at most `iterations`
-    times, stopping when all are within SCALE_TOLERANCE of 1.  Returns the last result and a
+    times, stopping when all are within SCALE_TOLERANCE of 1.  Not applied (the first result,
+    report['not_applied'] says why) when the first solve skipped the outlier gate (the fixes
+    disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is outside
+    IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
     JSON-ready report: per group the applied scale, the final chi2/dof and dof; per camera the
     applied scale; the IMU's chi2/dof (checked, never rescaled: a warning outside
     IMU_WARN_BAND)."""
     scales = NoiseScales()
-    res = solve(scales)
+    res = first = solve(scales)
     n_solves = 1
-    for _ in range(max(int(iterations), 0)):
+    # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml, clock),
+    # not noise: the smoother's IMU-rejection path handles them, unscaled.
+    skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
+    for _ in range(0 if skip else max(int(iterations), 0)):
         comps = res.stats.get("variance_components") or {}
         change = False
         for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
@@ -319,15 +325,26 @@ def solve_with_noise_scales(
         res = solve(scales)
         n_solves += 1
     comps = res.stats.get("variance_components") or {}
+    imu = comps.get(NoiseGroup.IMU)
+    lo, hi = IMU_WARN_BAND
+    if n_solves > 1 and imu is not None and imu.usable and not lo <= imu.scale <= hi:
+        # the IMU, the reference the camera scales are measured against, does not fit its own
+        # noise model: the misfit cannot be attributed, so keep the model as configured
+        skip = "the IMU does not fit its noise model"
+        res, scales = first, NoiseScales()
+        comps = res.stats.get("variance_components") or {}
     report: dict = {"solves": n_solves, "groups": {}, "cameras": {}}
+    if skip:
+        report["not_applied"] = skip
     for g, c in comps.items():
         entry = c.as_dict()
         if g in CAMERA_OF_GROUP:
             entry["applied_scale"] = scales.of(g)
             cam = CAMERA_OF_GROUP[g]
+            total = scales.of(g) * (c.scale if c.usable and not skip else 1.0)
             report["cameras"][cam] = {
-                "scale": scales.of(g) * (c.scale if c.usable else 1.0),
-                "sigma_factor": math.sqrt(scales.of(g) * (c.scale if c.usable else 1.0)),
+                "scale": total,
+                "sigma_factor": math.sqrt(total),
                 "dof": c.dof,
                 "group": str(g),
             }
