@@ -85,14 +85,14 @@ EFFECTS: dict[str, list[tuple[str, dict]]] = {
             },
         ),
         (
-            "1280x720 f1.2 k1-.02 noise 6 40 ms JPEG 70",
+            "1024x768 f1.1 k1-.02 noise 6 20 ms JPEG 70",
             {
-                "resolution": (1280, 720),
-                "focal_scale": 1.2,
+                "resolution": (1024, 768),
+                "focal_scale": 1.1,
                 "distortion": (-0.02, 0.0, 0.0, 0.0),
                 "noise_dn": 6.0,
                 "shot_noise_dn": 0.03,
-                "exposure_s": 0.040,
+                "exposure_s": 0.020,
                 "jpeg_quality": 70,
             },
         ),
