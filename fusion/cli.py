@@ -52,6 +52,57 @@ TIME_OFFSET_HELP = (
 )
 
 
+def _add_camera_effect_options(p: argparse.ArgumentParser) -> None:
+    """`fusion simulate`'s camera effects and lens changes (fusion.sim.scenarios.CameraOptions)."""
+    g = p.add_argument_group("camera effects (on top of the scenario's 2 DN noise and 8 ms exposure)")
+    g.add_argument(
+        "--camera-effects",
+        choices=("none", "realistic"),
+        default="none",
+        help="preset: realistic = JPEG 80, noise 4 DN + shot noise, 20 ms exposure, 30%% vignetting; "
+        "the options below override it",
+    )
+    g.add_argument("--jpeg", type=int, default=None, metavar="Q", help="JPEG quality 1..100")
+    g.add_argument("--noise", type=float, default=None, metavar="DN", help="read noise, DN (1 sigma)")
+    g.add_argument("--shot-noise", type=float, default=None, metavar="G", help="shot noise variance per DN")
+    g.add_argument("--exposure", type=float, default=None, metavar="S", help="exposure (s): motion blur")
+    g.add_argument("--defocus", type=float, default=None, metavar="PX", help="defocus disc radius (px)")
+    g.add_argument("--vignetting", type=float, default=None, metavar="V", help="corner light loss 0..1")
+    g.add_argument("--overexposure", type=float, default=None, metavar="G", help="gain, >1 clips")
+    g.add_argument("--contrast", type=float, default=None, metavar="C", help="scene contrast kept (0..1]")
+    g.add_argument("--glare", type=float, default=None, metavar="F", help="glare over F of each code")
+    g.add_argument("--occlusion", type=float, default=None, metavar="F", help="fraction of each code hidden")
+    g.add_argument("--focal-scale", type=float, default=None, metavar="S", help="focal lengths times S")
+    g.add_argument(
+        "--distortion",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("K1", "K2", "P1", "P2"),
+        help="both cameras' radial-tangential coefficients",
+    )
+
+
+def _camera_options(args):
+    from fusion.sim.scenarios import CameraOptions
+
+    return CameraOptions.preset(
+        args.camera_effects,
+        jpeg_quality=args.jpeg,
+        noise_dn=args.noise,
+        shot_noise_dn=args.shot_noise,
+        exposure_s=args.exposure,
+        defocus_px=args.defocus,
+        vignetting=args.vignetting,
+        overexposure=args.overexposure,
+        contrast=args.contrast,
+        glare_fraction=args.glare,
+        occlusion_fraction=args.occlusion,
+        focal_scale=args.focal_scale,
+        distortion=tuple(args.distortion) if args.distortion is not None else None,
+    )
+
+
 def _add_log_options(p: argparse.ArgumentParser) -> None:
     """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
     g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
@@ -218,11 +269,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--resolution",
-        choices=("640x480", "1280x720"),
-        default="640x480",
-        help="both cameras' resolution (default 640x480)",
+        type=_grid,
+        default=(640, 480),
+        help="both cameras' resolution WxH (default 640x480; the focal length scales with the width)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
+    _add_camera_effect_options(p)
     p.add_argument(
         "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
     )
@@ -452,7 +504,7 @@ def main(argv: list[str] | None = None) -> int:
                 overwrite=args.force,
                 progress=not args.quiet,
                 workers=args.workers,
-                resolution=tuple(int(v) for v in args.resolution.split("x")),
+                resolution=args.resolution,
                 camera_rate_hz=args.fps,
                 start_s=args.start,
                 fmt=args.format,
@@ -462,6 +514,7 @@ def main(argv: list[str] | None = None) -> int:
                 time_offset_ms=(
                     {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
                 ),
+                camera_options=_camera_options(args),
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

@@ -15,7 +15,7 @@ import csv
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ from fusion.estimate import (
     run_ekf,
     smooth,
     smooth_incremental,
+    variance,
     write_sigmas_csv,
 )
 from fusion.estimate.asbuilt import (
@@ -103,6 +104,7 @@ class RunConfig:
     # external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, mocap), fused
     # beside the QR poses, or instead of them in a log without cameras
     fixes: Path | None = None
+    estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
 
 
 @dataclass
@@ -123,6 +125,7 @@ class RunResult:
     rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
     floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
     time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
+    noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
     @property
     def trusted(self) -> bool:
@@ -192,6 +195,9 @@ class RunResult:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
             lines.append(f"{name:<12} FAILED: {failure.reason}")
+        line = variance.summary_line(self.noise_scales)
+        if line:
+            lines.append(line)
         for note in self.notes:
             lines.append(f"note: {note}")
         if self.report_path is not None:
@@ -284,7 +290,7 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
             preload=_LOCALIZE_PRELOAD,
         )
     )
-    floor = merge_floor_parts(parts)
+    floor = merge_floor_parts(parts, cfg)
     if log.front is None:
         return merge_front_parts(log, floor, [])
     parts = list(
@@ -311,7 +317,7 @@ def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tupl
     return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
 
 
-def merge_floor_parts(parts: list[dict]) -> LocalizeResult:
+def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
     results, in time order (no load observations yet)."""
     notes: list[str] = []
@@ -321,8 +327,13 @@ def merge_floor_parts(parts: list[dict]) -> LocalizeResult:
         notes.append(f"paper estimator not run: {paper_errors[0]}")
     else:
         trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
-    trajectories["pnp"] = _concat([p["pnp"] for p in parts], "pnp")
+    traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
+    # honest sigma (issue 10): the flight's reprojection chi2/dof scales the PnP covariances
+    traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory(
+        traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
+    )
+    trajectories["pnp"] = traj_pnp
     return LocalizeResult(trajectories, {}, {}, stats, notes)
 
 
@@ -512,7 +523,11 @@ def fuse_stage(
         kernel = RobustKernel.parse(cfg.robust, "robust kernel")
     except ValueError as e:
         raise EstimationError(str(e)) from None
-    fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
+    fcfg = FusionConfig(
+        robust_kernel=kernel,
+        tight=cfg.tight,
+        noise_scale_iterations=FusionConfig.noise_scale_iterations if cfg.estimate_noise_scale else 0,
+    )
     # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
     has_floor = fixes is None or "cam0" in log.cameras
     frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
@@ -574,6 +589,12 @@ def fuse_stage(
         res.trajectory.name = str(name)
         res.loads.name = str(name)
         out.results[name] = res
+        if name == Estimator.SMOOTHER and cfg.estimate_noise_scale:
+            # the smoother's noise scales, estimated on the whole flight, for the other back ends
+            raw, load_obs, corner_scale = variance.apply_smoother_scales(
+                res.stats.get("noise_scales"), raw, load_obs
+            )
+            fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():
@@ -717,6 +738,7 @@ def _run_into(
         if unsynced is not None:
             result.warnings.append(unsynced)
         timings["fuse_s"] = time.perf_counter() - t
+    result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
 
     _write_estimates(out_dir, result)
     if until == "run":
@@ -895,6 +917,7 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
         )
     if result.time_offsets is not None:
         metrics["time_offsets"] = result.time_offsets.as_dict()
+    metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics

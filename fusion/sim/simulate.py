@@ -25,7 +25,7 @@ from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.placement import placement_offsets
 from fusion.sim.render import render_view, rolling_shutter_poses
-from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
+from fusion.sim.scenarios import SCENARIOS, CameraOptions, Scenario, apply_camera_options, build_scenario
 
 CAMERA_RATE_HZ = 30.0
 _STREAM_IMU, _STREAM_VEL, _STREAM_FRAME = 1, 2, 3
@@ -163,6 +163,7 @@ def simulate(
     placement_error_m: float = 0.0,
     placement_error_deg: float = 0.0,
     time_offset_ms: dict[str, float] | float | None = None,
+    camera_options: CameraOptions | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -195,7 +196,9 @@ def simulate(
     `time_offset_ms` ({"cam0": ms, "cam1": ms}, or one number for both): camera-IMU clock
     offsets, Kalibr's sign (t_imu = t_cam + offset): each frame is rendered at its true time t
     and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
-    frames whose stamp would fall before the flight's start are left out."""
+    frames whose stamp would fall before the flight's start are left out.
+    `camera_options` (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus,
+    ...) and lens changes (focal length, distortion) on top of the scenario's."""
     from fusion.log import LogFormat
 
     try:
@@ -224,6 +227,7 @@ def simulate(
             placement_error_m=placement_error_m,
             placement_error_deg=placement_error_deg,
             time_offset_ms=time_offset_ms,
+            camera_options=camera_options,
         )
     t_wall = time.perf_counter()
     if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
@@ -257,6 +261,8 @@ def simulate(
         )
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
+    if camera_options is not None:
+        apply_camera_options(sc, camera_options)
     if noise_sigma_dn is not None:
         sc.noise_sigma_dn = float(noise_sigma_dn)
     for name, v in (
