@@ -35,6 +35,74 @@ def _grid(text: str) -> tuple[int, int]:
     return nx, ny
 
 
+def _time_offsets_ms(text: str) -> dict[str, float]:
+    """--time-offset-ms: {camera: offset in s} (fusion.estimate.timeoffset.parse_time_offsets_ms)."""
+    from fusion.estimate.timeoffset import parse_time_offsets_ms
+
+    try:
+        return parse_time_offsets_ms(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+TIME_OFFSET_HELP = (
+    "camera-IMU clock offsets in ms, t_imu = t_cam + offset (Kalibr's timeshift_cam_imu sign): "
+    "MS for both cameras, or cam0=MS,cam1=MS (a camera left out is estimated).  Default: both "
+    "estimated around Kalibr's timeshift_cam_imu (--calib), or 0"
+)
+
+
+def _add_camera_effect_options(p: argparse.ArgumentParser) -> None:
+    """`fusion simulate`'s camera effects and lens changes (fusion.sim.scenarios.CameraOptions)."""
+    g = p.add_argument_group("camera effects (on top of the scenario's 2 DN noise and 8 ms exposure)")
+    g.add_argument(
+        "--camera-effects",
+        choices=("none", "realistic"),
+        default="none",
+        help="preset: realistic = JPEG 80, noise 4 DN + shot noise, 20 ms exposure, 30%% vignetting; "
+        "the options below override it",
+    )
+    g.add_argument("--jpeg", type=int, default=None, metavar="Q", help="JPEG quality 1..100")
+    g.add_argument("--noise", type=float, default=None, metavar="DN", help="read noise, DN (1 sigma)")
+    g.add_argument("--shot-noise", type=float, default=None, metavar="G", help="shot noise variance per DN")
+    g.add_argument("--exposure", type=float, default=None, metavar="S", help="exposure (s): motion blur")
+    g.add_argument("--defocus", type=float, default=None, metavar="PX", help="defocus disc radius (px)")
+    g.add_argument("--vignetting", type=float, default=None, metavar="V", help="corner light loss 0..1")
+    g.add_argument("--overexposure", type=float, default=None, metavar="G", help="gain, >1 clips")
+    g.add_argument("--contrast", type=float, default=None, metavar="C", help="scene contrast kept (0..1]")
+    g.add_argument("--glare", type=float, default=None, metavar="F", help="glare over F of each code")
+    g.add_argument("--occlusion", type=float, default=None, metavar="F", help="fraction of each code hidden")
+    g.add_argument("--focal-scale", type=float, default=None, metavar="S", help="focal lengths times S")
+    g.add_argument(
+        "--distortion",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("K1", "K2", "P1", "P2"),
+        help="both cameras' radial-tangential coefficients",
+    )
+
+
+def _camera_options(args):
+    from fusion.sim.scenarios import CameraOptions
+
+    return CameraOptions.preset(
+        args.camera_effects,
+        jpeg_quality=args.jpeg,
+        noise_dn=args.noise,
+        shot_noise_dn=args.shot_noise,
+        exposure_s=args.exposure,
+        defocus_px=args.defocus,
+        vignetting=args.vignetting,
+        overexposure=args.overexposure,
+        contrast=args.contrast,
+        glare_fraction=args.glare,
+        occlusion_fraction=args.occlusion,
+        focal_scale=args.focal_scale,
+        distortion=tuple(args.distortion) if args.distortion is not None else None,
+    )
+
+
 def _add_log_options(p: argparse.ArgumentParser) -> None:
     """How to read a log that is not an EuRoC folder (fusion.log.LogOptions)."""
     g = p.add_argument_group("log input (ROS bags, video; ignored for EuRoC folders)")
@@ -87,6 +155,7 @@ def _log_options(args):
         imu=args.imu,
         video_fps=args.video_fps,
         video_start_ns=args.video_start_ns,
+        cameras_optional=getattr(args, "fixes", None) is not None,
     )
 
 
@@ -98,7 +167,7 @@ def _flight_arg(args):
     return args.log if opts == LogOptions() else open_flight(args.log, opts)
 
 
-def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
+def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offset: bool = True) -> None:
     p.add_argument(
         "log", type=Path, help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video"
     )
@@ -126,6 +195,8 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
             help="estimate the floor camera's rolling-shutter readout time from the flight "
             "(PnP reprojection cost profile, golden section; reported with its sigma) and use it",
         )
+    if time_offset:
+        p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
     if stages:
         p.add_argument(
             "--robust",
@@ -143,6 +214,12 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True) -> None:
             default=None,
             help="a merged map (`fusion map merge --out MAP`) of the same warehouse: its as-built "
             "floor codes are the prior of this flight's",
+        )
+        p.add_argument(
+            "--fixes",
+            type=Path,
+            help="external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, "
+            "mocap) fused beside the QR poses; a log without cameras is fused from IMU + fixes",
         )
         p.add_argument(
             "--strict",
@@ -192,11 +269,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--resolution",
-        choices=("640x480", "1280x720"),
-        default="640x480",
-        help="both cameras' resolution (default 640x480)",
+        type=_grid,
+        default=(640, 480),
+        help="both cameras' resolution WxH (default 640x480; the focal length scales with the width)",
     )
     p.add_argument("--fps", type=float, default=30.0, help="camera frame rate (default 30)")
+    _add_camera_effect_options(p)
     p.add_argument(
         "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
     )
@@ -232,9 +310,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="log format: EuRoC folder (default), ROS 1 OUT.bag, ROS 2 OUT.mcap, or "
         "a folder of lossless videos + CSV + Kalibr yaml",
     )
+    p.add_argument(
+        "--time-offset-ms",
+        type=_time_offsets_ms,
+        default=None,
+        help="camera clock offsets to simulate, ms (t_imu = t_cam + offset: each frame is "
+        "stamped its true time minus the offset): MS for both cameras, or cam0=MS,cam1=MS",
+    )
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
-    _add_run_options(p, stages=False)
+    _add_run_options(p, stages=False, time_offset=False)
     p = sub.add_parser("localize", parents=[common], help="per-frame estimates: paper (Alg. 1-6) and PnP")
     _add_run_options(p, stages=False)
     p = sub.add_parser("smooth", parents=[common], help="fusion only: smoother, incremental, EKF (no report)")
@@ -399,6 +484,8 @@ def _run_config(args):
         incremental=not getattr(args, "no_incremental", False),
         calibrate_readout=getattr(args, "calibrate_readout", False),
         floor_map=getattr(args, "map", None),
+        time_offsets_s=getattr(args, "time_offset_ms", None),
+        fixes=getattr(args, "fixes", None),
     )
 
 
@@ -417,13 +504,17 @@ def main(argv: list[str] | None = None) -> int:
                 overwrite=args.force,
                 progress=not args.quiet,
                 workers=args.workers,
-                resolution=tuple(int(v) for v in args.resolution.split("x")),
+                resolution=args.resolution,
                 camera_rate_hz=args.fps,
                 start_s=args.start,
                 fmt=args.format,
                 readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
                 placement_error_m=args.placement_error_m,
                 placement_error_deg=args.placement_error_deg,
+                time_offset_ms=(
+                    {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
+                ),
+                camera_options=_camera_options(args),
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

@@ -300,6 +300,28 @@ def interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     return make_T(T0[:3, :3] @ so3_exp(a * dw), (1 - a) * T0[:3, 3] + a * T1[:3, 3])
 
 
+def rotation_aligning(u: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R minimising sum |w_i - R u_i|^2 over vectors u, w (N, 3) (Wahba's problem,
+    solved by SVD: Kabsch 1976; Umeyama 1991, eqs. 38-39, with the det fix against a
+    reflection).  Returns (R (3, 3), singular values (3,) of sum u_i w_i^T, descending: a small
+    second value means the rotation about the dominant direction is not determined)."""
+    H = np.asarray(u, float).T @ np.asarray(w, float)
+    U, S, Vt = np.linalg.svd(H)
+    d = 1.0 if np.linalg.det(Vt.T @ U.T) >= 0 else -1.0
+    return Vt.T @ np.diag([1.0, 1.0, d]) @ U.T, S
+
+
+def integrate_gyro(gyro_rad_s: np.ndarray, dt_s: np.ndarray) -> np.ndarray:
+    """(N + 1, 3, 3) rotations R_0_k of the sensor frame at sample k relative to sample 0, by
+    chaining R_k+1 = R_k Exp(w_k dt_k) over angular rates (N, 3) held for dt (N,) s."""
+    dR = so3_exp_stack(np.asarray(gyro_rad_s, float) * np.asarray(dt_s, float)[:, None])
+    out = np.empty((len(dR) + 1, 3, 3))
+    out[0] = np.eye(3)
+    for k in range(len(dR)):
+        out[k + 1] = out[k] @ dR[k]
+    return out
+
+
 # --------------------------------------------------------------------------- world frames
 
 

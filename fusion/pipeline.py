@@ -15,7 +15,7 @@ import csv
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ from fusion.estimate import (
     run_ekf,
     smooth,
     smooth_incremental,
+    variance,
     write_sigmas_csv,
 )
 from fusion.estimate.asbuilt import (
@@ -42,11 +43,14 @@ from fusion.estimate.asbuilt import (
     write_floor_codes_csv,
 )
 from fusion.estimate.common import match_to_frames
+from fusion.estimate.fixes import merge_fixes
+from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
-from fusion.log import FlightLog, LogWarning, read_flight
+from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
+from fusion.log.fixes import PositionFixes, read_fixes
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
@@ -94,6 +98,13 @@ class RunConfig:
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
     calibrate_readout: bool = False  # estimate the floor camera's rolling-shutter readout time
     floor_map: Path | None = None  # `fusion run --map`: merged floor codes as the prior
+    # camera-IMU time offsets fixed by hand {camera: s} (t_imu = t_cam + offset); the cameras
+    # not given are estimated (fusion.estimate.timeoffset); None: estimate both
+    time_offsets_s: dict[str, float] | None = None
+    # external position fixes CSV (t_ns,x,y,z,sigma_m: GNSS, UWB, total station, mocap), fused
+    # beside the QR poses, or instead of them in a log without cameras
+    fixes: Path | None = None
+    estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
 
 
 @dataclass
@@ -113,6 +124,8 @@ class RunResult:
     readout_calibration: ReadoutCalibration | None = None  # --calibrate-readout's estimate
     rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
     floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
+    time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
+    noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
     @property
     def trusted(self) -> bool:
@@ -176,10 +189,15 @@ class RunResult:
         for name, h in self.health.items():
             if h.status != Status.OK:
                 lines.append(f"health: {name} {h.status}: {h.reason}")
+        if self.time_offsets is not None:
+            lines += self.time_offsets.lines()
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
             lines.append(f"{name:<12} FAILED: {failure.reason}")
+        line = variance.summary_line(self.noise_scales)
+        if line:
+            lines.append(line)
         for note in self.notes:
             lines.append(f"note: {note}")
         if self.report_path is not None:
@@ -192,7 +210,7 @@ def log_summary(log: FlightLog) -> dict:
     return {
         "path": str(log.root),
         "duration_s": log.duration_s,
-        "floor_frames": len(log.floor),
+        "floor_frames": len(log.floor) if "cam0" in log.cameras else 0,
         "front_frames": len(log.front) if log.front else 0,
         "imu_samples": len(log.imu.timestamps_ns) if log.imu else 0,
         "has_velocity": log.velocity is not None,
@@ -272,7 +290,7 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
             preload=_LOCALIZE_PRELOAD,
         )
     )
-    floor = merge_floor_parts(parts)
+    floor = merge_floor_parts(parts, cfg)
     if log.front is None:
         return merge_front_parts(log, floor, [])
     parts = list(
@@ -299,7 +317,7 @@ def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tupl
     return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
 
 
-def merge_floor_parts(parts: list[dict]) -> LocalizeResult:
+def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
     results, in time order (no load observations yet)."""
     notes: list[str] = []
@@ -309,8 +327,13 @@ def merge_floor_parts(parts: list[dict]) -> LocalizeResult:
         notes.append(f"paper estimator not run: {paper_errors[0]}")
     else:
         trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
-    trajectories["pnp"] = _concat([p["pnp"] for p in parts], "pnp")
+    traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
+    # honest sigma (issue 10): the flight's reprojection chi2/dof scales the PnP covariances
+    traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory(
+        traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
+    )
+    trajectories["pnp"] = traj_pnp
     return LocalizeResult(trajectories, {}, {}, stats, notes)
 
 
@@ -466,17 +489,28 @@ class FuseStageResult:
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     as_built: AsBuiltInput | None = None  # the smoother's as-built floor-code input
+    raw: Trajectory | None = None  # the raw poses the back ends fused (PnP, with any fixes)
 
 
-def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) -> FuseStageResult:
-    """Smoother, incremental smoother and EKF on the PnP poses.
+def fuse_stage(
+    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None, fixes: PositionFixes | None = None
+) -> FuseStageResult:
+    """Smoother, incremental smoother and EKF on the PnP poses (and the external `fixes`:
+    estimate.fixes.merge_fixes; a log without cameras is fused from the IMU and the fixes).
 
     Each back end runs on its own: one that raises is recorded in `failures` with its reason
     and the others still run.  The smoothers take both cameras' CameraModels (mount-aware);
     with `cfg.tight` they use each floor code's corners as reprojection factors (the floor
     sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled."""
     out = FuseStageResult()
-    raw = loc.trajectories[str(Estimator.PNP)]
+    raw = loc.trajectories.get(str(Estimator.PNP), Trajectory.empty(str(Estimator.PNP)))
+    merged = None
+    if fixes is not None:
+        camera_t = log.floor.timestamps_ns if "cam0" in log.cameras else None
+        merged = merge_fixes(camera_t, raw, fixes, log.imu)
+        raw = merged.raw
+        out.notes.append(merged.note())
+    out.raw = raw
     if len(raw) == 0:
         out.notes.append("no floor code was read in this flight: nothing to fuse (no fused estimate)")
         return out
@@ -489,9 +523,17 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         kernel = RobustKernel.parse(cfg.robust, "robust kernel")
     except ValueError as e:
         raise EstimationError(str(e)) from None
-    fcfg = FusionConfig(robust_kernel=kernel, tight=cfg.tight)
-    graph_kwargs: dict[str, Any] = {"floor_camera": log.floor.camera}
-    if cfg.tight:
+    fcfg = FusionConfig(
+        robust_kernel=kernel,
+        tight=cfg.tight,
+        noise_scale_iterations=FusionConfig.noise_scale_iterations if cfg.estimate_noise_scale else 0,
+    )
+    # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
+    has_floor = fixes is None or "cam0" in log.cameras
+    frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
+    floor_camera = log.floor.camera if has_floor else None
+    graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
+    if cfg.tight and det is not None:
         graph_kwargs["floor_frames"] = {
             t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
         }
@@ -501,9 +543,8 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         )
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
-    frame_t = log.floor.timestamps_ns
     smoother_kwargs = dict(graph_kwargs)
-    if det is not None:
+    if det is not None and has_floor:
         as_built, notes = floorcodes.as_built_input(
             log.world,
             _world_yaml(log),
@@ -522,7 +563,7 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
     ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
-    solvers.append((Estimator.EKF, run_ekf, {"floor_camera": log.floor.camera}))
+    solvers.append((Estimator.EKF, run_ekf, {"floor_camera": floor_camera}))
     for name, fn, kwargs in solvers:
         try:
             res = fn(
@@ -548,6 +589,12 @@ def fuse_stage(log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None) ->
         res.trajectory.name = str(name)
         res.loads.name = str(name)
         out.results[name] = res
+        if name == Estimator.SMOOTHER and cfg.estimate_noise_scale:
+            # the smoother's noise scales, estimated on the whole flight, for the other back ends
+            raw, load_obs, corner_scale = variance.apply_smoother_scales(
+                res.stats.get("noise_scales"), raw, load_obs
+            )
+            fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():
@@ -599,7 +646,11 @@ def run(
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    log = log_dir if isinstance(log_dir, FlightLog) else read_flight(log_dir)
+    log = (
+        log_dir
+        if isinstance(log_dir, FlightLog)
+        else read_flight(log_dir, LogOptions(cameras_optional=cfg.fixes is not None))
+    )
     with prepare_out_dir(out_dir, cfg.force, log.root) as out:
         result = _run_into(log, out.path, cfg, until, timings, t, detections, localized)
     return result
@@ -618,7 +669,12 @@ def _run_into(
     """`run`'s stages, writing into the prepared (locked) output folder."""
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
+    fixes = read_fixes(cfg.fixes) if cfg.fixes is not None else None
+    if fixes is not None:
+        result.warnings += fixes.warnings
     timings["read_s"] = time.perf_counter() - t
+    if "cam0" not in log.cameras:
+        return _run_without_cameras(log, out_dir, cfg, until, timings, result, fixes)
 
     t = time.perf_counter()
     if detections is None:
@@ -657,12 +713,14 @@ def _run_into(
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
         loc = localize_stage(log, det, cfg)
+    log, det, loc = _apply_time_offsets(log, det, loc, cfg, result)
     if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
+        # (keyed by the floor frames' stamps, shifted like them when a time offset was applied)
+        shift = 0 if result.time_offsets is None else result.time_offsets.shift_ns(CameraRole.FLOOR.value)
+        added = {t + shift: c for t, c in result.rolling_shutter.pose_cov_added.items()}
         pnp_key = str(Estimator.PNP)
-        loc.trajectories[pnp_key] = add_pose_covariance(
-            loc.trajectories[pnp_key], result.rolling_shutter.pose_cov_added
-        )
+        loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -671,36 +729,16 @@ def _run_into(
             write_load_observations_csv(out_dir / f"load_observations_{name}.csv", obs)
     timings["localize_s"] = time.perf_counter() - t
 
-    fused_stats = {}
+    fused_stats: dict = {}
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused_stage = fuse_stage(log, loc, cfg, det)
-        result.notes += fused_stage.notes
-        result.failures = {str(k): v for k, v in fused_stage.failures.items()}
-        raw = loc.trajectories[str(Estimator.PNP)]
-        max_iterations = FusionConfig().lm_max_iterations
+        fused_stats = _fuse_into_result(log, loc, cfg, det, fixes, result)
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
-        for name, res in fused_stage.results.items():
-            # as built, the smoother's fixes are the sightings on the estimated codes, not PnP
-            # on the nominal ones
-            fixes = (
-                as_built_fixes(fused_stage.as_built, res.floor_codes)
-                if res.floor_codes is not None and fused_stage.as_built is not None
-                else raw
-            )
-            result.health[str(name)] = assess_result(
-                res, fixes, max_iterations=max_iterations, level_fixes=log.floor.camera.gimbaled
-            )
-            result.trajectories[name] = res.trajectory
-            if log.front is not None:
-                result.load_maps[name] = res.loads
-            if res.floor_codes is not None:
-                result.floor_codes[str(name)] = res.floor_codes
-            fused_stats[name] = res.stats
         timings["fuse_s"] = time.perf_counter() - t
+    result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
 
     _write_estimates(out_dir, result)
     if until == "run":
@@ -727,6 +765,91 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     result.notes += report.notes()
     result.rolling_shutter = report
     return det
+
+
+def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+    """Each camera's time offset (fixed, else estimated: fusion.estimate.timeoffset) into
+    `result.time_offsets`; when one is applied, the log and detections in the IMU clock and the
+    per-frame estimates made again with them (so every output carries the corrected stamps)."""
+    _progress(cfg, "camera-IMU time offsets")
+    try:
+        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+    offsets = resolve_time_offsets(
+        log,
+        loc.trajectories.get(str(Estimator.PNP)),
+        loc.camera_frame_observations,
+        cfg.time_offsets_s,
+        fusion_config=FusionConfig(robust_kernel=kernel),
+    )
+    result.time_offsets = offsets
+    if not offsets.any_applied:
+        return log, det, loc
+    log, det = shift_log(log, offsets), shift_detections(det, offsets)
+    return log, det, localize_stage(log, det, cfg)
+
+
+def _fuse_into_result(
+    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det, fixes: PositionFixes | None, result: RunResult
+) -> dict:
+    """fuse_stage, its results, failures and health into `result`; returns the fused stats."""
+    fused_stage = fuse_stage(log, loc, cfg, det, fixes)
+    result.notes += fused_stage.notes
+    result.failures = {str(k): v for k, v in fused_stage.failures.items()}
+    raw = fused_stage.raw if fused_stage.raw is not None else loc.trajectories[str(Estimator.PNP)]
+    max_iterations = FusionConfig().lm_max_iterations
+    gimbaled = "cam0" in log.cameras and log.floor.camera.gimbaled
+    fused_stats = {}
+    for name, res in fused_stage.results.items():
+        # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
+        # the nominal ones
+        fixes_of = (
+            as_built_fixes(fused_stage.as_built, res.floor_codes)
+            if res.floor_codes is not None and fused_stage.as_built is not None
+            else raw
+        )
+        result.health[str(name)] = assess_result(
+            res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
+        )
+        result.trajectories[name] = res.trajectory
+        if log.front is not None:
+            result.load_maps[name] = res.loads
+        if res.floor_codes is not None:
+            result.floor_codes[str(name)] = res.floor_codes
+        fused_stats[name] = res.stats
+    return fused_stats
+
+
+def _run_without_cameras(
+    log: FlightLog,
+    out_dir: Path,
+    cfg: RunConfig,
+    until: str,
+    timings: dict,
+    result: RunResult,
+    fixes: PositionFixes | None,
+) -> RunResult:
+    """A log without cameras (read with cameras_optional): IMU + external fixes only, the same
+    outputs as a QR flight (no detections, no per-frame estimates, no load map)."""
+    if fixes is None:
+        raise FusionError(f"{log.root}: no floor camera and no --fixes: nothing to localise from")
+    result.notes.append("no camera in this log: fused from the IMU and the external fixes only")
+    loc = LocalizeResult({}, {}, {}, {})
+    fused_stats: dict = {}
+    if until in ("smooth", "run"):
+        t = time.perf_counter()
+        _progress(cfg, "fusion (smoother, incremental, ekf) on the external fixes")
+        fused_stats = _fuse_into_result(log, loc, cfg, None, fixes, result)
+        timings["fuse_s"] = time.perf_counter() - t
+    _write_estimates(out_dir, result)
+    if until == "run":
+        t = time.perf_counter()
+        _progress(cfg, "evaluation and report")
+        _evaluate_and_report(log, result, fused_stats, {})
+        timings["report_s"] = time.perf_counter() - t
+    result.timings_s = timings
+    return result
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
@@ -792,6 +915,9 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
         metrics["floor_codes"] = to_jsonable(
             {name: floorcodes.floor_code_metrics(fmap, log.root) for name, fmap in result.floor_codes.items()}
         )
+    if result.time_offsets is not None:
+        metrics["time_offsets"] = result.time_offsets.as_dict()
+    metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)
     result.metrics = metrics
@@ -819,6 +945,8 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
 
 def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
     """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
+    if "cam0" not in log.cameras:  # camera-less: nothing was detected
+        return None
     return floor_codes_from_detections(out_dir, log.world.payload_unit_m)
 
 

@@ -202,6 +202,7 @@ def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, worl
     np.testing.assert_array_equal(
         cam.timestamps_ns, np.array([1.0e9, 1.1e9, 1.2e9, 1.3e9]).astype(np.int64) + 2_000_000
     )
+    assert flight.timeshift_ns == {"cam0": 2_000_000}  # the time-offset estimate's seed
     for i, k in enumerate([0, 2, 1, 3]):  # frame i is the bag's message k
         np.testing.assert_array_equal(cam.load_image(i), imgs[k])
     np.testing.assert_array_equal(list(f.image for f in cam.frames())[1], imgs[2])
@@ -323,13 +324,133 @@ def test_truncated_ros1_bag_reads_up_to_the_damage(tmp_path, world_and_calib, mo
     assert list((tmp_path / "fusion-recovered-bags").glob("cut-*.bag")) == copies
 
 
-def test_truncated_mcap_is_refused_in_one_line(tmp_path, world_and_calib):
-    """rosbags needs the MCAP footer (summary): a cut file is refused, with the fix named."""
-    good = _write_bag(tmp_path / "full.mcap", _images(20))
+@pytest.mark.parametrize("fraction", [0.3, 0.6, 0.95])
+def test_truncated_mcap_reads_up_to_the_damage(tmp_path, world_and_calib, monkeypatch, fraction):
+    """A recording cut short has no MCAP footer (rosbags refuses it): the complete records are
+    copied (those of the one uncompressed chunk the cut went through too), with a warning."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    imgs = _images(20)
+    good = _write_bag(tmp_path / "full.mcap", imgs)
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * 0.6)])
-    with pytest.raises(LogError, match=r"cut.mcap: cannot open as a ROS 2 bag .*mcap recover"):
-        open_flight(cut, LogOptions(calib=world_and_calib))
+    cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * fraction)])
+    flight = open_flight(cut, LogOptions(calib=world_and_calib))
+    n = len(flight.floor)
+    assert 0 < n < 20 if fraction < 0.9 else 0 < n <= 20
+    full = open_flight(good, LogOptions(calib=world_and_calib))
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns[:n])
+    for i in (0, n - 1):
+        np.testing.assert_array_equal(flight.floor.load_image(i), imgs[i])
+    w = [x for x in flight.warnings if x.name == "bag_truncated"]
+    assert len(w) == 1 and "cut.mcap: truncated MCAP file" in w[0].message
+    assert not [x for x in full.warnings if x.name == "bag_truncated"]
+    # cut before the first complete record: nothing to read, one line
+    tiny = tmp_path / "tiny.mcap"
+    tiny.write_bytes(good.read_bytes()[:40])
+    with pytest.raises(LogError, match=r"tiny.mcap: truncated MCAP file with no complete message"):
+        open_flight(tiny, LogOptions(calib=world_and_calib))
+
+
+def test_truncated_mcap_keeps_its_complete_compressed_chunks(tmp_path):
+    """zstd chunks (as `ros2 bag record` writes them): the chunks before the cut are read, the
+    one the cut went through is lost."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+    from rosbags.rosbag2 import Writer as W2
+
+    from fusion.log.mcaprecover import recover_mcap
+
+    ts = typestore_for(False)
+    rng = np.random.default_rng(5)
+    target = tmp_path / "z"
+    w = W2(target, version=9, storage_plugin=StoragePlugin.MCAP)
+    w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    stamps = [1_000_000_000 + k * 50_000_000 for k in range(40)]
+    with w:
+        c = w.add_connection("/cam/image_raw", IMAGE, typestore=ts)
+        for t in stamps:  # 90 kB of noise each: about 12 messages per 1 MiB chunk
+            img = rng.integers(0, 255, size=(300, 300), dtype=np.uint8)
+            msg = ts.types[IMAGE](
+                header=_header(ts, t, "cam", False),
+                height=300,
+                width=300,
+                encoding="mono8",
+                is_bigendian=0,
+                step=300,
+                data=img.reshape(-1),
+            )
+            w.write(c, t, ts.serialize_cdr(msg, IMAGE))
+    good = target / "z.mcap"
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * 0.7)])
+    n_msg, n_chunks, note = recover_mcap(cut, tmp_path / "rec.mcap")
+    assert n_msg == 0 and n_chunks >= 1 and "cut at byte" in note
+    with AnyReader([tmp_path / "rec.mcap"], default_typestore=ts) as r:
+        got = [t for _, t, _ in r.messages()]
+    assert 0 < len(got) < 40 and len(got) % 12 == 0 and got == stamps[: len(got)]
+
+
+def _as_sqlite3(mcap: Path, folder: Path) -> Path:
+    """The ROS 2 bag `mcap` rewritten with sqlite3 storage into `folder` (metadata.yaml + .db3)."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as W2
+
+    ts = typestore_for(False)
+    with AnyReader([mcap], default_typestore=ts) as r, W2(
+        folder, version=8, storage_plugin=StoragePlugin.SQLITE3
+    ) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    return folder
+
+
+def test_damaged_sqlite3_bags_read_what_is_there(tmp_path, world_and_calib, monkeypatch):
+    """A .db3 cut short ("malformed" to SQLite) reads up to the damage; a folder whose recording
+    never wrote metadata.yaml reads whole; both with a bag_truncated warning."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    imgs = _images(30)
+    good = _as_sqlite3(_write_bag(tmp_path / "g.mcap", imgs), tmp_path / "good")
+    opts = LogOptions(calib=world_and_calib)
+    full = open_flight(good, opts)
+    assert len(full.floor) == 30 and not [w for w in full.warnings if w.name == "bag_truncated"]
+
+    def damage(f):
+        return [w.message for w in f.warnings if w.name == "bag_truncated"]
+    nometa = tmp_path / "nometa"
+    shutil.copytree(good, nometa)
+    (nometa / "metadata.yaml").unlink()
+    flight = open_flight(nometa, opts)
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns)
+    assert len(damage(flight)) == 1 and "no usable metadata.yaml" in damage(flight)[0]
+    cut = tmp_path / "cut"
+    shutil.copytree(good, cut)
+    db = next(cut.glob("*.db3"))
+    db.write_bytes(db.read_bytes()[: int(db.stat().st_size * 0.5)])
+    flight = open_flight(cut, opts)
+    n = len(flight.floor)
+    assert 0 < n < 30
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, full.floor.timestamps_ns[:n])
+    np.testing.assert_array_equal(flight.floor.load_image(n - 1), imgs[n - 1])
+    (note,) = damage(flight)
+    assert "stopped after" in note and "malformed" in note
+    db.write_bytes(b"SQLite format 3\x00" + bytes(50))
+    with pytest.raises(LogError, match=r"cut.*not an SQLite database"):
+        open_flight(cut, opts)
+
+
+def test_bag_stamp_problems_are_named_counted_warnings(tmp_path, world_and_calib):
+    stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
+    logt = [2_000_000_000 + k * 1000 for k in range(5)]  # recorded in this (header-unsorted) order
+    bag = _write_bag(tmp_path / "b.mcap", _images(5), stamps=stamps, log_times=logt)
+    flight = open_flight(bag, LogOptions(calib=world_and_calib))
+    got = {(w.name, w.count) for w in flight.warnings}
+    assert {("stamps_out_of_order", 1), ("stamps_duplicate", 1)} <= got
+    assert not any(w.name == "bag_truncated" for w in flight.warnings)
 
 
 def test_cli_inspect_import_export(tmp_path, bags, capsys):

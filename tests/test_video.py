@@ -81,6 +81,9 @@ def test_frame_times_shorter_than_video_use_the_first_frames(video_dir, tmp_path
     (d / "cam0.csv").write_text("\n".join(lines[:4]) + "\n")  # header + 3 times
     flight = open_flight(d)
     assert len(flight.floor) == 3 and "6 frames but 3 times" in caplog.text
+    assert [(w.name, w.count) for w in flight.warnings if w.name == "frame_times_mismatch"] == [
+        ("frame_times_mismatch", 3)
+    ]
     (d / "cam0.csv").write_text(lines[0] + "\n" + lines[2] + "\n" + lines[1] + "\n")
     with pytest.raises(LogError, match=r"cam0.csv:3: non-monotonic timestamp"):
         open_flight(d)
@@ -131,6 +134,18 @@ def test_truncated_video_reads_up_to_the_damage(video_dir, tmp_path):
         if img is not None:  # the last, cut frame may be reported unreadable
             np.testing.assert_array_equal(img, ref.floor.load_image(i))
     assert len(flight.floor.skipped) <= 1
+    if n < N_FRAMES - 1:  # demuxing stopped at the damage: a named warning in the log's list
+        assert [w.name for w in flight.warnings if w.name == "video_truncated"] == ["video_truncated"]
+    assert not [w for w in open_flight(video_dir).warnings if w.name == "video_truncated"]
+
+
+def test_cut_mp4_is_refused_with_the_reason(video_dir, tmp_path):
+    d = tmp_path / "v"
+    shutil.copytree(video_dir, d)
+    (d / "cam0.mkv").unlink()
+    (d / "cam0.mp4").write_bytes(b"\x00\x00\x00\x18ftypisom" + bytes(200))  # cut before moov
+    with pytest.raises(LogError, match=r"cam0.mp4: not a readable video .*moov atom"):
+        open_flight(d)
 
 
 # ---------------------------------------------------------------------------- PX4 ULog

@@ -170,6 +170,12 @@ class FusionConfig:
     # (whitened) with zero Jacobian.
     tight: bool = False
     corner_sigma_px: float = 0.15
+    # Noise scales estimated from the residuals (fusion.estimate.variance): the batch smoother
+    # re-solves up to `noise_scale_iterations` times with each measurement group's covariance
+    # times its chi2/dof (0: report only); `corner_noise_scale` multiplies the tight corner
+    # factors' covariance (set by that estimation).
+    noise_scale_iterations: int = 2
+    corner_noise_scale: float = 1.0
     corner_behind_residual: float = 1e3
     # Incremental mode: iSAM2 inside gtsam's IncrementalFixedLagSmoother; states older than
     # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain

@@ -77,6 +77,7 @@ from fusion.estimate.common import (
     velocity_at_frames,
 )
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
+from fusion.estimate.variance import nis_component
 from fusion.geometry import adjoint, inv_T, rot_z, skew, so3_exp, wrap_angle, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
@@ -226,6 +227,7 @@ class _Ekf:
         self.inflated = 0
         self.resets = 0
         self.window = _FixWindow(recovery)
+        self.nis: list[tuple[float, int]] = []  # (squared Mahalanobis innovation, dim) per fix
 
     # ------------------------------------------------------------------ state <-> body pose
     def T_world_body(self) -> np.ndarray:
@@ -357,6 +359,7 @@ class _Ekf:
         """A pose fix: robust kernel and gate, with recovery (module docstring)."""
         y = np.asarray(residual(z, hx), float).ravel()
         d = self._mahalanobis(y, H, Rm)
+        self.nis.append((d * d, len(y)))  # consistency check (variance.nis_component)
         k = self.config.threshold(len(y))
         gate = self.config.outlier_gate
         fix.over = d > k
@@ -596,6 +599,7 @@ def run_ekf(
         "gated_updates": f.gated,
         "inflated_updates": f.inflated,
         "resets": f.resets,
+        "pose_nis": nis_component([a for a, _ in f.nis], [b for _, b in f.nis]).as_dict(),
         "robust_kernel": config.robust_kernel,
         "imu_intervals": int(covered.sum()),
         "bridged_intervals": int((~covered).sum()),

@@ -58,6 +58,7 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals, chain_marginals_with_codes
+from fusion.estimate.variance import problem_variance_components, solve_noise_scaled
 from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
@@ -314,6 +315,7 @@ def tight_corner_data(
         P = np.concatenate([np.asarray(s.corners_world, float).reshape(4, 3) for s in sightings])
         uv = np.concatenate([np.asarray(s.detection.corners_px, float).reshape(4, 2) for s in sightings])
         W = corner_whitening([s.detection for s in sightings], config.corner_sigma_px)
+        W = W / math.sqrt(config.corner_noise_scale)
         out[k] = (P, uv, W)
     return out, TightCoupling.ON
 
@@ -927,36 +929,29 @@ def smooth(
     `as_built` (fusion.estimate.asbuilt.build_input): as-built floor codes, estimated in
     FusionResult.floor_codes."""
     config = config or FusionConfig()
-    res = _smooth_once(
-        frame_times_ns,
-        imu,
-        raw,
-        load_obs,
-        front_camera,
-        velocity,
-        config,
-        floor_frames,
-        floor_camera,
-        as_built=as_built,
-    )
+
+    def once(imu_, raw_, load_obs_, config_, require_motion=True):
+        return _smooth_once(
+            frame_times_ns,
+            imu_,
+            raw_,
+            load_obs_,
+            front_camera,
+            velocity,
+            config_,
+            floor_frames,
+            floor_camera,
+            require_motion,
+            as_built=as_built,
+        )
+
+    res, scaled = solve_noise_scaled(once, imu, raw, load_obs, config)  # variance.py
     if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
         return res
     # most fixes disagree with the IMU: its units, the world's scale or a clock are wrong, and
     # the IMU's confident factors would drag the trajectory away from every fix
     log.warning("smoother: most fixes disagree with the IMU; solving again without it")
-    alt = _smooth_once(
-        frame_times_ns,
-        None,
-        raw,
-        load_obs,
-        front_camera,
-        velocity,
-        config,
-        floor_frames,
-        floor_camera,
-        require_motion=False,
-        as_built=as_built,
-    )
+    alt = scaled(None, require_motion=False)
     h = alt.health
     h.mode = SolveMode.IMU_REJECTED
     h.reasons = list(
@@ -1034,6 +1029,9 @@ def _smooth_once(
         values, lin = res.values, res.linear
         iterations += res.iterations
     t_opt = time.perf_counter() - t0 - t_build
+    variance_components = problem_variance_components(
+        pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values
+    )
     release_heap()
     n = len(pb.frame_t)
     T = poses_of(values, n)
@@ -1103,6 +1101,7 @@ def _smooth_once(
         stats[f"gated_{word}_factors"] = gated[kind]
         stats[f"rejected_{word}_factors"] = rej[kind]
     stats["health"] = health.as_dict()
+    stats["variance_components"] = variance_components
     traj = Trajectory(str(Estimator.SMOOTHER), pb.frame_t.copy(), T, cov)
     out = FusionResult(traj, loads, stats, health)
     if pb.as_built is not None and as_built is not None:

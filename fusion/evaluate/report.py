@@ -214,6 +214,23 @@ def _health_lines(m: dict) -> list[str]:
     return lines + [""]
 
 
+def _time_offset_lines(m: dict) -> list[str]:
+    """Each camera's camera-IMU time offset (fusion.estimate.timeoffset): value, sigma, where it
+    comes from and whether the outputs carry it."""
+    offsets = m.get("time_offsets") or {}
+    if not offsets:
+        return []
+    parts = []
+    for name, o in offsets.items():
+        sig = f" ± {fmt(o.get('sigma_ms'))}" if o.get("sigma_ms") is not None else ""
+        parts.append(
+            f"{md_code(name)} {o.get('offset_ms', 0.0):+.2f}{sig} ms ({md_text(o.get('source', DASH))}; "
+            f"outputs stamped with {o.get('effective_ms', 0.0):+.2f} ms)"
+            + (f" ({md_text(o['note'])})" if o.get("note") else "")
+        )
+    return ["**Camera-IMU time offsets** (t_imu = t_cam + offset): " + "; ".join(parts) + ".", ""]
+
+
 def _summary_section(m: dict, trajectories: dict[str, Trajectory], gt, blackouts) -> list[str]:
     trajs = m.get("trajectories", {})
     maps = m.get("load_maps", {})
@@ -709,6 +726,7 @@ def write_report(
     )
     lines += warehouse_lines[:2]  # link to report.html
     lines += _health_lines(metrics or {})
+    lines += _time_offset_lines(metrics or {})
     if has_truth and metrics is not None:  # has_truth implies metrics; the check narrows it
         lines += _summary_section(metrics, trajectories, gt, blackouts)
         lines += _plots(plots, "summary")

@@ -106,7 +106,7 @@ def merge_floor_task(cfg: RunConfig, *floor: Timed) -> Timed:
     """The merged floor result; its time includes the floor chunks' (they reach the report
     task only through this one)."""
     t = time.perf_counter()
-    merged = merge_floor_parts([p.value for p in floor])
+    merged = merge_floor_parts([p.value for p in floor], cfg)
     return Timed(merged, time.perf_counter() - t + sum(p.elapsed_s for p in floor))
 
 

@@ -306,6 +306,9 @@ class FlightLog:
     loads_groundtruth: dict[str, np.ndarray] | None = None
     blackouts: list[tuple[int, int, str]] | None = None  # (start_ns, end_ns, kind)
     warnings: list[LogWarning] = field(default_factory=list)  # plausibility (check_log)
+    # Kalibr's timeshift_cam_imu the reader already added to each camera's stamps (ns, t_imu =
+    # t_cam + shift): the seed of the time-offset estimate (fusion.estimate.timeoffset)
+    timeshift_ns: dict[str, int] = field(default_factory=dict)
 
     @property
     def floor(self) -> CameraStream:
@@ -317,6 +320,9 @@ class FlightLog:
 
     @property
     def duration_s(self) -> float:
+        if "cam0" not in self.cameras:  # camera-less (IMU + external fixes)
+            t = self.imu.timestamps_ns if self.imu is not None else np.zeros(0, np.int64)
+            return float(t[-1] - t[0]) * 1e-9 if len(t) > 1 else 0.0
         t = self.floor.timestamps_ns
         return float(t[-1] - t[0]) * 1e-9 if len(t) > 1 else 0.0
 
@@ -523,8 +529,9 @@ def _read_blackouts(path: Path) -> list[tuple[int, int, str]]:
     return out
 
 
-def read_flight(root: Path) -> FlightLog:
-    """Open a flight log folder.  Reads every CSV and YAML now (validating them), images lazily."""
+def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
+    """Open a flight log folder.  Reads every CSV and YAML now (validating them), images lazily.
+    `cameras_optional`: a log without the floor camera is accepted (IMU + external fixes)."""
     root = Path(root)
     if not root.is_dir():
         raise LogError(f"{root}: not a folder")
@@ -537,7 +544,7 @@ def read_flight(root: Path) -> FlightLog:
     for name in CAMERA_NAMES:
         if (mav / name).is_dir():
             cameras[name] = _read_camera(mav / name, name)
-    if "cam0" not in cameras:
+    if "cam0" not in cameras and not cameras_optional:
         raise LogError(f"{mav / 'cam0'}: the floor camera folder is missing")
     imu = _read_imu(mav / "imu0") if (mav / "imu0").is_dir() else None
     vel = _read_velocity(mav / "vel0") if (mav / "vel0").is_dir() else None
@@ -703,9 +710,10 @@ def check_log(log: FlightLog) -> list[LogWarning]:
             None,
         )
         streams["groundtruth"] = log.groundtruth.timestamps_ns
-    ref0, ref1 = _span(streams["cam0"])
+    ref_name = "cam0" if "cam0" in streams else "imu0"
+    ref0, ref1 = _span(streams[ref_name]) if ref_name in streams else (0, 0)
     for name, ts in streams.items():
-        if name == "cam0":
+        if name == ref_name or ref_name not in streams:
             continue
         a0, a1 = _span(ts)
         d0, d1 = (a0 - ref0) * 1e-9, (a1 - ref1) * 1e-9
@@ -715,7 +723,7 @@ def check_log(log: FlightLog) -> list[LogWarning]:
                     "clock_offset",
                     1,
                     f"{name} ({a0 * 1e-9:.6g}-{a1 * 1e-9:.6g} s) does not overlap "
-                    f"cam0 ({ref0 * 1e-9:.6g}-{ref1 * 1e-9:.6g} s): its clock is "
+                    f"{ref_name} ({ref0 * 1e-9:.6g}-{ref1 * 1e-9:.6g} s): its clock is "
                     "offset or in other units",
                 )
             )
@@ -726,7 +734,7 @@ def check_log(log: FlightLog) -> list[LogWarning]:
                     "clock_offset",
                     1,
                     f"{name} starts and ends {abs(off):.3g} s "
-                    f"{'later' if off > 0 else 'earlier'} than cam0: its clock "
+                    f"{'later' if off > 0 else 'earlier'} than {ref_name}: its clock "
                     f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)",
                 )
             )

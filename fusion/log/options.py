@@ -44,3 +44,5 @@ class LogOptions:
     imu: Path | None = None  # IMU CSV (EuRoC imu0 columns) or PX4 ULog (.ulg)
     video_fps: float | None = None  # constant rate when there is no frame-times file
     video_start_ns: int | None = None  # time of the first frame in the IMU clock (with video_fps)
+    # EuRoC folders: accept a log without the floor camera (IMU + external fixes, --fixes)
+    cameras_optional: bool = False

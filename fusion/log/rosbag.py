@@ -40,7 +40,16 @@ import yaml
 from fusion.camera import CameraModel
 from fusion.errors import CameraModelError, LogError
 from fusion.geometry import R_from_quat_wxyz
-from fusion.log.euroc import CameraStream, FlightLog, Frame, GroundTruth, ImuData, ImuNoise, VelocityData
+from fusion.log.euroc import (
+    CameraStream,
+    FlightLog,
+    Frame,
+    GroundTruth,
+    ImuData,
+    ImuNoise,
+    LogWarning,
+    VelocityData,
+)
 from fusion.log.options import LogOptions, StampSource
 from fusion.types import CameraRole
 
@@ -237,20 +246,72 @@ def _open_reader(path: Path) -> AnyReader:
 
 
 def readable_bag(path: Path) -> Path:
-    """`path`, or for a ROS 1 bag that rosbags cannot open (cut short, so unindexed) an indexed
-    copy of its complete messages (fusion.log.ros1recover, with a warning)."""
+    """`path`, or for a bag cut short a readable copy of its complete messages
+    (readable_bag_and_note)."""
+    return readable_bag_and_note(path)[0]
+
+
+def readable_bag_and_note(path: Path) -> tuple[Path, str | None]:
+    """(`path`, None), or for a ROS 1 bag that rosbags cannot open (cut short, so unindexed)
+    an indexed copy of its complete messages (fusion.log.ros1recover), or for an MCAP file
+    without its footer (a recording cut short) a copy of its complete records
+    (fusion.log.mcaprecover), with a one-line note of what was read."""
     path = Path(path)
-    if not is_ros1(path) or not path.is_file():
-        return path
-    from rosbags.rosbag1 import Reader as Reader1
+    if path.is_dir() or path.suffix == ".db3":
+        return _readable_ros2(path)
+    if not path.is_file():
+        return path, None
+    if is_ros1(path):
+        from rosbags.rosbag1 import Reader as Reader1
 
-    try:
-        with Reader1(path):
-            return path
-    except Exception:  # noqa: BLE001 - rosbags' ReaderError and struct errors of a cut header
-        from fusion.log.ros1recover import recovered_copy
+        try:
+            with Reader1(path):
+                return path, None
+        except Exception:  # noqa: BLE001 - rosbags' ReaderError and struct errors of a cut header
+            from fusion.log.ros1recover import recovered_copy
 
-        return recovered_copy(path)
+            copy = recovered_copy(path)
+            return copy, f"{path}: truncated or unindexed ROS 1 bag; read the complete messages ({copy})"
+    if path.suffix == ".mcap":
+        from rosbags.rosbag2.storage_mcap import McapReader
+
+        try:
+            reader = McapReader(path)
+            reader.open()
+            reader.close()
+            return path, None
+        except Exception:  # noqa: BLE001 - rosbags raises many types for a damaged file
+            from fusion.log.mcaprecover import recovered_mcap
+
+            copy, note = recovered_mcap(path)
+            log.warning(note)
+            return copy, note
+    return path, None
+
+
+def _readable_ros2(path: Path) -> tuple[Path, str | None]:
+    """A ROS 2 bag folder (or .db3 file) as readable_bag_and_note: as it is when rosbags opens
+    it; a folder without metadata.yaml holding one .mcap file: that file; else, with .db3
+    files, a copy of their readable messages (fusion.log.sqliterecover)."""
+    from rosbags.highlevel import AnyReader
+
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        mcaps = sorted(path.glob("*.mcap"))
+        if len(mcaps) == 1 and not any(path.glob("*.db3")):
+            copy, note = readable_bag_and_note(mcaps[0])
+            return copy, note or f"{path}: no metadata.yaml; read {mcaps[0].name} alone"
+    elif path.is_dir():
+        try:
+            with AnyReader([path], default_typestore=typestore_for(False)):
+                return path, None
+        except Exception:  # noqa: BLE001 - rosbags raises many types for a damaged bag
+            if not any(path.glob("*.db3")):
+                return path, None  # _open_reader names the problem
+    from fusion.log.sqliterecover import recovered_sqlite_bag
+
+    copy, note = recovered_sqlite_bag(path)
+    log.warning(note)
+    return copy, note
 
 
 def scan_bag(
@@ -322,9 +383,12 @@ def choose_times(scan: TopicScan, stamps: StampSource, where: str) -> np.ndarray
     return np.asarray(hdr, dtype=np.int64)
 
 
-def sort_unique(t: np.ndarray, what: str) -> tuple[np.ndarray, int, int]:
+def sort_unique(
+    t: np.ndarray, what: str, warnings: list[LogWarning] | None = None
+) -> tuple[np.ndarray, int, int]:
     """Stable order by time with duplicates dropped (the first kept): (index, n_out_of_order,
-    n_duplicates); both counts are logged as warnings."""
+    n_duplicates); both counts are logged as warnings, and appended to `warnings` as named,
+    counted LogWarnings (`stamps_out_of_order`, `stamps_duplicate`)."""
     order = np.argsort(t, kind="stable")
     n_back = int(np.sum(np.diff(t) < 0)) if len(t) > 1 else 0
     ts = t[order]
@@ -332,8 +396,14 @@ def sort_unique(t: np.ndarray, what: str) -> tuple[np.ndarray, int, int]:
     n_dup = int(np.sum(~keep))
     if n_back:
         log.warning("%s: %d out-of-order stamp(s), sorted", what, n_back)
+        if warnings is not None:
+            warnings.append(LogWarning("stamps_out_of_order", n_back, f"{what}: out-of-order stamps, sorted"))
     if n_dup:
         log.warning("%s: %d duplicate stamp(s), the later message(s) dropped", what, n_dup)
+        if warnings is not None:
+            warnings.append(
+                LogWarning("stamps_duplicate", n_dup, f"{what}: duplicate stamps, later message(s) dropped")
+            )
     return order[keep], n_back, n_dup
 
 
@@ -607,7 +677,8 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     opts = opts or LogOptions()
     path = Path(path)
-    bag = readable_bag(path)  # errors name `path`; reading goes through `bag`
+    bag, damage = readable_bag_and_note(path)  # errors name `path`; reading goes through `bag`
+    warnings = [LogWarning("bag_truncated", 1, damage)] if damage else []
     first = scan_bag(bag, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(METADATA_TOPIC) and first.topics[METADATA_TOPIC].first is not None:
@@ -632,9 +703,12 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         deser.add(gt_topic)
     want = set(cam_topics.values()) | deser | set(infos)
     scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos), topics=want)
+    if scan.truncated:
+        warnings.append(LogWarning("bag_truncated", 1, scan.truncated))
 
     meta_cams = _metadata_cameras(meta, f"{path}: {METADATA_TOPIC}")
     cameras: dict[str, CameraStream] = {}
+    shifts: dict[str, int] = {}  # Kalibr timeshift added to each camera's stamps
     for name, topic in cam_topics.items():
         ts_scan = scan.topics[topic]
         where = f"{path}: topic {topic}"
@@ -646,7 +720,8 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
             raise LogError(f"{where} message 0: {e}") from None
         cam, shift_ns = _camera_for(name, topic, calib, meta_cams, scan, infos, where)
         t = choose_times(ts_scan, opts.stamps, str(path)) + shift_ns
-        order, _, _ = sort_unique(t, where)
+        shifts[name] = int(shift_ns)
+        order, _, _ = sort_unique(t, where, warnings)
         if len(order) > 1 and name not in meta_cams:
             cam.rate_hz = float(1e9 / np.median(np.diff(t[order])))
         if img.shape != (cam.height, cam.width):
@@ -668,10 +743,10 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     imu = None
     if roles.imu:
-        imu = _imu_from_scan(scan.topics[roles.imu], opts, calib, meta, path)
+        imu = _imu_from_scan(scan.topics[roles.imu], opts, calib, meta, path, warnings)
     vel = None
     if roles.velocity:
-        vel = _velocity_from_scan(scan.topics[roles.velocity], opts, meta, path)
+        vel = _velocity_from_scan(scan.topics[roles.velocity], opts, meta, path, warnings)
     gt = _groundtruth_from_scan(scan.topics[gt_topic], path) if gt_topic else None
     world = find_world(path, opts, meta.get("world"), f"{path}: {METADATA_TOPIC}")
     loads = {str(k): np.asarray(v, float) for k, v in (meta.get("loads_groundtruth") or {}).items()} or None
@@ -680,7 +755,9 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if meta.get("blackouts") is not None
         else None
     )
-    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts)
+    out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, warnings=warnings)
+    out.timeshift_ns = shifts
+    return out
 
 
 def _camera_for(name, topic, calib, meta_cams, scan, infos, where) -> tuple[CameraModel, int]:
@@ -705,7 +782,7 @@ def _camera_for(name, topic, calib, meta_cams, scan, infos, where) -> tuple[Came
     )
 
 
-def _imu_from_scan(s: TopicScan, opts, calib, meta, path) -> ImuData:
+def _imu_from_scan(s: TopicScan, opts, calib, meta, path, warnings=None) -> ImuData:
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
@@ -715,7 +792,7 @@ def _imu_from_scan(s: TopicScan, opts, calib, meta, path) -> ImuData:
     bad = np.flatnonzero(~np.isfinite(np.c_[g, a]).all(axis=1))
     if bad.size:
         raise LogError(f"{where} message {int(bad[0])}: NaN or infinite value")
-    order, _, _ = sort_unique(t, where)
+    order, _, _ = sort_unique(t, where, warnings)
     t, g, a = t[order], g[order], a[order]
     noise, T_bi = ImuNoise(), np.eye(4)
     if calib is not None and calib.imu_noise is not None:
@@ -734,7 +811,7 @@ def _imu_from_scan(s: TopicScan, opts, calib, meta, path) -> ImuData:
     return ImuData(t, g, a, noise, T_bi, rate)
 
 
-def _velocity_from_scan(s: TopicScan, opts, meta, path) -> VelocityData:
+def _velocity_from_scan(s: TopicScan, opts, meta, path, warnings=None) -> VelocityData:
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
@@ -745,7 +822,7 @@ def _velocity_from_scan(s: TopicScan, opts, meta, path) -> VelocityData:
     bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if bad.size:
         raise LogError(f"{where} message {int(bad[0])}: NaN or infinite value")
-    order, _, _ = sort_unique(t, where)
+    order, _, _ = sort_unique(t, where, warnings)
     noise = float((meta.get("velocity") or {}).get("noise_m_s", 0) or 0)
     if not noise and s.msgtype == ODOMETRY:
         cov = np.asarray(s.first.twist.covariance, float).reshape(6, 6)

@@ -40,6 +40,8 @@ def detect_format(path: Path) -> LogFormat:
             return LogFormat.EUROC
         if (path / "metadata.yaml").is_file():
             return LogFormat.ROSBAG2
+        if any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+            return LogFormat.ROSBAG2  # a recording that never wrote its metadata.yaml
         if any((path / f"cam0{s}").is_file() for s in VIDEO_SUFFIXES):
             return LogFormat.VIDEO
         raise LogError(f"{path}: not a flight log (no mav0/ folder, no ROS 2 metadata.yaml, no cam0 video)")
@@ -61,7 +63,7 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     opts = opts or LogOptions()
     fmt = detect_format(path)
     if fmt == LogFormat.EUROC:
-        return euroc.read_flight(path)
+        return euroc.read_flight(path, cameras_optional=opts.cameras_optional)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import read_bag
 

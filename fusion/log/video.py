@@ -46,6 +46,7 @@ from fusion.log.euroc import (
     Frame,
     ImuData,
     ImuNoise,
+    LogWarning,
     VelocityData,
     _numeric_csv,
     _timestamp,
@@ -71,6 +72,9 @@ GROUNDTRUTH_FILE = "groundtruth.csv"
 LOADS_FILE = "loads_groundtruth.csv"
 BLACKOUTS_FILE = "blackouts_groundtruth.csv"
 FRAME_TIMES_HEADER = ("#timestamp [ns]",)
+TRUNCATION_TOLERANCE_FRAMES = 1.5
+"""Frames ending more than this many frame steps before the container's declared duration: the
+file was cut (a warning; the frames there are are used)."""
 VFR_TOLERANCE_TICKS = 1  # pts steps may differ by one tick of rounding and stay CFR
 CODECS = {  # codec -> (container suffix, pixel format, encoder options)
     "ffv1": (".mkv", "gray", {}),  # lossless
@@ -197,7 +201,13 @@ def probe_video(path: Path) -> tuple[np.ndarray, Fraction, float | None, str | N
     except FileNotFoundError:
         raise LogError(f"{path}: not found") from None
     except Exception as e:  # noqa: BLE001 - PyAV raises its own error per FFmpeg error code
-        raise LogError(f"{path}: not a readable video ({e.__class__.__name__})") from None
+        hint = (
+            "; an MP4 / MOV cut short loses its index (moov atom) with it: record to MKV, "
+            "or repair it (e.g. untrunc) first"
+            if Path(path).suffix.lower() in (".mp4", ".mov")
+            else ""
+        )
+        raise LogError(f"{path}: not a readable video ({e.__class__.__name__}){hint}") from None
     with container:
         if not container.streams.video:
             raise LogError(f"{path}: has no video stream")
@@ -215,8 +225,20 @@ def probe_video(path: Path) -> tuple[np.ndarray, Fraction, float | None, str | N
             log.warning(warning)
         rate = float(vs.average_rate) if vs.average_rate else None
         tb = vs.time_base
+        declared_s = container.duration / av.time_base if container.duration else None
     if not pts:
         raise LogError(f"{path}: no video frames")
+    if warning is None and declared_s is not None and tb is not None and len(pts) > 1:
+        # a file cut at a frame boundary demuxes without error: compare with the header's duration
+        p = np.sort(np.asarray(pts, np.int64))
+        step_s = float(np.median(np.diff(p)) * tb)
+        end_s = float((p[-1] - p[0]) * tb) + step_s
+        if end_s < declared_s - TRUNCATION_TOLERANCE_FRAMES * step_s:
+            warning = (
+                f"{path}: its frames end at {end_s:.3f} s of the {declared_s:.3f} s its header "
+                f"declares (truncated?); using the {len(pts)} frames there are"
+            )
+            log.warning(warning)
     if tb is None:
         raise LogError(f"{path}: the video stream has no time base")
     return np.sort(np.asarray(pts, np.int64)), tb, rate, warning
@@ -256,8 +278,10 @@ def _frame_times(
     times_csv: Path | None,
     ulog_times: np.ndarray | None,
     opts: LogOptions,
+    warnings: list[LogWarning] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(timestamps_ns, frame index) for the decodable frames of `video`."""
+    """(timestamps_ns, frame index) for the decodable frames of `video`; a frame count that
+    differs from the frame times is a `frame_times_mismatch` LogWarning in `warnings`."""
     n = len(pts)
     if times_csv is not None:
         t, source = read_frame_times(times_csv), str(times_csv)
@@ -285,6 +309,14 @@ def _frame_times(
         log.warning(
             "%s: %d frames but %d times in %s; using the first %d", video, n, len(t), source, min(n, len(t))
         )
+        if warnings is not None:
+            warnings.append(
+                LogWarning(
+                    "frame_times_mismatch",
+                    abs(n - len(t)),
+                    f"{video}: {n} frames but {len(t)} times in {source}; using the first {min(n, len(t))}",
+                )
+            )
     m = min(n, len(t))
     return t[:m], np.arange(m)
 
@@ -357,22 +389,24 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         kal = {k: (kc.camera, kc.timeshift_ns) for k, kc in read_camchain(calib_path, T_bi).items()}
 
     cameras: dict[str, CameraStream] = {}
+    warnings: list[LogWarning] = []
     for name, video in videos.items():
         if video is None or not Path(video).is_file():
             raise LogError(f"{video or folder / 'cam0.mkv'}: video not found")
         if name not in kal:
             raise LogError(f"{calib_path}: no '{name}' block for {video}")
         cam, shift_ns = kal[name]
-        pts, tb, rate, _ = probe_video(video)
+        pts, tb, rate, damage = probe_video(video)
+        if damage:
+            warnings.append(LogWarning("video_truncated", 1, damage))
         times = opts.frame_times if name == CameraRole.FLOOR.value else opts.front_frame_times
         times = (
             Path(times)
             if times
             else (video.with_suffix(".csv") if video.with_suffix(".csv").is_file() else None)
         )
-        t, idx = _frame_times(
-            video, pts, tb, rate, times, ulog_times if name == CameraRole.FLOOR.value else None, opts
-        )
+        capture_times = ulog_times if name == CameraRole.FLOOR.value else None
+        t, idx = _frame_times(video, pts, tb, rate, times, capture_times, opts, warnings)
         t = t + shift_ns
         if "rate_hz" not in _camchain_keys(calib_path, name) and len(t) > 1:
             cam.rate_hz = float(1e9 / np.median(np.diff(t)))
@@ -398,7 +432,9 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     world = find_world(path, opts, None, "")
     if imu is None and vel is None:
         log.warning("%s: no IMU (imu.csv or a .ulg) and no velocity.csv", path)
-    return FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, list(gt_warnings))
+    out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, warnings + list(gt_warnings))
+    out.timeshift_ns = {name: int(kal[name][1]) for name in cameras}  # added to the stamps above
+    return out
 
 
 def _camchain_keys(calib_path: Path, name: str) -> set:

@@ -953,7 +953,8 @@ class RefineQuality:
             return "low_contrast"
         if not (self.used_fraction >= checks.min_used_fraction):
             return "few_edges"
-        if not (self.chi2_dof <= checks.max_chi2_dof and self.residual_px <= checks.max_residual_px):
+        misfit = self.chi2_dof > checks.max_chi2_dof and self.residual_px > checks.negligible_residual_px
+        if misfit or not (self.residual_px <= checks.max_residual_px):
             return "high_residual"
         limit = max(checks.max_decoder_move_px, checks.max_decoder_move_modules * self.module_px)
         if not (self.decoder_move_px <= limit):
@@ -974,6 +975,10 @@ class RefineChecks:
     min_used_fraction: float = 0.6
     max_chi2_dof: float = 9.0
     max_residual_px: float = 0.35
+    # a misfit this small is negligible whatever its chi2: on a nearly noise-free image (a clean
+    # render) chi2/dof grows with the image's tiny noise, not with the fit's error; a rolling
+    # shutter's shear of a code leaves ~0.015 px of misfit with chi2/dof ~9 there
+    negligible_residual_px: float = 0.05
     max_decoder_move_px: float = 4.0
     max_decoder_move_modules: float = 1.5
 

@@ -97,19 +97,38 @@ def project_code_corners(camera: CameraModel, T_world_cam: np.ndarray, code: Pla
 
 @dataclass
 class RenderEffects:
-    """Photometric effects applied after the geometric rendering.
+    """Photometric effects applied after the geometric rendering, in the order light meets them
+    (`apply_photometric`): the scene (occlusion, glare, low contrast), the lens (vignetting,
+    defocus), the exposure (motion blur, gain), the sensor (shot and read noise, clipping to
+    0..255) and the encoder (JPEG).
 
-    noise_sigma_dn: Gaussian sensor noise (DN, 1 sigma); gain: exposure multiplier;
-    blur_px / blur_angle_rad: motion blur as a line kernel of that length (pixels moved during the
-    exposure) and image direction; blackout: None or one of BLACKOUT_KINDS, which makes every
-    floor code in view unreadable ('shadow': a deep shadow over the codes, 'glare': saturated
-    specular glare over them, 'torn': the top half of each symbol torn off)."""
+    noise_sigma_dn: Gaussian read noise (DN, 1 sigma); shot_noise_dn: shot noise, variance
+    `shot_noise_dn` x signal (DN^2 per DN: the sensor's DN per electron); gain: exposure
+    multiplier (above 1 whites clip at 255: over-exposure); blur_px / blur_angle_rad: motion blur
+    as a line kernel of that length (pixels moved during the exposure) and image direction;
+    defocus_px: defocus as a uniform disc of that radius (px); vignetting: relative light lost
+    at the image corner (cos^4-like falloff 1 - v (r / r_corner)^2); contrast: scene contrast
+    kept (1 = printed contrast; 0.2 = faded print / haze: every code's black-white swing times
+    0.2 about the image mean); glare_fraction: a saturated specular blob over that fraction of
+    each code's symbol area (0 = none); occlusion_fraction: that fraction of each code's symbol
+    hidden by a dark object entering from a random side; jpeg_quality: None (lossless) or the
+    JPEG quality (1..100) the camera compresses with; blackout: None or one of BLACKOUT_KINDS,
+    which makes every floor code in view unreadable ('shadow': a deep shadow over the codes,
+    'glare': saturated specular glare over them, 'torn': the top half of each symbol torn
+    off)."""
 
     noise_sigma_dn: float = 1.5
     gain: float = 1.0
     blur_px: float = 0.0
     blur_angle_rad: float = 0.0
     blackout: str | None = None
+    shot_noise_dn: float = 0.0
+    defocus_px: float = 0.0
+    vignetting: float = 0.0
+    contrast: float = 1.0
+    glare_fraction: float = 0.0
+    occlusion_fraction: float = 0.0
+    jpeg_quality: int | None = None
 
     def __post_init__(self):
         if self.blackout is not None and self.blackout not in BLACKOUT_KINDS:
@@ -118,6 +137,15 @@ class RenderEffects:
             )
         if not (self.noise_sigma_dn >= 0 and self.gain > 0 and self.blur_px >= 0):
             raise SimulationError("render effects: noise >= 0, gain > 0 and blur >= 0 required")
+        if not (self.shot_noise_dn >= 0 and self.defocus_px >= 0 and 0 <= self.vignetting < 1):
+            raise SimulationError("render effects: shot noise, defocus >= 0 and 0 <= vignetting < 1 required")
+        fractions = (self.glare_fraction, self.occlusion_fraction)
+        if not (0 < self.contrast <= 1 and all(0 <= f <= 1 for f in fractions)):
+            raise SimulationError(
+                "render effects: 0 < contrast <= 1, glare and occlusion fractions in [0, 1] required"
+            )
+        if self.jpeg_quality is not None and not (1 <= int(self.jpeg_quality) <= 100):
+            raise SimulationError(f"render effects: JPEG quality in 1..100, got {self.jpeg_quality}")
 
 
 def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray | None:
@@ -511,6 +539,7 @@ def render_view(
     T_cam_world = inv_T(T_world_cam)
     img = _background(camera, rays, T_world_cam, occluders)
     floor_quads = []
+    drawn = []
     T_world_cam_mid = T_world_cam[len(T_world_cam) // 2] if T_world_cam.ndim == 3 else T_world_cam
     T_cam_world_mid = inv_T(T_world_cam_mid)
     visible = _visible_far_to_near(codes, T_cam_world_mid, rays, max(camera.fu, camera.fv))
@@ -519,18 +548,152 @@ def render_view(
     for i in visible:
         code = codes[i]
         quad = _draw_code(img, camera, rays, T_cam_world, code)
+        if quad is not None:
+            drawn.append(code)
         if quad is not None and code.is_floor:
             floor_quads.append(quad)
     if effects.blackout is not None:
         _apply_blackout(img, effects.blackout, floor_quads, rng)
+    symbol_quads = []
+    if effects.glare_fraction > 0 or effects.occlusion_fraction > 0:
+        symbol_quads = [project_code_corners(camera, T_world_cam_mid, code) for code in drawn]
+    return apply_photometric(img, effects, rng, symbol_quads, (camera.cu, camera.cv))
+
+
+# ============================================================================ photometric effects
+
+GLARE_DN = 320.0  # specular glare: well above white, so it saturates after clipping
+GLARE_EDGE = 0.08  # glare blob's soft edge, Gaussian sigma as a fraction of the code's side
+OCCLUDER_DN = 45.0  # a dark object (a strap, a hand, a pallet edge) in front of a code
+_UNIT_SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+_GLARE_OUTLINE_POINTS = 48
+_SUBPIXEL_SHIFT = 4  # cv2 fill: 4 fractional bits
+
+
+def _unit_to_image(quad: np.ndarray) -> np.ndarray:
+    """Homography from the symbol's unit square ((0, 0) top-left, (1, 1) bottom-right) to its
+    image quad (4, 2) TL, TR, BR, BL."""
+    return cv2.getPerspectiveTransform(_UNIT_SQUARE, np.asarray(quad, np.float32))
+
+
+def _fill_mask(shape: tuple[int, int], polygon_px: np.ndarray) -> np.ndarray:
+    """float32 (H, W) anti-aliased coverage in [0, 1] of a convex polygon (n, 2) px."""
+    mask = np.zeros(shape, np.uint8)
+    pts = np.round(polygon_px * (1 << _SUBPIXEL_SHIFT)).astype(np.int32)
+    cv2.fillConvexPoly(mask, pts, 255, cv2.LINE_AA, _SUBPIXEL_SHIFT)
+    return mask.astype(np.float32) / 255.0
+
+
+def occlusion_polygon(quad: np.ndarray, fraction: float, side: int) -> np.ndarray:
+    """(4, 2) image polygon of the strip covering `fraction` of the symbol (image quad TL, TR,
+    BR, BL) from its side `side` (0 left, 1 top, 2 right, 3 bottom of the symbol)."""
+    f = float(fraction)
+    strips = {
+        0: [[0, 0], [f, 0], [f, 1], [0, 1]],
+        1: [[0, 0], [1, 0], [1, f], [0, f]],
+        2: [[1 - f, 0], [1, 0], [1, 1], [1 - f, 1]],
+        3: [[0, 1 - f], [1, 1 - f], [1, 1], [0, 1]],
+    }
+    unit = np.array(strips[int(side)], np.float32)[None]
+    return cv2.perspectiveTransform(unit, _unit_to_image(quad))[0]
+
+
+def glare_polygon(quad: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """(n, 2) image outline of a disc in the symbol plane whose area is `fraction` of the
+    symbol's, at a random place inside it (centred when it cannot fit)."""
+    rho = math.sqrt(float(fraction) / math.pi)
+    lo, hi = rho, 1.0 - rho
+    centre = rng.uniform(lo, hi, 2) if hi > lo else np.array([0.5, 0.5])
+    a = np.linspace(0.0, 2.0 * math.pi, _GLARE_OUTLINE_POINTS, endpoint=False)
+    unit = centre + rho * np.column_stack([np.cos(a), np.sin(a)])
+    return cv2.perspectiveTransform(unit[None].astype(np.float32), _unit_to_image(quad))[0]
+
+
+def defocus_kernel(radius_px: float) -> np.ndarray | None:
+    """Normalised uniform disc of `radius_px` (pillbox; edge pixels weighted by their covered
+    area, 8x supersampled), None below half a pixel."""
+    if radius_px < 0.5:
+        return None
+    n = int(math.ceil(radius_px)) + 1
+    ss = 8
+    g = (np.arange(-n * ss, (n + 1) * ss) + 0.5) / ss - 0.5
+    inside = (g[:, None] ** 2 + g[None, :] ** 2 <= radius_px**2).astype(np.float32)
+    k = inside.reshape(2 * n + 1, ss, 2 * n + 1, ss).sum(axis=(1, 3))
+    return k / k.sum()
+
+
+@lru_cache(maxsize=8)
+def _vignetting_falloff(shape: tuple[int, int], centre: tuple[float, float]) -> np.ndarray:
+    """(H, W) float32 (r / r_corner)^2 about the principal point."""
+    h, w = shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    r2 = (u - centre[0]) ** 2 + (v - centre[1]) ** 2
+    return (r2 / r2.max()).astype(np.float32)
+
+
+def apply_photometric(
+    img: np.ndarray,
+    effects: RenderEffects,
+    rng: np.random.Generator,
+    symbol_quads: list[np.ndarray] = (),  # type: ignore[assignment]
+    principal_point: tuple[float, float] | None = None,
+) -> np.ndarray:
+    """uint8 image from the float32 scene radiance `img` (DN at nominal exposure; modified in
+    place): occlusion and glare over the codes whose symbol quads (4, 2) are given, low contrast,
+    vignetting about `principal_point` (default the image centre), defocus, motion blur, gain,
+    shot and read noise, clipping, JPEG (RenderEffects)."""
+    shape = img.shape
+    if effects.occlusion_fraction > 0:
+        for quad in symbol_quads:
+            if np.all(np.isfinite(quad)):
+                poly = occlusion_polygon(quad, effects.occlusion_fraction, int(rng.integers(0, 4)))
+                a = _fill_mask(shape, poly)
+                img *= 1.0 - a
+                img += a * OCCLUDER_DN
+    if effects.glare_fraction > 0:
+        for quad in symbol_quads:
+            if np.all(np.isfinite(quad)):
+                side_px = float(np.mean(np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)))
+                a = _fill_mask(shape, glare_polygon(quad, effects.glare_fraction, rng))
+                a = cv2.GaussianBlur(a, (0, 0), max(0.5, GLARE_EDGE * side_px))
+                img *= 1.0 - a
+                img += a * GLARE_DN
+    if effects.contrast != 1.0:
+        mean = np.float32(img.mean())
+        img -= mean
+        img *= np.float32(effects.contrast)
+        img += mean
+    if effects.vignetting > 0:
+        h, w = shape
+        centre = principal_point if principal_point is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
+        img *= 1.0 - np.float32(effects.vignetting) * _vignetting_falloff(
+            shape, (float(centre[0]), float(centre[1]))
+        )
+    disc = defocus_kernel(effects.defocus_px)
+    if disc is not None:
+        img = cv2.filter2D(img, -1, disc, borderType=cv2.BORDER_REFLECT)
     kernel = motion_blur_kernel(effects.blur_px, effects.blur_angle_rad)
     if kernel is not None:
         img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
     if effects.gain != 1.0:
         img *= effects.gain
+    if effects.shot_noise_dn > 0:
+        sigma = np.sqrt(np.float32(effects.shot_noise_dn) * np.maximum(img, 0.0))
+        shot = _noise(shape, rng) * sigma
     if effects.noise_sigma_dn > 0:
-        img += _noise(img.shape, rng) * np.float32(effects.noise_sigma_dn)
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+        img += _noise(shape, rng) * np.float32(effects.noise_sigma_dn)
+    if effects.shot_noise_dn > 0:
+        img += shot
+    out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    if effects.jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(effects.jpeg_quality)])
+        if not ok:
+            raise SimulationError("JPEG encoding failed")
+        decoded = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        if decoded is None:
+            raise SimulationError("JPEG decoding failed")
+        out = np.asarray(decoded, dtype=np.uint8)
+    return out
 
 
 def rolling_shutter_poses(camera: CameraModel, T_world_body_at, t_stamp_s: float) -> np.ndarray:

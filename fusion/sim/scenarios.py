@@ -8,7 +8,7 @@ Scenarios: "default", "gimbaled", "paper_a5" (see each builder's docstring).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -64,6 +64,8 @@ class Scenario:
         for cam in self.cameras.values():
             cam.line_delay_s = self.readout_s / cam.height
 
+    photometric: dict = field(default_factory=dict)  # extra RenderEffects fields (CameraOptions)
+
     def codes(self) -> list[PlacedCode]:
         """Every code to render: floor grid and load codes."""
         w = self.layout.world
@@ -95,7 +97,9 @@ class Scenario:
             for t0, t1, kind in self.blackouts:
                 if t0 <= t_s <= t1:
                     blackout = kind
-        return RenderEffects(self.noise_sigma_dn, gain, blur_px, blur_angle_rad, blackout)
+        extra = dict(self.photometric)
+        gain *= extra.pop("gain", 1.0)
+        return RenderEffects(self.noise_sigma_dn, gain, blur_px, blur_angle_rad, blackout, **extra)
 
 
 def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, CameraModel]:
@@ -127,6 +131,108 @@ def make_cameras(resolution=(640, 480), mount: str = "body_fixed") -> dict[str, 
         mount=mount,
     )
     return {"cam0": floor, "cam1": front}
+
+
+# ============================================================================ camera options
+
+
+CAMERA_EFFECT_PRESETS = ("none", "realistic")
+
+
+@dataclass
+class CameraOptions:
+    """How the simulated cameras differ from the scenario's (`fusion simulate` options).
+
+    Photometric (fusion.sim.render.RenderEffects): `noise_dn` read noise (None: the scenario's
+    2 DN), `shot_noise_dn`, `jpeg_quality`, `defocus_px`, `vignetting`, `overexposure` (exposure
+    gain on top of the scenario's slow swing; above 1 whites clip), `contrast`, `glare_fraction`,
+    `occlusion_fraction`; `exposure_s` (None: the scenario's 8 ms): motion blur is the image
+    motion during it.  Geometric: `focal_scale` multiplies both cameras' focal lengths (a
+    narrower or wider lens), `distortion` (k1, k2, p1, p2) replaces both cameras' coefficients
+    (None: the scenario's).  Resolution is simulate()'s own argument."""
+
+    noise_dn: float | None = None
+    shot_noise_dn: float = 0.0
+    jpeg_quality: int | None = None
+    defocus_px: float = 0.0
+    vignetting: float = 0.0
+    overexposure: float = 1.0
+    contrast: float = 1.0
+    glare_fraction: float = 0.0
+    occlusion_fraction: float = 0.0
+    exposure_s: float | None = None
+    focal_scale: float = 1.0
+    distortion: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self):
+        if not (self.focal_scale > 0 and math.isfinite(self.focal_scale)):
+            raise SimulationError(f"focal scale must be positive, got {self.focal_scale}")
+        if self.exposure_s is not None and not (0 <= self.exposure_s < 1.0):
+            raise SimulationError(f"exposure must be in [0, 1) s, got {self.exposure_s}")
+        if self.distortion is not None and len(self.distortion) != 4:
+            raise SimulationError("distortion: four coefficients k1, k2, p1, p2")
+        RenderEffects(**self.render_fields())  # validates the photometric values
+
+    def render_fields(self) -> dict:
+        """The RenderEffects fields these options set (besides the scenario's noise and blur)."""
+        return dict(
+            shot_noise_dn=self.shot_noise_dn,
+            jpeg_quality=self.jpeg_quality,
+            defocus_px=self.defocus_px,
+            vignetting=self.vignetting,
+            gain=self.overexposure,
+            contrast=self.contrast,
+            glare_fraction=self.glare_fraction,
+            occlusion_fraction=self.occlusion_fraction,
+        )
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> CameraOptions:
+        """`none` (the scenario's cameras) or `realistic`: JPEG quality 80, read noise 4 DN with
+        shot noise, a 20 ms exposure (motion blur of several px at the survey's speeds) and 30 %
+        vignetting; `overrides` (fields not None) replace the preset's values."""
+        if name not in CAMERA_EFFECT_PRESETS:
+            raise SimulationError(
+                f"unknown camera-effects preset {name!r}; expected one of {CAMERA_EFFECT_PRESETS}"
+            )
+        base = cls()
+        if name == "realistic":
+            base = cls(
+                noise_dn=REALISTIC_NOISE_DN,
+                shot_noise_dn=REALISTIC_SHOT_NOISE_DN,
+                jpeg_quality=REALISTIC_JPEG_QUALITY,
+                exposure_s=REALISTIC_EXPOSURE_S,
+                vignetting=REALISTIC_VIGNETTING,
+            )
+        names = {f.name for f in fields(cls)}
+        bad = set(overrides) - names
+        if bad:
+            raise SimulationError(f"unknown camera options {sorted(bad)}")
+        return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+
+
+REALISTIC_JPEG_QUALITY = 80
+REALISTIC_NOISE_DN = 4.0
+REALISTIC_SHOT_NOISE_DN = 0.02  # 2 DN at mid grey, 2.1 DN on white paper
+REALISTIC_EXPOSURE_S = 0.020
+REALISTIC_VIGNETTING = 0.3
+
+
+def apply_camera_options(sc: Scenario, options: CameraOptions) -> Scenario:
+    """`sc` with its cameras and photometric effects changed as `options` say (in place)."""
+    for cam in sc.cameras.values():
+        if options.focal_scale != 1.0:
+            cam.fu *= options.focal_scale
+            cam.fv *= options.focal_scale
+        if options.distortion is not None:
+            cam.distortion = np.asarray(options.distortion, dtype=float)
+    if options.noise_dn is not None:
+        sc.noise_sigma_dn = float(options.noise_dn)
+    if options.exposure_s is not None:
+        sc.exposure_s = float(options.exposure_s)
+    defaults = {f.name: f.default for f in fields(RenderEffects)}
+    sc.photometric = {k: v for k, v in options.render_fields().items() if v != defaults[k]}
+    return sc
 
 
 # ============================================================================ default / gimbaled

@@ -25,7 +25,7 @@ from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.placement import placement_offsets
 from fusion.sim.render import render_view, rolling_shutter_poses
-from fusion.sim.scenarios import SCENARIOS, Scenario, build_scenario
+from fusion.sim.scenarios import SCENARIOS, CameraOptions, Scenario, apply_camera_options, build_scenario
 
 CAMERA_RATE_HZ = 30.0
 _STREAM_IMU, _STREAM_VEL, _STREAM_FRAME = 1, 2, 3
@@ -162,6 +162,8 @@ def simulate(
     readout_s: float | None = None,
     placement_error_m: float = 0.0,
     placement_error_deg: float = 0.0,
+    time_offset_ms: dict[str, float] | float | None = None,
+    camera_options: CameraOptions | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -190,7 +192,13 @@ def simulate(
     `placement_error_m` / `placement_error_deg`: the floor codes are stuck down off their
     payload's pose by N(0, sigma) per axis and in yaw (drawn from the seed); world.yaml then
     states these sigmas as floor_qr.placement_sigma_m / _deg (0 and 0, the default: exactly
-    laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses."""
+    laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses.
+    `time_offset_ms` ({"cam0": ms, "cam1": ms}, or one number for both): camera-IMU clock
+    offsets, Kalibr's sign (t_imu = t_cam + offset): each frame is rendered at its true time t
+    and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
+    frames whose stamp would fall before the flight's start are left out.
+    `camera_options` (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus,
+    ...) and lens changes (focal length, distortion) on top of the scenario's."""
     from fusion.log import LogFormat
 
     try:
@@ -218,6 +226,8 @@ def simulate(
             readout_s=readout_s,
             placement_error_m=placement_error_m,
             placement_error_deg=placement_error_deg,
+            time_offset_ms=time_offset_ms,
+            camera_options=camera_options,
         )
     t_wall = time.perf_counter()
     if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
@@ -251,6 +261,8 @@ def simulate(
         )
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
+    if camera_options is not None:
+        apply_camera_options(sc, camera_options)
     if noise_sigma_dn is not None:
         sc.noise_sigma_dn = float(noise_sigma_dn)
     for name, v in (
@@ -302,6 +314,9 @@ def simulate(
         if a * 1e9 < t1_ns and b * 1e9 > t0_ns
     ]
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
+    offset_ns = _camera_offsets_ns(time_offset_ms, list(sc.cameras))
+    if offset_ns:
+        frame_ns = frame_ns[frame_ns - max(offset_ns.values()) >= t0_ns]
 
     readable: list[bool] = []
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
@@ -343,7 +358,7 @@ def simulate(
             cpu_s[0] += cpu
             for k, pngs, ok in results:
                 for name, png in zip(names, pngs):
-                    writer.write_frame_png(name, int(frame_ns[k]), png)
+                    writer.write_frame_png(name, int(frame_ns[k]) - offset_ns.get(name, 0), png)
                 if ok is not None:
                     readable.append(ok)
                 if bar is not None:
@@ -378,6 +393,26 @@ def simulate(
         names,
         cpu_s[0],
     )
+
+
+def _camera_offsets_ns(time_offset_ms, names: list[str]) -> dict[str, int]:
+    """{camera: offset ns} from `time_offset_ms` (a number for every camera, or a dict);
+    SimulationError for an unknown camera or a non-finite value."""
+    if time_offset_ms is None:
+        return {}
+    given = time_offset_ms if isinstance(time_offset_ms, dict) else {n: time_offset_ms for n in names}
+    out = {}
+    for name, ms in given.items():
+        if name not in names:
+            raise SimulationError(f"time offset for unknown camera {name!r}; cameras: {', '.join(names)}")
+        try:
+            v = float(ms)
+        except (TypeError, ValueError):
+            raise SimulationError(f"time offset of {name}: {ms!r} is not a number") from None
+        if not math.isfinite(v):
+            raise SimulationError(f"time offset of {name} must be finite, got {ms!r}")
+        out[name] = int(round(v * 1e6))
+    return out
 
 
 _FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}

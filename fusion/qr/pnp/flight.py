@@ -13,7 +13,7 @@ from fusion.geometry import interpolate_pose
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
-from fusion.qr.pnp.whitening import DEFAULT_CORNER_SIGMA_PX
+from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
 from fusion.world import World
 
@@ -24,6 +24,8 @@ SAME_STAMP_NS = 1_000_000
 MAX_POSE_GAP_S = 0.1
 """`pose_at`: the longest gap between two poses across which a pose is interpolated."""
 S_PER_NS = 1e-9
+POSE_DOF = 6
+"""Unknowns of a floor-camera PnP frame (a frame's chi2 has 8 n_codes - POSE_DOF dof)."""
 
 
 @dataclass
@@ -39,6 +41,9 @@ class PnPStats:
     codes_per_pose: dict[int, int] = field(default_factory=dict)  # n_codes -> n_frames
     rejections: dict[str, int] = field(default_factory=dict)  # classify() reason -> count
     mean_reprojection_rms_px: float = float("nan")  # over the posed frames
+    # per posed frame: whitened reprojection chi2 and its dof (fusion.estimate.variance)
+    frame_chi2: list[float] = field(default_factory=list)
+    frame_dof: list[int] = field(default_factory=list)
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -65,6 +70,8 @@ class PnPStats:
                 if n_posed
                 else float("nan")
             ),
+            frame_chi2=[c for p in parts for c in p.frame_chi2],
+            frame_dof=[d for p in parts for d in p.frame_dof],
         )
 
 
@@ -107,6 +114,8 @@ def pnp_trajectory(
             T_out.append(res.T_world_body)
             cov_out.append(res.covariance)
             rms.append(res.reprojection_rms_px)
+            stats.frame_chi2.append(res.chi2)
+            stats.frame_dof.append(CORNER_COORDINATES * res.n_codes - POSE_DOF)
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:

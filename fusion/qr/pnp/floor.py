@@ -58,7 +58,9 @@ class PnPResult:
     `T_world_body` (4, 4); `covariance` (6, 6) [rx, ry, rz, tx, ty, tz], body frame, right
     perturbation; `T_world_cam` (4, 4); `reprojection_rms_px` over all corners used (distorted px).
     `ambiguous`: two solutions fitted the corners equally well and the more level one was taken.
-    `dropped_payloads`: codes left out as outliers (their corners did not fit the others)."""
+    `dropped_payloads`: codes left out as outliers (their corners did not fit the others).
+    `chi2`: the whitened reprojection error (chi-square with 8 n_codes - 6 dof when the corner
+    covariances are right; fusion.estimate.variance)."""
 
     T_world_body: np.ndarray
     covariance: np.ndarray
@@ -68,6 +70,7 @@ class PnPResult:
     reprojection_rms_px: float
     ambiguous: bool = False
     dropped_payloads: list[str] = field(default_factory=list)
+    chi2: float = math.nan
 
 
 @dataclass
@@ -440,6 +443,7 @@ def estimate_floor_poses(
             reprojection_rms_px=sol.candidate.rms_px,
             ambiguous=sol.ambiguous,
             dropped_payloads=dropped[k],
+            chi2=float(sol.candidate.cost),
         )
     return out
 

@@ -1,0 +1,654 @@
+"""Camera-IMU time offsets: estimated per camera, or fixed by hand, and applied to every output.
+
+Convention (Kalibr's `timeshift_cam_imu`): t_imu = t_cam + offset, t_cam being the stamp the
+log file holds.  The log readers already add Kalibr's shift (the seed, FlightLog.timeshift_ns)
+to the camera stamps, so what is estimated here is the residual r around the seed; the
+reported offset is seed + r.
+
+Floor camera (cam0): profile of the batch smoother's cost over the offset.  Shifting the floor
+frames (states and PnP poses) by delta against the IMU, the smoother's final error E(delta) =
+0.5 * sum of squared whitened residuals (GTSAM's error: the negative log-likelihood up to a
+constant, minimised over every state) is minimised by bounded Brent (golden section with
+parabolic steps, scipy.optimize.minimize_scalar), then refined by the vertex of the parabola
+through E(r - h), E(r), E(r + h); sigma = 1 / sqrt(E''(r)) (the curvature of the negative
+log-likelihood: the Cramér-Rao / Laplace approximation of the profile likelihood).  An offset
+delta makes every PnP pose T(t + delta) disagree with the IMU's angular rate and specific force
+(attitude against gravity), which is what E measures.  Long flights are profiled on the
+`profile_window_s` window with the most rotation while fixes are seen.
+
+Front camera (cam1): profile of the load-landmark factors' cost with the fused trajectory held
+fixed.  A load sighting's camera-frame point p_cam (covariance C_cam) at time t + delta gives
+p_world = T_world_cam(T(t + delta)) p_cam with covariance R C_cam R^T; with each landmark at its
+information-weighted (Huber-IRLS) mean, the cost is sum rho(Mahalanobis distance): the landmark
+factors' error minimised over the landmarks.  The drone's motion while a load is in view
+(velocity and, through the lever arm, rotation) makes the sightings of one load disagree unless
+delta is right.  Grid search, Brent, the same parabola refinement and curvature sigma.
+
+An estimated residual is applied only when it is significant (|r| > `apply_sigmas` sigma and
+> `min_apply_s`): a flight with no offset keeps its results unchanged.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from fusion.camera import CameraModel
+from fusion.errors import EstimationError
+from fusion.estimate.common import FusionConfig
+from fusion.estimate.smoother import smooth
+from fusion.geometry import interpolate_poses
+from fusion.log.euroc import FlightLog, ImuData, VelocityData
+from fusion.types import CameraRole, Choice, LoadObservation, Trajectory
+
+log = logging.getLogger(__name__)
+
+NS_PER_S = 1e9
+MS_PER_S = 1e3
+
+
+class OffsetSource(Choice):
+    """Where a camera's time offset comes from."""
+
+    ESTIMATED = "estimated"  # profiled here (around the seed)
+    FIXED = "fixed"  # --time-offset-ms
+    SEED = "seed"  # the log's own (Kalibr timeshift_cam_imu, else 0): could not be estimated
+
+
+@dataclass
+class TimeOffsetConfig:
+    """Every tuning number of the time-offset estimation.
+
+    Search: residual offsets within +-`search_half_width_s` of the seed; Brent stops at
+    `xatol_s`; the curvature (sigma) and parabola refinement use steps of `curvature_step_s`
+    (floor) and `front_curvature_step_s` (front); the front cost is first scanned on a grid of
+    `front_grid_step_s`.  Flights longer than `profile_window_s` are profiled (floor) on the
+    window of that length with the most rotation at the fixes.  The front profile needs at least
+    `min_load_sightings` sightings of loads seen at least twice; its Huber threshold is FusionConfig's
+    for a 3-d point, `irls_iterations` reweightings.  An estimate is applied when |r| exceeds
+    both `apply_sigmas` sigma and `min_apply_s`."""
+
+    search_half_width_s: float = 0.05
+    xatol_s: float = 5e-5
+    curvature_step_s: float = 2e-3
+    front_curvature_step_s: float = 1e-3
+    front_grid_step_s: float = 2e-3
+    profile_window_s: float = 30.0
+    min_load_sightings: int = 10
+    irls_iterations: int = 3
+    apply_sigmas: float = 3.0
+    min_apply_s: float = 5e-4
+    # IMU samples interpolated between the logged ones while profiling (see upsample_imu)
+    imu_upsample: int = 4
+    # the smoother's relative tolerance while profiling: tight enough that E's solve noise is
+    # far below its change over xatol_s
+    profile_lm_relative_tol: float = 1e-9
+
+
+@dataclass
+class CameraOffset:
+    """One camera's offset (s): t_imu = t_cam + offset_s, t_cam the log file's stamp."""
+
+    camera: str  # CameraRole value
+    offset_s: float  # estimated / fixed / seed value, seed included
+    sigma_s: float | None  # 1-sigma of an estimate (None: fixed or seed)
+    source: OffsetSource
+    seed_s: float = 0.0  # Kalibr's timeshift_cam_imu the log reader already added
+    applied_s: float = 0.0  # shift added to the reader's stamps in this run
+    note: str = ""
+    evaluations: int = 0  # cost evaluations of the profile
+
+    @property
+    def effective_s(self) -> float:
+        """The offset the outputs are stamped with: seed + applied."""
+        return self.seed_s + self.applied_s
+
+    def as_dict(self) -> dict:
+        return {
+            "camera": self.camera,
+            "offset_ms": self.offset_s * MS_PER_S,
+            "sigma_ms": None if self.sigma_s is None else self.sigma_s * MS_PER_S,
+            "source": str(self.source),
+            "seed_ms": self.seed_s * MS_PER_S,
+            "applied_ms": self.applied_s * MS_PER_S,
+            "effective_ms": self.effective_s * MS_PER_S,
+            "evaluations": self.evaluations,
+            "note": self.note,
+        }
+
+    def describe(self) -> str:
+        """One line: `cam1 (front): +15.02 ± 0.31 ms, estimated (seed 0.00 ms); applied`."""
+        role = "floor" if self.camera == CameraRole.FLOOR.value else "front"
+        sig = f" ± {self.sigma_s * MS_PER_S:.2f}" if self.sigma_s is not None else ""
+        seed = f" (seed {self.seed_s * MS_PER_S:+.2f} ms)" if self.seed_s else ""
+        if self.source == OffsetSource.ESTIMATED:
+            used = "applied" if self.applied_s else "not applied (not significant)"
+        elif self.source == OffsetSource.FIXED:
+            used = "applied"
+        else:
+            used = "log stamps used"
+        note = f"; {self.note}" if self.note else ""
+        return (
+            f"time offset {self.camera} ({role}): {self.offset_s * MS_PER_S:+.2f}{sig} ms, "
+            f"{self.source}{seed}; {used}{note}"
+        )
+
+
+@dataclass
+class TimeOffsets:
+    """The offsets of a run's cameras (RunResult.time_offsets, metrics.json `time_offsets`)."""
+
+    cameras: dict[str, CameraOffset] = field(default_factory=dict)
+
+    def shift_ns(self, camera: str) -> int:
+        """ns to add to the reader's stamps of `camera` (0 for an unknown camera)."""
+        c = self.cameras.get(camera)
+        return 0 if c is None else int(round(c.applied_s * NS_PER_S))
+
+    @property
+    def any_applied(self) -> bool:
+        return any(self.shift_ns(name) != 0 for name in self.cameras)
+
+    def as_dict(self) -> dict:
+        return {name: c.as_dict() for name, c in self.cameras.items()}
+
+    def lines(self) -> list[str]:
+        return [c.describe() for c in self.cameras.values()]
+
+
+# =========================================================================== options
+
+
+def parse_time_offsets_ms(text: str) -> dict[str, float]:
+    """`--time-offset-ms`: "5" (both cameras) or "cam0=5,cam1=-3" (either may be left out: it
+    is then estimated) -> {camera: offset in s}.  ValueError with the reason otherwise."""
+    names = [r.value for r in CameraRole]
+    text = text.strip()
+    if not text:
+        raise ValueError("empty value; expected MS or cam0=MS,cam1=MS")
+    if "=" not in text:
+        v = _ms(text)
+        return {n: v for n in names}
+    out: dict[str, float] = {}
+    for part in text.split(","):
+        key, sep, val = part.partition("=")
+        key = key.strip()
+        if not sep or key not in names:
+            raise ValueError(f"{part.strip()!r}: expected cam0=MS or cam1=MS")
+        if key in out:
+            raise ValueError(f"{key} given twice")
+        out[key] = _ms(val)
+    return out
+
+
+def _ms(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{text.strip()!r} is not a number of milliseconds") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{text.strip()!r} is not a finite number of milliseconds")
+    return v / MS_PER_S
+
+
+# =========================================================================== floor camera
+
+
+def _profile_minimum(
+    cost: Callable[[float], float], lo: float, hi: float, xatol: float, step: float
+) -> tuple[float, float | None, float]:
+    """Minimum of a 1-d cost on [lo, hi] (bounded Brent), refined by the vertex of the parabola
+    through cost(r - step), cost(r), cost(r + step); sigma = 1 / sqrt(curvature) (None when
+    the cost is not convex there).  Returns (r, sigma, cost at r)."""
+    res = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
+    r = float(res.x)
+    e0, ep, em = cost(r), cost(r + step), cost(r - step)
+    curv = (ep - 2.0 * e0 + em) / step**2
+    if not (curv > 0 and math.isfinite(curv)):
+        return r, None, e0
+    vertex = r - step * (ep - em) / (2.0 * (ep - 2.0 * e0 + em))
+    if abs(vertex - r) < step:
+        r = float(vertex)
+    return r, 1.0 / math.sqrt(curv), e0
+
+
+def upsample_imu(imu: ImuData, factor: int, max_gap_s: float) -> ImuData:
+    """The IMU with `factor - 1` linearly interpolated samples inside every sampling interval
+    up to `max_gap_s` long (gaps stay gaps).  GTSAM's preintegration rotates each sub-interval's
+    specific force with the attitude at the sub-interval's start, half a sample behind the
+    midpoint signal the smoother gives it; the smoother's cost is then least at an offset about
+    0.04 IMU periods late (0.22 ms at 200 Hz, noise-free simulation).  Finer sub-intervals shrink
+    that bias in proportion (0.05 ms at 4x).  The noise densities are per sqrt(Hz), so the
+    preintegrated covariances are unchanged."""
+    t = imu.timestamps_ns
+    if factor <= 1 or len(t) < 2:
+        return imu
+    d = np.diff(t)
+    ok = d <= int(max_gap_s * NS_PER_S)
+    frac = np.arange(1, factor) / factor
+    extra = np.round(t[:-1][ok, None] + d[ok, None] * frac[None, :]).astype(np.int64).ravel()
+    tt = np.union1d(t, extra)
+
+    def interp(v: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(tt, t, v[:, a]) for a in range(3)], axis=1)
+
+    return replace(
+        imu, timestamps_ns=tt, gyro_rad_s=interp(imu.gyro_rad_s), accel_m_s2=interp(imu.accel_m_s2)
+    )
+
+
+def _inflate(sigma: float | None, e_min: float, dof: int) -> float | None:
+    """sigma scaled by sqrt(reduced chi-square) when the fit is worse than its noise model
+    says (2 E_min / dof > 1): the usual correction of a curvature sigma for an underestimated
+    measurement noise (e.g. Press et al., Numerical Recipes, 15.1)."""
+    if sigma is None or dof <= 0:
+        return sigma
+    return sigma * math.sqrt(max(1.0, 2.0 * e_min / dof))
+
+
+def _shift_traj(traj: Trajectory, d_ns: int) -> Trajectory:
+    return Trajectory(traj.name, traj.timestamps_ns + d_ns, traj.T_world_body, traj.covariances)
+
+
+def profile_window(
+    frame_t: np.ndarray, raw: Trajectory, imu: ImuData | None, window_s: float, margin_s: float
+) -> tuple[int, int]:
+    """[t0, t1] ns of the floor profile: the whole flight inside the IMU's span (less
+    `margin_s`, so that no shifted frame leaves it), or, when longer than `window_s`, the
+    window of that length whose fixes see the most rotation (sum of |gyro|^2 at the fixes)."""
+    t0, t1 = int(frame_t[0]), int(frame_t[-1])
+    if imu is not None and len(imu.timestamps_ns):
+        margin = int(margin_s * NS_PER_S)
+        t0 = max(t0, int(imu.timestamps_ns[0]) + margin)
+        t1 = min(t1, int(imu.timestamps_ns[-1]) - margin)
+    w = int(window_s * NS_PER_S)
+    if t1 - t0 <= w:
+        return t0, t1
+    tr = raw.timestamps_ns[(raw.timestamps_ns >= t0) & (raw.timestamps_ns <= t1)]
+    if imu is None or len(tr) == 0:
+        return t0, t0 + w
+    gyro = np.stack([np.interp(tr, imu.timestamps_ns, imu.gyro_rad_s[:, a]) for a in range(3)], axis=1)
+    score = np.r_[0.0, np.cumsum(np.sum(gyro**2, axis=1))]
+    starts = np.clip(tr, t0, t1 - w)
+    i0 = np.searchsorted(tr, starts)
+    i1 = np.searchsorted(tr, starts + w, side="right")
+    best = int(np.argmax(score[i1] - score[i0]))
+    return int(starts[best]), int(starts[best]) + w
+
+
+@dataclass
+class FloorProfile:
+    """Result of the floor-camera profile (residual around the seed)."""
+
+    residual_s: float
+    sigma_s: float | None
+    trajectory: Trajectory | None  # smoothed at the estimate, IMU clock (the front profile's)
+    evaluations: int
+    note: str = ""
+    whole_flight: bool = True  # False: profiled on a window of the flight (profile_window_s)
+
+
+def estimate_floor_offset(
+    frame_t: np.ndarray,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None = None,
+    floor_camera: CameraModel | None = None,
+    config: TimeOffsetConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> FloorProfile:
+    """Residual offset of the floor camera: frames `frame_t` and PnP poses `raw` (the log's
+    stamps) against the IMU / velocity, by the smoother's cost profile (module docstring).
+    EstimationError when neither IMU nor velocity or no raw pose lies in the profile window."""
+    config = config or TimeOffsetConfig()
+    fusion_config = fusion_config or FusionConfig()
+    if imu is None and velocity is None:
+        raise EstimationError("neither IMU nor velocity: the floor camera's offset cannot be estimated")
+    S = config.search_half_width_s
+    t0, t1 = profile_window(
+        frame_t, raw, imu, config.profile_window_s, S + config.curvature_step_s + config.xatol_s
+    )
+    fsel = (frame_t >= t0) & (frame_t <= t1)
+    rsel = (raw.timestamps_ns >= t0) & (raw.timestamps_ns <= t1)
+    if rsel.sum() < 2:
+        raise EstimationError("fewer than two floor-code fixes in the profile window")
+    frames = frame_t[fsel]
+    sub = Trajectory(
+        raw.name,
+        raw.timestamps_ns[rsel],
+        raw.T_world_body[rsel],
+        None if raw.covariances is None else raw.covariances[rsel],
+    )
+    pcfg = replace(
+        fusion_config,
+        compute_covariances=False,
+        outlier_gate=None,
+        reject_disagreeing_imu=False,
+        lm_relative_tol=config.profile_lm_relative_tol,
+        tight=False,
+    )
+    cache: dict[int, float] = {}
+    trajs: dict[int, Trajectory] = {}
+    n_fixes: dict[int, int] = {}
+    imu_fine = None if imu is None else upsample_imu(imu, config.imu_upsample, fusion_config.max_imu_gap_s)
+
+    def cost_ms(r_ms: float) -> float:
+        d = int(round(r_ms * 1e6))
+        if d not in cache:
+            res = smooth(
+                frames + d,
+                imu_fine,
+                _shift_traj(sub, d),
+                None,
+                velocity=velocity,
+                config=pcfg,
+                floor_camera=floor_camera,
+            )
+            cache[d] = float(res.stats["final_error"])
+            trajs[d] = res.trajectory
+            n_fixes[d] = int(res.stats.get("pose_factors", 0))
+        return cache[d]
+
+    S_ms = S * MS_PER_S
+    r_ms, sig_ms, e_min = _profile_minimum(
+        cost_ms, -S_ms, S_ms, config.xatol_s * MS_PER_S, config.curvature_step_s * MS_PER_S
+    )
+    note = ""
+    if abs(r_ms) > S_ms - 2 * config.curvature_step_s * MS_PER_S:
+        note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
+    d_best = min(trajs, key=lambda d: abs(d - r_ms * 1e6))
+    # residual degrees of freedom: the fixes' dimensions (the IMU's are taken up by the states)
+    dim = 6 if sub.covariances is not None else 4
+    sig_ms = _inflate(sig_ms, e_min, dim * n_fixes[d_best] - 1)
+    log.info("floor camera time offset: residual %+.3f ms (%d smoother solves)", r_ms, len(cache))
+    return FloorProfile(
+        r_ms / MS_PER_S,
+        None if sig_ms is None else sig_ms / MS_PER_S,
+        trajs[d_best],
+        len(cache),
+        note,
+        whole_flight=(t1 - t0) < int(config.profile_window_s * NS_PER_S),
+    )
+
+
+# =========================================================================== front camera
+
+
+def _usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
+    out = []
+    for o in obs:
+        if o.p_cam is None or o.cov_cam is None:
+            continue
+        p, C = np.asarray(o.p_cam, float), np.asarray(o.cov_cam, float)
+        if p.shape != (3,) or C.shape != (3, 3) or not (np.isfinite(p).all() and np.isfinite(C).all()):
+            continue
+        if np.linalg.eigvalsh(0.5 * (C + C.T))[0] <= 0:
+            continue
+        out.append(o)
+    return out
+
+
+def landmark_cost(
+    trajectory: Trajectory,
+    t_ns: np.ndarray,
+    group: np.ndarray,
+    p_cam: np.ndarray,
+    info_cam: np.ndarray,
+    front_camera: CameraModel,
+    threshold: float,
+    iterations: int,
+) -> float:
+    """The load-landmark factors' robust cost with the drone on `trajectory` (interpolated at
+    `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
+    Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3), load
+    index `group` (M,)) from its landmark, rho Huber's with `threshold`."""
+    T = interpolate_poses(trajectory.timestamps_ns, trajectory.T_world_body, t_ns)
+    T_wc = front_camera.T_world_cam(T)
+    R = T_wc[:, :3, :3]
+    p_w = np.einsum("nij,nj->ni", R, p_cam) + T_wc[:, :3, 3]
+    W = R @ info_cam @ np.swapaxes(R, 1, 2)
+    n_g = int(group.max()) + 1
+    w = np.ones(len(t_ns))
+    d = np.zeros(len(t_ns))
+    for _ in range(iterations + 1):
+        info = np.zeros((n_g, 3, 3))
+        vec = np.zeros((n_g, 3))
+        np.add.at(info, group, w[:, None, None] * W)
+        np.add.at(vec, group, w[:, None] * np.einsum("nij,nj->ni", W, p_w))
+        L = np.linalg.solve(info, vec[:, :, None])[:, :, 0]
+        r = p_w - L[group]
+        d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
+        w = np.where(d <= threshold, 1.0, threshold / np.maximum(d, 1e-12))
+    rho = np.where(d <= threshold, 0.5 * d**2, threshold * (d - 0.5 * threshold))
+    return float(rho.sum())
+
+
+@dataclass
+class FrontProfile:
+    residual_s: float
+    sigma_s: float | None
+    sightings: int
+    note: str = ""
+    evaluations: int = 0
+
+
+def estimate_front_offset(
+    trajectory: Trajectory,
+    sightings: list[LoadObservation],
+    front_camera: CameraModel,
+    config: TimeOffsetConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> FrontProfile:
+    """Residual offset of the front camera: its load sightings (camera-frame p_cam / cov_cam,
+    the log's stamps) against `trajectory` (the fused drone poses in the IMU clock), by the
+    load-landmark cost profile (module docstring).  EstimationError with too few sightings."""
+    config = config or TimeOffsetConfig()
+    fusion_config = fusion_config or FusionConfig()
+    S = config.search_half_width_s
+    S_ns = int((S + config.front_curvature_step_s) * NS_PER_S)
+    ts = trajectory.timestamps_ns
+    obs = [o for o in _usable_sightings(sightings) if ts[0] + S_ns <= o.timestamp_ns <= ts[-1] - S_ns]
+    ids = np.array([o.load_id for o in obs])
+    if len(obs):
+        uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+        keep = counts[inverse] >= 2
+        obs = [o for o, k in zip(obs, keep) if k]
+        ids = ids[keep]
+    if len(obs) < config.min_load_sightings:
+        raise EstimationError(
+            f"{len(obs)} load sightings of loads seen twice or more (at least "
+            f"{config.min_load_sightings} needed): the front camera's offset cannot be estimated"
+        )
+    _, group = np.unique(ids, return_inverse=True)
+    t = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
+    p_cam = np.array([o.p_cam for o in obs], dtype=float)
+    C = np.array([o.cov_cam for o in obs], dtype=float)
+    info_cam = np.linalg.inv(0.5 * (C + np.swapaxes(C, 1, 2)))
+    thr = fusion_config.threshold(3)
+    n_eval = [0]
+
+    def cost_ms(r_ms: float) -> float:
+        n_eval[0] += 1
+        tq = t.astype(float) + r_ms * 1e6
+        return landmark_cost(
+            trajectory, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
+        )
+
+    S_ms, step_ms = S * MS_PER_S, config.front_grid_step_s * MS_PER_S
+    grid = np.arange(-S_ms, S_ms + 0.5 * step_ms, step_ms)
+    costs = [cost_ms(float(g)) for g in grid]
+    i = int(np.argmin(costs))
+    lo, hi = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+    r_ms, sig_ms, e_min = _profile_minimum(
+        cost_ms, lo, hi, config.xatol_s * MS_PER_S, config.front_curvature_step_s * MS_PER_S
+    )
+    sig_ms = _inflate(sig_ms, e_min, 3 * (len(obs) - int(group.max()) - 1) - 1)
+    note = ""
+    if abs(r_ms) > S_ms - step_ms:
+        note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
+    return FrontProfile(
+        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0]
+    )
+
+
+# =========================================================================== a run's offsets
+
+
+def _significant(r: float, sigma: float | None, config: TimeOffsetConfig) -> bool:
+    return sigma is not None and abs(r) > config.apply_sigmas * sigma and abs(r) > config.min_apply_s
+
+
+def resolve_time_offsets(
+    log_: FlightLog,
+    raw: Trajectory | None,
+    sightings: list[LoadObservation],
+    fixed_s: dict[str, float] | None = None,
+    config: TimeOffsetConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> TimeOffsets:
+    """Each camera's offset for a run: fixed (`fixed_s` {camera: s}, --time-offset-ms), else
+    estimated around the log's seed (FlightLog.timeshift_ns) from the floor PnP poses `raw`
+    (log stamps) and the front camera's camera-frame load `sightings`; when it cannot be
+    estimated, the seed, with the reason in `note`."""
+    config = config or TimeOffsetConfig()
+    fixed_s = dict(fixed_s or {})
+    seeds = {name: log_.timeshift_ns.get(name, 0) / NS_PER_S for name in log_.cameras}
+    out = TimeOffsets()
+    floor, front = CameraRole.FLOOR.value, CameraRole.FRONT.value
+    fused: Trajectory | None = None  # the drone in the IMU clock, for the front profile
+    fused_shift_ns = 0  # ... else solved with the floor stamps shifted by this
+
+    seed = seeds.get(floor, 0.0)
+    if floor in fixed_s:
+        out.cameras[floor] = CameraOffset(
+            floor, fixed_s[floor], None, OffsetSource.FIXED, seed, fixed_s[floor] - seed
+        )
+    else:
+        try:
+            if raw is None or len(raw) == 0:
+                raise EstimationError("no floor-code fix: the floor camera's offset cannot be estimated")
+            fp = estimate_floor_offset(
+                log_.floor.timestamps_ns,
+                log_.imu,
+                raw,
+                log_.velocity,
+                log_.floor.camera,
+                config,
+                fusion_config,
+            )
+            # the profile's trajectory, unless it covers only a window of the flight
+            if fp.whole_flight:
+                fused = fp.trajectory
+            else:
+                fused_shift_ns = int(round(fp.residual_s * NS_PER_S))
+            applied = fp.residual_s if _significant(fp.residual_s, fp.sigma_s, config) else 0.0
+            out.cameras[floor] = CameraOffset(
+                floor,
+                seed + fp.residual_s,
+                fp.sigma_s,
+                OffsetSource.ESTIMATED,
+                seed,
+                applied,
+                fp.note,
+                fp.evaluations,
+            )
+        except EstimationError as e:
+            out.cameras[floor] = CameraOffset(floor, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
+
+    if front not in log_.cameras:
+        return out
+    seed = seeds.get(front, 0.0)
+    if front in fixed_s:
+        out.cameras[front] = CameraOffset(
+            front, fixed_s[front], None, OffsetSource.FIXED, seed, fixed_s[front] - seed
+        )
+        return out
+    try:
+        if fused is None:
+            fused_shift_ns = fused_shift_ns or out.shift_ns(floor)
+            fused = _fused_trajectory(log_, raw, fused_shift_ns, config, fusion_config)
+        fr = estimate_front_offset(fused, sightings, log_.cameras[front].camera, config, fusion_config)
+        # the trajectory's clock carries the floor estimate's error one to one
+        sigma = fr.sigma_s
+        floor_sigma = out.cameras[floor].sigma_s if floor in out.cameras else None
+        if sigma is not None and floor_sigma is not None:
+            sigma = math.hypot(sigma, floor_sigma)
+        applied = fr.residual_s if _significant(fr.residual_s, sigma, config) else 0.0
+        out.cameras[front] = CameraOffset(
+            front,
+            seed + fr.residual_s,
+            sigma,
+            OffsetSource.ESTIMATED,
+            seed,
+            applied,
+            fr.note,
+            fr.evaluations,
+        )
+    except EstimationError as e:
+        out.cameras[front] = CameraOffset(front, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
+    return out
+
+
+def _fused_trajectory(
+    log_: FlightLog,
+    raw: Trajectory | None,
+    shift_ns: int,
+    config: TimeOffsetConfig,
+    fusion_config: FusionConfig | None,
+) -> Trajectory:
+    """One smoother solve (no loads, no covariances) with the floor stamps shifted by
+    `shift_ns`: the drone in the IMU clock over the whole flight (the floor profile covered only a
+    window, or none was made)."""
+    if raw is None or len(raw) == 0:
+        raise EstimationError("no floor-code fix: the front camera's offset cannot be estimated")
+    if log_.imu is None and log_.velocity is None:
+        raise EstimationError("neither IMU nor velocity: the front camera's offset cannot be estimated")
+    pcfg = replace(fusion_config or FusionConfig(), compute_covariances=False, tight=False)
+    imu = log_.imu
+    if imu is not None:
+        imu = upsample_imu(imu, config.imu_upsample, pcfg.max_imu_gap_s)
+    res = smooth(
+        log_.floor.timestamps_ns + shift_ns,
+        imu,
+        _shift_traj(raw, shift_ns),
+        None,
+        velocity=log_.velocity,
+        config=pcfg,
+        floor_camera=log_.floor.camera,
+    )
+    return res.trajectory
+
+
+# =========================================================================== applying
+
+
+def shift_log(log_: FlightLog, offsets: TimeOffsets) -> FlightLog:
+    """A copy of the log whose camera stamps are in the IMU clock (each camera's applied shift
+    added); frames still stream from the same files."""
+    cams = {}
+    for name, stream in log_.cameras.items():
+        d = offsets.shift_ns(name)
+        if d:
+            stream = copy.copy(stream)
+            stream.timestamps_ns = np.asarray(stream.timestamps_ns, dtype=np.int64) + d
+        cams[name] = stream
+    return replace(log_, cameras=cams)
+
+
+def shift_detections(det, offsets: TimeOffsets):
+    """A copy of a DetectionResult with each detection's stamp shifted like its camera's."""
+    return replace(
+        det,
+        detections=[
+            replace(d, timestamp_ns=int(d.timestamp_ns) + offsets.shift_ns(d.camera))
+            if offsets.shift_ns(d.camera)
+            else d
+            for d in det.detections
+        ],
+    )

@@ -1,0 +1,117 @@
+"""Recover a ROS 2 sqlite3 bag that rosbags cannot open: a `.db3` file cut short (SQLite calls
+it "malformed") or a bag folder without its metadata.yaml (a recording that never closed; what
+`ros2 bag reindex` repairs).  Copies every message that can be read, in recording order, into an
+MCAP file that rosbags opens.
+
+SQLite file format (sqlite.org/fileformat.html, sec. 1.3): the page size is the big-endian u16
+at offset 16 (1 = 65536); the database size in pages, at offset 28, is trusted when valid, so a
+file cut short looks corrupt from its first query.  The copy keeps the whole pages that are
+there and states their number at offset 28; reading then stops with an error at the first page
+that the cut removed, and the rows before it are kept.  rosbag2's tables (schema 3+): `topics
+(id, name, type, serialization_format, ...)`, `messages (id, topic_id, timestamp, data)`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+import sqlite3
+import struct
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from fusion.errors import LogError
+
+log = logging.getLogger(__name__)
+
+RECOVERED_DIR = "fusion-recovered-bags"
+PAGE_SIZE_OFFSET, PAGE_COUNT_OFFSET = 16, 28
+SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def _whole_pages_copy(src: Path, dst: Path) -> None:
+    """`src` cut to whole pages, with the page count in its header set to what is there."""
+    data = src.read_bytes()
+    if not data.startswith(SQLITE_MAGIC) or len(data) < 100:
+        raise LogError(f"{src}: not an SQLite database")
+    (ps,) = struct.unpack_from(">H", data, PAGE_SIZE_OFFSET)
+    ps = 65536 if ps == 1 else ps
+    n_pages = len(data) // ps
+    out = bytearray(data[: n_pages * ps])
+    struct.pack_into(">I", out, PAGE_COUNT_OFFSET, n_pages)
+    dst.write_bytes(bytes(out))
+
+
+def recover_db3(files: list[Path], dst: Path) -> tuple[int, int, list[str]]:
+    """Copy the readable messages of rosbag2 sqlite3 files (in order) into the MCAP file `dst`.
+    Returns (messages copied, messages of topics whose type is unknown and were left out,
+    one note per file that stopped early)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from fusion.log.rosbag import typestore_for
+
+    ts = typestore_for(False)
+    notes: list[str] = []
+    n = n_unknown = 0
+    work = Path(tempfile.mkdtemp(prefix=".recover-", dir=dst.parent))
+    try:
+        target = work / "bag"
+        conns: dict[str, Any] = {}  # rosbags Connection
+        with Writer(target, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            for db in files:
+                fixed = work / db.name
+                _whole_pages_copy(db, fixed)
+                con = sqlite3.connect(f"file:{fixed}?mode=ro", uri=True)
+                read = 0
+                try:
+                    topics = {
+                        int(i): (name, msgtype)
+                        for i, name, msgtype in con.execute("SELECT id, name, type FROM topics")
+                    }
+                    for topic_id, stamp, data in con.execute(
+                        "SELECT topic_id, timestamp, data FROM messages ORDER BY id"
+                    ):
+                        name, msgtype = topics.get(int(topic_id), ("", ""))
+                        if name not in conns:
+                            if msgtype not in ts.types:
+                                n_unknown += 1
+                                continue
+                            conns[name] = writer.add_connection(name, msgtype, typestore=ts)
+                        writer.write(conns[name], int(stamp), bytes(data))
+                        read += 1
+                except sqlite3.DatabaseError as e:
+                    notes.append(f"{db.name}: stopped after {read} messages ({e})")
+                finally:
+                    con.close()
+                n += read
+        shutil.move(str(target / "bag.mcap"), str(dst))
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return n, n_unknown, notes
+
+
+def recovered_sqlite_bag(folder: Path) -> tuple[Path, str]:
+    """A readable MCAP copy of the sqlite3 bag `folder` (its *.db3 files, in name order; or one
+    .db3 file) in
+    the temp folder, reused while the files are unchanged, and a one-line note of what was read;
+    LogError when no message could be read."""
+    folder = Path(folder)
+    files = [folder] if folder.is_file() else sorted(folder.glob("*.db3"))
+    if not files:
+        raise LogError(f"{folder}: no .db3 files")
+    stamp = "|".join(f"{p.resolve()}:{p.stat().st_size}:{p.stat().st_mtime_ns}" for p in files)
+    key = hashlib.sha256(stamp.encode()).hexdigest()
+    out_dir = Path(tempfile.gettempdir()) / RECOVERED_DIR
+    out_dir.mkdir(exist_ok=True)
+    dst = out_dir / f"{folder.stem}-{key[:16]}.mcap"
+    n, n_unknown, notes = recover_db3(files, dst.with_suffix(".partial"))
+    if n == 0:
+        dst.with_suffix(".partial").unlink(missing_ok=True)
+        raise LogError(f"{folder}: ROS 2 sqlite3 bag with no readable message")
+    dst.with_suffix(".partial").replace(dst)
+    why = "; ".join(notes) if notes else "no usable metadata.yaml"
+    skipped = f", {n_unknown} message(s) of unknown types left out" if n_unknown else ""
+    read = f"read {n} message(s){skipped} from the copy {dst}"
+    return dst, f"{folder}: damaged ROS 2 sqlite3 bag ({why}); {read}"
