@@ -146,6 +146,18 @@ class RunResult:
                 f"/{ds.get('floor_frames', 0)}; skipped frames: {ds.get('frames_skipped', 0)};"
                 f" rejected payloads: {ds.get('rejected_total', 0)}"
             )
+            for cam, r in ds.get("refinement", {}).items():
+                why = ", ".join(
+                    f"{k.removeprefix('refine_').replace('_', ' ')} {v}"
+                    for k, v in r.items()
+                    if k.startswith("refine_") and k != "refine_failed" and v
+                )
+                if r.get("refine_failed") or r.get("tracked"):
+                    lines.append(
+                        f"{cam}: {r.get('refine_failed', 0)} codes kept the decoder's corners"
+                        + (f" ({why})" if why else "")
+                        + f"; {r.get('tracked', 0)} tracked sightings"
+                    )
         per = (self.metrics or {}).get("trajectories", {})
         header = (
             f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
@@ -246,6 +258,10 @@ class LocalizeResult:
     camera_frame_observations: list[LoadObservation] = field(default_factory=list)
 
 
+_REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked")
+"""detect.CameraStats counters reported under detection_statistics' "refinement"."""
+
+
 def detection_statistics(log: FlightLog, det, world) -> dict:
     """Frames with a (valid) floor code, codes per frame, rejected payloads by reason."""
 
@@ -270,6 +286,12 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
         "skipped_messages": det.skipped[:20],
         "rejected_total": int(sum(rejected.values())),
         "rejected_by_reason": rejected,
+        # per camera: codes whose refinement failed its self-check (kept the decoder's corners,
+        # by reason) and codes tracked through frames where they did not decode (fusion.qr.track)
+        "refinement": {
+            name: {k: int(v) for k, v in vars(st).items() if k.startswith(_REFINE_COUNTERS)}
+            for name, st in sorted(det.stats.items())
+        },
     }
 
 

@@ -1029,8 +1029,12 @@ def _smooth_once(
         values, lin = res.values, res.linear
         iterations += res.iterations
     t_opt = time.perf_counter() - t0 - t_build
-    variance_components = problem_variance_components(
-        pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values
+    variance_components = (
+        problem_variance_components(
+            pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values
+        )
+        if config.check_noise
+        else {}
     )
     release_heap()
     n = len(pb.frame_t)

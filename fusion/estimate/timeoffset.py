@@ -332,6 +332,8 @@ def estimate_floor_offset(
         reject_disagreeing_imu=False,
         lm_relative_tol=config.profile_lm_relative_tol,
         tight=False,
+        noise_scale_iterations=0,
+        check_noise=False,
     )
     cache: dict[int, float] = {}
     trajs: dict[int, Trajectory] = {}
@@ -609,7 +611,13 @@ def _fused_trajectory(
         raise EstimationError("no floor-code fix: the front camera's offset cannot be estimated")
     if log_.imu is None and log_.velocity is None:
         raise EstimationError("neither IMU nor velocity: the front camera's offset cannot be estimated")
-    pcfg = replace(fusion_config or FusionConfig(), compute_covariances=False, tight=False)
+    pcfg = replace(
+        fusion_config or FusionConfig(),
+        compute_covariances=False,
+        tight=False,
+        noise_scale_iterations=0,
+        check_noise=False,
+    )
     imu = log_.imu
     if imu is not None:
         imu = upsample_imu(imu, config.imu_upsample, pcfg.max_imu_gap_s)
