@@ -351,6 +351,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--chunk-frames", type=int, default=None, help="frames per detection task (default 256)")
     p.add_argument(
+        "--map",
+        type=Path,
+        default=None,
+        help="a merged map (`fusion map merge`) of the fleet's warehouse: its as-built floor codes "
+        "are every flight's prior",
+    )
+    p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
+    p.add_argument(
+        "--calibrate-readout",
+        action="store_true",
+        help="estimate each flight's floor-camera rolling-shutter readout time and use it",
+    )
+    p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
     )
     p.add_argument(

@@ -15,7 +15,7 @@ import dask
 import pytest
 from distributed import Client, LocalCluster, WorkerPlugin
 
-from fusion.cli import EXIT_FLIGHTS_FAILED, main
+from fusion.cli import EXIT_FLIGHTS_FAILED, _run_config, build_parser, main
 from fusion.errors import FleetError
 from fusion.fileio import LOCK_NAME, read_manifest
 from fusion.fleet import BatchConfig, FlightStatus, run_batch
@@ -247,3 +247,15 @@ def test_cli_batch_exit_code_says_flights_failed(flights, cluster, tmp_path, cap
     )
     assert rc == EXIT_FLIGHTS_FAILED
     assert "FAILED flight: " in capsys.readouterr().out
+
+
+def test_batch_takes_the_run_options_every_flight_shares():
+    """--map, --time-offset-ms and --calibrate-readout reach each flight's RunConfig."""
+    args = build_parser().parse_args(
+        ["batch", "a", "b", "--out", "o", "--map", "m", "--time-offset-ms", "cam1=-3", "--calibrate-readout"]
+    )
+    cfg = _run_config(args)
+    assert cfg.floor_map == Path("m")
+    assert cfg.time_offsets_s == pytest.approx({"cam1": -0.003})
+    assert cfg.calibrate_readout
+    assert _run_config(build_parser().parse_args(["batch", "a", "--out", "o"])).floor_map is None
