@@ -167,6 +167,20 @@ def _flight_arg(args):
     return args.log if opts == LogOptions() else open_flight(args.log, opts)
 
 
+def _add_fusion_choices(p: argparse.ArgumentParser) -> None:
+    """The back ends' choices, shared by `smooth`, `run` and `batch`."""
+    p.add_argument(
+        "--robust",
+        choices=("none", "huber", "cauchy", "tukey"),
+        default="huber",
+        help="robust kernel on QR pose factors (default: huber)",
+    )
+    p.add_argument(
+        "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
+    )
+    p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+
+
 def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offset: bool = True) -> None:
     p.add_argument(
         "log", type=Path, help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video"
@@ -198,16 +212,7 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
     if time_offset:
         p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
     if stages:
-        p.add_argument(
-            "--robust",
-            choices=("none", "huber", "cauchy", "tukey"),
-            default="huber",
-            help="robust kernel on QR pose factors (default: huber)",
-        )
-        p.add_argument(
-            "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
-        )
-        p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+        _add_fusion_choices(p)
         p.add_argument(
             "--map",
             type=Path,
@@ -366,16 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
     )
-    p.add_argument(
-        "--robust",
-        choices=("none", "huber", "cauchy", "tukey"),
-        default="huber",
-        help="robust kernel on QR pose factors (default: huber)",
-    )
-    p.add_argument(
-        "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
-    )
-    p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+    _add_fusion_choices(p)
 
     p = sub.add_parser(
         "inspect", parents=[common], help="what a log holds: streams, rates, gaps, roles, IMU units"
