@@ -704,7 +704,10 @@ def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
 
 
 def _dim_of(key: int) -> int:
-    return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3, ord("f"): 6}[gtsam.Symbol(key).chr()]
+    # "e": the floor camera's mount rotation error (Rot3), estimate/extrinsics.py
+    return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3, ord("f"): 6, ord("e"): 3}[
+        gtsam.Symbol(key).chr()
+    ]
 
 
 def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:

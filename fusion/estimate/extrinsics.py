@@ -1,0 +1,379 @@
+"""Floor camera-body rotation: a small rotation error of T_body_cam, estimated in the batch smoother.
+
+Model.  The log's mount T_body_cam = [R_bc, t_bc] (sensor.yaml T_BS) is off by a small rotation
+of the camera about its own centre, expressed in the body frame:
+
+    T_body_cam_true = [exp(w^) R_bc, t_bc],    w = the mount's rotation error (rad, body x/y/z).
+
+PnP measures the camera's true pose T_world_cam; the per-frame estimators turn it into a body
+pose with the nominal mount, so a PnP pose is
+
+    Z_k = T_world_cam T_body_cam^-1 = X_k T_body_cam_true T_body_cam^-1 = X_k E(w),
+    E(w) = A [exp(w^), 0] A^-1 = [exp(w^), t_bc - exp(w^) t_bc],    A = [I, t_bc],
+
+a constant body-frame error (rotation, plus the lever arm swung by it).  Here the batch smoother's
+graph (`smoother.build_problem`: IMU preintegration, biases, velocity, robust PnP factors) gets
+one Rot3 variable E0 = exp(w^) with a weak zero-mean prior (`prior_sigma_deg`), and each PnP
+pose factor Local(Z_k, X_k) is replaced by Local(Z_k, X_k E(w)) with the same (robust) noise model
+(`mount_pose_factor`: analytic Jacobians chained from GTSAM's Pose3 compose / localCoordinates).
+The estimate is the solution's w, its covariance the marginal of E0 (E0 ordered last, so it is
+the root of the Bayes tree), inflated by sqrt(chi^2 / dof) when the fit is worse than its noise
+model says (as timeoffset._inflate).
+
+Observability (what separates w from the other states).  PnP alone cannot: the camera's pose is
+right whatever w is; only the IMU sees the body's attitude.
+- roll / pitch of the mount (tilt about body x / y): the accelerometer's gravity direction says
+  the body's true tilt, PnP's says the true tilt plus w.  At hover the difference is a constant
+  body-frame specific force g x w, exactly what an accelerometer bias of |g w| looks like (2 deg ~
+  0.34 m/s^2; the prior on the bias is 0.1 m/s^2, the simulated IMU's 0.03 m/s^2), so a hovering
+  flight pins the tilt only through the bias prior.  Under acceleration a (or body tilt) the
+  mount error rotates the measured a too (error w x a, changing with the motion) while a bias
+  stays constant: horizontal accelerations make roll / pitch separable.
+- yaw of the mount (about body z): gravity says nothing about yaw; a yaw error d makes the IMU's
+  horizontal accelerations, rotated into the world with PnP's yaw, point d off the direction in
+  which PnP's positions accelerate.  Horizontal accelerations against positions observe it; a
+  flight at constant velocity (or hovering) does not.
+- the lever arm (I - exp(w^)) t_bc adds a little through positions (t_bc = 8 cm: 2.7 mm at 2 deg).
+An axis the flight does not excite keeps a sigma near the prior's (reported, with a note), and the
+check below then cannot call it significant: a large sigma, not a confident wrong number.
+
+The check (always on, one smoother solve without covariances of the states): an estimate is
+significant on an axis when |w_i| > `significant_sigmas` sigma_i and |w_i| > `min_significant_deg`;
+then a named, counted warning (`extrinsic_rotation_bias`) says to run --calibrate-extrinsics, which
+applies the correction (`corrected_camera`) and re-runs the per-frame estimators and the fusion.
+Not supported: a gimbaled floor camera (its PnP poses are level-frame poses) and the paper's
+position + yaw poses (no attitude measured).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.errors import EstimationError
+from fusion.estimate.common import FusionConfig, RawPoseInput, SolveHealth
+from fusion.estimate.factors import X
+from fusion.estimate.smoother import (
+    FactorKind,
+    build_problem,
+    gate_outliers,
+    jumped_fixes,
+    robust_distances,
+    solve,
+)
+from fusion.geometry import make_T, so3_exp, so3_log
+from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
+from fusion.types import CameraRole, Choice, Trajectory
+
+log = logging.getLogger(__name__)
+
+E = gtsam.symbol_shorthand.E  # E(0): the floor camera's mount rotation error (Rot3)
+WARNING_NAME = "extrinsic_rotation_bias"
+AXES = ("x", "y", "z")
+
+
+class MountSource(Choice):
+    """What became of a camera's mount check."""
+
+    ESTIMATED = "estimated"
+    NOT_ESTIMATED = "not_estimated"  # with the reason in `note`
+
+
+@dataclass
+class ExtrinsicsConfig:
+    """Every tuning number of the mount-rotation estimate.
+
+    `prior_sigma_deg`: zero-mean prior on each axis of w; weak against any excited axis (the
+    PnP attitude alone is ~0.05 deg per frame), and the sigma an unexcited axis reports.
+    `unexcited_fraction`: an axis whose posterior sigma exceeds this fraction of the prior's is
+    named as not excited by the flight.  `significant_sigmas` / `min_significant_deg`: the check's
+    test, per axis.  The floor 0.1 deg is twice the calibration's accuracy target (0.05 deg, the
+    benchmark's): a correction smaller than what the calibration itself can deliver is not worth
+    a recalibration, and 0.1 deg of tilt leaks 0.017 m/s^2 of gravity into the horizontal, below
+    the simulated IMU's accelerometer bias (0.03 m/s^2) that the smoother estimates anyway."""
+
+    prior_sigma_deg: float = 5.0
+    unexcited_fraction: float = 0.5
+    significant_sigmas: float = 3.0
+    min_significant_deg: float = 0.1
+
+
+# =========================================================================== the factor
+
+
+def mount_pose_error(
+    Z: gtsam.Pose3, A: gtsam.Pose3, X_k: gtsam.Pose3, R_err: gtsam.Rot3, want_jacobians: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Residual Local(Z, X_k E) (6,) of a PnP body pose Z against the state X_k seen through the
+    mount error E = A [R_err, 0] A^-1 (A = [I, t_bc], module docstring), and its Jacobians
+    (6x6 on X_k, 6x3 on R_err), chained from GTSAM's Pose3 compose / localCoordinates."""
+    Q = gtsam.Pose3(R_err, np.zeros(3))
+    if not want_jacobians:
+        P = X_k.compose(A.compose(Q).compose(A.inverse()))
+        return Z.localCoordinates(P), None, None
+
+    def jac() -> np.ndarray:
+        return np.zeros((6, 6), order="F")
+
+    H_a, H_q, H_e1, H_ai, H_x, H_e, H_z, H_p = (jac() for _ in range(8))
+    E1 = A.compose(Q, H_a, H_q)
+    Ek = E1.compose(A.inverse(), H_e1, H_ai)
+    P = X_k.compose(Ek, H_x, H_e)
+    e = Z.localCoordinates(P, H_z, H_p)
+    # Pose3([R exp(w), 0]) = Pose3([R, 0]) Pose3([exp(w), 0]): the tangent [w, 0]
+    return e, H_p @ H_x, (H_p @ H_e @ H_e1 @ H_q)[:, :3]
+
+
+def mount_pose_factor(
+    k: int, Z_world_body: np.ndarray, t_body_cam: np.ndarray, model: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """PnP pose factor on X(k) and the mount error E(0): Local(Z, X(k) E(w)) with `model` (the
+    PriorFactorPose3's, robust kernel included)."""
+    Z = gtsam.Pose3(np.asarray(Z_world_body, float))
+    A = gtsam.Pose3(gtsam.Rot3(), np.asarray(t_body_cam, float))
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None):
+        keys = this.keys()
+        e, Hx, Hr = mount_pose_error(
+            Z, A, values.atPose3(keys[0]), values.atRot3(keys[1]), H is not None
+        )
+        if H is not None:
+            H[0], H[1] = Hx, Hr
+        return e
+
+    return gtsam.CustomFactor(model, [X(k), E(0)], error)
+
+
+def corrected_mount(T_body_cam: np.ndarray, rotvec_rad: np.ndarray) -> np.ndarray:
+    """T_body_cam with its rotation turned by exp(rotvec^) in the body frame about the camera's
+    centre: [exp(w^) R_bc, t_bc] (module docstring)."""
+    T = np.asarray(T_body_cam, float)
+    return make_T(so3_exp(np.asarray(rotvec_rad, float)) @ T[:3, :3], T[:3, 3])
+
+
+def corrected_camera(camera: CameraModel, rotvec_rad: np.ndarray) -> CameraModel:
+    """A copy of `camera` with the mount corrected by `rotvec_rad` (corrected_mount)."""
+    return replace(camera, T_body_cam=corrected_mount(camera.T_body_cam, rotvec_rad))
+
+
+# =========================================================================== estimate
+
+
+@dataclass
+class MountRotation:
+    """A camera's mount rotation error: T_body_cam_true = [exp(w^) R_bc, t_bc], w in the body
+    frame (rad); RunResult.extrinsics, metrics.json `extrinsics`."""
+
+    camera: str  # CameraRole value
+    source: MountSource
+    rotvec_rad: np.ndarray | None = None  # (3,) w, body x / y / z
+    cov_rad2: np.ndarray | None = None  # (3, 3)
+    significant_axes: list[str] = field(default_factory=list)
+    applied: bool = False  # the correction was applied to every output (--calibrate-extrinsics)
+    unexcited_axes: list[str] = field(default_factory=list)
+    note: str = ""
+    fixes: int = 0
+    iterations: int = 0
+    time_s: float = 0.0
+
+    @property
+    def sigma_rad(self) -> np.ndarray | None:
+        return None if self.cov_rad2 is None else np.sqrt(np.maximum(np.diag(self.cov_rad2), 0.0))
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.significant_axes)
+
+    def as_dict(self) -> dict:
+        sig = self.sigma_rad
+        return {
+            "camera": self.camera,
+            "source": str(self.source),
+            "rotvec_deg": None if self.rotvec_rad is None else np.degrees(self.rotvec_rad).tolist(),
+            "sigma_deg": None if sig is None else np.degrees(sig).tolist(),
+            "angle_deg": None
+            if self.rotvec_rad is None
+            else math.degrees(float(np.linalg.norm(self.rotvec_rad))),
+            "significant_axes": list(self.significant_axes),
+            "unexcited_axes": list(self.unexcited_axes),
+            "applied": self.applied,
+            "fixes": self.fixes,
+            "iterations": self.iterations,
+            "time_s": self.time_s,
+            "note": self.note,
+        }
+
+    def describe(self) -> str:
+        """One line: `mount rotation cam0 (floor): x +2.01 ± 0.02, y ... deg; applied`."""
+        head = f"mount rotation {self.camera} (floor)"
+        if self.rotvec_rad is None or self.sigma_rad is None:
+            return f"{head}: not estimated ({self.note})"
+        w, s = np.degrees(self.rotvec_rad), np.degrees(self.sigma_rad)
+        axes = ", ".join(f"{a} {v:+.3f} ± {d:.3f}" for a, v, d in zip(AXES, w, s))
+        if self.applied:
+            used = "applied"
+        elif self.significant:
+            used = "significant, not applied (run with --calibrate-extrinsics)"
+        else:
+            used = "not significant"
+        extra = f"; not excited by the flight: {', '.join(self.unexcited_axes)}" if self.unexcited_axes else ""
+        note = f"; {self.note}" if self.note else ""
+        return f"{head}: {axes} deg; {used}{extra}{note}"
+
+    def warning(self) -> LogWarning | None:
+        """The check's named, counted warning (count: significant axes), or None."""
+        if not self.significant or self.applied or self.rotvec_rad is None:
+            return None
+        w = np.degrees(self.rotvec_rad)
+        s = np.degrees(self.sigma_rad) if self.sigma_rad is not None else np.zeros(3)
+        parts = ", ".join(
+            f"{a} {w[i]:+.2f} ± {s[i]:.2f} deg" for i, a in enumerate(AXES) if a in self.significant_axes
+        )
+        return LogWarning(
+            WARNING_NAME,
+            len(self.significant_axes),
+            f"the floor camera's PnP attitudes disagree with the IMU by a constant rotation ({parts}): "
+            "sensor.yaml's T_BS looks off; run with --calibrate-extrinsics to estimate and apply it",
+        )
+
+
+def estimate_mount_rotation(
+    frame_t: np.ndarray,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None,
+    floor_camera: CameraModel,
+    config: ExtrinsicsConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> MountRotation:
+    """The floor camera's mount rotation error from its PnP poses `raw` (with covariances) and
+    the IMU / velocity, by the batch smoother with a Rot3 variable (module docstring).
+    EstimationError when it cannot be estimated (no IMU, a gimbaled camera, poses without
+    attitude, a singular graph)."""
+    config = config or ExtrinsicsConfig()
+    fusion_config = fusion_config or FusionConfig()
+    t0 = time.perf_counter()
+    floor = CameraRole.FLOOR.value
+    if imu is None:
+        raise EstimationError("no IMU: the floor camera's mount rotation cannot be estimated")
+    if floor_camera.gimbaled:
+        raise EstimationError("a gimbaled floor camera: its mount rotation is not estimated")
+    if raw is None or len(raw) < 2:
+        raise EstimationError("fewer than two floor-code fixes: the mount rotation cannot be estimated")
+    pcfg = replace(
+        fusion_config,
+        compute_covariances=False,
+        tight=False,
+        noise_scale_iterations=0,
+        check_noise=False,
+    )
+    pb = build_problem(frame_t, imu, raw, None, None, velocity, pcfg, floor_camera=floor_camera)
+    if pb.raw_input is not RawPoseInput.POSE6:
+        raise EstimationError("the fixes carry no attitude: the mount rotation cannot be estimated")
+    t_bc = floor_camera.T_body_cam[:3, 3]
+    n_fixes = 0
+    for i, r in pb.robust.items():
+        if r.kind is FactorKind.POSE:
+            old = pb.factors[i]
+            k = pb.factor_frame[i]
+            pb.factors[i] = mount_pose_factor(k, old.prior().matrix(), t_bc, old.noiseModel())
+            n_fixes += 1
+    if n_fixes < 2:
+        raise EstimationError("fewer than two PnP pose factors: the mount rotation cannot be estimated")
+    prior = gtsam.PriorFactorRot3(
+        E(0), gtsam.Rot3(), gtsam.noiseModel.Isotropic.Sigma(3, math.radians(config.prior_sigma_deg))
+    )
+    pb.add(prior, 0)
+    pb.initial.insert(E(0), gtsam.Rot3())
+
+    health = SolveHealth()
+    suspects = jumped_fixes(pb, pcfg)
+    graph = pb.graph(suspects)
+    ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, [E(0)])
+    errors: list[float] = []
+    res, graph, ordering = solve(graph, pb.initial, pcfg, health, ordering, errors)
+    values, iterations = res.values, res.iterations
+    drop, dropped_loads, _ = gate_outliers(pb, robust_distances(pb, values), pcfg, health)
+    if drop != suspects:
+        graph = pb.graph(drop)
+        ordering = gtsam.Ordering.ColamdConstrainedLastNonlinearFactorGraph(graph, [E(0)])
+        res, graph, ordering = solve(graph, values, pcfg, health, ordering, errors)
+        values = res.values
+        iterations += res.iterations
+    w = so3_log(values.atRot3(E(0)).matrix())
+    try:
+        lin = graph.linearize(values)
+        cov = np.asarray(lin.eliminateMultifrontal(ordering).marginalCovariance(E(0)), float)
+    except (RuntimeError, ValueError) as e:
+        raise EstimationError(f"no covariance of the mount rotation: the system is singular ({e})") from None
+    # residual degrees of freedom: the fixes' 6 dimensions (the IMU's are taken up by the states)
+    used = n_fixes - len([i for i in drop if pb.robust[i].kind is FactorKind.POSE])
+    dof = 6 * used - 3
+    if dof > 0:
+        cov = cov * max(1.0, 2.0 * errors[-1] / dof)
+    out = MountRotation(floor, MountSource.ESTIMATED, w, cov, fixes=used, iterations=iterations)
+    sig = out.sigma_rad
+    assert sig is not None
+    prior_rad = math.radians(config.prior_sigma_deg)
+    floor_rad = math.radians(config.min_significant_deg)
+    out.significant_axes = [
+        a
+        for a, wi, si in zip(AXES, w, sig)
+        if abs(wi) > config.significant_sigmas * si and abs(wi) > floor_rad
+    ]
+    out.unexcited_axes = [a for a, si in zip(AXES, sig) if si > config.unexcited_fraction * prior_rad]
+    if health.reasons:
+        out.note = "; ".join(health.reasons)
+    out.time_s = time.perf_counter() - t0
+    log.info(
+        "floor camera mount rotation: %s deg (sigma %s deg), %d fixes, %.2f s",
+        np.round(np.degrees(w), 3),
+        np.round(np.degrees(sig), 3),
+        used,
+        out.time_s,
+    )
+    return out
+
+
+def check_mount(
+    log_: FlightLog,
+    raw: Trajectory | None,
+    config: ExtrinsicsConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> MountRotation:
+    """The floor camera's mount check for a run: the estimate, or NOT_ESTIMATED with the reason."""
+    floor = CameraRole.FLOOR.value
+    try:
+        if raw is None or len(raw) == 0 or raw.covariances is None:
+            raise EstimationError("no PnP pose with a covariance: the mount rotation cannot be estimated")
+        return estimate_mount_rotation(
+            log_.floor.timestamps_ns,
+            log_.imu,
+            raw,
+            log_.velocity,
+            log_.floor.camera,
+            config,
+            fusion_config,
+        )
+    except EstimationError as e:
+        return MountRotation(floor, MountSource.NOT_ESTIMATED, note=str(e))
+
+
+def apply_mount(log_: FlightLog, mount: MountRotation) -> FlightLog:
+    """A copy of the log whose floor camera carries the corrected mount (frames still stream
+    from the same files); marks `mount` applied."""
+    if mount.rotvec_rad is None:
+        return log_
+    cams = dict(log_.cameras)
+    stream = copy.copy(cams[mount.camera])
+    stream.camera = corrected_camera(stream.camera, mount.rotvec_rad)
+    cams[mount.camera] = stream
+    mount.applied = True
+    return replace(log_, cameras=cams)
