@@ -212,6 +212,12 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
     if time_offset:
         p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
     if stages:
+        p.add_argument(
+            "--calibrate-extrinsics",
+            action="store_true",
+            help="estimate the floor camera's mount rotation error (a Rot3 in the batch smoother, "
+            "reported with its sigma) and, when significant, apply it to every output",
+        )
         _add_fusion_choices(p)
         p.add_argument(
             "--map",
@@ -322,6 +328,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="camera clock offsets to simulate, ms (t_imu = t_cam + offset: each frame is "
         "stamped its true time minus the offset): MS for both cameras, or cam0=MS,cam1=MS",
     )
+    p.add_argument(
+        "--extrinsic-error-deg",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("RX", "RY", "RZ"),
+        help="the floor camera's true mount turned by this rotation vector (degrees, body x/y/z) "
+        "while sensor.yaml keeps the nominal T_BS; the truth goes to extrinsics_groundtruth.csv",
+    )
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
     _add_run_options(p, stages=False, time_offset=False)
@@ -367,6 +382,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--calibrate-readout",
         action="store_true",
         help="estimate each flight's floor-camera rolling-shutter readout time and use it",
+    )
+    p.add_argument(
+        "--calibrate-extrinsics",
+        action="store_true",
+        help="estimate each flight's floor-camera mount rotation error and, when significant, apply it",
     )
     p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
@@ -492,6 +512,7 @@ def _run_config(args):
         tight=getattr(args, "tight", False),
         incremental=not getattr(args, "no_incremental", False),
         calibrate_readout=getattr(args, "calibrate_readout", False),
+        calibrate_extrinsics=getattr(args, "calibrate_extrinsics", False),
         floor_map=getattr(args, "map", None),
         time_offsets_s=getattr(args, "time_offset_ms", None),
         fixes=getattr(args, "fixes", None),
@@ -524,6 +545,9 @@ def main(argv: list[str] | None = None) -> int:
                     {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
                 ),
                 camera_options=_camera_options(args),
+                extrinsic_error_deg=(
+                    None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}
+                ),
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

@@ -43,6 +43,7 @@ from fusion.estimate.asbuilt import (
     write_floor_codes_csv,
 )
 from fusion.estimate.common import match_to_frames
+from fusion.estimate.extrinsics import MountRotation, apply_mount, check_mount, read_extrinsics_groundtruth
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
@@ -97,6 +98,9 @@ class RunConfig:
     th_px: float = 5.0  # the paper's Th (Algorithms 1 and 4), pixels
     corner_sigma_px: float = 0.15  # refined-corner noise, 1 sigma, pixels
     calibrate_readout: bool = False  # estimate the floor camera's rolling-shutter readout time
+    # apply the floor camera's estimated mount rotation error when significant (the check and its
+    # warning run regardless: fusion.estimate.extrinsics)
+    calibrate_extrinsics: bool = False
     floor_map: Path | None = None  # `fusion run --map`: merged floor codes as the prior
     # camera-IMU time offsets fixed by hand {camera: s} (t_imu = t_cam + offset); the cameras
     # not given are estimated (fusion.estimate.timeoffset); None: estimate both
@@ -125,6 +129,7 @@ class RunResult:
     rolling_shutter: RollingShutterReport | None = None  # what the corner correction did
     floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
     time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
+    extrinsics: MountRotation | None = None  # the floor camera's mount check / calibration
     noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
     @property
@@ -203,6 +208,8 @@ class RunResult:
                 lines.append(f"health: {name} {h.status}: {h.reason}")
         if self.time_offsets is not None:
             lines += self.time_offsets.lines()
+        if self.extrinsics is not None:
+            lines.append(self.extrinsics.describe())
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
@@ -735,7 +742,14 @@ def _run_into(
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
         loc = localize_stage(log, det, cfg)
+    # the mount check runs on the final stamps; a calibration runs first, so that the time
+    # offsets (the front camera's profile hangs the camera from the fused body) see the right mount
+    mount_check = until in ("smooth", "run")
+    if mount_check and cfg.calibrate_extrinsics:
+        log, loc = _apply_extrinsics(log, det, loc, cfg, result)
     log, det, loc = _apply_time_offsets(log, det, loc, cfg, result)
+    if mount_check and not cfg.calibrate_extrinsics:
+        log, loc = _apply_extrinsics(log, det, loc, cfg, result)
     if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
         # (keyed by the floor frames' stamps, shifted like them when a time offset was applied)
@@ -810,6 +824,31 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
         return log, det, loc
     log, det = shift_log(log, offsets), shift_detections(det, offsets)
     return log, det, localize_stage(log, det, cfg)
+
+
+def _apply_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+    """The floor camera's mount check (fusion.estimate.extrinsics) into `result.extrinsics`, its
+    warning when significant; with `cfg.calibrate_extrinsics` a significant correction is applied
+    to the floor camera and the per-frame estimates made again with it (so every output carries
+    the corrected mount)."""
+    _progress(cfg, "floor camera mount check")
+    try:
+        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+    mount = check_mount(
+        log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
+    )
+    result.extrinsics = mount
+    if not mount.significant:
+        return log, loc
+    if not cfg.calibrate_extrinsics:
+        warning = mount.warning()
+        if warning is not None:
+            result.warnings.append(warning)
+        return log, loc
+    log = apply_mount(log, mount)
+    return log, localize_stage(log, det, cfg)
 
 
 def _fuse_into_result(
@@ -939,6 +978,9 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
         )
     if result.time_offsets is not None:
         metrics["time_offsets"] = result.time_offsets.as_dict()
+    if result.extrinsics is not None:
+        truth = read_extrinsics_groundtruth(log.root) if "cam0" in log.cameras else {}
+        metrics["extrinsics"] = result.extrinsics.as_dict(truth.get(result.extrinsics.camera))
     metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)

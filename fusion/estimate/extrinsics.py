@@ -48,10 +48,12 @@ position + yaw poses (no attitude measured).
 from __future__ import annotations
 
 import copy
+import csv
 import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -68,6 +70,7 @@ from fusion.estimate.smoother import (
     robust_distances,
     solve,
 )
+from fusion.fileio import atomic_open
 from fusion.geometry import make_T, so3_exp, so3_log
 from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
 from fusion.types import CameraRole, Choice, Trajectory
@@ -77,6 +80,8 @@ log = logging.getLogger(__name__)
 E = gtsam.symbol_shorthand.E  # E(0): the floor camera's mount rotation error (Rot3)
 WARNING_NAME = "extrinsic_rotation_bias"
 AXES = ("x", "y", "z")
+EXTRINSICS_GROUNDTRUTH_CSV = "extrinsics_groundtruth.csv"  # the simulator's true mount errors
+GROUNDTRUTH_COLUMNS = ["camera", "rx_deg", "ry_deg", "rz_deg"]
 
 
 class MountSource(Choice):
@@ -141,9 +146,7 @@ def mount_pose_factor(
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None):
         keys = this.keys()
-        e, Hx, Hr = mount_pose_error(
-            Z, A, values.atPose3(keys[0]), values.atRot3(keys[1]), H is not None
-        )
+        e, Hx, Hr = mount_pose_error(Z, A, values.atPose3(keys[0]), values.atRot3(keys[1]), H is not None)
         if H is not None:
             H[0], H[1] = Hx, Hr
         return e
@@ -191,9 +194,10 @@ class MountRotation:
     def significant(self) -> bool:
         return bool(self.significant_axes)
 
-    def as_dict(self) -> dict:
+    def as_dict(self, truth_rad: np.ndarray | None = None) -> dict:
+        """JSON-ready; with the simulator's `truth_rad` (3,), the estimate's error too."""
         sig = self.sigma_rad
-        return {
+        out = {
             "camera": self.camera,
             "source": str(self.source),
             "rotvec_deg": None if self.rotvec_rad is None else np.degrees(self.rotvec_rad).tolist(),
@@ -209,6 +213,13 @@ class MountRotation:
             "time_s": self.time_s,
             "note": self.note,
         }
+        if truth_rad is not None:
+            out["truth_deg"] = np.degrees(np.asarray(truth_rad, float)).tolist()
+            if self.rotvec_rad is not None:
+                # the rotation between truth and estimate (exact, not a difference of vectors)
+                err = so3_log(so3_exp(self.rotvec_rad) @ so3_exp(np.asarray(truth_rad, float)).T)
+                out["error_deg"] = np.degrees(err).tolist()
+        return out
 
     def describe(self) -> str:
         """One line: `mount rotation cam0 (floor): x +2.01 ± 0.02, y ... deg; applied`."""
@@ -223,7 +234,9 @@ class MountRotation:
             used = "significant, not applied (run with --calibrate-extrinsics)"
         else:
             used = "not significant"
-        extra = f"; not excited by the flight: {', '.join(self.unexcited_axes)}" if self.unexcited_axes else ""
+        extra = (
+            f"; not excited by the flight: {', '.join(self.unexcited_axes)}" if self.unexcited_axes else ""
+        )
         note = f"; {self.note}" if self.note else ""
         return f"{head}: {axes} deg; {used}{extra}{note}"
 
@@ -377,3 +390,35 @@ def apply_mount(log_: FlightLog, mount: MountRotation) -> FlightLog:
     cams[mount.camera] = stream
     mount.applied = True
     return replace(log_, cameras=cams)
+
+
+# =========================================================================== ground truth
+
+
+def write_extrinsics_groundtruth(path: Path, errors_rad: dict[str, np.ndarray]) -> None:
+    """The simulator's true mount errors: `camera,rx_deg,ry_deg,rz_deg` (rotation vector w of
+    T_body_cam_true = [exp(w^) R_bc, t_bc], body frame)."""
+    with atomic_open(Path(path)) as f:
+        out = csv.writer(f, lineterminator="\n")
+        out.writerow(GROUNDTRUTH_COLUMNS)
+        for cam, w in errors_rad.items():
+            out.writerow([cam, *(f"{v:.9f}" for v in np.degrees(np.asarray(w, float)))])
+
+
+def read_extrinsics_groundtruth(root: Path) -> dict[str, np.ndarray]:
+    """{camera: w (3,) rad} from a simulated log's extrinsics_groundtruth.csv ({} without one);
+    EstimationError naming file and line for a malformed row."""
+    path = Path(root) / EXTRINSICS_GROUNDTRUTH_CSV
+    if not path.is_file():
+        return {}
+    out = {}
+    rows = csv.DictReader(path.read_text(encoding="utf-8").splitlines())
+    for line, row in enumerate(rows, start=2):
+        try:
+            w = np.radians([float(row[c]) for c in GROUNDTRUTH_COLUMNS[1:]])
+        except (KeyError, TypeError, ValueError):
+            raise EstimationError(f"{path}:{line}: expected {','.join(GROUNDTRUTH_COLUMNS)}") from None
+        if not np.all(np.isfinite(w)):
+            raise EstimationError(f"{path}:{line}: not finite")
+        out[str(row["camera"])] = w
+    return out

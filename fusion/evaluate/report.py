@@ -231,6 +231,31 @@ def _time_offset_lines(m: dict) -> list[str]:
     return ["**Camera-IMU time offsets** (t_imu = t_cam + offset): " + "; ".join(parts) + ".", ""]
 
 
+def _mount_lines(m: dict) -> list[str]:
+    """The floor camera's mount rotation check / calibration (fusion.estimate.extrinsics)."""
+    e = m.get("extrinsics") or {}
+    if not e:
+        return []
+    if e.get("rotvec_deg") is None:
+        return [f"**Floor camera mount rotation**: not estimated ({md_text(e.get('note', DASH))}).", ""]
+    axes = ", ".join(
+        f"{a} {v:+.3f} ± {d:.3f}" for a, v, d in zip("xyz", e["rotvec_deg"], e.get("sigma_deg") or [0.0] * 3)
+    )
+    used = (
+        "applied to every output"
+        if e.get("applied")
+        else (
+            "significant: run with --calibrate-extrinsics" if e.get("significant_axes") else "not significant"
+        )
+    )
+    truth = (
+        f"; error against the simulator's truth {'/'.join(f'{v:+.3f}' for v in e['error_deg'])} deg"
+        if e.get("error_deg")
+        else ""
+    )
+    return [f"**Floor camera mount rotation** (body frame, deg): {axes}; {used}{truth}.", ""]
+
+
 def _summary_section(m: dict, trajectories: dict[str, Trajectory], gt, blackouts) -> list[str]:
     trajs = m.get("trajectories", {})
     maps = m.get("load_maps", {})
@@ -727,6 +752,7 @@ def write_report(
     lines += warehouse_lines[:2]  # link to report.html
     lines += _health_lines(metrics or {})
     lines += _time_offset_lines(metrics or {})
+    lines += _mount_lines(metrics or {})
     if has_truth and metrics is not None:  # has_truth implies metrics; the check narrows it
         lines += _summary_section(metrics, trajectories, gt, blackouts)
         lines += _plots(plots, "summary")

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -19,6 +19,11 @@ import numpy as np
 from fusion.conventions import floor_payload
 from fusion.errors import SimulationError
 from fusion.estimate.asbuilt import FLOOR_CODES_GROUNDTRUTH_CSV, write_groundtruth_csv
+from fusion.estimate.extrinsics import (
+    EXTRINSICS_GROUNDTRUTH_CSV,
+    corrected_camera,
+    write_extrinsics_groundtruth,
+)
 from fusion.geometry import inv_T, quat_wxyz_from_R, yaw_of
 from fusion.log import FlightLogWriter, GroundTruth
 from fusion.parallel import parallel_map, worker_count
@@ -164,6 +169,7 @@ def simulate(
     placement_error_deg: float = 0.0,
     time_offset_ms: dict[str, float] | float | None = None,
     camera_options: CameraOptions | None = None,
+    extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -198,7 +204,12 @@ def simulate(
     and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
     frames whose stamp would fall before the flight's start are left out.
     `camera_options` (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus,
-    ...) and lens changes (focal length, distortion) on top of the scenario's."""
+    ...) and lens changes (focal length, distortion) on top of the scenario's.
+    `extrinsic_error_deg` ({"cam0": (rx, ry, rz)}, degrees): each named camera's true mount is
+    its nominal one turned by that rotation vector in the body frame about the camera's centre
+    (fusion.estimate.extrinsics.corrected_mount); the images are rendered with the true mount
+    while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life);
+    `extrinsics_groundtruth.csv` holds the errors."""
     from fusion.log import LogFormat
 
     try:
@@ -228,6 +239,7 @@ def simulate(
             placement_error_deg=placement_error_deg,
             time_offset_ms=time_offset_ms,
             camera_options=camera_options,
+            extrinsic_error_deg=extrinsic_error_deg,
         )
     t_wall = time.perf_counter()
     if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
@@ -315,6 +327,7 @@ def simulate(
     ]
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
     offset_ns = _camera_offsets_ns(time_offset_ms, list(sc.cameras))
+    mount_err = _mount_errors_rad(extrinsic_error_deg, list(sc.cameras))
     if offset_ns:
         frame_ns = frame_ns[frame_ns - max(offset_ns.values()) >= t0_ns]
 
@@ -333,6 +346,8 @@ def simulate(
         writer.write_groundtruth(gt)
         writer.write_loads_groundtruth({l.id: np.asarray(l.p_world) for l in sc.layout.loads})
         writer.write_blackouts(blackouts)
+        if mount_err:
+            write_extrinsics_groundtruth(writer.tmp / EXTRINSICS_GROUNDTRUTH_CSV, mount_err)
         if sc.layout.floor_offsets is not None:
             T_true = sc.floor_codes_true_T()
             write_groundtruth_csv(
@@ -364,7 +379,14 @@ def simulate(
                 if bar is not None:
                     bar.update(1)
 
-        job = _RenderJob(sc, seed, int(png_compression), check_readable)
+        # rendered with the true mounts; sensor.yaml above holds the nominal ones
+        rendered = sc
+        if mount_err:
+            cams = {
+                n: corrected_camera(c, mount_err[n]) if n in mount_err else c for n, c in sc.cameras.items()
+            }
+            rendered = replace(sc, cameras=cams)
+        job = _RenderJob(rendered, seed, int(png_compression), check_readable)
         try:
             for res in parallel_map(_render_chunk, chunks, workers, job, preload=["fusion.sim.simulate"]):
                 consume(res)
@@ -412,6 +434,26 @@ def _camera_offsets_ns(time_offset_ms, names: list[str]) -> dict[str, int]:
         if not math.isfinite(v):
             raise SimulationError(f"time offset of {name} must be finite, got {ms!r}")
         out[name] = int(round(v * 1e6))
+    return out
+
+
+def _mount_errors_rad(extrinsic_error_deg, names: list[str]) -> dict[str, np.ndarray]:
+    """{camera: rotation vector (3,) rad} from `extrinsic_error_deg`; SimulationError for an
+    unknown camera or not three finite numbers."""
+    out = {}
+    for name, w in (extrinsic_error_deg or {}).items():
+        if name not in names:
+            raise SimulationError(f"extrinsic error for unknown camera {name!r}; cameras: {', '.join(names)}")
+        try:
+            v = np.asarray(w, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise SimulationError(
+                f"extrinsic error of {name}: {w!r} is not three numbers (degrees)"
+            ) from None
+        if not np.all(np.isfinite(v)):
+            raise SimulationError(f"extrinsic error of {name} must be finite, got {w!r}")
+        if np.any(v):
+            out[name] = np.radians(v)
     return out
 
 
