@@ -194,6 +194,23 @@ class MountRotation:
     def significant(self) -> bool:
         return bool(self.significant_axes)
 
+    @property
+    def correction_rad(self) -> np.ndarray | None:
+        """The rotation --calibrate-extrinsics applies (3,): the significant axes S at their
+        estimate given the other axes O held at 0, w_S - C_SO C_OO^-1 w_O (the Gaussian
+        conditional mean), zero on O: an axis the flight did not pin down keeps the logged mount
+        rather than taking a poorly determined value.  None when nothing is significant."""
+        if self.rotvec_rad is None or self.cov_rad2 is None or not self.significant:
+            return None
+        S = [i for i, a in enumerate(AXES) if a in self.significant_axes]
+        O = [i for i in range(3) if i not in S]
+        out = np.zeros(3)
+        out[S] = self.rotvec_rad[S]
+        if O:
+            C = self.cov_rad2
+            out[S] -= C[np.ix_(S, O)] @ np.linalg.solve(C[np.ix_(O, O)], self.rotvec_rad[O])
+        return out
+
     def as_dict(self, truth_rad: np.ndarray | None = None) -> dict:
         """JSON-ready; with the simulator's `truth_rad` (3,), the estimate's error too."""
         sig = self.sigma_rad
@@ -206,6 +223,9 @@ class MountRotation:
             if self.rotvec_rad is None
             else math.degrees(float(np.linalg.norm(self.rotvec_rad))),
             "significant_axes": list(self.significant_axes),
+            "correction_deg": None
+            if self.correction_rad is None
+            else np.degrees(self.correction_rad).tolist(),
             "unexcited_axes": list(self.unexcited_axes),
             "applied": self.applied,
             "fixes": self.fixes,
@@ -219,6 +239,9 @@ class MountRotation:
                 # the rotation between truth and estimate (exact, not a difference of vectors)
                 err = so3_log(so3_exp(self.rotvec_rad) @ so3_exp(np.asarray(truth_rad, float)).T)
                 out["error_deg"] = np.degrees(err).tolist()
+            if self.correction_rad is not None:
+                err = so3_log(so3_exp(self.correction_rad) @ so3_exp(np.asarray(truth_rad, float)).T)
+                out["correction_error_deg"] = np.degrees(err).tolist()
         return out
 
     def describe(self) -> str:
@@ -228,8 +251,12 @@ class MountRotation:
             return f"{head}: not estimated ({self.note})"
         w, s = np.degrees(self.rotvec_rad), np.degrees(self.sigma_rad)
         axes = ", ".join(f"{a} {v:+.3f} ± {d:.3f}" for a, v, d in zip(AXES, w, s))
-        if self.applied:
-            used = "applied"
+        if self.applied and self.correction_rad is not None:
+            used = "applied: " + ", ".join(
+                f"{a} {v:+.3f}"
+                for a, v in zip(AXES, np.degrees(self.correction_rad))
+                if a in self.significant_axes
+            )
         elif self.significant:
             used = "significant, not applied (run with --calibrate-extrinsics)"
         else:
@@ -380,13 +407,14 @@ def check_mount(
 
 
 def apply_mount(log_: FlightLog, mount: MountRotation) -> FlightLog:
-    """A copy of the log whose floor camera carries the corrected mount (frames still stream
-    from the same files); marks `mount` applied."""
-    if mount.rotvec_rad is None:
+    """A copy of the log whose floor camera carries the corrected mount (`mount.correction_rad`;
+    frames still stream from the same files); marks `mount` applied."""
+    correction = mount.correction_rad
+    if correction is None:
         return log_
     cams = dict(log_.cameras)
     stream = copy.copy(cams[mount.camera])
-    stream.camera = corrected_camera(stream.camera, mount.rotvec_rad)
+    stream.camera = corrected_camera(stream.camera, correction)
     cams[mount.camera] = stream
     mount.applied = True
     return replace(log_, cameras=cams)

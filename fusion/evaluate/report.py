@@ -241,13 +241,12 @@ def _mount_lines(m: dict) -> list[str]:
     axes = ", ".join(
         f"{a} {v:+.3f} ± {d:.3f}" for a, v, d in zip("xyz", e["rotvec_deg"], e.get("sigma_deg") or [0.0] * 3)
     )
-    used = (
-        "applied to every output"
-        if e.get("applied")
-        else (
-            "significant: run with --calibrate-extrinsics" if e.get("significant_axes") else "not significant"
-        )
-    )
+    sig_axes = e.get("significant_axes") or []
+    corr = ", ".join(f"{a} {v:+.3f}" for a, v in zip("xyz", e.get("correction_deg") or []) if a in sig_axes)
+    if e.get("applied"):
+        used = f"applied to every output ({corr} deg)"
+    else:
+        used = "significant: run with --calibrate-extrinsics" if sig_axes else "not significant"
     truth = (
         f"; error against the simulator's truth {'/'.join(f'{v:+.3f}' for v in e['error_deg'])} deg"
         if e.get("error_deg")

@@ -1,0 +1,243 @@
+"""Floor camera mount rotation (fusion.estimate.extrinsics, issue 11 item 5): the factor's
+Jacobians, recovery of a 2 deg error on short synthetic flights, an honest (large) sigma on an
+axis the flight does not excite, the simulator's wrong calibration, and the check's warning and
+--calibrate-extrinsics end to end on the sample flight."""
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.camera import CameraModel
+from fusion.cli import main
+from fusion.conventions import R_BODY_FLOORCAM
+from fusion.errors import EstimationError
+from fusion.estimate.extrinsics import (
+    EXTRINSICS_GROUNDTRUTH_CSV,
+    WARNING_NAME,
+    MountSource,
+    check_mount,
+    corrected_camera,
+    corrected_mount,
+    estimate_mount_rotation,
+    mount_pose_error,
+    read_extrinsics_groundtruth,
+)
+from fusion.fileio import dump_yaml, load_yaml
+from fusion.geometry import inv_T, make_T, so3_exp, so3_log
+from fusion.log.euroc import CameraStream, FlightLog, ImuNoise, read_flight
+from fusion.log.files import read_tum
+from fusion.sim.imu import synthesize_imu
+from fusion.sim.simulate import simulate
+from fusion.sim.trajectory import Keyframe, KeyframeTrajectory, random_aisle_survey
+from fusion.types import Trajectory
+
+SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+FLOOR_CAM = CameraModel(
+    640, 480, 550.0, 550.0, 320.0, 240.0, T_body_cam=make_T(R_BODY_FLOORCAM, [0.05, 0.0, -0.06])
+)
+SIGMA_POS_M, SIGMA_ROT_RAD = 0.002, math.radians(0.05)
+TARGET_DEG = 0.05  # the issue's accuracy for a 2 deg error
+
+
+def _pnp_poses(traj, duration_s: float, w_deg, rng) -> tuple[np.ndarray, Trajectory]:
+    """PnP-like body poses at 30 Hz computed with the nominal mount while the camera sits at the
+    true one (turned by w_deg): Z = T_world_body_true T_bc_true T_bc_nominal^-1 exp(noise)."""
+    t = np.round(np.arange(0.0, duration_s, 1 / 30.0) * 1e9).astype(np.int64)
+    T_true = traj.state(t * 1e-9).T_world_body
+    E = corrected_mount(FLOOR_CAM.T_body_cam, np.radians(w_deg)) @ inv_T(FLOOR_CAM.T_body_cam)
+    cov = np.diag([SIGMA_ROT_RAD**2] * 3 + [SIGMA_POS_M**2] * 3)
+    xi = rng.standard_normal((len(t), 6)) @ np.linalg.cholesky(cov).T
+    Z = np.array([T @ E @ gtsam.Pose3.Expmap(x).matrix() for T, x in zip(T_true, xi)])
+    return t, Trajectory("pnp", t, Z, np.repeat(cov[None], len(t), 0))
+
+
+def _survey(duration_s: float, seed: int, w_deg):
+    rng = np.random.default_rng(seed)
+    traj = random_aisle_survey(duration_s, rng)
+    imu, _, _ = synthesize_imu(traj, 200.0, ImuNoise(), rng)
+    t, raw = _pnp_poses(traj, duration_s, w_deg, rng)
+    return t, imu, raw
+
+
+# ============================================================================ the factor
+
+
+def test_mount_pose_error_jacobians_match_numerical_derivatives():
+    rng = np.random.default_rng(3)
+    Z = gtsam.Pose3.Expmap(rng.standard_normal(6))
+    A = gtsam.Pose3(gtsam.Rot3(), rng.standard_normal(3) * 0.1)
+    X = gtsam.Pose3.Expmap(rng.standard_normal(6))
+    R = gtsam.Rot3.Expmap(rng.standard_normal(3) * 0.05)
+    e, Hx, Hr = mount_pose_error(Z, A, X, R, True)
+    assert Hx is not None and Hr is not None
+    h = 1e-6
+    num_x = np.column_stack(
+        [
+            (
+                mount_pose_error(Z, A, X.retract(h * d), R, False)[0]
+                - mount_pose_error(Z, A, X.retract(-h * d), R, False)[0]
+            )
+            / (2 * h)
+            for d in np.eye(6)
+        ]
+    )
+    num_r = np.column_stack(
+        [
+            (
+                mount_pose_error(Z, A, X, R.retract(h * d), False)[0]
+                - mount_pose_error(Z, A, X, R.retract(-h * d), False)[0]
+            )
+            / (2 * h)
+            for d in np.eye(3)
+        ]
+    )
+    np.testing.assert_allclose(Hx, num_x, atol=1e-6)
+    np.testing.assert_allclose(Hr, num_r, atol=1e-6)
+    np.testing.assert_allclose(e, mount_pose_error(Z, A, X, R, False)[0])
+
+
+def test_a_pose_seen_through_the_true_mount_has_zero_residual():
+    """Z = X T_bc_true T_bc^-1 (what PnP with the nominal mount reports) against E(w)."""
+    rng = np.random.default_rng(4)
+    w = np.radians([1.0, -2.0, 0.5])
+    X = gtsam.Pose3.Expmap(rng.standard_normal(6))
+    Z = X.matrix() @ corrected_mount(FLOOR_CAM.T_body_cam, w) @ inv_T(FLOOR_CAM.T_body_cam)
+    A = gtsam.Pose3(gtsam.Rot3(), FLOOR_CAM.T_body_cam[:3, 3])
+    e, _, _ = mount_pose_error(gtsam.Pose3(Z), A, X, gtsam.Rot3(so3_exp(w)), False)
+    np.testing.assert_allclose(e, 0.0, atol=1e-12)
+    cam = corrected_camera(FLOOR_CAM, w)
+    np.testing.assert_allclose(cam.T_body_cam[:3, 3], FLOOR_CAM.T_body_cam[:3, 3])
+    np.testing.assert_allclose(cam.T_body_cam[:3, :3], so3_exp(w) @ FLOOR_CAM.T_body_cam[:3, :3])
+    np.testing.assert_allclose(FLOOR_CAM.T_body_cam, corrected_mount(cam.T_body_cam, -w), atol=1e-12)
+
+
+# ============================================================================ estimation
+
+
+@pytest.mark.parametrize("w_deg", [(2.0, 0.0, 0.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0), (1.2, -1.2, 1.0)])
+def test_two_degree_error_recovered_within_target(w_deg):
+    t, imu, raw = _survey(30.0, 1, w_deg)
+    m = estimate_mount_rotation(t, imu, raw, None, FLOOR_CAM)
+    assert m.source is MountSource.ESTIMATED and m.rotvec_rad is not None and m.sigma_rad is not None
+    err = np.degrees(m.rotvec_rad) - np.asarray(w_deg)
+    assert np.all(np.abs(err) < TARGET_DEG), err
+    assert np.all(np.abs(err) < 4 * np.degrees(m.sigma_rad))  # the sigma is honest
+    assert set(m.significant_axes) == {a for a, v in zip("xyz", w_deg) if v}
+    assert m.unexcited_axes == []
+    warning = m.warning()
+    assert warning is not None and warning.name == WARNING_NAME
+    assert warning.count == len(m.significant_axes) and "--calibrate-extrinsics" in warning.message
+
+
+def test_no_error_is_not_significant():
+    t, imu, raw = _survey(20.0, 2, (0.0, 0.0, 0.0))
+    m = estimate_mount_rotation(t, imu, raw, None, FLOOR_CAM)
+    assert m.significant_axes == [] and m.warning() is None
+    assert np.all(np.degrees(np.abs(m.rotvec_rad)) < 3 * np.degrees(m.sigma_rad) + 1e-9)
+
+
+def test_hovering_flight_reports_a_large_sigma_not_a_confident_wrong_yaw():
+    """Hovering, the yaw of the mount is unobservable (no horizontal acceleration against the
+    positions) and the tilt is confounded with the accelerometer bias: the sigmas say so."""
+    rng = np.random.default_rng(5)
+    hover = KeyframeTrajectory([Keyframe(0.0, (1.0, 2.0, 1.5), 0.3), Keyframe(20.0, (1.0, 2.0, 1.5), 0.3)])
+    imu, _, _ = synthesize_imu(hover, 200.0, ImuNoise(), rng)
+    w_deg = (0.0, 0.0, 2.0)
+    t, raw = _pnp_poses(hover, 20.0, w_deg, rng)
+    m = estimate_mount_rotation(t, imu, raw, None, FLOOR_CAM)
+    sig = np.degrees(m.sigma_rad)
+    assert sig[2] > 2.5  # about the prior's 5 deg
+    assert "z" in m.unexcited_axes and "z" not in m.significant_axes
+    assert np.all(sig[:2] > 0.2)  # tilt pinned only through the bias prior
+    err = np.degrees(m.rotvec_rad) - np.asarray(w_deg)
+    assert np.all(np.abs(err) < 3 * sig)
+
+
+def test_mount_rotation_cannot_be_estimated_without_imu_or_with_a_gimbal():
+    t, imu, raw = _survey(5.0, 3, (0.0, 0.0, 0.0))
+    with pytest.raises(EstimationError, match="no IMU"):
+        estimate_mount_rotation(t, None, raw, None, FLOOR_CAM)
+    gimbaled = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, mount="gimbaled")
+    with pytest.raises(EstimationError, match="gimbaled"):
+        estimate_mount_rotation(t, imu, raw, None, gimbaled)
+    log = FlightLog(Path("."), None, {"cam0": CameraStream("cam0", gimbaled, t, [], [])}, imu)
+    m = check_mount(log, raw)
+    assert m.source is MountSource.NOT_ESTIMATED and "gimbaled" in m.note
+    assert m.warning() is None and m.as_dict()["rotvec_deg"] is None
+
+
+# ============================================================================ simulator
+
+
+def test_simulator_renders_the_true_mount_and_logs_the_nominal_one(tmp_path):
+    kw = dict(duration_s=0.1, seed=0, progress=False, workers=1)
+    simulate(tmp_path / "nominal", **kw)
+    simulate(tmp_path / "wrong", extrinsic_error_deg={"cam0": (0.0, 0.0, 2.0)}, **kw)
+    a, b = read_flight(tmp_path / "nominal"), read_flight(tmp_path / "wrong")
+    np.testing.assert_array_equal(a.floor.camera.T_body_cam, b.floor.camera.T_body_cam)
+    truth = read_extrinsics_groundtruth(tmp_path / "wrong")
+    assert list(truth) == ["cam0"]
+    np.testing.assert_allclose(np.degrees(truth["cam0"]), [0.0, 0.0, 2.0])
+    assert read_extrinsics_groundtruth(tmp_path / "nominal") == {}
+    assert not (tmp_path / "nominal" / EXTRINSICS_GROUNDTRUTH_CSV).exists()
+    img_a, img_b = a.floor.load_image(0), b.floor.load_image(0)
+    assert img_a is not None and img_b is not None and np.any(img_a != img_b)
+    front_a, front_b = a.cameras["cam1"].load_image(0), b.cameras["cam1"].load_image(0)
+    np.testing.assert_array_equal(front_a, front_b)
+
+
+# ============================================================================ pipeline
+
+
+def _miscalibrated_sample(tmp_path: Path, w_deg) -> Path:
+    """The sample flight whose cam0 sensor.yaml is off: the images were made with its mount,
+    the yaml now says that mount turned by -w (so the true mount is the logged one turned by w)."""
+    dst = tmp_path / "log"
+    shutil.copytree(SAMPLE, dst)
+    path = dst / "mav0" / "cam0" / "sensor.yaml"
+    data = load_yaml(path, EstimationError)
+    T = np.array(data["T_BS"]["data"], float).reshape(4, 4)
+    data["T_BS"]["data"] = [float(v) for v in corrected_mount(T, -np.radians(w_deg)).reshape(-1)]
+    dump_yaml(data, path)
+    return dst
+
+
+def _run(log_dir: Path, out: Path, *extra: str) -> dict:
+    args = ["run", str(log_dir), "--out", str(out), "--quiet", "--workers", "1", "--no-incremental"]
+    assert main([*args, *extra]) == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_check_warns_and_calibration_applies_on_the_sample_flight(tmp_path):
+    w_deg = (0.0, 2.0, 0.0)  # pitch: observed on this short flight (its roll is not)
+    log_dir = _miscalibrated_sample(tmp_path, w_deg)
+    m = _run(log_dir, tmp_path / "check")
+    e = m["extrinsics"]
+    assert e["source"] == "estimated" and not e["applied"] and "y" in e["significant_axes"]
+    assert [w["name"] for w in m["warnings"]].count(WARNING_NAME) == 1
+    assert abs(e["rotvec_deg"][1] - w_deg[1]) < 0.2
+    m = _run(log_dir, tmp_path / "cal", "--calibrate-extrinsics")
+    e = m["extrinsics"]
+    assert e["applied"] and WARNING_NAME not in [w["name"] for w in m["warnings"]]
+    assert "mount rotation" in (tmp_path / "cal" / "report.md").read_text()
+    ok = _run(SAMPLE, tmp_path / "nominal")
+    assert ok["extrinsics"]["significant_axes"] == [] and ok["extrinsics"]["applied"] is False
+    assert WARNING_NAME not in [w["name"] for w in ok["warnings"]]
+    # the corrected mount reaches the per-frame estimates: PnP's attitudes move back to the
+    # correctly calibrated run's
+    ref = read_tum(tmp_path / "nominal" / "trajectory_pnp.tum")
+    for name, lo, hi in (("check", 1.8, 2.2), ("cal", 0.0, 0.2)):
+        traj = read_tum(tmp_path / name / "trajectory_pnp.tum")
+        np.testing.assert_array_equal(traj.timestamps_ns, ref.timestamps_ns)
+        d = np.degrees(
+            [
+                np.linalg.norm(so3_log(a[:3, :3].T @ b[:3, :3]))
+                for a, b in zip(ref.T_world_body, traj.T_world_body)
+            ]
+        )
+        assert lo < np.median(d) < hi, (name, np.median(d))
