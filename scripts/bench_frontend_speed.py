@@ -37,7 +37,14 @@ import cv2
 import numpy as np
 
 from fusion.log.sources import open_flight
-from fusion.pipeline import RunConfig, localize_floor_chunk, localize_front_chunk, merge_floor_parts
+from fusion.pipeline import (
+    RunConfig,
+    _unposed_load_observations,
+    localize_floor_chunk,
+    localize_front_chunk,
+    merge_floor_parts,
+)
+from fusion.qr import paper, pnp
 from fusion.qr.detect import (
     REFINE_BATCH_FRAMES,
     _detect_image,
@@ -52,14 +59,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 TARGET_FPS = 300.0
 ACCURACY_FRAMES = 60  # scripts/bench_detect.py's default
 ACCURACY_BASELINE_PX = 0.013  # BENCHMARKS.md, refined corners at 640x480 (issue 13: within 10 %)
+_LEVEL, _STRATEGY, _FILTER = cv2.IMWRITE_PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_FILTER
+_HUFFMAN = cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
+_UP, _NONE = cv2.IMWRITE_PNG_FILTER_UP, cv2.IMWRITE_PNG_FILTER_NONE
 PNG_VARIANTS = (
     ("as stored", None),
-    ("level 0 (stored)", [cv2.IMWRITE_PNG_COMPRESSION, 0]),
-    ("level 1, Huffman only (simulator)", [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, 2]),
-    ("level 1, default strategy", [cv2.IMWRITE_PNG_COMPRESSION, 1]),
-    ("level 1, RLE", [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, 3]),
-    ("level 3", [cv2.IMWRITE_PNG_COMPRESSION, 3]),
-    ("level 9", [cv2.IMWRITE_PNG_COMPRESSION, 9]),
+    ("level 1, Huffman only, all filters (simulator before)", [_LEVEL, 1, _STRATEGY, _HUFFMAN]),
+    ("level 1, Huffman only, filter Up (simulator now)", [_LEVEL, 1, _STRATEGY, _HUFFMAN, _FILTER, _UP]),
+    ("level 1, Huffman only, filter None", [_LEVEL, 1, _STRATEGY, _HUFFMAN, _FILTER, _NONE]),
+    ("level 1, default strategy, all filters", [_LEVEL, 1]),
+    ("level 3, all filters", [_LEVEL, 3]),
+    ("level 9, all filters", [_LEVEL, 9]),
+    ("level 0 (stored), all filters", [_LEVEL, 0]),
+    ("level 0 (stored), filter Up", [_LEVEL, 0, _FILTER, _UP]),
+    ("level 0 (stored), filter None (simulator: png_compression=0)", [_LEVEL, 0, _FILTER, _NONE]),
 )
 
 
@@ -129,9 +142,6 @@ def stage_budget(log, n: int, repeats: int) -> dict:
     paper_cost, pnp_cost = [], []
     for _ in range(repeats):
         # the paper's and PnP's halves of localize_*_chunk, timed apart
-        from fusion.qr import paper, pnp
-        from fusion.pipeline import _unposed_load_observations
-
         t0 = time.process_time()
         traj_paper = paper.paper_trajectory(dets["cam0"], log.floor.camera, log.world, cfg.th_px)
         t1 = time.process_time()
@@ -179,8 +189,8 @@ def png_options(blobs: dict[str, list[bytes]], frames: dict[str, list[np.ndarray
             enc = [cv2.imencode(".png", im, params)[1].tobytes() for im in ims]
         dec = decode(enc)
         assert all(np.array_equal(a, b) for a, b in zip(dec, ims)), label  # lossless
-        t_gray = best_of(lambda: decode(enc), repeats) / len(enc)
-        t_unch = best_of(lambda: decode(enc, cv2.IMREAD_UNCHANGED), repeats) / len(enc)
+        t_gray = best_of(lambda enc=enc: decode(enc), repeats) / len(enc)
+        t_unch = best_of(lambda enc=enc: decode(enc, cv2.IMREAD_UNCHANGED), repeats) / len(enc)
         rows.append((label, 1e3 * t_gray, 1e3 * t_unch, np.mean([len(b) for b in enc]) / 1024))
     return rows
 
@@ -271,12 +281,12 @@ def main() -> None:
         total += ms
         print(f"| {label} | {ms:.3f} | {1e3 / ms:.0f} |")
     print(
-        f"| **total, PNG decoding excluded** | **{total:.3f}** | **{1e3 / total:.0f}** (target {TARGET_FPS:.0f}) |"
+        f"| **total, PNG decoding excluded** | **{total:.3f}** | **{1e3 / total:.0f}** "
+        f"(target {TARGET_FPS:.0f}) |"
     )
-    print(f"| PNG decode (cv2.imdecode, grey) | {1e3 * t['png'] / n:.3f} | {n / t['png']:.0f} |")
-    print(
-        f"| total with PNG decoding | {total + 1e3 * t['png'] / n:.3f} | {1e3 / (total + 1e3 * t['png'] / n):.0f} |"
-    )
+    png_ms = 1e3 * t["png"] / n
+    print(f"| PNG decode (cv2.imdecode, grey) | {png_ms:.3f} | {1e3 / png_ms:.0f} |")
+    print(f"| total with PNG decoding | {total + png_ms:.3f} | {1e3 / (total + png_ms):.0f} |")
     print()
     print(
         f"(check: the pipeline's localize_floor_chunk + localize_front_chunk once: "
@@ -294,7 +304,8 @@ def main() -> None:
     if not args.no_png:
         print()
         print(
-            "| PNG encoding (the flight's frames re-encoded) | decode ms, IMREAD_GRAYSCALE | IMREAD_UNCHANGED | KiB / frame |"
+            "| PNG encoding (the flight's frames re-encoded) | decode ms, IMREAD_GRAYSCALE "
+            "| IMREAD_UNCHANGED | KiB / frame |"
         )
         print("|---|--:|--:|--:|")
         for label, g, u, kib in png_options(r["blobs"], r["frames_img"], args.repeats):
