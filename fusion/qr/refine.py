@@ -398,17 +398,14 @@ def _dark(F: np.ndarray) -> np.ndarray:
 def _levels(D, Dd, y, m):
     """Per-profile least-squares levels (W, C, g) of y = W + C D + g Dd over the samples with
     mask m (all (P, K)): levels (P, 3), residuals (P, K), the basis as three (P, K) planes
-    (m, D m, Dd m) and its inverse normal matrix (P, 3, 3).  Sums over K plane by plane
-    (`_dots`): stacked (P, K, 3) matrix products loop 3 elements at a time."""
+    (m, D m, Dd m) and its inverse normal matrix as a `_Sym3` of (P,) entries.  Sums over K
+    plane by plane (`_dots`): stacked (P, K, 3) matrix products loop 3 elements at a time."""
     A = (m, D * m, Dd * m)
     ym = y * m
-    N = np.empty((len(m), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            N[:, i, j] = N[:, j, i] = _dots(A[i], A[j])
-    Ninv = _inv3_sym(N + _LEVEL_REG).astype(m.dtype)
-    rhs = np.stack([_dots(a, ym) for a in A], axis=1)  # (P, 3)
-    lev = np.einsum("pij,pj->pi", Ninv, rhs)
+    n = [_dots(A[i], A[j]).astype(np.float64) for i, j in _SYM3_INDEX]
+    reg = np.diag(_LEVEL_REG)
+    Ninv = _Sym3.inverse(n[0] + reg[0], n[1], n[2], n[3] + reg[1], n[4], n[5] + reg[2], m.dtype)
+    lev = Ninv.matvec(np.stack([_dots(a, ym) for a in A], axis=1))
     r = A[0] * lev[:, 0:1]
     r += A[1] * lev[:, 1:2]
     r += A[2] * lev[:, 2:3]
@@ -422,24 +419,47 @@ def _dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 _LEVEL_REG = np.diag([1e-9, 1e-9, 1e-6])  # the data level g: absent on boundary edges
+_SYM3_INDEX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def _inv3_sym(N: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric (P, 3, 3) matrices by cofactors (np.linalg.inv is ~10x slower on
-    small stacks); NaN where singular."""
-    a00, a01, a02 = N[:, 0, 0], N[:, 0, 1], N[:, 0, 2]
-    a11, a12, a22 = N[:, 1, 1], N[:, 1, 2], N[:, 2, 2]
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    with np.errstate(all="ignore"):
-        inv_det = np.where(det > 0, 1.0 / det, np.nan)
-    out = np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=1).reshape(-1, 3, 3)
-    return out * inv_det[:, None, None]
+@dataclass
+class _Sym3:
+    """A stack of symmetric 3x3 matrices as their six (P,) upper-triangle entries (row by row):
+    the per-profile arithmetic on them runs over (P,) arrays, not (P, 3, 3) stacks."""
+
+    a00: np.ndarray
+    a01: np.ndarray
+    a02: np.ndarray
+    a11: np.ndarray
+    a12: np.ndarray
+    a22: np.ndarray
+
+    @classmethod
+    def inverse(cls, a00, a01, a02, a11, a12, a22, dtype) -> _Sym3:
+        """The inverses of the matrices with these entries by cofactors (np.linalg.inv is ~10x
+        slower on small stacks); NaN where singular (determinant <= 0)."""
+        c00 = a11 * a22 - a12 * a12
+        c01 = a02 * a12 - a01 * a22
+        c02 = a01 * a12 - a02 * a11
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        with np.errstate(all="ignore"):
+            inv_det = np.where(det > 0, 1.0 / det, np.nan)
+        return cls(*((c * inv_det).astype(dtype) for c in (c00, c01, c02, c11, c12, c22)))
+
+    def matvec(self, v: np.ndarray) -> np.ndarray:
+        """(P, 3) products of the matrices with the vectors v (P, 3)."""
+        x, y, z = v[:, 0], v[:, 1], v[:, 2]
+        return np.stack(
+            [
+                self.a00 * x + self.a01 * y + self.a02 * z,
+                self.a01 * x + self.a11 * y + self.a12 * z,
+                self.a02 * x + self.a12 * y + self.a22 * z,
+            ],
+            axis=1,
+        )
 
 
 def _inv(M: np.ndarray) -> np.ndarray:
@@ -698,10 +718,10 @@ def _model_edge_points(
         # normal matrix of (e, w) is J^T J - q^T N^-1 q with q = A^T J (P, 3, 2)
         qe = np.stack([_dots(ai, Je) for ai in A], axis=1)  # (P, 3): the columns of q
         qw = np.stack([_dots(ai, Jw) for ai in A], axis=1)
-        Nqe = np.einsum("pij,pj->pi", Ninv, qe)
+        Nqe = Ninv.matvec(qe)
         a = _dots(Je, Je) - _dots(qe, Nqe) + 1e-9
         b = _dots(Je, Jw) - _dots(qw, Nqe)
-        c = _dots(Jw, Jw) - _dots(qw, np.einsum("pij,pj->pi", Ninv, qw))
+        c = _dots(Jw, Jw) - _dots(qw, Ninv.matvec(qw))
         ge, gw = _dots(Je, r), _dots(Jw, r)
         S = np.bincount(lbl, c - b * b / a, 2 * C) + 1e-6
         dw = -np.bincount(lbl, gw - b * ge / a, 2 * C) / S
@@ -1163,7 +1183,7 @@ def _stage2(
     nsa = np.asarray(ns, dtype=float)
     Hs = np.stack([homography_from_corners(c, n) for c, n in zip(starts_u, ns)]).astype(float)
     prev = np.stack(starts_u)
-    module_px = np.array([np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)) for c in starts_u]) / nsa
+    module_px = np.mean(np.linalg.norm(prev - np.roll(prev, 1, axis=1), axis=2), axis=1) / nsa
     raw = prev
     out: list = [None] * C
     width = None
