@@ -322,8 +322,12 @@ def detect_frames(
     return out
 
 
-REFINE_BATCH_FRAMES = 8
-"""Frames refined together in a flight (measured fastest per frame: 8; 32 is no faster)."""
+REFINE_BATCH_FRAMES = 32
+"""Frames refined together in a flight (a detection chunk's worth, `detect_flight`'s
+chunk_frames): refinement's array work is shared by all codes of the batch, so its cost per
+code falls with the batch's size; re-measured after refine.py's loops were reshaped
+(scripts/bench_frontend_speed.py, NOTES-speedfront.md): 32 frames cost 15-30 % less per frame
+than 8 on a simulated flight (0.8 codes per frame) and ~30 % less on 4-code frames."""
 TRACK_SEED_FRAMES = 8
 """Frames before a chunk that its tracker sees first (fusion.qr.track: a track lives through
 TRACK_MAX_MISSES missed frames, so a few frames carry every live track across)."""
