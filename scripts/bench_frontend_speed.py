@@ -39,6 +39,7 @@ import numpy as np
 
 import fusion.qr.detect as detect_module
 from fusion.log.sources import open_flight
+from fusion.parallel import keep_freed_memory
 from fusion.pipeline import (
     RunConfig,
     _unposed_load_observations,
@@ -261,8 +262,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--rss", action="store_true", help="only the detection worker's RSS over the flight")
     ap.add_argument("--no-png", action="store_true", help="skip the PNG options table")
+    ap.add_argument(
+        "--default-malloc", action="store_true", help="leave glibc's malloc thresholds (workers raise them)"
+    )
     args = ap.parse_args()
-    cv2.setNumThreads(1)  # a worker's setting (fusion.parallel)
+    cv2.setNumThreads(1)  # a worker's settings (fusion.parallel)
+    tuned = keep_freed_memory() if not args.default_malloc else False
     log = open_flight(args.flight)
     if args.rss:
         # alone in this process: the budget below keeps its frames in memory
@@ -278,7 +283,8 @@ def main() -> None:
     res = {name: f"{s.camera.width}x{s.camera.height}" for name, s in log.cameras.items()}
     print(
         f"Flight {args.flight} ({', '.join(f'{k} {v}' for k, v in sorted(res.items()))}), {n} frames, "
-        f"{r['codes']} detections ({r['codes'] / n:.2f} per frame); CPU ms per frame, best of {args.repeats}."
+        f"{r['codes']} detections ({r['codes'] / n:.2f} per frame); CPU ms per frame, best of {args.repeats}; "
+        f"malloc thresholds raised as in a worker: {tuned}."
     )
     print()
     print("| stage | ms / frame | frames/s per core |")
