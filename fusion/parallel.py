@@ -12,6 +12,8 @@ in this process, which is what the tests compare the parallel path against.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import logging
 import multiprocessing as mp
 import os
@@ -39,11 +41,43 @@ class ParallelError(FusionError):
 
 _WORKER_CONTEXT: Any = None  # set in each worker process by _start_worker, read by _call only
 
+# glibc's malloc returns the top of its heap to the system whenever more than M_TRIM_THRESHOLD
+# (128 KiB by default) is free there, and serves blocks above M_MMAP_THRESHOLD (128 KiB, then
+# adapting) with fresh mappings: numpy's temporaries of a few hundred KiB (refinement's arrays,
+# a decoded 640x480 frame) were then given back and faulted in again on every operation.
+# Measured (scripts/bench_frontend_speed.py, NOTES-speedfront.md): refinement ~35 % less CPU
+# with the two thresholds raised.  The cost: up to MALLOC_TRIM_THRESHOLD_BYTES of freed memory
+# stays with the process.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc <malloc.h> mallopt parameters
+MALLOC_TRIM_THRESHOLD_BYTES = 128 << 20
+MALLOC_MMAP_THRESHOLD_BYTES = 32 << 20  # glibc's largest accepted value on 64-bit systems
+_MALLOC_TUNED: bool | None = None
+
+
+def keep_freed_memory() -> bool:
+    """Raise this process's glibc malloc trim and mmap thresholds (comment above), once; True
+    when they are set, False where there is no glibc `mallopt` (macOS, musl: nothing changes)."""
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED is None:
+        _MALLOC_TUNED = False
+        try:
+            mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+        except (OSError, AttributeError, TypeError):
+            return False
+        mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+        _MALLOC_TUNED = bool(
+            mallopt(_M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD_BYTES)
+            and mallopt(_M_TRIM_THRESHOLD, MALLOC_TRIM_THRESHOLD_BYTES)
+        )
+        logger.debug("malloc thresholds raised: %s", _MALLOC_TUNED)
+    return _MALLOC_TUNED
+
 
 def _start_worker(context: Any) -> None:
     global _WORKER_CONTEXT
     _WORKER_CONTEXT = context
     cv2.setNumThreads(1)  # one process per core already
+    keep_freed_memory()
 
 
 def _call(fn: Callable[[Any, T], R], task: T) -> R:

@@ -402,3 +402,85 @@ def test_corner_covariance_is_calibrated_over_heights_blur_and_noise():
         for C in (res.corner_cov_px2 for _, res, _ in data)
     ]
     assert np.median(rho) > 0.3
+
+
+# ---------------------------------------------------------------------------- speed rewrites
+# (issue 13: refine.py's inner loops reshaped for speed; each piece checked against a plain
+# reference so a later rewrite cannot change what it computes)
+
+
+def test_blurred_steps_match_a_numerical_convolution_and_their_derivatives():
+    from fusion.qr.refine import _MODEL_STEPS, _blurred_steps
+
+    rng = np.random.default_rng(3)
+    P, K = 7, 9
+    x = rng.uniform(-2.0, 3.0, (P, K))
+    a = rng.uniform(0.2, 1.5, (P, 1))
+    b = rng.uniform(0.2, 1.5, (P, 1))
+    F, F_x, F_a = _blurred_steps(x, a, b)
+    assert F.shape == F_x.shape == F_a.shape == (len(_MODEL_STEPS), P, K)
+    # reference: the CDF of box(a) * box(b) at x - step, by dense numerical convolution
+    t = np.linspace(-2.0, 2.0, 8001)
+    dt = t[1] - t[0]
+    for p in range(P):
+        box_a = (np.abs(t) <= a[p, 0] / 2) / a[p, 0]
+        box_b = (np.abs(t) <= b[p, 0] / 2) / b[p, 0]
+        cdf = np.cumsum(np.convolve(box_a, box_b, mode="same") * dt) * dt
+        for j, step in enumerate(_MODEL_STEPS):
+            np.testing.assert_allclose(F[j, p], np.interp(x[p] - step, t, cdf), atol=2e-3)
+    h = 1e-6
+    np.testing.assert_allclose(
+        F_x, (_blurred_steps(x + h, a, b)[0] - _blurred_steps(x - h, a, b)[0]) / (2 * h), atol=1e-5
+    )
+    np.testing.assert_allclose(
+        F_a, (_blurred_steps(x, a + h, b)[0] - _blurred_steps(x, a - h, b)[0]) / (2 * h), atol=1e-5
+    )
+
+
+def test_level_fit_equals_least_squares_profile_by_profile():
+    from fusion.qr.refine import _levels
+
+    rng = np.random.default_rng(4)
+    P, K = 11, 19
+    D, Dd = rng.uniform(0, 1, (P, K)), rng.uniform(0, 1, (P, K))
+    y = rng.uniform(0, 255, (P, K))
+    m = (rng.uniform(size=(P, K)) > 0.2).astype(float)
+    lev, r, A, Ninv = _levels(D, Dd, y, m)
+    for p in range(P):
+        B = np.column_stack([m[p], D[p] * m[p], Dd[p] * m[p]])
+        ref = np.linalg.lstsq(B, y[p] * m[p], rcond=None)[0]
+        np.testing.assert_allclose(lev[p], ref, rtol=1e-4, atol=1e-3)
+        np.testing.assert_allclose(r[p], B @ lev[p] - y[p] * m[p], atol=1e-6)
+        N = B.T @ B + np.diag([1e-9, 1e-9, 1e-6])
+        v = rng.normal(size=3)
+        np.testing.assert_allclose(Ninv.matvec(np.tile(v, (P, 1)))[p], np.linalg.solve(N, v), rtol=1e-6)
+
+
+def test_sampling_frames_in_any_order_gives_the_same_values():
+    from fusion.qr.refine import _Distortion, _rows_by_image, _sample_profiles
+
+    rng = np.random.default_rng(5)
+    images = [rng.integers(0, 256, (48, 64), dtype=np.uint8) for _ in range(3)]
+    R, K = 12, 5
+    rows = np.sort(rng.integers(0, 3, R))
+    H = np.tile(np.diag([4.0, 4.0, 1.0]), (R, 1, 1))
+    uv = rng.uniform(0.5, 10.0, (R, 2))
+    step = rng.normal(size=(R, 2))
+    s = rng.uniform(-1, 1, (R, K))
+    vals, inside, clipped = _sample_profiles(images, rows, _Distortion(None), H, uv, step, s)
+    order = rng.permutation(R)  # unsorted rows: the boolean-mask path
+    v2, i2, c2 = _sample_profiles(
+        images, rows[order], _Distortion(None), H[order], uv[order], step[order], s[order]
+    )
+    np.testing.assert_array_equal(v2, vals[order])
+    np.testing.assert_array_equal(i2, inside[order])
+    assert isinstance(_rows_by_image(rows, 3)[0][1], slice)
+    assert not isinstance(_rows_by_image(rows[order], 3)[0][1], slice) or np.all(np.diff(rows[order]) >= 0)
+    # each row read from its own image
+    for k in range(R):
+        x = H[k, 0, 0] * (uv[k, 0] + s[k] * step[k, 0])
+        y = H[k, 1, 1] * (uv[k, 1] + s[k] * step[k, 1])
+        ok = (x >= 0) & (y >= 0) & (x <= 63) & (y <= 47)
+        xi, yi = np.round(x[ok]).astype(int), np.round(y[ok]).astype(int)
+        near = np.abs(x[ok] - xi) + np.abs(y[ok] - yi) < 0.02
+        np.testing.assert_allclose(vals[k][ok][near], images[rows[k]][yi[near], xi[near]], atol=1.0)

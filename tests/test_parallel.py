@@ -56,3 +56,18 @@ def test_localize_on_two_workers_equals_one_worker(sample_detections):
     # a weighted mean over chunks: equal up to the order of summation
     assert a.pop("mean_reprojection_rms_px") == pytest.approx(b.pop("mean_reprojection_rms_px"), rel=1e-9)
     assert a == b
+
+
+def _malloc_state(context, task):
+    import fusion.parallel
+
+    return fusion.parallel._MALLOC_TUNED
+
+
+@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="mallopt is glibc's")
+def test_workers_raise_the_malloc_thresholds_once():
+    from fusion.parallel import keep_freed_memory
+
+    assert keep_freed_memory() is True
+    assert keep_freed_memory() is True  # idempotent
+    assert list(parallel_map(_malloc_state, [0, 1], 2)) == [True, True]

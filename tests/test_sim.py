@@ -457,3 +457,20 @@ def test_default_blackouts_hide_codes_that_would_be_readable():
             clean = render_view(cam, T_wc, codes, np.random.default_rng(0), fx, sc.occluders)
             assert floor_code_readable(clean), f"{kind} at {t:.2f} s hides nothing"
             assert not floor_code_readable(dark), f"{kind} at {t:.2f} s leaves a code readable"
+
+
+def test_simulator_png_settings_are_lossless_at_every_level():
+    import cv2
+
+    from fusion.sim.simulate import png_params
+
+    rng = np.random.default_rng(8)
+    img = np.clip(rng.normal(128.0, 40.0, (48, 64)), 0, 255).astype(np.uint8)
+    sizes = {}
+    for level in (0, 1, 5, 9):
+        ok, buf = cv2.imencode(".png", img, png_params(level))
+        assert ok
+        np.testing.assert_array_equal(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), img)
+        sizes[level] = len(buf)
+    assert sizes[0] >= img.size  # stored: no compression
+    assert sizes[9] <= sizes[1] < sizes[0]

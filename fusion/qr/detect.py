@@ -45,7 +45,7 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe, open_regular
-from fusion.parallel import parallel_map, worker_count
+from fusion.parallel import keep_freed_memory, parallel_map, worker_count
 from fusion.qr.refine import FALLBACK_SIGMA_PX, RefineStats, modules_for_version, refine_frames
 from fusion.qr.track import CodeTracker
 from fusion.types import QRDetection
@@ -322,8 +322,12 @@ def detect_frames(
     return out
 
 
-REFINE_BATCH_FRAMES = 8
-"""Frames refined together in a flight (measured fastest per frame: 8; 32 is no faster)."""
+REFINE_BATCH_FRAMES = 32
+"""Frames refined together in a flight (a detection chunk's worth, `detect_flight`'s
+chunk_frames): refinement's array work is shared by all codes of the batch, so its cost per
+code falls with the batch's size; re-measured after refine.py's loops were reshaped
+(scripts/bench_frontend_speed.py, NOTES-speedfront.md): 32 frames cost 15-30 % less per frame
+than 8 on a simulated flight (0.8 codes per frame) and ~30 % less on 4-code frames."""
 TRACK_SEED_FRAMES = 8
 """Frames before a chunk that its tracker sees first (fusion.qr.track: a track lives through
 TRACK_MAX_MISSES missed frames, so a few frames carry every live track across)."""
@@ -341,6 +345,7 @@ def _detect_chunk(
     chunks do not cut tracks."""
     streams, backend, track = context
     camera_name, start, stop = task
+    keep_freed_memory()  # (fusion.parallel: refinement's temporaries ~35 % cheaper; pool and dask workers)
     stream = streams[camera_name]
     stats = CameraStats()
     skipped_before = len(stream.skipped)

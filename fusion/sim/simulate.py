@@ -56,18 +56,35 @@ class SimulationResult:
 # ---------------------------------------------------------------------------- worker side
 
 
+def png_params(level: int) -> list[int]:
+    """cv2.imencode parameters of the simulator's PNGs at zlib `level` (0-9).  Measured on a
+    simulated 640x480 flight (scripts/bench_frontend_speed.py, NOTES-speedfront.md): sensor
+    noise defeats LZ matching, so Huffman-only coding is as small as deflate at level >= 3 and
+    several times faster; libpng's adaptive filter choice (all five filters) saves ~6 % of the
+    size but the Paeth rows it picks cost a reader ~40 % more decoding than the Up filter alone;
+    level 0 (stored, no filter: twice the size) decodes ~7x faster than the level-1 files, for
+    throughput benchmarks; level 9 with the default strategy and all filters for the smallest."""
+    if level <= 0:
+        return [cv2.IMWRITE_PNG_COMPRESSION, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    if level >= 9:
+        return [cv2.IMWRITE_PNG_COMPRESSION, 9, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_DEFAULT]
+    return [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        level,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+        cv2.IMWRITE_PNG_FILTER,
+        cv2.IMWRITE_PNG_FILTER_UP,
+    ]
+
+
 class _RenderJob:
     """What every rendering task needs (sent once to each worker process); the scene's code
     textures are built on first use, in the worker."""
 
     def __init__(self, scenario: Scenario, seed: int, png_level: int, check_readable: bool):
         self.scenario, self.seed, self.check_readable = scenario, seed, check_readable
-        # sensor noise defeats LZ matching: Huffman-only coding is as small and several times
-        # faster than deflate at level >= 3; level 9 with the default strategy for the smallest
-        strategy = (
-            cv2.IMWRITE_PNG_STRATEGY_DEFAULT if png_level >= 9 else cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY
-        )
-        self.png_params = [cv2.IMWRITE_PNG_COMPRESSION, png_level, cv2.IMWRITE_PNG_STRATEGY, strategy]
+        self.png_params = png_params(png_level)
         self._codes = None
 
     def __getstate__(self) -> dict:
