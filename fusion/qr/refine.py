@@ -1199,7 +1199,9 @@ def _stage2(
     if point_map is not None and kept_fit is not None:
         moved = replace(kept_fit, points=point_map(pr.code, kept_fit.points))
         _, corners, cov, ok, _ = _fit_homographies(moved, pr, nsa)
-        return [o if o is None or not ok[ci] else (corners[ci], cov[ci], o[2], o[3]) for ci, o in enumerate(out)]
+        return [
+            o if o is None or not ok[ci] else (corners[ci], cov[ci], o[2], o[3]) for ci, o in enumerate(out)
+        ]
     has = np.array([o is not None for o in out], bool)
     if kept_fit is not None and np.any(has & (nsa >= modules_for_version(2))):
         _add_alignment(images, image_of, dist, Hs, nsa, pr, kept_fit, has, raw, module_px, out)
@@ -1367,7 +1369,9 @@ def refine_frames(
         k_of = np.array([k for _, k in todo])
         code_map = lambda c, p: point_map(image_of[c], k_of[c], p)  # noqa: E731
     stage2 = (
-        _stage2(images, image_of, dist, list(raw_u), ns, code_map) if finder_homography else [None] * len(todo)
+        _stage2(images, image_of, dist, list(raw_u), ns, code_map)
+        if finder_homography
+        else [None] * len(todo)
     )
     done = [(j, s) for j, s in enumerate(stage2) if s is not None]
     if done:

@@ -45,8 +45,8 @@ from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError, LogError
 from fusion.geometry import interpolate_poses, inv_T, se3_log, so3_exp_stack, so3_log
 from fusion.qr.codes import classify
-from fusion.qr.refine import refine_frames
 from fusion.qr.pnp import DEFAULT_CORNER_SIGMA_PX, corner_whitening, estimate_floor_poses, pnp_trajectory
+from fusion.qr.refine import refine_frames
 from fusion.types import QRDetection, Trajectory
 from fusion.world import World
 
@@ -675,9 +675,15 @@ def refine_at_stamp(
     done: set[tuple[int, int]] = set()
     todo = [ts for ts in sorted(frames) if index.get(int(ts)) is not None and motion.valid[index[int(ts)]]]
     for start in range(0, len(todo), REFINE_BATCH_FRAMES):
-        images, codes, where, ks, planes = [], [], [], [], []
+        images: list[np.ndarray] = []
+        codes: list[list[tuple[np.ndarray, int | None]]] = []
+        where: list[list[tuple[int, int]]] = []
+        ks: list[int] = []
+        planes: list[list[tuple[np.ndarray, float]]] = []
         for ts in todo[start : start + REFINE_BATCH_FRAMES]:
-            known = {id(s.detection): np.asarray(s.corners_world, float) for s in classify(frames[ts], world).floor}
+            known = {
+                id(s.detection): np.asarray(s.corners_world, float) for s in classify(frames[ts], world).floor
+            }
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
                 continue
@@ -701,9 +707,11 @@ def refine_at_stamp(
         plane_n = np.zeros((len(images), width, 3))
         plane_d = np.zeros((len(images), width))
         for i, plane in enumerate(planes):
-            for j, (n, d) in enumerate(plane):
-                plane_n[i, j], plane_d[i, j] = n, d
-        results = refine_frames(images, codes, camera, point_map=_StampMap(camera, motion, ks, plane_n, plane_d))
+            for j, (normal, offset) in enumerate(plane):
+                plane_n[i, j], plane_d[i, j] = normal, offset
+        results = refine_frames(
+            images, codes, camera, point_map=_StampMap(camera, motion, ks, plane_n, plane_d)
+        )
         for frame_results, frame_where in zip(results, where):
             for res, (ts, i) in zip(frame_results, frame_where):
                 if res is None or res.stage != 2 or not np.all(np.isfinite(res.corners_px)):
