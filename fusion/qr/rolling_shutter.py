@@ -6,10 +6,13 @@ The body moves during the readout, so a frame's corners are not one pinhole view
 corner is moved to where a global-shutter camera at the stamp would have seen it, once, where the
 corners are formed; PnP, the tight corner factors and the load observations then need no change:
 
-1. body motion over the readout, to first order: constant body rate omega (the gyro at mid
-   readout, or the PnP poses' rotation rate without IMU) and a local quadratic fit of the PnP
-   positions around the stamp (velocity v_world, acceleration a_world):
-   T_world_body(t + dt) = [R exp(omega dt),  p + v dt + a dt^2 / 2]   (geometry.so3_exp_stack);
+1. body motion over the readout: at the stamp, body rate omega (the gyro's mean over the
+   readout minus its bias, or the PnP poses' rotation rate without IMU) and a local quadratic fit
+   of the PnP positions around the stamp (velocity v_world, acceleration a_world):
+   T_world_body(t + dt) = [R exp(omega dt + dr),  p + v dt + a dt^2 / 2 + dp]
+   (geometry.so3_exp_stack), dr and dp the IMU's rotation and displacement within the readout
+   beyond the constant-rate and constant-acceleration parts (zero without IMU: a constant
+   twist); a multirotor's rate changes within a 20-30 ms readout as it tilts (`_body_poses_at`);
 2. each corner's point: its ray at its row's camera pose (`camera.T_world_cam`, mount-aware),
    at the depth of the floor code's known world corner (floor codes) or of the code's apparent
    size (load codes: f side / edge length);
@@ -22,9 +25,17 @@ corners are formed; PnP, the tight corner factors and the load observations then
 
 `correct_flight` runs PnP on the raw corners, then CORRECTION_PASSES times: motion from the
 last poses, corners corrected, PnP again (the poses' RS bias only enters the depths and the
-velocity fit, so one pass leaves a second-order error).  The same approach as Kalibr's
-(Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) uses a continuous-time spline;
-a constant twist over one readout (<= 33 ms) is its first-order case.
+velocity fit, so one pass leaves a second-order error).  Given the images, the floor camera's
+floor codes are then refined again (`refine_at_stamp`): the finder edge points that
+fusion.qr.refine finds in the image as read are moved to the stamp time (steps 1-3, exactly on
+the code's plane) before its homography fit, so the fit is of a global-shutter view.  Moving
+the refined corners afterwards is not enough: the readout bends a code's edges (the rate changes
+over the rows), no homography fits the sheared code, and its extrapolated corner errs most
+(2 m/s, 20 ms: refined corners 0.020 / 0.026 / 0.073 / 0.025 px TL / TR / BR / BL against the
+true per-row projection, global shutter 0.010 / 0.010 / 0.031 / 0.010; refined at the stamp
+0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; NOTES-rs.md).  Kalibr
+(Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) models the motion over the readout
+with a continuous-time spline; the IMU's samples play its part here.
 
 `calibrate_readout`: the readout time minimising the whitened PnP reprojection cost of the
 flight's moving frames (golden-section search, Kiefer 1953), its sigma from the profile's
