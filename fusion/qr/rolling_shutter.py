@@ -301,20 +301,24 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         y = T[idx, :3, 3]
         if track is not None:
             y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
-        A = np.column_stack([dt**j / math.factorial(j) for j in range(FIT_DEGREE + 1)])
+        # at the flight's ends (the window all on one side) a quadratic extrapolates badly; with
+        # an IMU the positions less its motion are nearly linear in time, so a line is fitted
+        one_sided = min(int(np.sum(dt < 0)), int(np.sum(dt > 0))) < MIN_FIT_POSES
+        degree = 1 if track is not None and one_sided else FIT_DEGREE
+        A = np.column_stack([dt**j / math.factorial(j) for j in range(degree + 1)])
         keep = np.ones(len(idx), bool)
         for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
             coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
             r = np.linalg.norm(y - A @ coef, axis=1)
             scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
             new_keep = r <= scale
-            if new_keep.sum() < FIT_DEGREE + 2 or np.array_equal(new_keep, keep):
+            if new_keep.sum() < degree + 2 or np.array_equal(new_keep, keep):
                 break
             keep = new_keep
         A, idx, dt, y = A[keep], idx[keep], dt[keep], y[keep]
         coef, *_ = np.linalg.lstsq(A, y, rcond=None)
         resid = y - A @ coef
-        dof = len(idx) - FIT_DEGREE - 1
+        dof = len(idx) - degree - 1
         var_p = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
         sig2 = max(var_p * float(np.linalg.pinv(A.T @ A)[1, 1]), MIN_VELOCITY_SIGMA_M_S**2)
         near = idx[int(np.argmin(np.abs(dt)))]
@@ -331,7 +335,7 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(out.omega_body[k][None] * back)[0]
         out.T_world_body[k, :3, 3] = coef[0]
         out.v_world[k] = coef[1]
-        out.a_world[k] = coef[2]
+        out.a_world[k] = coef[2] if degree >= 2 else 0.0
         if track is not None:
             out.a_world[k] += track._at(track.a_world, np.array([t * 1e-9]))[0]
         out.v_cov[k] = sig2 * np.eye(3)
