@@ -26,6 +26,7 @@ from fusion.qr.rolling_shutter import (
     calibrate_readout,
     correct_flight,
     correct_frames,
+    frame_motion,
     refine_at_stamp,
 )
 from fusion.sim.imu import synthesize_imu
@@ -399,3 +400,21 @@ def test_refinement_at_the_stamp_beats_correcting_refined_corners(accelerating_f
     # measured: mean 0.007 px (BR 0.011) at the stamp against 0.044 px (BR 0.086) corrected afterwards
     assert np.mean(e_stamp) < 0.7 * np.mean(e_moved)
     assert np.mean(e_stamp) < 0.05
+
+
+def test_motion_at_the_flight_end_from_a_one_sided_window(accelerating_flight):
+    """Stamps at and after the last pose (the fit window all on one side): with an IMU the
+    velocity is a line through the positions less the IMU's motion (a quadratic extrapolated
+    badly there), and frames past the last pose still get a motion."""
+    sc, _, traj, imu, truth = accelerating_flight
+    cam = replace(sc.cameras["cam0"], line_delay_s=0.02 / 480)
+    n_keep = int(np.searchsorted(truth.timestamps_ns, 3_000_000_000))
+    poses = Trajectory("pnp", truth.timestamps_ns[:n_keep:3], truth.T_world_body[:n_keep:3])
+    stamps = np.array([poses.timestamps_ns[-1], poses.timestamps_ns[-1] + 50_000_000], dtype=np.int64)
+    m = frame_motion(poses, stamps, cam, imu)
+    assert np.all(m.valid)
+    st = traj.state(stamps * 1e-9)
+    assert np.max(np.linalg.norm(m.v_world - st.v_world, axis=1)) < 0.02  # m/s (speed ~1.5 m/s)
+    assert np.max(np.linalg.norm(m.T_world_body[:, :3, 3] - st.p_world, axis=1)) < 0.002
+    without = frame_motion(poses, stamps, cam)  # no IMU: no extrapolation
+    assert not without.valid[1]

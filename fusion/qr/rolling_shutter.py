@@ -108,6 +108,11 @@ GOLDEN_TOL_S = 5e-5
 CURVATURE_STEP_FRACTION = 0.1
 """Step of the profile's second difference, as a fraction of the readout upper bound."""
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+UNCORRECTED_RATE_RAD_S = 1.0
+"""A rolling-shutter frame left uncorrected (no motion estimate: no floor pose near it) may have
+moved this fast (a turning multirotor): its corners' covariance gains (rate x readout x f)^2 I
+(11 px for 20 ms at f = 550 px), so that they no longer pass for refined corners (5 such front
+camera frames took a fused flight's NEES from 20 to 570, scripts/bench_realism.py, NOTES-rs.md)."""
 REFINE_BATCH_FRAMES = 8
 """`refine_at_stamp`: frames refined together (as fusion.qr.detect does)."""
 
@@ -149,9 +154,10 @@ class RollingShutterReport:
         return [
             f"rolling shutter {cam}: readout {1e3 * self.readout_s[cam]:.2f} ms, corners of "
             f"{self.frames_corrected[cam]} frame(s) moved to the stamp time ({self.motion_source}); "
-            f"{self.frames_uncorrected[cam]} frame(s) without a motion estimate left as read"
+            f"{self.frames_uncorrected[cam]} frame(s) without a motion estimate left as read "
+            "(corner sigma inflated)"
             + (
-                f"; {self.refined_at_stamp[cam]} floor code(s) refined with their edges at the stamp"
+                f"; {self.refined_at_stamp[cam]} code(s) refined with their edges at the stamp"
                 if cam in self.refined_at_stamp
                 else ""
             )
@@ -296,8 +302,8 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         idx = np.arange(lo, hi)
         dt = (ts[idx] - t) * 1e-9
         idx, dt = idx[np.abs(dt) <= span_max], dt[np.abs(dt) <= span_max]
-        if len(idx) < MIN_FIT_POSES or dt.min() > 0 or dt.max() < 0:
-            continue  # too few poses, or all on one side (extrapolation)
+        if len(idx) < MIN_FIT_POSES or (track is None and (dt.min() > 0 or dt.max() < 0)):
+            continue  # too few poses, or all on one side (extrapolation) without an IMU
         y = T[idx, :3, 3]
         if track is not None:
             y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
@@ -332,7 +338,10 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
             out.omega_body[k] = so3_log(T[a, :3, :3].T @ T[b, :3, :3]) / span
         # the pose at the stamp: the nearest pose's rotation turned back by the body rate
         back = float((t - ts[near]) * 1e-9)
-        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(out.omega_body[k][None] * back)[0]
+        turn = out.omega_body[k] * back
+        if track is not None:  # (the nearest pose may be a few frames away: the gyro's rotation)
+            turn = track.rotation(np.array([ts[near] * 1e-9]), np.array([t * 1e-9]))[0] - bias * back
+        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(turn[None])[0]
         out.T_world_body[k, :3, 3] = coef[0]
         out.v_world[k] = coef[1]
         out.a_world[k] = coef[2] if degree >= 2 else 0.0
@@ -523,10 +532,10 @@ def correct_flight(
     RollingShutterReport).  The motion comes from the floor camera (`cameras["cam0"]`): PnP on
     the raw corners, then `passes` rounds of motion (`frame_motion`), correction, PnP.  Other
     cameras use the same poses and gyro at their own stamps.  With `streams` ({camera: stream
-    with `timestamps_ns` and `load_image(i)`, e.g. FlightLog.cameras}) the floor camera's floor
-    codes are then refined again with their edge points at the stamp (`refine_at_stamp`); the
-    codes it does not replace are corrected as above.  Without a rolling-shutter camera the
-    result is `det` itself."""
+    with `timestamps_ns` and `load_image(i)`, e.g. FlightLog.cameras}) every rolling-shutter
+    camera's floor and load codes are then refined again with their edge points at the stamp
+    (`refine_at_stamp`); the codes it does not replace are corrected as above.  Without a
+    rolling-shutter camera the result is `det` itself."""
     report = RollingShutterReport(motion_source="IMU gyro + PnP velocity" if imu is not None else "PnP poses")
     rs = {name: cam for name, cam in cameras.items() if cam is not None and cam.rolling_shutter}
     floor_cam = cameras.get("cam0")
@@ -543,7 +552,7 @@ def correct_flight(
         stamps = np.array(sorted(frames), dtype=np.int64)
         motion = frame_motion(traj, stamps, cam, imu)
         fixed, n = correct_frames(frames, cam, world, motion)
-        reader = _image_reader(streams, name) if name == "cam0" else None
+        reader = _image_reader(streams, name)
         if reader is not None:
             try:
                 refined, done = refine_at_stamp(frames, reader, cam, world, motion)
@@ -553,6 +562,7 @@ def correct_flight(
             for ts, i in done:
                 fixed[ts][i] = refined[ts][i]
             report.refined_at_stamp[name] = len(done)
+        fixed = _inflate_uncorrected(fixed, cam, motion)
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
         if name == "cam0" and not cam.gimbaled:
             report.pose_cov_added = motion_pose_covariance(frames, cam, world, motion, corner_sigma_px)
@@ -562,6 +572,31 @@ def correct_flight(
     for note in report.notes():
         log_.info(note)
     return replace(det, detections=corrected), report
+
+
+def _inflate_uncorrected(
+    frames: dict[int, list[QRDetection]], camera: CameraModel, motion: FrameMotion
+) -> dict[int, list[QRDetection]]:
+    """`frames` with the corner covariance of those without a motion estimate inflated by
+    (UNCORRECTED_RATE_RAD_S x readout x f)^2 I (their corners are as read)."""
+    valid = {int(t): bool(v) for t, v in zip(motion.timestamps_ns.tolist(), motion.valid)}
+    extra = (UNCORRECTED_RATE_RAD_S * camera.readout_s * 0.5 * (camera.fu + camera.fv)) ** 2
+    out = {}
+    for ts, dets in frames.items():
+        if valid.get(int(ts), False):
+            out[ts] = dets
+            continue
+        inflated = []
+        for d in dets:
+            sigma = d.corner_sigma_px if d.corner_sigma_px is not None else DEFAULT_CORNER_SIGMA_PX
+            cov = d.corner_cov_px2 if d.corner_cov_px2 is not None else sigma**2 * np.eye(8)
+            inflated.append(
+                replace(
+                    d, corner_cov_px2=cov + extra * np.eye(8), corner_sigma_px=math.sqrt(sigma**2 + extra)
+                )
+            )
+        out[ts] = inflated
+    return out
 
 
 def _image_reader(streams, name: str):
@@ -677,9 +712,10 @@ def refine_at_stamp(
     world: World,
     motion: FrameMotion,
 ) -> tuple[dict[int, list[QRDetection]], set[tuple[int, int]]]:
-    """The floor codes of `frames` {timestamp_ns: detections} refined again from their images
-    (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with the
-    finder edge points moved to the stamp time before the homography fit
+    """The floor and load codes of `frames` {timestamp_ns: detections} refined again from their
+    images (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with
+    the finder edge points moved to the stamp time before the homography fit (on the floor
+    code's known plane; a load code's plane taken facing the camera at its size-implied depth)
     (fusion.qr.refine.refine_frames `point_map`, `_StampMap`): the fit is then of a global-shutter
     view, not of the readout-sheared one, whose edges no homography describes (a changing body
     rate bends them).  Returns the frames (re-refined codes replaced) and the (timestamp_ns,
@@ -696,9 +732,17 @@ def refine_at_stamp(
         ks: list[int] = []
         planes: list[list[tuple[np.ndarray, float]]] = []
         for ts in todo[start : start + REFINE_BATCH_FRAMES]:
-            known = {
-                id(s.detection): np.asarray(s.corners_world, float) for s in classify(frames[ts], world).floor
-            }
+            sorted_codes = classify(frames[ts], world)
+            known = {id(s.detection): np.asarray(s.corners_world, float) for s in sorted_codes.floor}
+            # a load code's plane is not known: the plane facing the stamp's camera at the depth
+            # its apparent size implies (as `correct_frames` does)
+            T_wc = camera.T_world_cam(motion.T_world_body[index[int(ts)]])
+            f = 0.5 * (camera.fu + camera.fv)
+            for sighting in sorted_codes.loads:
+                c = np.asarray(sighting.detection.corners_px, float).reshape(4, 2)
+                edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+                centre = T_wc[:3, 3] + f * world.load_side_m / max(edge, 1.0) * T_wc[:3, 2]
+                known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
                 continue
@@ -712,6 +756,9 @@ def refine_at_stamp(
             plane = []
             for _, d in chosen:
                 P = known[id(d)]
+                if len(P) == 2:  # load code: (a point, the normal)
+                    plane.append((P[1], float(P[1] @ P[0])))
+                    continue
                 n = np.cross(P[1] - P[0], P[3] - P[0])
                 n = n / np.linalg.norm(n)
                 plane.append((n, float(n @ P.mean(axis=0))))
