@@ -797,7 +797,7 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
         result.readout_calibration = calib
         result.notes.append(calib.note(CameraRole.FLOOR.value))
     cameras = {name: stream.camera for name, stream in log.cameras.items()}
-    det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px)
+    det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px, streams=log.cameras)
     result.notes += report.notes()
     result.rolling_shutter = report
     return det

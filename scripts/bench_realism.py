@@ -18,7 +18,9 @@ Columns:
                 the load corners' (batch smoother); IMU chi2/dof (1 = its noise as modelled)
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
-flight.  Rolling shutter is not on this branch (another engineer adds `--readout-ms`).
+flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
+`correct_flight`, and its motion covariance added to PnP's, as pipeline.run; "ref px" is then the
+corrected corners' error against the projection at the stamp).
 Prints Markdown (and writes it to `--out`).
 
     PYTHONPATH=$PWD python3 scripts/bench_realism.py [--quick] [--effects jpeg blur] [--workers 1]
@@ -44,6 +46,7 @@ from fusion.evaluate.metrics import associate, interpolate_poses, pose_nees
 from fusion.log import read_flight
 from fusion.qr.codes import classify
 from fusion.qr.detect import detect_flight
+from fusion.qr.rolling_shutter import add_pose_covariance, correct_flight
 from fusion.sim.render import project_code_corners
 from fusion.sim.scenarios import CameraOptions, build_scenario
 from fusion.sim.simulate import simulate
@@ -73,6 +76,11 @@ EFFECTS: dict[str, list[tuple[str, dict]]] = {
         ("10 %", {"occlusion_fraction": 0.10}),
     ],
     "realistic": [("preset", {"preset": "realistic"})],
+    # rolling shutter (simulate readout_s, stamp at the first row): corners moved / refined to the
+    # stamp by fusion.qr.rolling_shutter.correct_flight as pipeline.run does; "rs_uncorrected":
+    # the same flight without (what a global-shutter model makes of it)
+    "rolling_shutter": [(f"{ms} ms", {"readout_s": ms / 1e3}) for ms in (10, 20, 30)],
+    "rs_uncorrected": [("20 ms", {"readout_s": 0.02, "correct_readout": False})],
     # the sigma target: other noise, blur, resolution and lens than the model was calibrated on
     "variant": [
         (
@@ -158,9 +166,12 @@ def pos_errors_m(log, traj) -> np.ndarray:
     return np.linalg.norm(a.T_world_body_est[:, :3, 3] - a.T_world_body_gt[:, :3, 3], axis=1)
 
 
-def back_end(log, det, honest: bool) -> dict:
+def back_end(log, det, honest: bool, pose_cov_added: dict | None = None) -> dict:
     cfg = pipeline.RunConfig(workers=1, progress=False, incremental=False, estimate_noise_scale=honest)
     loc = pipeline.localize_stage(log, det, cfg)
+    if pose_cov_added:  # the readout correction's motion uncertainty (as pipeline.run adds it)
+        key = str(Estimator.PNP)
+        loc.trajectories[key] = add_pose_covariance(loc.trajectories[key], pose_cov_added)
     fused = pipeline.fuse_stage(log, loc, cfg, det)
     pnp = loc.trajectories[str(Estimator.PNP)]
     out = {"pnp": pnp, "noise": {}}
@@ -174,6 +185,9 @@ def back_end(log, det, honest: bool) -> dict:
 
 
 def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> dict:
+    fields = dict(fields)
+    readout_s = float(fields.pop("readout_s", 0.0))
+    correct_readout = bool(fields.pop("correct_readout", True))
     opts, resolution = camera_options(fields)
     folder = work / "log"
     t0 = time.perf_counter()
@@ -189,13 +203,19 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         resolution=resolution,
         camera_rate_hz=args.fps,
         camera_options=opts,
+        readout_s=readout_s or None,
     )
     t_sim = time.perf_counter() - t0
     log = read_flight(folder)
     det = detect_flight(log, workers=args.workers, progress=False)
+    added = None
+    if readout_s > 0 and correct_readout:
+        cameras = {name: stream.camera for name, stream in log.cameras.items()}
+        det, report = correct_flight(det, cameras, log.world, log.imu, streams=log.cameras)
+        added = report.pose_cov_added
     row = {"effect": effect, "level": label, **front_end_errors(log, det, resolution)}
-    before = back_end(log, det, honest=False)
-    after = back_end(log, det, honest=True)
+    before = back_end(log, det, honest=False, pose_cov_added=added)
+    after = back_end(log, det, honest=True, pose_cov_added=added)
     pnp = after["pnp"]
     if len(pnp):
         e = pos_errors_m(log, pnp)

@@ -86,8 +86,11 @@ def position_errors_cm(log, traj) -> np.ndarray:
     T = np.tile(np.eye(4), (len(gt.timestamps_ns), 1, 1))
     T[:, :3, :3] = R_from_quat_wxyz(gt.q_world_body_wxyz)
     T[:, :3, 3] = gt.p_world
-    Tq = interpolate_poses(gt.timestamps_ns * 1e-9, T, traj.timestamps_ns * 1e-9)
-    return 100.0 * np.linalg.norm(traj.T_world_body[:, :3, 3] - Tq[:, :3, 3], axis=1)
+    # (a time offset applied by the pipeline can move the last pose past the ground truth's end)
+    t = traj.timestamps_ns * 1e-9
+    inside = (t >= gt.timestamps_ns[0] * 1e-9) & (t <= gt.timestamps_ns[-1] * 1e-9)
+    Tq = interpolate_poses(gt.timestamps_ns * 1e-9, T, t[inside])
+    return 100.0 * np.linalg.norm(traj.T_world_body[inside, :3, 3] - Tq[:, :3, 3], axis=1)
 
 
 def one_flight(root: Path, speed: float, readout_ms: float, args) -> dict:

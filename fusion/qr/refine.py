@@ -55,7 +55,7 @@ Pixel convention: OpenCV's (pixel centres at integer coordinates).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import cv2
@@ -1174,10 +1174,13 @@ def _stage2(
     dist: _Distortion,
     starts_u: list[np.ndarray],
     ns: list[float],
+    point_map=None,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, RefineQuality] | None]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
-    width_px (2,), RefineQuality) or None."""
+    width_px (2,), RefineQuality) or None.  `point_map(code (P,), points (P, 2)) -> (P, 2)`
+    (undistorted px; refine_frames' `point_map`): the corners from one more homography fit to
+    the last accepted pass's edge points so moved (alignment patterns then left out)."""
     C = len(ns)
     pr = _profiles(ns)
     nsa = np.asarray(ns, dtype=float)
@@ -1244,6 +1247,12 @@ def _stage2(
             module_px,
         )
         kept_fit = fit if kept_fit is None else _merge_fit(kept_fit, fit, alive)
+    if point_map is not None and kept_fit is not None:
+        moved = replace(kept_fit, points=point_map(pr.code, kept_fit.points))
+        _, corners, cov, ok, _ = _fit_homographies(moved, pr, nsa)
+        return [
+            o if o is None or not ok[ci] else (corners[ci], cov[ci], o[2], o[3]) for ci, o in enumerate(out)
+        ]
     has = np.array([o is not None for o in out], bool)
     if kept_fit is not None and np.any(has & (nsa >= modules_for_version(2))):
         _add_alignment(images, image_of, dist, Hs, nsa, pr, kept_fit, has, raw, module_px, out)
@@ -1364,6 +1373,7 @@ def refine_frames(
     cov_model: CornerCovarianceModel = CALIBRATED_COV_MODEL,
     checks: RefineChecks | None = DEFAULT_CHECKS,
     stats: RefineStats | None = None,
+    point_map=None,
 ) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
@@ -1375,6 +1385,10 @@ def refine_frames(
     covariance model applied to stage 2's propagated covariance.  `checks`: stage 2's
     self-check (RefineQuality.failure); a code that fails it keeps its decoder corners with
     FALLBACK_SIGMA_PX (stage 0), counted by reason in `stats` (None: no checks).
+    `point_map(image (P,), code (P,), points (P, 2)) -> (P, 2)`, undistorted px, optional: stage
+    2's corners are those of a homography fitted to its edge points so moved (a rolling-shutter
+    image's points moved to the stamp time: fusion.qr.rolling_shutter.refine_at_stamp); the
+    self-check judges the fit in the image as read.
 
     One code: `refine_code`."""
     if len(images) != len(codes):
@@ -1401,7 +1415,15 @@ def refine_frames(
         return results
     raw_u = dist.undistort(np.concatenate(raws)).reshape(-1, 4, 2)
     image_of = np.array([i for i, _ in todo])
-    stage2 = _stage2(images, image_of, dist, list(raw_u), ns) if finder_homography else [None] * len(todo)
+    code_map = None
+    if point_map is not None:
+        k_of = np.array([k for _, k in todo])
+        code_map = lambda c, p: point_map(image_of[c], k_of[c], p)  # noqa: E731
+    stage2 = (
+        _stage2(images, image_of, dist, list(raw_u), ns, code_map)
+        if finder_homography
+        else [None] * len(todo)
+    )
     done = [(j, s) for j, s in enumerate(stage2) if s is not None]
     if done:
         cu = np.stack([s[0] for _, s in done])

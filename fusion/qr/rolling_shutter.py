@@ -6,10 +6,13 @@ The body moves during the readout, so a frame's corners are not one pinhole view
 corner is moved to where a global-shutter camera at the stamp would have seen it, once, where the
 corners are formed; PnP, the tight corner factors and the load observations then need no change:
 
-1. body motion over the readout, to first order: constant body rate omega (the gyro at mid
-   readout, or the PnP poses' rotation rate without IMU) and a local quadratic fit of the PnP
-   positions around the stamp (velocity v_world, acceleration a_world):
-   T_world_body(t + dt) = [R exp(omega dt),  p + v dt + a dt^2 / 2]   (geometry.so3_exp_stack);
+1. body motion over the readout: at the stamp, body rate omega (the gyro's mean over the
+   readout minus its bias, or the PnP poses' rotation rate without IMU) and a local quadratic fit
+   of the PnP positions around the stamp (velocity v_world, acceleration a_world):
+   T_world_body(t + dt) = [R exp(omega dt + dr),  p + v dt + a dt^2 / 2 + dp]
+   (geometry.so3_exp_stack), dr and dp the IMU's rotation and displacement within the readout
+   beyond the constant-rate and constant-acceleration parts (zero without IMU: a constant
+   twist); a multirotor's rate changes within a 20-30 ms readout as it tilts (`_body_poses_at`);
 2. each corner's point: its ray at its row's camera pose (`camera.T_world_cam`, mount-aware),
    at the depth of the floor code's known world corner (floor codes) or of the code's apparent
    size (load codes: f side / edge length);
@@ -22,9 +25,17 @@ corners are formed; PnP, the tight corner factors and the load observations then
 
 `correct_flight` runs PnP on the raw corners, then CORRECTION_PASSES times: motion from the
 last poses, corners corrected, PnP again (the poses' RS bias only enters the depths and the
-velocity fit, so one pass leaves a second-order error).  The same approach as Kalibr's
-(Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) uses a continuous-time spline;
-a constant twist over one readout (<= 33 ms) is its first-order case.
+velocity fit, so one pass leaves a second-order error).  Given the images, the floor camera's
+floor codes are then refined again (`refine_at_stamp`): the finder edge points that
+fusion.qr.refine finds in the image as read are moved to the stamp time (steps 1-3, exactly on
+the code's plane) before its homography fit, so the fit is of a global-shutter view.  Moving
+the refined corners afterwards is not enough: the readout bends a code's edges (the rate changes
+over the rows), no homography fits the sheared code, and its extrapolated corner errs most
+(2 m/s, 20 ms: refined corners 0.020 / 0.026 / 0.073 / 0.025 px TL / TR / BR / BL against the
+true per-row projection, global shutter 0.010 / 0.010 / 0.031 / 0.010; refined at the stamp
+0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; NOTES-rs.md).  Kalibr
+(Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) models the motion over the readout
+with a continuous-time spline; the IMU's samples play its part here.
 
 `calibrate_readout`: the readout time minimising the whitened PnP reprojection cost of the
 flight's moving frames (golden-section search, Kiefer 1953), its sigma from the profile's
@@ -42,10 +53,11 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.errors import EstimationError
+from fusion.errors import EstimationError, LogError
 from fusion.geometry import interpolate_poses, inv_T, se3_log, so3_exp_stack, so3_log
 from fusion.qr.codes import classify
 from fusion.qr.pnp import DEFAULT_CORNER_SIGMA_PX, corner_whitening, estimate_floor_poses, pnp_trajectory
+from fusion.qr.refine import refine_frames
 from fusion.types import QRDetection, Trajectory
 from fusion.world import World
 
@@ -96,6 +108,13 @@ GOLDEN_TOL_S = 5e-5
 CURVATURE_STEP_FRACTION = 0.1
 """Step of the profile's second difference, as a fraction of the readout upper bound."""
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+UNCORRECTED_RATE_RAD_S = 1.0
+"""A rolling-shutter frame left uncorrected (no motion estimate: no floor pose near it) may have
+moved this fast (a turning multirotor): its corners' covariance gains (rate x readout x f)^2 I
+(11 px for 20 ms at f = 550 px), so that they no longer pass for refined corners (5 such front
+camera frames took a fused flight's NEES from 20 to 570, scripts/bench_realism.py, NOTES-rs.md)."""
+REFINE_BATCH_FRAMES = 8
+"""`refine_at_stamp`: frames refined together (as fusion.qr.detect does)."""
 
 
 @dataclass
@@ -113,6 +132,11 @@ class FrameMotion:
     v_cov: np.ndarray
     valid: np.ndarray
     omega_cov: np.ndarray  # (N, 3, 3)
+    # the IMU over the readout (None: constant twist): its rotation and displacement within the
+    # readout beyond the constant-rate / constant-acceleration part (`_body_poses_at`);
+    # imu_rate (N, 3) the gyro rate that omega_body was taken from (omega_body + bias)
+    track: _ImuTrack | None = None
+    imu_rate: np.ndarray | None = None
 
 
 @dataclass
@@ -123,13 +147,20 @@ class RollingShutterReport:
     frames_corrected: dict[str, int] = field(default_factory=dict)
     frames_uncorrected: dict[str, int] = field(default_factory=dict)
     motion_source: str = ""
+    refined_at_stamp: dict[str, int] = field(default_factory=dict)  # codes refined at the stamp
     pose_cov_added: dict[int, np.ndarray] = field(default_factory=dict)  # cam0 PnP, by stamp
 
     def notes(self) -> list[str]:
         return [
             f"rolling shutter {cam}: readout {1e3 * self.readout_s[cam]:.2f} ms, corners of "
             f"{self.frames_corrected[cam]} frame(s) moved to the stamp time ({self.motion_source}); "
-            f"{self.frames_uncorrected[cam]} frame(s) without a motion estimate left as read"
+            f"{self.frames_uncorrected[cam]} frame(s) without a motion estimate left as read "
+            "(corner sigma inflated)"
+            + (
+                f"; {self.refined_at_stamp[cam]} code(s) refined with their edges at the stamp"
+                if cam in self.refined_at_stamp
+                else ""
+            )
             for cam in self.readout_s
         ]
 
@@ -188,11 +219,18 @@ class _ImuTrack:
             mean = (self._at(self.G, t1) - self._at(self.G, t0)) / span[:, None]
         return np.where((span > 0)[:, None], mean, point)
 
-    def displacement(self, t0: float, t: np.ndarray) -> np.ndarray:
-        """(N, 3) position change from t0 to t of a body at rest at t0 with the IMU's world
-        acceleration: P(t) - P(t0) - V(t0) (t - t0)."""
-        P0, V0 = self._at(self.P, np.array([t0]))[0], self._at(self.V, np.array([t0]))[0]
-        return self._at(self.P, t) - P0 - V0 * (t - t0)[:, None]
+    def displacement(self, t0: float | np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, 3) position change from t0 (scalar or (N,)) to t of a body at rest at t0 with the
+        IMU's world acceleration: P(t) - P(t0) - V(t0) (t - t0)."""
+        t = np.asarray(t, float)
+        t0 = np.broadcast_to(np.asarray(t0, float), t.shape)
+        return self._at(self.P, t) - self._at(self.P, t0) - self._at(self.V, t0) * (t - t0)[:, None]
+
+    def rotation(self, t0: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, 3) integral of the (bias-uncorrected) gyro from t0 to t (rad): the body's rotation
+        vector over [t0, t] to first order (the rate's change of axis within a readout, a
+        second-order term, is left out)."""
+        return self._at(self.G, np.asarray(t, float)) - self._at(self.G, np.asarray(t0, float))
 
 
 def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
@@ -247,7 +285,13 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         bias, bias_sigma = _gyro_bias(track, trajectory)
         t0 = t_s + float(camera.row_time_offset_s(0.0))
         t1 = t_s + float(camera.row_time_offset_s(camera.height - 1.0))
-        out.omega_body = track.mean_rate(t0, t1) - bias
+        # a readout beyond the IMU's samples (the flight's first or last frame): the rate over
+        # the part it covers, and a constant twist (np.interp would hold the end values)
+        covered = (t0 >= track.t[0]) & (t1 <= track.t[-1])
+        rate = track.mean_rate(np.clip(t0, track.t[0], track.t[-1]), np.clip(t1, track.t[0], track.t[-1]))
+        out.omega_body = rate - bias
+        out.imu_rate = np.where(covered[:, None], rate, np.nan)
+        out.track = track
         readout = max(camera.readout_s, 1.0 / imu.rate_hz)
         var = track.noise_density**2 / readout + bias_sigma**2
         out.omega_cov = np.tile(var * np.eye(3), (n, 1, 1))
@@ -258,25 +302,29 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         idx = np.arange(lo, hi)
         dt = (ts[idx] - t) * 1e-9
         idx, dt = idx[np.abs(dt) <= span_max], dt[np.abs(dt) <= span_max]
-        if len(idx) < MIN_FIT_POSES or dt.min() > 0 or dt.max() < 0:
-            continue  # too few poses, or all on one side (extrapolation)
+        if len(idx) < MIN_FIT_POSES or (track is None and (dt.min() > 0 or dt.max() < 0)):
+            continue  # too few poses, or all on one side (extrapolation) without an IMU
         y = T[idx, :3, 3]
         if track is not None:
             y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
-        A = np.column_stack([dt**j / math.factorial(j) for j in range(FIT_DEGREE + 1)])
+        # at the flight's ends (the window all on one side) a quadratic extrapolates badly; with
+        # an IMU the positions less its motion are nearly linear in time, so a line is fitted
+        one_sided = min(int(np.sum(dt < 0)), int(np.sum(dt > 0))) < MIN_FIT_POSES
+        degree = 1 if track is not None and one_sided else FIT_DEGREE
+        A = np.column_stack([dt**j / math.factorial(j) for j in range(degree + 1)])
         keep = np.ones(len(idx), bool)
         for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
             coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
             r = np.linalg.norm(y - A @ coef, axis=1)
             scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
             new_keep = r <= scale
-            if new_keep.sum() < FIT_DEGREE + 2 or np.array_equal(new_keep, keep):
+            if new_keep.sum() < degree + 2 or np.array_equal(new_keep, keep):
                 break
             keep = new_keep
         A, idx, dt, y = A[keep], idx[keep], dt[keep], y[keep]
         coef, *_ = np.linalg.lstsq(A, y, rcond=None)
         resid = y - A @ coef
-        dof = len(idx) - FIT_DEGREE - 1
+        dof = len(idx) - degree - 1
         var_p = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
         sig2 = max(var_p * float(np.linalg.pinv(A.T @ A)[1, 1]), MIN_VELOCITY_SIGMA_M_S**2)
         near = idx[int(np.argmin(np.abs(dt)))]
@@ -290,10 +338,13 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
             out.omega_body[k] = so3_log(T[a, :3, :3].T @ T[b, :3, :3]) / span
         # the pose at the stamp: the nearest pose's rotation turned back by the body rate
         back = float((t - ts[near]) * 1e-9)
-        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(out.omega_body[k][None] * back)[0]
+        turn = out.omega_body[k] * back
+        if track is not None:  # (the nearest pose may be a few frames away: the gyro's rotation)
+            turn = track.rotation(np.array([ts[near] * 1e-9]), np.array([t * 1e-9]))[0] - bias * back
+        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(turn[None])[0]
         out.T_world_body[k, :3, 3] = coef[0]
         out.v_world[k] = coef[1]
-        out.a_world[k] = coef[2]
+        out.a_world[k] = coef[2] if degree >= 2 else 0.0
         if track is not None:
             out.a_world[k] += track._at(track.a_world, np.array([t * 1e-9]))[0]
         out.v_cov[k] = sig2 * np.eye(3)
@@ -304,12 +355,31 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
 # ============================================================================ corners
 
 
-def _body_poses_at(T_world_body: np.ndarray, omega: np.ndarray, v: np.ndarray, a: np.ndarray, dt: np.ndarray):
-    """(M, 4, 4) body poses at offsets dt (M,) from the stamp poses T_world_body (M, 4, 4):
-    constant body rate omega (M, 3) and world acceleration, R exp(omega dt), p + v dt + a dt^2/2."""
+def _body_poses_at(motion: FrameMotion, k: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) body poses at offsets dt (M,) from the stamps of frames k (M,) of `motion`:
+    R exp(omega dt + dr), p + v dt + a dt^2 / 2 + dp, where omega, v, a are the frame's body
+    rate, velocity and acceleration at the stamp and dr, dp the IMU's rotation and displacement
+    over [stamp, stamp + dt] beyond the constant-rate and constant-acceleration parts (zero
+    without an IMU: constant twist).  A body's rate changes within a readout (a multirotor tilts
+    with its acceleration's change): at 2 m/s and 30 ms the constant twist alone leaves 0.09 px
+    of corner error with the TRUE mean rate, velocity and acceleration, the IMU's 200 Hz samples
+    take most of it (NOTES-rs.md)."""
+    omega, v, a = motion.omega_body[k], motion.v_world[k], motion.a_world[k]
+    rot = omega * dt[:, None]
+    pos = v * dt[:, None] + 0.5 * a * (dt**2)[:, None]
+    if motion.track is not None and motion.imu_rate is not None:
+        t0 = motion.timestamps_ns[k] * 1e-9
+        track = motion.track
+        use = np.all(np.isfinite(motion.imu_rate[k]), axis=1)[:, None]  # readout within the IMU's
+        d_rot = track.rotation(t0, t0 + dt) - motion.imu_rate[k] * dt[:, None]
+        a_imu = track._at(track.a_world, t0)
+        d_pos = track.displacement(t0, t0 + dt) - 0.5 * a_imu * (dt**2)[:, None]
+        rot = rot + np.where(use, d_rot, 0.0)
+        pos = pos + np.where(use, d_pos, 0.0)
+    T_world_body = motion.T_world_body[k]
     out = np.tile(np.eye(4), (len(dt), 1, 1))
-    out[:, :3, :3] = T_world_body[:, :3, :3] @ so3_exp_stack(omega * dt[:, None])
-    out[:, :3, 3] = T_world_body[:, :3, 3] + v * dt[:, None] + 0.5 * a * (dt**2)[:, None]
+    out[:, :3, :3] = T_world_body[:, :3, :3] @ so3_exp_stack(rot)
+    out[:, :3, 3] = T_world_body[:, :3, 3] + pos
     return out
 
 
@@ -334,9 +404,7 @@ class CornerBatch:
         k = self.k
         T_wb = motion.T_world_body[k]
         dt = camera.row_time_offset_s(self.uv[:, 1])
-        T_wc_rows = camera.T_world_cam(
-            _body_poses_at(T_wb, motion.omega_body[k], motion.v_world[k], motion.a_world[k], dt)
-        )
+        T_wc_rows = camera.T_world_cam(_body_poses_at(motion, k, dt))
         T_cw_rows = inv_T(T_wc_rows)
         with np.errstate(invalid="ignore"):
             z = np.einsum("mj,mj->m", T_cw_rows[:, 2, :3], self.P) + T_cw_rows[:, 2, 3]
@@ -458,12 +526,16 @@ def correct_flight(
     imu=None,
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
     passes: int = CORRECTION_PASSES,
+    streams=None,
 ):
     """(DetectionResult with every rolling-shutter camera's corners moved to their frame's stamp,
     RollingShutterReport).  The motion comes from the floor camera (`cameras["cam0"]`): PnP on
     the raw corners, then `passes` rounds of motion (`frame_motion`), correction, PnP.  Other
-    cameras use the same poses and gyro at their own stamps.  Without a rolling-shutter camera
-    the result is `det` itself."""
+    cameras use the same poses and gyro at their own stamps.  With `streams` ({camera: stream
+    with `timestamps_ns` and `load_image(i)`, e.g. FlightLog.cameras}) every rolling-shutter
+    camera's floor and load codes are then refined again with their edge points at the stamp
+    (`refine_at_stamp`); the codes it does not replace are corrected as above.  Without a
+    rolling-shutter camera the result is `det` itself."""
     report = RollingShutterReport(motion_source="IMU gyro + PnP velocity" if imu is not None else "PnP poses")
     rs = {name: cam for name, cam in cameras.items() if cam is not None and cam.rolling_shutter}
     floor_cam = cameras.get("cam0")
@@ -480,6 +552,17 @@ def correct_flight(
         stamps = np.array(sorted(frames), dtype=np.int64)
         motion = frame_motion(traj, stamps, cam, imu)
         fixed, n = correct_frames(frames, cam, world, motion)
+        reader = _image_reader(streams, name)
+        if reader is not None:
+            try:
+                refined, done = refine_at_stamp(frames, reader, cam, world, motion)
+            except LogError as e:  # an image that read at detection and not now: as before
+                log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
+                refined, done = frames, set()
+            for ts, i in done:
+                fixed[ts][i] = refined[ts][i]
+            report.refined_at_stamp[name] = len(done)
+        fixed = _inflate_uncorrected(fixed, cam, motion)
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
         if name == "cam0" and not cam.gimbaled:
             report.pose_cov_added = motion_pose_covariance(frames, cam, world, motion, corner_sigma_px)
@@ -489,6 +572,45 @@ def correct_flight(
     for note in report.notes():
         log_.info(note)
     return replace(det, detections=corrected), report
+
+
+def _inflate_uncorrected(
+    frames: dict[int, list[QRDetection]], camera: CameraModel, motion: FrameMotion
+) -> dict[int, list[QRDetection]]:
+    """`frames` with the corner covariance of those without a motion estimate inflated by
+    (UNCORRECTED_RATE_RAD_S x readout x f)^2 I (their corners are as read)."""
+    valid = {int(t): bool(v) for t, v in zip(motion.timestamps_ns.tolist(), motion.valid)}
+    extra = (UNCORRECTED_RATE_RAD_S * camera.readout_s * 0.5 * (camera.fu + camera.fv)) ** 2
+    out = {}
+    for ts, dets in frames.items():
+        if valid.get(int(ts), False):
+            out[ts] = dets
+            continue
+        inflated = []
+        for d in dets:
+            sigma = d.corner_sigma_px if d.corner_sigma_px is not None else DEFAULT_CORNER_SIGMA_PX
+            cov = d.corner_cov_px2 if d.corner_cov_px2 is not None else sigma**2 * np.eye(8)
+            inflated.append(
+                replace(
+                    d, corner_cov_px2=cov + extra * np.eye(8), corner_sigma_px=math.sqrt(sigma**2 + extra)
+                )
+            )
+        out[ts] = inflated
+    return out
+
+
+def _image_reader(streams, name: str):
+    """`load_image(timestamp_ns)` of camera `name`'s stream, or None (no streams given)."""
+    stream = None if streams is None else streams.get(name)
+    if stream is None:
+        return None
+    at = {int(t): i for i, t in enumerate(np.asarray(stream.timestamps_ns).tolist())}
+
+    def load(timestamp_ns: int):
+        i = at.get(int(timestamp_ns))
+        return None if i is None else stream.load_image(i)
+
+    return load
 
 
 def motion_pose_covariance(
@@ -543,6 +665,127 @@ def add_pose_covariance(trajectory: Trajectory, added: dict[int, np.ndarray]) ->
         if extra is not None:
             covs[i] = covs[i] + extra
     return replace(trajectory, covariances=covs)
+
+
+# ============================================================================ refinement at the stamp
+
+
+class _StampMap:
+    """Undistorted px of a rolling-shutter image -> undistorted px of a global-shutter image at
+    the stamp, for points on known planes (floor codes): each point's ray at its row's camera
+    pose (`_body_poses_at`), cut with its code's plane, projected with the stamp's camera pose.
+    `frame_k` (I,) the motion index of each image; `plane_n` / `plane_d` (I, K_max, 3) / (I,
+    K_max) each code's world plane n . p = d (code k of image i)."""
+
+    def __init__(self, camera: CameraModel, motion: FrameMotion, frame_k, plane_n, plane_d):
+        self.camera, self.motion = camera, motion
+        self.frame_k, self.plane_n, self.plane_d = np.asarray(frame_k), plane_n, plane_d
+
+    def __call__(self, image: np.ndarray, code: np.ndarray, points_u: np.ndarray) -> np.ndarray:
+        cam = self.camera
+        out = np.full(points_u.shape, np.nan)
+        ok = np.all(np.isfinite(points_u), axis=1)
+        if not np.any(ok):
+            return out
+        image, code, p = image[ok], code[ok], points_u[ok]
+        k = self.frame_k[image]
+        xn = np.column_stack([(p[:, 0] - cam.cu) / cam.fu, (p[:, 1] - cam.cv) / cam.fv, np.ones(len(p))])
+        rows = cam.project(xn)[:, 1]  # the distorted row: its exposure time
+        T_wc = cam.T_world_cam(_body_poses_at(self.motion, k, cam.row_time_offset_s(rows)))
+        ray = np.einsum("mij,mj->mi", T_wc[:, :3, :3], xn)
+        n, d = self.plane_n[image, code], self.plane_d[image, code]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = (d - np.einsum("mi,mi->m", n, T_wc[:, :3, 3])) / np.einsum("mi,mi->m", n, ray)
+        p_world = T_wc[:, :3, 3] + depth[:, None] * ray
+        T_cw = inv_T(cam.T_world_cam(self.motion.T_world_body[k]))
+        p_cam = np.einsum("mij,mj->mi", T_cw[:, :3, :3], p_world) + T_cw[:, :3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = p_cam[:, :2] / p_cam[:, 2:3]
+        out[ok] = np.column_stack([cam.fu * uv[:, 0] + cam.cu, cam.fv * uv[:, 1] + cam.cv])
+        return out
+
+
+def refine_at_stamp(
+    frames: dict[int, list[QRDetection]],
+    load_image,
+    camera: CameraModel,
+    world: World,
+    motion: FrameMotion,
+) -> tuple[dict[int, list[QRDetection]], set[tuple[int, int]]]:
+    """The floor and load codes of `frames` {timestamp_ns: detections} refined again from their
+    images (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with
+    the finder edge points moved to the stamp time before the homography fit (on the floor
+    code's known plane; a load code's plane taken facing the camera at its size-implied depth)
+    (fusion.qr.refine.refine_frames `point_map`, `_StampMap`): the fit is then of a global-shutter
+    view, not of the readout-sheared one, whose edges no homography describes (a changing body
+    rate bends them).  Returns the frames (re-refined codes replaced) and the (timestamp_ns,
+    position) of the codes replaced: those refined by stage 2 and passing its self-check, in
+    frames with a motion estimate; the others are left for `correct_frames`."""
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
+    out = {ts: list(dets) for ts, dets in frames.items()}
+    done: set[tuple[int, int]] = set()
+    todo = [ts for ts in sorted(frames) if index.get(int(ts)) is not None and motion.valid[index[int(ts)]]]
+    for start in range(0, len(todo), REFINE_BATCH_FRAMES):
+        images: list[np.ndarray] = []
+        codes: list[list[tuple[np.ndarray, int | None]]] = []
+        where: list[list[tuple[int, int]]] = []
+        ks: list[int] = []
+        planes: list[list[tuple[np.ndarray, float]]] = []
+        for ts in todo[start : start + REFINE_BATCH_FRAMES]:
+            sorted_codes = classify(frames[ts], world)
+            known = {id(s.detection): np.asarray(s.corners_world, float) for s in sorted_codes.floor}
+            # a load code's plane is not known: the plane facing the stamp's camera at the depth
+            # its apparent size implies (as `correct_frames` does)
+            T_wc = camera.T_world_cam(motion.T_world_body[index[int(ts)]])
+            f = 0.5 * (camera.fu + camera.fv)
+            for sighting in sorted_codes.loads:
+                c = np.asarray(sighting.detection.corners_px, float).reshape(4, 2)
+                edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+                centre = T_wc[:3, 3] + f * world.load_side_m / max(edge, 1.0) * T_wc[:3, 2]
+                known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
+            chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
+            if not chosen:
+                continue
+            image = load_image(ts)
+            if image is None:
+                continue
+            images.append(image)
+            codes.append([(d.corners_raw_px, None) for _, d in chosen])
+            where.append([(ts, i) for i, _ in chosen])
+            ks.append(index[int(ts)])
+            plane = []
+            for _, d in chosen:
+                P = known[id(d)]
+                if len(P) == 2:  # load code: (a point, the normal)
+                    plane.append((P[1], float(P[1] @ P[0])))
+                    continue
+                n = np.cross(P[1] - P[0], P[3] - P[0])
+                n = n / np.linalg.norm(n)
+                plane.append((n, float(n @ P.mean(axis=0))))
+            planes.append(plane)
+        if not images:
+            continue
+        width = max(len(c) for c in codes)
+        plane_n = np.zeros((len(images), width, 3))
+        plane_d = np.zeros((len(images), width))
+        for i, plane in enumerate(planes):
+            for j, (normal, offset) in enumerate(plane):
+                plane_n[i, j], plane_d[i, j] = normal, offset
+        results = refine_frames(
+            images, codes, camera, point_map=_StampMap(camera, motion, ks, plane_n, plane_d)
+        )
+        for frame_results, frame_where in zip(results, where):
+            for res, (ts, i) in zip(frame_results, frame_where):
+                if res is None or res.stage != 2 or not np.all(np.isfinite(res.corners_px)):
+                    continue
+                out[ts][i] = replace(
+                    out[ts][i],
+                    corners_px=res.corners_px,
+                    corner_sigma_px=res.corner_sigma_px,
+                    corner_cov_px2=res.corner_cov_px2,
+                )
+                done.add((ts, i))
+    return out, done
 
 
 # ============================================================================ calibration
