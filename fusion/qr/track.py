@@ -46,6 +46,23 @@ TRACK_MAX_RUN = 30  # tracked sightings in a row before a decode is needed again
 TRACK_QUIET_MODULES = 2.0  # the predicted symbol and this much quiet zone must be in the image
 
 
+def symbol_in_view(corners_px: np.ndarray, modules: int, shape: tuple[int, int]) -> bool:
+    """True when a symbol's corners (4, 2) px and TRACK_QUIET_MODULES of its quiet zone lie in an
+    image of `shape` (H, W): only then can its finder edges be refined."""
+    corners = np.asarray(corners_px, dtype=float)
+    if corners.shape != (4, 2) or not np.all(np.isfinite(corners)):
+        return False
+    side = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+    margin = TRACK_QUIET_MODULES * side / modules
+    h, w = shape[:2]
+    return bool(
+        np.all(corners[:, 0] >= margin)
+        and np.all(corners[:, 1] >= margin)
+        and np.all(corners[:, 0] <= w - 1 - margin)
+        and np.all(corners[:, 1] <= h - 1 - margin)
+    )
+
+
 @dataclass
 class _Track:
     modules: int
@@ -86,15 +103,7 @@ class CodeTracker:
         return pred, TRACK_MIN_SIGMA_PX + TRACK_VELOCITY_SIGMA * float(np.max(np.linalg.norm(step, axis=1)))
 
     def _in_view(self, corners: np.ndarray, modules: int, shape: tuple[int, int]) -> bool:
-        side = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
-        margin = TRACK_QUIET_MODULES * side / modules
-        h, w = shape
-        return bool(
-            np.all(corners[:, 0] >= margin)
-            and np.all(corners[:, 1] >= margin)
-            and np.all(corners[:, 0] <= w - 1 - margin)
-            and np.all(corners[:, 1] <= h - 1 - margin)
-        )
+        return symbol_in_view(corners, modules, shape)
 
     def step(
         self,
@@ -104,6 +113,7 @@ class CodeTracker:
         decoded: list[QRDetection],
         modules: list[int | None],
         predicted: dict[str, tuple[np.ndarray, float, int]] | None = None,
+        own_motion: bool = True,
     ) -> list[QRDetection]:
         """Tracked detections of this frame (codes not in `decoded`); then update the tracks with
         `decoded` (its codes' modules per side in `modules`, None when unknown) and them.
@@ -111,7 +121,9 @@ class CodeTracker:
         `predicted`: payload -> (corners (4, 2) px, 1-sigma px, modules per side) of codes that a
         predicted camera pose puts in view (e.g. the floor grid projected with the pose
         extrapolated from the last PnP poses); preferred to a track's own pixel-motion
-        prediction (a pose uses every code of the frame)."""
+        prediction (a pose uses every code of the frame).  `own_motion=False`: only `predicted`
+        codes are tried (the pipeline's track pass: a pose predicts every code in view, and the
+        pixel-motion prediction once gave a tracked code 2-module-aliased corners)."""
         t = int(timestamp_ns)
         seen = {d.payload for d in decoded}
         centres = [d.corners_px.mean(axis=0) for d in decoded]
@@ -119,7 +131,7 @@ class CodeTracker:
         sources = [
             (p, tr, *self._predict(tr, t))
             for p, tr in self.tracks.items()
-            if tr.run < TRACK_MAX_RUN and p not in predicted
+            if own_motion and tr.run < TRACK_MAX_RUN and p not in predicted
         ]
         for payload, (corners, sigma, n) in predicted.items():
             tr = self.tracks.get(payload) or _Track(int(n), [], [])
