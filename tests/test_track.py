@@ -243,3 +243,49 @@ def test_track_pass_with_two_workers_equals_one(monkeypatch):
     a = [(d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in one.detections]
     b = [(d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in two.detections]
     assert a == b
+
+
+def _blurred_sample_flight(tmp_path):
+    """The committed sample flight with every third floor frame motion-blurred (a 12 px box
+    along x) so that its codes no longer decode."""
+    import shutil
+    from pathlib import Path
+
+    import cv2
+
+    src = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+    log = tmp_path / "log"
+    shutil.copytree(src, log)
+    paths = sorted((log / "mav0" / "cam0" / "data").glob("*.png"))
+    for p in paths[1::3]:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(p), cv2.blur(img, (12, 1)))
+    return log
+
+
+def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path):
+    from fusion.pipeline import RunConfig, run
+    from fusion.qr.detect import CACHE_NAME, read_cache
+
+    log = _blurred_sample_flight(tmp_path)
+    out = tmp_path / "out"
+    on = run(log, out, RunConfig(workers=1, progress=False, force=True), until="localize")
+    tracking = on.detection_stats["tracking"]
+    assert tracking["tracker_tracked"] > 0 and tracking["skipped_reason"] == ""
+    assert on.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
+    assert any("track pass:" in n for n in on.notes)
+    cached = read_cache(out / CACHE_NAME)
+    assert cached is not None and sum(d.tracked for d in cached.detections) == tracking["tracker_tracked"]
+    # run again: the tracked cache is reused as it is
+    again = run(log, out, RunConfig(workers=1, progress=False, force=True), until="localize")
+    assert again.detection_stats["cache"] == "reused" and "tracking" not in again.detection_stats
+    assert again.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
+    assert len(again.trajectories["pnp"]) == len(on.trajectories["pnp"])
+    # --no-track: the tracked sightings are left out of the outputs and the cache
+    no = run(log, out, RunConfig(workers=1, progress=False, force=True, track=False), until="localize")
+    assert no.detection_stats["refinement"]["cam0"]["tracked"] == 0
+    assert len(on.trajectories["pnp"]) == len(no.trajectories["pnp"]) + tracking["poses_added"]
+    assert tracking["poses_added"] > 0
+    assert len(on.trajectories["paper"]) == len(no.trajectories["paper"])  # decoded codes only
+    back = read_cache(out / CACHE_NAME)
+    assert back is not None and not any(d.tracked for d in back.detections)
