@@ -182,7 +182,7 @@ def _add_fusion_choices(p: argparse.ArgumentParser) -> None:
 
 
 TRACK_HELP = (
-    "the track pass (default on): floor codes that the pose predicted from the PnP poses puts in "
+    "the track pass (default off): floor codes that the pose predicted from the PnP poses puts in "
     "view but that did not decode (blur, glare, occlusion) are found, refined and named from the "
     "prediction, gated by the innovation; counted as tracked sightings"
 )

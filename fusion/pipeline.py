@@ -114,7 +114,9 @@ class RunConfig:
     # beside the QR poses, or instead of them in a log without cameras
     fixes: Path | None = None
     estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
-    track: bool = True  # the track pass: undecoded floor codes a predicted pose puts in view
+    # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
+    # (it made the clean demo's PnP ATE worse: NOTES-track.md)
+    track: bool = False
 
 
 @dataclass

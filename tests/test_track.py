@@ -269,7 +269,7 @@ def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path)
 
     log = _blurred_sample_flight(tmp_path)
     out = tmp_path / "out"
-    on = run(log, out, RunConfig(workers=1, progress=False, force=True), until="localize")
+    on = run(log, out, RunConfig(workers=1, progress=False, force=True, track=True), until="localize")
     tracking = on.detection_stats["tracking"]
     assert tracking["tracker_tracked"] > 0 and tracking["skipped_reason"] == ""
     assert on.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
@@ -277,7 +277,7 @@ def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path)
     cached = read_cache(out / CACHE_NAME)
     assert cached is not None and sum(d.tracked for d in cached.detections) == tracking["tracker_tracked"]
     # run again: the tracked cache is reused as it is
-    again = run(log, out, RunConfig(workers=1, progress=False, force=True), until="localize")
+    again = run(log, out, RunConfig(workers=1, progress=False, force=True, track=True), until="localize")
     assert again.detection_stats["cache"] == "reused" and "tracking" not in again.detection_stats
     assert again.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
     assert len(again.trajectories["pnp"]) == len(on.trajectories["pnp"])
