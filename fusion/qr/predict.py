@@ -13,11 +13,12 @@ localisation (pipeline.track_stage):
    interpolation between the last pose before (first pass, or found earlier in this pass) and
    the next first-pass pose, when they are at most MAX_INTERPOLATION_GAP_S apart; else constant
    velocity extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
-   MAX_EXTRAPOLATION_S ahead, forward or backward.  Measured against the IMU-free alternatives
-   in NOTES-track.md.
+   MAX_EXTRAPOLATION_S ahead, forward or backward.  Offline both sides are known, so no IMU
+   model is needed (IMU propagation and a first fused pass were not compared: NOTES-track.md).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
-   to CodeTracker.step(predicted=..., own_motion=False) with a prediction sigma of
+   to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
+   TRACK_MIN_MODULE_PX, with a prediction sigma of
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
    with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones), which
    later frames' predictions use, so a code is followed through a long stretch of blur.
@@ -58,6 +59,10 @@ MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apar
 MAX_EXTRAPOLATION_S = 0.5  # extrapolate at most this far from the last pose
 VELOCITY_BASELINE_S = 0.05  # velocity over at least this (consecutive poses: their noise, amplified)
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
+# Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
+# per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
+# and more, at most 0.5 px (NOTES-track.md)
+TRACK_MIN_MODULE_PX = 2.5
 FLOOR = CameraRole.FLOOR.value
 
 
@@ -274,7 +279,8 @@ def _track_chunk(context, task: tuple[int, int]):
             if np.any(p_cam[:, 2] <= 0):
                 continue
             uv = camera.project(p_cam)
-            if symbol_in_view(uv, code.modules, (h, w)):
+            side_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
+            if side_px >= TRACK_MIN_MODULE_PX * code.modules and symbol_in_view(uv, code.modules, (h, w)):
                 predicted[payload] = (uv, sigma, code.modules)
         if not predicted:
             continue
