@@ -21,7 +21,8 @@ localisation (pipeline.track_stage):
    TRACK_MIN_MODULE_PX, with a prediction sigma of
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
    with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones), which
-   later frames' predictions use, so a code is followed through a long stretch of blur.
+   later frames' predictions use when its position sigma is at most
+   MAX_FEEDBACK_POSITION_SIGMA_M, so a code is followed through a long stretch of blur.
 4. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
    first-pass poses within MAX_EXTRAPOLATION_S (a fresh start loses little there); the cut
    does not depend on the number of workers, so any number of processes gives the same result.
@@ -63,6 +64,12 @@ TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
 # and more, at most 0.5 px (NOTES-track.md)
 TRACK_MIN_MODULE_PX = 2.5
+# A pose found by the pass predicts later frames only when PnP's position sigma (its covariance,
+# Pose3 order [r, t]) is at most this: single blurred codes gave poses 10-55 cm off with sigma
+# 3-50 cm on a 20 ms-exposure flight (good ones: 0.04 cm), and fed back, the next predictions
+# followed them
+MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
+POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
 
 
@@ -298,8 +305,11 @@ def _track_chunk(context, task: tuple[int, int]):
         rep.frames_tracked_only += not frame_dets
         floor = classify(frame_dets + tracked, world).floor
         res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
-        if res is not None:
-            rep.poses_added += not predictor.has_first_pose(t)
+        if res is None:
+            continue
+        rep.poses_added += not predictor.has_first_pose(t)
+        position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
+        if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
             predictor.add(t, res.T_world_body)
     rep.stats = tracker.stats
     return out, rep
