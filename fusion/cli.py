@@ -181,6 +181,13 @@ def _add_fusion_choices(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
 
 
+TRACK_HELP = (
+    "the track pass (default off): floor codes that the pose predicted from the PnP poses puts in "
+    "view but that did not decode (blur, glare, occlusion) are found, refined and named from the "
+    "prediction, gated by the innovation; counted as tracked sightings"
+)
+
+
 def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offset: bool = True) -> None:
     p.add_argument(
         "log", type=Path, help="flight log: EuRoC folder, ROS 1 .bag, ROS 2 bag folder or .mcap, video"
@@ -209,6 +216,7 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
             help="estimate the floor camera's rolling-shutter readout time from the flight "
             "(PnP reprojection cost profile, golden section; reported with its sigma) and use it",
         )
+        p.add_argument("--track", action=argparse.BooleanOptionalAction, default=None, help=TRACK_HELP)
     if time_offset:
         p.add_argument("--time-offset-ms", type=_time_offsets_ms, default=None, help=TIME_OFFSET_HELP)
     if stages:
@@ -383,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="estimate each flight's floor-camera rolling-shutter readout time and use it",
     )
+    p.add_argument("--track", action=argparse.BooleanOptionalAction, default=None, help=TRACK_HELP)
     p.add_argument(
         "--calibrate-extrinsics",
         action="store_true",
@@ -516,6 +525,7 @@ def _run_config(args):
         floor_map=getattr(args, "map", None),
         time_offsets_s=getattr(args, "time_offset_ms", None),
         fixes=getattr(args, "fixes", None),
+        **({} if getattr(args, "track", None) is None else {"track": args.track}),
     )
 
 

@@ -55,8 +55,17 @@ from fusion.log.fixes import PositionFixes, read_fixes
 from fusion.parallel import chunk_bounds, parallel_map, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.detect import CACHE_NAME, DetectionResult, detect_flight, flight_fingerprint, write_cache
+from fusion.qr.detect import (
+    CACHE_NAME,
+    CACHE_REUSED,
+    DetectionResult,
+    detect_flight,
+    flight_fingerprint,
+    read_cache,
+    write_cache,
+)
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
+from fusion.qr.predict import track_flight, tracked_fingerprint, with_tracked, without_tracked
 from fusion.qr.rolling_shutter import (
     ReadoutCalibration,
     RollingShutterReport,
@@ -109,6 +118,9 @@ class RunConfig:
     # beside the QR poses, or instead of them in a log without cameras
     fixes: Path | None = None
     estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
+    # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
+    # (it made the clean demo's PnP ATE worse: NOTES-track.md)
+    track: bool = False
 
 
 @dataclass
@@ -399,8 +411,10 @@ def localize_floor_chunk(context, frames: dict) -> dict:
 
     camera, world, cfg = context
     out: dict[str, Any] = {"paper": None, "paper_error": None}
+    # the paper's Algorithms read decoded codes only; tracked ones (fusion.qr.track) go to PnP
+    decoded = {t: kept for t, ds in frames.items() if (kept := [d for d in ds if not d.tracked])}
     try:
-        out["paper"] = paper.paper_trajectory(frames, camera, world, cfg.th_px)
+        out["paper"] = paper.paper_trajectory(decoded, camera, world, cfg.th_px)
     except EstimationError as e:
         out["paper_error"] = str(e)
     out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(frames, camera, world, cfg.corner_sigma_px)
@@ -707,7 +721,7 @@ def _run_into(
 
     t = time.perf_counter()
     if detections is None:
-        det = detect_flight(
+        det = _tracked_cache(log, out_dir / CACHE_NAME, cfg) or detect_flight(
             log,
             cache_path=out_dir / CACHE_NAME,
             backend=cfg.backend,
@@ -730,6 +744,7 @@ def _run_into(
         return result
 
     t = time.perf_counter()
+    detected = det
     det = _rolling_shutter(log, det, cfg, result)
     timings["rolling_shutter_s"] = time.perf_counter() - t
 
@@ -742,6 +757,11 @@ def _run_into(
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
         loc = localize_stage(log, det, cfg)
+    timings["localize_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    det, loc = track_stage(log, detected, det, loc, cfg, result)
+    timings["track_s"] = time.perf_counter() - t
+    t = time.perf_counter()
     # the mount check runs on the final stamps; a calibration runs first, so that the time
     # offsets (the front camera's profile hangs the camera from the fused body) see the right mount
     mount_check = until in ("smooth", "run")
@@ -763,7 +783,7 @@ def _run_into(
     for name, obs in loc.load_observations.items():
         if name in RAW_ESTIMATORS:
             write_load_observations_csv(out_dir / f"load_observations_{name}.csv", obs)
-    timings["localize_s"] = time.perf_counter() - t
+    timings["localize_s"] += time.perf_counter() - t
 
     fused_stats: dict = {}
     if until in ("smooth", "run"):
@@ -784,6 +804,59 @@ def _run_into(
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
+
+
+def _tracked_cache(log: FlightLog, path: Path, cfg: RunConfig) -> DetectionResult | None:
+    """A detection cache that the track pass completed (tracked_fingerprint), if it is this
+    flight's: as it is with `cfg.track`, else without its tracked sightings (and rewritten so)."""
+    if not path.is_file():
+        return None
+    fingerprint = flight_fingerprint(log, cfg.backend)
+    det = read_cache(path, tracked_fingerprint(fingerprint))
+    if det is None:
+        return None
+    det.backend, det.cache_status = cfg.backend, CACHE_REUSED
+    if not cfg.track:
+        det = without_tracked(det)
+        write_cache(det, path, fingerprint)
+    return det
+
+
+def track_stage(
+    log: FlightLog,
+    detected: DetectionResult,
+    det: DetectionResult,
+    loc: LocalizeResult,
+    cfg: RunConfig,
+    result,
+) -> tuple[DetectionResult, LocalizeResult]:
+    """The track pass (fusion.qr.predict, issue 10 item 4) with `cfg.track`: floor codes that the
+    pose predicted from the PnP poses puts in view, undecoded in a frame, tracked into it; then
+    the per-frame stage again.  `detected`: the detections as detected (cached with the tracked
+    ones in detections.csv), `det` as corrected (rolling shutter).  The counts go to
+    `result.detection_stats` ("tracking") and a note."""
+    if not cfg.track or CameraRole.FLOOR.value not in log.cameras:
+        return det, loc
+    if any(d.tracked for d in det.detections):
+        result.notes.append("track pass: tracked sightings reused from the detection cache")
+        return det, loc
+    _progress(cfg, "track pass (undecoded floor codes in view of the predicted pose)")
+    workers = _worker_count(cfg.workers, len(log.floor))
+    tracked, rep = track_flight(
+        log, det, loc.trajectories[str(Estimator.PNP)], cfg.corner_sigma_px, workers, cfg.backend
+    )
+    result.notes.append(rep.note())
+    if tracked is not det:
+        new = [d for d in tracked.detections if d.tracked]
+        write_cache(
+            with_tracked(detected, new, rep),
+            result.out_dir / CACHE_NAME,
+            tracked_fingerprint(flight_fingerprint(log, cfg.backend)),
+        )
+        det, loc = tracked, localize_stage(log, tracked, cfg)
+    result.detection_stats = detection_statistics(log, det, log.world)
+    result.detection_stats["tracking"] = rep.as_dict()
+    return det, loc
 
 
 def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):

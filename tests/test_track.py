@@ -4,6 +4,7 @@ prediction, gated; counted; written to and read from the detection cache."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from fusion.camera import CameraModel
 from fusion.geometry import make_T
@@ -99,3 +100,192 @@ def test_tracked_flag_survives_the_detection_cache(tmp_path):
     back = read_cache(tmp_path / "detections.csv", "f" * 64)
     assert back is not None and [d.tracked for d in back.detections] == [False, True]
     assert back.stats["cam0"].tracked == 1
+
+
+# ============================================================================ the track pass
+
+
+def _flight_pose(t_s: float) -> np.ndarray:
+    """Body pose of a drone 0.9 m above the floor moving along x at SPEED_M_S, yawing slowly."""
+    from fusion.geometry import rot_z
+
+    return make_T(rot_z(0.2 * t_s), [0.1 + SPEED_M_S * t_s, 0.05, 0.9])
+
+
+class _Stream:
+    """A floor-camera stream of rendered frames (what track_flight reads of a CameraStream)."""
+
+    def __init__(self, camera, images, stamps):
+        self.camera, self.images = camera, images
+        self.timestamps_ns = np.asarray(stamps, dtype=np.int64)
+
+    def __len__(self):
+        return len(self.images)
+
+    def load_image(self, i):
+        return self.images[i]
+
+
+def _track_flight_fixture(n: int = 14, blurred=range(3, 11), seed: int = 3):
+    """A body-fixed down-looking floor camera (default mount) over floor codes on a 1 m grid;
+    the frames in `blurred` carry 12 px of motion blur (undecodable).  Returns (log-like object,
+    DetectionResult, first-pass PnP trajectory, true corners per frame {payload: (4, 2)})."""
+    from types import SimpleNamespace
+
+    from fusion.qr.detect import DetectionResult
+    from fusion.qr.pnp import pnp_trajectory
+    from fusion.sim.render import placed_floor_codes
+    from fusion.world import World
+
+    camera = CameraModel(640, 480, 520.0, 520.0, 320.0, 240.0, T_body_cam=make_T(R_DOWN, np.zeros(3)))
+    world = World(0.20, 0.5, 0.15)  # codes 0.5 m apart: two in view
+    codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.5, 0.20)
+    rng = np.random.default_rng(seed)
+    images, stamps, truths = [], [], []
+    for k in range(n):
+        T_body = _flight_pose(k / RATE_HZ)
+        T_cam = camera.T_world_cam(T_body)
+        blur = 12.0 if k in blurred else 0.0
+        images.append(render_view(camera, T_cam, codes, rng, RenderEffects(1.5, 1.0, blur, 0.0)))
+        stamps.append(int(round(k * 1e9 / RATE_HZ)))
+        truths.append({c.payload: project_code_corners(camera, T_cam, c) for c in codes})
+    stats = CameraStats()
+    per_frame = detect_frames(images, "cam0", stamps, camera, stats=stats)
+    det = DetectionResult([d for ds in per_frame for d in ds], {"cam0": stats})
+    traj, _ = pnp_trajectory(det.by_frame("cam0"), camera, world)
+    log = SimpleNamespace(floor=_Stream(camera, images, stamps), world=world, cameras={"cam0": None})
+    return log, det, traj, truths
+
+
+def test_pose_predictor_interpolates_and_extrapolates_constant_motion_exactly():
+    from fusion.qr.predict import MAX_EXTRAPOLATION_S, PosePredictor
+
+    stamps = np.array([0, 2, 4, 10, 12]) * int(1e9 / RATE_HZ)
+    poses = np.array([_flight_pose(t * 1e-9) for t in stamps])
+    pred = PosePredictor(stamps, poses)
+    for k in (0, 3, 6, 11, 14, 20):  # on a pose, between poses, after and before
+        t = int(k * 1e9 / RATE_HZ)
+        T, horizon = pred.predict(t)
+        T_true = _flight_pose(t * 1e-9)
+        assert np.allclose(T[:3, 3], T_true[:3, 3], atol=1e-9) and np.allclose(
+            T[:3, :3], T_true[:3, :3], atol=1e-9
+        )
+        assert horizon == pytest.approx(np.min(np.abs(stamps - t)) * 1e-9)
+    assert pred.predict(int(stamps[-1] + (MAX_EXTRAPOLATION_S + 0.01) * 1e9)) is None
+    # a pose the pass found replaces extrapolation from older ones
+    t_new = int(15 * 1e9 / RATE_HZ)
+    T_off = _flight_pose(t_new * 1e-9) @ make_T(np.eye(3), [0.0, 0.0, 0.01])
+    pred.add(t_new, T_off)
+    T, horizon = pred.predict(int(16 * 1e9 / RATE_HZ))
+    assert horizon == pytest.approx(1 / RATE_HZ) and abs(T[2, 3] - _flight_pose(16 / RATE_HZ)[2, 3]) > 0.005
+
+
+def test_track_chunks_start_at_posed_frames_and_cover_the_flight():
+    from fusion.qr import predict
+
+    stamps = np.arange(1000) * int(1e9 / RATE_HZ)
+    posed = stamps[(np.arange(1000) % 7 == 0) | (np.arange(1000) % 7 == 1)]
+    chunks = predict.track_chunks(posed, stamps, len(stamps))
+    assert chunks[0][0] == 0 and chunks[-1][1] == 1000
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))
+    assert all(stamps[a] in set(posed) for a, _ in chunks[1:])
+    assert all(b - a >= predict.TRACK_CHUNK_FRAMES for a, b in chunks[:-1])
+    # no pose at all: one chunk
+    assert predict.track_chunks(np.zeros(0, np.int64), stamps, len(stamps)) == [(0, 1000)]
+
+
+def test_track_pass_names_blurred_floor_codes_from_the_predicted_pose_and_counts_them():
+    from fusion.qr.predict import track_flight, without_tracked
+
+    log, det, traj, truths = _track_flight_fixture()
+    blurred_ts = {int(round(k * 1e9 / RATE_HZ)) for k in range(3, 11)}
+    assert not blurred_ts & {d.timestamp_ns for d in det.detections}  # 12 px blur: none decode
+    out, rep = track_flight(log, det, traj, 0.15)
+    tracked = [d for d in out.detections if d.tracked]
+    assert rep.skipped_reason == "" and rep.catalogue >= 2
+    assert {d.timestamp_ns for d in tracked} >= blurred_ts  # every blurred frame followed
+    for d in tracked:  # identity from the prediction: the code really there, corners on it
+        k = int(round(d.timestamp_ns * RATE_HZ * 1e-9))
+        truth = truths[k][d.payload]
+        module_px = np.linalg.norm(truth[1] - truth[0]) / 21
+        assert np.max(np.linalg.norm(d.corners_px - truth, axis=1)) < 0.5 * module_px
+        assert d.corner_cov_px2 is not None and d.corner_sigma_px > 0
+    st = out.stats["cam0"]
+    assert st.tracked == len(tracked) == rep.stats.tracked
+    assert st.frames_with_tracked_only == rep.frames_tracked_only == len(blurred_ts)
+    assert st.frames_with_code == det.stats["cam0"].frames_with_code + len(blurred_ts)
+    assert rep.poses_added == len(blurred_ts)
+    back = without_tracked(out)
+    assert vars(back.stats["cam0"]) == vars(det.stats["cam0"]) and len(back.detections) == len(det.detections)
+
+
+def test_track_pass_does_not_name_a_code_that_is_not_there():
+    """The same flight with the blurred frames blank: the pose predicts codes in view, none is
+    found, nothing is named."""
+    from fusion.qr.predict import track_flight
+
+    log, det, traj, _ = _track_flight_fixture()
+    for k in range(3, 11):
+        log.floor.images[k] = np.full_like(log.floor.images[k], 128)
+    out, rep = track_flight(log, det, traj, 0.15)
+    assert out is det and rep.stats.tracked == 0 and rep.stats.attempts > 0
+    assert rep.stats.refine_failed + rep.stats.gated == rep.stats.attempts
+
+
+def test_track_pass_with_two_workers_equals_one(monkeypatch):
+    from fusion.qr import predict
+
+    log, det, traj, _ = _track_flight_fixture()
+    monkeypatch.setattr(predict, "TRACK_CHUNK_FRAMES", 4)  # several chunks (cut in this process)
+    one, rep1 = predict.track_flight(log, det, traj, 0.15, workers=1)
+    two, rep2 = predict.track_flight(log, det, traj, 0.15, workers=2)
+    assert rep1.chunks == rep2.chunks > 1
+    a = [(d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in one.detections]
+    b = [(d.timestamp_ns, d.payload, d.corners_px.tolist()) for d in two.detections]
+    assert a == b
+
+
+def _blurred_sample_flight(tmp_path):
+    """The committed sample flight with every third floor frame motion-blurred (a 12 px box
+    along x) so that its codes no longer decode."""
+    import shutil
+    from pathlib import Path
+
+    import cv2
+
+    src = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+    log = tmp_path / "log"
+    shutil.copytree(src, log)
+    paths = sorted((log / "mav0" / "cam0" / "data").glob("*.png"))
+    for p in paths[1::3]:
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(p), cv2.blur(img, (12, 1)))
+    return log
+
+
+def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path):
+    from fusion.pipeline import RunConfig, run
+    from fusion.qr.detect import CACHE_NAME, read_cache
+
+    log = _blurred_sample_flight(tmp_path)
+    out = tmp_path / "out"
+    on = run(log, out, RunConfig(workers=1, progress=False, force=True, track=True), until="localize")
+    tracking = on.detection_stats["tracking"]
+    assert tracking["tracker_tracked"] > 0 and tracking["skipped_reason"] == ""
+    assert on.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
+    assert any("track pass:" in n for n in on.notes)
+    cached = read_cache(out / CACHE_NAME)
+    assert cached is not None and sum(d.tracked for d in cached.detections) == tracking["tracker_tracked"]
+    # run again: the tracked cache is reused as it is
+    again = run(log, out, RunConfig(workers=1, progress=False, force=True, track=True), until="localize")
+    assert again.detection_stats["cache"] == "reused" and "tracking" not in again.detection_stats
+    assert again.detection_stats["refinement"]["cam0"]["tracked"] == tracking["tracker_tracked"]
+    assert len(again.trajectories["pnp"]) == len(on.trajectories["pnp"])
+    # --no-track: the tracked sightings are left out of the outputs and the cache
+    no = run(log, out, RunConfig(workers=1, progress=False, force=True, track=False), until="localize")
+    assert no.detection_stats["refinement"]["cam0"]["tracked"] == 0
+    assert len(on.trajectories["pnp"]) == len(no.trajectories["pnp"]) + tracking["poses_added"]
+    assert tracking["poses_added"] > 0
+    assert len(on.trajectories["paper"]) == len(no.trajectories["paper"])  # decoded codes only
+    back = read_cache(out / CACHE_NAME)
+    assert back is not None and not any(d.tracked for d in back.detections)

@@ -1,0 +1,144 @@
+"""The track pass end to end (fusion.qr.predict, issue 10 item 4): `fusion run` with and without
+it on simulated flights (`fusion simulate --exposure / --occlusion ...`), checked against the
+simulator's truth.
+
+Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode>, then:
+
+- floor frames: frames where at least one floor code lies entirely in the image at the true pose
+  (the simulator's own projection, fusion.sim.render.project_code_corners, 2 px margin);
+- frames with a PnP pose among them (trajectory "pnp");
+- decoded and tracked floor sightings (detections.csv); a tracked sighting's identity is wrong
+  when the code it names is not in front of the camera, or another code's true centre is nearer
+  to its centre than that code's; its worst corner error against the true corners (px);
+- ATE RMSE of pnp and smoother (metrics.json), the track pass's seconds and seconds per frame
+  tried.
+
+    PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
+
+Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from fusion.geometry import interpolate_poses
+from fusion.log import read_flight
+from fusion.log.files import read_tum
+from fusion.pipeline import RunConfig, run
+from fusion.qr.detect import CACHE_NAME, read_cache
+from fusion.sim.render import project_code_corners
+from fusion.sim.scenarios import build_scenario
+
+EDGE_MARGIN_PX = 2.0  # a code counts as in view when its corners are this far inside the image
+
+
+def _truth_corners(camera, T_world_body: np.ndarray, codes) -> dict[str, np.ndarray]:
+    """payload -> true corners (4, 2) px of the floor codes in front of the camera."""
+    T_world_cam = camera.T_world_cam(T_world_body)
+    out = {}
+    for c in codes:
+        uv = project_code_corners(camera, T_world_cam, c)  # NaN behind the camera
+        if np.all(np.isfinite(uv)):
+            out[c.payload] = uv
+    return out
+
+
+def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True) -> dict:
+    """Run the pipeline (unless `rerun` is False and OUT holds a finished run) and score it."""
+    if rerun or not (out_dir / "metrics.json").is_file():
+        run(flight, out_dir, RunConfig(progress=False, force=True, track=track))
+    metrics = json.loads((out_dir / "metrics.json").read_text())
+    log = read_flight(flight)
+    cam = log.floor.camera
+    codes = [c for c in build_scenario("default").codes() if c.is_floor]
+    gt = log.groundtruth
+    stamps = np.asarray(log.floor.timestamps_ns, dtype=np.int64)
+    T_true = interpolate_poses(gt.timestamps_ns.astype(float), gt.T_world_body, stamps.astype(float))
+    det = read_cache(out_dir / CACHE_NAME)
+    assert det is not None
+    by_frame = det.by_frame("cam0")
+    pnp_t = set(int(t) for t in read_tum(out_dir / "trajectory_pnp.tum").timestamps_ns)
+    w, h = cam.width, cam.height
+    out = dict(floor_frames=0, posed=0, decoded=0, tracked=0, wrong_ids=0, tracked_err_px=[])
+    for k, t in enumerate(stamps):
+        truth = _truth_corners(cam, T_true[k], codes)
+        in_view = [
+            p
+            for p, uv in truth.items()
+            if np.all((uv >= EDGE_MARGIN_PX) & (uv <= [w - 1 - EDGE_MARGIN_PX, h - 1 - EDGE_MARGIN_PX]))
+        ]
+        if in_view:
+            out["floor_frames"] += 1
+            out["posed"] += int(t) in pnp_t
+        centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
+        for d in by_frame.get(int(t), []):
+            out["tracked" if d.tracked else "decoded"] += 1
+            if not d.tracked:
+                continue
+            own = centres.get(d.payload)
+            c = d.corners_px.mean(axis=0)
+            if own is None or any(
+                np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
+            ):
+                out["wrong_ids"] += 1
+                continue
+            err = np.linalg.norm(d.corners_px - truth[d.payload], axis=1)
+            out["tracked_err_px"].append(float(np.max(err)))
+    traj = metrics.get("trajectories", {})
+    out["ate_pnp_cm"] = 100 * traj.get("pnp", {}).get("ate_rmse_m", float("nan"))
+    out["ate_smoother_cm"] = 100 * traj.get("smoother", {}).get("ate_rmse_m", float("nan"))
+    tracking = (metrics.get("detection") or {}).get("tracking", {})
+    out["track_s"] = tracking.get("seconds", 0.0)
+    out["frames_tried"] = tracking.get("frames_tried", 0)
+    out["s_per_frame_tried"] = tracking.get("seconds_per_frame_tried", 0.0)
+    out["gated"] = tracking.get("tracker_gated", 0)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("flights", type=Path, nargs="+")
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_track_pipeline"))
+    ap.add_argument("--modes", nargs="+", default=["no-track", "track"], choices=["no-track", "track"])
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--reuse", action="store_true", help="score finished runs in OUT without running")
+    args = ap.parse_args(argv)
+    rows = []
+    print(
+        "| flight | mode | floor frames | with a PnP pose | decoded | tracked | wrong ids "
+        "| tracked corner err px median / max | ATE pnp cm | ATE smoother cm "
+        "| track pass s (s / frame tried) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for flight in args.flights:
+        for mode in args.modes:
+            # the first mode's detections (its cache is the flight's) spare the second its detection
+            first = args.out / f"{flight.name}-{args.modes[0]}" / CACHE_NAME
+            out = args.out / f"{flight.name}-{mode}"
+            if mode != args.modes[0] and first.is_file() and not (out / CACHE_NAME).exists():
+                out.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(first, out / CACHE_NAME)
+            r = evaluate_flight(flight, args.out / f"{flight.name}-{mode}", mode == "track", not args.reuse)
+            r.update(flight=flight.name, mode=mode)
+            rows.append(r)
+            e = np.array(r["tracked_err_px"]) if r["tracked_err_px"] else np.array([np.nan])
+            print(
+                f"| {flight.name} | {mode} | {r['floor_frames']} | {r['posed']} "
+                f"({100 * r['posed'] / max(r['floor_frames'], 1):.0f} %) | {r['decoded']} | {r['tracked']} "
+                f"| {r['wrong_ids']} | {np.median(e):.2f} / {np.max(e):.2f} | {r['ate_pnp_cm']:.2f} "
+                f"| {r['ate_smoother_cm']:.2f} | {r['track_s']:.1f} ({r['s_per_frame_tried']:.3f}) |",
+                flush=True,
+            )
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
