@@ -207,13 +207,14 @@ def group_leverages(
             continue
         Ag = A[idx]
         if len(idx) <= HUTCHINSON_PROBES:
-            probes = [Ag.T[:, [r]].toarray().ravel() for r in range(len(idx))]
+            probes = Ag.T.toarray()  # (n_unknowns, rows): every row of the group, exactly
             weight = 1.0
         else:
-            probes = [Ag.T @ rng.choice((-1.0, 1.0), len(idx)) for _ in range(HUTCHINSON_PROBES)]
+            z = np.stack([rng.choice((-1.0, 1.0), len(idx)) for _ in range(HUTCHINSON_PROBES)], axis=1)
+            probes = np.asarray(Ag.T @ z)  # (n_unknowns, HUTCHINSON_PROBES)
             weight = 1.0 / HUTCHINSON_PROBES
-        for b in probes:
-            out[g] += weight * float(b @ lu.solve(b))
+        # all of a group's probes in one multi-right-hand-side solve (one pass over the factors)
+        out[g] = weight * float(np.sum(probes * lu.solve(np.asfortranarray(probes))))
     if not np.all(np.isfinite(out)):
         raise np.linalg.LinAlgError("hat matrix: non-finite leverage")
     return out
