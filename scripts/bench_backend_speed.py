@@ -9,8 +9,9 @@ OUT should hold a copy of the flight's detections.csv (the cache, reused when th
 unchanged), so that detection is skipped; OUT is replaced (`--force`).  The stages are timed by
 wrapping the pipeline's stage functions (nested calls are shown indented under their caller);
 CPU time is time.process_time (this process, all threads), so it stays meaningful on a loaded
-machine where wall time does not.  Peak memory: the process's VmHWM (reset per stage through
-/proc/self/clear_refs where the kernel allows it; else the peak so far).  `--compare` prints the
+machine where wall time does not.  Peak memory: the process's VmHWM, reset at the start of every
+timed call through /proc/self/clear_refs (the peak so far credited to its callers), so each row
+shows the peak RSS inside that stage; where the kernel refuses, the peak so far.  `--compare` prints the
 accuracy of both runs side by side and fails (exit 1) when an estimator's ATE or NEES moved by
 more than --tolerance (relative)."""
 
@@ -90,9 +91,9 @@ class Timer:
         def timed(*args, **kwargs):
             self.stack.append(label)
             path = tuple(self.stack)
-            top = len(self.stack) == 1
             row = self.rows.setdefault(path, {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0, "peak_mb": 0.0})
-            if top and self.peak_reset:
+            if self.peak_reset:  # the callers' peak so far, then a fresh peak for this call
+                self._credit(path[:-1], _rss_mb("VmHWM"))
                 _reset_peak()
             w, c = time.perf_counter(), time.process_time()
             try:
@@ -101,10 +102,17 @@ class Timer:
                 row["wall_s"] += time.perf_counter() - w
                 row["cpu_s"] += time.process_time() - c
                 row["calls"] += 1
-                row["peak_mb"] = max(row["peak_mb"], _rss_mb("VmHWM"))
+                self._credit(path, _rss_mb("VmHWM"))
                 self.stack.pop()
 
         return timed
+
+    def _credit(self, path: tuple[str, ...], peak_mb: float) -> None:
+        """A peak seen inside `path` counts for it and every caller."""
+        for i in range(1, len(path) + 1):
+            row = self.rows.get(path[:i])
+            if row is not None:
+                row["peak_mb"] = max(row["peak_mb"], peak_mb)
 
     def install(self) -> None:
         for mod, attr, label in TIMED:
