@@ -614,7 +614,7 @@ def run_ekf(
     paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
-    sub: dict[int, tuple] = {}
+    sub: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
@@ -632,7 +632,8 @@ def run_ekf(
     for k in range(k0, n):
         if k > k0:
             if covered[k - 1]:
-                f.predict_imu_block(*sub[k - 1], noise)
+                acc_k, gyr_k, dt_k = sub[k - 1]
+                f.predict_imu_block(acc_k, gyr_k, dt_k, noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         m = raw_at.get(k)
