@@ -252,3 +252,23 @@ def test_fixed_offset_is_applied_and_zero_offset_changes_nothing(tmp_path):
         t5 = read_tum(tmp_path / "five" / f"trajectory_{name}.tum").timestamps_ns
         np.testing.assert_array_equal(t5 - t0, 5_000_000)
     assert len(five.load_maps["smoother"].loads) == 2
+
+
+def test_newton_profile_minimum_finds_the_vertex_and_falls_back():
+    """_newton_minimum: on a quadratic the vertex in one step (3 evaluations), the curvature's
+    sigma; on a cost with a quartic wall it still settles within xatol of the true minimum;
+    a concave cost gives None (Brent then runs)."""
+    from fusion.estimate.timeoffset import _newton_minimum
+
+    calls = []
+
+    def quad(r):
+        calls.append(r)
+        return 0.5 * ((r - 7.3) / 0.4) ** 2
+
+    r, sigma, _ = _newton_minimum(quad, -50.0, 50.0, 0.05, 2.0, 6)
+    assert abs(r - 7.3) < 1e-9 and abs(sigma - 0.4) < 1e-9
+    assert len(calls) == 6  # one step from 0, one confirming step at the vertex
+    r, _, _ = _newton_minimum(lambda r: (r + 12.0) ** 2 + 1e-3 * (r + 12.0) ** 4, -50.0, 50.0, 0.05, 2.0, 6)
+    assert abs(r + 12.0) < 0.05
+    assert _newton_minimum(lambda r: -(r**2), -50.0, 50.0, 0.05, 2.0, 6) is None

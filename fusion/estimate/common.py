@@ -7,6 +7,7 @@ T = T_hat * Exp(xi)); positions in m, angles in rad, timestamps in int64 ns.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -80,6 +81,13 @@ class SolveHealth:
         d = asdict(self)
         d["mode"] = str(self.mode)
         return d
+
+
+@functools.lru_cache(maxsize=256)
+def chi2_threshold(quantile: float, dim: int) -> float:
+    """sqrt of the chi-square `quantile` with `dim` dof (Mahalanobis units), cached: the EKF and
+    the smoothers ask for it per fix, and scipy's ppf costs ~0.7 ms a call."""
+    return float(math.sqrt(chi2.ppf(quantile, dim)))
 
 
 @dataclass
@@ -225,7 +233,7 @@ class FusionConfig:
         """Robust-kernel threshold (Mahalanobis units) for a factor of dimension `dim`."""
         if self.robust_threshold is not None:
             return float(self.robust_threshold)
-        return float(math.sqrt(chi2.ppf(self.robust_quantile, dim)))
+        return chi2_threshold(self.robust_quantile, dim)
 
 
 @dataclass

@@ -78,7 +78,17 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
 from fusion.estimate.variance import nis_component
-from fusion.geometry import adjoint, inv_T, rot_z, skew, so3_exp, wrap_angle, yaw_of
+from fusion.geometry import (
+    adjoint,
+    inv_T,
+    rot_z,
+    skew,
+    skew_stack,
+    so3_exp,
+    so3_exp_stack,
+    wrap_angle,
+    yaw_of,
+)
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
@@ -282,6 +292,62 @@ class _Ekf:
         self.kf.F = F
         self.kf.Q = np.diag(q)
         self.kf.predict()
+
+    def predict_imu_block(self, acc: np.ndarray, gyr: np.ndarray, dts: np.ndarray, noise) -> None:
+        """predict_imu over the K IMU sub-intervals between two frames at once (acc, gyr (K, 3),
+        dts (K,) s): the same strapdown, F and Q per sample (Sola 2017, eq. 260 and 269), and the
+        same products P = F P F^T + Q as filterpy's predict, but the biases are fixed between
+        updates, so the rate exponentials are taken together and P is handed to filterpy once
+        (its error state x is zero between updates, so F x stays zero).  The per-sample filterpy
+        call and its matrix set-up were most of the EKF's time (BENCHMARKS.md, back-end speed)."""
+        K = len(dts)
+        if K == 0:
+            return
+        dts = np.asarray(dts, float)
+        W = gyr - self.bg
+        Fb = acc - self.ba
+        dRs = so3_exp_stack(W * dts[:, None])
+        Rs = np.empty((K + 1, 3, 3))  # attitude at the start of each sub-interval, and the end
+        Rs[0] = self.R
+        for i in range(K):
+            Rs[i + 1] = Rs[i] @ dRs[i]
+        R0 = Rs[:-1]
+        a_w = np.einsum("kij,kj->ki", R0, Fb) + GRAVITY_W  # world acceleration per sub-interval
+        dv = a_w * dts[:, None]
+        v_start = self.v + np.vstack([np.zeros(3), np.cumsum(dv, axis=0)])  # (K + 1, 3)
+        dp = v_start[:-1] * dts[:, None] + 0.5 * a_w * (dts * dts)[:, None]
+        # F per sub-interval (Sola eq. 269), all at once
+        F = np.broadcast_to(np.eye(15), (K, 15, 15)).copy()
+        F[:, _TH, _TH] = dRs.transpose(0, 2, 1)
+        eye_dt = np.eye(3)[None] * dts[:, None, None]
+        F[:, _TH, _BG] = -eye_dt
+        F[:, _P, _V] = eye_dt
+        F[:, _V, _TH] = -(R0 @ skew_stack(Fb)) * dts[:, None, None]
+        F[:, _V, _BA] = -R0 * dts[:, None, None]
+        Q = self._q_density(noise)[None, :] * dts[:, None]  # (K, 15) diagonal of Q
+        P = self.kf.P
+        diag = np.arange(15)
+        for i in range(K):  # filterpy's predict: P = F P F^T + Q
+            P = np.dot(F[i], P).dot(F[i].T)
+            P[diag, diag] += Q[i]
+        self.R = Rs[-1]
+        self.p = self.p + dp.sum(axis=0)
+        self.v = v_start[-1]
+        self.omega = W[-1]
+        self.kf.F = F[-1]
+        self.kf.P = P
+        self.kf.x_prior = self.kf.x.copy()
+        self.kf.P_prior = P.copy()
+
+    def _q_density(self, noise) -> np.ndarray:
+        """(15,) continuous process noise of predict_imu per second (Q = diag(q) dt)."""
+        q = np.empty(15)
+        q[_TH] = noise.gyroscope_noise_density**2
+        q[_P] = self.config.integration_sigma**2
+        q[_V] = noise.accelerometer_noise_density**2
+        q[_BG] = noise.gyroscope_random_walk**2
+        q[_BA] = noise.accelerometer_random_walk**2
+        return q
 
     def predict_random_walk(self, dt: float, noise) -> None:
         """No IMU: constant velocity and rotation, white acceleration / rate (FusionConfig.bridge_*)."""
@@ -548,7 +614,7 @@ def run_ekf(
     paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
-    sub: dict[int, list] = {}
+    sub: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
@@ -557,7 +623,7 @@ def run_ekf(
             np.split(k_of, cut), np.split(dts, cut), np.split(gyr, cut), np.split(acc, cut)
         ):
             if len(ks):
-                sub[int(ks[0])] = list(zip(as_, gs, ds.tolist()))
+                sub[int(ks[0])] = (as_, gs, ds)
     noise = imu.noise if imu is not None else None
 
     T_out = np.empty((n - k0, 4, 4))
@@ -566,8 +632,8 @@ def run_ekf(
     for k in range(k0, n):
         if k > k0:
             if covered[k - 1]:
-                for acc_s, gyr_s, dt in sub[k - 1]:
-                    f.predict_imu(acc_s, gyr_s, dt, noise)
+                acc_k, gyr_k, dt_k = sub[k - 1]
+                f.predict_imu_block(acc_k, gyr_k, dt_k, noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         m = raw_at.get(k)

@@ -41,6 +41,9 @@ TRUTH_COLOUR = "#222222"
 UNSEEN_COLOUR = "#aaaaaa"
 ZOOM_EXCLUDE = ("paper",)  # left out of the zoomed (cm-scale) plots: its errors set the scale
 MAX_DRAWN_POINTS = 4000  # per series; longer series are min/max-decimated for drawing
+PNG_COMPRESS_LEVEL = 1
+"""zlib level of the PNGs: 1 encodes ~2x faster than PIL's default 6 for ~5 % larger files
+(measured on error_boxplots.png: 0.052 s / 156 KB against 0.094 s / 149 KB); same pixels."""
 LOG_FLOOR = 1e-4  # smallest value drawn on log axes (cm or deg)
 _COLOURS = {
     "paper": "#e69f00",
@@ -63,7 +66,7 @@ def _save(fig: Figure, path: Path, dpi: int) -> Path:
     FigureCanvasAgg(fig)
     path = Path(path)
     with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=dpi)
+        fig.savefig(f, format="png", dpi=dpi, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     return path
 
 
