@@ -45,7 +45,7 @@ _WORKER_CONTEXT: Any = None  # set in each worker process by _start_worker, read
 # (128 KiB by default) is free there, and serves blocks above M_MMAP_THRESHOLD (128 KiB, then
 # adapting) with fresh mappings: numpy's temporaries of a few hundred KiB (refinement's arrays,
 # a decoded 640x480 frame) were then given back and faulted in again on every operation.
-# Measured (scripts/bench_frontend_speed.py, NOTES-speedfront.md): refinement ~35 % less CPU
+# Measured (scripts/bench_frontend_speed.py, BENCHMARKS.md): refinement ~35 % less CPU
 # with the two thresholds raised.  The cost: up to MALLOC_TRIM_THRESHOLD_BYTES of freed memory
 # stays with the process.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc <malloc.h> mallopt parameters

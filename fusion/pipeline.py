@@ -119,7 +119,7 @@ class RunConfig:
     fixes: Path | None = None
     estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
     # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
-    # (it made the clean demo's PnP ATE worse: NOTES-track.md)
+    # (it made the clean demo's PnP ATE worse: BENCHMARKS.md)
     track: bool = False
 
 

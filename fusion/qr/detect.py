@@ -326,7 +326,7 @@ REFINE_BATCH_FRAMES = 32
 """Frames refined together in a flight (a detection chunk's worth, `detect_flight`'s
 chunk_frames): refinement's array work is shared by all codes of the batch, so its cost per
 code falls with the batch's size; re-measured after refine.py's loops were reshaped
-(scripts/bench_frontend_speed.py, NOTES-speedfront.md): 32 frames cost 15-30 % less per frame
+(scripts/bench_frontend_speed.py, BENCHMARKS.md): 32 frames cost 15-30 % less per frame
 than 8 on a simulated flight (0.8 codes per frame) and ~30 % less on 4-code frames."""
 TRACK_SEED_FRAMES = 8
 """Frames before a chunk that its tracker sees first (fusion.qr.track: a track lives through
@@ -427,7 +427,7 @@ def detect_flight(
     fingerprint matches is reused; a stale one (other data.csv / sensor.yaml / backend / format)
     is recomputed and overwritten; a malformed one raises DetectionError naming file and line.
     `track`: codes tracked through frames where they do not decode (fusion.qr.track; off by
-    default until the pipeline feeds it pose predictions: NOTES-refine.md).
+    default; the pipeline's track pass, fusion.qr.predict, feeds it pose predictions instead).
     """
     if backend not in BACKENDS:
         raise DetectionError(f"unknown detection backend {backend!r}; expected one of {BACKENDS}")

@@ -14,7 +14,7 @@ localisation (pipeline.track_stage):
    the next first-pass pose, when they are at most MAX_INTERPOLATION_GAP_S apart; else constant
    velocity extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
    MAX_EXTRAPOLATION_S ahead, forward or backward.  Offline both sides are known, so no IMU
-   model is needed (IMU propagation and a first fused pass were not compared: NOTES-track.md).
+   model is needed (IMU propagation and a first fused pass were not compared: BENCHMARKS.md).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
@@ -62,7 +62,7 @@ VELOCITY_BASELINE_S = 0.05  # velocity over at least this (consecutive poses: th
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
 # per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
-# and more, at most 0.5 px (NOTES-track.md)
+# and more, at most 0.5 px (BENCHMARKS.md)
 TRACK_MIN_MODULE_PX = 2.5
 # A pose found by the pass predicts later frames only when PnP's position sigma (its covariance,
 # Pose3 order [r, t]) is at most this: single blurred codes gave poses 10-55 cm off with sigma

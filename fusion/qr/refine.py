@@ -1017,11 +1017,11 @@ class RefineQuality:
 class RefineChecks:
     """Thresholds of refinement's self-check (RefineQuality.failure): a fit that fails one keeps
     the decoder's corners with FALLBACK_SIGMA_PX (measured on real photographs,
-    scripts/bench_refine_real.py, and renders, scripts/bench_detect.py; NOTES-refine.md)."""
+    scripts/bench_refine_real.py, and renders, scripts/bench_detect.py; BENCHMARKS.md)."""
 
     # clean renders (scripts/bench_detect.py frames): edge SNR >= 30, chi2/dof <= 6.4, residual
     # <= 0.035 px, >= 92 % of the edges used, decoder within 0.9 module; real photographs that
-    # refinement got wrong: chi2/dof 18, residual 0.40 px, 58 % of the edges (NOTES-refine.md)
+    # refinement got wrong: chi2/dof 18, residual 0.40 px, 58 % of the edges (BENCHMARKS.md)
     min_edge_snr: float = 7.0
     min_used_fraction: float = 0.6
     max_chi2_dof: float = 9.0

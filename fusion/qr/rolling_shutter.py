@@ -33,7 +33,7 @@ the refined corners afterwards is not enough: the readout bends a code's edges (
 over the rows), no homography fits the sheared code, and its extrapolated corner errs most
 (2 m/s, 20 ms: refined corners 0.020 / 0.026 / 0.073 / 0.025 px TL / TR / BR / BL against the
 true per-row projection, global shutter 0.010 / 0.010 / 0.031 / 0.010; refined at the stamp
-0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; NOTES-rs.md).  Kalibr
+0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; BENCHMARKS.md).  Kalibr
 (Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) models the motion over the readout
 with a continuous-time spline; the IMU's samples play its part here.
 
@@ -112,7 +112,7 @@ UNCORRECTED_RATE_RAD_S = 1.0
 """A rolling-shutter frame left uncorrected (no motion estimate: no floor pose near it) may have
 moved this fast (a turning multirotor): its corners' covariance gains (rate x readout x f)^2 I
 (11 px for 20 ms at f = 550 px), so that they no longer pass for refined corners (5 such front
-camera frames took a fused flight's NEES from 20 to 570, scripts/bench_realism.py, NOTES-rs.md)."""
+camera frames took a fused flight's NEES from 20 to 570, scripts/bench_realism.py, BENCHMARKS.md)."""
 REFINE_BATCH_FRAMES = 8
 """`refine_at_stamp`: frames refined together (as fusion.qr.detect does)."""
 
@@ -363,7 +363,7 @@ def _body_poses_at(motion: FrameMotion, k: np.ndarray, dt: np.ndarray) -> np.nda
     without an IMU: constant twist).  A body's rate changes within a readout (a multirotor tilts
     with its acceleration's change): at 2 m/s and 30 ms the constant twist alone leaves 0.09 px
     of corner error with the TRUE mean rate, velocity and acceleration, the IMU's 200 Hz samples
-    take most of it (NOTES-rs.md)."""
+    take most of it (BENCHMARKS.md)."""
     omega, v, a = motion.omega_body[k], motion.v_world[k], motion.a_world[k]
     rot = omega * dt[:, None]
     pos = v * dt[:, None] + 0.5 * a * (dt**2)[:, None]

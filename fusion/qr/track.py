@@ -51,7 +51,7 @@ TRACK_QUIET_MODULES = 2.0  # the predicted symbol and this much quiet zone must 
 # (innovation-based covariance matching: Mehra 1972, IEEE TAC 17(5); Mohamed & Schwarz 1999,
 # J. Geodesy 73, eq. 23).  Under heavy blur refinement can move 2-5 px off a good prediction
 # while claiming 0.3 px; with this, tracked codes' chi2/dof on a 50 ms-exposure flight fell from
-# 8.3 to 1.6 (decoded codes: 1.3; NOTES-track.md).  0.5 px: the prediction's robust per-coordinate
+# 8.3 to 1.6 (decoded codes: 1.3; BENCHMARKS.md).  0.5 px: the prediction's robust per-coordinate
 # error there was 0.22 px.
 TRACK_AGREEMENT_SIGMA_PX = 0.5
 

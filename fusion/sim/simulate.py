@@ -58,7 +58,7 @@ class SimulationResult:
 
 def png_params(level: int) -> list[int]:
     """cv2.imencode parameters of the simulator's PNGs at zlib `level` (0-9).  Measured on a
-    simulated 640x480 flight (scripts/bench_frontend_speed.py, NOTES-speedfront.md): sensor
+    simulated 640x480 flight (scripts/bench_frontend_speed.py, BENCHMARKS.md): sensor
     noise defeats LZ matching, so Huffman-only coding is as small as deflate at level >= 3 and
     several times faster; libpng's adaptive filter choice (all five filters) saves ~6 % of the
     size but the Paeth rows it picks cost a reader ~40 % more decoding than the Up filter alone;
