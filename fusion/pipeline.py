@@ -562,10 +562,7 @@ def fuse_stage(
         return out
     if log.imu is None:
         out.notes.append("no IMU in this log: fused with velocity only (velocity-only mode)")
-    try:
-        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
-    except ValueError as e:
-        raise EstimationError(str(e)) from None
+    kernel = _robust_kernel(cfg)
     fcfg = FusionConfig(
         robust_kernel=kernel,
         tight=cfg.tight,
@@ -876,15 +873,21 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     return det
 
 
+def _robust_kernel(cfg: RunConfig) -> RobustKernel:
+    """`cfg.robust` as a RobustKernel (the fusion, the time offsets and the mount check share it);
+    an unknown name is an EstimationError naming the choices."""
+    try:
+        return RobustKernel.parse(cfg.robust, "robust kernel")
+    except ValueError as e:
+        raise EstimationError(str(e)) from None
+
+
 def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
     """Each camera's time offset (fixed, else estimated: fusion.estimate.timeoffset) into
     `result.time_offsets`; when one is applied, the log and detections in the IMU clock and the
     per-frame estimates made again with them (so every output carries the corrected stamps)."""
     _progress(cfg, "camera-IMU time offsets")
-    try:
-        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
-    except ValueError as e:
-        raise EstimationError(str(e)) from None
+    kernel = _robust_kernel(cfg)
     offsets = resolve_time_offsets(
         log,
         loc.trajectories.get(str(Estimator.PNP)),
@@ -905,10 +908,7 @@ def _apply_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, 
     to the floor camera and the per-frame estimates made again with it (so every output carries
     the corrected mount)."""
     _progress(cfg, "floor camera mount check")
-    try:
-        kernel = RobustKernel.parse(cfg.robust, "robust kernel")
-    except ValueError as e:
-        raise EstimationError(str(e)) from None
+    kernel = _robust_kernel(cfg)
     mount = check_mount(
         log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
     )
