@@ -19,8 +19,9 @@ seeded renders, 0.3 m codes at 0.8-2.5 m, blur 0-8 px, noise 0.5-4 DN) and print
 
 Times are best-of-3 CPU times of this process (time.process_time), i.e. per-core cost even when
 other jobs share the machine.  Refinement is timed one frame at a time and, as detect_flight runs
-it, REFINE_BATCH_FRAMES frames at once (the frames/s column uses the latter).  Prints Markdown tables.  Targets: detection + refinement >= 300
-frames/s per core at 640x480 and >= 150 at 1280x720 (PNG decoding counted separately).
+it, REFINE_BATCH_FRAMES frames at once (the frames/s column uses the latter).  Prints Markdown tables.
+Targets: detection + refinement >= 300 frames/s per core at 640x480 and >= 150 at 1280x720
+(PNG decoding counted separately).
 """
 
 from __future__ import annotations
@@ -131,9 +132,9 @@ def bench(width: int, height: int, n: int, seed: int, repeats: int = 3) -> dict:
     for key, backend, finder_h in VARIANTS:
         raws = [detect_image(img, backend) for img in frames]
         reps = repeats if backend == "zxing" else 1
-        t_det = best_of(lambda: [detect_image(img, backend) for img in frames], reps) / n
+        t_det = best_of(lambda backend=backend: [detect_image(img, backend) for img in frames], reps) / n
 
-        def refine_all(batch=REFINE_BATCH_FRAMES):
+        def refine_all(batch=REFINE_BATCH_FRAMES, raws=raws, finder_h=finder_h):
             out = []
             for s in range(0, n, batch):
                 res = refine_frames(

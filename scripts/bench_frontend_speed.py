@@ -283,7 +283,8 @@ def main() -> None:
     res = {name: f"{s.camera.width}x{s.camera.height}" for name, s in log.cameras.items()}
     print(
         f"Flight {args.flight} ({', '.join(f'{k} {v}' for k, v in sorted(res.items()))}), {n} frames, "
-        f"{r['codes']} detections ({r['codes'] / n:.2f} per frame); CPU ms per frame, best of {args.repeats}; "
+        f"{r['codes']} detections ({r['codes'] / n:.2f} per frame); "
+        f"CPU ms per frame, best of {args.repeats}; "
         f"malloc thresholds raised as in a worker: {tuned}."
     )
     print()

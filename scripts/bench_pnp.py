@@ -247,8 +247,8 @@ def table(rows, title):
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     groups = [("all", lambda r: True)]
-    groups += [(f"{k} code{'s' if k > 1 else ''}", (lambda k: lambda r: r[1] == k)(k)) for k in (1, 2, 3, 4)]
-    groups += [(f"h {a}-{b} m", (lambda a, b: lambda r: a <= r[0][2, 3] < b)(a, b)) for a, b in HEIGHT_BINS]
+    groups += [(f"{k} code{'s' if k > 1 else ''}", lambda r, k=k: r[1] == k) for k in (1, 2, 3, 4)]
+    groups += [(f"h {a}-{b} m", lambda r, a=a, b=b: a <= r[0][2, 3] < b) for a, b in HEIGHT_BINS]
     if any(r[1] > 4 for r in rows):
         groups.insert(5, ("5+ codes", lambda r: r[1] > 4))
     for name, sel in groups:
@@ -270,7 +270,8 @@ def table(rows, title):
         print(
             f"| {name} | {len(sub)} | {len(posed)} | {mae[0]:.2f} | {mae[1]:.2f} | {mae[2]:.2f} | "
             f"{math.degrees(np.mean(np.abs(dyaw))):.3f} | "
-            f"{100 * bound[0]:.2f}, {100 * bound[1]:.2f}, {100 * bound[2]:.2f} | {ratio[0]:.2f} | {ratio[1]:.2f} | "
+            f"{100 * bound[0]:.2f}, {100 * bound[1]:.2f}, {100 * bound[2]:.2f} | "
+            f"{ratio[0]:.2f} | {ratio[1]:.2f} | "
             f"{ratio[2]:.2f} | {ratio[3]:.2f} | {np.mean(nees):.1f} | "
             f"{ms.mean():.2f} / {np.percentile(ms, 95):.2f} |"
         )

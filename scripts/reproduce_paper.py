@@ -308,7 +308,8 @@ def main(argv=None) -> int:
     print(
         f"# Reproduction of Kang & Jung (2024), Sec. 4.1\n\n"
         f"Corners: {mode}.  Cameras {args.width}x{args.height}, f = {args.f_px} px, k1 = "
-        f"{args.k1}{' (corners undistorted first)' if args.undistort else ''}; floor codes {args.floor_side_m} m on a 1 m grid; load codes "
+        f"{args.k1}{' (corners undistorted first)' if args.undistort else ''}; "
+        f"floor codes {args.floor_side_m} m on a 1 m grid; load codes "
         f"{args.load_side_m} m; Th = {args.th_px} px; seed {args.seed}.  PnP: "
         f"{'fusion.qr.pnp' if estimate_floor_pose else 'not available (hook empty)'}.\n"
     )
