@@ -44,10 +44,6 @@ MAX_DRAWN_POINTS = 4000  # per series; longer series are min/max-decimated for d
 PNG_COMPRESS_LEVEL = 1
 """zlib level of the PNGs: 1 encodes ~2x faster than PIL's default 6 for ~5 % larger files
 (measured on error_boxplots.png: 0.052 s / 156 KB against 0.094 s / 149 KB); same pixels."""
-FIGURE_LAYOUT = None
-"""Figures are laid out by _fit_layout (one tight_layout pass) rather than "constrained"."""
-LAYOUT_PAD = 0.6  # tight_layout padding, in font sizes
-LEGEND_GAP = 0.005  # between the axes and a figure legend, figure fraction
 LOG_FLOOR = 1e-4  # smallest value drawn on log axes (cm or deg)
 _COLOURS = {
     "paper": "#e69f00",
@@ -66,24 +62,8 @@ def estimator_colour(name: str) -> str:
     return _EXTRA[sum(map(ord, name)) % len(_EXTRA)]
 
 
-def _fit_layout(fig: Figure) -> None:
-    """One tight_layout pass with the figure legend (if any) outside the axes on the right, at
-    its measured width: constrained layout did the same in two passes and was about a third of
-    the report's plotting CPU (NOTES-incekf.md)."""
-    renderer = fig.canvas.get_renderer()
-    width_px = fig.dpi * fig.get_figwidth()
-    right = 1.0
-    for leg in fig.legends:
-        right = min(right, 1.0 - leg.get_window_extent(renderer).width / width_px - LEGEND_GAP)
-    fig.tight_layout(pad=LAYOUT_PAD, rect=(0.0, 0.0, right, 1.0))
-    for leg in fig.legends:
-        leg.set_bbox_to_anchor((right + LEGEND_GAP, 1.0), transform=fig.transFigure)
-
-
 def _save(fig: Figure, path: Path, dpi: int) -> Path:
     FigureCanvasAgg(fig)
-    if fig.get_layout_engine() is None:
-        _fit_layout(fig)
     path = Path(path)
     with atomic_open(path, "wb") as f:
         fig.savefig(f, format="png", dpi=dpi, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
@@ -252,8 +232,7 @@ def _legend(fig, ax_or_axes, **kw) -> None:
                 handles.append(h)
                 labels.append(l)
     if handles:
-        # placed right of the axes by _fit_layout
-        fig.legend(handles, labels, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False, **kw)
+        fig.legend(handles, labels, loc="outside right upper", frameon=False, **kw)
 
 
 # ============================================================================ trajectories
@@ -272,7 +251,7 @@ def plot_trajectories(
     """Top view (x-y) and side view (x-z) of truth, raw and fused trajectories (the paper's
     Fig. 32), floor codes shown faintly."""
     raw_names = set(raw_names)
-    fig = Figure(figsize=(11, 5.2), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 5.2), layout="constrained")
     ax_top, ax_side = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.0, 1.2]})
     pts = [t.positions_xyz for t in trajectories.values() if len(t)]
     if gt is not None:
@@ -321,7 +300,7 @@ def plot_error_overview(
     raw_names = set(raw_names)
     assoc = associations if associations is not None else associate_all(trajectories, gt)
     t0 = time_origin_ns(gt, trajectories)
-    fig = Figure(figsize=(11, 5.6), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 5.6), layout="constrained")
     ax_p, ax_y = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [1.6, 1.0]})
     drawn: list[list[np.ndarray]] = [[], []]
     for name, a in assoc.items():
@@ -398,7 +377,7 @@ def plot_position_errors_zoom(
     if not assoc:
         return None
     t0 = time_origin_ns(gt, trajectories)
-    fig = Figure(figsize=(11, 7.2), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 7.2), layout="constrained")
     axes = fig.subplots(3, 1, sharex=True)
     errs = {n: 100.0 * a.position_errors_m for n, a in assoc.items()}
     sigmas = {n: _world_sigma_cm(a) for n, a in assoc.items()}
@@ -459,7 +438,7 @@ def plot_position_sigma(
     if not with_cov:
         return None
     t0 = time_origin_ns(None, trajectories)
-    fig = Figure(figsize=(11, 4.6), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 4.6), layout="constrained")
     ax, ax_rug = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [4.0, 1.0]})
     for name, traj in with_cov.items():
         ts = (np.asarray(traj.timestamps_ns, dtype=np.int64) - t0) * 1e-9
@@ -546,7 +525,7 @@ def plot_error_boxplots(
             load_names.append(name)
             load_errs.append(np.array(e))
     rows = 2 if load_names else 1
-    fig = Figure(figsize=(11, 3.9 * rows), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 3.9 * rows), layout="constrained")
     axes = np.atleast_2d(fig.subplots(rows, 4))
     ref = [PAPER_SIM_LOCALIZATION_MAE_CM[a] for a in "xyz"] + [PAPER_SIM_YAW_MAE_DEG]
     titles = ("|x error| [cm]", "|y error| [cm]", "|z error| [cm]", "|yaw error| [deg]")
@@ -633,7 +612,7 @@ def plot_load_map(
     """Where the loads are (orientation; accuracy is `plot_load_errors`): top view (estimates
     with 2σ ellipses, truth, flight path faint, rack columns labelled) and the height of every
     load id.  True loads that no estimator mapped are drawn hollow and grey ("not seen")."""
-    fig = Figure(figsize=(11, 5.2), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, 5.2), layout="constrained")
     ax_top, ax_h = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.0, 1.2]})
     if gt is not None:
         p = np.asarray(gt.p_world)
@@ -734,7 +713,7 @@ def plot_load_errors(
         g for g in ([n for n in load_maps if n in exclude], [n for n in load_maps if n not in exclude]) if g
     ] or [[]]
     n_rows = len(rows)
-    fig = Figure(figsize=(11, min(2.0 + 0.26 * n_rows, 40.0)), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(11, min(2.0 + 0.26 * n_rows, 40.0)), layout="constrained")
     axes = fig.subplots(1, 3 * len(groups), sharey=True, squeeze=False)[0]
     for g, names in enumerate(groups):
         offsets = (np.arange(len(names)) - (len(names) - 1) / 2) * min(0.6 / max(len(names), 1), 0.18)
@@ -907,7 +886,7 @@ def plot_floor_code_offsets(
     off = np.asarray(offsets_xy_m, float).reshape(-1, 2)
     bad = np.asarray(misplaced, bool).reshape(-1)
     k = FLOOR_OFFSET_ARROW_SCALE
-    fig = Figure(figsize=(9, 6), layout=FIGURE_LAYOUT)
+    fig = Figure(figsize=(9, 6), layout="constrained")
     ax = fig.subplots()
     ax.scatter(xy[:, 0], xy[:, 1], marker="s", s=14, color="#bbbbbb", label="nominal (payload)", zorder=1)
     if true_offsets_xy_m is not None:
