@@ -445,3 +445,13 @@ def test_block_prediction_equals_per_sample_prediction():
         assert np.allclose(a, b, rtol=1e-12, atol=1e-14)
     # and it moved: a test of two no-ops would pass too
     assert np.linalg.norm(block.p) > 1e-3 and not np.allclose(block.kf.P, 1e-3 * A @ A.T)
+
+
+def test_cross_equals_numpy_cross_exactly():
+    """The EKF's 3-vector cross product (velocity update, reset) gives np.cross's numbers."""
+    from fusion.estimate.ekf import _cross
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        a, b = rng.normal(size=3) * 10.0 ** rng.integers(-6, 6), rng.normal(size=3)
+        np.testing.assert_array_equal(_cross(a, b), np.cross(a, b))

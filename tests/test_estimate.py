@@ -410,6 +410,59 @@ def test_incremental_is_causal_and_tracks(flight):
     assert set(res.loads.by_id()) == set(flight.loads_true)
 
 
+def test_incremental_cholesky_equals_qr(flight, monkeypatch):
+    """The incremental smoother eliminates with Cholesky (faster); its poses and per-frame
+    marginal covariances equal the QR engine's on a flight with a blackout and loads."""
+    from fusion.estimate import smoother as sm
+
+    fast = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
+    monkeypatch.setattr(sm, "ISAM_FACTORIZATION", sm.ISAM_FALLBACK_FACTORIZATION)
+    qr = smooth_incremental(flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM)
+    a, b = fast.trajectory, qr.trajectory
+    np.testing.assert_array_equal(a.timestamps_ns, b.timestamps_ns)
+    np.testing.assert_allclose(a.T_world_body, b.T_world_body, rtol=0, atol=1e-9)
+    scale = np.abs(b.covariances).max(axis=(1, 2))[:, None, None]
+    assert (np.abs(a.covariances - b.covariances) / scale).max() < 1e-6
+    for la, lb in zip(fast.loads.loads, qr.loads.loads):
+        np.testing.assert_allclose(la.p_world, lb.p_world, rtol=0, atol=1e-9)
+    assert "cholesky_failure" not in fast.stats
+
+
+def test_incremental_cholesky_failure_reruns_with_qr(flight, monkeypatch):
+    """A singular system met by the Cholesky run: the whole flight is solved again with QR,
+    giving exactly the QR result, and the stats say so."""
+    from fusion.estimate import smoother as sm
+
+    monkeypatch.setattr(sm, "ISAM_FACTORIZATION", sm.ISAM_FALLBACK_FACTORIZATION)
+    qr = smooth_incremental(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM)
+    monkeypatch.setattr(sm, "ISAM_FACTORIZATION", "CHOLESKY")
+    real_engine = sm._new_engine
+
+    class Singular:
+        def __init__(self, engine):
+            self.engine, self.n = engine, 0
+
+        def __getattr__(self, name):
+            return getattr(self.engine, name)
+
+        def update(self, *args):
+            self.n += 1
+            if self.n == 40:
+                raise RuntimeError("Indeterminant linear system detected (test)")
+            return self.engine.update(*args)
+
+    def engine(config, factorization=sm.ISAM_FALLBACK_FACTORIZATION):
+        e = real_engine(config, factorization)
+        return Singular(e) if factorization == "CHOLESKY" else e
+
+    monkeypatch.setattr(sm, "_new_engine", engine)
+    res = smooth_incremental(flight.frame_t, flight.imu, flight.raw, [], FRONT_CAM)
+    assert "Indeterminant" in res.stats["cholesky_failure"]
+    np.testing.assert_array_equal(res.trajectory.T_world_body, qr.trajectory.T_world_body)
+    np.testing.assert_array_equal(res.trajectory.covariances, qr.trajectory.covariances)
+    assert res.health.linear_fallbacks == 0
+
+
 # =========================================================================== EKF
 
 

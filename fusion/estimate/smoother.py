@@ -1217,9 +1217,23 @@ def innovation_distance(
     return math.sqrt(max(float(d @ np.linalg.solve(S, d)), 0.0))
 
 
-def _new_engine(config: FusionConfig):
+ISAM_FACTORIZATION = "CHOLESKY"
+"""iSAM2's elimination in the incremental smoother.  Cholesky took ~30 % less CPU than QR (the
+per-frame update and marginalCovariance are most of the smoother's time) for the same estimates
+(poses within 1e-11 m, covariances within 1e-9 relative: NOTES-incekf.md).  QR is the fallback:
+a Cholesky run that meets a singular update or covariance is run again from the start with QR,
+so such flights get exactly the QR result (DESIGN.md pitfalls: Cholesky can throw
+IndeterminantLinearSystemException where QR runs)."""
+ISAM_FALLBACK_FACTORIZATION = "QR"
+
+
+class _CholeskyFailed(Exception):
+    """A Cholesky run of the incremental smoother met a singular system: run again with QR."""
+
+
+def _new_engine(config: FusionConfig, factorization: str = ISAM_FALLBACK_FACTORIZATION):
     params = gtsam.ISAM2Params()
-    params.setFactorization("QR")
+    params.setFactorization(factorization)
     params.setRelinearizeThreshold(config.isam_relinearize_threshold)
     params.relinearizeSkip = config.isam_relinearize_skip
     lag = config.incremental_lag_s
@@ -1241,7 +1255,8 @@ def smooth_incremental(
     and the pose estimate and marginal covariance of X(k) *as known at frame k* are recorded (a
     filter-like output from a smoother).  Same inputs as `smooth`.
 
-    Engine: iSAM2 (QR factorization) inside gtsam's IncrementalFixedLagSmoother with lag
+    Engine: iSAM2 (Cholesky factorization, ISAM_FACTORIZATION; the whole flight again with QR
+    when Cholesky meets a singular system) inside gtsam's IncrementalFixedLagSmoother with lag
     `config.incremental_lag_s`: states older than the lag are marginalised, so the cost per frame
     stays bounded however long the flight.  A load's variable is marginalised too once it has not
     been seen for the lag; when the load is seen again a new variable (next generation,
@@ -1267,6 +1282,67 @@ def smooth_incremental(
     (a start-up look-ahead).  Loads: the estimate and marginal covariance of each load's latest
     variable at the end of the flight."""
     config = config or FusionConfig()
+    args = (frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera)
+    try:
+        res = _smooth_incremental(*args, factorization=ISAM_FACTORIZATION)
+    except _CholeskyFailed as e:
+        log.info("incremental: %s; solved again with %s", e, ISAM_FALLBACK_FACTORIZATION)
+        res = _smooth_incremental(*args, factorization=ISAM_FALLBACK_FACTORIZATION)
+        res.stats["cholesky_failure"] = str(e)
+    return res
+
+
+def _smooth_incremental(
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    load_obs: list[LoadObservation] | None,
+    front_camera: CameraModel | None,
+    velocity: VelocityData | None,
+    config: FusionConfig,
+    floor_frames: dict | None,
+    floor_camera: CameraModel | None,
+    *,
+    factorization: str,
+) -> FusionResult:
+    """smooth_incremental with the given iSAM2 factorization; a run with any factorization but
+    ISAM_FALLBACK_FACTORIZATION raises _CholeskyFailed at the first singular system."""
+    fallback = factorization == ISAM_FALLBACK_FACTORIZATION
+    try:
+        return _smooth_incremental_run(
+            frame_times_ns,
+            imu,
+            raw,
+            load_obs,
+            front_camera,
+            velocity,
+            config,
+            floor_frames,
+            floor_camera,
+            factorization,
+        )
+    except (RuntimeError, ValueError, EstimationError) as e:
+        if fallback:
+            raise
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _CholeskyFailed(f"{factorization} failed ({first})") from None
+
+
+def _smooth_incremental_run(
+    frame_times_ns,
+    imu,
+    raw,
+    load_obs,
+    front_camera,
+    velocity,
+    config: FusionConfig,
+    floor_frames,
+    floor_camera,
+    factorization: str,
+) -> FusionResult:
+    """The body of smooth_incremental (see there)."""
+    fallback = factorization == ISAM_FALLBACK_FACTORIZATION
+    config = config or FusionConfig()
     t0 = time.perf_counter()
     pb = build_problem(
         frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera
@@ -1286,7 +1362,7 @@ def smooth_incremental(
         load_of[i] = pb.load_args[i].j if i in pb.load_args else -1
     cam = pb.front_camera
     lag = config.incremental_lag_s
-    engine = _new_engine(config)
+    engine = _new_engine(config, factorization)
     t_rel = (pb.frame_t - pb.frame_t[0]) * 1e-9
     gen: dict[int, int] = {}  # load j -> generation of its current variable
     last_seen: dict[int, float] = {}  # load j -> time stamp of its current variable
@@ -1319,11 +1395,13 @@ def smooth_incremental(
                 try:
                     left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
                 except (RuntimeError, ValueError, IndexError):
+                    if not fallback:  # a Cholesky run: the QR run decides
+                        raise
                     # never estimated (the failed update that brought it): start it afresh
                     left.pop(j, None)
                     gen.pop(j, None)
                     last_seen.pop(j, None)
-        engine = _new_engine(config)
+        engine = _new_engine(config, factorization)
         start = k
         streak.clear()
         health.resets += 1
@@ -1475,6 +1553,8 @@ def smooth_incremental(
         try:
             _incremental_step(k, tk, fresh, pose_guess, vel_guess, bias_k, skip=skip)
         except (RuntimeError, ValueError) as e:
+            if not fallback:
+                raise
             reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             health.linear_fallbacks += 1
             log.warning("incremental: singular update at t=%.2f s (%s)", tk, reason)
@@ -1487,6 +1567,7 @@ def smooth_incremental(
                 ) from None
         # a fix the estimate rejects (beyond the kernel threshold after the update): part of a
         # streak that may call for a restart from the fixes
+        pose_est = None  # X(k)'s estimate after this frame's update (reused below)
         if k in pose_at and not fresh:
             est = gtsam.Values()
             pose_est = engine.calculateEstimatePose3(X(k))
@@ -1520,9 +1601,10 @@ def smooth_incremental(
                         vel_guess + streak.velocity_offset_m_s,
                         bias_k,
                     )
+                    pose_est = None
             else:
                 streak.clear()
-        pose_k = engine.calculateEstimatePose3(X(k))
+        pose_k = pose_est if pose_est is not None else engine.calculateEstimatePose3(X(k))
         vel_k = engine.calculateEstimateVector(V(k))
         if pb.has_imu:
             bias_k = engine.calculateEstimateConstantBias(B(k))
