@@ -888,9 +888,13 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
     per-frame estimates made again with them (so every output carries the corrected stamps)."""
     _progress(cfg, "camera-IMU time offsets")
     kernel = _robust_kernel(cfg)
+    raw = loc.trajectories.get(str(Estimator.PNP))
+    if raw is not None and result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
+        # the profile weighs each fix by its covariance: with the readout correction's share
+        raw = add_pose_covariance(raw, result.rolling_shutter.pose_cov_added)
     offsets = resolve_time_offsets(
         log,
-        loc.trajectories.get(str(Estimator.PNP)),
+        raw,
         loc.camera_frame_observations,
         cfg.time_offsets_s,
         fusion_config=FusionConfig(robust_kernel=kernel),

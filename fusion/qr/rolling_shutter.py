@@ -88,6 +88,15 @@ DEFORMATION_SIGMA_FRACTION = 0.02
 scripts/bench_rolling_shutter.py's 2 m/s, 20 ms flight: the refined corners' chi^2 / 8 against
 the true rolling-shutter corners 6.1 (mean) / 1.7 (median) without it, 0.81 / 0.62 with it
 (global shutter: 0.68 / 0.58)."""
+CORRECTION_SIGMA_PER_PX2 = 1.0 / 600.0
+"""Corner sigma (px) added per px^2 of a code's correction (its corners' mean displacement from
+where they were read to the stamp, `_correction_sigma_px`): what a first-order correction of a
+large readout motion leaves.  Measured on scripts/bench_rolling_shutter.py's 1 m/s, 30 ms flight
+against the global-shutter run's corners at the same stamps: in its last 0.5 s (a 1.3-1.8 rad/s
+yaw turn) the corrected corners err by 0.04 / 0.17 / 0.49 / 1.12 px for corrections of 6.5 / 12.8 /
+19.5 / 25.3 px, about m^2 / 600 (elsewhere 0.02-0.04 px for 0.5-6.6 px mean corrections).
+Without it those frames' PnP poses (3-6 mm off, NEES 100-36000) pulled the camera-IMU time
+offset profile to -0.67 ms on a flight with no offset (fusion.estimate.timeoffset)."""
 FIT_HALF_WINDOW_IMU = 15
 FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
@@ -474,9 +483,33 @@ def apply_corners(
             if cov is not None:
                 move = c - c0
                 deform = float(np.max(np.linalg.norm(move - move.mean(axis=0), axis=1)))
-                cov = np.asarray(cov, float) + (DEFORMATION_SIGMA_FRACTION * deform) ** 2 * np.eye(8)
+                extra = (DEFORMATION_SIGMA_FRACTION * deform) ** 2 + _correction_sigma_px(c0, c) ** 2
+                cov = np.asarray(cov, float) + extra * np.eye(8)
             out[ts][i] = replace(d, corners_px=c, corner_cov_px2=cov)
     return out
+
+
+def _correction_sigma_px(read_px: np.ndarray, stamp_px: np.ndarray) -> float:
+    """Corner sigma (px) that moving a code's corners from `read_px` (4, 2), where the readout
+    saw them, to `stamp_px` (4, 2), at the stamp, adds: CORRECTION_SIGMA_PER_PX2 m^2, m their
+    mean displacement (px)."""
+    move = np.asarray(stamp_px, float).reshape(4, 2) - np.asarray(read_px, float).reshape(4, 2)
+    m = float(np.mean(np.linalg.norm(move, axis=1)))
+    return CORRECTION_SIGMA_PER_PX2 * m**2 if math.isfinite(m) else 0.0
+
+
+def _with_correction_sigma(d: QRDetection) -> QRDetection:
+    """A code refined at the stamp (`refine_at_stamp`) with its corner covariance grown by
+    `_correction_sigma_px` of its move from the decoder's corners (read in the sheared image)."""
+    extra = _correction_sigma_px(d.corners_raw_px, d.corners_px) ** 2
+    if extra == 0.0 or d.corner_cov_px2 is None:
+        return d
+    sigma = d.corner_sigma_px if d.corner_sigma_px is not None else DEFAULT_CORNER_SIGMA_PX
+    return replace(
+        d,
+        corner_cov_px2=np.asarray(d.corner_cov_px2, float) + extra * np.eye(8),
+        corner_sigma_px=math.sqrt(sigma**2 + extra),
+    )
 
 
 def correct_frames(
@@ -560,7 +593,7 @@ def correct_flight(
                 log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
                 refined, done = frames, set()
             for ts, i in done:
-                fixed[ts][i] = refined[ts][i]
+                fixed[ts][i] = _with_correction_sigma(refined[ts][i])
             report.refined_at_stamp[name] = len(done)
         fixed = _inflate_uncorrected(fixed, cam, motion)
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
