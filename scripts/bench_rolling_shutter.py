@@ -166,7 +166,8 @@ def markdown(rows: list[dict]) -> str:
             f"{r['pnp_nees_mean']:.1f} / {r['pnp_nees_median']:.1f} | "
             f"{r['smoother_nees_mean']:.1f} / {r['smoother_nees_median']:.1f} | {ro} | "
             f"{r.get('time_offset_offset_ms', math.nan):+.2f} +- "
-            f"{r.get('time_offset_sigma_ms') or math.nan:.2f} ({r.get('time_offset_applied_ms', math.nan):+.2f}) |"
+            f"{r.get('time_offset_sigma_ms') or math.nan:.2f} "
+            f"({r.get('time_offset_applied_ms', math.nan):+.2f}) |"
         )
     return "\n".join(lines)
 
