@@ -42,7 +42,7 @@ from fusion.estimate.asbuilt import (
     as_built_fixes,
     write_floor_codes_csv,
 )
-from fusion.estimate.common import match_to_frames
+from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, interpolable_load_times, match_to_frames
 from fusion.estimate.extrinsics import MountRotation, apply_mount, check_mount, read_extrinsics_groundtruth
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
@@ -888,9 +888,13 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
     per-frame estimates made again with them (so every output carries the corrected stamps)."""
     _progress(cfg, "camera-IMU time offsets")
     kernel = _robust_kernel(cfg)
+    raw = loc.trajectories.get(str(Estimator.PNP))
+    if raw is not None and result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
+        # the profile weighs each fix by its covariance: with the readout correction's share
+        raw = add_pose_covariance(raw, result.rolling_shutter.pose_cov_added)
     offsets = resolve_time_offsets(
         log,
-        loc.trajectories.get(str(Estimator.PNP)),
+        raw,
         loc.camera_frame_observations,
         cfg.time_offsets_s,
         fusion_config=FusionConfig(robust_kernel=kernel),
@@ -987,23 +991,26 @@ def _run_without_cameras(
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
-    """A warning when front-camera load sightings lie further than FusionConfig.max_sync_s from
-    every floor-camera frame: the back ends cannot place them (no load factor), so a front
-    camera whose clock is offset would silently empty the fused load maps."""
+    """A warning when front-camera load sightings can be placed neither by the body pose
+    interpolated at their stamps (outside the floor frames' span, or in a gap between them:
+    fusion.estimate.common.interpolable_load_times) nor at a floor frame within
+    FusionConfig.max_sync_s: the back ends leave them out (no load factor)."""
     obs = loc.camera_frame_observations
     if log.front is None or not obs:
         return None
     max_sync_s = FusionConfig().max_sync_s
     t = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
-    unmatched = int((match_to_frames(log.floor.timestamps_ns, t, max_sync_s) < 0).sum())
+    frame_t = log.floor.timestamps_ns
+    placed = (match_to_frames(frame_t, t, max_sync_s) >= 0) | interpolable_load_times(frame_t, t)
+    unmatched = int((~placed).sum())
     if unmatched == 0:
         return None
     return LogWarning(
         "load_sightings_unsynchronised",
         unmatched,
-        f"{unmatched} of {len(obs)} front-camera load sightings are more than "
-        f"{max_sync_s * 1e3:.0f} ms from every floor-camera frame: the fused load maps leave "
-        "them out (are the cameras triggered together? a clock offset on cam1?)",
+        f"{unmatched} of {len(obs)} front-camera load sightings lie outside the floor-camera "
+        f"frames' span or in a gap of over {LOAD_INTERP_MAX_GAP_S * 1e3:.0f} ms between them: "
+        "the fused load maps leave them out (a clock offset on cam1?)",
     )
 
 

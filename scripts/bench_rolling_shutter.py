@@ -15,7 +15,9 @@ the model), and the readout estimated by `fusion.qr.rolling_shutter.calibrate_re
 camera model that says 0 (with its sigma).
 
 Targets: PnP and fused errors within 1.2x the global-shutter run's; NEES within [0.5, 2] x 6
-(judged against the global-shutter run's own NEES too); readout within 5 %.
+(judged against the global-shutter run's own NEES too); readout within 5 %.  Also reported: the
+floor camera's estimated camera-IMU time offset (true 0), which must not be significant
+(fusion.estimate.timeoffset applies it only beyond 3 sigma).
 
     PYTHONPATH=$PWD python3 scripts/bench_rolling_shutter.py [--dir /tmp/rs_bench] [--duration 20]
         [--speeds 1 2] [--readouts-ms 0 10 20 30] [--workers 2] [--seed 0]
@@ -123,6 +125,10 @@ def one_flight(root: Path, speed: float, readout_ms: float, args) -> dict:
         nees = (m.get(est) or {}).get("nees_pose_6dof") or {}
         row[f"{est}_nees_mean"] = nees.get("nees_mean", math.nan)
         row[f"{est}_nees_median"] = nees.get("nees_median", math.nan)
+    # the floor camera's camera-IMU time offset (true 0 here): estimate, sigma, applied
+    floor_offset = (res.metrics.get("time_offsets") or {}).get("cam0") or {}
+    for key in ("offset_ms", "sigma_ms", "applied_ms"):
+        row[f"time_offset_{key}"] = floor_offset.get(key, math.nan)
     det = read_cache(out_dir / "detections.csv")
     if readout_ms > 0:
         cam = log.floor.camera
@@ -140,8 +146,8 @@ def markdown(rows: list[dict]) -> str:
     lines = [
         "| peak m/s | readout ms | PnP mean / med / p95 cm | ratio to GS (mean) | uncorrected PnP mean cm "
         "| smoother ATE cm | ratio to GS | NEES PnP mean / med | NEES smoother mean / med "
-        "| readout est. ms (err %) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| readout est. ms (err %) | time offset ms (applied) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         g = gs.get(r["speed_m_s"])
@@ -158,7 +164,10 @@ def markdown(rows: list[dict]) -> str:
             f"{r['pnp_mean_cm']:.3f} / {r['pnp_median_cm']:.3f} / "
             f"{r['pnp_p95_cm']:.3f} | {ratio:.2f} | {unc} | {r['smoother_ate_cm']:.3f} | {fratio:.2f} | "
             f"{r['pnp_nees_mean']:.1f} / {r['pnp_nees_median']:.1f} | "
-            f"{r['smoother_nees_mean']:.1f} / {r['smoother_nees_median']:.1f} | {ro} |"
+            f"{r['smoother_nees_mean']:.1f} / {r['smoother_nees_median']:.1f} | {ro} | "
+            f"{r.get('time_offset_offset_ms', math.nan):+.2f} +- "
+            f"{r.get('time_offset_sigma_ms') or math.nan:.2f} "
+            f"({r.get('time_offset_applied_ms', math.nan):+.2f}) |"
         )
     return "\n".join(lines)
 

@@ -418,3 +418,45 @@ def test_motion_at_the_flight_end_from_a_one_sided_window(accelerating_flight):
     assert np.max(np.linalg.norm(m.T_world_body[:, :3, 3] - st.p_world, axis=1)) < 0.002
     without = frame_motion(poses, stamps, cam)  # no IMU: no extrapolation
     assert not without.valid[1]
+
+
+# ------------------------------------------------------------- the correction's scale error
+
+
+def test_correction_scale_sigma_is_proportional_to_the_frames_mean_correction():
+    """kappa = CORRECTION_SIGMA_PER_PX2 x the frame's mean corner displacement, so that the
+    corners' error kappa m is CORRECTION_SIGMA_PER_PX2 m^2."""
+    from fusion.qr.rolling_shutter import CORRECTION_SIGMA_PER_PX2, correction_scale_sigma
+
+    rng = np.random.default_rng(3)
+    c0 = rng.uniform(100, 400, (4, 2))
+    d0 = QRDetection("cam0", 5, "x", c0, c0)
+    moved = [replace(d0, corners_px=c0 + [6.0, 8.0]), replace(d0, corners_px=c0 + [0.0, 20.0])]
+    kappa = correction_scale_sigma({5: [d0, d0], 7: [d0]}, {5: moved, 7: [d0]})
+    assert kappa[5] == pytest.approx(CORRECTION_SIGMA_PER_PX2 * 15.0)  # mean of 10 and 20 px
+    assert kappa[7] == 0.0
+
+
+def test_scale_sigma_adds_a_rank_one_pose_covariance_along_the_motion(synthetic_flight):
+    """The correction's scale error enters the pose covariance (PnP's estimate is unchanged),
+    as kappa^2 G u u^T G^T: rank one, growing as kappa^2."""
+    from fusion.qr.rolling_shutter import motion_pose_covariance
+
+    det, cam, world, imu, _ = synthetic_flight
+    frames = det.by_frame("cam0")
+    fixed, _ = correct_flight(det, {"cam0": cam}, world, imu)
+    from fusion.qr.pnp import pnp_trajectory
+
+    traj, _ = pnp_trajectory(fixed.by_frame("cam0"), cam, world)
+    stamps = np.array(sorted(frames), dtype=np.int64)[40:43]
+    sub = {int(t): frames[int(t)] for t in stamps}
+    motion = frame_motion(traj, stamps, cam, imu)
+    base = motion_pose_covariance(sub, cam, world, motion)
+    k1 = motion_pose_covariance(sub, cam, world, motion, scale_sigma={int(t): 0.01 for t in stamps})
+    k2 = motion_pose_covariance(sub, cam, world, motion, scale_sigma={int(t): 0.02 for t in stamps})
+    assert base
+    for ts in base:
+        add1, add2 = k1[ts] - base[ts], k2[ts] - base[ts]
+        s = np.linalg.svd(add1, compute_uv=False)
+        assert s[0] > 0 and s[1] < 1e-6 * s[0]
+        np.testing.assert_allclose(add2, 4.0 * add1, rtol=1e-6, atol=1e-18)

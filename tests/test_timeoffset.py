@@ -227,11 +227,15 @@ def test_front_camera_offset_no_longer_empties_fused_load_maps(front15):
     for name in ("smoother", "ekf"):
         assert len(read_loads_csv(tmp / "est" / f"loads_{name}.csv").loads) == 2
     assert "time offsets" in (tmp / "est" / "report.md").read_text()
-    # today's behaviour, the offset fixed at 0: no load factor, empty fused maps, a warning
+    # the offset fixed at 0 (15 ms wrong): each sighting is still placed from the body pose
+    # interpolated at its stamp (fusion.estimate.common.retime_load_obs), so the fused maps keep
+    # both loads (before: no load factor, empty maps and a warning for every sighting)
     res = _smooth(log_dir, tmp / "fixed0", {"cam0": 0.0, "cam1": 0.0})
     assert res.time_offsets is not None and res.time_offsets.cameras["cam1"].source == OffsetSource.FIXED
-    assert len(res.load_maps["smoother"].loads) == 0
-    assert any(w.name == "load_sightings_unsynchronised" for w in res.warnings)
+    assert len(res.load_maps["smoother"].loads) == 2
+    # only the sightings stamped before the first floor frame cannot be placed (and are counted)
+    lost = [w.count for w in res.warnings if w.name == "load_sightings_unsynchronised"]
+    assert sum(lost) <= 2
 
 
 def test_fixed_offset_is_applied_and_zero_offset_changes_nothing(tmp_path):

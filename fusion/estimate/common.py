@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -18,7 +18,7 @@ from scipy.stats import chi2
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
-from fusion.geometry import interpolate_poses
+from fusion.geometry import interpolate_poses, inv_T
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import Choice, LoadMap, LoadObservation, RobustKernel, Trajectory
 
@@ -493,6 +493,70 @@ def fix_jumps(t_s: np.ndarray, p_world: np.ndarray, max_speed_m_s: float, slack_
     `slack_m` (a scalar or (N-1,) tolerance for the fixes' own noise): the fixes jumped."""
     step = np.linalg.norm(np.diff(p_world, axis=0), axis=1)
     return step > max_speed_m_s * np.diff(t_s) + slack_m
+
+
+LOAD_INTERP_MAX_GAP_S = 0.2
+"""A load sighting between two floor frames further apart than this (a camera blackout) is not
+placed by interpolation (`retime_load_obs`): the body's motion across the gap is not known."""
+
+
+def interpolable_load_times(frame_t: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(M,) whether each load-sighting time `t` (M,) ns lies between two floor frames of `frame_t`
+    (N,) at most LOAD_INTERP_MAX_GAP_S apart (or on a frame): where `retime_load_obs` can place
+    it from the interpolated body pose."""
+    frame_t = np.asarray(frame_t, dtype=np.int64)
+    t = np.asarray(t, dtype=np.int64)
+    if len(frame_t) == 0 or len(t) == 0:
+        return np.zeros(len(t), bool)
+    inside = (t >= frame_t[0]) & (t <= frame_t[-1])
+    b = np.clip(np.searchsorted(frame_t, t), 0, len(frame_t) - 1)
+    a = np.maximum(b - 1, 0)
+    on_frame = frame_t[b] == t
+    gap_ok = (frame_t[b] - frame_t[a]) <= int(LOAD_INTERP_MAX_GAP_S * 1e9)
+    return inside & (on_frame | gap_ok)
+
+
+def retime_load_obs(
+    frame_t: np.ndarray,
+    T_world_body: np.ndarray,
+    load_obs: list[LoadObservation],
+    camera: CameraModel,
+) -> list[LoadObservation]:
+    """Each load sighting placed by the body pose at its own (front camera's, offset-corrected)
+    stamp t, as the paper's Algorithms 4-6 place a load from the drone pose at that image's time:
+    its camera-frame point p_cam and covariance cov_cam re-expressed in the camera at the nearest
+    floor frame k, through T_cam_k^-1 T_cam(t), T_cam = camera.T_world_cam of the body poses
+    `T_world_body` (N, 4, 4) at `frame_t` (N,) interpolated at t (geometry.interpolate_poses),
+    and stamped frame_t[k]; a load factor on X(k) then measures the load from the pose at t (to
+    the interpolation's accuracy: the relative motion over at most half a frame interval).
+    Sightings that cannot be interpolated (`interpolable_load_times`) or that already lie on a
+    frame are returned as they are (group_load_obs matches those within max_sync_s)."""
+    if not load_obs or len(frame_t) == 0:
+        return list(load_obs)
+    frame_t = np.asarray(frame_t, dtype=np.int64)
+    t = np.array([o.timestamp_ns for o in load_obs], dtype=np.int64)
+    # the nearest frame (any distance: `move` limits which are used)
+    b = np.clip(np.searchsorted(frame_t, t), 1, max(len(frame_t) - 1, 1)) if len(frame_t) > 1 else 0 * t
+    a = np.maximum(b - 1, 0)
+    k = np.where(np.abs(t - frame_t[a]) <= np.abs(frame_t[b] - t), a, b)
+    move = interpolable_load_times(frame_t, t) & (frame_t[k] != t)
+    move &= np.array([o.p_cam is not None and o.cov_cam is not None for o in load_obs])
+    if not move.any():
+        return list(load_obs)
+    i = np.flatnonzero(move)
+    T_wc_t = camera.T_world_cam(interpolate_poses(frame_t, T_world_body, t[i]))
+    T_ck_ct = inv_T(camera.T_world_cam(T_world_body[k[i]])) @ T_wc_t
+    out = list(load_obs)
+    for m, j in enumerate(i.tolist()):
+        o = load_obs[j]
+        R, p = T_ck_ct[m, :3, :3], T_ck_ct[m, :3, 3]
+        out[j] = replace(
+            o,
+            timestamp_ns=int(frame_t[k[j]]),
+            p_cam=R @ np.asarray(o.p_cam, float) + p,
+            cov_cam=R @ np.asarray(o.cov_cam, float) @ R.T,
+        )
+    return out
 
 
 def group_load_obs(

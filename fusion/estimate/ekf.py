@@ -74,6 +74,7 @@ from fusion.estimate.common import (
     group_load_obs,
     inlier_raw_mask,
     prepare_inputs,
+    retime_load_obs,
     velocity_at_frames,
 )
 from fusion.estimate.smoother import imu_coverage, imu_subintervals
@@ -707,7 +708,9 @@ def load_point_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.nd
 
 def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config) -> LoadMap:
     """Information-weighted fusion of per-observation world points (see module docstring)."""
-    groups, _ = group_load_obs(frame_t, load_obs or [], config)
+    # each sighting from the body pose at its own stamp (frames from k0 on have poses)
+    load_obs = retime_load_obs(frame_t[k0 : k0 + len(T_out)], T_out, load_obs or [], camera)
+    groups, _ = group_load_obs(frame_t, load_obs, config)
     out = []
     for lid in sorted(groups):
         info, vec, nobs = np.zeros((3, 3)), np.zeros(3), 0

@@ -54,6 +54,7 @@ from fusion.estimate.common import (
     inlier_raw_mask,
     match_to_frames,
     prepare_inputs,
+    retime_load_obs,
     velocity_at_frames,
 )
 from fusion.estimate.factors import B, L, V, X
@@ -518,6 +519,8 @@ def build_problem(
 
     # ---- loads
     cam = pb.front_camera
+    if cam is not None:  # each sighting from the body pose at its own stamp
+        load_obs = retime_load_obs(frame_t, pb.T_init, load_obs or [], cam)
     groups, skipped = group_load_obs(frame_t, load_obs or [], config)
     if cam is None:
         skipped += sum(len(obs) for obs in groups.values())

@@ -88,6 +88,16 @@ DEFORMATION_SIGMA_FRACTION = 0.02
 scripts/bench_rolling_shutter.py's 2 m/s, 20 ms flight: the refined corners' chi^2 / 8 against
 the true rolling-shutter corners 6.1 (mean) / 1.7 (median) without it, 0.81 / 0.62 with it
 (global shutter: 0.68 / 0.58)."""
+CORRECTION_SIGMA_PER_PX2 = 1.0 / 600.0
+"""Corner error (px) per px^2 of a frame's correction (its corners' mean displacement from where
+they were read to the stamp): what the correction of a large readout motion leaves, modelled as
+an error of the motion's scale (`correction_scale_sigma`, `motion_pose_covariance`).  Measured
+on scripts/bench_rolling_shutter.py's 1 m/s, 30 ms flight against the global-shutter run's corners
+at the same stamps: in its last 0.5 s (a 1.3-1.8 rad/s
+yaw turn) the corrected corners err by 0.04 / 0.17 / 0.49 / 1.12 px for corrections of 6.5 / 12.8 /
+19.5 / 25.3 px, about m^2 / 600 (elsewhere 0.02-0.04 px for 0.5-6.6 px mean corrections).
+Without it those frames' PnP poses (3-9 mm off, NEES 100-36000) pulled the camera-IMU time
+offset profile to -0.67 ms on a flight with no offset (fusion.estimate.timeoffset)."""
 FIT_HALF_WINDOW_IMU = 15
 FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
@@ -479,6 +489,30 @@ def apply_corners(
     return out
 
 
+def correction_scale_sigma(
+    original: dict[int, list[QRDetection]], corrected: dict[int, list[QRDetection]]
+) -> dict[int, float]:
+    """{timestamp_ns: kappa}, the relative error of each frame's readout correction: kappa =
+    CORRECTION_SIGMA_PER_PX2 m, m the mean displacement (px) of the frame's code corners from
+        where the readout saw them (`original`) to the stamp (`corrected`), so that the corners'
+    error is kappa m = CORRECTION_SIGMA_PER_PX2 m^2
+    (the constant's measurement).  The error scales with the correction, i.e. with the motion
+    over the readout, so it is an error of the motion's scale (`motion_pose_covariance`)."""
+    out = {}
+    for ts, dets in corrected.items():
+        moves = []
+        for d0, d in zip(original.get(ts, []), dets):
+            move = np.asarray(d.corners_px, float).reshape(4, 2) - np.asarray(d0.corners_px, float).reshape(
+                4, 2
+            )
+            m = np.linalg.norm(move, axis=1)
+            if np.all(np.isfinite(m)):
+                moves.append(float(m.mean()))
+        if moves:
+            out[int(ts)] = CORRECTION_SIGMA_PER_PX2 * float(np.mean(moves))
+    return out
+
+
 def correct_frames(
     frames: dict[int, list[QRDetection]],
     camera: CameraModel,
@@ -565,7 +599,10 @@ def correct_flight(
         fixed = _inflate_uncorrected(fixed, cam, motion)
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
         if name == "cam0" and not cam.gimbaled:
-            report.pose_cov_added = motion_pose_covariance(frames, cam, world, motion, corner_sigma_px)
+            kappa = correction_scale_sigma(frames, fixed)
+            report.pose_cov_added = motion_pose_covariance(
+                frames, cam, world, motion, corner_sigma_px, scale_sigma=kappa
+            )
         report.readout_s[name] = cam.readout_s
         report.frames_corrected[name] = n
         report.frames_uncorrected[name] = len(frames) - n
@@ -619,13 +656,18 @@ def motion_pose_covariance(
     world: World,
     motion: FrameMotion,
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    scale_sigma: dict[int, float] | None = None,
 ) -> dict[int, np.ndarray]:
     """{timestamp_ns: (6, 6)} the PnP pose covariance ([rx, ry, rz, tx, ty, tz], body frame,
     right perturbation) that the motion's uncertainty adds: G S G^T, G = d(pose) / d(omega, v)
     by central differences of the whole correct-then-PnP map (each motion component of every
     frame perturbed by MOTION_STEP at once: the frames are independent), S = the motion's
     covariance.  The motion's error moves all codes of a frame alike, i.e. the image shift
-    PnP determines best (~0.003 px at 1.5 m), so it must enter the pose, not the corners."""
+    PnP determines best (~0.003 px at 1.5 m), so it must enter the pose, not the corners.
+    `scale_sigma` {timestamp_ns: kappa} (`correction_scale_sigma`): the correction's relative
+    error, an error of the motion's scale, adds kappa^2 u u^T to S, u = (omega, v) (rank one,
+    along the motion), so it enters the pose covariance and not PnP's weights (as corner sigma it
+    cost PnP 10 % of its accuracy at 1 m/s, 20 ms: scripts/bench_rolling_shutter.py)."""
     base = _pnp_by_stamp(frames, camera, world, motion, corner_sigma_px)
     G = {ts: np.zeros((6, 6)) for ts in base}
     for j in range(6):
@@ -644,6 +686,10 @@ def motion_pose_covariance(
         k = index[int(ts)]
         S = np.zeros((6, 6))
         S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
+        kappa = (scale_sigma or {}).get(int(ts), 0.0)
+        if kappa > 0.0:
+            u = np.concatenate([motion.omega_body[k], motion.v_world[k]])
+            S = S + kappa**2 * np.outer(u, u)
         out[int(ts)] = g @ S @ g.T
     return out
 
