@@ -16,6 +16,11 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
 Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
+
+`--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
+cache when there is one), and every floor frame without a PnP pose after the pass counted by why
+(`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
+frame (fusion.qr.predict.OUTCOMES).
 """
 
 from __future__ import annotations
@@ -30,10 +35,12 @@ import numpy as np
 from fusion.geometry import interpolate_poses
 from fusion.log import read_flight
 from fusion.log.files import read_tum
-from fusion.pipeline import RunConfig, run
-from fusion.qr.detect import CACHE_NAME, read_cache
+from fusion.pipeline import RunConfig, localize_stage, run
+from fusion.qr.detect import CACHE_NAME, detect_flight, read_cache
+from fusion.qr.predict import track_flight, without_tracked
 from fusion.sim.render import project_code_corners
 from fusion.sim.scenarios import build_scenario
+from fusion.types import Estimator
 
 EDGE_MARGIN_PX = 2.0  # a code counts as in view when its corners are this far inside the image
 
@@ -47,6 +54,69 @@ def _truth_corners(camera, T_world_body: np.ndarray, codes) -> dict[str, np.ndar
         if np.all(np.isfinite(uv)):
             out[c.payload] = uv
     return out
+
+
+def _floor_frames(log) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(floor stamps (N,), floor-frame mask (N,): a floor code entirely in the image at the true
+    pose, {stamp: true corners by payload})."""
+    cam = log.floor.camera
+    codes = [c for c in build_scenario("default").codes() if c.is_floor]
+    gt = log.groundtruth
+    stamps = np.asarray(log.floor.timestamps_ns, dtype=np.int64)
+    T_true = interpolate_poses(gt.timestamps_ns.astype(float), gt.T_world_body, stamps.astype(float))
+    w, h = cam.width, cam.height
+    mask = np.zeros(len(stamps), bool)
+    truth_by_t = {}
+    for k, t in enumerate(stamps):
+        truth = _truth_corners(cam, T_true[k], codes)
+        truth_by_t[int(t)] = truth
+        mask[k] = any(
+            np.all((uv >= EDGE_MARGIN_PX) & (uv <= [w - 1 - EDGE_MARGIN_PX, h - 1 - EDGE_MARGIN_PX]))
+            for uv in truth.values()
+        )
+    return stamps, mask, truth_by_t
+
+
+def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dict:
+    """Floor frames, posed before / after the track pass, and the unposed ones after it counted
+    by reason (module docstring, `--reasons`); no fusion."""
+    log = read_flight(flight)
+    cfg = RunConfig(progress=False, workers=workers)
+    det = read_cache(out_dir / CACHE_NAME) if (out_dir / CACHE_NAME).is_file() else None
+    if det is None:
+        det = detect_flight(log, workers=workers or 1)
+    det = without_tracked(det)
+    loc = localize_stage(log, det, cfg)
+    pnp = str(Estimator.PNP)
+    first = set(int(t) for t in loc.trajectories[pnp].timestamps_ns)
+    tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
+    final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
+    stamps, mask, _ = _floor_frames(log)
+    blackouts = log.blackouts or []
+    decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
+    reasons: dict[str, int] = {}
+    for t, is_floor in zip(stamps, mask):
+        t = int(t)
+        if not is_floor or t in final:
+            continue
+        if any(a <= t <= b for a, b, _ in blackouts):
+            why = "blackout"
+        elif t in decoded and t not in first:
+            why = "decoded_no_pnp"
+        else:
+            why = rep.frame_outcomes.get(t, "not_looked_at")
+            if why == "posed":  # the pass's pose, refused by the per-frame stage's checks
+                why = "posed_in_pass_refused_later"
+        reasons[why] = reasons.get(why, 0) + 1
+    return dict(
+        floor_frames=int(mask.sum()),
+        posed_first=sum(int(t) in first for t in stamps[mask]),
+        posed_final=sum(int(t) in final for t in stamps[mask]),
+        in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
+        tracked=rep.stats.tracked,
+        reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        seconds=rep.seconds,
+    )
 
 
 def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True) -> dict:
@@ -108,7 +178,14 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="+", default=["no-track", "track"], choices=["no-track", "track"])
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     ap.add_argument("--reuse", action="store_true", help="score finished runs in OUT without running")
+    ap.add_argument("--reasons", action="store_true", help="no fusion: why floor frames have no pose")
+    ap.add_argument("--workers", type=int, default=None)
     args = ap.parse_args(argv)
+    if args.reasons:
+        for flight in args.flights:
+            r = loss_reasons(flight, args.out / f"{flight.name}-{args.modes[0]}", args.workers)
+            print(flight.name, json.dumps(r), flush=True)
+        return 0
     rows = []
     print(
         "| flight | mode | floor frames | with a PnP pose | decoded | tracked | wrong ids "

@@ -42,7 +42,16 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.geometry import interpolate_pose, inv_T, transform_points
+from fusion.conventions import GRAVITY_M_S2
+from fusion.geometry import (
+    integrate_gyro,
+    interpolate_pose,
+    inv_T,
+    make_T,
+    so3_exp,
+    so3_log,
+    transform_points,
+)
 from fusion.parallel import parallel_map
 from fusion.qr.codes import classify
 from fusion.qr.detect import CameraStats, DetectionResult, detect_image
@@ -53,12 +62,20 @@ from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
-TRACK_METHOD = "pose-track/1"  # in the tracked cache's fingerprint: change with the method
+TRACK_METHOD = "pose-track/2"  # in the tracked cache's fingerprint: change with the method
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
 MAX_EXTRAPOLATION_S = 0.5  # extrapolate at most this far from the last pose
 VELOCITY_BASELINE_S = 0.05  # velocity over at least this (consecutive poses: their noise, amplified)
+# With an IMU, poses up to this far apart are bridged by the IMU's motion pinned at both ends
+# (ImuBridge): on a 20 ms-exposure flight the cruise between two hovers left 0.5-1.8 s without a
+# decoded pose, and the geodesic interpolation / constant-velocity extrapolation put the codes
+# 14-80 px off (the body pitches as it accelerates), beyond refinement's capture (BENCHMARKS.md).
+# An accelerometer bias b leaves at most b T^2 / 8 with both ends pinned (T = 2 s, 0.05 m/s^2:
+# 2.5 cm)
+MAX_IMU_BRIDGE_S = 2.0
+GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -GRAVITY_M_S2])  # world z up
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
 # per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
@@ -71,6 +88,18 @@ TRACK_MIN_MODULE_PX = 2.5
 MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
+# What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
+OUTCOMES = (
+    "no_prediction",  # no pose within MAX_INTERPOLATION_GAP_S / MAX_EXTRAPOLATION_S
+    "none_in_view",  # no undecoded catalogue code predicted in view with its quiet zone
+    "too_small",  # ... only ones under TRACK_MIN_MODULE_PX per module
+    "no_image",  # the image could not be read
+    "ambiguous",  # every try was next to a decoded code
+    "refine_failed",  # ... tried; refinement failed on every one (none gated)
+    "gated",  # ... tried; at least one refused by the innovation gate, none accepted
+    "pnp_failed",  # codes tracked, but PnP on the frame's codes found no pose
+    "posed",  # codes tracked and a PnP pose found
+)
 
 
 @dataclass
@@ -97,10 +126,18 @@ class TrackReport:
     chunks: int = 0
     seconds: float = 0.0  # wall time of the pass (catalogue and tracking)
     skipped_reason: str = ""  # why the pass did not run ("" when it ran)
+    frame_outcomes: dict[int, str] = field(default_factory=dict)  # floor stamp -> one of OUTCOMES
+
+    def outcome_counts(self) -> dict[str, int]:
+        """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
+        values = list(self.frame_outcomes.values())
+        return {k: values.count(k) for k in OUTCOMES}
 
     def as_dict(self) -> dict:
-        out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "stats"}
+        skip = ("stats", "frame_outcomes")
+        out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         out.update({f"tracker_{k}": int(v) for k, v in vars(self.stats).items()})
+        out.update({f"frames_{k}": n for k, n in self.outcome_counts().items()})
         out["seconds_per_frame_tried"] = self.seconds / self.frames_tried if self.frames_tried else 0.0
         return out
 
@@ -117,13 +154,77 @@ class TrackReport:
         )
 
 
+class ImuBridge:
+    """Body poses between and beyond PnP poses from the IMU's samples (body frame B; the IMU's
+    lever arm is ignored).
+
+    Between two poses (t0, T0), (t1, T1): rotation R(t) = R0 dR(t0, t) Exp(s d), dR the gyro's
+    integral (geometry.integrate_gyro), d = Log((R0 dR(t0, t1))^T R1) the end mismatch (gyro bias,
+    noise) spread linearly, s = (t - t0) / (t1 - t0); position p(t) = p0 + v0 (t - t0) + D(t),
+    D the double integral of the world acceleration R f + g from t0 with zero initial velocity
+    (f: specific force), v0 = (p1 - p0 - D(t1)) / (t1 - t0), so both ends are met (the
+    two-point boundary form of strapdown integration: Titterton & Weston, Strapdown Inertial
+    Navigation Technology, 2nd ed., sec. 3.6)."""
+
+    def __init__(self, imu):
+        R_bs = np.asarray(imu.T_body_imu, float)[:3, :3]
+        self.t_ns = np.asarray(imu.timestamps_ns, dtype=np.int64)
+        self.gyro = np.asarray(imu.gyro_rad_s, float) @ R_bs.T
+        self.force = np.asarray(imu.accel_m_s2, float) @ R_bs.T
+
+    def covers(self, t0_ns: int, t1_ns: int) -> bool:
+        return len(self.t_ns) > 1 and self.t_ns[0] <= min(t0_ns, t1_ns) and max(t0_ns, t1_ns) <= self.t_ns[-1]
+
+    def _motion(self, t_from: int, t_to: int, R_from: np.ndarray):
+        """IMU motion from t_from to t_to (either order) starting at rotation R_from:
+        (grid times s relative to t_from (M,), rotations (M, 3, 3), velocity (M, 3) and
+        displacement (M, 3) from zero velocity at t_from)."""
+        lo, hi = min(t_from, t_to), max(t_from, t_to)
+        inner = self.t_ns[(self.t_ns > lo) & (self.t_ns < hi)]
+        grid = np.concatenate([[lo], inner, [hi]]).astype(np.int64)
+        if t_to < t_from:
+            grid = grid[::-1]
+        tt = (grid - t_from) * 1e-9
+        ts = (self.t_ns - t_from) * 1e-9
+        rate = np.column_stack([np.interp(tt, ts, self.gyro[:, a]) for a in range(3)])
+        force = np.column_stack([np.interp(tt, ts, self.force[:, a]) for a in range(3)])
+        dt = np.diff(tt)
+        R = R_from @ integrate_gyro(0.5 * (rate[:-1] + rate[1:]), dt)
+        acc = np.einsum("nij,nj->ni", R, force) + GRAVITY_WORLD_M_S2
+        vel = np.vstack([np.zeros(3), np.cumsum(0.5 * (acc[:-1] + acc[1:]) * dt[:, None], axis=0)])
+        disp = np.vstack([np.zeros(3), np.cumsum(0.5 * (vel[:-1] + vel[1:]) * dt[:, None], axis=0)])
+        return tt, R, vel, disp
+
+    def bridge(
+        self, t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(T_world_body (4, 4) at t in [t0, t1], world velocity (3,) at t0 and at t1) between
+        the poses (class docstring)."""
+        tt, R, vel, disp = self._motion(t0, t1, T0[:3, :3])
+        span = tt[-1]
+        d = so3_log(R[-1].T @ T1[:3, :3])
+        v0 = (T1[:3, 3] - T0[:3, 3] - disp[-1]) / span
+        s_t, R_t, _, disp_t = self._motion(t0, t, T0[:3, :3])
+        s = s_t[-1]
+        T = make_T(R_t[-1] @ so3_exp((s / span) * d), T0[:3, 3] + v0 * s + disp_t[-1])
+        return T, v0, v0 + vel[-1]
+
+    def extrapolate(self, t1: int, T1: np.ndarray, v1: np.ndarray, t: int) -> np.ndarray:
+        """T_world_body (4, 4) at t (before or after t1) from the pose and world velocity at t1."""
+        tt, R, _, disp = self._motion(t1, t, T1[:3, :3])
+        return make_T(R[-1], T1[:3, 3] + v1 * tt[-1] + disp[-1])
+
+
 class PosePredictor:
     """Body poses predicted at floor-frame stamps from PnP poses (module docstring, step 2).
 
     `timestamps_ns` (N,) increasing and `T_world_body` (N, 4, 4): the first pass's poses;
-    `add` records a pose found by the pass (stamps increasing, after every earlier `add`)."""
+    `add` records a pose found by the pass (stamps increasing, after every earlier `add`).
+    `imu`: an ImuBridge: poses up to MAX_IMU_BRIDGE_S apart bridged by the IMU's motion, and
+    extrapolation with its rotation and acceleration (None: geodesic / constant velocity)."""
 
-    def __init__(self, timestamps_ns: np.ndarray, T_world_body: np.ndarray):
+    def __init__(self, timestamps_ns: np.ndarray, T_world_body: np.ndarray, imu: ImuBridge | None = None):
+        self.imu = imu
         self.first_t = [int(t) for t in timestamps_ns]
         self.first_T = list(np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4))
         self.added_t: list[int] = []
@@ -163,6 +264,10 @@ class PosePredictor:
             return self.first_T[i], 0.0
         before = self._before(t, 8)
         after = self._after(t, 8)
+        if self.imu is not None:
+            pred = self._predict_imu(t, before, after)
+            if pred is not None:
+                return pred
         if before and after and (after[0][0] - before[0][0]) * 1e-9 <= MAX_INTERPOLATION_GAP_S:
             (t0, T0), (t1, T1) = before[0], after[0]
             a = (t - t0) / (t1 - t0)
@@ -170,6 +275,30 @@ class PosePredictor:
         ahead = _extrapolate(before, t)  # forward from the past
         behind = _extrapolate(after, t)  # backward from the future
         cands = [p for p in (ahead, behind) if p is not None]
+        return min(cands, key=lambda p: p[1]) if cands else None
+
+    def _predict_imu(self, t: int, before, after) -> tuple[np.ndarray, float] | None:
+        """PosePredictor.predict with the IMU (class docstring), None where it does not apply."""
+        imu = self.imu
+        assert imu is not None
+        if before and after:
+            (t0, T0), (t1, T1) = before[0], after[0]
+            if (t1 - t0) * 1e-9 <= MAX_IMU_BRIDGE_S and imu.covers(t0, t1):
+                return imu.bridge(t0, T0, t1, T1, t)[0], min(t - t0, t1 - t) * 1e-9
+        cands = []
+        for near, far in ((before, True), (after, False)):
+            if not near or abs(t - near[0][0]) * 1e-9 > MAX_EXTRAPOLATION_S:
+                continue
+            t1, T1 = near[0]
+            older = [p for p in near[1:] if VELOCITY_BASELINE_S <= abs(t1 - p[0]) * 1e-9 <= MAX_IMU_BRIDGE_S]
+            if not older or not imu.covers(older[0][0], t):
+                continue
+            t0, T0 = older[0]
+            if far:  # the velocity at t1 from the bridge (t0, t1), t0 < t1 < t
+                v1 = imu.bridge(t0, T0, t1, T1, t1)[2]
+            else:  # t < t1 < t0: the velocity at t1 from the bridge (t1, t0)
+                v1 = imu.bridge(t1, T1, t0, T0, t1)[1]
+            cands.append((imu.extrapolate(t1, T1, v1, t), abs(t - t1) * 1e-9))
         return min(cands, key=lambda p: p[1]) if cands else None
 
 
@@ -260,9 +389,9 @@ def track_chunks(first_t: np.ndarray, stamps_ns: np.ndarray, n_frames: int) -> l
 
 def _track_chunk(context, task: tuple[int, int]):
     """The pass over floor frames [start, stop): (tracked detections, TrackReport)."""
-    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px = context
+    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px, imu = context
     start, stop = task
-    predictor = PosePredictor(first_t, first_T)
+    predictor = PosePredictor(first_t, first_T, imu)
     tracker = CodeTracker(camera)
     rep = TrackReport()
     out: list[QRDetection] = []
@@ -271,6 +400,7 @@ def _track_chunk(context, task: tuple[int, int]):
         t = int(stream.timestamps_ns[i])
         pred = predictor.predict(t)
         if pred is None:
+            rep.frame_outcomes[t] = "no_prediction"
             continue
         rep.frames_predicted += 1
         T_body, horizon_s = pred
@@ -279,6 +409,7 @@ def _track_chunk(context, task: tuple[int, int]):
         seen = {d.payload for d in frame_dets}
         sigma = PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S * horizon_s
         predicted = {}
+        small = False
         for payload, code in catalogue.items():
             if payload in seen:
                 continue
@@ -287,18 +418,31 @@ def _track_chunk(context, task: tuple[int, int]):
                 continue
             uv = camera.project(p_cam)
             side_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
-            if side_px >= TRACK_MIN_MODULE_PX * code.modules and symbol_in_view(uv, code.modules, (h, w)):
+            if not symbol_in_view(uv, code.modules, (h, w)):
+                continue
+            if side_px >= TRACK_MIN_MODULE_PX * code.modules:
                 predicted[payload] = (uv, sigma, code.modules)
+            else:
+                small = True
         if not predicted:
+            rep.frame_outcomes[t] = "too_small" if small else "none_in_view"
             continue
         image = stream.load_image(i)
         if image is None:
+            rep.frame_outcomes[t] = "no_image"
             continue
         rep.frames_tried += 1
+        before = TrackStats(**vars(tracker.stats))
         tracked = tracker.step(
             image, FLOOR, t, frame_dets, [None] * len(frame_dets), predicted, own_motion=False
         )
         if not tracked:
+            if tracker.stats.gated > before.gated:
+                rep.frame_outcomes[t] = "gated"
+            elif tracker.stats.refine_failed > before.refine_failed:
+                rep.frame_outcomes[t] = "refine_failed"
+            else:
+                rep.frame_outcomes[t] = "ambiguous"
             continue
         out.extend(tracked)
         rep.frames_tracked += 1
@@ -306,7 +450,9 @@ def _track_chunk(context, task: tuple[int, int]):
         floor = classify(frame_dets + tracked, world).floor
         res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
         if res is None:
+            rep.frame_outcomes[t] = "pnp_failed"
             continue
+        rep.frame_outcomes[t] = "posed"
         rep.poses_added += not predictor.has_first_pose(t)
         position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
         if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
@@ -342,12 +488,15 @@ def track_flight(
     first_t = np.asarray(traj_pnp.timestamps_ns, dtype=np.int64)
     first_T = np.asarray(traj_pnp.T_world_body, dtype=float)
     chunks = track_chunks(first_t, stream.timestamps_ns, len(stream))
-    context = (stream, camera, log.world, catalogue, first_t, first_T, decoded, corner_sigma_px)
+    imu = getattr(log, "imu", None)
+    bridge = ImuBridge(imu) if imu is not None and len(imu.timestamps_ns) > 1 else None
+    context = (stream, camera, log.world, catalogue, first_t, first_T, decoded, corner_sigma_px, bridge)
     tracked: list[QRDetection] = []
     for chunk_dets, chunk_rep in parallel_map(
         _track_chunk, chunks, max(1, min(workers, len(chunks))), context, preload=["fusion.qr.predict"]
     ):
         tracked.extend(chunk_dets)
+        rep.frame_outcomes.update(chunk_rep.frame_outcomes)
         for k, v in vars(chunk_rep.stats).items():
             setattr(rep.stats, k, getattr(rep.stats, k) + v)
         for name in (
