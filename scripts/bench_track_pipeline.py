@@ -114,6 +114,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         posed_final=sum(int(t) in final for t in stamps[mask]),
         in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
         tracked=rep.stats.tracked,
+        tracker={k: int(v) for k, v in vars(rep.stats).items()},
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
     )

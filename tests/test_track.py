@@ -402,3 +402,34 @@ def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path)
     assert len(on.trajectories["paper"]) == len(no.trajectories["paper"])  # decoded codes only
     back = read_cache(out / CACHE_NAME)
     assert back is not None and not any(d.tracked for d in back.detections)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_locate_symbol_finds_a_blurred_code_several_px_from_its_prediction(seed):
+    from fusion.qr.track import TRACK_LOCATE_MIN_NCC, locate_symbol
+
+    rng = np.random.default_rng(seed)
+    frames = _frames(4, blur_from=0, seed=seed)
+    img, _, truth = frames[3]
+    offset = rng.uniform(-6.0, 6.0, 2)
+    found = locate_symbol(img, truth + offset, 21, 8.0)
+    assert found is not None
+    shift, ncc = found
+    assert ncc > 0.6 and np.all(np.abs(shift + offset) <= 1.0)
+    # nothing there: a weak best match; no room for the search window: None
+    assert locate_symbol(np.full_like(img, 128), truth, 21, 8.0)[1] < TRACK_LOCATE_MIN_NCC
+    noise = rng.integers(0, 255, img.shape).astype(np.uint8)
+    assert locate_symbol(noise, truth, 21, 8.0)[1] < TRACK_LOCATE_MIN_NCC
+    assert locate_symbol(img, truth - truth.min(axis=0) + 2.0, 21, 8.0) is None
+
+
+def test_function_pattern_template_has_the_finders_separators_and_timing():
+    from fusion.qr.track import function_pattern_template
+
+    g = function_pattern_template(25)
+    assert g.shape == (27, 27)
+    sym = g[1:-1, 1:-1]
+    assert np.all(sym[0, :7] == 0) and np.all(sym[1, 1:6] == 1) and np.all(sym[2:5, 2:5] == 0)
+    assert np.all(sym[7, :8] == 1) and np.all(sym[:8, 17] == 1)  # separators
+    assert list(sym[6, 8:17]) == [0, 1, 0, 1, 0, 1, 0, 1, 0]  # timing: dark at even indices
+    assert np.isnan(sym[20, 20]) and np.all(g[0] == 1)  # data unknown, quiet zone light

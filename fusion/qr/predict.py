@@ -75,6 +75,12 @@ VELOCITY_BASELINE_S = 0.05  # velocity over at least this (consecutive poses: th
 # An accelerometer bias b leaves at most b T^2 / 8 with both ends pinned (T = 2 s, 0.05 m/s^2:
 # 2.5 cm)
 MAX_IMU_BRIDGE_S = 2.0
+# The bridge's accelerometer-bias fit from the poses around a gap (ImuBridge.bridge `extra`):
+# poses this far outside the gap, PnP's position noise, the bias prior (a MEMS accelerometer's
+# turn-on bias, tens of mg; the simulator's default flight drifted 0.13 m/s^2: BENCHMARKS.md)
+BIAS_WINDOW_S = 0.5
+POSE_NOISE_M = 0.002
+ACCEL_BIAS_PRIOR_M_S2 = 0.3
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -GRAVITY_M_S2])  # world z up
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
@@ -196,18 +202,47 @@ class ImuBridge:
         return tt, R, vel, disp
 
     def bridge(
-        self, t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int
+        self, t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int, extra=()
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(T_world_body (4, 4) at t in [t0, t1], world velocity (3,) at t0 and at t1) between
-        the poses (class docstring)."""
-        tt, R, vel, disp = self._motion(t0, t1, T0[:3, :3])
+        the poses (class docstring).  `extra`: more poses [(t_ns, p_world (3,))] near the ends:
+        with them a constant world-frame acceleration bias b is fitted too (p(t) gains
+        -b (t - t0)^2 / 2; least squares with a zero-mean prior of ACCEL_BIAS_PRIOR_M_S2)."""
+        R0 = T0[:3, :3]
+        tt, R, vel, disp = self._motion(t0, t1, R0)
         span = tt[-1]
         d = so3_log(R[-1].T @ T1[:3, :3])
-        v0 = (T1[:3, 3] - T0[:3, 3] - disp[-1]) / span
-        s_t, R_t, _, disp_t = self._motion(t0, t, T0[:3, :3])
+        s_t, R_t, _, disp_t = self._motion(t0, t, R0)
         s = s_t[-1]
-        T = make_T(R_t[-1] @ so3_exp((s / span) * d), T0[:3, 3] + v0 * s + disp_t[-1])
-        return T, v0, v0 + vel[-1]
+        v0, b = (T1[:3, 3] - T0[:3, 3] - disp[-1]) / span, np.zeros(3)
+        extra = [(int(te), np.asarray(pe, float)) for te, pe in extra if te != t0 and te != t1]
+        if extra:
+            rows_s, rows_y = [span], [T1[:3, 3] - T0[:3, 3] - disp[-1]]
+            for side in (-1, 1):
+                ends = [te for te, _ in extra if (te > t0) == (side > 0)]
+                if not ends:
+                    continue
+                t_end = max(max(ends), t1) if side > 0 else min(ends)
+                mt, _, _, md = self._motion(t0, t_end, R0)
+                if side < 0:
+                    mt, md = mt[::-1], md[::-1]
+                for te, pe in extra:
+                    if (te > t0) == (side > 0):
+                        se = (te - t0) * 1e-9
+                        rows_s.append(se)
+                        rows_y.append(
+                            pe - T0[:3, 3] - np.array([np.interp(se, mt, md[:, a]) for a in range(3)])
+                        )
+            sk = np.asarray(rows_s)
+            # per axis: y_k = v0 s_k - b s_k^2 / 2 (noise POSE_NOISE_M), prior b ~ N(0, prior^2)
+            A = np.vstack(
+                [np.column_stack([sk, -0.5 * sk**2]) / POSE_NOISE_M, [[0.0, 1.0 / ACCEL_BIAS_PRIOR_M_S2]]]
+            )
+            Y = np.vstack([np.asarray(rows_y) / POSE_NOISE_M, np.zeros((1, 3))])
+            v0, b = np.linalg.lstsq(A, Y, rcond=None)[0]
+        p_t = T0[:3, 3] + v0 * s + disp_t[-1] - 0.5 * b * s * s
+        T = make_T(R_t[-1] @ so3_exp((s / span) * d), p_t)
+        return T, v0, v0 + vel[-1] - b * span
 
     def extrapolate(self, t1: int, T1: np.ndarray, v1: np.ndarray, t: int) -> np.ndarray:
         """T_world_body (4, 4) at t (before or after t1) from the pose and world velocity at t1."""
@@ -284,7 +319,13 @@ class PosePredictor:
         if before and after:
             (t0, T0), (t1, T1) = before[0], after[0]
             if (t1 - t0) * 1e-9 <= MAX_IMU_BRIDGE_S and imu.covers(t0, t1):
-                return imu.bridge(t0, T0, t1, T1, t)[0], min(t - t0, t1 - t) * 1e-9
+                extra = [
+                    (te, Te[:3, 3])
+                    for te, Te in before[1:] + after[1:]
+                    if min(abs(te - t0), abs(te - t1)) * 1e-9 <= BIAS_WINDOW_S
+                    and imu.covers(min(te, t0), max(te, t1))
+                ]
+                return imu.bridge(t0, T0, t1, T1, t, extra)[0], min(t - t0, t1 - t) * 1e-9
         cands = []
         for near, far in ((before, True), (after, False)):
             if not near or abs(t - near[0][0]) * 1e-9 > MAX_EXTRAPOLATION_S:
