@@ -17,6 +17,14 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
 
 Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
 
+`--occlude SRC DST --occluder strip|square|none [--fraction 0.1]`: DST = a copy of the flight SRC
+whose floor images get, on every floor code in view at the true pose, the simulator's occluder
+(render.occlusion_polygon's strip from a random side, fusion simulate --occlusion) or a square
+of the same area at a random place inside the symbol, drawn anew every frame (a strap or a hand
+that moves), with the simulator's grey (render.OCCLUDER_DN): the simulator's occluder measured
+against a less adversarial one on the same flight (`occlusion_decode_rates` counts zxing's
+decodes per kind on a flight's frames).
+
 `--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
 cache when there is one), and every floor frame without a PnP pose after the pass counted by why
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
@@ -30,18 +38,20 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from fusion.geometry import interpolate_poses
 from fusion.log import read_flight
 from fusion.log.files import read_tum
 from fusion.pipeline import RunConfig, localize_stage, run
-from fusion.qr.detect import CACHE_NAME, detect_flight, read_cache
+from fusion.qr.detect import CACHE_NAME, detect_flight, detect_image, read_cache
 from fusion.qr.predict import track_flight, without_tracked
-from fusion.sim.render import project_code_corners
+from fusion.sim.render import OCCLUDER_DN, occlusion_polygon, project_code_corners
 from fusion.sim.scenarios import build_scenario
 from fusion.types import Estimator
 
+OCCLUDE_SEED = 0
 EDGE_MARGIN_PX = 2.0  # a code counts as in view when its corners are this far inside the image
 
 
@@ -120,6 +130,76 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     )
 
 
+def occluder_polygon(quad: np.ndarray, fraction: float, kind: str, rng) -> np.ndarray | None:
+    """Image polygon (n, 2) hiding `fraction` of the symbol with image corners `quad` (4, 2):
+    "strip" from a random side (the simulator's), "square" of that area at a random place inside
+    the symbol; None for "none"."""
+    if kind == "none":
+        return None
+    if kind == "strip":
+        return occlusion_polygon(quad, fraction, int(rng.integers(0, 4)))
+    a = float(np.sqrt(fraction))
+    u0, v0 = rng.uniform(0.0, 1.0 - a, 2)
+    unit = np.array([[u0, v0], [u0 + a, v0], [u0 + a, v0 + a], [u0, v0 + a]], np.float32)
+    H = cv2.getPerspectiveTransform(
+        np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32), np.asarray(quad, np.float32)
+    )
+    return cv2.perspectiveTransform(unit[None], H)[0]
+
+
+def _occlude(img: np.ndarray, quads, fraction: float, kind: str, rng) -> np.ndarray:
+    out = img.astype(np.float32)
+    for quad in quads:
+        poly = occluder_polygon(quad, fraction, kind, rng)
+        if poly is None:
+            continue
+        mask = np.zeros(img.shape, np.uint8)
+        cv2.fillConvexPoly(mask, np.round(poly * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
+        a = mask.astype(np.float32) / 255.0
+        out = out * (1.0 - a) + a * OCCLUDER_DN
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def occlude_flight(src: Path, dst: Path, fraction: float, kind: str) -> None:
+    """DST: a copy of flight SRC with its floor codes occluded in every floor image (module
+    docstring, `--occlude`)."""
+    shutil.copytree(src, dst, dirs_exist_ok=False)
+    log = read_flight(dst)
+    stamps, _, truth = _floor_frames(log)
+    rng = np.random.default_rng(OCCLUDE_SEED)
+    for k, t in enumerate(stamps):
+        quads = [uv for uv in truth[int(t)].values()]
+        img = log.floor.load_image(k)
+        path = dst / "mav0" / "cam0" / "data" / f"{int(t)}.png"
+        cv2.imwrite(str(path), _occlude(img, quads, fraction, kind, rng))
+
+
+def occlusion_decode_rates(flight: Path, fraction: float, every: int = 10) -> dict:
+    """{kind: share of floor codes in view (every `every`-th frame) that zxing decodes} with each
+    occluder kind drawn on the same frames."""
+    log = read_flight(flight)
+    stamps, mask, truth = _floor_frames(log)
+    rng = np.random.default_rng(OCCLUDE_SEED)
+    out = {}
+    for kind in ("none", "square", "strip"):
+        seen = decoded = 0
+        for k in range(0, len(stamps), every):
+            if not mask[k]:
+                continue
+            w, h = log.floor.camera.width, log.floor.camera.height
+            codes = {
+                p: uv
+                for p, uv in truth[int(stamps[k])].items()
+                if np.all((uv >= EDGE_MARGIN_PX) & (uv <= [w - 1 - EDGE_MARGIN_PX, h - 1 - EDGE_MARGIN_PX]))
+            }
+            img = _occlude(log.floor.load_image(k), list(codes.values()), fraction, kind, rng)
+            got = {d.payload for d in detect_image(img, "zxing")}
+            seen += len(codes)
+            decoded += len(got & set(codes))
+        out[kind] = decoded / max(seen, 1)
+    return out
+
+
 def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True) -> dict:
     """Run the pipeline (unless `rerun` is False and OUT holds a finished run) and score it."""
     if rerun or not (out_dir / "metrics.json").is_file():
@@ -181,7 +261,18 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true", help="score finished runs in OUT without running")
     ap.add_argument("--reasons", action="store_true", help="no fusion: why floor frames have no pose")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--occlude", action="store_true", help="FLIGHTS = SRC DST: make DST (module docstring)")
+    ap.add_argument("--occluder", choices=["strip", "square", "none"], default="square")
+    ap.add_argument("--fraction", type=float, default=0.1)
+    ap.add_argument("--decode-rates", action="store_true", help="zxing's decode share per occluder kind")
     args = ap.parse_args(argv)
+    if args.occlude:
+        occlude_flight(args.flights[0], args.flights[1], args.fraction, args.occluder)
+        return 0
+    if args.decode_rates:
+        for flight in args.flights:
+            print(flight.name, json.dumps(occlusion_decode_rates(flight, args.fraction)), flush=True)
+        return 0
     if args.reasons:
         for flight in args.flights:
             r = loss_reasons(flight, args.out / f"{flight.name}-{args.modes[0]}", args.workers)
