@@ -87,6 +87,27 @@ def _floor_frames(log) -> tuple[np.ndarray, np.ndarray, dict]:
     return stamps, mask, truth_by_t
 
 
+def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
+    """(wrong identities, worst corner error px of each right one) of the tracked sightings: wrong
+    when the named code is not in front of the camera or another code's true centre is nearer."""
+    wrong, errs = 0, []
+    for t, dets in by_frame.items():
+        truth = truth_by_t.get(int(t), {})
+        centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
+        for d in dets:
+            if not d.tracked:
+                continue
+            own = centres.get(d.payload)
+            c = d.corners_px.mean(axis=0)
+            if own is None or any(
+                np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
+            ):
+                wrong += 1
+                continue
+            errs.append(float(np.max(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))))
+    return wrong, errs
+
+
 def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dict:
     """Floor frames, posed before / after the track pass, and the unposed ones after it counted
     by reason (module docstring, `--reasons`); no fusion."""
@@ -101,7 +122,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     first = set(int(t) for t in loc.trajectories[pnp].timestamps_ns)
     tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
     final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
-    stamps, mask, _ = _floor_frames(log)
+    stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
     decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
     reasons: dict[str, int] = {}
@@ -118,8 +139,11 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
             if why == "posed":  # the pass's pose, refused by the per-frame stage's checks
                 why = "posed_in_pass_refused_later"
         reasons[why] = reasons.get(why, 0) + 1
+    wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
     return dict(
         floor_frames=int(mask.sum()),
+        wrong_ids=wrong,
+        tracked_err_px_median_max=[float(np.median(errs)), float(np.max(errs))] if errs else [],
         posed_first=sum(int(t) in first for t in stamps[mask]),
         posed_final=sum(int(t) in final for t in stamps[mask]),
         in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),

@@ -433,3 +433,18 @@ def test_function_pattern_template_has_the_finders_separators_and_timing():
     assert np.all(sym[7, :8] == 1) and np.all(sym[:8, 17] == 1)  # separators
     assert list(sym[6, 8:17]) == [0, 1, 0, 1, 0, 1, 0, 1, 0]  # timing: dark at even indices
     assert np.isnan(sym[20, 20]) and np.all(g[0] == 1)  # data unknown, quiet zone light
+
+
+def test_track_pass_drops_tracked_codes_whose_pose_disagrees_with_the_prediction(monkeypatch):
+    """With a pose gate no PnP pose can meet (1 um), every blurred frame's tracked codes are
+    dropped and counted as pose-gated, none is written; with the default gate they are kept."""
+    from fusion.qr import predict
+
+    log, det, traj, _ = _track_flight_fixture()
+    monkeypatch.setattr(predict, "POSE_GATE_M", 1e-6)
+    monkeypatch.setattr(predict, "POSE_GATE_M_PER_S", 0.0)
+    out, rep = predict.track_flight(log, det, traj, 0.15)
+    blurred_ts = [int(round(k * 1e9 / RATE_HZ)) for k in range(3, 11)]
+    assert out is det and rep.stats.tracked == 0 and rep.stats.pose_gated >= len(blurred_ts)
+    assert all(rep.frame_outcomes[t] == "pose_gated" for t in blurred_ts)
+    assert rep.frames_tracked == rep.poses_added == 0

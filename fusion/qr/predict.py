@@ -92,6 +92,12 @@ TRACK_MIN_MODULE_PX = 2.5
 # 3-50 cm on a 20 ms-exposure flight (good ones: 0.04 cm), and fed back, the next predictions
 # followed them
 MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
+# A frame's tracked sightings are kept only when PnP on the frame's codes (decoded and tracked)
+# puts the body within POSE_GATE_M + POSE_GATE_M_PER_S x horizon of the predicted pose (a
+# pose-level innovation gate): on a 20 ms-exposure flight single tracked codes 1-9 px off gave
+# PnP poses 13-63 cm off, the IMU-bridged prediction there was within 1 cm (BENCHMARKS.md)
+POSE_GATE_M = 0.05
+POSE_GATE_M_PER_S = 0.1
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
 # What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
@@ -103,6 +109,8 @@ OUTCOMES = (
     "ambiguous",  # every try was next to a decoded code
     "refine_failed",  # ... tried; refinement failed on every one (none gated)
     "gated",  # ... tried; at least one refused by the innovation gate, none accepted
+    "pose_gated",  # codes tracked, but PnP with them put the body beyond POSE_GATE_M (+ per s)
+    # of the predicted pose: the tracked sightings are dropped
     "pnp_failed",  # codes tracked, but PnP on the frame's codes found no pose
     "posed",  # codes tracked and a PnP pose found
 )
@@ -485,11 +493,17 @@ def _track_chunk(context, task: tuple[int, int]):
             else:
                 rep.frame_outcomes[t] = "ambiguous"
             continue
+        floor = classify(frame_dets + tracked, world).floor
+        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
+        gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
+        if res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m:
+            rep.frame_outcomes[t] = "pose_gated"  # the tracked codes disagree with the prediction
+            tracker.stats.tracked -= len(tracked)
+            tracker.stats.pose_gated += len(tracked)
+            continue
         out.extend(tracked)
         rep.frames_tracked += 1
         rep.frames_tracked_only += not frame_dets
-        floor = classify(frame_dets + tracked, world).floor
-        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
         if res is None:
             rep.frame_outcomes[t] = "pnp_failed"
             continue

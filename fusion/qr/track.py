@@ -177,6 +177,7 @@ class TrackStats:
     gated: int = 0  # innovation too large: not the predicted code
     gated_far: int = 0  # ... of them: a corner beyond TRACK_GATE_MODULES of the prediction
     ambiguous: int = 0  # a decoded code where the prediction lies
+    pose_gated: int = 0  # accepted here, dropped by the caller (fusion.qr.predict's pose gate)
 
 
 class CodeTracker:
