@@ -9,19 +9,24 @@ localisation (pipeline.track_stage):
    payload, fusion.qr.codes.classify; its modules per side from one re-decoded image).  Only
    these codes can be tracked: a code never decoded has no identity to give.
 2. Per floor frame, in time order, the body pose predicted offline from the PnP poses on both
-   sides (`PosePredictor`): the frame's own first-pass pose; else linear / geodesic
-   interpolation between the last pose before (first pass, or found earlier in this pass) and
-   the next first-pass pose, when they are at most MAX_INTERPOLATION_GAP_S apart; else constant
-   velocity extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
-   MAX_EXTRAPOLATION_S ahead, forward or backward.  Offline both sides are known, so no IMU
-   model is needed (IMU propagation and a first fused pass were not compared: BENCHMARKS.md).
+   sides (`PosePredictor`): the frame's own first-pass pose; with an IMU (`ImuBridge`), the
+   IMU's motion between the last pose before (first pass, or found earlier in this pass) and
+   the next first-pass pose when they are at most MAX_IMU_BRIDGE_S apart (rotation from the
+   gyro, position double-integrated and pinned at both poses, a constant accelerometer bias
+   fitted from the poses around the gap), else extrapolated with the IMU at most
+   MAX_EXTRAPOLATION_S; without one (or where it does not apply), linear / geodesic
+   interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
+   extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
+   MAX_EXTRAPOLATION_S ahead, forward or backward.
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
    TRACK_MIN_MODULE_PX, with a prediction sigma of
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
-   with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones), which
-   later frames' predictions use when its position sigma is at most
+   with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones); its
+   tracked codes are kept only when that pose lies within POSE_GATE_M (+ POSE_GATE_M_PER_S x
+   the time to the nearest pose used) of the predicted one; that pose predicts
+   later frames when its position sigma is at most
    MAX_FEEDBACK_POSITION_SIGMA_M, so a code is followed through a long stretch of blur.
 4. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
    first-pass poses within MAX_EXTRAPOLATION_S (a fresh start loses little there); the cut
