@@ -16,6 +16,19 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
 Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
+
+`--occlude SRC DST --occluder strip|square|none [--fraction 0.1]`: DST = a copy of the flight SRC
+whose floor images get, on every floor code in view at the true pose, the simulator's occluder
+(render.occlusion_polygon's strip from a random side, fusion simulate --occlusion) or a square
+of the same area at a random place inside the symbol, drawn anew every frame (a strap or a hand
+that moves), with the simulator's grey (render.OCCLUDER_DN): the simulator's occluder measured
+against a less adversarial one on the same flight (`occlusion_decode_rates` counts zxing's
+decodes per kind on a flight's frames).
+
+`--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
+cache when there is one), and every floor frame without a PnP pose after the pass counted by why
+(`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
+frame (fusion.qr.predict.OUTCOMES).
 """
 
 from __future__ import annotations
@@ -25,16 +38,20 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from fusion.geometry import interpolate_poses
 from fusion.log import read_flight
 from fusion.log.files import read_tum
-from fusion.pipeline import RunConfig, run
-from fusion.qr.detect import CACHE_NAME, read_cache
-from fusion.sim.render import project_code_corners
+from fusion.pipeline import RunConfig, localize_stage, run
+from fusion.qr.detect import CACHE_NAME, detect_flight, detect_image, read_cache
+from fusion.qr.predict import track_flight, without_tracked
+from fusion.sim.render import OCCLUDER_DN, occlusion_polygon, project_code_corners
 from fusion.sim.scenarios import build_scenario
+from fusion.types import Estimator
 
+OCCLUDE_SEED = 0
 EDGE_MARGIN_PX = 2.0  # a code counts as in view when its corners are this far inside the image
 
 
@@ -46,6 +63,164 @@ def _truth_corners(camera, T_world_body: np.ndarray, codes) -> dict[str, np.ndar
         uv = project_code_corners(camera, T_world_cam, c)  # NaN behind the camera
         if np.all(np.isfinite(uv)):
             out[c.payload] = uv
+    return out
+
+
+def _floor_frames(log) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(floor stamps (N,), floor-frame mask (N,): a floor code entirely in the image at the true
+    pose, {stamp: true corners by payload})."""
+    cam = log.floor.camera
+    codes = [c for c in build_scenario("default").codes() if c.is_floor]
+    gt = log.groundtruth
+    stamps = np.asarray(log.floor.timestamps_ns, dtype=np.int64)
+    T_true = interpolate_poses(gt.timestamps_ns.astype(float), gt.T_world_body, stamps.astype(float))
+    w, h = cam.width, cam.height
+    mask = np.zeros(len(stamps), bool)
+    truth_by_t = {}
+    for k, t in enumerate(stamps):
+        truth = _truth_corners(cam, T_true[k], codes)
+        truth_by_t[int(t)] = truth
+        mask[k] = any(
+            np.all((uv >= EDGE_MARGIN_PX) & (uv <= [w - 1 - EDGE_MARGIN_PX, h - 1 - EDGE_MARGIN_PX]))
+            for uv in truth.values()
+        )
+    return stamps, mask, truth_by_t
+
+
+def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
+    """(wrong identities, worst corner error px of each right one) of the tracked sightings: wrong
+    when the named code is not in front of the camera or another code's true centre is nearer."""
+    wrong, errs = 0, []
+    for t, dets in by_frame.items():
+        truth = truth_by_t.get(int(t), {})
+        centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
+        for d in dets:
+            if not d.tracked:
+                continue
+            own = centres.get(d.payload)
+            c = d.corners_px.mean(axis=0)
+            if own is None or any(
+                np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
+            ):
+                wrong += 1
+                continue
+            errs.append(float(np.max(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))))
+    return wrong, errs
+
+
+def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dict:
+    """Floor frames, posed before / after the track pass, and the unposed ones after it counted
+    by reason (module docstring, `--reasons`); no fusion."""
+    log = read_flight(flight)
+    cfg = RunConfig(progress=False, workers=workers)
+    det = read_cache(out_dir / CACHE_NAME) if (out_dir / CACHE_NAME).is_file() else None
+    if det is None:
+        det = detect_flight(log, workers=workers or 1)
+    det = without_tracked(det)
+    loc = localize_stage(log, det, cfg)
+    pnp = str(Estimator.PNP)
+    first = set(int(t) for t in loc.trajectories[pnp].timestamps_ns)
+    tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
+    final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
+    stamps, mask, truth_by_t = _floor_frames(log)
+    blackouts = log.blackouts or []
+    decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
+    reasons: dict[str, int] = {}
+    for t, is_floor in zip(stamps, mask):
+        t = int(t)
+        if not is_floor or t in final:
+            continue
+        if any(a <= t <= b for a, b, _ in blackouts):
+            why = "blackout"
+        elif t in decoded and t not in first:
+            why = "decoded_no_pnp"
+        else:
+            why = rep.frame_outcomes.get(t, "not_looked_at")
+            if why == "posed":  # the pass's pose, refused by the per-frame stage's checks
+                why = "posed_in_pass_refused_later"
+        reasons[why] = reasons.get(why, 0) + 1
+    wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
+    return dict(
+        floor_frames=int(mask.sum()),
+        wrong_ids=wrong,
+        tracked_err_px_median_max=[float(np.median(errs)), float(np.max(errs))] if errs else [],
+        posed_first=sum(int(t) in first for t in stamps[mask]),
+        posed_final=sum(int(t) in final for t in stamps[mask]),
+        in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
+        tracked=rep.stats.tracked,
+        tracker={k: int(v) for k, v in vars(rep.stats).items()},
+        reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
+        seconds=rep.seconds,
+    )
+
+
+def occluder_polygon(quad: np.ndarray, fraction: float, kind: str, rng) -> np.ndarray | None:
+    """Image polygon (n, 2) hiding `fraction` of the symbol with image corners `quad` (4, 2):
+    "strip" from a random side (the simulator's), "square" of that area at a random place inside
+    the symbol; None for "none"."""
+    if kind == "none":
+        return None
+    if kind == "strip":
+        return occlusion_polygon(quad, fraction, int(rng.integers(0, 4)))
+    a = float(np.sqrt(fraction))
+    u0, v0 = rng.uniform(0.0, 1.0 - a, 2)
+    unit = np.array([[u0, v0], [u0 + a, v0], [u0 + a, v0 + a], [u0, v0 + a]], np.float32)
+    H = cv2.getPerspectiveTransform(
+        np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32), np.asarray(quad, np.float32)
+    )
+    return cv2.perspectiveTransform(unit[None], H)[0]
+
+
+def _occlude(img: np.ndarray, quads, fraction: float, kind: str, rng) -> np.ndarray:
+    out = img.astype(np.float32)
+    for quad in quads:
+        poly = occluder_polygon(quad, fraction, kind, rng)
+        if poly is None:
+            continue
+        mask = np.zeros(img.shape, np.uint8)
+        cv2.fillConvexPoly(mask, np.round(poly * 16).astype(np.int32), 255, cv2.LINE_AA, 4)
+        a = mask.astype(np.float32) / 255.0
+        out = out * (1.0 - a) + a * OCCLUDER_DN
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def occlude_flight(src: Path, dst: Path, fraction: float, kind: str) -> None:
+    """DST: a copy of flight SRC with its floor codes occluded in every floor image (module
+    docstring, `--occlude`)."""
+    shutil.copytree(src, dst, dirs_exist_ok=False)
+    log = read_flight(dst)
+    stamps, _, truth = _floor_frames(log)
+    rng = np.random.default_rng(OCCLUDE_SEED)
+    for k, t in enumerate(stamps):
+        quads = [uv for uv in truth[int(t)].values()]
+        img = log.floor.load_image(k)
+        path = dst / "mav0" / "cam0" / "data" / f"{int(t)}.png"
+        cv2.imwrite(str(path), _occlude(img, quads, fraction, kind, rng))
+
+
+def occlusion_decode_rates(flight: Path, fraction: float, every: int = 10) -> dict:
+    """{kind: share of floor codes in view (every `every`-th frame) that zxing decodes} with each
+    occluder kind drawn on the same frames."""
+    log = read_flight(flight)
+    stamps, mask, truth = _floor_frames(log)
+    rng = np.random.default_rng(OCCLUDE_SEED)
+    out = {}
+    for kind in ("none", "square", "strip"):
+        seen = decoded = 0
+        for k in range(0, len(stamps), every):
+            if not mask[k]:
+                continue
+            w, h = log.floor.camera.width, log.floor.camera.height
+            codes = {
+                p: uv
+                for p, uv in truth[int(stamps[k])].items()
+                if np.all((uv >= EDGE_MARGIN_PX) & (uv <= [w - 1 - EDGE_MARGIN_PX, h - 1 - EDGE_MARGIN_PX]))
+            }
+            img = _occlude(log.floor.load_image(k), list(codes.values()), fraction, kind, rng)
+            got = {d.payload for d in detect_image(img, "zxing")}
+            seen += len(codes)
+            decoded += len(got & set(codes))
+        out[kind] = decoded / max(seen, 1)
     return out
 
 
@@ -108,7 +283,25 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="+", default=["no-track", "track"], choices=["no-track", "track"])
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     ap.add_argument("--reuse", action="store_true", help="score finished runs in OUT without running")
+    ap.add_argument("--reasons", action="store_true", help="no fusion: why floor frames have no pose")
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--occlude", action="store_true", help="FLIGHTS = SRC DST: make DST (module docstring)")
+    ap.add_argument("--occluder", choices=["strip", "square", "none"], default="square")
+    ap.add_argument("--fraction", type=float, default=0.1)
+    ap.add_argument("--decode-rates", action="store_true", help="zxing's decode share per occluder kind")
     args = ap.parse_args(argv)
+    if args.occlude:
+        occlude_flight(args.flights[0], args.flights[1], args.fraction, args.occluder)
+        return 0
+    if args.decode_rates:
+        for flight in args.flights:
+            print(flight.name, json.dumps(occlusion_decode_rates(flight, args.fraction)), flush=True)
+        return 0
+    if args.reasons:
+        for flight in args.flights:
+            r = loss_reasons(flight, args.out / f"{flight.name}-{args.modes[0]}", args.workers)
+            print(flight.name, json.dumps(r), flush=True)
+        return 0
     rows = []
     print(
         "| flight | mode | floor frames | with a PnP pose | decoded | tracked | wrong ids "

@@ -180,6 +180,115 @@ def test_pose_predictor_interpolates_and_extrapolates_constant_motion_exactly():
     assert horizon == pytest.approx(1 / RATE_HZ) and abs(T[2, 3] - _flight_pose(16 / RATE_HZ)[2, 3]) > 0.005
 
 
+def _accelerating_pose(t_s: float) -> np.ndarray:
+    """A body accelerating along x while it pitches and yaws (what a multirotor does entering a
+    cruise): the geodesic interpolation between two poses misses its rotation in between."""
+    from fusion.geometry import R_from_euler
+
+    R = R_from_euler("zyx", [0.3 * t_s, 0.25 * np.sin(2.0 * t_s), 0.1 * np.sin(3.0 * t_s)])
+    return make_T(R, [0.4 * t_s**2, 0.2 * np.sin(2.0 * t_s), 1.2 + 0.1 * t_s])
+
+
+def _imu_of(pose_fn, t_end_s: float, rate_hz: float = 400.0, accel_bias=(0.0, 0.0, 0.0)):
+    """IMU samples (body frame = IMU frame) of `pose_fn` by central differences: gyro
+    Log(R(t - h)^T R(t + h)) / 2h, specific force R^T (p'' - g)."""
+    from types import SimpleNamespace
+
+    from fusion.geometry import so3_log
+
+    h = 1e-4
+    ts = np.arange(0.0, t_end_s + 1e-9, 1.0 / rate_hz)
+    gyro, force = [], []
+    for t in ts:
+        Ta, Tb, Tc = pose_fn(t - h), pose_fn(t), pose_fn(t + h)
+        gyro.append(so3_log(Ta[:3, :3].T @ Tc[:3, :3]) / (2 * h))
+        acc = (Ta[:3, 3] - 2 * Tb[:3, 3] + Tc[:3, 3]) / h**2
+        force.append(Tb[:3, :3].T @ (acc - np.array([0.0, 0.0, -9.81])) + np.asarray(accel_bias))
+    return SimpleNamespace(
+        timestamps_ns=np.round(ts * 1e9).astype(np.int64),
+        gyro_rad_s=np.array(gyro),
+        accel_m_s2=np.array(force),
+        T_body_imu=np.eye(4),
+    )
+
+
+def _pose_error(T, T_true) -> tuple[float, float]:
+    """(position error m, rotation error rad)."""
+    from fusion.geometry import so3_log
+
+    return float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])), float(
+        np.linalg.norm(so3_log(T[:3, :3].T @ T_true[:3, :3]))
+    )
+
+
+def test_imu_bridge_meets_both_poses_and_follows_the_motion_between():
+    from fusion.qr.predict import ImuBridge
+
+    bridge = ImuBridge(_imu_of(_accelerating_pose, 3.0))
+    t0, t1 = int(0.5e9), int(2.0e9)
+    T0, T1 = _accelerating_pose(0.5), _accelerating_pose(2.0)
+    for t in (t0, int(0.9e9), int(1.25e9), int(1.7e9), t1):
+        T, v0, v1 = bridge.bridge(t0, T0, t1, T1, t)
+        dp, dr = _pose_error(T, _accelerating_pose(t * 1e-9))
+        assert dp < 1e-3 and dr < 1e-3, (t, dp, dr)
+    # the geodesic interpolation is centimetres and degrees off in the middle
+    from fusion.geometry import interpolate_pose
+
+    dp, dr = _pose_error(interpolate_pose(T0, T1, 0.5), _accelerating_pose(1.25))
+    assert dp > 0.05 and dr > 0.02
+    # velocities at both ends: the true ones
+    for t_s, v in ((0.5, v0), (2.0, v1)):
+        v_true = (_accelerating_pose(t_s + 1e-4)[:3, 3] - _accelerating_pose(t_s - 1e-4)[:3, 3]) / 2e-4
+        assert np.allclose(v, v_true, atol=2e-3)
+    # forward and backward extrapolation from a pose and its velocity
+    for t_from, v, t_to in ((2.0, v1, 2.4), (0.5, v0, 0.1)):
+        T = bridge.extrapolate(int(t_from * 1e9), _accelerating_pose(t_from), v, int(t_to * 1e9))
+        dp, dr = _pose_error(T, _accelerating_pose(t_to))
+        assert dp < 2e-3 and dr < 1e-3, (t_to, dp, dr)
+
+
+def test_imu_bridge_with_an_accelerometer_bias_stays_within_b_t2_over_8():
+    from fusion.qr.predict import ImuBridge
+
+    rng = np.random.default_rng(7)
+    bias = rng.normal(0.0, 0.05, 3)
+    bridge = ImuBridge(_imu_of(_accelerating_pose, 3.0, accel_bias=bias))
+    t0, t1 = 0.5, 2.0
+    worst = 0.0
+    for t in np.linspace(t0, t1, 13):
+        T, _, _ = bridge.bridge(
+            int(t0 * 1e9), _accelerating_pose(t0), int(t1 * 1e9), _accelerating_pose(t1), int(t * 1e9)
+        )
+        worst = max(worst, _pose_error(T, _accelerating_pose(t))[0])
+    bound = np.linalg.norm(bias) * (t1 - t0) ** 2 / 8
+    assert 0.2 * bound < worst < 1.2 * bound
+
+
+def test_pose_predictor_with_an_imu_bridges_gaps_the_geodesic_cannot():
+    from fusion.qr.predict import MAX_EXTRAPOLATION_S, MAX_IMU_BRIDGE_S, ImuBridge, PosePredictor
+
+    stamps = np.array([0.2, 0.3, 1.6, 1.7]) * 1e9
+    stamps = stamps.astype(np.int64)
+    poses = np.array([_accelerating_pose(t * 1e-9) for t in stamps])
+    with_imu = PosePredictor(stamps, poses, ImuBridge(_imu_of(_accelerating_pose, 3.0)))
+    without = PosePredictor(stamps, poses)
+    for t_s in (0.5, 0.95, 1.4):  # inside the 1.3 s gap
+        T, horizon = with_imu.predict(int(t_s * 1e9))
+        dp, dr = _pose_error(T, _accelerating_pose(t_s))
+        assert dp < 2e-3 and dr < 2e-3
+        assert horizon == pytest.approx(min(t_s - 0.3, 1.6 - t_s))
+        geo = without.predict(int(t_s * 1e9))  # none (gap over 1 s) or constant velocity: far off
+        assert geo is None or _pose_error(geo[0], _accelerating_pose(t_s))[0] > 10 * dp
+    for t_s in (1.7 + 0.8 * MAX_EXTRAPOLATION_S, 0.2 - 0.3 * MAX_EXTRAPOLATION_S):  # ahead, behind
+        T, _ = with_imu.predict(int(t_s * 1e9))
+        dp, dr = _pose_error(T, _accelerating_pose(t_s))
+        assert dp < 5e-3 and dr < 2e-3, (t_s, dp, dr)
+    # beyond the bridge's span: extrapolation only, and nothing beyond that
+    far = PosePredictor(stamps[[0, 1]], poses[[0, 1]], ImuBridge(_imu_of(_accelerating_pose, 3.0)))
+    assert far.predict(int((0.3 + MAX_EXTRAPOLATION_S + 0.05) * 1e9)) is None
+    assert MAX_IMU_BRIDGE_S >= 1.3
+
+
 def test_track_chunks_start_at_posed_frames_and_cover_the_flight():
     from fusion.qr import predict
 
@@ -215,6 +324,8 @@ def test_track_pass_names_blurred_floor_codes_from_the_predicted_pose_and_counts
     assert st.frames_with_tracked_only == rep.frames_tracked_only == len(blurred_ts)
     assert st.frames_with_code == det.stats["cam0"].frames_with_code + len(blurred_ts)
     assert rep.poses_added == len(blurred_ts)
+    assert all(rep.frame_outcomes[t] == "posed" for t in blurred_ts)
+    assert rep.as_dict()["frames_posed"] == rep.outcome_counts()["posed"] >= len(blurred_ts)
     back = without_tracked(out)
     assert vars(back.stats["cam0"]) == vars(det.stats["cam0"]) and len(back.detections) == len(det.detections)
 
@@ -230,6 +341,8 @@ def test_track_pass_does_not_name_a_code_that_is_not_there():
     out, rep = track_flight(log, det, traj, 0.15)
     assert out is det and rep.stats.tracked == 0 and rep.stats.attempts > 0
     assert rep.stats.refine_failed + rep.stats.gated == rep.stats.attempts
+    blank = [rep.frame_outcomes[int(round(k * 1e9 / RATE_HZ))] for k in range(3, 11)]
+    assert set(blank) <= {"refine_failed", "gated"}
 
 
 def test_track_pass_with_two_workers_equals_one(monkeypatch):
@@ -289,3 +402,49 @@ def test_pipeline_track_stage_adds_counts_caches_and_can_be_turned_off(tmp_path)
     assert len(on.trajectories["paper"]) == len(no.trajectories["paper"])  # decoded codes only
     back = read_cache(out / CACHE_NAME)
     assert back is not None and not any(d.tracked for d in back.detections)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_locate_symbol_finds_a_blurred_code_several_px_from_its_prediction(seed):
+    from fusion.qr.track import TRACK_LOCATE_MIN_NCC, locate_symbol
+
+    rng = np.random.default_rng(seed)
+    frames = _frames(4, blur_from=0, seed=seed)
+    img, _, truth = frames[3]
+    offset = rng.uniform(-6.0, 6.0, 2)
+    found = locate_symbol(img, truth + offset, 21, 8.0)
+    assert found is not None
+    shift, ncc = found
+    assert ncc > 0.6 and np.all(np.abs(shift + offset) <= 1.0)
+    # nothing there: a weak best match; no room for the search window: None
+    assert locate_symbol(np.full_like(img, 128), truth, 21, 8.0)[1] < TRACK_LOCATE_MIN_NCC
+    noise = rng.integers(0, 255, img.shape).astype(np.uint8)
+    assert locate_symbol(noise, truth, 21, 8.0)[1] < TRACK_LOCATE_MIN_NCC
+    assert locate_symbol(img, truth - truth.min(axis=0) + 2.0, 21, 8.0) is None
+
+
+def test_function_pattern_template_has_the_finders_separators_and_timing():
+    from fusion.qr.track import function_pattern_template
+
+    g = function_pattern_template(25)
+    assert g.shape == (27, 27)
+    sym = g[1:-1, 1:-1]
+    assert np.all(sym[0, :7] == 0) and np.all(sym[1, 1:6] == 1) and np.all(sym[2:5, 2:5] == 0)
+    assert np.all(sym[7, :8] == 1) and np.all(sym[:8, 17] == 1)  # separators
+    assert list(sym[6, 8:17]) == [0, 1, 0, 1, 0, 1, 0, 1, 0]  # timing: dark at even indices
+    assert np.isnan(sym[20, 20]) and np.all(g[0] == 1)  # data unknown, quiet zone light
+
+
+def test_track_pass_drops_tracked_codes_whose_pose_disagrees_with_the_prediction(monkeypatch):
+    """With a pose gate no PnP pose can meet (1 um), every blurred frame's tracked codes are
+    dropped and counted as pose-gated, none is written; with the default gate they are kept."""
+    from fusion.qr import predict
+
+    log, det, traj, _ = _track_flight_fixture()
+    monkeypatch.setattr(predict, "POSE_GATE_M", 1e-6)
+    monkeypatch.setattr(predict, "POSE_GATE_M_PER_S", 0.0)
+    out, rep = predict.track_flight(log, det, traj, 0.15)
+    blurred_ts = [int(round(k * 1e9 / RATE_HZ)) for k in range(3, 11)]
+    assert out is det and rep.stats.tracked == 0 and rep.stats.pose_gated >= len(blurred_ts)
+    assert all(rep.frame_outcomes[t] == "pose_gated" for t in blurred_ts)
+    assert rep.frames_tracked == rep.poses_added == 0

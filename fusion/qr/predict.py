@@ -9,19 +9,24 @@ localisation (pipeline.track_stage):
    payload, fusion.qr.codes.classify; its modules per side from one re-decoded image).  Only
    these codes can be tracked: a code never decoded has no identity to give.
 2. Per floor frame, in time order, the body pose predicted offline from the PnP poses on both
-   sides (`PosePredictor`): the frame's own first-pass pose; else linear / geodesic
-   interpolation between the last pose before (first pass, or found earlier in this pass) and
-   the next first-pass pose, when they are at most MAX_INTERPOLATION_GAP_S apart; else constant
-   velocity extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
-   MAX_EXTRAPOLATION_S ahead, forward or backward.  Offline both sides are known, so no IMU
-   model is needed (IMU propagation and a first fused pass were not compared: BENCHMARKS.md).
+   sides (`PosePredictor`): the frame's own first-pass pose; with an IMU (`ImuBridge`), the
+   IMU's motion between the last pose before (first pass, or found earlier in this pass) and
+   the next first-pass pose when they are at most MAX_IMU_BRIDGE_S apart (rotation from the
+   gyro, position double-integrated and pinned at both poses, a constant accelerometer bias
+   fitted from the poses around the gap), else extrapolated with the IMU at most
+   MAX_EXTRAPOLATION_S; without one (or where it does not apply), linear / geodesic
+   interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
+   extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
+   MAX_EXTRAPOLATION_S ahead, forward or backward.
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
    TRACK_MIN_MODULE_PX, with a prediction sigma of
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
-   with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones), which
-   later frames' predictions use when its position sigma is at most
+   with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones); its
+   tracked codes are kept only when that pose lies within POSE_GATE_M (+ POSE_GATE_M_PER_S x
+   the time to the nearest pose used) of the predicted one; that pose predicts
+   later frames when its position sigma is at most
    MAX_FEEDBACK_POSITION_SIGMA_M, so a code is followed through a long stretch of blur.
 4. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
    first-pass poses within MAX_EXTRAPOLATION_S (a fresh start loses little there); the cut
@@ -42,7 +47,16 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.geometry import interpolate_pose, inv_T, transform_points
+from fusion.conventions import GRAVITY_M_S2
+from fusion.geometry import (
+    integrate_gyro,
+    interpolate_pose,
+    inv_T,
+    make_T,
+    so3_exp,
+    so3_log,
+    transform_points,
+)
 from fusion.parallel import parallel_map
 from fusion.qr.codes import classify
 from fusion.qr.detect import CameraStats, DetectionResult, detect_image
@@ -53,12 +67,26 @@ from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
-TRACK_METHOD = "pose-track/1"  # in the tracked cache's fingerprint: change with the method
+TRACK_METHOD = "pose-track/3"  # in the tracked cache's fingerprint: change with the method
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
 MAX_EXTRAPOLATION_S = 0.5  # extrapolate at most this far from the last pose
 VELOCITY_BASELINE_S = 0.05  # velocity over at least this (consecutive poses: their noise, amplified)
+# With an IMU, poses up to this far apart are bridged by the IMU's motion pinned at both ends
+# (ImuBridge): on a 20 ms-exposure flight the cruise between two hovers left 0.5-1.8 s without a
+# decoded pose, and the geodesic interpolation / constant-velocity extrapolation put the codes
+# 14-80 px off (the body pitches as it accelerates), beyond refinement's capture (BENCHMARKS.md).
+# An accelerometer bias b leaves at most b T^2 / 8 with both ends pinned (T = 2 s, 0.05 m/s^2:
+# 2.5 cm)
+MAX_IMU_BRIDGE_S = 2.0
+# The bridge's accelerometer-bias fit from the poses around a gap (ImuBridge.bridge `extra`):
+# poses this far outside the gap, PnP's position noise, the bias prior (a MEMS accelerometer's
+# turn-on bias, tens of mg; the simulator's default flight drifted 0.13 m/s^2: BENCHMARKS.md)
+BIAS_WINDOW_S = 0.5
+POSE_NOISE_M = 0.002
+ACCEL_BIAS_PRIOR_M_S2 = 0.3
+GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -GRAVITY_M_S2])  # world z up
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
 # per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
@@ -69,8 +97,28 @@ TRACK_MIN_MODULE_PX = 2.5
 # 3-50 cm on a 20 ms-exposure flight (good ones: 0.04 cm), and fed back, the next predictions
 # followed them
 MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
+# A frame's tracked sightings are kept only when PnP on the frame's codes (decoded and tracked)
+# puts the body within POSE_GATE_M + POSE_GATE_M_PER_S x horizon of the predicted pose (a
+# pose-level innovation gate): on a 20 ms-exposure flight single tracked codes 1-9 px off gave
+# PnP poses 13-63 cm off, the IMU-bridged prediction there was within 1 cm (BENCHMARKS.md)
+POSE_GATE_M = 0.05
+POSE_GATE_M_PER_S = 0.1
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
+# What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
+OUTCOMES = (
+    "no_prediction",  # no pose within MAX_INTERPOLATION_GAP_S / MAX_EXTRAPOLATION_S
+    "none_in_view",  # no undecoded catalogue code predicted in view with its quiet zone
+    "too_small",  # ... only ones under TRACK_MIN_MODULE_PX per module
+    "no_image",  # the image could not be read
+    "ambiguous",  # every try was next to a decoded code
+    "refine_failed",  # ... tried; refinement failed on every one (none gated)
+    "gated",  # ... tried; at least one refused by the innovation gate, none accepted
+    "pose_gated",  # codes tracked, but PnP with them put the body beyond POSE_GATE_M (+ per s)
+    # of the predicted pose: the tracked sightings are dropped
+    "pnp_failed",  # codes tracked, but PnP on the frame's codes found no pose
+    "posed",  # codes tracked and a PnP pose found
+)
 
 
 @dataclass
@@ -97,10 +145,18 @@ class TrackReport:
     chunks: int = 0
     seconds: float = 0.0  # wall time of the pass (catalogue and tracking)
     skipped_reason: str = ""  # why the pass did not run ("" when it ran)
+    frame_outcomes: dict[int, str] = field(default_factory=dict)  # floor stamp -> one of OUTCOMES
+
+    def outcome_counts(self) -> dict[str, int]:
+        """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
+        values = list(self.frame_outcomes.values())
+        return {k: values.count(k) for k in OUTCOMES}
 
     def as_dict(self) -> dict:
-        out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "stats"}
+        skip = ("stats", "frame_outcomes")
+        out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         out.update({f"tracker_{k}": int(v) for k, v in vars(self.stats).items()})
+        out.update({f"frames_{k}": n for k, n in self.outcome_counts().items()})
         out["seconds_per_frame_tried"] = self.seconds / self.frames_tried if self.frames_tried else 0.0
         return out
 
@@ -117,13 +173,106 @@ class TrackReport:
         )
 
 
+class ImuBridge:
+    """Body poses between and beyond PnP poses from the IMU's samples (body frame B; the IMU's
+    lever arm is ignored).
+
+    Between two poses (t0, T0), (t1, T1): rotation R(t) = R0 dR(t0, t) Exp(s d), dR the gyro's
+    integral (geometry.integrate_gyro), d = Log((R0 dR(t0, t1))^T R1) the end mismatch (gyro bias,
+    noise) spread linearly, s = (t - t0) / (t1 - t0); position p(t) = p0 + v0 (t - t0) + D(t),
+    D the double integral of the world acceleration R f + g from t0 with zero initial velocity
+    (f: specific force), v0 = (p1 - p0 - D(t1)) / (t1 - t0), so both ends are met (the
+    two-point boundary form of strapdown integration: Titterton & Weston, Strapdown Inertial
+    Navigation Technology, 2nd ed., sec. 3.6)."""
+
+    def __init__(self, imu):
+        R_bs = np.asarray(imu.T_body_imu, float)[:3, :3]
+        self.t_ns = np.asarray(imu.timestamps_ns, dtype=np.int64)
+        self.gyro = np.asarray(imu.gyro_rad_s, float) @ R_bs.T
+        self.force = np.asarray(imu.accel_m_s2, float) @ R_bs.T
+
+    def covers(self, t0_ns: int, t1_ns: int) -> bool:
+        return len(self.t_ns) > 1 and self.t_ns[0] <= min(t0_ns, t1_ns) and max(t0_ns, t1_ns) <= self.t_ns[-1]
+
+    def _motion(self, t_from: int, t_to: int, R_from: np.ndarray):
+        """IMU motion from t_from to t_to (either order) starting at rotation R_from:
+        (grid times s relative to t_from (M,), rotations (M, 3, 3), velocity (M, 3) and
+        displacement (M, 3) from zero velocity at t_from)."""
+        lo, hi = min(t_from, t_to), max(t_from, t_to)
+        inner = self.t_ns[(self.t_ns > lo) & (self.t_ns < hi)]
+        grid = np.concatenate([[lo], inner, [hi]]).astype(np.int64)
+        if t_to < t_from:
+            grid = grid[::-1]
+        tt = (grid - t_from) * 1e-9
+        ts = (self.t_ns - t_from) * 1e-9
+        rate = np.column_stack([np.interp(tt, ts, self.gyro[:, a]) for a in range(3)])
+        force = np.column_stack([np.interp(tt, ts, self.force[:, a]) for a in range(3)])
+        dt = np.diff(tt)
+        R = R_from @ integrate_gyro(0.5 * (rate[:-1] + rate[1:]), dt)
+        acc = np.einsum("nij,nj->ni", R, force) + GRAVITY_WORLD_M_S2
+        vel = np.vstack([np.zeros(3), np.cumsum(0.5 * (acc[:-1] + acc[1:]) * dt[:, None], axis=0)])
+        disp = np.vstack([np.zeros(3), np.cumsum(0.5 * (vel[:-1] + vel[1:]) * dt[:, None], axis=0)])
+        return tt, R, vel, disp
+
+    def bridge(
+        self, t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int, extra=()
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(T_world_body (4, 4) at t in [t0, t1], world velocity (3,) at t0 and at t1) between
+        the poses (class docstring).  `extra`: more poses [(t_ns, p_world (3,))] near the ends:
+        with them a constant world-frame acceleration bias b is fitted too (p(t) gains
+        -b (t - t0)^2 / 2; least squares with a zero-mean prior of ACCEL_BIAS_PRIOR_M_S2)."""
+        R0 = T0[:3, :3]
+        tt, R, vel, disp = self._motion(t0, t1, R0)
+        span = tt[-1]
+        d = so3_log(R[-1].T @ T1[:3, :3])
+        s_t, R_t, _, disp_t = self._motion(t0, t, R0)
+        s = s_t[-1]
+        v0, b = (T1[:3, 3] - T0[:3, 3] - disp[-1]) / span, np.zeros(3)
+        extra = [(int(te), np.asarray(pe, float)) for te, pe in extra if te != t0 and te != t1]
+        if extra:
+            rows_s, rows_y = [span], [T1[:3, 3] - T0[:3, 3] - disp[-1]]
+            for side in (-1, 1):
+                ends = [te for te, _ in extra if (te > t0) == (side > 0)]
+                if not ends:
+                    continue
+                t_end = max(max(ends), t1) if side > 0 else min(ends)
+                mt, _, _, md = self._motion(t0, t_end, R0)
+                if side < 0:
+                    mt, md = mt[::-1], md[::-1]
+                for te, pe in extra:
+                    if (te > t0) == (side > 0):
+                        se = (te - t0) * 1e-9
+                        rows_s.append(se)
+                        rows_y.append(
+                            pe - T0[:3, 3] - np.array([np.interp(se, mt, md[:, a]) for a in range(3)])
+                        )
+            sk = np.asarray(rows_s)
+            # per axis: y_k = v0 s_k - b s_k^2 / 2 (noise POSE_NOISE_M), prior b ~ N(0, prior^2)
+            A = np.vstack(
+                [np.column_stack([sk, -0.5 * sk**2]) / POSE_NOISE_M, [[0.0, 1.0 / ACCEL_BIAS_PRIOR_M_S2]]]
+            )
+            Y = np.vstack([np.asarray(rows_y) / POSE_NOISE_M, np.zeros((1, 3))])
+            v0, b = np.linalg.lstsq(A, Y, rcond=None)[0]
+        p_t = T0[:3, 3] + v0 * s + disp_t[-1] - 0.5 * b * s * s
+        T = make_T(R_t[-1] @ so3_exp((s / span) * d), p_t)
+        return T, v0, v0 + vel[-1] - b * span
+
+    def extrapolate(self, t1: int, T1: np.ndarray, v1: np.ndarray, t: int) -> np.ndarray:
+        """T_world_body (4, 4) at t (before or after t1) from the pose and world velocity at t1."""
+        tt, R, _, disp = self._motion(t1, t, T1[:3, :3])
+        return make_T(R[-1], T1[:3, 3] + v1 * tt[-1] + disp[-1])
+
+
 class PosePredictor:
     """Body poses predicted at floor-frame stamps from PnP poses (module docstring, step 2).
 
     `timestamps_ns` (N,) increasing and `T_world_body` (N, 4, 4): the first pass's poses;
-    `add` records a pose found by the pass (stamps increasing, after every earlier `add`)."""
+    `add` records a pose found by the pass (stamps increasing, after every earlier `add`).
+    `imu`: an ImuBridge: poses up to MAX_IMU_BRIDGE_S apart bridged by the IMU's motion, and
+    extrapolation with its rotation and acceleration (None: geodesic / constant velocity)."""
 
-    def __init__(self, timestamps_ns: np.ndarray, T_world_body: np.ndarray):
+    def __init__(self, timestamps_ns: np.ndarray, T_world_body: np.ndarray, imu: ImuBridge | None = None):
+        self.imu = imu
         self.first_t = [int(t) for t in timestamps_ns]
         self.first_T = list(np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4))
         self.added_t: list[int] = []
@@ -163,6 +312,10 @@ class PosePredictor:
             return self.first_T[i], 0.0
         before = self._before(t, 8)
         after = self._after(t, 8)
+        if self.imu is not None:
+            pred = self._predict_imu(t, before, after)
+            if pred is not None:
+                return pred
         if before and after and (after[0][0] - before[0][0]) * 1e-9 <= MAX_INTERPOLATION_GAP_S:
             (t0, T0), (t1, T1) = before[0], after[0]
             a = (t - t0) / (t1 - t0)
@@ -170,6 +323,36 @@ class PosePredictor:
         ahead = _extrapolate(before, t)  # forward from the past
         behind = _extrapolate(after, t)  # backward from the future
         cands = [p for p in (ahead, behind) if p is not None]
+        return min(cands, key=lambda p: p[1]) if cands else None
+
+    def _predict_imu(self, t: int, before, after) -> tuple[np.ndarray, float] | None:
+        """PosePredictor.predict with the IMU (class docstring), None where it does not apply."""
+        imu = self.imu
+        assert imu is not None
+        if before and after:
+            (t0, T0), (t1, T1) = before[0], after[0]
+            if (t1 - t0) * 1e-9 <= MAX_IMU_BRIDGE_S and imu.covers(t0, t1):
+                extra = [
+                    (te, Te[:3, 3])
+                    for te, Te in before[1:] + after[1:]
+                    if min(abs(te - t0), abs(te - t1)) * 1e-9 <= BIAS_WINDOW_S
+                    and imu.covers(min(te, t0), max(te, t1))
+                ]
+                return imu.bridge(t0, T0, t1, T1, t, extra)[0], min(t - t0, t1 - t) * 1e-9
+        cands = []
+        for near, far in ((before, True), (after, False)):
+            if not near or abs(t - near[0][0]) * 1e-9 > MAX_EXTRAPOLATION_S:
+                continue
+            t1, T1 = near[0]
+            older = [p for p in near[1:] if VELOCITY_BASELINE_S <= abs(t1 - p[0]) * 1e-9 <= MAX_IMU_BRIDGE_S]
+            if not older or not imu.covers(older[0][0], t):
+                continue
+            t0, T0 = older[0]
+            if far:  # the velocity at t1 from the bridge (t0, t1), t0 < t1 < t
+                v1 = imu.bridge(t0, T0, t1, T1, t1)[2]
+            else:  # t < t1 < t0: the velocity at t1 from the bridge (t1, t0)
+                v1 = imu.bridge(t1, T1, t0, T0, t1)[1]
+            cands.append((imu.extrapolate(t1, T1, v1, t), abs(t - t1) * 1e-9))
         return min(cands, key=lambda p: p[1]) if cands else None
 
 
@@ -260,9 +443,9 @@ def track_chunks(first_t: np.ndarray, stamps_ns: np.ndarray, n_frames: int) -> l
 
 def _track_chunk(context, task: tuple[int, int]):
     """The pass over floor frames [start, stop): (tracked detections, TrackReport)."""
-    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px = context
+    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px, imu = context
     start, stop = task
-    predictor = PosePredictor(first_t, first_T)
+    predictor = PosePredictor(first_t, first_T, imu)
     tracker = CodeTracker(camera)
     rep = TrackReport()
     out: list[QRDetection] = []
@@ -271,6 +454,7 @@ def _track_chunk(context, task: tuple[int, int]):
         t = int(stream.timestamps_ns[i])
         pred = predictor.predict(t)
         if pred is None:
+            rep.frame_outcomes[t] = "no_prediction"
             continue
         rep.frames_predicted += 1
         T_body, horizon_s = pred
@@ -279,6 +463,7 @@ def _track_chunk(context, task: tuple[int, int]):
         seen = {d.payload for d in frame_dets}
         sigma = PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S * horizon_s
         predicted = {}
+        small = False
         for payload, code in catalogue.items():
             if payload in seen:
                 continue
@@ -287,26 +472,47 @@ def _track_chunk(context, task: tuple[int, int]):
                 continue
             uv = camera.project(p_cam)
             side_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
-            if side_px >= TRACK_MIN_MODULE_PX * code.modules and symbol_in_view(uv, code.modules, (h, w)):
+            if not symbol_in_view(uv, code.modules, (h, w)):
+                continue
+            if side_px >= TRACK_MIN_MODULE_PX * code.modules:
                 predicted[payload] = (uv, sigma, code.modules)
+            else:
+                small = True
         if not predicted:
+            rep.frame_outcomes[t] = "too_small" if small else "none_in_view"
             continue
         image = stream.load_image(i)
         if image is None:
+            rep.frame_outcomes[t] = "no_image"
             continue
         rep.frames_tried += 1
+        before = TrackStats(**vars(tracker.stats))
         tracked = tracker.step(
             image, FLOOR, t, frame_dets, [None] * len(frame_dets), predicted, own_motion=False
         )
         if not tracked:
+            if tracker.stats.gated > before.gated:
+                rep.frame_outcomes[t] = "gated"
+            elif tracker.stats.refine_failed > before.refine_failed:
+                rep.frame_outcomes[t] = "refine_failed"
+            else:
+                rep.frame_outcomes[t] = "ambiguous"
+            continue
+        floor = classify(frame_dets + tracked, world).floor
+        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
+        gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
+        if res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m:
+            rep.frame_outcomes[t] = "pose_gated"  # the tracked codes disagree with the prediction
+            tracker.stats.tracked -= len(tracked)
+            tracker.stats.pose_gated += len(tracked)
             continue
         out.extend(tracked)
         rep.frames_tracked += 1
         rep.frames_tracked_only += not frame_dets
-        floor = classify(frame_dets + tracked, world).floor
-        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
         if res is None:
+            rep.frame_outcomes[t] = "pnp_failed"
             continue
+        rep.frame_outcomes[t] = "posed"
         rep.poses_added += not predictor.has_first_pose(t)
         position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
         if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
@@ -342,12 +548,15 @@ def track_flight(
     first_t = np.asarray(traj_pnp.timestamps_ns, dtype=np.int64)
     first_T = np.asarray(traj_pnp.T_world_body, dtype=float)
     chunks = track_chunks(first_t, stream.timestamps_ns, len(stream))
-    context = (stream, camera, log.world, catalogue, first_t, first_T, decoded, corner_sigma_px)
+    imu = getattr(log, "imu", None)
+    bridge = ImuBridge(imu) if imu is not None and len(imu.timestamps_ns) > 1 else None
+    context = (stream, camera, log.world, catalogue, first_t, first_T, decoded, corner_sigma_px, bridge)
     tracked: list[QRDetection] = []
     for chunk_dets, chunk_rep in parallel_map(
         _track_chunk, chunks, max(1, min(workers, len(chunks))), context, preload=["fusion.qr.predict"]
     ):
         tracked.extend(chunk_dets)
+        rep.frame_outcomes.update(chunk_rep.frame_outcomes)
         for k, v in vars(chunk_rep.stats).items():
             setattr(rep.stats, k, getattr(rep.stats, k) + v)
         for name in (

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from fusion.camera import CameraModel
@@ -54,6 +55,18 @@ TRACK_QUIET_MODULES = 2.0  # the predicted symbol and this much quiet zone must 
 # 8.3 to 1.6 (decoded codes: 1.3; BENCHMARKS.md).  0.5 px: the prediction's robust per-coordinate
 # error there was 0.22 px.
 TRACK_AGREEMENT_SIGMA_PX = 0.5
+# Before refinement, the three finder patterns, their separators, a one-module quiet zone and the
+# timing patterns (ISO/IEC 18004 sec. 6.3.3-6.3.5: the same in every symbol of a version) are
+# matched (normalised cross-correlation) around the prediction, within the gate
+# (TRACK_GATE_MODULES) and 3 prediction sigmas: refinement's capture range under 10 px blur is
+# ~2 px, an IMU-bridged prediction across a 1.5 s gap was 4-15 px off (BENCHMARKS.md).  The
+# innovation gate still measures from the prediction, so the identity argument is unchanged.
+TRACK_LOCATE_PX_PER_MODULE = 4  # template resolution before it is warped into the image
+TRACK_LOCATE_QUIET_MODULES = 1  # light modules around the symbol in the template
+TRACK_LOCATE_MIN_NCC = 0.4  # a weaker best match is not used (the prediction is the start)
+TRACK_LOCATE_SIGMAS = 3.0  # search radius in prediction sigmas (capped by the gate)
+FINDER_MODULES = 7
+TIMING_INDEX = 6  # the timing patterns' row and column
 
 
 def symbol_in_view(corners_px: np.ndarray, modules: int, shape: tuple[int, int]) -> bool:
@@ -71,6 +84,77 @@ def symbol_in_view(corners_px: np.ndarray, modules: int, shape: tuple[int, int])
         and np.all(corners[:, 0] <= w - 1 - margin)
         and np.all(corners[:, 1] <= h - 1 - margin)
     )
+
+
+def function_pattern_template(modules: int) -> np.ndarray:
+    """(M, M) module values of a symbol with TRACK_LOCATE_QUIET_MODULES of quiet zone (M = modules
+    + 2 quiet): 0 dark, 1 light, NaN unknown (data).  Finder patterns (7 x 7: dark ring, light
+    ring, dark 3 x 3), their light separators, the timing patterns (ISO/IEC 18004 sec. 6.3)."""
+    n, q = int(modules), TRACK_LOCATE_QUIET_MODULES
+    g = np.full((n + 2 * q, n + 2 * q), np.nan)
+    g[:q, :] = g[-q:, :] = g[:, :q] = g[:, -q:] = 1.0
+    sym = g[q : q + n, q : q + n]  # a view
+    f = FINDER_MODULES
+    finder = np.zeros((f, f))
+    finder[1:-1, 1:-1] = 1.0
+    finder[2:-2, 2:-2] = 0.0
+    for r0, c0 in ((0, 0), (0, n - f), (n - f, 0)):
+        r1, c1 = r0 + f, c0 + f
+        sym[max(r0 - 1, 0) : min(r1 + 1, n), max(c0 - 1, 0) : min(c1 + 1, n)] = 1.0  # separator
+        sym[r0:r1, c0:c1] = finder
+    timing = (np.arange(f + 1, n - f - 1) % 2).astype(float)  # dark at even indices
+    sym[TIMING_INDEX, f + 1 : n - f - 1] = timing
+    sym[f + 1 : n - f - 1, TIMING_INDEX] = timing
+    return g
+
+
+def locate_symbol(image: np.ndarray, corners_px: np.ndarray, modules: int, max_shift_px: float):
+    """(shift (2,) px, normalised cross-correlation) of the best match of the symbol's function
+    patterns (function_pattern_template, warped by the homography of `corners_px` (4, 2) TL, TR,
+    BR, BL) within +-max_shift_px of where the corners put it; None when the search window leaves
+    the image or the template is degenerate."""
+    n, q, k = int(modules), TRACK_LOCATE_QUIET_MODULES, TRACK_LOCATE_PX_PER_MODULE
+    shift = int(np.floor(max_shift_px))
+    if shift < 1:
+        return None
+    g = function_pattern_template(n)
+    known = np.isfinite(g)
+    size = g.shape[0] * k
+    values = cv2.resize(
+        np.where(known, g, 0.5).astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST
+    )
+    mask = cv2.resize(known.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST)
+    unit = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]) + q  # corners in template modules
+    H = cv2.getPerspectiveTransform((unit * k).astype(np.float32), np.asarray(corners_px, np.float32))
+    outline = np.array([[0, 0], [size, 0], [size, size], [0, size]], np.float32)[None]
+    box = cv2.perspectiveTransform(outline, H)[0]
+    x0, y0 = np.floor(box.min(axis=0)).astype(int)
+    x1, y1 = np.ceil(box.max(axis=0)).astype(int)
+    h, w = image.shape[:2]
+    if x0 - shift < 0 or y0 - shift < 0 or x1 + shift >= w or y1 + shift >= h:
+        return None
+    to_box = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ H
+    dsize = (int(x1 - x0 + 1), int(y1 - y0 + 1))
+    tmpl = cv2.warpPerspective(values, to_box, dsize, flags=cv2.INTER_LINEAR)
+    tmask = cv2.warpPerspective(mask, to_box, dsize, flags=cv2.INTER_NEAREST)
+    if tmask.sum() < 1 or float(np.std(tmpl[tmask > 0])) <= 0:
+        return None
+    region = image[y0 - shift : y1 + 1 + shift, x0 - shift : x1 + 1 + shift].astype(np.float32)
+    score = cv2.matchTemplate(region, tmpl, cv2.TM_CCOEFF_NORMED, mask=tmask)
+    score = np.where(np.isfinite(score), score, -1.0)
+    iy, ix = np.unravel_index(int(np.argmax(score)), score.shape)
+    best = np.array([ix - shift, iy - shift], float)
+    # sub-pixel: the vertex of the parabola through the peak and its two neighbours, per axis
+    for axis, (a, b, c) in enumerate(
+        (
+            score[iy, ix - 1 : ix + 2] if 0 < ix < score.shape[1] - 1 else (0.0, 1.0, 0.0),
+            score[iy - 1 : iy + 2, ix] if 0 < iy < score.shape[0] - 1 else (0.0, 1.0, 0.0),
+        )
+    ):
+        curvature = a - 2.0 * b + c
+        if curvature < 0:
+            best[axis] += float(np.clip(0.5 * (a - c) / curvature, -0.5, 0.5))
+    return best, float(score[iy, ix])
 
 
 @dataclass
@@ -91,7 +175,9 @@ class TrackStats:
     tracked: int = 0
     refine_failed: int = 0  # refinement found no finder edges or failed its self-check
     gated: int = 0  # innovation too large: not the predicted code
+    gated_far: int = 0  # ... of them: a corner beyond TRACK_GATE_MODULES of the prediction
     ambiguous: int = 0  # a decoded code where the prediction lies
+    pose_gated: int = 0  # accepted here, dropped by the caller (fusion.qr.predict's pose gate)
 
 
 class CodeTracker:
@@ -162,11 +248,17 @@ class CodeTracker:
         if candidates:
             # several starts per candidate: refinement's capture range under heavy blur (~2 px)
             # is below a prediction's error; the passing result nearest the prediction is kept
-            starts: list[tuple[np.ndarray, int | None]] = [
-                (pred + off * (sigma / TRACK_MIN_SIGMA_PX), tr.modules)
-                for _, tr, pred, sigma in candidates
-                for off in TRACK_START_OFFSETS_PX
-            ]
+            starts: list[tuple[np.ndarray, int | None]] = []
+            for _, tr, pred, sigma in candidates:
+                side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
+                radius = min(TRACK_LOCATE_SIGMAS * sigma, TRACK_GATE_MODULES * side / tr.modules)
+                found = locate_symbol(image, pred, tr.modules, radius)
+                at = pred + found[0] if found is not None and found[1] >= TRACK_LOCATE_MIN_NCC else pred
+                starts.append((at, tr.modules))
+                starts += [
+                    (pred + off * (sigma / TRACK_MIN_SIGMA_PX), tr.modules)
+                    for off in TRACK_START_OFFSETS_PX[1:]
+                ]
             flat = refine_frames([image], [starts], self.camera, checks=self.checks)[0]
             n_starts = len(TRACK_START_OFFSETS_PX)
             for i, (payload, tr, pred, sigma) in enumerate(candidates):
@@ -181,8 +273,9 @@ class CodeTracker:
                 if not passed:
                     self.stats.refine_failed += 1
                     continue
-                # the start at the prediction itself first (a shifted start can lock onto the
-                # finder's 2-module alias under heavy blur), else the result nearest the prediction
+                # the start at the located symbol (else the prediction) first (a shifted start can
+                # lock onto the finder's 2-module alias under heavy blur), else the result nearest
+                # the prediction
                 first = flat[i * n_starts]
                 res = (
                     first
@@ -196,6 +289,7 @@ class CodeTracker:
                 worst = float(np.max(np.linalg.norm(e.reshape(4, 2), axis=1)))
                 if worst > TRACK_GATE_MODULES * side / tr.modules or chi2 > TRACK_GATE_CHI2:
                     self.stats.gated += 1
+                    self.stats.gated_far += worst > TRACK_GATE_MODULES * side / tr.modules
                     continue
                 self.stats.tracked += 1
                 excess = max(0.0, float(e @ e) / 8 - TRACK_AGREEMENT_SIGMA_PX**2)
