@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from fusion.estimate import smoother as smoother_module
+from fusion.estimate import variance
 from fusion.estimate.common import FusionConfig
 from fusion.estimate.extrinsics import (
     MountSource,
@@ -19,6 +21,7 @@ from fusion.estimate.timeoffset import TimeOffsetConfig, fused_trajectory, resol
 from fusion.geometry import so3_log
 from fusion.pipeline import SharedWholeFlight
 from fusion.types import Trajectory
+from tests.test_estimate import FRONT_CAM, make_flight
 from tests.test_extrinsics import FLOOR_CAM as MOUNT_FLOOR_CAM
 from tests.test_extrinsics import _survey
 from tests.test_timeoffset import _flight, _log
@@ -34,9 +37,7 @@ def _pose_differences(a: Trajectory, b: Trajectory) -> tuple[float, float]:
     """Largest position (m) and attitude (deg) difference of two trajectories at the same stamps."""
     np.testing.assert_array_equal(a.timestamps_ns, b.timestamps_ns)
     dp = np.linalg.norm(a.T_world_body[:, :3, 3] - b.T_world_body[:, :3, 3], axis=1)
-    dr = [
-        np.linalg.norm(so3_log(x[:3, :3].T @ y[:3, :3])) for x, y in zip(a.T_world_body, b.T_world_body)
-    ]
+    dr = [np.linalg.norm(so3_log(x[:3, :3].T @ y[:3, :3])) for x, y in zip(a.T_world_body, b.T_world_body)]
     return float(dp.max()), math.degrees(float(np.max(dr)))
 
 
@@ -110,3 +111,33 @@ def test_shared_solve_falls_back_without_pose_covariances():
     ref = fused_trajectory(_log(fl), raw, 0, cfg, None)
     dp, dr = _pose_differences(traj, ref)
     assert dp == 0.0 and dr == 0.0
+
+
+def test_noise_scale_iteration_computes_covariances_only_for_the_kept_solve(monkeypatch):
+    """A flight whose pose covariances are 4x too small is solved twice (rescaled); only the
+    second solve, the one returned, computes marginal covariances, and they equal those of a
+    solve made directly at the final scales."""
+    fl = make_flight(seed=5, duration_s=8.0, gaps=(), sigma_rot_rad=math.radians(0.1), sigma_pos_m=0.004)
+    fl.raw.covariances = fl.raw.covariances / 4.0
+    calls = []
+    chain = smoother_module.chain_marginals
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return chain(*args, **kwargs)
+
+    monkeypatch.setattr(smoother_module, "chain_marginals", counted)
+    res = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM)
+    rep = res.stats["noise_scales"]
+    assert rep["solves"] >= 2 and len(calls) == 1
+    assert res.trajectory.covariances is not None and res.stats["covariance_method"] == "chain"
+    s2 = rep["groups"]["pose"]["applied_scale"]
+    direct = smooth(
+        fl.frame_t,
+        fl.imu,
+        variance.scale_trajectory(fl.raw, s2),
+        fl.load_obs,
+        FRONT_CAM,
+        config=FusionConfig(noise_scale_iterations=0),
+    )
+    np.testing.assert_allclose(res.trajectory.covariances, direct.trajectory.covariances, rtol=1e-6)

@@ -307,38 +307,61 @@ class NoiseScales:
         return float(getattr(self, str(group), 1.0))
 
 
+def next_noise_scales(scales: NoiseScales, comps: dict | None) -> NoiseScales | None:
+    """The iterated estimator's next scales: every applicable group (pose, corners, load) with
+    enough degrees of freedom and chi2/dof off 1 by more than SCALE_TOLERANCE gets its scale
+    multiplied by its chi2/dof (clamped); None when none changes (converged)."""
+    change = False
+    for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
+        c = (comps or {}).get(g)
+        if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
+            continue
+        scales = replace(scales, **{str(g): clamp_scale(scales.of(g) * c.scale)})
+        change = True
+    return scales if change else None
+
+
+ResolvePredicate = Callable[[dict | None, Any], bool]
+"""(variance components, SolveHealth) of a solve -> whether solve_with_noise_scales will solve
+again after it: then that solve's covariances are never used and need not be computed."""
+
+
 def solve_with_noise_scales(
-    solve: Callable[[NoiseScales], Any], iterations: int, what: str = "smoother"
+    solve: Callable[..., Any], iterations: int, what: str = "smoother"
 ) -> tuple[Any, dict]:
-    """Iterated variance-component estimation around `solve(scales) -> FusionResult` (whose
-    stats['variance_components'] maps NoiseGroup -> VarianceComponent at its solution): after
-    each solve, every applicable group (pose, corners, load) with enough degrees of freedom has
-    its scale multiplied by its chi2/dof and the flight is solved again, at most `iterations`
-    times, stopping when all are within SCALE_TOLERANCE of 1.  Not applied (the first result,
-    report['not_applied'] says why) when the first solve skipped the outlier gate (the fixes
-    disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is outside
-    IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
+    """Iterated variance-component estimation around `solve(scales, resolves=pred) ->
+    FusionResult` (whose stats['variance_components'] maps NoiseGroup -> VarianceComponent at
+    its solution): after each solve, every applicable group (pose, corners, load) with enough
+    degrees of freedom has its scale multiplied by its chi2/dof and the flight is solved again
+    (next_noise_scales), at most `iterations` times, stopping when all are within
+    SCALE_TOLERANCE of 1.  `pred` (a ResolvePredicate) tells the solve, once it has its variance
+    components, whether another solve follows (the same rule), so that it can skip the marginal
+    covariances nobody will read.  Not applied (the first result, solved again with its
+    covariances, report['not_applied'] says why) when the first solve skipped the outlier gate
+    (the fixes disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is
+    outside IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
     JSON-ready report: per group the applied scale, the final chi2/dof and dof; per camera the
     applied scale; the IMU's chi2/dof (checked, never rescaled: a warning outside
     IMU_WARN_BAND)."""
+    budget = max(int(iterations), 0)
+
+    def resolves(scales_: NoiseScales, left: int) -> ResolvePredicate:
+        # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml,
+        # clock), not noise: the smoother's IMU-rejection path handles them, unscaled.
+        return lambda comps, health: (
+            left > 0 and not health.gate_skipped and next_noise_scales(scales_, comps) is not None
+        )
+
     scales = NoiseScales()
-    res = first = solve(scales)
+    res = solve(scales, resolves=resolves(scales, budget))
     n_solves = 1
-    # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml, clock),
-    # not noise: the smoother's IMU-rejection path handles them, unscaled.
     skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
-    for _ in range(0 if skip else max(int(iterations), 0)):
-        comps = res.stats.get("variance_components") or {}
-        change = False
-        for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
-            c = comps.get(g)
-            if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
-                continue
-            scales = replace(scales, **{str(g): clamp_scale(scales.of(g) * c.scale)})
-            change = True
-        if not change:
+    for i in range(0 if skip else budget):
+        new = next_noise_scales(scales, res.stats.get("variance_components"))
+        if new is None:
             break
-        res = solve(scales)
+        scales = new
+        res = solve(scales, resolves=resolves(scales, budget - 1 - i))
         n_solves += 1
     comps = res.stats.get("variance_components") or {}
     imu = comps.get(NoiseGroup.IMU)
@@ -347,7 +370,8 @@ def solve_with_noise_scales(
         # the IMU, the reference the camera scales are measured against, does not fit its own
         # noise model: the misfit cannot be attributed, so keep the model as configured
         skip = "the IMU does not fit its noise model"
-        res, scales = first, NoiseScales()
+        # the first solve was followed by another, so it skipped its covariances: again, whole
+        res, scales = solve(NoiseScales()), NoiseScales()
         comps = res.stats.get("variance_components") or {}
     report: dict = {"solves": n_solves, "groups": {}, "cameras": {}}
     if skip:
@@ -383,8 +407,9 @@ def solve_with_noise_scales(
 
 
 def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -> tuple:
-    """The batch smoother's hook: `once(imu, raw, load_obs, config, require_motion=True)` solved
-    with the noise scales of `solve_with_noise_scales` (raw pose covariances, tight corner
+    """The batch smoother's hook: `once(imu, raw, load_obs, config, require_motion=True,
+    resolves=None)` (`resolves`: solve_with_noise_scales' ResolvePredicate) solved with the noise
+    scales of `solve_with_noise_scales` (raw pose covariances, tight corner
     covariances, load cov_cam) for config.noise_scale_iterations.  Returns the result (its
     stats['noise_scales'] the report, the raw components removed) and `scaled(imu, **kw)`, a
     solve at the final scales (the IMU-rejection retry)."""
