@@ -4,6 +4,7 @@ camera's mount variable serves both the front camera's time-offset profile and t
 
 import math
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -141,3 +142,40 @@ def test_noise_scale_iteration_computes_covariances_only_for_the_kept_solve(monk
         config=FusionConfig(noise_scale_iterations=0),
     )
     np.testing.assert_allclose(res.trajectory.covariances, direct.trajectory.covariances, rtol=1e-6)
+
+
+def test_hutchinson_probes_stop_once_the_redundancy_is_known(monkeypatch):
+    """A long chain: each large group stops drawing probes before HUTCHINSON_PROBES, and its
+    redundancy (rows - leverage) is within 4 standard errors (REDUNDANCY_REL_SD) of the
+    dense hat matrix's."""
+    rng = np.random.default_rng(11)
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    groups = []
+    n_poses = 200
+    for k in range(n_poses):
+        values.insert(k, gtsam.Pose3(gtsam.Rot3.Expmap(0.1 * rng.normal(size=3)), rng.normal(size=3)))
+        graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.5)))
+        groups.append(0)
+        if k:
+            graph.add(
+                gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1))
+            )
+            groups.append(1)
+    lin = graph.linearize(values)
+    A, _ = lin.jacobian()
+    h = np.diag(A @ np.linalg.solve(A.T @ A, A.T))
+    rows = np.repeat(groups, 6)
+    exact = np.array([len(h[rows == g]) - h[rows == g].sum() for g in range(2)])
+    blocks = []
+    quadratic = variance._quadratic
+
+    def counted(*args):
+        blocks.append(1)
+        return quadratic(*args)
+
+    monkeypatch.setattr(variance, "_quadratic", counted)
+    lev = variance.group_leverages(lin, values.dim(), groups, 2, [6] * len(groups))
+    redundancy = np.bincount(rows) - lev
+    assert len(blocks) < 2 * variance.HUTCHINSON_PROBES // variance.PROBE_BLOCK, len(blocks)
+    assert np.all(np.abs(redundancy - exact) < 4 * variance.REDUNDANCY_REL_SD * exact), (redundancy, exact)

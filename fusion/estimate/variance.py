@@ -57,7 +57,13 @@ SCALE_TOLERANCE = 0.1
 IMU_WARN_BAND = (0.5, 2.0)
 """The IMU group's chi2/dof outside this band: its noise densities are probably wrong."""
 HUTCHINSON_PROBES = 32
-"""Random probes of a group's leverage (group_leverages); groups with fewer rows are exact."""
+"""Most random probes of a group's leverage (group_leverages); groups with fewer rows are exact."""
+HUTCHINSON_MIN_PROBES = 8
+"""Fewest probes: a group stops drawing once its redundancy is known to REDUNDANCY_REL_SD."""
+REDUNDANCY_REL_SD = 0.01
+"""Target standard deviation of a group's Hutchinson redundancy, relative to it: 1 % of d_g,
+below the chi-square's own relative noise sqrt(2 / d_g) for d_g < 20000 and a tenth of
+SCALE_TOLERANCE."""
 HUTCHINSON_SEED = 20240130
 PROBE_BLOCK = 8
 """Probes per multi-right-hand-side solve in group_leverages (bounds its dense memory: 8 columns
@@ -186,11 +192,15 @@ def group_leverages(
 
     A^T A is factored once (sparse LU, symmetric mode, minimum-degree ordering); a group with at most
     HUTCHINSON_PROBES rows is summed exactly, row by row, a larger one by Hutchinson's estimator
-    with that many Rademacher probes z (tr M = E[z^T M z]; Hutchinson, Commun. Stat. Simul.
+    with Rademacher probes z (tr M = E[z^T M z]; Hutchinson, Commun. Stat. Simul.
     Comput. 18(3), 1989), M = A_g (A^T A)^-1 A_g^T, whose eigenvalues lie in [0, 1]: the
     estimate's standard deviation is below sqrt(2 tr M / probes), e.g. 2 % of a 600-dof group
-    with 32 probes.  Seeded (HUTCHINSON_SEED), so a flight's result is reproducible.  Raises
-    np.linalg.LinAlgError for a singular system."""
+    with 32 probes.  Probes are drawn PROBE_BLOCK at a time, from HUTCHINSON_MIN_PROBES up to
+    HUTCHINSON_PROBES, until the mean's standard error (the probes' sample standard deviation
+    / sqrt(probes)) is below REDUNDANCY_REL_SD of the group's redundancy rows - tr M (the
+    large groups of a long flight stop at the minimum: their redundancy is thousands).  Seeded
+    (HUTCHINSON_SEED), so a flight's result is reproducible.  Raises np.linalg.LinAlgError for a
+    singular system."""
     trip = lin.sparseJacobian_()  # 3 x nnz, 1-based (row, column, value); column n+1 is b
     sizes = np.asarray(factor_rows, dtype=int)
     m = int(sizes.sum())
@@ -218,20 +228,32 @@ def group_leverages(
         if not len(idx):
             continue
         AgT = A[idx].T.tocsc()
-        if len(idx) <= HUTCHINSON_PROBES:
-            z = np.eye(len(idx))  # every row of the group, exactly
-            weight = 1.0
-        else:
-            z = np.stack([rng.choice((-1.0, 1.0), len(idx)) for _ in range(HUTCHINSON_PROBES)], axis=1)
-            weight = 1.0 / HUTCHINSON_PROBES
-        # the probes b = A_g^T z in multi-right-hand-side solves of PROBE_BLOCK columns: one
-        # pass over the factors per block, dense memory n_unknowns x PROBE_BLOCK
-        for c in range(0, z.shape[1], PROBE_BLOCK):
-            probes = np.asfortranarray(np.asarray(AgT @ z[:, c : c + PROBE_BLOCK]))
-            out[g] += weight * float(np.sum(probes * lu.solve(probes)))
+        if len(idx) <= HUTCHINSON_PROBES:  # every row of the group, exactly
+            eye = np.eye(len(idx))
+            blocks = range(0, len(idx), PROBE_BLOCK)
+            out[g] = sum(float(np.sum(_quadratic(AgT, lu, eye[:, c : c + PROBE_BLOCK]))) for c in blocks)
+            continue
+        samples: list[float] = []
+        while len(samples) < HUTCHINSON_PROBES:
+            z = np.stack([rng.choice((-1.0, 1.0), len(idx)) for _ in range(PROBE_BLOCK)], axis=1)
+            samples.extend(_quadratic(AgT, lu, z))
+            trace = float(np.mean(samples))
+            # the mean's standard error, from the probes themselves
+            se = float(np.std(samples, ddof=1)) / math.sqrt(len(samples))
+            if len(samples) >= HUTCHINSON_MIN_PROBES and se <= REDUNDANCY_REL_SD * (len(idx) - trace):
+                break
+        out[g] = float(np.mean(samples))
     if not np.all(np.isfinite(out)):
         raise np.linalg.LinAlgError("hat matrix: non-finite leverage")
     return out
+
+
+def _quadratic(AgT, lu, z: np.ndarray) -> np.ndarray:
+    """(columns,) z_j^T A_g (A^T A)^-1 A_g^T z_j for the columns z_j of z: b = A_g^T z in one
+    multi-right-hand-side solve (one pass over the factors per block; dense memory
+    n_unknowns x columns)."""
+    b = np.asfortranarray(np.asarray(AgT @ z))
+    return np.sum(b * lu.solve(b), axis=0)
 
 
 def graph_variance_components(
