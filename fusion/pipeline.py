@@ -43,9 +43,23 @@ from fusion.estimate.asbuilt import (
     write_floor_codes_csv,
 )
 from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, interpolable_load_times, match_to_frames
-from fusion.estimate.extrinsics import MountRotation, apply_mount, check_mount, read_extrinsics_groundtruth
+from fusion.estimate.extrinsics import (
+    MountRotation,
+    apply_mount,
+    check_mount,
+    estimate_mount_and_trajectory,
+    read_extrinsics_groundtruth,
+)
 from fusion.estimate.fixes import merge_fixes
-from fusion.estimate.timeoffset import TimeOffsets, resolve_time_offsets, shift_detections, shift_log
+from fusion.estimate.timeoffset import (
+    TimeOffsetConfig,
+    TimeOffsets,
+    fused_trajectory,
+    resolve_time_offsets,
+    shift_detections,
+    shift_log,
+    whole_flight_input,
+)
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
@@ -764,9 +778,11 @@ def _run_into(
     mount_check = until in ("smooth", "run")
     if mount_check and cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result)
-    log, det, loc = _apply_time_offsets(log, det, loc, cfg, result)
+    # the check alone shares its whole-flight solve with the front camera's time-offset profile
+    shared = SharedWholeFlight() if mount_check and not cfg.calibrate_extrinsics else None
+    log, det, loc = _apply_time_offsets(log, det, loc, cfg, result, shared)
     if mount_check and not cfg.calibrate_extrinsics:
-        log, loc = _apply_extrinsics(log, det, loc, cfg, result)
+        log, loc = _apply_extrinsics(log, det, loc, cfg, result, None if shared is None else shared.mount)
     if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
         # (keyed by the floor frames' stamps, shifted like them when a time offset was applied)
@@ -882,10 +898,64 @@ def _robust_kernel(cfg: RunConfig) -> RobustKernel:
         raise EstimationError(str(e)) from None
 
 
-def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+@dataclass
+class SharedWholeFlight:
+    """One whole-flight batch solve serving both the front camera's time-offset profile and the
+    floor camera's mount check (a resolve_time_offsets WholeFlightSolve).
+
+    Order of operations in a run without --calibrate-extrinsics: (1) the floor profile (solves
+    of its window) gives the floor offset r; (2) this solve: the whole flight with the floor
+    stamps shifted by r (applied or not), the IMU upsampled as for the front profile, and the
+    mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_trajectory); its body
+    trajectory feeds the front profile and its E0 becomes the mount check (`mount`); (3) the
+    pipeline's mount check takes `mount` instead of solving the whole flight again.  Before,
+    (2) was two solves: one without E0 at shift r (front profile) and one with E0 at the applied
+    shift with the IMU as logged (mount check).  The estimates keep their meaning and sigma:
+    the mount check's stamps differ from the applied ones by at most the floor offset, which
+    is below its significance when not applied (a 10 ms floor offset moves the mount estimate
+    by ~0.02 deg, extrinsics' docstring); the front profile's trajectory is the fixed-mount one
+    read through the estimated mount (equal within its sigma when the mount is right).  When
+    the mount cannot be estimated (no IMU, gimbaled camera, poses without covariances or
+    attitude) or most fixes disagree with the IMU, the trajectory is the plain
+    `fused_trajectory` and `mount` stays None (the check then runs on its own, as before)."""
+
+    mount: MountRotation | None = None
+
+    def __call__(
+        self,
+        log_: FlightLog,
+        raw: Trajectory | None,
+        shift_ns: int,
+        config: TimeOffsetConfig,
+        fusion_config: FusionConfig | None,
+    ) -> Trajectory:
+        inp = whole_flight_input(log_, raw, shift_ns, config, fusion_config)
+        trajectory = None
+        if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
+            try:
+                mount, trajectory = estimate_mount_and_trajectory(
+                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, None, fusion_config
+                )
+                self.mount = mount
+            except EstimationError as e:
+                logger.debug("shared whole-flight solve: no mount estimate (%s)", e)
+        if trajectory is None:
+            trajectory = fused_trajectory(log_, raw, shift_ns, config, fusion_config)
+        return trajectory
+
+
+def _apply_time_offsets(
+    log: FlightLog,
+    det,
+    loc: LocalizeResult,
+    cfg: RunConfig,
+    result: RunResult,
+    shared: SharedWholeFlight | None = None,
+):
     """Each camera's time offset (fixed, else estimated: fusion.estimate.timeoffset) into
     `result.time_offsets`; when one is applied, the log and detections in the IMU clock and the
-    per-frame estimates made again with them (so every output carries the corrected stamps)."""
+    per-frame estimates made again with them (so every output carries the corrected stamps).
+    `shared`: the whole-flight solve for the front profile, shared with the mount check."""
     _progress(cfg, "camera-IMU time offsets")
     kernel = _robust_kernel(cfg)
     raw = loc.trajectories.get(str(Estimator.PNP))
@@ -898,6 +968,7 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
         loc.camera_frame_observations,
         cfg.time_offsets_s,
         fusion_config=FusionConfig(robust_kernel=kernel),
+        whole_flight=shared,
     )
     result.time_offsets = offsets
     if not offsets.any_applied:
@@ -906,16 +977,24 @@ def _apply_time_offsets(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
     return log, det, localize_stage(log, det, cfg)
 
 
-def _apply_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+def _apply_extrinsics(
+    log: FlightLog,
+    det,
+    loc: LocalizeResult,
+    cfg: RunConfig,
+    result: RunResult,
+    mount: MountRotation | None = None,
+):
     """The floor camera's mount check (fusion.estimate.extrinsics) into `result.extrinsics`, its
     warning when significant; with `cfg.calibrate_extrinsics` a significant correction is applied
     to the floor camera and the per-frame estimates made again with it (so every output carries
-    the corrected mount)."""
+    the corrected mount).  `mount`: the check already made by SharedWholeFlight (not solved again)."""
     _progress(cfg, "floor camera mount check")
-    kernel = _robust_kernel(cfg)
-    mount = check_mount(
-        log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
-    )
+    if mount is None:
+        kernel = _robust_kernel(cfg)
+        mount = check_mount(
+            log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
+        )
     result.extrinsics = mount
     if not mount.significant:
         return log, loc

@@ -72,13 +72,14 @@ from fusion.estimate.smoother import (
     build_problem,
     gate_outliers,
     jumped_fixes,
+    poses_of,
     robust_distances,
     solve,
 )
 from fusion.fileio import atomic_open
 from fusion.geometry import make_T, so3_exp, so3_log
 from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
-from fusion.types import CameraRole, Choice, Trajectory
+from fusion.types import CameraRole, Choice, Estimator, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +88,9 @@ WARNING_NAME = "extrinsic_rotation_bias"
 AXES = ("x", "y", "z")
 EXTRINSICS_GROUNDTRUTH_CSV = "extrinsics_groundtruth.csv"  # the simulator's true mount errors
 GROUNDTRUTH_COLUMNS = ["camera", "rx_deg", "ry_deg", "rz_deg"]
+NOMINAL_MOUNT_SIGMA_RAD = 1e-8
+"""The prior holding E0 at the nominal mount in nominal_mount_trajectory (a constraint in effect:
+the PnP attitudes' sigma is ~1e-3 rad)."""
 
 
 class MountSource(Choice):
@@ -302,6 +306,25 @@ def estimate_mount_rotation(
     the IMU / velocity, by the batch smoother with a Rot3 variable (module docstring).
     EstimationError when it cannot be estimated (no IMU, a gimbaled camera, poses without
     attitude, a singular graph)."""
+    return estimate_mount_and_trajectory(frame_t, imu, raw, velocity, floor_camera, config, fusion_config)[0]
+
+
+def estimate_mount_and_trajectory(
+    frame_t: np.ndarray,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None,
+    floor_camera: CameraModel,
+    config: ExtrinsicsConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> tuple[MountRotation, Trajectory | None]:
+    """estimate_mount_rotation, plus the whole flight's body trajectory T_world_body at the frame
+    times `frame_t` with the logged mount (no covariances; Estimator.SMOOTHER): the batch
+    smoother's fixed-mount trajectory recovered from this solve by one Gauss-Newton step
+    (nominal_mount_trajectory), so that one whole-flight solve serves both the mount check and
+    the front camera's time-offset profile (fusion.pipeline.SharedWholeFlight).  The trajectory
+    is None when most fixes disagreed with the IMU (health.gate_skipped: the plain smoother
+    would solve again without the IMU, which this solve does not) or that step failed."""
     config = config or ExtrinsicsConfig()
     fusion_config = fusion_config or FusionConfig()
     t0 = time.perf_counter()
@@ -384,7 +407,31 @@ def estimate_mount_rotation(
         used,
         out.time_s,
     )
-    return out
+    trajectory = None
+    if not health.gate_skipped:
+        try:
+            trajectory = nominal_mount_trajectory(lin, values, ordering, pb.frame_t)
+        except (RuntimeError, ValueError) as e:
+            log.debug("no fixed-mount trajectory from the mount solve: %s", e)
+    return out, trajectory
+
+
+def nominal_mount_trajectory(
+    lin: gtsam.GaussianFactorGraph, values: gtsam.Values, ordering: gtsam.Ordering, frame_t: np.ndarray
+) -> Trajectory:
+    """The batch smoother's trajectory with the logged (nominal) mount, from the mount solve's
+    solution `values` (E0 = exp(w^) free) and its linearisation `lin` there: one Gauss-Newton
+    step with E0 held at the identity by a tight prior (NOMINAL_MOUNT_SIGMA_RAD; the step to it in
+    E0's local coordinates is -w).  At the free optimum the gradient is zero, so the step moves the
+    states only by what fixing E0 implies: the fixed-mount optimum up to second order in w
+    (|w| ~ its sigma, hundredths of a degree, when the mount is right).  (N, 4, 4)
+    T_world_body at `frame_t`, no covariances."""
+    w = so3_log(values.atRot3(E(0)).matrix())
+    system = lin.clone()
+    hold = gtsam.noiseModel.Isotropic.Sigma(3, NOMINAL_MOUNT_SIGMA_RAD)
+    system.push_back(gtsam.JacobianFactor(E(0), np.eye(3), -w, hold))
+    fixed = values.retract(system.eliminateMultifrontal(ordering).optimize())
+    return Trajectory(str(Estimator.SMOOTHER), frame_t.copy(), poses_of(fixed, len(frame_t)), None)
 
 
 def check_mount(

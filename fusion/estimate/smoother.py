@@ -59,7 +59,7 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals, chain_marginals_with_codes
-from fusion.estimate.variance import problem_variance_components, solve_noise_scaled
+from fusion.estimate.variance import ResolvePredicate, problem_variance_components, solve_noise_scaled
 from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
@@ -936,7 +936,7 @@ def smooth(
     FusionResult.floor_codes."""
     config = config or FusionConfig()
 
-    def once(imu_, raw_, load_obs_, config_, require_motion=True):
+    def once(imu_, raw_, load_obs_, config_, require_motion=True, resolves=None):
         return _smooth_once(
             frame_times_ns,
             imu_,
@@ -949,6 +949,7 @@ def smooth(
             floor_camera,
             require_motion,
             as_built=as_built,
+            resolves=resolves,
         )
 
     res, scaled = solve_noise_scaled(once, imu, raw, load_obs, config)  # variance.py
@@ -993,8 +994,11 @@ def _smooth_once(
     floor_camera,
     require_motion: bool = True,
     as_built: asbuilt.AsBuiltInput | None = None,
+    resolves: ResolvePredicate | None = None,
 ) -> FusionResult:
-    """One batch solve (smooth without the IMU-rejection retry)."""
+    """One batch solve (smooth without the IMU-rejection retry).  `resolves(variance
+    components, health)` True: the noise-scale iteration will solve again, so the marginal
+    covariances are not computed (covariance_method "skipped")."""
     t0 = time.perf_counter()
     pb = build_problem(
         frame_times_ns,
@@ -1050,7 +1054,10 @@ def _smooth_once(
     n_codes = len(pb.as_built.code_of_var) if pb.as_built is not None else 0
     ccov = None  # (n_codes, 6, 6) as-built floor codes
     covariance_method = "none"
-    if config.compute_covariances:
+    skip_covariances = resolves is not None and resolves(variance_components, health)
+    if skip_covariances:
+        covariance_method = "skipped"
+    if config.compute_covariances and not skip_covariances:
         if lin is None:  # the last step was damped: linearise at the solution
             lin = graph.linearize(values)
         bulk: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None

@@ -543,11 +543,17 @@ def resolve_time_offsets(
     fixed_s: dict[str, float] | None = None,
     config: TimeOffsetConfig | None = None,
     fusion_config: FusionConfig | None = None,
+    whole_flight: WholeFlightSolve | None = None,
 ) -> TimeOffsets:
     """Each camera's offset for a run: fixed (`fixed_s` {camera: s}, --time-offset-ms), else
     estimated around the log's seed (FlightLog.timeshift_ns) from the floor PnP poses `raw`
     (log stamps) and the front camera's camera-frame load `sightings`; when it cannot be
-    estimated, the seed, with the reason in `note`."""
+    estimated, the seed, with the reason in `note`.
+
+    Order: the floor profile (its window's solves); then, for the front profile, the whole
+    flight in the IMU clock: the floor profile's own trajectory when it covered the whole
+    flight, else one whole-flight solve at the floor estimate (`whole_flight`, default
+    `fused_trajectory`; the pipeline passes a solve shared with the mount check)."""
     config = config or TimeOffsetConfig()
     fixed_s = dict(fixed_s or {})
     seeds = {name: log_.timeshift_ns.get(name, 0) / NS_PER_S for name in log_.cameras}
@@ -604,7 +610,7 @@ def resolve_time_offsets(
     try:
         if fused is None:
             fused_shift_ns = fused_shift_ns or out.shift_ns(floor)
-            fused = _fused_trajectory(log_, raw, fused_shift_ns, config, fusion_config)
+            fused = (whole_flight or fused_trajectory)(log_, raw, fused_shift_ns, config, fusion_config)
         fr = estimate_front_offset(fused, sightings, log_.cameras[front].camera, config, fusion_config)
         # the trajectory's clock carries the floor estimate's error one to one
         sigma = fr.sigma_s
@@ -627,16 +633,28 @@ def resolve_time_offsets(
     return out
 
 
-def _fused_trajectory(
+@dataclass
+class WholeFlightInput:
+    """The front profile's whole-flight solve's inputs: floor frame stamps (ns) and PnP poses
+    shifted into the IMU clock, the IMU upsampled (`upsample_imu`), and the smoother's config
+    (no loads, no covariances, no noise scaling)."""
+
+    frame_t: np.ndarray
+    imu: ImuData | None
+    raw: Trajectory
+    velocity: VelocityData | None
+    config: FusionConfig
+
+
+def whole_flight_input(
     log_: FlightLog,
     raw: Trajectory | None,
     shift_ns: int,
     config: TimeOffsetConfig,
     fusion_config: FusionConfig | None,
-) -> Trajectory:
-    """One smoother solve (no loads, no covariances) with the floor stamps shifted by
-    `shift_ns`: the drone in the IMU clock over the whole flight (the floor profile covered only a
-    window, or none was made)."""
+) -> WholeFlightInput:
+    """WholeFlightInput with the floor stamps shifted by `shift_ns`; EstimationError when the
+    front camera's offset cannot be estimated (no fix, neither IMU nor velocity)."""
     if raw is None or len(raw) == 0:
         raise EstimationError("no floor-code fix: the front camera's offset cannot be estimated")
     if log_.imu is None and log_.velocity is None:
@@ -651,16 +669,39 @@ def _fused_trajectory(
     imu = log_.imu
     if imu is not None:
         imu = upsample_imu(imu, config.imu_upsample, pcfg.max_imu_gap_s)
+    return WholeFlightInput(
+        log_.floor.timestamps_ns + shift_ns, imu, _shift_traj(raw, shift_ns), log_.velocity, pcfg
+    )
+
+
+def fused_trajectory(
+    log_: FlightLog,
+    raw: Trajectory | None,
+    shift_ns: int,
+    config: TimeOffsetConfig,
+    fusion_config: FusionConfig | None,
+) -> Trajectory:
+    """One smoother solve (no loads, no covariances) with the floor stamps shifted by
+    `shift_ns`: the drone in the IMU clock over the whole flight (the floor profile covered only a
+    window, or none was made).  The default WholeFlightSolve of resolve_time_offsets."""
+    inp = whole_flight_input(log_, raw, shift_ns, config, fusion_config)
     res = smooth(
-        log_.floor.timestamps_ns + shift_ns,
-        imu,
-        _shift_traj(raw, shift_ns),
+        inp.frame_t,
+        inp.imu,
+        inp.raw,
         None,
-        velocity=log_.velocity,
-        config=pcfg,
+        velocity=inp.velocity,
+        config=inp.config,
         floor_camera=log_.floor.camera,
     )
     return res.trajectory
+
+
+WholeFlightSolve = Callable[
+    [FlightLog, Trajectory | None, int, TimeOffsetConfig, FusionConfig | None], Trajectory
+]
+"""(log, floor PnP poses, floor shift ns, config, fusion config) -> the whole flight smoothed in
+the IMU clock: `fused_trajectory`, or the pipeline's solve shared with the mount check."""
 
 
 # =========================================================================== applying

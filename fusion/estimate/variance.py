@@ -57,7 +57,13 @@ SCALE_TOLERANCE = 0.1
 IMU_WARN_BAND = (0.5, 2.0)
 """The IMU group's chi2/dof outside this band: its noise densities are probably wrong."""
 HUTCHINSON_PROBES = 32
-"""Random probes of a group's leverage (group_leverages); groups with fewer rows are exact."""
+"""Most random probes of a group's leverage (group_leverages); groups with fewer rows are exact."""
+HUTCHINSON_MIN_PROBES = 8
+"""Fewest probes: a group stops drawing once its redundancy is known to REDUNDANCY_REL_SD."""
+REDUNDANCY_REL_SD = 0.01
+"""Target standard deviation of a group's Hutchinson redundancy, relative to it: 1 % of d_g,
+below the chi-square's own relative noise sqrt(2 / d_g) for d_g < 20000 and a tenth of
+SCALE_TOLERANCE."""
 HUTCHINSON_SEED = 20240130
 PROBE_BLOCK = 8
 """Probes per multi-right-hand-side solve in group_leverages (bounds its dense memory: 8 columns
@@ -186,11 +192,15 @@ def group_leverages(
 
     A^T A is factored once (sparse LU, symmetric mode, minimum-degree ordering); a group with at most
     HUTCHINSON_PROBES rows is summed exactly, row by row, a larger one by Hutchinson's estimator
-    with that many Rademacher probes z (tr M = E[z^T M z]; Hutchinson, Commun. Stat. Simul.
+    with Rademacher probes z (tr M = E[z^T M z]; Hutchinson, Commun. Stat. Simul.
     Comput. 18(3), 1989), M = A_g (A^T A)^-1 A_g^T, whose eigenvalues lie in [0, 1]: the
     estimate's standard deviation is below sqrt(2 tr M / probes), e.g. 2 % of a 600-dof group
-    with 32 probes.  Seeded (HUTCHINSON_SEED), so a flight's result is reproducible.  Raises
-    np.linalg.LinAlgError for a singular system."""
+    with 32 probes.  Probes are drawn PROBE_BLOCK at a time, from HUTCHINSON_MIN_PROBES up to
+    HUTCHINSON_PROBES, until the mean's standard error (the probes' sample standard deviation
+    / sqrt(probes)) is below REDUNDANCY_REL_SD of the group's redundancy rows - tr M (the
+    large groups of a long flight stop at the minimum: their redundancy is thousands).  Seeded
+    (HUTCHINSON_SEED), so a flight's result is reproducible.  Raises np.linalg.LinAlgError for a
+    singular system."""
     trip = lin.sparseJacobian_()  # 3 x nnz, 1-based (row, column, value); column n+1 is b
     sizes = np.asarray(factor_rows, dtype=int)
     m = int(sizes.sum())
@@ -218,20 +228,32 @@ def group_leverages(
         if not len(idx):
             continue
         AgT = A[idx].T.tocsc()
-        if len(idx) <= HUTCHINSON_PROBES:
-            z = np.eye(len(idx))  # every row of the group, exactly
-            weight = 1.0
-        else:
-            z = np.stack([rng.choice((-1.0, 1.0), len(idx)) for _ in range(HUTCHINSON_PROBES)], axis=1)
-            weight = 1.0 / HUTCHINSON_PROBES
-        # the probes b = A_g^T z in multi-right-hand-side solves of PROBE_BLOCK columns: one
-        # pass over the factors per block, dense memory n_unknowns x PROBE_BLOCK
-        for c in range(0, z.shape[1], PROBE_BLOCK):
-            probes = np.asfortranarray(np.asarray(AgT @ z[:, c : c + PROBE_BLOCK]))
-            out[g] += weight * float(np.sum(probes * lu.solve(probes)))
+        if len(idx) <= HUTCHINSON_PROBES:  # every row of the group, exactly
+            eye = np.eye(len(idx))
+            blocks = range(0, len(idx), PROBE_BLOCK)
+            out[g] = sum(float(np.sum(_quadratic(AgT, lu, eye[:, c : c + PROBE_BLOCK]))) for c in blocks)
+            continue
+        samples: list[float] = []
+        while len(samples) < HUTCHINSON_PROBES:
+            z = np.stack([rng.choice((-1.0, 1.0), len(idx)) for _ in range(PROBE_BLOCK)], axis=1)
+            samples.extend(_quadratic(AgT, lu, z))
+            trace = float(np.mean(samples))
+            # the mean's standard error, from the probes themselves
+            se = float(np.std(samples, ddof=1)) / math.sqrt(len(samples))
+            if len(samples) >= HUTCHINSON_MIN_PROBES and se <= REDUNDANCY_REL_SD * (len(idx) - trace):
+                break
+        out[g] = float(np.mean(samples))
     if not np.all(np.isfinite(out)):
         raise np.linalg.LinAlgError("hat matrix: non-finite leverage")
     return out
+
+
+def _quadratic(AgT, lu, z: np.ndarray) -> np.ndarray:
+    """(columns,) z_j^T A_g (A^T A)^-1 A_g^T z_j for the columns z_j of z: b = A_g^T z in one
+    multi-right-hand-side solve (one pass over the factors per block; dense memory
+    n_unknowns x columns)."""
+    b = np.asfortranarray(np.asarray(AgT @ z))
+    return np.sum(b * lu.solve(b), axis=0)
 
 
 def graph_variance_components(
@@ -307,38 +329,61 @@ class NoiseScales:
         return float(getattr(self, str(group), 1.0))
 
 
+def next_noise_scales(scales: NoiseScales, comps: dict | None) -> NoiseScales | None:
+    """The iterated estimator's next scales: every applicable group (pose, corners, load) with
+    enough degrees of freedom and chi2/dof off 1 by more than SCALE_TOLERANCE gets its scale
+    multiplied by its chi2/dof (clamped); None when none changes (converged)."""
+    change = False
+    for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
+        c = (comps or {}).get(g)
+        if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
+            continue
+        scales = replace(scales, **{str(g): clamp_scale(scales.of(g) * c.scale)})
+        change = True
+    return scales if change else None
+
+
+ResolvePredicate = Callable[[dict | None, Any], bool]
+"""(variance components, SolveHealth) of a solve -> whether solve_with_noise_scales will solve
+again after it: then that solve's covariances are never used and need not be computed."""
+
+
 def solve_with_noise_scales(
-    solve: Callable[[NoiseScales], Any], iterations: int, what: str = "smoother"
+    solve: Callable[..., Any], iterations: int, what: str = "smoother"
 ) -> tuple[Any, dict]:
-    """Iterated variance-component estimation around `solve(scales) -> FusionResult` (whose
-    stats['variance_components'] maps NoiseGroup -> VarianceComponent at its solution): after
-    each solve, every applicable group (pose, corners, load) with enough degrees of freedom has
-    its scale multiplied by its chi2/dof and the flight is solved again, at most `iterations`
-    times, stopping when all are within SCALE_TOLERANCE of 1.  Not applied (the first result,
-    report['not_applied'] says why) when the first solve skipped the outlier gate (the fixes
-    disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is outside
-    IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
+    """Iterated variance-component estimation around `solve(scales, resolves=pred) ->
+    FusionResult` (whose stats['variance_components'] maps NoiseGroup -> VarianceComponent at
+    its solution): after each solve, every applicable group (pose, corners, load) with enough
+    degrees of freedom has its scale multiplied by its chi2/dof and the flight is solved again
+    (next_noise_scales), at most `iterations` times, stopping when all are within
+    SCALE_TOLERANCE of 1.  `pred` (a ResolvePredicate) tells the solve, once it has its variance
+    components, whether another solve follows (the same rule), so that it can skip the marginal
+    covariances nobody will read.  Not applied (the first result, solved again with its
+    covariances, report['not_applied'] says why) when the first solve skipped the outlier gate
+    (the fixes disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is
+    outside IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
     JSON-ready report: per group the applied scale, the final chi2/dof and dof; per camera the
     applied scale; the IMU's chi2/dof (checked, never rescaled: a warning outside
     IMU_WARN_BAND)."""
+    budget = max(int(iterations), 0)
+
+    def resolves(scales_: NoiseScales, left: int) -> ResolvePredicate:
+        # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml,
+        # clock), not noise: the smoother's IMU-rejection path handles them, unscaled.
+        return lambda comps, health: (
+            left > 0 and not health.gate_skipped and next_noise_scales(scales_, comps) is not None
+        )
+
     scales = NoiseScales()
-    res = first = solve(scales)
+    res = solve(scales, resolves=resolves(scales, budget))
     n_solves = 1
-    # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml, clock),
-    # not noise: the smoother's IMU-rejection path handles them, unscaled.
     skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
-    for _ in range(0 if skip else max(int(iterations), 0)):
-        comps = res.stats.get("variance_components") or {}
-        change = False
-        for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
-            c = comps.get(g)
-            if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
-                continue
-            scales = replace(scales, **{str(g): clamp_scale(scales.of(g) * c.scale)})
-            change = True
-        if not change:
+    for i in range(0 if skip else budget):
+        new = next_noise_scales(scales, res.stats.get("variance_components"))
+        if new is None:
             break
-        res = solve(scales)
+        scales = new
+        res = solve(scales, resolves=resolves(scales, budget - 1 - i))
         n_solves += 1
     comps = res.stats.get("variance_components") or {}
     imu = comps.get(NoiseGroup.IMU)
@@ -347,7 +392,8 @@ def solve_with_noise_scales(
         # the IMU, the reference the camera scales are measured against, does not fit its own
         # noise model: the misfit cannot be attributed, so keep the model as configured
         skip = "the IMU does not fit its noise model"
-        res, scales = first, NoiseScales()
+        # the first solve was followed by another, so it skipped its covariances: again, whole
+        res, scales = solve(NoiseScales()), NoiseScales()
         comps = res.stats.get("variance_components") or {}
     report: dict = {"solves": n_solves, "groups": {}, "cameras": {}}
     if skip:
@@ -383,8 +429,9 @@ def solve_with_noise_scales(
 
 
 def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -> tuple:
-    """The batch smoother's hook: `once(imu, raw, load_obs, config, require_motion=True)` solved
-    with the noise scales of `solve_with_noise_scales` (raw pose covariances, tight corner
+    """The batch smoother's hook: `once(imu, raw, load_obs, config, require_motion=True,
+    resolves=None)` (`resolves`: solve_with_noise_scales' ResolvePredicate) solved with the noise
+    scales of `solve_with_noise_scales` (raw pose covariances, tight corner
     covariances, load cov_cam) for config.noise_scale_iterations.  Returns the result (its
     stats['noise_scales'] the report, the raw components removed) and `scaled(imu, **kw)`, a
     solve at the final scales (the IMU-rejection retry)."""
