@@ -771,7 +771,7 @@ _ALIGN_MAX_SHIFT = 0.6  # modules from where the finders' homography predicts it
 _ALIGN_MIN_CORR = 0.6  # correlation of the matched template
 _LOCAL_FIT_SCALE = 0.5  # per-corner fits: weight exp(-d^2 / 2 L^2), d in symbol sides
 _ALIGN_MISFIT_SIGMA = 3.0  # an alignment centre this many sigmas ...
-_ALIGN_MISFIT_MODULES = 0.05  # ... and this many modules off the single homography: not flat
+_ALIGN_MISFIT_MODULES = 0.05  # ... and this many modules off the finder edges' homography: not flat
 
 
 @lru_cache(maxsize=1)
@@ -1327,9 +1327,14 @@ def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_
     # not fit it (misfit beyond _ALIGN_MISFIT_SIGMA sigmas and _ALIGN_MISFIT_MODULES), one fit
     # per corner instead, each point's weight falling with its distance (modules) from that
     # corner: a printed symbol is not always flat, nor the lens model perfect, and a single
-    # homography then errs most at the corner farthest from the finders (module comment above)
+    # homography then errs most at the corner farthest from the finders (module comment above).
+    # The misfit is a held-out prediction: each centre against the finder edges' homography Hs,
+    # which did not see it.  Against the joint fit (as before) a centre pulls that homography
+    # towards itself and hides its own misfit: on a curled real print (zxing-cpp's
+    # qrcode-1/1.webp) the joint misfit passed, the single homography was kept, and a finder
+    # corner came out 1.19 px off against the decoder's 0.58 (BENCHMARKS.md / NOTES-refine.md)
     H, corners, cov, ok, _ = _fit_homographies(fit2, pr2, nsa, protected)
-    misfit = np.linalg.norm(_apply_hs(H, centre) - pts, axis=2)  # (C, A) px
+    misfit = np.linalg.norm(_apply_hs(Hs, centre) - pts, axis=2)  # (C, A) px
     with np.errstate(all="ignore"):
         bad_fit = (misfit > _ALIGN_MISFIT_SIGMA * sig) & (misfit > _ALIGN_MISFIT_MODULES * module_px[:, None])
     local = np.any(found & bad_fit, axis=1)
