@@ -730,29 +730,35 @@ def _model_edge_points(
     clipped_code = np.bincount(pr.code, np.any(used & clipped_any, axis=1), C) > 0
     free_dil = np.repeat(clipped_code & bool(fit_dilation), 2)
     dil = np.where(free_dil, dil, 0.0)
+    any_free = bool(free_dil.any())  # (else the growth's terms are skipped: every clean frame)
+    zero = np.zeros(P)
     for _ in range(iterations):
         wmod = width_px[lbl].astype(np.float32)[:, None] * g32
-        F, F_x, F_a = _blurred_steps(s - e[:, None], wmod, psf, dilation=dil[lbl].astype(np.float32)[:, None])
+        shift = dil[lbl].astype(np.float32)[:, None] if any_free else None
+        F, F_x, F_a = _blurred_steps(s - e[:, None], wmod, psf, dilation=shift)
         # D: the dark modules, Dd = 1 - F(-1): the data beyond the separator (interior edges)
         D, Dd = _dark(F), (1.0 - F[0]) * inner
         lev, r, A, Ninv = _levels(D, Dd, y, m)
         Cl, gam = lev[:, 1:2], lev[:, 2:3] * inner
         Je = -(Cl * _dark(F_x) - gam * F_x[0]) * m  # d model / d e
         Jw = (Cl * _dark(F_a) - gam * F_a[0]) * (m * g32)  # d model / d width_px
-        Jd = (Cl * (F_x[1] + F_x[2] + F_x[3]) + gam * F_x[0]) * m  # d model / d dilation
         # project out the levels (variable projection): J <- (I - A N^-1 A^T) J, so the
         # normal matrix of (e, w, d) is J^T J - q^T N^-1 q with q = A^T J (P, 3, 3)
         qe = np.stack([_dots(ai, Je) for ai in A], axis=1)  # (P, 3): the columns of q
         qw = np.stack([_dots(ai, Jw) for ai in A], axis=1)
-        qd = np.stack([_dots(ai, Jd) for ai in A], axis=1)
         Nqe, Nqw = Ninv.matvec(qe), Ninv.matvec(qw)
         a = _dots(Je, Je) - _dots(qe, Nqe) + 1e-9
         bw = _dots(Je, Jw) - _dots(qw, Nqe)
-        bd = _dots(Je, Jd) - _dots(qd, Nqe)
         cww = _dots(Jw, Jw) - _dots(qw, Nqw)
-        cwd = _dots(Jw, Jd) - _dots(qd, Nqw)
-        cdd = _dots(Jd, Jd) - _dots(qd, Ninv.matvec(qd))
-        ge, gw, gd = _dots(Je, r), _dots(Jw, r), _dots(Jd, r)
+        ge, gw = _dots(Je, r), _dots(Jw, r)
+        bd = cwd = cdd = gd = zero
+        if any_free:
+            Jd = (Cl * (F_x[1] + F_x[2] + F_x[3]) + gam * F_x[0]) * m  # d model / d dilation
+            qd = np.stack([_dots(ai, Jd) for ai in A], axis=1)
+            bd = _dots(Je, Jd) - _dots(qd, Nqe)
+            cwd = _dots(Jw, Jd) - _dots(qd, Nqw)
+            cdd = _dots(Jd, Jd) - _dots(qd, Ninv.matvec(qd))
+            gd = _dots(Jd, r)
         # the per-profile offsets e eliminated (Schur complement): a 2x2 system per width group
         S00 = np.bincount(lbl, cww - bw * bw / a, 2 * C) + 1e-6
         S01 = np.bincount(lbl, cwd - bw * bd / a, 2 * C)
