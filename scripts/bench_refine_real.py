@@ -194,6 +194,12 @@ def summarise(rows) -> None:
         f"{worse.sum()} codes ({100.0 * worse.mean():.1f} %)"
     )
     print(f"refinement counters (all {len(rows)} codes): {STATS}")
+    # per folder: a change chosen by looking at some folders' codes can be judged on the others
+    print("| folder | codes | median px | worse by > 0.5 px |\n|---|---|---|---|")
+    folders = np.array([r["file"].split("/")[0] for r in good])
+    for name in sorted(set(folders)):
+        sel = folders == name
+        print(f"| {name} | {int(sel.sum())} | {np.median(out[sel]):.3f} | {int(worse[sel].sum())} |")
     for r, w in zip(good, worse):
         if w:
             print("  worse:", r["file"], "stage", r["stage"], "quality", r["quality"])

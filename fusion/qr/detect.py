@@ -54,7 +54,8 @@ BACKENDS = ("zxing", "aruco")
 FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image sizes and mtimes in the key
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = (
-    "finder-crossings+finder-model-homography+alignment+checks/8"  # change when refine.py's output changes
+    # change when refine.py's output changes
+    "finder-crossings+finder-model-homography+alignment+checks+dilation/9"
 )
 CACHE_HEADER = (
     "camera",
