@@ -87,24 +87,32 @@ def _floor_frames(log) -> tuple[np.ndarray, np.ndarray, dict]:
     return stamps, mask, truth_by_t
 
 
+def _tracked_error(d, truth: dict) -> float | None:
+    """Worst corner error px of a tracked sighting `d`, or None when its identity is wrong: the
+    named code is not in front of the camera, or another code's true centre is nearer."""
+    centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
+    own = centres.get(d.payload)
+    c = d.corners_px.mean(axis=0)
+    if own is None or any(
+        np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
+    ):
+        return None
+    return float(np.max(np.linalg.norm(d.corners_px - truth[d.payload], axis=1)))
+
+
 def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
-    """(wrong identities, worst corner error px of each right one) of the tracked sightings: wrong
-    when the named code is not in front of the camera or another code's true centre is nearer."""
+    """(wrong identities, worst corner error px of each right one) of the tracked sightings."""
     wrong, errs = 0, []
     for t, dets in by_frame.items():
         truth = truth_by_t.get(int(t), {})
-        centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
         for d in dets:
             if not d.tracked:
                 continue
-            own = centres.get(d.payload)
-            c = d.corners_px.mean(axis=0)
-            if own is None or any(
-                np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
-            ):
+            err = _tracked_error(d, truth)
+            if err is None:
                 wrong += 1
-                continue
-            errs.append(float(np.max(np.linalg.norm(d.corners_px - truth[d.payload], axis=1))))
+            else:
+                errs.append(err)
     return wrong, errs
 
 
@@ -251,20 +259,15 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
         if in_view:
             out["floor_frames"] += 1
             out["posed"] += int(t) in pnp_t
-        centres = {p: uv.mean(axis=0) for p, uv in truth.items()}
         for d in by_frame.get(int(t), []):
             out["tracked" if d.tracked else "decoded"] += 1
             if not d.tracked:
                 continue
-            own = centres.get(d.payload)
-            c = d.corners_px.mean(axis=0)
-            if own is None or any(
-                np.linalg.norm(c - o) < np.linalg.norm(c - own) for p, o in centres.items() if p != d.payload
-            ):
+            err = _tracked_error(d, truth)
+            if err is None:
                 out["wrong_ids"] += 1
-                continue
-            err = np.linalg.norm(d.corners_px - truth[d.payload], axis=1)
-            out["tracked_err_px"].append(float(np.max(err)))
+            else:
+                out["tracked_err_px"].append(err)
     traj = metrics.get("trajectories", {})
     out["ate_pnp_cm"] = 100 * traj.get("pnp", {}).get("ate_rmse_m", float("nan"))
     out["ate_smoother_cm"] = 100 * traj.get("smoother", {}).get("ate_rmse_m", float("nan"))
