@@ -1230,7 +1230,7 @@ def innovation_distance(
 ISAM_FACTORIZATION = "CHOLESKY"
 """iSAM2's elimination in the incremental smoother.  Cholesky took ~30 % less CPU than QR (the
 per-frame update and marginalCovariance are most of the smoother's time) for the same estimates
-(poses within 1e-11 m, covariances within 1e-9 relative: NOTES-incekf.md).  QR is the fallback:
+(poses within 1e-11 m, covariances within 1e-9 relative: BENCHMARKS.md).  QR is the fallback:
 a Cholesky run that meets a singular update or covariance is run again from the start with QR,
 so such flights get exactly the QR result (DESIGN.md pitfalls: Cholesky can throw
 IndeterminantLinearSystemException where QR runs)."""

@@ -1391,7 +1391,7 @@ def _add_alignment(images, image_of, dist, Hs, nsa, pr, fit, alive, raw, module_
     # which did not see it.  Against the joint fit (as before) a centre pulls that homography
     # towards itself and hides its own misfit: on a curled real print (zxing-cpp's
     # qrcode-1/1.webp) the joint misfit passed, the single homography was kept, and a finder
-    # corner came out 1.19 px off against the decoder's 0.58 (BENCHMARKS.md / NOTES-refine.md)
+    # corner came out 1.19 px off against the decoder's 0.58 (BENCHMARKS.md, real photographs)
     H, corners, cov, ok, _ = _fit_homographies(fit2, pr2, nsa, protected)
     misfit = np.linalg.norm(_apply_hs(Hs, centre) - pts, axis=2)  # (C, A) px
     with np.errstate(all="ignore"):
@@ -1492,7 +1492,7 @@ def refine_frames(
             # modules' growth (_model_edge_points); the self-check keeps judging the first run,
             # whose misfit its thresholds were set on (the growth fits such profiles better and
             # would loosen it: on real photographs 3 more codes then passed it, 2 of them worse
-            # than the decoder; NOTES-refine.md)
+            # than the decoder; BENCHMARKS.md)
             sub_map = None if code_map is None else (lambda c, p: code_map(redo[c], p))
             again, _ = _stage2(
                 images, image_of[redo], dist, [raw_u[j] for j in redo], [ns[j] for j in redo], sub_map, True
