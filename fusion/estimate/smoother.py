@@ -18,7 +18,8 @@ One state per floor-camera frame: X(k) Pose3 T_world_body, V(k) world velocity, 
   through the first raw positions).
 
 `smooth` = batch Levenberg-Marquardt over the whole flight + marginal covariances;
-`smooth_incremental` = iSAM2 (QR factorization), the estimate as known at each frame (causal).
+`smooth_incremental` = iSAM2 (Cholesky; the whole flight re-run with QR on a singular system),
+the estimate as known at each frame (causal).
 """
 
 from __future__ import annotations
