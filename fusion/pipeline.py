@@ -104,7 +104,6 @@ from fusion.warehouse.view3d import floor_codes_from_detections
 logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
-log_ = logging.getLogger(__name__)
 
 
 @dataclass
@@ -634,7 +633,7 @@ def fuse_stage(
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
         except Exception as e:  # a bug in one back end must not cost the others
-            log_.exception("%s failed", name)
+            logger.exception("%s failed", name)
             first_line = str(e).strip().splitlines()[0] if str(e).strip() else ""
             out.failures[name] = EstimatorFailure(
                 name, f"internal error: {type(e).__name__}: {first_line}", type(e).__name__
@@ -652,7 +651,7 @@ def fuse_stage(
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():
-        log_.warning("%s failed: %s", name, failure.reason)
+        logger.warning("%s failed: %s", name, failure.reason)
     return out
 
 
