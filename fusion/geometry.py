@@ -52,6 +52,12 @@ def transform_points(T_a_b: np.ndarray, p_b: np.ndarray) -> np.ndarray:
     return p_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of two 3-vectors, the same products and differences as np.cross (whose general
+    set-up costs more than the arithmetic on the EKF's per-update path)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def skew(w: np.ndarray) -> np.ndarray:
     """3x3 cross-product matrix [w]x (skew(w) @ p == cross(w, p))."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

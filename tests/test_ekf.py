@@ -449,7 +449,7 @@ def test_block_prediction_equals_per_sample_prediction():
 
 def test_cross_equals_numpy_cross_exactly():
     """The EKF's 3-vector cross product (velocity update, reset) gives np.cross's numbers."""
-    from fusion.estimate.ekf import _cross
+    from fusion.geometry import cross3 as _cross
 
     rng = np.random.default_rng(4)
     for _ in range(200):

@@ -273,14 +273,12 @@ def test_tight_corner_noise_scale():
     assert rep["cameras"]["cam0"]["group"] == "corners"
 
 
-def test_group_leverages_match_the_dense_hat_matrix():
-    """Exact for a small group, Hutchinson within its bound for a large one; dof add up to
-    rows - unknowns."""
-    rng = np.random.default_rng(3)
+def pose_chain(rng, n: int) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[int]]:
+    """A chain of n random Pose3 with a prior on each (group 0) and a between factor for each
+    link (group 1): the graph, its values and each factor's group."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    n = 20
-    groups = []
+    groups: list[int] = []
     for k in range(n):
         values.insert(k, gtsam.Pose3(gtsam.Rot3.Expmap(0.1 * rng.normal(size=3)), rng.normal(size=3)))
         graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.5)))
@@ -290,6 +288,14 @@ def test_group_leverages_match_the_dense_hat_matrix():
                 gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1))
             )
             groups.append(1)
+    return graph, values, groups
+
+
+def test_group_leverages_match_the_dense_hat_matrix():
+    """Exact for a small group, Hutchinson within its bound for a large one; dof add up to
+    rows - unknowns."""
+    rng = np.random.default_rng(3)
+    graph, values, groups = pose_chain(rng, 20)
     graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.05)))
     groups.append(2)  # 6 rows: exact
     lin = graph.linearize(values)
@@ -331,18 +337,7 @@ def test_group_leverages_batched_solve_equals_probe_by_probe(monkeypatch):
     import scipy.sparse.linalg as spla
 
     rng = np.random.default_rng(5)
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    groups = []
-    for k in range(40):
-        values.insert(k, gtsam.Pose3(gtsam.Rot3.Expmap(0.1 * rng.normal(size=3)), rng.normal(size=3)))
-        graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.5)))
-        groups.append(0)
-        if k:
-            graph.add(
-                gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1))
-            )
-            groups.append(1)
+    graph, values, groups = pose_chain(rng, 40)
     lin = graph.linearize(values)
     n = values.dim()
     lev = vc.group_leverages(lin, n, groups, 2, [6] * len(groups))

@@ -4,7 +4,6 @@ camera's mount variable serves both the front camera's time-offset profile and t
 
 import math
 
-import gtsam
 import numpy as np
 import pytest
 
@@ -25,6 +24,7 @@ from fusion.types import Trajectory
 from tests.test_estimate import FRONT_CAM, make_flight
 from tests.test_extrinsics import FLOOR_CAM as MOUNT_FLOOR_CAM
 from tests.test_extrinsics import _survey
+from tests.test_realism import pose_chain
 from tests.test_timeoffset import _flight, _log
 
 MS = 1e-3
@@ -148,20 +148,7 @@ def test_hutchinson_probes_stop_once_the_redundancy_is_known(monkeypatch):
     """A long chain: each large group stops drawing probes before HUTCHINSON_PROBES, and its
     redundancy (rows - leverage) is within 4 standard errors (REDUNDANCY_REL_SD) of the
     dense hat matrix's."""
-    rng = np.random.default_rng(11)
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    groups = []
-    n_poses = 200
-    for k in range(n_poses):
-        values.insert(k, gtsam.Pose3(gtsam.Rot3.Expmap(0.1 * rng.normal(size=3)), rng.normal(size=3)))
-        graph.add(gtsam.PriorFactorPose3(k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.5)))
-        groups.append(0)
-        if k:
-            graph.add(
-                gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 0.1))
-            )
-            groups.append(1)
+    graph, values, groups = pose_chain(np.random.default_rng(11), 200)
     lin = graph.linearize(values)
     A, _ = lin.jacobian()
     h = np.diag(A @ np.linalg.solve(A.T @ A, A.T))

@@ -81,6 +81,7 @@ from fusion.estimate.smoother import imu_coverage, imu_subintervals
 from fusion.estimate.variance import nis_component
 from fusion.geometry import (
     adjoint,
+    cross3,
     inv_T,
     rot_z,
     skew,
@@ -219,12 +220,6 @@ class _FixWindow:
     def all_gated(self) -> bool:
         recent = self.recent()
         return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) and self.consistent()
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b of two 3-vectors, the same products and differences as np.cross (whose general
-    set-up cost more than the velocity update's arithmetic)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 class _Ekf:
@@ -475,7 +470,7 @@ class _Ekf:
             T[:3, 3] = fix.p_world
             cov = np.diag(np.r_[[_TILT_SIGMA_RAD**2] * 2, fix.sigma_yaw**2, fix.sigma_p**2])
             self.set_pose(T, cov)
-        self.v = v - self.R @ _cross(self.omega, self.T_ib[:3, 3])
+        self.v = v - self.R @ cross3(self.omega, self.T_ib[:3, 3])
         rec = self.recovery
         sigma_v = max(rec.reset_velocity_sigma_m_s, self.config.velocity_prior_sigma_m_s)
         self.kf.P[_V, _V] = np.eye(3) * sigma_v**2
@@ -541,7 +536,7 @@ class _Ekf:
         R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
         arm term is in the IMU frame already)."""
         R_ib = self.T_ib[:3, :3]
-        v_b_world = self.v + self.R @ _cross(self.omega, self.T_ib[:3, 3])
+        v_b_world = self.v + self.R @ cross3(self.omega, self.T_ib[:3, 3])
         hx = R_ib.T @ self.R.T @ v_b_world
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
