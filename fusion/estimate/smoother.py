@@ -1247,6 +1247,7 @@ def _new_engine(config: FusionConfig, factorization: str = ISAM_FALLBACK_FACTORI
     params.setFactorization(factorization)
     params.setRelinearizeThreshold(config.isam_relinearize_threshold)
     params.relinearizeSkip = config.isam_relinearize_skip
+    params.findUnusedFactorSlots = True
     lag = config.incremental_lag_s
     return gtsam.ISAM2(params) if lag is None else gtsam.IncrementalFixedLagSmoother(float(lag), params)
 
