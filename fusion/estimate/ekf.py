@@ -243,6 +243,7 @@ class _Ekf:
         self.resets = 0
         self.window = _FixWindow(recovery)
         self.nis: list[tuple[float, int]] = []  # (squared Mahalanobis innovation, dim) per fix
+        self._q_cache: tuple[Any, np.ndarray] | None = None  # (noise record, _q_density of it)
 
     # ------------------------------------------------------------------ state <-> body pose
     def T_world_body(self) -> np.ndarray:
@@ -344,13 +345,17 @@ class _Ekf:
         self.kf.P_prior = P.copy()
 
     def _q_density(self, noise) -> np.ndarray:
-        """(15,) continuous process noise of predict_imu per second (Q = diag(q) dt)."""
+        """(15,) continuous process noise of predict_imu per second (Q = diag(q) dt), computed
+        once per noise record (it is the same for the whole flight)."""
+        if self._q_cache is not None and self._q_cache[0] is noise:
+            return self._q_cache[1]
         q = np.empty(15)
         q[_TH] = noise.gyroscope_noise_density**2
         q[_P] = self.config.integration_sigma**2
         q[_V] = noise.accelerometer_noise_density**2
         q[_BG] = noise.gyroscope_random_walk**2
         q[_BA] = noise.accelerometer_random_walk**2
+        self._q_cache = (noise, q)
         return q
 
     def predict_random_walk(self, dt: float, noise) -> None:
@@ -542,7 +547,7 @@ class _Ekf:
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
-        self._update(v_meas, H, hx, np.eye(3) * sigma**2)
+        self._update(v_meas, H, hx, _EYE3 * sigma**2)
 
 
 def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
