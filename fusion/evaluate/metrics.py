@@ -80,13 +80,18 @@ def interpolate_poses(
     q = np.asarray(query_ns, dtype=np.int64)
     if len(t) == 0:
         return np.zeros((0, 4, 4)), np.zeros(len(q), dtype=bool)
-    mask = (q >= t[0]) & (q <= t[-1])
+    mask = _inside_span(t, q)
     qk = q[mask]
     # Interpolate in float seconds relative to t0: exact at the samples, no int64 -> float loss.
     ts = (t - t[0]) * 1e-9
     qs = (qk - t[0]) * 1e-9
     keep = bracketing_samples(ts, qs)
     return _interpolate_sampled(ts[keep], np.asarray(T_world_body)[keep], qs), mask
+
+
+def _inside_span(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(M,) queries q inside [t[0], t[-1]] (int64 ns; t non-empty)."""
+    return (q >= t[0]) & (q <= t[-1])
 
 
 def bracketing_samples(ts: np.ndarray, qs: np.ndarray) -> np.ndarray:
@@ -103,13 +108,26 @@ def bracketing_samples(ts: np.ndarray, qs: np.ndarray) -> np.ndarray:
     return np.unique(np.clip(np.concatenate([j - 2, j - 1, j]), 0, n - 1))
 
 
-def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray, traj: Trajectory) -> Association:
+def associate(
+    gt_timestamps_ns: np.ndarray,
+    gt_T_world_body: np.ndarray,
+    traj: Trajectory,
+    truth_at: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Association:
     """Interpolate the ground truth (200 Hz) at the estimate's timestamps.  Estimate samples with
-    a non-finite pose are dropped (counted in `n_outside_gt`); unsorted timestamps raise."""
+    a non-finite pose are dropped (counted in `n_outside_gt`); unsorted timestamps raise.
+    truth_at: (stamps (K,) sorted, truth there (K, 4, 4)) covering every stamp of `traj` inside
+    the truth's span (associate_many), used instead of interpolating again."""
     t_est = np.asarray(traj.timestamps_ns, dtype=np.int64)
     if np.any(np.diff(t_est) < 0):
         raise EvaluationError(f"trajectory '{traj.name}': timestamps are not sorted")
-    T_gt, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, t_est)
+    if truth_at is None:
+        T_gt, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, t_est)
+    elif len(gt_timestamps_ns) == 0:
+        T_gt, mask = np.zeros((0, 4, 4)), np.zeros(len(t_est), dtype=bool)
+    else:
+        mask = _inside_span(np.asarray(gt_timestamps_ns, dtype=np.int64), t_est)
+        T_gt = truth_at[1][np.searchsorted(truth_at[0], t_est[mask])]
     finite = np.isfinite(np.asarray(traj.T_world_body, dtype=float).reshape(len(t_est), 16)).all(axis=1)
     idx = np.flatnonzero(mask & finite)
     T_gt = T_gt[finite[mask]]
@@ -125,6 +143,22 @@ def associate(gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray, traj: T
         idx,
         int(len(traj) - len(idx)),
     )
+
+
+def associate_many(
+    gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray, trajectories: dict[str, Trajectory]
+) -> dict[str, Association]:
+    """`associate` of every trajectory, the truth interpolated once at the union of their stamps
+    (the fused estimators share the frame stamps; interpolation is per query, so each
+    association is the same to the bit as associating alone)."""
+    stamps = [np.asarray(t.timestamps_ns, dtype=np.int64) for t in trajectories.values()]
+    t_all = np.unique(np.concatenate(stamps)) if stamps else np.zeros(0, dtype=np.int64)
+    T_all, mask = interpolate_poses(gt_timestamps_ns, gt_T_world_body, t_all)
+    table = (t_all[mask], T_all)
+    return {
+        name: associate(gt_timestamps_ns, gt_T_world_body, traj, truth_at=table)
+        for name, traj in trajectories.items()
+    }
 
 
 # ============================================================================ SE(3) helpers
@@ -634,7 +668,7 @@ def evaluate(
             "path_length_m": float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1))),
         }
         # one association per trajectory, shared by its metrics and the like-for-like ATE below
-        assoc = {name: associate(t_gt, T_gt, traj) for name, traj in trajectories.items()}
+        assoc = associate_many(t_gt, T_gt, trajectories)
         for name, traj in trajectories.items():
             out["trajectories"][name] = trajectory_metrics(
                 t_gt,
