@@ -52,7 +52,13 @@ def capture(log: Path, out: Path, dest: Path) -> None:
 
 def _traj_arrays(res) -> dict:
     t = res.trajectory
-    return {"t": np.asarray(t.timestamps_ns), "T": np.asarray(t.T_world_body), "cov": t.covariances}
+    loads = {l.load_id: (np.asarray(l.p_world, float), l.cov_world) for l in res.loads.loads}
+    return {
+        "t": np.asarray(t.timestamps_ns),
+        "T": np.asarray(t.T_world_body),
+        "cov": t.covariances,
+        "loads": loads,
+    }
 
 
 def replay(path: Path, out: Path, only: set[str], prof: cProfile.Profile | None) -> dict:
@@ -133,6 +139,21 @@ def compare_estimates(old: dict, new: dict) -> None:
         if dc is not None:
             rc = np.max(np.abs(a["cov"] - b["cov"]) / (np.abs(a["cov"]).max(axis=(1, 2))[:, None, None]))
         print(f"{label}: max |dT| {dT:.3g}, max |dcov| {dc}, max relative dcov {rc}")
+        la, lb = a.get("loads"), b.get("loads")
+        if la is not None and lb is not None:
+            if set(la) != set(lb):
+                print(f"{label}: load ids differ {sorted(set(la) ^ set(lb))}")
+            common = sorted(set(la) & set(lb))
+            dp = max((np.abs(la[i][0] - lb[i][0]).max() for i in common), default=0.0)
+            dcl = max(
+                (
+                    np.abs(la[i][1] - lb[i][1]).max() / np.abs(la[i][1]).max()
+                    for i in common
+                    if la[i][1] is not None and lb[i][1] is not None
+                ),
+                default=0.0,
+            )
+            print(f"{label} loads: {len(common)} common, max |dp| {dp:.3g} m, max relative dcov {dcl:.3g}")
     for name in sorted(set(old["accuracy"]) & set(new["accuracy"])):
         for q, v in new["accuracy"][name].items():
             u = old["accuracy"][name].get(q)

@@ -502,3 +502,45 @@ def test_load_error_plot_and_boxplots_with_unseen_and_covariance_free_loads(tmp_
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     p = plot_error_boxplots(tmp_path / "b.png", trajs, gt, load_maps=lms, loads_gt=loads_gt, dpi=40)
     assert p.stat().st_size > 1000
+
+
+def test_truth_interpolated_on_the_bracketing_samples_is_bit_identical():
+    """metrics.interpolate_poses converts only the truth samples around the queries: the poses
+    must equal geometry.interpolate_poses on every sample, to the bit, including queries that
+    fall exactly on a sample, before the first and after the last one."""
+    from fusion.geometry import interpolate_poses as interpolate_all
+
+    gt = make_gt(duration_s=5.0)
+    t, T = gt.timestamps_ns, gt.T_world_body
+    rng = np.random.default_rng(4)
+    q = np.sort(
+        np.r_[rng.integers(t[0] - NS, t[-1] + NS, 300), t[rng.integers(0, len(t), 40)], t[0], t[-1]]
+    ).astype(np.int64)
+    T_q, mask = M.interpolate_poses(t, T, q)
+    ref = interpolate_all((t - t[0]) * 1e-9, T, (q[mask] - t[0]) * 1e-9)
+    assert 0 < mask.sum() < len(q)
+    assert np.array_equal(T_q, ref)
+
+
+def test_associate_many_equals_associating_each_trajectory_alone():
+    """One interpolation at the union of the stamps, shared: every association (stamps, poses,
+    truth, covariances, indices, count outside) as associate() gives it alone."""
+    gt = make_gt(duration_s=6.0)
+    rng = np.random.default_rng(5)
+    a = sample(gt, every=7, name="a")
+    b = Trajectory("b", a.timestamps_ns[::2] + 3_000_000, a.T_world_body[::2].copy())
+    b.T_world_body[1, 0, 3] = np.nan  # dropped as non-finite
+    cov = np.tile(np.eye(6), (len(a), 1, 1)) * rng.uniform(1, 2, (len(a), 1, 1))
+    c = Trajectory("c", a.timestamps_ns - 2 * NS, a.T_world_body.copy(), cov)  # partly before the truth
+    trajs = {"a": a, "b": b, "c": c, "empty": Trajectory("empty", np.zeros(0, np.int64), np.zeros((0, 4, 4)))}
+    many = M.associate_many(gt.timestamps_ns, gt.T_world_body, trajs)
+    for name, traj in trajs.items():
+        alone = M.associate(gt.timestamps_ns, gt.T_world_body, traj)
+        got = many[name]
+        assert got.n_outside_gt == alone.n_outside_gt
+        for field in ("timestamps_ns", "T_world_body_est", "T_world_body_gt", "index_est"):
+            assert np.array_equal(getattr(got, field), getattr(alone, field)), (name, field)
+        assert (got.covariances is None) == (alone.covariances is None)
+        if alone.covariances is not None:
+            assert np.array_equal(got.covariances, alone.covariances)
+    assert many["b"].n_outside_gt == 1 and many["c"].n_outside_gt > 0

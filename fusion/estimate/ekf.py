@@ -84,6 +84,7 @@ from fusion.geometry import (
     cross3,
     inv_T,
     rot_z,
+    se3_exp,
     skew,
     skew_stack,
     so3_exp,
@@ -242,6 +243,7 @@ class _Ekf:
         self.resets = 0
         self.window = _FixWindow(recovery)
         self.nis: list[tuple[float, int]] = []  # (squared Mahalanobis innovation, dim) per fix
+        self._q_cache: tuple[Any, np.ndarray] | None = None  # (noise record, _q_density of it)
 
     # ------------------------------------------------------------------ state <-> body pose
     def T_world_body(self) -> np.ndarray:
@@ -329,10 +331,10 @@ class _Ekf:
         F[:, _V, _TH] = -(R0 @ skew_stack(Fb)) * dts[:, None, None]
         F[:, _V, _BA] = -R0 * dts[:, None, None]
         Q = self._q_density(noise)[None, :] * dts[:, None]  # (K, 15) diagonal of Q
-        Qm = Q[:, :, None] * _EYE15  # (K, 15, 15): adding its zeros leaves P's entries exact
         P = self.kf.P
         for i in range(K):  # filterpy's predict: P = F P F^T + Q
-            P = np.dot(F[i], P).dot(F[i].T) + Qm[i]
+            P = np.dot(F[i], P).dot(F[i].T)
+            P.flat[::16] += Q[i]  # Q is diagonal: adding its zeros would leave P's entries exact
         self.R = Rs[-1]
         self.p = self.p + dp.sum(axis=0)
         self.v = v_start[-1]
@@ -343,13 +345,17 @@ class _Ekf:
         self.kf.P_prior = P.copy()
 
     def _q_density(self, noise) -> np.ndarray:
-        """(15,) continuous process noise of predict_imu per second (Q = diag(q) dt)."""
+        """(15,) continuous process noise of predict_imu per second (Q = diag(q) dt), computed
+        once per noise record (it is the same for the whole flight)."""
+        if self._q_cache is not None and self._q_cache[0] is noise:
+            return self._q_cache[1]
         q = np.empty(15)
         q[_TH] = noise.gyroscope_noise_density**2
         q[_P] = self.config.integration_sigma**2
         q[_V] = noise.accelerometer_noise_density**2
         q[_BG] = noise.gyroscope_random_walk**2
         q[_BA] = noise.accelerometer_random_walk**2
+        self._q_cache = (noise, q)
         return q
 
     def predict_random_walk(self, dt: float, noise) -> None:
@@ -541,7 +547,7 @@ class _Ekf:
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
-        self._update(v_meas, H, hx, np.eye(3) * sigma**2)
+        self._update(v_meas, H, hx, _EYE3 * sigma**2)
 
 
 def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
@@ -685,20 +691,23 @@ def run_ekf(
 def load_point_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.ndarray):
     """World point of a camera-frame point through the camera's mount, and its 3x6 Jacobian
     with respect to the body pose (right perturbation, Pose3 order) by central differences
-    (step _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path."""
+    (step _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path.  The 12
+    perturbed poses T Exp(+-h e_i) (Pose3.retract, whose chart is Expmap) go through the mount
+    as one stack."""
+    T_world_body = np.asarray(T_world_body, float)
+    T_wc = camera.T_world_cam(np.concatenate([T_world_body[None], T_world_body @ _LOAD_PERTURBATIONS]))
+    pts = np.einsum("kij,j->ki", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
+    J = (pts[1:7] - pts[7:]).T / (2 * _LOAD_JACOBIAN_STEP)
+    return pts[0], J
 
-    def point(T_wb):
-        T_wc = camera.T_world_cam(T_wb)
-        return T_wc[:3, :3] @ p_cam + T_wc[:3, 3]
 
-    pose = gtsam.Pose3(T_world_body)
-    J = np.empty((3, 6))
-    h = _LOAD_JACOBIAN_STEP
-    for i in range(6):
-        dx = np.zeros(6)
-        dx[i] = h
-        J[:, i] = (point(pose.retract(dx).matrix()) - point(pose.retract(-dx).matrix())) / (2 * h)
-    return point(T_world_body), J
+def _perturbations(h: float) -> np.ndarray:
+    """(12, 4, 4): Exp(+h e_i) for i = 0..5, then Exp(-h e_i) (Pose3 tangent order)."""
+    return np.array([se3_exp(s * h * e) for s in (1.0, -1.0) for e in _EYE6])
+
+
+_EYE6 = np.eye(6)
+_LOAD_PERTURBATIONS = _perturbations(_LOAD_JACOBIAN_STEP)
 
 
 def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config) -> LoadMap:

@@ -31,7 +31,7 @@ from fusion.evaluate.metrics import (  # noqa: E402
     PAPER_SIM_LOCALIZATION_MAE_CM,
     PAPER_SIM_YAW_MAE_DEG,
     Association,
-    associate,
+    associate_many,
 )
 from fusion.fileio import atomic_open  # noqa: E402
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory  # noqa: E402
@@ -113,14 +113,8 @@ def associate_all(trajectories: dict[str, Trajectory], gt) -> dict[str, Associat
     """{name: Association with the truth} for every trajectory that overlaps it (shared by the
     error plots so that a long flight is associated once)."""
     t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
-    T_gt = gt.T_world_body
-    out = {}
-    for name, traj in trajectories.items():
-        if len(traj):
-            a = associate(t_gt, T_gt, traj)
-            if len(a):
-                out[name] = a
-    return out
+    assoc = associate_many(t_gt, gt.T_world_body, {n: t for n, t in trajectories.items() if len(t)})
+    return {name: a for name, a in assoc.items() if len(a)}
 
 
 def _world_sigma_cm(a: Association) -> np.ndarray | None:
