@@ -40,6 +40,7 @@ from fusion.estimate.asbuilt import (
     FLOOR_CODES_CSV,
     AsBuiltInput,
     FloorCodeMap,
+    Placement,
     as_built_fixes,
     write_floor_codes_csv,
 )
@@ -597,10 +598,16 @@ def fuse_stage(
     frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
     floor_camera = log.floor.camera if has_floor else None
     graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
+    # each frame's floor sightings, classified once, and only when a graph uses them (tight
+    # corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight otherwise
+    used = cfg.tight or Placement.from_world(log.world).enabled
+    floor_sightings = (
+        {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
+        if used and det is not None and has_floor
+        else {}
+    )
     if cfg.tight and det is not None:
-        graph_kwargs["floor_frames"] = {
-            t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
-        }
+        graph_kwargs["floor_frames"] = floor_sightings
         out.notes.append(
             "tight coupling: floor-code corners as reprojection factors in the "
             "smoothers (the EKF stays loosely coupled)"
@@ -612,7 +619,7 @@ def fuse_stage(
         as_built, notes = floorcodes.as_built_input(
             log.world,
             _world_yaml(log),
-            {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()},
+            floor_sightings,
             log.floor.camera,
             cfg.corner_sigma_px,
             cfg.tight,

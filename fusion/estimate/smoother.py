@@ -985,6 +985,7 @@ def smooth(
     floor_camera: CameraModel | None = None,
     as_built: asbuilt.AsBuiltInput | None = None,
     warm_start: gtsam.Values | None = None,
+    reuse: SolveReuse | None = None,
 ) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
@@ -1009,9 +1010,13 @@ def smooth(
     states X, V, B of an earlier whole-flight solve of these frames, SolveReuse); the noise-scale
     solves after the first start from the previous solution and reuse its preintegrated IMU.
     A warm start changes only where Levenberg-Marquardt starts: the optimum is the same within
-    its stopping tolerance."""
+    its stopping tolerance.  `reuse`: a SolveReuse carried over from an earlier call (e.g. the
+    time-offset profile's solves of shifted frames), left holding this call's solution."""
     config = config or FusionConfig()
-    reuse = SolveReuse(values=warm_start)
+    if reuse is None:
+        reuse = SolveReuse()
+    if warm_start is not None:
+        reuse.values = warm_start
 
     def once(imu_, raw_, load_obs_, config_, require_motion=True, resolves=None):
         return _smooth_once(
