@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from fusion import __version__
@@ -39,6 +40,7 @@ from fusion.estimate.asbuilt import (
     FLOOR_CODES_CSV,
     AsBuiltInput,
     FloorCodeMap,
+    Placement,
     as_built_fixes,
     write_floor_codes_csv,
 )
@@ -47,7 +49,7 @@ from fusion.estimate.extrinsics import (
     MountRotation,
     apply_mount,
     check_mount,
-    estimate_mount_and_trajectory,
+    estimate_mount_and_states,
     read_extrinsics_groundtruth,
 )
 from fusion.estimate.fixes import merge_fixes
@@ -104,6 +106,9 @@ from fusion.warehouse.view3d import floor_codes_from_detections
 logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
+WARM_START_MAX_SHIFT_S = 0.05
+"""The batch smoother starts from the shared whole-flight solve's states only when each frame's
+stamp moved by at most this (the time-offset search's half-width; a start, not a result)."""
 
 
 @dataclass
@@ -549,7 +554,12 @@ class FuseStageResult:
 
 
 def fuse_stage(
-    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det=None, fixes: PositionFixes | None = None
+    log: FlightLog,
+    loc: LocalizeResult,
+    cfg: RunConfig,
+    det=None,
+    fixes: PositionFixes | None = None,
+    shared: SharedWholeFlight | None = None,
 ) -> FuseStageResult:
     """Smoother, incremental smoother and EKF on the PnP poses (and the external `fixes`:
     estimate.fixes.merge_fixes; a log without cameras is fused from the IMU and the fixes).
@@ -557,7 +567,9 @@ def fuse_stage(
     Each back end runs on its own: one that raises is recorded in `failures` with its reason
     and the others still run.  The smoothers take both cameras' CameraModels (mount-aware);
     with `cfg.tight` they use each floor code's corners as reprojection factors (the floor
-    sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled."""
+    sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled.
+    `shared`: the run's whole-flight solve (SharedWholeFlight), whose states warm-start the
+    batch smoother when they belong to the same frames."""
     out = FuseStageResult()
     raw = loc.trajectories.get(str(Estimator.PNP), Trajectory.empty(str(Estimator.PNP)))
     merged = None
@@ -586,10 +598,16 @@ def fuse_stage(
     frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
     floor_camera = log.floor.camera if has_floor else None
     graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
+    # each frame's floor sightings, classified once, and only when a graph uses them (tight
+    # corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight otherwise
+    used = cfg.tight or Placement.from_world(log.world).enabled
+    floor_sightings = (
+        {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
+        if used and det is not None and has_floor
+        else {}
+    )
     if cfg.tight and det is not None:
-        graph_kwargs["floor_frames"] = {
-            t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()
-        }
+        graph_kwargs["floor_frames"] = floor_sightings
         out.notes.append(
             "tight coupling: floor-code corners as reprojection factors in the "
             "smoothers (the EKF stays loosely coupled)"
@@ -601,7 +619,7 @@ def fuse_stage(
         as_built, notes = floorcodes.as_built_input(
             log.world,
             _world_yaml(log),
-            {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()},
+            floor_sightings,
             log.floor.camera,
             cfg.corner_sigma_px,
             cfg.tight,
@@ -611,6 +629,8 @@ def fuse_stage(
         if as_built is not None:
             smoother_kwargs["as_built"] = as_built
             out.as_built = as_built
+    if shared is not None:
+        smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
         (Estimator.SMOOTHER, smooth, smoother_kwargs)
     ]
@@ -801,7 +821,7 @@ def _run_into(
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused_stats = _fuse_into_result(log, loc, cfg, det, fixes, result)
+        fused_stats = _fuse_into_result(log, loc, cfg, det, fixes, result, shared)
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
@@ -905,7 +925,7 @@ class SharedWholeFlight:
     Order of operations in a run without --calibrate-extrinsics: (1) the floor profile (solves
     of its window) gives the floor offset r; (2) this solve: the whole flight with the floor
     stamps shifted by r (applied or not), the IMU upsampled as for the front profile, and the
-    mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_trajectory); its body
+    mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_states); its body
     trajectory feeds the front profile and its E0 becomes the mount check (`mount`); (3) the
     pipeline's mount check takes `mount` instead of solving the whole flight again.  Before,
     (2) was two solves: one without E0 at shift r (front profile) and one with E0 at the applied
@@ -916,9 +936,25 @@ class SharedWholeFlight:
     read through the estimated mount (equal within its sigma when the mount is right).  When
     the mount cannot be estimated (no IMU, gimbaled camera, poses without covariances or
     attitude) or most fixes disagree with the IMU, the trajectory is the plain
-    `fused_trajectory` and `mount` stays None (the check then runs on its own, as before)."""
+    `fused_trajectory` and `mount` stays None (the check then runs on its own, as before).
+
+    `states` / `frame_t`: that solve's fixed-mount states X(k), V(k), B(k) and the (shifted)
+    frame stamps they belong to; the batch smoother of fuse_stage starts from them
+    (`warm_start`), so its first noise-scale solve begins next to its optimum instead of at the
+    PnP poses (same optimum, fewer Levenberg-Marquardt iterations)."""
 
     mount: MountRotation | None = None
+    states: gtsam.Values | None = None
+    frame_t: np.ndarray | None = None
+
+    def warm_start(self, frame_t: np.ndarray) -> gtsam.Values | None:
+        """The states for a smoother on the frames `frame_t`: None unless they are this solve's
+        frames, each within WARM_START_MAX_SHIFT_S of its stamp here (an unapplied or applied
+        floor offset moves them by its residual only)."""
+        if self.states is None or self.frame_t is None or len(self.frame_t) != len(frame_t):
+            return None
+        shift = np.abs(np.asarray(frame_t, np.int64) - self.frame_t)
+        return self.states if len(shift) and shift.max() <= WARM_START_MAX_SHIFT_S * 1e9 else None
 
     def __call__(
         self,
@@ -932,10 +968,10 @@ class SharedWholeFlight:
         trajectory = None
         if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
             try:
-                mount, trajectory = estimate_mount_and_trajectory(
+                mount, trajectory, self.states = estimate_mount_and_states(
                     inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, None, fusion_config
                 )
-                self.mount = mount
+                self.mount, self.frame_t = mount, np.asarray(inp.frame_t, np.int64)
             except EstimationError as e:
                 logger.debug("shared whole-flight solve: no mount estimate (%s)", e)
         if trajectory is None:
@@ -1007,10 +1043,17 @@ def _apply_extrinsics(
 
 
 def _fuse_into_result(
-    log: FlightLog, loc: LocalizeResult, cfg: RunConfig, det, fixes: PositionFixes | None, result: RunResult
+    log: FlightLog,
+    loc: LocalizeResult,
+    cfg: RunConfig,
+    det,
+    fixes: PositionFixes | None,
+    result: RunResult,
+    shared: SharedWholeFlight | None = None,
 ) -> dict:
-    """fuse_stage, its results, failures and health into `result`; returns the fused stats."""
-    fused_stage = fuse_stage(log, loc, cfg, det, fixes)
+    """fuse_stage, its results, failures and health into `result`; returns the fused stats.
+    `shared`: the whole-flight solve of the time offsets / mount check (fuse_stage)."""
+    fused_stage = fuse_stage(log, loc, cfg, det, fixes, shared)
     result.notes += fused_stage.notes
     result.failures = {str(k): v for k, v in fused_stage.failures.items()}
     raw = fused_stage.raw if fused_stage.raw is not None else loc.trajectories[str(Estimator.PNP)]

@@ -40,7 +40,7 @@ TIMED = [
     ("fusion.estimate.timeoffset", "estimate_floor_offset", "floor profile"),
     ("fusion.estimate.timeoffset", "estimate_front_offset", "front profile"),
     ("fusion.estimate.timeoffset", "smooth", "smoother solve"),
-    ("fusion.pipeline", "estimate_mount_and_trajectory", "whole flight, shared with the mount check"),
+    ("fusion.pipeline", "estimate_mount_and_states", "whole flight, shared with the mount check"),
     ("fusion.pipeline", "check_mount", "mount check"),
     ("fusion.pipeline", "fuse_stage", "fuse_stage"),
     ("fusion.warehouse.floorcodes", "as_built_input", "as-built input"),

@@ -255,14 +255,17 @@ def test_constant_velocity_jacobians_match_numerical():
 def test_custom_factor_linearizes_with_our_jacobian():
     """The CustomFactor wrapper passes the Jacobian through (compare with the function)."""
     rng = np.random.default_rng(7)
-    pose, v = _rand_pose(rng), rng.normal(size=3)
-    f = factors.body_velocity_factor(0, np.zeros(3), 1.0)
-    vals = gtsam.Values()
-    vals.insert(factors.X(0), pose)
-    vals.insert(factors.V(0), v)
-    A, b = f.linearize(vals).jacobian()
-    _, Hx, Hv = factors.body_velocity_error(np.zeros(3), pose, v, True)
-    np.testing.assert_allclose(A, np.hstack([Hx, Hv]), atol=1e-12)
+    for _ in range(5):  # the factor (Rot3.unrotate) against body_velocity_error (numpy)
+        pose, v, vm = _rand_pose(rng), rng.normal(size=3), rng.normal(size=3)
+        f = factors.body_velocity_factor(0, vm, 1.0)
+        vals = gtsam.Values()
+        vals.insert(factors.X(0), pose)
+        vals.insert(factors.V(0), v)
+        A, b = f.linearize(vals).jacobian()
+        e, Hx, Hv = factors.body_velocity_error(vm, pose, v, True)
+        np.testing.assert_allclose(A, np.hstack([Hx, Hv]), atol=1e-12)
+        np.testing.assert_allclose(b, -e, atol=1e-12)
+        np.testing.assert_allclose(f.unwhitenedError(vals), e, atol=1e-12)
 
 
 # =========================================================================== batch smoother

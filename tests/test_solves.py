@@ -141,7 +141,11 @@ def test_noise_scale_iteration_computes_covariances_only_for_the_kept_solve(monk
         FRONT_CAM,
         config=FusionConfig(noise_scale_iterations=0),
     )
-    np.testing.assert_allclose(res.trajectory.covariances, direct.trajectory.covariances, rtol=1e-6)
+    # the kept solve started from the previous one's solution: the same optimum within LM's
+    # stopping tolerance, so the covariances' largest entries (~1e-6) agree to 1e-5 of their size
+    np.testing.assert_allclose(
+        res.trajectory.covariances, direct.trajectory.covariances, rtol=1e-6, atol=1e-11
+    )
 
 
 def test_hutchinson_probes_stop_once_the_redundancy_is_known(monkeypatch):

@@ -309,7 +309,7 @@ def estimate_mount_rotation(
     return estimate_mount_and_trajectory(frame_t, imu, raw, velocity, floor_camera, config, fusion_config)[0]
 
 
-def estimate_mount_and_trajectory(
+def estimate_mount_and_states(
     frame_t: np.ndarray,
     imu: ImuData | None,
     raw: Trajectory,
@@ -317,14 +317,10 @@ def estimate_mount_and_trajectory(
     floor_camera: CameraModel,
     config: ExtrinsicsConfig | None = None,
     fusion_config: FusionConfig | None = None,
-) -> tuple[MountRotation, Trajectory | None]:
-    """estimate_mount_rotation, plus the whole flight's body trajectory T_world_body at the frame
-    times `frame_t` with the logged mount (no covariances; Estimator.SMOOTHER): the batch
-    smoother's fixed-mount trajectory recovered from this solve by one Gauss-Newton step
-    (nominal_mount_trajectory), so that one whole-flight solve serves both the mount check and
-    the front camera's time-offset profile (fusion.pipeline.SharedWholeFlight).  The trajectory
-    is None when most fixes disagreed with the IMU (health.gate_skipped: the plain smoother
-    would solve again without the IMU, which this solve does not) or that step failed."""
+) -> tuple[MountRotation, Trajectory | None, gtsam.Values | None]:
+    """estimate_mount_and_trajectory, plus the fixed-mount solution's states X(k), V(k), B(k)
+    (gtsam.Values, the mount variable removed; None with the trajectory): the batch smoother's
+    warm start on these frames (smoother.smooth(warm_start=), fusion.pipeline.SharedWholeFlight)."""
     config = config or ExtrinsicsConfig()
     fusion_config = fusion_config or FusionConfig()
     t0 = time.perf_counter()
@@ -407,30 +403,63 @@ def estimate_mount_and_trajectory(
         used,
         out.time_s,
     )
-    trajectory = None
+    states = None
     if not health.gate_skipped:
         try:
-            trajectory = nominal_mount_trajectory(lin, values, ordering, pb.frame_t)
+            states = nominal_mount_values(lin, values, ordering)
         except (RuntimeError, ValueError) as e:
             log.debug("no fixed-mount trajectory from the mount solve: %s", e)
-    return out, trajectory
+    if states is None:
+        return out, None, None
+    n = len(pb.frame_t)
+    trajectory = Trajectory(str(Estimator.SMOOTHER), pb.frame_t.copy(), poses_of(states, n), None)
+    states.erase(E(0))
+    return out, trajectory, states
+
+
+def estimate_mount_and_trajectory(
+    frame_t: np.ndarray,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None,
+    floor_camera: CameraModel,
+    config: ExtrinsicsConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> tuple[MountRotation, Trajectory | None]:
+    """estimate_mount_rotation, plus the whole flight's body trajectory T_world_body at the frame
+    times `frame_t` with the logged mount (no covariances; Estimator.SMOOTHER): the batch
+    smoother's fixed-mount trajectory recovered from this solve by one Gauss-Newton step
+    (nominal_mount_trajectory), so that one whole-flight solve serves both the mount check and
+    the front camera's time-offset profile (fusion.pipeline.SharedWholeFlight).  The trajectory
+    is None when most fixes disagreed with the IMU (health.gate_skipped: the plain smoother
+    would solve again without the IMU, which this solve does not) or that step failed."""
+    mount, trajectory, _ = estimate_mount_and_states(
+        frame_t, imu, raw, velocity, floor_camera, config, fusion_config
+    )
+    return mount, trajectory
+
+
+def nominal_mount_values(
+    lin: gtsam.GaussianFactorGraph, values: gtsam.Values, ordering: gtsam.Ordering
+) -> gtsam.Values:
+    """The batch smoother's states with the logged (nominal) mount, from the mount solve's
+    solution `values` (E0 = exp(w^) free) and its linearisation `lin` there: one Gauss-Newton
+    step with E0 held at the identity by a tight prior (NOMINAL_MOUNT_SIGMA_RAD; the step to it in
+    E0's local coordinates is -w).  At the free optimum the gradient is zero, so the step moves the
+    states only by what fixing E0 implies: the fixed-mount optimum up to second order in w
+    (|w| ~ its sigma, hundredths of a degree, when the mount is right).  Every key of `values`."""
+    w = so3_log(values.atRot3(E(0)).matrix())
+    system = lin.clone()
+    hold = gtsam.noiseModel.Isotropic.Sigma(3, NOMINAL_MOUNT_SIGMA_RAD)
+    system.push_back(gtsam.JacobianFactor(E(0), np.eye(3), -w, hold))
+    return values.retract(system.eliminateMultifrontal(ordering).optimize())
 
 
 def nominal_mount_trajectory(
     lin: gtsam.GaussianFactorGraph, values: gtsam.Values, ordering: gtsam.Ordering, frame_t: np.ndarray
 ) -> Trajectory:
-    """The batch smoother's trajectory with the logged (nominal) mount, from the mount solve's
-    solution `values` (E0 = exp(w^) free) and its linearisation `lin` there: one Gauss-Newton
-    step with E0 held at the identity by a tight prior (NOMINAL_MOUNT_SIGMA_RAD; the step to it in
-    E0's local coordinates is -w).  At the free optimum the gradient is zero, so the step moves the
-    states only by what fixing E0 implies: the fixed-mount optimum up to second order in w
-    (|w| ~ its sigma, hundredths of a degree, when the mount is right).  (N, 4, 4)
-    T_world_body at `frame_t`, no covariances."""
-    w = so3_log(values.atRot3(E(0)).matrix())
-    system = lin.clone()
-    hold = gtsam.noiseModel.Isotropic.Sigma(3, NOMINAL_MOUNT_SIGMA_RAD)
-    system.push_back(gtsam.JacobianFactor(E(0), np.eye(3), -w, hold))
-    fixed = values.retract(system.eliminateMultifrontal(ordering).optimize())
+    """nominal_mount_values' poses: (N, 4, 4) T_world_body at `frame_t`, no covariances."""
+    fixed = nominal_mount_values(lin, values, ordering)
     return Trajectory(str(Estimator.SMOOTHER), frame_t.copy(), poses_of(fixed, len(frame_t)), None)
 
 

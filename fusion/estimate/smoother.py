@@ -25,6 +25,7 @@ the estimate as known at each frame (causal).
 from __future__ import annotations
 
 import ctypes
+import functools
 import logging
 import math
 import time
@@ -78,16 +79,21 @@ __all__ = [
     "LMResult",
     "LMStop",
     "Problem",
+    "SolveReuse",
     "build_problem",
     "imu_coverage",
     "imu_subintervals",
     "levenberg_marquardt",
     "smooth",
     "smooth_incremental",
+    "warm_values",
 ]
 
 log = logging.getLogger(__name__)
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
+ZERO_BIAS_CACHE_SIZE = 2
+"""Frame counts whose zero initial biases are kept (_zero_biases: a flight's whole-flight
+solves, and the time-offset profile's windows)."""
 
 
 # =========================================================================== IMU handling
@@ -357,6 +363,66 @@ def dead_reckon(
             T[k, :3, :3], T[k, :3, 3], v[k] = R0, p0, v0
 
 
+@functools.lru_cache(maxsize=ZERO_BIAS_CACHE_SIZE)
+def _zero_biases(n: int) -> gtsam.Values:
+    """B(0..n-1) all zero ConstantBias (read-only: copied by Values.insert).  Inserting a
+    ConstantBias from Python costs ~60 us (the wrapper tries Values.insert's other overloads
+    first), ~1 s per build of a 10-minute flight; the whole-flight solves share the frame count."""
+    out = gtsam.Values()
+    zero = gtsam.imuBias.ConstantBias()
+    for k in range(n):
+        out.insert(B(k), zero)
+    return out
+
+
+@dataclass
+class SolveReuse:
+    """What consecutive batch solves of one flight can share (`smooth`'s noise-scale solves;
+    the shared whole-flight solve's states for the main smoother, `warm_values`).
+
+    `pims`: the preintegrated IMU of the frame intervals, reused when the IMU object, the frame
+    times and the preintegration settings are the same (`key`); `values`: the previous solution,
+    the next solve's initial values for every key both graphs have (warm start: the same
+    optimum, reached in fewer Levenberg-Marquardt iterations)."""
+
+    pims: dict[int, gtsam.PreintegratedCombinedMeasurements] | None = None
+    key: tuple | None = None
+    frame_t: np.ndarray | None = None
+    values: gtsam.Values | None = None
+
+    def pims_for(self, frame_t: np.ndarray, imu: ImuData | None, config: FusionConfig) -> dict | None:
+        if self.pims is None or imu is None or self.frame_t is None:
+            return None
+        same = self.key == _pims_key(imu, config) and np.array_equal(self.frame_t, frame_t)
+        return self.pims if same else None
+
+    def keep_pims(self, pb: Problem, imu: ImuData | None, config: FusionConfig) -> None:
+        if imu is not None and pb.pims:
+            self.pims, self.key, self.frame_t = pb.pims, _pims_key(imu, config), pb.frame_t
+
+
+def _pims_key(imu: ImuData, config: FusionConfig) -> tuple:
+    return (id(imu), len(imu.timestamps_ns), config.max_imu_gap_s, config.integration_sigma)
+
+
+def warm_values(initial: gtsam.Values, warm: gtsam.Values | None) -> gtsam.Values:
+    """`initial` with every key that `warm` also holds set to its value in `warm` (a copy; the
+    keys only in `warm` are ignored)."""
+    if warm is None or warm.size() == 0:
+        return initial
+    mine = np.asarray(initial.keys(), dtype=np.uint64)
+    theirs = np.asarray(warm.keys(), dtype=np.uint64)
+    extra = np.setdiff1d(theirs, mine)
+    if not len(extra) and len(theirs) == len(mine):
+        return gtsam.Values(warm)
+    w = gtsam.Values(warm)
+    for key in extra.tolist():
+        w.erase(key)
+    out = gtsam.Values(initial)
+    out.update(w)
+    return out
+
+
 def build_problem(
     frame_times_ns,
     imu: ImuData | None,
@@ -369,6 +435,8 @@ def build_problem(
     floor_camera: CameraModel | None = None,
     require_motion: bool = True,
     as_built: asbuilt.AsBuiltInput | None = None,
+    *,
+    pims: dict[int, gtsam.PreintegratedCombinedMeasurements] | None = None,
 ) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
@@ -380,6 +448,8 @@ def build_problem(
     pose factor at frames with floor sightings; the raw poses still give the initial values
     and the factors elsewhere.  `as_built` (fusion.estimate.asbuilt): each floor code's pose is a
     variable F(c) and each sighting a relative-pose factor, instead of the frame's pose factor.
+    `pims`: the preintegrated IMU of an earlier build with the same frames, IMU and settings
+    (SolveReuse), used instead of integrating again.
 
     Raises EstimationError for: no raw pose at all ("no floor code was read in this flight"),
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
@@ -411,7 +481,7 @@ def build_problem(
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         params = factors.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
-        pb.pims = preintegrate(frame_t, imu, covered, params)
+        pb.pims = pims if pims is not None else preintegrate(frame_t, imu, covered, params)
     v0 = first_velocity(
         frame_t, rawp, use, pb.k_first, config.first_velocity_fixes, config.first_velocity_window_s
     )
@@ -546,8 +616,8 @@ def build_problem(
     for k in range(n):
         pb.initial.insert(X(k), gtsam.Pose3(pb.T_init[k]))
         pb.initial.insert(V(k), pb.v_init[k])
-        if imu is not None:
-            pb.initial.insert(B(k), gtsam.imuBias.ConstantBias())
+    if imu is not None:
+        pb.initial.insert(_zero_biases(n))
     for j, track in enumerate(pb.loads):
         pb.initial.insert(L(j), track.init_world)
     return pb
@@ -914,6 +984,8 @@ def smooth(
     floor_frames: dict | None = None,
     floor_camera: CameraModel | None = None,
     as_built: asbuilt.AsBuiltInput | None = None,
+    warm_start: gtsam.Values | None = None,
+    reuse: SolveReuse | None = None,
 ) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
@@ -934,8 +1006,17 @@ def smooth(
     beyond the outlier gate (config.reject_disagreeing_imu), the flight is solved again
     without the IMU (random-walk model and velocity): health.mode IMU_REJECTED.
     `as_built` (fusion.estimate.asbuilt.build_input): as-built floor codes, estimated in
-    FusionResult.floor_codes."""
+    FusionResult.floor_codes.  `warm_start`: initial values for the keys it holds (e.g. the
+    states X, V, B of an earlier whole-flight solve of these frames, SolveReuse); the noise-scale
+    solves after the first start from the previous solution and reuse its preintegrated IMU.
+    A warm start changes only where Levenberg-Marquardt starts: the optimum is the same within
+    its stopping tolerance.  `reuse`: a SolveReuse carried over from an earlier call (e.g. the
+    time-offset profile's solves of shifted frames), left holding this call's solution."""
     config = config or FusionConfig()
+    if reuse is None:
+        reuse = SolveReuse()
+    if warm_start is not None:
+        reuse.values = warm_start
 
     def once(imu_, raw_, load_obs_, config_, require_motion=True, resolves=None):
         return _smooth_once(
@@ -951,6 +1032,7 @@ def smooth(
             require_motion,
             as_built=as_built,
             resolves=resolves,
+            reuse=reuse if imu_ is imu else None,
         )
 
     res, scaled = solve_noise_scaled(once, imu, raw, load_obs, config)  # variance.py
@@ -996,10 +1078,12 @@ def _smooth_once(
     require_motion: bool = True,
     as_built: asbuilt.AsBuiltInput | None = None,
     resolves: ResolvePredicate | None = None,
+    reuse: SolveReuse | None = None,
 ) -> FusionResult:
     """One batch solve (smooth without the IMU-rejection retry).  `resolves(variance
     components, health)` True: the noise-scale iteration will solve again, so the marginal
-    covariances are not computed (covariance_method "skipped")."""
+    covariances are not computed (covariance_method "skipped").  `reuse`: the preintegrated IMU
+    and initial values from the previous solve (updated with this one's)."""
     t0 = time.perf_counter()
     pb = build_problem(
         frame_times_ns,
@@ -1013,14 +1097,19 @@ def _smooth_once(
         floor_camera,
         require_motion,
         as_built,
+        pims=None if reuse is None else reuse.pims_for(np.asarray(frame_times_ns), imu, config),
     )
+    initial = pb.initial
+    if reuse is not None:
+        reuse.keep_pims(pb, imu, config)
+        initial = warm_values(pb.initial, reuse.values)
     health = SolveHealth()
     fix_health(pb, config, health)
     t_build = time.perf_counter() - t0
     suspects = jumped_fixes(pb, config)
     graph = pb.graph(suspects)
     errors: list[float] = []
-    res, graph, ordering = solve(graph, pb.initial, config, health, errors=errors)
+    res, graph, ordering = solve(graph, initial, config, health, errors=errors)
     values, iterations, lin = res.values, res.iterations, res.linear
     err0 = errors[0]
     dist = robust_distances(pb, values)
@@ -1039,14 +1128,21 @@ def _smooth_once(
         res, graph, ordering = solve(graph, values, config, health, ordering, errors)
         values, lin = res.values, res.linear
         iterations += res.iterations
+    if reuse is not None:
+        reuse.values = values
     t_opt = time.perf_counter() - t0 - t_build
-    variance_components = (
-        problem_variance_components(
-            pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values
+    variance_components: dict | None = {}
+    at_solution = None  # the graph linearised at `values` (the variance components')
+    if config.check_noise:
+        try:
+            at_solution = graph.linearize(values)
+        except (RuntimeError, ValueError) as e:
+            log.debug("no linearisation at the solution: %s", e)
+        variance_components = problem_variance_components(
+            pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values, at_solution
         )
-        if config.check_noise
-        else {}
-    )
+    if lin is not None:
+        at_solution = None  # the covariances use the last step's linearisation
     release_heap()
     n = len(pb.frame_t)
     T = poses_of(values, n)
@@ -1060,7 +1156,7 @@ def _smooth_once(
         covariance_method = "skipped"
     if config.compute_covariances and not skip_covariances:
         if lin is None:  # the last step was damped: linearise at the solution
-            lin = graph.linearize(values)
+            lin = at_solution if at_solution is not None else graph.linearize(values)
         bulk: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None
         try:
             if n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None:

@@ -201,13 +201,35 @@ def group_leverages(
     large groups of a long flight stop at the minimum: their redundancy is thousands).  Seeded
     (HUTCHINSON_SEED), so a flight's result is reproducible.  Raises np.linalg.LinAlgError for a
     singular system."""
+    A, _ = whitened_system(lin, n_unknowns, int(np.sum(factor_rows)))
+    return _leverages(A, n_unknowns, factor_group, n_groups, factor_rows)
+
+
+def whitened_system(
+    lin: gtsam.GaussianFactorGraph, n_unknowns: int, m: int
+) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The whitened Jacobian A (m x n_unknowns, CSR) and right-hand side b (m,) of `lin`, rows in
+    factor order.  At the linearisation point b = -W e: a non-robust factor's rows of b hold its
+    whitened residual, so their squared sum is its chi2 (factor_chi2)."""
     trip = lin.sparseJacobian_()  # 3 x nnz, 1-based (row, column, value); column n+1 is b
-    sizes = np.asarray(factor_rows, dtype=int)
-    m = int(sizes.sum())
-    keep = trip[1] <= n_unknowns
-    rows, cols = trip[0][keep].astype(np.int64) - 1, trip[1][keep].astype(np.int64) - 1
-    A = sp.csr_matrix((trip[2][keep], (rows, cols)), shape=(m, n_unknowns))
+    rows, cols = trip[0].astype(np.int64) - 1, trip[1].astype(np.int64) - 1
+    keep = cols < n_unknowns
+    b = np.zeros(m)
+    b[rows[~keep]] = trip[2][~keep]
+    A = sp.csr_matrix((trip[2][keep], (rows[keep], cols[keep])), shape=(m, n_unknowns))
     del trip, keep, rows, cols  # 3 x nnz doubles: ~0.4 GB on a 10-minute flight
+    return A, b
+
+
+def _leverages(
+    A: sp.csr_matrix,
+    n_unknowns: int,
+    factor_group: Sequence[int],
+    n_groups: int,
+    factor_rows: Sequence[int] | np.ndarray,
+) -> np.ndarray:
+    """group_leverages on the whitened Jacobian A."""
+    sizes = np.asarray(factor_rows, dtype=int)
     try:
         # A^T A is symmetric positive definite: symmetric mode without pivoting keeps the
         # minimum-degree ordering's sparsity (SuperLU user guide, "symmetric mode"); on a
@@ -257,26 +279,39 @@ def _quadratic(AgT, lu, z: np.ndarray) -> np.ndarray:
 
 
 def graph_variance_components(
-    factors: Sequence, groups: Sequence[NoiseGroup], values: gtsam.Values
+    factors: Sequence,
+    groups: Sequence[NoiseGroup],
+    values: gtsam.Values,
+    lin: gtsam.GaussianFactorGraph | None = None,
 ) -> dict[NoiseGroup, VarianceComponent]:
     """Each group's chi2 (factor_chi2 summed) and redundancy (rows minus leverage,
     group_leverages) at the solution `values` of the graph of `factors` (groups[i]: factor i's
-    group)."""
-    graph = gtsam.NonlinearFactorGraph()
-    for f in factors:
-        graph.add(f)
-    lin = graph.linearize(values)
+    group).  `lin`: that graph linearised at `values`, if the caller has it.  A factor with a
+    Gaussian noise model has its chi2 from the linearisation's right-hand side (whitened_system,
+    the same number without a Python call per factor); a robust one from factor_chi2 (its
+    linearisation is reweighted by the kernel)."""
+    if lin is None:
+        graph = gtsam.NonlinearFactorGraph()
+        for f in factors:
+            graph.add(f)
+        lin = graph.linearize(values)
     if lin.size() != len(factors):
         raise np.linalg.LinAlgError("linearised graph does not match its factors")
     order = list(dict.fromkeys(groups))
     index = {g: i for i, g in enumerate(order)}
-    rows = [int(f.dim()) for f in factors]
-    lev = group_leverages(lin, values.dim(), [index[g] for g in groups], len(order), rows)
+    rows = np.array([int(f.dim()) for f in factors], dtype=np.int64)
+    n = values.dim()
+    A, b = whitened_system(lin, n, int(rows.sum()))
+    lev = _leverages(A, n, [index[g] for g in groups], len(order), rows)
+    del A
+    starts = np.r_[0, np.cumsum(rows)[:-1]]
+    chi2 = np.add.reduceat(b**2, starts) if len(rows) else np.zeros(0)
     out = {g: VarianceComponent(0.0, -float(lev[index[g]]), 0) for g in order}
     for i, (f, g) in enumerate(zip(factors, groups)):
         comp = out[g]
-        comp.chi2 += factor_chi2(f, values)
-        comp.dof += rows[i]
+        robust = isinstance(f.noiseModel(), gtsam.noiseModel.Robust)
+        comp.chi2 += factor_chi2(f, values) if robust else float(chi2[i])
+        comp.dof += int(rows[i])
         comp.n += 1
     return out
 
@@ -291,8 +326,10 @@ def problem_variance_components(
     skip,
     graph: gtsam.NonlinearFactorGraph,
     values: gtsam.Values,
+    lin: gtsam.GaussianFactorGraph | None = None,
 ) -> dict[NoiseGroup, VarianceComponent] | None:
-    """Variance components of a smoother's final `graph` at its solution: graph = the problem's
+    """Variance components of a smoother's final `graph` at its solution (`lin`: `graph`
+    linearised there, when the caller has it): graph = the problem's
     `factors` except those in `skip` (in order), then any priors the solver appended (group
     OTHER).  A factor's group: its robust kind (pose, corners, load: `robust_kinds` by factor
     index, the NoiseGroup values), IMU for preintegrated IMU factors, else OTHER.  None when the
@@ -308,7 +345,7 @@ def problem_variance_components(
             groups.append(NoiseGroup.IMU if imu_group(f) else NoiseGroup.OTHER)
     groups += [NoiseGroup.OTHER] * (graph.size() - len(groups))
     try:
-        return graph_variance_components([graph.at(i) for i in range(graph.size())], groups, values)
+        return graph_variance_components([graph.at(i) for i in range(graph.size())], groups, values, lin)
     except (np.linalg.LinAlgError, RuntimeError, ValueError) as e:
         log.debug("variance components not computed: %s", e)
         return None

@@ -1,0 +1,132 @@
+"""What consecutive batch solves of one flight share (issue 13, item 2, back end): the noise-scale
+solves reuse the preintegrated IMU and start from the previous solution, the main smoother
+starts from the shared whole-flight solve's states (smooth(warm_start=)), and the variance
+components take the Gaussian factors' chi2 from the linearisation.  Each is checked against
+the computation it replaces."""
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.estimate import smoother as smoother_module
+from fusion.estimate import variance
+from fusion.estimate.common import FusionConfig
+from fusion.estimate.extrinsics import estimate_mount_and_states, estimate_mount_and_trajectory
+from fusion.estimate.factors import B, V, X
+from fusion.estimate.smoother import SolveReuse, smooth, warm_values
+from fusion.pipeline import SharedWholeFlight
+from tests.test_estimate import FRONT_CAM, make_flight
+from tests.test_extrinsics import FLOOR_CAM
+from tests.test_realism import pose_chain
+
+TIGHT_TOL = 1e-12  # lm_relative_tol: both solves run to the optimum itself
+SAME_OPTIMUM_M = 1e-9  # positions, warm vs cold start, both at TIGHT_TOL
+DEFAULT_TOL_M = 2e-5  # positions, warm vs cold start at the default stopping tolerance (PnP 2 mm)
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return make_flight(seed=11, duration_s=6.0, gaps=((3.0, 3.5),))
+
+
+def _positions(res) -> np.ndarray:
+    return res.trajectory.T_world_body[:, :3, 3]
+
+
+def _cold(monkeypatch) -> None:
+    """The solves as before: no reuse of the preintegration, no warm start."""
+    monkeypatch.setattr(SolveReuse, "pims_for", lambda self, *a: None)
+    monkeypatch.setattr(smoother_module, "warm_values", lambda initial, warm: initial)
+
+
+def test_bulk_chi2_equals_factor_chi2():
+    """Gaussian factors' chi2 from the linearisation's right-hand side = factor_chi2; robust ones
+    (reweighted in the linearisation) keep factor_chi2."""
+    rng = np.random.default_rng(4)
+    graph, values, groups = pose_chain(rng, 15)
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.02)
+    for k in (0, 7):  # robust priors far off: the kernel's weight is well below 1
+        off = values.atPose3(k).compose(gtsam.Pose3.Expmap(rng.normal(size=6) * 0.3))
+        graph.add(
+            gtsam.PriorFactorPose3(
+                k, off, gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345), noise)
+            )
+        )
+        groups.append(2)
+    factors = [graph.at(i) for i in range(graph.size())]
+    names = [variance.NoiseGroup.POSE, variance.NoiseGroup.IMU, variance.NoiseGroup.LOAD]
+    comps = variance.graph_variance_components(factors, [names[g] for g in groups], values)
+    for g, name in enumerate(names):
+        want = sum(variance.factor_chi2(f, values) for f, gi in zip(factors, groups) if gi == g)
+        assert comps[name].chi2 == pytest.approx(want, rel=1e-10), name
+    assert comps[variance.NoiseGroup.LOAD].chi2 > 100  # the robust priors did count in full
+
+
+def test_warm_values_takes_the_shared_keys_only():
+    initial, warm = gtsam.Values(), gtsam.Values()
+    for k in range(3):
+        initial.insert(X(k), gtsam.Pose3())
+        initial.insert(V(k), np.zeros(3))
+        warm.insert(X(k), gtsam.Pose3(gtsam.Rot3(), np.array([k, 0.0, 0.0])))
+    warm.insert(B(0), gtsam.imuBias.ConstantBias())  # not in `initial`: ignored
+    out = warm_values(initial, warm)
+    assert out.size() == initial.size() and not out.exists(B(0))
+    assert out.atPose3(X(2)).translation()[0] == 2.0
+    np.testing.assert_array_equal(out.atVector(V(1)), np.zeros(3))
+    assert initial.atPose3(X(2)).translation()[0] == 0.0  # a copy
+    assert warm_values(initial, None) is initial
+
+
+@pytest.mark.parametrize("tol, limit_m", [(TIGHT_TOL, SAME_OPTIMUM_M), (None, DEFAULT_TOL_M)])
+def test_noise_scale_solves_with_reuse_reach_the_same_optimum(flight, monkeypatch, tol, limit_m):
+    """The second noise-scale solve starts from the first's solution with its preintegrated IMU:
+    the same trajectory, scales and covariances as solving it from the PnP poses."""
+    cfg = FusionConfig() if tol is None else FusionConfig(lm_relative_tol=tol)
+    raw = variance.scale_trajectory(flight.raw, 3.0)  # PnP sigmas overstated: a second solve
+    args = (flight.frame_t, flight.imu, raw, flight.load_obs, FRONT_CAM, flight.velocity, cfg)
+    warm = smooth(*args)
+    assert warm.stats["noise_scales"]["solves"] == 2
+    with monkeypatch.context() as m:
+        _cold(m)
+        cold = smooth(*args)
+    assert np.abs(_positions(warm) - _positions(cold)).max() < limit_m
+    assert warm.stats["initial_error"] < 0.1 * cold.stats["initial_error"]  # it did start warm
+    for g, c in cold.stats["noise_scales"]["groups"].items():
+        assert warm.stats["noise_scales"]["groups"][g]["scale"] == pytest.approx(c["scale"], rel=1e-3), g
+    np.testing.assert_allclose(
+        warm.trajectory.covariances, cold.trajectory.covariances, rtol=1e-3, atol=1e-12
+    )
+
+
+def test_warm_start_from_the_shared_solve_reaches_the_same_optimum(flight):
+    """The main smoother started from the mount solve's fixed-mount states: the optimum of the
+    cold start, in fewer iterations."""
+    mount, traj, states = estimate_mount_and_states(
+        flight.frame_t, flight.imu, flight.raw, flight.velocity, FLOOR_CAM
+    )
+    assert states is not None and traj is not None and not states.exists(smoother_module.gtsam.symbol("e", 0))
+    same_mount, same_traj = estimate_mount_and_trajectory(
+        flight.frame_t, flight.imu, flight.raw, flight.velocity, FLOOR_CAM
+    )
+    np.testing.assert_array_equal(same_mount.rotvec_rad, mount.rotvec_rad)
+    assert same_traj is not None
+    np.testing.assert_array_equal(same_traj.T_world_body, traj.T_world_body)
+    cfg = FusionConfig(lm_relative_tol=TIGHT_TOL)
+    args = (flight.frame_t, flight.imu, flight.raw, flight.load_obs, FRONT_CAM, flight.velocity, cfg)
+    cold = smooth(*args)
+    warm = smooth(*args, warm_start=states)
+    assert np.abs(_positions(warm) - _positions(cold)).max() < SAME_OPTIMUM_M
+    assert warm.stats["initial_error"] < cold.stats["initial_error"]
+
+
+def test_shared_whole_flight_warm_start_needs_the_same_frames():
+    shared = SharedWholeFlight()
+    t = np.arange(10, dtype=np.int64) * 33_000_000
+    assert shared.warm_start(t) is None  # nothing solved
+    shared.states, shared.frame_t = gtsam.Values(), t + 70_000  # a 0.07 ms floor residual
+    assert shared.warm_start(t) is shared.states
+    assert shared.warm_start(t[:-1]) is None  # other frames (fixes merged in)
+    assert shared.warm_start(t + int(0.2e9)) is None  # beyond WARM_START_MAX_SHIFT_S
+    assert math.isclose(float(np.abs(shared.frame_t - t).max()), 70_000.0)
