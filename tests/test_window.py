@@ -13,6 +13,7 @@ from fusion.errors import EstimationError
 from fusion.estimate import FusionConfig, smooth
 from fusion.estimate.window import (
     WINDOW_MIN_FLIGHT_S,
+    WINDOW_S,
     WindowConfig,
     merge_loads,
     plan_windows,
@@ -157,3 +158,15 @@ def test_merge_loads_is_the_information_weighted_mean():
     ]
     c = merge_loads(maps, "smoother").by_id()["C"]
     assert c.cov_world is None and np.allclose(c.p_world, 0.75)
+
+
+def test_cli_option_sets_the_window_and_refuses_a_window_inside_the_overlap(capsys):
+    from fusion.cli import _run_config, build_parser
+
+    args = build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "0"])
+    assert _run_config(args).smoother_window_s == 0.0
+    args = build_parser().parse_args(["run", "log", "--out", "out"])
+    assert _run_config(args).smoother_window_s == WINDOW_S
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "20"])
+    assert "more than the windows' 30 s overlap" in capsys.readouterr().err
