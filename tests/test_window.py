@@ -170,3 +170,35 @@ def test_cli_option_sets_the_window_and_refuses_a_window_inside_the_overlap(caps
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "20"])
     assert "more than the windows' 30 s overlap" in capsys.readouterr().err
+
+
+def test_pipeline_run_with_windows_writes_every_output(tmp_path, monkeypatch):
+    """`fusion run` end to end with the batch smoother in windows (the sample flight is short:
+    the threshold and windows shrunk to make three windows of it)."""
+    from pathlib import Path
+
+    from fusion import pipeline
+
+    sample = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+    monkeypatch.setattr(
+        pipeline,
+        "WindowConfig",
+        lambda window_s: WindowConfig(window_s=window_s, overlap_s=0.3, min_flight_s=0.0),
+    )
+    calls = []
+    whole = pipeline.smooth
+
+    def counted(frame_t, *args, **kwargs):
+        calls.append(len(frame_t))
+        return whole(frame_t, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "smooth", counted)
+    cfg = pipeline.RunConfig(progress=False, incremental=False, smoother_window_s=0.8)
+    res = pipeline.run(sample, tmp_path / "out", cfg)
+    assert not res.failures
+    n = len(res.trajectories["smoother"])
+    assert len(calls) >= 2 and sum(calls) > n  # solved in overlapping windows
+    assert np.all(np.diff(res.trajectories["smoother"].timestamps_ns) > 0)
+    assert res.metrics["trajectories"]["smoother"]["n_poses"] == n
+    assert (tmp_path / "out" / "trajectory_smoother.tum").is_file()
+    assert (tmp_path / "out" / "report.md").is_file()
