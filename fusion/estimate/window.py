@@ -130,9 +130,13 @@ def _window_inputs(win: Window, frame_t: np.ndarray, imu, raw: Trajectory, load_
         imu = _rows(imu, (ti >= t0 - pad) & (ti <= t1 + pad))
     tr = np.asarray(raw.timestamps_ns)
     raw = _rows(raw, (tr >= t0) & (tr <= t1))
-    o0 = int(frame_t[win.out_first])
+    o0 = int(frame_t[win.out_first]) if win.out_first > 0 else None
     o1 = int(frame_t[win.out_stop]) if win.out_stop < len(frame_t) else None
-    loads = [o for o in load_obs or [] if o.timestamp_ns >= o0 and (o1 is None or o.timestamp_ns < o1)]
+    loads = [
+        o
+        for o in load_obs or []
+        if (o0 is None or o.timestamp_ns >= o0) and (o1 is None or o.timestamp_ns < o1)
+    ]
     kw = dict(kwargs)
     if kw.get("velocity") is not None:
         tv = np.asarray(kw["velocity"].timestamps_ns)
@@ -288,8 +292,9 @@ def smooth_windowed(
     """`smoother.smooth` (same arguments and result), a flight longer than
     window.min_flight_s solved in overlapping windows one at a time (module docstring: the
     stitching rule); stats['windows'] lists them.  A shorter flight, or one with as-built floor
-    codes, is `smooth` itself.  `solver`: the smoother of one window or of the whole flight
-    (default `smoother.smooth`)."""
+    codes, is `smooth` itself; so is a flight with a window the smoother cannot solve on its own
+    (EstimationError, e.g. no fix in it), with a health note saying so.  `solver`: the
+    smoother of one window or of the whole flight (default `smoother.smooth`)."""
     window = window or WindowConfig()
     solver = solver or smooth
     # the heap freed by earlier whole-flight solves (the time-offset profile's: ~0.4 GB at 10 min)
@@ -319,8 +324,16 @@ def smooth_windowed(
         try:
             res = solver(*args[:4], **args[4])
         except EstimationError as e:
+            # e.g. a window inside a long blackout (no fix): the whole flight bridges it
             t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
-            raise EstimationError(f"window {i + 1} of {len(plan)} (from {t_s:.1f} s): {e}") from None
+            reason = f"window {i + 1} of {len(plan)} (from {t_s:.1f} s) not solvable on its own ({e})"
+            log.warning("smoother: %s: solving the whole flight instead", reason)
+            del poses, covs, maps, healths, stats
+            release_heap()
+            whole = solver(frame_times_ns, imu, raw, load_obs, as_built=as_built, **kwargs)
+            whole.health.note(f"{reason}: solved as one window (memory not bounded)")
+            whole.stats["health"] = whole.health.as_dict()
+            return whole
         a, b = win.out_first - win.first, win.out_stop - win.first
         poses.append(res.trajectory.T_world_body[a:b])
         covs.append(None if res.trajectory.covariances is None else res.trajectory.covariances[a:b])
