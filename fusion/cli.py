@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -179,6 +180,28 @@ def _add_fusion_choices(p: argparse.ArgumentParser) -> None:
         "--tight", action="store_true", help="tight coupling: floor-code corners as reprojection factors"
     )
     p.add_argument("--no-incremental", action="store_true", help="skip the incremental smoother")
+    p.add_argument(
+        "--smoother-window-s",
+        type=_window_seconds,
+        default=None,
+        metavar="S",
+        help="the batch smoother solves flights longer than 5 min in overlapping windows of S seconds "
+        "(bounded memory; default 180); 0: always the whole flight",
+    )
+
+
+def _window_seconds(text: str) -> float:
+    from fusion.estimate.window import WINDOW_OVERLAP_S
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of seconds: {text!r}") from None
+    if not (value == 0 or (math.isfinite(value) and value > WINDOW_OVERLAP_S)):
+        raise argparse.ArgumentTypeError(
+            f"{text}: 0 (whole flight) or more than the windows' {WINDOW_OVERLAP_S:g} s overlap"
+        )
+    return value
 
 
 TRACK_HELP = (
@@ -535,6 +558,11 @@ def _run_config(args):
         time_offsets_s=getattr(args, "time_offset_ms", None),
         fixes=getattr(args, "fixes", None),
         **({} if getattr(args, "track", None) is None else {"track": args.track}),
+        **(
+            {}
+            if getattr(args, "smoother_window_s", None) is None
+            else {"smoother_window_s": args.smoother_window_s}
+        ),
     )
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -62,6 +63,7 @@ from fusion.estimate.timeoffset import (
     shift_log,
     whole_flight_input,
 )
+from fusion.estimate.window import WINDOW_S, WindowConfig, smooth_windowed
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
@@ -139,6 +141,9 @@ class RunConfig:
     # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
     # (it made the clean demo's PnP ATE worse: BENCHMARKS.md)
     track: bool = False
+    # the batch smoother solves flights longer than window.WINDOW_MIN_FLIGHT_S in overlapping
+    # windows of this length (bounded memory: fusion.estimate.window); 0: always the whole flight
+    smoother_window_s: float = WINDOW_S
 
 
 @dataclass
@@ -631,8 +636,14 @@ def fuse_stage(
             out.as_built = as_built
     if shared is not None:
         smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
+    smoother_kwargs["window"] = (
+        WindowConfig(window_s=cfg.smoother_window_s)
+        if cfg.smoother_window_s > 0
+        else WindowConfig(min_flight_s=math.inf)
+    )
+    smoother_kwargs["solver"] = smooth
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
-        (Estimator.SMOOTHER, smooth, smoother_kwargs)
+        (Estimator.SMOOTHER, smooth_windowed, smoother_kwargs)
     ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))

@@ -1,0 +1,356 @@
+"""A long flight solved by the batch smoother in overlapping time windows (issue 13 item 2: peak
+memory <= 1 GB per worker for a 30-minute flight).
+
+The batch smoother's memory grows linearly with the frames (graph, Values, the linear systems of
+Levenberg-Marquardt, the variance components' sparse factorisation: ~0.1 GB per flight minute of
+a two-camera 30 fps flight, NOTES-memory.md).  A flight longer than `WindowConfig.min_flight_s`
+is cut into windows of at most `window_s` that overlap by `overlap_s`; each is solved by the
+unchanged `smoother.smooth` (its own noise-scale iteration, outlier gate and marginal
+covariances), one at a time, so the peak is that of one window.  Shorter flights are solved
+whole: today's exact solution.
+
+Stitching rule (fixed-interval smoothing by overlapping batches; the window's ends are the
+only places it lacks information the whole-flight solve has):
+
+- Windows: n = ceil((D - O) / (W - O)) windows of equal length L = (D + (n - 1) O) / n <= W
+  over the flight's D seconds, window i starting at i (L - O); consecutive windows overlap by O.
+- Trajectory: the cut between windows i - 1 and i is the middle of their overlap; each frame's
+  pose and covariance come from the window whose cut range holds it, so every output frame is
+  at least O / 2 from the end of the window it comes from (except at the flight's own ends,
+  which the whole-flight solve does not see beyond either).  Each window starts from its own
+  first fixes (the smoother's first-velocity and bias priors): at O / 2 = 15 s from a window's
+  start, these are forgotten (the fixes every frame and the IMU pin the state).
+- Loads: each load sighting is given to exactly one window, the one whose cut range holds its
+  frame, so the windows' load estimates use disjoint sightings; a load seen in several windows
+  is their information-weighted mean, P = (sum_i P_i^-1)^-1, x = P sum_i P_i^-1 x_i (the
+  sightings' errors are independent; the windows' pose errors, which enter each sighting, are
+  independent away from the cuts).  Without covariances: the sightings-weighted mean.
+- Health, counts: summed over windows (iterations: the most of any window); the noise scales
+  per camera: the windows' scales weighted by their degrees of freedom (each window estimates
+  its own: Förstner's variance components per window).
+
+Not windowed (solved whole, with a log line): a flight with as-built floor codes (their
+variables span the flight).  Tight coupling's corner factors are windowed like the poses.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from fusion.errors import EstimationError
+from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode
+from fusion.estimate.smoother import release_heap, smooth
+from fusion.types import Estimator, LoadEstimate, LoadMap, Trajectory
+
+__all__ = ["Window", "WindowConfig", "merge_loads", "plan_windows", "smooth_windowed"]
+
+log = logging.getLogger(__name__)
+
+WINDOW_MIN_FLIGHT_S = 300.0
+"""Flights up to this long are solved whole (today's exact solution); ~0.7 GB peak at 5 min."""
+WINDOW_S = 180.0
+"""Longest window: ~0.5 GB peak for a two-camera 30 fps window (NOTES-memory.md)."""
+WINDOW_OVERLAP_S = 30.0
+"""Overlap of consecutive windows; output frames are at least half of it from a window's end."""
+IMU_PAD_S = 0.05
+"""IMU / velocity samples kept beyond a window's first and last frame (a few samples at 200 Hz)."""
+_NS = 1e9
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    """How a long flight is cut (module docstring).  min_flight_s = inf: never windowed."""
+
+    window_s: float = WINDOW_S
+    overlap_s: float = WINDOW_OVERLAP_S
+    min_flight_s: float = WINDOW_MIN_FLIGHT_S
+
+    def check(self) -> None:
+        if not (self.overlap_s >= 0 and self.window_s > self.overlap_s):
+            raise EstimationError(
+                f"window: window_s ({self.window_s} s) must exceed overlap_s ({self.overlap_s} s) >= 0"
+            )
+
+
+@dataclass(frozen=True)
+class Window:
+    """Frames [first, stop) solved; frames [out_first, out_stop) taken from this window."""
+
+    first: int
+    stop: int
+    out_first: int
+    out_stop: int
+
+
+def plan_windows(frame_t: np.ndarray, cfg: WindowConfig) -> list[Window]:
+    """The windows of a flight with frame times `frame_t` (N,) int64 ns (module docstring);
+    one window of every frame when the flight is at most cfg.min_flight_s long."""
+    cfg.check()
+    n = len(frame_t)
+    if n == 0:
+        return []
+    t = (np.asarray(frame_t, np.int64) - int(frame_t[0])) / _NS
+    duration = float(t[-1])
+    if duration <= cfg.min_flight_s or duration <= cfg.window_s:
+        return [Window(0, n, 0, n)]
+    count = math.ceil((duration - cfg.overlap_s) / (cfg.window_s - cfg.overlap_s))
+    length = (duration + (count - 1) * cfg.overlap_s) / count
+    starts = np.arange(count) * (length - cfg.overlap_s)
+    first = np.searchsorted(t, starts, "left")
+    stop = np.searchsorted(t, starts + length, "right")
+    stop[-1] = n
+    cuts = np.r_[0, np.searchsorted(t, starts[1:] + cfg.overlap_s / 2, "left"), n]
+    return [Window(int(first[i]), int(stop[i]), int(cuts[i]), int(cuts[i + 1])) for i in range(count)]
+
+
+def _rows(record: Any, keep: np.ndarray) -> Any:
+    """A copy of a dataclass record of per-sample arrays with only the samples in `keep`."""
+    return replace(
+        record,
+        **{
+            f.name: getattr(record, f.name)[keep]
+            for f in fields(record)
+            if isinstance(getattr(record, f.name), np.ndarray) and len(getattr(record, f.name)) == len(keep)
+        },
+    )
+
+
+def _window_inputs(win: Window, frame_t: np.ndarray, imu, raw: Trajectory, load_obs, kwargs: dict) -> tuple:
+    """The smoother's inputs restricted to the window's frames (load sightings: its cut range)."""
+    t0, t1 = int(frame_t[win.first]), int(frame_t[win.stop - 1])
+    pad = int(IMU_PAD_S * _NS)
+    if imu is not None:
+        ti = np.asarray(imu.timestamps_ns)
+        imu = _rows(imu, (ti >= t0 - pad) & (ti <= t1 + pad))
+    tr = np.asarray(raw.timestamps_ns)
+    raw = _rows(raw, (tr >= t0) & (tr <= t1))
+    o0 = int(frame_t[win.out_first]) if win.out_first > 0 else None
+    o1 = int(frame_t[win.out_stop]) if win.out_stop < len(frame_t) else None
+    loads = [
+        o
+        for o in load_obs or []
+        if (o0 is None or o.timestamp_ns >= o0) and (o1 is None or o.timestamp_ns < o1)
+    ]
+    kw = dict(kwargs)
+    if kw.get("velocity") is not None:
+        tv = np.asarray(kw["velocity"].timestamps_ns)
+        kw["velocity"] = _rows(kw["velocity"], (tv >= t0 - pad) & (tv <= t1 + pad))
+    if kw.get("floor_frames"):
+        kw["floor_frames"] = {t: s for t, s in kw["floor_frames"].items() if t0 <= t <= t1}
+    return frame_t[win.first : win.stop], imu, raw, loads, kw
+
+
+def merge_loads(maps: list[LoadMap], name: str) -> LoadMap:
+    """One load map from windows' maps of disjoint sightings: per load the information-weighted
+    mean of its estimates (x = P sum P_i^-1 x_i, P = (sum P_i^-1)^-1), or, when any lacks a
+    covariance, the mean weighted by sightings (covariance unknown)."""
+    by_id: dict[str, list[LoadEstimate]] = {}
+    for m in maps:
+        for e in m.loads:
+            by_id.setdefault(e.load_id, []).append(e)
+    out = []
+    for lid, ests in by_id.items():
+        n_obs = sum(e.n_obs for e in ests)
+        if len(ests) == 1:
+            out.append(replace(ests[0]))
+            continue
+        if all(e.cov_world is not None for e in ests):
+            info = [np.linalg.inv(np.asarray(e.cov_world, float)) for e in ests]
+            cov = np.linalg.inv(sum(info))
+            p = cov @ sum(i @ np.asarray(e.p_world, float) for i, e in zip(info, ests))
+            out.append(LoadEstimate(lid, p, 0.5 * (cov + cov.T), n_obs))
+        else:
+            w = np.array([max(e.n_obs, 1) for e in ests], float)
+            p = np.sum([wi * np.asarray(e.p_world, float) for wi, e in zip(w, ests)], axis=0) / w.sum()
+            out.append(LoadEstimate(lid, p, None, n_obs))
+    out.sort(key=lambda e: e.load_id)
+    return LoadMap(name, out)
+
+
+def _merge_health(parts: list[SolveHealth], mapped: set[str]) -> SolveHealth:
+    h = SolveHealth()
+    for p in parts:
+        if h.mode is SolveMode.FUSED and p.mode is not SolveMode.FUSED:
+            h.mode = p.mode
+        for r in p.reasons:
+            h.note(r)
+        for name in ("fixes", "frames_far_from_fix", "iteration_limit_hits", "lm_stalls", "linear_fallbacks"):
+            setattr(h, name, getattr(h, name) + getattr(p, name))
+        h.weak_prior_states += p.weak_prior_states
+        h.gate_skipped += p.gate_skipped
+        h.resets += p.resets
+    h.loads_dropped = sorted({lid for p in parts for lid in p.loads_dropped} - mapped)
+    return h
+
+
+def _merge_noise_scales(parts: list[dict | None]) -> dict | None:
+    """The windows' noise-scale reports as one: per camera the dof-weighted scale, the IMU's
+    chi2/dof likewise; `windows`: each window's per-camera scales."""
+    reports = [r for r in parts if r]
+    if not reports:
+        return None
+    out: dict = {
+        "solves": max(int(r.get("solves", 1)) for r in reports),
+        "groups": reports[0].get("groups", {}),
+        "cameras": {},
+    }
+    for cam in sorted({c for r in reports for c in r.get("cameras", {})}):
+        entries = [r["cameras"][cam] for r in reports if cam in r.get("cameras", {})]
+        dof = sum(float(e["dof"]) for e in entries)
+        scale = (
+            sum(float(e["scale"]) * float(e["dof"]) for e in entries) / dof
+            if dof > 0
+            else float(np.mean([e["scale"] for e in entries]))
+        )
+        out["cameras"][cam] = dict(entries[0], scale=scale, sigma_factor=math.sqrt(scale), dof=dof)
+    imu = [r["imu_chi2_per_dof"] for r in reports if "imu_chi2_per_dof" in r]
+    if imu:
+        out["imu_chi2_per_dof"] = float(np.mean(imu))
+    if any(r.get("imu_warning") for r in reports):
+        out["imu_warning"] = True
+    not_applied = sorted({r["not_applied"] for r in reports if "not_applied" in r})
+    if not_applied:
+        out["not_applied"] = "; ".join(not_applied)
+    out["windows"] = [{cam: e["scale"] for cam, e in r.get("cameras", {}).items()} for r in reports]
+    return out
+
+
+_SUMMED = (
+    "imu_intervals",
+    "bridged_intervals",
+    "imu_segments",
+    "frames_outside_imu",
+    "pose_factors",
+    "corner_factors",
+    "velocity_factors",
+    "load_factors",
+    "load_observations_skipped",
+    "n_factors",
+    "gated_pose_factors",
+    "gated_load_factors",
+    "gated_corner_factors",
+    "rejected_pose_factors",
+    "rejected_load_factors",
+    "rejected_corner_factors",
+    "time_build_s",
+    "time_optimize_s",
+    "time_covariance_s",
+    "time_s",
+    "initial_error",
+    "final_error",
+)
+
+
+def _merge_stats(parts: list[dict], plan: list[Window], frame_t: np.ndarray, health: SolveHealth) -> dict:
+    stats = {k: v for k, v in parts[0].items() if k not in ("noise_scales", "health")}
+    for k in _SUMMED:
+        vals = [p[k] for p in parts if k in p]
+        if vals:
+            stats[k] = sum(vals)
+    stats["iterations"] = max(int(p.get("iterations", 0)) for p in parts)
+    methods = sorted({str(p.get("covariance_method")) for p in parts})
+    stats["covariance_method"] = methods[0] if len(methods) == 1 else "+".join(methods)
+    stats["health"] = health.as_dict()
+    stats["noise_scales"] = _merge_noise_scales([p.get("noise_scales") for p in parts])
+    if stats["noise_scales"] is None:
+        del stats["noise_scales"]
+    t0 = int(frame_t[0])
+    stats["windows"] = [
+        {
+            "start_s": (int(frame_t[w.first]) - t0) / _NS,
+            "end_s": (int(frame_t[w.stop - 1]) - t0) / _NS,
+            "frames": w.stop - w.first,
+            "output_frames": w.out_stop - w.out_first,
+            "iterations": p.get("iterations"),
+            "time_s": p.get("time_s"),
+        }
+        for w, p in zip(plan, parts)
+    ]
+    return stats
+
+
+def smooth_windowed(
+    frame_times_ns,
+    imu,
+    raw: Trajectory,
+    load_obs,
+    front_camera=None,
+    velocity=None,
+    config: FusionConfig | None = None,
+    floor_frames: dict | None = None,
+    floor_camera=None,
+    as_built=None,
+    window: WindowConfig | None = None,
+    solver: Callable[..., FusionResult] | None = None,
+    warm_start: gtsam.Values | None = None,
+) -> FusionResult:
+    """`smoother.smooth` (same arguments and result), a flight longer than
+    window.min_flight_s solved in overlapping windows one at a time (module docstring: the
+    stitching rule); stats['windows'] lists them.  A shorter flight, or one with as-built floor
+    codes, is `smooth` itself; so is a flight with a window the smoother cannot solve on its own
+    (EstimationError, e.g. no fix in it), with a health note saying so.  `solver`: the
+    smoother of one window or of the whole flight (default `smoother.smooth`).  `warm_start`:
+    the initial values of a whole-flight solve (`smooth`'s); the windows start cold (their keys
+    are renumbered, and on the 10-minute flight the warm start saved no measurable time)."""
+    window = window or WindowConfig()
+    solver = solver or smooth
+    # the heap freed by earlier whole-flight solves (the time-offset profile's: ~0.4 GB at 10 min)
+    # back to the system first, so that it does not stay under this solve's peak
+    release_heap()
+    kwargs = dict(
+        front_camera=front_camera,
+        velocity=velocity,
+        config=config,
+        floor_frames=floor_frames,
+        floor_camera=floor_camera,
+    )
+    frame_t = np.asarray(frame_times_ns)
+    plan = plan_windows(frame_t, window) if frame_t.ndim == 1 and len(frame_t) else []
+    if len(plan) <= 1 or as_built is not None:
+        if len(plan) > 1:
+            log.info("smoother: as-built floor codes span the flight: solved whole, not in windows")
+        return solver(frame_times_ns, imu, raw, load_obs, as_built=as_built, warm_start=warm_start, **kwargs)
+    log.info("smoother: %d frames in %d overlapping windows", len(frame_t), len(plan))
+    poses: list[np.ndarray] = []
+    covs: list[np.ndarray | None] = []
+    maps: list[LoadMap] = []
+    healths: list[SolveHealth] = []
+    stats: list[dict] = []
+    for i, win in enumerate(plan):
+        args = _window_inputs(win, frame_t, imu, raw, load_obs, kwargs)
+        try:
+            res = solver(*args[:4], **args[4])
+        except EstimationError as e:
+            # e.g. a window inside a long blackout (no fix): the whole flight bridges it
+            t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
+            reason = f"window {i + 1} of {len(plan)} (from {t_s:.1f} s) not solvable on its own ({e})"
+            log.warning("smoother: %s: solving the whole flight instead", reason)
+            del poses, covs, maps, healths, stats
+            release_heap()
+            whole = solver(
+                frame_times_ns, imu, raw, load_obs, as_built=as_built, warm_start=warm_start, **kwargs
+            )
+            whole.health.note(f"{reason}: solved as one window (memory not bounded)")
+            whole.stats["health"] = whole.health.as_dict()
+            return whole
+        a, b = win.out_first - win.first, win.out_stop - win.first
+        poses.append(res.trajectory.T_world_body[a:b])
+        covs.append(None if res.trajectory.covariances is None else res.trajectory.covariances[a:b])
+        maps.append(res.loads)
+        healths.append(res.health)
+        stats.append(res.stats)
+        del res, args
+        release_heap()  # the window's GTSAM heap back to the system before the next one
+    name = str(Estimator.SMOOTHER)
+    cov = None if any(c is None for c in covs) else np.concatenate([c for c in covs if c is not None])
+    traj = Trajectory(name, frame_t.astype(np.int64), np.concatenate(poses), cov)
+    loads = merge_loads(maps, name)
+    health = _merge_health(healths, {e.load_id for e in loads.loads})
+    return FusionResult(traj, loads, _merge_stats(stats, plan, frame_t, health), health)
