@@ -50,7 +50,6 @@ from fusion.estimate.extrinsics import (
     MountRotation,
     apply_mount,
     check_mount,
-    estimate_mount_and_states,
     read_extrinsics_groundtruth,
 )
 from fusion.estimate.fixes import merge_fixes
@@ -63,7 +62,7 @@ from fusion.estimate.timeoffset import (
     shift_log,
     whole_flight_input,
 )
-from fusion.estimate.window import WINDOW_S, WindowConfig, smooth_windowed
+from fusion.estimate.window import WINDOW_S, WindowConfig, estimate_mount_windowed, smooth_windowed
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
@@ -636,11 +635,7 @@ def fuse_stage(
             out.as_built = as_built
     if shared is not None:
         smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
-    smoother_kwargs["window"] = (
-        WindowConfig(window_s=cfg.smoother_window_s)
-        if cfg.smoother_window_s > 0
-        else WindowConfig(min_flight_s=math.inf)
-    )
+    smoother_kwargs["window"] = _window_config(cfg)
     smoother_kwargs["solver"] = smooth
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
         (Estimator.SMOOTHER, smooth_windowed, smoother_kwargs)
@@ -809,7 +804,9 @@ def _run_into(
     if mount_check and cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result)
     # the check alone shares its whole-flight solve with the front camera's time-offset profile
-    shared = SharedWholeFlight() if mount_check and not cfg.calibrate_extrinsics else None
+    shared = None
+    if mount_check and not cfg.calibrate_extrinsics:
+        shared = SharedWholeFlight(window=_window_config(cfg))
     log, det, loc = _apply_time_offsets(log, det, loc, cfg, result, shared)
     if mount_check and not cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result, None if shared is None else shared.mount)
@@ -919,6 +916,13 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     return det
 
 
+def _window_config(cfg: RunConfig) -> WindowConfig:
+    """The windows long flights are solved in (fusion.estimate.window; 0 s: never)."""
+    if cfg.smoother_window_s > 0:
+        return WindowConfig(window_s=cfg.smoother_window_s)
+    return WindowConfig(min_flight_s=math.inf)
+
+
 def _robust_kernel(cfg: RunConfig) -> RobustKernel:
     """`cfg.robust` as a RobustKernel (the fusion, the time offsets and the mount check share it);
     an unknown name is an EstimationError naming the choices."""
@@ -936,7 +940,8 @@ class SharedWholeFlight:
     Order of operations in a run without --calibrate-extrinsics: (1) the floor profile (solves
     of its window) gives the floor offset r; (2) this solve: the whole flight with the floor
     stamps shifted by r (applied or not), the IMU upsampled as for the front profile, and the
-    mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_states); its body
+    mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_states; a flight longer than
+    the smoother's windows in those windows, fusion.estimate.window.estimate_mount_windowed); its body
     trajectory feeds the front profile and its E0 becomes the mount check (`mount`); (3) the
     pipeline's mount check takes `mount` instead of solving the whole flight again.  Before,
     (2) was two solves: one without E0 at shift r (front profile) and one with E0 at the applied
@@ -957,6 +962,7 @@ class SharedWholeFlight:
     mount: MountRotation | None = None
     states: gtsam.Values | None = None
     frame_t: np.ndarray | None = None
+    window: WindowConfig | None = None  # a long flight solved in windows (estimate_mount_windowed)
 
     def warm_start(self, frame_t: np.ndarray) -> gtsam.Values | None:
         """The states for a smoother on the frames `frame_t`: None unless they are this solve's
@@ -979,8 +985,8 @@ class SharedWholeFlight:
         trajectory = None
         if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
             try:
-                mount, trajectory, self.states = estimate_mount_and_states(
-                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, None, fusion_config
+                mount, trajectory, self.states = estimate_mount_windowed(
+                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, fusion_config, self.window
                 )
                 self.mount, self.frame_t = mount, np.asarray(inp.frame_t, np.int64)
             except EstimationError as e:

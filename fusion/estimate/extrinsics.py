@@ -309,6 +309,61 @@ def estimate_mount_rotation(
     return estimate_mount_and_trajectory(frame_t, imu, raw, velocity, floor_camera, config, fusion_config)[0]
 
 
+def _classify(out: MountRotation, config: ExtrinsicsConfig) -> MountRotation:
+    """`out` with its significant axes (|w| > significant_sigmas sigma and > min_significant_deg)
+    and its unexcited ones (sigma > unexcited_fraction of the prior's) named."""
+    w, sig = out.rotvec_rad, out.sigma_rad
+    assert w is not None and sig is not None
+    prior_rad = math.radians(config.prior_sigma_deg)
+    floor_rad = math.radians(config.min_significant_deg)
+    out.significant_axes = [
+        a
+        for a, wi, si in zip(AXES, w, sig)
+        if abs(wi) > config.significant_sigmas * si and abs(wi) > floor_rad
+    ]
+    out.unexcited_axes = [a for a, si in zip(AXES, sig) if si > config.unexcited_fraction * prior_rad]
+    return out
+
+
+def merge_mount_rotations(
+    parts: list[MountRotation], config: ExtrinsicsConfig | None = None
+) -> MountRotation:
+    """One mount estimate from estimates on disjoint stretches of a flight (fusion.estimate.window:
+    a long flight solved in windows).  Each part is Gaussian, w_i ~ N(w, C_i), and each carries
+    the same zero-mean prior P = prior_sigma^2 I once; the combined information counts it once:
+    C^-1 = P^-1 + sum (C_i^-1 - P^-1)_+ (each part's own information, negative eigenvalues
+    clipped), w = C sum C_i^-1 w_i (the prior's mean is 0).  Fixes and
+    iterations add up; the axes are classified again from the combined sigma."""
+    config = config or ExtrinsicsConfig()
+    if not parts:
+        raise EstimationError("no mount estimate to merge")
+    if len(parts) == 1:
+        return parts[0]
+    infos = [np.linalg.inv(np.asarray(p.cov_rad2, float)) for p in parts]
+    prior_info = np.eye(3) / math.radians(config.prior_sigma_deg) ** 2
+    info = prior_info.copy()
+    for i in infos:
+        # the part's own information: an unexcited axis, its sigma inflated by the fit's
+        # chi2/dof, can sit below the prior's; that part then adds nothing on it, not less
+        lam, vec = np.linalg.eigh(0.5 * (i + i.T) - prior_info)
+        info += (vec * np.maximum(lam, 0.0)) @ vec.T
+    cov = np.linalg.inv(info)
+    cov = 0.5 * (cov + cov.T)
+    w = cov @ sum(i @ np.asarray(p.rotvec_rad, float) for i, p in zip(infos, parts))
+    notes = [p.note for p in parts if p.note]
+    out = MountRotation(
+        parts[0].camera,
+        MountSource.ESTIMATED,
+        w,
+        cov,
+        fixes=sum(p.fixes for p in parts),
+        iterations=sum(p.iterations for p in parts),
+        note="; ".join(notes),
+        time_s=sum(p.time_s for p in parts),
+    )
+    return _classify(out, config)
+
+
 def estimate_mount_and_states(
     frame_t: np.ndarray,
     imu: ImuData | None,
@@ -382,17 +437,11 @@ def estimate_mount_and_states(
     dof = 6 * used - 3
     if dof > 0:
         cov = cov * max(1.0, 2.0 * errors[-1] / dof)
-    out = MountRotation(floor, MountSource.ESTIMATED, w, cov, fixes=used, iterations=iterations)
+    out = _classify(
+        MountRotation(floor, MountSource.ESTIMATED, w, cov, fixes=used, iterations=iterations), config
+    )
     sig = out.sigma_rad
     assert sig is not None
-    prior_rad = math.radians(config.prior_sigma_deg)
-    floor_rad = math.radians(config.min_significant_deg)
-    out.significant_axes = [
-        a
-        for a, wi, si in zip(AXES, w, sig)
-        if abs(wi) > config.significant_sigmas * si and abs(wi) > floor_rad
-    ]
-    out.unexcited_axes = [a for a, si in zip(AXES, sig) if si > config.unexcited_fraction * prior_rad]
     if health.reasons:
         out.note = "; ".join(health.reasons)
     out.time_s = time.perf_counter() - t0

@@ -46,10 +46,18 @@ import numpy as np
 
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode
+from fusion.estimate.extrinsics import MountRotation, estimate_mount_and_states, merge_mount_rotations
 from fusion.estimate.smoother import release_heap, smooth
 from fusion.types import Estimator, LoadEstimate, LoadMap, Trajectory
 
-__all__ = ["Window", "WindowConfig", "merge_loads", "plan_windows", "smooth_windowed"]
+__all__ = [
+    "Window",
+    "WindowConfig",
+    "estimate_mount_windowed",
+    "merge_loads",
+    "plan_windows",
+    "smooth_windowed",
+]
 
 log = logging.getLogger(__name__)
 
@@ -354,3 +362,64 @@ def smooth_windowed(
     loads = merge_loads(maps, name)
     health = _merge_health(healths, {e.load_id for e in loads.loads})
     return FusionResult(traj, loads, _merge_stats(stats, plan, frame_t, health), health)
+
+
+def estimate_mount_windowed(
+    frame_t: np.ndarray,
+    imu,
+    raw: Trajectory,
+    velocity,
+    floor_camera,
+    fusion_config: FusionConfig | None = None,
+    window: WindowConfig | None = None,
+) -> tuple[MountRotation, Trajectory | None, gtsam.Values | None]:
+    """`extrinsics.estimate_mount_and_states` (the time-offset stage's whole-flight solve, shared
+    with the mount check: pipeline.SharedWholeFlight) in the windows of `smooth_windowed`, so that
+    its memory is one window's.  A flight of one window is that function itself.  Otherwise each
+    window estimates the mount E0 on its own fixes (disjoint information but for the overlaps'
+    30 s, which the windows share: the merged sigma is therefore optimistic by at most
+    sqrt(window / (window - overlap)), ~1.1 with the defaults), the estimates are merged by
+    `extrinsics.merge_mount_rotations`, and the body trajectory is stitched by the same cuts as
+    the smoother's; no warm-start states (the main smoother is windowed too).  A window that
+    cannot be solved on its own (no fix in it) makes the whole flight one solve, as in
+    `smooth_windowed`."""
+    window = window or WindowConfig()
+    frame_t = np.asarray(frame_t)
+    plan = plan_windows(frame_t, window) if frame_t.ndim == 1 and len(frame_t) else []
+    release_heap()
+    if len(plan) <= 1:
+        return estimate_mount_and_states(frame_t, imu, raw, velocity, floor_camera, None, fusion_config)
+    mounts: list[MountRotation] = []
+    poses: list[np.ndarray] | None = []
+    for i, win in enumerate(plan):
+        f_t, w_imu, w_raw, _, kw = _window_inputs(win, frame_t, imu, raw, None, {"velocity": velocity})
+        try:
+            mount, traj, _ = estimate_mount_and_states(
+                f_t, w_imu, w_raw, kw["velocity"], floor_camera, None, fusion_config
+            )
+        except EstimationError as e:
+            t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
+            log.warning(
+                "mount solve: window %d of %d (from %.1f s) not solvable on its own (%s): "
+                "solving the whole flight instead",
+                i + 1,
+                len(plan),
+                t_s,
+                e,
+            )
+            del mounts, poses
+            release_heap()
+            return estimate_mount_and_states(frame_t, imu, raw, velocity, floor_camera, None, fusion_config)
+        mounts.append(mount)
+        if poses is not None and traj is not None and len(traj) == win.stop - win.first:
+            poses.append(traj.T_world_body[win.out_first - win.first : win.out_stop - win.first])
+        else:
+            poses = None
+        del traj
+        release_heap()
+    merged = merge_mount_rotations(mounts)
+    log.info("mount solve: %d frames in %d overlapping windows", len(frame_t), len(plan))
+    if poses is None:
+        return merged, None, None
+    trajectory = Trajectory(str(Estimator.SMOOTHER), frame_t.astype(np.int64), np.concatenate(poses), None)
+    return merged, trajectory, None
