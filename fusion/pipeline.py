@@ -66,7 +66,7 @@ from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
 from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.log.fixes import PositionFixes, read_fixes
-from fusion.parallel import chunk_bounds, parallel_map, worker_count
+from fusion.parallel import chunk_bounds, parallel_map, start_workers_early, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.detect import (
@@ -699,6 +699,8 @@ def run(
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    if worker_count(cfg.workers) > 1:
+        start_workers_early()  # the workers' imports while the log is read (fusion.parallel)
     log = (
         log_dir
         if isinstance(log_dir, FlightLog)
