@@ -234,37 +234,49 @@ def main() -> None:
     pickle_s = sum(i["pickle_s"] for i in infos)
     load1 = os.getloadavg()
 
-    print(f"\n{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, load average "
-          f"{load0[0]:.1f} before, {load1[0]:.1f} after; {args.flight}, {n_frames} frames, "
-          f"{len(tasks)} chunks of {args.chunk_frames}, {workers} workers{', cold' if args.cold else ''}")
+    print(
+        f"\n{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores, load average "
+        f"{load0[0]:.1f} before, {load1[0]:.1f} after; {args.flight}, {n_frames} frames, "
+        f"{len(tasks)} chunks of {args.chunk_frames}, {workers} workers{', cold' if args.cold else ''}"
+    )
     print("\n| main process | wall [s] | CPU [s] |\n|---|--:|--:|")
     for what, w, c in rows:
         print(f"| {what} | {w:.2f} | {c:.2f} |")
     print("\n| workers | value |\n|---|--:|")
     print(f"| pool start: first chunk began after | {first_start - t_wall0:.2f} s |")
-    print(f"| last chunk ended / last result arrived, after start | {last_end - t_wall0:.2f} / "
-          f"{arrivals[-1] - t_wall0:.2f} s |")
+    print(
+        f"| last chunk ended / last result arrived, after start | {last_end - t_wall0:.2f} / "
+        f"{arrivals[-1] - t_wall0:.2f} s |"
+    )
     print(f"| chunk wall, summed over chunks | {chunk_wall:.1f} s |")
     print(f"| chunk CPU, summed | {cpu:.1f} s ({1000 * cpu / n_frames:.2f} ms/frame) |")
-    print(f"| of chunk wall: image load (read + decode) | {load_s:.1f} s, decode {decode_s:.1f} s, "
-          f"read (load - decode) {load_s - decode_s:.1f} s |")
-    print(f"| of chunk CPU: image load | {load_cpu:.1f} s ({1000 * load_cpu / n_frames:.2f} ms/frame), decode "
-          f"{decode_cpu:.1f} s, read and checks {load_cpu - decode_cpu:.1f} s |")
-    print(f"| of chunk CPU: detection (rest) | {cpu - load_cpu:.1f} s ({1000 * (cpu - load_cpu) / n_frames:.2f} "
-          "ms/frame) |")
+    print(
+        f"| of chunk wall: image load (read + decode) | {load_s:.1f} s, decode {decode_s:.1f} s, "
+        f"read (load - decode) {load_s - decode_s:.1f} s |"
+    )
+    print(
+        f"| of chunk CPU: image load | {load_cpu:.1f} s ({1000 * load_cpu / n_frames:.2f} ms/frame), decode "
+        f"{decode_cpu:.1f} s, read and checks {load_cpu - decode_cpu:.1f} s |"
+    )
+    rest_cpu = cpu - load_cpu
+    print(f"| of chunk CPU: detection (rest) | {rest_cpu:.1f} s ({1000 * rest_cpu / n_frames:.2f} ms/frame)|")
     print(f"| of chunk wall: detection (rest) | {chunk_wall - load_s:.1f} s |")
     runq = sum(i["runq_s"] for i in infos)
     sched_cpu = sum(i["sched_cpu_s"] for i in infos)
     disk = sum(i["disk_bytes"] for i in infos)
-    print(f"| chunk wall - chunk CPU | {chunk_wall - cpu:.1f} s: waiting for a core {runq:.1f} s, "
-          f"blocked (disk) {chunk_wall - sched_cpu - runq:.1f} s |")
+    print(
+        f"| chunk wall - chunk CPU | {chunk_wall - cpu:.1f} s: waiting for a core {runq:.1f} s, "
+        f"blocked (disk) {chunk_wall - sched_cpu - runq:.1f} s |"
+    )
     print(f"| read from storage (not page cache) | {disk / 1e6:.0f} MB |")
     for pid, lst in sorted(by_pid.items()):
         busy = sum(i["end"] - i["start"] for i in lst)
         span = max(i["end"] for i in lst) - min(i["start"] for i in lst)
-        print(f"| worker {pid}: chunks, busy / span, process CPU, peak RSS | {len(lst)}, {busy:.1f} / "
-              f"{span:.1f} s, {max(i['rusage_cpu_s'] for i in lst):.1f} s, "
-              f"{max(i['maxrss_mb'] for i in lst):.0f} MB |")
+        print(
+            f"| worker {pid}: chunks, busy / span, process CPU, peak RSS | {len(lst)}, {busy:.1f} / "
+            f"{span:.1f} s, {max(i['rusage_cpu_s'] for i in lst):.1f} s, "
+            f"{max(i['maxrss_mb'] for i in lst):.0f} MB |"
+        )
     print(f"| context sent to each worker | {ctx_bytes / 1e6:.2f} MB |")
     print(f"| tasks sent, total | {task_bytes / 1e3:.1f} kB |")
     print(f"| results returned (pickled), total | {pickled / 1e6:.2f} MB ({pickle_s:.2f} s to pickle) |")

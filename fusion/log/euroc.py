@@ -225,7 +225,8 @@ class CameraStream:
                     return None
                 if size is None and data.startswith(PNG_SIGNATURE):
                     self.skipped.append(
-                        f"{self._where(i)}: image {path.name} is unreadable (PNG header truncated or malformed)"
+                        f"{self._where(i)}: image {path.name} is unreadable "
+                        "(PNG header truncated or malformed)"
                     )
                     return None
                 if size is None and os.fstat(f.fileno()).st_size > _max_image_bytes(*limit):

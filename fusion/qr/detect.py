@@ -710,9 +710,9 @@ def _cache_dets(rows: list[list[str]]) -> list[QRDetection] | None:
         return None
     try:
         stamps = list(map(int, (row[1] for row in rows)))
-        corner_vals = np.array(
-            list(map(float, (v for row in rows for v in row[3:19]))), dtype=float
-        ).reshape(n, 2, 4, 2)
+        corner_vals = np.array(list(map(float, (v for row in rows for v in row[3:19]))), dtype=float).reshape(
+            n, 2, 4, 2
+        )
         sigma_text = [row[_SIGMA_COLUMN] for row in rows]
         sigmas = [float(t) if t else None for t in sigma_text]
         cov_rows = [i for i, row in enumerate(rows) if row[_COV_TEXT_COLUMN]]
