@@ -6,9 +6,11 @@ prefetching never fails; the forkserver preloads the package's imported modules.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import os
+import pickle
 import sys
 
 import numpy as np
@@ -24,11 +26,16 @@ from fusion.qr.detect import (
     FORMAT_VERSION,
     CameraStats,
     DetectionResult,
+    PackedDetections,
     _cache_row,
     _prefetch,
     cache_rows_text,
     detect_flight,
+    pack_detections,
+    pack_frames,
     read_cache,
+    unpack_detections,
+    unpack_frames,
     write_cache,
 )
 from fusion.types import QRDetection
@@ -211,3 +218,52 @@ def test_workers_start_with_the_preloaded_modules():
     assert (
         list(parallel_map(_modules_in_worker, [0, 1, 2], 2, None, preload=["fusion.qr.detect"])) == [True] * 3
     )
+
+
+def _same_detection(a: QRDetection, b: QRDetection) -> bool:
+    arrays_equal = all(
+        type(x) is type(y) and (x is None or (x.dtype == y.dtype and x.tobytes() == y.tobytes()))
+        for x, y in [
+            (a.corners_px, b.corners_px),
+            (a.corners_raw_px, b.corners_raw_px),
+            (a.corner_cov_px2, b.corner_cov_px2),
+        ]
+    )
+    fields = (a.camera, a.timestamp_ns, a.payload, a.corner_sigma_px, a.tracked)
+    other = (b.camera, b.timestamp_ns, b.payload, b.corner_sigma_px, b.tracked)
+    return arrays_equal and fields == other and [type(v) for v in fields] == [type(v) for v in other]
+
+
+def test_packed_detections_round_trip_bit_for_bit_through_pickle():
+    dets = [d for d in _random_detections(5, 60) if d.corners_px.dtype == np.float64]
+    packed = pack_detections(dets)
+    assert isinstance(packed, PackedDetections)
+    back = unpack_detections(pickle.loads(pickle.dumps(packed, protocol=pickle.HIGHEST_PROTOCOL)))
+    assert len(back) == len(dets) and all(_same_detection(a, b) for a, b in zip(dets, back))
+    assert unpack_detections(pack_detections([])) == []
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"corners_px": np.zeros((4, 2), np.float32)},
+        {"corner_sigma_px": np.float64(0.2)},
+        {"corner_sigma_px": float("nan")},
+        {"timestamp_ns": np.int64(5)},
+        {"corner_cov_px2": np.eye(4)},
+    ],
+)
+def test_a_detection_the_arrays_cannot_hold_exactly_is_sent_as_it_is(change):
+    dets = [d for d in _random_detections(6, 5) if d.corners_px.dtype == np.float64]
+    dets[1] = dataclasses.replace(dets[1], **change)
+    assert pack_detections(dets) is dets and unpack_detections(dets) is dets
+
+
+def test_packed_frames_keep_keys_order_and_grouping():
+    dets = [d for d in _random_detections(7, 40) if d.corners_px.dtype == np.float64]
+    frames = {1000 + 7 * k: dets[a:b] for k, (a, b) in enumerate([(0, 3), (3, 4), (4, 20), (20, 40)])}
+    frames = dict(reversed(list(frames.items())))  # any key order is kept
+    back = unpack_frames(pickle.loads(pickle.dumps(pack_frames(frames))))
+    assert list(back) == list(frames)
+    assert all(len(back[k]) == len(v) and all(map(_same_detection, v, back[k])) for k, v in frames.items())
+    assert unpack_frames(pack_frames({})) == {}
