@@ -105,6 +105,7 @@ def _timed_chunk(context, task):
         part = detect_module._detect_chunk(context, task)
     finally:
         type(stream).load_image = load
+    part = (part[0], detect_module.pack_detections(part[1]), part[2], part[3])  # as detect_flight
     t1, c1 = time.time(), time.process_time()
     p1 = _proc_counters()
     tp = time.perf_counter()
@@ -124,7 +125,7 @@ def _timed_chunk(context, task):
         "decode_cpu_s": _TIMES["decode_cpu"],
         "bytes": nbytes,
         "pickle_s": pickle_s,
-        "n_dets": len(part[1]),
+        "n_dets": len(detect_module.unpack_detections(part[1])),
         "frames": part[2].frames_total,
         "rusage_cpu_s": sum(resource.getrusage(resource.RUSAGE_SELF)[:2]),
         "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -194,7 +195,7 @@ def main() -> None:
             break
         waits.append(time.perf_counter() - tw)
         arrivals.append(time.time())
-        parts.append(part)
+        parts.append((part[0], detect_module.unpack_detections(part[1]), part[2], part[3]))
         infos.append(info)
     w1, c1 = clock()
     rows.append(("parallel chunks (detect, main process view)", w1 - w0, c1 - c0))
