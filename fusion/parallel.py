@@ -8,6 +8,13 @@ threads (OpenCV, BLAS, a test runner) can deadlock a child on a lock copied in t
 So `fn` must be a module-level function, and a script that calls this with workers > 1 needs the
 usual `if __name__ == "__main__":` guard.  With workers <= 1 (or a single task) everything runs
 in this process, which is what the tests compare the parallel path against.
+
+The forkserver starts once per process, with the first call's `preload`, and imports those
+modules once; every worker forks from it.  It also imports every `fusion` module this process
+has imported by then (`_preload_modules`): a worker re-runs the main module (multiprocessing's
+`__mp_main__`, e.g. the `fusion` script or a bench script) and unpickles its context and
+function, and without them in the forkserver each worker imported them again (measured: ~2.5 CPU
+s a worker for `fusion.pipeline`, 6 workers a `fusion run`; NOTES-detectwall.md).
 """
 
 from __future__ import annotations
@@ -17,10 +24,12 @@ import ctypes.util
 import logging
 import multiprocessing as mp
 import os
+import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from itertools import repeat
+from multiprocessing import forkserver
 from multiprocessing.context import BaseContext
 from typing import Any, TypeVar
 
@@ -96,6 +105,34 @@ def chunk_bounds(n_items: int, n_chunks: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
 
+def _preload_modules(preload: Sequence[str]) -> list[str]:
+    """`preload` and then every module of this package that this process has imported (what a
+    worker would import again when it unpickles its function and context or re-runs the main
+    module), for the forkserver to import once."""
+    root = __name__.split(".")[0]
+    imported = sorted(m for m in sys.modules if m == root or m.startswith(root + "."))
+    return list(dict.fromkeys([*preload, *imported]))
+
+
+def _forkserver_context(preload: Sequence[str]) -> BaseContext | None:
+    if "forkserver" not in mp.get_all_start_methods():
+        return None
+    ctx = mp.get_context("forkserver")
+    # (ignored once the forkserver runs: it started with an earlier call's modules)
+    ctx.set_forkserver_preload(_preload_modules(preload))
+    return ctx
+
+
+def start_workers_early(preload: Sequence[str] = ()) -> None:
+    """Start the forkserver now, so that it imports its modules (`parallel_map`'s `preload` and
+    this package's imported modules: ~3 CPU s for the pipeline's) while this process goes on
+    (e.g. reads the flight log) instead of when the first pool starts.  Nothing happens in a
+    worker process or where there is no forkserver."""
+    if mp.current_process().name != "MainProcess" or _forkserver_context(preload) is None:
+        return
+    forkserver.ensure_running()
+
+
 def parallel_map(
     fn: Callable[[Any, T], R],
     tasks: Iterable[T],
@@ -105,7 +142,8 @@ def parallel_map(
 ) -> Iterator[R]:
     """Yield fn(context, task) for each task, in order, on `workers` processes.
 
-    `preload`: modules the forkserver imports once, so that workers fork from it ready to run.
+    `preload`: modules the forkserver imports once, so that workers fork from it ready to run
+    (with the package's modules already imported here; module docstring).
     Raises ParallelError when called with workers > 1 inside a worker process (an unguarded
     main script being re-imported) or when a worker dies."""
     tasks = list(tasks)
@@ -118,14 +156,7 @@ def parallel_map(
             "parallel work started inside a worker process; guard the calling "
             "script with `if __name__ == '__main__':` or use one worker"
         )
-    ctx: BaseContext
-    if "forkserver" in mp.get_all_start_methods():
-        forkserver = mp.get_context("forkserver")
-        if preload:
-            forkserver.set_forkserver_preload(list(preload))
-        ctx = forkserver
-    else:
-        ctx = mp.get_context("spawn")
+    ctx = _forkserver_context(preload) or mp.get_context("spawn")
     n = min(workers, len(tasks))
     logger.debug(
         "parallel_map %s: %d tasks on %d %s workers",

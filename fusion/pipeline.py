@@ -69,7 +69,7 @@ from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
 from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.log.fixes import PositionFixes, read_fixes
-from fusion.parallel import chunk_bounds, parallel_map, worker_count
+from fusion.parallel import chunk_bounds, parallel_map, start_workers_early, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.detect import (
@@ -78,7 +78,9 @@ from fusion.qr.detect import (
     DetectionResult,
     detect_flight,
     flight_fingerprint,
+    pack_frames,
     read_cache,
+    unpack_frames,
     write_cache,
 )
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
@@ -346,8 +348,7 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
     workers = _worker_count(cfg.workers, len(floor_frames))
     parts = list(
         parallel_map(
-            localize_floor_chunk,
-            _chunks(floor_frames, workers),
+            *_localize_tasks(localize_floor_chunk, _chunks(floor_frames, workers), workers),
             workers,
             floor_context(log, cfg),
             preload=_LOCALIZE_PRELOAD,
@@ -358,14 +359,30 @@ def localize_stage(log: FlightLog, det, cfg: RunConfig) -> LocalizeResult:
         return merge_front_parts(log, floor, [])
     parts = list(
         parallel_map(
-            localize_front_chunk,
-            _chunks(det.by_frame("cam1"), workers),
+            *_localize_tasks(localize_front_chunk, _chunks(det.by_frame("cam1"), workers), workers),
             workers,
             front_context(log, floor, cfg),
             preload=_LOCALIZE_PRELOAD,
         )
     )
     return merge_front_parts(log, floor, parts)
+
+
+def _localize_tasks(chunk_fn: Callable, chunks: list[dict], workers: int) -> tuple[Callable, list]:
+    """(function, tasks) for parallel_map: on several workers the chunks' detections travel
+    packed (fusion.qr.detect.pack_frames: ~1/30 of the pickling CPU of the objects)."""
+    if workers <= 1 or len(chunks) <= 1:
+        return chunk_fn, chunks
+    packed_fn = _localize_floor_packed if chunk_fn is localize_floor_chunk else _localize_front_packed
+    return packed_fn, [pack_frames(c) for c in chunks]
+
+
+def _localize_floor_packed(context, packed) -> dict:
+    return localize_floor_chunk(context, unpack_frames(packed))
+
+
+def _localize_front_packed(context, packed) -> dict:
+    return localize_front_chunk(context, unpack_frames(packed))
 
 
 def floor_context(log: FlightLog, cfg: RunConfig) -> tuple:
@@ -725,6 +742,8 @@ def run(
         raise FusionError(f"unknown stage {until!r}; expected one of {STAGES}")
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    if worker_count(cfg.workers) > 1:
+        start_workers_early()  # the workers' imports while the log is read (fusion.parallel)
     log = (
         log_dir
         if isinstance(log_dir, FlightLog)
