@@ -764,7 +764,8 @@ def _model_edge_points(
     )
     # the PSF's width is fitted on codes without clipped samples: where the growth d is free it
     # takes the clipped profiles' misfit, and a second shape parameter there was confounded with
-    # it (clipping x1.6: 4 PnP poses over 5 cm, none with b fixed; BENCHMARKS.md)
+    # it (b free on every code: clipping x2.2 smoother NEES 13 -> 30, and 4 real photographs
+    # worse than the decoder by > 0.5 px instead of 1, two of them clipped; NOTES-sigma.md)
     free_psf = np.repeat(~clipped_code & bool(fit_psf), 2)
     psf_px = np.where(free_psf, psf_px, _MODEL_PSF_PX)
     free = np.stack([np.ones(2 * C, bool), free_psf, free_dil], axis=1)  # w, b, d
