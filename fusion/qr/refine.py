@@ -318,9 +318,9 @@ _MIN_GOOD_PROFILES = 10  # of 24 (averaged) per code
 # fit the second box's width too (True), or keep it at _MODEL_PSF_PX (False, the default): fitted,
 # it halves the defocus disc's bias (defocus r 1 flight: smoother NEES 54 -> 26, EKF 14 -> 10) and
 # brings the floor PnP NEES on rendered frames to ~6, but the load-centre NEES of
-# tests/test_pnp.py's rendered frames rises from 4.0 to 5.2-5.6 (ideal 3, heavy-tailed): the
-# per-profile edge sigma leaves out the uncertainty of the shared widths, which the extra
-# parameter enlarges.  Opt-in until that is propagated (NOTES-sigma.md).
+# tests/test_pnp.py's rendered frames rises from 4.0 to 5.2-5.6 (ideal 3, heavy-tailed; the
+# shared widths' uncertainty, added to each edge sigma, does not explain it).  Opt-in until the
+# cause is found (NOTES-sigma.md).
 FIT_PSF = False
 _PSF_PRIOR_PX = 1.0  # 1-sigma prior of the fitted second box's width about _MODEL_PSF_PX (0: none)
 _GROUP_DAMPING = 1e-3  # relative Levenberg damping of the per-code (width, PSF, growth) step
