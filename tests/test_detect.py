@@ -435,6 +435,13 @@ def test_blurred_steps_match_a_numerical_convolution_and_their_derivatives():
     np.testing.assert_allclose(
         F_a, (_blurred_steps(x, a + h, b)[0] - _blurred_steps(x, a - h, b)[0]) / (2 * h), atol=1e-5
     )
+    # the second box's width (the fitted PSF): same F and derivatives, dF/db as a fourth
+    F2, F2_x, F2_a, F_b = _blurred_steps(x, a, b, psf_derivative=True)
+    np.testing.assert_array_equal(F2, F)
+    np.testing.assert_array_equal(F2_a, F_a)
+    np.testing.assert_allclose(
+        F_b, (_blurred_steps(x, a, b + h)[0] - _blurred_steps(x, a, b - h)[0]) / (2 * h), atol=1e-5
+    )
 
 
 def test_level_fit_equals_least_squares_profile_by_profile():
