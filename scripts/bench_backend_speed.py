@@ -40,7 +40,8 @@ TIMED = [
     ("fusion.estimate.timeoffset", "estimate_floor_offset", "floor profile"),
     ("fusion.estimate.timeoffset", "estimate_front_offset", "front profile"),
     ("fusion.estimate.timeoffset", "smooth", "smoother solve"),
-    ("fusion.pipeline", "estimate_mount_and_states", "whole flight, shared with the mount check"),
+    ("fusion.pipeline", "estimate_mount_windowed", "whole flight, shared with the mount check"),
+    ("fusion.estimate.window", "estimate_mount_and_states", "mount solve"),
     ("fusion.pipeline", "check_mount", "mount check"),
     ("fusion.pipeline", "fuse_stage", "fuse_stage"),
     ("fusion.warehouse.floorcodes", "as_built_input", "as-built input"),
@@ -62,7 +63,7 @@ TIMED = [
 ]
 
 
-def _rss_mb(field: str) -> float:
+def rss_mb(field: str = "VmRSS") -> float:
     try:
         for line in Path("/proc/self/status").read_text().splitlines():
             if line.startswith(field + ":"):
@@ -81,7 +82,8 @@ def _reset_peak() -> bool:
 
 
 class Timer:
-    """Inclusive wall / CPU seconds, calls and peak RSS per call path."""
+    """Inclusive wall / CPU seconds, calls, RSS at entry and peak RSS per call path (also
+    scripts/bench_memory.py's)."""
 
     def __init__(self) -> None:
         self.stack: list[str] = []
@@ -93,10 +95,13 @@ class Timer:
         def timed(*args, **kwargs):
             self.stack.append(label)
             path = tuple(self.stack)
-            row = self.rows.setdefault(path, {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0, "peak_mb": 0.0})
+            row = self.rows.setdefault(
+                path, {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0, "peak_mb": 0.0, "rss_in_mb": 0.0}
+            )
             if self.peak_reset:  # the callers' peak so far, then a fresh peak for this call
-                self._credit(path[:-1], _rss_mb("VmHWM"))
+                self._credit(path[:-1], rss_mb("VmHWM"))
                 _reset_peak()
+            row["rss_in_mb"] = max(row["rss_in_mb"], rss_mb())
             w, c = time.perf_counter(), time.process_time()
             try:
                 return fn(*args, **kwargs)
@@ -104,7 +109,7 @@ class Timer:
                 row["wall_s"] += time.perf_counter() - w
                 row["cpu_s"] += time.process_time() - c
                 row["calls"] += 1
-                self._credit(path, _rss_mb("VmHWM"))
+                self._credit(path, rss_mb("VmHWM"))
                 self.stack.pop()
 
         return timed
@@ -116,9 +121,12 @@ class Timer:
             if row is not None:
                 row["peak_mb"] = max(row["peak_mb"], peak_mb)
 
-    def install(self) -> None:
-        for mod, attr, label in TIMED:
-            m = importlib.import_module(mod)
+    def install(self, targets: list[tuple[str, str, str]] = TIMED) -> None:
+        for mod, attr, label in targets:
+            try:
+                m = importlib.import_module(mod)
+            except ImportError:
+                continue
             if hasattr(m, attr):
                 setattr(m, attr, self.wrap(getattr(m, attr), label))
 
@@ -209,7 +217,7 @@ def main() -> int:
         if "reused" in note:
             print("note:", note)
     print("\n| stage | calls | wall s | CPU s | peak RSS MB |\n|---|--:|--:|--:|--:|")
-    for path, row in sorted(timer.rows.items(), key=lambda kv: _order(kv[0], timer.rows)):
+    for path, row in sorted(timer.rows.items(), key=lambda kv: call_path_order(kv[0], timer.rows)):
         name = "&nbsp;" * 4 * (len(path) - 1) + path[-1]
         w, c, mb = row["wall_s"], row["cpu_s"], row["peak_mb"]
         print(f"| {name} | {row['calls']:.0f} | {w:.2f} | {c:.2f} | {mb:.0f} |")
@@ -217,7 +225,7 @@ def main() -> int:
     back_w = sum(r["wall_s"] for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr)
     back_c = sum(r["cpu_s"] for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr)
     print(f"| **back end (time offsets to report)** | | **{back_w:.2f}** | **{back_c:.2f}** | |")
-    print(f"| total `run` | | {wall:.2f} | {cpu:.2f} | {_rss_mb('VmHWM'):.0f} |")
+    print(f"| total `run` | | {wall:.2f} | {cpu:.2f} | {rss_mb('VmHWM'):.0f} |")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak RSS of the main process over the whole run: {peak:.0f} MB")
     acc = accuracy(res.metrics or {})
@@ -256,7 +264,7 @@ def main() -> int:
     return 0
 
 
-def _order(path: tuple[str, ...], rows: dict) -> tuple:
+def call_path_order(path: tuple[str, ...], rows: dict) -> tuple:
     """Depth-first order: each path after its parent, siblings by first appearance."""
     keys = list(rows)
     return tuple(min(keys.index(k) for k in keys if k[: i + 1] == path[: i + 1]) for i in range(len(path)))

@@ -20,8 +20,6 @@ trajectory / load results for comparisons (windowed against whole: `--window-s`)
 from __future__ import annotations
 
 import argparse
-import functools
-import importlib
 import json
 import multiprocessing as mp
 import os
@@ -33,13 +31,15 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from bench_backend_speed import Timer, call_path_order, rss_mb  # scripts/ is sys.path[0]
 
 # (module, attribute, label): functions whose peak RSS is reported (a module's own reference)
 WRAPPED = [
     ("fusion.pipeline", "resolve_time_offsets", "time offsets"),
     ("fusion.estimate.timeoffset", "estimate_floor_offset", "floor profile"),
     ("fusion.estimate.timeoffset", "estimate_front_offset", "front profile"),
-    ("fusion.pipeline", "estimate_mount_and_trajectory", "whole flight, shared with the mount check"),
+    ("fusion.pipeline", "estimate_mount_windowed", "whole flight, shared with the mount check"),
+    ("fusion.estimate.window", "estimate_mount_and_states", "mount solve"),
     ("fusion.pipeline", "check_mount", "mount check"),
     ("fusion.pipeline", "fuse_stage", "fuse_stage"),
     ("fusion.pipeline", "smooth", "smoother"),
@@ -58,78 +58,15 @@ INPUTS = "smooth_inputs.pkl"
 TRUTH = "truth.pkl"
 
 
-def rss_mb(field: str = "VmRSS") -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def reset_peak() -> bool:
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
-
-
-class PeakTracker:
-    """Peak RSS and CPU time per call path of the wrapped functions."""
-
-    def __init__(self) -> None:
-        self.stack: list[str] = []
-        self.rows: dict[tuple[str, ...], dict[str, float]] = {}
-        self.can_reset = reset_peak()
-
-    def _credit(self, path: tuple[str, ...], peak: float) -> None:
-        for i in range(1, len(path) + 1):
-            row = self.rows.get(path[:i])
-            if row is not None:
-                row["peak_mb"] = max(row["peak_mb"], peak)
-
-    def wrap(self, fn, label: str):
-        @functools.wraps(fn)
-        def wrapped(*args, **kwargs):
-            self.stack.append(label)
-            path = tuple(self.stack)
-            row = self.rows.setdefault(path, {"calls": 0, "cpu_s": 0.0, "peak_mb": 0.0, "rss_in_mb": 0.0})
-            if self.can_reset:
-                self._credit(path[:-1], rss_mb("VmHWM"))
-                reset_peak()
-            row["rss_in_mb"] = max(row["rss_in_mb"], rss_mb())
-            c = time.process_time()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                row["calls"] += 1
-                row["cpu_s"] += time.process_time() - c
-                self._credit(path, rss_mb("VmHWM"))
-                self.stack.pop()
-
-        return wrapped
-
-    def install(self) -> None:
-        for mod, attr, label in WRAPPED:
-            try:
-                m = importlib.import_module(mod)
-            except ImportError:
-                continue
-            if hasattr(m, attr):
-                setattr(m, attr, self.wrap(getattr(m, attr), label))
-
-    def table(self) -> str:
-        keys = list(self.rows)
-
-        def order(p):
-            return tuple(min(keys.index(k) for k in keys if k[: i + 1] == p[: i + 1]) for i in range(len(p)))
-
-        out = ["| stage | calls | CPU s | RSS at entry MB | peak RSS MB |", "|---|--:|--:|--:|--:|"]
-        for path in sorted(self.rows, key=order):
-            r = self.rows[path]
-            name = "&nbsp;" * 4 * (len(path) - 1) + path[-1]
-            cells = f"{r['calls']:.0f} | {r['cpu_s']:.1f} | {r['rss_in_mb']:.0f} | {r['peak_mb']:.0f}"
-            out.append(f"| {name} | {cells} |")
-        return "\n".join(out)
+def table(tracker: Timer) -> str:
+    """The tracker's rows: calls, CPU s, RSS at entry and peak RSS per call path."""
+    out = ["| stage | calls | CPU s | RSS at entry MB | peak RSS MB |", "|---|--:|--:|--:|--:|"]
+    for path in sorted(tracker.rows, key=lambda p: call_path_order(p, tracker.rows)):
+        r = tracker.rows[path]
+        name = "&nbsp;" * 4 * (len(path) - 1) + path[-1]
+        cells = f"{r['calls']:.0f} | {r['cpu_s']:.1f} | {r['rss_in_mb']:.0f} | {r['peak_mb']:.0f}"
+        out.append(f"| {name} | {cells} |")
+    return "\n".join(out)
 
 
 # ---------------------------------------------------------------------------------- capture
@@ -144,8 +81,8 @@ def capture(log_dir: Path, det_dir: Path, work: Path) -> None:
         shutil.rmtree(out)
     out.mkdir()
     shutil.copy(det_dir / "detections.csv", out / "detections.csv")
-    tracker = PeakTracker()
-    tracker.install()
+    tracker = Timer()
+    tracker.install(WRAPPED)
     inner = pipeline.smooth
 
     def grab(*args, **kwargs):
@@ -163,7 +100,7 @@ def capture(log_dir: Path, det_dir: Path, work: Path) -> None:
     t = time.perf_counter()
     pipeline.run(log_dir, out, cfg, until="smooth")
     print(f"capture: {time.perf_counter() - t:.0f} s wall; inputs in {work / INPUTS}")
-    print(tracker.table())
+    print(table(tracker))
     print(f"peak RSS of the process: {rss_mb('VmPeak'):.0f} MB virtual, high-water {rss_mb('VmHWM'):.0f} MB")
 
 
@@ -226,8 +163,8 @@ def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> 
     from fusion.estimate import window
     from fusion.estimate.common import FusionConfig
 
-    tracker = PeakTracker()
-    tracker.install()
+    tracker = Timer()
+    tracker.install(WRAPPED)
     with open(work / INPUTS, "rb") as f:
         args, kwargs = pickle.load(f)
     args, kwargs = truncate(args, kwargs, minutes)
@@ -271,7 +208,7 @@ def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> 
             "peak_mb": peak,
             "accuracy": accuracy,
             "cpu_s": cpu,
-            "table": tracker.table(),
+            "table": table(tracker),
             "T": tr.T_world_body,
             "cov": tr.covariances,
             "loads": {e.load_id: (np.asarray(e.p_world), e.cov_world) for e in res.loads.loads},
@@ -288,8 +225,8 @@ def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue) 
     from tests.test_estimate import FRONT_CAM, make_flight
 
     fl = make_flight(seed=0, duration_s=60.0 * minutes, gaps=((30.0, 32.0),))
-    tracker = PeakTracker()
-    tracker.install()
+    tracker = Timer()
+    tracker.install(WRAPPED)
     base = rss_mb()
     c = time.process_time()
     wcfg = (
@@ -309,7 +246,7 @@ def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue) 
             "rss_before_mb": base,
             "peak_mb": peak,
             "cpu_s": cpu,
-            "table": tracker.table(),
+            "table": table(tracker),
             "accuracy": {"ate_rmse_mm": 1e3 * float(np.sqrt(np.mean(err**2)))},
             "T": res.trajectory.T_world_body,
             "cov": res.trajectory.covariances,
