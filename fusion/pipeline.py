@@ -409,8 +409,9 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
     traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
-    # honest sigma (issue 10): the flight's reprojection chi2/dof scales the PnP covariances
-    traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory(
+    # honest sigma (issue 10): the flight's reprojection chi2/dof, per corner class, scales the
+    # PnP covariances
+    traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory_by_class(
         traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
     )
     trajectories["pnp"] = traj_pnp

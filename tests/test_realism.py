@@ -224,6 +224,58 @@ def test_pnp_chi2_recovers_the_corner_noise_scale(factor):
     assert np.allclose(scaled.covariances, traj.covariances * report["scale"])
 
 
+def test_pnp_noise_scales_per_corner_class_recover_each_class_and_its_nees():
+    """Half the codes at the decoder's corners (claimed 1.5 px, true 0.6 px), half refined
+    (claimed 0.15 px, true 0.45 px): one pooled factor cannot make both honest; Helmert's
+    per-class factors recover (0.6 / 1.5)^2 and (0.45 / 0.15)^2, and the poses' NEES."""
+    import dataclasses
+
+    fl = make_flight(seed=3, duration_s=6.0, gaps=())
+    cam = make_cameras()["cam0"]
+    floor = floor_sightings(fl, cam, seed=4, sigma_px=0.0)
+    rng = np.random.default_rng(9)
+    frames = {}
+    for ts in sorted(floor)[:120]:
+        dets = []
+        for j, s in enumerate(floor[ts]):
+            sigma_true, sigma_claimed = (0.6, 1.5) if j % 2 == 0 else (0.45, 0.15)
+            noisy = s.detection.corners_px + rng.normal(0.0, sigma_true, (4, 2))
+            dets.append(dataclasses.replace(s.detection, corners_px=noisy, corner_sigma_px=sigma_claimed))
+        frames[ts] = dets
+    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0))
+    traj, stats = pnp_trajectory(frames, cam, world)
+    assert stats.n_posed == 120
+    # the class pieces add up to the frame's chi2, dof and covariance
+    for c, chi2, T, dof, G, cov in zip(
+        stats.frame_class_chi2,
+        stats.frame_chi2,
+        stats.frame_class_redundancy,
+        stats.frame_dof,
+        stats.frame_class_covariance,
+        traj.covariances,
+    ):
+        assert math.isclose(c.sum(), chi2, rel_tol=1e-9) and math.isclose(T.sum(), dof, rel_tol=1e-9)
+        assert np.allclose(G.sum(axis=0), cov, rtol=1e-8, atol=1e-14)
+    truth = dict(zip(fl.frame_t.tolist(), fl.T_true))
+    T_true = np.array([truth[int(t)] for t in traj.timestamps_ns])
+    pooled, _ = vc.scale_pnp_trajectory(traj, [stats])
+    scaled, report = vc.scale_pnp_trajectory_by_class(traj, [stats])
+    assert report["by_class"] and report["applied"]
+    refined, decoder = report["classes"]["refined"], report["classes"]["decoder"]
+    assert abs(refined["applied_scale"] - 9.0) < 0.15 * 9.0, refined
+    assert abs(decoder["applied_scale"] - 0.16) < 0.15 * 0.16, decoder
+    assert nees(pooled, T_true).mean() > 12.0  # one factor: overconfident where refined codes are
+    assert 0.5 * 6 <= nees(scaled, T_true).mean() <= 1.5 * 6
+    # one class alone: exactly the pooled factor
+    one = {t: [dataclasses.replace(d, corner_sigma_px=0.15) for d in v] for t, v in frames.items()}
+    traj1, stats1 = pnp_trajectory(one, cam, world)
+    a, rep_a = vc.scale_pnp_trajectory(traj1, [stats1])
+    b, rep_b = vc.scale_pnp_trajectory_by_class(traj1, [stats1])
+    assert not rep_b["by_class"] and rep_b["scale"] == rep_a["scale"]
+    assert np.array_equal(a.covariances, b.covariances)
+    assert rep_b["classes"]["decoder"]["dof"] == 0.0
+
+
 def test_smoother_noise_scale_recovers_pose_noise_and_keeps_a_right_model():
     fl = make_flight(seed=5, duration_s=8.0, gaps=())
     right = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM)

@@ -522,6 +522,81 @@ def scale_pnp_trajectory(
     return traj, dict(comp.as_dict(), applied=applied, camera="cam0")
 
 
+def pnp_class_components(stats_parts: Sequence) -> tuple[dict[str, VarianceComponent], np.ndarray | None]:
+    """Per corner class (whitening.CORNER_CLASSES: refined, decoder) of a flight's PnP frames:
+    its chi2, redundancy and frames, and the variance factors s (k,) that solve
+    sum_frames T s = sum_frames chi2_c (Helmert's estimation: PnPResult.class_redundancy T gives
+    E[chi2_c] = sum_c' T[c, c'] s_c' at the poses solved with the modelled weights; Koch 1999,
+    sec. 3.6.3); None when fewer than two classes have MIN_DOF redundancy each, or the solve
+    gives a non-positive or non-finite factor (then one pooled factor is the estimate)."""
+    from fusion.qr.pnp.whitening import CORNER_CLASSES
+
+    k = len(CORNER_CLASSES)
+    chi2 = np.zeros(k)
+    T = np.zeros((k, k))
+    frames = np.zeros(k, dtype=int)
+    for p in stats_parts:
+        for c, t in zip(p.frame_class_chi2, p.frame_class_redundancy):
+            chi2 += c
+            T += t
+            frames += np.asarray(t).sum(axis=1) > 0
+    dof = T.sum(axis=1)
+    comps = {
+        name: VarianceComponent(float(chi2[i]), float(dof[i]), int(frames[i]))
+        for i, name in enumerate(CORNER_CLASSES)
+    }
+    present = np.flatnonzero(dof > 0)
+    if len(present) < 2 or any(not comps[CORNER_CLASSES[i]].usable for i in present):
+        return comps, None
+    try:
+        s_present = np.linalg.solve(T[np.ix_(present, present)], chi2[present])
+    except np.linalg.LinAlgError:
+        return comps, None
+    if not (np.all(np.isfinite(s_present)) and np.all(s_present > 0)):
+        return comps, None
+    scales = np.ones(k)
+    scales[present] = [clamp_scale(float(x)) for x in s_present]
+    return comps, scales
+
+
+def scale_pnp_trajectory_by_class(
+    traj: Trajectory, stats_parts: Sequence, apply: bool = True
+) -> tuple[Trajectory, dict]:
+    """`scale_pnp_trajectory`, with one variance factor per corner class when the flight has
+    both classes with enough redundancy (`pnp_class_components`): each pose's covariance
+    becomes cov + sum_c (s_c - 1) G_c (G_c its class's share, PnPResult.class_covariance), the
+    covariance of the pose solved with the modelled weights when class c's corner covariance is
+    s_c times the model (the sandwich H^-1 (sum_c s_c H_c) H^-1); a gimbal's roll-pitch prior is
+    not rescaled.  Otherwise the pooled factor, as `scale_pnp_trajectory`.  The report is
+    `scale_pnp_trajectory`'s (the pooled factor) with `classes` (per class: scale, sigma_factor,
+    chi2, dof, frames with the class; the factor applied) and `by_class` (whether applied)."""
+    comps, scales = pnp_class_components(stats_parts)
+    names = list(comps)
+    if scales is None:
+        out, report = scale_pnp_trajectory(traj, stats_parts, apply)
+        report["by_class"] = False
+    else:
+        _, report = scale_pnp_trajectory(traj, stats_parts, apply=False)
+        report["applied"] = bool(apply)
+        report["by_class"] = bool(apply)
+        out = traj
+        G = [g for p in stats_parts for g in p.frame_class_covariance]
+        if apply and traj.covariances is not None:
+            if len(G) != len(traj):
+                raise ValueError(f"PnP: {len(G)} frames of class covariances for {len(traj)} poses")
+            covs = traj.covariances + np.einsum("c,ncij->nij", scales - 1.0, np.asarray(G))
+            out = Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
+        log.info(
+            "PnP: corner noise by class %s",
+            ", ".join(f"{n} {math.sqrt(s):.2f}x ({comps[n].dof:.0f} dof)" for n, s in zip(names, scales)),
+        )
+    report["classes"] = {
+        n: dict(comps[n].as_dict(), applied_scale=float(scales[i]) if scales is not None else None)
+        for i, n in enumerate(names)
+    }
+    return out, report
+
+
 def apply_smoother_scales(report: dict | None, raw: Trajectory, load_obs):
     """(raw, load_obs, corner_scale) rescaled with the batch smoother's final per-camera scales
     (`solve_noise_scaled`'s report: cam0 for the poses and corners, cam1 for the loads), for the
@@ -559,7 +634,16 @@ def summary_line(summary: dict) -> str:
     """One line for the terminal summary, '' when there is nothing to say."""
     parts = []
     pnp = summary.get("pnp")
-    if pnp and pnp.get("dof"):
+    if pnp and pnp.get("by_class"):
+        parts.append(
+            "PnP cam0 "
+            + " ".join(
+                f"{n} {c['applied_scale']:.2f} ({c['dof']:.0f} dof)"
+                for n, c in pnp["classes"].items()
+                if c["dof"]
+            )
+        )
+    elif pnp and pnp.get("dof"):
         parts.append(f"PnP cam0 {pnp['scale']:.2f} ({pnp['dof']:.0f} dof)")
     sm = summary.get("smoother") or {}
     for cam, c in sorted((sm.get("cameras") or {}).items()):

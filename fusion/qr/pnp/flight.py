@@ -44,6 +44,11 @@ class PnPStats:
     # per posed frame: whitened reprojection chi2 and its dof (fusion.estimate.variance)
     frame_chi2: list[float] = field(default_factory=list)
     frame_dof: list[int] = field(default_factory=list)
+    # per posed frame and corner class (PnPResult.class_chi2, class_redundancy, class_covariance):
+    # the per-class noise scales (fusion.estimate.variance.pnp_class_components)
+    frame_class_chi2: list[np.ndarray] = field(default_factory=list)
+    frame_class_redundancy: list[np.ndarray] = field(default_factory=list)
+    frame_class_covariance: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -72,6 +77,9 @@ class PnPStats:
             ),
             frame_chi2=[c for p in parts for c in p.frame_chi2],
             frame_dof=[d for p in parts for d in p.frame_dof],
+            frame_class_chi2=[c for p in parts for c in p.frame_class_chi2],
+            frame_class_redundancy=[c for p in parts for c in p.frame_class_redundancy],
+            frame_class_covariance=[c for p in parts for c in p.frame_class_covariance],
         )
 
 
@@ -116,6 +124,9 @@ def pnp_trajectory(
             rms.append(res.reprojection_rms_px)
             stats.frame_chi2.append(res.chi2)
             stats.frame_dof.append(CORNER_COORDINATES * res.n_codes - POSE_DOF)
+            stats.frame_class_chi2.append(res.class_chi2)
+            stats.frame_class_redundancy.append(res.class_redundancy)
+            stats.frame_class_covariance.append(res.class_covariance)
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:

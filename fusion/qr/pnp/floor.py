@@ -34,7 +34,13 @@ from fusion.qr.pnp.lm import (
     same_pose,
 )
 from fusion.qr.pnp.undistort import undistort
-from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX, corner_whitening
+from fusion.qr.pnp.whitening import (
+    CORNER_CLASSES,
+    CORNER_COORDINATES,
+    DEFAULT_CORNER_SIGMA_PX,
+    corner_classes,
+    corner_whitening,
+)
 from fusion.qr.reprojection import Projector
 from fusion.types import Mount
 
@@ -60,7 +66,12 @@ class PnPResult:
     `ambiguous`: two solutions fitted the corners equally well and the more level one was taken.
     `dropped_payloads`: codes left out as outliers (their corners did not fit the others).
     `chi2`: the whitened reprojection error (chi-square with 8 n_codes - 6 dof when the corner
-    covariances are right; fusion.estimate.variance)."""
+    covariances are right; fusion.estimate.variance).
+    Per corner class c (whitening.CORNER_CLASSES: refined, decoder), for
+    fusion.estimate.variance.pnp_class_components: `class_chi2` (k,) the class's share of chi2;
+    `class_covariance` (k, 6, 6) G_c = H^-1 H_c H^-1, the class's share of `covariance` (H_c its
+    codes' information, sum_c G_c = covariance less the gimbal prior); `class_redundancy` (k, k)
+    T with E[chi2_c] = sum_c' T[c, c'] s_c' when class c' has variance factor s_c' (`class_parts`)."""
 
     T_world_body: np.ndarray
     covariance: np.ndarray
@@ -68,6 +79,9 @@ class PnPResult:
     n_codes: int
     payloads: list[str]
     reprojection_rms_px: float
+    class_chi2: np.ndarray
+    class_covariance: np.ndarray
+    class_redundancy: np.ndarray
     ambiguous: bool = False
     dropped_payloads: list[str] = field(default_factory=list)
     chi2: float = math.nan
@@ -193,8 +207,8 @@ def chi2_bound(dof: int) -> float:
 
 class FloorCodes:
     """The floor codes of a batch of frames, stacked: world corners P (c, 4, 3), symbol centres
-    (c, 3), observed px uv (c, 4, 2), undistorted xn (c, 4, 2), whitening W (c, 8, 8) and edge
-    vectors E (c, 2) (`_edge_vectors`)."""
+    (c, 3), observed px uv (c, 4, 2), undistorted xn (c, 4, 2), whitening W (c, 8, 8), corner
+    classes (c,) and edge vectors E (c, 2) (`_edge_vectors`)."""
 
     def __init__(self, sightings: list[FloorSighting], camera: CameraModel, sigma: float):
         self.P = np.array(
@@ -208,6 +222,7 @@ class FloorCodes:
         ).reshape(-1, 4, 2)
         self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
         self.W = corner_whitening([s.detection for s in sightings], sigma)
+        self.classes = corner_classes([s.detection for s in sightings])  # (c,) CORNER_CLASSES
         self.E = _edge_vectors(self.xn, camera)
 
 
@@ -421,19 +436,22 @@ def estimate_floor_poses(
     ks = sorted(done)
     accepted = [done[k] for k in ks]
     covs, ok = covariances(np.array([s.candidate.information for s in accepted]))  # (J^T W J)^-1
+    chi2_c, G_c, T_c = class_parts(codes, [views[k] for k in ks], accepted, covs, camera)
     gimbaled = camera.mount == Mount.GIMBALED
     Ts = np.zeros((len(accepted), 4, 4))
     Ts[:, :3, :3] = [s.candidate.R_world_body for s in accepted]
     Ts[:, :3, 3] = [s.candidate.t_world_body for s in accepted]
     Ts[:, 3, 3] = 1.0
     Ts_world_cam = Ts @ camera.T_body_cam
-    for k, sol, T, T_world_cam, cov, good in zip(ks, accepted, Ts, Ts_world_cam, covs, ok):
+    for j, (k, sol, T, T_world_cam, cov, good) in enumerate(zip(ks, accepted, Ts, Ts_world_cam, covs, ok)):
         if not good:
             continue
+        G = G_c[j]
         if gimbaled:
             T = level_frame(T)
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
             cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad**2] * 2 + [0.0] * 4)
+            G = keep @ G @ keep
         out[owner[k]] = PnPResult(
             T_world_body=T,
             covariance=cov,
@@ -444,8 +462,49 @@ def estimate_floor_poses(
             ambiguous=sol.ambiguous,
             dropped_payloads=dropped[k],
             chi2=float(sol.candidate.cost),
+            class_chi2=chi2_c[j],
+            class_covariance=G,
+            class_redundancy=T_c[j],
         )
     return out
+
+
+def class_parts(
+    codes: FloorCodes,
+    views: list[np.ndarray],
+    solutions: list[FloorSolution],
+    covs: np.ndarray,
+    camera: CameraModel,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per frame and corner class c (CORNER_CLASSES): chi2_c (F, k), G_c = C H_c C (F, k, 6, 6)
+    and the redundancy matrix T (F, k, k), of frames solved on codes `views` at `solutions`
+    with covariances C = H^-1 `covs` (F, 6, 6); H_c, chi2_c sum the whitened normal equations of
+    the class's codes at the solution.  With the hat matrix P = A C A^T of the whitened Jacobian
+    A and D_c the selector of class c's m_c rows, the residual r = (I - P) w of noise w whose
+    class c' rows have variance s_c' gives E[r^T D_c r] = sum_c' s_c' tr(D_c (I - P) D_c' (I - P)),
+    i.e. T[c, c'] = [c = c'] (m_c - 2 tr(C H_c)) + tr(C H_c C H_c') (Helmert's variance-component
+    estimation; Koch 1999, sec. 3.6.3); each row sums to the class's redundancy
+    m_c - tr(C H_c), and all of T to 8 n - 6."""
+    k = len(CORNER_CLASSES)
+    F = len(solutions)
+    idx = np.concatenate(views) if F else np.zeros(0, dtype=np.int64)
+    frame = np.repeat(np.arange(F), [len(v) for v in views])
+    R = np.array([s.candidate.R_world_body for s in solutions]).reshape(-1, 3, 3)[frame]
+    t = np.array([s.candidate.t_world_body for s in solutions]).reshape(-1, 3)[frame]
+    one = FloorProblems.for_camera(camera, codes.P[idx], codes.uv[idx], codes.W[idx][:, None])
+    ne = one.normal_equations(R, t)  # one problem per code
+    cls = codes.classes[idx]
+    H_c = np.zeros((F, k, 6, 6))
+    chi2_c = np.zeros((F, k))
+    m_c = np.zeros((F, k))
+    np.add.at(H_c, (frame, cls), ne.H)
+    np.add.at(chi2_c, (frame, cls), ne.cost)
+    np.add.at(m_c, (frame, cls), float(CORNER_COORDINATES))
+    CH = covs[:, None] @ H_c  # (F, k, 6, 6): C H_c
+    G_c = CH @ covs[:, None]
+    T = np.einsum("fcij,fdji->fcd", CH, CH)  # tr(C H_c C H_d)
+    T += np.eye(k)[None] * (m_c - 2.0 * np.trace(CH, axis1=2, axis2=3))[:, :, None]
+    return chi2_c, G_c, T
 
 
 def estimate_floor_pose(

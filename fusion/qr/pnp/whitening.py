@@ -7,10 +7,16 @@ import math
 
 import numpy as np
 
+from fusion.qr.refine import FALLBACK_SIGMA_PX
+
 DEFAULT_CORNER_SIGMA_PX = 0.15
 """Refined-corner error per pixel coordinate (DESIGN.md: about 0.13 px mean after refinement)."""
 CORNER_COORDINATES = 8
 """Residuals per code: u, v of its four corners (TL, TR, BR, BL)."""
+CORNER_CLASSES = ("refined", "decoder")
+"""Corner classes with their own noise scale (fusion.estimate.variance.pnp_class_components):
+corners refined with their own calibrated sigma, and the decoder's corners kept with
+FALLBACK_SIGMA_PX (refinement failed its self-check or could not measure the code)."""
 
 
 def corner_whitening(detections, default_sigma_px: float) -> np.ndarray:
@@ -58,3 +64,15 @@ def corner_sigmas(detections, default_sigma_px: float) -> np.ndarray:
         s = getattr(d, "corner_sigma_px", None)
         out.append(float(s) if s is not None and math.isfinite(s) and s > 0 else float(default_sigma_px))
     return np.repeat(np.asarray(out, dtype=float), CORNER_COORDINATES)
+
+
+def corner_classes(detections) -> np.ndarray:
+    """(n,) index into CORNER_CLASSES of each detection: "decoder" when its corner_sigma_px is
+    FALLBACK_SIGMA_PX (fusion.qr.refine's fallback and detect's unrefined corners), else
+    "refined" (a detection without a sigma gets the refined default, DEFAULT_CORNER_SIGMA_PX)."""
+    out = np.zeros(len(detections), dtype=np.int64)
+    for i, d in enumerate(detections):
+        s = getattr(d, "corner_sigma_px", None)
+        if s is not None and math.isclose(float(s), FALLBACK_SIGMA_PX):
+            out[i] = CORNER_CLASSES.index("decoder")
+    return out
