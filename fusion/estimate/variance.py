@@ -525,9 +525,9 @@ def scale_pnp_trajectory(
 def pnp_class_components(stats_parts: Sequence) -> tuple[dict[str, VarianceComponent], np.ndarray | None]:
     """Per corner class (whitening.CORNER_CLASSES: refined, decoder) of a flight's PnP frames:
     its chi2, redundancy and frames, and the variance factors s (k,) that solve
-    sum_frames T s = sum_frames chi2_c (Helmert's estimation: PnPResult.class_redundancy T gives
-    E[chi2_c] = sum_c' T[c, c'] s_c' at the poses solved with the modelled weights; Koch 1999,
-    sec. 3.6.3); None when fewer than two classes have MIN_DOF redundancy each, or the solve
+    sum_frames T s = sum_frames chi2_c (Helmert's estimation, Helmert 1924; Koch 1999, sec. 3.6:
+    PnPResult.class_redundancy T gives E[chi2_c] = sum_c' T[c, c'] s_c' at the poses solved with
+    the modelled weights); None when fewer than two classes have MIN_DOF redundancy each, or the solve
     gives a non-positive or non-finite factor (then one pooled factor is the estimate)."""
     from fusion.qr.pnp.whitening import CORNER_CLASSES
 

@@ -483,7 +483,7 @@ def class_parts(
     A and D_c the selector of class c's m_c rows, the residual r = (I - P) w of noise w whose
     class c' rows have variance s_c' gives E[r^T D_c r] = sum_c' s_c' tr(D_c (I - P) D_c' (I - P)),
     i.e. T[c, c'] = [c = c'] (m_c - 2 tr(C H_c)) + tr(C H_c C H_c') (Helmert's variance-component
-    estimation; Koch 1999, sec. 3.6.3); each row sums to the class's redundancy
+    estimation, Helmert 1924; Koch 1999, sec. 3.6); each row sums to the class's redundancy
     m_c - tr(C H_c), and all of T to 8 n - 6."""
     k = len(CORNER_CLASSES)
     F = len(solutions)
