@@ -7,7 +7,8 @@ taller), each corner where its two moved edges meet (`dilation_pattern`, (8, 2) 
 flight, three numbers:
 
   truth    least-squares (b_u, b_v, plus a common shift) of the refined corners' error against
-           their true projection (the simulator's ground truth)
+           their true projection (the simulator's ground truth), unweighted and weighted by each
+           code's corner covariance (as PnP weighs them)
   resid    the same (b_u, b_v, shift) estimated from the PnP residuals alone: per posed frame the
            whitened residual r, Jacobian J (pose) and A (bias) at the PnP pose, accumulated over
            the flight as sum A^T M A b = sum A^T M r with M = I - J (J^T J)^-1 J^T (the bias
@@ -82,8 +83,9 @@ def bias_columns(corners_px: np.ndarray, refined: bool) -> np.ndarray:
     return a
 
 
-def truth_fit(log, det, resolution) -> np.ndarray:
-    """(4,) least-squares [b_u, b_v, shift u, shift v] of the refined cam0 corners' errors."""
+def truth_fit(log, det, resolution, weighted: bool) -> np.ndarray:
+    """(4,) least-squares [b_u, b_v, shift u, shift v] of the refined cam0 corners' errors
+    (`weighted`: whitened by each code's corner covariance, corner_whitening)."""
     sc = build_scenario("default", resolution)
     codes = {c.payload: c for c in sc.codes() if c.is_floor}
     cam, gt = log.floor.camera, log.groundtruth
@@ -98,8 +100,9 @@ def truth_fit(log, det, resolution) -> np.ndarray:
             if cls == DECODER:
                 continue
             uv = project_code_corners(cam, T_wc, codes[d.payload])
-            A.append(bias_columns(d.corners_px, True))
-            e.append((np.asarray(d.corners_px, dtype=float) - uv).reshape(-1))
+            W = corner_whitening([d], 0.15)[0] if weighted else np.eye(8)
+            A.append(W @ bias_columns(d.corners_px, True))
+            e.append(W @ (np.asarray(d.corners_px, dtype=float) - uv).reshape(-1))
     b, *_ = np.linalg.lstsq(np.vstack(A), np.concatenate(e), rcond=None)
     return b
 
@@ -184,9 +187,11 @@ def main() -> int:
                 )
                 log = read_flight(work / "log")
                 det = detect_flight(log, workers=args.workers, progress=False)
-                truth = truth_fit(log, det, resolution)
+                truth = truth_fit(log, det, resolution, weighted=False)
+                truth_w = truth_fit(log, det, resolution, weighted=True)
                 b, sd = residual_fit(log, det)
-                row = (effect, label, truth, b, b / sd, nees_row(log, det), nees_row(log, corrected(det, b)))
+                before, after = nees_row(log, det), nees_row(log, corrected(det, b))
+                row = (effect, label, truth, truth_w, b, b / sd, before, after)
                 rows.append(row)
                 elapsed = time.perf_counter() - t0
                 print(f"{effect} {label}: done ({elapsed:.0f} s)", file=sys.stderr, flush=True)
@@ -197,17 +202,18 @@ def main() -> int:
         f"at {args.fps:.0f} fps, seed {args.seed})\n"
     )
     print(
-        "| effect | level | truth b_u / b_v px | resid b_u / b_v px (t) | NEES pnp / smoother / ekf "
-        "| NEES, corners moved by -resid |"
+        "| effect | level | truth b_u / b_v px | truth weighted | resid b_u / b_v px (t) "
+        "| NEES pnp / smoother / ekf | NEES, corners moved by -resid |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
 
     def nees(x) -> str:
         return " / ".join("-" if not math.isfinite(v) else f"{v:.1f}" for v in x)
 
-    for effect, label, truth, b, t, before, after in rows:
+    for effect, label, truth, truth_w, b, t, before, after in rows:
         print(
             f"| {effect} | {label} | {truth[0]:+.4f} / {truth[1]:+.4f} | "
+            f"{truth_w[0]:+.4f} / {truth_w[1]:+.4f} | "
             f"{b[0]:+.4f} ({t[0]:+.1f}) / {b[1]:+.4f} ({t[1]:+.1f}) | {nees(before)} | {nees(after)} |"
         )
     return 0
