@@ -50,7 +50,7 @@ from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig
 from fusion.estimate.smoother import SolveReuse, smooth
-from fusion.geometry import interpolate_poses
+from fusion.geometry import PoseInterpolator
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
 from fusion.types import CameraRole, Choice, LoadObservation, Trajectory
 
@@ -408,7 +408,7 @@ def _usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
 
 
 def landmark_cost(
-    trajectory: Trajectory,
+    trajectory: PoseInterpolator,
     t_ns: np.ndarray,
     group: np.ndarray,
     p_cam: np.ndarray,
@@ -417,11 +417,11 @@ def landmark_cost(
     threshold: float,
     iterations: int,
 ) -> float:
-    """The load-landmark factors' robust cost with the drone on `trajectory` (interpolated at
-    `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
+    """The load-landmark factors' robust cost with the drone on `trajectory` (T_world_body
+    interpolated at `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
     Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3), load
     index `group` (M,)) from its landmark, rho Huber's with `threshold`."""
-    T = interpolate_poses(trajectory.timestamps_ns, trajectory.T_world_body, t_ns)
+    T = trajectory(t_ns)
     T_wc = front_camera.T_world_cam(T)
     R = T_wc[:, :3, :3]
     p_w = np.einsum("nij,nj->ni", R, p_cam) + T_wc[:, :3, 3]
@@ -485,13 +485,13 @@ def estimate_front_offset(
     info_cam = np.linalg.inv(0.5 * (C + np.swapaxes(C, 1, 2)))
     thr = fusion_config.threshold(3)
     n_eval = [0]
+    # the trajectory's slerp prepared once for every offset tried (most of an evaluation's cost)
+    poses = PoseInterpolator(trajectory.timestamps_ns, trajectory.T_world_body)
 
     def cost_ms(r_ms: float) -> float:
         n_eval[0] += 1
         tq = t.astype(float) + r_ms * 1e6
-        return landmark_cost(
-            trajectory, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
-        )
+        return landmark_cost(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
 
     S_ms, step_ms = S * MS_PER_S, config.front_grid_step_s * MS_PER_S
     grid = np.arange(-S_ms, S_ms + 0.5 * step_ms, step_ms)
