@@ -287,16 +287,28 @@ def level_frame_jacobian(T_world_body: np.ndarray) -> np.ndarray:
 def interpolate_poses(ts: np.ndarray, T: np.ndarray, tq: np.ndarray) -> np.ndarray:
     """Poses (N, 4, 4) sampled at increasing times `ts` (N,), interpolated at `tq` (M,) inside
     [ts[0], ts[-1]]: linear position, slerp (geodesic) rotation.  Returns (M, 4, 4)."""
-    ts = np.asarray(ts, dtype=float)
-    tq = np.asarray(tq, dtype=float)
-    out = np.tile(np.eye(4), (len(tq), 1, 1))
-    for a in range(3):
-        out[:, a, 3] = np.interp(tq, ts, T[:, a, 3])
-    if len(ts) == 1:
-        out[:, :3, :3] = T[0, :3, :3]
-    else:
-        out[:, :3, :3] = Slerp(ts, Rotation.from_matrix(T[:, :3, :3]))(tq).as_matrix()
-    return out
+    return PoseInterpolator(ts, T)(tq)
+
+
+class PoseInterpolator:
+    """interpolate_poses for many queries of one trajectory: the samples' rotations and the
+    slerp's segment rotations (N of each) are prepared once, each call then costs only its
+    queries (the same numbers as interpolate_poses)."""
+
+    def __init__(self, ts: np.ndarray, T: np.ndarray) -> None:
+        self.ts = np.asarray(ts, dtype=float)
+        self.p = np.asarray(T[:, :3, 3], dtype=float)
+        self.R0 = np.asarray(T[0, :3, :3], dtype=float)
+        self.slerp = Slerp(self.ts, Rotation.from_matrix(T[:, :3, :3])) if len(self.ts) > 1 else None
+
+    def __call__(self, tq: np.ndarray) -> np.ndarray:
+        """(M, 4, 4) T_world_body at the times `tq` (M,)."""
+        tq = np.asarray(tq, dtype=float)
+        out = np.tile(np.eye(4), (len(tq), 1, 1))
+        for a in range(3):
+            out[:, a, 3] = np.interp(tq, self.ts, self.p[:, a])
+        out[:, :3, :3] = self.R0 if self.slerp is None else self.slerp(tq).as_matrix()
+        return out
 
 
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:

@@ -959,7 +959,7 @@ class SharedWholeFlight:
 
     Order of operations in a run without --calibrate-extrinsics: (1) the floor profile (solves
     of its window) gives the floor offset r; (2) this solve: the whole flight with the floor
-    stamps shifted by r (applied or not), the IMU upsampled as for the front profile, and the
+    stamps shifted by r (applied or not), the IMU as the front profile wants it, and the
     mount variable E0 (fusion.estimate.extrinsics.estimate_mount_and_states; a flight longer than
     the smoother's windows in those windows, fusion.estimate.window.estimate_mount_windowed); its body
     trajectory feeds the front profile and its E0 becomes the mount check (`mount`); (3) the
@@ -1006,7 +1006,7 @@ class SharedWholeFlight:
         if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
             try:
                 mount, trajectory, self.states = estimate_mount_windowed(
-                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, fusion_config, self.window
+                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, inp.config, self.window
                 )
                 self.mount, self.frame_t = mount, np.asarray(inp.frame_t, np.int64)
             except EstimationError as e:

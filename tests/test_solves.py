@@ -31,7 +31,7 @@ MS = 1e-3
 TRAJ_POS_TOL_M = 2e-5  # fixed-mount smoother vs the mount solve's nominal-mount trajectory
 TRAJ_ROT_TOL_DEG = 1e-3  # (PnP sigmas 2 mm, 0.05 deg)
 OFFSET_TOL_SIGMAS = 0.25  # an offset from the shared solve vs the separate one, in its sigma
-MOUNT_TOL_SIGMAS = 0.2  # mount estimate, shared vs separate solve (IMU upsampled, floor shift)
+MOUNT_TOL_SIGMAS = 0.2  # mount estimate, shared vs separate solve (midpoint-attitude IMU, floor shift)
 
 
 def _pose_differences(a: Trajectory, b: Trajectory) -> tuple[float, float]:

@@ -135,6 +135,9 @@ class FusionConfig:
     # IMU coverage: a sample holds until the next one if that comes within `max_imu_gap_s`.
     max_imu_gap_s: float = 0.05
     integration_sigma: float = 1e-4  # GTSAM integration covariance (sigma^2 * I)
+    # Each sub-interval's specific force turned by half its own rotation before GTSAM integrates
+    # it (smoother.midpoint_specific_force); off: as logged (the smoother's outputs unchanged)
+    imu_midpoint_attitude: bool = False
     # Weak random-walk model used where there is no IMU (gaps, no-IMU flights): white
     # acceleration `bridge_accel_sigma_m_s2` (m/s^2/sqrt(Hz)), white angular rate
     # `bridge_rate_sigma_rad_s` (rad/s/sqrt(Hz)); the bridge's pose link leaves the

@@ -122,40 +122,73 @@ class ExtrinsicsConfig:
 # =========================================================================== the factor
 
 
+def mount_transform(A: gtsam.Pose3, R_err: gtsam.Rot3) -> tuple[gtsam.Pose3, np.ndarray]:
+    """The mount error E = A [R_err, 0] A^-1 (A = [I, t_bc], module docstring) and its Jacobian
+    (6x3) with respect to R_err, chained from GTSAM's Pose3 compose."""
+    H_a, H_q, H_e1, H_ai = (np.zeros((6, 6), order="F") for _ in range(4))
+    E1 = A.compose(gtsam.Pose3(R_err, np.zeros(3)), H_a, H_q)
+    Ek = E1.compose(A.inverse(), H_e1, H_ai)
+    # Pose3([R exp(w), 0]) = Pose3([R, 0]) Pose3([exp(w), 0]): the tangent [w, 0]
+    return Ek, (H_e1 @ H_q)[:, :3]
+
+
 def mount_pose_error(
     Z: gtsam.Pose3, A: gtsam.Pose3, X_k: gtsam.Pose3, R_err: gtsam.Rot3, want_jacobians: bool
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Residual Local(Z, X_k E) (6,) of a PnP body pose Z against the state X_k seen through the
     mount error E = A [R_err, 0] A^-1 (A = [I, t_bc], module docstring), and its Jacobians
     (6x6 on X_k, 6x3 on R_err), chained from GTSAM's Pose3 compose / localCoordinates."""
-    Q = gtsam.Pose3(R_err, np.zeros(3))
+    return _mount_pose_error(Z, X_k, *mount_transform(A, R_err), want_jacobians)
+
+
+def _mount_pose_error(
+    Z: gtsam.Pose3, X_k: gtsam.Pose3, Ek: gtsam.Pose3, H_ew: np.ndarray, want_jacobians: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """mount_pose_error given E and its Jacobian H_ew (mount_transform)."""
     if not want_jacobians:
-        P = X_k.compose(A.compose(Q).compose(A.inverse()))
-        return Z.localCoordinates(P), None, None
-
-    def jac() -> np.ndarray:
-        return np.zeros((6, 6), order="F")
-
-    H_a, H_q, H_e1, H_ai, H_x, H_e, H_z, H_p = (jac() for _ in range(8))
-    E1 = A.compose(Q, H_a, H_q)
-    Ek = E1.compose(A.inverse(), H_e1, H_ai)
+        return Z.localCoordinates(X_k.compose(Ek)), None, None
+    H_x, H_e, H_z, H_p = (np.zeros((6, 6), order="F") for _ in range(4))
     P = X_k.compose(Ek, H_x, H_e)
     e = Z.localCoordinates(P, H_z, H_p)
-    # Pose3([R exp(w), 0]) = Pose3([R, 0]) Pose3([exp(w), 0]): the tangent [w, 0]
-    return e, H_p @ H_x, (H_p @ H_e @ H_e1 @ H_q)[:, :3]
+    return e, H_p @ H_x, H_p @ H_e @ H_ew
+
+
+class MountTransformCache:
+    """mount_transform for one mount translation t_bc, computed once per value of the mount
+    variable: every PnP factor of a linearisation sees the same E(0), so its factors share E
+    and dE/dw instead of composing them again each (two Pose3 compositions with Jacobians of
+    the four per factor evaluation)."""
+
+    def __init__(self, t_body_cam: np.ndarray) -> None:
+        self.A = gtsam.Pose3(gtsam.Rot3(), np.asarray(t_body_cam, float))
+        self._key: bytes | None = None
+        self._value: tuple[gtsam.Pose3, np.ndarray] | None = None
+
+    def __call__(self, R_err: gtsam.Rot3) -> tuple[gtsam.Pose3, np.ndarray]:
+        key = R_err.matrix().tobytes()
+        if key != self._key or self._value is None:
+            self._key, self._value = key, mount_transform(self.A, R_err)
+        return self._value
 
 
 def mount_pose_factor(
-    k: int, Z_world_body: np.ndarray, t_body_cam: np.ndarray, model: gtsam.noiseModel.Base
+    k: int,
+    Z_world_body: np.ndarray,
+    t_body_cam: np.ndarray,
+    model: gtsam.noiseModel.Base,
+    cache: MountTransformCache | None = None,
 ) -> gtsam.CustomFactor:
     """PnP pose factor on X(k) and the mount error E(0): Local(Z, X(k) E(w)) with `model` (the
-    PriorFactorPose3's, robust kernel included)."""
+    PriorFactorPose3's, robust kernel included).  `cache`: E(w) shared with the other factors
+    of the same mount (MountTransformCache for `t_body_cam`)."""
     Z = gtsam.Pose3(np.asarray(Z_world_body, float))
-    A = gtsam.Pose3(gtsam.Rot3(), np.asarray(t_body_cam, float))
+    transform = cache if cache is not None else MountTransformCache(t_body_cam)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None):
         keys = this.keys()
-        e, Hx, Hr = mount_pose_error(Z, A, values.atPose3(keys[0]), values.atRot3(keys[1]), H is not None)
+        e, Hx, Hr = _mount_pose_error(
+            Z, values.atPose3(keys[0]), *transform(values.atRot3(keys[1])), H is not None
+        )
         if H is not None:
             H[0], H[1] = Hx, Hr
         return e
@@ -397,12 +430,13 @@ def estimate_mount_and_states(
     if pb.raw_input is not RawPoseInput.POSE6:
         raise EstimationError("the fixes carry no attitude: the mount rotation cannot be estimated")
     t_bc = floor_camera.T_body_cam[:3, 3]
+    transform = MountTransformCache(t_bc)
     n_fixes = 0
     for i, r in pb.robust.items():
         if r.kind is FactorKind.POSE:
             old = pb.factors[i]
             k = pb.factor_frame[i]
-            pb.factors[i] = mount_pose_factor(k, old.prior().matrix(), t_bc, old.noiseModel())
+            pb.factors[i] = mount_pose_factor(k, old.prior().matrix(), t_bc, old.noiseModel(), transform)
             n_fixes += 1
     if n_fixes < 2:
         raise EstimationError("fewer than two PnP pose factors: the mount rotation cannot be estimated")

@@ -153,12 +153,39 @@ def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
     return k_of, (e - s) * 1e-9, gyr, acc
 
 
+def midpoint_specific_force(gyr: np.ndarray, acc: np.ndarray, dts: np.ndarray) -> np.ndarray:
+    """(M, 3) each sub-interval's specific force `acc` turned by Exp(gyr dt / 2): expressed in the
+    body frame at the sub-interval's start, as seen at its midpoint.  GTSAM's preintegration
+    rotates a sub-interval's specific force with the attitude at its start (TangentPreintegration
+    update: a_nav = dR a dt), half a sub-interval behind the midpoint signal it is given: the
+    velocity then lags the attitude, and a cost profile over a camera's time offset is least
+    about 0.04 IMU periods late (0.22 ms at 200 Hz).  Turning a by half the sub-interval's
+    rotation first makes that product R(t_mid) a, the midpoint rule (exact for a constant rate
+    over the sub-interval); Rodrigues' formula, vectorised."""
+    phi = 0.5 * gyr * dts[:, None]
+    th = np.linalg.norm(phi, axis=1)[:, None]
+    small = th < 1e-8
+    safe = np.where(small, 1.0, th)
+    s = np.where(small, 1.0 - th**2 / 6.0, np.sin(safe) / safe)
+    c = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    cross = np.cross(phi, acc)
+    return acc + s * cross + c * np.cross(phi, cross)
+
+
 def preintegrate(
-    frame_t: np.ndarray, imu: ImuData, covered: np.ndarray, params: gtsam.PreintegrationCombinedParams
+    frame_t: np.ndarray,
+    imu: ImuData,
+    covered: np.ndarray,
+    params: gtsam.PreintegrationCombinedParams,
+    midpoint_attitude: bool = False,
 ) -> dict[int, gtsam.PreintegratedCombinedMeasurements]:
     """Preintegrated measurements for each covered interval k (between frames k and k+1), with
-    zero bias as the linearisation point (sub-intervals from imu_subintervals)."""
+    zero bias as the linearisation point (sub-intervals from imu_subintervals).
+    `midpoint_attitude`: the specific force turned to each sub-interval's midpoint attitude
+    (midpoint_specific_force)."""
     k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
+    if midpoint_attitude:
+        acc = midpoint_specific_force(gyr, acc, dts)
     out: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
     bias0 = gtsam.imuBias.ConstantBias()
     cur = -1
@@ -402,7 +429,13 @@ class SolveReuse:
 
 
 def _pims_key(imu: ImuData, config: FusionConfig) -> tuple:
-    return (id(imu), len(imu.timestamps_ns), config.max_imu_gap_s, config.integration_sigma)
+    return (
+        id(imu),
+        len(imu.timestamps_ns),
+        config.max_imu_gap_s,
+        config.integration_sigma,
+        config.imu_midpoint_attitude,
+    )
 
 
 def warm_values(initial: gtsam.Values, warm: gtsam.Values | None) -> gtsam.Values:
@@ -481,7 +514,11 @@ def build_problem(
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         params = factors.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
-        pb.pims = pims if pims is not None else preintegrate(frame_t, imu, covered, params)
+        pb.pims = (
+            pims
+            if pims is not None
+            else preintegrate(frame_t, imu, covered, params, config.imu_midpoint_attitude)
+        )
     v0 = first_velocity(
         frame_t, rawp, use, pb.k_first, config.first_velocity_fixes, config.first_velocity_window_s
     )

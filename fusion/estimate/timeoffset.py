@@ -17,7 +17,11 @@ opens downwards); sigma = 1 / sqrt(E''(r)) (the curvature of the negative log-li
 Cramér-Rao / Laplace approximation of the profile likelihood).  An offset
 delta makes every PnP pose T(t + delta) disagree with the IMU's angular rate and specific force
 (attitude against gravity), which is what E measures.  Long flights are profiled on the
-`profile_window_s` window with the most rotation while fixes are seen.
+`profile_window_s` window with the most rotation while fixes are seen.  The profile's solves
+(and the whole-flight solve for the front camera) turn each IMU sub-interval's specific force to
+its midpoint attitude (FusionConfig.imu_midpoint_attitude): GTSAM rotates it with the attitude at
+the sub-interval's start, which put E's minimum ~0.22 ms late at 200 Hz (noise-free); the IMU
+interpolated 4x had left 0.05 ms of it, at 4x the preintegration's cost.
 
 Front camera (cam1): profile of the load-landmark factors' cost with the fused trajectory held
 fixed.  A load sighting's camera-frame point p_cam (covariance C_cam) at time t + delta gives
@@ -46,7 +50,7 @@ from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig
 from fusion.estimate.smoother import SolveReuse, smooth
-from fusion.geometry import interpolate_poses
+from fusion.geometry import PoseInterpolator
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
 from fusion.types import CameraRole, Choice, LoadObservation, Trajectory
 
@@ -87,8 +91,6 @@ class TimeOffsetConfig:
     irls_iterations: int = 3
     apply_sigmas: float = 3.0
     min_apply_s: float = 5e-4
-    # IMU samples interpolated between the logged ones while profiling (see upsample_imu)
-    imu_upsample: int = 4
     # Newton steps of the floor profile before it falls back to Brent (_newton_minimum)
     newton_steps: int = 6
     # the smoother's relative tolerance while profiling: tight enough that E's solve noise is
@@ -245,31 +247,6 @@ def _newton_minimum(
     return None
 
 
-def upsample_imu(imu: ImuData, factor: int, max_gap_s: float) -> ImuData:
-    """The IMU with `factor - 1` linearly interpolated samples inside every sampling interval
-    up to `max_gap_s` long (gaps stay gaps).  GTSAM's preintegration rotates each sub-interval's
-    specific force with the attitude at the sub-interval's start, half a sample behind the
-    midpoint signal the smoother gives it; the smoother's cost is then least at an offset about
-    0.04 IMU periods late (0.22 ms at 200 Hz, noise-free simulation).  Finer sub-intervals shrink
-    that bias in proportion (0.05 ms at 4x).  The noise densities are per sqrt(Hz), so the
-    preintegrated covariances are unchanged."""
-    t = imu.timestamps_ns
-    if factor <= 1 or len(t) < 2:
-        return imu
-    d = np.diff(t)
-    ok = d <= int(max_gap_s * NS_PER_S)
-    frac = np.arange(1, factor) / factor
-    extra = np.round(t[:-1][ok, None] + d[ok, None] * frac[None, :]).astype(np.int64).ravel()
-    tt = np.union1d(t, extra)
-
-    def interp(v: np.ndarray) -> np.ndarray:
-        return np.stack([np.interp(tt, t, v[:, a]) for a in range(3)], axis=1)
-
-    return replace(
-        imu, timestamps_ns=tt, gyro_rad_s=interp(imu.gyro_rad_s), accel_m_s2=interp(imu.accel_m_s2)
-    )
-
-
 def _inflate(sigma: float | None, e_min: float, dof: int) -> float | None:
     """sigma scaled by sqrt(reduced chi-square) when the fit is worse than its noise model
     says (2 E_min / dof > 1): the usual correction of a curvature sigma for an underestimated
@@ -361,11 +338,11 @@ def estimate_floor_offset(
         tight=False,
         noise_scale_iterations=0,
         check_noise=False,
+        imu_midpoint_attitude=True,
     )
     cache: dict[int, float] = {}
     trajs: dict[int, Trajectory] = {}
     n_fixes: dict[int, int] = {}
-    imu_fine = None if imu is None else upsample_imu(imu, config.imu_upsample, fusion_config.max_imu_gap_s)
     # each solve starts from the previous one's solution (frames shifted by a few ms: the poses
     # move by ~speed x shift), not from the PnP poses: fewer iterations to the same optimum
     reuse = SolveReuse()
@@ -375,7 +352,7 @@ def estimate_floor_offset(
         if d not in cache:
             res = smooth(
                 frames + d,
-                imu_fine,
+                imu,
                 _shift_traj(sub, d),
                 None,
                 velocity=velocity,
@@ -431,7 +408,7 @@ def _usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
 
 
 def landmark_cost(
-    trajectory: Trajectory,
+    trajectory: PoseInterpolator,
     t_ns: np.ndarray,
     group: np.ndarray,
     p_cam: np.ndarray,
@@ -440,11 +417,11 @@ def landmark_cost(
     threshold: float,
     iterations: int,
 ) -> float:
-    """The load-landmark factors' robust cost with the drone on `trajectory` (interpolated at
-    `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
+    """The load-landmark factors' robust cost with the drone on `trajectory` (T_world_body
+    interpolated at `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
     Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3), load
     index `group` (M,)) from its landmark, rho Huber's with `threshold`."""
-    T = interpolate_poses(trajectory.timestamps_ns, trajectory.T_world_body, t_ns)
+    T = trajectory(t_ns)
     T_wc = front_camera.T_world_cam(T)
     R = T_wc[:, :3, :3]
     p_w = np.einsum("nij,nj->ni", R, p_cam) + T_wc[:, :3, 3]
@@ -508,13 +485,13 @@ def estimate_front_offset(
     info_cam = np.linalg.inv(0.5 * (C + np.swapaxes(C, 1, 2)))
     thr = fusion_config.threshold(3)
     n_eval = [0]
+    # the trajectory's slerp prepared once for every offset tried (most of an evaluation's cost)
+    poses = PoseInterpolator(trajectory.timestamps_ns, trajectory.T_world_body)
 
     def cost_ms(r_ms: float) -> float:
         n_eval[0] += 1
         tq = t.astype(float) + r_ms * 1e6
-        return landmark_cost(
-            trajectory, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
-        )
+        return landmark_cost(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
 
     S_ms, step_ms = S * MS_PER_S, config.front_grid_step_s * MS_PER_S
     grid = np.arange(-S_ms, S_ms + 0.5 * step_ms, step_ms)
@@ -640,8 +617,9 @@ def resolve_time_offsets(
 @dataclass
 class WholeFlightInput:
     """The front profile's whole-flight solve's inputs: floor frame stamps (ns) and PnP poses
-    shifted into the IMU clock, the IMU upsampled (`upsample_imu`), and the smoother's config
-    (no loads, no covariances, no noise scaling)."""
+    shifted into the IMU clock, the IMU, and the smoother's config (no loads, no covariances, no
+    noise scaling; the specific force at each sub-interval's midpoint attitude, as for the floor
+    profile: FusionConfig.imu_midpoint_attitude)."""
 
     frame_t: np.ndarray
     imu: ImuData | None
@@ -669,12 +647,10 @@ def whole_flight_input(
         tight=False,
         noise_scale_iterations=0,
         check_noise=False,
+        imu_midpoint_attitude=True,
     )
-    imu = log_.imu
-    if imu is not None:
-        imu = upsample_imu(imu, config.imu_upsample, pcfg.max_imu_gap_s)
     return WholeFlightInput(
-        log_.floor.timestamps_ns + shift_ns, imu, _shift_traj(raw, shift_ns), log_.velocity, pcfg
+        log_.floor.timestamps_ns + shift_ns, log_.imu, _shift_traj(raw, shift_ns), log_.velocity, pcfg
     )
 
 
