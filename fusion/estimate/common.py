@@ -396,7 +396,8 @@ INLIER_WINDOW_S = 0.25
 one-sided window (at the edge of a gap) lags a 1.3 m/s drone by 0.16 m < init_outlier_m."""
 INLIER_BLOCK = 1024
 """Raw poses judged at once by inlier_raw_mask: its (block, 2 init_window + 1, 3) neighbour
-temporaries stay ~4 MB instead of growing with the flight (~7 MB per flight minute at 30 fps whole)."""
+arrays and nanmedian's copies stay ~4 MB instead of growing with the flight (~7 MB per flight
+minute at 30 fps, judged whole)."""
 
 
 def inlier_raw_mask(raw: RawPoses, config: FusionConfig, frame_t: np.ndarray | None = None) -> np.ndarray:

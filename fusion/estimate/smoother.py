@@ -1451,7 +1451,10 @@ def smooth_incremental(
     estimate and marginal covariance just before it left (its correlation with the states still
     in the window is dropped: slightly optimistic, causal).  `incremental_lag_s=None`: plain
     iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
-    much of the graph, so its cost grows with the flight).
+    much of the graph, so its cost grows with the flight).  Memory: the problem is built without
+    its IMU factors (`build_problem(lazy_imu=True)`); each frame's IMU factor is made from a
+    LazyPims when the frame is reached, so the factors the engine holds are the window's, and
+    what grows with the flight is the per-frame output and inputs (~4 MB per flight minute).
 
     Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
