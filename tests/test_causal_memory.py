@@ -45,6 +45,7 @@ def test_lazy_pims_equal_preintegrate(flight):
     lazy = LazyPims(flight.frame_t, flight.imu, covered, params, keep=2)
     assert sorted(lazy) == sorted(eager) and len(lazy) == len(eager)
     assert 100 not in lazy and 777 not in lazy and -1 not in lazy and len(covered) not in lazy
+    assert np.int64(5) in lazy and 5 in lazy and "5" not in lazy and 5.0 not in lazy
     with pytest.raises(KeyError):
         lazy[100]
     rng = np.random.default_rng(0)

@@ -214,7 +214,10 @@ class LazyPims(Mapping[int, gtsam.PreintegratedCombinedMeasurements]):
         self._cache: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
 
     def __contains__(self, k: object) -> bool:
-        return isinstance(k, int) and 0 <= k < len(self._first) - 1 and self._first[k] < self._first[k + 1]
+        if not isinstance(k, (int, np.integer)):  # a Python or numpy integer
+            return False
+        i = int(k)
+        return 0 <= i < len(self._first) - 1 and bool(self._first[i] < self._first[i + 1])
 
     def __getitem__(self, k: int) -> gtsam.PreintegratedCombinedMeasurements:
         pim = self._cache.get(k)
@@ -222,6 +225,7 @@ class LazyPims(Mapping[int, gtsam.PreintegratedCombinedMeasurements]):
             return pim
         if k not in self:
             raise KeyError(k)
+        k = int(k)
         pim = gtsam.PreintegratedCombinedMeasurements(self._params, gtsam.imuBias.ConstantBias())
         for j in range(self._first[k], self._first[k + 1]):
             pim.integrateMeasurement(self._acc[j], self._gyr[j], self._dts[j])
