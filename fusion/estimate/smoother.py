@@ -1457,8 +1457,9 @@ def smooth_incremental(
     iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
     much of the graph, so its cost grows with the flight).  Memory: the problem is built without
     its IMU factors (`build_problem(lazy_imu=True)`); each frame's IMU factor is made from a
-    LazyPims when the frame is reached, so the factors the engine holds are the window's, and
-    what grows with the flight is the per-frame output and inputs (~4 MB per flight minute).
+    LazyPims when the frame is reached; what still grows with the flight is the other factors,
+    the inputs and the outputs (peak ~9 MB per flight minute on the 10-minute benchmark flight,
+    ~22 with every IMU factor built up front).
 
     Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
