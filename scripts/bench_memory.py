@@ -7,6 +7,8 @@
         [--compare] [--json FILE]
     # or the back end fed a synthetic flight (tests/test_estimate.make_flight) of any length
     PYTHONPATH=$PWD python3 scripts/bench_memory.py smooth - --synthetic --minutes 10 30 --window-s 180
+    # the causal estimators instead of the batch smoother, on either input
+    PYTHONPATH=$PWD python3 scripts/bench_memory.py smooth - --synthetic --minutes 30 --estimator incremental
 
 `capture` runs the pipeline up to the fusion stage on a copy of DETECTIONS_DIR/detections.csv
 (the cache: detection is skipped) with the incremental smoother off, records every stage's peak
@@ -15,7 +17,9 @@ RSS, and pickles the arguments the pipeline passes to `smooth` (WORK/smooth_inpu
 carry into the next) and reports its RSS before the solve, its peak inside each part of the
 smoother (VmHWM, reset at the start of every wrapped call through /proc/self/clear_refs, so
 GTSAM's C++ heap counts, which tracemalloc does not see), the growth per flight minute, and the
-trajectory / load results for comparisons (windowed against whole: `--window-s`)."""
+trajectory / load results for comparisons (windowed against whole: `--window-s`).
+`--estimator incremental | ekf` runs the incremental smoother (iSAM2) or the EKF on the same
+inputs instead (the smoother-only arguments dropped; `--window-s` does not apply)."""
 
 from __future__ import annotations
 
@@ -52,7 +56,40 @@ WRAPPED = [
     ("fusion.estimate.smoother", "chain_marginals", "covariances (chain)"),
     ("fusion.estimate.smoother", "chain_marginals_with_codes", "covariances (chain + codes)"),
     ("fusion.pipeline", "run_ekf", "ekf"),
+    ("fusion.estimate.smoother", "smooth_incremental", "incremental"),
+    ("fusion.estimate.ekf", "run_ekf", "ekf"),
 ]
+ESTIMATORS = ("smoother", "incremental", "ekf")
+# the keyword arguments each causal estimator takes from the smoother's captured ones
+CAUSAL_KWARGS = {
+    "incremental": ("front_camera", "velocity", "config", "floor_frames", "floor_camera"),
+    "ekf": ("front_camera", "velocity", "config", "floor_camera"),
+}
+
+
+def run_estimator(estimator: str, args: tuple, kwargs: dict, window_s: float | None):
+    """One back end on the smoother's inputs: the (windowed) batch smoother, or a causal one."""
+    from fusion.estimate import ekf, smoother, window
+
+    if estimator == "smoother":
+        kwargs = dict(kwargs)
+        config = kwargs.pop("config", None)
+        if config is None:
+            from fusion.estimate.common import FusionConfig
+
+            config = FusionConfig()
+        wcfg = (
+            window.WindowConfig(window_s=window_s, min_flight_s=0.0)
+            if window_s is not None
+            else window.WindowConfig(min_flight_s=float("inf"))
+        )
+        return window.smooth_windowed(*args, config=config, window=wcfg, **kwargs)
+    kept = {k: v for k, v in kwargs.items() if k in CAUSAL_KWARGS[estimator]}
+    if estimator == "incremental":
+        return smoother.smooth_incremental(*args, **kept)
+    return ekf.run_ekf(*args, **kept)
+
+
 MB = 1024 * 1024
 INPUTS = "smooth_inputs.pkl"
 TRUTH = "truth.pkl"
@@ -159,10 +196,7 @@ def truncate(args: tuple, kwargs: dict, minutes: float | None) -> tuple[tuple, d
 # ---------------------------------------------------------------------------------- smooth
 
 
-def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> None:
-    from fusion.estimate import window
-    from fusion.estimate.common import FusionConfig
-
+def _child(work: Path, minutes: float | None, window_s: float | None, queue, estimator: str) -> None:
     tracker = Timer()
     tracker.install(WRAPPED)
     with open(work / INPUTS, "rb") as f:
@@ -170,14 +204,7 @@ def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> 
     args, kwargs = truncate(args, kwargs, minutes)
     base = rss_mb()
     c = time.process_time()
-    config = kwargs.pop("config", None) or FusionConfig()
-    if window_s is not None:
-        wcfg = window.WindowConfig(window_s=window_s, min_flight_s=0.0)
-        res = window.smooth_windowed(*args, config=config, window=wcfg, **kwargs)
-    else:
-        res = window.smooth_windowed(
-            *args, config=config, window=window.WindowConfig(min_flight_s=float("inf")), **kwargs
-        )
+    res = run_estimator(estimator, args, kwargs, window_s)
     cpu = time.process_time() - c
     # the wrappers reset VmHWM at each call: the run's peak is the largest one credited
     peak = max([rss_mb("VmHWM")] + [r["peak_mb"] for r in tracker.rows.values()])
@@ -189,18 +216,19 @@ def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> 
         with open(work / TRUTH, "rb") as f:
             gt, loads_gt, blackouts = pickle.load(f)
         if gt is not None:
-            m = evaluate(gt, {"smoother": tr}, {"smoother": res.loads}, loads_gt, blackouts)
-            t = m["trajectories"]["smoother"]
+            m = evaluate(gt, {estimator: tr}, {estimator: res.loads}, loads_gt, blackouts)
+            t = m["trajectories"][estimator]
             accuracy = {
                 "ate_rmse_mm": 1e3 * t["ate_rmse_m"],
                 "nees_position_3dof": (t.get("nees_position_3dof") or {}).get("nees_mean"),
                 "nees_pose_6dof": (t.get("nees_pose_6dof") or {}).get("nees_mean"),
                 "loads": {
-                    k: v for k, v in m["load_maps"].get("smoother", {}).items() if isinstance(v, (int, float))
+                    k: v for k, v in m["load_maps"].get(estimator, {}).items() if isinstance(v, (int, float))
                 },
             }
     queue.put(
         {
+            "estimator": estimator,
             "minutes": minutes,
             "window_s": window_s,
             "frames": len(tr.timestamps_ns),
@@ -217,11 +245,10 @@ def _child(work: Path, minutes: float | None, window_s: float | None, queue) -> 
     )
 
 
-def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue) -> None:
+def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue, estimator: str) -> None:
     """The back end fed a synthetic flight: tests/test_estimate.make_flight (analytic trajectory,
     30 fps PnP-like poses, 200 Hz IMU, three loads seen every 6th frame), `minutes` long."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from fusion.estimate import window
     from tests.test_estimate import FRONT_CAM, make_flight
 
     fl = make_flight(seed=0, duration_s=60.0 * minutes, gaps=((30.0, 32.0),))
@@ -229,17 +256,16 @@ def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue) 
     tracker.install(WRAPPED)
     base = rss_mb()
     c = time.process_time()
-    wcfg = (
-        window.WindowConfig(window_s=window_s, min_flight_s=0.0)
-        if window_s is not None
-        else window.WindowConfig(min_flight_s=float("inf"))
+    res = run_estimator(
+        estimator, (fl.frame_t, fl.imu, fl.raw, fl.load_obs), {"front_camera": FRONT_CAM}, window_s
     )
-    res = window.smooth_windowed(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM, window=wcfg)
     cpu = time.process_time() - c
     peak = max([rss_mb("VmHWM")] + [r["peak_mb"] for r in tracker.rows.values()])
-    err = np.linalg.norm(res.trajectory.T_world_body[:, :3, 3] - fl.T_true[:, :3, 3], axis=1)
+    n = len(res.trajectory.timestamps_ns)  # the causal estimators start at the first fix
+    err = np.linalg.norm(res.trajectory.T_world_body[:, :3, 3] - fl.T_true[-n:, :3, 3], axis=1)
     queue.put(
         {
+            "estimator": estimator,
             "minutes": minutes,
             "window_s": window_s,
             "frames": len(fl.frame_t),
@@ -255,10 +281,12 @@ def _synthetic_child(work: Path, minutes: float, window_s: float | None, queue) 
     )
 
 
-def run_child(work: Path, minutes: float | None, window_s: float | None, target=None) -> dict:
+def run_child(
+    work: Path, minutes: float | None, window_s: float | None, target=None, estimator: str = "smoother"
+) -> dict:
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    p = ctx.Process(target=target or _child, args=(work, minutes, window_s, q))
+    p = ctx.Process(target=target or _child, args=(work, minutes, window_s, q, estimator))
     p.start()
     out = q.get()
     p.join()
@@ -279,7 +307,10 @@ def main() -> int:
     s.add_argument("--compare", action="store_true", help="also solve whole and compare")
     s.add_argument("--json", type=Path)
     s.add_argument("--synthetic", action="store_true", help="a synthetic flight (WORK unused)")
+    s.add_argument("--estimator", choices=ESTIMATORS, default="smoother", help="the back end measured")
     a = ap.parse_args()
+    if a.cmd == "smooth" and a.estimator != "smoother" and (a.window_s is not None or a.compare):
+        ap.error("--window-s and --compare apply to the batch smoother only")
     if a.cmd == "capture":
         capture(a.log, a.detections, a.work)
         return 0
@@ -288,12 +319,12 @@ def main() -> int:
     records = []
     for minutes in a.minutes or [None]:
         target = _synthetic_child if a.synthetic else None
-        runs = [run_child(a.work, minutes, a.window_s, target)]
+        runs = [run_child(a.work, minutes, a.window_s, target, a.estimator)]
         if a.compare and a.window_s is not None:
             runs.append(run_child(a.work, minutes, None, target))
         for r in runs:
             print(
-                f"\n## {r['minutes']} min, window {r['window_s']}: {r['frames']} frames, "
+                f"\n## {r['estimator']}, {r['minutes']} min, window {r['window_s']}: {r['frames']} frames, "
                 f"RSS before {r['rss_before_mb']:.0f} MB, peak {r['peak_mb']:.0f} MB, CPU {r['cpu_s']:.1f} s"
             )
             print(r["table"])

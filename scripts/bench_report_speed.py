@@ -7,7 +7,9 @@ the EKF, metrics and report (plots), replayed on the exact inputs the pipeline g
     PYTHONPATH=$PWD python3 scripts/bench_report_speed.py replay CAPTURE.pkl OUT2 [--json F]
         [--compare OLD.json] [--profile F.prof] [--only incremental,ekf,metrics,report]
 
-CPU time is time.process_time (this process), meaningful on a loaded machine.  `replay --json`
+CPU time is time.process_time (this process), meaningful on a loaded machine.  Memory: RSS at
+each stage's entry and its peak inside the stage (VmHWM reset at entry through
+/proc/self/clear_refs, so GTSAM's heap counts; bench_backend_speed.rss_mb).  `replay --json`
 keeps every estimate (trajectory, covariance) so that `--compare` can print how far the new
 estimates are from the old ones (max |difference|), next to the accuracy (ATE, yaw MAE, NEES)."""
 
@@ -22,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_backend_speed import _reset_peak, rss_mb  # scripts/ is sys.path[0]
 
 import fusion.pipeline as pipeline
 from fusion.evaluate.metrics import evaluate
@@ -68,11 +71,14 @@ def replay(path: Path, out: Path, only: set[str], prof: cProfile.Profile | None)
 
     fns = {"smooth_incremental": smooth_incremental, "run_ekf": run_ekf}
     rows, estimates, replayed = {}, {}, {}
+    memory: dict[str, tuple[float, float]] = {}  # label -> (RSS at entry, peak inside) MB
     out.mkdir(parents=True, exist_ok=True)
     for name, label in (("smooth_incremental", "incremental"), ("run_ekf", "ekf")):
         if label not in only:
             continue
         args, kwargs = calls[name]
+        _reset_peak()
+        rss_in = rss_mb()
         w, c = time.perf_counter(), time.process_time()
         if prof is not None:
             prof.enable()
@@ -80,6 +86,7 @@ def replay(path: Path, out: Path, only: set[str], prof: cProfile.Profile | None)
         if prof is not None:
             prof.disable()
         rows[label] = (time.perf_counter() - w, time.process_time() - c)
+        memory[label] = (rss_in, rss_mb("VmHWM"))
         estimates[label] = _traj_arrays(res)
         replayed[label] = res.trajectory
     metrics = None
@@ -110,6 +117,10 @@ def replay(path: Path, out: Path, only: set[str], prof: cProfile.Profile | None)
     for label, (w, c) in rows.items():
         print(f"| {label} | {w:.2f} | {c:.2f} |")
     print(f"| **total** | {sum(r[0] for r in rows.values()):.2f} | {sum(r[1] for r in rows.values()):.2f} |")
+    if memory:
+        print("\n| stage | RSS at entry MB | peak RSS MB | growth MB |\n|---|--:|--:|--:|")
+        for label, (a, b) in memory.items():
+            print(f"| {label} | {a:.0f} | {b:.0f} | {b - a:.0f} |")
     acc = {}
     if metrics is not None:
         for name, m in (metrics.get("trajectories") or {}).items():
@@ -124,7 +135,14 @@ def replay(path: Path, out: Path, only: set[str], prof: cProfile.Profile | None)
             vals = [a["ate_rmse_m"] and a["ate_rmse_m"] * 1e3, a["yaw_mae_deg"]]
             vals += [a["nees_position_3dof"], a["nees_pose_6dof"]]
             print(f"| {name} | " + " | ".join("-" if v is None else f"{v:.6g}" for v in vals) + " |")
-    return {"rows": rows, "accuracy": acc, "estimates": estimates, "metrics": metrics, "load": load}
+    return {
+        "rows": rows,
+        "memory": memory,
+        "accuracy": acc,
+        "estimates": estimates,
+        "metrics": metrics,
+        "load": load,
+    }
 
 
 def compare_estimates(old: dict, new: dict) -> None:

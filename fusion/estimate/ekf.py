@@ -623,16 +623,12 @@ def run_ekf(
     paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
-    sub: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
-        cut = np.flatnonzero(np.diff(k_of)) + 1
-        for ks, ds, gs, as_ in zip(
-            np.split(k_of, cut), np.split(dts, cut), np.split(gyr, cut), np.split(acc, cut)
-        ):
-            if len(ks):
-                sub[int(ks[0])] = (as_, gs, ds)
+        # sub-intervals of frame interval k: rows first[k]:first[k + 1] (k_of in time order);
+        # sliced when reached, not split up front (~3 arrays per frame held for the flight)
+        first = np.searchsorted(k_of, np.arange(n))
     noise = imu.noise if imu is not None else None
 
     T_out = np.empty((n - k0, 4, 4))
@@ -641,8 +637,8 @@ def run_ekf(
     for k in range(k0, n):
         if k > k0:
             if covered[k - 1]:
-                acc_k, gyr_k, dt_k = sub[k - 1]
-                f.predict_imu_block(acc_k, gyr_k, dt_k, noise)
+                rows = slice(first[k - 1], first[k])
+                f.predict_imu_block(acc[rows], gyr[rows], dts[rows], noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         m = raw_at.get(k)

@@ -29,6 +29,7 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Iterator, Mapping
 from collections.abc import Set as AbstractSet
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -124,6 +125,11 @@ def imu_coverage(frame_t: np.ndarray, imu: ImuData, max_gap_s: float) -> np.ndar
     return ok
 
 
+SUBINTERVAL_BLOCK = 4096
+"""Frame intervals split at once by imu_subintervals (its sorted unions and interpolation
+temporaries: ~2.4 MB per flight minute at 30 fps and 200 Hz, whole)."""
+
+
 def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
     """Split the covered frame intervals at IMU sample times and at frame times.
 
@@ -133,6 +139,17 @@ def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
     attitude by half a sample period, which the NEES shows)."""
     t = imu.timestamps_ns
     ks = np.flatnonzero(covered)
+    if ks.size > SUBINTERVAL_BLOCK:
+        # blocks of consecutive covered intervals, concatenated: the same rows (an interval's
+        # sub-intervals depend only on its own ends and the IMU samples between them), with
+        # temporaries bounded by the block instead of the flight
+        parts = []
+        for i in range(0, ks.size, SUBINTERVAL_BLOCK):
+            block = np.zeros_like(covered)
+            block[ks[i : i + SUBINTERVAL_BLOCK]] = True
+            parts.append(imu_subintervals(frame_t, imu, block))
+        k_all, dt_all, gyr_all, acc_all = (np.concatenate(c) for c in zip(*parts))
+        return k_all, dt_all, gyr_all, acc_all
     if ks.size == 0:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
     a, b = frame_t[ks], frame_t[ks + 1]
@@ -197,7 +214,65 @@ def preintegrate(
     return out
 
 
-def gyro_fill_rotations(T_init: np.ndarray, known: np.ndarray, pims: dict) -> int:
+def imu_factor(k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> gtsam.CombinedImuFactor:
+    """The IMU factor of interval k (frames k and k + 1)."""
+    return gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
+
+
+class LazyPims(Mapping[int, gtsam.PreintegratedCombinedMeasurements]):
+    """`preintegrate`'s result as a read-only mapping that integrates interval k when it is
+    asked for (the same sub-intervals in the same order: bit-identical) and keeps only the last
+    `keep` intervals: a causal estimator walking the flight holds the sub-interval arrays
+    (~64 bytes per IMU sample) instead of every interval's preintegration.
+    `midpoint_attitude`: as `preintegrate`'s."""
+
+    def __init__(
+        self,
+        frame_t: np.ndarray,
+        imu: ImuData,
+        covered: np.ndarray,
+        params: gtsam.PreintegrationCombinedParams,
+        midpoint_attitude: bool = False,
+        keep: int = 4,
+    ):
+        k_of, self._dts, self._gyr, self._acc = imu_subintervals(frame_t, imu, covered)
+        if midpoint_attitude:
+            self._acc = midpoint_specific_force(self._gyr, self._acc, self._dts)
+        # rows of interval k: first[k]:first[k + 1] (k_of is in time order)
+        self._first = np.searchsorted(k_of, np.arange(len(covered) + 1))
+        self._params = params
+        self._keep = keep
+        self._cache: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
+
+    def __contains__(self, k: object) -> bool:
+        if not isinstance(k, (int, np.integer)):  # a Python or numpy integer
+            return False
+        i = int(k)
+        return 0 <= i < len(self._first) - 1 and bool(self._first[i] < self._first[i + 1])
+
+    def __getitem__(self, k: int) -> gtsam.PreintegratedCombinedMeasurements:
+        pim = self._cache.get(k)
+        if pim is not None:
+            return pim
+        if k not in self:
+            raise KeyError(k)
+        k = int(k)
+        pim = gtsam.PreintegratedCombinedMeasurements(self._params, gtsam.imuBias.ConstantBias())
+        for j in range(self._first[k], self._first[k + 1]):
+            pim.integrateMeasurement(self._acc[j], self._gyr[j], self._dts[j])
+        if len(self._cache) >= self._keep:
+            del self._cache[next(iter(self._cache))]
+        self._cache[k] = pim
+        return pim
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(np.flatnonzero(np.diff(self._first) > 0).tolist())
+
+    def __len__(self) -> int:
+        return int(np.count_nonzero(np.diff(self._first) > 0))
+
+
+def gyro_fill_rotations(T_init: np.ndarray, known: np.ndarray, pims: Mapping) -> int:
     """Initial rotations inside raw-pose gaps from the gyro instead of slerp (in place).
 
     Between frames a < b with raw poses and no raw pose in between, when the IMU covers every
@@ -304,7 +379,7 @@ class Problem:
     robust: dict[int, RobustFactor] = field(default_factory=dict)  # by factor index
     load_args: dict[int, LoadFactorArgs] = field(default_factory=dict)  # by factor index
     loads: list[LoadTrack] = field(default_factory=list)  # by load index j
-    pims: dict[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
+    pims: Mapping[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
     initial: gtsam.Values = field(default_factory=gtsam.Values)
     counts: GraphCounts = field(default_factory=GraphCounts)
     as_built: asbuilt.AsBuiltGraph | None = None  # the as-built floor codes' variables
@@ -366,7 +441,7 @@ def raw_pose_input(rawp: RawPoses, floor_camera: CameraModel | None) -> RawPoseI
 
 
 def dead_reckon(
-    frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int, pims: dict, v_anchor: np.ndarray
+    frame_t: np.ndarray, T: np.ndarray, v: np.ndarray, anchor: int, pims: Mapping, v_anchor: np.ndarray
 ) -> None:
     """Initial values by IMU dead reckoning from frame `anchor` (in place), forward and
     backward through the preintegrated intervals (zero bias); intervals without IMU hold the
@@ -424,7 +499,7 @@ class SolveReuse:
         return self.pims if same else None
 
     def keep_pims(self, pb: Problem, imu: ImuData | None, config: FusionConfig) -> None:
-        if imu is not None and pb.pims:
+        if imu is not None and isinstance(pb.pims, dict) and pb.pims:  # not a LazyPims
             self.pims, self.key, self.frame_t = pb.pims, _pims_key(imu, config), pb.frame_t
 
 
@@ -470,6 +545,7 @@ def build_problem(
     as_built: asbuilt.AsBuiltInput | None = None,
     *,
     pims: dict[int, gtsam.PreintegratedCombinedMeasurements] | None = None,
+    lazy_imu: bool = False,
 ) -> Problem:
     """Check the inputs and build the factor graph and initial values (no optimisation).
 
@@ -482,7 +558,10 @@ def build_problem(
     and the factors elsewhere.  `as_built` (fusion.estimate.asbuilt): each floor code's pose is a
     variable F(c) and each sighting a relative-pose factor, instead of the frame's pose factor.
     `pims`: the preintegrated IMU of an earlier build with the same frames, IMU and settings
-    (SolveReuse), used instead of integrating again.
+    (SolveReuse), used instead of integrating again.  `lazy_imu` (the incremental smoother, which
+    adds a frame's factors as it reaches the frame): no IMU factors and no initial values in the
+    problem, and `pb.pims` a LazyPims that integrates an interval when asked, so the flight's
+    IMU factors (~7 KB per frame) are never all held at once.
 
     Raises EstimationError for: no raw pose at all ("no floor code was read in this flight"),
     non-increasing / duplicated timestamps or NaNs in any input (naming the sample index), raw
@@ -514,11 +593,12 @@ def build_problem(
     if imu is not None:
         covered = imu_coverage(frame_t, imu, config.max_imu_gap_s)
         params = factors.imu_params(imu.noise, imu.T_body_imu, config.integration_sigma)
-        pb.pims = (
-            pims
-            if pims is not None
-            else preintegrate(frame_t, imu, covered, params, config.imu_midpoint_attitude)
-        )
+        if pims is not None:
+            pb.pims = pims
+        elif lazy_imu:
+            pb.pims = LazyPims(frame_t, imu, covered, params, config.imu_midpoint_attitude)
+        else:
+            pb.pims = preintegrate(frame_t, imu, covered, params, config.imu_midpoint_attitude)
     v0 = first_velocity(
         frame_t, rawp, use, pb.k_first, config.first_velocity_fixes, config.first_velocity_window_s
     )
@@ -529,7 +609,8 @@ def build_problem(
         gyro_fill_rotations(pb.T_init, inlier_frames, pb.pims)
     for k in range(n - 1):
         if covered[k]:
-            pb.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pb.pims[k]), k + 1)
+            if not lazy_imu:
+                pb.add(imu_factor(k, pb.pims[k]), k + 1)
         else:
             dt = (frame_t[k + 1] - frame_t[k]) * 1e-9
             for f in factors.bridge_factors(
@@ -650,6 +731,8 @@ def build_problem(
     pb.counts.load_factors = sum(t.n_obs for t in pb.loads)
 
     # ---- initial values
+    if lazy_imu:
+        return pb
     for k in range(n):
         pb.initial.insert(X(k), gtsam.Pose3(pb.T_init[k]))
         pb.initial.insert(V(k), pb.v_init[k])
@@ -1409,7 +1492,11 @@ def smooth_incremental(
     estimate and marginal covariance just before it left (its correlation with the states still
     in the window is dropped: slightly optimistic, causal).  `incremental_lag_s=None`: plain
     iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
-    much of the graph, so its cost grows with the flight).
+    much of the graph, so its cost grows with the flight).  Memory: the problem is built without
+    its IMU factors (`build_problem(lazy_imu=True)`); each frame's IMU factor is made from a
+    LazyPims when the frame is reached; what still grows with the flight is the other factors,
+    the inputs and the outputs (peak ~9 MB per flight minute on the 10-minute benchmark flight,
+    ~22 with every IMU factor built up front).
 
     Re-initialisation (health.resets): when config.reinit_rejected_fixes consecutive fixes lie
     beyond the kernel threshold of the IMU prediction but agree with each other (their offsets
@@ -1489,8 +1576,18 @@ def _smooth_incremental_run(
     fallback = factorization == ISAM_FALLBACK_FACTORIZATION
     config = config or FusionConfig()
     t0 = time.perf_counter()
+    # the IMU factors are made frame by frame below (lazy_imu: memory flat in the flight's length)
     pb = build_problem(
-        frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera
+        frame_times_ns,
+        imu,
+        raw,
+        load_obs,
+        front_camera,
+        velocity,
+        config,
+        floor_frames,
+        floor_camera,
+        lazy_imu=True,
     )
     health = SolveHealth()
     fix_health(pb, config, health)
@@ -1500,11 +1597,14 @@ def _smooth_incremental_run(
     for i, k in enumerate(pb.factor_frame):
         by_frame[k].append(i)
     # per factor: the oldest frame among its keys (-1: loads only) and the load it observes
-    oldest, load_of = {}, {}
+    oldest = np.full(len(pb.factors), -1, np.int64)
+    load_of = np.full(len(pb.factors), -1, np.int64)
     for i, f in enumerate(pb.factors):
         frames = [_frame_of(key) for key in f.keys() if _frame_of(key) >= 0]
-        oldest[i] = min(frames) if frames else -1
-        load_of[i] = pb.load_args[i].j if i in pb.load_args else -1
+        if frames:
+            oldest[i] = min(frames)
+    for i, a in pb.load_args.items():
+        load_of[i] = a.j
     cam = pb.front_camera
     lag = config.incremental_lag_s
     engine = _new_engine(config, factorization)
@@ -1621,11 +1721,13 @@ def _smooth_incremental_run(
             cutoff = tk - lag
             for j in [j for j, ts in last_seen.items() if ts < cutoff and j not in left]:
                 left[j] = (engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j)))
+        if k - 1 >= start and (k - 1) in pb.pims:  # the IMU factor into frame k (lazy_imu)
+            g.add(imu_factor(k - 1, pb.pims[k - 1]))
         for i in by_frame[k]:
             if oldest[i] < start or i == skip:
                 continue
             f = pb.factors[i]
-            j = load_of[i]
+            j = int(load_of[i])
             if j >= 0:
                 if j not in gen or j in left:  # first sighting, or back after leaving
                     if j not in gen:
