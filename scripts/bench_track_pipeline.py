@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import time
 from pathlib import Path
 
 import cv2
@@ -116,6 +117,11 @@ def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
     return wrong, errs
 
 
+def _is_restamped(d, rep) -> bool:
+    """A pass sighting decoded with re-stamped finders (not tracked from a prediction)."""
+    return (d.timestamp_ns, d.payload) in rep.restamped_keys
+
+
 def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dict:
     """Floor frames, posed before / after the track pass, and the unposed ones after it counted
     by reason (module docstring, `--reasons`); no fusion."""
@@ -128,7 +134,9 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     loc = localize_stage(log, det, cfg)
     pnp = str(Estimator.PNP)
     first = set(int(t) for t in loc.trajectories[pnp].timestamps_ns)
+    cpu0 = time.process_time()
     tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
+    cpu_s = time.process_time() - cpu0  # this process only: with --workers 1, the whole pass
     final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
     stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
@@ -148,6 +156,13 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
                 why = "posed_in_pass_refused_later"
         reasons[why] = reasons.get(why, 0) + 1
     wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
+    # re-stamped sightings (fusion.qr.restamp): corners_raw_px is their fitted quadrilateral, not a
+    # prediction; scored on their own
+    restamped = {
+        t: [d for d in ds if d.tracked and _is_restamped(d, rep)]
+        for t, ds in tracked.by_frame("cam0").items()
+    }
+    wrong_restamped, _ = _score_tracked(restamped, truth_by_t)
     return dict(
         floor_frames=int(mask.sum()),
         wrong_ids=wrong,
@@ -156,9 +171,17 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         posed_final=sum(int(t) in final for t in stamps[mask]),
         in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
         tracked=rep.stats.tracked,
+        restamped=rep.restamped,
+        frames_restamped=rep.frames_restamped,
+        frames_restamp_tried=rep.frames_restamp_tried,
+        restamp_poses=rep.restamp_poses,
+        wrong_ids_restamped=wrong_restamped,
         tracker={k: int(v) for k, v in vars(rep.stats).items()},
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
+        restamp_seconds=rep.restamp_seconds,
+        cpu_s=cpu_s,
+        cpu_ms_per_floor_frame=1000 * cpu_s / max(len(stamps), 1),
     )
 
 
