@@ -11,7 +11,8 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
   when the code it names is not in front of the camera, or another code's true centre is nearer
   to its centre than that code's; its worst corner error against the true corners (px);
 - ATE RMSE of pnp and smoother (metrics.json), the track pass's seconds and seconds per frame
-  tried.
+  tried; how many of the tracked sightings were decoded with re-stamped finders
+  (fusion.qr.restamp, metrics.json `detection.tracking.restamped`) and that step's seconds.
 
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
@@ -28,7 +29,8 @@ decodes per kind on a flight's frames).
 `--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
 cache when there is one), and every floor frame without a PnP pose after the pass counted by why
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
-frame (fusion.qr.predict.OUTCOMES).
+frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, and
+the pass's CPU seconds in this process (the whole pass with `--workers 1`).
 """
 
 from __future__ import annotations
@@ -299,6 +301,8 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     out["frames_tried"] = tracking.get("frames_tried", 0)
     out["s_per_frame_tried"] = tracking.get("seconds_per_frame_tried", 0.0)
     out["gated"] = tracking.get("tracker_gated", 0)
+    out["restamped"] = tracking.get("restamped", 0)  # of `tracked`: decoded with re-stamped finders
+    out["restamp_s"] = tracking.get("restamp_seconds", 0.0)
     return out
 
 
