@@ -174,7 +174,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
         tracked=rep.stats.tracked,
         restamped=rep.restamped,
-        frames_restamped=rep.frames_restamped,
+        frames_with_restamped=rep.frames_with_restamped,
         frames_restamp_tried=rep.frames_restamp_tried,
         restamp_poses=rep.restamp_poses,
         wrong_ids_restamped=wrong_restamped,

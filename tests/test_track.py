@@ -483,4 +483,7 @@ def test_track_pass_decodes_strip_occluded_codes_by_restamping_and_counts_them_a
     assert st.frames_with_tracked_only == st.frames_with_code == len({d.timestamp_ns for d in found})
     posed, _ = pnp_trajectory(out.by_frame("cam0"), log.floor.camera, log.world)
     assert len(posed) >= rep.restamp_poses
-    assert rep.as_dict()["restamped"] == rep.restamped and "restamped_keys" not in rep.as_dict()
+    summary = rep.as_dict()
+    assert summary["restamped"] == rep.restamped and "restamped_keys" not in summary
+    assert summary["frames_with_restamped"] == len({t for t, _ in rep.restamped_keys})
+    assert summary["frames_restamped"] == rep.outcome_counts()["restamped"] > 0

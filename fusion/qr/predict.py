@@ -147,7 +147,7 @@ class TrackReport:
     poses_added: int = 0  # frames of the pass with a PnP pose that had none before
     restamped: int = 0  # floor-code sightings decoded with re-stamped function patterns (restamp)
     frames_restamp_tried: int = 0  # frames without a first-pass pose searched for them
-    frames_restamped: int = 0  # ... with at least one such code
+    frames_with_restamped: int = 0  # ... with at least one such code (outcome counts: frames_<outcome>)
     restamp_poses: int = 0  # ... whose codes gave a PnP pose precise enough to predict from
     restamp_seconds: float = 0.0  # wall time of the re-stamp decoding (within `seconds`)
     chunks: int = 0
@@ -175,7 +175,7 @@ class TrackReport:
         s = self.stats
         restamp = (
             f"; {self.restamped} floor-code sightings decoded with re-stamped finders in "
-            f"{self.frames_restamped} of {self.frames_restamp_tried} unposed frames"
+            f"{self.frames_with_restamped} of {self.frames_restamp_tried} unposed frames"
         )
         return (
             f"track pass: {s.tracked} floor-code sightings tracked in {self.frames_tracked} frames "
@@ -652,7 +652,7 @@ def track_flight(
     rep.restamp_poses = len(poses)
     for d in restamped:
         decoded.setdefault(d.timestamp_ns, []).append(d)
-    rep.frames_restamped = len({d.timestamp_ns for d in restamped})
+    rep.frames_with_restamped = len({d.timestamp_ns for d in restamped})
     for p, code in extra.items():
         catalogue.setdefault(p, code)
     if poses:

@@ -28,6 +28,7 @@ the fitted quadrilateral's, refined by the caller (fusion.qr.refine with its sel
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -124,14 +125,14 @@ def _quiet_regions(image: np.ndarray) -> list[tuple[int, int, np.ndarray]]:
         x, y, w, h = cv2.boundingRect(cnt)
         if min(w, h) < RESTAMP_MIN_SIDE_PX:
             continue
-        mask = np.zeros((h, w), np.uint8)
-        cv2.drawContours(mask, [cnt], -1, 255, cv2.FILLED, offset=(-x, -y))
-        mask = cv2.erode(mask, kernel, iterations=RESTAMP_REGION_ERODE_PX)
-        out.append((x, y, mask > 0))
+        filled = np.zeros((h, w), np.uint8)
+        cv2.drawContours(filled, [cnt], -1, 255, cv2.FILLED, offset=(-x, -y))
+        eroded = cv2.erode(filled, kernel, iterations=RESTAMP_REGION_ERODE_PX)
+        out.append((x, y, np.asarray(eroded) > 0))
     return out
 
 
-def candidate_quads(image: np.ndarray, exclude_px: list[np.ndarray] = ()) -> list[np.ndarray]:
+def candidate_quads(image: np.ndarray, exclude_px: Sequence[np.ndarray] = ()) -> list[np.ndarray]:
     """Dark quadrilaterals (4, 2) px, image-clockwise from the top-left-most, the size of a floor
     code (module docstring, step 1), none whose centre lies inside a quadrilateral of
     `exclude_px` (codes already decoded).  Searched inside bright regions (_quiet_regions), each
@@ -147,11 +148,12 @@ def candidate_quads(image: np.ndarray, exclude_px: list[np.ndarray] = ()) -> lis
             continue
         t, _ = cv2.threshold(values.reshape(1, -1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         dark = ((roi <= t) & region).astype(np.uint8) * 255
-        contours = []
+        inside = region.astype(np.uint8) * 255
+        contours: list[np.ndarray] = []
         for k in RESTAMP_CLOSE_PX:
             kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
-            closed = cv2.morphologyEx(dark, cv2.MORPH_CLOSE, kernel) & region.astype(np.uint8) * 255
-            contours += cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
+            closed = cv2.bitwise_and(cv2.morphologyEx(dark, cv2.MORPH_CLOSE, kernel), inside)
+            contours += list(cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0])
         for cnt in contours:
             quad = _blob_quad(cnt.reshape(-1, 2).astype(float) + [x0, y0], max_side, (h, w))
             if quad is None:
@@ -284,7 +286,7 @@ def restamp_decode(image: np.ndarray, quad_px: np.ndarray, sizes=RESTAMP_MODULES
     return None
 
 
-def restamp_image(image: np.ndarray, exclude_px: list[np.ndarray] = ()) -> list[Restamped]:
+def restamp_image(image: np.ndarray, exclude_px: Sequence[np.ndarray] = ()) -> list[Restamped]:
     """Every symbol of a grey image (H, W) uint8 decoded by re-stamping (candidate_quads, then
     restamp_decode), none where `exclude_px` quadrilaterals (decoded codes) lie."""
     out = []
