@@ -11,7 +11,8 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
   when the code it names is not in front of the camera, or another code's true centre is nearer
   to its centre than that code's; its worst corner error against the true corners (px);
 - ATE RMSE of pnp and smoother (metrics.json), the track pass's seconds and seconds per frame
-  tried.
+  tried; how many of the tracked sightings were decoded with re-stamped finders
+  (fusion.qr.restamp, metrics.json `detection.tracking.restamped`) and that step's seconds.
 
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
@@ -28,7 +29,8 @@ decodes per kind on a flight's frames).
 `--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
 cache when there is one), and every floor frame without a PnP pose after the pass counted by why
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
-frame (fusion.qr.predict.OUTCOMES).
+frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, and
+the pass's CPU seconds in this process (the whole pass with `--workers 1`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import time
 from pathlib import Path
 
 import cv2
@@ -116,6 +119,11 @@ def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
     return wrong, errs
 
 
+def _is_restamped(d, rep) -> bool:
+    """A pass sighting decoded with re-stamped finders (not tracked from a prediction)."""
+    return (d.timestamp_ns, d.payload) in rep.restamped_keys
+
+
 def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dict:
     """Floor frames, posed before / after the track pass, and the unposed ones after it counted
     by reason (module docstring, `--reasons`); no fusion."""
@@ -128,7 +136,9 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     loc = localize_stage(log, det, cfg)
     pnp = str(Estimator.PNP)
     first = set(int(t) for t in loc.trajectories[pnp].timestamps_ns)
+    cpu0 = time.process_time()
     tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
+    cpu_s = time.process_time() - cpu0  # this process only: with --workers 1, the whole pass
     final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
     stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
@@ -148,6 +158,13 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
                 why = "posed_in_pass_refused_later"
         reasons[why] = reasons.get(why, 0) + 1
     wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
+    # re-stamped sightings (fusion.qr.restamp): corners_raw_px is their fitted quadrilateral, not a
+    # prediction; scored on their own
+    restamped = {
+        t: [d for d in ds if d.tracked and _is_restamped(d, rep)]
+        for t, ds in tracked.by_frame("cam0").items()
+    }
+    wrong_restamped, _ = _score_tracked(restamped, truth_by_t)
     return dict(
         floor_frames=int(mask.sum()),
         wrong_ids=wrong,
@@ -156,9 +173,17 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         posed_final=sum(int(t) in final for t in stamps[mask]),
         in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
         tracked=rep.stats.tracked,
+        restamped=rep.restamped,
+        frames_with_restamped=rep.frames_with_restamped,
+        frames_restamp_tried=rep.frames_restamp_tried,
+        restamp_poses=rep.restamp_poses,
+        wrong_ids_restamped=wrong_restamped,
         tracker={k: int(v) for k, v in vars(rep.stats).items()},
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
+        restamp_seconds=rep.restamp_seconds,
+        cpu_s=cpu_s,
+        cpu_ms_per_floor_frame=1000 * cpu_s / max(len(stamps), 1),
     )
 
 
@@ -276,6 +301,8 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     out["frames_tried"] = tracking.get("frames_tried", 0)
     out["s_per_frame_tried"] = tracking.get("seconds_per_frame_tried", 0.0)
     out["gated"] = tracking.get("tracker_gated", 0)
+    out["restamped"] = tracking.get("restamped", 0)  # of `tracked`: decoded with re-stamped finders
+    out["restamp_s"] = tracking.get("restamp_seconds", 0.0)
     return out
 
 

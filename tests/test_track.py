@@ -126,29 +126,38 @@ class _Stream:
         return self.images[i]
 
 
-def _track_flight_fixture(n: int = 14, blurred=range(3, 11), seed: int = 3):
+def _track_flight_fixture(n: int = 14, blurred=range(3, 11), seed: int = 3, occluded=(), ecc: str = "L"):
     """A body-fixed down-looking floor camera (default mount) over floor codes on a 1 m grid;
-    the frames in `blurred` carry 12 px of motion blur (undecodable).  Returns (log-like object,
-    DetectionResult, first-pass PnP trajectory, true corners per frame {payload: (4, 2)})."""
+    the frames in `blurred` carry 12 px of motion blur (undecodable), those in `occluded` the
+    simulator's 10 % strip occluder over every code, from side k mod 4 in frame k (no finder
+    left whole: undecodable).  Returns (log-like object, DetectionResult, first-pass PnP
+    trajectory, true corners per frame {payload: (4, 2)})."""
     from types import SimpleNamespace
 
     from fusion.qr.detect import DetectionResult
     from fusion.qr.pnp import pnp_trajectory
     from fusion.sim.render import placed_floor_codes
     from fusion.world import World
+    from tests.test_restamp import _strip
 
     camera = CameraModel(640, 480, 520.0, 520.0, 320.0, 240.0, T_body_cam=make_T(R_DOWN, np.zeros(3)))
     world = World(0.20, 0.5, 0.15)  # codes 0.5 m apart: two in view
-    codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.5, 0.20)
+    codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.5, 0.20, ecc)
     rng = np.random.default_rng(seed)
     images, stamps, truths = [], [], []
     for k in range(n):
         T_body = _flight_pose(k / RATE_HZ)
         T_cam = camera.T_world_cam(T_body)
         blur = 12.0 if k in blurred else 0.0
-        images.append(render_view(camera, T_cam, codes, rng, RenderEffects(1.5, 1.0, blur, 0.0)))
+        img = render_view(camera, T_cam, codes, rng, RenderEffects(1.5, 1.0, blur, 0.0))
+        truth = {c.payload: project_code_corners(camera, T_cam, c) for c in codes}
+        if k in occluded:
+            for quad in truth.values():
+                if np.all(np.isfinite(quad)):
+                    img = _strip(img, quad, k % 4)
+        images.append(img)
         stamps.append(int(round(k * 1e9 / RATE_HZ)))
-        truths.append({c.payload: project_code_corners(camera, T_cam, c) for c in codes})
+        truths.append(truth)
     stats = CameraStats()
     per_frame = detect_frames(images, "cam0", stamps, camera, stats=stats)
     det = DetectionResult([d for ds in per_frame for d in ds], {"cam0": stats})
@@ -448,3 +457,33 @@ def test_track_pass_drops_tracked_codes_whose_pose_disagrees_with_the_prediction
     assert out is det and rep.stats.tracked == 0 and rep.stats.pose_gated >= len(blurred_ts)
     assert all(rep.frame_outcomes[t] == "pose_gated" for t in blurred_ts)
     assert rep.frames_tracked == rep.poses_added == 0
+
+
+def test_track_pass_decodes_strip_occluded_codes_by_restamping_and_counts_them_apart():
+    """Every frame strip-occluded (ECC H): nothing decodes, no first-pass pose; the pass decodes
+    the codes with re-stamped finders (their identity from the decode), poses the frames, and
+    counts them apart from the tracked ones."""
+    from fusion.qr.pnp import pnp_trajectory
+    from fusion.qr.predict import track_flight
+
+    n = 8
+    log, det, traj, truths = _track_flight_fixture(n=n, blurred=(), occluded=range(n), ecc="H")
+    assert det.detections == [] and len(traj) == 0
+    out, rep = track_flight(log, det, traj, 0.15)
+    found = [d for d in out.detections if d.tracked]
+    assert rep.restamped == len(rep.restamped_keys) > 0 and rep.frames_restamp_tried == n
+    assert rep.restamp_poses > 0 and rep.skipped_reason == ""
+    assert {(d.timestamp_ns, d.payload) for d in found} >= rep.restamped_keys
+    for d in found:  # the right code, its corners on it
+        truth = truths[int(round(d.timestamp_ns * RATE_HZ * 1e-9))][d.payload]
+        module_px = np.linalg.norm(truth[1] - truth[0]) / 21
+        assert np.max(np.linalg.norm(d.corners_px - truth, axis=1)) < 0.5 * module_px
+    st = out.stats["cam0"]
+    assert st.tracked == len(found) == rep.restamped + rep.stats.tracked
+    assert st.frames_with_tracked_only == st.frames_with_code == len({d.timestamp_ns for d in found})
+    posed, _ = pnp_trajectory(out.by_frame("cam0"), log.floor.camera, log.world)
+    assert len(posed) >= rep.restamp_poses
+    summary = rep.as_dict()
+    assert summary["restamped"] == rep.restamped and "restamped_keys" not in summary
+    assert summary["frames_with_restamped"] == len({t for t, _ in rep.restamped_keys})
+    assert summary["frames_restamped"] == rep.outcome_counts()["restamped"] > 0

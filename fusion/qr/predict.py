@@ -59,15 +59,17 @@ from fusion.geometry import (
 )
 from fusion.parallel import parallel_map
 from fusion.qr.codes import classify
-from fusion.qr.detect import CameraStats, DetectionResult, detect_image
+from fusion.qr.detect import RAW_CORNER_SIGMA_PX, CameraStats, DetectionResult, detect_image
 from fusion.qr.pnp import estimate_floor_pose
+from fusion.qr.refine import refine_frames
+from fusion.qr.restamp import restamp_image
 from fusion.qr.track import CodeTracker, TrackStats, symbol_in_view
 from fusion.types import CameraRole, QRDetection, Trajectory
 from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
-TRACK_METHOD = "pose-track/3"  # in the tracked cache's fingerprint: change with the method
+TRACK_METHOD = "pose-track/4+restamp"  # in the tracked cache's fingerprint: change with the method
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
@@ -118,6 +120,7 @@ OUTCOMES = (
     # of the predicted pose: the tracked sightings are dropped
     "pnp_failed",  # codes tracked, but PnP on the frame's codes found no pose
     "posed",  # codes tracked and a PnP pose found
+    "restamped",  # no code tracked, but codes decoded with re-stamped finders posed the frame
 )
 
 
@@ -142,10 +145,16 @@ class TrackReport:
     frames_tracked: int = 0  # ... with at least one tracked code
     frames_tracked_only: int = 0  # ... whose codes are all tracked ones
     poses_added: int = 0  # frames of the pass with a PnP pose that had none before
+    restamped: int = 0  # floor-code sightings decoded with re-stamped function patterns (restamp)
+    frames_restamp_tried: int = 0  # frames without a first-pass pose searched for them
+    frames_with_restamped: int = 0  # ... with at least one such code (outcome counts: frames_<outcome>)
+    restamp_poses: int = 0  # ... whose codes gave a PnP pose precise enough to predict from
+    restamp_seconds: float = 0.0  # wall time of the re-stamp decoding (within `seconds`)
     chunks: int = 0
     seconds: float = 0.0  # wall time of the pass (catalogue and tracking)
     skipped_reason: str = ""  # why the pass did not run ("" when it ran)
     frame_outcomes: dict[int, str] = field(default_factory=dict)  # floor stamp -> one of OUTCOMES
+    restamped_keys: set[tuple[int, str]] = field(default_factory=set)  # (stamp, payload) re-stamped
 
     def outcome_counts(self) -> dict[str, int]:
         """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
@@ -153,7 +162,7 @@ class TrackReport:
         return {k: values.count(k) for k in OUTCOMES}
 
     def as_dict(self) -> dict:
-        skip = ("stats", "frame_outcomes")
+        skip = ("stats", "frame_outcomes", "restamped_keys")
         out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         out.update({f"tracker_{k}": int(v) for k, v in vars(self.stats).items()})
         out.update({f"frames_{k}": n for k, n in self.outcome_counts().items()})
@@ -164,12 +173,16 @@ class TrackReport:
         if self.skipped_reason:
             return f"track pass not run: {self.skipped_reason}"
         s = self.stats
+        restamp = (
+            f"; {self.restamped} floor-code sightings decoded with re-stamped finders in "
+            f"{self.frames_with_restamped} of {self.frames_restamp_tried} unposed frames"
+        )
         return (
             f"track pass: {s.tracked} floor-code sightings tracked in {self.frames_tracked} frames "
             f"({self.frames_tracked_only} with tracked codes only, {self.poses_added} new PnP poses); "
             f"{s.attempts} tried in {self.frames_tried} frames, {s.gated} refused by the innovation "
-            f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code; "
-            f"{self.seconds:.1f} s"
+            f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code"
+            f"{restamp}; {self.seconds:.1f} s"
         )
 
 
@@ -521,6 +534,91 @@ def _track_chunk(context, task: tuple[int, int]):
     return out, rep
 
 
+RESTAMP_CHUNK_FRAMES = 64  # frames per task of the re-stamp decoding
+
+
+def _restamp_chunk(context, task: list[int]) -> tuple[list[QRDetection], dict[str, int]]:
+    """Codes decoded with re-stamped function patterns (fusion.qr.restamp) in the floor frames
+    `task` (indices), away from the frame's decoded codes: (their QRDetections, tracked=True,
+    corners refined from the fitted quadrilateral with refinement's self-check, else the
+    quadrilateral with RAW_CORNER_SIGMA_PX; {payload: modules per side})."""
+    stream, camera, decoded = context
+    out: list[QRDetection] = []
+    modules: dict[str, int] = {}
+    for i in task:
+        t = int(stream.timestamps_ns[i])
+        image = stream.load_image(i)
+        if image is None:
+            continue
+        frame = decoded.get(t, [])
+        seen = {d.payload for d in frame}
+        found = []
+        for f in restamp_image(image, [d.corners_px for d in frame]):
+            if f.payload not in seen:
+                seen.add(f.payload)
+                found.append(f)
+        if not found:
+            continue
+        refined = refine_frames([image], [[(f.corners_px, f.modules) for f in found]], camera)[0]
+        for f, res in zip(found, refined):
+            if res is None:
+                corners, sigma = f.corners_px, RAW_CORNER_SIGMA_PX
+                cov = RAW_CORNER_SIGMA_PX**2 * np.eye(8)
+            else:
+                corners, sigma = res.corners_px, res.corner_sigma_px
+                cov = res.corner_cov_px2 if res.corner_cov_px2 is not None else sigma**2 * np.eye(8)
+            det = QRDetection(FLOOR, t, f.payload, corners, f.corners_px, float(sigma), cov, tracked=True)
+            out.append(det)
+            modules[f.payload] = f.modules
+    return out, modules
+
+
+def restamp_flight(
+    stream, camera: CameraModel, world: World, decoded: dict, first_t, corner_sigma_px: float, workers: int
+) -> tuple[list[QRDetection], dict[str, CatalogueCode], dict[int, np.ndarray], int]:
+    """Floor codes decoded with re-stamped function patterns in the floor frames without a
+    first-pass pose (fusion.qr.restamp: finders hidden by an occluder; the identity is decoded,
+    never predicted): (their detections, the floor codes among them for the catalogue, {stamp:
+    T_world_body} of the frames they give a PnP pose with position sigma at most
+    MAX_FEEDBACK_POSITION_SIGMA_M, frames searched).  `decoded`: stamp -> decoded detections."""
+    posed = set(int(t) for t in first_t)
+    todo = [i for i in range(len(stream)) if int(stream.timestamps_ns[i]) not in posed]
+    tasks = [todo[k : k + RESTAMP_CHUNK_FRAMES] for k in range(0, len(todo), RESTAMP_CHUNK_FRAMES)]
+    found: list[QRDetection] = []
+    modules: dict[str, int] = {}
+    for dets, mods in parallel_map(
+        _restamp_chunk,
+        tasks,
+        max(1, min(workers, len(tasks))),
+        (stream, camera, decoded),
+        preload=["fusion.qr.predict"],
+    ):
+        found.extend(dets)
+        modules.update(mods)
+    by_t: dict[int, list[QRDetection]] = {}
+    for d in found:
+        by_t.setdefault(d.timestamp_ns, []).append(d)
+    kept: list[QRDetection] = []
+    catalogue: dict[str, CatalogueCode] = {}
+    poses: dict[int, np.ndarray] = {}
+    for t, dets in sorted(by_t.items()):
+        floor = classify(decoded.get(t, []) + dets, world).floor
+        new = [s for s in floor if s.detection.tracked]
+        if not new:
+            continue
+        kept += [s.detection for s in new]
+        for s in new:
+            p = s.detection.payload
+            catalogue.setdefault(p, CatalogueCode(s.corners_world, modules[p]))
+        res = estimate_floor_pose(floor, camera, corner_sigma_px)
+        if res is None:
+            continue
+        position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
+        if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
+            poses[t] = res.T_world_body
+    return kept, catalogue, poses, len(todo)
+
+
 def track_flight(
     log,
     det: DetectionResult,
@@ -531,7 +629,9 @@ def track_flight(
 ) -> tuple[DetectionResult, TrackReport]:
     """The track pass over the floor camera of `log` (module docstring): `det` with the tracked
     detections added (tracked=True; CameraStats tracked, frames_with_tracked_only,
-    frames_with_code and detections counted), and what the pass did."""
+    frames_with_code and detections counted), and what the pass did.  First, in the floor frames
+    without a PnP pose, codes whose finder patterns are hidden are decoded by re-stamping them
+    (restamp_flight): they join the catalogue and their poses the first pass's."""
     t0 = time.perf_counter()
     rep = TrackReport()
     stream = log.floor
@@ -540,13 +640,30 @@ def track_flight(
         rep.skipped_reason = "rolling-shutter floor camera (predictions are global-shutter projections)"
         return det, rep
     catalogue, rep.no_modules = floor_catalogue(det, log.world, stream, backend)
-    rep.catalogue = len(catalogue)
     decoded = {t: [d for d in ds if not d.tracked] for t, ds in det.by_frame(FLOOR).items()}
-    if not catalogue or len(traj_pnp) == 0:
-        rep.skipped_reason = "no floor code decoded and posed in this flight"
-        return det, rep
     first_t = np.asarray(traj_pnp.timestamps_ns, dtype=np.int64)
-    first_T = np.asarray(traj_pnp.T_world_body, dtype=float)
+    first_T = np.asarray(traj_pnp.T_world_body, dtype=float).reshape(-1, 4, 4)
+    restamped, extra, poses, rep.frames_restamp_tried = restamp_flight(
+        stream, camera, log.world, decoded, first_t, corner_sigma_px, workers
+    )
+    rep.restamp_seconds = time.perf_counter() - t0
+    rep.restamped = len(restamped)
+    rep.restamped_keys = {(d.timestamp_ns, d.payload) for d in restamped}
+    rep.restamp_poses = len(poses)
+    for d in restamped:
+        decoded.setdefault(d.timestamp_ns, []).append(d)
+    rep.frames_with_restamped = len({d.timestamp_ns for d in restamped})
+    for p, code in extra.items():
+        catalogue.setdefault(p, code)
+    if poses:
+        first_t = np.concatenate([first_t, np.fromiter(poses, dtype=np.int64)])
+        first_T = np.concatenate([first_T, np.stack(list(poses.values()))])
+        order = np.argsort(first_t, kind="stable")
+        first_t, first_T = first_t[order], first_T[order]
+    rep.catalogue = len(catalogue)
+    if not catalogue or len(first_t) == 0:
+        rep.skipped_reason = "no floor code decoded and posed in this flight"
+        return with_tracked(det, restamped, rep), rep
     chunks = track_chunks(first_t, stream.timestamps_ns, len(stream))
     imu = getattr(log, "imu", None)
     bridge = ImuBridge(imu) if imu is not None and len(imu.timestamps_ns) > 1 else None
@@ -567,22 +684,28 @@ def track_flight(
             "poses_added",
         ):
             setattr(rep, name, getattr(rep, name) + getattr(chunk_rep, name))
+    for t in poses:
+        if rep.frame_outcomes.get(t) != "posed":
+            rep.frame_outcomes[t] = "restamped"
     rep.chunks = len(chunks)
     rep.seconds = time.perf_counter() - t0
     logger.info(rep.note())
-    return with_tracked(det, tracked, rep), rep
+    return with_tracked(det, tracked + restamped, rep), rep
 
 
 def with_tracked(det: DetectionResult, tracked: list[QRDetection], rep: TrackReport) -> DetectionResult:
-    """`det` with the floor camera's `tracked` detections merged in time order and counted."""
+    """`det` with the floor camera's `tracked` detections (tracked and re-stamped) merged in time
+    order and counted."""
     if not tracked:
         return det
     stats = {k: CameraStats(**vars(v)) for k, v in det.stats.items()}
     st = stats.setdefault(FLOOR, CameraStats())
+    with_decoded = {d.timestamp_ns for d in det.detections if d.camera == FLOOR and not d.tracked}
+    only = len({d.timestamp_ns for d in tracked} - with_decoded)
     st.tracked += len(tracked)
     st.detections += len(tracked)
-    st.frames_with_tracked_only += rep.frames_tracked_only
-    st.frames_with_code += rep.frames_tracked_only
+    st.frames_with_tracked_only += only
+    st.frames_with_code += only
     dets = sorted(
         det.detections + tracked, key=lambda d: (d.camera, d.timestamp_ns, d.tracked)
     )  # stable: a frame's decoded codes keep their order, tracked ones after them
