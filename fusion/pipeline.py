@@ -104,7 +104,7 @@ from fusion.types import (
 )
 from fusion.warehouse import floorcodes
 from fusion.warehouse.runs import WORLD_YAML
-from fusion.warehouse.view3d import floor_codes_from_detections
+from fusion.warehouse.view3d import floor_codes_from_payloads
 
 logger = logging.getLogger(__name__)
 
@@ -653,6 +653,8 @@ def fuse_stage(
             out.as_built = as_built
     if shared is not None:
         smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
+        # the batch smoother is their only user: let the whole flight's states go with it
+        shared.states = None
     smoother_kwargs["window"] = _window_config(cfg)
     smoother_kwargs["solver"] = smooth
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
@@ -683,6 +685,8 @@ def fuse_stage(
                 name, f"internal error: {type(e).__name__}: {first_line}", type(e).__name__
             )
             continue
+        finally:
+            kwargs.pop("warm_start", None)  # the smoother's start: not needed after it
         res.trajectory.name = str(name)
         res.loads.name = str(name)
         out.results[name] = res
@@ -860,7 +864,12 @@ def _run_into(
     if until == "run":
         t = time.perf_counter()
         _progress(cfg, "evaluation and report")
-        _evaluate_and_report(log, result, fused_stats, loc.stats)
+        # what the evaluation needs of the detections and per-frame results, taken now so that
+        # they (objects per sighting, growing with the flight) are let go before its peak
+        floor_xy = _floor_codes_seen(det, log)
+        raw_stats = loc.stats
+        del det, detected, loc, shared
+        _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy)
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
@@ -1189,7 +1198,15 @@ def _write_estimates(out_dir: Path, result: RunResult) -> None:
         write_floor_codes_csv(out_dir / FLOOR_CODES_CSV.format(name), fmap)
 
 
-def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, raw_stats: dict) -> None:
+def _evaluate_and_report(
+    log: FlightLog,
+    result: RunResult,
+    fused_stats: dict,
+    raw_stats: dict,
+    floor_xy: np.ndarray | None = None,
+) -> None:
+    """metrics.json, the ground truth as TUM, report.md and its plots; `floor_xy`: the world
+    (x, y) of the floor codes decoded in the flight (_floor_codes_seen), drawn as a faint grid."""
 
     out_dir = result.out_dir
     gt = log.groundtruth
@@ -1225,7 +1242,6 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
     result.metrics = metrics
     if gt is not None:
         export_groundtruth_tum(gt, out_dir / "trajectory_groundtruth.tum")
-    floor_xy = _floor_codes_seen(out_dir, log)
     summary = dict(
         result.log_summary, payload_unit_m=log.world.payload_unit_m, detection=result.detection_stats
     )
@@ -1245,11 +1261,13 @@ def _evaluate_and_report(log: FlightLog, result: RunResult, fused_stats: dict, r
     )
 
 
-def _floor_codes_seen(out_dir: Path, log: FlightLog) -> np.ndarray | None:
-    """World (x, y) of every floor code decoded in the flight (for the plots' faint grid)."""
-    if "cam0" not in log.cameras:  # camera-less: nothing was detected
-        return None
-    return floor_codes_from_detections(out_dir, log.world.payload_unit_m)
+def _floor_codes_seen(det: DetectionResult, log: FlightLog) -> np.ndarray | None:
+    """World (x, y) of every floor code decoded in the flight (for the plots' faint grid): the
+    payloads of the floor camera's detections, those that detections.csv holds (its tracked
+    sightings are codes decoded in other frames).  Taken from `det` rather than by reading
+    detections.csv again (which held every detection of the flight as objects at the run's
+    memory peak: ~65 MB a 2-minute flight, NOTES-mem30.md)."""
+    return floor_codes_from_payloads((d.payload for d in det.for_camera("cam0")), log.world.payload_unit_m)
 
 
 def demo(

@@ -20,6 +20,7 @@ from fusion.errors import DetectionError
 from fusion.fileio import csv_safe
 from fusion.log import read_flight
 from fusion.parallel import _preload_modules, parallel_map
+from fusion.qr import detect as detect_module
 from fusion.qr.detect import (
     _MAGIC,
     CACHE_HEADER,
@@ -173,6 +174,48 @@ def test_a_malformed_row_among_good_ones_is_named_by_its_line(tmp_path, column, 
     csv.writer(buf, lineterminator="\n").writerows(rows)
     path.write_text("".join(lines[:3]) + buf.getvalue(), encoding="utf-8")
     with pytest.raises(DetectionError, match=rf"detections\.csv:8: .*{message}"):
+        read_cache(path)
+
+
+@pytest.mark.parametrize("block", [1, 7, 80, 81])
+def test_cache_read_in_blocks_equals_the_cache_read_at_once(tmp_path, monkeypatch, block):
+    dets = _random_detections(5, 80)
+    path = tmp_path / "detections.csv"
+    write_cache(_result(dets), path, "f" * 64)
+    whole = read_cache(path)
+    monkeypatch.setattr(detect_module, "CACHE_READ_ROWS", block)
+    back = read_cache(path)
+    assert whole is not None and back is not None and len(back.detections) == len(dets) == 80
+    for a, b in zip(whole.detections, back.detections):
+        assert (a.camera, a.timestamp_ns, a.payload, a.tracked, a.corner_sigma_px) == (
+            b.camera,
+            b.timestamp_ns,
+            b.payload,
+            b.tracked,
+            b.corner_sigma_px,
+        )
+        assert a.corners_px.tobytes() == b.corners_px.tobytes()
+        assert a.corners_raw_px.tobytes() == b.corners_raw_px.tobytes()
+        assert (a.corner_cov_px2 is None) == (b.corner_cov_px2 is None)
+        if a.corner_cov_px2 is not None:
+            assert a.corner_cov_px2.tobytes() == b.corner_cov_px2.tobytes()
+    assert (back.stats, back.skipped, back.backend) == (whole.stats, whole.skipped, whole.backend)
+
+
+def test_a_malformed_row_in_a_later_block_is_named_by_its_line(tmp_path, monkeypatch):
+    dets = [d for d in _random_detections(6, 40) if "\n" not in d.payload]
+    path = tmp_path / "detections.csv"
+    write_cache(_result(dets), path, "f" * 64)
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    bad = 13  # 0-based: file line 14, the 11th row (after 3 header lines), first of the third block of 5
+    fields = next(csv.reader([lines[bad]]))
+    fields[1] = "-3"
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(fields)
+    lines[bad] = buf.getvalue()
+    path.write_text("".join(lines), encoding="utf-8")
+    monkeypatch.setattr(detect_module, "CACHE_READ_ROWS", 5)
+    with pytest.raises(DetectionError, match=r"detections\.csv:14: negative timestamp"):
         read_cache(path)
 
 

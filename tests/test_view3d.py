@@ -157,3 +157,26 @@ def test_browser_check_sees_errors_and_blank_pages(tmp_path):
     assert any("boom" in e["message"] for e in errors) and state[0] == "undefined"
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).astype(int)
     assert np.count_nonzero(img.max(axis=2) - img.min(axis=2) > 80) < MIN_COLOURED_PIXELS
+
+
+def test_floor_grid_from_payloads_equals_the_grid_read_from_detections_csv(tmp_path):
+    """The run takes the faint floor-code grid from its detections in memory; `fusion inventory`
+    redraws report.html from detections.csv: the same codes, each once, sorted, in metres."""
+    from fusion.qr.detect import CameraStats, DetectionResult, write_cache
+    from fusion.types import QRDetection
+    from fusion.warehouse.view3d import floor_codes_from_detections, floor_codes_from_payloads
+
+    corners = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    payloads = ["0/3/2", "0/1/2", "1/box-7", "0/3/2", "junk", "0/1/-4.5", "0/x/2"]
+    dets = [
+        QRDetection("cam0" if i % 4 else "cam1", 1000 + i, p, corners, corners)
+        for i, p in enumerate(payloads + payloads)
+    ]
+    write_cache(DetectionResult(dets, {"cam0": CameraStats()}), tmp_path / "detections.csv", "f" * 64)
+    floor = [d.payload for d in dets if d.camera == "cam0"]
+    from_csv = floor_codes_from_detections(tmp_path, 0.5)
+    from_payloads = floor_codes_from_payloads(floor, 0.5)
+    assert from_csv is not None and from_payloads is not None
+    assert from_payloads.tobytes() == from_csv.tobytes()
+    np.testing.assert_array_equal(from_payloads, [[0.5, -2.25], [0.5, 1.0], [1.5, 1.0]])
+    assert floor_codes_from_payloads(["1/box-7", "junk"], 0.5) is None

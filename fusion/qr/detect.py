@@ -789,6 +789,7 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
             except (ValueError, TypeError, KeyError, AttributeError):
                 raise DetectionError(f"{path}:2: malformed '# meta' line") from None
             reader = csv.reader(f)
+            dets: list[QRDetection] = []
             rows, lines = [], []
             for lineno, row in enumerate(reader, start=3):
                 if lineno == 3:
@@ -797,14 +798,29 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
                     continue
                 rows.append(row)
                 lines.append(reader.line_num + 2)
+                if len(rows) == CACHE_READ_ROWS:
+                    dets += _cache_block(rows, lines, path)
+                    rows, lines = [], []
+            dets += _cache_block(rows, lines, path)
         except UnicodeDecodeError:
             raise DetectionError(f"{path}: not UTF-8 text") from None
         except csv.Error as e:
             raise DetectionError(f"{path}: malformed CSV ({e})") from None
+    return DetectionResult(dets, stats, skipped, backend, True, CACHE_REUSED)
+
+
+CACHE_READ_ROWS = 1024
+"""detections.csv is converted this many rows at a time: its rows as lists of text took ~7 kB a
+detection while they were converted, the detections ~1.3 kB (a 2-minute flight's 9,224 read at
+once: 64.6 MB traced peak, 11.8 MB kept; 1,024 at a time: 17.8 MB peak; NOTES-mem30.md)."""
+
+
+def _cache_block(rows: list[list[str]], lines: list[int], path: Path) -> list[QRDetection]:
+    """The detections of consecutive cache rows (their line numbers `lines`)."""
     dets = _cache_dets(rows)
     if dets is None:  # something is malformed: the row-by-row reader names its line
         dets = [_cache_row(row, path, lineno) for row, lineno in zip(rows, lines)]
-    return DetectionResult(dets, stats, skipped, backend, True, CACHE_REUSED)
+    return dets
 
 
 _CACHE_CAMERAS = ("cam0", "cam1")

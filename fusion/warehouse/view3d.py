@@ -11,6 +11,7 @@ load (ids HTML-escaped: plotly renders hover text as HTML).
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -339,10 +340,16 @@ def floor_codes_from_detections(out_dir: Path, payload_unit_m: float) -> np.ndar
     cached = read_cache(Path(out_dir) / "detections.csv")
     if cached is None:
         return None
+    return floor_codes_from_payloads((d.payload for d in cached.for_camera("cam0")), payload_unit_m)
+
+
+def floor_codes_from_payloads(payloads: Iterable[str], payload_unit_m: float) -> np.ndarray | None:
+    """World (x, y) of every floor code among the floor camera's decoded `payloads` (sorted,
+    each once), None when there is none; other payloads are ignored."""
     xy = set()
-    for d in cached.for_camera("cam0"):
+    for payload in set(payloads):  # a code is read in hundreds of frames: parse it once
         try:
-            p = parse_payload(d.payload)
+            p = parse_payload(payload)
         except PayloadError:
             continue
         if isinstance(p, FloorPayload):
