@@ -247,3 +247,31 @@ def test_defocus_disc_leaves_a_smaller_outward_bias_with_the_psf_width_fitted(mo
     fitted = _outward_bias_under_defocus(True, monkeypatch)
     assert fixed > 0.006
     assert abs(fitted) < 0.5 * fixed
+
+
+def test_the_growth_is_used_only_where_it_is_significant():
+    """The dark modules' growth (second run, codes with clipped samples) replaces the first run's
+    corners only where |d| >= GROWTH_MIN_Z sigma_d in an edge direction: a real photograph of
+    white paper at 254-255 (clipped samples, growth within 3 sigma) keeps the first run's corners,
+    a render over-exposed 1.6x (|d| / sigma_d ~ 70) takes the second run's."""
+    from fusion.qr import refine as R
+
+    image = np.ascontiguousarray(np.array(Image.open(PHOTOS / "qrcode-7_01-02.png").convert("L")))
+    (b,) = zxingcpp.read_barcodes(image, formats=ZXING_FORMATS)
+    p = b.position
+    raw = np.array([[q.x, q.y] for q in (p.top_left, p.top_right, p.bottom_right, p.bottom_left)], float)
+    n = float(np.array(b.to_image(scale=1, add_quiet_zones=False)).shape[0])
+    h, w = image.shape
+    photo = (image, raw - 0.5, n, CameraModel(w, h, 1000.0, 1000.0, w / 2, h / 2))
+    over, raw_r, _, n_r, camera = _view(gain=1.6)
+    rendered = (over, raw_r, float(n_r), camera)
+    for (img, corners, modules, cam), significant in ((photo, False), (rendered, True)):
+        dist = R._Distortion(cam)
+        start = dist.undistort(corners)
+        (first,), clipped = R._stage2([img], np.zeros(1, int), dist, [start], [modules])
+        (second,), _ = R._stage2([img], np.zeros(1, int), dist, [start], [modules], fit_dilation=True)
+        assert clipped[0] and first is not None
+        assert (second is not None) == significant
+        res = refine_code(img, corners, modules, cam)
+        expected = second if significant else first
+        np.testing.assert_allclose(res.corners_px, dist.distort(expected[0]), atol=1e-9)

@@ -57,7 +57,7 @@ FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image s
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = (
     # change when refine.py's output changes
-    "finder-crossings+finder-model-homography+alignment+checks+dilation+damped-widths/10"
+    "finder-crossings+finder-model-homography+alignment+checks+dilation-3sigma+damped-widths/11"
 )
 CACHE_HEADER = (
     "camera",

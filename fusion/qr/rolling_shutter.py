@@ -33,7 +33,12 @@ the refined corners afterwards is not enough: the readout bends a code's edges (
 over the rows), no homography fits the sheared code, and its extrapolated corner errs most
 (2 m/s, 20 ms: refined corners 0.020 / 0.026 / 0.073 / 0.025 px TL / TR / BR / BL against the
 true per-row projection, global shutter 0.010 / 0.010 / 0.031 / 0.010; refined at the stamp
-0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; BENCHMARKS.md).  Kalibr
+0.018 / 0.017 / 0.035 / 0.019 px against the true stamp projection; BENCHMARKS.md).  The
+motion is then taken again from the PnP poses of the codes refined at the stamp, and they are
+refined at the stamp again with it (STAMP_MOTION_PASSES): where corrections reach 15-25 px (a
+1.7 rad/s turn at 1 m/s, 30 ms) the refined-then-moved corners give poses 10-20 mm off, whose
+velocity fit errs by up to 0.1 m/s, and that left the corrected corners up to 1.1 px off (exact
+per-row poses: 0.03 px).  Kalibr
 (Oth et al., "Rolling Shutter Camera Calibration", CVPR 2013) models the motion over the readout
 with a continuous-time spline; the IMU's samples play its part here.
 
@@ -88,16 +93,17 @@ DEFORMATION_SIGMA_FRACTION = 0.02
 scripts/bench_rolling_shutter.py's 2 m/s, 20 ms flight: the refined corners' chi^2 / 8 against
 the true rolling-shutter corners 6.1 (mean) / 1.7 (median) without it, 0.81 / 0.62 with it
 (global shutter: 0.68 / 0.58)."""
-CORRECTION_SIGMA_PER_PX2 = 1.0 / 600.0
+CORRECTION_SIGMA_PER_PX2 = 1.0 / 6600.0
 """Corner error (px) per px^2 of a frame's correction (its corners' mean displacement from where
 they were read to the stamp): what the correction of a large readout motion leaves, modelled as
 an error of the motion's scale (`correction_scale_sigma`, `motion_pose_covariance`).  Measured
-on scripts/bench_rolling_shutter.py's 1 m/s, 30 ms flight against the global-shutter run's corners
-at the same stamps: in its last 0.5 s (a 1.3-1.8 rad/s
-yaw turn) the corrected corners err by 0.04 / 0.17 / 0.49 / 1.12 px for corrections of 6.5 / 12.8 /
-19.5 / 25.3 px, about m^2 / 600 (elsewhere 0.02-0.04 px for 0.5-6.6 px mean corrections).
-Without it those frames' PnP poses (3-9 mm off, NEES 100-36000) pulled the camera-IMU time
-offset profile to -0.67 ms on a flight with no offset (fusion.estimate.timeoffset)."""
+on scripts/bench_rolling_shutter.py's 1 m/s, 30 ms flight against the true stamp projection, in
+its last 0.5 s (a 1.3-1.8 rad/s yaw turn, corrections of 15-26 px): 0.065 px RMS beyond the
+global-shutter corners' own error, about m^2 / 6600, with the motion taken again from the codes
+refined at the stamp (STAMP_MOTION_PASSES).  Before that pass it was m^2 / 600 (0.04 / 0.17 /
+0.49 / 1.12 px for corrections of 6.5 / 12.8 / 19.5 / 25.3 px), and without this term those
+frames' PnP poses (3-9 mm off, NEES 100-36000) pulled the camera-IMU time offset profile to
+-0.67 ms on a flight with no offset (fusion.estimate.timeoffset)."""
 FIT_HALF_WINDOW_IMU = 15
 FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
@@ -123,6 +129,13 @@ UNCORRECTED_RATE_RAD_S = 1.0
 moved this fast (a turning multirotor): its corners' covariance gains (rate x readout x f)^2 I
 (11 px for 20 ms at f = 550 px), so that they no longer pass for refined corners (5 such front
 camera frames took a fused flight's NEES from 20 to 570, scripts/bench_realism.py, BENCHMARKS.md)."""
+STAMP_MOTION_PASSES = 2
+"""`correct_flight` with the images: rounds of motion from the poses of the codes refined at the
+stamp, refinement at the stamp again, before the final correction.  Measured on
+scripts/bench_rolling_shutter.py's 1 m/s, 30 ms flight, corrected corners against the true stamp
+projection where the correction is 15-20 / 20-30 px (3 + 3 codes, the final turn): 0.38 / 0.92 px
+with 0 passes, 0.081 / 0.179 with 1, 0.037 / 0.080 with 2, 0.025 / 0.067 with 3 (exact per-row
+poses: 0.012 / 0.033); each pass costs a refinement at the stamp (~4 CPU s per 600 frames)."""
 REFINE_BATCH_FRAMES = 8
 """`refine_at_stamp`: frames refined together (as fusion.qr.detect does)."""
 
@@ -568,14 +581,28 @@ def correct_flight(
     cameras use the same poses and gyro at their own stamps.  With `streams` ({camera: stream
     with `timestamps_ns` and `load_image(i)`, e.g. FlightLog.cameras}) every rolling-shutter
     camera's floor and load codes are then refined again with their edge points at the stamp
-    (`refine_at_stamp`); the codes it does not replace are corrected as above.  Without a
-    rolling-shutter camera the result is `det` itself."""
+    (`refine_at_stamp`); the codes it does not replace are corrected as above.  Before that the
+    floor camera's motion is taken again STAMP_MOTION_PASSES times from the PnP poses of its
+    codes refined at the stamp (module docstring).  Without a rolling-shutter camera the result
+    is `det` itself."""
     report = RollingShutterReport(motion_source="IMU gyro + PnP velocity" if imu is not None else "PnP poses")
     rs = {name: cam for name, cam in cameras.items() if cam is not None and cam.rolling_shutter}
     floor_cam = cameras.get("cam0")
     if not rs or floor_cam is None:
         return det, report
-    traj = corrected_trajectory(det.by_frame("cam0"), floor_cam, world, imu, corner_sigma_px, passes)
+    floor_frames = det.by_frame("cam0")
+    traj = corrected_trajectory(floor_frames, floor_cam, world, imu, corner_sigma_px, passes)
+    floor_reader = _image_reader(streams, "cam0")
+    if "cam0" in rs and floor_reader is not None:
+        # the motion again from the poses of the codes refined at the stamp: the corners moved
+        # after refinement in the sheared image (`corrected_trajectory`) give poses 10-20 mm and
+        # 10-15 mrad off where the correction exceeds ~15 px (a 1.7 rad/s turn at 1 m/s, 30 ms),
+        # whose velocity fit and gravity then err by up to 0.1 m/s (~1 px at the last row)
+        for _ in range(STAMP_MOTION_PASSES):
+            stamps = np.array(sorted(floor_frames), dtype=np.int64)
+            motion = frame_motion(traj, stamps, floor_cam, imu)
+            fixed, _, _ = _correct_camera(floor_frames, floor_cam, world, motion, floor_reader, "cam0")
+            traj, _ = pnp_trajectory(fixed, floor_cam, world, corner_sigma_px)
     corrected: list[QRDetection] = []
     for name in sorted({d.camera for d in det.detections}):
         frames = det.by_frame(name)
@@ -585,18 +612,10 @@ def correct_flight(
             continue
         stamps = np.array(sorted(frames), dtype=np.int64)
         motion = frame_motion(traj, stamps, cam, imu)
-        fixed, n = correct_frames(frames, cam, world, motion)
         reader = _image_reader(streams, name)
+        fixed, n, n_refined = _correct_camera(frames, cam, world, motion, reader, name)
         if reader is not None:
-            try:
-                refined, done = refine_at_stamp(frames, reader, cam, world, motion)
-            except LogError as e:  # an image that read at detection and not now: as before
-                log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
-                refined, done = frames, set()
-            for ts, i in done:
-                fixed[ts][i] = refined[ts][i]
-            report.refined_at_stamp[name] = len(done)
-        fixed = _inflate_uncorrected(fixed, cam, motion)
+            report.refined_at_stamp[name] = n_refined
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
         if name == "cam0" and not cam.gimbaled:
             kappa = correction_scale_sigma(frames, fixed)
@@ -609,6 +628,30 @@ def correct_flight(
     for note in report.notes():
         log_.info(note)
     return replace(det, detections=corrected), report
+
+
+def _correct_camera(
+    frames: dict[int, list[QRDetection]],
+    cam: CameraModel,
+    world: World,
+    motion: FrameMotion,
+    reader,
+    name: str,
+) -> tuple[dict[int, list[QRDetection]], int, int]:
+    """One camera's frames moved to their stamps with `motion` (`correct_frames`), its codes
+    refined again at the stamp where `reader` gives the images (`refine_at_stamp`), frames
+    without a motion inflated; also the frames with a motion and the codes refined at the stamp."""
+    fixed, n = correct_frames(frames, cam, world, motion)
+    done: set[tuple[int, int]] = set()
+    if reader is not None:
+        try:
+            refined, done = refine_at_stamp(frames, reader, cam, world, motion)
+        except LogError as e:  # an image that read at detection and not now: as before
+            log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
+            refined, done = frames, set()
+        for ts, i in done:
+            fixed[ts][i] = refined[ts][i]
+    return _inflate_uncorrected(fixed, cam, motion), n, len(done)
 
 
 def _inflate_uncorrected(
