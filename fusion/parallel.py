@@ -14,7 +14,7 @@ modules once; every worker forks from it.  It also imports every `fusion` module
 has imported by then (`_preload_modules`): a worker re-runs the main module (multiprocessing's
 `__mp_main__`, e.g. the `fusion` script or a bench script) and unpickles its context and
 function, and without them in the forkserver each worker imported them again (measured: ~2.5 CPU
-s a worker for `fusion.pipeline`, 6 workers a `fusion run`; NOTES-detectwall.md).
+s a worker for `fusion.pipeline`, 6 workers a `fusion run`; BENCHMARKS.md).
 """
 
 from __future__ import annotations

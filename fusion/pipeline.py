@@ -1266,7 +1266,7 @@ def _floor_codes_seen(det: DetectionResult, log: FlightLog) -> np.ndarray | None
     payloads of the floor camera's detections, those that detections.csv holds (its tracked
     sightings are codes decoded in other frames).  Taken from `det` rather than by reading
     detections.csv again (which held every detection of the flight as objects at the run's
-    memory peak: ~65 MB a 2-minute flight, NOTES-mem30.md)."""
+    memory peak: ~65 MB a 2-minute flight, BENCHMARKS.md)."""
     return floor_codes_from_payloads((d.payload for d in det.for_camera("cam0")), log.world.payload_unit_m)
 
 

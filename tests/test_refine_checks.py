@@ -242,7 +242,7 @@ def test_defocus_disc_leaves_a_smaller_outward_bias_with_the_psf_width_fitted(mo
     looked ~0.01 px larger, a bias shared by all frames that PnP's residuals cannot see (a change
     of scale) and that the smoother averaged into NEES 54 on the defocus r 1 flight
     (scripts/bench_realism.py).  Fitting that box's width per code and edge direction
-    (_model_edge_points) removes most of it (NOTES-sigma.md)."""
+    (_model_edge_points) removes most of it (BENCHMARKS.md)."""
     fixed = _outward_bias_under_defocus(False, monkeypatch)
     fitted = _outward_bias_under_defocus(True, monkeypatch)
     assert fixed > 0.006

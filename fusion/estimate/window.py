@@ -3,7 +3,7 @@ memory <= 1 GB per worker for a 30-minute flight).
 
 The batch smoother's memory grows linearly with the frames (graph, Values, the linear systems of
 Levenberg-Marquardt, the variance components' sparse factorisation: ~0.1 GB per flight minute of
-a two-camera 30 fps flight, NOTES-memory.md).  A flight longer than `WindowConfig.min_flight_s`
+a two-camera 30 fps flight, BENCHMARKS.md).  A flight longer than `WindowConfig.min_flight_s`
 is cut into windows of at most `window_s` that overlap by `overlap_s`; each is solved by the
 unchanged `smoother.smooth` (its own noise-scale iteration, outlier gate and marginal
 covariances), one at a time, so the peak is that of one window.  Shorter flights are solved
@@ -64,7 +64,7 @@ log = logging.getLogger(__name__)
 WINDOW_MIN_FLIGHT_S = 300.0
 """Flights up to this long are solved whole (today's exact solution); ~0.7 GB peak at 5 min."""
 WINDOW_S = 180.0
-"""Longest window: ~0.5 GB peak for a two-camera 30 fps window (NOTES-memory.md)."""
+"""Longest window: ~0.5 GB peak for a two-camera 30 fps window (BENCHMARKS.md)."""
 WINDOW_OVERLAP_S = 30.0
 """Overlap of consecutive windows; output frames are at least half of it from a window's end."""
 IMU_PAD_S = 0.05

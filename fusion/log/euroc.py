@@ -393,7 +393,7 @@ def _numeric_csv(path: Path, ncols: int, with_lines: bool = False):
     (timestamps_ns, values) and, with `with_lines`, each row's line number.  The rows are
     gathered in typed buffers, 8 bytes a number, which the arrays then view (as lists of Python
     floats, ~0.6 kB a ground-truth row: reading a 2-minute flight peaked at 22.8 MB traced and
-    left the process 64 MB larger, against 8.7 and 8 MB now; NOTES-mem30.md)."""
+    left the process 64 MB larger, against 8.7 and 8 MB now; BENCHMARKS.md)."""
     ts, vals, lines, prev = array("q"), array("d"), array("q"), None
     for lineno, row in _rows(path, ncols):
         t = _timestamp(row[0], path, lineno)

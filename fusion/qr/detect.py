@@ -510,7 +510,7 @@ def _detect_chunk_packed(context: tuple[dict, str, bool], task: tuple[str, int, 
 class PackedDetections:
     """QRDetections as a few arrays, for sending between processes: pickling and unpickling a
     chunk's detections this way costs ~1/30 of the CPU of the objects (9,224 detections: 0.51
-    vs 0.015 s, NOTES-detectwall.md).  `unpack_detections` gives back equal detections, every
+    vs 0.015 s, BENCHMARKS.md).  `unpack_detections` gives back equal detections, every
     array and number bit for bit (detections that do not fit the arrays exactly are sent as
     they are: `pack_detections`)."""
 
@@ -812,7 +812,7 @@ def read_cache(path: Path, expected_fingerprint: str | None = None) -> Detection
 CACHE_READ_ROWS = 1024
 """detections.csv is converted this many rows at a time: its rows as lists of text took ~7 kB a
 detection while they were converted, the detections ~1.3 kB (a 2-minute flight's 9,224 read at
-once: 64.6 MB traced peak, 11.8 MB kept; 1,024 at a time: 17.8 MB peak; NOTES-mem30.md)."""
+once: 64.6 MB traced peak, 11.8 MB kept; 1,024 at a time: 17.8 MB peak; BENCHMARKS.md)."""
 
 
 def _cache_block(rows: list[list[str]], lines: list[int], path: Path) -> list[QRDetection]:

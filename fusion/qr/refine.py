@@ -29,7 +29,7 @@ quadratic): `_model_edge_points`.  A symmetric blur then moves no edge when its 
 model's family: with the second box fixed at 1.5 px, a defocus disc of 1 px radius moves every
 edge outwards by ~0.01 px (every code looks larger, in every frame: a bias PnP cannot see and
 the smoother averaged into NEES 54); the fitted width leaves a third to a half of it
-(NOTES-sigma.md).  Passes (`_MODEL_ITERATIONS`): from the decoder's corners, the
+(BENCHMARKS.md).  Passes (`_MODEL_ITERATIONS`): from the decoder's corners, the
 profiles' 50 % crossings (local, so free of the decoder's scale error); then the model fit
 (3 Gauss-Newton iterations), then once more around the refined edges (1 iteration, widths warm).
 After each pass one homography H (module coordinates -> pixels) is fitted to all edge points of a
@@ -311,7 +311,7 @@ _MAX_DILATION = 0.3  # modules: the fitted growth of the dark modules is clipped
 # The growth's corners are used only where it is significant (|d| >= GROWTH_MIN_Z sigma_d, sigma_d
 # from the fit's normal matrix and residual variance): on real photographs of white paper (59 % of
 # the edge samples at 254-255) an insignificant growth moved corners by noise, median 0.2527 ->
-# 0.2575 px over 97 codes, 0.2506 px with the test (scripts/bench_refine_real.py, NOTES-rs.md);
+# 0.2575 px over 97 codes, 0.2506 px with the test (scripts/bench_refine_real.py, BENCHMARKS.md);
 # clipped renders give |d| / sigma_d of 36-78
 GROWTH_MIN_Z = 3.0
 _MODEL_ITERATIONS = (0, 3, 1)  # Gauss-Newton iterations per pass (0: 50 % crossings only)
@@ -326,7 +326,7 @@ _MIN_GOOD_PROFILES = 10  # of 24 (averaged) per code
 # brings the floor PnP NEES on rendered frames to ~6, but the load-centre NEES of
 # tests/test_pnp.py's rendered frames rises from 4.0 to 5.2-5.6 (ideal 3, heavy-tailed; the
 # shared widths' uncertainty, added to each edge sigma, does not explain it).  Opt-in until the
-# cause is found (NOTES-sigma.md).
+# cause is found (BENCHMARKS.md).
 FIT_PSF = False
 _PSF_PRIOR_PX = 1.0  # 1-sigma prior of the fitted second box's width about _MODEL_PSF_PX (0: none)
 _GROUP_DAMPING = 1e-3  # relative Levenberg damping of the per-code (width, PSF, growth) step
@@ -779,7 +779,7 @@ def _model_edge_points(
     # the PSF's width is fitted on codes without clipped samples: where the growth d is free it
     # takes the clipped profiles' misfit, and a second shape parameter there was confounded with
     # it (b free on every code: clipping x2.2 smoother NEES 13 -> 30, and 4 real photographs
-    # worse than the decoder by > 0.5 px instead of 1, two of them clipped; NOTES-sigma.md)
+    # worse than the decoder by > 0.5 px instead of 1, two of them clipped; BENCHMARKS.md)
     free_psf = np.repeat(~clipped_code & bool(fit_psf), 2)
     psf_px = np.where(free_psf, psf_px, _MODEL_PSF_PX)
     free = np.stack([np.ones(2 * C, bool), free_psf, free_dil], axis=1)  # w, b, d
