@@ -199,19 +199,9 @@ def preintegrate(
     """Preintegrated measurements for each covered interval k (between frames k and k+1), with
     zero bias as the linearisation point (sub-intervals from imu_subintervals).
     `midpoint_attitude`: the specific force turned to each sub-interval's midpoint attitude
-    (midpoint_specific_force)."""
-    k_of, dts, gyr, acc = imu_subintervals(frame_t, imu, covered)
-    if midpoint_attitude:
-        acc = midpoint_specific_force(gyr, acc, dts)
-    out: dict[int, gtsam.PreintegratedCombinedMeasurements] = {}
-    bias0 = gtsam.imuBias.ConstantBias()
-    cur = -1
-    for j, (k, dt) in enumerate(zip(k_of.tolist(), dts.tolist())):
-        if k != cur:
-            out[k] = gtsam.PreintegratedCombinedMeasurements(params, bias0)
-            cur = k
-        out[k].integrateMeasurement(acc[j], gyr[j], dt)
-    return out
+    (midpoint_specific_force).  Every interval at once: LazyPims integrates them when asked."""
+    intervals = LazyPims(frame_t, imu, covered, params, midpoint_attitude)
+    return {k: intervals.integrate(k) for k in intervals}
 
 
 def imu_factor(k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> gtsam.CombinedImuFactor:
@@ -257,12 +247,17 @@ class LazyPims(Mapping[int, gtsam.PreintegratedCombinedMeasurements]):
         if k not in self:
             raise KeyError(k)
         k = int(k)
-        pim = gtsam.PreintegratedCombinedMeasurements(self._params, gtsam.imuBias.ConstantBias())
-        for j in range(self._first[k], self._first[k + 1]):
-            pim.integrateMeasurement(self._acc[j], self._gyr[j], self._dts[j])
+        pim = self.integrate(k)
         if len(self._cache) >= self._keep:
             del self._cache[next(iter(self._cache))]
         self._cache[k] = pim
+        return pim
+
+    def integrate(self, k: int) -> gtsam.PreintegratedCombinedMeasurements:
+        """Interval k's preintegration (zero bias), integrated now and not kept."""
+        pim = gtsam.PreintegratedCombinedMeasurements(self._params, gtsam.imuBias.ConstantBias())
+        for j in range(self._first[k], self._first[k + 1]):
+            pim.integrateMeasurement(self._acc[j], self._gyr[j], self._dts[j])
         return pim
 
     def __iter__(self) -> Iterator[int]:

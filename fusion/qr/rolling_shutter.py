@@ -598,8 +598,8 @@ def correct_flight(
         # after refinement in the sheared image (`corrected_trajectory`) give poses 10-20 mm and
         # 10-15 mrad off where the correction exceeds ~15 px (a 1.7 rad/s turn at 1 m/s, 30 ms),
         # whose velocity fit and gravity then err by up to 0.1 m/s (~1 px at the last row)
+        stamps = np.array(sorted(floor_frames), dtype=np.int64)
         for _ in range(STAMP_MOTION_PASSES):
-            stamps = np.array(sorted(floor_frames), dtype=np.int64)
             motion = frame_motion(traj, stamps, floor_cam, imu)
             fixed, _, _ = _correct_camera(floor_frames, floor_cam, world, motion, floor_reader, "cam0")
             traj, _ = pnp_trajectory(fixed, floor_cam, world, corner_sigma_px)
