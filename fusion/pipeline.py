@@ -575,11 +575,43 @@ class FuseStageResult:
     raw: Trajectory | None = None  # the raw poses the back ends fused (PnP, with any fixes)
 
 
+@dataclass
+class FloorInputs:
+    """What the fusion and the evaluation take from a flight's detections (floor_inputs), so
+    that the detections themselves (objects per sighting, growing with the flight: ~0.1 GB on a
+    30-minute flight, BENCHMARKS.md) can be let go before the fusion."""
+
+    as_built: AsBuiltInput | None  # the smoother's as-built floor-code input (floorcodes.as_built_input)
+    as_built_notes: list[str]  # as_built_input's notes
+    tight_frames: dict  # {timestamp_ns: [FloorSighting]} for the corner factors: empty unless cfg.tight
+    codes_xy: np.ndarray | None  # world (x, y) of the floor codes decoded (_floor_codes_seen)
+
+
+def floor_inputs(log: FlightLog, det: DetectionResult, cfg: RunConfig) -> FloorInputs:
+    """FloorInputs of the detections `det` of `log` (final stamps and mount: take them just
+    before the fusion).  Each frame's floor sightings are classified only when a graph uses
+    them (tight corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight."""
+    if "cam0" not in log.cameras:
+        return FloorInputs(None, [], {}, None)
+    used = cfg.tight or Placement.from_world(log.world).enabled
+    sightings = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()} if used else {}
+    as_built, notes = floorcodes.as_built_input(
+        log.world,
+        _world_yaml(log),
+        sightings,
+        log.floor.camera,
+        cfg.corner_sigma_px,
+        cfg.tight,
+        cfg.floor_map,
+    )
+    return FloorInputs(as_built, notes, sightings if cfg.tight else {}, _floor_codes_seen(det, log))
+
+
 def fuse_stage(
     log: FlightLog,
     loc: LocalizeResult,
     cfg: RunConfig,
-    det=None,
+    det: DetectionResult | FloorInputs | None = None,
     fixes: PositionFixes | None = None,
     shared: SharedWholeFlight | None = None,
 ) -> FuseStageResult:
@@ -590,8 +622,10 @@ def fuse_stage(
     and the others still run.  The smoothers take both cameras' CameraModels (mount-aware);
     with `cfg.tight` they use each floor code's corners as reprojection factors (the floor
     sightings of `det`) instead of the per-frame PnP pose; the EKF stays loosely coupled.
-    `shared`: the run's whole-flight solve (SharedWholeFlight), whose states warm-start the
-    batch smoother when they belong to the same frames."""
+    `det`: the detections, or what the fusion takes of them (floor_inputs; the run passes
+    these, having let the detections go).  `shared`: the run's whole-flight solve
+    (SharedWholeFlight), whose states warm-start the batch smoother when they belong to the
+    same frames."""
     out = FuseStageResult()
     raw = loc.trajectories.get(str(Estimator.PNP), Trajectory.empty(str(Estimator.PNP)))
     merged = None
@@ -620,16 +654,11 @@ def fuse_stage(
     frame_t = merged.frame_t if merged is not None else log.floor.timestamps_ns
     floor_camera = log.floor.camera if has_floor else None
     graph_kwargs: dict[str, Any] = {"floor_camera": floor_camera}
-    # each frame's floor sightings, classified once, and only when a graph uses them (tight
-    # corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight otherwise
-    used = cfg.tight or Placement.from_world(log.world).enabled
-    floor_sightings = (
-        {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
-        if used and det is not None and has_floor
-        else {}
-    )
+    floor = None
+    if det is not None and has_floor:
+        floor = det if isinstance(det, FloorInputs) else floor_inputs(log, det, cfg)
     if cfg.tight and det is not None:
-        graph_kwargs["floor_frames"] = floor_sightings
+        graph_kwargs["floor_frames"] = floor.tight_frames if floor is not None else {}
         out.notes.append(
             "tight coupling: floor-code corners as reprojection factors in the "
             "smoothers (the EKF stays loosely coupled)"
@@ -637,20 +666,11 @@ def fuse_stage(
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     smoother_kwargs = dict(graph_kwargs)
-    if det is not None and has_floor:
-        as_built, notes = floorcodes.as_built_input(
-            log.world,
-            _world_yaml(log),
-            floor_sightings,
-            log.floor.camera,
-            cfg.corner_sigma_px,
-            cfg.tight,
-            cfg.floor_map,
-        )
-        out.notes += notes
-        if as_built is not None:
-            smoother_kwargs["as_built"] = as_built
-            out.as_built = as_built
+    if floor is not None:
+        out.notes += floor.as_built_notes
+        if floor.as_built is not None:
+            smoother_kwargs["as_built"] = floor.as_built
+            out.as_built = floor.as_built
     if shared is not None:
         smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
         # the batch smoother is their only user: let the whole flight's states go with it
@@ -850,10 +870,17 @@ def _run_into(
     timings["localize_s"] += time.perf_counter() - t
 
     fused_stats: dict = {}
+    floor_xy = None
     if until in ("smooth", "run"):
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
-        fused_stats = _fuse_into_result(log, loc, cfg, det, fixes, result, shared)
+        # what the fusion and the evaluation need of the detections, taken now so that they
+        # (objects per sighting, growing with the flight) are let go before the fusion's peak
+        floor = floor_inputs(log, det, cfg)
+        floor_xy = floor.codes_xy
+        del det, detected, detections  # (fusion batch's caller still holds its own)
+        fused_stats = _fuse_into_result(log, loc, cfg, floor, fixes, result, shared)
+        del floor
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
@@ -864,11 +891,10 @@ def _run_into(
     if until == "run":
         t = time.perf_counter()
         _progress(cfg, "evaluation and report")
-        # what the evaluation needs of the detections and per-frame results, taken now so that
-        # they (objects per sighting, growing with the flight) are let go before its peak
-        floor_xy = _floor_codes_seen(det, log)
+        # what the evaluation needs of the per-frame results, taken now so that they (objects
+        # per sighting, growing with the flight) are let go before its peak
         raw_stats = loc.stats
-        del det, detected, loc, shared
+        del loc, shared
         _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy)
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
