@@ -145,6 +145,24 @@ class Trajectory:
 
 
 @dataclass
+class PositionTrack:
+    """A position per timestamp, no orientation: what a view that draws positions only needs
+    (report.html draws the ground truth from its positions as read, without building its
+    (N, 4, 4) poses: ~0.1 GB of temporaries on a 30-minute flight, BENCHMARKS.md)."""
+
+    name: str
+    timestamps_ns: np.ndarray  # (N,) int64
+    positions_xyz: np.ndarray  # (N, 3) p_world, m
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+    @property
+    def timestamps_s(self) -> np.ndarray:  # as Trajectory.timestamps_s
+        return np.asarray(self.timestamps_ns, dtype=np.int64) * 1e-9
+
+
+@dataclass
 class LoadObservation:
     """One sighting of a load code by the front camera.
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.estimate.asbuilt import FloorCodeMap
-from fusion.types import LoadMap, Trajectory
+from fusion.types import LoadMap, PositionTrack, Trajectory
 from fusion.warehouse.inventory import REPORT_BEGIN, REPORT_END
 from fusion.warehouse.runs import RUN_RECORD, WORLD_YAML, write_run_record
 from fusion.warehouse.view3d import REPORT_HTML, write_report_html
@@ -40,16 +40,19 @@ def report_hook(
             out_dir,
             RUN_RECORD,
         )
-    gt_traj = None
+    gt_track = None
     if gt is not None:
-        gt_traj = Trajectory("groundtruth", np.asarray(gt.timestamps_ns), gt.T_world_body)
+        # the view draws positions only: p_world as read (float64, as a pose's translation)
+        gt_track = PositionTrack(
+            "groundtruth", np.asarray(gt.timestamps_ns), np.asarray(gt.p_world, dtype=np.float64)
+        )
     write_report_html(
         out_dir,
         trajectories,
         load_maps,
         floor_codes_xy_m,
         float(log_summary.get("payload_unit_m") or 1.0),
-        gt_traj,
+        gt_track,
         misplaced_codes=None
         if floor_codes is None
         else [

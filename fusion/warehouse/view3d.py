@@ -21,7 +21,7 @@ from fusion.conventions import FloorPayload, floor_payload, parse_payload
 from fusion.errors import PayloadError
 from fusion.fileio import atomic_open
 from fusion.log.files import read_tum
-from fusion.types import Estimator, LoadMap, Trajectory
+from fusion.types import Estimator, LoadMap, PositionTrack, Trajectory
 from fusion.warehouse import escape
 
 logger = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def build_figure(
     payload_unit_m: float = 1.0,
     statuses: dict | None = None,
     expected: list | None = None,
-    groundtruth: Trajectory | None = None,
+    groundtruth: Trajectory | PositionTrack | None = None,
     title: str = "fusion: 3D view",
     misplaced_codes: list[tuple[str, np.ndarray, str]] | None = None,
 ) -> go.Figure:
@@ -136,7 +136,7 @@ def build_figure(
                 hoverinfo="text",
             )
         )
-    trajs = dict(trajectories)
+    trajs: dict[str, Trajectory | PositionTrack] = dict(trajectories)
     if groundtruth is not None and len(groundtruth):
         trajs = {"groundtruth": groundtruth, **trajs}
     shown = [(name, t) for name, t in trajs.items() if len(t)]
@@ -317,7 +317,7 @@ def write_report_html(
     load_maps: dict[str, LoadMap],
     floor_codes_xy_m: np.ndarray | None = None,
     payload_unit_m: float = 1.0,
-    groundtruth: Trajectory | None = None,
+    groundtruth: Trajectory | PositionTrack | None = None,
     misplaced_codes: list[tuple[str, np.ndarray, str]] | None = None,
 ) -> Path:
     """`out_dir/report.html` of a run (no inventory yet); misplaced_codes as build_figure's."""
