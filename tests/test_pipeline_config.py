@@ -1,13 +1,21 @@
-"""RunConfig choices checked at the pipeline boundary: a bad one is one EstimationError line."""
+"""RunConfig choices checked at the pipeline boundary: a bad one is one EstimationError line; what
+the fusion takes of the detections (floor_inputs) is what it took of the detections themselves."""
 
+from dataclasses import replace
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from fusion.errors import EstimationError
-from fusion.pipeline import RunConfig, fuse_stage
+from fusion.log import read_flight
+from fusion.pipeline import RunConfig, floor_inputs, fuse_stage, localize_stage
+from fusion.qr.codes import classify
+from fusion.qr.detect import detect_flight
 from fusion.types import Trajectory
+from fusion.warehouse.floorcodes import as_built_input
+from fusion.warehouse.view3d import floor_codes_from_payloads
 
 
 def test_unknown_robust_kernel_is_an_estimation_error():
@@ -16,3 +24,69 @@ def test_unknown_robust_kernel_is_an_estimation_error():
     loc = SimpleNamespace(trajectories={"pnp": raw})
     with pytest.raises(EstimationError, match="robust kernel 'bogus' is not one of none, huber"):
         fuse_stage(log, loc, RunConfig(robust="bogus"))
+
+
+# =========================================================================== floor inputs
+
+SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+
+
+@pytest.fixture(scope="module")
+def sample_as_built():
+    """The sample flight (51 frames) with its floor codes laid as built (placement sigmas set:
+    its world.yaml says exact), its detections and per-frame estimates."""
+    log = read_flight(SAMPLE)
+    log = replace(log, world=replace(log.world, placement_sigma_m=0.01, placement_sigma_deg=1.0))
+    det = detect_flight(log, workers=1, progress=False)
+    return log, det, localize_stage(log, det, RunConfig(workers=1, progress=False))
+
+
+@pytest.mark.parametrize("tight", [False, True])
+def test_fuse_stage_gets_the_same_floor_inputs_from_floor_inputs_as_from_detections(
+    sample_as_built, monkeypatch, tight
+):
+    """The run passes floor_inputs(det), having let the detections go; the back ends must get
+    what fuse_stage took from the detections themselves: each floor frame's classified
+    sightings (tight corner factors) and the as-built input built from them."""
+    import fusion.pipeline as P
+
+    log, det, loc = sample_as_built
+    cfg = RunConfig(workers=1, progress=False, tight=tight)
+    calls: list[dict] = []
+
+    def capture(*args, **kwargs):
+        calls.append(kwargs)
+        raise EstimationError("captured")
+
+    for name in ("smooth_windowed", "smooth_incremental", "run_ekf"):
+        monkeypatch.setattr(P, name, capture)
+    outs = [P.fuse_stage(log, loc, cfg, d) for d in (det, P.floor_inputs(log, det, cfg))]
+    assert len(calls) == 6 and outs[0].notes == outs[1].notes
+    # the reference: the sightings and as-built input as fuse_stage built them before
+    sightings = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
+    ref, _ = as_built_input(log.world, {}, sightings, log.floor.camera, cfg.corner_sigma_px, tight)
+    for smoother in (calls[0], calls[1], calls[3], calls[4]):  # batch, incremental; both ways
+        if tight:
+            frames = smoother["floor_frames"]
+            assert frames.keys() == sightings.keys() and len(frames) > 0
+            for t in frames:
+                assert [s.detection for s in frames[t]] == [s.detection for s in sightings[t]]
+        else:
+            assert "floor_frames" not in smoother
+    for batch in (calls[0], calls[3]):
+        if tight:  # as-built codes are not estimated with --tight
+            assert ref is None and "as_built" not in batch
+            continue
+        got = batch["as_built"]
+        assert ref is not None and len(ref.sightings) > 0
+        assert [c.code_id for c in got.codes] == [c.code_id for c in ref.codes]
+        for field in ("timestamps_ns", "code", "T_code_body", "cov"):
+            np.testing.assert_array_equal(getattr(got.sightings, field), getattr(ref.sightings, field))
+
+
+def test_floor_inputs_keep_the_floor_code_grid_of_the_detections(sample_as_built):
+    log, det, _ = sample_as_built
+    xy = floor_inputs(log, det, RunConfig(workers=1, progress=False)).codes_xy
+    expected = floor_codes_from_payloads((d.payload for d in det.for_camera("cam0")), 1.0)
+    assert xy is not None and len(xy) > 0
+    np.testing.assert_array_equal(xy, expected)

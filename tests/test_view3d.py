@@ -18,7 +18,7 @@ from fusion.geometry import make_T, rot_z
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 from fusion.warehouse.inventory import Status
 from fusion.warehouse.manifest import ExpectedLoad
-from fusion.warehouse.view3d import REPORT_HTML, build_figure, write_html
+from fusion.warehouse.view3d import MAX_DISPLAY_POSES, REPORT_HTML, build_figure, write_html
 
 EVIL_ID = "</script><img src=x onerror=alert(1)>"
 CHROMIUM_FLAGS = (
@@ -180,3 +180,30 @@ def test_floor_grid_from_payloads_equals_the_grid_read_from_detections_csv(tmp_p
     assert from_payloads.tobytes() == from_csv.tobytes()
     np.testing.assert_array_equal(from_payloads, [[0.5, -2.25], [0.5, 1.0], [1.5, 1.0]])
     assert floor_codes_from_payloads(["1/box-7", "junk"], 0.5) is None
+
+
+def test_ground_truth_drawn_from_positions_equals_the_one_drawn_from_poses():
+    """report.html draws the ground truth from its positions (hook.groundtruth_track), not from
+    (N, 4, 4) poses: the figure must not change, decimated rows and the time slider's marker
+    (taken from every row) included; float32 positions as read are drawn as float64."""
+    from fusion.log.euroc import GroundTruth
+    from fusion.warehouse.hook import groundtruth_track
+
+    rng = np.random.default_rng(3)
+    n = 5 * MAX_DISPLAY_POSES + 7  # decimated, and the slider's times fall between drawn rows
+    t_ns = np.cumsum(rng.integers(4_000_000, 6_000_000, n)).astype(np.int64)
+    q = rng.normal(size=(n, 4))
+    gt = GroundTruth(
+        t_ns,
+        (rng.normal(size=(n, 3)) * 3).astype(np.float32),
+        q / np.linalg.norm(q, axis=1, keepdims=True),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+        np.zeros((n, 3)),
+    )
+    trajs = {"smoother": _trajectory("smoother", rng)}
+    from_poses = build_figure(trajs, None, groundtruth=Trajectory("groundtruth", t_ns, gt.T_world_body))
+    from_positions = build_figure(trajs, None, groundtruth=groundtruth_track(gt))
+    assert from_positions.to_json() == from_poses.to_json()
+    assert from_poses.data[0].name == "groundtruth trajectory"
+    assert len(from_poses.data[0].x) == MAX_DISPLAY_POSES  # the truth was decimated
