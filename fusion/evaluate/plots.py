@@ -13,9 +13,11 @@ as box plots always use every sample.
 
 from __future__ import annotations
 
+import gc
 import os
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TypeVar
 
 import matplotlib
 
@@ -60,6 +62,18 @@ def estimator_colour(name: str) -> str:
     if name in _COLOURS:
         return _COLOURS[name]
     return _EXTRA[sum(map(ord, name)) % len(_EXTRA)]
+
+
+_P = TypeVar("_P", Path, "Path | None")
+
+
+def _freed(path: _P) -> _P:
+    """`path`, after a full garbage collection: a Figure and its canvas are a reference cycle,
+    so a drawn figure (its artists, the Agg renderer's buffer) outlives its plot function
+    until the cyclic collector's oldest generation runs, which the next plots do not
+    trigger: plot_all's figures piled up at the evaluation's memory peak (BENCHMARKS.md)."""
+    gc.collect()
+    return path
 
 
 def _save(fig: Figure, path: Path, dpi: int) -> Path:
@@ -796,40 +810,48 @@ def plot_all(
     position_sigma instead of the error plots."""
     out_dir = Path(out_dir)
     paths = {
-        "trajectories": plot_trajectories(
-            out_dir / "trajectories.png",
-            trajectories,
-            gt,
-            floor_codes_xy_m=floor_codes_xy_m,
-            payload_unit_m=payload_unit_m,
-            dpi=dpi,
+        "trajectories": _freed(
+            plot_trajectories(
+                out_dir / "trajectories.png",
+                trajectories,
+                gt,
+                floor_codes_xy_m=floor_codes_xy_m,
+                payload_unit_m=payload_unit_m,
+                dpi=dpi,
+            )
         )
     }
     assoc = associate_all(trajectories, gt) if gt is not None else {}
     if not assoc:
-        sig = plot_position_sigma(out_dir / "position_sigma.png", trajectories, dpi=dpi)
+        sig = _freed(plot_position_sigma(out_dir / "position_sigma.png", trajectories, dpi=dpi))
         if sig is not None:
             paths["position_sigma"] = sig
     if assoc:
-        paths["position_errors"] = plot_error_overview(
-            out_dir / "position_errors.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+        paths["position_errors"] = _freed(
+            plot_error_overview(
+                out_dir / "position_errors.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+            )
         )
-        zoom = plot_position_errors_zoom(
-            out_dir / "position_errors_zoom.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+        zoom = _freed(
+            plot_position_errors_zoom(
+                out_dir / "position_errors_zoom.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+            )
         )
         if zoom is not None:
             paths["position_errors_zoom"] = zoom
-        paths["error_boxplots"] = plot_error_boxplots(
-            out_dir / "error_boxplots.png",
-            trajectories,
-            gt,
-            load_maps=load_maps,
-            loads_gt=loads_gt,
-            associations=assoc,
-            dpi=dpi,
+        paths["error_boxplots"] = _freed(
+            plot_error_boxplots(
+                out_dir / "error_boxplots.png",
+                trajectories,
+                gt,
+                load_maps=load_maps,
+                loads_gt=loads_gt,
+                associations=assoc,
+                dpi=dpi,
+            )
         )
     if any(lm.loads for lm in load_maps.values()) or loads_gt:
-        paths["load_map"] = plot_load_map(out_dir / "load_map.png", load_maps, loads_gt, gt, dpi=dpi)
+        paths["load_map"] = _freed(plot_load_map(out_dir / "load_map.png", load_maps, loads_gt, gt, dpi=dpi))
         if loads_gt:
             p = plot_load_errors(out_dir / "load_errors.png", load_maps, loads_gt, dpi=dpi)
             if p is not None:
