@@ -544,3 +544,21 @@ def test_associate_many_equals_associating_each_trajectory_alone():
         if alone.covariances is not None:
             assert np.array_equal(got.covariances, alone.covariances)
     assert many["b"].n_outside_gt == 1 and many["c"].n_outside_gt > 0
+
+
+@pytest.mark.parametrize("piece_rows", [1, 7, 1000, 10**6])
+def test_groundtruth_tum_written_in_pieces_is_the_text_of_the_whole(tmp_path, monkeypatch, piece_rows):
+    """export_groundtruth_tum converts the truth to poses a piece at a time (memory); the file
+    must be what write_tum writes of the whole flight's poses, to the byte."""
+    from fusion.log.files import write_tum
+
+    gt = make_gt(duration_s=2.0)
+    q = np.asarray(gt.q_world_body_wxyz, dtype=float).copy()
+    q[::3] *= -1.0  # the same rotations, the other sign: each row's conversion decides
+    gt = GroundTruth(gt.timestamps_ns, gt.p_world, q, gt.v_world, gt.bias_gyro, gt.bias_accel)
+    monkeypatch.setattr(M, "GROUNDTRUTH_TUM_PIECE_ROWS", piece_rows)
+    M.export_groundtruth_tum(gt, tmp_path / "pieces.tum")
+    write_tum(tmp_path / "whole.tum", Trajectory("groundtruth", gt.timestamps_ns, gt.T_world_body))
+    whole = (tmp_path / "whole.tum").read_bytes()
+    assert whole.count(b"\n") == len(gt.timestamps_ns) + 1
+    assert (tmp_path / "pieces.tum").read_bytes() == whole

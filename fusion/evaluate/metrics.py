@@ -743,9 +743,15 @@ def write_metrics(path: Path, metrics: dict) -> Path:
     return path
 
 
-def export_groundtruth_tum(gt, path: Path) -> Path:
-    """Write the ground truth (`fusion.log.GroundTruth`) as a TUM file for evo."""
-    from fusion.log.files import write_tum
+GROUNDTRUTH_TUM_PIECE_ROWS = 65_536  # rows converted at a time (8 MB of poses), not the whole flight
 
-    write_tum(path, Trajectory("groundtruth", np.asarray(gt.timestamps_ns, dtype=np.int64), gt.T_world_body))
+
+def export_groundtruth_tum(gt, path: Path) -> Path:
+    """Write the ground truth (`fusion.log.GroundTruth`) as a TUM file for evo, converted to
+    poses GROUNDTRUTH_TUM_PIECE_ROWS rows at a time (the same text as converting them all)."""
+    from fusion.log.files import write_tum_pieces
+
+    t = np.asarray(gt.timestamps_ns, dtype=np.int64)
+    rows = (slice(a, a + GROUNDTRUTH_TUM_PIECE_ROWS) for a in range(0, len(t), GROUNDTRUTH_TUM_PIECE_ROWS))
+    write_tum_pieces(path, (Trajectory("groundtruth", t[r], gt.T_world_body_rows(r)) for r in rows))
     return Path(path)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -23,16 +24,23 @@ LOADS_COLUMNS = ("id", "x_m", "y_m", "z_m", "sigma_x_m", "sigma_y_m", "sigma_z_m
 
 def write_tum(path: Path, traj: Trajectory) -> None:
     """Write a trajectory as TUM text (nanosecond timestamps printed exactly as seconds)."""
-    q = traj.quat_wxyz
+    write_tum_pieces(path, [traj])
+
+
+def write_tum_pieces(path: Path, pieces: Iterable[Trajectory]) -> None:
+    """Write the consecutive pieces of one trajectory as one TUM file, the text write_tum writes
+    of the whole (every row is converted on its own): a long trajectory made piece by piece."""
     with atomic_open(path) as f:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
-        for t, p, qi in zip(traj.timestamps_ns, traj.positions_xyz, q):
-            t = int(t)
-            f.write(
-                f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} "
-                f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
-                f"{qi[1]:.12f} {qi[2]:.12f} {qi[3]:.12f} {qi[0]:.12f}\n"
-            )
+        for traj in pieces:
+            q = traj.quat_wxyz
+            for t, p, qi in zip(traj.timestamps_ns, traj.positions_xyz, q):
+                t = int(t)
+                f.write(
+                    f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} "
+                    f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+                    f"{qi[1]:.12f} {qi[2]:.12f} {qi[3]:.12f} {qi[0]:.12f}\n"
+                )
 
 
 def read_tum(path: Path, name: str | None = None) -> Trajectory:
