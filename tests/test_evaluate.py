@@ -562,3 +562,30 @@ def test_groundtruth_tum_written_in_pieces_is_the_text_of_the_whole(tmp_path, mo
     whole = (tmp_path / "whole.tum").read_bytes()
     assert whole.count(b"\n") == len(gt.timestamps_ns) + 1
     assert (tmp_path / "pieces.tum").read_bytes() == whole
+
+
+def test_truth_poses_made_per_row_give_the_metrics_of_the_whole_array():
+    """evaluate and the plots interpolate the truth through TruthPoses (only the rows around the
+    estimates' stamps converted to poses): associations and metrics must be the same to the bit
+    as from the whole (N, 4, 4) array; float32 positions as read, rotation signs flipped."""
+    rng = np.random.default_rng(5)
+    gt = make_gt(duration_s=6.0)
+    q = np.asarray(gt.q_world_body_wxyz, dtype=float).copy()
+    q[::5] *= -1.0
+    p32 = np.asarray(gt.p_world, dtype=np.float32)
+    gt = GroundTruth(gt.timestamps_ns, p32, q, gt.v_world, gt.bias_gyro, gt.bias_accel)
+    est = sample(gt, every=7)
+    est.T_world_body[:, :3, 3] += rng.normal(scale=0.02, size=(len(est), 3))
+    est.timestamps_ns = est.timestamps_ns + 1_234_567  # between the truth's samples
+    trajs = {"a": est, "b": sample(gt, every=3)}
+    whole, lazy = gt.T_world_body, M.TruthPoses(gt)
+    for name, a in M.associate_many(gt.timestamps_ns, whole, trajs).items():
+        b = M.associate_many(gt.timestamps_ns, lazy, trajs)[name]
+        assert len(a) > 0
+        np.testing.assert_array_equal(a.T_world_body_gt, b.T_world_body_gt)
+    for traj in trajs.values():
+        m_whole = M.trajectory_metrics(gt.timestamps_ns, whole, traj, align=True)
+        m_lazy = M.trajectory_metrics(gt.timestamps_ns, lazy, traj, align=True)
+        assert json.dumps(m_whole) == json.dumps(m_lazy)
+    path = M.evaluate(gt, trajs, {}, None, None)["groundtruth"]["path_length_m"]
+    assert path == float(np.sum(np.linalg.norm(np.diff(whole[:, :3, 3], axis=0), axis=1)))

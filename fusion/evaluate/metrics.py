@@ -70,8 +70,38 @@ class Association:
         return wrap_angle(yaw_of(self.T_world_body_est[:, :3, :3]) - yaw_of(self.T_world_body_gt[:, :3, :3]))
 
 
+class TruthPoses:
+    """A ground truth's (N, 4, 4) T_world_body made only for the rows asked for, each the same to
+    the bit as in GroundTruth.T_world_body: interpolation reads only the rows around the
+    estimates' stamps (bracketing_samples), and the whole array of a 200 Hz 30-minute flight is
+    46 MB plus its rotation temporaries, at the evaluation's memory peak (BENCHMARKS.md)."""
+
+    def __init__(self, gt) -> None:
+        self.gt = gt  # fusion.log.GroundTruth
+
+    def __len__(self) -> int:
+        return len(self.gt.timestamps_ns)
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """(len(idx), 4, 4)."""
+        return self.gt.T_world_body_rows(idx)
+
+    @property
+    def p_world(self) -> np.ndarray:
+        """(N, 3) float64, as the poses' translations."""
+        return np.asarray(self.gt.p_world, dtype=float)
+
+
+def _truth_rows(T_world_body: np.ndarray | TruthPoses, idx: np.ndarray) -> np.ndarray:
+    return T_world_body.rows(idx) if isinstance(T_world_body, TruthPoses) else np.asarray(T_world_body)[idx]
+
+
+def _truth_positions(T_world_body: np.ndarray | TruthPoses) -> np.ndarray:
+    return T_world_body.p_world if isinstance(T_world_body, TruthPoses) else T_world_body[:, :3, 3]
+
+
 def interpolate_poses(
-    timestamps_ns: np.ndarray, T_world_body: np.ndarray, query_ns: np.ndarray
+    timestamps_ns: np.ndarray, T_world_body: np.ndarray | TruthPoses, query_ns: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses at `query_ns` (M,): linear in position, slerp in rotation.
 
@@ -86,7 +116,7 @@ def interpolate_poses(
     ts = (t - t[0]) * 1e-9
     qs = (qk - t[0]) * 1e-9
     keep = bracketing_samples(ts, qs)
-    return _interpolate_sampled(ts[keep], np.asarray(T_world_body)[keep], qs), mask
+    return _interpolate_sampled(ts[keep], _truth_rows(T_world_body, keep), qs), mask
 
 
 def _inside_span(t: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -110,7 +140,7 @@ def bracketing_samples(ts: np.ndarray, qs: np.ndarray) -> np.ndarray:
 
 def associate(
     gt_timestamps_ns: np.ndarray,
-    gt_T_world_body: np.ndarray,
+    gt_T_world_body: np.ndarray | TruthPoses,
     traj: Trajectory,
     truth_at: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Association:
@@ -146,7 +176,9 @@ def associate(
 
 
 def associate_many(
-    gt_timestamps_ns: np.ndarray, gt_T_world_body: np.ndarray, trajectories: dict[str, Trajectory]
+    gt_timestamps_ns: np.ndarray,
+    gt_T_world_body: np.ndarray | TruthPoses,
+    trajectories: dict[str, Trajectory],
 ) -> dict[str, Association]:
     """`associate` of every trajectory, the truth interpolated once at the union of their stamps
     (the fused estimators share the frame stamps; interpolation is per query, so each
@@ -565,7 +597,7 @@ def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
 
 def trajectory_metrics(
     gt_timestamps_ns: np.ndarray,
-    gt_T_world_body: np.ndarray,
+    gt_T_world_body: np.ndarray | TruthPoses,
     traj: Trajectory,
     blackouts: list[tuple[int, int, str]] | None = None,
     full_attitude: bool = True,
@@ -602,7 +634,7 @@ def trajectory_metrics(
             "rot_mean_deg": float(np.mean(r)),
             "rot_max_deg": float(np.max(r)),
         }
-    dist = travelled_distance_m(gt_timestamps_ns, gt_T_world_body[:, :3, 3], a.timestamps_ns)
+    dist = travelled_distance_m(gt_timestamps_ns, _truth_positions(gt_T_world_body), a.timestamps_ns)
     out["rpe_1m"] = asdict(rpe(a, dist, 1.0, "m", full_attitude))
     out["rpe_1s"] = asdict(rpe(a, (a.timestamps_ns - a.timestamps_ns[0]) * 1e-9, 1.0, "s", full_attitude))
     if blackouts:
@@ -657,7 +689,7 @@ def evaluate(
         }
     if gt is not None:
         t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
-        T_gt = gt.T_world_body
+        T_gt = TruthPoses(gt)
         if len(t_gt) < 2:
             raise EvaluationError(f"ground truth has {len(t_gt)} samples; need at least 2")
         if np.any(np.diff(t_gt) <= 0):
@@ -665,7 +697,7 @@ def evaluate(
         out["groundtruth"] = {
             "n_samples": int(len(t_gt)),
             "duration_s": float((t_gt[-1] - t_gt[0]) * 1e-9),
-            "path_length_m": float(np.sum(np.linalg.norm(np.diff(T_gt[:, :3, 3], axis=0), axis=1))),
+            "path_length_m": float(np.sum(np.linalg.norm(np.diff(_truth_positions(T_gt), axis=0), axis=1))),
         }
         # one association per trajectory, shared by its metrics and the like-for-like ATE below
         assoc = associate_many(t_gt, T_gt, trajectories)

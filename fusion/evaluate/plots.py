@@ -33,6 +33,7 @@ from fusion.evaluate.metrics import (  # noqa: E402
     PAPER_SIM_LOCALIZATION_MAE_CM,
     PAPER_SIM_YAW_MAE_DEG,
     Association,
+    TruthPoses,
     associate_many,
 )
 from fusion.fileio import atomic_open  # noqa: E402
@@ -127,7 +128,7 @@ def associate_all(trajectories: dict[str, Trajectory], gt) -> dict[str, Associat
     """{name: Association with the truth} for every trajectory that overlaps it (shared by the
     error plots so that a long flight is associated once)."""
     t_gt = np.asarray(gt.timestamps_ns, dtype=np.int64)
-    assoc = associate_many(t_gt, gt.T_world_body, {n: t for n, t in trajectories.items() if len(t)})
+    assoc = associate_many(t_gt, TruthPoses(gt), {n: t for n, t in trajectories.items() if len(t)})
     return {name: a for name, a in assoc.items() if len(a)}
 
 

@@ -180,9 +180,9 @@ class GroundTruth:
         """(N, 4, 4)."""
         return self.T_world_body_rows(slice(None))
 
-    def T_world_body_rows(self, rows: slice) -> np.ndarray:
-        """(n, 4, 4) of the rows `rows` only, each the same as in T_world_body (the whole
-        flight's are 128 bytes a row: ~46 MB for a 30-minute flight at 200 Hz)."""
+    def T_world_body_rows(self, rows: slice | np.ndarray) -> np.ndarray:
+        """(n, 4, 4) of the rows `rows` (a slice or indices) only, each the same as in
+        T_world_body (the whole flight's are 128 bytes a row: ~46 MB for 30 minutes at 200 Hz)."""
         q = self.q_world_body_wxyz[rows]
         T = np.tile(np.eye(4), (len(q), 1, 1))
         T[:, :3, :3] = R_from_quat_wxyz(q)
