@@ -578,8 +578,8 @@ class FuseStageResult:
 @dataclass
 class FloorInputs:
     """What the fusion and the evaluation take from a flight's detections (floor_inputs), so
-    that the detections themselves (objects per sighting, growing with the flight: ~0.1 GB on a
-    30-minute flight, BENCHMARKS.md) can be let go before the fusion."""
+    that the detections themselves (objects per sighting, growing with the flight) can be let go
+    before the fusion: its peak on a 30-minute flight 997 -> 884 MiB (BENCHMARKS.md)."""
 
     as_built: AsBuiltInput | None  # the smoother's as-built floor-code input (floorcodes.as_built_input)
     as_built_notes: list[str]  # as_built_input's notes
