@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -34,6 +36,7 @@ from fusion.evaluate.metrics import (  # noqa: E402
     associate_many,
 )
 from fusion.fileio import atomic_open  # noqa: E402
+from fusion.parallel import parallel_map  # noqa: E402
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory  # noqa: E402
 
 DEFAULT_DPI = 130
@@ -789,52 +792,87 @@ def plot_all(
     floor_codes_xy_m: np.ndarray | None = None,
     payload_unit_m: float | None = 1.0,
     dpi: int = DEFAULT_DPI,
+    workers: int = 1,
 ) -> dict[str, Path]:
     """Every plot that the inputs allow; returns {plot name: PNG path}, names as in the files:
     trajectories, position_errors (raw vs fused overview, log), position_errors_zoom (PnP and
     fused per axis ±2σ), error_boxplots, load_map, load_errors; without ground truth
-    position_sigma instead of the error plots."""
+    position_sigma instead of the error plots.  `workers`: processes drawing the figures at
+    once (fusion.parallel; the same files as one at a time)."""
     out_dir = Path(out_dir)
-    paths = {
-        "trajectories": plot_trajectories(
-            out_dir / "trajectories.png",
-            trajectories,
-            gt,
-            floor_codes_xy_m=floor_codes_xy_m,
-            payload_unit_m=payload_unit_m,
-            dpi=dpi,
-        )
-    }
     assoc = associate_all(trajectories, gt) if gt is not None else {}
-    if not assoc:
-        sig = plot_position_sigma(out_dir / "position_sigma.png", trajectories, dpi=dpi)
-        if sig is not None:
-            paths["position_sigma"] = sig
-    if assoc:
-        paths["position_errors"] = plot_error_overview(
-            out_dir / "position_errors.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
-        )
-        zoom = plot_position_errors_zoom(
-            out_dir / "position_errors_zoom.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
-        )
-        if zoom is not None:
-            paths["position_errors_zoom"] = zoom
-        paths["error_boxplots"] = plot_error_boxplots(
-            out_dir / "error_boxplots.png",
-            trajectories,
-            gt,
-            load_maps=load_maps,
-            loads_gt=loads_gt,
-            associations=assoc,
-            dpi=dpi,
-        )
+    names = ["trajectories"]
+    names += ["position_errors", "position_errors_zoom", "error_boxplots"] if assoc else ["position_sigma"]
     if any(lm.loads for lm in load_maps.values()) or loads_gt:
-        paths["load_map"] = plot_load_map(out_dir / "load_map.png", load_maps, loads_gt, gt, dpi=dpi)
-        if loads_gt:
-            p = plot_load_errors(out_dir / "load_errors.png", load_maps, loads_gt, dpi=dpi)
-            if p is not None:
-                paths["load_errors"] = p
-    return paths
+        names += ["load_map", "load_errors"] if loads_gt else ["load_map"]
+    context = _PlotInputs(
+        out_dir,
+        trajectories,
+        load_maps,
+        gt,
+        loads_gt,
+        blackouts,
+        assoc,
+        floor_codes_xy_m,
+        payload_unit_m,
+        dpi,
+    )
+    drawn = parallel_map(_plot_one, names, workers, context, preload=("fusion.evaluate.plots",))
+    return {name: path for name, path in zip(names, drawn) if path is not None}
+
+
+@dataclass
+class _PlotInputs:
+    """What every figure of plot_all may need (sent once to each worker)."""
+
+    out_dir: Path
+    trajectories: dict[str, Trajectory]
+    load_maps: dict[str, LoadMap]
+    gt: Any
+    loads_gt: dict[str, np.ndarray] | None
+    blackouts: list[tuple[int, int, str]] | None
+    assoc: dict[str, Association]
+    floor_codes_xy_m: np.ndarray | None
+    payload_unit_m: float | None
+    dpi: int
+
+
+def _plot_one(c: _PlotInputs, name: str) -> Path | None:
+    """plot_all's figure `name`, drawn into c.out_dir / name.png (None: nothing to draw)."""
+    path = c.out_dir / f"{name}.png"
+    if name == "trajectories":
+        return plot_trajectories(
+            path,
+            c.trajectories,
+            c.gt,
+            floor_codes_xy_m=c.floor_codes_xy_m,
+            payload_unit_m=c.payload_unit_m,
+            dpi=c.dpi,
+        )
+    if name == "position_sigma":
+        return plot_position_sigma(path, c.trajectories, dpi=c.dpi)
+    if name == "position_errors":
+        return plot_error_overview(path, c.trajectories, c.gt, c.blackouts, associations=c.assoc, dpi=c.dpi)
+    if name == "position_errors_zoom":
+        return plot_position_errors_zoom(
+            path, c.trajectories, c.gt, c.blackouts, associations=c.assoc, dpi=c.dpi
+        )
+    if name == "error_boxplots":
+        return plot_error_boxplots(
+            path,
+            c.trajectories,
+            c.gt,
+            load_maps=c.load_maps,
+            loads_gt=c.loads_gt,
+            associations=c.assoc,
+            dpi=c.dpi,
+        )
+    if name == "load_map":
+        return plot_load_map(path, c.load_maps, c.loads_gt, c.gt, dpi=c.dpi)
+    if name == "load_errors":
+        assert c.loads_gt is not None
+        return plot_load_errors(path, c.load_maps, c.loads_gt, dpi=c.dpi)
+    raise ValueError(f"unknown plot {name!r}")
 
 
 __all__ = [

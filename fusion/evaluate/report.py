@@ -705,6 +705,7 @@ def write_report(
     dpi: int = DEFAULT_DPI,
     floor_codes_xy_m: np.ndarray | None = None,
     floor_codes: FloorCodeMap | None = None,
+    workers: int = 1,
 ) -> Path:
     """Write `out_dir/report.md` and its PNG plots; returns the report's path.
 
@@ -712,7 +713,8 @@ def write_report(
     gt: `fusion.log.GroundTruth` or None.  log_summary: free key/value facts about the log
     (e.g. log path, duration_s, frames, payload_unit_m); a `detection` entry there is used when
     `metrics` has none.  floor_codes: the as-built floor codes (a section with their offsets
-    plot; misplaced ones highlighted in report.html)."""
+    plot; misplaced ones highlighted in report.html).  workers: processes drawing the plots
+    (plots.plot_all)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     log_summary = dict(log_summary or {})
@@ -729,6 +731,7 @@ def write_report(
         floor_codes_xy_m=floor_codes_xy_m,
         payload_unit_m=float(unit) if unit else None,
         dpi=dpi,
+        workers=workers,
     )
 
     lines = ["# fusion report", ""]
