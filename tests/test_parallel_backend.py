@@ -31,7 +31,9 @@ def _warn(context, task: int) -> int:
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_call_each_returns_each_value_or_error_in_order(workers):
-    out = call_each([(_divide, (1.0, 2.0), {}), (_divide, (1.0,), {"b": 0}), (_divide, (9.0, 3.0), {})], workers)
+    out = call_each(
+        [(_divide, (1.0, 2.0), {}), (_divide, (1.0,), {"b": 0}), (_divide, (9.0, 3.0), {})], workers
+    )
     assert [o.error is None for o in out] == [True, False, True]
     assert out[0].get() == 0.5 and out[2].get() == 3.0
     with pytest.raises(EstimationError, match="cannot divide 1.0 by zero"):
