@@ -284,6 +284,68 @@ def _pool(n: int, context: Any, preload: Sequence[str]) -> Iterator[ProcessPoolE
         queue.join_thread()
 
 
+class Started(Generic[R]):
+    """A `start_map`: its results, in task order, when `results()` is called; use as a context
+    manager (leaving it, e.g. on an error in between, stops the workers)."""
+
+    def __init__(self, values: list[R] | None = None) -> None:
+        self._values = values
+        self._futures: list = []
+        self._stack = contextlib.ExitStack()
+
+    def results(self) -> list[R]:
+        if self._values is None:
+            try:
+                values = []
+                for f in self._futures:
+                    try:
+                        out, cpu_s, peak_mb = f.result()
+                    except BrokenProcessPool:
+                        raise _died() from None
+                    _account(cpu_s, peak_mb)
+                    values.append(out)
+                self._values = values
+            finally:
+                self.close()
+        return self._values
+
+    def close(self) -> None:
+        for f in self._futures:
+            f.cancel()
+        self._stack.close()
+
+    def __enter__(self) -> Started[R]:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def start_map(
+    fn: Callable[[Any, T], R],
+    tasks: Iterable[T],
+    workers: int,
+    context: Any = None,
+    preload: Sequence[str] = (),
+) -> Started[R]:
+    """`parallel_map` started in the background: the tasks run on the workers while this process
+    does something else, until `results()` of the returned Started collects them.  With
+    workers <= 1 or a single task they run here, now (in order, before this returns)."""
+    tasks = list(tasks)
+    if workers <= 1 or len(tasks) <= 1:
+        return Started([fn(context, task) for task in tasks])
+    if mp.current_process().name != "MainProcess":
+        raise ParallelError("parallel work started inside a worker process; use one worker")
+    started: Started[R] = Started()
+    try:
+        pool = started._stack.enter_context(_pool(min(workers, len(tasks)), context, preload))
+        started._futures = [pool.submit(_call, fn, task) for task in tasks]
+    except BaseException:
+        started.close()
+        raise
+    return started
+
+
 @dataclass
 class Outcome(Generic[R]):
     """One call's value, or the exception it raised (re-raised by `get`)."""

@@ -36,7 +36,7 @@ from fusion.evaluate.metrics import (  # noqa: E402
     associate_many,
 )
 from fusion.fileio import atomic_open  # noqa: E402
-from fusion.parallel import parallel_map  # noqa: E402
+from fusion.parallel import Started, start_map  # noqa: E402
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory  # noqa: E402
 
 DEFAULT_DPI = 130
@@ -799,6 +799,55 @@ def plot_all(
     fused per axis ±2σ), error_boxplots, load_map, load_errors; without ground truth
     position_sigma instead of the error plots.  `workers`: processes drawing the figures at
     once (fusion.parallel; the same files as one at a time)."""
+    with start_plot_all(
+        out_dir,
+        trajectories,
+        load_maps,
+        gt,
+        loads_gt,
+        blackouts,
+        floor_codes_xy_m=floor_codes_xy_m,
+        payload_unit_m=payload_unit_m,
+        dpi=dpi,
+        workers=workers,
+    ) as drawing:
+        return drawing.paths()
+
+
+class Drawing:
+    """plot_all's figures being drawn (start_plot_all); `paths()` waits for them."""
+
+    def __init__(self, names: list[str], started: Started[Path | None]) -> None:
+        self.names = names
+        self.started = started
+
+    def paths(self) -> dict[str, Path]:
+        """{plot name: PNG path}, as plot_all returns."""
+        return {name: path for name, path in zip(self.names, self.started.results()) if path is not None}
+
+    def __enter__(self) -> Drawing:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.started.close()
+
+
+def start_plot_all(
+    out_dir: Path,
+    trajectories: dict[str, Trajectory],
+    load_maps: dict[str, LoadMap],
+    gt=None,
+    loads_gt: dict[str, np.ndarray] | None = None,
+    blackouts: list[tuple[int, int, str]] | None = None,
+    *,
+    floor_codes_xy_m: np.ndarray | None = None,
+    payload_unit_m: float | None = 1.0,
+    dpi: int = DEFAULT_DPI,
+    workers: int = 1,
+) -> Drawing:
+    """plot_all started: with `workers` > 1 the figures are drawn by worker processes while this
+    one goes on (the report's text and report.html) until Drawing.paths(); with one worker they
+    are drawn here, before this returns."""
     out_dir = Path(out_dir)
     assoc = associate_all(trajectories, gt) if gt is not None else {}
     names = ["trajectories"]
@@ -817,8 +866,7 @@ def plot_all(
         payload_unit_m,
         dpi,
     )
-    drawn = parallel_map(_plot_one, names, workers, context, preload=("fusion.evaluate.plots",))
-    return {name: path for name, path in zip(names, drawn) if path is not None}
+    return Drawing(names, start_map(_plot_one, names, workers, context, preload=("fusion.evaluate.plots",)))
 
 
 @dataclass
