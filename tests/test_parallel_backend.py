@@ -12,7 +12,7 @@ import pytest
 from fusion import pipeline
 from fusion.errors import EstimationError
 from fusion.estimate.window import WindowConfig
-from fusion.parallel import ParallelError, call_each, parallel_map, sendable, worker_usage
+from fusion.parallel import ParallelError, call_each, parallel_map, sendable, start_map, worker_usage
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 
@@ -68,6 +68,20 @@ def test_a_worker_error_reaches_the_caller():
 
 def _divide_task(context, task):
     return _divide(*task)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_start_map_collects_in_task_order_later(workers):
+    with start_map(_divide_task, [(1, 2), (9, 3), (8, 4)], workers) as started:
+        here = sum(range(10))  # this process goes on meanwhile
+        assert started.results() == [0.5, 3.0, 2.0] and here == 45
+    assert started.results() == [0.5, 3.0, 2.0]  # kept after the workers have stopped
+
+
+def test_start_map_raises_a_worker_error_when_collected():
+    started = start_map(_divide_task, [(1, 1), (3, 0)], 2)
+    with pytest.raises(EstimationError, match="cannot divide 3 by zero"):
+        started.results()
 
 
 def test_nested_parallel_work_is_refused_in_a_worker():
