@@ -24,7 +24,8 @@ batch run in this process instead (`sendable`).
 A worker's log records reach this process's loggers (a queue, `_forward_logs`): warnings and
 notes logged inside a worker are handled (printed, captured by a test) as if logged here.  The
 CPU seconds of the work done in workers are summed in `worker_usage()` (this process's
-`time.process_time` does not see them), with the largest worker's peak RSS.
+`time.process_time` does not see them), with the largest worker's peak RSS and, per pool, its
+busiest worker's CPU (`WorkerUsage.longest_cpu_s`).
 """
 
 from __future__ import annotations
@@ -100,12 +101,17 @@ def keep_freed_memory() -> bool:
 
 @dataclass
 class WorkerUsage:
-    """What the work done in worker processes cost: CPU seconds (process time of the calls),
-    calls, and the largest peak RSS (MB, VmHWM: imports and context included) of any worker."""
+    """What the work done in worker processes cost: CPU seconds (each worker's process time
+    since it was forked: its start, unpickling its context, its calls), calls, and the largest
+    peak RSS (MB, VmHWM: imports and context included) of any worker.
+    `longest_cpu_s`: per pool, the CPU seconds of its busiest worker, summed over pools: the
+    time this process waited for them on an idle machine, roughly (a loaded machine's wall time
+    says little; the benches report both)."""
 
     cpu_s: float = 0.0
     calls: int = 0
     peak_rss_mb: float = 0.0
+    longest_cpu_s: float = 0.0
 
 
 _USAGE = WorkerUsage()
@@ -154,17 +160,27 @@ def _start_worker(context: Any, log_queue: Any = None, levels: dict[str, int] | 
     keep_freed_memory()
 
 
-def _call(fn: Callable[[Any, T], R], task: T) -> tuple[R, float, float]:
-    """fn(context, task) in a worker, with the call's CPU seconds and the worker's peak RSS."""
-    c = time.process_time()
+def _call(fn: Callable[[Any, T], R], task: T) -> tuple[R, tuple[float, float, int]]:
+    """fn(context, task) in a worker, with the worker's CPU seconds so far (since it was
+    forked: its start, the context's unpickling and every call), its peak RSS and process id."""
     out = fn(_WORKER_CONTEXT, task)
-    return out, time.process_time() - c, _peak_rss_mb()
+    return out, (time.process_time(), _peak_rss_mb(), os.getpid())
 
 
-def _account(cpu_s: float, peak_mb: float) -> None:
-    _USAGE.cpu_s += cpu_s
-    _USAGE.calls += 1
-    _USAGE.peak_rss_mb = max(_USAGE.peak_rss_mb, peak_mb)
+class _Tally:
+    """The workers' usage of one pool, added to _USAGE as each call's result arrives."""
+
+    def __init__(self) -> None:
+        self.by_worker: dict[int, float] = {}
+
+    def add(self, usage: tuple[float, float, int]) -> None:
+        cpu_s, peak_mb, pid = usage  # the worker's CPU so far
+        _USAGE.cpu_s += cpu_s - self.by_worker.get(pid, 0.0)
+        _USAGE.calls += 1
+        _USAGE.peak_rss_mb = max(_USAGE.peak_rss_mb, peak_mb)
+        before = max(self.by_worker.values(), default=0.0)
+        self.by_worker[pid] = cpu_s
+        _USAGE.longest_cpu_s += max(self.by_worker.values()) - before
 
 
 def sendable(*objs: Any) -> bool:
@@ -247,10 +263,11 @@ def parallel_map(
         )
     n = min(workers, len(tasks))
     logger.debug("parallel_map %s: %d tasks on %d workers", getattr(fn, "__name__", fn), len(tasks), n)
+    tally = _Tally()
     with _pool(n, context, preload) as pool:
         try:
-            for out, cpu_s, peak_mb in pool.map(_call, repeat(fn), tasks):
-                _account(cpu_s, peak_mb)
+            for out, usage in pool.map(_call, repeat(fn), tasks):
+                tally.add(usage)
                 yield out
         except BrokenProcessPool:
             raise _died() from None
@@ -297,12 +314,13 @@ class Started(Generic[R]):
         if self._values is None:
             try:
                 values = []
+                tally = _Tally()
                 for f in self._futures:
                     try:
-                        out, cpu_s, peak_mb = f.result()
+                        out, usage = f.result()
                     except BrokenProcessPool:
                         raise _died() from None
-                    _account(cpu_s, peak_mb)
+                    tally.add(usage)
                     values.append(out)
                 self._values = values
             finally:
@@ -387,16 +405,17 @@ def call_each(
     if mp.current_process().name != "MainProcess":
         raise ParallelError("parallel work started inside a worker process; use one worker")
     outcomes: list[Outcome] = []
+    tally = _Tally()
     with _pool(min(workers, len(calls)), None, preload) as pool:
         futures = [pool.submit(_call, _call_one, call) for call in calls]
         for f in futures:
             try:
-                value, cpu_s, peak_mb = f.result()
+                value, usage = f.result()
             except BrokenProcessPool:
                 outcomes.append(Outcome(error=_died()))
             except Exception as e:
                 outcomes.append(Outcome(error=e))
             else:
-                _account(cpu_s, peak_mb)
+                tally.add(usage)
                 outcomes.append(Outcome(value))
     return outcomes

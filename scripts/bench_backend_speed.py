@@ -8,17 +8,19 @@ process per stage, and every estimator's accuracy (ATE, NEES), for before/after 
 OUT should hold a copy of the flight's detections.csv (the cache, reused when the log is
 unchanged), so that detection is skipped; OUT is replaced (`--force`).  The stages are timed by
 wrapping the pipeline's stage functions (nested calls are shown indented under their caller);
-CPU time is time.process_time (this process, all threads) plus the CPU of the calls run in
-worker processes (fusion.parallel.worker_usage), so it stays meaningful on a loaded machine where
-wall time does not; the "workers" column is that share.  `--workers` is RunConfig.workers
-(default: one per core, as `fusion run`); with more than one, the functions the pipeline hands
-to workers (smooth, smooth_incremental, run_ekf) are not wrapped (a wrapper cannot be sent to
-a process) and what runs inside workers has no row of its own.  Peak memory: the main
-process's VmHWM, reset at the start of every timed call through /proc/self/clear_refs (the peak
-so far credited to its callers), so each row shows the peak RSS inside that stage; where the
-kernel refuses, the peak so far; the workers' largest peak is printed below.  `--compare` prints the
-accuracy of both runs side by side and fails (exit 1) when an estimator's ATE or NEES moved by
-more than --tolerance (relative)."""
+CPU time is time.process_time (this process, all threads) plus the CPU of the workers (fusion.
+parallel.worker_usage: each one's process time since it was forked), so it stays meaningful on a
+loaded machine where wall time does not; the "workers" column is their share.  "idle est.": this
+process's CPU plus, for each pool of workers, its busiest worker's CPU (parallel.WorkerUsage.
+longest_cpu_s): about the wall time on an idle machine, not counting the forks themselves.
+`--workers` is RunConfig.workers (default: one per core, as `fusion run`); with more than one,
+the functions the pipeline hands to workers (smooth, smooth_incremental, run_ekf) are not
+wrapped (a wrapper cannot be sent to a process) and what runs inside workers has no row of its
+own.  Peak memory: the main process's VmHWM, reset at the start of every timed call through
+/proc/self/clear_refs (the peak so far credited to its callers), so each row shows the peak RSS
+inside that stage; where the kernel refuses, the peak so far; the workers' largest peak is
+printed below.  `--compare` prints the accuracy of both runs side by side and fails (exit 1)
+when an estimator's ATE or NEES moved by more than --tolerance (relative)."""
 
 from __future__ import annotations
 
@@ -65,7 +67,7 @@ TIMED = [
     ("fusion.pipeline", "_write_estimates", "write estimates"),
     ("fusion.pipeline", "evaluate", "metrics"),
     ("fusion.pipeline", "write_report", "report"),
-    ("fusion.evaluate.report", "plot_all", "plots"),
+    ("fusion.evaluate.report", "start_plot_all", "plots (started; with 1 worker: drawn)"),
     ("fusion.evaluate.plots", "_save", "savefig"),
 ]
 SENT_TO_WORKERS = {
@@ -114,6 +116,7 @@ class Timer:
                     "wall_s": 0.0,
                     "cpu_s": 0.0,
                     "worker_cpu_s": 0.0,
+                    "idle_s": 0.0,
                     "calls": 0,
                     "peak_mb": 0.0,
                     "rss_in_mb": 0.0,
@@ -123,14 +126,16 @@ class Timer:
                 self._credit(path[:-1], rss_mb("VmHWM"))
                 _reset_peak()
             row["rss_in_mb"] = max(row["rss_in_mb"], rss_mb())
-            w, c, cw = time.perf_counter(), time.process_time(), worker_usage().cpu_s
+            u, w, c = worker_usage(), time.perf_counter(), time.process_time()
             try:
                 return fn(*args, **kwargs)
             finally:
                 row["wall_s"] += time.perf_counter() - w
-                in_workers = worker_usage().cpu_s - cw
-                row["cpu_s"] += time.process_time() - c + in_workers
+                main_cpu, after = time.process_time() - c, worker_usage()
+                in_workers = after.cpu_s - u.cpu_s
+                row["cpu_s"] += main_cpu + in_workers
                 row["worker_cpu_s"] += in_workers
+                row["idle_s"] += main_cpu + after.longest_cpu_s - u.longest_cpu_s
                 row["calls"] += 1
                 self._credit(path, rss_mb("VmHWM"))
                 self.stack.pop()
@@ -225,15 +230,17 @@ def main() -> int:
     timer.install(skip=SENT_TO_WORKERS if worker_count(args.workers) > 1 else set())
     cfg = RunConfig(progress=False, force=True, incremental=not args.no_incremental, workers=args.workers)
     prof = cProfile.Profile() if args.profile else None
-    w, c, cw = time.perf_counter(), time.process_time(), worker_usage().cpu_s
+    u, w, c = worker_usage(), time.perf_counter(), time.process_time()
     if prof is not None:
         prof.enable()
     res = run(args.log, args.out, cfg)
     if prof is not None:
         prof.disable()
         prof.dump_stats(str(args.profile))
-    in_workers = worker_usage().cpu_s - cw
-    wall, cpu = time.perf_counter() - w, time.process_time() - c + in_workers
+    after = worker_usage()
+    in_workers = after.cpu_s - u.cpu_s
+    wall, main_cpu = time.perf_counter() - w, time.process_time() - c
+    cpu, idle = main_cpu + in_workers, main_cpu + after.longest_cpu_s - u.longest_cpu_s
     load = os.getloadavg()
     print(
         f"{time.strftime('%Y-%m-%d %H:%M')} UTC, {platform.machine()}, {os.cpu_count()} cores, "
@@ -245,20 +252,27 @@ def main() -> int:
         if "reused" in note:
             print("note:", note)
     print(
-        "\n| stage | calls | wall s | CPU s | of which workers | peak RSS MB (main) |\n"
-        "|---|--:|--:|--:|--:|--:|"
+        "\n| stage | calls | wall s | CPU s | of which workers | idle est. s | peak RSS MB (main) |\n"
+        "|---|--:|--:|--:|--:|--:|--:|"
     )
     for path, row in sorted(timer.rows.items(), key=lambda kv: call_path_order(kv[0], timer.rows)):
         name = "&nbsp;" * 4 * (len(path) - 1) + path[-1]
         w, c, cw, mb = row["wall_s"], row["cpu_s"], row["worker_cpu_s"], row["peak_mb"]
-        print(f"| {name} | {row['calls']:.0f} | {w:.2f} | {c:.2f} | {cw:.2f} | {mb:.0f} |")
+        print(
+            f"| {name} | {row['calls']:.0f} | {w:.2f} | {c:.2f} | {cw:.2f} | {row['idle_s']:.2f} | {mb:.0f} |"
+        )
     fr = ("time offsets", "fuse_stage", "health", "write estimates", "metrics", "report")
     top = [r for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr]
-    back_w, back_c, back_cw = (sum(r[k] for r in top) for k in ("wall_s", "cpu_s", "worker_cpu_s"))
-    print(
-        f"| **back end (time offsets to report)** | | **{back_w:.2f}** | **{back_c:.2f}** | {back_cw:.2f} | |"
+    back_w, back_c, back_cw, back_i = (
+        sum(r[k] for r in top) for k in ("wall_s", "cpu_s", "worker_cpu_s", "idle_s")
     )
-    print(f"| total `run` | | {wall:.2f} | {cpu:.2f} | {in_workers:.2f} | {rss_mb('VmHWM'):.0f} |")
+    print(
+        f"| **back end (time offsets to report)** | | **{back_w:.2f}** | **{back_c:.2f}** | {back_cw:.2f} "
+        f"| **{back_i:.2f}** | |"
+    )
+    print(
+        f"| total `run` | | {wall:.2f} | {cpu:.2f} | {in_workers:.2f} | {idle:.2f} | {rss_mb('VmHWM'):.0f} |"
+    )
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak RSS of the main process over the whole run: {peak:.0f} MB")
     print(
@@ -288,6 +302,8 @@ def main() -> int:
         "worker_cpu_s": in_workers,
         "back_end_wall_s": back_w,
         "back_end_cpu_s": back_c,
+        "back_end_idle_estimate_s": back_i,
+        "idle_estimate_s": idle,
         "peak_rss_mb": peak,
         "worker_peak_rss_mb": worker_usage().peak_rss_mb,
         "stages": [{"path": list(p), **r} for p, r in timer.rows.items()],
