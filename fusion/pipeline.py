@@ -724,8 +724,9 @@ def fuse_stage(
 
 BACKEND_MIN_FRAMES = 600
 """Fused frames below which the back ends and the report's figures stay in this process
-(`backend_workers`): a short flight's incremental smoother and EKF take about a second, what
-sending their inputs to two processes and the results back costs."""
+(`backend_workers`): a guess, not measured (each worker costs ~0.4 CPU s to start and to take
+its inputs on the 10-minute flight: NOTES-speed.md); it keeps the tests' short flights in one
+process."""
 
 
 def backend_workers(cfg: RunConfig, n_frames: int) -> int:
