@@ -724,8 +724,8 @@ def fuse_stage(
 
 BACKEND_MIN_FRAMES = 600
 """Fused frames below which the back ends and the report's figures stay in this process
-(`backend_workers`): a guess, not measured (each worker costs ~0.4 CPU s to start and to take
-its inputs on the 10-minute flight: NOTES-speed.md); it keeps the tests' short flights in one
+(`backend_workers`): a guess (the crossover was not measured; a worker's start costs ~5 CPU ms
+plus its inputs' unpickling, NOTES-speed.md); it keeps the tests' short flights in one
 process."""
 
 
