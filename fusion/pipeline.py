@@ -69,7 +69,7 @@ from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
 from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.log.fixes import PositionFixes, read_fixes
-from fusion.parallel import chunk_bounds, parallel_map, start_workers_early, worker_count
+from fusion.parallel import Outcome, call_each, chunk_bounds, parallel_map, start_workers_early, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
 from fusion.qr.detect import (
@@ -677,24 +677,43 @@ def fuse_stage(
         shared.states = None
     smoother_kwargs["window"] = _window_config(cfg)
     smoother_kwargs["solver"] = smooth
+    workers = backend_workers(cfg, len(frame_t))
+    smoother_kwargs["workers"] = workers
     solvers: list[tuple[Estimator, Callable[..., FusionResult], dict[str, Any]]] = [
         (Estimator.SMOOTHER, smooth_windowed, smoother_kwargs)
     ]
     if cfg.incremental:
         solvers.append((Estimator.INCREMENTAL, smooth_incremental, graph_kwargs))
     solvers.append((Estimator.EKF, run_ekf, {"floor_camera": floor_camera}))
-    for name, fn, kwargs in solvers:
+    # the back ends after the smoother take its noise scales and nothing from each other: they
+    # run at once on `workers` processes (fusion.parallel.call_each), each outcome then taken
+    # here in order, as if run here
+    at_once: dict[Estimator, Outcome] = {}
+    for i, (name, fn, kwargs) in enumerate(solvers):
+        if name != Estimator.SMOOTHER and not at_once:
+            calls = [
+                (
+                    f,
+                    (frame_t, log.imu, raw, load_obs),
+                    dict(front_camera=front, velocity=log.velocity, config=fcfg, **kw),
+                )
+                for _, f, kw in solvers[i:]
+            ]
+            at_once = dict(zip((n for n, _, _ in solvers[i:]), call_each(calls, workers)))
         try:
-            res = fn(
-                frame_t,
-                log.imu,
-                raw,
-                load_obs,
-                front_camera=front,
-                velocity=log.velocity,
-                config=fcfg,
-                **kwargs,
-            )
+            if name in at_once:
+                res = at_once.pop(name).get()
+            else:
+                res = fn(
+                    frame_t,
+                    log.imu,
+                    raw,
+                    load_obs,
+                    front_camera=front,
+                    velocity=log.velocity,
+                    config=fcfg,
+                    **kwargs,
+                )
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
@@ -721,6 +740,19 @@ def fuse_stage(
     for name, failure in out.failures.items():
         logger.warning("%s failed: %s", name, failure.reason)
     return out
+
+
+BACKEND_MIN_FRAMES = 600
+"""Fused frames below which the back ends and the report's figures stay in this process
+(`backend_workers`): a guess (the crossover was not measured; a worker's start costs ~5 CPU ms
+plus its inputs' unpickling, NOTES-speed.md); it keeps the tests' short flights in one
+process."""
+
+
+def backend_workers(cfg: RunConfig, n_frames: int) -> int:
+    """Processes for the fusion back ends, the windowed solves and the report's figures:
+    `cfg.workers` (None: one per core), 1 for a flight under BACKEND_MIN_FRAMES frames."""
+    return worker_count(cfg.workers) if n_frames >= BACKEND_MIN_FRAMES else 1
 
 
 def _world_yaml(log: FlightLog) -> dict:
@@ -850,7 +882,7 @@ def _run_into(
     # the check alone shares its whole-flight solve with the front camera's time-offset profile
     shared = None
     if mount_check and not cfg.calibrate_extrinsics:
-        shared = SharedWholeFlight(window=_window_config(cfg))
+        shared = SharedWholeFlight(window=_window_config(cfg), workers=backend_workers(cfg, len(log.floor)))
     log, det, loc = _apply_time_offsets(log, det, loc, cfg, result, shared)
     if mount_check and not cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result, None if shared is None else shared.mount)
@@ -895,7 +927,8 @@ def _run_into(
         # per sighting, growing with the flight) are let go before its peak
         raw_stats = loc.stats
         del loc, shared
-        _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy)
+        workers = backend_workers(cfg, len(log.floor))
+        _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy, workers)
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
@@ -1018,6 +1051,7 @@ class SharedWholeFlight:
     states: gtsam.Values | None = None
     frame_t: np.ndarray | None = None
     window: WindowConfig | None = None  # a long flight solved in windows (estimate_mount_windowed)
+    workers: int = 1  # processes for those windows
 
     def warm_start(self, frame_t: np.ndarray) -> gtsam.Values | None:
         """The states for a smoother on the frames `frame_t`: None unless they are this solve's
@@ -1041,7 +1075,14 @@ class SharedWholeFlight:
         if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
             try:
                 mount, trajectory, self.states = estimate_mount_windowed(
-                    inp.frame_t, inp.imu, inp.raw, inp.velocity, log_.floor.camera, inp.config, self.window
+                    inp.frame_t,
+                    inp.imu,
+                    inp.raw,
+                    inp.velocity,
+                    log_.floor.camera,
+                    inp.config,
+                    self.window,
+                    self.workers,
                 )
                 self.mount, self.frame_t = mount, np.asarray(inp.frame_t, np.int64)
             except EstimationError as e:
@@ -1230,9 +1271,11 @@ def _evaluate_and_report(
     fused_stats: dict,
     raw_stats: dict,
     floor_xy: np.ndarray | None = None,
+    workers: int = 1,
 ) -> None:
     """metrics.json, the ground truth as TUM, report.md and its plots; `floor_xy`: the world
-    (x, y) of the floor codes decoded in the flight (_floor_codes_seen), drawn as a faint grid."""
+    (x, y) of the floor codes decoded in the flight (_floor_codes_seen), drawn as a faint grid;
+    `workers`: processes drawing the plots."""
 
     out_dir = result.out_dir
     gt = log.groundtruth
@@ -1284,6 +1327,7 @@ def _evaluate_and_report(
         summary,
         floor_codes_xy_m=floor_xy,
         floor_codes=result.floor_codes.get(str(Estimator.SMOOTHER)),
+        workers=workers,
     )
 
 

@@ -2,18 +2,25 @@
 offsets, each fused estimator and its parts, metrics, plots, report), peak memory of the main
 process per stage, and every estimator's accuracy (ATE, NEES), for before/after comparisons.
 
-    PYTHONPATH=$PWD python3 scripts/bench_backend_speed.py LOG OUT [--json FILE] [--compare OLD.json]
-        [--profile FILE.prof]
+    PYTHONPATH=$PWD python3 scripts/bench_backend_speed.py LOG OUT [--workers N] [--json FILE]
+        [--compare OLD.json] [--profile FILE.prof]
 
 OUT should hold a copy of the flight's detections.csv (the cache, reused when the log is
 unchanged), so that detection is skipped; OUT is replaced (`--force`).  The stages are timed by
 wrapping the pipeline's stage functions (nested calls are shown indented under their caller);
-CPU time is time.process_time (this process, all threads), so it stays meaningful on a loaded
-machine where wall time does not.  Peak memory: the process's VmHWM, reset at the start of every
-timed call through /proc/self/clear_refs (the peak so far credited to its callers), so each row
-shows the peak RSS inside that stage; where the kernel refuses, the peak so far.  `--compare` prints the
-accuracy of both runs side by side and fails (exit 1) when an estimator's ATE or NEES moved by
-more than --tolerance (relative)."""
+CPU time is time.process_time (this process, all threads) plus the CPU of the workers (fusion.
+parallel.worker_usage: each one's process time since it was forked), so it stays meaningful on a
+loaded machine where wall time does not; the "workers" column is their share.  "idle est.": this
+process's CPU plus, for each pool of workers, its busiest worker's CPU (parallel.WorkerUsage.
+longest_cpu_s): about the wall time on an idle machine, not counting the forks themselves.
+`--workers` is RunConfig.workers (default: one per core, as `fusion run`); with more than one,
+the functions the pipeline hands to workers (smooth, smooth_incremental, run_ekf) are not
+wrapped (a wrapper cannot be sent to a process) and what runs inside workers has no row of its
+own.  Peak memory: the main process's VmHWM, reset at the start of every timed call through
+/proc/self/clear_refs (the peak so far credited to its callers), so each row shows the peak RSS
+inside that stage; where the kernel refuses, the peak so far; the workers' largest peak is
+printed below.  `--compare` prints the accuracy of both runs side by side and fails (exit 1)
+when an estimator's ATE or NEES moved by more than --tolerance (relative)."""
 
 from __future__ import annotations
 
@@ -30,6 +37,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fusion.parallel import worker_count, worker_usage
 from fusion.pipeline import RunConfig, run
 
 # (module, attribute, label): the functions timed; a module's own references are patched, so a
@@ -45,6 +53,7 @@ TIMED = [
     ("fusion.pipeline", "check_mount", "mount check"),
     ("fusion.pipeline", "fuse_stage", "fuse_stage"),
     ("fusion.warehouse.floorcodes", "as_built_input", "as-built input"),
+    ("fusion.pipeline", "smooth_windowed", "smoother (windows)"),
     ("fusion.pipeline", "smooth", "smoother"),
     ("fusion.estimate.smoother", "_smooth_once", "batch solve"),
     ("fusion.estimate.smoother", "build_problem", "build problem"),
@@ -58,9 +67,15 @@ TIMED = [
     ("fusion.pipeline", "_write_estimates", "write estimates"),
     ("fusion.pipeline", "evaluate", "metrics"),
     ("fusion.pipeline", "write_report", "report"),
-    ("fusion.evaluate.report", "plot_all", "plots"),
+    ("fusion.evaluate.report", "start_plot_all", "plots (started; with 1 worker: drawn)"),
     ("fusion.evaluate.plots", "_save", "savefig"),
 ]
+SENT_TO_WORKERS = {
+    ("fusion.pipeline", "smooth"),
+    ("fusion.pipeline", "smooth_incremental"),
+    ("fusion.pipeline", "run_ekf"),
+}
+"""Functions the pipeline passes to worker processes as objects: left unwrapped with workers > 1."""
 
 
 def rss_mb(field: str = "VmRSS") -> float:
@@ -96,18 +111,31 @@ class Timer:
             self.stack.append(label)
             path = tuple(self.stack)
             row = self.rows.setdefault(
-                path, {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0, "peak_mb": 0.0, "rss_in_mb": 0.0}
+                path,
+                {
+                    "wall_s": 0.0,
+                    "cpu_s": 0.0,
+                    "worker_cpu_s": 0.0,
+                    "idle_s": 0.0,
+                    "calls": 0,
+                    "peak_mb": 0.0,
+                    "rss_in_mb": 0.0,
+                },
             )
             if self.peak_reset:  # the callers' peak so far, then a fresh peak for this call
                 self._credit(path[:-1], rss_mb("VmHWM"))
                 _reset_peak()
             row["rss_in_mb"] = max(row["rss_in_mb"], rss_mb())
-            w, c = time.perf_counter(), time.process_time()
+            u, w, c = worker_usage(), time.perf_counter(), time.process_time()
             try:
                 return fn(*args, **kwargs)
             finally:
                 row["wall_s"] += time.perf_counter() - w
-                row["cpu_s"] += time.process_time() - c
+                main_cpu, after = time.process_time() - c, worker_usage()
+                in_workers = after.cpu_s - u.cpu_s
+                row["cpu_s"] += main_cpu + in_workers
+                row["worker_cpu_s"] += in_workers
+                row["idle_s"] += main_cpu + after.longest_cpu_s - u.longest_cpu_s
                 row["calls"] += 1
                 self._credit(path, rss_mb("VmHWM"))
                 self.stack.pop()
@@ -121,8 +149,10 @@ class Timer:
             if row is not None:
                 row["peak_mb"] = max(row["peak_mb"], peak_mb)
 
-    def install(self, targets: list[tuple[str, str, str]] = TIMED) -> None:
+    def install(self, targets: list[tuple[str, str, str]] = TIMED, skip: set = frozenset()) -> None:
         for mod, attr, label in targets:
+            if (mod, attr) in skip:
+                continue
             try:
                 m = importlib.import_module(mod)
             except ImportError:
@@ -193,41 +223,61 @@ def main() -> int:
     ap.add_argument("--tolerance", type=float, default=0.02, help="relative change allowed (default 2 %%)")
     ap.add_argument("--profile", type=Path, help="also write a cProfile of the run here")
     ap.add_argument("--no-incremental", action="store_true")
+    ap.add_argument("--workers", type=int, help="RunConfig.workers (default: one per core)")
     args = ap.parse_args()
 
     timer = Timer()
-    timer.install()
-    cfg = RunConfig(progress=False, force=True, incremental=not args.no_incremental)
+    timer.install(skip=SENT_TO_WORKERS if worker_count(args.workers) > 1 else set())
+    cfg = RunConfig(progress=False, force=True, incremental=not args.no_incremental, workers=args.workers)
     prof = cProfile.Profile() if args.profile else None
-    w, c = time.perf_counter(), time.process_time()
+    u, w, c = worker_usage(), time.perf_counter(), time.process_time()
     if prof is not None:
         prof.enable()
     res = run(args.log, args.out, cfg)
     if prof is not None:
         prof.disable()
         prof.dump_stats(str(args.profile))
-    wall, cpu = time.perf_counter() - w, time.process_time() - c
+    after = worker_usage()
+    in_workers = after.cpu_s - u.cpu_s
+    wall, main_cpu = time.perf_counter() - w, time.process_time() - c
+    cpu, idle = main_cpu + in_workers, main_cpu + after.longest_cpu_s - u.longest_cpu_s
     load = os.getloadavg()
     print(
-        f"{time.strftime('%Y-%m-%d %H:%M')} UTC, {platform.machine()}, {os.cpu_count()} cores, load "
+        f"{time.strftime('%Y-%m-%d %H:%M')} UTC, {platform.machine()}, {os.cpu_count()} cores, "
+        f"workers {worker_count(args.workers)}, load "
         f"{load[0]:.1f}, python {platform.python_version()}; flight {res.log_summary['duration_s']:.0f} s, "
         f"{res.log_summary['floor_frames']} floor frames"
     )
     for note in res.notes:
         if "reused" in note:
             print("note:", note)
-    print("\n| stage | calls | wall s | CPU s | peak RSS MB |\n|---|--:|--:|--:|--:|")
+    print(
+        "\n| stage | calls | wall s | CPU s | of which workers | idle est. s | peak RSS MB (main) |\n"
+        "|---|--:|--:|--:|--:|--:|--:|"
+    )
     for path, row in sorted(timer.rows.items(), key=lambda kv: call_path_order(kv[0], timer.rows)):
         name = "&nbsp;" * 4 * (len(path) - 1) + path[-1]
-        w, c, mb = row["wall_s"], row["cpu_s"], row["peak_mb"]
-        print(f"| {name} | {row['calls']:.0f} | {w:.2f} | {c:.2f} | {mb:.0f} |")
+        w, c, cw, mb = row["wall_s"], row["cpu_s"], row["worker_cpu_s"], row["peak_mb"]
+        print(
+            f"| {name} | {row['calls']:.0f} | {w:.2f} | {c:.2f} | {cw:.2f} | {row['idle_s']:.2f} | {mb:.0f} |"
+        )
     fr = ("time offsets", "fuse_stage", "health", "write estimates", "metrics", "report")
-    back_w = sum(r["wall_s"] for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr)
-    back_c = sum(r["cpu_s"] for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr)
-    print(f"| **back end (time offsets to report)** | | **{back_w:.2f}** | **{back_c:.2f}** | |")
-    print(f"| total `run` | | {wall:.2f} | {cpu:.2f} | {rss_mb('VmHWM'):.0f} |")
+    top = [r for p, r in timer.rows.items() if len(p) == 1 and p[0] in fr]
+    back_w, back_c, back_cw, back_i = (
+        sum(r[k] for r in top) for k in ("wall_s", "cpu_s", "worker_cpu_s", "idle_s")
+    )
+    print(
+        f"| **back end (time offsets to report)** | | **{back_w:.2f}** | **{back_c:.2f}** | {back_cw:.2f} "
+        f"| **{back_i:.2f}** | |"
+    )
+    print(
+        f"| total `run` | | {wall:.2f} | {cpu:.2f} | {in_workers:.2f} | {idle:.2f} | {rss_mb('VmHWM'):.0f} |"
+    )
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak RSS of the main process over the whole run: {peak:.0f} MB")
+    print(
+        f"largest peak RSS of a worker process (VmHWM at its last call): {worker_usage().peak_rss_mb:.0f} MB"
+    )
     acc = accuracy(res.metrics or {})
     print(
         "\n| estimator | ATE RMSE mm | ATE@PnP mm | yaw MAE deg | NEES 3-dof | NEES 6-dof | loads |\n"
@@ -246,9 +296,16 @@ def main() -> int:
     record = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC"),
         "load": load[0],
+        "workers": worker_count(args.workers),
         "wall_s": wall,
         "cpu_s": cpu,
+        "worker_cpu_s": in_workers,
+        "back_end_wall_s": back_w,
+        "back_end_cpu_s": back_c,
+        "back_end_idle_estimate_s": back_i,
+        "idle_estimate_s": idle,
         "peak_rss_mb": peak,
+        "worker_peak_rss_mb": worker_usage().peak_rss_mb,
         "stages": [{"path": list(p), **r} for p, r in timer.rows.items()],
         "accuracy": acc,
         "timings_s": res.timings_s,

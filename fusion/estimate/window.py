@@ -31,6 +31,11 @@ only places it lacks information the whole-flight solve has):
 
 Not windowed (solved whole, with a log line): a flight with as-built floor codes (their
 variables span the flight).  Tight coupling's corner factors are windowed like the poses.
+
+Windows are independent solves, so `workers` > 1 solves up to WINDOW_WORKERS of them at once on
+worker processes (fusion.parallel); the result is the same as one at a time (each window is
+the same solve of the same inputs; tests/test_parallel_backend.py), the peak memory that of
+that many windows (one per process).
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode
 from fusion.estimate.extrinsics import MountRotation, estimate_mount_and_states, merge_mount_rotations
 from fusion.estimate.smoother import release_heap, smooth
+from fusion.parallel import parallel_map, sendable
 from fusion.types import Estimator, LoadEstimate, LoadMap, Trajectory
 
 __all__ = [
@@ -67,6 +73,9 @@ WINDOW_S = 180.0
 """Longest window: ~0.5 GB peak for a two-camera 30 fps window (BENCHMARKS.md)."""
 WINDOW_OVERLAP_S = 30.0
 """Overlap of consecutive windows; output frames are at least half of it from a window's end."""
+WINDOW_WORKERS = 2
+"""Windows solved at once with several workers: each holds ~0.5 GB at its peak (WINDOW_S), so
+the processes' sum stays near 1 GB whatever the core count."""
 IMU_PAD_S = 0.05
 """IMU / velocity samples kept beyond a window's first and last frame (a few samples at 200 Hz)."""
 _NS = 1e9
@@ -298,6 +307,7 @@ def smooth_windowed(
     window: WindowConfig | None = None,
     solver: Callable[..., FusionResult] | None = None,
     warm_start: gtsam.Values | None = None,
+    workers: int = 1,
 ) -> FusionResult:
     """`smoother.smooth` (same arguments and result), a flight longer than
     window.min_flight_s solved in overlapping windows one at a time (module docstring: the
@@ -306,7 +316,8 @@ def smooth_windowed(
     (EstimationError, e.g. no fix in it), with a health note saying so.  `solver`: the
     smoother of one window or of the whole flight (default `smoother.smooth`).  `warm_start`:
     the initial values of a whole-flight solve (`smooth`'s); the windows start cold (their keys
-    are renumbered, and on the 10-minute flight the warm start saved no measurable time)."""
+    are renumbered, and on the 10-minute flight the warm start saved no measurable time).
+    `workers`: processes for the windows (at most WINDOW_WORKERS at once; module docstring)."""
     window = window or WindowConfig()
     solver = solver or smooth
     # the heap freed by earlier whole-flight solves (the time-offset profile's: ~0.4 GB at 10 min)
@@ -331,16 +342,26 @@ def smooth_windowed(
     maps: list[LoadMap] = []
     healths: list[SolveHealth] = []
     stats: list[dict] = []
+    n_workers = min(workers, WINDOW_WORKERS) if sendable(solver) else 1
+    tasks = (
+        (
+            solver,
+            win.out_first - win.first,
+            win.out_stop - win.first,
+            *_window_inputs(win, frame_t, imu, raw, load_obs, kwargs),
+        )
+        for win in plan
+    )
+    parts = parallel_map(_solve_window, tasks, n_workers, preload=("fusion.estimate.window",))
     for i, win in enumerate(plan):
-        args = _window_inputs(win, frame_t, imu, raw, load_obs, kwargs)
         try:
-            res = solver(*args[:4], **args[4])
+            T_part, cov_part, loads_part, health_part, stats_part = next(parts)
         except EstimationError as e:
             # e.g. a window inside a long blackout (no fix): the whole flight bridges it
             t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
             reason = f"window {i + 1} of {len(plan)} (from {t_s:.1f} s) not solvable on its own ({e})"
             log.warning("smoother: %s: solving the whole flight instead", reason)
-            del poses, covs, maps, healths, stats
+            del poses, covs, maps, healths, stats, parts
             release_heap()
             whole = solver(
                 frame_times_ns, imu, raw, load_obs, as_built=as_built, warm_start=warm_start, **kwargs
@@ -348,20 +369,43 @@ def smooth_windowed(
             whole.health.note(f"{reason}: solved as one window (memory not bounded)")
             whole.stats["health"] = whole.health.as_dict()
             return whole
-        a, b = win.out_first - win.first, win.out_stop - win.first
-        poses.append(res.trajectory.T_world_body[a:b])
-        covs.append(None if res.trajectory.covariances is None else res.trajectory.covariances[a:b])
-        maps.append(res.loads)
-        healths.append(res.health)
-        stats.append(res.stats)
-        del res, args
-        release_heap()  # the window's GTSAM heap back to the system before the next one
+        poses.append(T_part)
+        covs.append(cov_part)
+        maps.append(loads_part)
+        healths.append(health_part)
+        stats.append(stats_part)
     name = str(Estimator.SMOOTHER)
     cov = None if any(c is None for c in covs) else np.concatenate([c for c in covs if c is not None])
     traj = Trajectory(name, frame_t.astype(np.int64), np.concatenate(poses), cov)
     loads = merge_loads(maps, name)
     health = _merge_health(healths, {e.load_id for e in loads.loads})
     return FusionResult(traj, loads, _merge_stats(stats, plan, frame_t, health), health)
+
+
+def _solve_window(context: None, task: tuple) -> tuple:
+    """One window of smooth_windowed: its output frames' poses [a:b] and covariances, its load
+    map, health and stats (the rest of the result is let go here, not sent back)."""
+    solver, a, b, frame_t, imu, raw, loads, kwargs = task
+    res = solver(frame_t, imu, raw, loads, **kwargs)
+    cov = None if res.trajectory.covariances is None else res.trajectory.covariances[a:b]
+    out = (res.trajectory.T_world_body[a:b], cov, res.loads, res.health, res.stats)
+    del res
+    release_heap()  # the window's GTSAM heap back to the system before the next one
+    return out
+
+
+def _mount_window(context: tuple, task: tuple) -> tuple[MountRotation, np.ndarray | None]:
+    """One window of estimate_mount_windowed: its mount estimate and its output frames' body
+    poses [a:b] (None when the solve gave no trajectory of every frame)."""
+    floor_camera, fusion_config = context
+    a, b, f_t, w_imu, w_raw, _, kw = task
+    mount, traj, _ = estimate_mount_and_states(
+        f_t, w_imu, w_raw, kw["velocity"], floor_camera, None, fusion_config
+    )
+    part = traj.T_world_body[a:b] if traj is not None and len(traj) == len(f_t) else None
+    del traj
+    release_heap()
+    return mount, part
 
 
 def estimate_mount_windowed(
@@ -372,6 +416,7 @@ def estimate_mount_windowed(
     floor_camera,
     fusion_config: FusionConfig | None = None,
     window: WindowConfig | None = None,
+    workers: int = 1,
 ) -> tuple[MountRotation, Trajectory | None, gtsam.Values | None]:
     """`extrinsics.estimate_mount_and_states` (the time-offset stage's whole-flight solve, shared
     with the mount check: pipeline.SharedWholeFlight) in the windows of `smooth_windowed`, so that
@@ -382,7 +427,7 @@ def estimate_mount_windowed(
     `extrinsics.merge_mount_rotations`, and the body trajectory is stitched by the same cuts as
     the smoother's; no warm-start states (the main smoother is windowed too).  A window that
     cannot be solved on its own (no fix in it) makes the whole flight one solve, as in
-    `smooth_windowed`."""
+    `smooth_windowed`.  `workers`: processes for the windows, as in `smooth_windowed`."""
     window = window or WindowConfig()
     frame_t = np.asarray(frame_t)
     plan = plan_windows(frame_t, window) if frame_t.ndim == 1 and len(frame_t) else []
@@ -391,12 +436,21 @@ def estimate_mount_windowed(
         return estimate_mount_and_states(frame_t, imu, raw, velocity, floor_camera, None, fusion_config)
     mounts: list[MountRotation] = []
     poses: list[np.ndarray] | None = []
+    tasks = (
+        (
+            win.out_first - win.first,
+            win.out_stop - win.first,
+            *_window_inputs(win, frame_t, imu, raw, None, {"velocity": velocity}),
+        )
+        for win in plan
+    )
+    context = (floor_camera, fusion_config)
+    parts = parallel_map(
+        _mount_window, tasks, min(workers, WINDOW_WORKERS), context, preload=("fusion.estimate.window",)
+    )
     for i, win in enumerate(plan):
-        f_t, w_imu, w_raw, _, kw = _window_inputs(win, frame_t, imu, raw, None, {"velocity": velocity})
         try:
-            mount, traj, _ = estimate_mount_and_states(
-                f_t, w_imu, w_raw, kw["velocity"], floor_camera, None, fusion_config
-            )
+            mount, part = next(parts)
         except EstimationError as e:
             t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
             log.warning(
@@ -407,16 +461,14 @@ def estimate_mount_windowed(
                 t_s,
                 e,
             )
-            del mounts, poses
+            del mounts, poses, parts
             release_heap()
             return estimate_mount_and_states(frame_t, imu, raw, velocity, floor_camera, None, fusion_config)
         mounts.append(mount)
-        if poses is not None and traj is not None and len(traj) == win.stop - win.first:
-            poses.append(traj.T_world_body[win.out_first - win.first : win.out_stop - win.first])
+        if poses is not None and part is not None:
+            poses.append(part)
         else:
             poses = None
-        del traj
-        release_heap()
     merged = merge_mount_rotations(mounts)
     log.info("mount solve: %d frames in %d overlapping windows", len(frame_t), len(plan))
     if poses is None:
