@@ -48,7 +48,14 @@ from fusion.geometry import interpolate_poses
 from fusion.log import read_flight
 from fusion.log.files import read_tum
 from fusion.pipeline import RunConfig, localize_stage, run
-from fusion.qr.detect import CACHE_NAME, detect_flight, detect_image, read_cache
+from fusion.qr.detect import (
+    CACHE_NAME,
+    detect_flight,
+    detect_image,
+    flight_fingerprint,
+    read_cache,
+    write_cache,
+)
 from fusion.qr.predict import track_flight, without_tracked
 from fusion.sim.render import OCCLUDER_DN, occlusion_polygon, project_code_corners
 from fusion.sim.scenarios import build_scenario
@@ -119,6 +126,14 @@ def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
     return wrong, errs
 
 
+def _in_blackout(t_ns: int, blackouts) -> bool:
+    """True inside one of the simulator's floor-camera blackouts [(start_ns, end_ns, kind)]:
+    every floor code in view made unreadable on purpose (fusion.sim.render._apply_blackout:
+    shadow, contrast below the noise; glare, clipped white; torn, the top half with two of the
+    three finders replaced by floor), not merely blurred."""
+    return any(a <= t_ns <= b for a, b, _ in blackouts)
+
+
 def _is_restamped(d, rep) -> bool:
     """A pass sighting decoded with re-stamped finders (not tracked from a prediction)."""
     return (d.timestamp_ns, d.payload) in rep.restamped_keys
@@ -132,6 +147,8 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     det = read_cache(out_dir / CACHE_NAME) if (out_dir / CACHE_NAME).is_file() else None
     if det is None:
         det = detect_flight(log, workers=workers or 1)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))  # for the next run
     det = without_tracked(det)
     loc = localize_stage(log, det, cfg)
     pnp = str(Estimator.PNP)
@@ -148,7 +165,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         t = int(t)
         if not is_floor or t in final:
             continue
-        if any(a <= t <= b for a, b, _ in blackouts):
+        if _in_blackout(t, blackouts):
             why = "blackout"
         elif t in decoded and t not in first:
             why = "decoded_no_pnp"
@@ -158,6 +175,10 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
                 why = "posed_in_pass_refused_later"
         reasons[why] = reasons.get(why, 0) + 1
     wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
+    floor_t = [int(t) for t in stamps[mask]]
+    outside = [t for t in floor_t if not _in_blackout(t, blackouts)]
+    posed_final = sum(t in final for t in floor_t)
+    posed_outside = sum(t in final for t in outside)
     # re-stamped sightings (fusion.qr.restamp): corners_raw_px is their fitted quadrilateral, not a
     # prediction; scored on their own
     restamped = {
@@ -170,8 +191,10 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         wrong_ids=wrong,
         tracked_err_px_median_max=[float(np.median(errs)), float(np.max(errs))] if errs else [],
         posed_first=sum(int(t) in first for t in stamps[mask]),
-        posed_final=sum(int(t) in final for t in stamps[mask]),
-        in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
+        posed_final=posed_final,
+        in_blackouts=len(floor_t) - len(outside),
+        posed_share=posed_final / max(len(floor_t), 1),
+        posed_share_outside_blackouts=posed_outside / max(len(outside), 1),
         tracked=rep.stats.tracked,
         restamped=rep.restamped,
         frames_with_restamped=rep.frames_with_restamped,
@@ -274,6 +297,8 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     pnp_t = set(int(t) for t in read_tum(out_dir / "trajectory_pnp.tum").timestamps_ns)
     w, h = cam.width, cam.height
     out = dict(floor_frames=0, posed=0, decoded=0, tracked=0, wrong_ids=0, tracked_err_px=[])
+    out.update(floor_frames_outside_blackouts=0, posed_outside_blackouts=0)
+    blackouts = log.blackouts or []
     for k, t in enumerate(stamps):
         truth = _truth_corners(cam, T_true[k], codes)
         in_view = [
@@ -284,6 +309,9 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
         if in_view:
             out["floor_frames"] += 1
             out["posed"] += int(t) in pnp_t
+            if not _in_blackout(int(t), blackouts):
+                out["floor_frames_outside_blackouts"] += 1
+                out["posed_outside_blackouts"] += int(t) in pnp_t
         for d in by_frame.get(int(t), []):
             out["tracked" if d.tracked else "decoded"] += 1
             if not d.tracked:
@@ -334,11 +362,12 @@ def main(argv=None) -> int:
         return 0
     rows = []
     print(
-        "| flight | mode | floor frames | with a PnP pose | decoded | tracked | wrong ids "
+        "| flight | mode | floor frames | with a PnP pose | outside blackouts | decoded | tracked "
+        "| wrong ids "
         "| tracked corner err px median / max | ATE pnp cm | ATE smoother cm "
         "| track pass s (s / frame tried) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for flight in args.flights:
         for mode in args.modes:
             # the first mode's detections (its cache is the flight's) spare the second its detection
@@ -353,7 +382,10 @@ def main(argv=None) -> int:
             e = np.array(r["tracked_err_px"]) if r["tracked_err_px"] else np.array([np.nan])
             print(
                 f"| {flight.name} | {mode} | {r['floor_frames']} | {r['posed']} "
-                f"({100 * r['posed'] / max(r['floor_frames'], 1):.0f} %) | {r['decoded']} | {r['tracked']} "
+                f"({100 * r['posed'] / max(r['floor_frames'], 1):.1f} %) "
+                f"| {r['posed_outside_blackouts']} / {r['floor_frames_outside_blackouts']} "
+                f"({100 * r['posed_outside_blackouts'] / max(r['floor_frames_outside_blackouts'], 1):.1f} %) "
+                f"| {r['decoded']} | {r['tracked']} "
                 f"| {r['wrong_ids']} | {np.median(e):.2f} / {np.max(e):.2f} | {r['ate_pnp_cm']:.2f} "
                 f"| {r['ate_smoother_cm']:.2f} | {r['track_s']:.1f} ({r['s_per_frame_tried']:.3f}) |",
                 flush=True,
