@@ -16,7 +16,15 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
 
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
-Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
+Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`, or by
+the bench itself: `--simulate KIND --seeds 0 1 2` makes (once) OUT/flights/KIND_sSEED, 40 s of
+the default scenario, and runs on them: KIND blur20 (20 ms exposure, ~10 px of blur when
+cruising), strip-L / strip-H (the simulator's 10 % strip occluder, floor codes at ECC L, the
+simulator's default, or H, the `qr-sheet` default).
+
+Every row gives the posed share over all floor frames (the issue's target) and over those
+outside the simulator's blackouts (shadow, glare, torn: the codes made unreadable on purpose,
+fusion.sim.render._apply_blackout; 108 of the 1125 floor frames of a 40 s flight).
 
 `--occlude SRC DST --occluder strip|square|none [--fraction 0.1]`: DST = a copy of the flight SRC
 whose floor images get, on every floor code in view at the true pose, the simulator's occluder
@@ -334,9 +342,43 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     return out
 
 
+SIM_KINDS = ("blur20", "strip-L", "strip-H")
+SIM_DURATION_S = 40.0
+
+
+def make_flight(kind: str, seed: int, root: Path) -> Path:
+    """ROOT/KIND_sSEED: SIM_DURATION_S of the default scenario with KIND's camera effects (module
+    docstring), simulated unless it is already there."""
+    from fusion.sim.scenarios import CameraOptions
+    from fusion.sim.simulate import simulate
+
+    path = root / f"{kind}_s{seed}"
+    if (path / "world.yaml").exists():
+        return path
+    scenario = build_scenario("default")
+    if kind == "blur20":
+        options = CameraOptions(exposure_s=0.02)
+    else:
+        options = CameraOptions(occlusion_fraction=0.1)
+        scenario.floor_ecc = kind.split("-")[1]
+    simulate(
+        path,
+        scenario,
+        duration_s=SIM_DURATION_S,
+        seed=seed,
+        overwrite=True,
+        progress=False,
+        workers=1,
+        camera_options=options,
+    )
+    return path
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("flights", type=Path, nargs="+")
+    ap.add_argument("flights", type=Path, nargs="*")
+    ap.add_argument("--simulate", choices=SIM_KINDS, default=None, help="make and use KIND_sSEED flights")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_track_pipeline"))
     ap.add_argument("--modes", nargs="+", default=["no-track", "track"], choices=["no-track", "track"])
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
@@ -348,6 +390,10 @@ def main(argv=None) -> int:
     ap.add_argument("--fraction", type=float, default=0.1)
     ap.add_argument("--decode-rates", action="store_true", help="zxing's decode share per occluder kind")
     args = ap.parse_args(argv)
+    if args.simulate is not None:
+        args.flights += [make_flight(args.simulate, seed, args.out / "flights") for seed in args.seeds]
+    if not args.flights:
+        ap.error("give flights or --simulate")
     if args.occlude:
         occlude_flight(args.flights[0], args.flights[1], args.fraction, args.occluder)
         return 0
