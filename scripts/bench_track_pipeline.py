@@ -403,7 +403,9 @@ def main(argv=None) -> int:
         return 0
     if args.reasons:
         for flight in args.flights:
-            r = loss_reasons(flight, args.out / f"{flight.name}-{args.modes[0]}", args.workers)
+            out = args.out / f"{flight.name}-{args.modes[0]}"
+            r = loss_reasons(flight, out, args.workers)
+            (out / "reasons.json").write_text(json.dumps(r, indent=1))
             print(flight.name, json.dumps(r), flush=True)
         return 0
     rows = []

@@ -17,7 +17,10 @@ localisation (pipeline.track_stage):
    MAX_EXTRAPOLATION_S; without one (or where it does not apply), linear / geodesic
    interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
    extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
-   MAX_EXTRAPOLATION_S ahead, forward or backward.
+   MAX_EXTRAPOLATION_S ahead, forward or backward.  The first pass's poses (and the
+   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction; the
+   poses found by the pass itself (step 3) are used only where that nearer in time
+   (PosePredictor.predict).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
@@ -25,10 +28,17 @@ localisation (pipeline.track_stage):
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
    with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones); its
    tracked codes are kept only when that pose lies within POSE_GATE_M (+ POSE_GATE_M_PER_S x
-   the time to the nearest pose used) of the predicted one; that pose predicts
+   the time to the nearest pose used) of the predicted one (with several tracked codes, the one
+   furthest from its prediction is left out and the pose solved again, until it does or one is
+   left); dark squares left by failed re-stamp decodes (fusion.qr.restamp.restamp_candidates)
+   are the tracker's extra starts and fallback corners (fusion.qr.track.match_square); that
+   pose predicts
    later frames when its position sigma is at most
    MAX_FEEDBACK_POSITION_SIGMA_M, so a code is followed through a long stretch of blur.
-4. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
+4. A backward sweep: the floor frames still without a pose or a tracked sighting, each chunk
+   latest first, the forward sweep's poses added to the predictor (so a code is followed back
+   from the next decode where the forward chain broke, e.g. before the first decode).
+5. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
    first-pass poses within MAX_EXTRAPOLATION_S (a fresh start loses little there); the cut
    does not depend on the number of workers, so any number of processes gives the same result.
 
@@ -565,14 +575,24 @@ def _track_chunk(context, task: list[int]):
             else:
                 rep.frame_outcomes[t] = "ambiguous"
             continue
-        floor = classify(frame_dets + tracked, world).floor
-        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
         gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
-        if res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m:
+        kept = list(tracked)
+        while True:
+            floor = classify(frame_dets + kept, world).floor
+            res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
+            outside = res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m
+            if not outside or len(kept) <= 1:
+                break
+            # several tracked codes: the one furthest from its prediction left out, solved again
+            kept.remove(max(kept, key=_innovation_px))
+        if outside:
+            kept = []
+        tracker.stats.tracked -= len(tracked) - len(kept)
+        tracker.stats.pose_gated += len(tracked) - len(kept)
+        if outside:
             rep.frame_outcomes[t] = "pose_gated"  # the tracked codes disagree with the prediction
-            tracker.stats.tracked -= len(tracked)
-            tracker.stats.pose_gated += len(tracked)
             continue
+        tracked = kept
         out.extend(tracked)
         rep.frames_tracked += 1
         rep.frames_tracked_only += not frame_dets
@@ -587,6 +607,11 @@ def _track_chunk(context, task: list[int]):
             rep.poses[t] = res.T_world_body
     rep.stats = tracker.stats
     return out, rep
+
+
+def _innovation_px(d: QRDetection) -> float:
+    """A tracked sighting's largest corner distance from its prediction (corners_raw_px), px."""
+    return float(np.max(np.linalg.norm(d.corners_px - d.corners_raw_px, axis=1)))
 
 
 RESTAMP_CHUNK_FRAMES = 64  # frames per task of the re-stamp decoding

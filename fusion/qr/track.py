@@ -13,11 +13,13 @@ Per camera, frames in time order (`CodeTracker.step`):
    the image, and tracks whose prediction overlaps a code decoded in this frame (identity would
    be ambiguous).
 3. Refine the finder edges from the predicted corners (refine_frames: stage 2 only, with its
-   self-check, RefineChecks).  Accept when it passes, no corner moved more than
-   TRACK_GATE_MODULES modules from the prediction (codes are separated by at least their quiet
-   zones, 4 modules, so a code cannot take another's identity; several starts around the
-   prediction, TRACK_START_OFFSETS_PX, the passing result nearest it kept), and the innovation
-   e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
+   self-check, RefineChecks; the pipeline's pass without its 50 % crossings pass,
+   TRACK_CROSSINGS_PASS; a matching dark square, match_square, is one more start, and its
+   corners the sighting's when refinement fails from every start).  Accept when it passes, no
+   corner moved more than TRACK_GATE_MODULES modules from the prediction (codes are separated
+   by at least their quiet zones, 4 modules, so a code cannot take another's identity; several
+   starts around the prediction, TRACK_START_OFFSETS_PX, the passing result nearest it kept),
+   and the innovation e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
 4. A track lives TRACK_MAX_MISSES frames without a sighting and at most TRACK_MAX_RUN tracked
    sightings in a row (then it needs a decode again).
 
