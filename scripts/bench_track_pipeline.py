@@ -37,8 +37,9 @@ decodes per kind on a flight's frames).
 `--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
 cache when there is one), and every floor frame without a PnP pose after the pass counted by why
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
-frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, and
-the pass's CPU seconds in this process (the whole pass with `--workers 1`).
+frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, the
+pass's CPU seconds in this process (the whole pass with `--workers 1`), and the PnP poses'
+position RMSE against the truth and how many are over 5 cm (the per-frame stage after the pass).
 """
 
 from __future__ import annotations
@@ -134,6 +135,17 @@ def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
     return wrong, errs
 
 
+def _position_errors(log, traj) -> np.ndarray:
+    """(N,) position error (m) of each pose of `traj` against the flight's ground truth."""
+    gt = log.groundtruth
+    t = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros(0)
+    T_true = interpolate_poses(gt.timestamps_ns.astype(float), gt.T_world_body, t.astype(float))
+    T_est = np.asarray(traj.T_world_body, dtype=float).reshape(-1, 4, 4)
+    return np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1)
+
+
 def _in_blackout(t_ns: int, blackouts) -> bool:
     """True inside one of the simulator's floor-camera blackouts [(start_ns, end_ns, kind)]:
     every floor code in view made unreadable on purpose (fusion.sim.render._apply_blackout:
@@ -164,7 +176,9 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     cpu0 = time.process_time()
     tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
     cpu_s = time.process_time() - cpu0  # this process only: with --workers 1, the whole pass
-    final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
+    final_traj = localize_stage(log, tracked, cfg).trajectories[pnp]
+    final = set(int(t) for t in final_traj.timestamps_ns)
+    pnp_err_m = _position_errors(log, final_traj)
     stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
     decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
@@ -210,6 +224,8 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         restamp_poses=rep.restamp_poses,
         wrong_ids_restamped=wrong_restamped,
         tracker={k: int(v) for k, v in vars(rep.stats).items()},
+        pnp_rmse_cm=100 * float(np.sqrt(np.mean(pnp_err_m**2))) if len(pnp_err_m) else float("nan"),
+        pnp_over_5cm=int(np.sum(pnp_err_m > 0.05)),
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
         restamp_seconds=rep.restamp_seconds,
