@@ -519,13 +519,15 @@ def test_pose_predictor_prefers_the_first_pass_bridge_and_uses_added_poses_on_bo
     off[:3, 3] += [0.05, 0.0, 0.0]  # a pose the pass found, 5 cm off
     pred.add(int(0.9e9), off)
     T, _ = pred.predict(int(1.0e9))  # bridged between the first pass's 0.3 and 1.6 s
-    assert _pose_error(T, _accelerating_pose(1.0))[0] < 2e-3
+    assert _pose_error(T, _accelerating_pose(1.0))[0] < 2e-3 and pred.last_kind == "bridge"
+    assert pred.predict(int(stamps[1]))[1] == 0.0 and pred.last_kind == "own"
     # no first-pass pose within reach: the added ones, after t (backward sweep) or before it
     late = PosePredictor(stamps[2:], poses[2:], imu)
     assert late.predict(int(0.9e9)) is None  # 0.7 s before the first pose
     late.add(int(1.0e9), _accelerating_pose(1.0))
     T, horizon = late.predict(int(0.9e9))
     assert horizon == pytest.approx(0.1) and _pose_error(T, _accelerating_pose(0.9))[0] < 2e-3
+    assert late.last_kind == "other"  # the pose gate's looser limit (predict.POSE_GATE_M)
     early = PosePredictor(stamps[:2], poses[:2], imu)
     assert early.predict(int(1.0e9)) is None
     early.add(int(0.7e9), _accelerating_pose(0.7))

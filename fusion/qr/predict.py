@@ -28,7 +28,9 @@ localisation (pipeline.track_stage):
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
    with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones); its
    tracked codes are kept only when that pose lies within POSE_GATE_M (+ POSE_GATE_M_PER_S x
-   the time to the nearest pose used) of the predicted one (with several tracked codes, the one
+   the time to the nearest pose used) of the predicted one, POSE_GATE_BRIDGE_M (+
+   POSE_GATE_BRIDGE_M_PER_S x ...) where the prediction is the frame's own first-pass pose or a
+   first-pass IMU bridge (with several tracked codes, the one
    furthest from its prediction is left out and the pose solved again, until it does or one is
    left); dark squares left by failed re-stamp decodes (fusion.qr.restamp.restamp_candidates)
    are the tracker's extra starts and fallback corners (fusion.qr.track.match_square); that
@@ -119,6 +121,10 @@ MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
 # PnP poses 13-63 cm off, the IMU-bridged prediction there was within 1 cm (BENCHMARKS.md)
 POSE_GATE_M = 0.05
 POSE_GATE_M_PER_S = 0.1
+# ... and tighter where the prediction is the IMU bridge between two first-pass poses: within
+# 0.14-0.38 cm (median; p90 0.3-0.9 cm) up to 1 s on a 20 ms-exposure flight (NOTES-track.md)
+POSE_GATE_BRIDGE_M = 0.03
+POSE_GATE_BRIDGE_M_PER_S = 0.05
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
 # What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
@@ -309,6 +315,7 @@ class PosePredictor:
         self.first_T = list(np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4))
         self.added_t: list[int] = []
         self.added_T: list[np.ndarray] = []
+        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "other"
 
     def add(self, t_ns: int, T_world_body: np.ndarray) -> None:
         k = bisect.bisect_left(self.added_t, int(t_ns))
@@ -359,10 +366,13 @@ class PosePredictor:
         t = int(t_ns)
         i = bisect.bisect_left(self.first_t, t)
         if i < len(self.first_t) and self.first_t[i] == t:
+            self.last_kind = "own"
             return self.first_T[i], 0.0
         first = self._predict(t, self._before(t, 8, False), self._after(t, 8, False))
         if first is not None and first[2] == "bridge":
+            self.last_kind = "bridge"
             return first[0], first[1]
+        self.last_kind = "other"
         cands = [first] if first is not None else []
         if self.added_t:
             with_added = self._predict(t, self._before(t, 8), self._after(t, 8))
@@ -575,7 +585,10 @@ def _track_chunk(context, task: list[int]):
             else:
                 rep.frame_outcomes[t] = "ambiguous"
             continue
-        gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
+        if predictor.last_kind == "other":
+            gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
+        else:  # the frame's own first-pass pose or a first-pass IMU bridge
+            gate_m = POSE_GATE_BRIDGE_M + POSE_GATE_BRIDGE_M_PER_S * horizon_s
         kept = list(tracked)
         while True:
             floor = classify(frame_dets + kept, world).floor
