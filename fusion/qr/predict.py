@@ -82,7 +82,7 @@ from fusion.world import World
 logger = logging.getLogger(__name__)
 
 # in the tracked cache's fingerprint: change with the method
-TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings"
+TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate"
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
