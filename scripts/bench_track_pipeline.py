@@ -16,7 +16,15 @@ Per flight and mode (--track / --no-track), pipeline.run into OUT/<flight>-<mode
 
     PYTHONPATH=. python3 scripts/bench_track_pipeline.py FLIGHT... [--out DIR] [--modes track no-track]
 
-Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`.
+Flights are made with e.g. `fusion simulate F --duration 40 --seed 1 --exposure 0.05`, or by
+the bench itself: `--simulate KIND --seeds 0 1 2` makes (once) OUT/flights/KIND_sSEED, 40 s of
+the default scenario, and runs on them: KIND blur20 (20 ms exposure, ~10 px of blur when
+cruising), strip-L / strip-H (the simulator's 10 % strip occluder, floor codes at ECC L, the
+simulator's default, or H, the `qr-sheet` default).
+
+Every row gives the posed share over all floor frames (the issue's target) and over those
+outside the simulator's blackouts (shadow, glare, torn: the codes made unreadable on purpose,
+fusion.sim.render._apply_blackout; 108 of the 1125 floor frames of a 40 s flight).
 
 `--occlude SRC DST --occluder strip|square|none [--fraction 0.1]`: DST = a copy of the flight SRC
 whose floor images get, on every floor code in view at the true pose, the simulator's occluder
@@ -29,8 +37,9 @@ decodes per kind on a flight's frames).
 `--reasons`: no fusion; the per-frame stage and the track pass only (detections from OUT's
 cache when there is one), and every floor frame without a PnP pose after the pass counted by why
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
-frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, and
-the pass's CPU seconds in this process (the whole pass with `--workers 1`).
+frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, the
+pass's CPU seconds in this process (the whole pass with `--workers 1`), and the PnP poses'
+position RMSE against the truth and how many are over 5 cm (the per-frame stage after the pass).
 """
 
 from __future__ import annotations
@@ -48,7 +57,14 @@ from fusion.geometry import interpolate_poses
 from fusion.log import read_flight
 from fusion.log.files import read_tum
 from fusion.pipeline import RunConfig, localize_stage, run
-from fusion.qr.detect import CACHE_NAME, detect_flight, detect_image, read_cache
+from fusion.qr.detect import (
+    CACHE_NAME,
+    detect_flight,
+    detect_image,
+    flight_fingerprint,
+    read_cache,
+    write_cache,
+)
 from fusion.qr.predict import track_flight, without_tracked
 from fusion.sim.render import OCCLUDER_DN, occlusion_polygon, project_code_corners
 from fusion.sim.scenarios import build_scenario
@@ -119,6 +135,25 @@ def _score_tracked(by_frame: dict, truth_by_t: dict) -> tuple[int, list[float]]:
     return wrong, errs
 
 
+def _position_errors(log, traj) -> np.ndarray:
+    """(N,) position error (m) of each pose of `traj` against the flight's ground truth."""
+    gt = log.groundtruth
+    t = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    if len(t) == 0:
+        return np.zeros(0)
+    T_true = interpolate_poses(gt.timestamps_ns.astype(float), gt.T_world_body, t.astype(float))
+    T_est = np.asarray(traj.T_world_body, dtype=float).reshape(-1, 4, 4)
+    return np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1)
+
+
+def _in_blackout(t_ns: int, blackouts) -> bool:
+    """True inside one of the simulator's floor-camera blackouts [(start_ns, end_ns, kind)]:
+    every floor code in view made unreadable on purpose (fusion.sim.render._apply_blackout:
+    shadow, contrast below the noise; glare, clipped white; torn, the top half with two of the
+    three finders replaced by floor), not merely blurred."""
+    return any(a <= t_ns <= b for a, b, _ in blackouts)
+
+
 def _is_restamped(d, rep) -> bool:
     """A pass sighting decoded with re-stamped finders (not tracked from a prediction)."""
     return (d.timestamp_ns, d.payload) in rep.restamped_keys
@@ -132,6 +167,8 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     det = read_cache(out_dir / CACHE_NAME) if (out_dir / CACHE_NAME).is_file() else None
     if det is None:
         det = detect_flight(log, workers=workers or 1)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))  # for the next run
     det = without_tracked(det)
     loc = localize_stage(log, det, cfg)
     pnp = str(Estimator.PNP)
@@ -139,7 +176,9 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     cpu0 = time.process_time()
     tracked, rep = track_flight(log, det, loc.trajectories[pnp], cfg.corner_sigma_px, workers or 1)
     cpu_s = time.process_time() - cpu0  # this process only: with --workers 1, the whole pass
-    final = set(int(t) for t in localize_stage(log, tracked, cfg).trajectories[pnp].timestamps_ns)
+    final_traj = localize_stage(log, tracked, cfg).trajectories[pnp]
+    final = set(int(t) for t in final_traj.timestamps_ns)
+    pnp_err_m = _position_errors(log, final_traj)
     stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
     decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
@@ -148,7 +187,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         t = int(t)
         if not is_floor or t in final:
             continue
-        if any(a <= t <= b for a, b, _ in blackouts):
+        if _in_blackout(t, blackouts):
             why = "blackout"
         elif t in decoded and t not in first:
             why = "decoded_no_pnp"
@@ -158,6 +197,10 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
                 why = "posed_in_pass_refused_later"
         reasons[why] = reasons.get(why, 0) + 1
     wrong, errs = _score_tracked(tracked.by_frame("cam0"), truth_by_t)
+    floor_t = [int(t) for t in stamps[mask]]
+    outside = [t for t in floor_t if not _in_blackout(t, blackouts)]
+    posed_final = sum(t in final for t in floor_t)
+    posed_outside = sum(t in final for t in outside)
     # re-stamped sightings (fusion.qr.restamp): corners_raw_px is their fitted quadrilateral, not a
     # prediction; scored on their own
     restamped = {
@@ -170,8 +213,10 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         wrong_ids=wrong,
         tracked_err_px_median_max=[float(np.median(errs)), float(np.max(errs))] if errs else [],
         posed_first=sum(int(t) in first for t in stamps[mask]),
-        posed_final=sum(int(t) in final for t in stamps[mask]),
-        in_blackouts=sum(any(a <= int(t) <= b for a, b, _ in blackouts) for t in stamps[mask]),
+        posed_final=posed_final,
+        in_blackouts=len(floor_t) - len(outside),
+        posed_share=posed_final / max(len(floor_t), 1),
+        posed_share_outside_blackouts=posed_outside / max(len(outside), 1),
         tracked=rep.stats.tracked,
         restamped=rep.restamped,
         frames_with_restamped=rep.frames_with_restamped,
@@ -179,6 +224,8 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         restamp_poses=rep.restamp_poses,
         wrong_ids_restamped=wrong_restamped,
         tracker={k: int(v) for k, v in vars(rep.stats).items()},
+        pnp_rmse_cm=100 * float(np.sqrt(np.mean(pnp_err_m**2))) if len(pnp_err_m) else float("nan"),
+        pnp_over_5cm=int(np.sum(pnp_err_m > 0.05)),
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
         restamp_seconds=rep.restamp_seconds,
@@ -274,6 +321,8 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     pnp_t = set(int(t) for t in read_tum(out_dir / "trajectory_pnp.tum").timestamps_ns)
     w, h = cam.width, cam.height
     out = dict(floor_frames=0, posed=0, decoded=0, tracked=0, wrong_ids=0, tracked_err_px=[])
+    out.update(floor_frames_outside_blackouts=0, posed_outside_blackouts=0)
+    blackouts = log.blackouts or []
     for k, t in enumerate(stamps):
         truth = _truth_corners(cam, T_true[k], codes)
         in_view = [
@@ -284,6 +333,9 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
         if in_view:
             out["floor_frames"] += 1
             out["posed"] += int(t) in pnp_t
+            if not _in_blackout(int(t), blackouts):
+                out["floor_frames_outside_blackouts"] += 1
+                out["posed_outside_blackouts"] += int(t) in pnp_t
         for d in by_frame.get(int(t), []):
             out["tracked" if d.tracked else "decoded"] += 1
             if not d.tracked:
@@ -306,9 +358,43 @@ def evaluate_flight(flight: Path, out_dir: Path, track: bool, rerun: bool = True
     return out
 
 
+SIM_KINDS = ("blur20", "strip-L", "strip-H")
+SIM_DURATION_S = 40.0
+
+
+def make_flight(kind: str, seed: int, root: Path) -> Path:
+    """ROOT/KIND_sSEED: SIM_DURATION_S of the default scenario with KIND's camera effects (module
+    docstring), simulated unless it is already there."""
+    from fusion.sim.scenarios import CameraOptions
+    from fusion.sim.simulate import simulate
+
+    path = root / f"{kind}_s{seed}"
+    if (path / "world.yaml").exists():
+        return path
+    scenario = build_scenario("default")
+    if kind == "blur20":
+        options = CameraOptions(exposure_s=0.02)
+    else:
+        options = CameraOptions(occlusion_fraction=0.1)
+        scenario.floor_ecc = kind.split("-")[1]
+    simulate(
+        path,
+        scenario,
+        duration_s=SIM_DURATION_S,
+        seed=seed,
+        overwrite=True,
+        progress=False,
+        workers=1,
+        camera_options=options,
+    )
+    return path
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("flights", type=Path, nargs="+")
+    ap.add_argument("flights", type=Path, nargs="*")
+    ap.add_argument("--simulate", choices=SIM_KINDS, default=None, help="make and use KIND_sSEED flights")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_track_pipeline"))
     ap.add_argument("--modes", nargs="+", default=["no-track", "track"], choices=["no-track", "track"])
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
@@ -320,6 +406,10 @@ def main(argv=None) -> int:
     ap.add_argument("--fraction", type=float, default=0.1)
     ap.add_argument("--decode-rates", action="store_true", help="zxing's decode share per occluder kind")
     args = ap.parse_args(argv)
+    if args.simulate is not None:
+        args.flights += [make_flight(args.simulate, seed, args.out / "flights") for seed in args.seeds]
+    if not args.flights:
+        ap.error("give flights or --simulate")
     if args.occlude:
         occlude_flight(args.flights[0], args.flights[1], args.fraction, args.occluder)
         return 0
@@ -329,16 +419,19 @@ def main(argv=None) -> int:
         return 0
     if args.reasons:
         for flight in args.flights:
-            r = loss_reasons(flight, args.out / f"{flight.name}-{args.modes[0]}", args.workers)
+            out = args.out / f"{flight.name}-{args.modes[0]}"
+            r = loss_reasons(flight, out, args.workers)
+            (out / "reasons.json").write_text(json.dumps(r, indent=1))
             print(flight.name, json.dumps(r), flush=True)
         return 0
     rows = []
     print(
-        "| flight | mode | floor frames | with a PnP pose | decoded | tracked | wrong ids "
+        "| flight | mode | floor frames | with a PnP pose | outside blackouts | decoded | tracked "
+        "| wrong ids "
         "| tracked corner err px median / max | ATE pnp cm | ATE smoother cm "
         "| track pass s (s / frame tried) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for flight in args.flights:
         for mode in args.modes:
             # the first mode's detections (its cache is the flight's) spare the second its detection
@@ -353,7 +446,10 @@ def main(argv=None) -> int:
             e = np.array(r["tracked_err_px"]) if r["tracked_err_px"] else np.array([np.nan])
             print(
                 f"| {flight.name} | {mode} | {r['floor_frames']} | {r['posed']} "
-                f"({100 * r['posed'] / max(r['floor_frames'], 1):.0f} %) | {r['decoded']} | {r['tracked']} "
+                f"({100 * r['posed'] / max(r['floor_frames'], 1):.1f} %) "
+                f"| {r['posed_outside_blackouts']} / {r['floor_frames_outside_blackouts']} "
+                f"({100 * r['posed_outside_blackouts'] / max(r['floor_frames_outside_blackouts'], 1):.1f} %) "
+                f"| {r['decoded']} | {r['tracked']} "
                 f"| {r['wrong_ids']} | {np.median(e):.2f} / {np.max(e):.2f} | {r['ate_pnp_cm']:.2f} "
                 f"| {r['ate_smoother_cm']:.2f} | {r['track_s']:.1f} ({r['s_per_frame_tried']:.3f}) |",
                 flush=True,

@@ -487,3 +487,67 @@ def test_track_pass_decodes_strip_occluded_codes_by_restamping_and_counts_them_a
     assert summary["restamped"] == rep.restamped and "restamped_keys" not in summary
     assert summary["frames_with_restamped"] == len({t for t, _ in rep.restamped_keys})
     assert summary["frames_restamped"] == rep.outcome_counts()["restamped"] > 0
+
+
+def test_match_square_reorders_a_matching_square_and_refuses_other_shapes():
+    from fusion.qr.track import TRACK_GATE_MODULES, match_square
+
+    pred = np.array([[100.0, 100.0], [184.0, 104.0], [180.0, 188.0], [96.0, 184.0]])  # 4 px / module
+    module = 4.0
+    square = np.roll(pred + [1.5, -1.0], 2, axis=0)  # another start corner, 1.8 px off
+    got = match_square([square], pred, 21)
+    assert got is not None and np.allclose(got, pred + [1.5, -1.0])
+    far = pred + [TRACK_GATE_MODULES * module + 1.0, 0.0]  # the centre beyond the gate
+    assert match_square([far], pred, 21) is None
+    centre = pred.mean(axis=0)
+    bigger = centre + 1.1 * (pred - centre)  # corners ~4 px (1 module) out: another shape
+    assert match_square([bigger], pred, 21) is None
+    assert match_square([], pred, 21) is None
+    # the nearest of two matching squares
+    near, other = pred + [0.5, 0.0], pred + [3.0, 0.0]
+    assert np.allclose(match_square([other, near], pred, 21), near)
+
+
+def test_pose_predictor_prefers_the_first_pass_bridge_and_uses_added_poses_on_both_sides():
+    from fusion.qr.predict import ImuBridge, PosePredictor
+
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0))
+    stamps = (np.array([0.2, 0.3, 1.6, 1.7]) * 1e9).astype(np.int64)
+    poses = np.array([_accelerating_pose(t * 1e-9) for t in stamps])
+    pred = PosePredictor(stamps, poses, imu)
+    off = _accelerating_pose(0.9)
+    off[:3, 3] += [0.05, 0.0, 0.0]  # a pose the pass found, 5 cm off
+    pred.add(int(0.9e9), off)
+    T, _ = pred.predict(int(1.0e9))  # bridged between the first pass's 0.3 and 1.6 s
+    assert _pose_error(T, _accelerating_pose(1.0))[0] < 2e-3 and pred.last_kind == "bridge"
+    assert pred.predict(int(stamps[1]))[1] == 0.0 and pred.last_kind == "own"
+    # no first-pass pose within reach: the added ones, after t (backward sweep) or before it
+    late = PosePredictor(stamps[2:], poses[2:], imu)
+    assert late.predict(int(0.9e9)) is None  # 0.7 s before the first pose
+    late.add(int(1.0e9), _accelerating_pose(1.0))
+    T, horizon = late.predict(int(0.9e9))
+    assert horizon == pytest.approx(0.1) and _pose_error(T, _accelerating_pose(0.9))[0] < 2e-3
+    assert late.last_kind == "other"  # the pose gate's looser limit (predict.POSE_GATE_M)
+    early = PosePredictor(stamps[:2], poses[:2], imu)
+    assert early.predict(int(1.0e9)) is None
+    early.add(int(0.7e9), _accelerating_pose(0.7))
+    T, horizon = early.predict(int(1.0e9))
+    assert horizon == pytest.approx(0.3) and _pose_error(T, _accelerating_pose(1.0))[0] < 5e-3
+
+
+def test_track_pass_backward_sweep_poses_frames_before_the_first_decode(monkeypatch):
+    """Blur over the first 8 frames, extrapolation limited to 0.1 s: the forward sweep reaches
+    back 3 frames from the first decode, the backward sweep chains its poses back to frame 0."""
+    from fusion.qr import predict
+
+    monkeypatch.setattr(predict, "MAX_EXTRAPOLATION_S", 0.1)
+    log, det, traj, truths = _track_flight_fixture(n=12, blurred=range(0, 8))
+    blurred_ts = [int(round(k * 1e9 / RATE_HZ)) for k in range(0, 8)]
+    assert not set(blurred_ts) & {d.timestamp_ns for d in det.detections}
+    out, rep = predict.track_flight(log, det, traj, 0.15)
+    assert rep.frames_backward > 0 and rep.poses_backward >= 4
+    assert all(rep.frame_outcomes[t] == "posed" for t in blurred_ts)
+    for d in out.detections:
+        if d.tracked:  # the code really there, corners on it
+            truth = truths[int(round(d.timestamp_ns * RATE_HZ * 1e-9))][d.payload]
+            assert np.max(np.linalg.norm(d.corners_px - truth, axis=1)) < 1.0

@@ -17,7 +17,10 @@ localisation (pipeline.track_stage):
    MAX_EXTRAPOLATION_S; without one (or where it does not apply), linear / geodesic
    interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
    extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
-   MAX_EXTRAPOLATION_S ahead, forward or backward.
+   MAX_EXTRAPOLATION_S ahead, forward or backward.  The first pass's poses (and the
+   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction; the
+   poses found by the pass itself (step 3) are used only where that nearer in time
+   (PosePredictor.predict).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
@@ -25,10 +28,19 @@ localisation (pipeline.track_stage):
    PREDICTION_SIGMA_PX + PREDICTION_SIGMA_PX_PER_S x (time to the nearest pose used).  A frame
    with tracked codes gets a PnP pose from all its codes (its decoded and tracked ones); its
    tracked codes are kept only when that pose lies within POSE_GATE_M (+ POSE_GATE_M_PER_S x
-   the time to the nearest pose used) of the predicted one; that pose predicts
+   the time to the nearest pose used) of the predicted one, POSE_GATE_BRIDGE_M (+
+   POSE_GATE_BRIDGE_M_PER_S x ...) where the prediction is the frame's own first-pass pose or a
+   first-pass IMU bridge (with several tracked codes, the one
+   furthest from its prediction is left out and the pose solved again, until it does or one is
+   left); dark squares left by failed re-stamp decodes (fusion.qr.restamp.restamp_candidates)
+   are the tracker's extra starts and fallback corners (fusion.qr.track.match_square); that
+   pose predicts
    later frames when its position sigma is at most
    MAX_FEEDBACK_POSITION_SIGMA_M, so a code is followed through a long stretch of blur.
-4. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
+4. A backward sweep: the floor frames still without a pose or a tracked sighting, each chunk
+   latest first, the forward sweep's poses added to the predictor (so a code is followed back
+   from the next decode where the forward chain broke, e.g. before the first decode).
+5. The flight is cut into chunks of about TRACK_CHUNK_FRAMES frames at frames with two
    first-pass poses within MAX_EXTRAPOLATION_S (a fresh start loses little there); the cut
    does not depend on the number of workers, so any number of processes gives the same result.
 
@@ -62,14 +74,15 @@ from fusion.qr.codes import classify
 from fusion.qr.detect import RAW_CORNER_SIGMA_PX, CameraStats, DetectionResult, detect_image
 from fusion.qr.pnp import estimate_floor_pose
 from fusion.qr.refine import refine_frames
-from fusion.qr.restamp import restamp_image
-from fusion.qr.track import CodeTracker, TrackStats, symbol_in_view
+from fusion.qr.restamp import restamp_candidates
+from fusion.qr.track import TRACK_CROSSINGS_PASS, CodeTracker, TrackStats, symbol_in_view
 from fusion.types import CameraRole, QRDetection, Trajectory
 from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
-TRACK_METHOD = "pose-track/4+restamp"  # in the tracked cache's fingerprint: change with the method
+# in the tracked cache's fingerprint: change with the method
+TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate"
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
@@ -90,10 +103,13 @@ POSE_NOISE_M = 0.002
 ACCEL_BIAS_PRIOR_M_S2 = 0.3
 GRAVITY_WORLD_M_S2 = np.array([0.0, 0.0, -GRAVITY_M_S2])  # world z up
 TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
-# Smaller predicted modules are not tried: on the clean demo flight, codes tracked at under 2.5 px
-# per module (2.6 m up, turning) were up to 3.6 px off and gave PnP poses 8-25 cm off; at 2.5 px
-# and more, at most 0.5 px (BENCHMARKS.md)
-TRACK_MIN_MODULE_PX = 2.5
+# Smaller predicted modules are not tried.  2.5 px before the pose gate (POSE_GATE_M): on the
+# clean demo flight, codes tracked at under 2.5 px per module (2.6 m up, turning) were up to
+# 3.6 px off and gave PnP poses 8-25 cm off (BENCHMARKS.md).  With the pose gate and predictions
+# from the first pass's IMU bridges, 2.0 px: on the 20 ms-exposure flight (seed 0) the 2.0-2.5 px
+# codes tracked were 0.70 px off (median; 3.9 px at most), and 63 floor frames that had only
+# such codes in view got a pose (NOTES-track.md)
+TRACK_MIN_MODULE_PX = 2.0
 # A pose found by the pass predicts later frames only when PnP's position sigma (its covariance,
 # Pose3 order [r, t]) is at most this: single blurred codes gave poses 10-55 cm off with sigma
 # 3-50 cm on a 20 ms-exposure flight (good ones: 0.04 cm), and fed back, the next predictions
@@ -105,6 +121,10 @@ MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
 # PnP poses 13-63 cm off, the IMU-bridged prediction there was within 1 cm (BENCHMARKS.md)
 POSE_GATE_M = 0.05
 POSE_GATE_M_PER_S = 0.1
+# ... and tighter where the prediction is the IMU bridge between two first-pass poses: within
+# 0.14-0.38 cm (median; p90 0.3-0.9 cm) up to 1 s on a 20 ms-exposure flight (NOTES-track.md)
+POSE_GATE_BRIDGE_M = 0.03
+POSE_GATE_BRIDGE_M_PER_S = 0.05
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
 # What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
@@ -150,11 +170,15 @@ class TrackReport:
     frames_with_restamped: int = 0  # ... with at least one such code (outcome counts: frames_<outcome>)
     restamp_poses: int = 0  # ... whose codes gave a PnP pose precise enough to predict from
     restamp_seconds: float = 0.0  # wall time of the re-stamp decoding (within `seconds`)
+    squares: int = 0  # dark squares left by failed re-stamp decodes (tracker starts, TrackStats)
+    frames_backward: int = 0  # unposed frames the backward sweep looked at
+    poses_backward: int = 0  # ... and posed (also in frames_tracked / poses_added)
     chunks: int = 0
     seconds: float = 0.0  # wall time of the pass (catalogue and tracking)
     skipped_reason: str = ""  # why the pass did not run ("" when it ran)
     frame_outcomes: dict[int, str] = field(default_factory=dict)  # floor stamp -> one of OUTCOMES
     restamped_keys: set[tuple[int, str]] = field(default_factory=set)  # (stamp, payload) re-stamped
+    poses: dict[int, np.ndarray] = field(default_factory=dict)  # stamp -> T_world_body fed back
 
     def outcome_counts(self) -> dict[str, int]:
         """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
@@ -162,7 +186,7 @@ class TrackReport:
         return {k: values.count(k) for k in OUTCOMES}
 
     def as_dict(self) -> dict:
-        skip = ("stats", "frame_outcomes", "restamped_keys")
+        skip = ("stats", "frame_outcomes", "restamped_keys", "poses")
         out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         out.update({f"tracker_{k}": int(v) for k, v in vars(self.stats).items()})
         out.update({f"frames_{k}": n for k, n in self.outcome_counts().items()})
@@ -182,7 +206,8 @@ class TrackReport:
             f"({self.frames_tracked_only} with tracked codes only, {self.poses_added} new PnP poses); "
             f"{s.attempts} tried in {self.frames_tried} frames, {s.gated} refused by the innovation "
             f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code"
-            f"{restamp}; {self.seconds:.1f} s"
+            f"{restamp}; {self.poses_backward} of {self.frames_backward} frames posed by the backward "
+            f"sweep; {s.square_corners} with a dark square's corners; {self.seconds:.1f} s"
         )
 
 
@@ -290,41 +315,77 @@ class PosePredictor:
         self.first_T = list(np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4))
         self.added_t: list[int] = []
         self.added_T: list[np.ndarray] = []
+        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "other"
 
     def add(self, t_ns: int, T_world_body: np.ndarray) -> None:
-        self.added_t.append(int(t_ns))
-        self.added_T.append(np.asarray(T_world_body, dtype=float))
+        k = bisect.bisect_left(self.added_t, int(t_ns))
+        self.added_t.insert(k, int(t_ns))
+        self.added_T.insert(k, np.asarray(T_world_body, dtype=float))
 
-    def _before(self, t: int, k: int) -> list[tuple[int, np.ndarray]]:
-        """Up to k poses strictly before t, latest first (first-pass and added)."""
+    def _before(self, t: int, k: int, added: bool = True) -> list[tuple[int, np.ndarray]]:
+        """Up to k poses strictly before t, latest first (first-pass, and added ones if `added`)."""
         i = bisect.bisect_left(self.first_t, t)
-        j = bisect.bisect_left(self.added_t, t)
         merged = [(self.first_t[m], self.first_T[m]) for m in range(max(0, i - k), i)]
-        merged += [(self.added_t[m], self.added_T[m]) for m in range(max(0, j - k), j)]
+        if added:
+            j = bisect.bisect_left(self.added_t, t)
+            merged += [(self.added_t[m], self.added_T[m]) for m in range(max(0, j - k), j)]
         merged.sort(key=lambda p: p[0], reverse=True)
         out: list[tuple[int, np.ndarray]] = []
-        for p in merged:  # an added pose replaces the first pass's at the same stamp
+        for p in merged:  # one pose per stamp: the first pass's (listed first; the sort is stable)
             if not out or out[-1][0] != p[0]:
                 out.append(p)
         return out[:k]
 
-    def _after(self, t: int, k: int) -> list[tuple[int, np.ndarray]]:
-        """Up to k first-pass poses strictly after t, earliest first."""
+    def _after(self, t: int, k: int, added: bool = True) -> list[tuple[int, np.ndarray]]:
+        """Up to k poses strictly after t, earliest first (first-pass, and added ones if `added`:
+        the backward sweep adds poses after the frames it has still to predict)."""
         i = bisect.bisect_right(self.first_t, t)
-        return [(self.first_t[m], self.first_T[m]) for m in range(i, min(len(self.first_t), i + k))]
+        merged = [(self.first_t[m], self.first_T[m]) for m in range(i, min(len(self.first_t), i + k))]
+        if added:
+            j = bisect.bisect_right(self.added_t, t)
+            merged += [(self.added_t[m], self.added_T[m]) for m in range(j, min(len(self.added_t), j + k))]
+        merged.sort(key=lambda p: p[0])  # stable: the first pass's pose first at a shared stamp
+        out: list[tuple[int, np.ndarray]] = []
+        for p in merged:  # one pose per stamp, as in _before
+            if not out or out[-1][0] != p[0]:
+                out.append(p)
+        return out[:k]
 
     def has_first_pose(self, t_ns: int) -> bool:
         i = bisect.bisect_left(self.first_t, int(t_ns))
         return i < len(self.first_t) and self.first_t[i] == int(t_ns)
 
     def predict(self, t_ns: int) -> tuple[np.ndarray, float] | None:
-        """(T_world_body (4, 4), seconds to the nearest pose used) at t_ns, or None."""
+        """(T_world_body (4, 4), seconds to the nearest pose used) at t_ns, or None.
+
+        The first pass's poses first: where the IMU bridges two of them, that bridge.  Else the
+        nearer (in time) of that prediction and the one that also uses the poses added by the
+        pass: those come from tracked codes and can be a few cm off within the pose gate, and
+        as bridge ends they put the codes of the next frames 5-14 px off where the first
+        pass's bridge was within ~1 px (20 ms-exposure flight, seed 0: NOTES-track.md)."""
         t = int(t_ns)
         i = bisect.bisect_left(self.first_t, t)
         if i < len(self.first_t) and self.first_t[i] == t:
+            self.last_kind = "own"
             return self.first_T[i], 0.0
-        before = self._before(t, 8)
-        after = self._after(t, 8)
+        first = self._predict(t, self._before(t, 8, False), self._after(t, 8, False))
+        if first is not None and first[2] == "bridge":
+            self.last_kind = "bridge"
+            return first[0], first[1]
+        self.last_kind = "other"
+        cands = [first] if first is not None else []
+        if self.added_t:
+            with_added = self._predict(t, self._before(t, 8), self._after(t, 8))
+            if with_added is not None:
+                cands.append(with_added)
+        if not cands:
+            return None
+        best = min(cands, key=lambda p: p[1])
+        return best[0], best[1]
+
+    def _predict(self, t: int, before, after) -> tuple[np.ndarray, float, str] | None:
+        """(T_world_body, horizon s, "bridge" / "other") from the poses `before` (latest first)
+        and `after` (earliest first) t (module docstring, step 2)."""
         if self.imu is not None:
             pred = self._predict_imu(t, before, after)
             if pred is not None:
@@ -332,14 +393,17 @@ class PosePredictor:
         if before and after and (after[0][0] - before[0][0]) * 1e-9 <= MAX_INTERPOLATION_GAP_S:
             (t0, T0), (t1, T1) = before[0], after[0]
             a = (t - t0) / (t1 - t0)
-            return interpolate_pose(T0, T1, a), min(t - t0, t1 - t) * 1e-9
+            return interpolate_pose(T0, T1, a), min(t - t0, t1 - t) * 1e-9, "other"
         ahead = _extrapolate(before, t)  # forward from the past
         behind = _extrapolate(after, t)  # backward from the future
         cands = [p for p in (ahead, behind) if p is not None]
-        return min(cands, key=lambda p: p[1]) if cands else None
+        if not cands:
+            return None
+        best = min(cands, key=lambda p: p[1])
+        return best[0], best[1], "other"
 
-    def _predict_imu(self, t: int, before, after) -> tuple[np.ndarray, float] | None:
-        """PosePredictor.predict with the IMU (class docstring), None where it does not apply."""
+    def _predict_imu(self, t: int, before, after) -> tuple[np.ndarray, float, str] | None:
+        """_predict with the IMU (class docstring), None where it does not apply."""
         imu = self.imu
         assert imu is not None
         if before and after:
@@ -351,7 +415,8 @@ class PosePredictor:
                     if min(abs(te - t0), abs(te - t1)) * 1e-9 <= BIAS_WINDOW_S
                     and imu.covers(min(te, t0), max(te, t1))
                 ]
-                return imu.bridge(t0, T0, t1, T1, t, extra)[0], min(t - t0, t1 - t) * 1e-9
+                T = imu.bridge(t0, T0, t1, T1, t, extra)[0]
+                return T, min(t - t0, t1 - t) * 1e-9, "bridge"
         cands = []
         for near, far in ((before, True), (after, False)):
             if not near or abs(t - near[0][0]) * 1e-9 > MAX_EXTRAPOLATION_S:
@@ -365,7 +430,7 @@ class PosePredictor:
                 v1 = imu.bridge(t0, T0, t1, T1, t1)[2]
             else:  # t < t1 < t0: the velocity at t1 from the bridge (t1, t0)
                 v1 = imu.bridge(t1, T1, t0, T0, t1)[1]
-            cands.append((imu.extrapolate(t1, T1, v1, t), abs(t - t1) * 1e-9))
+            cands.append((imu.extrapolate(t1, T1, v1, t), abs(t - t1) * 1e-9, "other"))
         return min(cands, key=lambda p: p[1]) if cands else None
 
 
@@ -454,16 +519,18 @@ def track_chunks(first_t: np.ndarray, stamps_ns: np.ndarray, n_frames: int) -> l
     return [(a, b) for a, b in zip(starts, starts[1:] + [n_frames])]
 
 
-def _track_chunk(context, task: tuple[int, int]):
-    """The pass over floor frames [start, stop): (tracked detections, TrackReport)."""
-    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px, imu = context
-    start, stop = task
+def _track_chunk(context, task: list[int]):
+    """The pass over the floor frames `task` (indices, in the order given: increasing for the
+    forward sweep, decreasing for the backward one): (tracked detections, TrackReport)."""
+    stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px, imu, squares, seed = context
     predictor = PosePredictor(first_t, first_T, imu)
-    tracker = CodeTracker(camera)
+    for t_seed in sorted(seed):  # the forward sweep's poses, for the backward one
+        predictor.add(t_seed, seed[t_seed])
+    tracker = CodeTracker(camera, crossings_pass=TRACK_CROSSINGS_PASS)
     rep = TrackReport()
     out: list[QRDetection] = []
     h, w = camera.height, camera.width
-    for i in range(start, stop):
+    for i in task:
         t = int(stream.timestamps_ns[i])
         pred = predictor.predict(t)
         if pred is None:
@@ -501,7 +568,14 @@ def _track_chunk(context, task: tuple[int, int]):
         rep.frames_tried += 1
         before = TrackStats(**vars(tracker.stats))
         tracked = tracker.step(
-            image, FLOOR, t, frame_dets, [None] * len(frame_dets), predicted, own_motion=False
+            image,
+            FLOOR,
+            t,
+            frame_dets,
+            [None] * len(frame_dets),
+            predicted,
+            own_motion=False,
+            squares=squares.get(t),
         )
         if not tracked:
             if tracker.stats.gated > before.gated:
@@ -511,14 +585,27 @@ def _track_chunk(context, task: tuple[int, int]):
             else:
                 rep.frame_outcomes[t] = "ambiguous"
             continue
-        floor = classify(frame_dets + tracked, world).floor
-        res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
-        gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
-        if res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m:
+        if predictor.last_kind == "other":
+            gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
+        else:  # the frame's own first-pass pose or a first-pass IMU bridge
+            gate_m = POSE_GATE_BRIDGE_M + POSE_GATE_BRIDGE_M_PER_S * horizon_s
+        kept = list(tracked)
+        while True:
+            floor = classify(frame_dets + kept, world).floor
+            res = estimate_floor_pose(floor, camera, corner_sigma_px) if floor else None
+            outside = res is not None and np.linalg.norm(res.T_world_body[:3, 3] - T_body[:3, 3]) > gate_m
+            if not outside or len(kept) <= 1:
+                break
+            # several tracked codes: the one furthest from its prediction left out, solved again
+            kept.remove(max(kept, key=_innovation_px))
+        if outside:
+            kept = []
+        tracker.stats.tracked -= len(tracked) - len(kept)
+        tracker.stats.pose_gated += len(tracked) - len(kept)
+        if outside:
             rep.frame_outcomes[t] = "pose_gated"  # the tracked codes disagree with the prediction
-            tracker.stats.tracked -= len(tracked)
-            tracker.stats.pose_gated += len(tracked)
             continue
+        tracked = kept
         out.extend(tracked)
         rep.frames_tracked += 1
         rep.frames_tracked_only += not frame_dets
@@ -530,21 +617,31 @@ def _track_chunk(context, task: tuple[int, int]):
         position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
         if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
             predictor.add(t, res.T_world_body)
+            rep.poses[t] = res.T_world_body
     rep.stats = tracker.stats
     return out, rep
+
+
+def _innovation_px(d: QRDetection) -> float:
+    """A tracked sighting's largest corner distance from its prediction (corners_raw_px), px."""
+    return float(np.max(np.linalg.norm(d.corners_px - d.corners_raw_px, axis=1)))
 
 
 RESTAMP_CHUNK_FRAMES = 64  # frames per task of the re-stamp decoding
 
 
-def _restamp_chunk(context, task: list[int]) -> tuple[list[QRDetection], dict[str, int]]:
+def _restamp_chunk(
+    context, task: list[int]
+) -> tuple[list[QRDetection], dict[str, int], dict[int, list[np.ndarray]]]:
     """Codes decoded with re-stamped function patterns (fusion.qr.restamp) in the floor frames
     `task` (indices), away from the frame's decoded codes: (their QRDetections, tracked=True,
     corners refined from the fitted quadrilateral with refinement's self-check, else the
-    quadrilateral with RAW_CORNER_SIGMA_PX; {payload: modules per side})."""
+    quadrilateral with RAW_CORNER_SIGMA_PX; {payload: modules per side}; {stamp: the dark
+    squares that did not decode (4, 2) px}, for the tracker)."""
     stream, camera, decoded = context
     out: list[QRDetection] = []
     modules: dict[str, int] = {}
+    squares: dict[int, list[np.ndarray]] = {}
     for i in task:
         t = int(stream.timestamps_ns[i])
         image = stream.load_image(i)
@@ -553,7 +650,10 @@ def _restamp_chunk(context, task: list[int]) -> tuple[list[QRDetection], dict[st
         frame = decoded.get(t, [])
         seen = {d.payload for d in frame}
         found = []
-        for f in restamp_image(image, [d.corners_px for d in frame]):
+        got, failed = restamp_candidates(image, [d.corners_px for d in frame])
+        if failed:
+            squares[t] = failed
+        for f in got:
             if f.payload not in seen:
                 seen.add(f.payload)
                 found.append(f)
@@ -570,23 +670,25 @@ def _restamp_chunk(context, task: list[int]) -> tuple[list[QRDetection], dict[st
             det = QRDetection(FLOOR, t, f.payload, corners, f.corners_px, float(sigma), cov, tracked=True)
             out.append(det)
             modules[f.payload] = f.modules
-    return out, modules
+    return out, modules, squares
 
 
 def restamp_flight(
     stream, camera: CameraModel, world: World, decoded: dict, first_t, corner_sigma_px: float, workers: int
-) -> tuple[list[QRDetection], dict[str, CatalogueCode], dict[int, np.ndarray], int]:
+) -> tuple[list[QRDetection], dict[str, CatalogueCode], dict[int, np.ndarray], int, dict]:
     """Floor codes decoded with re-stamped function patterns in the floor frames without a
     first-pass pose (fusion.qr.restamp: finders hidden by an occluder; the identity is decoded,
     never predicted): (their detections, the floor codes among them for the catalogue, {stamp:
     T_world_body} of the frames they give a PnP pose with position sigma at most
-    MAX_FEEDBACK_POSITION_SIGMA_M, frames searched).  `decoded`: stamp -> decoded detections."""
+    MAX_FEEDBACK_POSITION_SIGMA_M, frames searched, {stamp: dark squares (4, 2) px that did not
+    decode}).  `decoded`: stamp -> decoded detections."""
     posed = set(int(t) for t in first_t)
     todo = [i for i in range(len(stream)) if int(stream.timestamps_ns[i]) not in posed]
     tasks = [todo[k : k + RESTAMP_CHUNK_FRAMES] for k in range(0, len(todo), RESTAMP_CHUNK_FRAMES)]
     found: list[QRDetection] = []
     modules: dict[str, int] = {}
-    for dets, mods in parallel_map(
+    squares: dict[int, list[np.ndarray]] = {}
+    for dets, mods, sq in parallel_map(
         _restamp_chunk,
         tasks,
         max(1, min(workers, len(tasks))),
@@ -595,6 +697,7 @@ def restamp_flight(
     ):
         found.extend(dets)
         modules.update(mods)
+        squares.update(sq)
     by_t: dict[int, list[QRDetection]] = {}
     for d in found:
         by_t.setdefault(d.timestamp_ns, []).append(d)
@@ -616,7 +719,7 @@ def restamp_flight(
         position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
         if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
             poses[t] = res.T_world_body
-    return kept, catalogue, poses, len(todo)
+    return kept, catalogue, poses, len(todo), squares
 
 
 def track_flight(
@@ -643,9 +746,10 @@ def track_flight(
     decoded = {t: [d for d in ds if not d.tracked] for t, ds in det.by_frame(FLOOR).items()}
     first_t = np.asarray(traj_pnp.timestamps_ns, dtype=np.int64)
     first_T = np.asarray(traj_pnp.T_world_body, dtype=float).reshape(-1, 4, 4)
-    restamped, extra, poses, rep.frames_restamp_tried = restamp_flight(
+    restamped, extra, poses, rep.frames_restamp_tried, squares = restamp_flight(
         stream, camera, log.world, decoded, first_t, corner_sigma_px, workers
     )
+    rep.squares = sum(len(v) for v in squares.values())
     rep.restamp_seconds = time.perf_counter() - t0
     rep.restamped = len(restamped)
     rep.restamped_keys = {(d.timestamp_ns, d.payload) for d in restamped}
@@ -667,13 +771,69 @@ def track_flight(
     chunks = track_chunks(first_t, stream.timestamps_ns, len(stream))
     imu = getattr(log, "imu", None)
     bridge = ImuBridge(imu) if imu is not None and len(imu.timestamps_ns) > 1 else None
-    context = (stream, camera, log.world, catalogue, first_t, first_T, decoded, corner_sigma_px, bridge)
+    context: tuple = (
+        stream,
+        camera,
+        log.world,
+        catalogue,
+        first_t,
+        first_T,
+        decoded,
+        corner_sigma_px,
+        bridge,
+        squares,
+        {},
+    )
+    forward = [list(range(a, b)) for a, b in chunks]
+    tracked = _run_sweep(forward, context, workers, rep)
+    # the backward sweep: the frames the forward one left without a tracked sighting, latest
+    # first, predicted from the first pass's poses and the forward sweep's (a code followed back
+    # from the next decode, where the forward chain broke or a gap exceeds the IMU bridge)
+    done = set(int(t) for t in first_t) | set(rep.poses)
+    kept_outcomes = ("posed", "pnp_failed")  # frames with tracked sightings already
+    stamps = stream.timestamps_ns
+    backward = [
+        [i for i in reversed(range(a, b)) if _needs_backward(int(stamps[i]), done, rep, kept_outcomes)]
+        for a, b in chunks
+    ]
+    backward = [task for task in backward if task]
+    before = dict(rep.frame_outcomes)
+    back = TrackReport()
+    tracked += _run_sweep(backward, context[:-1] + (dict(rep.poses),), workers, back)
+    rep.frames_backward = sum(len(task) for task in backward)
+    for t, outcome in back.frame_outcomes.items():
+        if outcome in kept_outcomes or t not in before:
+            rep.frame_outcomes[t] = outcome
+    rep.poses_backward = sum(o == "posed" for o in back.frame_outcomes.values())
+    for k, v in vars(back.stats).items():
+        setattr(rep.stats, k, getattr(rep.stats, k) + v)
+    for name in ("frames_tried", "frames_tracked", "frames_tracked_only", "poses_added"):
+        setattr(rep, name, getattr(rep, name) + getattr(back, name))
+    for t in poses:
+        if rep.frame_outcomes.get(t) != "posed":
+            rep.frame_outcomes[t] = "restamped"
+    rep.chunks = len(chunks)
+    rep.seconds = time.perf_counter() - t0
+    logger.info(rep.note())
+    return with_tracked(det, tracked + restamped, rep), rep
+
+
+def _needs_backward(t: int, posed: set[int], rep: TrackReport, kept_outcomes: tuple[str, ...]) -> bool:
+    """A floor frame the backward sweep looks at: no pose (first pass, re-stamped or forward
+    sweep) and no tracked sighting from the forward sweep."""
+    return t not in posed and rep.frame_outcomes.get(t) not in kept_outcomes
+
+
+def _run_sweep(tasks: list[list[int]], context, workers: int, rep: TrackReport) -> list[QRDetection]:
+    """_track_chunk over `tasks` (frame index lists), its counters and outcomes summed into `rep`
+    (poses fed back too): the tracked detections."""
     tracked: list[QRDetection] = []
     for chunk_dets, chunk_rep in parallel_map(
-        _track_chunk, chunks, max(1, min(workers, len(chunks))), context, preload=["fusion.qr.predict"]
+        _track_chunk, tasks, max(1, min(workers, len(tasks))), context, preload=["fusion.qr.predict"]
     ):
         tracked.extend(chunk_dets)
         rep.frame_outcomes.update(chunk_rep.frame_outcomes)
+        rep.poses.update(chunk_rep.poses)
         for k, v in vars(chunk_rep.stats).items():
             setattr(rep.stats, k, getattr(rep.stats, k) + v)
         for name in (
@@ -684,13 +844,7 @@ def track_flight(
             "poses_added",
         ):
             setattr(rep, name, getattr(rep, name) + getattr(chunk_rep, name))
-    for t in poses:
-        if rep.frame_outcomes.get(t) != "posed":
-            rep.frame_outcomes[t] = "restamped"
-    rep.chunks = len(chunks)
-    rep.seconds = time.perf_counter() - t0
-    logger.info(rep.note())
-    return with_tracked(det, tracked + restamped, rep), rep
+    return tracked
 
 
 def with_tracked(det: DetectionResult, tracked: list[QRDetection], rep: TrackReport) -> DetectionResult:

@@ -1304,6 +1304,7 @@ def _stage2(
     ns: list[float],
     point_map=None,
     fit_dilation: bool = False,
+    crossings_pass: bool = True,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, RefineQuality] | None], np.ndarray]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
@@ -1312,6 +1313,9 @@ def _stage2(
     the last accepted pass's edge points so moved (alignment patterns then left out).
     `fit_dilation`: fit the dark modules' growth where a code's profiles have clipped samples
     (_model_edge_points); a code whose growth is not significant (GROWTH_MIN_Z) then gets None.
+    `crossings_pass=False`: the model passes start from the given corners (no 50 % crossings
+    pass to lay them out: under motion blur the crossings move outwards and pull a start that is
+    already close away from it; fusion.qr.track's starts are predictions and located symbols).
     Also returns (C,) bool: the code's profiles had clipped samples."""
     C = len(ns)
     clipped = np.zeros(C, bool)
@@ -1327,6 +1331,8 @@ def _stage2(
     model_passes = 0
     kept_fit: _ModelFit | None = None  # per code, the profiles of its last accepted pass
     for _pass, iterations in enumerate(_MODEL_ITERATIONS):
+        if iterations == 0 and not crossings_pass:
+            continue
         fit = _model_edge_points(
             images,
             image_of,
@@ -1534,6 +1540,7 @@ def refine_frames(
     checks: RefineChecks | None = DEFAULT_CHECKS,
     stats: RefineStats | None = None,
     point_map=None,
+    crossings_pass: bool = True,
 ) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
@@ -1548,7 +1555,8 @@ def refine_frames(
     `point_map(image (P,), code (P,), points (P, 2)) -> (P, 2)`, undistorted px, optional: stage
     2's corners are those of a homography fitted to its edge points so moved (a rolling-shutter
     image's points moved to the stamp time: fusion.qr.rolling_shutter.refine_at_stamp); the
-    self-check judges the fit in the image as read.
+    self-check judges the fit in the image as read.  `crossings_pass=False`: stage 2 without
+    its first, 50 % crossings pass (_stage2; for starts already near the code, e.g. tracked ones).
 
     One code: `refine_code`."""
     if len(images) != len(codes):
@@ -1581,7 +1589,9 @@ def refine_frames(
         code_map = lambda c, p: point_map(image_of[c], k_of[c], p)  # noqa: E731
     stage2: list = [None] * len(todo)
     if finder_homography:
-        stage2, clipped = _stage2(images, image_of, dist, list(raw_u), ns, code_map)
+        stage2, clipped = _stage2(
+            images, image_of, dist, list(raw_u), ns, code_map, crossings_pass=crossings_pass
+        )
         redo = np.nonzero(clipped & np.array([s is not None for s in stage2], bool))[0]
         if len(redo):
             # codes with clipped samples: their corners from a second run that fits the dark
@@ -1591,7 +1601,14 @@ def refine_frames(
             # than the decoder; BENCHMARKS.md)
             sub_map = None if code_map is None else (lambda c, p: code_map(redo[c], p))
             again, _ = _stage2(
-                images, image_of[redo], dist, [raw_u[j] for j in redo], [ns[j] for j in redo], sub_map, True
+                images,
+                image_of[redo],
+                dist,
+                [raw_u[j] for j in redo],
+                [ns[j] for j in redo],
+                sub_map,
+                True,
+                crossings_pass,
             )
             for r, s in zip(redo.tolist(), again):
                 first = stage2[r]

@@ -289,9 +289,20 @@ def restamp_decode(image: np.ndarray, quad_px: np.ndarray, sizes=RESTAMP_MODULES
 def restamp_image(image: np.ndarray, exclude_px: Sequence[np.ndarray] = ()) -> list[Restamped]:
     """Every symbol of a grey image (H, W) uint8 decoded by re-stamping (candidate_quads, then
     restamp_decode), none where `exclude_px` quadrilaterals (decoded codes) lie."""
-    out = []
+    return restamp_candidates(image, exclude_px)[0]
+
+
+def restamp_candidates(
+    image: np.ndarray, exclude_px: Sequence[np.ndarray] = ()
+) -> tuple[list[Restamped], list[np.ndarray]]:
+    """restamp_image's decoded symbols, and the candidate quadrilaterals (4, 2) px that did not
+    decode (dark squares: a blurred or damaged symbol, or something else symbol-sized; with no
+    identity of their own, fusion.qr.track uses them only next to a prediction)."""
+    out, failed = [], []
     for quad in candidate_quads(image, exclude_px):
         got = restamp_decode(image, quad)
         if got is not None:
             out.append(got)
-    return out
+        else:
+            failed.append(quad)
+    return out, failed

@@ -13,11 +13,13 @@ Per camera, frames in time order (`CodeTracker.step`):
    the image, and tracks whose prediction overlaps a code decoded in this frame (identity would
    be ambiguous).
 3. Refine the finder edges from the predicted corners (refine_frames: stage 2 only, with its
-   self-check, RefineChecks).  Accept when it passes, no corner moved more than
-   TRACK_GATE_MODULES modules from the prediction (codes are separated by at least their quiet
-   zones, 4 modules, so a code cannot take another's identity; several starts around the
-   prediction, TRACK_START_OFFSETS_PX, the passing result nearest it kept), and the innovation
-   e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
+   self-check, RefineChecks; the pipeline's pass without its 50 % crossings pass,
+   TRACK_CROSSINGS_PASS; a matching dark square, match_square, is one more start, and its
+   corners the sighting's when refinement fails from every start).  Accept when it passes, no
+   corner moved more than TRACK_GATE_MODULES modules from the prediction (codes are separated
+   by at least their quiet zones, 4 modules, so a code cannot take another's identity; several
+   starts around the prediction, TRACK_START_OFFSETS_PX, the passing result nearest it kept),
+   and the innovation e^T (S_pred + S_refined)^-1 e is below TRACK_GATE_CHI2 (chi^2, 8 dof, 99.9 %).
 4. A track lives TRACK_MAX_MISSES frames without a sighting and at most TRACK_MAX_RUN tracked
    sightings in a row (then it needs a decode again).
 
@@ -65,6 +67,20 @@ TRACK_LOCATE_PX_PER_MODULE = 4  # template resolution before it is warped into t
 TRACK_LOCATE_QUIET_MODULES = 1  # light modules around the symbol in the template
 TRACK_LOCATE_MIN_NCC = 0.4  # a weaker best match is not used (the prediction is the start)
 TRACK_LOCATE_SIGMAS = 3.0  # search radius in prediction sigmas (capped by the gate)
+# Refinement from a tracked code's starts skips its first, 50 % crossings pass (refine_frames
+# `crossings_pass`): under 10 px of motion blur the crossings lie outwards of the edges and move a
+# start that is already within refinement's capture range away from it (NOTES-track.md: from
+# the true corners of blurred codes, 0.67 -> 0.42 px median)
+TRACK_CROSSINGS_PASS = False
+# Dark squares (fusion.qr.restamp.candidate_quads of a frame whose re-stamp decode failed: a
+# symbol-sized dark quadrilateral in a bright quiet zone) near a prediction: an extra refinement
+# start, and, when refinement fails from every start, the code's corners with
+# TRACK_SQUARE_SIGMA_PX (the decoder-corner fallback's sigma) if, aligned to the prediction, each
+# corner lies within TRACK_SQUARE_SHAPE_MODULES of it after removing the centres' offset (the
+# same shape) and the centres within the gate; the identity is still the prediction's, behind the
+# innovation gate (and the caller's pose gate)
+TRACK_SQUARE_SHAPE_MODULES = 0.5
+TRACK_SQUARE_SIGMA_PX = 1.5
 FINDER_MODULES = 7
 TIMING_INDEX = 6  # the timing patterns' row and column
 
@@ -157,6 +173,34 @@ def locate_symbol(image: np.ndarray, corners_px: np.ndarray, modules: int, max_s
     return best, float(score[iy, ix])
 
 
+def _worst_px(corners: np.ndarray, pred: np.ndarray) -> float:
+    return float(np.max(np.linalg.norm(corners - pred, axis=1)))
+
+
+def match_square(squares: list[np.ndarray], pred: np.ndarray, modules: int) -> np.ndarray | None:
+    """The dark square (4, 2) px of `squares` that matches the predicted corners `pred` (4, 2)
+    TL, TR, BR, BL of a symbol of `modules` per side, its corners reordered to `pred`'s: its
+    centre within TRACK_GATE_MODULES of the prediction's and, centres aligned, every corner
+    within TRACK_SQUARE_SHAPE_MODULES; the nearest such one, else None."""
+    pred = np.asarray(pred, float)
+    module = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1))) / modules
+    centre = pred.mean(axis=0)
+    best, best_d = None, np.inf
+    for sq in squares:
+        sq = np.asarray(sq, float)
+        d = float(np.linalg.norm(sq.mean(axis=0) - centre))
+        if d > TRACK_GATE_MODULES * module or d >= best_d:
+            continue
+        # the cyclic order (squares are image-clockwise, as a symbol's TL, TR, BR, BL) nearest
+        shape = sq - sq.mean(axis=0)
+        rolls = [np.roll(shape, -r, axis=0) for r in range(4)]
+        r = int(np.argmin([np.sum((x - (pred - centre)) ** 2) for x in rolls]))
+        if np.max(np.linalg.norm(rolls[r] - (pred - centre), axis=1)) > TRACK_SQUARE_SHAPE_MODULES * module:
+            continue
+        best, best_d = np.roll(sq, -r, axis=0), d
+    return best
+
+
 @dataclass
 class _Track:
     modules: int
@@ -178,14 +222,24 @@ class TrackStats:
     gated_far: int = 0  # ... of them: a corner beyond TRACK_GATE_MODULES of the prediction
     ambiguous: int = 0  # a decoded code where the prediction lies
     pose_gated: int = 0  # accepted here, dropped by the caller (fusion.qr.predict's pose gate)
+    square_starts: int = 0  # attempts with a dark square near the prediction (an extra start)
+    square_corners: int = 0  # accepted sightings whose corners are the square's (refinement failed)
 
 
 class CodeTracker:
     """Tracks one camera's codes through frames given in time order (module docstring)."""
 
-    def __init__(self, camera: CameraModel | None = None, checks: RefineChecks = DEFAULT_CHECKS):
+    def __init__(
+        self,
+        camera: CameraModel | None = None,
+        checks: RefineChecks = DEFAULT_CHECKS,
+        crossings_pass: bool = True,
+    ):
+        """`crossings_pass`: refinement's first, 50 % crossings pass on the starts (refine_frames;
+        the pipeline's track pass: TRACK_CROSSINGS_PASS)."""
         self.camera = camera
         self.checks = checks
+        self.crossings_pass = crossings_pass
         self.tracks: dict[str, _Track] = {}
         self.stats = TrackStats()
 
@@ -210,6 +264,7 @@ class CodeTracker:
         modules: list[int | None],
         predicted: dict[str, tuple[np.ndarray, float, int]] | None = None,
         own_motion: bool = True,
+        squares: list[np.ndarray] | None = None,
     ) -> list[QRDetection]:
         """Tracked detections of this frame (codes not in `decoded`); then update the tracks with
         `decoded` (its codes' modules per side in `modules`, None when unknown) and them.
@@ -219,7 +274,9 @@ class CodeTracker:
         extrapolated from the last PnP poses); preferred to a track's own pixel-motion
         prediction (a pose uses every code of the frame).  `own_motion=False`: only `predicted`
         codes are tried (the pipeline's track pass: a pose predicts every code in view, and the
-        pixel-motion prediction once gave a tracked code 2-module-aliased corners)."""
+        pixel-motion prediction once gave a tracked code 2-module-aliased corners).
+        `squares`: dark quadrilaterals (4, 2) px found in the frame (module constants
+        TRACK_SQUARE_*): starts, and fallback corners, for the predictions they match."""
         t = int(timestamp_ns)
         seen = {d.payload for d in decoded}
         centres = [d.corners_px.mean(axis=0) for d in decoded]
@@ -249,42 +306,61 @@ class CodeTracker:
             # several starts per candidate: refinement's capture range under heavy blur (~2 px)
             # is below a prediction's error; the passing result nearest the prediction is kept
             starts: list[tuple[np.ndarray, int | None]] = []
+            spans: list[tuple[int, int]] = []  # each candidate's starts in `starts`
+            matched: list[np.ndarray | None] = []  # each candidate's matching dark square
             for _, tr, pred, sigma in candidates:
                 side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
                 radius = min(TRACK_LOCATE_SIGMAS * sigma, TRACK_GATE_MODULES * side / tr.modules)
                 found = locate_symbol(image, pred, tr.modules, radius)
                 at = pred + found[0] if found is not None and found[1] >= TRACK_LOCATE_MIN_NCC else pred
+                begin = len(starts)
                 starts.append((at, tr.modules))
                 starts += [
                     (pred + off * (sigma / TRACK_MIN_SIGMA_PX), tr.modules)
                     for off in TRACK_START_OFFSETS_PX[1:]
                 ]
-            flat = refine_frames([image], [starts], self.camera, checks=self.checks)[0]
-            n_starts = len(TRACK_START_OFFSETS_PX)
+                square = match_square(squares or [], pred, tr.modules)
+                matched.append(square)
+                if square is not None:
+                    self.stats.square_starts += 1
+                    starts.append((square, tr.modules))
+                spans.append((begin, len(starts)))
+            flat = refine_frames(
+                [image], [starts], self.camera, checks=self.checks, crossings_pass=self.crossings_pass
+            )[0]
             for i, (payload, tr, pred, sigma) in enumerate(candidates):
+                begin, end = spans[i]
                 passed = [
                     r
-                    for r in flat[i * n_starts : (i + 1) * n_starts]
+                    for r in flat[begin:end]
                     if r is not None
                     and r.stage == 2
                     and r.corner_cov_px2 is not None
                     and r.quality is not None
                 ]
-                if not passed:
+                square = matched[i]
+                from_square = False
+                if passed:
+                    # the start at the located symbol (else the prediction) first (a shifted start
+                    # can lock onto the finder's 2-module alias under heavy blur), else the
+                    # result nearest the prediction
+                    first = flat[begin]
+                    res = (
+                        first
+                        if first is not None and first.stage == 2 and first.corner_cov_px2 is not None
+                        else min(passed, key=lambda r: _worst_px(r.corners_px, pred))
+                    )
+                    res_corners, res_cov = res.corners_px, np.asarray(res.corner_cov_px2)
+                elif square is not None:
+                    res_corners = square
+                    res_cov = TRACK_SQUARE_SIGMA_PX**2 * np.eye(8)
+                    from_square = True
+                else:
                     self.stats.refine_failed += 1
                     continue
-                # the start at the located symbol (else the prediction) first (a shifted start can
-                # lock onto the finder's 2-module alias under heavy blur), else the result nearest
-                # the prediction
-                first = flat[i * n_starts]
-                res = (
-                    first
-                    if first is not None and first.stage == 2 and first.corner_cov_px2 is not None
-                    else min(passed, key=lambda r: float(np.max(np.linalg.norm(r.corners_px - pred, axis=1))))
-                )
-                e = (res.corners_px - pred).reshape(8)
+                e = (res_corners - pred).reshape(8)
                 side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
-                S = sigma * sigma * np.eye(8) + np.asarray(res.corner_cov_px2)
+                S = sigma * sigma * np.eye(8) + res_cov
                 chi2 = float(e @ np.linalg.solve(S, e))
                 worst = float(np.max(np.linalg.norm(e.reshape(4, 2), axis=1)))
                 if worst > TRACK_GATE_MODULES * side / tr.modules or chi2 > TRACK_GATE_CHI2:
@@ -292,13 +368,14 @@ class CodeTracker:
                     self.stats.gated_far += worst > TRACK_GATE_MODULES * side / tr.modules
                     continue
                 self.stats.tracked += 1
+                self.stats.square_corners += from_square
                 excess = max(0.0, float(e @ e) / 8 - TRACK_AGREEMENT_SIGMA_PX**2)
-                cov = np.asarray(res.corner_cov_px2) + excess * np.eye(8)
+                cov = res_cov + excess * np.eye(8)
                 det = QRDetection(
                     camera_name,
                     t,
                     payload,
-                    res.corners_px,
+                    res_corners,
                     pred,
                     float(np.sqrt(np.mean(np.diag(cov)))),
                     cov,
