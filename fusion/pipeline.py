@@ -745,7 +745,7 @@ def fuse_stage(
 BACKEND_MIN_FRAMES = 600
 """Fused frames below which the back ends and the report's figures stay in this process
 (`backend_workers`): a guess (the crossover was not measured; a worker's start costs ~5 CPU ms
-plus its inputs' unpickling, NOTES-speed.md); it keeps the tests' short flights in one
+plus its inputs' unpickling, BENCHMARKS.md, seventh session); it keeps the tests' short flights in one
 process."""
 
 

@@ -108,7 +108,7 @@ TRACK_CHUNK_FRAMES = 300  # nominal frames per chunk of the pass (10 s at 30 Hz)
 # 3.6 px off and gave PnP poses 8-25 cm off (BENCHMARKS.md).  With the pose gate and predictions
 # from the first pass's IMU bridges, 2.0 px: on the 20 ms-exposure flight (seed 0) the 2.0-2.5 px
 # codes tracked were 0.70 px off (median; 3.9 px at most), and 63 floor frames that had only
-# such codes in view got a pose (NOTES-track.md)
+# such codes in view got a pose (BENCHMARKS.md, seventh session)
 TRACK_MIN_MODULE_PX = 2.0
 # A pose found by the pass predicts later frames only when PnP's position sigma (its covariance,
 # Pose3 order [r, t]) is at most this: single blurred codes gave poses 10-55 cm off with sigma
@@ -122,7 +122,7 @@ MAX_FEEDBACK_POSITION_SIGMA_M = 0.01
 POSE_GATE_M = 0.05
 POSE_GATE_M_PER_S = 0.1
 # ... and tighter where the prediction is the IMU bridge between two first-pass poses: within
-# 0.14-0.38 cm (median; p90 0.3-0.9 cm) up to 1 s on a 20 ms-exposure flight (NOTES-track.md)
+# 0.14-0.38 cm (median; p90 0.3-0.9 cm) up to 1 s on a 20 ms-exposure flight (BENCHMARKS.md, seventh session)
 POSE_GATE_BRIDGE_M = 0.03
 POSE_GATE_BRIDGE_M_PER_S = 0.05
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
@@ -362,7 +362,7 @@ class PosePredictor:
         nearer (in time) of that prediction and the one that also uses the poses added by the
         pass: those come from tracked codes and can be a few cm off within the pose gate, and
         as bridge ends they put the codes of the next frames 5-14 px off where the first
-        pass's bridge was within ~1 px (20 ms-exposure flight, seed 0: NOTES-track.md)."""
+        pass's bridge was within ~1 px (20 ms-exposure flight, seed 0: BENCHMARKS.md, seventh session)."""
         t = int(t_ns)
         i = bisect.bisect_left(self.first_t, t)
         if i < len(self.first_t) and self.first_t[i] == t:

@@ -69,7 +69,7 @@ TRACK_LOCATE_MIN_NCC = 0.4  # a weaker best match is not used (the prediction is
 TRACK_LOCATE_SIGMAS = 3.0  # search radius in prediction sigmas (capped by the gate)
 # Refinement from a tracked code's starts skips its first, 50 % crossings pass (refine_frames
 # `crossings_pass`): under 10 px of motion blur the crossings lie outwards of the edges and move a
-# start that is already within refinement's capture range away from it (NOTES-track.md: from
+# start that is already within refinement's capture range away from it (BENCHMARKS.md, seventh session: from
 # the true corners of blurred codes, 0.67 -> 0.42 px median)
 TRACK_CROSSINGS_PASS = False
 # Dark squares (fusion.qr.restamp.candidate_quads of a frame whose re-stamp decode failed: a
