@@ -927,8 +927,10 @@ def _run_into(
         # per sighting, growing with the flight) are let go before its peak
         raw_stats = loc.stats
         del loc, shared
-        workers = backend_workers(cfg, len(log.floor))
-        _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy, workers)
+        # the figures are drawn here, not on workers: sending them the trajectories and the
+        # ground truth took a 30-minute flight's peak 909 -> 1,282 MiB for ~1.4 s on 10 minutes
+        # (BENCHMARKS.md, seventh session)
+        _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy)
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
