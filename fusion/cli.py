@@ -230,7 +230,10 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
         "--workers",
         type=int,
         default=None,
-        help="processes for detection and per-frame estimates (default: all cores)",
+        help=(
+            "processes for detection, per-frame estimates and, from 600 frames, the fusion "
+            "back ends (default: all cores)"
+        ),
     )
     if p.prog.split()[-1] != "detect":
         p.add_argument(
