@@ -929,7 +929,7 @@ def _run_into(
         del loc, shared
         # the figures are drawn here, not on workers: sending them the trajectories and the
         # ground truth took a 30-minute flight's peak 909 -> 1,282 MiB for ~1.4 s on 10 minutes
-        # (BENCHMARKS.md, seventh session)
+        # (BENCHMARKS.md, seventh session; that code is in the history at 0246ea7)
         _evaluate_and_report(log, result, fused_stats, raw_stats, floor_xy)
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
@@ -1273,11 +1273,9 @@ def _evaluate_and_report(
     fused_stats: dict,
     raw_stats: dict,
     floor_xy: np.ndarray | None = None,
-    workers: int = 1,
 ) -> None:
     """metrics.json, the ground truth as TUM, report.md and its plots; `floor_xy`: the world
-    (x, y) of the floor codes decoded in the flight (_floor_codes_seen), drawn as a faint grid;
-    `workers`: processes drawing the plots."""
+    (x, y) of the floor codes decoded in the flight (_floor_codes_seen), drawn as a faint grid."""
 
     out_dir = result.out_dir
     gt = log.groundtruth
@@ -1329,7 +1327,6 @@ def _evaluate_and_report(
         summary,
         floor_codes_xy_m=floor_xy,
         floor_codes=result.floor_codes.get(str(Estimator.SMOOTHER)),
-        workers=workers,
     )
 
 

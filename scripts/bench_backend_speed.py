@@ -67,7 +67,7 @@ TIMED = [
     ("fusion.pipeline", "_write_estimates", "write estimates"),
     ("fusion.pipeline", "evaluate", "metrics"),
     ("fusion.pipeline", "write_report", "report"),
-    ("fusion.evaluate.report", "start_plot_all", "plots (started; with 1 worker: drawn)"),
+    ("fusion.evaluate.report", "plot_all", "plots"),
     ("fusion.evaluate.plots", "_save", "savefig"),
 ]
 SENT_TO_WORKERS = {

@@ -1,5 +1,5 @@
-"""The back end on several processes (fusion.parallel.call_each, the windowed solves, the report's
-figures): workers=2 must write exactly the files workers=1 writes, and what workers log or raise
+"""The back end on several processes (fusion.parallel.call_each, the windowed solves):
+workers=2 must write exactly the files workers=1 writes, and what workers log or raise
 must reach the main process."""
 
 import json
@@ -132,7 +132,7 @@ def _without_times(x):
 
 def test_run_on_two_workers_writes_the_files_of_one_worker(tmp_path, monkeypatch):
     """The sample flight with the back ends, the windowed solves (smoother and mount: three
-    small windows, as in test_window) and the figures all on two processes."""
+    small windows, as in test_window) on two processes (the figures are drawn in this one)."""
     monkeypatch.setattr(pipeline, "BACKEND_MIN_FRAMES", 0)
     monkeypatch.setattr(
         pipeline,
@@ -149,6 +149,6 @@ def test_run_on_two_workers_writes_the_files_of_one_worker(tmp_path, monkeypatch
         assert len(res.metrics["estimator_stats"]["smoother"]["windows"]) >= 2
         runs[workers] = (_outputs(out), worker_usage().calls - before)
     one, two = runs[1][0], runs[2][0]
-    assert runs[1][1] == 0 and runs[2][1] >= 2 + 2 + 4  # windows, back ends, figures in workers
+    assert runs[1][1] == 0 and runs[2][1] >= 2 + 2 + 4  # smoother and mount windows, back ends
     assert one.keys() == two.keys() and any(name.endswith(".png") for name in one)
     assert [n for n in one if one[n] != two[n]] == []

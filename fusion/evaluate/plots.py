@@ -16,9 +16,8 @@ from __future__ import annotations
 import gc
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import matplotlib
 
@@ -38,7 +37,6 @@ from fusion.evaluate.metrics import (  # noqa: E402
     associate_many,
 )
 from fusion.fileio import atomic_open  # noqa: E402
-from fusion.parallel import Started, start_map  # noqa: E402
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory  # noqa: E402
 
 DEFAULT_DPI = 130
@@ -806,140 +804,60 @@ def plot_all(
     floor_codes_xy_m: np.ndarray | None = None,
     payload_unit_m: float | None = 1.0,
     dpi: int = DEFAULT_DPI,
-    workers: int = 1,
 ) -> dict[str, Path]:
     """Every plot that the inputs allow; returns {plot name: PNG path}, names as in the files:
     trajectories, position_errors (raw vs fused overview, log), position_errors_zoom (PnP and
     fused per axis ±2σ), error_boxplots, load_map, load_errors; without ground truth
-    position_sigma instead of the error plots.  `workers`: processes drawing the figures at
-    once (fusion.parallel; the same files as one at a time)."""
-    with start_plot_all(
-        out_dir,
-        trajectories,
-        load_maps,
-        gt,
-        loads_gt,
-        blackouts,
-        floor_codes_xy_m=floor_codes_xy_m,
-        payload_unit_m=payload_unit_m,
-        dpi=dpi,
-        workers=workers,
-    ) as drawing:
-        return drawing.paths()
-
-
-class Drawing:
-    """plot_all's figures being drawn (start_plot_all); `paths()` waits for them."""
-
-    def __init__(self, names: list[str], started: Started[Path | None]) -> None:
-        self.names = names
-        self.started = started
-
-    def paths(self) -> dict[str, Path]:
-        """{plot name: PNG path}, as plot_all returns."""
-        return {name: path for name, path in zip(self.names, self.started.results()) if path is not None}
-
-    def __enter__(self) -> Drawing:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.started.close()
-
-
-def start_plot_all(
-    out_dir: Path,
-    trajectories: dict[str, Trajectory],
-    load_maps: dict[str, LoadMap],
-    gt=None,
-    loads_gt: dict[str, np.ndarray] | None = None,
-    blackouts: list[tuple[int, int, str]] | None = None,
-    *,
-    floor_codes_xy_m: np.ndarray | None = None,
-    payload_unit_m: float | None = 1.0,
-    dpi: int = DEFAULT_DPI,
-    workers: int = 1,
-) -> Drawing:
-    """plot_all started: with `workers` > 1 the figures are drawn by worker processes while this
-    one goes on (the report's text and report.html) until Drawing.paths(); with one worker they
-    are drawn here, before this returns."""
+    position_sigma instead of the error plots."""
     out_dir = Path(out_dir)
+    paths = {
+        "trajectories": _freed(
+            plot_trajectories(
+                out_dir / "trajectories.png",
+                trajectories,
+                gt,
+                floor_codes_xy_m=floor_codes_xy_m,
+                payload_unit_m=payload_unit_m,
+                dpi=dpi,
+            )
+        )
+    }
     assoc = associate_all(trajectories, gt) if gt is not None else {}
-    names = ["trajectories"]
-    names += ["position_errors", "position_errors_zoom", "error_boxplots"] if assoc else ["position_sigma"]
+    if not assoc:
+        sig = _freed(plot_position_sigma(out_dir / "position_sigma.png", trajectories, dpi=dpi))
+        if sig is not None:
+            paths["position_sigma"] = sig
+    if assoc:
+        paths["position_errors"] = _freed(
+            plot_error_overview(
+                out_dir / "position_errors.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+            )
+        )
+        zoom = _freed(
+            plot_position_errors_zoom(
+                out_dir / "position_errors_zoom.png", trajectories, gt, blackouts, associations=assoc, dpi=dpi
+            )
+        )
+        if zoom is not None:
+            paths["position_errors_zoom"] = zoom
+        paths["error_boxplots"] = _freed(
+            plot_error_boxplots(
+                out_dir / "error_boxplots.png",
+                trajectories,
+                gt,
+                load_maps=load_maps,
+                loads_gt=loads_gt,
+                associations=assoc,
+                dpi=dpi,
+            )
+        )
     if any(lm.loads for lm in load_maps.values()) or loads_gt:
-        names += ["load_map", "load_errors"] if loads_gt else ["load_map"]
-    context = _PlotInputs(
-        out_dir,
-        trajectories,
-        load_maps,
-        gt,
-        loads_gt,
-        blackouts,
-        assoc,
-        floor_codes_xy_m,
-        payload_unit_m,
-        dpi,
-    )
-    return Drawing(names, start_map(_plot_one, names, workers, context, preload=("fusion.evaluate.plots",)))
-
-
-@dataclass
-class _PlotInputs:
-    """What every figure of plot_all may need (sent once to each worker)."""
-
-    out_dir: Path
-    trajectories: dict[str, Trajectory]
-    load_maps: dict[str, LoadMap]
-    gt: Any
-    loads_gt: dict[str, np.ndarray] | None
-    blackouts: list[tuple[int, int, str]] | None
-    assoc: dict[str, Association]
-    floor_codes_xy_m: np.ndarray | None
-    payload_unit_m: float | None
-    dpi: int
-
-
-def _plot_one(c: _PlotInputs, name: str) -> Path | None:
-    """plot_all's figure `name`, drawn into c.out_dir / name.png (None: nothing to draw), its
-    memory given back before the next one (_freed)."""
-    return _freed(_draw_one(c, name))
-
-
-def _draw_one(c: _PlotInputs, name: str) -> Path | None:
-    path = c.out_dir / f"{name}.png"
-    if name == "trajectories":
-        return plot_trajectories(
-            path,
-            c.trajectories,
-            c.gt,
-            floor_codes_xy_m=c.floor_codes_xy_m,
-            payload_unit_m=c.payload_unit_m,
-            dpi=c.dpi,
-        )
-    if name == "position_sigma":
-        return plot_position_sigma(path, c.trajectories, dpi=c.dpi)
-    if name == "position_errors":
-        return plot_error_overview(path, c.trajectories, c.gt, c.blackouts, associations=c.assoc, dpi=c.dpi)
-    if name == "position_errors_zoom":
-        return plot_position_errors_zoom(
-            path, c.trajectories, c.gt, c.blackouts, associations=c.assoc, dpi=c.dpi
-        )
-    if name == "error_boxplots":
-        return plot_error_boxplots(
-            path,
-            c.trajectories,
-            c.gt,
-            load_maps=c.load_maps,
-            loads_gt=c.loads_gt,
-            associations=c.assoc,
-            dpi=c.dpi,
-        )
-    if name == "load_map":
-        return plot_load_map(path, c.load_maps, c.loads_gt, c.gt, dpi=c.dpi)
-    if name == "load_errors":
-        assert c.loads_gt is not None
-        return plot_load_errors(path, c.load_maps, c.loads_gt, dpi=c.dpi)
-    raise ValueError(f"unknown plot {name!r}")
+        paths["load_map"] = _freed(plot_load_map(out_dir / "load_map.png", load_maps, loads_gt, gt, dpi=dpi))
+        if loads_gt:
+            p = plot_load_errors(out_dir / "load_errors.png", load_maps, loads_gt, dpi=dpi)
+            if p is not None:
+                paths["load_errors"] = p
+    return paths
 
 
 __all__ = [

@@ -24,7 +24,7 @@ from fusion.evaluate.metrics import (
     coverage_fraction,
     inside_intervals,
 )
-from fusion.evaluate.plots import DEFAULT_DPI, start_plot_all, time_origin_ns
+from fusion.evaluate.plots import DEFAULT_DPI, plot_all, time_origin_ns
 from fusion.fileio import atomic_open
 from fusion.types import RAW_ESTIMATORS, LoadMap, Trajectory
 from fusion.warehouse.floorcodes import floor_code_section
@@ -705,7 +705,6 @@ def write_report(
     dpi: int = DEFAULT_DPI,
     floor_codes_xy_m: np.ndarray | None = None,
     floor_codes: FloorCodeMap | None = None,
-    workers: int = 1,
 ) -> Path:
     """Write `out_dir/report.md` and its PNG plots; returns the report's path.
 
@@ -713,15 +712,14 @@ def write_report(
     gt: `fusion.log.GroundTruth` or None.  log_summary: free key/value facts about the log
     (e.g. log path, duration_s, frames, payload_unit_m); a `detection` entry there is used when
     `metrics` has none.  floor_codes: the as-built floor codes (a section with their offsets
-    plot; misplaced ones highlighted in report.html).  workers: processes drawing the plots
-    (plots.plot_all) while this one writes report.html."""
+    plot; misplaced ones highlighted in report.html)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     log_summary = dict(log_summary or {})
     has_truth = bool(metrics and metrics.get("has_groundtruth") and gt is not None)
     unit = log_summary.get("payload_unit_m", 1.0)
     blackouts = blackouts if has_truth else None
-    drawing = start_plot_all(
+    plots = plot_all(
         out_dir,
         trajectories,
         load_maps,
@@ -731,28 +729,25 @@ def write_report(
         floor_codes_xy_m=floor_codes_xy_m,
         payload_unit_m=float(unit) if unit else None,
         dpi=dpi,
-        workers=workers,
     )
 
-    with drawing:
-        lines = ["# fusion report", ""]
-        facts = [
-            md_code(log_summary["path"]) if "path" in log_summary else None,
-            f"{fmt(log_summary['duration_s'])} s" if "duration_s" in log_summary else None,
-            f"{log_summary['floor_frames']} floor frames" if "floor_frames" in log_summary else None,
-        ]
-        if any(facts):
-            lines += ["Flight " + ", ".join(f for f in facts if f) + ".", ""]
-        warehouse_lines = report_hook(
-            out_dir,
-            trajectories,
-            load_maps,
-            floor_codes_xy_m,
-            log_summary,
-            gt if has_truth else None,
-            floor_codes,
-        )
-        plots = drawing.paths()
+    lines = ["# fusion report", ""]
+    facts = [
+        md_code(log_summary["path"]) if "path" in log_summary else None,
+        f"{fmt(log_summary['duration_s'])} s" if "duration_s" in log_summary else None,
+        f"{log_summary['floor_frames']} floor frames" if "floor_frames" in log_summary else None,
+    ]
+    if any(facts):
+        lines += ["Flight " + ", ".join(f for f in facts if f) + ".", ""]
+    warehouse_lines = report_hook(
+        out_dir,
+        trajectories,
+        load_maps,
+        floor_codes_xy_m,
+        log_summary,
+        gt if has_truth else None,
+        floor_codes,
+    )
     lines += warehouse_lines[:2]  # link to report.html
     lines += _health_lines(metrics or {})
     lines += _time_offset_lines(metrics or {})
