@@ -1,8 +1,9 @@
 """Peak memory of a whole `fusion run`, per stage, measured from outside the process.
 
-    python scripts/bench_run_memory.py LOG OUT [--interval S] [-- EXTRA fusion run ARGS]
+    python scripts/bench_run_memory.py [--interval S] [--batch] LOG OUT [-- EXTRA fusion run ARGS]
 
-Runs `python -m fusion.cli run LOG --out OUT --force` as a child and samples its resident set
+Runs `python -m fusion.cli run LOG --out OUT --force` (with `--batch`: `fusion batch LOG --out OUT`,
+whose Dask workers are the descendants below; OUT must be new) as a child and samples its resident set
 (/proc/PID/status VmRSS, which counts GTSAM's C++ heap and numpy alike) every `--interval`
 seconds, crediting each sample to the stage the run last announced on stderr (its progress and
 log lines).  Prints one row per announced line, in order: the largest RSS seen while it was the
@@ -105,17 +106,26 @@ class DescendantSampler(threading.Thread):
             f"(VmHWM) {self.largest_mb():.0f} MB, CPU {sum(self.cpu_s.values()):.1f} s summed"
         )
 
+    def table(self) -> str:
+        """One row per descendant process: its peak (VmHWM) and CPU seconds, largest first."""
+        rows = sorted(self.hwm_mb, key=lambda c: -self.hwm_mb[c])
+        lines = ["| pid | peak MB (VmHWM) | CPU s |", "|--:|--:|--:|"]
+        lines += [f"| {c} | {self.hwm_mb[c]:.0f} | {self.cpu_s.get(c, 0.0):.1f} |" for c in rows]
+        return "\n".join(lines)
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", type=Path)
     ap.add_argument("out", type=Path)
     ap.add_argument("--interval", type=float, default=0.2, help="seconds between samples (default 0.2)")
+    ap.add_argument("--batch", action="store_true", help="run `fusion batch` (Dask) instead of `fusion run`")
     ap.add_argument("extra", nargs=argparse.REMAINDER, help="more `fusion run` arguments, after --")
     args = ap.parse_args()
     extra = [a for a in args.extra if a != "--"]
-    cmd = [sys.executable, "-m", "fusion.cli", "run", str(args.log), "--out", str(args.out), "--force"]
-    cmd += extra
+    command = "batch" if args.batch else "run"
+    cmd = [sys.executable, "-m", "fusion.cli", command, str(args.log), "--out", str(args.out)]
+    cmd += extra if args.batch else ["--force", *extra]
     child = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, bufsize=1)
     assert child.stderr is not None
     stderr = child.stderr
@@ -149,7 +159,7 @@ def main() -> int:
     wall = time.perf_counter() - t0
     workers.stop()
     when = time.strftime("%Y-%m-%d %H:%M")
-    print(f"{when} UTC, `fusion run {args.log}`: exit {child.returncode}, {wall:.1f} s")
+    print(f"{when} UTC, `fusion {command} {args.log}`: exit {child.returncode}, {wall:.1f} s")
     print("\n| from s | peak RSS MB | stage (the run's last line) |\n|--:|--:|---|")
     for name, (peak, first) in rows.items():
         print(f"| {first:.1f} | {peak:.0f} | {name.replace('|', '/')} |")
@@ -163,6 +173,8 @@ def main() -> int:
             f"(user {usage.ru_utime:.1f}, system {usage.ru_stime:.1f})"
         )
     print(workers.summary())
+    if args.batch:
+        print("\nthe batch's processes (Dask's workers and their helpers):\n" + workers.table())
     print("(MB are MiB, kB / 1024: 10^9 bytes = 954 MiB, 1 GiB = 1,024 MiB)")
     return child.returncode
 
