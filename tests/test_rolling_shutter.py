@@ -20,7 +20,6 @@ from fusion.qr.pnp import estimate_floor_pose
 from fusion.qr.refine import refine_frames
 from fusion.qr.rolling_shutter import (
     FrameMotion,
-    _accel_bias,
     _body_poses_at,
     _image_reader,
     _ImuTrack,
@@ -323,22 +322,6 @@ def test_per_row_poses_from_the_imu_beat_a_constant_twist(accelerating_flight):
     # measured, worst frame: constant twist 16 urad / 43 um, IMU 3.5 urad / 0.6 um
     assert errs["imu"][0] < 0.4 * errs["twist"][0] and errs["imu"][1] < 0.1 * errs["twist"][1]
     assert errs["imu"][0] < 1e-5 and errs["imu"][1] < 5e-6
-
-
-@pytest.mark.parametrize("bias", [(0.0, 0.0, 0.0), (0.05, -0.04, 0.03)])
-def test_accel_bias_recovered_from_noisy_poses(accelerating_flight, bias):
-    """A body-frame accelerometer bias is seen where the attitude turns (the yaw swings): from
-    30 Hz poses with 0.2 mm of position noise it is recovered within 0.03 m/s^2 per axis (an
-    8 s flight; measured: 0.01 noise-free, up to 0.018 with this noise)."""
-    _, _, traj, imu, _ = accelerating_flight
-    biased = replace(imu, accel_m_s2=imu.accel_m_s2 + np.asarray(bias))
-    rng = np.random.default_rng(11)
-    ts_ns = np.arange(0, int(traj.duration_s * 1e9), 33_333_333, dtype=np.int64)
-    T = traj.state(ts_ns * 1e-9).T_world_body.copy()
-    T[:, :3, 3] += rng.normal(0.0, 0.0002, (len(ts_ns), 3))
-    poses = Trajectory("pnp", ts_ns, T)
-    b = _accel_bias(_ImuTrack(biased, poses), poses)
-    assert np.all(np.abs(b - np.asarray(bias)) < 0.03), b
 
 
 def test_point_map_identity_leaves_refinement_unchanged(scene):

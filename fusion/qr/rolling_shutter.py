@@ -104,11 +104,6 @@ refined at the stamp (STAMP_MOTION_PASSES).  Before that pass it was m^2 / 600 (
 0.49 / 1.12 px for corrections of 6.5 / 12.8 / 19.5 / 25.3 px), and without this term those
 frames' PnP poses (3-9 mm off, NEES 100-36000) pulled the camera-IMU time offset profile to
 -0.67 ms on a flight with no offset (fusion.estimate.timeoffset)."""
-ACCEL_BIAS_FIT = True
-"""`frame_motion` with an IMU: the accelerometer bias estimated from the poses (`_accel_bias`) and
-taken off before the displacement is integrated."""
-ACCEL_BIAS_PRIOR_M_S2 = 0.1
-"""Prior sigma of each accelerometer bias component in `_accel_bias` (m/s^2)."""
 FIT_HALF_WINDOW_IMU = 15
 FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
@@ -218,11 +213,9 @@ class _ImuTrack:
     """The IMU's body rate and world acceleration integrated on its own time grid: cumulative
     gyro integral (body rate means over any window), and the world acceleration
     a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses) integrated twice
-    (trapezoid), so that positions can be fitted with the IMU's short-term motion removed.
-    `accel_bias_body` (3,) m/s^2 is taken off the specific force first (`_accel_bias`); the world
-    directions of the body axes are integrated twice too (`bias_displacement`)."""
+    (trapezoid), so that positions can be fitted with the IMU's short-term motion removed."""
 
-    def __init__(self, imu, trajectory: Trajectory, accel_bias_body: np.ndarray | None = None):
+    def __init__(self, imu, trajectory: Trajectory):
         self.t = imu.timestamps_ns * 1e-9
         R_bs = np.asarray(imu.T_body_imu, float)[:3, :3]
         self.gyro = imu.gyro_rad_s @ R_bs.T
@@ -231,14 +224,11 @@ class _ImuTrack:
         ts = trajectory.timestamps_ns * 1e-9
         R = interpolate_poses(ts, trajectory.T_world_body, np.clip(self.t, ts[0], ts[-1]))[:, :3, :3]
         f_body = imu.accel_m_s2 @ R_bs.T
-        if accel_bias_body is not None:
-            f_body = f_body - np.asarray(accel_bias_body, float)
         self.a_world = np.einsum("nij,nj->ni", R, f_body) - np.array([0.0, 0.0, GRAVITY_M_S2])
-        self.V = _cumtrapz(self.a_world, dt)
-        self.P = _cumtrapz(self.V, dt)
-        # (N, 3, 3) [:, :, i]: body axis i's world direction integrated once / twice
-        self.Vb = _cumtrapz(R, dt[:, :, None])
-        self.Pb = _cumtrapz(self.Vb, dt[:, :, None])
+        self.V = np.vstack(
+            [np.zeros(3), np.cumsum(0.5 * (self.a_world[1:] + self.a_world[:-1]) * dt, axis=0)]
+        )
+        self.P = np.vstack([np.zeros(3), np.cumsum(0.5 * (self.V[1:] + self.V[:-1]) * dt, axis=0)])
         self.noise_density = imu.noise.gyroscope_noise_density
 
     def _at(self, X: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -259,87 +249,11 @@ class _ImuTrack:
         t0 = np.broadcast_to(np.asarray(t0, float), t.shape)
         return self._at(self.P, t) - self._at(self.P, t0) - self._at(self.V, t0) * (t - t0)[:, None]
 
-    def bias_displacement(self, t0: float, t: np.ndarray) -> np.ndarray:
-        """(N, 3, 3) [:, :, i]: the position change from t0 to t (N,) that a unit accelerometer
-        bias along body axis i adds to `displacement` (the axis's world direction integrated
-        twice, from rest at t0)."""
-        t = np.asarray(t, float)
-        flat = lambda X: X.reshape(len(X), 9)  # noqa: E731
-        P, V = self._at9(flat(self.Pb), t), self._at9(flat(self.Pb), np.array([t0]))
-        V0 = self._at9(flat(self.Vb), np.array([t0]))
-        return (P - V - V0 * (t - t0)[:, None]).reshape(len(t), 3, 3)
-
-    def _at9(self, X: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return np.column_stack([np.interp(t, self.t, X[:, i]) for i in range(X.shape[1])])
-
     def rotation(self, t0: np.ndarray, t: np.ndarray) -> np.ndarray:
         """(N, 3) integral of the (bias-uncorrected) gyro from t0 to t (rad): the body's rotation
         vector over [t0, t] to first order (the rate's change of axis within a readout, a
         second-order term, is left out)."""
         return self._at(self.G, np.asarray(t, float)) - self._at(self.G, np.asarray(t0, float))
-
-
-def _cumtrapz(X: np.ndarray, dt: np.ndarray) -> np.ndarray:
-    """Cumulative trapezoid integral of X (N, ...) over steps dt (N - 1, ...), starting at 0."""
-    steps = 0.5 * (X[1:] + X[:-1]) * dt
-    return np.concatenate([np.zeros((1,) + X.shape[1:]), np.cumsum(steps, axis=0)])
-
-
-def _accel_bias(track: _ImuTrack, trajectory: Trajectory) -> np.ndarray:
-    """Accelerometer bias (3,) m/s^2, body frame, from the poses of `trajectory`: in windows of
-    2 FIT_HALF_WINDOW_IMU poses (at most 2 FIT_MAX_SPAN_IMU_S long, not overlapping) the
-    positions less the IMU's displacement (`_ImuTrack.displacement`) are p0 + v dt + a dt^2 / 2
-    - D(dt) b, D the bias's displacement (`bias_displacement`); the windows' own p0, v, a are
-    eliminated (Schur complement of each window's normal equations) and the sum solved for b,
-    with an ACCEL_BIAS_PRIOR_M_S2 prior (b is seen only where the attitude changes: a constant
-    world-frame bias is the quadratic term's).  Least squares with one trimming round
-    (FIT_TRIM_MAD robust sigmas, at least FIT_TRIM_MIN_M)."""
-    ts = trajectory.timestamps_ns * 1e-9
-    p = trajectory.T_world_body[:, :3, 3]
-    windows = []
-    start = 0
-    while start < len(ts):
-        idx = np.arange(start, min(len(ts), start + 2 * FIT_HALF_WINDOW_IMU))
-        idx = idx[ts[idx] - ts[idx[0]] <= 2 * FIT_MAX_SPAN_IMU_S]
-        start = int(idx[-1]) + 1
-        if len(idx) >= 4 * MIN_FIT_POSES:
-            windows.append(idx)
-    if not windows:
-        return np.zeros(3)
-    systems = []
-    for idx in windows:
-        t0 = float(ts[idx[len(idx) // 2]])
-        dt = ts[idx] - t0
-        y = (p[idx] - track.displacement(t0, ts[idx])).reshape(-1)  # (3n,) x, y, z per pose
-        D = track.bias_displacement(t0, ts[idx])  # (n, 3, 3)
-        A = np.zeros((3 * len(idx), 12))
-        for j in range(3):
-            for c, col in enumerate((np.ones_like(dt), dt, 0.5 * dt**2)):
-                A[j::3, 3 * c + j] = col
-            A[j::3, 9:] = -D[:, j, :]
-        systems.append((A, y))
-    keep = [np.ones(len(y), bool) for _, y in systems]
-    b: np.ndarray = np.zeros(3)
-    for _ in range(2):
-        S, r, ss, n = np.zeros((3, 3)), np.zeros(3), 0.0, 0
-        for (A, y), m in zip(systems, keep):
-            N, g = A[m].T @ A[m], A[m].T @ y[m]
-            Ncc_inv = np.linalg.pinv(N[:9, :9])
-            S += N[9:, 9:] - N[9:, :9] @ Ncc_inv @ N[:9, 9:]
-            r += g[9:] - N[9:, :9] @ Ncc_inv @ g[:9]
-        # residual scale for the prior's weight: the windows' fits without the bias
-        for (A, y), m in zip(systems, keep):
-            c = np.linalg.lstsq(A[m][:, :9], y[m] + A[m][:, 9:] @ b, rcond=None)[0]
-            res = y[m] + A[m][:, 9:] @ b - A[m][:, :9] @ c
-            ss, n = ss + float(res @ res), n + int(m.sum()) - 9
-        var = ss / max(n, 1)
-        b = np.linalg.solve(S + var / ACCEL_BIAS_PRIOR_M_S2**2 * np.eye(3), r)
-        for i, (A, y) in enumerate(systems):
-            c = np.linalg.lstsq(A[:, :9], y - A[:, 9:] @ b, rcond=None)[0]
-            res = np.abs(y - A[:, 9:] @ b - A[:, :9] @ c)
-            scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(res)), FIT_TRIM_MIN_M)
-            keep[i] = res <= scale
-    return b
 
 
 def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
@@ -391,8 +305,6 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
     t_s = stamps_ns * 1e-9
     if imu is not None and len(imu.timestamps_ns) > 1:
         track = _ImuTrack(imu, trajectory)
-        if ACCEL_BIAS_FIT:
-            track = _ImuTrack(imu, trajectory, _accel_bias(track, trajectory))
         bias, bias_sigma = _gyro_bias(track, trajectory)
         t0 = t_s + float(camera.row_time_offset_s(0.0))
         t1 = t_s + float(camera.row_time_offset_s(camera.height - 1.0))
