@@ -19,10 +19,11 @@ run and restores it:
 
 Prints per variant the PnP mean position error (cm), its ratio to the global-shutter flight's
 PnP, and the final motion's mean velocity error (mm/s); --pipeline runs fusion.pipeline.run
-instead (PnP and smoother ATE, NEES) into `out_diag_{variant}` next to the flight's `out`.
+instead (PnP and smoother ATE, NEES) into `out_diag_{variant}` next to the flight's `out`;
+--calibrate the readout estimate (`calibrate_readout` from a camera model that says 0).
 
     PYTHONPATH=$PWD python3 scripts/diagnose_rolling_shutter.py --dir D [--speed 2] [--readout-ms 30]
-        [--pipeline] VARIANT...
+        [--pipeline | --calibrate] VARIANT...
 """
 
 from __future__ import annotations
@@ -56,6 +57,11 @@ def main() -> None:
     ap.add_argument("--speed", type=float, default=2.0)
     ap.add_argument("--readout-ms", type=float, default=30.0)
     ap.add_argument("--pipeline", action="store_true")
+    ap.add_argument(
+        "--calibrate",
+        action="store_true",
+        help="the readout estimate (calibrate_readout, as the bench) instead",
+    )
     ap.add_argument("variants", nargs="+")
     args = ap.parse_args()
     flight = args.dir / f"v{args.speed:g}_ro{args.readout_ms:g}"
@@ -137,7 +143,12 @@ def main() -> None:
         if variant in ("accelbias", "truetrack"):
             rs._ImuTrack.__init__ = track_init(variant)  # type: ignore[method-assign]
         try:
-            if args.pipeline:
+            if args.calibrate:
+                calib = rs.calibrate_readout(det, replace(cam, line_delay_s=0.0), log.world, log.imu)
+                err = 100.0 * (calib.readout_s - cam.readout_s) / cam.readout_s
+                ms = f"{1e3 * calib.readout_s:.2f} +- {1e3 * calib.sigma_s:.2f} ms"
+                line = f"{variant:12s} readout {ms} ({err:+.1f} %)"
+            elif args.pipeline:
                 out = flight / f"out_diag_{variant}"
                 out.mkdir(exist_ok=True)
                 shutil.copy(flight / "out" / "detections.csv", out / "detections.csv")
