@@ -367,15 +367,12 @@ class ImuFit:
     def _inliers(self, poses) -> np.ndarray:
         """(K,) bool: the poses within FIT_OUTLIER_SIGMAS of the fit (whitened residual norm
         against its RMS over all, at least 1)."""
-        r = np.array(
-            [
-                np.hypot(
-                    np.linalg.norm(so3_log(self.at(t)[:3, :3].T @ T[:3, :3])) / sr,
-                    np.linalg.norm(self.at(t)[:3, 3] - T[:3, 3]) / sp,
-                )
-                for t, T, sp, sr in poses
-            ]
-        )
+        idx = np.searchsorted(self.grid, [p[0] for p in poses])
+        R_fit, p_fit = self.R[idx], self._positions(idx)
+        R_k = np.stack([p[1][:3, :3] for p in poses])
+        rot = np.linalg.norm(so3_log(np.einsum("nji,njk->nik", R_fit, R_k)), axis=1)
+        pos = np.linalg.norm(p_fit - np.stack([p[1][:3, 3] for p in poses]), axis=1)
+        r = np.hypot(rot / np.array([p[3] for p in poses]), pos / np.array([p[2] for p in poses]))
         return r <= FIT_OUTLIER_SIGMAS * max(float(np.sqrt(np.mean(r**2))), 1.0)
 
     def _rotations(self, b_g: np.ndarray) -> np.ndarray:
@@ -394,16 +391,15 @@ class ImuFit:
             # J_k: d(log residual at pose k) / d(b_g), to first order
             S = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(dR[:-1] * self.dt[:, None, None], axis=0)])
             S -= S[self.k_anchor]
-            rows, ys = [], []
-            for j, k in enumerate(idx):
-                Rp = R_a @ dR[k]
-                e = so3_log(Rp.T @ Rk[j])
-                J = dR[k].T @ S[k]
-                rows.append(np.hstack([-Rp.T, J]) / sig_r[j])
-                ys.append(-e / sig_r[j])
-            rows.append(np.hstack([np.zeros((3, 3)), np.eye(3) / FIT_GYRO_BIAS_PRIOR_RAD_S]))
-            ys.append(-b_g / FIT_GYRO_BIAS_PRIOR_RAD_S)
-            x = np.linalg.lstsq(np.vstack(rows), np.concatenate(ys), rcond=None)[0]
+            Rp = np.einsum("ij,njk->nik", R_a, dR[idx])  # (K, 3, 3) predicted at the poses
+            e = so3_log(np.einsum("nji,njk->nik", Rp, Rk))  # (K, 3) body-frame residuals
+            J = np.einsum("nji,njk->nik", dR[idx], S[idx])  # (K, 3, 3)
+            rows = np.concatenate([-np.transpose(Rp, (0, 2, 1)), J], axis=2) / sig_r[:, None, None]
+            A = np.vstack(
+                [rows.reshape(-1, 6), np.hstack([np.zeros((3, 3)), np.eye(3) / FIT_GYRO_BIAS_PRIOR_RAD_S])]
+            )
+            y = np.concatenate([(-e / sig_r[:, None]).reshape(-1), -b_g / FIT_GYRO_BIAS_PRIOR_RAD_S])
+            x = np.linalg.lstsq(A, y, rcond=None)[0]
             R_a = so3_exp(x[:3]) @ R_a
             b_g = b_g + x[3:]
         self.b_g = b_g
@@ -434,11 +430,14 @@ class ImuFit:
         d = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(0.5 * (v[:-1] + v[1:]) * dt, axis=0)])
         return d - d[self.k_anchor]
 
+    def _positions(self, k: np.ndarray) -> np.ndarray:
+        """(K, 3) fitted positions at grid indices k (K,)."""
+        return self.x[:3] + np.outer(self.tt[k], self.x[3:6]) + self.D[k] - self.C[k] @ self.x[6:]
+
     def at(self, t_ns: int) -> np.ndarray:
         """T_world_body (4, 4) at t_ns (a grid time: a pose's stamp or `until_ns`)."""
         k = int(np.clip(np.searchsorted(self.grid, int(t_ns)), 0, len(self.grid) - 1))
-        p = self.x[:3] + self.x[3:6] * self.tt[k] + self.D[k] - self.C[k] @ self.x[6:]
-        return make_T(self.R[k], p)
+        return make_T(self.R[k], self._positions(np.array([k]))[0])
 
 
 class PosePredictor:
