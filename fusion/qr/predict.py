@@ -18,9 +18,12 @@ localisation (pipeline.track_stage):
    interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
    extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
    MAX_EXTRAPOLATION_S ahead, forward or backward.  The first pass's poses (and the
-   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction; the
-   poses found by the pass itself (step 3) are used only where that nearer in time
-   (PosePredictor.predict).
+   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction.
+   Else, with an IMU, an IMU trajectory fitted to every pose within FIT_WINDOW_S of the
+   nearest one (ImuFit: attitude, velocity and body-frame gyro and accelerometer biases; the
+   pass's own poses too, and those too uncertain to predict from alone weighted by their
+   sigma), up to FIT_MAX_EXTRAPOLATION_S from the nearest pose.  Else the poses found by the
+   pass itself (step 3) are used where that is nearer in time (PosePredictor.predict).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
@@ -235,7 +238,8 @@ class TrackReport:
             f"{s.attempts} tried in {self.frames_tried} frames, {s.gated} refused by the innovation "
             f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code"
             f"{restamp}; {self.poses_backward} of {self.frames_backward} frames posed by the backward "
-            f"sweep; {s.square_corners} with a dark square's corners; {self.seconds:.1f} s"
+            f"sweep; {s.square_corners} with a dark square's corners; {self.fits} predictions from "
+            f"the IMU fit; {self.seconds:.1f} s"
         )
 
 
