@@ -141,9 +141,9 @@ POSE_GATE_BRIDGE_M_PER_S = 0.05
 # poses are at most MAX_IMU_BRIDGE_S apart; at most FIT_MAX_EXTRAPOLATION_S from the nearest
 # pose.  On the strip-occluded ECC L flight (seed 0) single-code re-stamped poses at 2.6 m put
 # the codes up to 7 px off, and the IMU extrapolated from the last two 3-6 px off at 0.3-0.6 s:
-# beyond the 2-module gate (~4 px there), so the chain broke; the fit over the poses of the last
-# second predicted the pose 0.65 cm / 0.12 deg off 0.5 s later, 2.5 cm 1 s later (BENCHMARKS.md /
-# NOTES-strip.md)
+# beyond the 2-module gate (~4 px there), so the chain broke; a prototype of the fit over the
+# poses of the last second was 0.65 cm / 0.12 deg off 0.5 s later, 2.5 cm 1 s later; with it
+# the pass posed 84-88 % of the floor frames instead of 74-76 % (NOTES-strip.md)
 FIT_WINDOW_S = 1.0
 USE_FIT = True  # (a switch for the benches: the old prediction where False)
 FIT_MIN_POSES = 6
@@ -334,9 +334,10 @@ class ImuBridge:
 
 
 class ImuFit:
-    """A body trajectory through the IMU's samples fitted to several poses [(t_ns, T_world_body)]
-    (a small batch smoother, without GTSAM): R(t) = Exp(d) R_a dR(t) with dR the gyro's integral
-    from the first pose's time t_a after removing a constant body-frame bias b_g; p(t) = p_a +
+    """A body trajectory through the IMU's samples fitted to several poses [(t_ns, T_world_body,
+    position sigma m, rotation sigma rad)] (a small batch smoother, without GTSAM):
+    R(t) = Exp(d) R_a dR(t) with dR the gyro's integral from the first pose's time t_a after
+    removing a constant body-frame bias b_g; p(t) = p_a +
     v_a s + D(s) - C(s) b_a, D the double integral of R f + g, C that of R (a constant
     body-frame accelerometer bias b_a), s = t - t_a.  The rotation unknowns (d, b_g) by
     Gauss-Newton on the poses' body-frame rotation residuals, with the first-order effect of the
@@ -385,6 +386,8 @@ class ImuFit:
         return np.einsum("ij,njk->nik", dR[self.k_anchor].T, dR)
 
     def _solve(self, poses) -> None:
+        """The fit (class docstring) to `poses`: sets b_g, R (M, 3, 3) on the grid, D, C and
+        x = (p_a, v_a, b_a)."""
         idx = np.searchsorted(self.grid, [p[0] for p in poses])
         Rk = np.stack([p[1][:3, :3] for p in poses])
         sig_p = np.array([p[2] for p in poses])
