@@ -39,7 +39,10 @@ cache when there is one), and every floor frame without a PnP pose after the pas
 (`loss_reasons`): inside a blackout, decoded but PnP found no pose, or the pass's outcome at the
 frame (fusion.qr.predict.OUTCOMES); the re-stamped sightings' counts and wrong identities, the
 pass's CPU seconds in this process (the whole pass with `--workers 1`), and the PnP poses'
-position RMSE against the truth and how many are over 5 cm (the per-frame stage after the pass).
+position RMSE against the truth and how many are over 5 cm (the per-frame stage after the pass),
+and the same over the frames posed with the pass's (tracked or re-stamped) sightings
+(`pnp_with_pass_sightings`). `--no-fit`: the pass without its IMU-fit predictions
+(fusion.qr.predict.USE_FIT = False; the predictions before it existed).
 """
 
 from __future__ import annotations
@@ -146,6 +149,20 @@ def _position_errors(log, traj) -> np.ndarray:
     return np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1)
 
 
+def _error_summary(err_m: np.ndarray) -> dict:
+    """Position errors (m) summarised in cm: count, RMSE, median, p99, max, how many over 5 cm."""
+    if len(err_m) == 0:
+        return dict(n=0)
+    return dict(
+        n=len(err_m),
+        rmse_cm=100 * float(np.sqrt(np.mean(err_m**2))),
+        median_cm=100 * float(np.median(err_m)),
+        p99_cm=100 * float(np.percentile(err_m, 99)),
+        max_cm=100 * float(np.max(err_m)),
+        over_5cm=int(np.sum(err_m > 0.05)),
+    )
+
+
 def _in_blackout(t_ns: int, blackouts) -> bool:
     """True inside one of the simulator's floor-camera blackouts [(start_ns, end_ns, kind)]:
     every floor code in view made unreadable on purpose (fusion.sim.render._apply_blackout:
@@ -179,6 +196,8 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
     final_traj = localize_stage(log, tracked, cfg).trajectories[pnp]
     final = set(int(t) for t in final_traj.timestamps_ns)
     pnp_err_m = _position_errors(log, final_traj)
+    passed = {int(t) for t, ds in tracked.by_frame("cam0").items() if any(d.tracked for d in ds)}
+    with_pass = np.array([int(t) in passed for t in final_traj.timestamps_ns], bool)
     stamps, mask, truth_by_t = _floor_frames(log)
     blackouts = log.blackouts or []
     decoded = {t for t, ds in det.by_frame("cam0").items() if ds}
@@ -226,6 +245,7 @@ def loss_reasons(flight: Path, out_dir: Path, workers: int | None = None) -> dic
         tracker={k: int(v) for k, v in vars(rep.stats).items()},
         pnp_rmse_cm=100 * float(np.sqrt(np.mean(pnp_err_m**2))) if len(pnp_err_m) else float("nan"),
         pnp_over_5cm=int(np.sum(pnp_err_m > 0.05)),
+        pnp_with_pass_sightings=_error_summary(pnp_err_m[with_pass]),
         reasons=dict(sorted(reasons.items(), key=lambda kv: -kv[1])),
         seconds=rep.seconds,
         restamp_seconds=rep.restamp_seconds,
@@ -401,11 +421,20 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true", help="score finished runs in OUT without running")
     ap.add_argument("--reasons", action="store_true", help="no fusion: why floor frames have no pose")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument(
+        "--no-fit",
+        action="store_true",
+        help="the track pass without its IMU-fit predictions (predict.USE_FIT; a module switch: --workers 1)",
+    )
     ap.add_argument("--occlude", action="store_true", help="FLIGHTS = SRC DST: make DST (module docstring)")
     ap.add_argument("--occluder", choices=["strip", "square", "none"], default="square")
     ap.add_argument("--fraction", type=float, default=0.1)
     ap.add_argument("--decode-rates", action="store_true", help="zxing's decode share per occluder kind")
     args = ap.parse_args(argv)
+    if args.no_fit:
+        import fusion.qr.predict
+
+        fusion.qr.predict.USE_FIT = False
     if args.simulate is not None:
         args.flights += [make_flight(args.simulate, seed, args.out / "flights") for seed in args.seeds]
     if not args.flights:

@@ -198,7 +198,9 @@ def _accelerating_pose(t_s: float) -> np.ndarray:
     return make_T(R, [0.4 * t_s**2, 0.2 * np.sin(2.0 * t_s), 1.2 + 0.1 * t_s])
 
 
-def _imu_of(pose_fn, t_end_s: float, rate_hz: float = 400.0, accel_bias=(0.0, 0.0, 0.0)):
+def _imu_of(
+    pose_fn, t_end_s: float, rate_hz: float = 400.0, accel_bias=(0.0, 0.0, 0.0), gyro_bias=(0.0, 0.0, 0.0)
+):
     """IMU samples (body frame = IMU frame) of `pose_fn` by central differences: gyro
     Log(R(t - h)^T R(t + h)) / 2h, specific force R^T (p'' - g)."""
     from types import SimpleNamespace
@@ -210,7 +212,7 @@ def _imu_of(pose_fn, t_end_s: float, rate_hz: float = 400.0, accel_bias=(0.0, 0.
     gyro, force = [], []
     for t in ts:
         Ta, Tb, Tc = pose_fn(t - h), pose_fn(t), pose_fn(t + h)
-        gyro.append(so3_log(Ta[:3, :3].T @ Tc[:3, :3]) / (2 * h))
+        gyro.append(so3_log(Ta[:3, :3].T @ Tc[:3, :3]) / (2 * h) + np.asarray(gyro_bias))
         acc = (Ta[:3, 3] - 2 * Tb[:3, 3] + Tc[:3, 3]) / h**2
         force.append(Tb[:3, :3].T @ (acc - np.array([0.0, 0.0, -9.81])) + np.asarray(accel_bias))
     return SimpleNamespace(
@@ -551,3 +553,114 @@ def test_track_pass_backward_sweep_poses_frames_before_the_first_decode(monkeypa
         if d.tracked:  # the code really there, corners on it
             truth = truths[int(round(d.timestamp_ns * RATE_HZ * 1e-9))][d.payload]
             assert np.max(np.linalg.norm(d.corners_px - truth, axis=1)) < 1.0
+
+
+def _noisy_poses(pose_fn, times_s, rng, sigma_m: float, sigma_rad: float):
+    """[(t_ns, T_world_body)] of `pose_fn` with Gaussian position and rotation noise."""
+    from fusion.geometry import so3_exp
+
+    out = []
+    for t in times_s:
+        T = pose_fn(t).copy()
+        T[:3, :3] = T[:3, :3] @ so3_exp(rng.normal(0.0, sigma_rad, 3))
+        T[:3, 3] += rng.normal(0.0, sigma_m, 3)
+        out.append((int(round(t * 1e9)), T))
+    return out
+
+
+def test_imu_fit_recovers_the_gyro_and_accelerometer_biases_from_exact_poses():
+    """Exact poses over 1 s, an IMU with body-frame biases: the fit's biases are the true ones
+    and its pose 0.5 s after the last one exact (the bias Jacobian and the integrals checked)."""
+    from fusion.qr.predict import ImuBridge, ImuFit
+
+    b_g, b_a = np.array([0.002, -0.001, 0.0015]), np.array([0.05, -0.03, 0.04])
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0, accel_bias=b_a, gyro_bias=b_g))
+    poses = [(int(round(t * 1e9)), _accelerating_pose(t)) for t in np.arange(0.5, 1.5 + 1e-9, 1 / 30)]
+    t = poses[-1][0] + int(0.5e9)
+    fit = ImuFit(imu, [(tk, T, 0.002, 0.002) for tk, T in poses], t)
+    assert np.allclose(fit.b_g, b_g, atol=1e-4) and np.allclose(fit.x[6:], b_a, atol=2e-3)
+    dp, dr = _pose_error(fit.at(t), _accelerating_pose(t * 1e-9))
+    assert dp < 2e-4 and dr < 1e-4, (dp, dr)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_imu_fit_extrapolates_better_than_the_imu_from_the_last_two_poses(seed):
+    """Poses 2 mm / 0.1 deg noisy over 1 s, an IMU with the simulator's scale of biases: the
+    fit's position 0.5 and 1 s after the last pose is within 2 / 4.5 cm and at least 1.5x nearer
+    than the IMU extrapolated from the last two poses (the old prediction beyond a bridge)."""
+    from fusion.qr.predict import ImuBridge, ImuFit
+
+    rng = np.random.default_rng(seed)
+    b_g, b_a = rng.normal(0.0, 0.002, 3), rng.normal(0.0, 0.05, 3)
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0, accel_bias=b_a, gyro_bias=b_g))
+    poses = _noisy_poses(_accelerating_pose, np.arange(0.5, 1.5 + 1e-9, 1 / 30), rng, 0.002, 0.002)
+    window = [(t, T, 0.002, 0.002) for t, T in poses]
+    (t0, T0), (t1, T1) = poses[-4], poses[-1]
+    v1 = imu.bridge(t0, T0, t1, T1, t1)[2]
+    for ahead_s, limit_m in ((0.5, 0.02), (1.0, 0.045)):
+        t = t1 + int(ahead_s * 1e9)
+        truth = _accelerating_pose(t * 1e-9)
+        dp, dr = _pose_error(ImuFit(imu, window, t).at(t), truth)
+        old_dp = _pose_error(imu.extrapolate(t1, T1, v1, t), truth)[0]
+        assert dp < limit_m and dr < np.radians(0.4), (ahead_s, dp, np.degrees(dr))
+        assert old_dp > 1.5 * dp, (ahead_s, dp, old_dp)
+
+
+def test_imu_fit_leaves_out_a_pose_far_off_the_others():
+    from fusion.qr.predict import FIT_MIN_POSES, ImuBridge, ImuFit
+
+    rng = np.random.default_rng(3)
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0))
+    poses = _noisy_poses(_accelerating_pose, np.linspace(0.5, 1.0, 12), rng, 0.002, 0.002)
+    poses[5][1][:3, 3] += [0.0, 0.3, 0.0]  # one pose 30 cm off
+    t = int(1.4e9)
+    window = [(tk, T, 0.002, 0.002) for tk, T in poses]
+    fit = ImuFit(imu, window, t)
+    assert fit.poses_used == len(poses) - 1 >= FIT_MIN_POSES
+    clean = ImuFit(imu, window[:5] + window[6:], t)  # the same fit without it
+    assert np.allclose(fit.at(t), clean.at(t), atol=1e-9)
+
+
+def test_pose_predictor_uses_the_fit_beyond_the_extrapolation_and_weak_poses_in_it(monkeypatch):
+    """Beyond MAX_EXTRAPOLATION_S from the last pose and up to FIT_MAX_EXTRAPOLATION_S: the fit
+    (none without it); poses too uncertain to predict from alone (add_weak) carry it on."""
+    from fusion.qr import predict
+    from fusion.qr.predict import FIT_MAX_EXTRAPOLATION_S, MAX_EXTRAPOLATION_S, ImuBridge, PosePredictor
+
+    rng = np.random.default_rng(4)
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0))
+    poses = _noisy_poses(_accelerating_pose, np.arange(0.2, 0.7 + 1e-9, 1 / 30), rng, 0.002, 0.002)
+    stamps = np.array([t for t, _ in poses])
+    pred = PosePredictor(stamps, np.array([T for _, T in poses]), imu)
+    t_far = int(stamps[-1] + 0.5 * (MAX_EXTRAPOLATION_S + FIT_MAX_EXTRAPOLATION_S) * 1e9)
+    T, horizon = pred.predict(t_far)
+    assert pred.last_kind == "fit" and pred.fits == 1
+    assert horizon == pytest.approx((t_far - stamps[-1]) * 1e-9)
+    assert _pose_error(T, _accelerating_pose(t_far * 1e-9))[0] < 0.03
+    assert pred.predict(int(stamps[-1] + (FIT_MAX_EXTRAPOLATION_S + 0.05) * 1e9)) is None
+    monkeypatch.setattr(predict, "USE_FIT", False)
+    assert pred.predict(t_far) is None
+    monkeypatch.setattr(predict, "USE_FIT", True)
+    # weak poses (5 mm noise) every 1/30 s after the first pass's: predicted 1.5 s further on
+    for t_w, T_w in _noisy_poses(_accelerating_pose, np.arange(0.75, 2.0, 1 / 30), rng, 0.005, 0.004):
+        pred.add_weak(t_w, T_w, 0.005, 0.004)
+    T, horizon = pred.predict(int(2.1e9))
+    assert pred.last_kind == "fit" and horizon < 0.15  # from the last weak pose
+    assert _pose_error(T, _accelerating_pose(2.1))[0] < 0.01
+
+
+def test_refinement_only_takes_off_the_disagreement_the_tracker_added():
+    from fusion.qr.predict import _refinement_only
+    from fusion.qr.track import TRACK_AGREEMENT_SIGMA_PX
+    from fusion.types import QRDetection
+
+    pred = np.array([[100.0, 100.0], [142.0, 100.0], [142.0, 142.0], [100.0, 142.0]])
+    corners = pred + [2.0, -1.0]
+    base = np.diag(np.linspace(0.01, 0.08, 8))
+    excess = 2.5 - TRACK_AGREEMENT_SIGMA_PX**2  # |e|^2 / 8 = 4 x 5 / 8 px^2
+    d = QRDetection("cam0", 0, "p", corners, pred, 2.2, base + excess * np.eye(8), tracked=True)
+    out = _refinement_only(d)
+    assert np.allclose(out.corner_cov_px2, base)
+    assert out.corner_sigma_px == pytest.approx(np.sqrt(np.mean(np.diag(base))))
+    near = QRDetection("cam0", 0, "p", pred + 0.1, pred, 0.2, base, tracked=True)  # within 0.5 px
+    assert np.allclose(_refinement_only(near).corner_cov_px2, base)

@@ -18,9 +18,12 @@ localisation (pipeline.track_stage):
    interpolation between poses at most MAX_INTERPOLATION_GAP_S apart, else constant velocity
    extrapolated from the last poses (over at least VELOCITY_BASELINE_S) at most
    MAX_EXTRAPOLATION_S ahead, forward or backward.  The first pass's poses (and the
-   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction; the
-   poses found by the pass itself (step 3) are used only where that nearer in time
-   (PosePredictor.predict).
+   re-stamped ones) come first: where the IMU bridges two of them, that is the prediction.
+   Else, with an IMU, an IMU trajectory fitted to every pose within FIT_WINDOW_S of the
+   nearest one (ImuFit: attitude, velocity and body-frame gyro and accelerometer biases; the
+   pass's own poses too, and those too uncertain to predict from alone weighted by their
+   sigma), up to FIT_MAX_EXTRAPOLATION_S from the nearest pose.  Else the poses found by the
+   pass itself (step 3) are used where that is nearer in time (PosePredictor.predict).
 3. The catalogue's codes the predicted camera pose (camera.T_world_cam: mounts) puts in view
    with their quiet zone (track.symbol_in_view) and that did not decode in the frame are given
    to CodeTracker.step(predicted=..., own_motion=False), when their modules are at least
@@ -54,7 +57,7 @@ import bisect
 import hashlib
 import logging
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -75,14 +78,20 @@ from fusion.qr.detect import RAW_CORNER_SIGMA_PX, CameraStats, DetectionResult, 
 from fusion.qr.pnp import estimate_floor_pose
 from fusion.qr.refine import refine_frames
 from fusion.qr.restamp import restamp_candidates
-from fusion.qr.track import TRACK_CROSSINGS_PASS, CodeTracker, TrackStats, symbol_in_view
+from fusion.qr.track import (
+    TRACK_AGREEMENT_SIGMA_PX,
+    TRACK_CROSSINGS_PASS,
+    CodeTracker,
+    TrackStats,
+    symbol_in_view,
+)
 from fusion.types import CameraRole, QRDetection, Trajectory
 from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
 # in the tracked cache's fingerprint: change with the method
-TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate"
+TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate+imu-fit"
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
@@ -125,6 +134,25 @@ POSE_GATE_M_PER_S = 0.1
 # 0.14-0.38 cm (median; p90 0.3-0.9 cm) up to 1 s on a 20 ms-exposure flight (BENCHMARKS.md, seventh session)
 POSE_GATE_BRIDGE_M = 0.03
 POSE_GATE_BRIDGE_M_PER_S = 0.05
+# Where neither the frame's own pose nor a first-pass IMU bridge applies, the pose is predicted
+# from an IMU trajectory fitted to every pose (first pass, re-stamped, the pass's own) within
+# FIT_WINDOW_S of the nearest one (ImuFit: a start attitude, position and velocity, body-frame
+# gyro and accelerometer biases), on the nearer side of the frame, or on both when their nearest
+# poses are at most MAX_IMU_BRIDGE_S apart; at most FIT_MAX_EXTRAPOLATION_S from the nearest
+# pose.  On the strip-occluded ECC L flight (seed 0) single-code re-stamped poses at 2.6 m put
+# the codes up to 7 px off, and the IMU extrapolated from the last two 3-6 px off at 0.3-0.6 s:
+# beyond the 2-module gate (~4 px there), so the chain broke; a prototype of the fit over the
+# poses of the last second was 0.65 cm / 0.12 deg off 0.5 s later, 2.5 cm 1 s later; with it
+# the pass posed 84-88 % of the floor frames instead of 74-76 % (NOTES-strip.md)
+FIT_WINDOW_S = 1.0
+USE_FIT = True  # (a switch for the benches: the old prediction where False)
+FIT_MIN_POSES = 6
+FIT_MIN_SPAN_S = 0.3
+FIT_MAX_EXTRAPOLATION_S = 1.0
+FIT_GYRO_BIAS_PRIOR_RAD_S = 0.01  # a MEMS gyro's turn-on bias is ~1e-3 rad/s (the simulator: 2e-3)
+FIT_ROTATION_NOISE_RAD = 0.002  # a re-stamped single-code pose's rotation, ~0.1 deg
+FIT_MAX_POSITION_SIGMA_M = 0.05  # the pass's poses up to this sigma join the fit, weighted by it
+FIT_OUTLIER_SIGMAS = 3.0  # poses this many residual RMS off are left out and the fit redone once
 POSE_DOF = 6  # Pose3 tangent: rotation (3) then translation (3)
 FLOOR = CameraRole.FLOOR.value
 # What the pass did at a floor frame (TrackReport.frame_outcomes), most advanced step reached:
@@ -179,6 +207,9 @@ class TrackReport:
     frame_outcomes: dict[int, str] = field(default_factory=dict)  # floor stamp -> one of OUTCOMES
     restamped_keys: set[tuple[int, str]] = field(default_factory=set)  # (stamp, payload) re-stamped
     poses: dict[int, np.ndarray] = field(default_factory=dict)  # stamp -> T_world_body fed back
+    # stamp -> (T_world_body, position sigma m, rotation sigma rad) fed back to ImuFit only
+    weak_poses: dict[int, tuple[np.ndarray, float, float]] = field(default_factory=dict)
+    fits: int = 0  # predictions from ImuFit (PosePredictor.fits)
 
     def outcome_counts(self) -> dict[str, int]:
         """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
@@ -186,7 +217,7 @@ class TrackReport:
         return {k: values.count(k) for k in OUTCOMES}
 
     def as_dict(self) -> dict:
-        skip = ("stats", "frame_outcomes", "restamped_keys", "poses")
+        skip = ("stats", "frame_outcomes", "restamped_keys", "poses", "weak_poses")
         out: dict = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in skip}
         out.update({f"tracker_{k}": int(v) for k, v in vars(self.stats).items()})
         out.update({f"frames_{k}": n for k, n in self.outcome_counts().items()})
@@ -207,7 +238,8 @@ class TrackReport:
             f"{s.attempts} tried in {self.frames_tried} frames, {s.gated} refused by the innovation "
             f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code"
             f"{restamp}; {self.poses_backward} of {self.frames_backward} frames posed by the backward "
-            f"sweep; {s.square_corners} with a dark square's corners; {self.seconds:.1f} s"
+            f"sweep; {s.square_corners} with a dark square's corners; {self.fits} predictions from "
+            f"the IMU fit; {self.seconds:.1f} s"
         )
 
 
@@ -301,6 +333,120 @@ class ImuBridge:
         return make_T(R[-1], T1[:3, 3] + v1 * tt[-1] + disp[-1])
 
 
+class ImuFit:
+    """A body trajectory through the IMU's samples fitted to several poses [(t_ns, T_world_body,
+    position sigma m, rotation sigma rad)] (a small batch smoother, without GTSAM):
+    R(t) = Exp(d) R_a dR(t) with dR the gyro's integral from the first pose's time t_a after
+    removing a constant body-frame bias b_g; p(t) = p_a +
+    v_a s + D(s) - C(s) b_a, D the double integral of R f + g, C that of R (a constant
+    body-frame accelerometer bias b_a), s = t - t_a.  The rotation unknowns (d, b_g) by
+    Gauss-Newton on the poses' body-frame rotation residuals, with the first-order effect of the
+    bias on the integral, J_k = dR_k^T sum_j dR_j dt_j (Forster et al., "On-Manifold
+    Preintegration for Real-Time Visual-Inertial Odometry", IEEE T-RO 2017, eq. 44); then
+    (p_a, v_a, b_a) by linear least squares with zero-mean priors on the biases; poses more than
+    FIT_OUTLIER_SIGMAS residual RMS off are left out once.  `until_ns`: the trajectory is also
+    integrated to this time (extrapolation)."""
+
+    def __init__(self, imu: ImuBridge, poses: list[tuple[int, np.ndarray, float, float]], until_ns: int):
+        stamps = np.array([p[0] for p in poses], dtype=np.int64)
+        self.t_a = int(stamps.min())
+        lo, hi = self.t_a, max(int(stamps.max()), int(until_ns))
+        lo = min(lo, int(until_ns))
+        inner = imu.t_ns[(imu.t_ns > lo) & (imu.t_ns < hi)]
+        self.grid = np.unique(np.concatenate([[lo, hi], inner, stamps]))
+        tt = (self.grid - self.t_a) * 1e-9
+        ts = (imu.t_ns - self.t_a) * 1e-9
+        rate = np.column_stack([np.interp(tt, ts, imu.gyro[:, a]) for a in range(3)])
+        self.force = np.column_stack([np.interp(tt, ts, imu.force[:, a]) for a in range(3)])
+        self.tt, self.dt = tt, np.diff(tt)
+        self.w_mid = 0.5 * (rate[:-1] + rate[1:])
+        self.k_anchor = int(np.searchsorted(self.grid, self.t_a))
+        self._solve(poses)
+        keep = self._inliers(poses)
+        if not np.all(keep) and np.sum(keep) >= FIT_MIN_POSES:
+            self._solve([p for p, k in zip(poses, keep) if k])
+        else:
+            keep[:] = True
+        self.poses_used = int(keep.sum())
+
+    def _inliers(self, poses) -> np.ndarray:
+        """(K,) bool: the poses within FIT_OUTLIER_SIGMAS of the fit (whitened residual norm
+        against its RMS over all, at least 1)."""
+        idx = np.searchsorted(self.grid, [p[0] for p in poses])
+        R_fit, p_fit = self.R[idx], self._positions(idx)
+        R_k = np.stack([p[1][:3, :3] for p in poses])
+        rot = np.linalg.norm(so3_log(np.einsum("nji,njk->nik", R_fit, R_k)), axis=1)
+        pos = np.linalg.norm(p_fit - np.stack([p[1][:3, 3] for p in poses]), axis=1)
+        r = np.hypot(rot / np.array([p[3] for p in poses]), pos / np.array([p[2] for p in poses]))
+        return r <= FIT_OUTLIER_SIGMAS * max(float(np.sqrt(np.mean(r**2))), 1.0)
+
+    def _rotations(self, b_g: np.ndarray) -> np.ndarray:
+        """(M, 3, 3) gyro integral from grid[0] with the bias b_g removed, relative to t_a."""
+        dR = integrate_gyro(self.w_mid - b_g, self.dt)
+        return np.einsum("ij,njk->nik", dR[self.k_anchor].T, dR)
+
+    def _solve(self, poses) -> None:
+        """The fit (class docstring) to `poses`: sets b_g, R (M, 3, 3) on the grid, D, C and
+        x = (p_a, v_a, b_a)."""
+        idx = np.searchsorted(self.grid, [p[0] for p in poses])
+        Rk = np.stack([p[1][:3, :3] for p in poses])
+        sig_p = np.array([p[2] for p in poses])
+        sig_r = np.array([p[3] for p in poses])
+        b_g, R_a = np.zeros(3), np.asarray(poses[int(np.argmin([p[0] for p in poses]))][1][:3, :3], float)
+        for _ in range(2):
+            dR = self._rotations(b_g)
+            # J_k: d(log residual at pose k) / d(b_g), to first order
+            S = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(dR[:-1] * self.dt[:, None, None], axis=0)])
+            S -= S[self.k_anchor]
+            Rp = np.einsum("ij,njk->nik", R_a, dR[idx])  # (K, 3, 3) predicted at the poses
+            e = so3_log(np.einsum("nji,njk->nik", Rp, Rk))  # (K, 3) body-frame residuals
+            J = np.einsum("nji,njk->nik", dR[idx], S[idx])  # (K, 3, 3)
+            rows = np.concatenate([-np.transpose(Rp, (0, 2, 1)), J], axis=2) / sig_r[:, None, None]
+            A = np.vstack(
+                [rows.reshape(-1, 6), np.hstack([np.zeros((3, 3)), np.eye(3) / FIT_GYRO_BIAS_PRIOR_RAD_S])]
+            )
+            y = np.concatenate([(-e / sig_r[:, None]).reshape(-1), -b_g / FIT_GYRO_BIAS_PRIOR_RAD_S])
+            x = np.linalg.lstsq(A, y, rcond=None)[0]
+            R_a = so3_exp(x[:3]) @ R_a
+            b_g = b_g + x[3:]
+        self.b_g = b_g
+        self.R = np.einsum("ij,njk->nik", R_a, self._rotations(b_g))
+        acc = np.einsum("nij,nj->ni", self.R, self.force) + GRAVITY_WORLD_M_S2
+        self.D = self._double_integral(acc)
+        self.C = self._double_integral(self.R)
+        s = self.tt[idx]
+        pk = np.stack([p[1][:3, 3] for p in poses])
+        A = np.zeros((3 * len(poses) + 3, 9))
+        y = np.zeros(3 * len(poses) + 3)
+        for j, k in enumerate(idx):
+            A[3 * j : 3 * j + 3, 0:3] = np.eye(3)
+            A[3 * j : 3 * j + 3, 3:6] = s[j] * np.eye(3)
+            A[3 * j : 3 * j + 3, 6:9] = -self.C[k]
+            y[3 * j : 3 * j + 3] = pk[j] - self.D[k]
+        w = np.repeat(1.0 / sig_p, 3)
+        A[: 3 * len(poses)] *= w[:, None]
+        y[: 3 * len(poses)] *= w
+        A[3 * len(poses) :, 6:9] = np.eye(3) / ACCEL_BIAS_PRIOR_M_S2
+        self.x = np.linalg.lstsq(A, y, rcond=None)[0]
+
+    def _double_integral(self, a: np.ndarray) -> np.ndarray:
+        """Trapezoidal double integral over the grid of samples a (M, ...), zero at t_a."""
+        dt = self.dt.reshape((-1,) + (1,) * (a.ndim - 1))
+        v = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(0.5 * (a[:-1] + a[1:]) * dt, axis=0)])
+        v -= v[self.k_anchor]
+        d = np.concatenate([np.zeros((1,) + a.shape[1:]), np.cumsum(0.5 * (v[:-1] + v[1:]) * dt, axis=0)])
+        return d - d[self.k_anchor]
+
+    def _positions(self, k: np.ndarray) -> np.ndarray:
+        """(K, 3) fitted positions at grid indices k (K,)."""
+        return self.x[:3] + np.outer(self.tt[k], self.x[3:6]) + self.D[k] - self.C[k] @ self.x[6:]
+
+    def at(self, t_ns: int) -> np.ndarray:
+        """T_world_body (4, 4) at t_ns (a grid time: a pose's stamp or `until_ns`)."""
+        k = int(np.clip(np.searchsorted(self.grid, int(t_ns)), 0, len(self.grid) - 1))
+        return make_T(self.R[k], self._positions(np.array([k]))[0])
+
+
 class PosePredictor:
     """Body poses predicted at floor-frame stamps from PnP poses (module docstring, step 2).
 
@@ -315,7 +461,12 @@ class PosePredictor:
         self.first_T = list(np.asarray(T_world_body, dtype=float).reshape(-1, 4, 4))
         self.added_t: list[int] = []
         self.added_T: list[np.ndarray] = []
-        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "other"
+        # poses of the pass too uncertain to predict from alone (position sigma above
+        # MAX_FEEDBACK_POSITION_SIGMA_M, at most FIT_MAX_POSITION_SIGMA_M): ImuFit weighs them
+        # by their sigma (position m, rotation rad)
+        self.weak: dict[int, tuple[np.ndarray, float, float]] = {}
+        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "fit", "other"
+        self.fits = 0  # predictions from ImuFit
 
     def add(self, t_ns: int, T_world_body: np.ndarray) -> None:
         k = bisect.bisect_left(self.added_t, int(t_ns))
@@ -372,6 +523,12 @@ class PosePredictor:
         if first is not None and first[2] == "bridge":
             self.last_kind = "bridge"
             return first[0], first[1]
+        if self.imu is not None and USE_FIT:
+            fitted = self._predict_fit(t)
+            if fitted is not None:
+                self.last_kind = "fit"
+                self.fits += 1
+                return fitted
         self.last_kind = "other"
         cands = [first] if first is not None else []
         if self.added_t:
@@ -382,6 +539,71 @@ class PosePredictor:
             return None
         best = min(cands, key=lambda p: p[1])
         return best[0], best[1]
+
+    def add_weak(self, t_ns: int, T_world_body: np.ndarray, sigma_m: float, sigma_rad: float) -> None:
+        """A pose of the pass for ImuFit only (`weak`), its position and rotation sigmas."""
+        self.weak[int(t_ns)] = (np.asarray(T_world_body, float), float(sigma_m), float(sigma_rad))
+
+    def _window(self, lo: int, hi: int) -> list[tuple[int, np.ndarray, float, float]]:
+        """Every pose with lo <= t <= hi, one per stamp (first pass, else added, else weak), in
+        time order, with its sigmas (position m, rotation rad: POSE_NOISE_M and
+        FIT_ROTATION_NOISE_RAD but for the weak ones' own, when larger)."""
+        out: dict[int, tuple[np.ndarray, float, float]] = {
+            t: (T, max(sp, POSE_NOISE_M), max(sr, FIT_ROTATION_NOISE_RAD))
+            for t, (T, sp, sr) in self.weak.items()
+            if lo <= t <= hi
+        }
+        for ts, Ts in ((self.added_t, self.added_T), (self.first_t, self.first_T)):
+            for m in range(bisect.bisect_left(ts, lo), bisect.bisect_right(ts, hi)):
+                out[ts[m]] = (Ts[m], POSE_NOISE_M, FIT_ROTATION_NOISE_RAD)  # the first pass's last
+        return [(t, *out[t]) for t in sorted(out)]
+
+    def _predict_fit(self, t: int) -> tuple[np.ndarray, float] | None:
+        """(T_world_body, seconds to the nearest pose) at t from ImuFit (FIT_* constants) over
+        the poses within FIT_WINDOW_S of the nearest pose before t and of the nearest after it
+        (both sides when those two are at most MAX_IMU_BRIDGE_S apart, else the nearer side),
+        or None."""
+        imu = self.imu
+        assert imu is not None
+        before, after = self._nearest_any(t, -1), self._nearest_any(t, 1)
+        sides = []
+        if before and (t - before[0][0]) * 1e-9 <= FIT_MAX_EXTRAPOLATION_S:
+            sides.append(("before", before[0][0]))
+        if after and (after[0][0] - t) * 1e-9 <= FIT_MAX_EXTRAPOLATION_S:
+            sides.append(("after", after[0][0]))
+        if not sides:
+            return None
+        window = int(FIT_WINDOW_S * 1e9)
+        if len(sides) == 2 and before and after and (after[0][0] - before[0][0]) * 1e-9 <= MAX_IMU_BRIDGE_S:
+            poses = self._window(before[0][0] - window, before[0][0]) + self._window(
+                after[0][0], after[0][0] + window
+            )
+        else:
+            side, t_near = min(sides, key=lambda p: abs(p[1] - t))
+            if side == "before":
+                poses = self._window(t_near - window, t_near)
+            else:
+                poses = self._window(t_near, t_near + window)
+        if len(poses) < FIT_MIN_POSES or (poses[-1][0] - poses[0][0]) * 1e-9 < FIT_MIN_SPAN_S:
+            return None
+        if not imu.covers(min(poses[0][0], t), max(poses[-1][0], t)):
+            return None
+        fit = ImuFit(imu, poses, t)
+        if fit.poses_used < FIT_MIN_POSES:
+            return None
+        horizon = min(abs(t - p[0]) for p in poses) * 1e-9
+        return fit.at(t), horizon
+
+    def _nearest_any(self, t: int, side: int) -> list[tuple[int, np.ndarray]]:
+        """[(stamp, T)] of the nearest pose (first pass, added or weak) strictly before (side -1)
+        or after (side 1) t, or []."""
+        near = self._before(t, 1) if side < 0 else self._after(t, 1)
+        weak = [w for w in self.weak if (w < t if side < 0 else w > t)]
+        if weak:
+            w = max(weak) if side < 0 else min(weak)
+            if not near or abs(w - t) < abs(near[0][0] - t):
+                near = [(w, self.weak[w][0])]
+        return near
 
     def _predict(self, t: int, before, after) -> tuple[np.ndarray, float, str] | None:
         """(T_world_body, horizon s, "bridge" / "other") from the poses `before` (latest first)
@@ -524,8 +746,11 @@ def _track_chunk(context, task: list[int]):
     forward sweep, decreasing for the backward one): (tracked detections, TrackReport)."""
     stream, camera, world, catalogue, first_t, first_T, decoded, corner_sigma_px, imu, squares, seed = context
     predictor = PosePredictor(first_t, first_T, imu)
-    for t_seed in sorted(seed):  # the forward sweep's poses, for the backward one
-        predictor.add(t_seed, seed[t_seed])
+    strong, weak = seed
+    for t_seed in sorted(strong):  # the forward sweep's poses, for the backward one
+        predictor.add(t_seed, strong[t_seed])
+    for t_seed, (T_seed, sp, sr) in weak.items():
+        predictor.add_weak(t_seed, T_seed, sp, sr)
     tracker = CodeTracker(camera, crossings_pass=TRACK_CROSSINGS_PASS)
     rep = TrackReport()
     out: list[QRDetection] = []
@@ -615,11 +840,36 @@ def _track_chunk(context, task: list[int]):
         rep.frame_outcomes[t] = "posed"
         rep.poses_added += not predictor.has_first_pose(t)
         position_var = np.diag(np.asarray(res.covariance).reshape(POSE_DOF, POSE_DOF))[3:]
-        if float(np.sqrt(np.max(position_var))) <= MAX_FEEDBACK_POSITION_SIGMA_M:
+        sigma_p = float(np.sqrt(np.max(position_var)))
+        if sigma_p <= MAX_FEEDBACK_POSITION_SIGMA_M:
             predictor.add(t, res.T_world_body)
             rep.poses[t] = res.T_world_body
+        else:
+            # for ImuFit: the pose with the tracked corners' own (refinement) covariance, not
+            # inflated by their disagreement with a prediction that ImuFit replaces
+            floor = classify(frame_dets + [_refinement_only(d) for d in tracked], world).floor
+            weak = estimate_floor_pose(floor, camera, corner_sigma_px)
+            if weak is not None:
+                cov = np.diag(np.asarray(weak.covariance).reshape(POSE_DOF, POSE_DOF))
+                sigma_p, sigma_r = float(np.sqrt(np.max(cov[3:]))), float(np.sqrt(np.max(cov[:3])))
+                if sigma_p <= FIT_MAX_POSITION_SIGMA_M:
+                    predictor.add_weak(t, weak.T_world_body, sigma_p, sigma_r)
+                    rep.weak_poses[t] = (weak.T_world_body, sigma_p, sigma_r)
+    rep.fits += predictor.fits
     rep.stats = tracker.stats
     return out, rep
+
+
+def _refinement_only(d: QRDetection) -> QRDetection:
+    """A tracked sighting with the covariance refinement gave it: CodeTracker.step added
+    max(0, |e|^2 / 8 - TRACK_AGREEMENT_SIGMA_PX^2) I, e = corners_px - corners_raw_px (the
+    prediction), to it; that part is taken off again."""
+    if d.corner_cov_px2 is None:
+        return d
+    e = (np.asarray(d.corners_px, float) - np.asarray(d.corners_raw_px, float)).reshape(8)
+    excess = max(0.0, float(e @ e) / 8 - TRACK_AGREEMENT_SIGMA_PX**2)
+    cov = np.asarray(d.corner_cov_px2, float) - excess * np.eye(8)
+    return replace(d, corner_cov_px2=cov, corner_sigma_px=float(np.sqrt(np.mean(np.diag(cov)))))
 
 
 def _innovation_px(d: QRDetection) -> float:
@@ -782,7 +1032,7 @@ def track_flight(
         corner_sigma_px,
         bridge,
         squares,
-        {},
+        ({}, {}),
     )
     forward = [list(range(a, b)) for a, b in chunks]
     tracked = _run_sweep(forward, context, workers, rep)
@@ -799,7 +1049,7 @@ def track_flight(
     backward = [task for task in backward if task]
     before = dict(rep.frame_outcomes)
     back = TrackReport()
-    tracked += _run_sweep(backward, context[:-1] + (dict(rep.poses),), workers, back)
+    tracked += _run_sweep(backward, context[:-1] + ((dict(rep.poses), dict(rep.weak_poses)),), workers, back)
     rep.frames_backward = sum(len(task) for task in backward)
     for t, outcome in back.frame_outcomes.items():
         if outcome in kept_outcomes or t not in before:
@@ -807,7 +1057,7 @@ def track_flight(
     rep.poses_backward = sum(o == "posed" for o in back.frame_outcomes.values())
     for k, v in vars(back.stats).items():
         setattr(rep.stats, k, getattr(rep.stats, k) + v)
-    for name in ("frames_tried", "frames_tracked", "frames_tracked_only", "poses_added"):
+    for name in ("frames_tried", "frames_tracked", "frames_tracked_only", "poses_added", "fits"):
         setattr(rep, name, getattr(rep, name) + getattr(back, name))
     for t in poses:
         if rep.frame_outcomes.get(t) != "posed":
@@ -834,6 +1084,8 @@ def _run_sweep(tasks: list[list[int]], context, workers: int, rep: TrackReport) 
         tracked.extend(chunk_dets)
         rep.frame_outcomes.update(chunk_rep.frame_outcomes)
         rep.poses.update(chunk_rep.poses)
+        rep.weak_poses.update(chunk_rep.weak_poses)
+        rep.fits += chunk_rep.fits
         for k, v in vars(chunk_rep.stats).items():
             setattr(rep.stats, k, getattr(rep.stats, k) + v)
         for name in (
