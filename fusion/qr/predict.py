@@ -143,7 +143,7 @@ POSE_GATE_BRIDGE_M_PER_S = 0.05
 # the codes up to 7 px off, and the IMU extrapolated from the last two 3-6 px off at 0.3-0.6 s:
 # beyond the 2-module gate (~4 px there), so the chain broke; a prototype of the fit over the
 # poses of the last second was 0.65 cm / 0.12 deg off 0.5 s later, 2.5 cm 1 s later; with it
-# the pass posed 84-88 % of the floor frames instead of 74-76 % (NOTES-strip.md)
+# the pass posed 84-88 % of the floor frames instead of 74-76 % (BENCHMARKS.md, eighth session)
 FIT_WINDOW_S = 1.0
 USE_FIT = True  # (a switch for the benches: the old prediction where False)
 FIT_MIN_POSES = 6
