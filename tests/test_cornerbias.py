@@ -1,0 +1,151 @@
+"""The common floor-corner bias (fusion.qr.pnp.bias, fusion.estimate.cornerbias; issue 10.3):
+its dilation pattern, the pose's first-order sensitivity, the flight estimate and its gate, the
+correction and the consider covariance, and the pipeline's use of them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_pnp import FLOOR_CAM, FOUR, SIGMA, WORLD, aim, body_pose, floor_dets, floor_of, local
+
+from fusion import pipeline
+from fusion.estimate.cornerbias import BiasConsider, correct_pnp_trajectory, estimate_corner_bias
+from fusion.geometry import inv_T, se3_log
+from fusion.qr.pnp import estimate_floor_pose, pnp_trajectory
+from fusion.qr.pnp.bias import dilation_pattern, frame_bias_terms
+from fusion.types import Trajectory
+
+B_TRUE = np.array([0.004, 0.012])  # px: about the defocus r 1 flight's (BENCHMARKS.md)
+NOISE = 0.02  # px, corner noise of the flights: about the refined corners' on the renders
+
+
+def biased(dets, b):
+    """The detections with every code's edges moved outward by the dilation b (px)."""
+    out = []
+    for d in dets:
+        c = np.asarray(d.corners_px, dtype=float)
+        out.append(dataclasses.replace(d, corners_px=c + (dilation_pattern(c) @ b).reshape(4, 2)))
+    return out
+
+
+def flight_frames(n: int, seed: int, b: np.ndarray) -> tuple[dict, dict]:
+    """{timestamp_ns: floor detections} of n frames over the four codes (corner noise NOISE,
+    every code dilated by b) and {timestamp_ns: T_world_body} truth."""
+    rng = np.random.default_rng(seed)
+    frames, truth = {}, {}
+    while len(frames) < n:
+        T = aim(
+            body_pose(0, 0, rng.uniform(2.3, 2.8), rng.uniform(-180, 180), *rng.normal(0.0, 2.0, 2)),
+            (0.5 + rng.normal(0, 0.03), 0.5 + rng.normal(0, 0.03)),
+        )
+        ts = (len(frames) + 1) * 100_000_000
+        try:
+            frames[ts] = biased(floor_dets(T, FOUR, rng=rng, sigma=NOISE, ts=ts), b)
+        except AssertionError:  # a code out of view: another pose
+            continue
+        truth[ts] = T
+    return frames, truth
+
+
+def test_dilation_pattern_moves_each_edge_outward():
+    square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])  # TL TR BR BL, v down
+    P = dilation_pattern(square)
+    np.testing.assert_allclose((P @ [1.0, 0.0]).reshape(4, 2), [[-1, 0], [1, 0], [1, 0], [-1, 0]], atol=1e-12)
+    np.testing.assert_allclose((P @ [0.0, 1.0]).reshape(4, 2), [[0, -1], [0, -1], [0, 1], [0, 1]], atol=1e-12)
+    # a rotated code: the moves are along its own edges' normals, weighted by n_u^2 / n_v^2
+    c, s = np.cos(0.5), np.sin(0.5)
+    rot = (square - 5.0) @ np.array([[c, s], [-s, c]]) + 50.0
+    moved = rot + (dilation_pattern(rot) @ [0.3, 0.3]).reshape(4, 2)
+    # b_u = b_v: every edge moves out by 0.3 (n_u^2 + n_v^2 = 1): the side grows by 0.6
+    np.testing.assert_allclose(np.linalg.norm(moved[1] - moved[0]), 10.6, atol=1e-9)
+
+
+def test_sensitivity_predicts_the_pose_error_of_a_dilated_frame():
+    T = aim(body_pose(0, 0, 2.6, 35.0, roll_deg=4.0, pitch_deg=-3.0), (0.45, 0.6))
+    b = np.array([0.05, 0.10])
+    res = estimate_floor_pose(floor_of(biased(floor_dets(T, FOUR), b)), FLOOR_CAM, SIGMA)
+    terms = frame_bias_terms(FLOOR_CAM, floor_of(floor_dets(T, FOUR)), T, SIGMA)
+    xi = local(T, res.T_world_body)
+    np.testing.assert_allclose(xi, terms.sensitivity @ b, rtol=0.05, atol=1e-7)
+    assert np.linalg.norm(xi) > 1e-4  # the dilation does move the pose
+    # the pose absorbs part of a dilation, not all: the reduced normal equations see the rest
+    assert np.all(np.linalg.eigvalsh(terms.normal) > 0)
+
+
+@pytest.mark.parametrize("b, significant", [(B_TRUE, True), (np.zeros(2), False)])
+def test_flight_estimate_recovers_the_bias_and_gates_its_absence(b, significant):
+    frames, _ = flight_frames(120, seed=3, b=b)
+    _, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    est = estimate_corner_bias(stats.frame_bias, float(np.mean(stats.frame_chi2) / np.mean(stats.frame_dof)))
+    sd = np.sqrt(np.diag(est.covariance_px2))
+    assert np.all(np.abs(est.bias_px - b) < 4 * sd), (est.bias_px, sd)
+    assert est.significant == significant, est.statistic
+    assert est.frames == 120
+
+
+def test_too_few_frames_give_no_estimate():
+    frames, _ = flight_frames(5, seed=1, b=B_TRUE)
+    _, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    assert estimate_corner_bias(stats.frame_bias, 1.0) is None
+
+
+def _mean_error_over_sigma(traj: Trajectory, truth: dict) -> np.ndarray:
+    T_gt = np.stack([truth[int(t)] for t in traj.timestamps_ns])
+    xi = se3_log(np.einsum("nij,njk->nik", inv_T(T_gt), traj.T_world_body))
+    return np.mean(xi / np.sqrt(np.einsum("nii->ni", traj.covariances)), axis=0)
+
+
+def test_correction_removes_the_pose_bias_and_adds_the_consider_covariance():
+    frames, truth = flight_frames(120, seed=5, b=B_TRUE)
+    traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
+    assert report["applied"] and consider is not None
+    before, after = _mean_error_over_sigma(traj, truth), _mean_error_over_sigma(out, truth)
+    assert np.abs(before).max() > 0.3  # the bias is there, common to the frames
+    assert np.abs(after).max() < 0.5 * np.abs(before).max(), (before, after)
+    S = np.stack([t.sensitivity for t in stats.frame_bias])
+    b = np.asarray(report["bias_px"])
+    C = consider.covariance_px2
+    # the estimate's noise plus the model's error, taken as large as the correction
+    np.testing.assert_allclose(np.diag(C), np.square(report["sigma_px"]) + b**2, rtol=1e-12)
+    np.testing.assert_allclose(out.covariances - traj.covariances, S @ C @ np.swapaxes(S, 1, 2), atol=1e-18)
+
+
+def test_no_significant_bias_leaves_the_trajectory_as_it_is():
+    frames, _ = flight_frames(60, seed=2, b=np.zeros(2))
+    traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
+    assert out is traj and consider is None and report["applied"] is False
+    off, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0, apply=False)
+    assert off is traj and consider is None
+    with pytest.raises(ValueError, match="2 frames of bias terms for 60 PnP poses"):
+        correct_pnp_trajectory(traj, stats.frame_bias[:2], 1.0)
+
+
+def test_consider_covariances_take_the_nearest_frame():
+    S = np.zeros((3, 6, 2))
+    for k in range(3):
+        S[k, k, 0] = k + 1.0
+    c = BiasConsider(np.array([100, 200, 300], dtype=np.int64), S, np.diag([1.0, 0.0]))
+    out = c.covariances(np.array([0, 140, 160, 251, 999], dtype=np.int64))
+    assert [int(np.argmax(np.diag(o))) for o in out] == [0, 0, 1, 2, 2]
+    assert out[3][2, 2] == 9.0
+    traj = Trajectory("x", np.array([150], dtype=np.int64), np.eye(4)[None], np.eye(6)[None])
+    assert c.add_to(traj).covariances[0][0, 0] == 2.0
+    assert c.add_to(Trajectory("x", traj.timestamps_ns, traj.T_world_body, None)).covariances is None
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_the_pipeline_corrects_only_on_the_honest_path(on):
+    frames, truth = flight_frames(60, seed=4, b=B_TRUE)
+    cfg = pipeline.RunConfig(workers=1, progress=False, correct_corner_bias=on, corner_sigma_px=NOISE)
+    part = pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, cfg), frames)
+    loc = pipeline.merge_floor_parts([part], cfg)
+    report = loc.stats["pnp"]["corner_bias"]
+    assert report["significant"] and report["applied"] == on
+    assert (loc.bias_consider is not None) == on
+    raw = part["pnp"]
+    changed = not np.allclose(loc.trajectories["pnp"].T_world_body, raw.T_world_body, atol=1e-12)
+    assert changed == on
