@@ -19,6 +19,9 @@ Columns:
   PnP bias σ    the largest |mean(error / σ)| of the PnP poses over the 6 pose axes (after the
                 scales): an error common to every frame, which the residuals cannot see and the
                 smoother cannot average away (with n independent frames the mean is ~1/sqrt(n))
+  corner bias   the floor corners' common dilation b_u / b_v px estimated from the PnP residuals
+                and its statistic T (fusion.estimate.cornerbias; "removed" when T passed the gate
+                and the "after" rows are corrected; "-" with fewer than 20 posed frames)
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
@@ -80,6 +83,11 @@ EFFECTS: dict[str, list[tuple[str, dict]]] = {
         ("10 %", {"occlusion_fraction": 0.10}),
     ],
     "realistic": [("preset", {"preset": "realistic"})],
+    # defocus settings the corner-bias gate and consider term were not chosen on (issue 10.3)
+    "defocus_check": [
+        ("r 1.5", {"defocus_px": 1.5}),
+        ("r 1 800x600", {"defocus_px": 1.0, "resolution": (800, 600)}),
+    ],
     # rolling shutter (simulate readout_s, stamp at the first row): corners moved / refined to the
     # stamp by fusion.qr.rolling_shutter.correct_flight as pipeline.run does; "rs_uncorrected":
     # the same flight without (what a global-shutter model makes of it)
@@ -248,6 +256,13 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
     cams = noise.get("smoother", {}).get("cameras", {})
     row["s_cam1"] = cams.get("cam1", {}).get("sigma_factor", math.nan)
     row["imu"] = noise.get("smoother", {}).get("imu_chi2_per_dof", math.nan)
+    cb = noise.get("pnp_corner_bias")
+    row["corner_bias"] = (
+        "-"
+        if not cb
+        else " / ".join(f"{x:+.4f}" for x in cb["bias_px"])
+        + f" (T {cb['statistic']:.0f}{', removed' if cb['applied'] else ''})"
+    )
     row["noise_line"] = summary_line(noise)
     row["time_s"] = time.perf_counter() - t0
     row["sim_s"] = t_sim
@@ -269,8 +284,8 @@ def in_band(x: float, dof: int = 6) -> bool:
 def table(rows: list[dict]) -> list[str]:
     out = [
         "| effect | level | floor dec % | load obs | raw px | ref px | PnP mm | >5cm | NEES pnp | "
-        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ | corner bias |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         out.append(
@@ -279,7 +294,7 @@ def table(rows: list[dict]) -> list[str]:
             f"{r['pnp_out']}/{r['pnp_n']} | "
             f"{nees_cell(r['nees_pnp'])} | {nees_cell(r['nees_smoother'])} | {nees_cell(r['nees_ekf'])} | "
             f"{fmt(r['ate_mm'], '.1f')} | {fmt(r['s_cam0'])} | {fmt(r['s_cam1'])} | {fmt(r['imu'])} | "
-            f"{fmt(r['pnp_bias'])} |"
+            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} |"
         )
     return out
 
