@@ -19,9 +19,10 @@ Columns:
   PnP bias σ    the largest |mean(error / σ)| of the PnP poses over the 6 pose axes (after the
                 scales): an error common to every frame, which the residuals cannot see and the
                 smoother cannot average away (with n independent frames the mean is ~1/sqrt(n))
-  corner bias   the floor corners' common dilation b_u / b_v px estimated from the PnP residuals
-                and its statistic T (fusion.estimate.cornerbias; "removed" when T passed the gate
-                and the "after" rows are corrected; "-" with fewer than 20 posed frames)
+  corner bias   the floor corners' common dilation b_u / b_v px per code-size bin (@ the bin's
+                lower edge, px) estimated from the PnP residuals and its statistic T
+                (fusion.estimate.cornerbias; "removed" when T passed the gate and the "after"
+                rows are corrected; "-" with fewer than 20 posed frames)
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
@@ -260,7 +261,9 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
     row["corner_bias"] = (
         "-"
         if not cb
-        else " / ".join(f"{x:+.4f}" for x in cb["bias_px"])
+        else ", ".join(
+            f"{b['bias_px'][0]:+.4f} / {b['bias_px'][1]:+.4f} @{b['side_px'][0]:.0f}" for b in cb["bins"]
+        )
         + f" (T {cb['statistic']:.0f}{', removed' if cb['applied'] else ''})"
     )
     row["noise_line"] = summary_line(noise)

@@ -14,35 +14,48 @@ from fusion import pipeline
 from fusion.estimate.cornerbias import BiasConsider, correct_pnp_trajectory, estimate_corner_bias
 from fusion.geometry import inv_T, se3_log
 from fusion.qr.pnp import estimate_floor_pose, pnp_trajectory
-from fusion.qr.pnp.bias import dilation_pattern, frame_bias_terms
+from fusion.qr.pnp.bias import N_BINS, dilation_pattern, frame_bias_terms, size_bin
 from fusion.types import Trajectory
 
 B_TRUE = np.array([0.004, 0.012])  # px: about the defocus r 1 flight's (BENCHMARKS.md)
+
+
+def every_bin(b):
+    """A (b_u, b_v) dilation as the bias vector b of every code-size bin."""
+    return np.tile(np.asarray(b, dtype=float), N_BINS)
+
+
 NOISE = 0.02  # px, corner noise of the flights: about the refined corners' on the renders
 
 
 def biased(dets, b):
-    """The detections with every code's edges moved outward by the dilation b (px)."""
+    """The detections with each code's edges moved outward by its size bin's dilation in b
+    ((2 N_BINS,) px, or one (2,) for every bin)."""
+    b = np.asarray(b, dtype=float)
+    b = every_bin(b) if len(b) == 2 else b
     out = []
     for d in dets:
         c = np.asarray(d.corners_px, dtype=float)
-        out.append(dataclasses.replace(d, corners_px=c + (dilation_pattern(c) @ b).reshape(4, 2)))
+        j = 2 * size_bin(c)
+        out.append(dataclasses.replace(d, corners_px=c + (dilation_pattern(c) @ b[j : j + 2]).reshape(4, 2)))
     return out
 
 
-def flight_frames(n: int, seed: int, b: np.ndarray) -> tuple[dict, dict]:
+def flight_frames(
+    n: int, seed: int, b: np.ndarray, heights=(2.3, 2.8), centres=FOUR, first: int = 0
+) -> tuple[dict, dict]:
     """{timestamp_ns: floor detections} of n frames over the four codes (corner noise NOISE,
     every code dilated by b) and {timestamp_ns: T_world_body} truth."""
     rng = np.random.default_rng(seed)
     frames, truth = {}, {}
     while len(frames) < n:
         T = aim(
-            body_pose(0, 0, rng.uniform(2.3, 2.8), rng.uniform(-180, 180), *rng.normal(0.0, 2.0, 2)),
-            (0.5 + rng.normal(0, 0.03), 0.5 + rng.normal(0, 0.03)),
+            body_pose(0, 0, rng.uniform(*heights), rng.uniform(-180, 180), *rng.normal(0.0, 2.0, 2)),
+            np.mean(centres, axis=0) + rng.normal(0, 0.03, 2),
         )
-        ts = (len(frames) + 1) * 100_000_000
+        ts = (first + len(frames) + 1) * 100_000_000
         try:
-            frames[ts] = biased(floor_dets(T, FOUR, rng=rng, sigma=NOISE, ts=ts), b)
+            frames[ts] = biased(floor_dets(T, centres, rng=rng, sigma=NOISE, ts=ts), b)
         except AssertionError:  # a code out of view: another pose
             continue
         truth[ts] = T
@@ -68,10 +81,11 @@ def test_sensitivity_predicts_the_pose_error_of_a_dilated_frame():
     res = estimate_floor_pose(floor_of(biased(floor_dets(T, FOUR), b)), FLOOR_CAM, SIGMA)
     terms = frame_bias_terms(FLOOR_CAM, floor_of(floor_dets(T, FOUR)), T, SIGMA)
     xi = local(T, res.T_world_body)
-    np.testing.assert_allclose(xi, terms.sensitivity @ b, rtol=0.05, atol=1e-7)
+    np.testing.assert_allclose(xi, terms.sensitivity @ every_bin(b), rtol=0.05, atol=1e-7)
     assert np.linalg.norm(xi) > 1e-4  # the dilation does move the pose
     # the pose absorbs part of a dilation, not all: the reduced normal equations see the rest
-    assert np.all(np.linalg.eigvalsh(terms.normal) > 0)
+    seen = np.flatnonzero(np.diag(terms.normal) > 0)  # the size bins of this frame's codes
+    assert len(seen) >= 2 and np.all(np.linalg.eigvalsh(terms.normal[np.ix_(seen, seen)]) > 0)
 
 
 @pytest.mark.parametrize("b, significant", [(B_TRUE, True), (np.zeros(2), False)])
@@ -80,7 +94,10 @@ def test_flight_estimate_recovers_the_bias_and_gates_its_absence(b, significant)
     _, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
     est = estimate_corner_bias(stats.frame_bias, float(np.mean(stats.frame_chi2) / np.mean(stats.frame_dof)))
     sd = np.sqrt(np.diag(est.covariance_px2))
-    assert np.all(np.abs(est.bias_px - b) < 4 * sd), (est.bias_px, sd)
+    seen = sd > 0  # the size bins with codes
+    assert 0 < seen.sum() < len(sd)
+    assert np.all(np.abs(est.bias_px - every_bin(b))[seen] < 4 * sd[seen]), (est.bias_px, sd)
+    assert np.all(est.bias_px[~seen] == 0)
     assert est.significant == significant, est.statistic
     assert est.frames == 120
 
@@ -106,10 +123,13 @@ def test_correction_removes_the_pose_bias_and_adds_the_consider_covariance():
     assert np.abs(before).max() > 0.3  # the bias is there, common to the frames
     assert np.abs(after).max() < 0.5 * np.abs(before).max(), (before, after)
     S = np.stack([t.sensitivity for t in stats.frame_bias])
-    b = np.asarray(report["bias_px"])
+    est = estimate_corner_bias(stats.frame_bias, 1.0)
     C = consider.covariance_px2
     # the estimate's noise plus the model's error, taken as large as the correction
-    np.testing.assert_allclose(np.diag(C), np.square(report["sigma_px"]) + b**2, rtol=1e-12)
+    np.testing.assert_allclose(C, est.covariance_px2 + np.outer(est.bias_px, est.bias_px), rtol=1e-12)
+    assert [b["bias_px"] for b in report["bins"]] == [
+        list(est.bias_px[2 * j : 2 * j + 2]) for j in est.bins()
+    ]
     np.testing.assert_allclose(out.covariances - traj.covariances, S @ C @ np.swapaxes(S, 1, 2), atol=1e-18)
 
 
@@ -149,3 +169,23 @@ def test_the_pipeline_corrects_only_on_the_honest_path(on):
     raw = part["pnp"]
     changed = not np.allclose(loc.trajectories["pnp"].T_world_body, raw.T_world_body, atol=1e-12)
     assert changed == on
+
+
+def test_each_code_size_bin_has_its_own_dilation():
+    """Low frames (codes ~80 px) dilated by +b, high ones (~53 px) by -b: one dilation for the
+    flight would average them away; the size bins recover both."""
+    b = np.array([0.0, 0.02])
+    low, _ = flight_frames(60, seed=8, b=every_bin(b), heights=(1.45, 1.55), centres=FOUR[:2])
+    high, _ = flight_frames(60, seed=9, b=every_bin(-b), heights=(2.2, 2.3), first=100)
+    bins = (
+        {size_bin(d.corners_px) for f in low.values() for d in f},
+        {size_bin(d.corners_px) for f in high.values() for d in f},
+    )
+    assert len(bins[0]) == len(bins[1]) == 1 and bins[0] != bins[1]  # one bin per height
+    _, stats = pnp_trajectory({**low, **high}, FLOOR_CAM, WORLD, NOISE)
+    est = estimate_corner_bias(stats.frame_bias, 1.0)
+    assert est.bins() == sorted(bins[1] | bins[0])
+    sd = np.sqrt(np.diag(est.covariance_px2))
+    for (j,), truth in ((bins[0], b), (bins[1], -b)):
+        k = slice(2 * j, 2 * j + 2)
+        assert np.all(np.abs(est.bias_px[k] - truth) < 4 * sd[k]), (j, est.bias_px[k], sd[k])

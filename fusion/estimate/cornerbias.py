@@ -8,6 +8,7 @@ it) and the fused back ends, which treat the frames as independent, average the 
 ~1/sqrt(n) but not the bias: smoother NEES 54.  Over a flight, though, the part of the bias the
 pose cannot absorb (the Schur-reduced normal equations of fusion.qr.pnp.bias) is seen at 10σ.
 
+The bias is a dilation of every refined code (fusion.qr.pnp.bias), one per code-size bin.
 Estimate (generalised least squares with the pose as nuisance; Koch 1999, sec. 3.2.5 on reduced
 normal equations): b = N^-1 y with N = sum_k A_k^T M_k A_k, y = sum_k A_k^T M_k r_k, and
 Cov(b) = s^2 N^-1, s^2 the flight's PnP variance factor (fusion.estimate.variance).
@@ -41,7 +42,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from fusion.geometry import se3_exp
-from fusion.qr.pnp.bias import BIAS_PARAMS, FrameBiasTerms
+from fusion.qr.pnp.bias import BIN_PARAMS, FrameBiasTerms, bin_range_px
 from fusion.types import Trajectory
 
 log = logging.getLogger(__name__)
@@ -54,9 +55,10 @@ MIN_FRAMES = 20
 
 @dataclass
 class CornerBias:
-    """A flight's common corner bias: `bias_px` (p,) [BIAS_PARAMS], `covariance_px2` (p, p)
-    Cov(b), `statistic` T = b^T Cov(b)^-1 b (χ²(p) without a bias), `threshold` the gate,
-    `frames` the frames used; `significant` when T > threshold (then `apply` corrects)."""
+    """A flight's common corner bias: `bias_px` (p,) (fusion.qr.pnp.bias.N_PARAMS: BIN_PARAMS per
+    code-size bin; 0 in the bins without codes), `covariance_px2` (p, p) Cov(b) (its noise only),
+    `statistic` T = b^T Cov(b)^-1 b over the bins with codes (χ²(2 bins) without a bias),
+    `threshold` the gate, `frames` the frames used; `significant` when T > threshold."""
 
     bias_px: np.ndarray
     covariance_px2: np.ndarray
@@ -74,12 +76,26 @@ class CornerBias:
         noise, and the bias model's own error taken as large as the correction itself)."""
         return self.covariance_px2 + np.outer(self.bias_px, self.bias_px)
 
+    def bins(self) -> list[int]:
+        """The size bins with codes (a non-zero variance)."""
+        k = len(BIN_PARAMS)
+        var = np.diag(self.covariance_px2).reshape(-1, k)
+        return [int(j) for j in np.flatnonzero(np.any(var > 0, axis=1))]
+
     def as_dict(self, applied: bool) -> dict:
+        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px)."""
+        k = len(BIN_PARAMS)
         sd = np.sqrt(np.diag(self.covariance_px2))
         return {
-            "params": list(BIAS_PARAMS),
-            "bias_px": [float(x) for x in self.bias_px],
-            "sigma_px": [float(x) for x in sd],
+            "params": list(BIN_PARAMS),
+            "bins": [
+                {
+                    "side_px": list(bin_range_px(j)),
+                    "bias_px": [float(x) for x in self.bias_px[k * j : k * j + k]],
+                    "sigma_px": [float(x) for x in sd[k * j : k * j + k]],
+                }
+                for j in self.bins()
+            ],
             "statistic": float(self.statistic),
             "threshold": float(self.threshold),
             "frames": int(self.frames),
@@ -98,19 +114,25 @@ def estimate_corner_bias(terms: Sequence[FrameBiasTerms | None], variance_factor
     N = np.sum([t.normal for t in used], axis=0)
     y = np.sum([t.rhs for t in used], axis=0)
     N = 0.5 * (N + N.T)
+    active = np.flatnonzero(np.diag(N) > 0)  # the size bins with codes
+    if not len(active):
+        return None
+    Na = N[np.ix_(active, active)]
     try:
-        Ninv = np.linalg.inv(N)
+        Ninv = np.linalg.inv(Na)
     except np.linalg.LinAlgError:
         return None
-    if not (np.all(np.isfinite(Ninv)) and np.all(np.linalg.eigvalsh(N) > 0)):
+    if not (np.all(np.isfinite(Ninv)) and np.all(np.linalg.eigvalsh(Na) > 0)):
         return None
-    b = Ninv @ y
-    p = len(b)
+    b = np.zeros(len(y))
+    b[active] = Ninv @ y[active]
+    cov = np.zeros((len(y), len(y)))
+    cov[np.ix_(active, active)] = variance_factor * Ninv
     return CornerBias(
         bias_px=b,
-        covariance_px2=variance_factor * Ninv,
-        statistic=float(b @ N @ b / variance_factor),
-        threshold=float(chi2_dist.ppf(1.0 - GATE_ALPHA, p)),
+        covariance_px2=cov,
+        statistic=float(b[active] @ Na @ b[active] / variance_factor),
+        threshold=float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(active))),
         frames=len(used),
     )
 

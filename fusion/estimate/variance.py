@@ -663,7 +663,11 @@ def summary_line(summary: dict) -> str:
     if bias and bias.get("applied"):
         parts.append(
             "cam0 corner bias removed ("
-            + " / ".join(f"{x:+.4f}" for x in bias["bias_px"])
-            + f" px, T {bias['statistic']:.0f} > {bias['threshold']:.1f})"
+            + ", ".join(
+                f"{b['bias_px'][0]:+.4f} / {b['bias_px'][1]:+.4f} px at {b['side_px'][0]:.0f}"
+                f"-{b['side_px'][1]:.0f} px"
+                for b in bias["bins"]
+            )
+            + f"; T {bias['statistic']:.0f} > {bias['threshold']:.1f})"
         )
     return ("noise chi2/dof (1 = as modelled; applied): " + ", ".join(parts)) if parts else ""
