@@ -14,7 +14,7 @@ from fusion import pipeline
 from fusion.estimate.cornerbias import BiasConsider, correct_pnp_trajectory, estimate_corner_bias
 from fusion.geometry import inv_T, se3_log
 from fusion.qr.pnp import estimate_floor_pose, pnp_trajectory
-from fusion.qr.pnp.bias import N_BINS, dilation_pattern, frame_bias_terms, size_bin
+from fusion.qr.pnp.bias import N_BINS, dilation_pattern, dilation_patterns, frame_bias_terms, size_bin
 from fusion.types import Trajectory
 
 B_TRUE = np.array([0.004, 0.012])  # px: about the defocus r 1 flight's (BENCHMARKS.md)
@@ -73,6 +73,28 @@ def test_dilation_pattern_moves_each_edge_outward():
     moved = rot + (dilation_pattern(rot) @ [0.3, 0.3]).reshape(4, 2)
     # b_u = b_v: every edge moves out by 0.3 (n_u^2 + n_v^2 = 1): the side grows by 0.6
     np.testing.assert_allclose(np.linalg.norm(moved[1] - moved[0]), 10.6, atol=1e-9)
+
+
+def test_dilation_patterns_of_many_codes_match_moved_edge_lines():
+    """Batch = per code, and each corner is where the two moved edge lines meet (a reference
+    built from the lines' intersection, not from the normals' 2x2 solve)."""
+    rng = np.random.default_rng(11)
+    quads = np.array([[0, 0], [40, 0], [40, 40], [0, 40]], float) + rng.normal(0, 4, (20, 4, 2))
+    b = np.array([0.3, -0.2])
+    P = dilation_patterns(quads)
+    for q, Pq in zip(quads, P):
+        np.testing.assert_allclose(Pq, dilation_pattern(q), atol=1e-12)
+        centre = q.mean(axis=0)
+        lines = []  # (point, direction) of each edge moved outward
+        for j in range(4):
+            a, e = q[j], q[(j + 1) % 4] - q[j]
+            n = np.array([e[1], -e[0]]) / np.linalg.norm(e)
+            n = n if n @ (a + 0.5 * e - centre) > 0 else -n
+            lines.append((a + (b @ n**2) * n, e))
+        for i in range(4):
+            (pa, da), (pb, db) = lines[(i - 1) % 4], lines[i]
+            s = np.linalg.solve(np.array([da, -db]).T, pb - pa)
+            np.testing.assert_allclose(q[i] + Pq[2 * i : 2 * i + 2] @ b, pa + s[0] * da, atol=1e-9)
 
 
 def test_sensitivity_predicts_the_pose_error_of_a_dilated_frame():

@@ -11,7 +11,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.geometry import interpolate_pose
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.pnp.bias import FrameBiasTerms, frame_bias_terms
+from fusion.qr.pnp.bias import FrameBiasTerms, frames_bias_terms
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
@@ -115,6 +115,8 @@ def pnp_trajectory(
             stats.n_without_floor_code += 1
     for b in range(0, len(with_floor), FRAMES_PER_BATCH):
         batch = with_floor[b : b + FRAMES_PER_BATCH]
+        used: list = []  # per posed frame: the sightings its pose used, and the pose
+        used_T: list = []
         for (ts, floor), res in zip(
             batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px)
         ):
@@ -134,8 +136,11 @@ def pnp_trajectory(
             stats.frame_class_chi2.append(res.class_chi2)
             stats.frame_class_redundancy.append(res.class_redundancy)
             stats.frame_class_covariance.append(res.class_covariance)
-            used = [s for s in floor if s.detection.payload in res.payloads]
-            stats.frame_bias.append(frame_bias_terms(camera, used, res.T_world_body, corner_sigma_px))
+            used.append([s for s in floor if s.detection.payload in res.payloads])
+            used_T.append(res.T_world_body)
+        stats.frame_bias += frames_bias_terms(
+            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
+        )
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:
