@@ -15,8 +15,9 @@ flight, three numbers:
            the flight as sum A^T M A b = sum A^T M r with M = I - J (J^T J)^-1 J^T (the bias
            that the pose cannot absorb: the normal equations reduced by the pose, a Schur
            complement); t = b / σ_b with σ_b from the flight's χ²/dof
-  NEES     PnP / smoother / EKF 6-dof NEES (bench_realism.back_end, noise scales on) with the
-           detections as they are, and with every refined cam0 corner moved by -resid
+  NEES     PnP / smoother / EKF 6-dof NEES (bench_realism.back_end, noise scales on, the
+           pipeline's own correction, fusion.estimate.cornerbias, off) with the detections as
+           they are, and with every refined cam0 corner moved by -resid
 
 The decoder-fallback codes (σ = refine.FALLBACK_SIGMA_PX) are left out of the bias (their corners
 are whole-pixel decoder output, not the edge model's).
@@ -135,7 +136,7 @@ def corrected(det, b: np.ndarray):
 
 
 def nees_row(log, det) -> tuple[float, float, float]:
-    out = br.back_end(log, det, honest=True)
+    out = br.back_end(log, det, honest=True, corner_bias=False)  # the pipeline's own correction off
     return br.nees6(log, out["pnp"]), br.nees6(log, out["smoother"]), br.nees6(log, out["ekf"])
 
 

@@ -190,8 +190,14 @@ def pos_errors_m(log, traj) -> np.ndarray:
     return np.linalg.norm(a.T_world_body_est[:, :3, 3] - a.T_world_body_gt[:, :3, 3], axis=1)
 
 
-def back_end(log, det, honest: bool, pose_cov_added: dict | None = None) -> dict:
-    cfg = pipeline.RunConfig(workers=1, progress=False, incremental=False, estimate_noise_scale=honest)
+def back_end(log, det, honest: bool, pose_cov_added: dict | None = None, corner_bias: bool = True) -> dict:
+    cfg = pipeline.RunConfig(
+        workers=1,
+        progress=False,
+        incremental=False,
+        estimate_noise_scale=honest,
+        correct_corner_bias=corner_bias,
+    )
     loc = pipeline.localize_stage(log, det, cfg)
     if pose_cov_added:  # the readout correction's motion uncertainty (as pipeline.run adds it)
         key = str(Estimator.PNP)
@@ -239,7 +245,7 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         added = report.pose_cov_added
     row = {"effect": effect, "level": label, **front_end_errors(log, det, resolution)}
     before = back_end(log, det, honest=False, pose_cov_added=added)
-    after = back_end(log, det, honest=True, pose_cov_added=added)
+    after = back_end(log, det, honest=True, pose_cov_added=added, corner_bias=not args.no_corner_bias)
     pnp = after["pnp"]
     if len(pnp):
         e = pos_errors_m(log, pnp)
@@ -332,6 +338,12 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1, help="render and detection processes")
     ap.add_argument("--out", type=Path, default=None, help="also write the Markdown here")
+    ap.add_argument(
+        "--no-corner-bias",
+        action="store_true",
+        help="leave the floor corners' common bias in (RunConfig.correct_corner_bias off): the 'after' "
+        "columns as before fusion.estimate.cornerbias",
+    )
     args = ap.parse_args()
     if args.duration is None:
         args.duration = 8.0 if args.quick else 15.0
