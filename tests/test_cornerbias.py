@@ -211,3 +211,13 @@ def test_each_code_size_bin_has_its_own_dilation():
     for (j,), truth in ((bins[0], b), (bins[1], -b)):
         k = slice(2 * j, 2 * j + 2)
         assert np.all(np.abs(est.bias_px[k] - truth) < 4 * sd[k]), (j, est.bias_px[k], sd[k])
+
+
+def test_an_implausibly_large_dilation_is_reported_not_removed(caplog):
+    frames, _ = flight_frames(60, seed=6, b=np.array([0.0, 0.3]))
+    traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    with caplog.at_level("WARNING", logger="fusion.estimate.cornerbias"):
+        out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
+    assert report["significant"] and report["too_large"] and not report["applied"]
+    assert out is traj and consider is None
+    assert "corner_bias_too_large" in caplog.text

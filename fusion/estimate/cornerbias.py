@@ -51,6 +51,11 @@ GATE_ALPHA = 1e-3
 """False-alarm probability of the significance gate on a flight without a bias."""
 MIN_FRAMES = 20
 """Fewer posed frames with bias terms than this: no estimate (too few to tell bias from noise)."""
+MAX_BIAS_PX = 0.1
+"""A significant dilation larger than this (px) is reported and not removed (a counted warning,
+`too_large`): the model is a small bias, the correction first order, and the refined corners'
+own mean error is 0.013-0.04 px on the renders (BENCHMARKS.md); on the few-frame flights the
+estimate was 1-5 px with T < 10 (ill-conditioned: single codes, whose pose absorbs a dilation)."""
 
 
 @dataclass
@@ -82,6 +87,10 @@ class CornerBias:
         var = np.diag(self.covariance_px2).reshape(-1, k)
         return [int(j) for j in np.flatnonzero(np.any(var > 0, axis=1))]
 
+    @property
+    def too_large(self) -> bool:
+        return bool(np.max(np.abs(self.bias_px)) > MAX_BIAS_PX)
+
     def as_dict(self, applied: bool) -> dict:
         """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px)."""
         k = len(BIN_PARAMS)
@@ -100,6 +109,7 @@ class CornerBias:
             "threshold": float(self.threshold),
             "frames": int(self.frames),
             "significant": self.significant,
+            "too_large": self.too_large,
             "applied": bool(applied),
         }
 
@@ -179,7 +189,15 @@ def correct_pnp_trajectory(
     est = estimate_corner_bias(terms, variance_factor)
     if est is None:
         return traj, None, None
-    applied = bool(apply and est.significant)
+    applied = bool(apply and est.significant and not est.too_large)
+    if apply and est.significant and est.too_large:
+        log.warning(
+            "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
+            "above %.2f px: reported, not removed",
+            float(np.max(np.abs(est.bias_px))),
+            est.statistic,
+            MAX_BIAS_PX,
+        )
     log.info(
         "PnP: common corner bias %s px (T = %.1f, gate %.1f)%s",
         " / ".join(f"{x:+.4f}" for x in est.bias_px),
