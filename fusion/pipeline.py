@@ -31,6 +31,7 @@ from fusion.estimate import (
     Health,
     Status,
     assess_result,
+    cornerbias,
     run_ekf,
     smooth,
     smooth_incremental,
@@ -139,6 +140,9 @@ class RunConfig:
     # beside the QR poses, or instead of them in a log without cameras
     fixes: Path | None = None
     estimate_noise_scale: bool = True  # corner-noise scale from the residuals (variance.py)
+    # with estimate_noise_scale: a floor-corner bias common to the flight, removed from the PnP
+    # poses when significant and its uncertainty added to every pose covariance (cornerbias.py)
+    correct_corner_bias: bool = True
     # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
     # (it made the clean demo's PnP ATE worse: BENCHMARKS.md)
     track: bool = False
@@ -299,6 +303,8 @@ class LocalizeResult:
     # every front-camera load sighting as a camera-frame measurement (p_cam, cov_cam), also at
     # frames without a raw pose (their p_world is meaningless): what the fused back ends take
     camera_frame_observations: list[LoadObservation] = field(default_factory=list)
+    # the removed common corner bias's uncertainty, for the fused covariances (cornerbias.py)
+    bias_consider: cornerbias.BiasConsider | None = None
 
 
 _REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked")
@@ -414,8 +420,17 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory_by_class(
         traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
     )
+    # a corner bias common to the flight (issue 10.3): removed when significant
+    traj_pnp, bias_report, consider = cornerbias.correct_pnp_trajectory(
+        traj_pnp,
+        [b for p in parts for b in p["pnp_stats"].frame_bias],
+        float(stats["pnp"]["noise_scale"].get("scale", math.nan)),
+        cfg.estimate_noise_scale and cfg.correct_corner_bias,
+    )
+    if bias_report is not None:
+        stats["pnp"]["corner_bias"] = bias_report
     trajectories["pnp"] = traj_pnp
-    return LocalizeResult(trajectories, {}, {}, stats, notes)
+    return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider)
 
 
 def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) -> LocalizeResult:
@@ -427,7 +442,7 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     maps: dict[str, LoadMap] = {}
     if log.front is None:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
-        return LocalizeResult(trajectories, obs, maps, floor.stats, notes)
+        return LocalizeResult(trajectories, obs, maps, floor.stats, notes, bias_consider=floor.bias_consider)
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
         if errors:
@@ -440,7 +455,7 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     # The landmark factors of the fusion back end need only the camera-frame measurement, so
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
     camera_frame = obs["pnp"] + [o for p in parts for o in p["unposed"]]
-    return LocalizeResult(trajectories, obs, maps, floor.stats, notes, camera_frame)
+    return LocalizeResult(trajectories, obs, maps, floor.stats, notes, camera_frame, floor.bias_consider)
 
 
 _LOCALIZE_PRELOAD = ("fusion.pipeline",)
@@ -728,6 +743,10 @@ def fuse_stage(
             kwargs.pop("warm_start", None)  # the smoother's start: not needed after it
         res.trajectory.name = str(name)
         res.loads.name = str(name)
+        if loc.bias_consider is not None and not cfg.tight:
+            # the removed corner bias's uncertainty, common to every frame: no back end can
+            # average it down (cornerbias.py)
+            res.trajectory = loc.bias_consider.add_to(res.trajectory)
         out.results[name] = res
         if name == Estimator.SMOOTHER and cfg.estimate_noise_scale:
             # the smoother's noise scales, estimated on the whole flight, for the other back ends

@@ -3,7 +3,8 @@ the fused σ honest?  (Issue 10.3: the defocus r 1 flight's constant corner bias
 
 Model: every refined floor code's four edges move outward along their image normal n by
 b_u n_u^2 + b_v n_v^2 px (b_u: left / right edges, b_v: top / bottom; a code that looks wider /
-taller), each corner where its two moved edges meet (`dilation_pattern`, (8, 2) per code).  Per
+taller), each corner where its two moved edges meet (fusion.qr.pnp.bias.dilation_pattern, (8, 2)
+per code; the pipeline's own estimate, fusion.estimate.cornerbias, uses the dilation alone).  Per
 flight, three numbers:
 
   truth    least-squares (b_u, b_v, plus a common shift) of the refined corners' error against
@@ -14,8 +15,9 @@ flight, three numbers:
            the flight as sum A^T M A b = sum A^T M r with M = I - J (J^T J)^-1 J^T (the bias
            that the pose cannot absorb: the normal equations reduced by the pose, a Schur
            complement); t = b / σ_b with σ_b from the flight's χ²/dof
-  NEES     PnP / smoother / EKF 6-dof NEES (bench_realism.back_end, noise scales on) with the
-           detections as they are, and with every refined cam0 corner moved by -resid
+  NEES     PnP / smoother / EKF 6-dof NEES (bench_realism.back_end, noise scales on, the
+           pipeline's own correction, fusion.estimate.cornerbias, off) with the detections as
+           they are, and with every refined cam0 corner moved by -resid
 
 The decoder-fallback codes (σ = refine.FALLBACK_SIGMA_PX) are left out of the bias (their corners
 are whole-pixel decoder output, not the edge model's).
@@ -46,6 +48,7 @@ from fusion.log import read_flight  # noqa: E402
 from fusion.qr.codes import classify  # noqa: E402
 from fusion.qr.detect import detect_flight  # noqa: E402
 from fusion.qr.pnp import estimate_floor_poses  # noqa: E402
+from fusion.qr.pnp.bias import dilation_pattern  # noqa: E402
 from fusion.qr.pnp.whitening import CORNER_CLASSES, corner_classes, corner_whitening  # noqa: E402
 from fusion.qr.reprojection import floor_reprojection  # noqa: E402
 from fusion.sim.render import project_code_corners  # noqa: E402
@@ -53,24 +56,6 @@ from fusion.sim.scenarios import build_scenario  # noqa: E402
 from fusion.sim.simulate import simulate  # noqa: E402
 
 DECODER = CORNER_CLASSES.index("decoder")
-
-
-def dilation_pattern(corners_px: np.ndarray) -> np.ndarray:
-    """(8, 2) corner offsets [TL u, TL v, ..., BL v] per unit (b_u, b_v) of edge dilation."""
-    c = np.asarray(corners_px, dtype=float).reshape(4, 2)
-    centre = c.mean(axis=0)
-    normals = []
-    for j in range(4):
-        e = c[(j + 1) % 4] - c[j]
-        n = np.array([e[1], -e[0]]) / np.linalg.norm(e)
-        if n @ (0.5 * (c[j] + c[(j + 1) % 4]) - centre) < 0:
-            n = -n
-        normals.append(n)
-    out = np.zeros((8, 2))
-    for i in range(4):
-        na, nb = normals[(i - 1) % 4], normals[i]  # the two edges meeting at corner i
-        out[2 * i : 2 * i + 2] = np.linalg.solve(np.array([na, nb]), np.array([na**2, nb**2]))
-    return out
 
 
 def bias_columns(corners_px: np.ndarray, refined: bool) -> np.ndarray:
@@ -151,7 +136,7 @@ def corrected(det, b: np.ndarray):
 
 
 def nees_row(log, det) -> tuple[float, float, float]:
-    out = br.back_end(log, det, honest=True)
+    out = br.back_end(log, det, honest=True, corner_bias=False)  # the pipeline's own correction off
     return br.nees6(log, out["pnp"]), br.nees6(log, out["smoother"]), br.nees6(log, out["ekf"])
 
 

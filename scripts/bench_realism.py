@@ -19,6 +19,10 @@ Columns:
   PnP bias σ    the largest |mean(error / σ)| of the PnP poses over the 6 pose axes (after the
                 scales): an error common to every frame, which the residuals cannot see and the
                 smoother cannot average away (with n independent frames the mean is ~1/sqrt(n))
+  corner bias   the floor corners' common dilation b_u / b_v px per code-size bin (@ the bin's
+                lower edge, px) estimated from the PnP residuals and its statistic T
+                (fusion.estimate.cornerbias; "removed" when T passed the gate and the "after"
+                rows are corrected; "-" with fewer than 20 posed frames)
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
@@ -80,6 +84,11 @@ EFFECTS: dict[str, list[tuple[str, dict]]] = {
         ("10 %", {"occlusion_fraction": 0.10}),
     ],
     "realistic": [("preset", {"preset": "realistic"})],
+    # defocus settings the corner-bias gate and consider term were not chosen on (issue 10.3)
+    "defocus_check": [
+        ("r 1.5", {"defocus_px": 1.5}),
+        ("r 1 800x600", {"defocus_px": 1.0, "resolution": (800, 600)}),
+    ],
     # rolling shutter (simulate readout_s, stamp at the first row): corners moved / refined to the
     # stamp by fusion.qr.rolling_shutter.correct_flight as pipeline.run does; "rs_uncorrected":
     # the same flight without (what a global-shutter model makes of it)
@@ -181,8 +190,14 @@ def pos_errors_m(log, traj) -> np.ndarray:
     return np.linalg.norm(a.T_world_body_est[:, :3, 3] - a.T_world_body_gt[:, :3, 3], axis=1)
 
 
-def back_end(log, det, honest: bool, pose_cov_added: dict | None = None) -> dict:
-    cfg = pipeline.RunConfig(workers=1, progress=False, incremental=False, estimate_noise_scale=honest)
+def back_end(log, det, honest: bool, pose_cov_added: dict | None = None, corner_bias: bool = True) -> dict:
+    cfg = pipeline.RunConfig(
+        workers=1,
+        progress=False,
+        incremental=False,
+        estimate_noise_scale=honest,
+        correct_corner_bias=corner_bias,
+    )
     loc = pipeline.localize_stage(log, det, cfg)
     if pose_cov_added:  # the readout correction's motion uncertainty (as pipeline.run adds it)
         key = str(Estimator.PNP)
@@ -230,7 +245,7 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         added = report.pose_cov_added
     row = {"effect": effect, "level": label, **front_end_errors(log, det, resolution)}
     before = back_end(log, det, honest=False, pose_cov_added=added)
-    after = back_end(log, det, honest=True, pose_cov_added=added)
+    after = back_end(log, det, honest=True, pose_cov_added=added, corner_bias=not args.no_corner_bias)
     pnp = after["pnp"]
     if len(pnp):
         e = pos_errors_m(log, pnp)
@@ -248,6 +263,15 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
     cams = noise.get("smoother", {}).get("cameras", {})
     row["s_cam1"] = cams.get("cam1", {}).get("sigma_factor", math.nan)
     row["imu"] = noise.get("smoother", {}).get("imu_chi2_per_dof", math.nan)
+    cb = noise.get("pnp_corner_bias")
+    row["corner_bias"] = (
+        "-"
+        if not cb
+        else ", ".join(
+            f"{b['bias_px'][0]:+.4f} / {b['bias_px'][1]:+.4f} @{b['side_px'][0]:.0f}" for b in cb["bins"]
+        )
+        + f" (T {cb['statistic']:.0f}{', removed' if cb['applied'] else ''})"
+    )
     row["noise_line"] = summary_line(noise)
     row["time_s"] = time.perf_counter() - t0
     row["sim_s"] = t_sim
@@ -269,8 +293,8 @@ def in_band(x: float, dof: int = 6) -> bool:
 def table(rows: list[dict]) -> list[str]:
     out = [
         "| effect | level | floor dec % | load obs | raw px | ref px | PnP mm | >5cm | NEES pnp | "
-        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ | corner bias |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         out.append(
@@ -279,7 +303,7 @@ def table(rows: list[dict]) -> list[str]:
             f"{r['pnp_out']}/{r['pnp_n']} | "
             f"{nees_cell(r['nees_pnp'])} | {nees_cell(r['nees_smoother'])} | {nees_cell(r['nees_ekf'])} | "
             f"{fmt(r['ate_mm'], '.1f')} | {fmt(r['s_cam0'])} | {fmt(r['s_cam1'])} | {fmt(r['imu'])} | "
-            f"{fmt(r['pnp_bias'])} |"
+            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} |"
         )
     return out
 
@@ -314,6 +338,12 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1, help="render and detection processes")
     ap.add_argument("--out", type=Path, default=None, help="also write the Markdown here")
+    ap.add_argument(
+        "--no-corner-bias",
+        action="store_true",
+        help="leave the floor corners' common bias in (RunConfig.correct_corner_bias off): the 'after' "
+        "columns as before fusion.estimate.cornerbias",
+    )
     args = ap.parse_args()
     if args.duration is None:
         args.duration = 8.0 if args.quick else 15.0

@@ -617,10 +617,13 @@ def nis_component(nis: Sequence[float], dims: Sequence[int]) -> VarianceComponen
 def noise_summary(pnp_stats: dict, fused_stats: dict) -> dict:
     """metrics.json's `noise_scales`: the variance factors (1 = the noise model is right) per
     estimator and camera: PnP's (cam0, from its reprojection chi2/dof), the batch smoother's
-    per camera (relative to the PnP-scaled input) and the IMU's chi2/dof, the EKF's pose NIS."""
+    per camera (relative to the PnP-scaled input) and the IMU's chi2/dof, the EKF's pose NIS;
+    and the floor corners' common bias (`pnp_corner_bias`, fusion.estimate.cornerbias)."""
     out: dict = {}
     if "noise_scale" in pnp_stats:
         out["pnp"] = pnp_stats["noise_scale"]
+    if "corner_bias" in pnp_stats:
+        out["pnp_corner_bias"] = pnp_stats["corner_bias"]
     smoother = fused_stats.get("smoother", {}).get("noise_scales")
     if smoother:
         out["smoother"] = smoother
@@ -656,4 +659,15 @@ def summary_line(summary: dict) -> str:
     nis = summary.get("ekf_pose_nis")
     if nis and nis.get("dof"):
         parts.append(f"EKF pose NIS/dim {nis['scale']:.2f}")
+    bias = summary.get("pnp_corner_bias")
+    if bias and bias.get("applied"):
+        parts.append(
+            "cam0 corner bias removed ("
+            + ", ".join(
+                f"{b['bias_px'][0]:+.4f} / {b['bias_px'][1]:+.4f} px at {b['side_px'][0]:.0f}"
+                f"-{b['side_px'][1]:.0f} px"
+                for b in bias["bins"]
+            )
+            + f"; T {bias['statistic']:.0f} > {bias['threshold']:.1f})"
+        )
     return ("noise chi2/dof (1 = as modelled; applied): " + ", ".join(parts)) if parts else ""

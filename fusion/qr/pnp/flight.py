@@ -11,6 +11,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.geometry import interpolate_pose
 from fusion.qr.codes import classify, rejection_counts
+from fusion.qr.pnp.bias import FrameBiasTerms, frames_bias_terms
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
@@ -49,6 +50,9 @@ class PnPStats:
     frame_class_chi2: list[np.ndarray] = field(default_factory=list)
     frame_class_redundancy: list[np.ndarray] = field(default_factory=list)
     frame_class_covariance: list[np.ndarray] = field(default_factory=list)
+    # per posed frame: its share of the flight's common corner bias (fusion.qr.pnp.bias; None
+    # when the pose's information is singular), for fusion.estimate.cornerbias
+    frame_bias: list[FrameBiasTerms | None] = field(default_factory=list)
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -80,6 +84,7 @@ class PnPStats:
             frame_class_chi2=[c for p in parts for c in p.frame_class_chi2],
             frame_class_redundancy=[c for p in parts for c in p.frame_class_redundancy],
             frame_class_covariance=[c for p in parts for c in p.frame_class_covariance],
+            frame_bias=[b for p in parts for b in p.frame_bias],
         )
 
 
@@ -110,7 +115,11 @@ def pnp_trajectory(
             stats.n_without_floor_code += 1
     for b in range(0, len(with_floor), FRAMES_PER_BATCH):
         batch = with_floor[b : b + FRAMES_PER_BATCH]
-        for (ts, _), res in zip(batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px)):
+        used: list = []  # per posed frame: the sightings its pose used, and the pose
+        used_T: list = []
+        for (ts, floor), res in zip(
+            batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px)
+        ):
             if res is None:
                 stats.n_unsolved += 1
                 continue
@@ -127,6 +136,11 @@ def pnp_trajectory(
             stats.frame_class_chi2.append(res.class_chi2)
             stats.frame_class_redundancy.append(res.class_redundancy)
             stats.frame_class_covariance.append(res.class_covariance)
+            used.append([s for s in floor if s.detection.payload in res.payloads])
+            used_T.append(res.T_world_body)
+        stats.frame_bias += frames_bias_terms(
+            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
+        )
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:

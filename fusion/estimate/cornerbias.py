@@ -1,0 +1,216 @@
+"""A floor-camera corner bias common to a whole flight: estimated from the PnP residuals,
+removed from the PnP poses when significant, and its estimate's own uncertainty carried into
+every pose covariance as a "consider" term (issue 10.3; BENCHMARKS.md "Defocus σ").
+
+Why: a bias shared by every frame (defocus r 1: each floor code looks ~0.01 px taller) moves
+every PnP pose the same way by ~0.9σ.  Each frame's χ² cannot see it (the pose absorbs most of
+it) and the fused back ends, which treat the frames as independent, average the noise down
+~1/sqrt(n) but not the bias: smoother NEES 54.  Over a flight, though, the part of the bias the
+pose cannot absorb (the Schur-reduced normal equations of fusion.qr.pnp.bias) is seen at 10σ.
+
+The bias is a dilation of every refined code (fusion.qr.pnp.bias), one per code-size bin.
+Estimate (generalised least squares with the pose as nuisance; Koch 1999, sec. 3.2.5 on reduced
+normal equations): b = N^-1 y with N = sum_k A_k^T M_k A_k, y = sum_k A_k^T M_k r_k, and
+Cov(b) = s^2 N^-1, s^2 the flight's PnP variance factor (fusion.estimate.variance).
+Significance: T = b^T N b / s^2 ~ χ²(p) when there is no bias; the correction is made only
+when T exceeds its (1 - GATE_ALPHA) quantile, so a flight without a bias keeps its poses and
+covariances bit for bit (the earlier ungated correction, ~0.002 px off on the clean flight,
+took its smoother NEES 5.9 → 9.8; BENCHMARKS.md fifth session).
+Correction: each PnP pose is moved by -S_k b (S_k its first-order sensitivity to the bias).
+Consider term (Schmidt's consider covariance; Bierman 1977, ch. VI; Tapley, Schutz & Born 2004,
+sec. 6.2): the corrected pose still carries S_k (b_true - b), an error common to all frames.
+Its covariance is not Cov(b) alone: the two-number dilation model is itself an approximation
+(on the defocus r 2 flight the estimate matched the true dilation to 0.002 px, yet removing it
+took the PnP bias from 0.47 to 0.64σ and the smoother's NEES from 7.1 to 12.3: another error
+the dilation had partly cancelled; BENCHMARKS.md / NOTES-bias.md), so the model's error is
+taken as large as the correction itself: C = Cov(b) + b b^T.  S_k C S_k^T is added to the
+covariance of the PnP pose and, after
+the fusion, to the fused pose's (that sum is what no per-frame covariance can say: the back
+ends would average it down as if independent).  Adding it to the fused output rather than to a
+state in the graph is first order and takes the fused pose's sensitivity to be the nearest PnP
+frame's (the fused estimate near a frame is a local average of PnP poses whose S_k change
+slowly with the codes in view); tight coupling (corners in the smoother) is left alone."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from fusion.geometry import se3_exp
+from fusion.qr.pnp.bias import BIN_PARAMS, FrameBiasTerms, bin_range_px
+from fusion.types import Trajectory
+
+log = logging.getLogger(__name__)
+
+GATE_ALPHA = 1e-3
+"""False-alarm probability of the significance gate on a flight without a bias."""
+MIN_FRAMES = 20
+"""Fewer posed frames with bias terms than this: no estimate (too few to tell bias from noise)."""
+MAX_BIAS_PX = 0.1
+"""A significant dilation larger than this (px) is reported and not removed (a counted warning,
+`too_large`): the model is a small bias, the correction first order, and the refined corners'
+own mean error is 0.013-0.04 px on the renders (BENCHMARKS.md); on the few-frame flights the
+estimate was 1-5 px with T < 10 (ill-conditioned: single codes, whose pose absorbs a dilation)."""
+
+
+@dataclass
+class CornerBias:
+    """A flight's common corner bias: `bias_px` (p,) (fusion.qr.pnp.bias.N_PARAMS: BIN_PARAMS per
+    code-size bin; 0 in the bins without codes), `covariance_px2` (p, p) Cov(b) (its noise only),
+    `statistic` T = b^T Cov(b)^-1 b over the bins with codes (χ²(2 bins) without a bias),
+    `threshold` the gate, `frames` the frames used; `significant` when T > threshold."""
+
+    bias_px: np.ndarray
+    covariance_px2: np.ndarray
+    statistic: float
+    threshold: float
+    frames: int
+
+    @property
+    def significant(self) -> bool:
+        return bool(self.statistic > self.threshold)
+
+    @property
+    def consider_px2(self) -> np.ndarray:
+        """(p, p) what is left of the bias after the correction: Cov(b) + b b^T (the estimate's
+        noise, and the bias model's own error taken as large as the correction itself)."""
+        return self.covariance_px2 + np.outer(self.bias_px, self.bias_px)
+
+    def bins(self) -> list[int]:
+        """The size bins with codes (a non-zero variance)."""
+        k = len(BIN_PARAMS)
+        var = np.diag(self.covariance_px2).reshape(-1, k)
+        return [int(j) for j in np.flatnonzero(np.any(var > 0, axis=1))]
+
+    @property
+    def too_large(self) -> bool:
+        return bool(np.max(np.abs(self.bias_px)) > MAX_BIAS_PX)
+
+    def as_dict(self, applied: bool) -> dict:
+        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px)."""
+        k = len(BIN_PARAMS)
+        sd = np.sqrt(np.diag(self.covariance_px2))
+        return {
+            "params": list(BIN_PARAMS),
+            "bins": [
+                {
+                    "side_px": list(bin_range_px(j)),
+                    "bias_px": [float(x) for x in self.bias_px[k * j : k * j + k]],
+                    "sigma_px": [float(x) for x in sd[k * j : k * j + k]],
+                }
+                for j in self.bins()
+            ],
+            "statistic": float(self.statistic),
+            "threshold": float(self.threshold),
+            "frames": int(self.frames),
+            "significant": self.significant,
+            "too_large": self.too_large,
+            "applied": bool(applied),
+        }
+
+
+def estimate_corner_bias(terms: Sequence[FrameBiasTerms | None], variance_factor: float) -> CornerBias | None:
+    """The flight's `CornerBias` from the posed frames' `terms` (PnPStats.frame_bias) and the
+    flight's PnP variance factor s^2 (chi2/dof); None with fewer than MIN_FRAMES frames, a
+    non-finite factor or singular normal equations (e.g. no refined code)."""
+    used = [t for t in terms if t is not None]
+    if len(used) < MIN_FRAMES or not (math.isfinite(variance_factor) and variance_factor > 0):
+        return None
+    N = np.sum([t.normal for t in used], axis=0)
+    y = np.sum([t.rhs for t in used], axis=0)
+    N = 0.5 * (N + N.T)
+    active = np.flatnonzero(np.diag(N) > 0)  # the size bins with codes
+    if not len(active):
+        return None
+    Na = N[np.ix_(active, active)]
+    try:
+        Ninv = np.linalg.inv(Na)
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.all(np.isfinite(Ninv)) and np.all(np.linalg.eigvalsh(Na) > 0)):
+        return None
+    b = np.zeros(len(y))
+    b[active] = Ninv @ y[active]
+    cov = np.zeros((len(y), len(y)))
+    cov[np.ix_(active, active)] = variance_factor * Ninv
+    return CornerBias(
+        bias_px=b,
+        covariance_px2=cov,
+        statistic=float(b[active] @ Na @ b[active] / variance_factor),
+        threshold=float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(active))),
+        frames=len(used),
+    )
+
+
+@dataclass
+class BiasConsider:
+    """What the fused back ends need to carry a corrected flight's bias uncertainty: the PnP
+    frames' stamps (n,) and sensitivities (n, 6, p), and Cov(b) (p, p)."""
+
+    timestamps_ns: np.ndarray
+    sensitivities: np.ndarray
+    covariance_px2: np.ndarray
+
+    def covariances(self, timestamps_ns: np.ndarray) -> np.ndarray:
+        """(m, 6, 6) consider covariances S Cov(b) S^T at `timestamps_ns`, S the nearest PnP
+        frame's sensitivity."""
+        t = np.asarray(timestamps_ns, dtype=np.int64)
+        i = np.clip(np.searchsorted(self.timestamps_ns, t), 1, len(self.timestamps_ns) - 1)
+        left = self.timestamps_ns[i - 1]
+        right = self.timestamps_ns[i]
+        nearest = np.where(np.abs(t - left) <= np.abs(right - t), i - 1, i)
+        if len(self.timestamps_ns) == 1:
+            nearest = np.zeros(len(t), dtype=int)
+        S = self.sensitivities[nearest]
+        return np.einsum("nip,pq,njq->nij", S, self.covariance_px2, S)
+
+    def add_to(self, traj: Trajectory) -> Trajectory:
+        """`traj` with the consider covariances added (unchanged without covariances)."""
+        if traj.covariances is None or not len(traj):
+            return traj
+        covs = traj.covariances + self.covariances(traj.timestamps_ns)
+        return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
+
+
+def correct_pnp_trajectory(
+    traj: Trajectory, terms: Sequence[FrameBiasTerms | None], variance_factor: float, apply: bool = True
+) -> tuple[Trajectory, dict | None, BiasConsider | None]:
+    """The flight's PnP trajectory (one pose per entry of `terms`, in order) with the common
+    corner bias removed and its consider covariance added, when `apply` and the bias is
+    significant; the JSON-ready report (None when there is no estimate); and the BiasConsider
+    for the fused back ends (None when nothing was applied)."""
+    if len(terms) != len(traj):
+        raise ValueError(f"corner bias: {len(terms)} frames of bias terms for {len(traj)} PnP poses")
+    est = estimate_corner_bias(terms, variance_factor)
+    if est is None:
+        return traj, None, None
+    applied = bool(apply and est.significant and not est.too_large)
+    if apply and est.significant and est.too_large:
+        log.warning(
+            "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
+            "above %.2f px: reported, not removed",
+            float(np.max(np.abs(est.bias_px))),
+            est.statistic,
+            MAX_BIAS_PX,
+        )
+    log.info(
+        "PnP: common corner bias %s px (T = %.1f, gate %.1f)%s",
+        " / ".join(f"{x:+.4f}" for x in est.bias_px),
+        est.statistic,
+        est.threshold,
+        ": removed" if applied else "",
+    )
+    if not applied:
+        return traj, est.as_dict(False), None
+    p = len(est.bias_px)
+    S = np.stack([t.sensitivity if t is not None else np.zeros((6, p)) for t in terms])
+    dxi = -S @ est.bias_px  # (n, 6): xi_true ≈ xi_est - S b
+    T = np.stack([T_wb @ se3_exp(d) for T_wb, d in zip(traj.T_world_body, dxi)])
+    consider = BiasConsider(np.asarray(traj.timestamps_ns, dtype=np.int64), S, est.consider_px2)
+    out = Trajectory(traj.name, traj.timestamps_ns, T, traj.covariances)
+    return consider.add_to(out), est.as_dict(True), consider
