@@ -22,7 +22,7 @@ sec. 6.2): the corrected pose still carries S_k (b_true - b), an error common to
 Its covariance is not Cov(b) alone: the two-number dilation model is itself an approximation
 (on the defocus r 2 flight the estimate matched the true dilation to 0.002 px, yet removing it
 took the PnP bias from 0.47 to 0.64σ and the smoother's NEES from 7.1 to 12.3: another error
-the dilation had partly cancelled; BENCHMARKS.md / NOTES-bias.md), so the model's error is
+the dilation had partly cancelled; BENCHMARKS.md, eighth session), so the model's error is
 taken as large as the correction itself: C = Cov(b) + b b^T.  S_k C S_k^T is added to the
 covariance of the PnP pose and, after
 the fusion, to the fused pose's (that sum is what no per-frame covariance can say: the back

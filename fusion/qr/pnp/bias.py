@@ -27,7 +27,7 @@ SIZE_BIN_EDGES_PX: tuple[float, ...] = tuple(32.0 * 2.0 ** (k / 2) for k in rang
 """Edges (px) of the code-size bins, a factor sqrt(2) apart from 45 to 256 px (the code's mean
 side length in the image): each bin has its own dilation, since the edge model's error depends
 on the blur against the module size (defocus r 1, 60 s seed 2: b_v +0.012 px with the codes at
-~85 px, -0.002 px at ~55 px; NOTES-bias.md).  A 12 s flight at one height uses one or two."""
+~85 px, -0.002 px at ~55 px; BENCHMARKS.md, eighth session).  A 12 s flight at one height uses one or two."""
 N_BINS = len(SIZE_BIN_EDGES_PX) + 1
 BIN_PARAMS = ("dilation_u_px", "dilation_v_px")
 """Per size bin: the outward edge moves of the left / right and the top / bottom edges (px)."""
