@@ -488,7 +488,9 @@ def test_fuse_stage_survives_one_failing_estimator(short, monkeypatch):
         velocity=None,
         world=None,
     )
-    loc = SimpleNamespace(trajectories={"pnp": short.raw}, camera_frame_observations=short.load_obs)
+    loc = SimpleNamespace(
+        trajectories={"pnp": short.raw}, camera_frame_observations=short.load_obs, bias_consider=None
+    )
     out = P.fuse_stage(log, loc, P.RunConfig(progress=False))
     assert set(out.failures) == {Estimator.SMOOTHER, Estimator.INCREMENTAL}
     assert out.failures[Estimator.SMOOTHER].reason.startswith("the factor graph cannot")

@@ -42,7 +42,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from fusion.geometry import se3_exp
-from fusion.qr.pnp.bias import BIN_PARAMS, FrameBiasTerms, bin_range_px
+from fusion.qr.pnp.bias import BIN_PARAMS, N_PARAMS, FrameBiasTerms, bin_range_px
 from fusion.types import Trajectory
 
 log = logging.getLogger(__name__)
@@ -121,8 +121,11 @@ def estimate_corner_bias(terms: Sequence[FrameBiasTerms | None], variance_factor
     used = [t for t in terms if t is not None]
     if len(used) < MIN_FRAMES or not (math.isfinite(variance_factor) and variance_factor > 0):
         return None
-    N = np.sum([t.normal for t in used], axis=0)
-    y = np.sum([t.rhs for t in used], axis=0)
+    N = np.zeros((N_PARAMS, N_PARAMS))
+    y = np.zeros(N_PARAMS)
+    for t in used:  # frame order, whatever the chunks: the same sums on any number of workers
+        N[np.ix_(t.params, t.params)] += t.normal_q
+        y[t.params] += t.rhs_q
     N = 0.5 * (N + N.T)
     active = np.flatnonzero(np.diag(N) > 0)  # the size bins with codes
     if not len(active):
@@ -208,7 +211,10 @@ def correct_pnp_trajectory(
     if not applied:
         return traj, est.as_dict(False), None
     p = len(est.bias_px)
-    S = np.stack([t.sensitivity if t is not None else np.zeros((6, p)) for t in terms])
+    S = np.zeros((len(terms), 6, p))
+    for i, t in enumerate(terms):
+        if t is not None:
+            S[i][:, t.params] = t.sensitivity_q
     dxi = -S @ est.bias_px  # (n, 6): xi_true ≈ xi_est - S b
     T = np.stack([T_wb @ se3_exp(d) for T_wb, d in zip(traj.T_world_body, dxi)])
     consider = BiasConsider(np.asarray(traj.timestamps_ns, dtype=np.int64), S, est.consider_px2)
