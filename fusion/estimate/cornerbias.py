@@ -201,9 +201,14 @@ def correct_pnp_trajectory(
             est.statistic,
             MAX_BIAS_PX,
         )
+    k = len(BIN_PARAMS)
     log.info(
         "PnP: common corner bias %s px (T = %.1f, gate %.1f)%s",
-        " / ".join(f"{x:+.4f}" for x in est.bias_px),
+        ", ".join(
+            f"{est.bias_px[k * j]:+.4f} / {est.bias_px[k * j + 1]:+.4f} at {lo:.0f}-{hi:.0f} px"
+            for j in est.bins()
+            for lo, hi in [bin_range_px(j)]
+        ),
         est.statistic,
         est.threshold,
         ": removed" if applied else "",
