@@ -307,6 +307,23 @@ class LocalizeResult:
     bias_consider: cornerbias.BiasConsider | None = None
 
 
+@dataclass
+class Computed:
+    """The detect and localize stages' results computed elsewhere (fusion batch's tasks),
+    handed to `run`, which takes them out of this holder (`take`): it then holds the only
+    references and lets them go before the fusion's peak, as it does its own (a caller's
+    variable would keep them for the whole run: on a 30-minute flight the detections are
+    ~130,000 objects)."""
+
+    detections: DetectionResult | None = None
+    localized: LocalizeResult | None = None
+
+    def take(self) -> tuple[DetectionResult | None, LocalizeResult | None]:
+        out = self.detections, self.localized
+        self.detections = self.localized = None
+        return out
+
+
 _REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked")
 """detect.CameraStats counters reported under detection_statistics' "refinement"."""
 
@@ -804,13 +821,12 @@ def run(
     cfg: RunConfig | None = None,
     until: str = "run",
     *,
-    detections: DetectionResult | None = None,
-    localized: LocalizeResult | None = None,
+    computed: Computed | None = None,
 ) -> RunResult:
     """Run the pipeline on a logged flight up to stage `until` (detect, localize, smooth, run).
 
-    `detections` / `localized`: the detect and localize stages' results when they were computed
-    elsewhere (fusion.fleet runs them as tasks on a cluster); the outputs are the same files.
+    `computed`: the detect and localize stages' results when they were computed elsewhere
+    (fusion.fleet runs them as tasks on a cluster), taken out of it; the outputs are the same files.
     The output folder is locked for the run; `manifest.json` lists what it wrote; on any failure
     the run's partial outputs are removed (a file-system error becomes one OutputError)."""
     cfg = cfg or RunConfig()
@@ -826,7 +842,7 @@ def run(
         else read_flight(log_dir, LogOptions(cameras_optional=cfg.fixes is not None))
     )
     with prepare_out_dir(out_dir, cfg.force, log.root) as out:
-        result = _run_into(log, out.path, cfg, until, timings, t, detections, localized)
+        result = _run_into(log, out.path, cfg, until, timings, t, computed)
     return result
 
 
@@ -837,10 +853,10 @@ def _run_into(
     until: str,
     timings: dict,
     t: float,
-    detections: DetectionResult | None = None,
-    localized: LocalizeResult | None = None,
+    computed: Computed | None = None,
 ) -> RunResult:
     """`run`'s stages, writing into the prepared (locked) output folder."""
+    detections, localized = computed.take() if computed is not None else (None, None)
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
     fixes = read_fixes(cfg.fixes) if cfg.fixes is not None else None
@@ -883,7 +899,7 @@ def _run_into(
     _progress(cfg, "per-frame estimators (paper, pnp)")
     rs_active = cfg.calibrate_readout or any(s.camera.rolling_shutter for s in log.cameras.values())
     if localized is not None and not rs_active:
-        loc = localized
+        loc, localized = localized, None
     else:
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
@@ -929,7 +945,7 @@ def _run_into(
         # (objects per sighting, growing with the flight) are let go before the fusion's peak
         floor = floor_inputs(log, det, cfg)
         floor_xy = floor.codes_xy
-        del det, detected, detections  # (fusion batch's caller still holds its own)
+        del det, detected, detections, localized
         fused_stats = _fuse_into_result(log, loc, cfg, floor, fixes, result, shared)
         del floor
         unsynced = _unsynchronised_load_sightings(log, loc)

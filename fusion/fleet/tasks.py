@@ -24,7 +24,7 @@ from typing import Any
 
 from fusion.log import FlightLog, open_flight
 from fusion.pipeline import (
-    LocalizeResult,
+    Computed,
     RunConfig,
     floor_context,
     front_context,
@@ -134,10 +134,13 @@ def report_task(log: FlightLog, out_dir: str, cfg: RunConfig, n_detect: int, *pa
     t = time.perf_counter()
     detected, floor, front = parts[:n_detect], parts[n_detect], parts[n_detect + 1 :]
     log = _own_copy(log)
-    det = assemble_detections(log, [_unpacked(p.value) for p in detected], cfg.backend)
-    floor_result: LocalizeResult = floor.value
-    loc = merge_front_parts(log, floor_result, [p.value for p in front])
-    result = run(log, Path(out_dir), cfg, detections=det, localized=loc)
+    # no variable here holds the detections or the per-frame results: `run` lets them go
+    # before the fusion (Computed)
+    computed = Computed(
+        assemble_detections(log, [_unpacked(p.value) for p in detected], cfg.backend),
+        merge_front_parts(log, floor.value, [p.value for p in front]),
+    )
+    result = run(log, Path(out_dir), cfg, computed=computed)
     elapsed = time.perf_counter() - t
     task_s = {
         "detect": sum(p.elapsed_s for p in detected),
