@@ -21,12 +21,6 @@ and gives back each one's value or exception, so that one failing does not cost 
 A function that cannot be sent to a worker (a test's or a bench's wrapper: a closure) makes the
 batch run in this process instead (`sendable`).
 
-Inside a dask task that opened `on_cluster()` (fusion batch's report task), the same three
-calls send their work as dask tasks to the task's cluster instead of starting processes
-(distributed.worker_client), preferring the workers other than the calling one: a flight's back
-ends are spread over the cluster as `fusion run` spreads them over its processes, and the
-calling worker's memory does not carry them on top of its own.
-
 A worker's log records reach this process's loggers (a queue, `_forward_logs`): warnings and
 notes logged inside a worker are handled (printed, captured by a test) as if logged here.  The
 CPU seconds of the work done in workers are summed in `worker_usage()` (this process's
@@ -37,7 +31,6 @@ busiest worker's CPU (`WorkerUsage.longest_cpu_s`).
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import ctypes
 import ctypes.util
 import logging
@@ -73,10 +66,6 @@ class ParallelError(FusionError):
 
 
 _WORKER_CONTEXT: Any = None  # set in each worker process by _start_worker, read by _call only
-
-# set by on_cluster() in the thread of a dask task (a context variable: a dask worker may run
-# several tasks in threads, and only the one that opened it sends its work to the cluster)
-_ON_CLUSTER: contextvars.ContextVar[bool] = contextvars.ContextVar("fusion_on_cluster", default=False)
 
 # glibc's malloc returns the top of its heap to the system whenever more than M_TRIM_THRESHOLD
 # (128 KiB by default) is free there, and serves blocks above M_MMAP_THRESHOLD (128 KiB, then
@@ -205,59 +194,6 @@ def sendable(*objs: Any) -> bool:
     return True
 
 
-@contextlib.contextmanager
-def on_cluster() -> Iterator[int]:
-    """In a dask task: until the block ends, `parallel_map`, `start_map` and `call_each` with
-    workers > 1 run their calls as tasks of this task's cluster (module docstring).  Yields the
-    cluster's worker count (what to pass as `workers`).  Outside a dask task it yields 1 and
-    changes nothing."""
-    try:
-        from distributed import get_client, get_worker
-
-        get_worker()
-    except (ImportError, ValueError):
-        yield 1
-        return
-    n = len(get_client().scheduler_info(n_workers=-1)["workers"])
-    token = _ON_CLUSTER.set(True)
-    try:
-        yield n
-    finally:
-        _ON_CLUSTER.reset(token)
-
-
-def _cluster_submit(client: Any, fn: Callable[..., R], *args: Any) -> Any:
-    """A dask future of fn(*args) on a worker of `client`'s cluster other than this one when
-    there is one (a loose restriction: if they are gone it may run here); `args` are scattered
-    first, so that a whole flight's inputs do not travel inside the task graph."""
-    from distributed import get_worker
-
-    here = get_worker().address
-    others = [w for w in client.scheduler_info(n_workers=-1)["workers"] if w != here]
-    where: dict[str, Any] = {"workers": others, "allow_other_workers": True} if others else {}
-    data = client.scatter(list(args), hash=False, **({"workers": others} if others else {}))
-    return client.submit(_apply, fn, data, pure=False, **where)
-
-
-def _apply(fn: Callable[..., R], args: list) -> R:
-    return fn(*args)
-
-
-def _cluster_map(fn: Callable[[Any, T], R], tasks: list[T], context: Any) -> Iterator[R]:
-    """parallel_map's results on the cluster (on_cluster), in task order; a task's exception is
-    raised when its result is reached; the tasks not yet reached are cancelled when the caller
-    stops early."""
-    from distributed import worker_client
-
-    with worker_client() as client:
-        futures = [_cluster_submit(client, fn, context, task) for task in tasks]
-        try:
-            for f in futures:
-                yield f.result()
-        finally:
-            client.cancel(futures)
-
-
 def worker_count(requested: int | None) -> int:
     """`requested` processes, at least 1; None: one per core."""
     return (os.cpu_count() or 1) if requested is None else max(1, int(requested))
@@ -293,9 +229,7 @@ def start_workers_early(preload: Sequence[str] = ()) -> None:
     this package's imported modules: ~3 CPU s for the pipeline's) while this process goes on
     (e.g. reads the flight log) instead of when the first pool starts.  Nothing happens in a
     worker process or where there is no forkserver."""
-    if _ON_CLUSTER.get() or mp.current_process().name != "MainProcess":
-        return
-    if _forkserver_context(preload) is None:
+    if mp.current_process().name != "MainProcess" or _forkserver_context(preload) is None:
         return
     forkserver.ensure_running()
 
@@ -321,9 +255,6 @@ def parallel_map(
     if len(tasks) <= 1:
         for task in tasks:
             yield fn(context, task)
-        return
-    if _ON_CLUSTER.get():
-        yield from _cluster_map(fn, tasks, context)
         return
     if mp.current_process().name != "MainProcess":
         raise ParallelError(
@@ -421,8 +352,6 @@ def start_map(
     tasks = list(tasks)
     if workers <= 1 or len(tasks) <= 1:
         return Started([fn(context, task) for task in tasks])
-    if _ON_CLUSTER.get():  # (rarely worth it there: the results are collected now)
-        return Started(list(_cluster_map(fn, tasks, context)))
     if mp.current_process().name != "MainProcess":
         raise ParallelError("parallel work started inside a worker process; use one worker")
     started: Started[R] = Started()
@@ -473,8 +402,6 @@ def call_each(
             except Exception as e:
                 out.append(Outcome(error=e))
         return out
-    if _ON_CLUSTER.get():
-        return _cluster_each(calls)
     if mp.current_process().name != "MainProcess":
         raise ParallelError("parallel work started inside a worker process; use one worker")
     outcomes: list[Outcome] = []
@@ -491,27 +418,4 @@ def call_each(
             else:
                 tally.add(usage)
                 outcomes.append(Outcome(value))
-    return outcomes
-
-
-def _cluster_each(calls: list[tuple[Callable[..., Any], tuple, dict]]) -> list[Outcome]:
-    """call_each on the cluster (on_cluster): every call submitted at once, each Outcome in
-    call order.  A worker lost while running one (distributed's KilledWorker) is raised, not
-    returned: the cluster failed, not the call, and the calling task fails with it (fusion
-    batch then runs the flight again)."""
-    from distributed import KilledWorker, worker_client
-
-    outcomes: list[Outcome] = []
-    with worker_client() as client:
-        futures = [_cluster_submit(client, _call_one, None, call) for call in calls]
-        try:
-            for f in futures:
-                try:
-                    outcomes.append(Outcome(f.result()))
-                except KilledWorker:
-                    raise
-                except Exception as e:
-                    outcomes.append(Outcome(error=e))
-        finally:
-            client.cancel(futures)
     return outcomes

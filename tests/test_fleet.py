@@ -16,11 +16,10 @@ import pytest
 from distributed import Client, LocalCluster, WorkerPlugin
 
 from fusion.cli import EXIT_FLIGHTS_FAILED, _run_config, build_parser, main
-from fusion.errors import EstimationError, FleetError
+from fusion.errors import FleetError
 from fusion.fileio import LOCK_NAME, read_manifest
 from fusion.fleet import BatchConfig, FlightStatus, run_batch
 from fusion.fleet.flights import FlightRecord, expand_flights, output_names, read_state
-from fusion.parallel import ParallelError, call_each, on_cluster, parallel_map
 from fusion.pipeline import RunConfig, run
 from fusion.sim.simulate import simulate
 
@@ -260,48 +259,3 @@ def test_batch_takes_the_run_options_every_flight_shares():
     assert cfg.time_offsets_s == pytest.approx({"cam1": -0.003})
     assert cfg.calibrate_readout
     assert _run_config(build_parser().parse_args(["batch", "a", "--out", "o"])).floor_map is None
-
-
-# ============================================================================ work sent to the cluster
-
-
-def _where(context, task: int) -> tuple[int, str, int]:
-    from distributed import get_worker
-
-    return task, get_worker().address, context
-
-
-def _fails(x: int) -> int:
-    raise EstimationError(f"no fix for {x}")
-
-
-def _spread_inside_only(_: int) -> tuple:
-    """In a dask task: parallel_map and call_each inside on_cluster."""
-    from distributed import get_worker
-
-    here = get_worker().address
-    with on_cluster() as workers:
-        mapped = list(parallel_map(_where, range(4), workers, context=7))
-        each = call_each([(_where, (None, 9), {}), (_fails, (3,), {})], workers)
-    return here, workers, mapped, each, None
-
-
-def _spread(_: int) -> tuple:
-    """In a dask task, outside on_cluster: several workers are refused (no processes there)."""
-    return tuple(parallel_map(_where, range(2), 2, context=7))
-
-
-def test_work_sent_to_the_cluster_runs_on_the_other_worker_in_order(cluster):
-    _, client = cluster
-    with pytest.raises(ParallelError, match="inside a worker process"):
-        client.submit(_spread, 0, pure=False).result()
-    here, workers, mapped, each, _ = client.submit(_spread_inside_only, 0, pure=False).result()
-    assert workers == 2
-    assert [t for t, _, _ in mapped] == [0, 1, 2, 3] and all(c == 7 for _, _, c in mapped)
-    assert {w for _, w, _ in mapped} == set(client.scheduler_info()["workers"]) - {here}
-    assert each[0].get()[0] == 9 and each[0].get()[1] != here
-    with pytest.raises(EstimationError, match="no fix for 3"):
-        each[1].get()
-    # outside a dask task on_cluster changes nothing
-    with on_cluster() as n:
-        assert n == 1

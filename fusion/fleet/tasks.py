@@ -10,8 +10,7 @@ fusion.pipeline / fusion.qr.detect, so `fusion batch` writes what `fusion run` w
     report_task(log, out_dir, cfg, n_det, *parts)  -> FlightDone             fusion, metrics, report
 
 Tasks are module-level functions (pickled by reference) and never start processes themselves
-(RunConfig.workers = 1): the cluster is the parallelism.  The report task sends the back ends'
-work to the cluster's other workers as tasks of their own (fusion.parallel.on_cluster).
+(RunConfig.workers = 1): the cluster is the parallelism.
 """
 
 from __future__ import annotations
@@ -24,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 from fusion.log import FlightLog, open_flight
-from fusion.parallel import on_cluster
 from fusion.pipeline import (
     Computed,
     RunConfig,
@@ -142,11 +140,7 @@ def report_task(log: FlightLog, out_dir: str, cfg: RunConfig, n_detect: int, *pa
         assemble_detections(log, [_unpacked(p.value) for p in detected], cfg.backend),
         merge_front_parts(log, floor.value, [p.value for p in front]),
     )
-    with on_cluster() as workers:
-        # the back ends (smoother windows, incremental smoother, EKF) as tasks on the other
-        # workers, as `fusion run` puts them on processes: this worker then does not carry
-        # them on top of the flight's data (fusion.parallel)
-        result = run(log, Path(out_dir), dataclasses.replace(cfg, workers=workers), computed=computed)
+    result = run(log, Path(out_dir), cfg, computed=computed)
     elapsed = time.perf_counter() - t
     task_s = {
         "detect": sum(p.elapsed_s for p in detected),
