@@ -10,10 +10,14 @@ every floor frame, linearised at the TRUE per-row poses with the refinement's co
   better, to first order);
 - the image's information on a constant body-rate error over the readout against the gyro's
   (readout / sigma_g^2 per axis);
+- the same with a prior on the stamp pose (--prior-position-mm per axis, --prior-rotation-mrad
+  per axis: a fused estimate's, for a second correction pass that takes the pose from the
+  smoother);
 - PnP's rotation sigma against the gyro's rotation over one frame period (what the smoother's
   images could add to the gyro between two stamps, i.e. to a readout rotation kept as a state).
 
     PYTHONPATH=$PWD python3 scripts/rs_rate_information.py --dir D [--speed 2] [--readout-ms 30]
+        [--prior-position-mm 0.15] [--prior-rotation-mrad 0.05]
 """
 
 from __future__ import annotations
@@ -35,8 +39,9 @@ from fusion.qr.pnp import DEFAULT_CORNER_SIGMA_PX  # noqa: E402
 from fusion.qr.pnp.readout_information import ReadoutInformation, frame_readout_information  # noqa: E402
 
 
-def flight_information(flight: Path, speed: float) -> list[ReadoutInformation]:
-    """`ReadoutInformation` of every floor frame of the bench flight directory `flight`."""
+def flight_information(flight: Path, speed: float, pose_prior_cov: np.ndarray) -> list[ReadoutInformation]:
+    """`ReadoutInformation` of every floor frame of the bench flight directory `flight`, with
+    `pose_prior_cov` (6, 6) as the stamp pose's prior for its `_with_prior` field."""
     log = read_flight(flight / "log")
     cam = log.floor.camera
     gt_end_s = float(log.groundtruth.timestamps_ns[-1]) * 1e-9
@@ -61,7 +66,15 @@ def flight_information(flight: Path, speed: float) -> list[ReadoutInformation]:
         rows = trajectory.state(ts * 1e-9 + dt).T_world_body
         out.append(
             frame_readout_information(
-                cam, rows, P, covs, dt, log.imu.noise.gyroscope_noise_density, cam.readout_s, 1 / cam.rate_hz
+                cam,
+                rows,
+                P,
+                covs,
+                dt,
+                log.imu.noise.gyroscope_noise_density,
+                cam.readout_s,
+                1 / cam.rate_hz,
+                pose_prior_cov,
             )
         )
     return out
@@ -77,6 +90,7 @@ def summary(infos: list[ReadoutInformation]) -> list[str]:
     won = (now.sum() - best.sum()) / excess if excess > 0 else math.nan
     yaw = 1.0 - (xy.sum() - c0.sum()) / excess if excess > 0 else math.nan
     rate = np.array([i.rate_information_image / i.rate_information_gyro for i in infos])
+    prior = np.array([i.rate_information_image_with_prior / i.rate_information_gyro for i in infos])
     rot = np.array([(i.rotation_sigma_gyro / (math.sqrt(2.0) * i.rotation_sigma_pnp)) ** 2 for i in infos])
     return [
         f"{len(infos)} frames; PnP position RMS (mm): corners only {1e3 * math.sqrt(c0.mean()):.4f}, "
@@ -89,6 +103,8 @@ def summary(infos: list[ReadoutInformation]) -> list[str]:
         "constant body rate over the readout, image / gyro information per axis (x, y, z; upper "
         f"bound): median {np.round(np.median(rate, axis=0), 4)}, mean {np.round(rate.mean(axis=0), 4)}, "
         f"p90 {np.round(np.percentile(rate, 90, axis=0), 4)}",
+        f"the same with the stamp pose's prior: median {np.round(np.median(prior, axis=0), 4)}, "
+        f"mean {np.round(prior.mean(axis=0), 4)}",
         "rotation between consecutive stamps, images / gyro information per axis: median "
         f"{np.round(np.median(rot, axis=0), 4)} (PnP rotation sigma median "
         f"{np.round(1e3 * np.median([i.rotation_sigma_pnp for i in infos], axis=0), 4)} mrad, gyro "
@@ -101,12 +117,17 @@ def main() -> None:
     ap.add_argument("--dir", type=Path, required=True)
     ap.add_argument("--speed", type=float, default=2.0)
     ap.add_argument("--readout-ms", type=float, default=30.0)
+    ap.add_argument("--prior-position-mm", type=float, default=0.15)
+    ap.add_argument("--prior-rotation-mrad", type=float, default=0.05)
     args = ap.parse_args()
+    if not (args.prior_position_mm > 0 and args.prior_rotation_mrad > 0):
+        sys.exit("error: --prior-position-mm and --prior-rotation-mrad must be positive")
+    prior = np.diag([(1e-3 * args.prior_rotation_mrad) ** 2] * 3 + [(1e-3 * args.prior_position_mm) ** 2] * 3)
     flight = args.dir / f"v{args.speed:g}_ro{args.readout_ms:g}"
-    infos = flight_information(flight, args.speed)
+    infos = flight_information(flight, args.speed, prior)
     if not infos:
         sys.exit(f"error: {flight}: no floor frame with a code")
-    print(f"{flight}:")
+    print(f"{flight} (stamp pose prior {args.prior_position_mm:g} mm, {args.prior_rotation_mrad:g} mrad):")
     for line in summary(infos):
         print("  " + line)
 

@@ -65,6 +65,12 @@ def test_gyro_term_scales_with_the_density_squared_and_best_is_no_worse():
     assert excess_b == pytest.approx(4 * excess_a, rel=1e-6)
     assert a.pos_var_corners <= a.pos_var_best <= a.pos_var_now
     assert a.rate_information_gyro == pytest.approx(READOUT_S / DENSITY**2)
+    # without a prior the two rate informations agree; a prior on the pose can only add
+    assert np.allclose(a.rate_information_image_with_prior, a.rate_information_image)
+    prior = np.diag([5e-5] * 3 + [1.5e-4] * 3) ** 2
+    c = frame_readout_information(cam, rows, P, covs, dt, DENSITY, READOUT_S, 1 / 30, prior)
+    assert np.all(c.rate_information_image_with_prior >= a.rate_information_image - 1e-9)
+    assert np.any(c.rate_information_image_with_prior > 1.5 * a.rate_information_image)
 
 
 @pytest.mark.parametrize("stamp_row", [StampRow.FIRST, StampRow.MIDDLE])

@@ -52,7 +52,8 @@ class ReadoutInformation:
     over the readout, per body axis (x, y, z) with the pose free and the other two axes known (an
     upper bound; 0 for a global shutter), `rate_information_gyro` the gyro's, readout / sigma_g^2
     per axis; `rotation_sigma_pnp` (3,) rad PnP's rotation sigma (body axes) and
-    `rotation_sigma_gyro` rad the gyro's over one frame period."""
+    `rotation_sigma_gyro` rad the gyro's over one frame period; `rate_information_image_with_prior`
+    (3,) as `rate_information_image` with the stamp pose's prior (e.g. a fused estimate) added."""
 
     pos_var_corners: float
     pos_var_now: float
@@ -62,6 +63,7 @@ class ReadoutInformation:
     rate_information_gyro: float
     rotation_sigma_pnp: np.ndarray
     rotation_sigma_gyro: float
+    rate_information_image_with_prior: np.ndarray
 
 
 def random_walk_covariance(dt_s: np.ndarray, density: float) -> np.ndarray:
@@ -81,13 +83,16 @@ def frame_readout_information(
     gyro_density: float,
     readout_s: float,
     frame_period_s: float,
+    pose_prior_cov: np.ndarray | None = None,
 ) -> ReadoutInformation:
     """One frame's `ReadoutInformation` (module docstring).  M corners of C = M / 4 codes:
     `T_world_body_rows` (M, 4, 4) the body pose at each corner's row time (the linearisation
     point, e.g. the truth), `p_world` (M, 3) the corners' world points, `corner_cov_px2` (C, 8, 8)
     each code's corner covariance (px^2, TL u, TL v, TR u, ...), `dt_s` (M,) each corner's row
     time from the stamp, `gyro_density` rad/s/sqrt(Hz), `readout_s` the whole frame's readout
-    (s; 0 for a global shutter), `frame_period_s` s between stamps.  Raises EstimationError when
+    (s; 0 for a global shutter), `frame_period_s` s between stamps, `pose_prior_cov` (6, 6) optional
+    covariance of a prior on the stamp pose ([rx, ry, rz] body rad, [tx, ty, tz] world m) for
+    `rate_information_image_with_prior`.  Raises EstimationError when
     the corners do not fix the pose (fewer than one code)."""
     T_rows = np.asarray(T_world_body_rows, float)
     P = np.asarray(p_world, float)
@@ -142,6 +147,10 @@ def frame_readout_information(
     # upper bound (a one-code frame leaves the 3 x 3 block singular)
     I_pp, I_pr, I_rr = J_pose.T @ W_c @ J_pose, J_pose.T @ W_c @ J_rate, J_rate.T @ W_c @ J_rate
     rate_info = I_rr - I_pr.T @ np.linalg.solve(I_pp, I_pr)
+    rate_info_prior = rate_info
+    if pose_prior_cov is not None:
+        I_pp_prior = I_pp + np.linalg.inv(np.asarray(pose_prior_cov, float))
+        rate_info_prior = I_rr - I_pr.T @ np.linalg.solve(I_pp_prior, I_pr)
     return ReadoutInformation(
         pos_var_corners=float(np.trace(C_0[3:, 3:])),
         pos_var_now=float(np.trace(C_now[3:, 3:])),
@@ -151,4 +160,5 @@ def frame_readout_information(
         rate_information_gyro=readout_s / gyro_density**2 if gyro_density > 0 else math.inf,
         rotation_sigma_pnp=np.sqrt(np.diag(C_0)[:3]),
         rotation_sigma_gyro=gyro_density * math.sqrt(frame_period_s),
+        rate_information_image_with_prior=np.clip(np.diag(rate_info_prior), 0.0, None),
     )
