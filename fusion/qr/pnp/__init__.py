@@ -9,6 +9,8 @@ Modules, one responsibility each (the public names are re-exported here):
     floor.py       floor camera (cam0): body pose from all floor codes of a frame (PnPResult)
     load.py        front camera (cam1): load-code centres in camera and world (LoadObservation)
     flight.py      whole flights: pnp_trajectory, pnp_load_observations, the load map, PnPStats
+    readout_information.py  (diagnostic, not re-exported) the gyro's rolling-shutter readout noise
+                   in one frame's PnP, and what image + gyro together could win back
 
 Speed: each frame is solved on its own, but many frames are computed together
 (`estimate_floor_poses`, `estimate_load_observations_frames`; `pnp_trajectory` and
