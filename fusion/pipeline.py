@@ -410,6 +410,11 @@ def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tupl
     return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
 
 
+CORRELATION_EXCLUDE = {"refined": "the removed corner bias's consider term carries it (cornerbias.py)"}
+"""Corner classes whose time correlation is not inflated on a flight whose common corner bias
+was removed (the bias model's class: fusion.qr.pnp.bias)."""
+
+
 def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
     results, in time order (no load observations yet)."""
@@ -444,6 +449,9 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         [g for p in parts for g in p["pnp_stats"].frame_class_covariance],
         variance.applied_class_scales(stats["pnp"]["noise_scale"]),
         cfg.estimate_noise_scale and cfg.inflate_correlated,
+        # a removed corner bias (refined corners only) is in these residuals, correlated over
+        # every frame, and its consider term already carries it: not counted twice
+        exclude=CORRELATION_EXCLUDE if bias_report is not None and bias_report.get("applied") else None,
     )
     trajectories["pnp"] = traj_pnp
     return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider, correlation=inflation)

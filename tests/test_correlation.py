@@ -269,3 +269,15 @@ def test_pipeline_carries_the_inflation_only_when_asked():
     assert off.correlation is None and not off.stats["pnp"]["correlation"]["applied"]
     # the PnP trajectory itself keeps its per-frame covariances
     np.testing.assert_array_equal(on.trajectories["pnp"].covariances, off.trajectories["pnp"].covariances)
+
+
+def test_excluded_class_is_reported_not_applied():
+    rng = np.random.default_rng(4)
+    frames = synthetic_frames(rng, 60, 0.8, phi_refined=0.8)
+    traj = trajectory(np.tile(np.eye(6), (60, 1, 1)), n=60)
+    G = np.tile(0.5 * np.eye(6), (60, 2, 1, 1))
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), exclude={"refined": "bias"})
+    assert report["classes"]["refined"]["tau"] > 2 and report["classes"]["refined"]["not_applied"] == "bias"
+    assert inf is not None and inf.taus[REF] == 1.0 and inf.taus[DEC] > 2 and inf.lags_used[REF] == 0
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), exclude={"refined": "x", "decoder": "y"})
+    assert inf is None and not report["applied"]

@@ -286,12 +286,14 @@ def estimate_inflation(
     class_covariances: Sequence[np.ndarray],
     class_scales: np.ndarray,
     apply: bool = True,
+    exclude: dict[str, str] | None = None,
 ) -> tuple[dict, CorrelationInflation | None]:
     """Per corner class tau_c of the flight's PnP frames (`traj`, one pose per entry of `frames`
     and of `class_covariances` (k, 6, 6) G_c, in order), and the back ends' inflation when
     `apply` and some tau_c > 1 (None otherwise).  `class_scales` (k,): the variance factors
-    applied to the classes (1 when none).  Returns the JSON-ready report (per class
-    ClassCorrelation.as_dict, `applied`) and the inflation."""
+    applied to the classes (1 when none).  `exclude` {class: reason}: classes whose tau is
+    reported but not applied (the reason in the report's `not_applied`).  Returns the JSON-ready
+    report (per class ClassCorrelation.as_dict, `applied`) and the inflation."""
     if len(frames) != len(traj) or len(class_covariances) != len(traj):
         raise ValueError(
             f"correlation: {len(frames)} frames of residuals and {len(class_covariances)} of class "
@@ -304,8 +306,11 @@ def estimate_inflation(
     for c, name in enumerate(CORNER_CLASSES):
         rho_c, pairs, n, codes = acf[name]
         tau, n_used = integrated_time(rho_c, pairs)
-        taus[c] = tau
         report["classes"][name] = ClassCorrelation(rho_c, pairs, n_used, tau, n, codes).as_dict()
+        if exclude and name in exclude:
+            report["classes"][name]["not_applied"] = exclude[name]
+            continue
+        taus[c] = tau
     if not (apply and np.any(taus > 1.0)) or traj.covariances is None or not len(traj):
         return report, None
     terms = (
@@ -313,7 +318,12 @@ def estimate_inflation(
         * np.asarray(class_scales, dtype=float)[None, :, None, None]
     )
     rho = np.stack([np.nan_to_num(acf[name][0]) for name in CORNER_CLASSES])
-    used = np.array([report["classes"][name]["lags_used"] for name in CORNER_CLASSES])
+    used = np.array(
+        [
+            report["classes"][name]["lags_used"] if taus[c] > 1.0 else 0
+            for c, name in enumerate(CORNER_CLASSES)
+        ]
+    )
     dt = int(np.median(np.diff(t))) if len(t) > 1 else 0
     report["applied"] = True
     return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2)
