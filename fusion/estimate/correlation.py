@@ -94,37 +94,36 @@ def class_autocorrelation(
     frame_index: np.ndarray, frames: Sequence[FrameCodeResiduals | None], max_lag: int = MAX_LAG
 ) -> dict[str, tuple[np.ndarray, np.ndarray, int, int]]:
     """Per corner class: (rho (max_lag,), pairs (max_lag,), sightings, codes) of the whitened
-    residuals of the same code `l` frames apart (frame_index (n,) of the n `frames`)."""
+    residuals of the same code `l` frames apart (frame_index (n,) of the n `frames`; a code
+    seen twice in one frame keeps its last sighting).  Vectorised: each sighting keyed by
+    (code, frame), the partner l frames later found by a sorted search."""
+    kept = [(int(f), fr) for f, fr in zip(frame_index, frames) if fr is not None and len(fr.payloads)]
+    names: dict[str, int] = {}
+    code = np.array([names.setdefault(p, len(names)) for _, fr in kept for p in fr.payloads], dtype=np.int64)
+    frame = np.repeat(np.array([f for f, _ in kept], dtype=np.int64), [len(fr.payloads) for _, fr in kept])
+    cls = np.concatenate([fr.classes for _, fr in kept]).astype(np.int64) if kept else np.zeros(0, np.int64)
+    r = np.concatenate([np.asarray(fr.whitened, dtype=float) for _, fr in kept]) if kept else np.zeros((0, 8))
+    finite = np.isfinite(r).all(axis=1)
+    span = int(frame.max() - frame.min()) + max_lag + 1 if len(frame) else 1
     out = {}
     for c, name in enumerate(CORNER_CLASSES):
-        series: dict[str, dict[int, np.ndarray]] = {}
-        for f, fr in zip(frame_index, frames):
-            if fr is None:
-                continue
-            for payload, cls, r in zip(fr.payloads, fr.classes, fr.whitened):
-                if int(cls) == c and np.all(np.isfinite(r)):
-                    series.setdefault(payload, {})[int(f)] = np.asarray(r, dtype=float)
+        sel = finite & (cls == c)
+        key = code[sel] * span + (frame[sel] - (frame.min() if len(frame) else 0))
+        key, first = np.unique(key[::-1], return_index=True)  # one sighting per (code, frame)
+        rc = r[sel][::-1][first]
         prod = np.zeros(max_lag)
         pairs = np.zeros(max_lag, dtype=np.int64)
-        sq = 0.0
-        n = 0
-        for by_frame in series.values():
-            for f, r in by_frame.items():
-                sq += float(r @ r)
-                n += 1
-                for lag in range(1, max_lag + 1):
-                    other = by_frame.get(f + lag)
-                    if other is not None:
-                        prod[lag - 1] += float(r @ other)
-                        pairs[lag - 1] += 1
-        var = sq / n if n else 0.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho = (
-                np.where(pairs > 0, prod / np.maximum(pairs, 1) / var, np.nan)
-                if var > 0
-                else np.full(max_lag, np.nan)
-            )
-        out[name] = (rho, pairs, n, len(series))
+        for lag in range(1, max_lag + 1):
+            j = np.searchsorted(key, key + lag)
+            j = np.minimum(j, len(key) - 1)
+            hit = key[j] == key + lag if len(key) else np.zeros(0, bool)
+            pairs[lag - 1] = int(hit.sum())
+            prod[lag - 1] = float(np.sum(rc[hit] * rc[j[hit]]))
+        n = len(key)
+        var = float(np.sum(rc * rc)) / n if n else 0.0
+        rho = prod / np.maximum(pairs, 1) / var if var > 0 else np.zeros(max_lag)
+        rho = np.where(pairs > 0, rho, np.nan)
+        out[name] = (rho, pairs, n, len(np.unique(code[sel])))
     return out
 
 
