@@ -680,7 +680,7 @@ def fuse_stage(
     # time-correlated corner errors: the PnP poses are worth fewer independent frames
     # (correlation.py): each back end solved on them once, then again with their covariances
     # inflated for the average that solve took of the frames (solve_inflated)
-    inflation = loc.correlation
+    inflation = getattr(loc, "correlation", None)  # stand-ins of a LocalizeResult may lack it
     merged = None
     if fixes is not None:
         camera_t = log.floor.timestamps_ns if "cam0" in log.cameras else None
@@ -702,7 +702,7 @@ def fuse_stage(
         tight=cfg.tight,
         noise_scale_iterations=FusionConfig.noise_scale_iterations if cfg.estimate_noise_scale else 0,
         # the smoother's residuals understate time-correlated errors: never scale them down
-        pose_scale_floor=1.0 if loc.correlation is not None else 0.0,
+        pose_scale_floor=1.0 if inflation is not None else 0.0,
     )
     # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
     has_floor = fixes is None or "cam0" in log.cameras
