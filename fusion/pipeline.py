@@ -772,7 +772,15 @@ def fuse_stage(
                     res = fn(frame_t, log.imu, raw, load_obs, **common)
                 else:
                     res = correlation.solve_inflated(
-                        fn, frame_t, log.imu, raw, load_obs, inflation=inflation, two_sided=True, **common
+                        fn,
+                        frame_t,
+                        log.imu,
+                        raw,
+                        load_obs,
+                        inflation=inflation,
+                        two_sided=True,
+                        keep_noise_scales=True,
+                        **common,
                     )
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)

@@ -281,3 +281,39 @@ def test_excluded_class_is_reported_not_applied():
     assert inf is not None and inf.taus[REF] == 1.0 and inf.taus[DEC] > 2 and inf.lags_used[REF] == 0
     report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), exclude={"refined": "x", "decoder": "y"})
     assert inf is None and not report["applied"]
+
+
+def test_solve_inflated_keeps_the_first_solves_noise_scales():
+    """The batch smoother's second (inflated) solve takes the first solve's per-camera scales
+    as they are (poses x cam0, loads x cam1, tight corners x cam0) and estimates none."""
+    from types import SimpleNamespace
+
+    from fusion.estimate import FusionConfig
+    from fusion.types import LoadObservation
+
+    inf = inflation(np.array([0.5, 0.3]), 2)
+    raw = trajectory(np.tile(np.eye(6), (4, 1, 1)))
+    report = {"cameras": {"cam0": {"scale": 1.5}, "cam1": {"scale": 0.25}}}
+    load = [LoadObservation(0, "L", np.zeros(3), np.eye(3), p_cam=np.zeros(3), cov_cam=np.eye(3))]
+    calls = []
+
+    def fn(frame_t, imu, raw_, load_obs, config):
+        calls.append((raw_.covariances.copy(), load_obs[0].cov_cam.copy(), config))
+        traj = trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1)))
+        return SimpleNamespace(
+            trajectory=traj, stats={"noise_scales": dict(report) if len(calls) == 1 else {}}
+        )
+
+    cfg = FusionConfig(corner_noise_scale=2.0)
+    res = co.solve_inflated(
+        fn, None, None, raw, load, inflation=inf, two_sided=True, keep_noise_scales=True, config=cfg
+    )
+    (c1, l1, cfg1), (c2, l2, cfg2) = calls
+    assert cfg1 is cfg and cfg2.noise_scale_iterations == 0 and cfg2.corner_noise_scale == pytest.approx(3.0)
+    np.testing.assert_allclose(l2, 0.25 * np.eye(3))
+    inflated = inf.directional(raw, trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1))), True).covariances
+    np.testing.assert_allclose(c2, 1.5 * inflated)
+    assert (
+        res.stats["noise_scales"]["cameras"] == report["cameras"]
+        and res.stats["noise_scales"]["inflated_solve"]
+    )

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -258,17 +258,39 @@ def solve_inflated(
     *,
     inflation: CorrelationInflation,
     two_sided: bool,
+    keep_noise_scales: bool = False,
     **kwargs,
 ):
     """A back end `fn` (smooth / smooth_windowed: `two_sided`; run_ekf, smooth_incremental: not;
     the same call as theirs) on PnP poses `raw` whose corner errors are correlated in time:
     solved once on `raw` as it is, then again on `raw` with each frame's covariance inflated for
     the average that solve took of the frames, direction by direction
-    (`CorrelationInflation.directional`).  Its stats gain `correlation_inflation`: the median
-    over the frames of the inflated covariance's trace over the raw one's."""
+    (`CorrelationInflation.directional`).  `keep_noise_scales` (the batch smoother, which
+    estimates them: variance.solve_noise_scaled): the noise scales of the first solve (per
+    camera, cam0 for the poses and tight corners, cam1 for the loads) are applied to the second
+    as they are and not estimated again (the inflated covariances would read as too large: the
+    residuals of a correlated error understate it), and its report is the first solve's.  Its
+    stats gain `correlation_inflation`: the median over the frames of the inflated covariance's
+    trace over the raw one's."""
+    from fusion.estimate import variance
+
     first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
     inflated = inflation.directional(raw, first.trajectory, two_sided)
-    res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
+    report = first.stats.get("noise_scales") if keep_noise_scales else None
+    if report is not None:
+        again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
+        config = kwargs.get("config")
+        if config is not None:
+            kwargs = dict(
+                kwargs,
+                config=replace(
+                    config, noise_scale_iterations=0, corner_noise_scale=config.corner_noise_scale * s0
+                ),
+            )
+        res = fn(frame_times_ns, imu, again, load_again, **kwargs)
+        res.stats["noise_scales"] = dict(report, inflated_solve=True)
+    else:
+        res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
     ratio = np.ones(0)
     if raw.covariances is not None and inflated.covariances is not None and len(raw):
         ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
