@@ -749,14 +749,15 @@ def fuse_stage(
             calls = [
                 (
                     (f, (frame_t, log.imu, raw, load_obs), {})
-                    if inflation is None
+                    # the tight incremental smoother takes corners, not poses
+                    if inflation is None or (cfg.tight and n_ == Estimator.INCREMENTAL)
                     else (
                         correlation.solve_inflated,
                         (f, frame_t, log.imu, raw, load_obs),
                         {"inflation": inflation, "two_sided": False},
                     )
                 )
-                for _, f, _ in solvers[i:]
+                for n_, f, _ in solvers[i:]
             ]
             calls = [
                 (f, args, dict(kw0, front_camera=front, velocity=log.velocity, config=fcfg, **kw))
@@ -768,7 +769,7 @@ def fuse_stage(
                 res = at_once.pop(name).get()
             else:
                 common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kwargs)
-                if inflation is None:
+                if inflation is None or cfg.tight:  # the tight smoother takes corners, not poses
                     res = fn(frame_t, log.imu, raw, load_obs, **common)
                 else:
                     res = correlation.solve_inflated(
