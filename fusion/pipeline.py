@@ -32,6 +32,7 @@ from fusion.estimate import (
     Status,
     assess_result,
     cornerbias,
+    correlation,
     run_ekf,
     smooth,
     smooth_incremental,
@@ -143,6 +144,10 @@ class RunConfig:
     # with estimate_noise_scale: a floor-corner bias common to the flight, removed from the PnP
     # poses when significant and its uncertainty added to every pose covariance (cornerbias.py)
     correct_corner_bias: bool = True
+    # with estimate_noise_scale: corner errors correlated from frame to frame (per corner class,
+    # from the PnP residuals' autocorrelation) inflate the back ends' PnP input covariances by
+    # their correlation time (correlation.py)
+    inflate_correlated: bool = True
     # the track pass (--track): undecoded floor codes a predicted pose puts in view; off by default
     # (it made the clean demo's PnP ATE worse: BENCHMARKS.md)
     track: bool = False
@@ -305,6 +310,8 @@ class LocalizeResult:
     camera_frame_observations: list[LoadObservation] = field(default_factory=list)
     # the removed common corner bias's uncertainty, for the fused covariances (cornerbias.py)
     bias_consider: cornerbias.BiasConsider | None = None
+    # the back ends' extra input covariance for time-correlated corner errors (correlation.py)
+    correlation: correlation.CorrelationInflation | None = None
 
 
 @dataclass
@@ -420,6 +427,11 @@ def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tupl
     return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
 
 
+CORRELATION_EXCLUDE = {"refined": "the removed corner bias's consider term carries it (cornerbias.py)"}
+"""Corner classes whose time correlation is not inflated on a flight whose common corner bias
+was removed (the bias model's class: fusion.qr.pnp.bias)."""
+
+
 def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
     results, in time order (no load observations yet)."""
@@ -446,8 +458,20 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     )
     if bias_report is not None:
         stats["pnp"]["corner_bias"] = bias_report
+    # corner errors correlated in time (issue 10.3): the back ends' inputs count them as fewer
+    # independent frames; the PnP trajectory keeps its per-frame covariances
+    stats["pnp"]["correlation"], inflation = correlation.estimate_inflation(
+        traj_pnp,
+        [r for p in parts for r in p["pnp_stats"].frame_code_residuals],
+        [g for p in parts for g in p["pnp_stats"].frame_class_covariance],
+        variance.applied_class_scales(stats["pnp"]["noise_scale"]),
+        cfg.estimate_noise_scale and cfg.inflate_correlated,
+        # a removed corner bias (refined corners only) is in these residuals, correlated over
+        # every frame, and its consider term already carries it: not counted twice
+        exclude=CORRELATION_EXCLUDE if bias_report is not None and bias_report.get("applied") else None,
+    )
     trajectories["pnp"] = traj_pnp
-    return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider)
+    return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider, correlation=inflation)
 
 
 def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) -> LocalizeResult:
@@ -459,7 +483,15 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     maps: dict[str, LoadMap] = {}
     if log.front is None:
         notes.append("no front camera (mav0/cam1) in this log: no load map")
-        return LocalizeResult(trajectories, obs, maps, floor.stats, notes, bias_consider=floor.bias_consider)
+        return LocalizeResult(
+            trajectories,
+            obs,
+            maps,
+            floor.stats,
+            notes,
+            bias_consider=floor.bias_consider,
+            correlation=floor.correlation,
+        )
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
         if errors:
@@ -472,7 +504,9 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     # The landmark factors of the fusion back end need only the camera-frame measurement, so
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
     camera_frame = obs["pnp"] + [o for p in parts for o in p["unposed"]]
-    return LocalizeResult(trajectories, obs, maps, floor.stats, notes, camera_frame, floor.bias_consider)
+    return LocalizeResult(
+        trajectories, obs, maps, floor.stats, notes, camera_frame, floor.bias_consider, floor.correlation
+    )
 
 
 _LOCALIZE_PRELOAD = ("fusion.pipeline",)
@@ -660,6 +694,10 @@ def fuse_stage(
     same frames."""
     out = FuseStageResult()
     raw = loc.trajectories.get(str(Estimator.PNP), Trajectory.empty(str(Estimator.PNP)))
+    # time-correlated corner errors: the PnP poses are worth fewer independent frames
+    # (correlation.py): each back end solved on them once, then again with their covariances
+    # inflated for the average that solve took of the frames (solve_inflated)
+    inflation = getattr(loc, "correlation", None)  # stand-ins of a LocalizeResult may lack it
     merged = None
     if fixes is not None:
         camera_t = log.floor.timestamps_ns if "cam0" in log.cameras else None
@@ -680,6 +718,8 @@ def fuse_stage(
         robust_kernel=kernel,
         tight=cfg.tight,
         noise_scale_iterations=FusionConfig.noise_scale_iterations if cfg.estimate_noise_scale else 0,
+        # the smoother's residuals understate time-correlated errors: never scale them down
+        pose_scale_floor=1.0 if inflation is not None else 0.0,
     )
     # only a log read for external fixes may lack the floor camera (LogOptions.cameras_optional)
     has_floor = fixes is None or "cam0" in log.cameras
@@ -725,27 +765,41 @@ def fuse_stage(
         if name != Estimator.SMOOTHER and not at_once:
             calls = [
                 (
-                    f,
-                    (frame_t, log.imu, raw, load_obs),
-                    dict(front_camera=front, velocity=log.velocity, config=fcfg, **kw),
+                    (f, (frame_t, log.imu, raw, load_obs), {})
+                    # the tight incremental smoother takes corners, not poses
+                    if inflation is None or (cfg.tight and n_ == Estimator.INCREMENTAL)
+                    else (
+                        correlation.solve_inflated,
+                        (f, frame_t, log.imu, raw, load_obs),
+                        {"inflation": inflation, "two_sided": False},
+                    )
                 )
-                for _, f, kw in solvers[i:]
+                for n_, f, _ in solvers[i:]
+            ]
+            calls = [
+                (f, args, dict(kw0, front_camera=front, velocity=log.velocity, config=fcfg, **kw))
+                for (f, args, kw0), (_, _, kw) in zip(calls, solvers[i:])
             ]
             at_once = dict(zip((n for n, _, _ in solvers[i:]), call_each(calls, workers)))
         try:
             if name in at_once:
                 res = at_once.pop(name).get()
             else:
-                res = fn(
-                    frame_t,
-                    log.imu,
-                    raw,
-                    load_obs,
-                    front_camera=front,
-                    velocity=log.velocity,
-                    config=fcfg,
-                    **kwargs,
-                )
+                common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kwargs)
+                if inflation is None or cfg.tight:  # the tight smoother takes corners, not poses
+                    res = fn(frame_t, log.imu, raw, load_obs, **common)
+                else:
+                    res = correlation.solve_inflated(
+                        fn,
+                        frame_t,
+                        log.imu,
+                        raw,
+                        load_obs,
+                        inflation=inflation,
+                        two_sided=True,
+                        keep_noise_scales=True,
+                        **common,
+                    )
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
@@ -770,6 +824,8 @@ def fuse_stage(
             raw, load_obs, corner_scale = variance.apply_smoother_scales(
                 res.stats.get("noise_scales"), raw, load_obs
             )
+            if inflation is not None:  # its terms are shares of raw's covariance: scaled alike
+                inflation = replace(inflation, class_terms=inflation.class_terms * corner_scale)
             fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")

@@ -23,6 +23,9 @@ Columns:
                 lower edge, px) estimated from the PnP residuals and its statistic T
                 (fusion.estimate.cornerbias; "removed" when T passed the gate and the "after"
                 rows are corrected; "-" with fewer than 20 posed frames)
+  τ ref / dec   the integrated correlation time (frames) of the refined / decoder-fallback
+                corners' PnP residuals (fusion.estimate.correlation); "inflated" when some is
+                above 1 and the "after" back ends took the PnP frames as that many fewer
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
@@ -190,13 +193,21 @@ def pos_errors_m(log, traj) -> np.ndarray:
     return np.linalg.norm(a.T_world_body_est[:, :3, 3] - a.T_world_body_gt[:, :3, 3], axis=1)
 
 
-def back_end(log, det, honest: bool, pose_cov_added: dict | None = None, corner_bias: bool = True) -> dict:
+def back_end(
+    log,
+    det,
+    honest: bool,
+    pose_cov_added: dict | None = None,
+    corner_bias: bool = True,
+    correlated: bool = True,
+) -> dict:
     cfg = pipeline.RunConfig(
         workers=1,
         progress=False,
         incremental=False,
         estimate_noise_scale=honest,
         correct_corner_bias=corner_bias,
+        inflate_correlated=correlated,
     )
     loc = pipeline.localize_stage(log, det, cfg)
     if pose_cov_added:  # the readout correction's motion uncertainty (as pipeline.run adds it)
@@ -245,7 +256,14 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         added = report.pose_cov_added
     row = {"effect": effect, "level": label, **front_end_errors(log, det, resolution)}
     before = back_end(log, det, honest=False, pose_cov_added=added)
-    after = back_end(log, det, honest=True, pose_cov_added=added, corner_bias=not args.no_corner_bias)
+    after = back_end(
+        log,
+        det,
+        honest=True,
+        pose_cov_added=added,
+        corner_bias=not args.no_corner_bias,
+        correlated=not args.no_correlation,
+    )
     pnp = after["pnp"]
     if len(pnp):
         e = pos_errors_m(log, pnp)
@@ -272,6 +290,13 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         )
         + f" (T {cb['statistic']:.0f}{', removed' if cb['applied'] else ''})"
     )
+    corr = noise.get("pnp_correlation")
+    row["corr"] = (
+        "-"
+        if not corr
+        else " / ".join(f"{c['tau']:.2f}" for c in corr["classes"].values())
+        + (" inflated" if corr["applied"] else "")
+    )
     row["noise_line"] = summary_line(noise)
     row["time_s"] = time.perf_counter() - t0
     row["sim_s"] = t_sim
@@ -293,8 +318,9 @@ def in_band(x: float, dof: int = 6) -> bool:
 def table(rows: list[dict]) -> list[str]:
     out = [
         "| effect | level | floor dec % | load obs | raw px | ref px | PnP mm | >5cm | NEES pnp | "
-        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ | corner bias |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ | corner bias | "
+        "τ ref / dec |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         out.append(
@@ -303,7 +329,7 @@ def table(rows: list[dict]) -> list[str]:
             f"{r['pnp_out']}/{r['pnp_n']} | "
             f"{nees_cell(r['nees_pnp'])} | {nees_cell(r['nees_smoother'])} | {nees_cell(r['nees_ekf'])} | "
             f"{fmt(r['ate_mm'], '.1f')} | {fmt(r['s_cam0'])} | {fmt(r['s_cam1'])} | {fmt(r['imu'])} | "
-            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} |"
+            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} | {r['corr']} |"
         )
     return out
 
@@ -343,6 +369,12 @@ def main() -> int:
         action="store_true",
         help="leave the floor corners' common bias in (RunConfig.correct_corner_bias off): the 'after' "
         "columns as before fusion.estimate.cornerbias",
+    )
+    ap.add_argument(
+        "--no-correlation",
+        action="store_true",
+        help="take the PnP frames as independent in the back ends (RunConfig.inflate_correlated off): "
+        "the 'after' columns as before fusion.estimate.correlation",
     )
     args = ap.parse_args()
     if args.duration is None:

@@ -187,6 +187,10 @@ class FusionConfig:
     # factors' covariance (set by that estimation).
     noise_scale_iterations: int = 2
     corner_noise_scale: float = 1.0
+    # the least variance factor the estimation may give the per-frame pose group (0: none): 1
+    # when the poses' errors are correlated in time (fusion.estimate.correlation), which makes
+    # the smoother's residuals smaller than the errors' variance (it follows their slow part)
+    pose_scale_floor: float = 0.0
     # measure each group's chi2/dof at all (False: neither scaled nor checked; the time-offset
     # profile's many solves, whose shifted frames misfit on purpose)
     check_noise: bool = True

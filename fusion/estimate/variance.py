@@ -366,16 +366,22 @@ class NoiseScales:
         return float(getattr(self, str(group), 1.0))
 
 
-def next_noise_scales(scales: NoiseScales, comps: dict | None) -> NoiseScales | None:
+def next_noise_scales(scales: NoiseScales, comps: dict | None, pose_floor: float = 0.0) -> NoiseScales | None:
     """The iterated estimator's next scales: every applicable group (pose, corners, load) with
     enough degrees of freedom and chi2/dof off 1 by more than SCALE_TOLERANCE gets its scale
-    multiplied by its chi2/dof (clamped); None when none changes (converged)."""
+    multiplied by its chi2/dof (clamped; the pose group's at least `pose_floor`:
+    FusionConfig.pose_scale_floor); None when none changes (converged)."""
     change = False
     for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
         c = (comps or {}).get(g)
         if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
             continue
-        scales = replace(scales, **{str(g): clamp_scale(scales.of(g) * c.scale)})
+        new = clamp_scale(scales.of(g) * c.scale)
+        if g == NoiseGroup.POSE and new < pose_floor:
+            if scales.of(g) == pose_floor:
+                continue  # held at the floor already: nothing to solve again for
+            new = pose_floor
+        scales = replace(scales, **{str(g): new})
         change = True
     return scales if change else None
 
@@ -386,7 +392,7 @@ again after it: then that solve's covariances are never used and need not be com
 
 
 def solve_with_noise_scales(
-    solve: Callable[..., Any], iterations: int, what: str = "smoother"
+    solve: Callable[..., Any], iterations: int, what: str = "smoother", pose_floor: float = 0.0
 ) -> tuple[Any, dict]:
     """Iterated variance-component estimation around `solve(scales, resolves=pred) ->
     FusionResult` (whose stats['variance_components'] maps NoiseGroup -> VarianceComponent at
@@ -408,7 +414,7 @@ def solve_with_noise_scales(
         # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml,
         # clock), not noise: the smoother's IMU-rejection path handles them, unscaled.
         return lambda comps, health: (
-            left > 0 and not health.gate_skipped and next_noise_scales(scales_, comps) is not None
+            left > 0 and not health.gate_skipped and next_noise_scales(scales_, comps, pose_floor) is not None
         )
 
     scales = NoiseScales()
@@ -416,7 +422,7 @@ def solve_with_noise_scales(
     n_solves = 1
     skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
     for i in range(0 if skip else budget):
-        new = next_noise_scales(scales, res.stats.get("variance_components"))
+        new = next_noise_scales(scales, res.stats.get("variance_components"), pose_floor)
         if new is None:
             break
         scales = new
@@ -441,6 +447,8 @@ def solve_with_noise_scales(
             entry["applied_scale"] = scales.of(g)
             cam = CAMERA_OF_GROUP[g]
             total = scales.of(g) * (c.scale if c.usable and not skip else 1.0)
+            if g == NoiseGroup.POSE and not skip:
+                total = max(total, pose_floor)
             report["cameras"][cam] = {
                 "scale": total,
                 "sigma_factor": math.sqrt(total),
@@ -484,7 +492,9 @@ def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -
             **kw,
         )
 
-    res, report = solve_with_noise_scales(solve, config.noise_scale_iterations)
+    res, report = solve_with_noise_scales(
+        solve, config.noise_scale_iterations, pose_floor=config.pose_scale_floor
+    )
     res.stats.pop("variance_components", None)
     res.stats["noise_scales"] = report
 
@@ -597,6 +607,23 @@ def scale_pnp_trajectory_by_class(
     return out, report
 
 
+def applied_class_scales(report: dict) -> np.ndarray:
+    """(k,) the variance factor each corner class's covariance got from
+    `scale_pnp_trajectory_by_class` (its report): the class factors when applied by class, the
+    pooled factor for all when applied pooled, else ones."""
+    from fusion.qr.pnp.whitening import CORNER_CLASSES
+
+    out = np.ones(len(CORNER_CLASSES))
+    if report.get("by_class"):
+        for i, name in enumerate(CORNER_CLASSES):
+            s = (report.get("classes") or {}).get(name, {}).get("applied_scale")
+            if s is not None:
+                out[i] = float(s)
+    elif report.get("applied"):
+        out[:] = clamp_scale(float(report["scale"]))
+    return out
+
+
 def apply_smoother_scales(report: dict | None, raw: Trajectory, load_obs):
     """(raw, load_obs, corner_scale) rescaled with the batch smoother's final per-camera scales
     (`solve_noise_scaled`'s report: cam0 for the poses and corners, cam1 for the loads), for the
@@ -624,6 +651,8 @@ def noise_summary(pnp_stats: dict, fused_stats: dict) -> dict:
         out["pnp"] = pnp_stats["noise_scale"]
     if "corner_bias" in pnp_stats:
         out["pnp_corner_bias"] = pnp_stats["corner_bias"]
+    if "correlation" in pnp_stats:
+        out["pnp_correlation"] = pnp_stats["correlation"]
     smoother = fused_stats.get("smoother", {}).get("noise_scales")
     if smoother:
         out["smoother"] = smoother
@@ -669,5 +698,12 @@ def summary_line(summary: dict) -> str:
                 for b in bias["bins"]
             )
             + f"; T {bias['statistic']:.0f} > {bias['threshold']:.1f})"
+        )
+    corr = summary.get("pnp_correlation")
+    if corr and corr.get("applied"):
+        parts.append(
+            "cam0 corner errors correlated over frames (back ends' input x "
+            + ", ".join(f"{n} {c['tau']:.1f}" for n, c in corr["classes"].items() if c["tau"] > 1.0)
+            + ")"
         )
     return ("noise chi2/dof (1 = as modelled; applied): " + ", ".join(parts)) if parts else ""

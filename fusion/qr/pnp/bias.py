@@ -121,6 +121,49 @@ class FrameBiasTerms:
         return out
 
 
+@dataclass
+class FrameCodeResiduals:
+    """One posed frame's corner residuals per code, whitened as PnP whitens them (observed -
+    predicted at the frame's PnP pose, W (z - h), identity covariance when the corner model is
+    right): `payloads` (n,), `classes` (n,) index into whitening.CORNER_CLASSES, `whitened`
+    (n, 8) [TL u, TL v, ..., BL v].  For the time correlation of each class's corner errors
+    (fusion.estimate.correlation): the same code's residuals in consecutive frames."""
+
+    payloads: tuple[str, ...]
+    classes: np.ndarray
+    whitened: np.ndarray
+
+
+def frames_code_residuals(
+    camera: CameraModel, frames: list[list[FloorSighting]], T_world_body: np.ndarray, corner_sigma_px: float
+) -> list[FrameCodeResiduals]:
+    """`FrameCodeResiduals` of many posed frames (frames (F,) lists of the sightings each pose
+    used, T_world_body (F, 4, 4)), the reprojection done once for all codes (as
+    `frames_bias_terms`: fusion.qr.reprojection.floor_reprojection at each code's frame pose)."""
+    F = len(frames)
+    if not F:
+        return []
+    sightings = [s for f in frames for s in f]
+    frame_of = np.repeat(np.arange(F), [len(f) for f in frames])
+    dets = [s.detection for s in sightings]
+    W = corner_whitening(dets, corner_sigma_px)
+    corners = np.stack([np.asarray(d.corners_px, dtype=float) for d in dets])
+    T = np.asarray(T_world_body, dtype=float)[frame_of]
+    P = np.stack([s.corners_world for s in sightings])
+    p_body = np.einsum("nqi,nij->nqj", P - T[:, None, :3, 3], T[:, :3, :3]).reshape(-1, 3)
+    T_bc = np.asarray(camera.T_body_cam, dtype=float)
+    uv, _ = Projector(camera).project((p_body - T_bc[:3, 3]) @ T_bc[:3, :3], jacobian=False)
+    rw = np.einsum("nij,nj->ni", W, (corners - uv.reshape(-1, 4, 2)).reshape(-1, CORNER_COORDINATES))
+    classes = np.asarray(corner_classes(dets), dtype=np.int8)
+    starts = np.r_[0, np.cumsum([len(f) for f in frames])]
+    return [
+        FrameCodeResiduals(
+            tuple(d.payload for d in dets[a:b]), classes[a:b].copy(), rw[a:b].astype(np.float32)
+        )
+        for a, b in zip(starts[:-1], starts[1:])
+    ]
+
+
 def frame_bias_terms(
     camera: CameraModel, sightings: list[FloorSighting], T_world_body: np.ndarray, corner_sigma_px: float
 ) -> FrameBiasTerms | None:

@@ -11,7 +11,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.geometry import interpolate_pose
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.pnp.bias import FrameBiasTerms, frames_bias_terms
+from fusion.qr.pnp.bias import FrameBiasTerms, FrameCodeResiduals, frames_bias_terms, frames_code_residuals
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
@@ -53,6 +53,9 @@ class PnPStats:
     # per posed frame: its share of the flight's common corner bias (fusion.qr.pnp.bias; None
     # when the pose's information is singular), for fusion.estimate.cornerbias
     frame_bias: list[FrameBiasTerms | None] = field(default_factory=list)
+    # per posed frame: each code's whitened corner residuals (fusion.qr.pnp.bias), for the time
+    # correlation of the corner errors (fusion.estimate.correlation)
+    frame_code_residuals: list[FrameCodeResiduals] = field(default_factory=list)
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -85,6 +88,7 @@ class PnPStats:
             frame_class_redundancy=[c for p in parts for c in p.frame_class_redundancy],
             frame_class_covariance=[c for p in parts for c in p.frame_class_covariance],
             frame_bias=[b for p in parts for b in p.frame_bias],
+            frame_code_residuals=[r for p in parts for r in p.frame_code_residuals],
         )
 
 
@@ -139,6 +143,9 @@ def pnp_trajectory(
             used.append([s for s in floor if s.detection.payload in res.payloads])
             used_T.append(res.T_world_body)
         stats.frame_bias += frames_bias_terms(
+            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
+        )
+        stats.frame_code_residuals += frames_code_residuals(
             camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
         )
     stats.codes_per_pose = dict(sorted(per_pose.items()))

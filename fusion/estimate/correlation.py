@@ -1,0 +1,350 @@
+"""Time-correlated corner errors: how much less than n independent frames a flight's PnP poses
+are worth to the fused back ends (issue 10.3, clipping x2.2).
+
+The per-frame PnP covariance is right for one frame (fusion.estimate.variance scales it from
+the frame's own residuals), but the smoother and the EKF take the frames as independent.
+When the same code seen in consecutive frames carries nearly the same corner error (decoder
+fallback corners under clipping: whole-pixel corners of a code that barely moves), averaging n
+frames does not divide the error's variance by n but by n / tau, tau the integrated
+autocorrelation time in frames (var(mean) ~ tau var / n, tau = 1 + 2 sum_l rho(l); e.g. Sokal,
+"Monte Carlo Methods in Statistical Mechanics: Foundations and New Algorithms", 1996 lecture
+notes, sec. 2).  GNSS processing handles time-correlated observation errors alike, with the
+observations' covariance built from their correlation over the sampling interval
+(El-Rabbany, "The effect of physical correlations on the ambiguity resolution and accuracy
+estimation in GPS differential positioning", UNB technical report 170, 1994).
+
+Estimate, per corner class (whitening.CORNER_CLASSES), from the flight's own PnP residuals
+(fusion.qr.pnp.bias.FrameCodeResiduals: each code's whitened corner residuals at its frame's
+pose): rho(l) = the mean product of a code's residuals l frames apart over their mean square,
+pooled over codes and the 8 coordinates.  A residual r = (I - P) w keeps the part of the corner
+error w that the pose did not absorb; with the geometry nearly the same between neighbouring
+frames E[r_t r_(t+l)^T] = (I - P) E[w_t w_(t+l)^T] (I - P), so rho is w's correlation as far as
+the residual space shows it.  tau sums rho(1), rho(2), ... while each is significant
+(rho(l) > Z_GATE / sqrt(pairs(l)), the standard error of an autocorrelation of white noise,
+Bartlett 1946; pairs counted per code, not per coordinate, conservatively) up to MAX_LAG frames,
+and is 1 when rho(1) is not: a white flight is left exactly as it was.
+
+Use: the back ends' input covariance of a PnP frame becomes cov + sum_c (tau_c - 1) s_c G_c
+(G_c the class's share of the frame's covariance, s_c its applied variance factor: the frame's
+covariance as if class c's corner variance were tau_c times larger; variance.py's sandwich).
+The PnP trajectory itself keeps the per-frame covariance (it is honest for one frame).  Since
+time-correlated errors leave the smoother's residuals smaller than their variance (the
+trajectory follows the slow part of the error), the smoother's pose-group variance factor is
+not let below 1 on such flights (FusionConfig.pose_scale_floor)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from fusion.qr.pnp.bias import FrameCodeResiduals
+from fusion.qr.pnp.whitening import CORNER_CLASSES
+from fusion.types import Trajectory
+
+MAX_LAG = 20
+"""Most frame lags summed into tau (2 s at 10 fps)."""
+Z_GATE = 3.09
+"""A lag's autocorrelation counts when above this many standard errors (one-sided 10^-3, the
+corner-bias gate's level, fusion.estimate.cornerbias)."""
+MIN_PAIRS = 20
+"""Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
+
+
+@dataclass
+class ClassCorrelation:
+    """One corner class's residual autocorrelation: rho (MAX_LAG,) at lags 1..MAX_LAG (NaN
+    without pairs), pairs (MAX_LAG,) code pairs per lag, `lags_used` the lags summed, `tau` the
+    integrated correlation time (1 + 2 sum rho over the lags used), sightings and codes."""
+
+    rho: np.ndarray
+    pairs: np.ndarray
+    lags_used: int
+    tau: float
+    sightings: int
+    codes: int
+
+    def as_dict(self) -> dict:
+        n = max(self.lags_used, 3)
+        return {
+            "tau": self.tau,
+            "lags_used": self.lags_used,
+            "rho": [round(float(x), 4) if math.isfinite(x) else None for x in self.rho[:n]],
+            "pairs": [int(x) for x in self.pairs[:n]],
+            "sightings": self.sightings,
+            "codes": self.codes,
+        }
+
+
+def frame_indices(timestamps_ns: np.ndarray) -> np.ndarray:
+    """(n,) integer frame numbers of sorted stamps: (t - t_0) over the median stamp interval,
+    rounded (posed frames are mostly consecutive; a gap of skipped frames keeps its length)."""
+    t = np.asarray(timestamps_ns, dtype=np.int64)
+    if len(t) < 2:
+        return np.zeros(len(t), dtype=np.int64)
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0:
+        return np.arange(len(t), dtype=np.int64)
+    return np.rint((t - t[0]) / dt).astype(np.int64)
+
+
+def class_autocorrelation(
+    frame_index: np.ndarray, frames: Sequence[FrameCodeResiduals | None], max_lag: int = MAX_LAG
+) -> dict[str, tuple[np.ndarray, np.ndarray, int, int]]:
+    """Per corner class: (rho (max_lag,), pairs (max_lag,), sightings, codes) of the whitened
+    residuals of the same code `l` frames apart (frame_index (n,) of the n `frames`; a code
+    seen twice in one frame keeps its last sighting).  Vectorised: each sighting keyed by
+    (code, frame), the partner l frames later found by a sorted search."""
+    kept = [(int(f), fr) for f, fr in zip(frame_index, frames) if fr is not None and len(fr.payloads)]
+    names: dict[str, int] = {}
+    code = np.array([names.setdefault(p, len(names)) for _, fr in kept for p in fr.payloads], dtype=np.int64)
+    frame = np.repeat(np.array([f for f, _ in kept], dtype=np.int64), [len(fr.payloads) for _, fr in kept])
+    cls = np.concatenate([fr.classes for _, fr in kept]).astype(np.int64) if kept else np.zeros(0, np.int64)
+    r = np.concatenate([np.asarray(fr.whitened, dtype=float) for _, fr in kept]) if kept else np.zeros((0, 8))
+    finite = np.isfinite(r).all(axis=1)
+    span = int(frame.max() - frame.min()) + max_lag + 1 if len(frame) else 1
+    out = {}
+    for c, name in enumerate(CORNER_CLASSES):
+        sel = finite & (cls == c)
+        key = code[sel] * span + (frame[sel] - (frame.min() if len(frame) else 0))
+        key, first = np.unique(key[::-1], return_index=True)  # one sighting per (code, frame)
+        rc = r[sel][::-1][first]
+        prod = np.zeros(max_lag)
+        pairs = np.zeros(max_lag, dtype=np.int64)
+        for lag in range(1, max_lag + 1):
+            j = np.searchsorted(key, key + lag)
+            j = np.minimum(j, len(key) - 1)
+            hit = key[j] == key + lag if len(key) else np.zeros(0, bool)
+            pairs[lag - 1] = int(hit.sum())
+            prod[lag - 1] = float(np.sum(rc[hit] * rc[j[hit]]))
+        n = len(key)
+        var = float(np.sum(rc * rc)) / n if n else 0.0
+        rho = prod / np.maximum(pairs, 1) / var if var > 0 else np.zeros(max_lag)
+        rho = np.where(pairs > 0, rho, np.nan)
+        out[name] = (rho, pairs, n, len(np.unique(code[sel])))
+    return out
+
+
+def integrated_time(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> tuple[float, int]:
+    """(tau, lags used): 1 + 2 sum rho(l) over l = 1, 2, ... while rho(l) > z / sqrt(pairs(l))
+    and pairs(l) >= MIN_PAIRS (the first lag that fails ends the sum)."""
+    total = 0.0
+    used = 0
+    for r, p in zip(rho, pairs):
+        if p < MIN_PAIRS or not math.isfinite(r) or r <= z / math.sqrt(p):
+            break
+        total += float(r)
+        used += 1
+    return 1.0 + 2.0 * total, used
+
+
+@dataclass
+class CorrelationInflation:
+    """The back ends' extra input covariance of each PnP frame for time-correlated corner
+    errors: stamps (n,), per class c the frame's class covariance at its applied scale
+    `class_terms` (n, k, 6, 6) s_c G_c, and per class the autocorrelation `rho` (k, MAX_LAG),
+    the lags summed `lags_used` (k,) and `taus` (k,).  `add_to` adds sum_c (tau_c - 1) s_c G_c
+    (a long average: the batch smoother); `filter_taus` the inflation of a filter's shorter,
+    one-sided average (EKF, fixed-lag smoother: `solve_inflated`)."""
+
+    timestamps_ns: np.ndarray
+    class_terms: np.ndarray
+    rho: np.ndarray
+    lags_used: np.ndarray
+    taus: np.ndarray
+    tolerance_ns: int = 0
+
+    def _nearest(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(index of the nearest PnP stamp, whether within tolerance_ns) for stamps t."""
+        n = len(self.timestamps_ns)
+        if n == 1:
+            nearest = np.zeros(len(t), dtype=np.int64)
+        else:
+            i = np.clip(np.searchsorted(self.timestamps_ns, t), 1, n - 1)
+            left, right = self.timestamps_ns[i - 1], self.timestamps_ns[i]
+            nearest = np.where(np.abs(t - left) <= np.abs(right - t), i - 1, i)
+        return nearest, np.abs(self.timestamps_ns[nearest] - t) <= self.tolerance_ns
+
+    def add_to(self, traj: Trajectory, taus: np.ndarray | None = None) -> Trajectory:
+        """`traj` with each pose's extra covariance sum_c (tau_c - 1) s_c G_c added (`taus`
+        (k,), default the flight's): that of the PnP frame at the nearest stamp, when within
+        `tolerance_ns` (half a frame; the time-offset stage may have moved the stamps by
+        milliseconds), else none.  Unchanged without covariances."""
+        if traj.covariances is None or not len(traj) or not len(self.timestamps_ns):
+            return traj
+        w = np.asarray(self.taus if taus is None else taus, dtype=float) - 1.0
+        t = np.asarray(traj.timestamps_ns, dtype=np.int64)
+        nearest, close = self._nearest(t)
+        covs = np.array(traj.covariances, dtype=float, copy=True)
+        covs[close] += np.einsum("c,ncij->nij", w, self.class_terms[nearest[close]])
+        return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
+
+    def directional(self, raw: Trajectory, fused: Trajectory, two_sided: bool) -> Trajectory:
+        """`raw` with the extra covariance of the average an estimator takes of it, direction by
+        direction: per raw frame, in the eigenbasis u_i of R^-1/2 P R^-T/2 (R the frame's raw
+        covariance, P the `fused` covariance at its stamp, solved on `raw` as it is), the fused
+        pose holds n_i = 1 / eigenvalue frames' worth of raw information along u_i (1: that
+        direction rests on the frame alone; many: averaged over many frames, or known from the
+        IMU, where R hardly matters), and class c's share of R there,
+        e_ci = u_i^T R^-1/2 s_c G_c R^-T/2 u_i, is inflated by `average_taus`(n_i) - 1.  Frames
+        without a fused pose at their stamp (within tolerance_ns) are left as they are."""
+        if raw.covariances is None or fused.covariances is None or not len(raw) or not len(fused):
+            return raw
+        t = np.asarray(raw.timestamps_ns, dtype=np.int64)
+        nearest, close = self._nearest(t)
+        t_f = np.asarray(fused.timestamps_ns, dtype=np.int64)
+        j = np.clip(np.searchsorted(t_f, t), 0, len(t_f) - 1)
+        j_left = np.clip(j - 1, 0, len(t_f) - 1)
+        j = np.where(np.abs(t_f[j_left] - t) < np.abs(t_f[j] - t), j_left, j)
+        close &= np.abs(t_f[j] - t) <= self.tolerance_ns
+        R = np.asarray(raw.covariances, dtype=float)
+        P = np.asarray(fused.covariances, dtype=float)[j]
+        ok = close & np.isfinite(R).all(axis=(1, 2)) & np.isfinite(P).all(axis=(1, 2))
+        idx = np.flatnonzero(ok)
+        if not len(idx):
+            return raw
+        try:
+            L = np.linalg.cholesky(R[idx])
+        except np.linalg.LinAlgError:
+            return raw
+        Li = np.linalg.inv(L)
+        Pw = Li @ P[idx] @ np.swapaxes(Li, 1, 2)
+        mu, U = np.linalg.eigh(0.5 * (Pw + np.swapaxes(Pw, 1, 2)))  # (m, 6), (m, 6, 6)
+        n_dir = 1.0 / np.maximum(mu, 1e-12)
+        Ew = Li[:, None] @ self.class_terms[nearest[idx]] @ np.swapaxes(Li, 1, 2)[:, None]  # (m, k, 6, 6)
+        share = np.einsum("mai,mcab,mbi->mci", U, Ew, U)  # (m, k, 6): e_ci
+        taus = self.average_taus(n_dir, two_sided)  # (m, k, 6)
+        d = np.sum((taus - 1.0) * share, axis=1)  # (m, 6)
+        LU = L @ U
+        covs = R.copy()
+        covs[idx] += np.einsum("mai,mi,mbi->mab", LU, d, LU)
+        return Trajectory(raw.name, raw.timestamps_ns, raw.T_world_body, covs)
+
+    def average_taus(self, n_eff: np.ndarray, two_sided: bool) -> np.ndarray:
+        """Per class, the variance of an exponentially weighted average of correlated samples
+        over that of white ones, for averages over `n_eff` (m, d) frames (n_eff = (sum w)^2 /
+        sum w^2: the white average's variance is 1 / n_eff of a sample's): 1 + 2 sum_l rho(l) c(l)
+        over the lags used, c(l) = sum_i w_i w_(i+l) / sum_i w_i^2.  One-sided (a filter:
+        w_i = a^i, i >= 0): c(l) = a^l, n_eff = (1 + a) / (1 - a).  Two-sided (a smoother:
+        w_i = a^|i|): c(l) = a^l (2 + (l - 1)(1 - a^2)) / (1 + a^2), n_eff = (1 + a)^3 /
+        ((1 - a)(1 + a^2)).  Tends to the flight's tau as n_eff grows; 1 at n_eff = 1.
+        Returns (m, k, d)."""
+        n = np.clip(np.nan_to_num(np.asarray(n_eff, dtype=float), nan=1.0), 1.0, 1e12)
+        if two_sided:
+            grid = np.linspace(0.0, 1.0 - 1e-6, 20001)
+            n_grid = (1 + grid) ** 3 / ((1 - grid) * (1 + grid**2))
+            a = np.interp(n, n_grid, grid)
+        else:
+            a = (n - 1.0) / (n + 1.0)
+        out = np.ones((n.shape[0], len(self.taus), n.shape[1]))
+        for c, used in enumerate(self.lags_used):
+            for lag in range(1, int(used) + 1):
+                if two_sided:
+                    w = a**lag * (2.0 + (lag - 1) * (1.0 - a**2)) / (1.0 + a**2)
+                else:
+                    w = a**lag
+                out[:, c, :] += 2.0 * self.rho[c, lag - 1] * w
+        return out
+
+
+def solve_inflated(
+    fn,
+    frame_times_ns,
+    imu,
+    raw: Trajectory,
+    load_obs,
+    *,
+    inflation: CorrelationInflation,
+    two_sided: bool,
+    keep_noise_scales: bool = False,
+    **kwargs,
+):
+    """A back end `fn` (smooth / smooth_windowed: `two_sided`; run_ekf, smooth_incremental: not;
+    the same call as theirs) on PnP poses `raw` whose corner errors are correlated in time:
+    solved once on `raw` as it is, then again on `raw` with each frame's covariance inflated for
+    the average that solve took of the frames, direction by direction
+    (`CorrelationInflation.directional`).  `keep_noise_scales` (the batch smoother, which
+    estimates them: variance.solve_noise_scaled): the noise scales of the first solve (per
+    camera, cam0 for the poses and tight corners, cam1 for the loads) are applied to the second
+    as they are and not estimated again (the inflated covariances would read as too large: the
+    residuals of a correlated error understate it), and its report is the first solve's.  Its
+    stats gain `correlation_inflation`: the median over the frames of the inflated covariance's
+    trace over the raw one's."""
+    from fusion.estimate import variance
+
+    first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
+    inflated = inflation.directional(raw, first.trajectory, two_sided)
+    report = first.stats.get("noise_scales") if keep_noise_scales else None
+    if report is not None:
+        again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
+        config = kwargs.get("config")
+        if config is not None:
+            kwargs = dict(
+                kwargs,
+                config=replace(
+                    config, noise_scale_iterations=0, corner_noise_scale=config.corner_noise_scale * s0
+                ),
+            )
+        res = fn(frame_times_ns, imu, again, load_again, **kwargs)
+        res.stats["noise_scales"] = dict(report, inflated_solve=True)
+    else:
+        res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
+    ratio = np.ones(0)
+    if raw.covariances is not None and inflated.covariances is not None and len(raw):
+        ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
+    res.stats["correlation_inflation"] = {
+        "two_sided": bool(two_sided),
+        "trace_ratio_median": float(np.median(ratio)) if len(ratio) else 1.0,
+    }
+    return res
+
+
+def estimate_inflation(
+    traj: Trajectory,
+    frames: Sequence[FrameCodeResiduals | None],
+    class_covariances: Sequence[np.ndarray],
+    class_scales: np.ndarray,
+    apply: bool = True,
+    exclude: dict[str, str] | None = None,
+) -> tuple[dict, CorrelationInflation | None]:
+    """Per corner class tau_c of the flight's PnP frames (`traj`, one pose per entry of `frames`
+    and of `class_covariances` (k, 6, 6) G_c, in order), and the back ends' inflation when
+    `apply` and some tau_c > 1 (None otherwise).  `class_scales` (k,): the variance factors
+    applied to the classes (1 when none).  `exclude` {class: reason}: classes whose tau is
+    reported but not applied (the reason in the report's `not_applied`).  Returns the JSON-ready
+    report (per class ClassCorrelation.as_dict, `applied`) and the inflation."""
+    if len(frames) != len(traj) or len(class_covariances) != len(traj):
+        raise ValueError(
+            f"correlation: {len(frames)} frames of residuals and {len(class_covariances)} of class "
+            f"covariances for {len(traj)} PnP poses"
+        )
+    t = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    acf = class_autocorrelation(frame_indices(t), frames)
+    report: dict = {"classes": {}, "applied": False, "max_lag": MAX_LAG, "z": Z_GATE}
+    taus = np.ones(len(CORNER_CLASSES))
+    for c, name in enumerate(CORNER_CLASSES):
+        rho_c, pairs, n, codes = acf[name]
+        tau, n_used = integrated_time(rho_c, pairs)
+        report["classes"][name] = ClassCorrelation(rho_c, pairs, n_used, tau, n, codes).as_dict()
+        if exclude and name in exclude:
+            report["classes"][name]["not_applied"] = exclude[name]
+            continue
+        taus[c] = tau
+    if not (apply and np.any(taus > 1.0)) or traj.covariances is None or not len(traj):
+        return report, None
+    terms = (
+        np.asarray(class_covariances, dtype=float)
+        * np.asarray(class_scales, dtype=float)[None, :, None, None]
+    )
+    rho = np.stack([np.nan_to_num(acf[name][0]) for name in CORNER_CLASSES])
+    used = np.array(
+        [
+            report["classes"][name]["lags_used"] if taus[c] > 1.0 else 0
+            for c, name in enumerate(CORNER_CLASSES)
+        ]
+    )
+    dt = int(np.median(np.diff(t))) if len(t) > 1 else 0
+    report["applied"] = True
+    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2)

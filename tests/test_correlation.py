@@ -1,0 +1,319 @@
+"""Time-correlated corner errors (fusion.estimate.correlation, fusion.qr.pnp.bias.frames_code_residuals;
+issue 10.3, clipping x2.2): the residuals' autocorrelation per corner class, the integrated
+correlation time and its significance rule, the averaging factors against brute force, the
+direction-wise inflation, the smoother's pose-scale floor and the pipeline's use."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_pnp import FOUR, WORLD, aim, body_pose, floor_dets
+
+from fusion import pipeline
+from fusion.estimate import correlation as co
+from fusion.estimate.variance import NoiseGroup, NoiseScales, VarianceComponent, next_noise_scales
+from fusion.qr.pnp import pnp_trajectory
+from fusion.qr.pnp.bias import FrameCodeResiduals
+from fusion.qr.pnp.whitening import CORNER_CLASSES
+from fusion.qr.refine import FALLBACK_SIGMA_PX
+from fusion.types import Trajectory
+
+DEC = CORNER_CLASSES.index("decoder")
+REF = CORNER_CLASSES.index("refined")
+
+
+def ar1(rng, n: int, phi: float, shape=(8,)) -> np.ndarray:
+    """(n, *shape) unit-variance AR(1) series with lag-1 correlation phi."""
+    out = np.empty((n, *shape))
+    out[0] = rng.normal(size=shape)
+    for i in range(1, n):
+        out[i] = phi * out[i - 1] + np.sqrt(1 - phi**2) * rng.normal(size=shape)
+    return out
+
+
+def synthetic_frames(rng, n: int, phi_decoder: float, phi_refined: float = 0.0, codes: int = 3):
+    """n frames, each seeing `codes` decoder and `codes` refined codes, every code in every
+    frame, residuals AR(1) in time per code (and white across coordinates)."""
+    dec = [ar1(rng, n, phi_decoder) for _ in range(codes)]
+    ref = [ar1(rng, n, phi_refined) for _ in range(codes)]
+    frames = []
+    for i in range(n):
+        frames.append(
+            FrameCodeResiduals(
+                tuple(f"d{j}" for j in range(codes)) + tuple(f"r{j}" for j in range(codes)),
+                np.array([DEC] * codes + [REF] * codes, dtype=np.int8),
+                np.stack([d[i] for d in dec] + [r[i] for r in ref]).astype(np.float32),
+            )
+        )
+    return frames
+
+
+def test_white_residuals_give_no_inflation():
+    rng = np.random.default_rng(0)
+    frames = synthetic_frames(rng, 120, 0.0)
+    acf = co.class_autocorrelation(np.arange(120), frames)
+    for name in CORNER_CLASSES:
+        rho, pairs, n, codes = acf[name]
+        assert n == 360 and codes == 3 and pairs[0] == 357
+        assert co.integrated_time(rho, pairs) == (1.0, 0)
+        assert abs(rho[0]) < 0.2
+
+
+def test_correlated_class_is_found_and_the_other_is_not():
+    rng = np.random.default_rng(1)
+    phi = 0.7
+    frames = synthetic_frames(rng, 150, phi)
+    acf = co.class_autocorrelation(np.arange(150), frames)
+    rho, pairs, _, _ = acf["decoder"]
+    np.testing.assert_allclose(rho[:3], phi ** np.arange(1, 4), atol=0.12)
+    tau, used = co.integrated_time(rho, pairs)
+    # AR(1): tau = (1 + phi) / (1 - phi) = 5.7; the sum stops where rho is no longer significant
+    assert used >= 3 and 3.0 < tau <= (1 + phi) / (1 - phi) + 0.5
+    assert co.integrated_time(*acf["refined"][:2]) == (1.0, 0)
+
+
+def test_a_gap_in_the_frames_is_not_a_neighbour():
+    """Residuals two frames apart (a frame missing between them) count at lag 2, not 1."""
+    r = np.ones((1, 8), dtype=np.float32)
+    frames = [FrameCodeResiduals(("a",), np.array([DEC], np.int8), r) for _ in range(2)]
+    t = np.array([0, 200_000_000], dtype=np.int64)  # 10 fps, one frame missing
+    acf = co.class_autocorrelation(co.frame_indices(np.r_[t, 300_000_000][:2]), frames)
+    assert acf["decoder"][1][0] == 1  # median interval 0.2 s: one lag
+    acf = co.class_autocorrelation(np.array([0, 2]), frames)
+    assert acf["decoder"][1][0] == 0 and acf["decoder"][1][1] == 1
+
+
+def test_significance_stops_the_sum_at_the_first_weak_lag():
+    rho = np.array([0.5, 0.4, 0.05, 0.4])
+    pairs = np.array([100, 100, 100, 100])
+    assert co.integrated_time(rho, pairs) == pytest.approx((1 + 2 * 0.9, 2))
+    assert co.integrated_time(rho, np.array([10, 10, 10, 10]))[0] == 1.0  # too few pairs
+
+
+def inflation(rho_dec, used_dec, n=4, share=None):
+    """A CorrelationInflation of n frames with the decoder class's rho and lags (refined white),
+    class terms: decoder `share` of an identity covariance, refined the rest."""
+    share = 0.5 if share is None else share
+    L = len(rho_dec)
+    rho = np.zeros((2, co.MAX_LAG))
+    rho[DEC, :L] = rho_dec
+    terms = np.zeros((n, 2, 6, 6))
+    terms[:, DEC] = share * np.eye(6)
+    terms[:, REF] = (1 - share) * np.eye(6)
+    taus = np.ones(2)
+    taus[DEC] = 1 + 2 * np.sum(rho_dec[:used_dec])
+    used = np.zeros(2, dtype=int)
+    used[DEC] = used_dec
+    t = np.arange(n, dtype=np.int64) * 100_000_000
+    return co.CorrelationInflation(t, terms, rho, used, taus, 50_000_000)
+
+
+@pytest.mark.parametrize("two_sided", [False, True])
+def test_average_factor_matches_brute_force(two_sided):
+    """sum_ij w_i w_j rho(|i - j|) / sum w^2 of the exponential weights, computed directly, and
+    n_eff = (sum w)^2 / sum w^2, against average_taus' closed forms."""
+    rho_dec = np.array([0.6, 0.45, 0.3, 0.2])
+    inf = inflation(rho_dec, 4)
+    for a in (0.3, 0.7, 0.9):
+        i = np.arange(-400, 401) if two_sided else np.arange(0, 801)
+        w = a ** np.abs(i)
+        n_eff = w.sum() ** 2 / (w**2).sum()
+        full = np.r_[1.0, rho_dec]
+        num = sum(
+            (1.0 if lag == 0 else 2.0) * full[lag] * np.sum(w[: len(w) - lag] * w[lag:]) for lag in range(5)
+        )
+        expected = num / (w**2).sum()
+        got = inf.average_taus(np.array([[n_eff]]), two_sided)
+        assert got[0, DEC, 0] == pytest.approx(expected, rel=2e-3)
+        assert got[0, REF, 0] == 1.0
+
+
+def test_average_factor_limits():
+    inf = inflation(np.array([0.5, 0.3]), 2)
+    for two_sided in (False, True):
+        f = inf.average_taus(np.array([[1.0, 1e9]]), two_sided)
+        assert f[0, DEC, 0] == pytest.approx(1.0)
+        assert f[0, DEC, 1] == pytest.approx(inf.taus[DEC], rel=1e-4)
+
+
+def trajectory(covs, n=4):
+    T = np.tile(np.eye(4), (n, 1, 1))
+    return Trajectory("x", np.arange(n, dtype=np.int64) * 100_000_000, T, np.asarray(covs, dtype=float))
+
+
+def test_directional_inflation_follows_the_average_per_direction():
+    """Where the fused pose holds one frame's information nothing is added; where it holds
+    ~10^9 frames' the full (tau - 1) s G; the two directions of one frame independently."""
+    inf = inflation(np.array([0.5, 0.3]), 2, share=0.5)
+    raw = trajectory(np.tile(np.eye(6), (4, 1, 1)))
+    same = inf.directional(raw, raw, two_sided=True)
+    np.testing.assert_allclose(same.covariances, raw.covariances, atol=1e-9)
+    tight = inf.directional(raw, trajectory(np.tile(1e-9 * np.eye(6), (4, 1, 1))), two_sided=False)
+    np.testing.assert_allclose(tight.covariances, inf.add_to(raw).covariances, rtol=1e-6)
+    np.testing.assert_allclose(tight.covariances[0], (1 + 0.5 * (inf.taus[DEC] - 1)) * np.eye(6), rtol=1e-6)
+    mixed = np.diag([1.0, 1.0, 1.0, 1e-9, 1e-9, 1e-9])
+    out = inf.directional(raw, trajectory(np.tile(mixed, (4, 1, 1))), two_sided=False).covariances[0]
+    np.testing.assert_allclose(np.diag(out)[:3], 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.diag(out)[3:], 1 + 0.5 * (inf.taus[DEC] - 1), rtol=1e-5)
+
+
+def test_add_to_matches_stamps_within_half_a_frame():
+    inf = inflation(np.array([0.5]), 1, n=3)
+    raw = Trajectory(
+        "x",
+        np.array([0, 100_000_000 + 2_000_000, 260_000_000], dtype=np.int64),  # 2 ms late; 60 ms late
+        np.tile(np.eye(4), (3, 1, 1)),
+        np.tile(np.eye(6), (3, 1, 1)),
+    )
+    out = inf.add_to(raw).covariances
+    added = 0.5 * (inf.taus[DEC] - 1)
+    np.testing.assert_allclose(np.diag(out[0]), 1 + added)
+    np.testing.assert_allclose(np.diag(out[1]), 1 + added)
+    np.testing.assert_allclose(np.diag(out[2]), 1.0)  # 60 ms from the nearest: not within half a frame
+
+
+def test_solve_inflated_solves_twice_and_inflates_the_second_input():
+    inf = inflation(np.array([0.5, 0.3]), 2)
+    raw = trajectory(np.tile(np.eye(6), (4, 1, 1)))
+    seen = []
+
+    class Result:
+        def __init__(self, traj):
+            self.trajectory, self.stats = traj, {}
+
+    def fn(frame_t, imu, raw_, load_obs, **kw):
+        seen.append(raw_.covariances.copy())
+        assert kw == {"config": "c"}
+        return Result(trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1))))
+
+    res = co.solve_inflated(fn, None, None, raw, [], inflation=inf, two_sided=True, config="c")
+    assert len(seen) == 2
+    np.testing.assert_allclose(seen[0], raw.covariances)
+    assert np.all(np.diagonal(seen[1], axis1=1, axis2=2) > 1.5)
+    assert res.stats["correlation_inflation"]["trace_ratio_median"] > 1.5
+
+
+def test_estimate_inflation_white_flight_is_none_and_lengths_checked():
+    rng = np.random.default_rng(3)
+    frames = synthetic_frames(rng, 60, 0.0)
+    traj = trajectory(np.tile(np.eye(6), (60, 1, 1)), n=60)
+    G = np.tile(0.5 * np.eye(6), (60, 2, 1, 1))
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2))
+    assert inf is None and not report["applied"]
+    assert report["classes"]["decoder"]["tau"] == 1.0
+    frames = synthetic_frames(rng, 60, 0.8)
+    report, inf = co.estimate_inflation(traj, frames, G, np.array([1.0, 2.0]))
+    assert inf is not None and report["applied"] and report["classes"]["decoder"]["tau"] > 2
+    np.testing.assert_allclose(inf.class_terms[0, DEC], 1.0 * np.eye(6))  # scale 2 x share 0.5
+    assert co.estimate_inflation(traj, frames, G, np.ones(2), apply=False)[1] is None
+    with pytest.raises(ValueError, match="60 frames of residuals"):
+        co.estimate_inflation(trajectory(np.tile(np.eye(6), (4, 1, 1))), frames, G, np.ones(2))
+
+
+def test_pose_scale_floor():
+    comps = {NoiseGroup.POSE: VarianceComponent(50.0, 100.0, 10)}
+    assert next_noise_scales(NoiseScales(), comps).pose == pytest.approx(0.5)
+    assert next_noise_scales(NoiseScales(), comps, pose_floor=1.0) is None  # held at 1: converged
+    assert next_noise_scales(NoiseScales(pose=1.5), comps, pose_floor=1.0).pose == 1.0  # 0.75 held at 1
+    up = {NoiseGroup.POSE: VarianceComponent(200.0, 100.0, 10)}
+    assert next_noise_scales(NoiseScales(), up, pose_floor=1.0).pose == pytest.approx(2.0)
+
+
+def pnp_flight(n: int, seed: int, phi: float):
+    """{ts: detections} of n frames over the four codes from slowly moving poses, every code's
+    corners with a per-code AR(1) error in time (0.5 px, lag-1 correlation phi), marked as
+    decoder-fallback corners."""
+    rng = np.random.default_rng(seed)
+    err = {c: ar1(rng, n, phi, shape=(4, 2)) * 0.5 for c in range(4)}
+    frames = {}
+    for i in range(n):
+        T = aim(body_pose(0, 0, 2.5 + 0.1 * np.sin(i / 10), 20 + i, 1.0, -1.0), (0.5, 0.5))
+        ts = (i + 1) * 100_000_000
+        dets = floor_dets(T, FOUR, ts=ts)
+        frames[ts] = [
+            dataclasses.replace(
+                d, corners_px=np.asarray(d.corners_px) + err[c][i], corner_sigma_px=FALLBACK_SIGMA_PX
+            )
+            for c, d in enumerate(dets)
+        ]
+    return frames
+
+
+def test_pnp_residuals_show_the_corner_errors_correlation():
+    from test_pnp import FLOOR_CAM
+
+    for phi, correlated in ((0.0, False), (0.8, True)):
+        frames = pnp_flight(80, 5, phi)
+        traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, 0.15)
+        assert len(stats.frame_code_residuals) == len(traj) == 80
+        for r in stats.frame_code_residuals:
+            assert r.whitened.shape == (4, 8) and list(r.classes) == [DEC] * 4
+        report, inf = co.estimate_inflation(
+            traj, stats.frame_code_residuals, stats.frame_class_covariance, np.ones(2)
+        )
+        assert (inf is not None) == correlated, report
+        if correlated:
+            assert report["classes"]["decoder"]["tau"] > 2.5
+
+
+def test_pipeline_carries_the_inflation_only_when_asked():
+    from test_pnp import FLOOR_CAM
+
+    frames = pnp_flight(60, 6, 0.8)
+    parts = [pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, pipeline.RunConfig()), frames)]
+    on = pipeline.merge_floor_parts(parts, pipeline.RunConfig())
+    assert on.correlation is not None and on.stats["pnp"]["correlation"]["applied"]
+    off = pipeline.merge_floor_parts(parts, pipeline.RunConfig(inflate_correlated=False))
+    assert off.correlation is None and not off.stats["pnp"]["correlation"]["applied"]
+    # the PnP trajectory itself keeps its per-frame covariances
+    np.testing.assert_array_equal(on.trajectories["pnp"].covariances, off.trajectories["pnp"].covariances)
+
+
+def test_excluded_class_is_reported_not_applied():
+    rng = np.random.default_rng(4)
+    frames = synthetic_frames(rng, 60, 0.8, phi_refined=0.8)
+    traj = trajectory(np.tile(np.eye(6), (60, 1, 1)), n=60)
+    G = np.tile(0.5 * np.eye(6), (60, 2, 1, 1))
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), exclude={"refined": "bias"})
+    assert report["classes"]["refined"]["tau"] > 2 and report["classes"]["refined"]["not_applied"] == "bias"
+    assert inf is not None and inf.taus[REF] == 1.0 and inf.taus[DEC] > 2 and inf.lags_used[REF] == 0
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), exclude={"refined": "x", "decoder": "y"})
+    assert inf is None and not report["applied"]
+
+
+def test_solve_inflated_keeps_the_first_solves_noise_scales():
+    """The batch smoother's second (inflated) solve takes the first solve's per-camera scales
+    as they are (poses x cam0, loads x cam1, tight corners x cam0) and estimates none."""
+    from types import SimpleNamespace
+
+    from fusion.estimate import FusionConfig
+    from fusion.types import LoadObservation
+
+    inf = inflation(np.array([0.5, 0.3]), 2)
+    raw = trajectory(np.tile(np.eye(6), (4, 1, 1)))
+    report = {"cameras": {"cam0": {"scale": 1.5}, "cam1": {"scale": 0.25}}}
+    load = [LoadObservation(0, "L", np.zeros(3), np.eye(3), p_cam=np.zeros(3), cov_cam=np.eye(3))]
+    calls = []
+
+    def fn(frame_t, imu, raw_, load_obs, config):
+        calls.append((raw_.covariances.copy(), load_obs[0].cov_cam.copy(), config))
+        traj = trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1)))
+        return SimpleNamespace(
+            trajectory=traj, stats={"noise_scales": dict(report) if len(calls) == 1 else {}}
+        )
+
+    cfg = FusionConfig(corner_noise_scale=2.0)
+    res = co.solve_inflated(
+        fn, None, None, raw, load, inflation=inf, two_sided=True, keep_noise_scales=True, config=cfg
+    )
+    (c1, l1, cfg1), (c2, l2, cfg2) = calls
+    assert cfg1 is cfg and cfg2.noise_scale_iterations == 0 and cfg2.corner_noise_scale == pytest.approx(3.0)
+    np.testing.assert_allclose(l2, 0.25 * np.eye(3))
+    inflated = inf.directional(raw, trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1))), True).covariances
+    np.testing.assert_allclose(c2, 1.5 * inflated)
+    assert (
+        res.stats["noise_scales"]["cameras"] == report["cameras"]
+        and res.stats["noise_scales"]["inflated_solve"]
+    )
