@@ -664,3 +664,36 @@ def test_refinement_only_takes_off_the_disagreement_the_tracker_added():
     assert out.corner_sigma_px == pytest.approx(np.sqrt(np.mean(np.diag(base))))
     near = QRDetection("cam0", 0, "p", pred + 0.1, pred, 0.2, base, tracked=True)  # within 0.5 px
     assert np.allclose(_refinement_only(near).corner_cov_px2, base)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pose_predictor_bridges_a_gap_with_the_fit_over_both_sides(seed, monkeypatch):
+    """First-pass poses (2 mm / 0.1 deg noisy) over 0.5 s on both sides of a 1 s gap, the last
+    one before it 2 cm off (a single small code): ImuBridge, pinned at that end, is pulled off
+    in the gap; the fit over both sides' poses (_predict_bridge_fit) leaves the outlier out and
+    is nearer; still the bridge's kind (the tight pose gate), and the bridge itself with
+    USE_BRIDGE_FIT off."""
+    from fusion.qr import predict
+    from fusion.qr.predict import ImuBridge, PosePredictor
+
+    rng = np.random.default_rng(seed)
+    b_g, b_a = rng.normal(0.0, 0.002, 3), rng.normal(0.0, 0.05, 3)
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0, accel_bias=b_a, gyro_bias=b_g))
+    times = np.concatenate([np.arange(0.2, 0.7 + 1e-9, 1 / 30), np.arange(1.7, 2.2 + 1e-9, 1 / 30)])
+    poses = _noisy_poses(_accelerating_pose, times, rng, 0.002, 0.002)
+    end = int(np.argmax(times > 1.0)) - 1  # the last pose before the gap
+    poses[end][1][:3, 3] += [0.02, 0.0, 0.0]
+    stamps = np.array([t for t, _ in poses])
+    pred = PosePredictor(stamps, np.array([T for _, T in poses]), imu)
+    t = int(1.2e9)
+    truth = _accelerating_pose(1.2)
+    T, horizon = pred.predict(t)
+    assert pred.last_kind == "bridge" and pred.bridge_fits == 1 and pred.fits == 0
+    assert horizon == pytest.approx(1.2 - times[end])
+    monkeypatch.setattr(predict, "USE_BRIDGE_FIT", False)
+    T_bridge, horizon_bridge = pred.predict(t)
+    assert pred.last_kind == "bridge" and pred.bridge_fits == 1 and horizon_bridge == horizon
+    dp, dr = _pose_error(T, truth)
+    dp_bridge = _pose_error(T_bridge, truth)[0]
+    assert dp < 0.005 and dr < np.radians(0.2), (dp, np.degrees(dr))
+    assert dp_bridge > 2.0 * dp, (dp, dp_bridge)
