@@ -671,7 +671,7 @@ def test_pose_predictor_bridges_a_gap_with_the_fit_over_both_sides(seed, monkeyp
     """First-pass poses (2 mm / 0.1 deg noisy) over 0.5 s on both sides of a 1 s gap, the last
     one before it 2 cm off (a single small code): ImuBridge, pinned at that end, is pulled off
     in the gap; the fit over both sides' poses (_predict_bridge_fit) leaves the outlier out and
-    is nearer; still the bridge's kind (the tight pose gate), and the bridge itself with
+    is nearer (kind "bridge_fit": the tight pose gate, no locator), and the bridge itself with
     USE_BRIDGE_FIT off."""
     from fusion.qr import predict
     from fusion.qr.predict import ImuBridge, PosePredictor
@@ -688,7 +688,7 @@ def test_pose_predictor_bridges_a_gap_with_the_fit_over_both_sides(seed, monkeyp
     t = int(1.2e9)
     truth = _accelerating_pose(1.2)
     T, horizon = pred.predict(t)
-    assert pred.last_kind == "bridge" and pred.bridge_fits == 1 and pred.fits == 0
+    assert pred.last_kind == "bridge_fit" and pred.bridge_fits == 1 and pred.fits == 0
     assert horizon == pytest.approx(1.2 - times[end])
     monkeypatch.setattr(predict, "USE_BRIDGE_FIT", False)
     T_bridge, horizon_bridge = pred.predict(t)
@@ -697,3 +697,27 @@ def test_pose_predictor_bridges_a_gap_with_the_fit_over_both_sides(seed, monkeyp
     dp_bridge = _pose_error(T_bridge, truth)[0]
     assert dp < 0.005 and dr < np.radians(0.2), (dp, np.degrees(dr))
     assert dp_bridge > 2.0 * dp, (dp, dp_bridge)
+
+
+def test_tracker_starts_at_the_prediction_without_the_locator(monkeypatch):
+    """A 10 px-blurred code predicted 0.3 px off, the locator answering with the finder's
+    2-module alias: with locate=False it is not asked, refinement starts at the prediction and
+    the corners are the code's; with it, the alias is the first start."""
+    from fusion.qr import track
+
+    ((img, ts, truth),) = _frames(1, blur_from=0)
+    module = np.linalg.norm(truth[1] - truth[0]) / CODE.modules
+    calls = []
+
+    def alias(image, corners_px, modules, max_shift_px):
+        calls.append(max_shift_px)
+        return np.array([2.0 * module, 0.0]), 0.9
+
+    monkeypatch.setattr(track, "locate_symbol", alias)
+    pred = {CODE.payload: (truth + 0.3, 6.0, CODE.modules)}
+    out = CodeTracker(CAMERA).step(img, "cam0", ts, [], [], pred, own_motion=False, locate=False)
+    assert calls == [] and len(out) == 1
+    assert np.max(np.linalg.norm(out[0].corners_px - truth, axis=1)) < 1.0
+    tracker = CodeTracker(CAMERA)
+    tracker.step(img, "cam0", ts, [], [], pred, own_motion=False)
+    assert len(calls) == 1

@@ -91,7 +91,9 @@ from fusion.world import World
 logger = logging.getLogger(__name__)
 
 # in the tracked cache's fingerprint: change with the method
-TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate+imu-fit+bridge-fit"
+TRACK_METHOD = (
+    "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate+imu-fit+bridge-fit+no-locate-across"
+)
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
@@ -155,6 +157,14 @@ USE_FIT = True  # (a switch for the benches: the old prediction where False)
 # (e.g. seed 3, 1.5-2 s gaps: 0.23 / 0.58 cm against 0.48 / 5.54 cm; NOTES-blur3.md).  The
 # bridge where the fit has too few poses
 USE_BRIDGE_FIT = True
+# Where the prediction is that two-sided fit, the tracker starts refinement at the prediction,
+# not at the symbol located by its function patterns (track.locate_symbol, a sharp template):
+# under 10-20 px of blur at 3.4-3.8 px per module (3-5 modules) the located start put single
+# codes' refined corners 3-6 px off where the fitted prediction was 0.2-2 px off, their PnP poses
+# 10-35 cm off (pose-gated); without the locator there, 20 ms-exposure seeds 0 / 1 / 3 posed
+# 946 / 957 / 953 floor frames instead of 905 / - / 914 (NOTES-blur3.md).  The locator stays
+# for one-sided predictions (horizons up to 1 s), whose errors it was made for
+TRACK_LOCATE_TWO_SIDED = False
 FIT_MIN_POSES = 6
 FIT_MIN_SPAN_S = 0.3
 FIT_MAX_EXTRAPOLATION_S = 1.0
@@ -475,7 +485,9 @@ class PosePredictor:
         # MAX_FEEDBACK_POSITION_SIGMA_M, at most FIT_MAX_POSITION_SIGMA_M): ImuFit weighs them
         # by their sigma (position m, rotation rad)
         self.weak: dict[int, tuple[np.ndarray, float, float]] = {}
-        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "fit", "other"
+        # what the last predict() used: "own", "bridge" (first pass), "bridge_fit" (ImuFit across
+        # a first-pass gap), "fit", "other"
+        self.last_kind = ""
         self.fits = 0  # predictions from ImuFit
         self.bridge_fits = 0  # ... of them, between two first-pass poses (instead of ImuBridge)
 
@@ -536,6 +548,7 @@ class PosePredictor:
             if self.imu is not None and USE_FIT and USE_BRIDGE_FIT:
                 fitted = self._predict_bridge_fit(t)
                 if fitted is not None:
+                    self.last_kind = "bridge_fit"
                     self.bridge_fits += 1
                     return fitted
             return first[0], first[1]
@@ -840,6 +853,7 @@ def _track_chunk(context, task: list[int]):
             predicted,
             own_motion=False,
             squares=squares.get(t),
+            locate=TRACK_LOCATE_TWO_SIDED or predictor.last_kind != "bridge_fit",
         )
         if not tracked:
             if tracker.stats.gated > before.gated:
@@ -851,7 +865,7 @@ def _track_chunk(context, task: list[int]):
             continue
         if predictor.last_kind == "other":
             gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
-        else:  # the frame's own first-pass pose or a first-pass IMU bridge
+        else:  # the frame's own first-pass pose, a first-pass IMU bridge or an IMU fit
             gate_m = POSE_GATE_BRIDGE_M + POSE_GATE_BRIDGE_M_PER_S * horizon_s
         kept = list(tracked)
         while True:
