@@ -161,9 +161,10 @@ USE_BRIDGE_FIT = True
 # not at the symbol located by its function patterns (track.locate_symbol, a sharp template):
 # under 10-20 px of blur at 3.4-3.8 px per module (3-5 modules) the located start put single
 # codes' refined corners 3-6 px off where the fitted prediction was 0.2-2 px off, their PnP poses
-# 10-35 cm off (pose-gated); without the locator there, 20 ms-exposure seeds 0 / 1 / 3 posed
-# 946 / 957 / 953 floor frames instead of 905 / - / 914 (NOTES-blur3.md).  The locator stays
-# for one-sided predictions (horizons up to 1 s), whose errors it was made for
+# 10-35 cm off (pose-gated); with both changes the 20 ms-exposure seeds 0 / 1 / 2 / 3 posed
+# 936 / 951 / 946 / 953 floor frames instead of 914 / 907 / 910 / 893 (change 1 alone: seed 0
+# 905, seed 3 914; NOTES-blur3.md).  The locator stays for one-sided predictions (horizons up
+# to 1 s), whose errors it was made for
 TRACK_LOCATE_TWO_SIDED = False
 FIT_MIN_POSES = 6
 FIT_MIN_SPAN_S = 0.3
