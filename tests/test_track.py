@@ -664,3 +664,60 @@ def test_refinement_only_takes_off_the_disagreement_the_tracker_added():
     assert out.corner_sigma_px == pytest.approx(np.sqrt(np.mean(np.diag(base))))
     near = QRDetection("cam0", 0, "p", pred + 0.1, pred, 0.2, base, tracked=True)  # within 0.5 px
     assert np.allclose(_refinement_only(near).corner_cov_px2, base)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pose_predictor_bridges_a_gap_with_the_fit_over_both_sides(seed, monkeypatch):
+    """First-pass poses (2 mm / 0.1 deg noisy) over 0.5 s on both sides of a 1 s gap, the last
+    one before it 2 cm off (a single small code): ImuBridge, pinned at that end, is pulled off
+    in the gap; the fit over both sides' poses (_predict_bridge_fit) leaves the outlier out and
+    is nearer (kind "bridge_fit": the tight pose gate, no locator), and the bridge itself with
+    USE_BRIDGE_FIT off."""
+    from fusion.qr import predict
+    from fusion.qr.predict import ImuBridge, PosePredictor
+
+    rng = np.random.default_rng(seed)
+    b_g, b_a = rng.normal(0.0, 0.002, 3), rng.normal(0.0, 0.05, 3)
+    imu = ImuBridge(_imu_of(_accelerating_pose, 3.0, accel_bias=b_a, gyro_bias=b_g))
+    times = np.concatenate([np.arange(0.2, 0.7 + 1e-9, 1 / 30), np.arange(1.7, 2.2 + 1e-9, 1 / 30)])
+    poses = _noisy_poses(_accelerating_pose, times, rng, 0.002, 0.002)
+    end = int(np.argmax(times > 1.0)) - 1  # the last pose before the gap
+    poses[end][1][:3, 3] += [0.02, 0.0, 0.0]
+    stamps = np.array([t for t, _ in poses])
+    pred = PosePredictor(stamps, np.array([T for _, T in poses]), imu)
+    t = int(1.2e9)
+    truth = _accelerating_pose(1.2)
+    T, horizon = pred.predict(t)
+    assert pred.last_kind == "bridge_fit" and pred.bridge_fits == 1 and pred.fits == 0
+    assert horizon == pytest.approx(1.2 - times[end])
+    monkeypatch.setattr(predict, "USE_BRIDGE_FIT", False)
+    T_bridge, horizon_bridge = pred.predict(t)
+    assert pred.last_kind == "bridge" and pred.bridge_fits == 1 and horizon_bridge == horizon
+    dp, dr = _pose_error(T, truth)
+    dp_bridge = _pose_error(T_bridge, truth)[0]
+    assert dp < 0.005 and dr < np.radians(0.2), (dp, np.degrees(dr))
+    assert dp_bridge > 2.0 * dp, (dp, dp_bridge)
+
+
+def test_tracker_starts_at_the_prediction_without_the_locator(monkeypatch):
+    """A 10 px-blurred code predicted 0.3 px off, the locator answering with the finder's
+    2-module alias: with locate=False it is not asked, refinement starts at the prediction and
+    the corners are the code's; with it, the alias is the first start."""
+    from fusion.qr import track
+
+    ((img, ts, truth),) = _frames(1, blur_from=0)
+    module = np.linalg.norm(truth[1] - truth[0]) / CODE.modules
+    calls = []
+
+    def alias(image, corners_px, modules, max_shift_px):
+        calls.append(max_shift_px)
+        return np.array([2.0 * module, 0.0]), 0.9
+
+    monkeypatch.setattr(track, "locate_symbol", alias)
+    pred = {CODE.payload: (truth + 0.3, 6.0, CODE.modules)}
+    out = CodeTracker(CAMERA).step(img, "cam0", ts, [], [], pred, own_motion=False, locate=False)
+    assert calls == [] and len(out) == 1
+    assert np.max(np.linalg.norm(out[0].corners_px - truth, axis=1)) < 1.0
+    tracker = CodeTracker(CAMERA)
+    tracker.step(img, "cam0", ts, [], [], pred, own_motion=False)
+    assert len(calls) == 1

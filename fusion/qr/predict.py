@@ -91,7 +91,9 @@ from fusion.world import World
 logger = logging.getLogger(__name__)
 
 # in the tracked cache's fingerprint: change with the method
-TRACK_METHOD = "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate+imu-fit"
+TRACK_METHOD = (
+    "pose-track/5+restamp+squares+backward+no-crossings+bridge-gate+imu-fit+bridge-fit+no-locate-across"
+)
 PREDICTION_SIGMA_PX = 3.0  # 1-sigma per corner coordinate of a code projected with a PnP pose
 PREDICTION_SIGMA_PX_PER_S = 10.0  # ... plus this per second to the nearest pose used
 MAX_INTERPOLATION_GAP_S = 1.0  # interpolate between poses at most this far apart
@@ -146,6 +148,24 @@ POSE_GATE_BRIDGE_M_PER_S = 0.05
 # the pass posed 84-88 % of the floor frames instead of 74-76 % (BENCHMARKS.md, eighth session)
 FIT_WINDOW_S = 1.0
 USE_FIT = True  # (a switch for the benches: the old prediction where False)
+# Between two first-pass poses that ImuBridge spans, ImuFit over the first pass's poses within
+# FIT_WINDOW_S outside both ends instead (PosePredictor._predict_bridge_fit): the bridge pins
+# both ends, and where an end is a single small code 2 cm off its velocity fit put the middle
+# of a 2 s gap 6 cm off (20 ms-exposure flight, seed 3, 36.9-38.8 s: the codes 7-11 px off at
+# 2 px per module, beyond the 2-module gate); against the truth at every bridged floor frame of
+# the 20 ms-exposure seeds 0-3 the fit was nearer in median and p90 in every gap-length class
+# (e.g. seed 3, 1.5-2 s gaps: 0.23 / 0.58 cm against 0.48 / 5.54 cm; NOTES-blur3.md).  The
+# bridge where the fit has too few poses
+USE_BRIDGE_FIT = True
+# Where the prediction is that two-sided fit, the tracker starts refinement at the prediction,
+# not at the symbol located by its function patterns (track.locate_symbol, a sharp template):
+# under 10-20 px of blur at 3.4-3.8 px per module (3-5 modules) the located start put single
+# codes' refined corners 3-6 px off where the fitted prediction was 0.2-2 px off, their PnP poses
+# 10-35 cm off (pose-gated); with both changes the 20 ms-exposure seeds 0 / 1 / 2 / 3 posed
+# 936 / 951 / 946 / 953 floor frames instead of 914 / 907 / 910 / 893 (change 1 alone: seed 0
+# 905, seed 3 914; NOTES-blur3.md).  The locator stays for one-sided predictions (horizons up
+# to 1 s), whose errors it was made for
+TRACK_LOCATE_TWO_SIDED = False
 FIT_MIN_POSES = 6
 FIT_MIN_SPAN_S = 0.3
 FIT_MAX_EXTRAPOLATION_S = 1.0
@@ -210,6 +230,7 @@ class TrackReport:
     # stamp -> (T_world_body, position sigma m, rotation sigma rad) fed back to ImuFit only
     weak_poses: dict[int, tuple[np.ndarray, float, float]] = field(default_factory=dict)
     fits: int = 0  # predictions from ImuFit (PosePredictor.fits)
+    bridge_fits: int = 0  # ... between two first-pass poses, instead of ImuBridge (bridge_fits)
 
     def outcome_counts(self) -> dict[str, int]:
         """{outcome: floor frames} over OUTCOMES (frames the pass looked at)."""
@@ -239,7 +260,7 @@ class TrackReport:
             f"gate, {s.refine_failed} not refined, {s.ambiguous} next to a decoded code"
             f"{restamp}; {self.poses_backward} of {self.frames_backward} frames posed by the backward "
             f"sweep; {s.square_corners} with a dark square's corners; {self.fits} predictions from "
-            f"the IMU fit; {self.seconds:.1f} s"
+            f"the IMU fit (and {self.bridge_fits} across first-pass gaps); {self.seconds:.1f} s"
         )
 
 
@@ -465,8 +486,11 @@ class PosePredictor:
         # MAX_FEEDBACK_POSITION_SIGMA_M, at most FIT_MAX_POSITION_SIGMA_M): ImuFit weighs them
         # by their sigma (position m, rotation rad)
         self.weak: dict[int, tuple[np.ndarray, float, float]] = {}
-        self.last_kind = ""  # what the last predict() used: "own", "bridge" (first pass), "fit", "other"
+        # what the last predict() used: "own", "bridge" (first pass), "bridge_fit" (ImuFit across
+        # a first-pass gap), "fit", "other"
+        self.last_kind = ""
         self.fits = 0  # predictions from ImuFit
+        self.bridge_fits = 0  # ... of them, between two first-pass poses (instead of ImuBridge)
 
     def add(self, t_ns: int, T_world_body: np.ndarray) -> None:
         k = bisect.bisect_left(self.added_t, int(t_ns))
@@ -522,6 +546,12 @@ class PosePredictor:
         first = self._predict(t, self._before(t, 8, False), self._after(t, 8, False))
         if first is not None and first[2] == "bridge":
             self.last_kind = "bridge"
+            if self.imu is not None and USE_FIT and USE_BRIDGE_FIT:
+                fitted = self._predict_bridge_fit(t)
+                if fitted is not None:
+                    self.last_kind = "bridge_fit"
+                    self.bridge_fits += 1
+                    return fitted
             return first[0], first[1]
         if self.imu is not None and USE_FIT:
             fitted = self._predict_fit(t)
@@ -544,16 +574,22 @@ class PosePredictor:
         """A pose of the pass for ImuFit only (`weak`), its position and rotation sigmas."""
         self.weak[int(t_ns)] = (np.asarray(T_world_body, float), float(sigma_m), float(sigma_rad))
 
-    def _window(self, lo: int, hi: int) -> list[tuple[int, np.ndarray, float, float]]:
-        """Every pose with lo <= t <= hi, one per stamp (first pass, else added, else weak), in
-        time order, with its sigmas (position m, rotation rad: POSE_NOISE_M and
-        FIT_ROTATION_NOISE_RAD but for the weak ones' own, when larger)."""
+    def _window(
+        self, lo: int, hi: int, first_only: bool = False
+    ) -> list[tuple[int, np.ndarray, float, float]]:
+        """Every pose with lo <= t <= hi, one per stamp (first pass, else added, else weak; only
+        the first pass's with `first_only`), in time order, with its sigmas (position m,
+        rotation rad: POSE_NOISE_M and FIT_ROTATION_NOISE_RAD but for the weak ones' own, when
+        larger)."""
         out: dict[int, tuple[np.ndarray, float, float]] = {
             t: (T, max(sp, POSE_NOISE_M), max(sr, FIT_ROTATION_NOISE_RAD))
             for t, (T, sp, sr) in self.weak.items()
-            if lo <= t <= hi
+            if lo <= t <= hi and not first_only
         }
-        for ts, Ts in ((self.added_t, self.added_T), (self.first_t, self.first_T)):
+        sources = [(self.first_t, self.first_T)]  # listed last: the first pass's pose wins
+        if not first_only:
+            sources.insert(0, (self.added_t, self.added_T))
+        for ts, Ts in sources:
             for m in range(bisect.bisect_left(ts, lo), bisect.bisect_right(ts, hi)):
                 out[ts[m]] = (Ts[m], POSE_NOISE_M, FIT_ROTATION_NOISE_RAD)  # the first pass's last
         return [(t, *out[t]) for t in sorted(out)]
@@ -593,6 +629,23 @@ class PosePredictor:
             return None
         horizon = min(abs(t - p[0]) for p in poses) * 1e-9
         return fit.at(t), horizon
+
+    def _predict_bridge_fit(self, t: int) -> tuple[np.ndarray, float] | None:
+        """(T_world_body, seconds to the nearer end) at t between the first pass's poses that
+        the IMU bridges (ImuBridge), from ImuFit over the first pass's poses within FIT_WINDOW_S
+        outside both ends of the gap (the pass's own poses left out, as in the bridge), or None
+        (too few poses: the bridge is used)."""
+        imu = self.imu
+        assert imu is not None
+        (t0, _), (t1, _) = self._before(t, 1, False)[0], self._after(t, 1, False)[0]
+        window = int(FIT_WINDOW_S * 1e9)
+        poses = self._window(t0 - window, t0, True) + self._window(t1, t1 + window, True)
+        if len(poses) < FIT_MIN_POSES or not imu.covers(poses[0][0], poses[-1][0]):
+            return None
+        fit = ImuFit(imu, poses, t)
+        if fit.poses_used < FIT_MIN_POSES:
+            return None
+        return fit.at(t), min(t - t0, t1 - t) * 1e-9
 
     def _nearest_any(self, t: int, side: int) -> list[tuple[int, np.ndarray]]:
         """[(stamp, T)] of the nearest pose (first pass, added or weak) strictly before (side -1)
@@ -801,6 +854,7 @@ def _track_chunk(context, task: list[int]):
             predicted,
             own_motion=False,
             squares=squares.get(t),
+            locate=TRACK_LOCATE_TWO_SIDED or predictor.last_kind != "bridge_fit",
         )
         if not tracked:
             if tracker.stats.gated > before.gated:
@@ -812,7 +866,7 @@ def _track_chunk(context, task: list[int]):
             continue
         if predictor.last_kind == "other":
             gate_m = POSE_GATE_M + POSE_GATE_M_PER_S * horizon_s
-        else:  # the frame's own first-pass pose or a first-pass IMU bridge
+        else:  # the frame's own first-pass pose, a first-pass IMU bridge or an IMU fit
             gate_m = POSE_GATE_BRIDGE_M + POSE_GATE_BRIDGE_M_PER_S * horizon_s
         kept = list(tracked)
         while True:
@@ -856,6 +910,7 @@ def _track_chunk(context, task: list[int]):
                     predictor.add_weak(t, weak.T_world_body, sigma_p, sigma_r)
                     rep.weak_poses[t] = (weak.T_world_body, sigma_p, sigma_r)
     rep.fits += predictor.fits
+    rep.bridge_fits += predictor.bridge_fits
     rep.stats = tracker.stats
     return out, rep
 
@@ -1057,7 +1112,8 @@ def track_flight(
     rep.poses_backward = sum(o == "posed" for o in back.frame_outcomes.values())
     for k, v in vars(back.stats).items():
         setattr(rep.stats, k, getattr(rep.stats, k) + v)
-    for name in ("frames_tried", "frames_tracked", "frames_tracked_only", "poses_added", "fits"):
+    summed = ("frames_tried", "frames_tracked", "frames_tracked_only", "poses_added", "fits", "bridge_fits")
+    for name in summed:
         setattr(rep, name, getattr(rep, name) + getattr(back, name))
     for t in poses:
         if rep.frame_outcomes.get(t) != "posed":
@@ -1086,6 +1142,7 @@ def _run_sweep(tasks: list[list[int]], context, workers: int, rep: TrackReport) 
         rep.poses.update(chunk_rep.poses)
         rep.weak_poses.update(chunk_rep.weak_poses)
         rep.fits += chunk_rep.fits
+        rep.bridge_fits += chunk_rep.bridge_fits
         for k, v in vars(chunk_rep.stats).items():
             setattr(rep.stats, k, getattr(rep.stats, k) + v)
         for name in (

@@ -265,6 +265,7 @@ class CodeTracker:
         predicted: dict[str, tuple[np.ndarray, float, int]] | None = None,
         own_motion: bool = True,
         squares: list[np.ndarray] | None = None,
+        locate: bool = True,
     ) -> list[QRDetection]:
         """Tracked detections of this frame (codes not in `decoded`); then update the tracks with
         `decoded` (its codes' modules per side in `modules`, None when unknown) and them.
@@ -276,7 +277,10 @@ class CodeTracker:
         codes are tried (the pipeline's track pass: a pose predicts every code in view, and the
         pixel-motion prediction once gave a tracked code 2-module-aliased corners).
         `squares`: dark quadrilaterals (4, 2) px found in the frame (module constants
-        TRACK_SQUARE_*): starts, and fallback corners, for the predictions they match."""
+        TRACK_SQUARE_*): starts, and fallback corners, for the predictions they match.
+        `locate=False`: the first start is the prediction itself, not the symbol located by its
+        function patterns (locate_symbol): for predictions nearer than the locator under heavy
+        blur (fusion.qr.predict.TRACK_LOCATE_TWO_SIDED)."""
         t = int(timestamp_ns)
         seen = {d.payload for d in decoded}
         centres = [d.corners_px.mean(axis=0) for d in decoded]
@@ -311,7 +315,7 @@ class CodeTracker:
             for _, tr, pred, sigma in candidates:
                 side = float(np.mean(np.linalg.norm(pred - np.roll(pred, 1, axis=0), axis=1)))
                 radius = min(TRACK_LOCATE_SIGMAS * sigma, TRACK_GATE_MODULES * side / tr.modules)
-                found = locate_symbol(image, pred, tr.modules, radius)
+                found = locate_symbol(image, pred, tr.modules, radius) if locate else None
                 at = pred + found[0] if found is not None and found[1] >= TRACK_LOCATE_MIN_NCC else pred
                 begin = len(starts)
                 starts.append((at, tr.modules))
