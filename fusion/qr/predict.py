@@ -154,7 +154,7 @@ USE_FIT = True  # (a switch for the benches: the old prediction where False)
 # of a 2 s gap 6 cm off (20 ms-exposure flight, seed 3, 36.9-38.8 s: the codes 7-11 px off at
 # 2 px per module, beyond the 2-module gate); against the truth at every bridged floor frame of
 # the 20 ms-exposure seeds 0-3 the fit was nearer in median and p90 in every gap-length class
-# (e.g. seed 3, 1.5-2 s gaps: 0.23 / 0.58 cm against 0.48 / 5.54 cm; NOTES-blur3.md).  The
+# (e.g. seed 3, 1.5-2 s gaps: 0.23 / 0.58 cm against 0.48 / 5.54 cm; BENCHMARKS.md, ninth session).  The
 # bridge where the fit has too few poses
 USE_BRIDGE_FIT = True
 # Where the prediction is that two-sided fit, the tracker starts refinement at the prediction,
@@ -163,7 +163,7 @@ USE_BRIDGE_FIT = True
 # codes' refined corners 3-6 px off where the fitted prediction was 0.2-2 px off, their PnP poses
 # 10-35 cm off (pose-gated); with both changes the 20 ms-exposure seeds 0 / 1 / 2 / 3 posed
 # 936 / 951 / 946 / 953 floor frames instead of 914 / 907 / 910 / 893 (change 1 alone: seed 0
-# 905, seed 3 914; NOTES-blur3.md).  The locator stays for one-sided predictions (horizons up
+# 905, seed 3 914; BENCHMARKS.md, ninth session).  The locator stays for one-sided predictions (horizons up
 # to 1 s), whose errors it was made for
 TRACK_LOCATE_TWO_SIDED = False
 FIT_MIN_POSES = 6
