@@ -99,33 +99,6 @@ def keep_freed_memory() -> bool:
     return _MALLOC_TUNED
 
 
-GLIBC_DEFAULT_THRESHOLD_BYTES = 128 << 10  # glibc's initial M_TRIM_THRESHOLD and M_MMAP_THRESHOLD
-
-
-def default_freed_memory() -> bool:
-    """Undo `keep_freed_memory` in this process: glibc's initial thresholds again (blocks over
-    128 KiB mapped and unmapped on their own, the heap's free top returned; fixed, where glibc
-    would let the mmap threshold grow) and the freed heap handed back now (malloc_trim).  For a
-    dask worker whose detection tasks raised them, before a task whose peak matters more than
-    its speed (fusion batch's report task); a later `keep_freed_memory` raises them again.
-    True when set, False without glibc."""
-    global _MALLOC_TUNED
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"))
-        mallopt, trim = libc.mallopt, libc.malloc_trim
-    except (OSError, AttributeError, TypeError):
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    done = bool(
-        mallopt(_M_MMAP_THRESHOLD, GLIBC_DEFAULT_THRESHOLD_BYTES)
-        and mallopt(_M_TRIM_THRESHOLD, GLIBC_DEFAULT_THRESHOLD_BYTES)
-    )
-    trim.argtypes = [ctypes.c_size_t]
-    trim(0)
-    _MALLOC_TUNED = None
-    return done
-
-
 @dataclass
 class WorkerUsage:
     """What the work done in worker processes cost: CPU seconds (each worker's process time

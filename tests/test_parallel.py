@@ -71,14 +71,3 @@ def test_workers_raise_the_malloc_thresholds_once():
     assert keep_freed_memory() is True
     assert keep_freed_memory() is True  # idempotent
     assert list(parallel_map(_malloc_state, [0, 1], 2)) == [True, True]
-
-
-@pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="mallopt is glibc's")
-def test_default_freed_memory_undoes_the_thresholds_until_raised_again():
-    import fusion.parallel
-    from fusion.parallel import default_freed_memory, keep_freed_memory
-
-    assert keep_freed_memory() is True
-    assert default_freed_memory() is True
-    assert fusion.parallel._MALLOC_TUNED is None  # a later keep_freed_memory sets them again
-    assert keep_freed_memory() is True and fusion.parallel._MALLOC_TUNED is True

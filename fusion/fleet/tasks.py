@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 from fusion.log import FlightLog, open_flight
-from fusion.parallel import default_freed_memory
 from fusion.pipeline import (
     Computed,
     RunConfig,
@@ -133,8 +132,6 @@ def report_task(log: FlightLog, out_dir: str, cfg: RunConfig, n_detect: int, *pa
     per-frame estimates computed by the other tasks).  `parts`: the `n_detect` detection
     chunks in plan order, then the merged floor result, then the front chunks in time order."""
     t = time.perf_counter()
-    # this worker's detection tasks kept freed memory for speed; the report's peak matters more
-    default_freed_memory()
     detected, floor, front = parts[:n_detect], parts[n_detect], parts[n_detect + 1 :]
     log = _own_copy(log)
     # no variable here holds the detections or the per-frame results: `run` lets them go
