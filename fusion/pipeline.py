@@ -763,23 +763,20 @@ def fuse_stage(
     at_once: dict[Estimator, Outcome] = {}
     for i, (name, fn, kwargs) in enumerate(solvers):
         if name != Estimator.SMOOTHER and not at_once:
-            calls = [
-                (
-                    (f, (frame_t, log.imu, raw, load_obs), {})
-                    # the tight incremental smoother takes corners, not poses
-                    if inflation is None or (cfg.tight and n_ == Estimator.INCREMENTAL)
-                    else (
-                        correlation.solve_inflated,
-                        (f, frame_t, log.imu, raw, load_obs),
-                        {"inflation": inflation, "two_sided": False},
+            calls: list[tuple[Callable[..., Any], tuple, dict[str, Any]]] = []
+            for n_, f, kw in solvers[i:]:
+                common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kw)
+                # the tight incremental smoother takes corners, not poses
+                if inflation is None or (cfg.tight and n_ == Estimator.INCREMENTAL):
+                    calls.append((f, (frame_t, log.imu, raw, load_obs), common))
+                else:
+                    calls.append(
+                        (
+                            correlation.solve_inflated,
+                            (f, frame_t, log.imu, raw, load_obs),
+                            dict(common, inflation=inflation, two_sided=False),
+                        )
                     )
-                )
-                for n_, f, _ in solvers[i:]
-            ]
-            calls = [
-                (f, args, dict(kw0, front_camera=front, velocity=log.velocity, config=fcfg, **kw))
-                for (f, args, kw0), (_, _, kw) in zip(calls, solvers[i:])
-            ]
             at_once = dict(zip((n for n, _, _ in solvers[i:]), call_each(calls, workers)))
         try:
             if name in at_once:
