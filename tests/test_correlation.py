@@ -1,4 +1,4 @@
-"""Time-correlated corner errors (fusion.estimate.correlation, fusion.qr.pnp.bias.frames_code_residuals;
+"""Time-correlated corner errors (fusion.estimate.correlation, fusion.qr.pnp.bias.frames_bias_and_residuals;
 issue 10.3, clipping x2.2): the residuals' autocorrelation per corner class, the integrated
 correlation time and its significance rule, the averaging factors against brute force, the
 direction-wise inflation, the smoother's pose-scale floor and the pipeline's use."""

@@ -134,36 +134,6 @@ class FrameCodeResiduals:
     whitened: np.ndarray
 
 
-def frames_code_residuals(
-    camera: CameraModel, frames: list[list[FloorSighting]], T_world_body: np.ndarray, corner_sigma_px: float
-) -> list[FrameCodeResiduals]:
-    """`FrameCodeResiduals` of many posed frames (frames (F,) lists of the sightings each pose
-    used, T_world_body (F, 4, 4)), the reprojection done once for all codes (as
-    `frames_bias_terms`: fusion.qr.reprojection.floor_reprojection at each code's frame pose)."""
-    F = len(frames)
-    if not F:
-        return []
-    sightings = [s for f in frames for s in f]
-    frame_of = np.repeat(np.arange(F), [len(f) for f in frames])
-    dets = [s.detection for s in sightings]
-    W = corner_whitening(dets, corner_sigma_px)
-    corners = np.stack([np.asarray(d.corners_px, dtype=float) for d in dets])
-    T = np.asarray(T_world_body, dtype=float)[frame_of]
-    P = np.stack([s.corners_world for s in sightings])
-    p_body = np.einsum("nqi,nij->nqj", P - T[:, None, :3, 3], T[:, :3, :3]).reshape(-1, 3)
-    T_bc = np.asarray(camera.T_body_cam, dtype=float)
-    uv, _ = Projector(camera).project((p_body - T_bc[:3, 3]) @ T_bc[:3, :3], jacobian=False)
-    rw = np.einsum("nij,nj->ni", W, (corners - uv.reshape(-1, 4, 2)).reshape(-1, CORNER_COORDINATES))
-    classes = np.asarray(corner_classes(dets), dtype=np.int8)
-    starts = np.r_[0, np.cumsum([len(f) for f in frames])]
-    return [
-        FrameCodeResiduals(
-            tuple(d.payload for d in dets[a:b]), classes[a:b].copy(), rw[a:b].astype(np.float32)
-        )
-        for a, b in zip(starts[:-1], starts[1:])
-    ]
-
-
 def frame_bias_terms(
     camera: CameraModel, sightings: list[FloorSighting], T_world_body: np.ndarray, corner_sigma_px: float
 ) -> FrameBiasTerms | None:
@@ -176,12 +146,22 @@ def frames_bias_terms(
     camera: CameraModel, frames: list[list[FloorSighting]], T_world_body: np.ndarray, corner_sigma_px: float
 ) -> list[FrameBiasTerms | None]:
     """`frame_bias_terms` of many frames at once (frames (F,) lists of sightings, T_world_body
-    (F, 4, 4)): the codes' whitening, patterns and Jacobians computed together (the reprojection
-    is fusion.qr.reprojection.floor_reprojection's, per code's own pose), the per-frame sums
-    by code, and the 6 x 6 solves batched."""
+    (F, 4, 4)): `frames_bias_and_residuals`' first list."""
+    return frames_bias_and_residuals(camera, frames, T_world_body, corner_sigma_px)[0]
+
+
+def frames_bias_and_residuals(
+    camera: CameraModel, frames: list[list[FloorSighting]], T_world_body: np.ndarray, corner_sigma_px: float
+) -> tuple[list[FrameBiasTerms | None], list[FrameCodeResiduals]]:
+    """Per posed frame (frames (F,) lists of the sightings each pose used, T_world_body
+    (F, 4, 4)): its `FrameBiasTerms` (None when the pose's information is singular) and its
+    `FrameCodeResiduals`, from one reprojection of all codes.  The codes' whitening, patterns and
+    Jacobians are computed together (the reprojection is
+    fusion.qr.reprojection.floor_reprojection's, per code's own pose), the per-frame sums by
+    code, and the 6 x 6 solves batched."""
     F, k, p = len(frames), len(BIN_PARAMS), N_PARAMS
     if not F:
-        return []
+        return [], []
     sightings = [s for f in frames for s in f]
     frame_of = np.repeat(np.arange(F), [len(f) for f in frames])  # (n,) each code's frame
     dets = [s.detection for s in sightings]
@@ -197,7 +177,15 @@ def frames_bias_terms(
     J = np.concatenate([cross_rows(A, p_body), -A], axis=2).reshape(-1, CORNER_COORDINATES, 6)
     Jw = W @ J  # (n, 8, 6)
     rw = np.einsum("nij,nj->ni", W, (corners - uv.reshape(-1, 4, 2)).reshape(-1, CORNER_COORDINATES))
-    refined = np.asarray(corner_classes(dets)) != _DECODER
+    classes = np.asarray(corner_classes(dets), dtype=np.int8)
+    starts = np.r_[0, np.cumsum([len(f) for f in frames])]
+    residuals = [
+        FrameCodeResiduals(
+            tuple(d.payload for d in dets[a:b]), classes[a:b].copy(), rw[a:b].astype(np.float32)
+        )
+        for a, b in zip(starts[:-1], starts[1:])
+    ]
+    refined = classes != _DECODER
     Pw = (W @ dilation_patterns(corners)) * refined[:, None, None]  # (n, 8, k)
     bins = size_bins(corners)
     H = np.zeros((F, 6, 6))
@@ -217,7 +205,7 @@ def frames_bias_terms(
     out: list[FrameBiasTerms | None] = [None] * F
     ok = np.linalg.matrix_rank(H) == 6
     if not ok.any():
-        return out
+        return out, residuals
     S = np.linalg.solve(H[ok], JtA[ok])  # (m, 6, p) = H^-1 J^T A
     N = AtA_full[ok] - np.swapaxes(JtA[ok], 1, 2) @ S  # A^T M A
     y = Atr.reshape(F, p)[ok] - np.einsum("mip,mi->mp", S, Jtr[ok])  # A^T M r
@@ -228,4 +216,4 @@ def frames_bias_terms(
             # the bins without codes have zero columns in A, hence in S, N and y: left out
             q = (k * np.flatnonzero(has_bin[f])[:, None] + np.arange(k)).ravel()
             out[f] = FrameBiasTerms(q, N_f[np.ix_(q, q)], y_f[q], S_f[:, q])
-    return out
+    return out, residuals

@@ -11,7 +11,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.geometry import interpolate_pose
 from fusion.qr.codes import classify, rejection_counts
-from fusion.qr.pnp.bias import FrameBiasTerms, FrameCodeResiduals, frames_bias_terms, frames_code_residuals
+from fusion.qr.pnp.bias import FrameBiasTerms, FrameCodeResiduals, frames_bias_and_residuals
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
@@ -142,12 +142,11 @@ def pnp_trajectory(
             stats.frame_class_covariance.append(res.class_covariance)
             used.append([s for s in floor if s.detection.payload in res.payloads])
             used_T.append(res.T_world_body)
-        stats.frame_bias += frames_bias_terms(
+        bias, residuals = frames_bias_and_residuals(
             camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
         )
-        stats.frame_code_residuals += frames_code_residuals(
-            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
-        )
+        stats.frame_bias += bias
+        stats.frame_code_residuals += residuals
     stats.codes_per_pose = dict(sorted(per_pose.items()))
     stats.rejections = rejection_counts(codes_seen)
     if rms:
