@@ -311,20 +311,23 @@ def check_velocity(vel: VelocityData) -> VelocityData:
     return VelocityData(t, v, float(vel.noise_m_s))
 
 
+def nearest_frames(frame_t: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Index of the nearest of the sorted stamps `frame_t` (non-empty) for each timestamp `t`
+    (the earlier one on a tie)."""
+    t = np.asarray(t, dtype=np.int64)
+    if len(frame_t) == 1:
+        return np.zeros(len(t), dtype=np.int64)
+    j = np.clip(np.searchsorted(frame_t, t), 1, len(frame_t) - 1)
+    left = j - 1
+    return np.where(np.abs(t - frame_t[left]) <= np.abs(frame_t[j] - t), left, j)
+
+
 def match_to_frames(frame_t: np.ndarray, t: np.ndarray, max_sync_s: float) -> np.ndarray:
     """Index of the nearest frame for each timestamp, -1 where none lies within max_sync_s."""
     t = np.asarray(t, dtype=np.int64)
     if len(frame_t) == 0 or len(t) == 0:
         return np.full(len(t), -1, dtype=np.int64)
-    j = (
-        np.clip(np.searchsorted(frame_t, t), 1, len(frame_t) - 1)
-        if len(frame_t) > 1
-        else np.zeros(len(t), dtype=np.int64)
-    )
-    if len(frame_t) > 1:
-        left = j - 1
-        use_left = np.abs(t - frame_t[left]) <= np.abs(frame_t[j] - t)
-        j = np.where(use_left, left, j)
+    j = nearest_frames(frame_t, t)
     ok = np.abs(frame_t[j] - t) <= int(max_sync_s * 1e9)
     return np.where(ok, j, -1)
 

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
+from fusion.estimate.common import nearest_frames
 from fusion.geometry import se3_exp
 from fusion.qr.pnp.bias import BIN_PARAMS, N_PARAMS, FrameBiasTerms, bin_range_px
 from fusion.types import Trajectory
@@ -162,14 +163,7 @@ class BiasConsider:
     def covariances(self, timestamps_ns: np.ndarray) -> np.ndarray:
         """(m, 6, 6) consider covariances S Cov(b) S^T at `timestamps_ns`, S the nearest PnP
         frame's sensitivity."""
-        t = np.asarray(timestamps_ns, dtype=np.int64)
-        i = np.clip(np.searchsorted(self.timestamps_ns, t), 1, len(self.timestamps_ns) - 1)
-        left = self.timestamps_ns[i - 1]
-        right = self.timestamps_ns[i]
-        nearest = np.where(np.abs(t - left) <= np.abs(right - t), i - 1, i)
-        if len(self.timestamps_ns) == 1:
-            nearest = np.zeros(len(t), dtype=int)
-        S = self.sensitivities[nearest]
+        S = self.sensitivities[nearest_frames(self.timestamps_ns, timestamps_ns)]
         return np.einsum("nip,pq,njq->nij", S, self.covariance_px2, S)
 
     def add_to(self, traj: Trajectory) -> Trajectory:

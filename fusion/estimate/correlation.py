@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from fusion.estimate.common import nearest_frames
 from fusion.qr.pnp.bias import FrameCodeResiduals
 from fusion.qr.pnp.whitening import CORNER_CLASSES
 from fusion.types import Trajectory
@@ -158,13 +159,7 @@ class CorrelationInflation:
 
     def _nearest(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(index of the nearest PnP stamp, whether within tolerance_ns) for stamps t."""
-        n = len(self.timestamps_ns)
-        if n == 1:
-            nearest = np.zeros(len(t), dtype=np.int64)
-        else:
-            i = np.clip(np.searchsorted(self.timestamps_ns, t), 1, n - 1)
-            left, right = self.timestamps_ns[i - 1], self.timestamps_ns[i]
-            nearest = np.where(np.abs(t - left) <= np.abs(right - t), i - 1, i)
+        nearest = nearest_frames(self.timestamps_ns, t)
         return nearest, np.abs(self.timestamps_ns[nearest] - t) <= self.tolerance_ns
 
     def add_to(self, traj: Trajectory, taus: np.ndarray | None = None) -> Trajectory:
@@ -195,9 +190,7 @@ class CorrelationInflation:
         t = np.asarray(raw.timestamps_ns, dtype=np.int64)
         nearest, close = self._nearest(t)
         t_f = np.asarray(fused.timestamps_ns, dtype=np.int64)
-        j = np.clip(np.searchsorted(t_f, t), 0, len(t_f) - 1)
-        j_left = np.clip(j - 1, 0, len(t_f) - 1)
-        j = np.where(np.abs(t_f[j_left] - t) < np.abs(t_f[j] - t), j_left, j)
+        j = nearest_frames(t_f, t)
         close &= np.abs(t_f[j] - t) <= self.tolerance_ns
         R = np.asarray(raw.covariances, dtype=float)
         P = np.asarray(fused.covariances, dtype=float)[j]
