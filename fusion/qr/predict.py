@@ -599,8 +599,6 @@ class PosePredictor:
         the poses within FIT_WINDOW_S of the nearest pose before t and of the nearest after it
         (both sides when those two are at most MAX_IMU_BRIDGE_S apart, else the nearer side),
         or None."""
-        imu = self.imu
-        assert imu is not None
         before, after = self._nearest_any(t, -1), self._nearest_any(t, 1)
         sides = []
         if before and (t - before[0][0]) * 1e-9 <= FIT_MAX_EXTRAPOLATION_S:
@@ -620,32 +618,34 @@ class PosePredictor:
                 poses = self._window(t_near - window, t_near)
             else:
                 poses = self._window(t_near, t_near + window)
-        if len(poses) < FIT_MIN_POSES or (poses[-1][0] - poses[0][0]) * 1e-9 < FIT_MIN_SPAN_S:
-            return None
-        if not imu.covers(min(poses[0][0], t), max(poses[-1][0], t)):
-            return None
-        fit = ImuFit(imu, poses, t)
-        if fit.poses_used < FIT_MIN_POSES:
-            return None
-        horizon = min(abs(t - p[0]) for p in poses) * 1e-9
-        return fit.at(t), horizon
+        T = self._fit_at(poses, t, FIT_MIN_SPAN_S)
+        return None if T is None else (T, min(abs(t - p[0]) for p in poses) * 1e-9)
 
     def _predict_bridge_fit(self, t: int) -> tuple[np.ndarray, float] | None:
         """(T_world_body, seconds to the nearer end) at t between the first pass's poses that
         the IMU bridges (ImuBridge), from ImuFit over the first pass's poses within FIT_WINDOW_S
         outside both ends of the gap (the pass's own poses left out, as in the bridge), or None
         (too few poses: the bridge is used)."""
-        imu = self.imu
-        assert imu is not None
         (t0, _), (t1, _) = self._before(t, 1, False)[0], self._after(t, 1, False)[0]
         window = int(FIT_WINDOW_S * 1e9)
         poses = self._window(t0 - window, t0, True) + self._window(t1, t1 + window, True)
-        if len(poses) < FIT_MIN_POSES or not imu.covers(poses[0][0], poses[-1][0]):
+        T = self._fit_at(poses, t)  # (t lies between t0 and t1, inside the poses' span)
+        return None if T is None else (T, min(t - t0, t1 - t) * 1e-9)
+
+    def _fit_at(
+        self, poses: list[tuple[int, np.ndarray, float, float]], t: int, min_span_s: float = 0.0
+    ) -> np.ndarray | None:
+        """T_world_body at t of an ImuFit over `poses` (time order), or None: fewer than
+        FIT_MIN_POSES poses given or kept by the fit, a span under `min_span_s`, or the IMU not
+        covering the poses and t."""
+        imu = self.imu
+        assert imu is not None
+        if len(poses) < FIT_MIN_POSES or (poses[-1][0] - poses[0][0]) * 1e-9 < min_span_s:
+            return None
+        if not imu.covers(min(poses[0][0], t), max(poses[-1][0], t)):
             return None
         fit = ImuFit(imu, poses, t)
-        if fit.poses_used < FIT_MIN_POSES:
-            return None
-        return fit.at(t), min(t - t0, t1 - t) * 1e-9
+        return fit.at(t) if fit.poses_used >= FIT_MIN_POSES else None
 
     def _nearest_any(self, t: int, side: int) -> list[tuple[int, np.ndarray]]:
         """[(stamp, T)] of the nearest pose (first pass, added or weak) strictly before (side -1)
