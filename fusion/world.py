@@ -38,6 +38,11 @@ class LoadCode:
         return make_T(R_world_loadsymbol(self.normal_yaw), np.asarray(self.p_world, dtype=float))
 
 
+CODE_SIDE_RANGE_M = (0.01, 2.0)
+"""Printed QR codes from a 1 cm label to a 2 m floor tile: a side outside this range in world.yaml
+is a unit mistake (cm or mm for m), not a code: every metric output would scale with it."""
+
+
 @dataclass
 class World:
     """What is known of the warehouse before flying."""
@@ -131,6 +136,13 @@ class World:
         load_side_m = strict_float(
             load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
         )
+        for key, side in (("floor_qr.side_m", floor_side_m), ("load_qr.side_m", load_side_m)):
+            lo, hi = CODE_SIDE_RANGE_M
+            if not lo <= side <= hi:
+                raise WorldError(
+                    f"{source}: {key} is {side:g} m: a QR code's side is {lo:g}-{hi:g} m; "
+                    "world.yaml's lengths are in metres (cm or mm given?)"
+                )
         bounds_m: dict[str, tuple[float, float]] = {}
         bounds = data.get("bounds_m")
         if bounds is not None:

@@ -260,6 +260,7 @@ def _rewrite_csv(path, fn):
         ),
         ("world_side_bool", r"world.yaml: floor_qr.side_m: expected a number, got bool True"),
         ("world_unit_text", r"world.yaml: floor_qr.payload_unit_m: expected a number, got str"),
+        ("world_side_cm", r"world.yaml: floor_qr.side_m is 20 m: a QR code's side is 0.01-2 m; .* metres"),
         ("world_bounds_reversed", r"world.yaml: bounds_m.x is \[10, 0\]: the minimum must come first"),
         ("cam_rate_text", r"cam0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
         ("cam_resolution_bool", r"cam0/sensor.yaml: resolution\[0\]: expected a number, got bool"),
@@ -290,6 +291,8 @@ def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
         edit_line(gt_csv, 4, ",".join(parts[:4] + ["0", "0", "0", "0"] + parts[8:]))
     elif case == "world_side_bool":
         world.write_text(world.read_text().replace("side_m: 0.2,", "side_m: true,", 1))
+    elif case == "world_side_cm":
+        world.write_text(world.read_text().replace("side_m: 0.2,", "side_m: 20,", 1))
     elif case == "world_unit_text":
         world.write_text(world.read_text().replace("payload_unit_m: 1.0", "payload_unit_m: '1'"))
     elif case == "world_bounds_reversed":
