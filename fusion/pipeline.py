@@ -24,7 +24,7 @@ import gtsam
 import numpy as np
 
 from fusion import __version__
-from fusion.errors import EstimationError, FusionError
+from fusion.errors import EstimationError, FusionError, LogError
 from fusion.estimate import (
     FusionConfig,
     FusionResult,
@@ -268,6 +268,18 @@ class RunResult:
             lines.append(f"report: {self.report_path}")
         lines.append(f"outputs: {self.out_dir}")
         return "\n".join(lines)
+
+
+def _require_readable_floor(log: FlightLog, det: DetectionResult) -> None:
+    """LogError when not one of the floor camera's frames could be read (all missing, of another
+    size than sensor.yaml's resolution, or unreadable): the run would have nothing to localise
+    from, and its outputs would look like a flight without codes."""
+    stats = det.stats.get(CameraRole.FLOOR.value)
+    if stats is None or stats.frames_total == 0 or stats.frames_skipped < stats.frames_total:
+        return
+    floor_csv = f"{CameraRole.FLOOR.value}/data.csv"
+    first = next((m for m in det.skipped if floor_csv in m), det.skipped[0] if det.skipped else "")
+    raise LogError(f"{first} (and every other floor-camera frame: {stats.frames_total} unreadable)")
 
 
 def log_summary(log: FlightLog) -> dict:
@@ -931,6 +943,7 @@ def _run_into(
     else:
         det = detections
         write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))
+    _require_readable_floor(log, det)
     result.detection_stats = detection_statistics(log, det, log.world)
     timings["detect_s"] = time.perf_counter() - t
     if det.skipped:

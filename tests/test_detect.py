@@ -4,15 +4,18 @@ the detections.csv cache."""
 from __future__ import annotations
 
 import math
+import re
+import shutil
 
 import numpy as np
 import pytest
 import zxingcpp
 
 from fusion.camera import CameraModel
-from fusion.errors import DetectionError
+from fusion.errors import DetectionError, LogError
 from fusion.geometry import make_T, rot_z
 from fusion.log import FlightLogWriter, read_flight
+from fusion.pipeline import RunConfig, run
 from fusion.qr.detect import (
     CameraStats,
     detect_flight,
@@ -491,3 +494,17 @@ def test_sampling_frames_in_any_order_gives_the_same_values():
         xi, yi = np.round(x[ok]).astype(int), np.round(y[ok]).astype(int)
         near = np.abs(x[ok] - xi) + np.abs(y[ok] - yi) < 0.02
         np.testing.assert_allclose(vals[k][ok][near], images[rows[k]][yi[near], xi[near]], atol=1.0)
+
+
+def test_a_floor_camera_with_no_readable_frame_is_an_error_naming_the_file(tmp_path, flight):
+    """sensor.yaml's resolution unlike every image's (a calibration of another camera): each frame
+    is skipped, and the run stops with the first frame's file and line instead of writing the
+    outputs of a flight without codes."""
+    root = tmp_path / "log"
+    shutil.copytree(flight, root)
+    yaml_path = root / "mav0" / "cam0" / "sensor.yaml"
+    text = yaml_path.read_text()
+    yaml_path.write_text(re.sub(r"resolution: \[\d+, \d+\]", "resolution: [1280, 720]", text))
+    expected = r"cam0/data.csv:2: image 1000.png is .* sensor.yaml says 1280x720 .*4 unreadable"
+    with pytest.raises(LogError, match=expected):
+        run(root, tmp_path / "out", RunConfig(workers=1), until="detect")
