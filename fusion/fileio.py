@@ -50,10 +50,11 @@ def open_regular(
     path: Path,
     error: type[FusionError] = FusionError,
     binary: bool = False,
-    encoding: str = "utf-8",
+    encoding: str = "utf-8-sig",
     newline: str | None = "",
 ) -> IO[Any]:
-    """Open `path` for reading only if it is a regular file (symlinks followed).
+    """Open `path` for reading only if it is a regular file (symlinks followed).  Text is UTF-8;
+    a byte-order mark (spreadsheet programs write one) is skipped, not read as the first field.
 
     The file is opened non-blocking and checked with fstat on the open descriptor, so a named
     pipe, a socket or a device is refused without blocking (and without a check-then-open race).

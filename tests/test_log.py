@@ -113,6 +113,19 @@ def log_dir(tmp_path):
     return root
 
 
+def test_csv_and_yaml_with_a_byte_order_mark_read_as_without(log_dir):
+    """Spreadsheet programs save UTF-8 with a BOM: it is skipped, not read as the header's first
+    character (which made the header a data row with a bad timestamp)."""
+    before = read_flight(log_dir)
+    mav = log_dir / "mav0"
+    for path in (mav / "cam0" / "data.csv", mav / "imu0" / "data.csv", mav / "cam0" / "sensor.yaml"):
+        path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    after = read_flight(log_dir)
+    assert np.array_equal(after.floor.timestamps_ns, before.floor.timestamps_ns)
+    assert np.array_equal(after.imu.gyro_rad_s, before.imu.gyro_rad_s)
+    assert after.floor.camera.fu == before.floor.camera.fu
+
+
 def edit_line(path, lineno, new):
     lines = path.read_text().splitlines()
     lines[lineno - 1] = new
