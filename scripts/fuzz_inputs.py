@@ -1,0 +1,393 @@
+"""Bad input, as a user's logs bring it: each case copies a small EuRoC flight (images
+hard-linked), breaks one thing in it (a malformed or truncated CSV, a wrong unit, a corrupt or
+resized image, a broken sensor.yaml or world.yaml, a missing stream), runs `fusion run` on it and
+says how the run answered:
+
+  error      exit 1 with one `fusion: error: ...` line and no output folder contents
+  warned     exit 0, the problem named in the summary (warning / note / health lines)
+  silent     exit 0 and nothing said: to look at (some cases are harmless, e.g. a colour PNG)
+  traceback  a Python traceback: always a bug
+
+Prints a Markdown table (case, what was broken, outcome, the first message).  The flight: any
+EuRoC folder with cam0, cam1, imu0 and vel0, e.g. `fusion simulate --duration 8 --seed 11 F`.
+
+    python3 scripts/fuzz_inputs.py FLIGHT WORKDIR [--cases imu_text cam_zero ...] [--list]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+TEXT_SUFFIXES = (".csv", ".yaml", ".json")
+GRAVITY = 9.80665
+
+
+def _lines(p: Path) -> list[str]:
+    return p.read_text().splitlines(keepends=True)
+
+
+def _set_lines(p: Path, lines: list[str]) -> None:
+    p.write_text("".join(lines))
+
+
+def _map_rows(p: Path, fn: Callable[[list[str]], list[str]]) -> None:
+    """Apply `fn` to the fields of every data row of a CSV (the header kept)."""
+    lines = _lines(p)
+    _set_lines(p, lines[:1] + [",".join(fn(line.strip().split(","))) + "\n" for line in lines[1:]])
+
+
+def _set_key(p: Path, key: str, value: str) -> None:
+    _set_lines(p, [f"{key}: {value}\n" if line.startswith(f"{key}:") else line for line in _lines(p)])
+
+
+def _images(d: Path, cam: str = "cam0") -> list[Path]:
+    return sorted((d / "mav0" / cam / "data").iterdir())
+
+
+def _rewrite_image(f: Path, img: np.ndarray) -> None:
+    f.unlink()  # a hard link to the original: replace, do not write through
+    cv2.imwrite(str(f), img)
+
+
+def _replace_bytes(f: Path, data: bytes) -> None:
+    f.unlink()
+    f.write_bytes(data)
+
+
+IMU = "mav0/imu0/data.csv"
+CAM = "mav0/cam0/data.csv"
+
+
+def _imu_text(d: Path) -> None:
+    ls = _lines(d / IMU)
+    ls[500] = ls[500].replace(",", ",abc", 1)
+    _set_lines(d / IMU, ls)
+
+
+def _imu_truncated(d: Path) -> None:
+    t = (d / IMU).read_text()
+    (d / IMU).write_text(t[: len(t) // 2 + 17])
+
+
+def _imu_seconds(d: Path) -> None:
+    _map_rows(d / IMU, lambda f: [f"{int(f[0]) / 1e9:.6f}"] + f[1:])
+
+
+def _imu_repeated_rows(d: Path) -> None:
+    ls = _lines(d / IMU)
+    ls[300:300] = ls[290:300]
+    _set_lines(d / IMU, ls)
+
+
+def _imu_nan(d: Path) -> None:
+    ls = _lines(d / IMU)
+    for i in range(700, 720):
+        f = ls[i].split(",")
+        f[4] = "nan"
+        ls[i] = ",".join(f)
+    _set_lines(d / IMU, ls)
+
+
+def _imu_in_g(d: Path) -> None:
+    _map_rows(d / IMU, lambda f: f[:4] + [repr(float(x) / GRAVITY) for x in f[4:7]])
+
+
+def _imu_deg_s(d: Path) -> None:
+    _map_rows(d / IMU, lambda f: f[:1] + [repr(float(np.degrees(float(x)))) for x in f[1:4]] + f[4:])
+
+
+def _imu_empty(d: Path) -> None:
+    _set_lines(d / IMU, _lines(d / IMU)[:1])
+
+
+def _imu_swapped_rows(d: Path) -> None:
+    ls = _lines(d / IMU)
+    ls[400], ls[800] = ls[800], ls[400]
+    _set_lines(d / IMU, ls)
+
+
+def _imu_gap(d: Path) -> None:
+    ls = _lines(d / IMU)
+    del ls[300:900]
+    _set_lines(d / IMU, ls)
+
+
+def _imu_crlf(d: Path) -> None:
+    (d / IMU).write_bytes((d / IMU).read_bytes().replace(b"\n", b"\r\n"))
+
+
+def _cam_missing(d: Path) -> None:
+    for f in _images(d)[::8]:
+        f.unlink()
+
+
+def _cam_truncated_png(d: Path) -> None:
+    for f in _images(d)[:5]:
+        b = f.read_bytes()
+        _replace_bytes(f, b[: len(b) // 3])
+
+
+def _cam_empty_file(d: Path) -> None:
+    _replace_bytes(_images(d)[10], b"")
+
+
+def _cam_not_png(d: Path) -> None:
+    _replace_bytes(_images(d)[12], b"hello")
+
+
+def _cam_resized(d: Path) -> None:
+    f = _images(d)[20]
+    _rewrite_image(f, cv2.resize(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), (320, 240)))
+
+
+def _cam_colour(d: Path) -> None:
+    for f in _images(d)[:20]:
+        _rewrite_image(f, cv2.cvtColor(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2BGR))
+
+
+def _cam_16bit(d: Path) -> None:
+    for f in _images(d)[:20]:
+        _rewrite_image(f, cv2.imread(str(f), cv2.IMREAD_GRAYSCALE).astype(np.uint16) * 256)
+
+
+def _camcsv_bad_line(d: Path) -> None:
+    ls = _lines(d / CAM)
+    ls[50] = "garbage line here\n"
+    _set_lines(d / CAM, ls)
+
+
+def _camcsv_empty(d: Path) -> None:
+    _set_lines(d / CAM, _lines(d / CAM)[:1])
+
+
+def _camcsv_swapped_rows(d: Path) -> None:
+    ls = _lines(d / CAM)
+    ls[40], ls[60] = ls[60], ls[40]
+    _set_lines(d / CAM, ls)
+
+
+def _camcsv_duplicate(d: Path) -> None:
+    ls = _lines(d / CAM)
+    ls.insert(41, ls[40])
+    _set_lines(d / CAM, ls)
+
+
+def _camcsv_bom(d: Path) -> None:
+    (d / CAM).write_bytes(b"\xef\xbb\xbf" + (d / CAM).read_bytes())
+
+
+def _sensor_not_yaml(d: Path) -> None:
+    (d / "mav0/cam0/sensor.yaml").write_text("intrinsics: [550, 550\n  : : ]]\n")
+
+
+def _sensor_no_intrinsics(d: Path) -> None:
+    p = d / "mav0/cam0/sensor.yaml"
+    _set_lines(p, [line for line in _lines(p) if not line.startswith("intrinsics")])
+
+
+def _sensor_zero_focal(d: Path) -> None:
+    _set_key(d / "mav0/cam0/sensor.yaml", "intrinsics", "[0.0, 0.0, 321.3, 239.2]")
+
+
+def _sensor_other_resolution(d: Path) -> None:
+    _set_key(d / "mav0/cam0/sensor.yaml", "resolution", "[1280, 720]")
+
+
+def _sensor_t_bs_17(d: Path) -> None:
+    p = d / "mav0/cam0/sensor.yaml"
+    t = p.read_text()
+    i = t.index("data: [") + len("data: [")
+    p.write_text(t[:i] + "7.0, " + t[i:])
+
+
+def _sensor_negative_rate(d: Path) -> None:
+    _set_key(d / "mav0/cam0/sensor.yaml", "rate_hz", "-30")
+
+
+def _imu_sensor_missing(d: Path) -> None:
+    (d / "mav0/imu0/sensor.yaml").unlink()
+
+
+def _imu_sensor_negative_noise(d: Path) -> None:
+    _set_key(d / "mav0/imu0/sensor.yaml", "gyroscope_noise_density", "-0.1")
+
+
+def _world_not_yaml(d: Path) -> None:
+    (d / "world.yaml").write_text("floor_qr: [1, 2\n")
+
+
+def _world_missing(d: Path) -> None:
+    (d / "world.yaml").unlink()
+
+
+def _world_side_cm(d: Path) -> None:
+    p = d / "world.yaml"
+    to_cm = lambda m: f"side_m: {100 * float(m[1]):g}"  # noqa: E731
+    p.write_text(re.sub(r"side_m: ([0-9.]+)", to_cm, p.read_text(), count=1))
+
+
+def _world_side_zero(d: Path) -> None:
+    p = d / "world.yaml"
+    p.write_text(re.sub(r"side_m: [0-9.]+", "side_m: 0", p.read_text(), count=1))
+
+
+def _groundtruth_short_row(d: Path) -> None:
+    p = d / "mav0/state_groundtruth_estimate0/data.csv"
+    ls = _lines(p)
+    ls[100] = "1,2,3\n"
+    _set_lines(p, ls)
+
+
+def _groundtruth_other_frame(d: Path) -> None:
+    gt = d / "mav0/state_groundtruth_estimate0/data.csv"
+    _map_rows(gt, lambda f: f[:1] + [repr(float(f[1]) + 100.0)] + f[2:])
+
+
+def _loads_text(d: Path) -> None:
+    (d / "loads_groundtruth.csv").write_text("id,x_m,y_m,z_m\nP-01-1,1.5,abc,0.7\n")
+
+
+def _velocity_short_row(d: Path) -> None:
+    p = d / "mav0/vel0/data.csv"
+    ls = _lines(p)
+    ls[20] = "1,2\n"
+    _set_lines(p, ls)
+
+
+def _no_front_camera(d: Path) -> None:
+    shutil.rmtree(d / "mav0/cam1")
+
+
+def _no_imu(d: Path) -> None:
+    shutil.rmtree(d / "mav0/imu0")
+
+
+CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
+    "imu_text": ("imu0/data.csv: a field 'abc...' in row 501", _imu_text),
+    "imu_truncated": ("imu0/data.csv cut in the middle of a row", _imu_truncated),
+    "imu_seconds": ("imu0/data.csv stamps in seconds", _imu_seconds),
+    "imu_repeated_rows": ("imu0/data.csv: 10 rows written twice", _imu_repeated_rows),
+    "imu_nan": ("imu0/data.csv: 20 accelerometer values NaN", _imu_nan),
+    "imu_in_g": ("imu0/data.csv accelerometer in g", _imu_in_g),
+    "imu_deg_s": ("imu0/data.csv gyroscope in deg/s", _imu_deg_s),
+    "imu_empty": ("imu0/data.csv header only", _imu_empty),
+    "imu_swapped_rows": ("imu0/data.csv: two rows swapped", _imu_swapped_rows),
+    "imu_gap": ("imu0/data.csv: 3 s of rows missing", _imu_gap),
+    "imu_crlf": ("imu0/data.csv with CRLF line ends", _imu_crlf),
+    "cam_missing": ("every 8th cam0 image deleted", _cam_missing),
+    "cam_truncated_png": ("5 cam0 PNGs cut to a third", _cam_truncated_png),
+    "cam_empty_file": ("one cam0 image 0 bytes", _cam_empty_file),
+    "cam_not_png": ("one cam0 image a text file", _cam_not_png),
+    "cam_resized": ("one cam0 image 320x240", _cam_resized),
+    "cam_colour": ("20 cam0 images as BGR", _cam_colour),
+    "cam_16bit": ("20 cam0 images 16-bit", _cam_16bit),
+    "camcsv_bad_line": ("cam0/data.csv: a line of text", _camcsv_bad_line),
+    "camcsv_empty": ("cam0/data.csv header only", _camcsv_empty),
+    "camcsv_swapped_rows": ("cam0/data.csv: two rows swapped", _camcsv_swapped_rows),
+    "camcsv_duplicate": ("cam0/data.csv: a row twice", _camcsv_duplicate),
+    "camcsv_bom": ("cam0/data.csv with a UTF-8 BOM", _camcsv_bom),
+    "sensor_not_yaml": ("cam0/sensor.yaml not YAML", _sensor_not_yaml),
+    "sensor_no_intrinsics": ("cam0/sensor.yaml without intrinsics", _sensor_no_intrinsics),
+    "sensor_zero_focal": ("cam0/sensor.yaml focal length 0", _sensor_zero_focal),
+    "sensor_other_resolution": ("cam0/sensor.yaml 1280x720, images 640x480", _sensor_other_resolution),
+    "sensor_t_bs_17": ("cam0/sensor.yaml T_BS with 17 numbers", _sensor_t_bs_17),
+    "sensor_negative_rate": ("cam0/sensor.yaml rate_hz -30", _sensor_negative_rate),
+    "imu_sensor_missing": ("imu0/sensor.yaml deleted", _imu_sensor_missing),
+    "imu_sensor_negative_noise": ("imu0/sensor.yaml negative gyro noise", _imu_sensor_negative_noise),
+    "world_not_yaml": ("world.yaml not YAML", _world_not_yaml),
+    "world_missing": ("world.yaml deleted", _world_missing),
+    "world_side_cm": ("world.yaml floor side in cm", _world_side_cm),
+    "world_side_zero": ("world.yaml floor side 0", _world_side_zero),
+    "groundtruth_short_row": ("ground truth: a row of 3 fields", _groundtruth_short_row),
+    "groundtruth_other_frame": ("ground truth 100 m off in x", _groundtruth_other_frame),
+    "loads_text": ("loads_groundtruth.csv: a coordinate 'abc'", _loads_text),
+    "velocity_short_row": ("vel0/data.csv: a row of 2 fields", _velocity_short_row),
+    "no_front_camera": ("mav0/cam1 deleted", _no_front_camera),
+    "no_imu": ("mav0/imu0 deleted", _no_imu),
+}
+
+
+def copy_flight(src: Path, dst: Path) -> None:
+    """`src` into `dst`: images hard-linked, the small text files copied (so they can be edited)."""
+    subprocess.run(["cp", "-al", str(src), str(dst)], check=True)
+    for p in dst.rglob("*"):
+        if p.is_file() and p.suffix in TEXT_SUFFIXES:
+            data = p.read_bytes()
+            p.unlink()
+            p.write_bytes(data)
+
+
+def outcome(rc: int, stdout: str, stderr: str, out: Path) -> tuple[str, str]:
+    """(outcome, first message) of one run; see the module docstring."""
+    if "Traceback" in stderr:
+        return "traceback", stderr.strip().splitlines()[-1]
+    errors = [line for line in stderr.splitlines() if line.startswith("fusion: error:")]
+    if rc != 0:
+        half = out.exists() and any(out.iterdir())
+        kind = "error" if errors and not half else f"error (rc {rc}{', outputs left' if half else ''})"
+        return kind, (errors or stderr.strip().splitlines() or [""])[0]
+    said = [
+        line
+        for line in stdout.splitlines() + stderr.splitlines()
+        if line.startswith(("warning:", "note:", "health:", "fusion: ")) or "FAILED" in line
+    ]
+    return ("warned", said[0]) if said else ("silent", "")
+
+
+def run_case(name: str, flight: Path, work: Path) -> tuple[str, str]:
+    case_dir = work / name
+    if case_dir.exists():
+        shutil.rmtree(case_dir)
+    case_dir.mkdir(parents=True)
+    log = case_dir / "log"
+    copy_flight(flight, log)
+    CASES[name][1](log)
+    cmd = [sys.executable, "-m", "fusion.cli", "run", str(log), "--out", str(case_dir / "out")]
+    r = subprocess.run([*cmd, "-q", "--workers", "1", "--no-incremental"], capture_output=True, text=True)
+    kind, message = outcome(r.returncode, r.stdout, r.stderr, case_dir / "out")
+    if kind != "traceback":
+        shutil.rmtree(log)  # kept for a traceback, to reproduce it
+    return kind, message.replace(str(case_dir) + "/", "").replace("|", "\\|")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("flight", type=Path, nargs="?")
+    ap.add_argument("workdir", type=Path, nargs="?")
+    ap.add_argument("--cases", nargs="+", choices=sorted(CASES), default=list(CASES))
+    ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    args = ap.parse_args()
+    if args.list:
+        for name, (what, _) in CASES.items():
+            print(f"{name:<28} {what}")
+        return 0
+    if args.flight is None or args.workdir is None:
+        ap.error("FLIGHT and WORKDIR are required")
+    print(
+        f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
+        f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; flight {args.flight}\n"
+    )
+    print("| case | broken | outcome | first message |\n|---|---|---|---|")
+    counts: dict[str, int] = {}
+    for name in args.cases:
+        kind, message = run_case(name, args.flight, args.workdir)
+        counts[kind] = counts.get(kind, 0) + 1
+        print(f"| {name} | {CASES[name][0]} | {kind} | {message[:200]} |", flush=True)
+    print("\n" + ", ".join(f"{k}: {v}" for k, v in sorted(counts.items())))
+    return 1 if counts.get("traceback") else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
