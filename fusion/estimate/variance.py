@@ -600,8 +600,8 @@ def thin_class_warnings(report: dict) -> list[str]:
         if c.get("thin") and c.get("significant"):
             out.append(
                 f"PnP: the {name} corners' noise is {math.sqrt(c['scale']):.1f}x the model on only "
-                f"{c['dof']:.0f} degrees of freedom (fewer than {MIN_DOF:.0f}): their covariance is "
-                "scaled by it, but may still be too small"
+                f"{c['dof']:.0f} degrees of freedom (fewer than {MIN_DOF:.0f}): a rough factor, "
+                "their covariances may still be too small"
             )
     return out
 
