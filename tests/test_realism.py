@@ -468,3 +468,15 @@ def test_group_leverages_batched_solve_equals_probe_by_probe(monkeypatch):
             b = Ag.T @ gen.choice((-1.0, 1.0), Ag.shape[0])
             expect[g] += float(b @ lu.solve(b)) / vc.HUTCHINSON_PROBES
     assert lev == pytest.approx(expect, rel=1e-9)
+
+
+def test_a_thin_class_warning_is_a_note_of_the_run():
+    """merge_floor_parts carries the thin class's warning into the run's notes and the PnP
+    noise report (metrics.json noise_scales.pnp)."""
+    from fusion import pipeline
+
+    traj, stats, _ = _two_class_frames(seed=11, refined_every=40, sigma_refined=(0.6, 0.15))
+    part = {"paper_error": "not run here", "paper": None, "pnp": traj, "pnp_stats": stats}
+    loc = pipeline.merge_floor_parts([part], pipeline.RunConfig(workers=1, progress=False))
+    warnings = loc.stats["pnp"]["noise_scale"]["thin_class_warnings"]
+    assert len(warnings) == 1 and warnings[0] in loc.notes
