@@ -52,6 +52,9 @@ MIN_SCALE, MAX_SCALE = 1e-2, 1e4
 """Bounds of an applied variance factor (a wildly wrong model is reported, not trusted blindly)."""
 MIN_DOF = 20.0
 """Fewer degrees of freedom than this: the estimate is too noisy to apply (it is still reported)."""
+THIN_CLASS_ALPHA = 1e-3
+"""A thin corner class (fewer than MIN_DOF) whose chi2 is beyond the 1 - this quantile of its
+chi-square gets a warning (`thin_class_warnings`; the corner-bias gate's level, cornerbias.py)."""
 SCALE_TOLERANCE = 0.1
 """The smoother stops re-solving once every applied group's chi2/dof is within 1 +- this."""
 IMU_WARN_BAND = (0.5, 2.0)
@@ -593,7 +596,7 @@ def thin_class_factor(comp: VarianceComponent) -> float:
 def thin_class_warnings(report: dict) -> list[str]:
     """One line per corner class of a PnP noise report (`scale_pnp_trajectory_by_class`) whose
     factor could not be estimated (too few degrees of freedom) while its own chi2 is beyond the
-    1 - 10^-3 quantile of its chi-square: its covariance (scaled by that chi2 / dof) is probably
+    1 - THIN_CLASS_ALPHA quantile of its chi-square: its covariance (scaled by that chi2 / dof) is probably
     still too small, and the frames that rest on it may be overconfident."""
     out = []
     for name, c in (report.get("classes") or {}).items():
@@ -645,9 +648,9 @@ def scale_pnp_trajectory_by_class(
         comp = comps[n]
         if comp.dof > 0 and not comp.usable and scales is not None:
             # a thin class (pnp_class_components): its own factor, and whether its chi2 alone
-            # is significant (the same level as the corner-bias gate)
+            # is significant
             c["thin"] = True
-            c["significant"] = bool(comp.chi2 > chi2_dist.ppf(1.0 - 1e-3, comp.dof))
+            c["significant"] = bool(comp.chi2 > chi2_dist.ppf(1.0 - THIN_CLASS_ALPHA, comp.dof))
     report["thin_class_warnings"] = thin_class_warnings(report)
     for line in report["thin_class_warnings"]:
         log.warning("%s", line)
