@@ -461,6 +461,9 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     traj_pnp, stats["pnp"]["noise_scale"] = variance.scale_pnp_trajectory_by_class(
         traj_pnp, [p["pnp_stats"] for p in parts], cfg.estimate_noise_scale
     )
+    # a corner class with too few degrees of freedom for its own factor whose residuals are
+    # nonetheless far beyond its model (variance.thin_class_warnings): said in the summary
+    notes += stats["pnp"]["noise_scale"].get("thin_class_warnings", [])
     # a corner bias common to the flight (issue 10.3): removed when significant
     traj_pnp, bias_report, consider = cornerbias.correct_pnp_trajectory(
         traj_pnp,

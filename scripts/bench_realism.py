@@ -26,6 +26,9 @@ Columns:
   τ ref / dec   the integrated correlation time (frames) of the refined / decoder-fallback
                 corners' PnP residuals (fusion.estimate.correlation); "inflated" when some is
                 above 1 and the "after" back ends took the PnP frames as that many fewer
+  s ref / dec   the σ factor applied to each corner class's PnP covariance
+                (variance.pnp_class_components; "pooled" when one factor serves both; "thin":
+                the class had fewer than 20 dof, its own χ²/dof kept, never below 1)
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
@@ -290,6 +293,17 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
         )
         + f" (T {cb['statistic']:.0f}{', removed' if cb['applied'] else ''})"
     )
+    classes = noise.get("pnp", {}).get("classes", {})
+    row["class_sigma"] = (
+        " / ".join(
+            "-"
+            if c.get("applied_scale") is None
+            else f"{math.sqrt(c['applied_scale']):.2f}{' thin' if c.get('thin') else ''}"
+            for c in classes.values()
+        )
+        if noise.get("pnp", {}).get("by_class")
+        else "pooled"
+    )
     corr = noise.get("pnp_correlation")
     row["corr"] = (
         "-"
@@ -319,8 +333,8 @@ def table(rows: list[dict]) -> list[str]:
     out = [
         "| effect | level | floor dec % | load obs | raw px | ref px | PnP mm | >5cm | NEES pnp | "
         "NEES smoother | NEES ekf | ATE mm | s cam0 | s cam1 | IMU χ²/dof | PnP bias σ | corner bias | "
-        "τ ref / dec |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "τ ref / dec | s ref / dec |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         out.append(
@@ -329,7 +343,7 @@ def table(rows: list[dict]) -> list[str]:
             f"{r['pnp_out']}/{r['pnp_n']} | "
             f"{nees_cell(r['nees_pnp'])} | {nees_cell(r['nees_smoother'])} | {nees_cell(r['nees_ekf'])} | "
             f"{fmt(r['ate_mm'], '.1f')} | {fmt(r['s_cam0'])} | {fmt(r['s_cam1'])} | {fmt(r['imu'])} | "
-            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} | {r['corr']} |"
+            f"{fmt(r['pnp_bias'])} | {r['corner_bias']} | {r['corr']} | {r.get('class_sigma', '-')} |"
         )
     return out
 

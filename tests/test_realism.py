@@ -276,6 +276,69 @@ def test_pnp_noise_scales_per_corner_class_recover_each_class_and_its_nees():
     assert rep_b["classes"]["decoder"]["dof"] == 0.0
 
 
+def _two_class_frames(seed: int, refined_every: int, sigma_refined: tuple[float, float]):
+    """Frames of a simulated flight whose codes keep the decoder's corners (claimed 1.5 px, true
+    0.6 px), except one code in every `refined_every` frames with refined corners (true, claimed
+    sigma_refined px): the clipping x2.6 mix (BENCHMARKS.md, x26)."""
+    import dataclasses
+
+    fl = make_flight(seed=seed, duration_s=6.0, gaps=())
+    cam = make_cameras()["cam0"]
+    floor = floor_sightings(fl, cam, seed=seed + 1, sigma_px=0.0)
+    rng = np.random.default_rng(seed + 2)
+    frames = {}
+    for i, ts in enumerate(sorted(floor)[:120]):
+        dets = []
+        for j, s in enumerate(floor[ts]):
+            refined = j == 0 and i % refined_every == 0
+            sigma_true, sigma_claimed = sigma_refined if refined else (0.6, 1.5)
+            noisy = s.detection.corners_px + rng.normal(0.0, sigma_true, (4, 2))
+            dets.append(dataclasses.replace(s.detection, corners_px=noisy, corner_sigma_px=sigma_claimed))
+        frames[ts] = dets
+    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0))
+    traj, stats = pnp_trajectory(frames, cam, world)
+    truth = dict(zip(fl.frame_t.tolist(), fl.T_true))
+    return traj, stats, np.array([truth[int(t)] for t in traj.timestamps_ns])
+
+
+def test_a_thin_corner_class_is_not_pooled_with_the_other():
+    """A few refined codes (claimed 0.15 px, true 0.6 px) among decoder corners (claimed 1.5 px,
+    true 0.6 px): too few degrees of freedom for the refined class's own estimate.  Pooled, they
+    took the decoder's factor (~0.2) and their frames were far overconfident; now the refined
+    class keeps its own chi2/dof (>= 1), the decoder class its Helmert factor, a warning says
+    the thin class's factor is a rough one, and the refined frames' NEES comes down."""
+    traj, stats, T_true = _two_class_frames(seed=11, refined_every=40, sigma_refined=(0.6, 0.15))
+    comps, _ = vc.pnp_class_components([stats])
+    refined = comps["refined"]
+    assert 0 < refined.dof < vc.MIN_DOF and comps["decoder"].usable
+    pooled, _ = vc.scale_pnp_trajectory(traj, [stats])
+    scaled, report = vc.scale_pnp_trajectory_by_class(traj, [stats])
+    assert report["by_class"] and report["applied"]
+    r, d = report["classes"]["refined"], report["classes"]["decoder"]
+    assert r["thin"] and r["significant"] and not d.get("thin")
+    assert math.isclose(r["applied_scale"], refined.scale, rel_tol=1e-9) and r["applied_scale"] > 4.0
+    assert abs(d["applied_scale"] - 0.16) < 0.25 * 0.16, d
+    assert len(report["thin_class_warnings"]) == 1 and "refined" in report["thin_class_warnings"][0]
+    with_refined = np.array([np.any(c.classes == 0) for c in stats.frame_code_residuals])
+    assert with_refined.sum() >= 2
+    before = nees(pooled, T_true)[with_refined].mean()
+    after = nees(scaled, T_true)[with_refined].mean()
+    assert before > 30.0 and after < before / 3.0, (before, after)
+
+
+def test_a_thin_corner_class_is_never_scaled_down():
+    """A thin class whose residuals are smaller than its model (claimed 0.6 px, true 0.3 px)
+    keeps its modelled covariance (factor 1, no warning): few degrees of freedom are not enough
+    to trust it more."""
+    traj, stats, _ = _two_class_frames(seed=12, refined_every=40, sigma_refined=(0.3, 0.6))
+    comps, scales = vc.pnp_class_components([stats])
+    assert comps["refined"].scale < 1.0 and not comps["refined"].usable
+    assert scales is not None and scales[0] == 1.0
+    _, report = vc.scale_pnp_trajectory_by_class(traj, [stats])
+    assert report["classes"]["refined"]["applied_scale"] == 1.0
+    assert not report["thin_class_warnings"]
+
+
 def test_smoother_noise_scale_recovers_pose_noise_and_keeps_a_right_model():
     fl = make_flight(seed=5, duration_s=8.0, gaps=())
     right = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM)
@@ -405,3 +468,15 @@ def test_group_leverages_batched_solve_equals_probe_by_probe(monkeypatch):
             b = Ag.T @ gen.choice((-1.0, 1.0), Ag.shape[0])
             expect[g] += float(b @ lu.solve(b)) / vc.HUTCHINSON_PROBES
     assert lev == pytest.approx(expect, rel=1e-9)
+
+
+def test_a_thin_class_warning_is_a_note_of_the_run():
+    """merge_floor_parts carries the thin class's warning into the run's notes and the PnP
+    noise report (metrics.json noise_scales.pnp)."""
+    from fusion import pipeline
+
+    traj, stats, _ = _two_class_frames(seed=11, refined_every=40, sigma_refined=(0.6, 0.15))
+    part = {"paper_error": "not run here", "paper": None, "pnp": traj, "pnp_stats": stats}
+    loc = pipeline.merge_floor_parts([part], pipeline.RunConfig(workers=1, progress=False))
+    warnings = loc.stats["pnp"]["noise_scale"]["thin_class_warnings"]
+    assert len(warnings) == 1 and warnings[0] in loc.notes

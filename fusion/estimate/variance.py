@@ -52,6 +52,9 @@ MIN_SCALE, MAX_SCALE = 1e-2, 1e4
 """Bounds of an applied variance factor (a wildly wrong model is reported, not trusted blindly)."""
 MIN_DOF = 20.0
 """Fewer degrees of freedom than this: the estimate is too noisy to apply (it is still reported)."""
+THIN_CLASS_ALPHA = 1e-3
+"""A thin corner class (fewer than MIN_DOF) whose chi2 is beyond the 1 - this quantile of its
+chi-square gets a warning (`thin_class_warnings`; the corner-bias gate's level, cornerbias.py)."""
 SCALE_TOLERANCE = 0.1
 """The smoother stops re-solving once every applied group's chi2/dof is within 1 +- this."""
 IMU_WARN_BAND = (0.5, 2.0)
@@ -537,8 +540,14 @@ def pnp_class_components(stats_parts: Sequence) -> tuple[dict[str, VarianceCompo
     its chi2, redundancy and frames, and the variance factors s (k,) that solve
     sum_frames T s = sum_frames chi2_c (Helmert's estimation, Helmert 1924; Koch 1999, sec. 3.6:
     PnPResult.class_redundancy T gives E[chi2_c] = sum_c' T[c, c'] s_c' at the poses solved with
-    the modelled weights); None when fewer than two classes have MIN_DOF redundancy each, or the solve
-    gives a non-positive or non-finite factor (then one pooled factor is the estimate)."""
+    the modelled weights).  A class present with less than MIN_DOF redundancy ("thin") is not
+    pooled with the others (their factor says nothing about its corners: clipping x2.6, 6
+    refined sightings among 148 decoder ones, took the decoder's 0.28 and were then ~12x too
+    optimistic, 86 % of the flight's PnP yaw information at NEES 108; BENCHMARKS.md, x26): its
+    factor is its own chi2 / redundancy, never below 1 (too few degrees of freedom to trust a
+    smaller one; `thin_class_factor`), and the others' are solved with it fixed.  None when no
+    class has MIN_DOF, only one class is present, or the solve gives a non-positive or
+    non-finite factor (then one pooled factor is the estimate)."""
     from fusion.qr.pnp.whitening import CORNER_CLASSES
 
     k = len(CORNER_CLASSES)
@@ -556,17 +565,48 @@ def pnp_class_components(stats_parts: Sequence) -> tuple[dict[str, VarianceCompo
         for i, name in enumerate(CORNER_CLASSES)
     }
     present = np.flatnonzero(dof > 0)
-    if len(present) < 2 or any(not comps[CORNER_CLASSES[i]].usable for i in present):
-        return comps, None
-    try:
-        s_present = np.linalg.solve(T[np.ix_(present, present)], chi2[present])
-    except np.linalg.LinAlgError:
-        return comps, None
-    if not (np.all(np.isfinite(s_present)) and np.all(s_present > 0)):
+    usable = np.array([i for i in present if comps[CORNER_CLASSES[i]].usable], dtype=int)
+    thin = np.array([i for i in present if not comps[CORNER_CLASSES[i]].usable], dtype=int)
+    if len(present) < 2 or not len(usable):
         return comps, None
     scales = np.ones(k)
-    scales[present] = [clamp_scale(float(x)) for x in s_present]
+    for i in thin:
+        scales[i] = thin_class_factor(comps[CORNER_CLASSES[i]])
+    try:  # the usable classes' equations with the thin ones' factors moved to the right side
+        s_usable = np.linalg.solve(
+            T[np.ix_(usable, usable)], chi2[usable] - T[np.ix_(usable, thin)] @ scales[thin]
+        )
+    except np.linalg.LinAlgError:
+        return comps, None
+    if not (np.all(np.isfinite(s_usable)) and np.all(s_usable > 0)):
+        return comps, None
+    scales[usable] = [clamp_scale(float(x)) for x in s_usable]
     return comps, scales
+
+
+def thin_class_factor(comp: VarianceComponent) -> float:
+    """The variance factor of a corner class with too little redundancy to estimate its own
+    (`pnp_class_components`): its chi2 / redundancy when above 1 (clamped), else 1.  A thin
+    class is never scaled down: a small chi2 on few degrees of freedom is as likely luck, and
+    its covariance scaled down would be trusted by every back end."""
+    s = comp.scale
+    return clamp_scale(s) if math.isfinite(s) and s > 1.0 else 1.0
+
+
+def thin_class_warnings(report: dict) -> list[str]:
+    """One line per corner class of a PnP noise report (`scale_pnp_trajectory_by_class`) whose
+    factor could not be estimated (too few degrees of freedom) while its own chi2 is beyond the
+    1 - THIN_CLASS_ALPHA quantile of its chi-square: its covariance (scaled by that chi2 / dof) is probably
+    still too small, and the frames that rest on it may be overconfident."""
+    out = []
+    for name, c in (report.get("classes") or {}).items():
+        if c.get("thin") and c.get("significant"):
+            out.append(
+                f"PnP: the {name} corners' noise is {math.sqrt(c['scale']):.1f}x the model on only "
+                f"{c['dof']:.0f} degrees of freedom (fewer than {MIN_DOF:.0f}): a rough factor, "
+                "their covariances may still be too small"
+            )
+    return out
 
 
 def scale_pnp_trajectory_by_class(
@@ -604,6 +644,16 @@ def scale_pnp_trajectory_by_class(
         n: dict(comps[n].as_dict(), applied_scale=float(scales[i]) if scales is not None else None)
         for i, n in enumerate(names)
     }
+    for n, c in report["classes"].items():
+        comp = comps[n]
+        if comp.dof > 0 and not comp.usable and scales is not None:
+            # a thin class (pnp_class_components): its own factor, and whether its chi2 alone
+            # is significant
+            c["thin"] = True
+            c["significant"] = bool(comp.chi2 > chi2_dist.ppf(1.0 - THIN_CLASS_ALPHA, comp.dof))
+    report["thin_class_warnings"] = thin_class_warnings(report)
+    for line in report["thin_class_warnings"]:
+        log.warning("%s", line)
     return out, report
 
 
