@@ -343,6 +343,7 @@ def outcome(rc: int, stdout: str, stderr: str, out: Path) -> tuple[str, str]:
         for line in stdout.splitlines() + stderr.splitlines()
         if line.startswith(("warning:", "note:", "health:", "fusion: ")) or "FAILED" in line
     ]
+    said.sort(key=lambda line: not line.startswith("warning:"))  # a named warning first
     return ("warned", said[0]) if said else ("silent", "")
 
 
