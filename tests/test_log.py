@@ -369,6 +369,12 @@ def test_clean_log_has_no_warnings(log_dir):
             r"\(first: line 2, norm 2\)",
         ),
         (
+            "imu_gap",
+            "imu_gaps",
+            r"imu0/data.csv: 1 gap\(s\) over 50 ms between samples, 0.105 s in all; the longest "
+            r"0.105 s after timestamp \d+ \(0.\d\d s into the IMU\): bridged by a random walk",
+        ),
+        (
             "accel_clipped",
             "imu_saturated",
             r"imu0/data.csv: 10 sample value\(s\) sit at an axis' "
@@ -405,6 +411,8 @@ def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
         cam.save(mav / "cam1" / "sensor.yaml")
     elif case == "gt_quat_scaled":
         _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
+    elif case == "imu_gap":
+        _rewrite_csv(imu_csv, lambda t, v: (list(t[:20]) + list(t[40:]), np.r_[v[:20], v[40:]]))
     elif case == "accel_clipped":
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :5], np.minimum(v[:, 5], np.sort(v[:, 5])[-10])]))
     log = read_flight(log_dir)

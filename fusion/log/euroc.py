@@ -96,6 +96,10 @@ _DIGITS = re.compile(r"[0-9]+")
 GRAVITY_M_S2 = 9.80665
 ACCEL_NORM_RANGE_M_S2 = (7.0, 12.5)  # median |specific force| of a flying or resting drone
 ACCEL_IN_G_RANGE = (0.7, 1.3)  # the same median when the accelerometer reports g
+IMU_GAP_WARN_S = 0.05
+"""IMU samples further apart than this are a gap (fusion.estimate.common.FusionConfig's
+max_imu_gap_s default): the back ends bridge it with a weak random walk, so the fused poses there
+rest on the cameras alone; a counted warning (`imu_gaps`)."""
 GYRO_MAX_PLAUSIBLE_RAD_S = 8.7  # 500 deg/s: beyond any warehouse flight's 99th percentile
 GYRO_NOISE_RATIO_SUSPECT = 30.0  # measured / stated white noise (deg/s: 57x; rotor vibration
 # and conservative Kalibr densities stay well below)
@@ -629,7 +633,7 @@ def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
 
 
 def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
-    """Accelerometer in g (median |specific force| ~ 1: LogError), other magnitudes, gyro in
+    """Accelerometer in g (median |specific force| ~ 1: LogError), other magnitudes, gaps, gyro in
     deg/s (rates beyond GYRO_MAX_PLAUSIBLE_RAD_S, or white noise far above sensor.yaml's density,
     estimated from first differences: std(diff)/sqrt(2) = sigma_d for white noise), clipping."""
     out = []
@@ -668,6 +672,21 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
                 1,
                 f"{csv_path}: {why}: the gyro looks like deg/s (rad/s expected), or "
                 "sensor.yaml's noise is wrong",
+            )
+        )
+    dt = np.diff(imu.timestamps_ns)
+    gaps = np.flatnonzero(dt > IMU_GAP_WARN_S * 1e9)
+    if len(gaps):
+        i = int(gaps[np.argmax(dt[gaps])])
+        t0 = int(imu.timestamps_ns[0])
+        out.append(
+            LogWarning(
+                "imu_gaps",
+                len(gaps),
+                f"{csv_path}: {len(gaps)} gap(s) over {IMU_GAP_WARN_S * 1e3:g} ms between samples, "
+                f"{dt[gaps].sum() * 1e-9:.3g} s in all; the longest {dt[i] * 1e-9:.3g} s after "
+                f"timestamp {int(imu.timestamps_ns[i])} ({(int(imu.timestamps_ns[i]) - t0) * 1e-9:.2f} s "
+                "into the IMU): bridged by a random walk, the fused poses there rest on the cameras",
             )
         )
     clipped = 0
