@@ -12,13 +12,27 @@ The bias is a dilation of every refined code (fusion.qr.pnp.bias), one per code-
 Estimate (generalised least squares with the pose as nuisance; Koch 1999, sec. 3.2.5 on reduced
 normal equations): b = N^-1 y with N = sum_k A_k^T M_k A_k, y = sum_k A_k^T M_k r_k, and
 Cov(b) = s^2 N^-1, s^2 the flight's PnP variance factor (fusion.estimate.variance).
-Significance: T = b^T N b / s^2 ~ χ²(p) when there is no bias; the correction is made only
-when T exceeds its (1 - GATE_ALPHA) quantile, so a flight without a bias keeps its poses and
-covariances bit for bit (the earlier ungated correction, ~0.002 px off on the clean flight,
-took its smoother NEES 5.9 → 9.8; BENCHMARKS.md fifth session).
-Correction: each PnP pose is moved by -S_k b (S_k its first-order sensitivity to the bias).
+Which bins are judged (issue 10.1/10.3 `gate` session): a bin is *determined* when
+GATE_SIGMAS σ_b <= MAX_BIAS_PX for each of its parameters (σ_b from Cov(b)): only then can the
+flight tell a dilation of the model's size (<= MAX_BIAS_PX) from one beyond it.  A bin that is
+not determined (e.g. the 90-128 px bin of the 30 ms rolling-shutter bench flights, a few frames
+whose pose absorbs the dilation: σ ≈ 0.25 px against 0.006 px on the same flights' global-shutter
+renders) is neither judged nor removed; it stays in the joint estimate (its dilation is a
+nuisance of the others': b is solved jointly, so the determined bins' estimate and covariance
+are the marginal ones) and its size and uncertainty stay in the consider covariance below.
+Significance: over the determined bins' parameters d, T = b_d^T Cov(b)_dd^-1 b_d ~ χ²(|d|)
+when there is no bias; the correction is made only when T exceeds its (1 - GATE_ALPHA)
+quantile, so a flight without a bias keeps its poses and covariances bit for bit (the earlier
+ungated correction, ~0.002 px off on the clean flight, took its smoother NEES 5.9 → 9.8;
+BENCHMARKS.md fifth session).  Size: the flight's bias is `too_large` (reported, not removed)
+only when some determined parameter is confidently beyond MAX_BIAS_PX, |b| - GATE_SIGMAS σ_b >
+MAX_BIAS_PX (before: max |b| over every bin, however poorly determined, switched the removal off
+on every 30 ms bench flight).
+Correction: each PnP pose is moved by -S_k b_r (S_k its first-order sensitivity to the bias,
+b_r = b with the bins not determined set to 0).
 Consider term (Schmidt's consider covariance; Bierman 1977, ch. VI; Tapley, Schutz & Born 2004,
-sec. 6.2): the corrected pose still carries S_k (b_true - b), an error common to all frames.
+sec. 6.2): the corrected pose still carries S_k (b_true - b_r), an error common to all frames
+(for the bins not removed, their whole bias: b_true ≈ b ± Cov(b), hence the same C below).
 Its covariance is not Cov(b) alone: the two-number dilation model is itself an approximation
 (on the defocus r 2 flight the estimate matched the true dilation to 0.002 px, yet removing it
 took the PnP bias from 0.47 to 0.64σ and the smoother's NEES from 7.1 to 12.3: another error
@@ -57,14 +71,20 @@ MAX_BIAS_PX = 0.1
 `too_large`): the model is a small bias, the correction first order, and the refined corners'
 own mean error is 0.013-0.04 px on the renders (BENCHMARKS.md); on the few-frame flights the
 estimate was 1-5 px with T < 10 (ill-conditioned: single codes, whose pose absorbs a dilation)."""
+GATE_SIGMAS = 3.0
+"""k of the size gate (module docstring): a bin is determined when k σ_b <= MAX_BIAS_PX (its
+σ_b <= 0.033 px), and too large when |b| - k σ_b > MAX_BIAS_PX (a normal tail of 0.0013 per
+parameter: a bin at the limit is not called too large by its noise)."""
 
 
 @dataclass
 class CornerBias:
     """A flight's common corner bias: `bias_px` (p,) (fusion.qr.pnp.bias.N_PARAMS: BIN_PARAMS per
     code-size bin; 0 in the bins without codes), `covariance_px2` (p, p) Cov(b) (its noise only),
-    `statistic` T = b^T Cov(b)^-1 b over the bins with codes (χ²(2 bins) without a bias),
-    `threshold` the gate, `frames` the frames used; `significant` when T > threshold."""
+    `statistic` T = b_d^T Cov(b)_dd^-1 b_d over the determined bins' parameters d (χ²(|d|) without
+    a bias),
+    `threshold` the gate, `frames` the frames used; `significant` when T > threshold.  T and the
+    threshold are over the determined bins' parameters (`determined`); 0 / 0 when none is."""
 
     bias_px: np.ndarray
     covariance_px2: np.ndarray
@@ -79,7 +99,8 @@ class CornerBias:
     @property
     def consider_px2(self) -> np.ndarray:
         """(p, p) what is left of the bias after the correction: Cov(b) + b b^T (the estimate's
-        noise, and the bias model's own error taken as large as the correction itself)."""
+        noise, and the bias model's own error taken as large as the correction itself; for a bin
+        not determined, hence not removed, its whole bias: the estimate's size and noise)."""
         return self.covariance_px2 + np.outer(self.bias_px, self.bias_px)
 
     def bins(self) -> list[int]:
@@ -89,13 +110,32 @@ class CornerBias:
         return [int(j) for j in np.flatnonzero(np.any(var > 0, axis=1))]
 
     @property
+    def sigma_px(self) -> np.ndarray:
+        """(p,) σ_b of each parameter (0 in the bins without codes)."""
+        return np.sqrt(np.maximum(np.diag(self.covariance_px2), 0.0))
+
+    @property
+    def determined(self) -> np.ndarray:
+        """(p,) bool: the parameters of the bins with codes whose every parameter has
+        GATE_SIGMAS σ_b <= MAX_BIAS_PX (the only ones judged and removed)."""
+        return _determined(self.covariance_px2)
+
+    @property
     def too_large(self) -> bool:
-        return bool(np.max(np.abs(self.bias_px)) > MAX_BIAS_PX)
+        """Some determined parameter confidently beyond MAX_BIAS_PX: |b| - GATE_SIGMAS σ_b."""
+        excess = np.abs(self.bias_px) - GATE_SIGMAS * self.sigma_px
+        return bool(np.any(excess[self.determined] > MAX_BIAS_PX))
+
+    @property
+    def removed_px(self) -> np.ndarray:
+        """(p,) the part of the bias a correction removes: b in the determined bins, 0 elsewhere."""
+        return np.where(self.determined, self.bias_px, 0.0)
 
     def as_dict(self, applied: bool) -> dict:
-        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px)."""
+        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px) and
+        whether it is determined (judged and, when `applied`, removed)."""
         k = len(BIN_PARAMS)
-        sd = np.sqrt(np.diag(self.covariance_px2))
+        sd, det = self.sigma_px, self.determined
         return {
             "params": list(BIN_PARAMS),
             "bins": [
@@ -103,6 +143,7 @@ class CornerBias:
                     "side_px": list(bin_range_px(j)),
                     "bias_px": [float(x) for x in self.bias_px[k * j : k * j + k]],
                     "sigma_px": [float(x) for x in sd[k * j : k * j + k]],
+                    "determined": bool(det[k * j]),
                 }
                 for j in self.bins()
             ],
@@ -142,13 +183,23 @@ def estimate_corner_bias(terms: Sequence[FrameBiasTerms | None], variance_factor
     b[active] = Ninv @ y[active]
     cov = np.zeros((len(y), len(y)))
     cov[np.ix_(active, active)] = variance_factor * Ninv
+    d = np.flatnonzero(_determined(cov))
+    if len(d):  # the marginal test of the determined bins (the others a nuisance of the joint fit)
+        statistic = float(b[d] @ np.linalg.solve(cov[np.ix_(d, d)], b[d]))
+        threshold = float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(d)))
+    else:
+        statistic = threshold = 0.0
     return CornerBias(
-        bias_px=b,
-        covariance_px2=cov,
-        statistic=float(b[active] @ Na @ b[active] / variance_factor),
-        threshold=float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(active))),
-        frames=len(used),
+        bias_px=b, covariance_px2=cov, statistic=statistic, threshold=threshold, frames=len(used)
     )
+
+
+def _determined(covariance_px2: np.ndarray) -> np.ndarray:
+    """(p,) bool: parameters of the size bins with codes whose every parameter has GATE_SIGMAS
+    σ_b <= MAX_BIAS_PX (CornerBias.determined)."""
+    var = np.diag(covariance_px2).reshape(-1, len(BIN_PARAMS))
+    ok = np.all(var > 0, axis=1) & np.all(GATE_SIGMAS * np.sqrt(np.maximum(var, 0.0)) <= MAX_BIAS_PX, axis=1)
+    return np.repeat(ok, len(BIN_PARAMS))
 
 
 @dataclass
@@ -190,16 +241,18 @@ def correct_pnp_trajectory(
     if apply and est.significant and est.too_large:
         log.warning(
             "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
-            "above %.2f px: reported, not removed",
-            float(np.max(np.abs(est.bias_px))),
+            "above %.2f px by more than %g sigma: reported, not removed",
+            float(np.max(np.abs(est.bias_px[est.determined]))),
             est.statistic,
             MAX_BIAS_PX,
+            GATE_SIGMAS,
         )
     k = len(BIN_PARAMS)
     log.info(
         "PnP: common corner bias %s px (T = %.1f, gate %.1f)%s",
         ", ".join(
             f"{est.bias_px[k * j]:+.4f} / {est.bias_px[k * j + 1]:+.4f} at {lo:.0f}-{hi:.0f} px"
+            + ("" if est.determined[k * j] else f" (not determined: sigma {est.sigma_px[k * j]:.3f})")
             for j in est.bins()
             for lo, hi in [bin_range_px(j)]
         ),
@@ -214,7 +267,7 @@ def correct_pnp_trajectory(
     for i, t in enumerate(terms):
         if t is not None:
             S[i][:, t.params] = t.sensitivity_q
-    dxi = -S @ est.bias_px  # (n, 6): xi_true ≈ xi_est - S b
+    dxi = -S @ est.removed_px  # (n, 6): xi_true ≈ xi_est - S b_r (the determined bins only)
     T = np.stack([T_wb @ se3_exp(d) for T_wb, d in zip(traj.T_world_body, dxi)])
     consider = BiasConsider(np.asarray(traj.timestamps_ns, dtype=np.int64), S, est.consider_px2)
     out = Trajectory(traj.name, traj.timestamps_ns, T, traj.covariances)
