@@ -91,6 +91,7 @@ from fusion.qr.rolling_shutter import (
     ReadoutCalibration,
     RollingShutterReport,
     add_pose_covariance,
+    add_sighting_covariance,
     calibrate_readout,
     correct_flight,
 )
@@ -974,13 +975,8 @@ def _run_into(
     log, det, loc = _apply_time_offsets(log, det, loc, cfg, result, shared)
     if mount_check and not cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result, None if shared is None else shared.mount)
-    if result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
-        # the readout correction's motion uncertainty moves the whole image: PnP pose covariance
-        # (keyed by the floor frames' stamps, shifted like them when a time offset was applied)
-        shift = 0 if result.time_offsets is None else result.time_offsets.shift_ns(CameraRole.FLOOR.value)
-        added = {t + shift: c for t, c in result.rolling_shutter.pose_cov_added.items()}
-        pnp_key = str(Estimator.PNP)
-        loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
+    if result.rolling_shutter is not None:
+        add_readout_covariances(loc, result.rolling_shutter, result.time_offsets)
     result.notes += loc.notes
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
@@ -1075,6 +1071,31 @@ def track_stage(
     result.detection_stats = detection_statistics(log, det, log.world)
     result.detection_stats["tracking"] = rep.as_dict()
     return det, loc
+
+
+def add_readout_covariances(
+    loc: LocalizeResult, report: RollingShutterReport, time_offsets: TimeOffsets | None = None
+) -> None:
+    """`loc` (in place) with the readout correction's motion uncertainty added (`report`,
+    fusion.qr.rolling_shutter.correct_flight): it moves the whole image, so it goes to the floor
+    camera's PnP pose covariances and to the other cameras' camera-frame load sightings (the
+    back ends' landmark measurements), keyed by stamps shifted like them when `time_offsets`
+    were applied."""
+
+    def shift(camera: str) -> int:
+        return 0 if time_offsets is None else time_offsets.shift_ns(camera)
+
+    if report.pose_cov_added:
+        s = shift(CameraRole.FLOOR.value)
+        pnp_key = str(Estimator.PNP)
+        added = {t + s: c for t, c in report.pose_cov_added.items()}
+        loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
+    for camera, by_key in report.sighting_cov_added.items():
+        if camera != CameraRole.FRONT.value or not by_key:
+            continue  # load sightings come from the front camera only
+        s = shift(camera)
+        sightings = {(t + s, load_id): c for (t, load_id), c in by_key.items()}
+        loc.camera_frame_observations = add_sighting_covariance(loc.camera_frame_observations, sightings)
 
 
 def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):

@@ -512,3 +512,61 @@ def test_scale_sigma_adds_a_rank_one_pose_covariance_along_the_motion(synthetic_
         s = np.linalg.svd(add1, compute_uv=False)
         assert s[0] > 0 and s[1] < 1e-6 * s[0]
         np.testing.assert_allclose(add2, 4.0 * add1, rtol=1e-6, atol=1e-18)
+
+
+# ---------------------------------------------------------------------------- front camera's load sightings
+
+
+def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
+    """The load sightings' camera-frame covariance from the motion's uncertainty (first order,
+    central differences) against the spread of the sightings corrected with motions drawn from
+    that uncertainty (400 seeded draws); and add_sighting_covariance adds it to the matching
+    sightings only."""
+    from fusion.qr.rolling_shutter import _sightings_by_key, add_sighting_covariance, motion_sighting_covariance
+    from fusion.types import LoadObservation
+
+    sc, _ = scene
+    world = sc.layout.world
+    cam = replace(sc.cameras["cam1"], line_delay_s=0.03 / 480)
+    loads = [c for c in sc.codes() if not c.is_floor]
+    T0 = sc.trajectory.state(np.array([7.5])).T_world_body[0]
+    v, w = np.array([1.5, 0.4, 0.1]), np.array([0.1, -0.2, 0.6])
+    body_at = constant_twist(T0, v, w)
+    rng = np.random.default_rng(12)
+    dets = []
+    for c in loads:
+        uv = project_code_corners_rolling(cam, body_at, 0.0, c)
+        if np.all(np.isfinite(uv)) and np.all(uv > 10) and np.all(uv < [cam.width - 10, cam.height - 10]):
+            uv = uv + rng.normal(0.0, 0.01, uv.shape)
+            dets.append(QRDetection("cam1", 0, c.payload, uv, uv.copy(), corner_cov_px2=0.05**2 * np.eye(8)))
+    assert len(dets) >= 3
+    S_w, S_v = np.diag([2e-4, 1e-4, 3e-4]), np.diag([4e-4, 1e-4, 2e-4])  # (rad/s)^2, (m/s)^2
+    motion = FrameMotion(np.array([0]), T0[None] + 0.0, w[None], v[None], np.zeros((1, 3)), S_v[None], np.array([True]), S_w[None])
+    frames = {0: dets}
+    added = motion_sighting_covariance(frames, cam, world, motion, 0.05)
+    assert len(added) == len(dets)
+    draws = {key: [] for key in added}
+    for _ in range(400):
+        m = replace(
+            motion,
+            omega_body=w[None] + rng.multivariate_normal(np.zeros(3), S_w),
+            v_world=v[None] + rng.multivariate_normal(np.zeros(3), S_v),
+        )
+        for key, p in _sightings_by_key(frames, cam, world, m, 0.05).items():
+            draws[key].append(p)
+    for key, C in added.items():
+        mc = np.cov(np.array(draws[key]).T)
+        # the sampled covariance of 400 draws: its trace within ~10 % (chi2 spread), the largest
+        # direction the same
+        assert np.trace(mc) == pytest.approx(np.trace(C), rel=0.2), key
+        u_mc, u = np.linalg.eigh(mc)[1][:, -1], np.linalg.eigh(C)[1][:, -1]
+        assert abs(u_mc @ u) > 0.95, key
+    assert max(np.trace(C) for C in added.values()) > 1e-8  # m^2: not negligible (0.1 mm)
+    key = next(iter(added))
+    obs = [
+        LoadObservation(0, key[1], np.zeros(3), p_cam=np.zeros(3), cov_cam=np.eye(3) * 1e-6),
+        LoadObservation(5, key[1], np.zeros(3), p_cam=np.zeros(3), cov_cam=np.eye(3) * 1e-6),
+    ]
+    out = add_sighting_covariance(obs, added)
+    np.testing.assert_allclose(out[0].cov_cam, np.eye(3) * 1e-6 + added[key], rtol=1e-12)
+    assert out[1] is obs[1]
