@@ -522,7 +522,11 @@ def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
     central differences) against the spread of the sightings corrected with motions drawn from
     that uncertainty (400 seeded draws); and add_sighting_covariance adds it to the matching
     sightings only."""
-    from fusion.qr.rolling_shutter import _sightings_by_key, add_sighting_covariance, motion_sighting_covariance
+    from fusion.qr.rolling_shutter import (
+        _sightings_by_key,
+        add_sighting_covariance,
+        motion_sighting_covariance,
+    )
     from fusion.types import LoadObservation
 
     sc, _ = scene
@@ -541,7 +545,16 @@ def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
             dets.append(QRDetection("cam1", 0, c.payload, uv, uv.copy(), corner_cov_px2=0.05**2 * np.eye(8)))
     assert len(dets) >= 3
     S_w, S_v = np.diag([2e-4, 1e-4, 3e-4]), np.diag([4e-4, 1e-4, 2e-4])  # (rad/s)^2, (m/s)^2
-    motion = FrameMotion(np.array([0]), T0[None] + 0.0, w[None], v[None], np.zeros((1, 3)), S_v[None], np.array([True]), S_w[None])
+    motion = FrameMotion(
+        np.array([0]),
+        T0[None] + 0.0,
+        w[None],
+        v[None],
+        np.zeros((1, 3)),
+        S_v[None],
+        np.array([True]),
+        S_w[None],
+    )
     frames = {0: dets}
     added = motion_sighting_covariance(frames, cam, world, motion, 0.05)
     assert len(added) == len(dets)
@@ -570,3 +583,39 @@ def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
     out = add_sighting_covariance(obs, added)
     np.testing.assert_allclose(out[0].cov_cam, np.eye(3) * 1e-6 + added[key], rtol=1e-12)
     assert out[1] is obs[1]
+
+
+def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_their_shifts():
+    """pipeline.add_readout_covariances: the floor pose covariance by the floor stamps, the
+    front sightings' by (stamp, load), each shifted by its camera's applied time offset; and the
+    named warning for a front camera read out longer than RS_SIGHTINGS_WARN_READOUT_S."""
+    from fusion import pipeline
+    from fusion.qr.rolling_shutter import RollingShutterReport
+    from fusion.types import LoadObservation
+
+    class Offsets:  # TimeOffsets.shift_ns: the cameras' stamps moved by the applied offsets
+        def shift_ns(self, camera: str) -> int:
+            return {"cam0": 7, "cam1": -3}[camera]
+
+    C_pose, C_sight = np.eye(6) * 1e-6, np.eye(3) * 1e-8
+    report = RollingShutterReport(
+        readout_s={"cam0": 0.03, "cam1": 0.03},
+        pose_cov_added={100: C_pose},
+        sighting_cov_added={"cam1": {(200, "L1"): C_sight}},
+    )
+    traj = Trajectory(
+        "pnp", np.array([107, 207], dtype=np.int64), np.tile(np.eye(4), (2, 1, 1)), np.zeros((2, 6, 6))
+    )
+    obs = [
+        LoadObservation(197, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+        LoadObservation(197, "L2", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+        LoadObservation(200, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+    ]
+    loc = pipeline.LocalizeResult({"pnp": traj}, {}, {}, {}, camera_frame_observations=obs)
+    pipeline.add_readout_covariances(loc, report, Offsets())
+    np.testing.assert_array_equal(loc.trajectories["pnp"].covariances, [C_pose, np.zeros((6, 6))])
+    assert [float(o.cov_cam[0, 0]) for o in loc.camera_frame_observations] == [1e-8, 0.0, 0.0]
+    warning = pipeline.rolling_shutter_sightings_warning(report)
+    assert warning is not None and warning.name == "rolling_shutter_load_sightings" and warning.count == 1
+    short = replace(report, readout_s={"cam0": 0.01, "cam1": 0.01})
+    assert pipeline.rolling_shutter_sightings_warning(short) is None
