@@ -17,9 +17,15 @@ GATE_SIGMAS σ_b <= MAX_BIAS_PX for each of its parameters (σ_b from Cov(b)): o
 flight tell a dilation of the model's size (<= MAX_BIAS_PX) from one beyond it.  A bin that is
 not determined (e.g. the 90-128 px bin of the 30 ms rolling-shutter bench flights, a few frames
 whose pose absorbs the dilation: σ ≈ 0.25 px against 0.006 px on the same flights' global-shutter
-renders) is neither judged nor removed; it stays in the joint estimate (its dilation is a
-nuisance of the others': b is solved jointly, so the determined bins' estimate and covariance
-are the marginal ones) and its size and uncertainty stay in the consider covariance below.
+renders) is not judged; it stays in the joint estimate (its dilation is a nuisance of the
+others': b is solved jointly, so the determined bins' estimate and covariance are the marginal
+ones).  A flight with such a bin keeps its poses (`all_determined`, reported, no warning):
+removing the determined bins only, with the undetermined one's size and σ in the consider term,
+was measured and not kept (scripts/bench_rolling_shutter.py 2 m/s / 30 ms, seeds 0 / 1 / 2:
+smoother 0.01659 / 0.01430 / 0.01603 → 0.01701 / 0.01452 / 0.01611 cm, PnP within ±0.6 %;
+with the shift alone, no consider term, seed 0 0.01683: on those flights the dilation the
+residuals show is not a pose bias the shift removes, while on the global-shutter flights the
+same shift takes the smoother 0.01356 → 0.01290 cm; BENCHMARKS.md `gate` session).
 Significance: over the determined bins' parameters d, T = b_d^T Cov(b)_dd^-1 b_d ~ χ²(|d|)
 when there is no bias; the correction is made only when T exceeds its (1 - GATE_ALPHA)
 quantile, so a flight without a bias keeps its poses and covariances bit for bit (the earlier
@@ -28,11 +34,9 @@ BENCHMARKS.md fifth session).  Size: the flight's bias is `too_large` (reported,
 only when some determined parameter is confidently beyond MAX_BIAS_PX, |b| - GATE_SIGMAS σ_b >
 MAX_BIAS_PX (before: max |b| over every bin, however poorly determined, switched the removal off
 on every 30 ms bench flight).
-Correction: each PnP pose is moved by -S_k b_r (S_k its first-order sensitivity to the bias,
-b_r = b with the bins not determined set to 0).
+Correction: each PnP pose is moved by -S_k b (S_k its first-order sensitivity to the bias).
 Consider term (Schmidt's consider covariance; Bierman 1977, ch. VI; Tapley, Schutz & Born 2004,
-sec. 6.2): the corrected pose still carries S_k (b_true - b_r), an error common to all frames
-(for the bins not removed, their whole bias: b_true ≈ b ± Cov(b), hence the same C below).
+sec. 6.2): the corrected pose still carries S_k (b_true - b), an error common to all frames.
 Its covariance is not Cov(b) alone: the two-number dilation model is itself an approximation
 (on the defocus r 2 flight the estimate matched the true dilation to 0.002 px, yet removing it
 took the PnP bias from 0.47 to 0.64σ and the smoother's NEES from 7.1 to 12.3: another error
@@ -99,8 +103,7 @@ class CornerBias:
     @property
     def consider_px2(self) -> np.ndarray:
         """(p, p) what is left of the bias after the correction: Cov(b) + b b^T (the estimate's
-        noise, and the bias model's own error taken as large as the correction itself; for a bin
-        not determined, hence not removed, its whole bias: the estimate's size and noise)."""
+        noise, and the bias model's own error taken as large as the correction itself)."""
         return self.covariance_px2 + np.outer(self.bias_px, self.bias_px)
 
     def bins(self) -> list[int]:
@@ -127,9 +130,9 @@ class CornerBias:
         return bool(np.any(excess[self.determined] > MAX_BIAS_PX))
 
     @property
-    def removed_px(self) -> np.ndarray:
-        """(p,) the part of the bias a correction removes: b in the determined bins, 0 elsewhere."""
-        return np.where(self.determined, self.bias_px, 0.0)
+    def all_determined(self) -> bool:
+        """Every size bin with codes is determined (the removal's condition)."""
+        return bool(np.all(self.determined[np.diag(self.covariance_px2) > 0]))
 
     def as_dict(self, applied: bool) -> dict:
         """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px) and
@@ -152,6 +155,7 @@ class CornerBias:
             "frames": int(self.frames),
             "significant": self.significant,
             "too_large": self.too_large,
+            "all_determined": self.all_determined,
             "applied": bool(applied),
         }
 
@@ -237,7 +241,9 @@ def correct_pnp_trajectory(
     est = estimate_corner_bias(terms, variance_factor)
     if est is None:
         return traj, None, None
-    applied = bool(apply and est.significant and not est.too_large)
+    # a flight with a bin not determined keeps its poses (module docstring: removing the
+    # determined bins alone made the 30 ms rolling-shutter bench flights' smoother worse)
+    applied = bool(apply and est.significant and not est.too_large and est.all_determined)
     if apply and est.significant and est.too_large:
         log.warning(
             "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
@@ -258,7 +264,7 @@ def correct_pnp_trajectory(
         ),
         est.statistic,
         est.threshold,
-        ": removed" if applied else "",
+        ": removed" if applied else ("" if est.all_determined else ": kept (a size bin not determined)"),
     )
     if not applied:
         return traj, est.as_dict(False), None
@@ -267,7 +273,7 @@ def correct_pnp_trajectory(
     for i, t in enumerate(terms):
         if t is not None:
             S[i][:, t.params] = t.sensitivity_q
-    dxi = -S @ est.removed_px  # (n, 6): xi_true ≈ xi_est - S b_r (the determined bins only)
+    dxi = -S @ est.bias_px  # (n, 6): xi_true ≈ xi_est - S b
     T = np.stack([T_wb @ se3_exp(d) for T_wb, d in zip(traj.T_world_body, dxi)])
     consider = BiasConsider(np.asarray(traj.timestamps_ns, dtype=np.int64), S, est.consider_px2)
     out = Trajectory(traj.name, traj.timestamps_ns, T, traj.covariances)
