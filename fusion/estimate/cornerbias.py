@@ -85,10 +85,9 @@ parameter: a bin at the limit is not called too large by its noise)."""
 class CornerBias:
     """A flight's common corner bias: `bias_px` (p,) (fusion.qr.pnp.bias.N_PARAMS: BIN_PARAMS per
     code-size bin; 0 in the bins without codes), `covariance_px2` (p, p) Cov(b) (its noise only),
-    `statistic` T = b_d^T Cov(b)_dd^-1 b_d over the determined bins' parameters d (χ²(|d|) without
-    a bias),
-    `threshold` the gate, `frames` the frames used; `significant` when T > threshold.  T and the
-    threshold are over the determined bins' parameters (`determined`); 0 / 0 when none is."""
+    `statistic` T = b_d^T Cov(b)_dd^-1 b_d over the determined bins' parameters d (`determined`;
+    χ²(|d|) without a bias), `threshold` the gate (0 / 0 when no bin is determined), `frames` the
+    frames used; `significant` when T > threshold."""
 
     bias_px: np.ndarray
     covariance_px2: np.ndarray
@@ -120,7 +119,7 @@ class CornerBias:
     @property
     def determined(self) -> np.ndarray:
         """(p,) bool: the parameters of the bins with codes whose every parameter has
-        GATE_SIGMAS σ_b <= MAX_BIAS_PX (the only ones judged and removed)."""
+        GATE_SIGMAS σ_b <= MAX_BIAS_PX (the only ones judged)."""
         return _determined(self.covariance_px2)
 
     @property
@@ -136,7 +135,7 @@ class CornerBias:
 
     def as_dict(self, applied: bool) -> dict:
         """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px) and
-        whether it is determined (judged and, when `applied`, removed)."""
+        whether it is determined (judged; the flight is corrected only when all are)."""
         k = len(BIN_PARAMS)
         sd, det = self.sigma_px, self.determined
         return {
