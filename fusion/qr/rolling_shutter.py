@@ -455,6 +455,20 @@ class CornerBatch:
         return camera.project(p_stamp)
 
 
+def _size_depth(camera: CameraModel, corners_px: np.ndarray, side_m: float, f: float) -> float:
+    """Depth (m) of a code of side `side_m` facing the camera from its corners (4, 2) px: side /
+    its mean edge in undistorted normalised coordinates (in distorted px, f side / edge, a front
+    camera's codes near the image border read up to 3.5 % too far, which left their readout
+    correction 0.2-0.3 px off at 30 ms; BENCHMARKS.md `gate` session); f side / edge px when the
+    undistortion fails."""
+    xn = camera.undistort_normalized(np.asarray(corners_px, float).reshape(4, 2))
+    edge_n = float(np.mean(np.linalg.norm(xn - np.roll(xn, 1, axis=0), axis=1)))
+    if np.isfinite(edge_n) and edge_n > 0:
+        return side_m / edge_n
+    c = np.asarray(corners_px, float).reshape(4, 2)
+    return f * side_m / max(float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))), 1.0)
+
+
 def corner_batch(
     frames: dict[int, list[QRDetection]], camera: CameraModel, world: World, motion: FrameMotion
 ) -> CornerBatch:
@@ -474,10 +488,9 @@ def corner_batch(
             c = np.asarray(d.corners_px, float).reshape(4, 2)
             if id(d) not in sides or not np.all(np.isfinite(c)):
                 continue
-            edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
             uv.append(c)
             P.append(known.get(id(d), np.full((4, 3), np.nan)))
-            fallback.append(np.full(4, f * sides[id(d)] / max(edge, 1.0)))
+            fallback.append(np.full(4, _size_depth(camera, c, sides[id(d)], f)))
             ks.append(np.full(4, k))
             where.append((int(ts), i))
     if not uv:
@@ -926,8 +939,7 @@ def refine_at_stamp(
             f = 0.5 * (camera.fu + camera.fv)
             for sighting in sorted_codes.loads:
                 c = np.asarray(sighting.detection.corners_px, float).reshape(4, 2)
-                edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
-                centre = T_wc[:3, 3] + f * world.load_side_m / max(edge, 1.0) * T_wc[:3, 2]
+                centre = T_wc[:3, 3] + _size_depth(camera, c, world.load_side_m, f) * T_wc[:3, 2]
                 known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
