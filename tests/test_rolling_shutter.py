@@ -619,3 +619,25 @@ def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_thei
     assert warning is not None and warning.name == "rolling_shutter_load_sightings" and warning.count == 1
     short = replace(report, readout_s={"cam0": 0.01, "cam1": 0.01})
     assert pipeline.rolling_shutter_sightings_warning(short) is None
+
+
+@pytest.mark.parametrize("centre_px", [(320.0, 240.0), (560.0, 400.0), (80.0, 60.0)])
+def test_size_depth_is_right_across_the_image_with_a_distorted_lens(centre_px):
+    """A 0.15 m code facing the camera at 1.08 m: its depth from the undistorted edge within
+    0.3 % anywhere in the image; the distorted-px edge (f side / edge) reads it too far near the
+    border (barrel distortion shrinks the code there)."""
+    from fusion.qr.rolling_shutter import _size_depth
+
+    cam = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, distortion=np.array([-0.12, 0.03, 0.0, 0.0]))
+    z, side = 1.08, 0.15
+    centre = np.array([(centre_px[0] - cam.cu) / cam.fu * z, (centre_px[1] - cam.cv) / cam.fv * z, z])
+    half = side / 2.0
+    corners = centre + np.array(
+        [[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]]
+    )
+    uv = cam.project(corners)
+    f = 0.5 * (cam.fu + cam.fv)
+    assert _size_depth(cam, uv, side, f) == pytest.approx(z, rel=3e-3)
+    edge_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
+    if centre_px != (320.0, 240.0):
+        assert f * side / edge_px > z * 1.01  # the old estimate near the border
