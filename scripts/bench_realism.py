@@ -32,8 +32,9 @@ Columns:
 
 The effects and their levels are EFFECTS; `--quick` keeps one level of each and a shorter
 flight.  Rolling shutter: `readout_s` (the PnP and fused rows with the readout correction,
-`correct_flight`, and its motion covariance added to PnP's, as pipeline.run; "ref px" is then the
-corrected corners' error against the projection at the stamp).
+`correct_flight`, and its motion covariance added to PnP's and to the front camera's load
+sightings, pipeline.add_readout_covariances as pipeline.run; "ref px" is then the corrected
+corners' error against the projection at the stamp).
 Prints Markdown (and writes it to `--out`).
 
     PYTHONPATH=$PWD python3 scripts/bench_realism.py [--quick] [--effects jpeg blur] [--workers 1]
@@ -60,7 +61,7 @@ from fusion.geometry import inv_T, se3_log
 from fusion.log import read_flight
 from fusion.qr.codes import classify
 from fusion.qr.detect import detect_flight
-from fusion.qr.rolling_shutter import add_pose_covariance, correct_flight
+from fusion.qr.rolling_shutter import RollingShutterReport, correct_flight
 from fusion.sim.render import project_code_corners
 from fusion.sim.scenarios import CameraOptions, build_scenario
 from fusion.sim.simulate import simulate
@@ -200,7 +201,7 @@ def back_end(
     log,
     det,
     honest: bool,
-    pose_cov_added: dict | None = None,
+    readout: RollingShutterReport | None = None,
     corner_bias: bool = True,
     correlated: bool = True,
 ) -> dict:
@@ -213,9 +214,8 @@ def back_end(
         inflate_correlated=correlated,
     )
     loc = pipeline.localize_stage(log, det, cfg)
-    if pose_cov_added:  # the readout correction's motion uncertainty (as pipeline.run adds it)
-        key = str(Estimator.PNP)
-        loc.trajectories[key] = add_pose_covariance(loc.trajectories[key], pose_cov_added)
+    if readout is not None:  # the readout correction's motion uncertainty, as pipeline.run adds it
+        pipeline.add_readout_covariances(loc, readout)
     fused = pipeline.fuse_stage(log, loc, cfg, det)
     pnp = loc.trajectories[str(Estimator.PNP)]
     out = {"pnp": pnp, "noise": {}}
@@ -252,18 +252,17 @@ def run_condition(effect: str, label: str, fields: dict, args, work: Path) -> di
     t_sim = time.perf_counter() - t0
     log = read_flight(folder)
     det = detect_flight(log, workers=args.workers, progress=False)
-    added = None
+    report = None
     if readout_s > 0 and correct_readout:
         cameras = {name: stream.camera for name, stream in log.cameras.items()}
         det, report = correct_flight(det, cameras, log.world, log.imu, streams=log.cameras)
-        added = report.pose_cov_added
     row = {"effect": effect, "level": label, **front_end_errors(log, det, resolution)}
-    before = back_end(log, det, honest=False, pose_cov_added=added)
+    before = back_end(log, det, honest=False, readout=report)
     after = back_end(
         log,
         det,
         honest=True,
-        pose_cov_added=added,
+        readout=report,
         corner_bias=not args.no_corner_bias,
         correlated=not args.no_correlation,
     )

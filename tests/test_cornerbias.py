@@ -11,7 +11,14 @@ import pytest
 from test_pnp import FLOOR_CAM, FOUR, SIGMA, WORLD, aim, body_pose, floor_dets, floor_of, local
 
 from fusion import pipeline
-from fusion.estimate.cornerbias import BiasConsider, correct_pnp_trajectory, estimate_corner_bias
+from fusion.estimate.cornerbias import (
+    GATE_SIGMAS,
+    MAX_BIAS_PX,
+    BiasConsider,
+    CornerBias,
+    correct_pnp_trajectory,
+    estimate_corner_bias,
+)
 from fusion.geometry import inv_T, se3_log
 from fusion.qr.pnp import estimate_floor_pose, pnp_trajectory
 from fusion.qr.pnp.bias import N_BINS, dilation_pattern, dilation_patterns, frame_bias_terms, size_bin
@@ -221,3 +228,58 @@ def test_an_implausibly_large_dilation_is_reported_not_removed(caplog):
     assert report["significant"] and report["too_large"] and not report["applied"]
     assert out is traj and consider is None
     assert "corner_bias_too_large" in caplog.text
+
+
+def test_a_bin_that_is_not_determined_is_not_judged_and_keeps_the_flight_as_it_is(caplog):
+    """100 frames of four ~53 px codes dilated by B_TRUE, and 3 frames of one ~80 px code alone
+    (its pose absorbs a dilation: that bin's estimate is a few px with a σ of px, as the 90-128 px
+    bin of the 30 ms rolling-shutter bench flights): the gate judges the determined bin only, so
+    the flight is significant and not too large (the max-|b|-over-all-bins gate warned
+    `corner_bias_too_large`), and, with a bin not determined, its poses are kept (removing the
+    determined bins alone was measured worse on the rolling-shutter bench)."""
+    high, _ = flight_frames(100, seed=3, b=B_TRUE, heights=(2.2, 2.3))
+    low, _ = flight_frames(
+        3, seed=4, b=np.array([0.0, 0.3]), heights=(1.45, 1.55), centres=FOUR[:1], first=200
+    )
+    traj, stats = pnp_trajectory({**high, **low}, FLOOR_CAM, WORLD, NOISE)
+    est = estimate_corner_bias(stats.frame_bias, 1.0)
+    j_hi, j_lo = (size_bin(next(iter(f.values()))[0].corners_px) for f in (high, low))
+    assert j_hi != j_lo
+    hi, lo = slice(2 * j_hi, 2 * j_hi + 2), slice(2 * j_lo, 2 * j_lo + 2)
+    assert np.all(est.determined[hi]) and not np.any(est.determined[lo])
+    assert np.all(GATE_SIGMAS * est.sigma_px[lo] > MAX_BIAS_PX)
+    assert np.max(np.abs(est.bias_px[lo])) > MAX_BIAS_PX  # the old gate's "too large"
+    assert est.significant and not est.too_large and not est.all_determined
+    # the test statistic is the determined bin's alone: b_d^T Cov_dd^-1 b_d
+    C = est.covariance_px2[hi, hi]
+    assert est.statistic == pytest.approx(float(est.bias_px[hi] @ np.linalg.solve(C, est.bias_px[hi])))
+    with caplog.at_level("WARNING", logger="fusion.estimate.cornerbias"):
+        out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
+    assert out is traj and consider is None and not report["applied"]
+    assert [b["determined"] for b in report["bins"]] == [j == j_hi for j in est.bins()]
+    assert report["all_determined"] is False and report["too_large"] is False
+    assert "corner_bias_too_large" not in caplog.text
+    # the same flight without the lone frames: determined, corrected
+    traj_hi, stats_hi = pnp_trajectory(high, FLOOR_CAM, WORLD, NOISE)
+    _, report_hi, consider_hi = correct_pnp_trajectory(traj_hi, stats_hi.frame_bias, 1.0)
+    assert report_hi["applied"] and consider_hi is not None
+
+
+@pytest.mark.parametrize(
+    "b, sigma, too_large, determined",
+    [
+        (0.12, 0.01, False, True),  # above the limit, but not by 3 σ: still the model's size
+        (0.14, 0.01, True, True),  # confidently above
+        (0.5, 0.05, False, False),  # not determined: not judged (3 σ > MAX_BIAS_PX)
+        (-0.14, 0.01, True, True),  # a shrink as well as a dilation
+    ],
+)
+def test_the_size_gate_calls_a_bin_too_large_only_when_confidently_so(b, sigma, too_large, determined):
+    bias = np.zeros(2 * N_BINS)
+    bias[2:4] = [0.001, b]
+    cov = np.zeros((2 * N_BINS, 2 * N_BINS))
+    cov[2:4, 2:4] = np.diag([0.001**2, sigma**2])
+    est = CornerBias(bias, cov, statistic=100.0, threshold=13.8, frames=100)
+    assert est.too_large == too_large
+    assert list(est.determined[2:4]) == [determined] * 2 and not np.any(est.determined[4:])
+    assert est.all_determined == determined

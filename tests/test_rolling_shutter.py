@@ -512,3 +512,132 @@ def test_scale_sigma_adds_a_rank_one_pose_covariance_along_the_motion(synthetic_
         s = np.linalg.svd(add1, compute_uv=False)
         assert s[0] > 0 and s[1] < 1e-6 * s[0]
         np.testing.assert_allclose(add2, 4.0 * add1, rtol=1e-6, atol=1e-18)
+
+
+# ---------------------------------------------------------------------------- front camera's load sightings
+
+
+def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
+    """The load sightings' camera-frame covariance from the motion's uncertainty (first order,
+    central differences) against the spread of the sightings corrected with motions drawn from
+    that uncertainty (400 seeded draws); and add_sighting_covariance adds it to the matching
+    sightings only."""
+    from fusion.qr.rolling_shutter import (
+        _sightings_by_key,
+        add_sighting_covariance,
+        motion_sighting_covariance,
+    )
+    from fusion.types import LoadObservation
+
+    sc, _ = scene
+    world = sc.layout.world
+    cam = replace(sc.cameras["cam1"], line_delay_s=0.03 / 480)
+    loads = [c for c in sc.codes() if not c.is_floor]
+    T0 = sc.trajectory.state(np.array([7.5])).T_world_body[0]
+    v, w = np.array([1.5, 0.4, 0.1]), np.array([0.1, -0.2, 0.6])
+    body_at = constant_twist(T0, v, w)
+    rng = np.random.default_rng(12)
+    dets = []
+    for c in loads:
+        uv = project_code_corners_rolling(cam, body_at, 0.0, c)
+        if np.all(np.isfinite(uv)) and np.all(uv > 10) and np.all(uv < [cam.width - 10, cam.height - 10]):
+            uv = uv + rng.normal(0.0, 0.01, uv.shape)
+            dets.append(QRDetection("cam1", 0, c.payload, uv, uv.copy(), corner_cov_px2=0.05**2 * np.eye(8)))
+    assert len(dets) >= 3
+    S_w, S_v = np.diag([2e-4, 1e-4, 3e-4]), np.diag([4e-4, 1e-4, 2e-4])  # (rad/s)^2, (m/s)^2
+    motion = FrameMotion(
+        np.array([0]),
+        T0[None] + 0.0,
+        w[None],
+        v[None],
+        np.zeros((1, 3)),
+        S_v[None],
+        np.array([True]),
+        S_w[None],
+    )
+    frames = {0: dets}
+    added = motion_sighting_covariance(frames, cam, world, motion, 0.05)
+    assert len(added) == len(dets)
+    draws = {key: [] for key in added}
+    for _ in range(400):
+        m = replace(
+            motion,
+            omega_body=w[None] + rng.multivariate_normal(np.zeros(3), S_w),
+            v_world=v[None] + rng.multivariate_normal(np.zeros(3), S_v),
+        )
+        for key, p in _sightings_by_key(frames, cam, world, m, 0.05).items():
+            draws[key].append(p)
+    for key, C in added.items():
+        mc = np.cov(np.array(draws[key]).T)
+        # the sampled covariance of 400 draws: its trace within ~10 % (chi2 spread), the largest
+        # direction the same
+        assert np.trace(mc) == pytest.approx(np.trace(C), rel=0.2), key
+        u_mc, u = np.linalg.eigh(mc)[1][:, -1], np.linalg.eigh(C)[1][:, -1]
+        assert abs(u_mc @ u) > 0.95, key
+    assert max(np.trace(C) for C in added.values()) > 1e-8  # m^2: not negligible (0.1 mm)
+    key = next(iter(added))
+    obs = [
+        LoadObservation(0, key[1], np.zeros(3), p_cam=np.zeros(3), cov_cam=np.eye(3) * 1e-6),
+        LoadObservation(5, key[1], np.zeros(3), p_cam=np.zeros(3), cov_cam=np.eye(3) * 1e-6),
+    ]
+    out = add_sighting_covariance(obs, added)
+    np.testing.assert_allclose(out[0].cov_cam, np.eye(3) * 1e-6 + added[key], rtol=1e-12)
+    assert out[1] is obs[1]
+
+
+def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_their_shifts():
+    """pipeline.add_readout_covariances: the floor pose covariance by the floor stamps, the
+    front sightings' by (stamp, load), each shifted by its camera's applied time offset; and the
+    named warning for a front camera read out longer than RS_SIGHTINGS_WARN_READOUT_S."""
+    from fusion import pipeline
+    from fusion.qr.rolling_shutter import RollingShutterReport
+    from fusion.types import LoadObservation
+
+    class Offsets:  # TimeOffsets.shift_ns: the cameras' stamps moved by the applied offsets
+        def shift_ns(self, camera: str) -> int:
+            return {"cam0": 7, "cam1": -3}[camera]
+
+    C_pose, C_sight = np.eye(6) * 1e-6, np.eye(3) * 1e-8
+    report = RollingShutterReport(
+        readout_s={"cam0": 0.03, "cam1": 0.03},
+        pose_cov_added={100: C_pose},
+        sighting_cov_added={"cam1": {(200, "L1"): C_sight}},
+    )
+    traj = Trajectory(
+        "pnp", np.array([107, 207], dtype=np.int64), np.tile(np.eye(4), (2, 1, 1)), np.zeros((2, 6, 6))
+    )
+    obs = [
+        LoadObservation(197, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+        LoadObservation(197, "L2", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+        LoadObservation(200, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
+    ]
+    loc = pipeline.LocalizeResult({"pnp": traj}, {}, {}, {}, camera_frame_observations=obs)
+    pipeline.add_readout_covariances(loc, report, Offsets())
+    np.testing.assert_array_equal(loc.trajectories["pnp"].covariances, [C_pose, np.zeros((6, 6))])
+    assert [float(o.cov_cam[0, 0]) for o in loc.camera_frame_observations] == [1e-8, 0.0, 0.0]
+    warning = pipeline.rolling_shutter_sightings_warning(report)
+    assert warning is not None and warning.name == "rolling_shutter_load_sightings" and warning.count == 1
+    short = replace(report, readout_s={"cam0": 0.01, "cam1": 0.01})
+    assert pipeline.rolling_shutter_sightings_warning(short) is None
+
+
+@pytest.mark.parametrize("centre_px", [(320.0, 240.0), (560.0, 400.0), (80.0, 60.0)])
+def test_size_depth_is_right_across_the_image_with_a_distorted_lens(centre_px):
+    """A 0.15 m code facing the camera at 1.08 m: its depth from the undistorted edge within
+    0.3 % anywhere in the image; the distorted-px edge (f side / edge) reads it too far near the
+    border (barrel distortion shrinks the code there)."""
+    from fusion.qr.rolling_shutter import _size_depth
+
+    cam = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, distortion=np.array([-0.12, 0.03, 0.0, 0.0]))
+    z, side = 1.08, 0.15
+    centre = np.array([(centre_px[0] - cam.cu) / cam.fu * z, (centre_px[1] - cam.cv) / cam.fv * z, z])
+    half = side / 2.0
+    corners = centre + np.array(
+        [[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]]
+    )
+    uv = cam.project(corners)
+    f = 0.5 * (cam.fu + cam.fv)
+    assert _size_depth(cam, uv, side, f) == pytest.approx(z, rel=3e-3)
+    edge_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
+    if centre_px != (320.0, 240.0):
+        assert f * side / edge_px > z * 1.01  # the old estimate near the border

@@ -12,10 +12,28 @@ The bias is a dilation of every refined code (fusion.qr.pnp.bias), one per code-
 Estimate (generalised least squares with the pose as nuisance; Koch 1999, sec. 3.2.5 on reduced
 normal equations): b = N^-1 y with N = sum_k A_k^T M_k A_k, y = sum_k A_k^T M_k r_k, and
 Cov(b) = s^2 N^-1, s^2 the flight's PnP variance factor (fusion.estimate.variance).
-Significance: T = b^T N b / s^2 ~ χ²(p) when there is no bias; the correction is made only
-when T exceeds its (1 - GATE_ALPHA) quantile, so a flight without a bias keeps its poses and
-covariances bit for bit (the earlier ungated correction, ~0.002 px off on the clean flight,
-took its smoother NEES 5.9 → 9.8; BENCHMARKS.md fifth session).
+Which bins are judged (issue 10.1/10.3 `gate` session): a bin is *determined* when
+GATE_SIGMAS σ_b <= MAX_BIAS_PX for each of its parameters (σ_b from Cov(b)): only then can the
+flight tell a dilation of the model's size (<= MAX_BIAS_PX) from one beyond it.  A bin that is
+not determined (e.g. the 90-128 px bin of the 30 ms rolling-shutter bench flights, a few frames
+whose pose absorbs the dilation: σ ≈ 0.25 px against 0.006 px on the same flights' global-shutter
+renders) is not judged; it stays in the joint estimate (its dilation is a nuisance of the
+others': b is solved jointly, so the determined bins' estimate and covariance are the marginal
+ones).  A flight with such a bin keeps its poses (`all_determined`, reported, no warning):
+removing the determined bins only, with the undetermined one's size and σ in the consider term,
+was measured and not kept (scripts/bench_rolling_shutter.py 2 m/s / 30 ms, seeds 0 / 1 / 2:
+smoother 0.01659 / 0.01430 / 0.01603 → 0.01701 / 0.01452 / 0.01611 cm, PnP within ±0.6 %;
+with the shift alone, no consider term, seed 0 0.01683: on those flights the dilation the
+residuals show is not a pose bias the shift removes, while on the global-shutter flights the
+same shift takes the smoother 0.01356 → 0.01290 cm; BENCHMARKS.md `gate` session).
+Significance: over the determined bins' parameters d, T = b_d^T Cov(b)_dd^-1 b_d ~ χ²(|d|)
+when there is no bias; the correction is made only when T exceeds its (1 - GATE_ALPHA)
+quantile, so a flight without a bias keeps its poses and covariances bit for bit (the earlier
+ungated correction, ~0.002 px off on the clean flight, took its smoother NEES 5.9 → 9.8;
+BENCHMARKS.md fifth session).  Size: the flight's bias is `too_large` (reported, not removed)
+only when some determined parameter is confidently beyond MAX_BIAS_PX, |b| - GATE_SIGMAS σ_b >
+MAX_BIAS_PX (before: max |b| over every bin, however poorly determined, switched the removal off
+on every 30 ms bench flight).
 Correction: each PnP pose is moved by -S_k b (S_k its first-order sensitivity to the bias).
 Consider term (Schmidt's consider covariance; Bierman 1977, ch. VI; Tapley, Schutz & Born 2004,
 sec. 6.2): the corrected pose still carries S_k (b_true - b), an error common to all frames.
@@ -57,14 +75,19 @@ MAX_BIAS_PX = 0.1
 `too_large`): the model is a small bias, the correction first order, and the refined corners'
 own mean error is 0.013-0.04 px on the renders (BENCHMARKS.md); on the few-frame flights the
 estimate was 1-5 px with T < 10 (ill-conditioned: single codes, whose pose absorbs a dilation)."""
+GATE_SIGMAS = 3.0
+"""k of the size gate (module docstring): a bin is determined when k σ_b <= MAX_BIAS_PX (its
+σ_b <= 0.033 px), and too large when |b| - k σ_b > MAX_BIAS_PX (a normal tail of 0.0013 per
+parameter: a bin at the limit is not called too large by its noise)."""
 
 
 @dataclass
 class CornerBias:
     """A flight's common corner bias: `bias_px` (p,) (fusion.qr.pnp.bias.N_PARAMS: BIN_PARAMS per
     code-size bin; 0 in the bins without codes), `covariance_px2` (p, p) Cov(b) (its noise only),
-    `statistic` T = b^T Cov(b)^-1 b over the bins with codes (χ²(2 bins) without a bias),
-    `threshold` the gate, `frames` the frames used; `significant` when T > threshold."""
+    `statistic` T = b_d^T Cov(b)_dd^-1 b_d over the determined bins' parameters d (`determined`;
+    χ²(|d|) without a bias), `threshold` the gate (0 / 0 when no bin is determined), `frames` the
+    frames used; `significant` when T > threshold."""
 
     bias_px: np.ndarray
     covariance_px2: np.ndarray
@@ -89,13 +112,32 @@ class CornerBias:
         return [int(j) for j in np.flatnonzero(np.any(var > 0, axis=1))]
 
     @property
+    def sigma_px(self) -> np.ndarray:
+        """(p,) σ_b of each parameter (0 in the bins without codes)."""
+        return np.sqrt(np.maximum(np.diag(self.covariance_px2), 0.0))
+
+    @property
+    def determined(self) -> np.ndarray:
+        """(p,) bool: the parameters of the bins with codes whose every parameter has
+        GATE_SIGMAS σ_b <= MAX_BIAS_PX (the only ones judged)."""
+        return _determined(self.covariance_px2)
+
+    @property
     def too_large(self) -> bool:
-        return bool(np.max(np.abs(self.bias_px)) > MAX_BIAS_PX)
+        """Some determined parameter confidently beyond MAX_BIAS_PX: |b| - GATE_SIGMAS σ_b."""
+        excess = np.abs(self.bias_px) - GATE_SIGMAS * self.sigma_px
+        return bool(np.any(excess[self.determined] > MAX_BIAS_PX))
+
+    @property
+    def all_determined(self) -> bool:
+        """Every size bin with codes is determined (the removal's condition)."""
+        return bool(np.all(self.determined[np.diag(self.covariance_px2) > 0]))
 
     def as_dict(self, applied: bool) -> dict:
-        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px)."""
+        """JSON-ready: per size bin with codes its side range (px), bias and σ ([u, v] px) and
+        whether it is determined (judged; the flight is corrected only when all are)."""
         k = len(BIN_PARAMS)
-        sd = np.sqrt(np.diag(self.covariance_px2))
+        sd, det = self.sigma_px, self.determined
         return {
             "params": list(BIN_PARAMS),
             "bins": [
@@ -103,6 +145,7 @@ class CornerBias:
                     "side_px": list(bin_range_px(j)),
                     "bias_px": [float(x) for x in self.bias_px[k * j : k * j + k]],
                     "sigma_px": [float(x) for x in sd[k * j : k * j + k]],
+                    "determined": bool(det[k * j]),
                 }
                 for j in self.bins()
             ],
@@ -111,6 +154,7 @@ class CornerBias:
             "frames": int(self.frames),
             "significant": self.significant,
             "too_large": self.too_large,
+            "all_determined": self.all_determined,
             "applied": bool(applied),
         }
 
@@ -142,13 +186,23 @@ def estimate_corner_bias(terms: Sequence[FrameBiasTerms | None], variance_factor
     b[active] = Ninv @ y[active]
     cov = np.zeros((len(y), len(y)))
     cov[np.ix_(active, active)] = variance_factor * Ninv
+    d = np.flatnonzero(_determined(cov))
+    if len(d):  # the marginal test of the determined bins (the others a nuisance of the joint fit)
+        statistic = float(b[d] @ np.linalg.solve(cov[np.ix_(d, d)], b[d]))
+        threshold = float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(d)))
+    else:
+        statistic = threshold = 0.0
     return CornerBias(
-        bias_px=b,
-        covariance_px2=cov,
-        statistic=float(b[active] @ Na @ b[active] / variance_factor),
-        threshold=float(chi2_dist.ppf(1.0 - GATE_ALPHA, len(active))),
-        frames=len(used),
+        bias_px=b, covariance_px2=cov, statistic=statistic, threshold=threshold, frames=len(used)
     )
+
+
+def _determined(covariance_px2: np.ndarray) -> np.ndarray:
+    """(p,) bool: parameters of the size bins with codes whose every parameter has GATE_SIGMAS
+    σ_b <= MAX_BIAS_PX (CornerBias.determined)."""
+    var = np.diag(covariance_px2).reshape(-1, len(BIN_PARAMS))
+    ok = np.all(var > 0, axis=1) & np.all(GATE_SIGMAS * np.sqrt(np.maximum(var, 0.0)) <= MAX_BIAS_PX, axis=1)
+    return np.repeat(ok, len(BIN_PARAMS))
 
 
 @dataclass
@@ -186,26 +240,30 @@ def correct_pnp_trajectory(
     est = estimate_corner_bias(terms, variance_factor)
     if est is None:
         return traj, None, None
-    applied = bool(apply and est.significant and not est.too_large)
+    # a flight with a bin not determined keeps its poses (module docstring: removing the
+    # determined bins alone made the 30 ms rolling-shutter bench flights' smoother worse)
+    applied = bool(apply and est.significant and not est.too_large and est.all_determined)
     if apply and est.significant and est.too_large:
         log.warning(
             "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
-            "above %.2f px: reported, not removed",
-            float(np.max(np.abs(est.bias_px))),
+            "above %.2f px by more than %g sigma: reported, not removed",
+            float(np.max(np.abs(est.bias_px[est.determined]))),
             est.statistic,
             MAX_BIAS_PX,
+            GATE_SIGMAS,
         )
     k = len(BIN_PARAMS)
     log.info(
         "PnP: common corner bias %s px (T = %.1f, gate %.1f)%s",
         ", ".join(
             f"{est.bias_px[k * j]:+.4f} / {est.bias_px[k * j + 1]:+.4f} at {lo:.0f}-{hi:.0f} px"
+            + ("" if est.determined[k * j] else f" (not determined: sigma {est.sigma_px[k * j]:.3f})")
             for j in est.bins()
             for lo, hi in [bin_range_px(j)]
         ),
         est.statistic,
         est.threshold,
-        ": removed" if applied else "",
+        ": removed" if applied else ("" if est.all_determined else ": kept (a size bin not determined)"),
     )
     if not applied:
         return traj, est.as_dict(False), None

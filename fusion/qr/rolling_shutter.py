@@ -61,9 +61,16 @@ from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError, LogError
 from fusion.geometry import interpolate_poses, inv_T, se3_log, so3_exp_stack, so3_log
 from fusion.qr.codes import classify
-from fusion.qr.pnp import DEFAULT_CORNER_SIGMA_PX, corner_whitening, estimate_floor_poses, pnp_trajectory
+from fusion.qr.pnp import (
+    DEFAULT_CORNER_SIGMA_PX,
+    LoadFrame,
+    corner_whitening,
+    estimate_floor_poses,
+    estimate_load_observations_frames,
+    pnp_trajectory,
+)
 from fusion.qr.refine import refine_frames
-from fusion.types import QRDetection, Trajectory
+from fusion.types import LoadObservation, QRDetection, Trajectory
 from fusion.world import World
 
 log_ = logging.getLogger(__name__)
@@ -178,6 +185,9 @@ class RollingShutterReport:
     motion_source: str = ""
     refined_at_stamp: dict[str, int] = field(default_factory=dict)  # codes refined at the stamp
     pose_cov_added: dict[int, np.ndarray] = field(default_factory=dict)  # cam0 PnP, by stamp
+    # the other rolling-shutter cameras' load sightings: {camera: {(stamp, load_id): (3, 3)}},
+    # the camera-frame covariance the motion's uncertainty adds (`motion_sighting_covariance`)
+    sighting_cov_added: dict[str, dict[tuple[int, str], np.ndarray]] = field(default_factory=dict)
 
     def notes(self) -> list[str]:
         return [
@@ -445,6 +455,20 @@ class CornerBatch:
         return camera.project(p_stamp)
 
 
+def _size_depth(camera: CameraModel, corners_px: np.ndarray, side_m: float, f: float) -> float:
+    """Depth (m) of a code of side `side_m` facing the camera from its corners (4, 2) px: side /
+    its mean edge in undistorted normalised coordinates (in distorted px, f side / edge, a front
+    camera's codes near the image border read up to 3.5 % too far, which left their readout
+    correction 0.2-0.3 px off at 30 ms; BENCHMARKS.md `gate` session); f side / edge px when the
+    undistortion fails."""
+    xn = camera.undistort_normalized(np.asarray(corners_px, float).reshape(4, 2))
+    edge_n = float(np.mean(np.linalg.norm(xn - np.roll(xn, 1, axis=0), axis=1)))
+    if np.isfinite(edge_n) and edge_n > 0:
+        return side_m / edge_n
+    c = np.asarray(corners_px, float).reshape(4, 2)
+    return f * side_m / max(float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))), 1.0)
+
+
 def corner_batch(
     frames: dict[int, list[QRDetection]], camera: CameraModel, world: World, motion: FrameMotion
 ) -> CornerBatch:
@@ -464,10 +488,9 @@ def corner_batch(
             c = np.asarray(d.corners_px, float).reshape(4, 2)
             if id(d) not in sides or not np.all(np.isfinite(c)):
                 continue
-            edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
             uv.append(c)
             P.append(known.get(id(d), np.full((4, 3), np.nan)))
-            fallback.append(np.full(4, f * sides[id(d)] / max(edge, 1.0)))
+            fallback.append(np.full(4, _size_depth(camera, c, sides[id(d)], f)))
             ks.append(np.full(4, k))
             where.append((int(ts), i))
     if not uv:
@@ -628,6 +651,13 @@ def correct_flight(
             report.pose_cov_added = motion_pose_covariance(
                 frames, cam, world, motion, corner_sigma_px, scale_sigma=kappa
             )
+        elif name != "cam0":
+            # the load codes' camera-frame measurements carry the motion's error as well: without
+            # it the realism bench's 30 ms sightings read chi2/3 60 (mean; global shutter 0.36)
+            # and pulled the smoother to NEES 23 (BENCHMARKS.md, `gate` session)
+            report.sighting_cov_added[name] = motion_sighting_covariance(
+                frames, cam, world, motion, corner_sigma_px, scale_sigma=correction_scale_sigma(frames, fixed)
+            )
         report.readout_s[name] = cam.readout_s
         report.frames_corrected[name] = n
         report.frames_uncorrected[name] = len(frames) - n
@@ -743,6 +773,80 @@ def motion_pose_covariance(
     return out
 
 
+def motion_sighting_covariance(
+    frames: dict[int, list[QRDetection]],
+    camera: CameraModel,
+    world: World,
+    motion: FrameMotion,
+    corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
+    scale_sigma: dict[int, float] | None = None,
+) -> dict[tuple[int, str], np.ndarray]:
+    """{(timestamp_ns, load_id): (3, 3)} the covariance of a load sighting's camera-frame code
+    centre (LoadObservation.p_cam, m) that the motion's uncertainty adds, for a camera's `frames`
+    {timestamp_ns: detections} (e.g. the front camera): G S G^T, G = d(p_cam) / d(omega, v) by
+    central differences of the whole correct-then-solve map, S the motion's covariance with the
+    correction's scale error (`scale_sigma`), as `motion_pose_covariance` does for the floor
+    camera's PnP pose.  The floor camera's motion error moves a load code's corners alike, the
+    image shift a code's solve determines best, so it is a camera-frame error of the sighting,
+    common to the codes of a frame (kept per sighting: the back ends take sightings one by one)."""
+    base = _sightings_by_key(frames, camera, world, motion, corner_sigma_px)
+    G = {key: np.zeros((3, 6)) for key in base}
+    for j in range(6):
+        moved = []
+        for sign in (1.0, -1.0):
+            m = replace(motion, omega_body=motion.omega_body.copy(), v_world=motion.v_world.copy())
+            (m.omega_body if j < 3 else m.v_world)[:, j % 3] += sign * MOTION_STEP
+            moved.append(_sightings_by_key(frames, camera, world, m, corner_sigma_px))
+        for key in base:
+            if key in moved[0] and key in moved[1]:
+                G[key][:, j] = (moved[0][key] - moved[1][key]) / (2.0 * MOTION_STEP)
+    index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
+    out = {}
+    for key, g in G.items():
+        k = index.get(key[0])
+        if k is None or not motion.valid[k]:
+            continue  # not corrected: its corners' covariance was inflated instead
+        S = np.zeros((6, 6))
+        S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
+        kappa = (scale_sigma or {}).get(key[0], 0.0)
+        if kappa > 0.0:
+            u = np.concatenate([motion.omega_body[k], motion.v_world[k]])
+            S = S + kappa**2 * np.outer(u, u)
+        out[key] = g @ S @ g.T
+    return out
+
+
+def _sightings_by_key(frames, camera, world, motion, sigma) -> dict[tuple[int, str], np.ndarray]:
+    """{(timestamp_ns, load_id): p_cam (3,)} of the load codes of the corrected frames."""
+    fixed, _ = correct_frames(frames, camera, world, motion)
+    stamps, batch = [], []
+    for ts in sorted(fixed):
+        loads = classify(fixed[ts], world).loads
+        if loads:
+            stamps.append(int(ts))
+            batch.append(LoadFrame(loads, np.eye(4), None))
+    if not batch:
+        return {}
+    per_frame = estimate_load_observations_frames(batch, camera, world, sigma)
+    return {
+        (ts, o.load_id): o.p_cam for ts, obs in zip(stamps, per_frame) for o in obs if o.p_cam is not None
+    }
+
+
+def add_sighting_covariance(
+    observations: list[LoadObservation], added: dict[tuple[int, str], np.ndarray]
+) -> list[LoadObservation]:
+    """`observations` (LoadObservation) with `added[(timestamp_ns, load_id)]` added to each
+    matching sighting's camera-frame covariance `cov_cam` (new objects; the others as they are)."""
+    if not added:
+        return observations
+    out = []
+    for o in observations:
+        extra = added.get((int(o.timestamp_ns), o.load_id))
+        out.append(o if extra is None or o.cov_cam is None else replace(o, cov_cam=o.cov_cam + extra))
+    return out
+
+
 def _pnp_by_stamp(frames, camera, world, motion, sigma) -> dict[int, np.ndarray]:
     """{timestamp_ns: T_world_body} of PnP on the corrected frames (posed ones only)."""
     fixed, _ = correct_frames(frames, camera, world, motion)
@@ -835,8 +939,7 @@ def refine_at_stamp(
             f = 0.5 * (camera.fu + camera.fv)
             for sighting in sorted_codes.loads:
                 c = np.asarray(sighting.detection.corners_px, float).reshape(4, 2)
-                edge = float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
-                centre = T_wc[:3, 3] + f * world.load_side_m / max(edge, 1.0) * T_wc[:3, 2]
+                centre = T_wc[:3, 3] + _size_depth(camera, c, world.load_side_m, f) * T_wc[:3, 2]
                 known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
