@@ -1139,8 +1139,8 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
         "rolling_shutter_load_sightings",
         n,
         f"{n} front-camera load sightings corrected for a {readout_s * 1e3:.0f} ms readout are fused: "
-        "above 25 ms the fused covariances may be optimistic (realism bench, 30 ms: smoother NEES "
-        "12.1, 2x the ideal)",
+        f"above {RS_SIGHTINGS_WARN_READOUT_S * 1e3:.0f} ms the correction leaves errors their "
+        "covariance does not carry, so the fused covariances may be optimistic",
     )
 
 
