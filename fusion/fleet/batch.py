@@ -11,7 +11,10 @@ Each flight is a task graph (fusion.fleet.tasks):
 so a long flight's detection and per-frame estimation use every worker, and flights overlap
 (earlier flights first: each flight's tasks carry its priority).  The driver (this process)
 only submits tasks and watches them; the flight data stays on the cluster, which therefore
-needs the logs and OUT at the same paths on every worker (a shared file system).
+needs the logs and OUT at the same paths on every worker (a shared file system).  The detection
+chunks, the merged floor result and the front parts reach the report task as files under
+OUT/.parts/<flight>-a<attempt>/ (fusion.fleet.parts), so that Dask does not hold them as the
+report task's arguments while it runs; OUT/.parts is removed when a batch starts and ends.
 
 Resumable: a flight whose OUT/<flight>/manifest.json says complete is skipped; a flight that
 failed (fleet.json) is skipped unless `retry_failed`.  A failing flight is recorded with its
