@@ -65,6 +65,10 @@ dask's per-task cost (~1 ms) is noise, short enough that a 2-minute flight sprea
 CONNECT_TIMEOUT_S = 5.0
 MAX_ATTEMPTS = 2  # a worker death retries the flight once
 LOCAL_ALLOWED_FAILURES = 0  # local scheduler: a worker death fails the task at once, we retry
+LOCAL_MALLOC_ARENAS = 1
+"""glibc malloc arenas of a local worker (MALLOC_ARENA_MAX): the tasks run on the worker's
+executor thread, whose own arena (64 MiB heaps, trimmed only at their tops) is where the report
+task's freed memory stayed resident (an experiment: BENCHMARKS.md / NOTES-batchmem.md)."""
 
 
 @dataclass
@@ -192,7 +196,12 @@ def connect(cfg: BatchConfig) -> Iterator[Client]:
             client.close()
         return
     n = worker_count(cfg.workers)
-    with dask.config.set({"distributed.scheduler.allowed-failures": LOCAL_ALLOWED_FAILURES}):
+    with dask.config.set(
+        {
+            "distributed.scheduler.allowed-failures": LOCAL_ALLOWED_FAILURES,
+            "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": LOCAL_MALLOC_ARENAS,
+        }
+    ):
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
