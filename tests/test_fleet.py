@@ -19,6 +19,7 @@ from fusion.cli import EXIT_FLIGHTS_FAILED, _run_config, build_parser, main
 from fusion.errors import FleetError
 from fusion.fileio import LOCK_NAME, read_manifest
 from fusion.fleet import BatchConfig, FlightStatus, run_batch
+from fusion.fleet.batch import connect
 from fusion.fleet.flights import FlightRecord, expand_flights, output_names, read_state
 from fusion.fleet.parts import PartFile, read_part, write_part
 from fusion.pipeline import RunConfig, run
@@ -176,6 +177,17 @@ def test_retry_failed_runs_only_the_failed_flights(batch, flights, cluster):
 
 
 # ============================================================================ bad input
+
+
+def _malloc_env() -> tuple:
+    return os.environ.get("MALLOC_ARENA_MAX"), os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+
+def test_local_workers_start_with_one_malloc_arena():
+    """batch.LOCAL_MALLOC_ARENAS reaches the local cluster's worker processes (glibc reads it
+    when the process starts); Dask's own trim threshold stays."""
+    with connect(BatchConfig(workers=1)) as client:
+        assert client.submit(_malloc_env, pure=False).result() == ("1", "65536")
 
 
 def test_a_second_batch_on_the_same_folder_is_refused(flights, tmp_path):
