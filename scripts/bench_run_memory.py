@@ -1,6 +1,6 @@
 """Peak memory of a whole `fusion run`, per stage, measured from outside the process.
 
-    python scripts/bench_run_memory.py [--interval S] [--batch] LOG OUT [-- EXTRA fusion run ARGS]
+    python scripts/bench_run_memory.py [--interval S] [--batch] [--trace CSV] LOG OUT [-- RUN ARGS]
 
 Runs `python -m fusion.cli run LOG --out OUT --force` (with `--batch`: `fusion batch LOG --out OUT`,
 whose Dask workers are the descendants below; OUT must be new) as a child and samples its resident set
@@ -72,24 +72,34 @@ class DescendantSampler(threading.Thread):
     seconds (utime + stime: the CPU after a process's last sample is missed).  RUSAGE_CHILDREN
     cannot give these: the pool workers are the forkserver's children, not this process's."""
 
-    def __init__(self, pid: int, interval: float = 0.5) -> None:
+    def __init__(self, pid: int, interval: float = 0.5, trace: Path | None = None) -> None:
         super().__init__(daemon=True)
         self.pid, self.interval = pid, interval
         self.hwm_mb: dict[int, float] = {}
         self.cpu_s: dict[int, float] = {}
+        self.trace = trace  # a CSV of every sample: seconds, pid, VmRSS MiB, VmHWM MiB
         self._stopped = threading.Event()
 
     def run(self) -> None:
         tick = os.sysconf("SC_CLK_TCK")
+        t0 = time.perf_counter()
+        trace = open(self.trace, "w") if self.trace is not None else None  # noqa: SIM115 (closed below)
+        if trace is not None:
+            trace.write("t_s,pid,rss_mb,hwm_mb\n")
         while not self._stopped.is_set():
             for c in descendants(self.pid):
                 hwm = status_mb(c, "VmHWM")
                 if hwm is not None:
                     self.hwm_mb[c] = max(hwm, self.hwm_mb.get(c, 0.0))
+                    if trace is not None:
+                        rss = status_mb(c, "VmRSS")
+                        trace.write(f"{time.perf_counter() - t0:.1f},{c},{rss or 0:.0f},{hwm:.0f}\n")
                 f = _stat_fields(c)
                 if f is not None:
                     self.cpu_s[c] = (int(f[11]) + int(f[12])) / tick
             self._stopped.wait(self.interval)
+        if trace is not None:
+            trace.close()
 
     def stop(self) -> None:
         self._stopped.set()
@@ -120,6 +130,9 @@ def main() -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--interval", type=float, default=0.2, help="seconds between samples (default 0.2)")
     ap.add_argument("--batch", action="store_true", help="run `fusion batch` (Dask) instead of `fusion run`")
+    ap.add_argument(
+        "--trace", type=Path, help="write every descendant sample (s, pid, VmRSS, VmHWM) to this CSV"
+    )
     ap.add_argument("extra", nargs=argparse.REMAINDER, help="more `fusion run` arguments, after --")
     args = ap.parse_args()
     extra = [a for a in args.extra if a != "--"]
@@ -139,7 +152,7 @@ def main() -> int:
                     stage[0] = part[:90]
 
     threading.Thread(target=follow, daemon=True).start()
-    workers = DescendantSampler(child.pid)
+    workers = DescendantSampler(child.pid, trace=args.trace)
     workers.start()
     t0 = time.perf_counter()
     rows: dict[str, tuple[float, float]] = {}  # stage -> (peak MB, first seen s); insertion order

@@ -119,6 +119,15 @@ def test_cache_bytes_equal_the_value_by_value_writer(tmp_path, seed, n):
     assert (tmp_path / "parts.csv").read_bytes() == (tmp_path / "old.csv").read_bytes()
 
 
+@pytest.mark.parametrize("block", [1, 7, 57, 58])
+def test_cache_written_in_blocks_equals_the_value_by_value_writer(tmp_path, monkeypatch, block):
+    result = _result(_random_detections(4, 57))
+    _reference_write(result, tmp_path / "old.csv", "f" * 64)
+    monkeypatch.setattr(detect_module, "CACHE_WRITE_ROWS", block)
+    write_cache(result, tmp_path / "new.csv", "f" * 64)
+    assert (tmp_path / "new.csv").read_bytes() == (tmp_path / "old.csv").read_bytes()
+
+
 def test_cache_read_equals_the_row_by_row_reader_bit_for_bit(tmp_path):
     dets = _random_detections(3, 80)
     path = tmp_path / "detections.csv"

@@ -19,7 +19,9 @@ from fusion.cli import EXIT_FLIGHTS_FAILED, _run_config, build_parser, main
 from fusion.errors import FleetError
 from fusion.fileio import LOCK_NAME, read_manifest
 from fusion.fleet import BatchConfig, FlightStatus, run_batch
+from fusion.fleet.batch import connect
 from fusion.fleet.flights import FlightRecord, expand_flights, output_names, read_state
+from fusion.fleet.parts import PartFile, read_part, write_part
 from fusion.pipeline import RunConfig, run
 from fusion.sim.simulate import simulate
 
@@ -122,6 +124,7 @@ def test_batch_writes_each_flight_as_run_does_and_records_the_bad_one(batch, fli
     assert recs[a].status == FlightStatus.OK and recs[a].attempts == 2
     assert read_manifest(out / a)["status"] == "complete"
     assert not (out / bad).exists()
+    assert not (out / ".parts").exists()  # the tasks' hand-over files are gone with the batch
     # the detect and localize tasks give what `fusion run`'s stages give, byte for byte
     ref = run(
         flights / "a" / "flight", tmp_path / "ref", RunConfig(workers=1, progress=False), until="localize"
@@ -174,6 +177,17 @@ def test_retry_failed_runs_only_the_failed_flights(batch, flights, cluster):
 
 
 # ============================================================================ bad input
+
+
+def _malloc_env() -> tuple:
+    return os.environ.get("MALLOC_ARENA_MAX"), os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+
+def test_local_workers_start_with_one_malloc_arena():
+    """batch.LOCAL_MALLOC_ARENAS reaches the local cluster's worker processes (glibc reads it
+    when the process starts); Dask's own trim threshold stays."""
+    with connect(BatchConfig(workers=1)) as client:
+        assert client.submit(_malloc_env, pure=False).result() == ("1", "65536")
 
 
 def test_a_second_batch_on_the_same_folder_is_refused(flights, tmp_path):
@@ -247,6 +261,68 @@ def test_cli_batch_exit_code_says_flights_failed(flights, cluster, tmp_path, cap
     )
     assert rc == EXIT_FLIGHTS_FAILED
     assert "FAILED flight: " in capsys.readouterr().out
+
+
+class _BreakParts(WorkerPlugin):
+    """As task `prefix-<flight>-…` starts, makes OUT/.parts unusable: `how` "file" puts a file
+    where the folder is (nothing can be written under it), "gone" removes it."""
+
+    def __init__(self, prefix: str, out: str, how: str):
+        self.prefix, self.out, self.how = prefix, out, how
+
+    def transition(self, key, start, finish, **kwargs):
+        if finish != "executing" or not str(key).startswith(self.prefix):
+            return
+        parts = Path(self.out) / ".parts"
+        shutil.rmtree(parts, ignore_errors=True)
+        if self.how == "file":
+            parts.write_text("in the way\n")
+
+
+@pytest.mark.parametrize(
+    ("prefix", "how", "message"),
+    [
+        ("detect0000-", "file", "cannot write a task's result"),
+        ("report-", "gone", "cannot read a task's result (No such file or directory)"),
+    ],
+)
+def test_a_hand_over_file_that_cannot_be_written_or_read_fails_the_flight_in_one_line(
+    flights, cluster, tmp_path, prefix, how, message
+):
+    out = tmp_path / "out"
+    cluster[1].register_plugin(_BreakParts(prefix, str(out), how), name="break-parts")
+    try:
+        res = run_batch([flights / "a" / "flight"], out, _cfg(cluster))
+    finally:
+        cluster[1].unregister_worker_plugin("break-parts")
+    rec = res.records[0]
+    assert rec.status == FlightStatus.FAILED and rec.error_type == "FleetError" and rec.attempts == 1
+    assert "\n" not in rec.reason and message in rec.reason
+    assert f"{out}/.parts/{rec.name}-a1/" in rec.reason and ".pkl" in rec.reason  # names the file
+    assert not (out / rec.name / "manifest.json").exists()
+    assert not (out / ".parts").exists()
+
+
+def test_write_part_round_trips_and_a_full_disk_is_one_line_naming_the_file(tmp_path, monkeypatch):
+    value = {"a": [1, 2.5, "x"], "b": (None, b"\x00")}
+    part = write_part(tmp_path / "p", "one", value)
+    assert read_part(part) == value and part.nbytes == (tmp_path / "p" / "one.pkl").stat().st_size
+
+    def full(obj, f, protocol=None):
+        f.write(b"partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("fusion.fleet.parts.pickle.dump", full)
+    with pytest.raises(FleetError) as e:
+        write_part(tmp_path / "p", "two", value)
+    assert (
+        str(e.value)
+        == f"{tmp_path / 'p' / 'two.pkl'}: cannot write a task's result (No space left on device)"
+    )
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == ["one.pkl"]  # no partial file left
+    (tmp_path / "p" / "bad.pkl").write_bytes(b"\x80\x05not a pickle")
+    with pytest.raises(FleetError, match="bad.pkl: a task's result is damaged"):
+        read_part(PartFile(str(tmp_path / "p" / "bad.pkl"), 0))
 
 
 def test_batch_takes_the_run_options_every_flight_shares():

@@ -11,7 +11,10 @@ Each flight is a task graph (fusion.fleet.tasks):
 so a long flight's detection and per-frame estimation use every worker, and flights overlap
 (earlier flights first: each flight's tasks carry its priority).  The driver (this process)
 only submits tasks and watches them; the flight data stays on the cluster, which therefore
-needs the logs and OUT at the same paths on every worker (a shared file system).
+needs the logs and OUT at the same paths on every worker (a shared file system).  The detection
+chunks, the merged floor result and the front parts reach the report task as files under
+OUT/.parts/<flight>-a<attempt>/ (fusion.fleet.parts), so that Dask does not hold them as the
+report task's arguments while it runs; OUT/.parts is removed when a batch starts and ends.
 
 Resumable: a flight whose OUT/<flight>/manifest.json says complete is skipped; a flight that
 failed (fleet.json) is skipped unless `retry_failed`.  A failing flight is recorded with its
@@ -49,6 +52,7 @@ from fusion.fleet.flights import (
     read_state,
     write_state,
 )
+from fusion.fleet.parts import parts_folder, parts_root, remove_parts
 from fusion.fleet.summary import write_summary
 from fusion.parallel import worker_count
 from fusion.pipeline import RunConfig
@@ -61,6 +65,10 @@ dask's per-task cost (~1 ms) is noise, short enough that a 2-minute flight sprea
 CONNECT_TIMEOUT_S = 5.0
 MAX_ATTEMPTS = 2  # a worker death retries the flight once
 LOCAL_ALLOWED_FAILURES = 0  # local scheduler: a worker death fails the task at once, we retry
+LOCAL_MALLOC_ARENAS = 1
+"""glibc malloc arenas of a local worker (MALLOC_ARENA_MAX): the tasks run on the worker's
+executor thread, whose own arena (64 MiB heaps, trimmed only at their tops) is where the report
+task's freed memory stayed resident (an experiment: BENCHMARKS.md / NOTES-batchmem.md)."""
 
 
 @dataclass
@@ -139,8 +147,13 @@ def run_batch(flights: list[Path], out: Path, cfg: BatchConfig | None = None) ->
         for name in skipped:
             logger.info("%s: skipped (%s before)", name, state[name].status)
         if todo:
-            with connect(cfg) as client:
-                _Driver(client, out, cfg, state, todo).run()
+            # task results of an earlier batch that stopped (the lock says none is running)
+            remove_parts(parts_root(out))
+            try:
+                with connect(cfg) as client:
+                    _Driver(client, out, cfg, state, todo).run()
+            finally:
+                remove_parts(parts_root(out))
         wall = time.perf_counter() - t0
         summary_paths = write_summary(out, list(state.values()))
         return BatchResult(out, list(state.values()), [r.name for r in todo], skipped, summary_paths, wall)
@@ -183,7 +196,12 @@ def connect(cfg: BatchConfig) -> Iterator[Client]:
             client.close()
         return
     n = worker_count(cfg.workers)
-    with dask.config.set({"distributed.scheduler.allowed-failures": LOCAL_ALLOWED_FAILURES}):
+    with dask.config.set(
+        {
+            "distributed.scheduler.allowed-failures": LOCAL_ALLOWED_FAILURES,
+            "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": LOCAL_MALLOC_ARENAS,
+        }
+    ):
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -225,7 +243,11 @@ class _Flight:
 
     rec: FlightRecord
     priority: int
-    futures: list[Future] = field(default_factory=list)  # held so the cluster keeps the results
+    # the log's, the plan's and the report's: the cluster keeps the other tasks' results only
+    # while a task that needs them waits (a floor part until the merge, the front context
+    # until the last front chunk)
+    futures: list[Future] = field(default_factory=list)
+    report: Future | None = None
     chunk_frames: dict[Any, int] = field(default_factory=dict)  # detect task key -> frames
     frames_done: int = 0
     n_frames: int = 0
@@ -268,9 +290,11 @@ class _Driver:
     def _key(self, fl: _Flight, what: str) -> str:
         return f"{what}-{fl.rec.name}-a{fl.rec.attempts}"
 
-    def _submit(self, fl: _Flight, key: str, fn, *args) -> Future:
+    def _submit(self, fl: _Flight, key: str, fn, *args, hold: bool = False) -> Future:
+        """`fn(*args)` on the cluster; with `hold`, the flight keeps its future (see _Flight)."""
         fut = self.client.submit(fn, *args, key=key, priority=fl.priority, pure=False, retries=0)
-        fl.futures.append(fut)
+        if hold:
+            fl.futures.append(fut)
         return fut
 
     def _watch(self, fl: _Flight, fut: Future, role: str) -> None:
@@ -280,8 +304,8 @@ class _Driver:
     def _submit_plan(self, fl: _Flight) -> None:
         fl.rec.attempts += 1
         fl.t_start = time.perf_counter()
-        log = self._submit(fl, self._key(fl, "open"), tasks.open_flight_task, fl.rec.path)
-        plan = self._submit(fl, self._key(fl, "plan"), tasks.plan_task, log, self.cfg.chunk_frames)
+        log = self._submit(fl, self._key(fl, "open"), tasks.open_flight_task, fl.rec.path, hold=True)
+        plan = self._submit(fl, self._key(fl, "plan"), tasks.plan_task, log, self.cfg.chunk_frames, hold=True)
         self._watch(fl, plan, "plan")
 
     def _on_plan(self, fl: _Flight, fut: Future) -> None:
@@ -292,33 +316,50 @@ class _Driver:
             self.frames_total += plan.n_frames
         log = fl.futures[0]
         cfg = self.run_cfg
+        parts = str(parts_folder(self.out, fl.rec.name, fl.rec.attempts))
         detected, floor, front = [], [], []
         for i, chunk in enumerate(plan.chunks):
-            d = self._submit(fl, self._key(fl, f"detect{i:04d}"), tasks.detect_task, log, chunk, cfg.backend)
+            d = self._submit(
+                fl,
+                self._key(fl, f"detect{i:04d}"),
+                tasks.detect_task,
+                log,
+                chunk,
+                cfg.backend,
+                parts,
+                i,
+            )
             fl.chunk_frames[d.key] = chunk[2] - chunk[1]
             self._watch(fl, d, "detect")
             detected.append((chunk[0], d))
         for i, (camera, d) in enumerate(detected):
             if camera == tasks.FLOOR:
                 floor.append(self._submit(fl, self._key(fl, f"floor{i:04d}"), tasks.floor_task, log, d, cfg))
-        merged = self._submit(fl, self._key(fl, "merge"), tasks.merge_floor_task, cfg, *floor)
-        for i, (camera, d) in enumerate(detected):
-            if camera == tasks.FRONT:
-                front.append(
-                    self._submit(fl, self._key(fl, f"front{i:04d}"), tasks.front_task, log, merged, d, cfg)
-                )
+        merged = self._submit(fl, self._key(fl, "merge"), tasks.merge_floor_task, cfg, parts, *floor)
+        if any(camera == tasks.FRONT for camera, _ in detected):
+            context = self._submit(fl, self._key(fl, "frontctx"), tasks.front_context_task, log, merged, cfg)
+            for i, (camera, d) in enumerate(detected):
+                if camera == tasks.FRONT:
+                    front.append(
+                        self._submit(
+                            fl, self._key(fl, f"front{i:04d}"), tasks.front_task, context, d, parts, i
+                        )
+                    )
         report = self._submit(
             fl,
             self._key(fl, "report"),
             tasks.report_task,
             log,
             str(self.out / fl.rec.name),
+            parts,
             cfg,
             len(detected),
             *(d for _, d in detected),
             merged,
             *front,
+            hold=True,
         )
+        fl.report = report
         self._watch(fl, report, "report")
         logger.info(
             "%s: %d frames, %.1f s of flight, %d detection tasks",
@@ -371,12 +412,21 @@ class _Driver:
         self._finish(fl, f"FAILED: {rec.reason}")
 
     def _abandon(self, fl: _Flight, retry: bool) -> None:
-        """Cancel the flight's tasks (and forget its detected frames when it runs again)."""
+        """Cancel the flight's tasks (and forget its detected frames when it runs again).
+
+        Only keys every task depending on which is wanted can be cancelled (distributed's
+        `stimulus_cancel` walks the dependents and asserts that each has a client): before the
+        plan, the log's and the plan's; after it, the report's, a leaf, and the rest are let go
+        (nothing wants them any more, so the scheduler releases them; a detection task
+        already running finishes, as_completed holding it until then)."""
         for key in [k for k, (f, _) in self.by_key.items() if f is fl]:
             del self.by_key[key]
-        self.client.cancel(fl.futures)
+        self.client.cancel(fl.futures if fl.report is None else [fl.report])
         fl.futures.clear()
+        fl.report = None
         fl.chunk_frames.clear()
+        # a task of this attempt still running may write here again: run_batch removes OUT/.parts at its end
+        remove_parts(parts_folder(self.out, fl.rec.name, fl.rec.attempts))
         if retry:
             self.frames_done -= fl.frames_done
             fl.frames_done = 0
@@ -385,6 +435,7 @@ class _Driver:
         self.done += 1
         if fl.rec.status == FlightStatus.OK:
             fl.futures.clear()  # the cluster may drop this flight's data
+            fl.report = None
         write_state(self.out, self.state)
         log = logger.info if fl.rec.status == FlightStatus.OK else logger.warning
         log("%s: %s | fleet: %d/%d flights done", fl.rec.name, what, self.done, len(self.flights))
