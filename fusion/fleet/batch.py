@@ -68,7 +68,7 @@ LOCAL_ALLOWED_FAILURES = 0  # local scheduler: a worker death fails the task at 
 LOCAL_MALLOC_ARENAS = 1
 """glibc malloc arenas of a local worker (MALLOC_ARENA_MAX): the tasks run on the worker's
 executor thread, whose own arena (64 MiB heaps, trimmed only at their tops) is where the report
-task's freed memory stayed resident (an experiment: BENCHMARKS.md / NOTES-batchmem.md)."""
+task's freed memory stayed resident (measured: BENCHMARKS.md, tenth session, `batchmem`)."""
 
 
 @dataclass
