@@ -749,12 +749,8 @@ def motion_pose_covariance(
     cost PnP 10 % of its accuracy at 1 m/s, 20 ms: scripts/bench_rolling_shutter.py)."""
     base = _pnp_by_stamp(frames, camera, world, motion, corner_sigma_px)
     G = {ts: np.zeros((6, 6)) for ts in base}
-    for j in range(6):
-        poses = []
-        for sign in (1.0, -1.0):
-            m = replace(motion, omega_body=motion.omega_body.copy(), v_world=motion.v_world.copy())
-            (m.omega_body if j < 3 else m.v_world)[:, j % 3] += sign * MOTION_STEP
-            poses.append(_pnp_by_stamp(frames, camera, world, m, corner_sigma_px))
+    for j, plus, minus in _motion_steps(motion):
+        poses = [_pnp_by_stamp(frames, camera, world, m, corner_sigma_px) for m in (plus, minus)]
         for ts in base:
             if ts in poses[0] and ts in poses[1]:
                 d = se3_log(inv_T(poses[1][ts]) @ poses[0][ts])[0]
@@ -762,15 +758,33 @@ def motion_pose_covariance(
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     out = {}
     for ts, g in G.items():
-        k = index[int(ts)]
-        S = np.zeros((6, 6))
-        S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
-        kappa = (scale_sigma or {}).get(int(ts), 0.0)
-        if kappa > 0.0:
-            u = np.concatenate([motion.omega_body[k], motion.v_world[k]])
-            S = S + kappa**2 * np.outer(u, u)
+        S = _motion_covariance(motion, index[int(ts)], (scale_sigma or {}).get(int(ts), 0.0))
         out[int(ts)] = g @ S @ g.T
     return out
+
+
+def _motion_steps(motion: FrameMotion):
+    """(j, motion + MOTION_STEP, motion - MOTION_STEP) in component j of (omega, v), j = 0..5,
+    every frame at once (the frames are independent): the central differences of
+    `motion_pose_covariance` and `motion_sighting_covariance`."""
+    for j in range(6):
+        pair = []
+        for sign in (1.0, -1.0):
+            m = replace(motion, omega_body=motion.omega_body.copy(), v_world=motion.v_world.copy())
+            (m.omega_body if j < 3 else m.v_world)[:, j % 3] += sign * MOTION_STEP
+            pair.append(m)
+        yield j, pair[0], pair[1]
+
+
+def _motion_covariance(motion: FrameMotion, k: int, kappa: float) -> np.ndarray:
+    """(6, 6) covariance of frame k's (omega, v): the motion's own, plus kappa^2 u u^T, u = (omega,
+    v), for the correction's relative scale error `kappa` (`correction_scale_sigma`)."""
+    S = np.zeros((6, 6))
+    S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
+    if kappa > 0.0:
+        u = np.concatenate([motion.omega_body[k], motion.v_world[k]])
+        S = S + kappa**2 * np.outer(u, u)
+    return S
 
 
 def motion_sighting_covariance(
@@ -791,12 +805,8 @@ def motion_sighting_covariance(
     common to the codes of a frame (kept per sighting: the back ends take sightings one by one)."""
     base = _sightings_by_key(frames, camera, world, motion, corner_sigma_px)
     G = {key: np.zeros((3, 6)) for key in base}
-    for j in range(6):
-        moved = []
-        for sign in (1.0, -1.0):
-            m = replace(motion, omega_body=motion.omega_body.copy(), v_world=motion.v_world.copy())
-            (m.omega_body if j < 3 else m.v_world)[:, j % 3] += sign * MOTION_STEP
-            moved.append(_sightings_by_key(frames, camera, world, m, corner_sigma_px))
+    for j, plus, minus in _motion_steps(motion):
+        moved = [_sightings_by_key(frames, camera, world, m, corner_sigma_px) for m in (plus, minus)]
         for key in base:
             if key in moved[0] and key in moved[1]:
                 G[key][:, j] = (moved[0][key] - moved[1][key]) / (2.0 * MOTION_STEP)
@@ -806,12 +816,7 @@ def motion_sighting_covariance(
         k = index.get(key[0])
         if k is None or not motion.valid[k]:
             continue  # not corrected: its corners' covariance was inflated instead
-        S = np.zeros((6, 6))
-        S[:3, :3], S[3:, 3:] = motion.omega_cov[k], motion.v_cov[k]
-        kappa = (scale_sigma or {}).get(key[0], 0.0)
-        if kappa > 0.0:
-            u = np.concatenate([motion.omega_body[k], motion.v_world[k]])
-            S = S + kappa**2 * np.outer(u, u)
+        S = _motion_covariance(motion, k, (scale_sigma or {}).get(key[0], 0.0))
         out[key] = g @ S @ g.T
     return out
 
