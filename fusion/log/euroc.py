@@ -712,7 +712,7 @@ def _span(ts: np.ndarray) -> tuple[int, int]:
 
 
 def check_log(log: FlightLog) -> list[LogWarning]:
-    """Plausibility checks of a read log: timestamp units and rates, IMU units and clipping,
+    """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps and clipping,
     sensor clock offsets above CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not
     overlapping) and T_BS translations above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise
     LogError; the rest are returned as warnings."""
