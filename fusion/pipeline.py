@@ -88,11 +88,13 @@ from fusion.qr.detect import (
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 from fusion.qr.predict import track_flight, tracked_fingerprint, with_tracked, without_tracked
 from fusion.qr.rolling_shutter import (
+    UNDECLARED_CHECK_CHI2_DOF,
     ReadoutCalibration,
     RollingShutterReport,
     add_pose_covariance,
     add_sighting_covariance,
     calibrate_readout,
+    check_undeclared_readout,
     correct_flight,
 )
 from fusion.sim.simulate import simulate
@@ -974,6 +976,10 @@ def _run_into(
         # a rolling-shutter flight's corners were just moved to their stamps: a localisation
         # computed from the uncorrected detections (fusion batch's chunks) cannot be used
         loc = localize_stage(log, det, cfg)
+    if not rs_active:
+        undeclared = undeclared_rolling_shutter_warning(log, det, loc, cfg)
+        if undeclared is not None:
+            result.warnings.append(undeclared)
     timings["localize_s"] = time.perf_counter() - t
     t = time.perf_counter()
     det, loc = track_stage(log, detected, det, loc, cfg, result)
@@ -1141,6 +1147,33 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
         f"{n} front-camera load sightings corrected for a {readout_s * 1e3:.0f} ms readout are fused: "
         f"above {RS_SIGHTINGS_WARN_READOUT_S * 1e3:.0f} ms the correction leaves errors their "
         "covariance does not carry, so the fused covariances may be optimistic",
+    )
+
+
+def undeclared_rolling_shutter_warning(
+    log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig
+) -> LogWarning | None:
+    """A named warning when the floor camera, declared global shutter, scatters its corners
+    beyond their model (PnP chi^2 / dof above UNDECLARED_CHECK_CHI2_DOF) in a way a
+    rolling-shutter readout explains (`check_undeclared_readout`).  Nothing is corrected: the
+    readout is the user's to declare (sensor.yaml / Kalibr) or to calibrate (--calibrate-readout);
+    fused as global shutter, the flight's time offset absorbs half the readout and its poses
+    err by centimetres (2 m/s, 30 ms: PnP ATE 13 cm, the smoother's health "diverged")."""
+    camera = log.floor.camera
+    scale = float(loc.stats.get("pnp", {}).get("noise_scale", {}).get("scale", math.nan))
+    if camera.rolling_shutter or not scale > UNDECLARED_CHECK_CHI2_DOF or "pnp" not in loc.trajectories:
+        return None
+    pnp = loc.trajectories["pnp"]
+    calib = check_undeclared_readout(det, camera, log.world, log.imu, pnp, cfg.corner_sigma_px)
+    if calib is None:
+        return None
+    return LogWarning(
+        "rolling_shutter_undeclared",
+        calib.n_better,
+        f"cam0 is declared global shutter, but {calib.n_better} of {calib.n_frames} fast-moving frames "
+        f"fit a rolling-shutter readout of about {calib.readout_s * 1e3:.0f} ms better (median PnP "
+        f"chi2/dof {calib.chi2_per_dof_global:.1f} -> {calib.chi2_per_dof_rolling:.1f}): declare "
+        "line_delay_s in cam0/sensor.yaml (Kalibr: line_delay) or run with --calibrate-readout",
     )
 
 

@@ -16,7 +16,7 @@ from fusion.log.euroc import ImuNoise
 from fusion.log.kalibr import read_camchain, write_camchain
 from fusion.qr.codes import classify
 from fusion.qr.detect import DetectionResult, detect_frame
-from fusion.qr.pnp import estimate_floor_pose
+from fusion.qr.pnp import estimate_floor_pose, pnp_trajectory
 from fusion.qr.refine import refine_frames
 from fusion.qr.rolling_shutter import (
     FrameMotion,
@@ -24,6 +24,7 @@ from fusion.qr.rolling_shutter import (
     _image_reader,
     _ImuTrack,
     calibrate_readout,
+    check_undeclared_readout,
     correct_flight,
     correct_frames,
     frame_motion,
@@ -223,8 +224,12 @@ def test_pnp_with_readout_correction_recovers_the_pose(scene):
 def synthetic_flight(scene):
     """A FLIGHT_S flight at up to 2 m/s with a 20 ms readout: per-row projected corners + 0.05 px
     noise (no rendering), the IMU from the same trajectory."""
+    return _synthetic_flight(scene, READOUT_S, 0.05)
+
+
+def _synthetic_flight(scene, readout_s: float, noise_px: float):
     sc, codes = scene
-    cam = replace(sc.cameras["cam0"], line_delay_s=READOUT_S / 480)
+    cam = replace(sc.cameras["cam0"], line_delay_s=readout_s / 480)
     wps = [(1.0, 1.5, 1.4, 0.0), (4.0, 1.8, 1.6, 0.6), (6.5, 1.2, 1.3, -0.4)]
     traj = KeyframeTrajectory(survey_keyframes(wps, speed_m_s=2.0 / 2.1875, yaw_rate_rad_s=0.8))
     rng = np.random.default_rng(7)
@@ -238,7 +243,7 @@ def synthetic_flight(scene):
         def body_at(dt, poses=poses):
             return interpolate_poses(grid, poses, np.atleast_1d(np.asarray(dt, float)))
 
-        for d in _synthetic_frame(rng, codes, cam, body_at, 0.05):
+        for d in _synthetic_frame(rng, codes, cam, body_at, 0.05, noise_px):
             dets.append(replace(d, timestamp_ns=ts))
     det = DetectionResult(dets, {})
     return det, cam, sc.layout.world, imu, traj
@@ -246,7 +251,6 @@ def synthetic_flight(scene):
 
 def test_correct_flight_recovers_the_trajectory(synthetic_flight):
     det, cam, world, imu, traj = synthetic_flight
-    from fusion.qr.pnp import pnp_trajectory
 
     def err(dr):
         tr, _ = pnp_trajectory(dr.by_frame("cam0"), cam, world)
@@ -266,6 +270,49 @@ def test_calibrate_readout_recovers_a_known_value(synthetic_flight):
     assert calib.readout_s == pytest.approx(READOUT_S, rel=0.05)
     assert 0.0 < calib.sigma_s < 0.05 * READOUT_S
     assert abs(calib.readout_s - READOUT_S) < 4.0 * calib.sigma_s + 1e-4
+
+
+@pytest.mark.parametrize("noise_px", [0.05, 0.5])
+def test_an_undeclared_readout_is_found_and_a_global_shutter_is_not_blamed(scene, noise_px):
+    """`check_undeclared_readout`: the 20 ms flight declared global shutter gives a readout near
+    20 ms (one round from the uncorrected poses, a grid of 1/8 frame period); the same flight
+    filmed with a global shutter gives none, also with corners 10x noisier than their covariance
+    says (chi^2 / dof ~100: scatter the readout does not explain)."""
+    det, cam, world, imu, _ = _synthetic_flight(scene, READOUT_S, noise_px)
+    declared_global = replace(cam, line_delay_s=0.0)
+    raw = pnp_trajectory(det.by_frame("cam0"), declared_global, world)[0]
+    found = check_undeclared_readout(det, declared_global, world, imu, raw, max_frames=60)
+    assert found is not None
+    assert found.readout_s == pytest.approx(READOUT_S, abs=0.004)
+    assert found.n_better > 0.8 * found.n_frames and found.p_value < 1e-6
+    assert found.chi2_per_dof_rolling < 0.9 * found.chi2_per_dof_global
+    # a camera declared rolling shutter is not checked
+    assert check_undeclared_readout(det, cam, world, imu, raw, max_frames=60) is None
+
+    det, cam, world, imu, _ = _synthetic_flight(scene, 0.0, noise_px)
+    raw = pnp_trajectory(det.by_frame("cam0"), cam, world)[0]
+    assert check_undeclared_readout(det, cam, world, imu, raw, max_frames=60) is None
+
+
+def test_an_undeclared_readout_is_a_named_warning_of_the_run(scene, monkeypatch):
+    """The pipeline's check runs only above the PnP chi^2 / dof trigger and names the readout."""
+    from fusion import pipeline
+    from fusion.pipeline import LocalizeResult
+
+    det, cam, world, imu, _ = _synthetic_flight(scene, READOUT_S, 0.05)
+    declared_global = replace(cam, line_delay_s=0.0)
+    raw = pnp_trajectory(det.by_frame("cam0"), declared_global, world)[0]
+
+    class Log:  # what the check reads of a FlightLog
+        floor = type("Floor", (), {"camera": declared_global})()
+
+    Log.world, Log.imu = world, imu
+    cfg = pipeline.RunConfig()
+    for scale, expected in ((1.2, None), (40.0, "rolling_shutter_undeclared")):
+        loc = LocalizeResult({"pnp": raw}, {}, {}, {"pnp": {"noise_scale": {"scale": scale}}}, [])
+        warning = pipeline.undeclared_rolling_shutter_warning(Log, det, loc, cfg)  # type: ignore[arg-type]
+        assert (warning.name if warning else None) == expected
+    assert "line_delay_s" in warning.message and "--calibrate-readout" in warning.message
 
 
 # ---------------------------------------------------------------------------- per-row motion, stamp refine
@@ -497,7 +544,6 @@ def test_scale_sigma_adds_a_rank_one_pose_covariance_along_the_motion(synthetic_
     det, cam, world, imu, _ = synthetic_flight
     frames = det.by_frame("cam0")
     fixed, _ = correct_flight(det, {"cam0": cam}, world, imu)
-    from fusion.qr.pnp import pnp_trajectory
 
     traj, _ = pnp_trajectory(fixed.by_frame("cam0"), cam, world)
     stamps = np.array(sorted(frames), dtype=np.int64)[40:43]
