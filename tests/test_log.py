@@ -212,6 +212,27 @@ def test_bad_frames_are_skipped_and_counted(log_dir):
     assert "10x10" in log.floor.skipped[2]
 
 
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_truncated_images_are_skipped_without_the_codec_printing(log_dir, ext, capfd):
+    """A PNG cut short (no IEND) or a JPEG without its end marker is skipped and counted before
+    the codec sees it: libpng printed `libpng error: Read Error` on stderr, libjpeg decoded the
+    missing rows as grey."""
+    data = log_dir / "mav0" / "cam0" / "data"
+    files = sorted(data.iterdir())
+    img = cv2.imread(str(files[1]), cv2.IMREAD_GRAYSCALE)
+    ok, buf = cv2.imencode(ext, img)
+    assert ok
+    files[1].write_bytes(buf.tobytes()[: len(buf) * 2 // 3])
+    capfd.readouterr()
+    frames = list(read_flight(log_dir).floor.frames())
+    assert [f.image is None for f in frames] == [False, True, False, False, False]
+    assert "libpng" not in capfd.readouterr().err
+    log = read_flight(log_dir)
+    list(log.floor.frames())
+    assert len(log.floor.skipped) == 1 and "data.csv:3: image" in log.floor.skipped[0]
+    assert "truncated" in log.floor.skipped[0]
+
+
 def test_tum_round_trip(tmp_path):
     rng = np.random.default_rng(3)
     T = np.stack([make_T(rot_z(a), rng.normal(size=3)) for a in rng.uniform(-3, 3, 10)])

@@ -246,6 +246,12 @@ class CameraStream:
                     )
                     return None
                 data += f.read()
+            truncated = _truncated_image(data)
+            if truncated:
+                # said here: libpng / libjpeg would print their own errors on stderr, or decode
+                # the missing rows as grey
+                self.skipped.append(f"{self._where(i)}: image {path.name} is truncated ({truncated})")
+                return None
         except LogError as e:
             self.skipped.append(f"{self._where(i)}: image {path.name}: {str(e).split(': ', 1)[-1]}")
             return None
@@ -275,6 +281,16 @@ class CameraStream:
     def frames(self) -> Iterator[Frame]:
         for i, t in enumerate(self.timestamps_ns):
             yield Frame(int(t), self.load_image(i), self.paths[i])
+
+
+def _truncated_image(data: bytes) -> str | None:
+    """What is missing at the end of a PNG (its IEND chunk) or JPEG (its EOI marker, anywhere:
+    cameras may append trailers after it) file's bytes; None when complete or another format."""
+    if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") < 0:
+        return "no IEND chunk"
+    if data.startswith(b"\xff\xd8") and data.rfind(b"\xff\xd9") < 0:
+        return "no JPEG end-of-image marker"
+    return None
 
 
 def image_size_from_header(data: bytes) -> tuple[int, int] | None:
