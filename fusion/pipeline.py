@@ -1482,6 +1482,19 @@ def _evaluate_and_report(
         name: {"reason": f.reason, "error_type": f.error_type} for name, f in result.failures.items()
     }
     metrics["notes"] = list(result.notes)
+    mismatch = metrics.get("groundtruth_frame_mismatch")
+    if mismatch is not None:
+        result.warnings.append(
+            LogWarning(
+                "groundtruth_frame_mismatch",
+                1,
+                f"the ground truth is not in the floor codes' frame: {mismatch['estimator']} is "
+                f"{mismatch['ate_rmse_m']:.2f} m off as given, "
+                f"{100 * mismatch['ate_aligned_rmse_m']:.1f} cm after an SE(3) fit "
+                f"({mismatch['translation_m']:.2f} m, {mismatch['rotation_deg']:.1f} deg): "
+                "check the truth's origin and world.yaml's code positions; the errors below are as given",
+            )
+        )
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
     if result.floor_codes:

@@ -92,6 +92,25 @@ def test_umeyama_recovers_a_rigid_motion():
         M.umeyama_alignment(p[:2], p[:2])
 
 
+def test_a_ground_truth_in_another_frame_is_named_not_scored_silently():
+    """Errors that vanish under an SE(3) fit but are metres as given: the truth's frame differs
+    (a fuzzed log's truth 100 m off was evaluated as a 100 m ATE without a word)."""
+    gt = make_gt(duration_s=10.0)
+    rng = np.random.default_rng(4)
+    est = sample(gt)
+    est.T_world_body[:, :3, 3] += rng.normal(0.0, 0.003, (len(est), 3))
+    assert M.evaluate(gt, {"pnp": est}, {}, None, None).get("groundtruth_frame_mismatch") is None
+    moved = sample(gt)
+    moved.T_world_body[:, :3, 3] = est.T_world_body[:, :3, 3] + [100.0, 0.0, 0.0]
+    found = M.evaluate(gt, {"pnp": moved}, {}, None, None)["groundtruth_frame_mismatch"]
+    assert found["ate_rmse_m"] == pytest.approx(100.0, rel=1e-3)
+    assert found["ate_aligned_rmse_m"] < 0.01 and found["translation_m"] == pytest.approx(100.0, rel=1e-2)
+    # an estimate that is really metres off (not rigidly) is an error, not a frame
+    wild = sample(gt)
+    wild.T_world_body[:, :3, 3] += rng.normal(0.0, 1.0, (len(wild), 3))
+    assert M.evaluate(gt, {"pnp": wild}, {}, None, None).get("groundtruth_frame_mismatch") is None
+
+
 def test_yaw_wraps_around():
     t = np.array([0, NS], dtype=np.int64)
     T_gt = np.stack([np.eye(4), np.eye(4)])

@@ -595,6 +595,38 @@ def load_map_errors(load_map: LoadMap, loads_gt: dict[str, np.ndarray]) -> dict:
 # ============================================================================ evaluate
 
 
+GT_FRAME_MIN_M = 0.5
+"""`groundtruth_frame_mismatch` speaks when the reference estimate's ATE as given is above this ...
+"""
+GT_FRAME_RATIO = 10.0
+"""... and this many times its ATE after an SE(3) fit: the shapes agree, the frames do not."""
+
+
+def groundtruth_frame_mismatch(a: Association) -> dict | None:
+    """Is the ground truth in another frame than the estimate (the floor codes', world.yaml)?
+    An estimate whose errors vanish under an SE(3) fit (evo's -a) but are large as given
+    (GT_FRAME_MIN_M, GT_FRAME_RATIO) was compared with a truth whose origin or axes differ: its
+    ATE measures the frames' offset, not the estimate.  Returns the two RMSEs and the fit's
+    translation (m) and rotation (deg), or None."""
+    if len(a) < 3:
+        return None
+    as_given = ate(a).ate_rmse_m
+    if as_given is None or not as_given > GT_FRAME_MIN_M:
+        return None
+    aligned, T = align_association(a)
+    fitted = ate(aligned).ate_rmse_m
+    if fitted is None or as_given < GT_FRAME_RATIO * fitted:
+        return None
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    return {
+        "estimator": a.name,
+        "ate_rmse_m": as_given,
+        "ate_aligned_rmse_m": fitted,
+        "translation_m": float(np.linalg.norm(T[:3, 3])),
+        "rotation_deg": angle,
+    }
+
+
 def trajectory_metrics(
     gt_timestamps_ns: np.ndarray,
     gt_T_world_body: np.ndarray | TruthPoses,
@@ -716,6 +748,10 @@ def evaluate(
         # pose (a fused trajectory also covers blackouts and the time before the first fix,
         # where errors are larger by nature).
         ref = trajectories.get(common_reference)
+        if ref is not None:
+            mismatch = groundtruth_frame_mismatch(assoc[common_reference])
+            if mismatch is not None:
+                out["groundtruth_frame_mismatch"] = mismatch
         if ref is not None and len(ref):
             for name in trajectories:
                 # the association's rows at the reference's stamps = associating the poses at
