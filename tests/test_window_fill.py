@@ -34,6 +34,13 @@ def test_frame_stride_and_decimation_keep_the_ends_and_their_fixes():
     assert kept[0] == 0 and kept[-1] == 99 and np.all(np.diff(kept)[:-1] == 3)
     np.testing.assert_array_equal(raw_kept.timestamps_ns, np.intersect1d(t[kept], t[has_fix]))
     assert len(raw_kept.covariances) == len(raw_kept)
+    # fixes stamped up to max_sync_s off their frame are matched as the smoother matches them
+    jitter = raw.timestamps_ns + np.where(np.arange(50) % 2 == 0, 1_000_000, -1_000_000)
+    raw_j = Trajectory("pnp", jitter, raw.T_world_body, raw.covariances)
+    _, raw_jk = decimate_frames(t, raw_j, 10.0, max_sync_s=0.002)
+    np.testing.assert_array_equal(raw_jk.timestamps_ns, jitter[np.isin(raw.timestamps_ns, t[kept])])
+    _, none = decimate_frames(t, raw_j, 10.0, max_sync_s=0.0005)
+    assert len(none) == 0
     every, same = decimate_frames(t, raw, 0.0)
     np.testing.assert_array_equal(every, np.arange(100))
     assert same is raw

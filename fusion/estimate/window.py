@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
-from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode
+from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode, match_to_frames
 from fusion.estimate.extrinsics import MountRotation, estimate_mount_and_states, merge_mount_rotations
 from fusion.estimate.smoother import (
     imu_coverage,
@@ -410,19 +410,22 @@ def frame_stride(frame_t: np.ndarray, rate_hz: float) -> int:
     return max(1, int(round(1.0 / (rate_hz * dt_s)))) if dt_s > 0 else 1
 
 
-def decimate_frames(frame_t: np.ndarray, raw: Trajectory, rate_hz: float) -> tuple[np.ndarray, Trajectory]:
+def decimate_frames(
+    frame_t: np.ndarray, raw: Trajectory, rate_hz: float, max_sync_s: float = FusionConfig.max_sync_s
+) -> tuple[np.ndarray, Trajectory]:
     """The indices (M,) of every k-th frame of `frame_t` (frame_stride; the last frame kept too,
-    so the flight's span is unchanged) and the fixes of `raw` stamped at a kept frame (rows of
-    its arrays)."""
+    so the flight's span is unchanged) and the fixes of `raw` whose frame (the nearest within
+    `max_sync_s`, as the smoother matches them: common.match_to_frames) is kept (rows of its
+    arrays)."""
     k = frame_stride(frame_t, rate_hz)
     keep = np.zeros(len(frame_t), bool)
     keep[::k] = True
     if len(keep):
         keep[-1] = True
-    kept = np.asarray(frame_t, np.int64)[keep]
     if k == 1:
         return np.flatnonzero(keep), raw
-    return np.flatnonzero(keep), _rows(raw, np.isin(np.asarray(raw.timestamps_ns, np.int64), kept))
+    j = match_to_frames(np.asarray(frame_t, np.int64), np.asarray(raw.timestamps_ns, np.int64), max_sync_s)
+    return np.flatnonzero(keep), _rows(raw, (j >= 0) & keep[np.maximum(j, 0)])
 
 
 def imu_fill(
@@ -583,7 +586,9 @@ def estimate_mount_windowed(
         return estimate_mount_and_states(frame_t, imu, raw, velocity, floor_camera, None, fusion_config)
     # a long flight: every k-th frame (MOUNT_FRAME_RATE_HZ), its fixes only; windows planned again
     all_t = frame_t
-    kept, raw = decimate_frames(all_t, raw, frame_rate_hz or 0.0)
+    kept, raw = decimate_frames(
+        all_t, raw, frame_rate_hz or 0.0, (fusion_config or FusionConfig()).max_sync_s
+    )
     frame_t = all_t[kept]
     plan = plan_windows(frame_t, window)
     mounts: list[MountRotation] = []
