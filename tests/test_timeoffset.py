@@ -303,3 +303,65 @@ def test_newton_profile_minimum_finds_the_vertex_and_falls_back():
     r, _, _ = _newton_minimum(lambda r: (r + 12.0) ** 2 + 1e-3 * (r + 12.0) ** 4, -50.0, 50.0, 0.05, 2.0, 6)
     assert abs(r + 12.0) < 0.05
     assert _newton_minimum(lambda r: -(r**2), -50.0, 50.0, 0.05, 2.0, 6) is None
+
+
+def test_usable_sightings_drops_each_kind_of_bad_sighting():
+    """The batched check keeps exactly the sightings with a finite (3,) point and a finite
+    positive-definite (3, 3) covariance, in order."""
+    from fusion.estimate.timeoffset import _usable_sightings
+
+    good = np.diag([1e-4, 2e-4, 3e-4])
+
+    def obs(p, C):
+        return LoadObservation(0, "L0", np.zeros(3), None, p, C)
+
+    cases = [
+        (obs(np.ones(3), good), True),
+        (obs(None, good), False),
+        (obs(np.ones(3), None), False),
+        (obs(np.ones(2), good), False),
+        (obs(np.ones(3), np.eye(2)), False),
+        (obs(np.array([1.0, np.nan, 0.0]), good), False),
+        (obs(np.ones(3), np.full((3, 3), np.inf)), False),
+        (obs(np.ones(3), np.diag([1e-4, 0.0, 1e-4])), False),  # singular
+        (obs(np.ones(3), -good), False),
+        (obs(2 * np.ones(3), 2 * good), True),
+    ]
+    kept = _usable_sightings([o for o, _ in cases])
+    assert kept == [o for o, ok in cases if ok]
+    assert _usable_sightings([]) == [] and _usable_sightings([cases[1][0]]) == []
+
+
+def test_landmark_cost_sums_per_landmark_as_the_loop_does():
+    """landmark_cost's per-landmark sums (bincount) against np.add.at, the code it replaced:
+    the same cost to the last bit on random sightings of 4 loads."""
+    from fusion.estimate.timeoffset import landmark_cost
+    from fusion.geometry import PoseInterpolator
+
+    rng = np.random.default_rng(21)
+    traj = random_aisle_survey(10.0, rng)
+    t = np.round(np.arange(0.5, 9.5, 1 / 30.0) * 1e9).astype(np.int64)
+    poses = PoseInterpolator(t, traj.state(t * 1e-9).T_world_body)
+    m = 300
+    tq = np.sort(rng.uniform(t[0], t[-1], m))
+    group = rng.integers(0, 4, m)
+    p_cam = rng.normal([0.0, 0.0, 2.0], 0.3, (m, 3))
+    A = rng.normal(0.0, 0.01, (m, 3, 3))
+    info_cam = np.linalg.inv(A @ np.swapaxes(A, 1, 2) + 1e-6 * np.eye(3))
+    got = landmark_cost(poses, tq, group, p_cam, info_cam, FRONT_CAM, 2.0, 3)
+
+    T_wc = FRONT_CAM.T_world_cam(poses(tq))
+    R = T_wc[:, :3, :3]
+    p_w = np.einsum("nij,nj->ni", R, p_cam) + T_wc[:, :3, 3]
+    W = R @ info_cam @ np.swapaxes(R, 1, 2)
+    w = np.ones(m)
+    for _ in range(4):
+        info, vec = np.zeros((4, 3, 3)), np.zeros((4, 3))
+        np.add.at(info, group, w[:, None, None] * W)
+        np.add.at(vec, group, w[:, None] * np.einsum("nij,nj->ni", W, p_w))
+        L = np.linalg.solve(info, vec[:, :, None])[:, :, 0]
+        r = p_w - L[group]
+        d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
+        w = np.where(d <= 2.0, 1.0, 2.0 / np.maximum(d, 1e-12))
+    want = float(np.where(d <= 2.0, 0.5 * d**2, 2.0 * (d - 1.0)).sum())
+    assert got == want
