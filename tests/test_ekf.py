@@ -288,11 +288,11 @@ def test_huber_inflation_downweights_outliers():
 
 
 def _capture_update(f: _Ekf):
-    """Replace f._update by a recorder of (z, H, hx)."""
+    """Replace f._update by a recorder of the measurement's (z, H, hx)."""
     seen = {}
 
-    def rec(z, H, hx, Rm, residual=np.subtract):
-        seen.update(z=z, H=H, hx=hx)
+    def rec(m):
+        seen.update(z=m.z, H=m.H, hx=m.hx)
 
     f._update = rec
     return seen

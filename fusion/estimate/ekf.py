@@ -264,6 +264,27 @@ class _FixWindow:
         return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) and self.consistent()
 
 
+@dataclass
+class _Measurement:
+    """One EKF measurement: z, its Jacobian H (m, 15) in the error state, the prediction hx at
+    zero error, covariance R (m, m), the residual hook (z, hx) -> y, and the fix it is (None for
+    a velocity)."""
+
+    z: np.ndarray
+    H: np.ndarray
+    hx: np.ndarray
+    R: np.ndarray
+    residual: Any
+    fix: _Fix | None
+
+
+def _yaw_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[p (3), yaw] residual with the yaw wrapped to (-pi, pi]."""
+    r = np.subtract(a, b)
+    r[3] = wrap_angle(r[3])
+    return r
+
+
 class _Ekf:
     def __init__(self, T_body_imu: np.ndarray, config: FusionConfig, recovery: EkfRecovery):
         self.kf = ExtendedKalmanFilter(dim_x=15, dim_z=6)
@@ -473,10 +494,10 @@ class _Ekf:
         if Rr is not None:
             self._apply(z, H, hx, Rr, residual)
 
-    def _update(self, z, H, hx, Rm, residual=np.subtract) -> None:
+    def _update(self, m: _Measurement) -> None:
         """A velocity update: robust kernel and gate, no recovery logic."""
-        d, _, before = self._trial(z, H, hx, Rm, residual)
-        self._settle(self._robust_R(d, Rm, len(hx)), Rm, before, z, H, hx, residual)
+        d, _, before = self._trial(m.z, m.H, m.hx, m.R, m.residual)
+        self._settle(self._robust_R(d, m.R, len(m.hx)), m.R, before, m.z, m.H, m.hx, m.residual)
 
     def _inflate_to(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray, d_target: float) -> float:
         """Scale P by lam >= 1 so that y^T (lam H P H^T + R)^-1 y = d_target^2 (bisection on
@@ -500,8 +521,10 @@ class _Ekf:
         self.kf.P = self.kf.P * lam
         return lam
 
-    def _fix_update(self, fix: _Fix, z, H, hx, Rm, residual) -> None:
+    def _fix_update(self, m: _Measurement) -> None:
         """A pose fix: robust kernel and gate, with recovery (module docstring)."""
+        fix, z, H, hx, Rm, residual = m.fix, m.z, m.H, m.hx, m.R, m.residual
+        assert fix is not None
         d, y, before = self._trial(z, H, hx, Rm, residual)
         self.nis.append((d * d, len(y)))  # consistency check (variance.nis_component)
         k = self.config.threshold(len(y))
@@ -561,7 +584,7 @@ class _Ekf:
         self.ba = self.ba + dx[_BA]
         self.kf.x = np.zeros(15)
 
-    def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
+    def pose_fix(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> _Measurement:
         """z = Log(T_hat_body^-1 T_meas) (6,), h(dx) = J_body dx (right perturbation)."""
         T_hat = gtsam.Pose3(self.T_world_body())
         z = gtsam.Pose3.Logmap(T_hat.between(gtsam.Pose3(T_meas)))
@@ -578,11 +601,15 @@ class _Ekf:
             T_meas,
             cov,
         )
-        self._fix_update(fix, z, H, np.zeros(6), cov, np.subtract)
+        return _Measurement(z, H, np.zeros(6), cov, np.subtract, fix)
 
-    def update_position_yaw(
+    def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
+        """A 6-dof pose fix (pose_fix)."""
+        self._fix_update(self.pose_fix(t_s, T_meas, cov))
+
+    def position_yaw_fix(
         self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
-    ) -> None:
+    ) -> _Measurement:
         """z = [p_world_body (3), yaw (1)] with 4x4 covariance Rm; the residual hook wraps yaw
         to (-pi, pi].  cov6: the level-frame 6x6 covariance it came from (kept for a reset)."""
         T_hat = gtsam.Pose3(self.T_world_body())
@@ -590,19 +617,19 @@ class _Ekf:
         e, Hb = factors.position_yaw_error(np.zeros(3), 0.0, T_hat, True)  # e = h(T_hat)
         H = np.zeros((4, 15))
         H[:, :6] = Hb @ self.J_body()
-
-        def residual(a, b):
-            r = np.subtract(a, b)
-            r[3] = wrap_angle(r[3])
-            return r
-
         sd = np.sqrt(np.maximum(np.diag(Rm), 0.0))
         fix = _Fix(
             t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas, cov6 if cov6 is not None else Rm
         )
-        self._fix_update(fix, z, H, e, Rm, residual)
+        return _Measurement(z, H, e, Rm, _yaw_residual, fix)
 
-    def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
+    def update_position_yaw(
+        self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
+    ) -> None:
+        """A position + yaw fix (position_yaw_fix)."""
+        self._fix_update(self.position_yaw_fix(t_s, T_meas, Rm, cov6))
+
+    def body_velocity(self, v_meas: np.ndarray, sigma: float) -> _Measurement:
         """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body), i.e.
         h = R_imu_body^T (R^T v + omega x t_imu_body).  With R' = R Exp(dtheta),
         R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
@@ -613,7 +640,54 @@ class _Ekf:
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
         H[:, _V] = R_ib.T @ self.R.T
-        self._update(v_meas, H, hx, _EYE3 * sigma**2)
+        return _Measurement(np.asarray(v_meas, float), H, hx, _EYE3 * sigma**2, np.subtract, None)
+
+    def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
+        """A body-velocity update (body_velocity)."""
+        self._update(self.body_velocity(v_meas, sigma))
+
+    def update_fix_and_velocity(self, fix: _Measurement, v_meas: np.ndarray, sigma: float) -> None:
+        """A fix and a body velocity of the same frame in one filterpy update (z, H, R stacked),
+        when neither is beyond its robust threshold; otherwise undone and made one after the
+        other (update_pose / update_position_yaw, then update_body_velocity), the order this
+        replaces.  The two are independent and linear in the error state, so the stacked update
+        is the sequential one (Kalman; e.g. Simon, "Optimal State Estimation", 2006, sec. 7.1)
+        but for the velocity's H and h taken before the fix's correction is injected rather than
+        after (a second-order difference, ~|dx|^2).  The fix's gate distance is its marginal
+        d_f^2 = y_f^T S_ff^-1 y_f (as alone) and the velocity's the conditional one the
+        sequential update sees, d_v^2 = y^T S^-1 y - d_f^2 (chain rule of the Gaussian)."""
+        vel = self.body_velocity(v_meas, sigma)
+        nf = len(fix.hx)
+        Rm = np.zeros((nf + 3, nf + 3))
+        Rm[:nf, :nf] = fix.R
+        Rm[nf:, nf:] = vel.R
+        fix_residual = fix.residual
+
+        def residual(a, b):
+            r = np.subtract(a, b)
+            r[:nf] = fix_residual(a[:nf], b[:nf])
+            return r
+
+        d, y, before = self._trial(
+            np.concatenate([fix.z, vel.z]),
+            np.concatenate([fix.H, vel.H]),
+            np.concatenate([fix.hx, vel.hx]),
+            Rm,
+            residual,
+        )
+        yf = y[:nf]
+        d2_fix = max(float(yf @ np.linalg.solve(self.kf.S[:nf, :nf], yf)), 0.0)
+        d_fix, d_vel = math.sqrt(d2_fix), math.sqrt(max(d * d - d2_fix, 0.0))
+        if d_fix <= self.config.threshold(nf) and d_vel <= self.config.threshold(3):
+            self.nis.append((d2_fix, nf))
+            assert fix.fix is not None
+            fix.fix.over = fix.fix.gated = False  # d_fix within the threshold, so within the gate
+            self.window.add(fix.fix)
+            self._inject()
+            return
+        self._undo(before)
+        self._fix_update(fix)
+        self.update_body_velocity(v_meas, sigma)
 
 
 def _imu_to_body(f: _Ekf, T_out: np.ndarray, cov_out: np.ndarray, block: int = 4096) -> None:
@@ -726,21 +800,27 @@ def run_ekf(
                 f.predict_imu_block(acc[rows], gyr[rows], dts[rows], noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
+        if vmask[k]:
+            if velocity is None:  # velocity_at_frames masks no frame without velocity data
+                raise EstimationError(f"frame {k}: a velocity update without velocity data")
+            sigma_v = velocity.noise_m_s
         m = raw_at.get(k)
         if m is not None and k > k0:
             t_s = frame_t[k] * 1e-9
             T_m = rawp.T_world_body[m]
             if raw_cov is not None and not level_fixes:
-                f.update_pose(t_s, T_m, raw_cov[m])
+                fix = f.pose_fix(t_s, T_m, raw_cov[m])
             elif raw_cov is not None:
-                f.update_position_yaw(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
+                fix = f.position_yaw_fix(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
             else:
-                f.update_position_yaw(t_s, T_m, paper_Rm)
+                fix = f.position_yaw_fix(t_s, T_m, paper_Rm)
+            if vmask[k]:
+                f.update_fix_and_velocity(fix, v_body[k], sigma_v)
+            else:
+                f._fix_update(fix)
             n_pose_updates += 1
-        if vmask[k]:
-            if velocity is None:  # velocity_at_frames masks no frame without velocity data
-                raise EstimationError(f"frame {k}: a velocity update without velocity data")
-            f.update_body_velocity(v_body[k], velocity.noise_m_s)
+        elif vmask[k]:
+            f.update_body_velocity(v_body[k], sigma_v)
         # the IMU pose and its error covariance now; mapped to the body after the loop, in one go
         T_out[k - k0, :3, :3] = f.R
         T_out[k - k0, :3, 3] = f.p
