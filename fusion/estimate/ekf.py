@@ -387,7 +387,7 @@ class _Ekf:
         dv = a_w * dts[:, None]
         v_start = np.empty((K + 1, 3))  # velocity at the start of each sub-interval, and the end
         v_start[0] = self.v
-        np.cumsum(dv, axis=0, out=v_start[1:])
+        np.add.accumulate(dv, axis=0, out=v_start[1:])  # cumsum without its wrapper
         v_start[1:] += self.v
         dp = v_start[:-1] * dts[:, None] + 0.5 * a_w * (dts * dts)[:, None]
         dt3 = dts[:, None, None]
@@ -404,7 +404,7 @@ class _Ekf:
             P = np.dot(F[i], P).dot(Ft[i])
             P.flat[::16] += Q[i]  # Q is diagonal: adding its zeros would leave P's entries exact
         self.R = R
-        self.p = self.p + dp.sum(axis=0)
+        self.p = self.p + np.add.reduce(dp, axis=0)
         self.v = v_start[-1]
         self.omega = W[-1]
         self.kf.F = F[-1]
@@ -577,7 +577,7 @@ class _Ekf:
 
     def _inject(self) -> None:
         dx = self.kf.x.ravel()
-        self.R = self.R @ so3_exp(dx[_TH])
+        self.R = self.R @ rate_exponentials(dx[None, _TH])[0]  # so3_exp's numbers
         self.p = self.p + dx[_P]
         self.v = self.v + dx[_V]
         self.bg = self.bg + dx[_BG]
@@ -636,10 +636,11 @@ class _Ekf:
         arm term is in the IMU frame already)."""
         R_ib = self.T_ib[:3, :3]
         v_b_world = self.v + self.R @ cross3(self.omega, self.T_ib[:3, 3])
-        hx = R_ib.T @ self.R.T @ v_b_world
+        R_bw = R_ib.T @ self.R.T  # R_body_world
+        hx = R_bw @ v_b_world
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
-        H[:, _V] = R_ib.T @ self.R.T
+        H[:, _V] = R_bw
         return _Measurement(np.asarray(v_meas, float), H, hx, _EYE3 * sigma**2, np.subtract, None)
 
     def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
