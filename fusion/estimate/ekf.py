@@ -885,7 +885,7 @@ _EYE6 = np.eye(6)
 _LOAD_PERTURBATIONS = _perturbations(_LOAD_JACOBIAN_STEP)
 
 
-def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config, block: int = 2048) -> LoadMap:
+def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config, block: int = 512) -> LoadMap:
     """Information-weighted fusion of per-observation world points (see module docstring).
     Every sighting's point, Jacobian (load_point_world) and covariance is made for the flight's
     sightings at once, in blocks of `block` (the 13 poses of each through the mount)."""
