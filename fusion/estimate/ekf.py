@@ -16,6 +16,9 @@ Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or po
 level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
 world position and yaw, with their covariance, are what the fix measures), and body velocity.
 The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
+A frame's fix and body velocity are one stacked filterpy update when both are within their
+robust thresholds (`_Ekf.update_fix_and_velocity`; the two in turn otherwise), and the gates'
+Mahalanobis distances come from filterpy's own innovation and S^-1 (`_Ekf._trial`).
 Outliers: the measurement covariance is inflated by the robust kernel's IRLS weight at the
 innovation's Mahalanobis distance d (huber: d/k, cauchy: 1+(d/k)^2, tukey: skipped beyond k);
 updates with d > k are counted as rejected (`rejected_pose_factors`, all updates), those with
