@@ -288,11 +288,11 @@ def test_huber_inflation_downweights_outliers():
 
 
 def _capture_update(f: _Ekf):
-    """Replace f._update by a recorder of (z, H, hx)."""
+    """Replace f._update by a recorder of the measurement's (z, H, hx)."""
     seen = {}
 
-    def rec(z, H, hx, Rm, residual=np.subtract):
-        seen.update(z=z, H=H, hx=hx)
+    def rec(m):
+        seen.update(z=m.z, H=m.H, hx=m.hx)
 
     f._update = rec
     return seen
@@ -455,3 +455,104 @@ def test_cross_equals_numpy_cross_exactly():
     for _ in range(200):
         a, b = rng.normal(size=3) * 10.0 ** rng.integers(-6, 6), rng.normal(size=3)
         np.testing.assert_array_equal(_cross(a, b), np.cross(a, b))
+
+
+def test_rate_exponentials_are_so3_exp_exactly():
+    """The EKF's per-interval rate exponentials give so3_exp's numbers (same arithmetic), and
+    so3_exp_stack's to rounding, on both sides of the Taylor branch (th^2 = 1e-8)."""
+    from fusion.estimate.ekf import rate_exponentials
+    from fusion.geometry import so3_exp_stack
+
+    rng = np.random.default_rng(21)
+    phi = rng.normal(size=(40, 3)) * 10.0 ** rng.uniform(-7, 0.5, size=(40, 1))
+    phi[3] = 0.0
+    phi[4] = [3e-5, 2e-5, 6e-5]  # th^2 just below 1e-8
+    R = rate_exponentials(phi)
+    np.testing.assert_array_equal(R, np.array([so3_exp(w) for w in phi]))
+    np.testing.assert_allclose(R, so3_exp_stack(phi), rtol=0, atol=1e-15)
+
+
+def _filter_pair(seed: int):
+    """Two identical filters in a non-trivial state (IMU off the body, turning, biased)."""
+    T_bi = make_T(so3_exp(np.array([0.02, -0.01, 0.03])), [0.05, -0.03, 0.02])
+    out = []
+    for _ in range(2):
+        rng = np.random.default_rng(seed)
+        f = _Ekf(T_bi, FusionConfig(), EkfRecovery())
+        f.kf.x = np.zeros(15)
+        A = rng.normal(size=(15, 15))
+        f.kf.P = 1e-4 * A @ A.T + 1e-6 * np.eye(15)
+        f.R, f.p = so3_exp(np.array([0.1, 0.2, -0.3])), np.array([1.0, 2.0, 1.2])
+        f.v, f.omega = np.array([0.8, -0.2, 0.1]), np.array([0.05, -0.02, 0.3])
+        f.bg, f.ba = np.array([1e-3, -2e-3, 5e-4]), np.array([0.02, -0.01, 0.03])
+        out.append(f)
+    return out
+
+
+@pytest.mark.parametrize("velocity_outlier", [False, True])
+def test_fix_and_velocity_in_one_update_equal_the_two_in_turn(velocity_outlier):
+    """update_fix_and_velocity (one stacked filterpy update) = update_pose then
+    update_body_velocity: to second order in the correction when both are inliers, exactly
+    (the same calls) when the velocity is beyond its threshold; the fix's NIS and the robust
+    counters the same."""
+    seq, joint = _filter_pair(5)
+    T_meas = seq.T_world_body() @ make_T(so3_exp(np.array([2e-3, -1e-3, 3e-3])), [0.004, -0.003, 0.002])
+    cov = np.diag([1e-5, 1e-5, 2e-5, 1e-5, 1e-5, 2e-5])
+    R_wb = seq.T_world_body()[:3, :3]
+    v_true = R_wb.T @ (seq.v + seq.R @ np.cross(seq.omega, seq.T_ib[:3, 3]))
+    v_meas = v_true + (np.array([3.0, -2.0, 1.0]) if velocity_outlier else np.array([0.01, -0.02, 0.005]))
+    seq.update_pose(1.0, T_meas, cov)
+    seq.update_body_velocity(v_meas, 0.05)
+    joint.update_fix_and_velocity(joint.pose_fix(1.0, T_meas, cov), v_meas, 0.05)
+    assert joint.rejected == seq.rejected == (1 if velocity_outlier else 0)
+    assert joint.nis[0][1] == seq.nis[0][1] == 6
+    assert joint.nis[0][0] == pytest.approx(seq.nis[0][0], rel=1e-9)
+    # inliers: the velocity's H and h are taken before the fix's correction (~3 mrad, ~5 mm
+    # here) is injected; the difference is second order: ~|dtheta|^2 |v| ~ 1e-5 m/s in v
+    tol = 0.0 if velocity_outlier else 3e-5
+    for a, b in (
+        (joint.R, seq.R),
+        (joint.p, seq.p),
+        (joint.v, seq.v),
+        (joint.bg, seq.bg),
+        (joint.ba, seq.ba),
+    ):
+        np.testing.assert_allclose(a, b, rtol=0, atol=tol)
+    np.testing.assert_allclose(joint.kf.P, seq.kf.P, rtol=0, atol=tol * np.abs(seq.kf.P).max())
+    # and both updates moved the state (the velocity's part far beyond tol): a test of no-ops,
+    # or of a joint update that dropped the velocity, would fail
+    fresh, pose_only = _filter_pair(5)
+    pose_only.update_pose(1.0, T_meas, cov)
+    assert np.linalg.norm(joint.p - fresh.p) > 1e-3
+    if not velocity_outlier:
+        assert np.linalg.norm(joint.v - pose_only.v) > 100 * tol
+
+
+def test_load_points_world_batch_equals_one_at_a_time():
+    """load_points_world on a stack = each sighting on its own: the point through the mount and
+    central differences over T Exp(+-h e_i) (Pose3 tangent order), written out here."""
+    from fusion.estimate.ekf import _LOAD_JACOBIAN_STEP, load_points_world
+    from fusion.geometry import se3_exp
+
+    cam = make_cameras()["cam1"]
+    h = _LOAD_JACOBIAN_STEP
+    rng = np.random.default_rng(8)
+    T = np.array([make_T(so3_exp(rng.normal(size=3) * 0.3), rng.normal(size=3)) for _ in range(5)])
+    p_cam = rng.normal(size=(5, 3)) + [0.0, 0.0, 2.0]
+    pts, J, R_wc = load_points_world(cam, T, p_cam)
+
+    def world(T_wb, p):
+        T_wc = cam.T_world_cam(T_wb)
+        return T_wc[:3, :3] @ p + T_wc[:3, 3]
+
+    for i in range(5):
+        p1 = world(T[i], p_cam[i])
+        J1 = np.column_stack(
+            [
+                (world(T[i] @ se3_exp(h * e), p_cam[i]) - world(T[i] @ se3_exp(-h * e), p_cam[i])) / (2 * h)
+                for e in np.eye(6)
+            ]
+        )
+        np.testing.assert_allclose(pts[i], p1, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(J[i], J1, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(R_wc[i], cam.T_world_cam(T[i])[:3, :3], rtol=0, atol=1e-15)

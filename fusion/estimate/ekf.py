@@ -16,6 +16,9 @@ Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or po
 level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
 world position and yaw, with their covariance, are what the fix measures), and body velocity.
 The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
+A frame's fix and body velocity are one stacked filterpy update when both are within their
+robust thresholds (`_Ekf.update_fix_and_velocity`; the two in turn otherwise), and the gates'
+Mahalanobis distances come from filterpy's own innovation and S^-1 (`_Ekf._trial`).
 Outliers: the measurement covariance is inflated by the robust kernel's IRLS weight at the
 innovation's Mahalanobis distance d (huber: d/k, cauchy: 1+(d/k)^2, tukey: skipped beyond k);
 updates with d > k are counted as rejected (`rejected_pose_factors`, all updates), those with
@@ -88,7 +91,6 @@ from fusion.geometry import (
     skew,
     skew_stack,
     so3_exp,
-    so3_exp_stack,
     wrap_angle,
     yaw_of,
 )
@@ -105,6 +107,48 @@ _EYE3 = np.eye(3)  # read-only identities (np.eye per call was ~3 % of the EKF's
 _EYE15 = np.eye(15)
 _LOAD_JACOBIAN_STEP = 1e-6  # body-pose perturbation (rad, m) for the load-point Jacobian
 _TILT_SIGMA_RAD = 0.05  # roll / pitch 1-sigma of a start or reset from position + yaw
+
+
+_EYE15_STACKS: dict[int, np.ndarray] = {}
+
+
+def rate_exponentials(phi: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations exp([phi_k]x) of (K, 3) rotation vectors, each by geometry.so3_exp's
+    arithmetic (Rodrigues, Barfoot eq. 7.14, Taylor series near th = 0; the same numbers) on
+    Python floats, one array made at the end: for the handful of IMU samples of one frame
+    interval this is ~4x cheaper than so3_exp_stack's ~20 array operations (which cost per call,
+    not per sample)."""
+    out = []
+    for w0, w1, w2 in np.asarray(phi, float).tolist():
+        th2 = w0 * w0 + w1 * w1 + w2 * w2
+        if th2 < 1e-8:
+            a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+        else:
+            th = math.sqrt(th2)
+            a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+        b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
+        out.append(
+            (
+                1.0 - b * (w1 * w1 + w2 * w2),
+                b01 - a * w2,
+                b02 + a * w1,
+                b01 + a * w2,
+                1.0 - b * (w0 * w0 + w2 * w2),
+                b12 - a * w0,
+                b02 - a * w1,
+                b12 + a * w0,
+                1.0 - b * (w0 * w0 + w1 * w1),
+            )
+        )
+    return np.array(out).reshape(-1, 3, 3)
+
+
+def _eye15_stack(K: int) -> np.ndarray:
+    """A fresh (K, 15, 15) stack of identities (the template kept per K)."""
+    t = _EYE15_STACKS.get(K)
+    if t is None:
+        t = _EYE15_STACKS[K] = np.broadcast_to(_EYE15, (K, 15, 15)).copy()
+    return t.copy()
 
 
 @dataclass
@@ -223,6 +267,27 @@ class _FixWindow:
         return len(recent) >= self.rec.min_fixes and all(f.gated for f in recent) and self.consistent()
 
 
+@dataclass
+class _Measurement:
+    """One EKF measurement: z, its Jacobian H (m, 15) in the error state, the prediction hx at
+    zero error, covariance R (m, m), the residual hook (z, hx) -> y, and the fix it is (None for
+    a velocity)."""
+
+    z: np.ndarray
+    H: np.ndarray
+    hx: np.ndarray
+    R: np.ndarray
+    residual: Any
+    fix: _Fix | None
+
+
+def _yaw_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[p (3), yaw] residual with the yaw wrapped to (-pi, pi]."""
+    r = np.subtract(a, b)
+    r[3] = wrap_angle(r[3])
+    return r
+
+
 class _Ekf:
     def __init__(self, T_body_imu: np.ndarray, config: FusionConfig, recovery: EkfRecovery):
         self.kf = ExtendedKalmanFilter(dim_x=15, dim_z=6)
@@ -312,31 +377,37 @@ class _Ekf:
         dts = np.asarray(dts, float)
         W = gyr - self.bg
         Fb = acc - self.ba
-        dRs = so3_exp_stack(W * dts[:, None])
-        Rs = np.empty((K + 1, 3, 3))  # attitude at the start of each sub-interval, and the end
-        Rs[0] = self.R
+        dRs = rate_exponentials(W * dts[:, None])
+        # F per sub-interval (Sola eq. 269); the attitude R0[i] at the start of sub-interval i is
+        # filled in below, as the chain of rate exponentials reaches it
+        F = _eye15_stack(K)
+        R0 = np.empty((K, 3, 3))
+        R = self.R
         for i in range(K):
-            Rs[i + 1] = Rs[i] @ dRs[i]
-        R0 = Rs[:-1]
+            R0[i] = R
+            R = R @ dRs[i]
         a_w = np.einsum("kij,kj->ki", R0, Fb) + GRAVITY_W  # world acceleration per sub-interval
         dv = a_w * dts[:, None]
-        v_start = self.v + np.vstack([np.zeros(3), np.cumsum(dv, axis=0)])  # (K + 1, 3)
+        v_start = np.empty((K + 1, 3))  # velocity at the start of each sub-interval, and the end
+        v_start[0] = self.v
+        np.add.accumulate(dv, axis=0, out=v_start[1:])  # cumsum without its wrapper
+        v_start[1:] += self.v
         dp = v_start[:-1] * dts[:, None] + 0.5 * a_w * (dts * dts)[:, None]
-        # F per sub-interval (Sola eq. 269), all at once
-        F = np.broadcast_to(_EYE15, (K, 15, 15)).copy()
+        dt3 = dts[:, None, None]
         F[:, _TH, _TH] = dRs.transpose(0, 2, 1)
-        eye_dt = _EYE3[None] * dts[:, None, None]
+        eye_dt = _EYE3 * dt3
         F[:, _TH, _BG] = -eye_dt
         F[:, _P, _V] = eye_dt
-        F[:, _V, _TH] = -(R0 @ skew_stack(Fb)) * dts[:, None, None]
-        F[:, _V, _BA] = -R0 * dts[:, None, None]
+        F[:, _V, _TH] = -(R0 @ skew_stack(Fb)) * dt3
+        F[:, _V, _BA] = -R0 * dt3
+        Ft = F.transpose(0, 2, 1)
         Q = self._q_density(noise)[None, :] * dts[:, None]  # (K, 15) diagonal of Q
         P = self.kf.P
         for i in range(K):  # filterpy's predict: P = F P F^T + Q
-            P = np.dot(F[i], P).dot(F[i].T)
+            P = np.dot(F[i], P).dot(Ft[i])
             P.flat[::16] += Q[i]  # Q is diagonal: adding its zeros would leave P's entries exact
-        self.R = Rs[-1]
-        self.p = self.p + dp.sum(axis=0)
+        self.R = R
+        self.p = self.p + np.add.reduce(dp, axis=0)
         self.v = v_start[-1]
         self.omega = W[-1]
         self.kf.F = F[-1]
@@ -377,6 +448,8 @@ class _Ekf:
 
     # ------------------------------------------------------------------ updates
     def _mahalanobis(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> float:
+        """Mahalanobis distance of the innovation y under the current P (the updates take it
+        from filterpy's own S^-1, `_trial`)."""
         S = H @ self.kf.P @ H.T + Rm
         return math.sqrt(max(float(y @ np.linalg.solve(S, y)), 0.0))
 
@@ -401,12 +474,33 @@ class _Ekf:
         self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
         self._inject()
 
-    def _update(self, z, H, hx, Rm, residual=np.subtract) -> None:
-        """A velocity update: robust kernel and gate, no recovery logic."""
-        y = np.asarray(residual(z, hx), float).ravel()
-        Rr = self._robust_R(self._mahalanobis(y, H, Rm), Rm, len(y))
+    def _trial(self, z, H, hx, Rm, residual) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """filterpy's update with the unweighted Rm, not yet injected: (Mahalanobis distance d of
+        the innovation y, y, (x, P) before the update, for `_settle`).  d from filterpy's own
+        innovation and S^-1 (d^2 = y^T S^-1 y), so S is formed and inverted once per
+        measurement; most updates keep this result (d within the robust threshold)."""
+        before = (self.kf.x, self.kf.P)  # filterpy's update binds new arrays: these stay as they were
+        self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
+        y = np.asarray(self.kf.y, float).ravel()
+        return math.sqrt(max(float(y @ self.kf.SI @ y), 0.0)), y, before
+
+    def _undo(self, before: tuple[np.ndarray, np.ndarray]) -> None:
+        self.kf.x, self.kf.P = before
+
+    def _settle(self, Rr, Rm, before, z, H, hx, residual) -> None:
+        """Keep the trial update when the kernel left Rm as it was; otherwise undo it and update
+        with the inflated Rr (or not at all: Rr None)."""
+        if Rr is Rm:
+            self._inject()
+            return
+        self._undo(before)
         if Rr is not None:
             self._apply(z, H, hx, Rr, residual)
+
+    def _update(self, m: _Measurement) -> None:
+        """A velocity update: robust kernel and gate, no recovery logic."""
+        d, _, before = self._trial(m.z, m.H, m.hx, m.R, m.residual)
+        self._settle(self._robust_R(d, m.R, len(m.hx)), m.R, before, m.z, m.H, m.hx, m.residual)
 
     def _inflate_to(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray, d_target: float) -> float:
         """Scale P by lam >= 1 so that y^T (lam H P H^T + R)^-1 y = d_target^2 (bisection on
@@ -430,36 +524,34 @@ class _Ekf:
         self.kf.P = self.kf.P * lam
         return lam
 
-    def _fix_update(self, fix: _Fix, z, H, hx, Rm, residual) -> None:
+    def _fix_update(self, m: _Measurement) -> None:
         """A pose fix: robust kernel and gate, with recovery (module docstring)."""
-        y = np.asarray(residual(z, hx), float).ravel()
-        d = self._mahalanobis(y, H, Rm)
+        fix, z, H, hx, Rm, residual = m.fix, m.z, m.H, m.hx, m.R, m.residual
+        assert fix is not None
+        d, y, before = self._trial(z, H, hx, Rm, residual)
         self.nis.append((d * d, len(y)))  # consistency check (variance.nis_component)
         k = self.config.threshold(len(y))
         gate = self.config.outlier_gate
         fix.over = d > k
         fix.gated = gate is not None and d > gate
         rec = self.recovery
-        if not rec.enabled or not fix.over:
-            self.window.add(fix)
-            Rr = self._robust_R(d, Rm, len(y))
-            if Rr is not None:
-                self._apply(z, H, hx, Rr, residual)
-            return
         self.window.add(fix)
+        if not rec.enabled or not fix.over:
+            self._settle(self._robust_R(d, Rm, len(y)), Rm, before, z, H, hx, residual)
+            return
         if fix.gated and self.window.all_gated():
+            self._undo(before)
             self.rejected += 1
             self.reset(fix)
             return
         if self.window.filter_at_fault():
+            self._undo(before)
             self.rejected += 1
             self.inflated += 1
             self._inflate_to(y, H, Rm, math.sqrt(len(y)))
             self._apply(z, H, hx, Rm, residual)
             return
-        Rr = self._robust_R(d, Rm, len(y))
-        if Rr is not None:
-            self._apply(z, H, hx, Rr, residual)
+        self._settle(self._robust_R(d, Rm, len(y)), Rm, before, z, H, hx, residual)
 
     def reset(self, fix: _Fix) -> None:
         """Re-initialise from the window's fixes: pose and covariance of the last fix, velocity
@@ -488,14 +580,14 @@ class _Ekf:
 
     def _inject(self) -> None:
         dx = self.kf.x.ravel()
-        self.R = self.R @ so3_exp(dx[_TH])
+        self.R = self.R @ rate_exponentials(dx[None, _TH])[0]  # so3_exp's numbers
         self.p = self.p + dx[_P]
         self.v = self.v + dx[_V]
         self.bg = self.bg + dx[_BG]
         self.ba = self.ba + dx[_BA]
         self.kf.x = np.zeros(15)
 
-    def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
+    def pose_fix(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> _Measurement:
         """z = Log(T_hat_body^-1 T_meas) (6,), h(dx) = J_body dx (right perturbation)."""
         T_hat = gtsam.Pose3(self.T_world_body())
         z = gtsam.Pose3.Logmap(T_hat.between(gtsam.Pose3(T_meas)))
@@ -512,11 +604,15 @@ class _Ekf:
             T_meas,
             cov,
         )
-        self._fix_update(fix, z, H, np.zeros(6), cov, np.subtract)
+        return _Measurement(z, H, np.zeros(6), cov, np.subtract, fix)
 
-    def update_position_yaw(
+    def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
+        """A 6-dof pose fix (pose_fix)."""
+        self._fix_update(self.pose_fix(t_s, T_meas, cov))
+
+    def position_yaw_fix(
         self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
-    ) -> None:
+    ) -> _Measurement:
         """z = [p_world_body (3), yaw (1)] with 4x4 covariance Rm; the residual hook wraps yaw
         to (-pi, pi].  cov6: the level-frame 6x6 covariance it came from (kept for a reset)."""
         T_hat = gtsam.Pose3(self.T_world_body())
@@ -524,30 +620,97 @@ class _Ekf:
         e, Hb = factors.position_yaw_error(np.zeros(3), 0.0, T_hat, True)  # e = h(T_hat)
         H = np.zeros((4, 15))
         H[:, :6] = Hb @ self.J_body()
-
-        def residual(a, b):
-            r = np.subtract(a, b)
-            r[3] = wrap_angle(r[3])
-            return r
-
         sd = np.sqrt(np.maximum(np.diag(Rm), 0.0))
         fix = _Fix(
             t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas, cov6 if cov6 is not None else Rm
         )
-        self._fix_update(fix, z, H, e, Rm, residual)
+        return _Measurement(z, H, e, Rm, _yaw_residual, fix)
 
-    def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
+    def update_position_yaw(
+        self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
+    ) -> None:
+        """A position + yaw fix (position_yaw_fix)."""
+        self._fix_update(self.position_yaw_fix(t_s, T_meas, Rm, cov6))
+
+    def body_velocity(self, v_meas: np.ndarray, sigma: float) -> _Measurement:
         """z = R_world_body^T v_world_body, with v_world_body = v + R (omega x t_imu_body), i.e.
         h = R_imu_body^T (R^T v + omega x t_imu_body).  With R' = R Exp(dtheta),
         R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
         arm term is in the IMU frame already)."""
         R_ib = self.T_ib[:3, :3]
         v_b_world = self.v + self.R @ cross3(self.omega, self.T_ib[:3, 3])
-        hx = R_ib.T @ self.R.T @ v_b_world
+        R_bw = R_ib.T @ self.R.T  # R_body_world
+        hx = R_bw @ v_b_world
         H = np.zeros((3, 15))
         H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
-        H[:, _V] = R_ib.T @ self.R.T
-        self._update(v_meas, H, hx, _EYE3 * sigma**2)
+        H[:, _V] = R_bw
+        return _Measurement(np.asarray(v_meas, float), H, hx, _EYE3 * sigma**2, np.subtract, None)
+
+    def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
+        """A body-velocity update (body_velocity)."""
+        self._update(self.body_velocity(v_meas, sigma))
+
+    def update_fix_and_velocity(self, fix: _Measurement, v_meas: np.ndarray, sigma: float) -> None:
+        """A fix and a body velocity of the same frame in one filterpy update (z, H, R stacked),
+        when neither is beyond its robust threshold; otherwise undone and made one after the
+        other (update_pose / update_position_yaw, then update_body_velocity), the order this
+        replaces.  The two are independent and linear in the error state, so the stacked update
+        is the sequential one (Kalman; e.g. Simon, "Optimal State Estimation", 2006, sec. 7.1)
+        but for the velocity's H and h taken before the fix's correction is injected rather than
+        after (a second-order difference, ~|dx|^2).  The fix's gate distance is its marginal
+        d_f^2 = y_f^T S_ff^-1 y_f (as alone) and the velocity's the conditional one the
+        sequential update sees, d_v^2 = y^T S^-1 y - d_f^2 (chain rule of the Gaussian)."""
+        vel = self.body_velocity(v_meas, sigma)
+        nf = len(fix.hx)
+        Rm = np.zeros((nf + 3, nf + 3))
+        Rm[:nf, :nf] = fix.R
+        Rm[nf:, nf:] = vel.R
+        fix_residual = fix.residual
+
+        def residual(a, b):
+            r = np.subtract(a, b)
+            r[:nf] = fix_residual(a[:nf], b[:nf])
+            return r
+
+        d, y, before = self._trial(
+            np.concatenate([fix.z, vel.z]),
+            np.concatenate([fix.H, vel.H]),
+            np.concatenate([fix.hx, vel.hx]),
+            Rm,
+            residual,
+        )
+        yf = y[:nf]
+        d2_fix = max(float(yf @ np.linalg.solve(self.kf.S[:nf, :nf], yf)), 0.0)
+        d_fix, d_vel = math.sqrt(d2_fix), math.sqrt(max(d * d - d2_fix, 0.0))
+        if d_fix <= self.config.threshold(nf) and d_vel <= self.config.threshold(3):
+            self.nis.append((d2_fix, nf))
+            assert fix.fix is not None
+            fix.fix.over = fix.fix.gated = False  # d_fix within the threshold, so within the gate
+            self.window.add(fix.fix)
+            self._inject()
+            return
+        self._undo(before)
+        self._fix_update(fix)
+        self.update_body_velocity(v_meas, sigma)
+
+
+def _imu_to_body(f: _Ekf, T_out: np.ndarray, cov_out: np.ndarray, block: int = 4096) -> None:
+    """In place, for a whole flight at once (in blocks of `block` frames, bounded temporaries):
+    T_out (N, 4, 4) holding T_world_imu's rotation and translation becomes T_world_body =
+    T_world_imu T_imu_body (_Ekf.T_world_body), and cov_out (N, 6, 6) holding the error state's
+    [dtheta, dp] covariance becomes the body frame's, symmetrised (_Ekf.J_body, body_cov)."""
+    for a in range(0, len(T_out), block):
+        T = T_out[a : a + block]
+        C = cov_out[a : a + block]
+        J = np.zeros((len(T), 6, 6))
+        J[:, :3, :3] = _EYE3
+        J[:, 3:, 3:] = T[:, :3, :3].transpose(0, 2, 1)
+        J = f.Ad_bi @ J
+        C[:] = J @ C @ J.transpose(0, 2, 1)
+        C[:] = 0.5 * (C + C.transpose(0, 2, 1))
+        T[:, 3, :3] = 0.0
+        T[:, 3, 3] = 1.0
+        T[:] = T @ f.T_ib
 
 
 def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
@@ -641,24 +804,32 @@ def run_ekf(
                 f.predict_imu_block(acc[rows], gyr[rows], dts[rows], noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
+        if vmask[k]:
+            if velocity is None:  # velocity_at_frames masks no frame without velocity data
+                raise EstimationError(f"frame {k}: a velocity update without velocity data")
+            sigma_v = velocity.noise_m_s
         m = raw_at.get(k)
         if m is not None and k > k0:
             t_s = frame_t[k] * 1e-9
             T_m = rawp.T_world_body[m]
             if raw_cov is not None and not level_fixes:
-                f.update_pose(t_s, T_m, raw_cov[m])
+                fix = f.pose_fix(t_s, T_m, raw_cov[m])
             elif raw_cov is not None:
-                f.update_position_yaw(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
+                fix = f.position_yaw_fix(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
             else:
-                f.update_position_yaw(t_s, T_m, paper_Rm)
+                fix = f.position_yaw_fix(t_s, T_m, paper_Rm)
+            if vmask[k]:
+                f.update_fix_and_velocity(fix, v_body[k], sigma_v)
+            else:
+                f._fix_update(fix)
             n_pose_updates += 1
-        if vmask[k]:
-            if velocity is None:  # velocity_at_frames masks no frame without velocity data
-                raise EstimationError(f"frame {k}: a velocity update without velocity data")
-            f.update_body_velocity(v_body[k], velocity.noise_m_s)
-        T_out[k - k0] = f.T_world_body()
-        cov_out[k - k0] = f.body_cov()
-        cov_out[k - k0] = 0.5 * (cov_out[k - k0] + cov_out[k - k0].T)
+        elif vmask[k]:
+            f.update_body_velocity(v_body[k], sigma_v)
+        # the IMU pose and its error covariance now; mapped to the body after the loop, in one go
+        T_out[k - k0, :3, :3] = f.R
+        T_out[k - k0, :3, 3] = f.p
+        cov_out[k - k0] = f.kf.P[:6, :6]
+    _imu_to_body(f, T_out, cov_out)
 
     loads = _map_loads(
         frame_t, load_obs if front_camera is not None else None, front_camera, T_out, cov_out, k0, config
@@ -686,15 +857,26 @@ def run_ekf(
 
 def load_point_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.ndarray):
     """World point of a camera-frame point through the camera's mount, and its 3x6 Jacobian
-    with respect to the body pose (right perturbation, Pose3 order) by central differences
-    (step _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path.  The 12
-    perturbed poses T Exp(+-h e_i) (Pose3.retract, whose chart is Expmap) go through the mount
-    as one stack."""
-    T_world_body = np.asarray(T_world_body, float)
-    T_wc = camera.T_world_cam(np.concatenate([T_world_body[None], T_world_body @ _LOAD_PERTURBATIONS]))
-    pts = np.einsum("kij,j->ki", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
-    J = (pts[1:7] - pts[7:]).T / (2 * _LOAD_JACOBIAN_STEP)
-    return pts[0], J
+    with respect to the body pose (right perturbation, Pose3 order): load_points_world of one."""
+    pts, J, _ = load_points_world(
+        camera, np.asarray(T_world_body, float)[None], np.asarray(p_cam, float)[None]
+    )
+    return pts[0], J[0]
+
+
+def load_points_world(camera: CameraModel, T_world_body: np.ndarray, p_cam: np.ndarray):
+    """World points (M, 3) of camera-frame points p_cam (M, 3) seen from body poses
+    T_world_body (M, 4, 4) through the camera's mount, their (M, 3, 6) Jacobians with respect to
+    the body pose (right perturbation, Pose3 order) by central differences (step
+    _LOAD_JACOBIAN_STEP), so body-fixed and gimbaled mounts take the same path, and the camera
+    rotations R_world_cam (M, 3, 3).  The 12 perturbed poses T Exp(+-h e_i) of each
+    (Pose3.retract, whose chart is Expmap) go through the mount with it as one stack."""
+    m = len(T_world_body)
+    poses = np.concatenate([T_world_body[:, None], T_world_body[:, None] @ _LOAD_PERTURBATIONS[None]], axis=1)
+    T_wc = camera.T_world_cam(poses.reshape(-1, 4, 4)).reshape(m, 13, 4, 4)
+    pts = np.einsum("mkij,mj->mki", T_wc[:, :, :3, :3], p_cam) + T_wc[:, :, :3, 3]
+    J = (pts[:, 1:7] - pts[:, 7:]).transpose(0, 2, 1) / (2 * _LOAD_JACOBIAN_STEP)
+    return pts[:, 0], J, T_wc[:, 0, :3, :3]
 
 
 def _perturbations(h: float) -> np.ndarray:
@@ -706,26 +888,33 @@ _EYE6 = np.eye(6)
 _LOAD_PERTURBATIONS = _perturbations(_LOAD_JACOBIAN_STEP)
 
 
-def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config) -> LoadMap:
-    """Information-weighted fusion of per-observation world points (see module docstring)."""
+def _map_loads(frame_t, load_obs, camera, T_out, cov_out, k0, config, block: int = 512) -> LoadMap:
+    """Information-weighted fusion of per-observation world points (see module docstring).
+    Every sighting's point, Jacobian (load_point_world) and covariance is made for the flight's
+    sightings at once, in blocks of `block` (the 13 poses of each through the mount)."""
     # each sighting from the body pose at its own stamp (frames from k0 on have poses)
     load_obs = retime_load_obs(frame_t[k0 : k0 + len(T_out)], T_out, load_obs or [], camera)
     groups, _ = group_load_obs(frame_t, load_obs, config)
+    ids = sorted(groups)
+    rows = [(i, k - k0, o) for i, lid in enumerate(ids) for k, o in groups[lid] if k >= k0]
+    info = np.zeros((len(ids), 3, 3))
+    vec = np.zeros((len(ids), 3))
+    nobs = np.zeros(len(ids), int)
+    for a in range(0, len(rows), block):
+        part = rows[a : a + block]
+        which = np.array([r[0] for r in part])
+        ks = np.array([r[1] for r in part])
+        p_cam = np.array([r[2].p_cam for r in part], float)
+        cov_cam = np.array([r[2].cov_cam for r in part], float)
+        pts, J, R_wc = load_points_world(camera, T_out[ks], p_cam)
+        C = R_wc @ cov_cam @ R_wc.transpose(0, 2, 1) + J @ cov_out[ks] @ J.transpose(0, 2, 1)
+        W = np.linalg.inv(C)
+        np.add.at(info, which, W)
+        np.add.at(vec, which, (W @ pts[:, :, None])[:, :, 0])
+        np.add.at(nobs, which, 1)
     out = []
-    for lid in sorted(groups):
-        info, vec, nobs = np.zeros((3, 3)), np.zeros(3), 0
-        for k, o in groups[lid]:
-            if k < k0:
-                continue
-            T_wb = T_out[k - k0]
-            p, J = load_point_world(camera, T_wb, np.asarray(o.p_cam, float))
-            R_wc = camera.T_world_cam(T_wb)[:3, :3]
-            C = R_wc @ o.cov_cam @ R_wc.T + J @ cov_out[k - k0] @ J.T
-            W = np.linalg.inv(C)
-            info += W
-            vec += W @ p
-            nobs += 1
-        if nobs:
-            cov = np.linalg.inv(info)
-            out.append(LoadEstimate(lid, cov @ vec, cov, nobs))
+    for i, lid in enumerate(ids):
+        if nobs[i]:
+            cov = np.linalg.inv(info[i])
+            out.append(LoadEstimate(lid, cov @ vec[i], cov, int(nobs[i])))
     return LoadMap("ekf", out)
