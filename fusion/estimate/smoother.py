@@ -1442,7 +1442,8 @@ def innovation_distance(
 def _inverse_quadratic_form3(S: np.ndarray, d: np.ndarray) -> float:
     """d^T S^-1 d for a symmetric 3x3 S (its upper triangle) and a 3-vector d, by the adjugate
     in Python floats: one call per fix in the incremental smoother's innovation gate, where
-    np.linalg.solve's wrapper cost more than the arithmetic (equal to it to rounding; tested)."""
+    np.linalg.solve's wrapper cost more than the arithmetic (equal to it within 1e-9 relative
+    for condition numbers up to 1e4: tests/test_fixedlag.py)."""
     (a, b, c), (_, e, f), (_, _, i) = S.tolist()
     x, y, z = d.tolist()
     A, B, C = e * i - f * f, c * f - b * i, b * f - c * e  # first row of adj(S)
