@@ -76,20 +76,12 @@ class TimeOrderedFixedLag:
             # predictUpdateInfo looks at the solution as it is, so bring it up to date here
             isam.getDelta()
         params = gtsam.ISAM2UpdateParams()
-        affected = isam.predictUpdateInfo(graph, values, params)[0]
+        affected = list(isam.predictUpdateInfo(graph, values, params)[0])
         stamp.update(stamps)
         self._now = max(self._now, max(stamps.values()))
-        top = affected.size() - n_new  # the variables of the tree's top that iSAM2 removes
+        top = len(affected) - n_new  # the variables of the tree's top that iSAM2 removes
         batch = top >= BATCH_FRACTION * n_vars
-        if batch:
-            ordered = list(stamp)
-        else:
-            # the window's keys that are affected (a KeySet's count() is cheaper than its
-            # Python iterator); a key without a stamp would be missed: then a KeyError below
-            ordered = [k for k in stamp if affected.count(k)]
-            if len(ordered) != affected.size():
-                ordered = list(affected)
-        params.constrainedKeys = _time_groups(ordered, stamp)
+        params.constrainedKeys = _time_groups(list(stamp) if batch else affected, stamp)
         result = isam.update(graph, values, params)
         # iSAM2's count: the removed top's variables and the new factors' (all, in a batch)
         if result.getVariablesReeliminated() != (n_vars if batch else top + graph.keys().size()):
