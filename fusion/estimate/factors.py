@@ -245,6 +245,7 @@ def load_factor(
     kernel: RobustKernel,
     threshold: float,
     load_key: int | None = None,
+    noise_model: gtsam.noiseModel.Base | None = None,
 ) -> gtsam.CustomFactor:
     """A load-code centre measured in the front camera at frame k, on X(k) and L(j) (or on
     `load_key` instead of L(j)).
@@ -255,12 +256,16 @@ def load_factor(
     residual norm (hence the robust kernel and the normal equations) is exactly that of the
     camera-frame residual, while the value and Jacobians come from one C++ call
     (Pose3.transformTo) per evaluation; for a gimbaled camera the pose Jacobian is chained
-    through geometry.level_frame_jacobian."""
+    through geometry.level_frame_jacobian.  `noise_model`: the (robust) model of an earlier
+    load_factor of the same sighting, reused (the incremental smoother re-keys a sighting)."""
     T_bc = np.asarray(camera.T_body_cam, float)
     R_bc = T_bc[:3, :3]
     p_parent = R_bc @ np.asarray(p_cam, float) + T_bc[:3, 3]
-    cov_parent = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
-    model = robust(gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_parent + cov_parent.T)), kernel, threshold)
+    model = noise_model
+    if model is None:
+        cov_parent = R_bc @ np.asarray(cov_cam, float) @ R_bc.T
+        gaussian = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov_parent + cov_parent.T))
+        model = robust(gaussian, kernel, threshold)
     kx, kl = X(k), (L(j) if load_key is None else load_key)
 
     if not camera.gimbaled:
