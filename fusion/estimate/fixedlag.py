@@ -32,7 +32,8 @@ orders).  Each update checks that iSAM2 re-eliminated as many variables as predi
 
 Same factors, stamps, lag and marginalisations as GTSAM's smoother; the elimination order
 differs, and with it iSAM2's partial back-substitution (wildfire) and so the relinearisation
-steps taken: estimates move by rounding and by those steps (BENCHMARKS.md / NOTES-incfast.md)."""
+steps taken: estimates move by rounding and by those steps (BENCHMARKS.md, "The incremental
+smoother's time-ordered engine")."""
 
 from __future__ import annotations
 
