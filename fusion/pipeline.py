@@ -1300,6 +1300,12 @@ def _apply_time_offsets(
     if raw is not None and result.rolling_shutter is not None and result.rolling_shutter.pose_cov_added:
         # the profile weighs each fix by its covariance: with the readout correction's share
         raw = add_pose_covariance(raw, result.rolling_shutter.pose_cov_added)
+    # corner errors correlated in time (correlation.py): the floor profile averages the whole
+    # flight's fixes, worth n / tau frames; its sigma says so (reweighting the fixes instead,
+    # the inflated poses as its input, moved the x2.6 clipping offsets further off: BENCHMARKS.md)
+    factor = 1.0
+    if raw is not None and loc.correlation is not None:
+        factor = loc.correlation.long_average_variance_factor(raw)
     offsets = resolve_time_offsets(
         log,
         raw,
@@ -1307,6 +1313,7 @@ def _apply_time_offsets(
         cfg.time_offsets_s,
         fusion_config=FusionConfig(robust_kernel=kernel),
         whole_flight=shared,
+        floor_variance_factor=factor,
     )
     result.time_offsets = offsets
     if not offsets.any_applied:

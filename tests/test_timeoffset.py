@@ -365,3 +365,26 @@ def test_landmark_cost_sums_per_landmark_as_the_loop_does():
         w = np.where(d <= 2.0, 1.0, 2.0 / np.maximum(d, 1e-12))
     want = float(np.where(d <= 2.0, 0.5 * d**2, 2.0 * (d - 1.0)).sum())
     assert got == want
+
+
+def test_correlated_fixes_widen_the_floor_offsets_sigma_not_its_estimate(monkeypatch):
+    """`floor_variance_factor` (the PnP fixes' errors correlated in time, correlation.py): the
+    floor offset's sigma grows by its square root, the estimate stays, and an offset that was
+    5 sigma (applied) is then under 3 sigma (not applied): the x2.6 clipping flight's case."""
+    from types import SimpleNamespace
+
+    import fusion.estimate.timeoffset as to
+    from fusion.estimate.timeoffset import FloorProfile
+
+    monkeypatch.setattr(to, "estimate_floor_offset", lambda *a, **k: FloorProfile(-0.0025, 0.0005, None, 3))
+    floor = SimpleNamespace(timestamps_ns=np.arange(3), camera=FLOOR_CAM)
+    log_ = SimpleNamespace(timeshift_ns={}, cameras={"cam0": floor}, floor=floor, imu=None, velocity=None)
+    raw = Trajectory("pnp", np.arange(3, dtype=np.int64), np.tile(np.eye(4), (3, 1, 1)))
+    plain = resolve_time_offsets(log_, raw, []).cameras["cam0"]
+    wide = resolve_time_offsets(log_, raw, [], floor_variance_factor=4.0).cameras["cam0"]
+    assert plain.offset_s == wide.offset_s == pytest.approx(-0.0025)
+    assert plain.sigma_s == pytest.approx(0.0005) and wide.sigma_s == pytest.approx(0.001)
+    assert plain.applied_s == pytest.approx(-0.0025) and wide.applied_s == 0.0
+    # a factor below 1 (fewer correlated than white: not a thing) never narrows it
+    narrow = resolve_time_offsets(log_, raw, [], floor_variance_factor=0.5).cameras["cam0"]
+    assert narrow.sigma_s == pytest.approx(0.0005)

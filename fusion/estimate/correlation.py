@@ -176,6 +176,17 @@ class CorrelationInflation:
         covs[close] += np.einsum("c,ncij->nij", w, self.class_terms[nearest[close]])
         return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
+    def long_average_variance_factor(self, traj: Trajectory) -> float:
+        """By how much the variance of a flight-wide average of `traj`'s poses exceeds that of
+        independent frames: the median over the frames of trace(cov + extra) / trace(cov), the
+        extra of `add_to` (the flight's taus).  1 without covariances."""
+        if traj.covariances is None or not len(traj):
+            return 1.0
+        raw = np.trace(np.asarray(traj.covariances, dtype=float), axis1=1, axis2=2)
+        inflated = np.trace(np.asarray(self.add_to(traj).covariances, dtype=float), axis1=1, axis2=2)
+        ok = np.isfinite(raw) & np.isfinite(inflated) & (raw > 0)
+        return float(np.median(inflated[ok] / raw[ok])) if ok.any() else 1.0
+
     def directional(self, raw: Trajectory, fused: Trajectory, two_sided: bool) -> Trajectory:
         """`raw` with the extra covariance of the average an estimator takes of it, direction by
         direction: per raw frame, in the eigenbasis u_i of R^-1/2 P R^-T/2 (R the frame's raw

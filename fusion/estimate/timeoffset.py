@@ -536,6 +536,7 @@ def resolve_time_offsets(
     config: TimeOffsetConfig | None = None,
     fusion_config: FusionConfig | None = None,
     whole_flight: WholeFlightSolve | None = None,
+    floor_variance_factor: float = 1.0,
 ) -> TimeOffsets:
     """Each camera's offset for a run: fixed (`fixed_s` {camera: s}, --time-offset-ms), else
     estimated around the log's seed (FlightLog.timeshift_ns) from the floor PnP poses `raw`
@@ -545,7 +546,12 @@ def resolve_time_offsets(
     Order: the floor profile (its window's solves); then, for the front profile, the whole
     flight in the IMU clock: the floor profile's own trajectory when it covered the whole
     flight, else one whole-flight solve at the floor estimate (`whole_flight`, default
-    `fused_trajectory`; the pipeline passes a solve shared with the mount check)."""
+    `fused_trajectory`; the pipeline passes a solve shared with the mount check).
+
+    `floor_variance_factor`: the floor profile's variance times this (>= 1) when the PnP poses'
+    errors are correlated in time (correlation.py: the profile is a flight-wide average of them,
+    worth n / tau independent frames, while its curvature counts n); the front offset's sigma
+    takes the floor's as before."""
     config = config or TimeOffsetConfig()
     fixed_s = dict(fixed_s or {})
     seeds = {name: log_.timeshift_ns.get(name, 0) / NS_PER_S for name in log_.cameras}
@@ -577,11 +583,14 @@ def resolve_time_offsets(
                 fused = fp.trajectory
             else:
                 fused_shift_ns = int(round(fp.residual_s * NS_PER_S))
-            applied = fp.residual_s if _significant(fp.residual_s, fp.sigma_s, config) else 0.0
+            sigma_fp = fp.sigma_s
+            if sigma_fp is not None:
+                sigma_fp *= math.sqrt(max(floor_variance_factor, 1.0))
+            applied = fp.residual_s if _significant(fp.residual_s, sigma_fp, config) else 0.0
             out.cameras[floor] = CameraOffset(
                 floor,
                 seed + fp.residual_s,
-                fp.sigma_s,
+                sigma_fp,
                 OffsetSource.ESTIMATED,
                 seed,
                 applied,
