@@ -110,6 +110,29 @@ def inflation(rho_dec, used_dec, n=4, share=None):
     return co.CorrelationInflation(t, terms, rho, used, taus, 50_000_000)
 
 
+def test_long_average_variance_factor_is_the_share_weighted_tau_and_unit_free():
+    """Decoder share s of an identity covariance at tau: 1 + (tau - 1) s; the same when the
+    pose's rotation and translation blocks are in very different units (a trace ratio would be
+    the translation block's alone)."""
+    inf = inflation(np.array([0.6, 0.45]), 2, share=0.25)
+    tau = inf.taus[DEC]  # 1 + 2 (0.6 + 0.45) = 3.1
+    traj = Trajectory(
+        "pnp", inf.timestamps_ns.copy(), np.tile(np.eye(4), (4, 1, 1)), np.tile(np.eye(6), (4, 1, 1))
+    )
+    assert inf.long_average_variance_factor(traj) == pytest.approx(1.0 + (tau - 1.0) * 0.25)
+    # rotation (rad^2) and translation (m^2) of very different sizes, the correlated class
+    # holding half the rotation and none of the translation: the mean over whitened directions
+    # is 1 + (tau - 1) (3 * 0.5) / 6; a trace ratio would read ~1 (the translation's alone)
+    D = np.diag([1e-8] * 3 + [1.0] * 3)
+    terms = np.zeros_like(inf.class_terms)
+    terms[:, DEC] = np.diag([0.5e-8] * 3 + [0.0] * 3)
+    terms[:, REF] = D - terms[:, DEC]
+    scaled = co.CorrelationInflation(inf.timestamps_ns, terms, inf.rho, inf.lags_used, inf.taus, 50_000_000)
+    traj_d = Trajectory("pnp", traj.timestamps_ns, traj.T_world_body, np.tile(D, (4, 1, 1)))
+    assert scaled.long_average_variance_factor(traj_d) == pytest.approx(1.0 + (tau - 1.0) * 0.25)
+    assert inf.long_average_variance_factor(Trajectory("pnp", traj.timestamps_ns, traj.T_world_body)) == 1.0
+
+
 @pytest.mark.parametrize("two_sided", [False, True])
 def test_average_factor_matches_brute_force(two_sided):
     """sum_ij w_i w_j rho(|i - j|) / sum w^2 of the exponential weights, computed directly, and

@@ -178,14 +178,20 @@ class CorrelationInflation:
 
     def long_average_variance_factor(self, traj: Trajectory) -> float:
         """By how much the variance of a flight-wide average of `traj`'s poses exceeds that of
-        independent frames: the median over the frames of trace(cov + extra) / trace(cov), the
-        extra of `add_to` (the flight's taus).  1 without covariances."""
+        independent frames: the median over the frames of tr(C^-1 (C + E)) / 6, C a frame's
+        covariance and E its extra of `add_to` (the flight's taus): the mean variance ratio over
+        C's whitened directions, free of the units that a plain trace ratio would mix (rad^2,
+        m^2).  1 without covariances."""
         if traj.covariances is None or not len(traj):
             return 1.0
-        raw = np.trace(np.asarray(traj.covariances, dtype=float), axis1=1, axis2=2)
-        inflated = np.trace(np.asarray(self.add_to(traj).covariances, dtype=float), axis1=1, axis2=2)
-        ok = np.isfinite(raw) & np.isfinite(inflated) & (raw > 0)
-        return float(np.median(inflated[ok] / raw[ok])) if ok.any() else 1.0
+        C = np.asarray(traj.covariances, dtype=float)
+        E = np.asarray(self.add_to(traj).covariances, dtype=float) - C
+        ok = np.isfinite(C).all(axis=(1, 2)) & np.isfinite(E).all(axis=(1, 2))
+        ok[ok] &= np.linalg.eigvalsh(C[ok])[:, 0] > 0
+        if not ok.any():
+            return 1.0
+        ratio = 1.0 + np.trace(np.linalg.solve(C[ok], E[ok]), axis1=1, axis2=2) / C.shape[-1]
+        return float(np.median(ratio))
 
     def directional(self, raw: Trajectory, fused: Trajectory, two_sided: bool) -> Trajectory:
         """`raw` with the extra covariance of the average an estimator takes of it, direction by
