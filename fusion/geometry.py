@@ -88,11 +88,10 @@ def cross_rows(A: np.ndarray, p: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- SO(3)
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix exp([w]x) = I + a [w]x + b [w]x^2, a = sin(th)/th, b = (1 - cos(th))/th^2
-    (Rodrigues, Barfoot eq. 7.14; Taylor series near th = 0), written out entry by entry: it runs
-    in every PnP LM step."""
-    w0, w1, w2 = (float(v) for v in w)
+def _so3_exp_entries(w0: float, w1: float, w2: float) -> tuple[float, ...]:
+    """The 9 entries (row-major) of exp([w]x) = I + a [w]x + b [w]x^2, a = sin(th)/th,
+    b = (1 - cos(th))/th^2 (Rodrigues, Barfoot eq. 7.14; Taylor series near th = 0), on Python
+    floats: so3_exp and so3_exp_floats."""
     th2 = w0 * w0 + w1 * w1 + w2 * w2
     if th2 < 1e-8:
         a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0  # error O(th^4) < 1e-16
@@ -100,13 +99,33 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
         th = math.sqrt(th2)
         a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
     b01, b02, b12 = b * w0 * w1, b * w0 * w2, b * w1 * w2
-    return np.array(
-        [
-            [1.0 - b * (w1 * w1 + w2 * w2), b01 - a * w2, b02 + a * w1],
-            [b01 + a * w2, 1.0 - b * (w0 * w0 + w2 * w2), b12 - a * w0],
-            [b02 - a * w1, b12 + a * w0, 1.0 - b * (w0 * w0 + w1 * w1)],
-        ]
+    return (
+        1.0 - b * (w1 * w1 + w2 * w2),
+        b01 - a * w2,
+        b02 + a * w1,
+        b01 + a * w2,
+        1.0 - b * (w0 * w0 + w2 * w2),
+        b12 - a * w0,
+        b02 - a * w1,
+        b12 + a * w0,
+        1.0 - b * (w0 * w0 + w1 * w1),
     )
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp([w]x) (`_so3_exp_entries`), written out entry by entry: it runs in
+    every PnP LM step."""
+    w0, w1, w2 = w.tolist() if isinstance(w, np.ndarray) else (float(v) for v in w)
+    return np.array(_so3_exp_entries(w0, w1, w2)).reshape(3, 3)
+
+
+def so3_exp_floats(phi: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations exp([phi_k]x) of (K, 3) rotation vectors with so3_exp's arithmetic
+    (the same numbers) on Python floats, one array made at the end: for a handful of rotations
+    (the IMU samples of one EKF frame interval) ~4x cheaper than so3_exp_stack's ~20 array
+    operations, which cost per call, not per rotation."""
+    rows = [_so3_exp_entries(w0, w1, w2) for w0, w1, w2 in np.asarray(phi, float).tolist()]
+    return np.array(rows).reshape(-1, 3, 3)
 
 
 def so3_exp_stack(w: np.ndarray) -> np.ndarray:

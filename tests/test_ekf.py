@@ -460,7 +460,7 @@ def test_cross_equals_numpy_cross_exactly():
 def test_rate_exponentials_are_so3_exp_exactly():
     """The EKF's per-interval rate exponentials give so3_exp's numbers (same arithmetic), and
     so3_exp_stack's to rounding, on both sides of the Taylor branch (th^2 = 1e-8)."""
-    from fusion.estimate.ekf import rate_exponentials
+    from fusion.geometry import so3_exp_floats as rate_exponentials
     from fusion.geometry import so3_exp_stack
 
     rng = np.random.default_rng(21)
