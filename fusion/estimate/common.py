@@ -13,9 +13,11 @@ from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from fusion.camera import CameraModel
+from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
 from fusion.fileio import atomic_open
 from fusion.geometry import interpolate_poses, inv_T
@@ -148,7 +150,8 @@ class FusionConfig:
     bridge_free_sigma_m: float = 1e3
     bridge_min_dt_s: float = 1e-6
     bridge_min_sigma: float = 1e-9
-    # Velocity samples are interpolated to a frame time if one lies within this distance.
+    # A velocity sample is a measurement at its nearest frame when within half this distance
+    # of it (velocity_at_frames).
     velocity_max_gap_s: float = 0.1
     # Frame-time matching of raw poses and load observations.
     max_sync_s: float = 0.002
@@ -377,25 +380,81 @@ def prepare_raw(frame_t: np.ndarray, raw: Trajectory, config: FusionConfig) -> R
     return RawPoses(idx, T, cov)
 
 
+@dataclass
+class FrameVelocities:
+    """The velocity sensor's samples as one measurement per frame (velocity_at_frames): `mask`
+    (N,) frames with one, `v_body` (N, 3) the mean of the frame's samples carried to the frame's
+    time by the IMU but for gravity's part, `dt_s` (N,) the mean time from the frame to those
+    samples, `sigma_m_s` (N,) the mean's noise per axis (the sensor's / sqrt(samples))."""
+
+    mask: np.ndarray
+    v_body: np.ndarray
+    dt_s: np.ndarray
+    sigma_m_s: np.ndarray
+
+    def measured(self, k: int, R_world_body: np.ndarray) -> np.ndarray:
+        """Frame k's body velocity measurement: v_body[k] less R^T g dt (the velocity gravity
+        adds between the frame and its samples, g = (0, 0, -GRAVITY_M_S2); R the body attitude,
+        the current estimate's: a 1 mrad error moves it by dt x 9.8 mm/s, ~0.2 mm/s at 30 fps)."""
+        g_dt = np.array([0.0, 0.0, -GRAVITY_M_S2 * float(self.dt_s[k])])
+        return self.v_body[k] - np.asarray(R_world_body, float).T @ g_dt
+
+
 def velocity_at_frames(
-    frame_t: np.ndarray, vel: VelocityData | None, config: FusionConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Body velocity linearly interpolated to frame times: (mask (N,), v_body (N, 3))."""
+    frame_t: np.ndarray, vel: VelocityData | None, config: FusionConfig, imu: ImuData | None = None
+) -> FrameVelocities:
+    """The velocity samples as measurements at the frames, each sample used once: at its
+    nearest frame k when within half `config.velocity_max_gap_s` of it, the samples of one frame
+    averaged.  A sample m = R_j^T v_j at t_j is carried to the frame's time t_k by the IMU
+    between the two (Delta t = t_j - t_k, at most half a frame interval when the rates match):
+    R_j = R_k dR and v_j = v_k + R_k dv + g Delta t, so R_k^T v_k = dR m - dv - R_k^T g Delta t,
+    with dR = Exp(w Delta t) and dv = Exp(w Delta t / 2) f Delta t from the IMU's rate w and
+    specific force f at the interval's midpoint (the midpoint rule; the lever arm's share of f
+    and the biases over < 20 ms are left out: ~3 mm/s at 2 rad/s and a 5 cm arm).  The gravity
+    term needs the attitude: FrameVelocities.measured adds it with the estimator's.  Without
+    an IMU over the interval the sample is taken at the frame's time as it is.
+
+    Why not the samples interpolated to every frame: the interpolated value's noise falls from
+    the sensor's to half its variance between two samples while the factor keeps the sensor's
+    sigma, and one sample is used by up to two frames (three or more from a slower sensor);
+    the smoother's cost then has a cusp wherever frames and samples share stamps, which pulled
+    the floor camera's time-offset profile ~1-5 ms off (BENCHMARKS.md, twelfth session)."""
     n = len(frame_t)
-    out = np.zeros((n, 3))
-    if vel is None or len(vel.timestamps_ns) == 0:
-        return np.zeros(n, bool), out
-    tv = vel.timestamps_ns
-    j = np.searchsorted(tv, frame_t)
-    jl, jr = np.clip(j - 1, 0, len(tv) - 1), np.clip(j, 0, len(tv) - 1)
-    gap = int(config.velocity_max_gap_s * 1e9)
-    ok = (frame_t >= tv[0]) & (frame_t <= tv[-1]) & ((tv[jr] - tv[jl]) <= gap)
-    exact = tv[jr] == frame_t
-    ok |= exact
-    w = np.where(tv[jr] > tv[jl], (frame_t - tv[jl]) / np.maximum(tv[jr] - tv[jl], 1), 1.0)
-    w = np.clip(w, 0.0, 1.0)[:, None]
-    out = (1 - w) * vel.v_body_m_s[jl] + w * vel.v_body_m_s[jr]
-    return ok, out
+    none = FrameVelocities(np.zeros(n, bool), np.zeros((n, 3)), np.zeros(n), np.zeros(n))
+    if vel is None or len(vel.timestamps_ns) == 0 or n == 0:
+        return none
+    tv = np.asarray(vel.timestamps_ns, np.int64)
+    k = nearest_frames(np.asarray(frame_t, np.int64), tv)
+    dt_ns = tv - np.asarray(frame_t, np.int64)[k]
+    use = np.abs(dt_ns) <= int(0.5 * config.velocity_max_gap_s * 1e9)
+    if not use.any():
+        return none
+    k, dt_ns, m = k[use], dt_ns[use], np.asarray(vel.v_body_m_s, float)[use]
+    dt = dt_ns * 1e-9
+    v = m.copy()
+    if imu is not None and len(imu.timestamps_ns) >= 2:
+        t_imu = np.asarray(imu.timestamps_ns, np.int64)
+        t_a = np.minimum(tv[use], tv[use] - dt_ns)
+        t_b = np.maximum(tv[use], tv[use] - dt_ns)
+        inside = (dt_ns != 0) & (t_a >= t_imu[0]) & (t_b <= t_imu[-1])
+        if inside.any():
+            mid = (0.5 * (t_a[inside] + t_b[inside]) - t_imu[0]).astype(float)
+            rel = (t_imu - t_imu[0]).astype(float)
+            R_bi = np.asarray(imu.T_body_imu, float)[:3, :3]
+            w = np.stack([np.interp(mid, rel, imu.gyro_rad_s[:, a]) for a in range(3)], axis=1) @ R_bi.T
+            f = np.stack([np.interp(mid, rel, imu.accel_m_s2[:, a]) for a in range(3)], axis=1) @ R_bi.T
+            d = dt[inside][:, None]
+            dR = Rotation.from_rotvec(w * d)
+            dv = Rotation.from_rotvec(0.5 * w * d).apply(f) * d
+            v[inside] = dR.apply(m[inside]) - dv
+    counts = np.bincount(k, minlength=n).astype(float)
+    mask = counts > 0
+    safe = np.maximum(counts, 1.0)
+    sums = np.stack([np.bincount(k, weights=v[:, a], minlength=n) for a in range(3)], axis=1)
+    v_body = sums / safe[:, None]
+    dt_mean = np.bincount(k, weights=dt, minlength=n) / safe
+    sigma = np.where(mask, float(vel.noise_m_s) / np.sqrt(safe), 0.0)
+    return FrameVelocities(mask, v_body, dt_mean, sigma)
 
 
 # =========================================================================== initial values

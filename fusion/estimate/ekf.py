@@ -67,7 +67,6 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.errors import EstimationError
 from fusion.estimate import factors
 from fusion.estimate.common import (
     FusionConfig,
@@ -729,7 +728,8 @@ def run_ekf(
     k0 = int(rawp.frame_idx[use].min())
     m0 = int(np.flatnonzero(use & (rawp.frame_idx == k0))[0])
     raw_at = {int(k): m for m, k in enumerate(rawp.frame_idx.tolist())}
-    vmask, v_body = velocity_at_frames(frame_t, velocity, config)
+    vel = velocity_at_frames(frame_t, velocity, config, imu)
+    vmask = vel.mask
 
     T_bi = np.asarray(imu.T_body_imu, float) if imu is not None else np.eye(4)
     f = _Ekf(T_bi, config, recovery)
@@ -775,9 +775,9 @@ def run_ekf(
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
         if vmask[k]:
-            if velocity is None:  # velocity_at_frames masks no frame without velocity data
-                raise EstimationError(f"frame {k}: a velocity update without velocity data")
-            sigma_v = velocity.noise_m_s
+            # the gravity term of the samples' time shift at the predicted attitude (body)
+            v_meas = vel.measured(k, f.R @ f.T_ib[:3, :3])
+            sigma_v = float(vel.sigma_m_s[k])
         m = raw_at.get(k)
         if m is not None and k > k0:
             t_s = frame_t[k] * 1e-9
@@ -789,12 +789,12 @@ def run_ekf(
             else:
                 fix = f.position_yaw_fix(t_s, T_m, paper_Rm)
             if vmask[k]:
-                f.update_fix_and_velocity(fix, v_body[k], sigma_v)
+                f.update_fix_and_velocity(fix, v_meas, sigma_v)
             else:
                 f._fix_update(fix)
             n_pose_updates += 1
         elif vmask[k]:
-            f.update_body_velocity(v_body[k], sigma_v)
+            f.update_body_velocity(v_meas, sigma_v)
         # the IMU pose and its error covariance now; mapped to the body after the loop, in one go
         T_out[k - k0, :3, :3] = f.R
         T_out[k - k0, :3, 3] = f.p

@@ -695,11 +695,12 @@ def build_problem(
     pb.counts.corner_factors = len(corner_frames)
 
     # ---- velocity factors
-    vmask, v_body = velocity_at_frames(frame_t, velocity, config)
-    for k in np.flatnonzero(vmask).tolist():
-        assert velocity is not None  # vmask is all False without velocity
-        pb.add(factors.body_velocity_factor(k, v_body[k], velocity.noise_m_s), k)
-    pb.counts.velocity_factors = int(vmask.sum())
+    # each sample once, at its nearest frame; the gravity term at the initial attitude
+    vel = velocity_at_frames(frame_t, velocity, config, imu)
+    for k in np.flatnonzero(vel.mask).tolist():
+        v_k = vel.measured(k, pb.T_init[k, :3, :3])
+        pb.add(factors.body_velocity_factor(k, v_k, float(vel.sigma_m_s[k])), k)
+    pb.counts.velocity_factors = int(vel.mask.sum())
 
     # ---- loads
     cam = pb.front_camera
