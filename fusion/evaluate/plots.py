@@ -97,8 +97,19 @@ def _heap_frozen():
 
 
 def _save(fig: Figure, path: Path, dpi: int) -> Path:
+    """`fig` as a PNG at `dpi`.  A figure with a layout engine (constrained) is laid out once,
+    here, at the saving dpi, and then saved without it: savefig would otherwise draw the whole
+    figure once with drawing disabled only to run the layout, then again to render it (the
+    layout is the same: it runs on the same figure at the same dpi before any artist is drawn)."""
     FigureCanvasAgg(fig)
     path = Path(path)
+    engine = fig.get_layout_engine()
+    if engine is not None:
+        fig.set_dpi(dpi)
+        engine.execute(fig)
+        # None, not "none" (a placeholder engine, which savefig would still pre-draw for)
+        with matplotlib.rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+            fig.set_layout_engine(None)
     with atomic_open(path, "wb") as f:
         fig.savefig(f, format="png", dpi=dpi, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     return path
