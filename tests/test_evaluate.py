@@ -650,3 +650,102 @@ def test_heap_frozen_frees_what_is_made_inside_and_releases_the_rest():
         assert gc.get_freeze_count() == n  # not unfrozen by us
     finally:
         gc.unfreeze()
+
+
+def _traj_random(rng, n: int, name: str = "x") -> Trajectory:
+    R = Rotation.random(n, random_state=int(rng.integers(1 << 31))).as_matrix()
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = rng.normal(scale=50.0, size=(n, 3))
+    t = np.sort(rng.integers(-(10**10), 10**12, size=n)).astype(np.int64)
+    A = rng.normal(size=(n, 6, 6))
+    cov = A @ np.swapaxes(A, 1, 2) * 10.0 ** rng.uniform(-12, 2, size=(n, 1, 1))
+    cov[0] = np.nan  # a non-finite sigma is written as the f-string wrote it
+    return Trajectory(name, t, T, covariances=cov)
+
+
+def test_tum_and_sigma_rows_are_the_text_of_per_row_formatting(tmp_path):
+    """write_tum / write_sigmas_csv format Python numbers with %; the text must stay what the
+    per-row f-strings on numpy scalars wrote (negative timestamps included)."""
+    from fusion.estimate.common import write_sigmas_csv
+    from fusion.log.files import write_tum
+
+    traj = _traj_random(np.random.default_rng(5), 300)
+    write_tum(tmp_path / "t.tum", traj)
+    write_sigmas_csv(tmp_path / "s.csv", traj)
+    want = ["# timestamp tx ty tz qx qy qz qw"]
+    for t, p, q in zip(traj.timestamps_ns, traj.positions_xyz, traj.quat_wxyz):
+        t = int(t)
+        want.append(
+            f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
+            f"{q[1]:.12f} {q[2]:.12f} {q[3]:.12f} {q[0]:.12f}"
+        )
+    assert (tmp_path / "t.tum").read_text() == "\n".join(want) + "\n"
+    sig = np.sqrt(np.maximum(np.diagonal(traj.covariances, axis1=1, axis2=2), 0.0))
+    rows = [f"{int(t)}," + ",".join(f"{v:.6e}" for v in s) for t, s in zip(traj.timestamps_ns, sig)]
+    text = (tmp_path / "s.csv").read_text().splitlines()
+    assert text[1:] == rows and "nan" in text[1]
+
+
+def _span_figure(use_vspan: bool, spans, log: bool):
+    from matplotlib.figure import Figure
+
+    from fusion.evaluate import plots as Pl
+
+    fig = Figure(figsize=(4, 3), layout="constrained")
+    ax = fig.subplots()
+    ax.plot([2.0, 5.0], [0.01, 3.0], "-")
+    if log:
+        ax.set_yscale("log")
+    for k, (x0, x1) in enumerate(spans):
+        kw = dict(color="#888888", alpha=0.18, lw=0, label="span" if k == 0 else None)
+        (Pl._vspan(ax, x0, x1, **kw) if use_vspan else ax.axvspan(x0, x1, **kw))
+    return fig, ax
+
+
+@pytest.mark.parametrize("log", [False, True])
+def test_vspan_is_axvspan_without_its_cost(tmp_path, log):
+    """_vspan draws axvspan's rectangle and gives the axes the same data and view limits (spans
+    reaching beyond the lines widen x, never y), legend entry included: the same PNG."""
+    from fusion.evaluate import plots as Pl
+
+    spans = [(-1.0, 0.5), (3.0, 3.5), (6.0, 7.25)]
+    pngs = []
+    for use in (False, True):
+        fig, ax = _span_figure(use, spans, log)
+        fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+        Pl._save(fig, tmp_path / f"{use}.png", 60)
+        pngs.append((tmp_path / f"{use}.png").read_bytes())
+        lims = (ax.dataLim.intervalx.tolist(), ax.dataLim.intervaly.tolist(), ax.get_xlim(), ax.get_ylim())
+        if not use:
+            want = lims
+    assert lims == want
+    assert lims[2][0] < -1.0 and lims[2][1] > 7.25
+    assert pngs[0] == pngs[1]
+
+
+def test_save_lays_out_once_as_savefig_would(tmp_path):
+    """plots._save (constrained layout run once at the saving dpi, then saved without an engine)
+    writes the PNG that savefig writes with the engine on, and the figure keeps that layout."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from fusion.evaluate import plots as Pl
+
+    def figure():
+        fig, ax = _span_figure(False, [(3.0, 3.5)], True)
+        ax.set_title("a title that constrained layout makes room for")
+        ax.set_ylabel("|error| [cm]")
+        fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+        return fig, ax
+
+    fig, ax = figure()
+    FigureCanvasAgg(fig)
+    fig.savefig(tmp_path / "a.png", dpi=90, pil_kwargs={"compress_level": Pl.PNG_COMPRESS_LEVEL})
+    fig2, ax2 = figure()
+    Pl._save(fig2, tmp_path / "b.png", 90)
+    assert fig2.get_layout_engine() is None
+    assert ax2.get_position().bounds == pytest.approx(ax.get_position().bounds, abs=0)
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    # and the layout did move the axes (the test would not see a skipped layout otherwise)
+    _, ax3 = figure()
+    assert ax2.get_position().bounds != ax3.get_position().bounds

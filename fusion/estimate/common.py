@@ -559,8 +559,9 @@ def write_sigmas_csv(path, traj: Trajectory) -> None:
     sig = np.sqrt(np.maximum(np.diagonal(traj.covariances, axis1=1, axis2=2), 0.0))
     with atomic_open(path) as f:
         f.write("t_ns,sigma_rx_rad,sigma_ry_rad,sigma_rz_rad,sigma_tx_m,sigma_ty_m,sigma_tz_m\n")
-        for t, s in zip(traj.timestamps_ns, sig):
-            f.write(f"{int(t)}," + ",".join(f"{v:.6e}" for v in s) + "\n")
+        # one %-format per row on Python numbers: the text of f"{v:.6e}" on numpy scalars
+        rows = zip(np.asarray(traj.timestamps_ns, dtype=np.int64).tolist(), *sig.T.tolist())
+        f.write("".join(map(("%d" + ",%.6e" * sig.shape[1] + "\n").__mod__, rows)))
 
 
 def fix_jumps(t_s: np.ndarray, p_world: np.ndarray, max_speed_m_s: float, slack_m=0.0) -> np.ndarray:

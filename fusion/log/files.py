@@ -33,14 +33,23 @@ def write_tum_pieces(path: Path, pieces: Iterable[Trajectory]) -> None:
     with atomic_open(path) as f:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         for traj in pieces:
-            q = traj.quat_wxyz
-            for t, p, qi in zip(traj.timestamps_ns, traj.positions_xyz, q):
-                t = int(t)
-                f.write(
-                    f"{t // 1_000_000_000}.{t % 1_000_000_000:09d} "
-                    f"{p[0]:.9f} {p[1]:.9f} {p[2]:.9f} "
-                    f"{qi[1]:.12f} {qi[2]:.12f} {qi[3]:.12f} {qi[0]:.12f}\n"
-                )
+            f.write("".join(_tum_rows(traj)))
+
+
+_TUM_ROW = "%d.%09d %.9f %.9f %.9f %.12f %.12f %.12f %.12f\n"
+"""A TUM row: seconds and nanoseconds of the integer timestamp, position (m), quaternion xyzw."""
+
+
+def _tum_rows(traj: Trajectory) -> Iterable[str]:
+    """The TUM rows of `traj`, each converted on its own (the columns as Python numbers, so
+    that %-formatting is the whole per-row cost: the same text as formatting numpy scalars)."""
+    if not len(traj):
+        return []
+    s, ns = np.divmod(np.asarray(traj.timestamps_ns, dtype=np.int64), 1_000_000_000)  # floor, as // and %
+    p = np.asarray(traj.positions_xyz, dtype=float)
+    q = np.asarray(traj.quat_wxyz, dtype=float)
+    columns = (s, ns, p[:, 0], p[:, 1], p[:, 2], q[:, 1], q[:, 2], q[:, 3], q[:, 0])
+    return map(_TUM_ROW.__mod__, zip(*(c.tolist() for c in columns)))
 
 
 def read_tum(path: Path, name: str | None = None) -> Trajectory:
