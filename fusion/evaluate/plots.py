@@ -26,7 +26,7 @@ matplotlib.use("Agg")  # never open a window, whatever the environment says
 import numpy as np  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Ellipse, Rectangle  # noqa: E402
+from matplotlib.patches import Ellipse  # noqa: E402
 from matplotlib.ticker import NullFormatter, NullLocator  # noqa: E402
 
 from fusion.evaluate.metrics import (  # noqa: E402
@@ -224,23 +224,10 @@ def _draw_band(ax, name: str, t: np.ndarray, half_width: np.ndarray, label: str 
     ax.fill_between(t, -half_width, half_width, color=estimator_colour(name), alpha=0.15, lw=0, label=label)
 
 
-def _vspan(ax, x0: float, x1: float, **kw) -> Rectangle:
-    """`ax.axvspan(x0, x1, **kw)`: the same rectangle (x in data, y over the axes' height) with
-    the same x data limits, without `add_patch`'s data-limit pass over the patch's path through
-    the inverted data transform (~20 ms per span on a log axis; a long flight has dozens)."""
-    p = Rectangle((x0, 0.0), x1 - x0, 1.0, **kw)
-    p.set_transform(ax.get_xaxis_transform(which="grid"))
-    ax.add_artist(p)
-    ax.update_datalim([(x0, 0.0), (x1, 0.0)], updatey=False)
-    ax._request_autoscale_view("x")  # what axvspan asks (matplotlib's private API)
-    return p
-
-
 def _shade_blackouts(ax, blackouts, t0_ns: int, label: bool, annotate: bool = False) -> None:
     for k, (a, b, _kind) in enumerate(blackouts or ()):
         x0, x1 = (a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9
-        _vspan(
-            ax,
+        ax.axvspan(
             x0,
             x1,
             color="#888888",
