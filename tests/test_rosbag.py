@@ -451,6 +451,8 @@ def test_bag_stamp_problems_are_named_counted_warnings(tmp_path, world_and_calib
     got = {(w.name, w.count) for w in flight.warnings}
     assert {("stamps_out_of_order", 1), ("stamps_duplicate", 1)} <= got
     assert not any(w.name == "bag_truncated" for w in flight.warnings)
+    # a camchain without imu.yaml: the IMU noise is the defaults', said once
+    assert ("imu_noise_default", 1) in got
 
 
 def test_cli_inspect_import_export(tmp_path, bags, capsys):

@@ -89,6 +89,19 @@ def test_frame_times_shorter_than_video_use_the_first_frames(video_dir, tmp_path
         open_flight(d)
 
 
+def test_missing_imu_noise_calibration_is_a_counted_warning(video_dir, tmp_path):
+    """Without imu.yaml the IMU noise is the defaults', and the run's warnings say so."""
+    d = tmp_path / "v"
+    shutil.copytree(video_dir, d)
+    assert open_flight(d).imu.noise == short_flight().imu.noise
+    assert not [w for w in open_flight(d).warnings if w.name == "imu_noise_default"]
+    (d / "imu.yaml").unlink()
+    flight = open_flight(d)
+    assert [(w.name, w.count) for w in flight.warnings if w.name == "imu_noise_default"] == [
+        ("imu_noise_default", 1)
+    ]
+
+
 def _vfr_video(path, images, pts):
     import av
 

@@ -806,7 +806,10 @@ def _imu_from_scan(s: TopicScan, opts, calib, meta, path, warnings=None) -> ImuD
         except (KeyError, TypeError, ValueError):
             raise LogError(f"{path}: {METADATA_TOPIC} imu block is malformed") from None
     else:
-        log.warning("%s: no IMU noise calibration (Kalibr imu.yaml); using defaults", where)
+        message = f"{where}: no IMU noise calibration (give a Kalibr imu.yaml with --calib); using defaults"
+        log.warning(message)
+        if warnings is not None:
+            warnings.append(LogWarning("imu_noise_default", 1, message))
     rate = float(1e9 / np.median(np.diff(t))) if len(t) > 1 else 200.0
     return ImuData(t, g, a, noise, T_bi, rate)
 

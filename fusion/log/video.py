@@ -368,8 +368,10 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         ulog_times = read_ulog_frame_times(imu_path)
     elif imu_path is not None:
         imu = _read_imu_csv(imu_path, kimu, folder)
+    noise_default = None
     if imu is not None and kimu is None:
-        log.warning("%s: no IMU noise calibration (Kalibr imu.yaml); using defaults", imu_path)
+        noise_default = f"{imu_path}: no IMU noise calibration (Kalibr imu.yaml); using defaults"
+        log.warning(noise_default)
 
     calib_path = _find(folder, opts.calib, CAMCHAIN_FILE, "*camchain*.yaml")
     if calib_path is None:
@@ -389,7 +391,9 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         kal = {k: (kc.camera, kc.timeshift_ns) for k, kc in read_camchain(calib_path, T_bi).items()}
 
     cameras: dict[str, CameraStream] = {}
-    warnings: list[LogWarning] = []
+    warnings: list[LogWarning] = (
+        [] if noise_default is None else [LogWarning("imu_noise_default", 1, noise_default)]
+    )
     for name, video in videos.items():
         if video is None or not Path(video).is_file():
             raise LogError(f"{video or folder / 'cam0.mkv'}: video not found")
