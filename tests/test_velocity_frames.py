@@ -111,3 +111,13 @@ def test_samples_far_from_any_frame_or_without_velocity_are_not_used():
     fv = velocity_at_frames(frames, vel, FusionConfig())
     assert fv.mask.sum() == 1
     assert not velocity_at_frames(frames, None, FusionConfig()).mask.any()
+
+
+def test_without_an_imu_a_sample_is_taken_at_its_frame_as_it_is():
+    """No IMU to carry it: the sample itself, with no gravity term (dt_s 0)."""
+    frames = _frames()
+    vel = _velocity(frames * 1e-9 + 0.01)
+    fv = velocity_at_frames(frames, vel, FusionConfig())
+    assert np.all(fv.dt_s == 0.0)
+    R = Rotation.from_euler("xyz", [0.3, 0.2, 1.0]).as_matrix()
+    np.testing.assert_array_equal(fv.measured(5, R), vel.v_body_m_s[5])

@@ -385,7 +385,8 @@ class FrameVelocities:
     """The velocity sensor's samples as one measurement per frame (velocity_at_frames): `mask`
     (N,) frames with one, `v_body` (N, 3) the mean of the frame's samples carried to the frame's
     time by the IMU but for gravity's part, `dt_s` (N,) the mean time from the frame to those
-    samples, `sigma_m_s` (N,) the mean's noise per axis (the sensor's / sqrt(samples))."""
+    samples (0 for a sample taken as it is, without an IMU over the interval), `sigma_m_s`
+    (N,) the mean's noise per axis (the sensor's / sqrt(samples))."""
 
     mask: np.ndarray
     v_body: np.ndarray
@@ -432,6 +433,7 @@ def velocity_at_frames(
     k, dt_ns, m = k[use], dt_ns[use], np.asarray(vel.v_body_m_s, float)[use]
     dt = dt_ns * 1e-9
     v = m.copy()
+    carried = np.zeros(len(k), bool)  # moved by the IMU: their gravity term is measured()'s
     if imu is not None and len(imu.timestamps_ns) >= 2:
         t_imu = np.asarray(imu.timestamps_ns, np.int64)
         t_a = np.minimum(tv[use], tv[use] - dt_ns)
@@ -447,12 +449,13 @@ def velocity_at_frames(
             dR = Rotation.from_rotvec(w * d)
             dv = Rotation.from_rotvec(0.5 * w * d).apply(f) * d
             v[inside] = dR.apply(m[inside]) - dv
+            carried = inside
     counts = np.bincount(k, minlength=n).astype(float)
     mask = counts > 0
     safe = np.maximum(counts, 1.0)
     sums = np.stack([np.bincount(k, weights=v[:, a], minlength=n) for a in range(3)], axis=1)
     v_body = sums / safe[:, None]
-    dt_mean = np.bincount(k, weights=dt, minlength=n) / safe
+    dt_mean = np.bincount(k, weights=np.where(carried, dt, 0.0), minlength=n) / safe
     sigma = np.where(mask, float(vel.noise_m_s) / np.sqrt(safe), 0.0)
     return FrameVelocities(mask, v_body, dt_mean, sigma)
 
