@@ -183,11 +183,19 @@ def _malloc_env() -> tuple:
     return os.environ.get("MALLOC_ARENA_MAX"), os.environ.get("MALLOC_TRIM_THRESHOLD_")
 
 
-def test_local_workers_start_with_one_malloc_arena():
+def _profiler(dask_worker) -> tuple:
+    import dask
+
+    return dask.config.get("distributed.worker.profile.enabled"), "profile" in dask_worker.periodic_callbacks
+
+
+def test_local_workers_start_with_one_malloc_arena_and_no_profiler():
     """batch.LOCAL_MALLOC_ARENAS reaches the local cluster's worker processes (glibc reads it
-    when the process starts); Dask's own trim threshold stays."""
+    when the process starts); Dask's own trim threshold stays; the statistical profiler is off
+    (batch.LOCAL_PROFILER)."""
     with connect(BatchConfig(workers=1)) as client:
         assert client.submit(_malloc_env, pure=False).result() == ("1", "65536")
+        assert list(client.run(_profiler).values()) == [(False, False)]
 
 
 def test_a_second_batch_on_the_same_folder_is_refused(flights, tmp_path):

@@ -70,6 +70,10 @@ LOCAL_MALLOC_ARENAS = 1
 executor thread, whose own arena (64 MiB heaps, trimmed only at their tops) is where the report
 task's freed memory stayed resident (measured: BENCHMARKS.md, tenth session, `batchmem`)."""
 
+LOCAL_PROFILER = False
+"""Dask's statistical profiler in local workers (`distributed.worker.profile.enabled`): off, as
+its sampled stacks of the flight's long report task cost ~54 MiB of that worker's peak."""
+
 
 @dataclass
 class BatchConfig:
@@ -200,6 +204,9 @@ def connect(cfg: BatchConfig) -> Iterator[Client]:
         {
             "distributed.scheduler.allowed-failures": LOCAL_ALLOWED_FAILURES,
             "distributed.nanny.pre-spawn-environ.MALLOC_ARENA_MAX": LOCAL_MALLOC_ARENAS,
+            # the statistical profiler's samples of a long report task: ~54 MiB of its worker's
+            # peak (BENCHMARKS.md, twelfth session, batchmem3); the dashboard loses its profile
+            "distributed.worker.profile.enabled": LOCAL_PROFILER,
         }
     ):
         cluster = LocalCluster(
