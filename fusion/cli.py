@@ -324,6 +324,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--start", type=float, default=0.0, help="skip the first S seconds of the scenario's trajectory"
     )
     p.add_argument(
+        "--velocity-rate-hz",
+        type=float,
+        default=None,
+        help="the velocity sensor's rate (default: the scenario's 30 Hz, stamped with the frames)",
+    )
+    p.add_argument(
         "--readout-ms",
         type=float,
         default=None,
@@ -599,6 +605,7 @@ def main(argv: list[str] | None = None) -> int:
                 extrinsic_error_deg=(
                     None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}
                 ),
+                velocity_rate_hz=args.velocity_rate_hz,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

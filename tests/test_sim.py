@@ -385,8 +385,9 @@ def test_simulate_writes_a_readable_deterministic_log(tmp_path):
         for i in (0, 7, 20):
             np.testing.assert_array_equal(s1.load_image(i), s2.load_image(i))
     # another seed gives other noise
-    r3 = simulate(tmp_path / "c", workers=1, **{**kw, "seed": 5, "duration_s": 0.5})
+    r3 = simulate(tmp_path / "c", workers=1, **{**kw, "seed": 5, "duration_s": 0.5, "velocity_rate_hz": 8.0})
     log3 = read_flight(r3.root)
+    assert len(log3.velocity.timestamps_ns) == 5  # its own rate: 0, 125, ... 500 ms
     assert not np.array_equal(log3.imu.accel_m_s2, log.imu.accel_m_s2[: len(log3.imu.accel_m_s2)])
     assert not np.array_equal(log3.floor.load_image(3), log.floor.load_image(3))
 
@@ -403,6 +404,8 @@ def test_simulate_writes_a_readable_deterministic_log(tmp_path):
         dict(seed=-1),
         dict(start_s=-2.0),
         dict(resolution="800x600"),
+        dict(velocity_rate_hz=0.0),
+        dict(velocity_rate_hz=float("inf")),
     ],
 )
 def test_simulate_rejects_bad_input(tmp_path, kwargs):

@@ -187,6 +187,7 @@ def simulate(
     time_offset_ms: dict[str, float] | float | None = None,
     camera_options: CameraOptions | None = None,
     extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
+    velocity_rate_hz: float | None = None,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -226,7 +227,8 @@ def simulate(
     its nominal one turned by that rotation vector in the body frame about the camera's centre
     (fusion.estimate.extrinsics.corrected_mount); the images are rendered with the true mount
     while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life);
-    `extrinsics_groundtruth.csv` holds the errors."""
+    `extrinsics_groundtruth.csv` holds the errors.  `velocity_rate_hz` (None: the scenario's
+    30 Hz, stamped with the frames): the velocity sensor's own rate."""
     from fusion.log import LogFormat
 
     try:
@@ -290,6 +292,12 @@ def simulate(
         )
     if not (camera_rate_hz > 0 and math.isfinite(camera_rate_hz)):
         raise SimulationError(f"camera rate must be positive, got {camera_rate_hz}")
+    if velocity_rate_hz is not None:
+        rate = velocity_rate_hz
+        number = isinstance(rate, (int, float)) and not isinstance(rate, bool)
+        if not (number and rate > 0 and math.isfinite(rate)):
+            raise SimulationError(f"velocity rate must be positive, got {rate!r}")
+        sc.velocity_rate_hz = float(rate)
     if camera_options is not None:
         apply_camera_options(sc, camera_options)
     if noise_sigma_dn is not None:
