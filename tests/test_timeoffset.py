@@ -388,3 +388,41 @@ def test_correlated_fixes_widen_the_floor_offsets_sigma_not_its_estimate(monkeyp
     # a factor below 1 (fewer correlated than white: not a thing) never narrows it
     narrow = resolve_time_offsets(log_, raw, [], floor_variance_factor=0.5).cameras["cam0"]
     assert narrow.sigma_s == pytest.approx(0.0005)
+
+
+def test_an_undetermined_floor_offset_does_not_move_the_front_profiles_clock(monkeypatch):
+    """A floor profile without curvature (sigma None: no IMU, or too little motion) is not
+    applied, and the front profile then reads the trajectory at the log's floor stamps: not
+    the profile's own trajectory at its arbitrary minimum (a velocity-only flight's +11 ms had
+    set the front offset to +12 ms, applied)."""
+    from types import SimpleNamespace
+
+    import fusion.estimate.timeoffset as to
+    from fusion.estimate.timeoffset import FloorProfile, FrontProfile
+
+    raw = Trajectory("pnp", np.arange(3, dtype=np.int64), np.tile(np.eye(4), (3, 1, 1)))
+    shifted = Trajectory("at the minimum", raw.timestamps_ns + 11_000_000, raw.T_world_body)
+    floor = SimpleNamespace(timestamps_ns=np.arange(3), camera=FLOOR_CAM)
+    front = SimpleNamespace(timestamps_ns=np.arange(3), camera=FRONT_CAM)
+    log_ = SimpleNamespace(
+        timeshift_ns={}, cameras={"cam0": floor, "cam1": front}, floor=floor, imu=None, velocity=None
+    )
+    seen = {}
+
+    def front_profile(fused, *a, **k):
+        seen["trajectory"] = fused.name
+        return FrontProfile(0.0, 0.0002, 5)
+
+    def whole_flight(log, raw, shift_ns, *a):
+        seen["shift_ns"] = shift_ns
+        return Trajectory("at the log's stamps", raw.timestamps_ns + shift_ns, raw.T_world_body)
+
+    monkeypatch.setattr(to, "estimate_front_offset", front_profile)
+    for sigma, want in ((None, ("at the log's stamps", 0)), (0.0005, ("at the minimum", None))):
+        seen.clear()
+        monkeypatch.setattr(
+            to, "estimate_floor_offset", lambda *a, s=sigma, **k: FloorProfile(0.011, s, shifted, 9)
+        )
+        got = resolve_time_offsets(log_, raw, [], whole_flight=whole_flight)
+        assert (seen["trajectory"], seen.get("shift_ns")) == want
+        assert got.cameras["cam0"].applied_s == (0.0 if sigma is None else pytest.approx(0.011))

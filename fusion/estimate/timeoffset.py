@@ -578,8 +578,12 @@ def resolve_time_offsets(
                 config,
                 fusion_config,
             )
-            # the profile's trajectory, unless it covers only a window of the flight
-            if fp.whole_flight:
+            # the profile's trajectory, unless it covers only a window of the flight; a profile
+            # without curvature (sigma None) leaves the offset undetermined: the front profile
+            # then reads the trajectory at the log's floor stamps, not at that arbitrary minimum
+            if fp.sigma_s is None:
+                pass
+            elif fp.whole_flight:
                 fused = fp.trajectory
             else:
                 fused_shift_ns = int(round(fp.residual_s * NS_PER_S))
