@@ -58,6 +58,7 @@ import logging
 import math
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -91,6 +92,7 @@ from fusion.geometry import (
     skew_stack,
     so3_exp,
     so3_exp_floats,
+    so3_log,
     wrap_angle,
     yaw_of,
 )
@@ -107,6 +109,12 @@ _EYE3 = np.eye(3)  # read-only identities (np.eye per call was ~3 % of the EKF's
 _EYE15 = np.eye(15)
 _LOAD_JACOBIAN_STEP = 1e-6  # body-pose perturbation (rad, m) for the load-point Jacobian
 _TILT_SIGMA_RAD = 0.05  # roll / pitch 1-sigma of a start or reset from position + yaw
+ITERATE_MIN_ROTATION_RAD = 0.01
+"""An update whose attitude correction exceeds this is iterated (`_Ekf._iterate`): the
+measurement relinearised at the corrected state until the correction settles."""
+ITERATE_MAX = 8
+ITERATE_TOL = 1e-10
+"""Largest change of the error state (rad, m, m/s) between two iterations that ends them."""
 
 
 _EYE15_STACKS: dict[int, np.ndarray] = {}
@@ -248,6 +256,8 @@ class _Measurement:
     R: np.ndarray
     residual: Any
     fix: _Fix | None
+    # (z, H, hx) again at the filter's current nominal state, for the iterated update
+    relinearize: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 def _yaw_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -275,6 +285,7 @@ class _Ekf:
         self.gated = 0
         self.inflated = 0
         self.resets = 0
+        self.iterated = 0  # updates iterated (_iterate)
         self.window = _FixWindow(recovery)
         self.nis: list[tuple[float, int]] = []  # (squared Mahalanobis innovation, dim) per fix
         self._q_cache: tuple[Any, np.ndarray] | None = None  # (noise record, _q_density of it)
@@ -439,37 +450,39 @@ class _Ekf:
             return Rm * (1.0 + (d / k) ** 2)
         return None  # tukey: weight 0
 
-    def _apply(self, z, H, hx, Rm, residual) -> None:
-        self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
-        self._inject()
+    def _apply(self, m: _Measurement, Rm: np.ndarray) -> None:
+        """filterpy's update of m with covariance Rm (m.R, or inflated), injected."""
+        P0 = self.kf.P
+        self.kf.update(m.z, lambda x: m.H, lambda x: m.hx + m.H @ x, R=Rm, residual=m.residual)
+        self._inject(m, Rm, P0)
 
-    def _trial(self, z, H, hx, Rm, residual) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """filterpy's update with the unweighted Rm, not yet injected: (Mahalanobis distance d of
+    def _trial(self, m: _Measurement) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """filterpy's update with the unweighted m.R, not yet injected: (Mahalanobis distance d of
         the innovation y, y, (x, P) before the update, for `_settle`).  d from filterpy's own
         innovation and S^-1 (d^2 = y^T S^-1 y), so S is formed and inverted once per
         measurement; most updates keep this result (d within the robust threshold)."""
         before = (self.kf.x, self.kf.P)  # filterpy's update binds new arrays: these stay as they were
-        self.kf.update(z, lambda x: H, lambda x: hx + H @ x, R=Rm, residual=residual)
+        self.kf.update(m.z, lambda x: m.H, lambda x: m.hx + m.H @ x, R=m.R, residual=m.residual)
         y = np.asarray(self.kf.y, float).ravel()
         return math.sqrt(max(float(y @ self.kf.SI @ y), 0.0)), y, before
 
     def _undo(self, before: tuple[np.ndarray, np.ndarray]) -> None:
         self.kf.x, self.kf.P = before
 
-    def _settle(self, Rr, Rm, before, z, H, hx, residual) -> None:
-        """Keep the trial update when the kernel left Rm as it was; otherwise undo it and update
+    def _settle(self, Rr, m: _Measurement, before) -> None:
+        """Keep the trial update when the kernel left m.R as it was; otherwise undo it and update
         with the inflated Rr (or not at all: Rr None)."""
-        if Rr is Rm:
-            self._inject()
+        if Rr is m.R:
+            self._inject(m, m.R, before[1])
             return
         self._undo(before)
         if Rr is not None:
-            self._apply(z, H, hx, Rr, residual)
+            self._apply(m, Rr)
 
     def _update(self, m: _Measurement) -> None:
         """A velocity update: robust kernel and gate, no recovery logic."""
-        d, _, before = self._trial(m.z, m.H, m.hx, m.R, m.residual)
-        self._settle(self._robust_R(d, m.R, len(m.hx)), m.R, before, m.z, m.H, m.hx, m.residual)
+        d, _, before = self._trial(m)
+        self._settle(self._robust_R(d, m.R, len(m.hx)), m, before)
 
     def _inflate_to(self, y: np.ndarray, H: np.ndarray, Rm: np.ndarray, d_target: float) -> float:
         """Scale P by lam >= 1 so that y^T (lam H P H^T + R)^-1 y = d_target^2 (bisection on
@@ -495,9 +508,9 @@ class _Ekf:
 
     def _fix_update(self, m: _Measurement) -> None:
         """A pose fix: robust kernel and gate, with recovery (module docstring)."""
-        fix, z, H, hx, Rm, residual = m.fix, m.z, m.H, m.hx, m.R, m.residual
+        fix, H, Rm = m.fix, m.H, m.R
         assert fix is not None
-        d, y, before = self._trial(z, H, hx, Rm, residual)
+        d, y, before = self._trial(m)
         self.nis.append((d * d, len(y)))  # consistency check (variance.nis_component)
         k = self.config.threshold(len(y))
         gate = self.config.outlier_gate
@@ -506,7 +519,7 @@ class _Ekf:
         rec = self.recovery
         self.window.add(fix)
         if not rec.enabled or not fix.over:
-            self._settle(self._robust_R(d, Rm, len(y)), Rm, before, z, H, hx, residual)
+            self._settle(self._robust_R(d, Rm, len(y)), m, before)
             return
         if fix.gated and self.window.all_gated():
             self._undo(before)
@@ -518,9 +531,9 @@ class _Ekf:
             self.rejected += 1
             self.inflated += 1
             self._inflate_to(y, H, Rm, math.sqrt(len(y)))
-            self._apply(z, H, hx, Rm, residual)
+            self._apply(m, Rm)
             return
-        self._settle(self._robust_R(d, Rm, len(y)), Rm, before, z, H, hx, residual)
+        self._settle(self._robust_R(d, Rm, len(y)), m, before)
 
     def reset(self, fix: _Fix) -> None:
         """Re-initialise from the window's fixes: pose and covariance of the last fix, velocity
@@ -547,21 +560,83 @@ class _Ekf:
         self.resets += 1
         self.window.clear()
 
-    def _inject(self) -> None:
+    def _nominal(self) -> tuple[np.ndarray, ...]:
+        return self.R, self.p, self.v, self.bg, self.ba
+
+    def _retract(self, X0: tuple[np.ndarray, ...], dx: np.ndarray) -> None:
+        """Nominal state = X0 [+] dx (rotation on the right, the rest added)."""
+        R0, p0, v0, bg0, ba0 = X0
+        self.R = R0 @ so3_exp_floats(dx[None, _TH])[0]  # so3_exp's numbers
+        self.p = p0 + dx[_P]
+        self.v = v0 + dx[_V]
+        self.bg = bg0 + dx[_BG]
+        self.ba = ba0 + dx[_BA]
+
+    def _local(self, X0: tuple[np.ndarray, ...]) -> np.ndarray:
+        """The nominal state's error state relative to X0 (the inverse of _retract)."""
+        R0, p0, v0, bg0, ba0 = X0
+        dv = [self.p - p0, self.v - v0, self.bg - bg0, self.ba - ba0]
+        return np.concatenate([so3_log(R0.T @ self.R), *dv])
+
+    def _inject(
+        self, m: _Measurement | None = None, Rm: np.ndarray | None = None, P0: np.ndarray | None = None
+    ) -> None:
+        """The filter's error state into the nominal state; then, when m's update (covariance
+        Rm, prior P0) turned the attitude by more than ITERATE_MIN_ROTATION_RAD, `_iterate`."""
         dx = self.kf.x.ravel()
-        self.R = self.R @ so3_exp_floats(dx[None, _TH])[0]  # so3_exp's numbers
-        self.p = self.p + dx[_P]
-        self.v = self.v + dx[_V]
-        self.bg = self.bg + dx[_BG]
-        self.ba = self.ba + dx[_BA]
+        X0 = self._nominal()
+        self._retract(X0, dx)
         self.kf.x = np.zeros(15)
+        if m is not None and float(np.linalg.norm(dx[_TH])) > ITERATE_MIN_ROTATION_RAD:
+            assert Rm is not None and P0 is not None
+            self._iterate(m, Rm, P0, X0)
+
+    def _iterate(self, m: _Measurement, Rm: np.ndarray, P0: np.ndarray, X0: tuple[np.ndarray, ...]) -> None:
+        """Iterated EKF update: Gauss-Newton on the update's MAP cost (Bell and Cathey, "The
+        iterated Kalman filter update as a Gauss-Newton method", IEEE TAC 38(2), 1993), in the
+        error state of the prior X0 (covariance P0).  At iterate X_i = X0 [+] d_i the
+        measurement is relinearised (m.relinearize: z_i, H_i, h_i, H_i in X_i's right
+        perturbation e); e = Jr(d_i) (d - d_i) (SO(3)'s right Jacobian, gtsam
+        Rot3.ExpmapDerivative), so in d: Hd = H_i Jr and y = z_i - (h_i - Hd d_i); d_(i+1) =
+        K y.  The posterior covariance is moved to the last iterate's tangent space by Jr(d).
+        Why: one linear update is exact to first order in the correction; after a gap without
+        an IMU the attitude prior is ~10-20 deg wide, the first fix turns it by as much, and the
+        second-order terms left the state off the fix along its thin (correlated) directions
+        by 10^2-10^4 sigma^2 (a velocity-only flight's EKF NEES 35,000 on that frame)."""
+        self.iterated += 1
+        d = self._local(X0)
+        for _ in range(ITERATE_MAX):
+            z, H, hx = m.relinearize()
+            J = _EYE15.copy()
+            J[_TH, _TH] = gtsam.Rot3.ExpmapDerivative(d[_TH])
+            Hd = H @ J
+            h0 = hx - Hd @ d
+            self.kf.x = np.zeros(15)
+            self.kf.P = P0
+            self.kf.update(
+                z, lambda x, Hd=Hd: Hd, lambda x, Hd=Hd, h0=h0: h0 + Hd @ x, R=Rm, residual=m.residual
+            )
+            d_new = self.kf.x.ravel()
+            self._retract(X0, d_new)
+            step = float(np.max(np.abs(d_new - d)))
+            d = d_new
+            if step < ITERATE_TOL:
+                break
+        self.kf.x = np.zeros(15)
+        J = _EYE15.copy()
+        J[_TH, _TH] = gtsam.Rot3.ExpmapDerivative(d[_TH])
+        self.kf.P = J @ self.kf.P @ J.T
 
     def pose_fix(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> _Measurement:
         """z = Log(T_hat_body^-1 T_meas) (6,), h(dx) = J_body dx (right perturbation)."""
-        T_hat = gtsam.Pose3(self.T_world_body())
-        z = gtsam.Pose3.Logmap(T_hat.between(gtsam.Pose3(T_meas)))
-        H = np.zeros((6, 15))
-        H[:, :6] = self.J_body()
+
+        def linearize():
+            T_hat = gtsam.Pose3(self.T_world_body())
+            H = np.zeros((6, 15))
+            H[:, :6] = self.J_body()
+            return gtsam.Pose3.Logmap(T_hat.between(gtsam.Pose3(T_meas))), H, np.zeros(6)
+
+        z, H, hx = linearize()
         R_m = T_meas[:3, :3]
         sigma_p = np.sqrt(np.maximum(np.diag(R_m @ cov[3:, 3:] @ R_m.T), 0.0))
         fix = _Fix(
@@ -573,7 +648,7 @@ class _Ekf:
             T_meas,
             cov,
         )
-        return _Measurement(z, H, np.zeros(6), cov, np.subtract, fix)
+        return _Measurement(z, H, hx, cov, np.subtract, fix, linearize)
 
     def update_pose(self, t_s: float, T_meas: np.ndarray, cov: np.ndarray) -> None:
         """A 6-dof pose fix (pose_fix)."""
@@ -584,16 +659,21 @@ class _Ekf:
     ) -> _Measurement:
         """z = [p_world_body (3), yaw (1)] with 4x4 covariance Rm; the residual hook wraps yaw
         to (-pi, pi].  cov6: the level-frame 6x6 covariance it came from (kept for a reset)."""
-        T_hat = gtsam.Pose3(self.T_world_body())
         z = np.r_[T_meas[:3, 3], yaw_of(T_meas[:3, :3])]
-        e, Hb = factors.position_yaw_error(np.zeros(3), 0.0, T_hat, True)  # e = h(T_hat)
-        H = np.zeros((4, 15))
-        H[:, :6] = Hb @ self.J_body()
+
+        def linearize():
+            T_hat = gtsam.Pose3(self.T_world_body())
+            e, Hb = factors.position_yaw_error(np.zeros(3), 0.0, T_hat, True)  # e = h(T_hat)
+            H = np.zeros((4, 15))
+            H[:, :6] = Hb @ self.J_body()
+            return z, H, e
+
+        _, H, e = linearize()
         sd = np.sqrt(np.maximum(np.diag(Rm), 0.0))
         fix = _Fix(
             t_s, z[:3].copy(), float(z[3]), sd[:3], float(sd[3]), T_meas, cov6 if cov6 is not None else Rm
         )
-        return _Measurement(z, H, e, Rm, _yaw_residual, fix)
+        return _Measurement(z, H, e, Rm, _yaw_residual, fix, linearize)
 
     def update_position_yaw(
         self, t_s: float, T_meas: np.ndarray, Rm: np.ndarray, cov6: np.ndarray | None = None
@@ -606,14 +686,19 @@ class _Ekf:
         h = R_imu_body^T (R^T v + omega x t_imu_body).  With R' = R Exp(dtheta),
         R'^T v = R^T v + [R^T v]x dtheta: only the IMU velocity term depends on dtheta (the lever
         arm term is in the IMU frame already)."""
+        z = np.asarray(v_meas, float)
         R_ib = self.T_ib[:3, :3]
-        v_b_world = self.v + self.R @ cross3(self.omega, self.T_ib[:3, 3])
-        R_bw = R_ib.T @ self.R.T  # R_body_world
-        hx = R_bw @ v_b_world
-        H = np.zeros((3, 15))
-        H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
-        H[:, _V] = R_bw
-        return _Measurement(np.asarray(v_meas, float), H, hx, _EYE3 * sigma**2, np.subtract, None)
+
+        def linearize():
+            v_b_world = self.v + self.R @ cross3(self.omega, self.T_ib[:3, 3])
+            R_bw = R_ib.T @ self.R.T  # R_body_world
+            H = np.zeros((3, 15))
+            H[:, _TH] = R_ib.T @ skew(self.R.T @ self.v)
+            H[:, _V] = R_bw
+            return z, H, R_bw @ v_b_world
+
+        _, H, hx = linearize()
+        return _Measurement(z, H, hx, _EYE3 * sigma**2, np.subtract, None, linearize)
 
     def update_body_velocity(self, v_meas: np.ndarray, sigma: float) -> None:
         """A body-velocity update (body_velocity)."""
@@ -641,13 +726,20 @@ class _Ekf:
             r[:nf] = fix_residual(a[:nf], b[:nf])
             return r
 
-        d, y, before = self._trial(
+        def linearize():
+            (zf, Hf, hf), (zv, Hv, hv) = fix.relinearize(), vel.relinearize()
+            return np.concatenate([zf, zv]), np.concatenate([Hf, Hv]), np.concatenate([hf, hv])
+
+        both = _Measurement(
             np.concatenate([fix.z, vel.z]),
             np.concatenate([fix.H, vel.H]),
             np.concatenate([fix.hx, vel.hx]),
             Rm,
             residual,
+            None,
+            linearize,
         )
+        d, y, before = self._trial(both)
         yf = y[:nf]
         d2_fix = max(float(yf @ np.linalg.solve(self.kf.S[:nf, :nf], yf)), 0.0)
         d_fix, d_vel = math.sqrt(d2_fix), math.sqrt(max(d * d - d2_fix, 0.0))
@@ -656,7 +748,7 @@ class _Ekf:
             assert fix.fix is not None
             fix.fix.over = fix.fix.gated = False  # d_fix within the threshold, so within the gate
             self.window.add(fix.fix)
-            self._inject()
+            self._inject(both, Rm, before[1])
             return
         self._undo(before)
         self._fix_update(fix)
@@ -811,6 +903,7 @@ def run_ekf(
         "gated_updates": f.gated,
         "inflated_updates": f.inflated,
         "resets": f.resets,
+        "iterated_updates": f.iterated,
         "pose_nis": nis_component([a for a, _ in f.nis], [b for _, b in f.nis]).as_dict(),
         "robust_kernel": config.robust_kernel,
         "imu_intervals": int(covered.sum()),
