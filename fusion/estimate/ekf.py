@@ -43,6 +43,8 @@ wrong instead of claiming an accuracy it lost.
 
 Where no IMU data covers an interval (gap, IMU that stops early) the prediction is a random walk
 (constant velocity, constant rotation; process noise from FusionConfig.bridge_*), counted.
+An update that turns the attitude by more than ITERATE_MIN_ROTATION_RAD (the first fix after
+such a gap) is iterated to convergence (`_Ekf._iterate`), counted (`iterated_updates`).
 
 Loads: not filter states.  Each observation is mapped to the world with the filtered pose at its
 frame through the front camera's mount, p = T_world_cam(T_world_body) p_cam (CameraModel, so a
