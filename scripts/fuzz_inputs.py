@@ -9,7 +9,9 @@ says how the run answered:
   traceback  a Python traceback: always a bug
 
 Prints a Markdown table (case, what was broken, outcome, the first message).  The flight: any
-EuRoC folder with cam0, cam1, imu0 and vel0, e.g. `fusion simulate --duration 8 --seed 11 F`.
+EuRoC folder with cam0, cam1, imu0 and vel0, e.g. `fusion simulate --duration 8 --seed 11 F`; or
+a folder of videos with Kalibr calibration (`--format video`), or a ROS 1 bag / ROS 2 MCAP file
+(`--format rosbag1` / `rosbag2`): each kind of log gets its own cases (`--list`).
 
     python3 scripts/fuzz_inputs.py FLIGHT WORKDIR [--cases imu_text cam_zero ...] [--list]
 """
@@ -352,30 +354,166 @@ def run_case(name: str, flight: Path, work: Path) -> tuple[str, str]:
     if case_dir.exists():
         shutil.rmtree(case_dir)
     case_dir.mkdir(parents=True)
-    log = case_dir / "log"
-    copy_flight(flight, log)
-    CASES[name][1](log)
+    log = case_dir / ("log" + flight.suffix)
+    if flight.is_file():
+        shutil.copyfile(flight, log)
+    else:
+        copy_flight(flight, log)
+    ALL_CASES[name][1](log)
     cmd = [sys.executable, "-m", "fusion.cli", "run", str(log), "--out", str(case_dir / "out")]
     r = subprocess.run([*cmd, "-q", "--workers", "1", "--no-incremental"], capture_output=True, text=True)
     kind, message = outcome(r.returncode, r.stdout, r.stderr, case_dir / "out")
-    if kind != "traceback":
-        shutil.rmtree(log)  # kept for a traceback, to reproduce it
+    if kind != "traceback":  # kept for a traceback, to reproduce it
+        log.unlink() if log.is_file() else shutil.rmtree(log)
     return kind, message.replace(str(case_dir) + "/", "").replace("|", "\\|")
+
+
+# ---------------------------------------------------------------- video folders (Kalibr layout)
+
+
+def _video_truncated(d: Path) -> None:
+    data = (d / "cam0.mkv").read_bytes()
+    _replace_bytes(d / "cam0.mkv", data[: int(0.6 * len(data))])
+
+
+def _video_random(d: Path) -> None:
+    _replace_bytes(d / "cam0.mkv", np.random.default_rng(0).bytes(20_000))
+
+
+def _video_overwritten(d: Path) -> None:
+    data = bytearray((d / "cam0.mkv").read_bytes())
+    at = len(data) // 2
+    data[at : at + 20_000] = np.random.default_rng(1).bytes(20_000)
+    _replace_bytes(d / "cam0.mkv", bytes(data))
+
+
+def _video_missing(d: Path) -> None:
+    (d / "cam0.mkv").unlink()
+
+
+def _video_times_short(d: Path) -> None:
+    ls = _lines(d / "cam0.csv")
+    _set_lines(d / "cam0.csv", ls[: 1 + (len(ls) - 1) // 2])
+
+
+def _video_times_extra(d: Path) -> None:
+    ls = _lines(d / "cam0.csv")
+    t = [int(x) for x in ls[1:]]
+    step = t[1] - t[0]
+    _set_lines(d / "cam0.csv", ls + [f"{t[-1] + step * (i + 1)}\n" for i in range(len(t) // 4)])
+
+
+def _video_times_text(d: Path) -> None:
+    ls = _lines(d / "cam0.csv")
+    ls[30] = "abc\n"
+    _set_lines(d / "cam0.csv", ls)
+
+
+def _video_times_seconds(d: Path) -> None:
+    ls = _lines(d / "cam0.csv")
+    _set_lines(d / "cam0.csv", ls[:1] + [f"{int(x) / 1e9:.6f}\n" for x in ls[1:]])
+
+
+def _camchain_no_intrinsics(d: Path) -> None:
+    p = d / "camchain-imucam.yaml"
+    _set_lines(p, [line for line in _lines(p) if not line.strip().startswith("intrinsics:")])
+
+
+def _camchain_not_yaml(d: Path) -> None:
+    p = d / "camchain-imucam.yaml"
+    p.write_text("cam0:\n  intrinsics: [550.0, 550.0\n")
+
+
+def _camchain_singular(d: Path) -> None:
+    p = d / "camchain-imucam.yaml"
+    ls = _lines(p)
+    i = next(k for k, line in enumerate(ls) if line.strip().startswith("T_cam_imu:"))
+    ls[i + 1] = "  - [0.0, 0.0, 0.0, 0.0]\n"
+    _set_lines(p, ls)
+
+
+def _video_imu_yaml_missing(d: Path) -> None:
+    (d / "imu.yaml").unlink()
+
+
+# ---------------------------------------------------------------- bags (ROS 1 .bag, ROS 2 .mcap)
+
+
+def _bag_cut(f: Path) -> None:
+    data = f.read_bytes()
+    _replace_bytes(f, data[: len(data) // 2])
+
+
+def _bag_overwritten(f: Path) -> None:
+    data = bytearray(f.read_bytes())
+    at = int(0.4 * len(data))
+    data[at : at + 50_000] = np.random.default_rng(2).bytes(50_000)
+    _replace_bytes(f, bytes(data))
+
+
+def _bag_header(f: Path) -> None:
+    data = bytearray(f.read_bytes())
+    data[:16] = b"\0" * 16
+    _replace_bytes(f, bytes(data))
+
+
+def _bag_empty(f: Path) -> None:
+    _replace_bytes(f, b"")
+
+
+VIDEO_CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
+    "video_truncated": ("cam0.mkv cut at 60 %", _video_truncated),
+    "video_random": ("cam0.mkv replaced by 20 kB of random bytes", _video_random),
+    "video_overwritten": ("20 kB of cam0.mkv overwritten mid-file", _video_overwritten),
+    "video_missing": ("cam0.mkv deleted", _video_missing),
+    "video_times_short": ("cam0.csv: the first half of the frame times only", _video_times_short),
+    "video_times_extra": ("cam0.csv: a quarter more frame times than frames", _video_times_extra),
+    "video_times_text": ("cam0.csv: a line 'abc'", _video_times_text),
+    "video_times_seconds": ("cam0.csv: stamps in seconds", _video_times_seconds),
+    "camchain_no_intrinsics": ("camchain-imucam.yaml without intrinsics", _camchain_no_intrinsics),
+    "camchain_not_yaml": ("camchain-imucam.yaml not YAML", _camchain_not_yaml),
+    "camchain_singular": ("camchain-imucam.yaml: cam0's T_cam_imu with a zero row", _camchain_singular),
+    "video_imu_yaml_missing": ("imu.yaml (IMU noise) deleted", _video_imu_yaml_missing),
+}
+BAG_CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
+    "bag_cut": ("the bag cut at 50 %", _bag_cut),
+    "bag_overwritten": ("50 kB of the bag overwritten at 40 %", _bag_overwritten),
+    "bag_header": ("the bag's first 16 bytes zeroed", _bag_header),
+    "bag_empty": ("the bag 0 bytes", _bag_empty),
+}
+EUROC_CASES = CASES
+CASES_BY_KIND = {"euroc": EUROC_CASES, "video": VIDEO_CASES, "bag": BAG_CASES}
+ALL_CASES = {**EUROC_CASES, **VIDEO_CASES, **BAG_CASES}
+
+
+def flight_kind(flight: Path) -> str:
+    """'bag' (a .bag or .mcap file), 'video' (a folder with cam0.mkv / camchain) or 'euroc'."""
+    if flight.is_file():
+        return "bag"
+    if (flight / "camchain-imucam.yaml").exists():
+        return "video"
+    return "euroc"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flight", type=Path, nargs="?")
     ap.add_argument("workdir", type=Path, nargs="?")
-    ap.add_argument("--cases", nargs="+", choices=sorted(CASES), default=list(CASES))
+    ap.add_argument("--cases", nargs="+", choices=sorted(ALL_CASES), help="default: all of the log's kind")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     args = ap.parse_args()
     if args.list:
-        for name, (what, _) in CASES.items():
-            print(f"{name:<28} {what}")
+        for kind, cases in CASES_BY_KIND.items():
+            for name, (what, _) in cases.items():
+                print(f"{name:<28} {kind:<6} {what}")
         return 0
     if args.flight is None or args.workdir is None:
         ap.error("FLIGHT and WORKDIR are required")
+    kind = flight_kind(args.flight)
+    wrong = [c for c in args.cases or () if c not in CASES_BY_KIND[kind]]
+    if wrong:
+        ap.error(f"{', '.join(wrong)}: not a case for a {kind} log (see --list)")
+    args.cases = args.cases or list(CASES_BY_KIND[kind])
     print(
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
         f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; flight {args.flight}\n"
