@@ -509,11 +509,11 @@ def main() -> int:
         return 0
     if args.flight is None or args.workdir is None:
         ap.error("FLIGHT and WORKDIR are required")
-    kind = flight_kind(args.flight)
-    wrong = [c for c in args.cases or () if c not in CASES_BY_KIND[kind]]
+    log_kind = flight_kind(args.flight)
+    wrong = [c for c in args.cases or () if c not in CASES_BY_KIND[log_kind]]
     if wrong:
-        ap.error(f"{', '.join(wrong)}: not a case for a {kind} log (see --list)")
-    args.cases = args.cases or list(CASES_BY_KIND[kind])
+        ap.error(f"{', '.join(wrong)}: not a case for a {log_kind} log (see --list)")
+    args.cases = args.cases or list(CASES_BY_KIND[log_kind])
     print(
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
         f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; flight {args.flight}\n"
@@ -523,7 +523,7 @@ def main() -> int:
     for name in args.cases:
         kind, message = run_case(name, args.flight, args.workdir)
         counts[kind] = counts.get(kind, 0) + 1
-        print(f"| {name} | {CASES[name][0]} | {kind} | {message[:200]} |", flush=True)
+        print(f"| {name} | {ALL_CASES[name][0]} | {kind} | {message[:200]} |", flush=True)
     print("\n" + ", ".join(f"{k}: {v}" for k, v in sorted(counts.items())))
     return 1 if counts.get("traceback") else 0
 
