@@ -115,6 +115,11 @@ logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
 WARM_START_MAX_SHIFT_S = 0.05
+GIMBALED_TILT_NOTE = (
+    "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
+    "the IMU against the fixes' motion, and the health does not check them (measured: 20-40 mrad "
+    "off with a claimed sigma of 1-6 mrad on simulated flights; BENCHMARKS.md, thirteenth session)"
+)
 """The batch smoother starts from the shared whole-flight solve's states only when each frame's
 stamp moved by at most this (the time-offset search's half-width; a start, not a result)."""
 
@@ -753,6 +758,8 @@ def fuse_stage(
             "tight coupling: floor-code corners as reprojection factors in the "
             "smoothers (the EKF stays loosely coupled)"
         )
+    if floor_camera is not None and floor_camera.gimbaled and log.imu is not None:
+        out.notes.append(GIMBALED_TILT_NOTE)
     load_obs = loc.camera_frame_observations if log.front is not None else []
     front = log.front.camera if log.front is not None else None
     smoother_kwargs = dict(graph_kwargs)

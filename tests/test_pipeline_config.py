@@ -90,3 +90,25 @@ def test_floor_inputs_keep_the_floor_code_grid_of_the_detections(sample_as_built
     expected = floor_codes_from_payloads((d.payload for d in det.for_camera("cam0")), 1.0)
     assert xy is not None and len(xy) > 0
     np.testing.assert_array_equal(xy, expected)
+
+
+def test_a_gimbaled_floor_camera_says_its_fused_tilt_is_unchecked(sample_as_built, monkeypatch):
+    """Level-frame fixes give position and yaw: the fused roll / pitch are the IMU's against the
+    fixes' motion, which the health does not check (20-40 mrad off with sigma 1-6 mrad on
+    simulated gimbaled flights, BENCHMARKS.md): the run says so; a body-fixed camera does not."""
+    import fusion.pipeline as P
+
+    log, det, loc = sample_as_built
+
+    def capture(*args, **kwargs):
+        raise EstimationError("captured")
+
+    for name in ("smooth_windowed", "smooth_incremental", "run_ekf"):
+        monkeypatch.setattr(P, name, capture)
+    cfg = RunConfig(workers=1, progress=False)
+    floor = log.floor
+    gimbaled = replace(
+        log, cameras={**log.cameras, "cam0": replace(floor, camera=replace(floor.camera, mount="gimbaled"))}
+    )
+    assert P.GIMBALED_TILT_NOTE in P.fuse_stage(gimbaled, loc, cfg, det).notes
+    assert P.GIMBALED_TILT_NOTE not in P.fuse_stage(log, loc, cfg, det).notes
