@@ -180,9 +180,15 @@ class RunResult:
     extrinsics: MountRotation | None = None  # the floor camera's mount check / calibration
     noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
+    fusion_expected: bool = False  # the run went as far as the fusion (until smooth / run)
+
     @property
     def trusted(self) -> bool:
-        """True when every fused estimator ran and its health is ok (what --strict asks)."""
+        """True when every fused estimator ran and its health is ok (what --strict asks); a run
+        that was to fuse and has no fused estimate at all (no floor pose, no IMU nor velocity)
+        is not."""
+        if self.fusion_expected and not self.health and not self.failures:
+            return False
         return not self.failures and all(h.status == Status.OK for h in self.health.values())
 
     def summary(self) -> str:
@@ -1003,6 +1009,10 @@ def _run_into(
         if rs_sightings is not None:
             result.warnings.append(rs_sightings)
     result.notes += loc.notes
+    if fixes is None:
+        no_pose = no_floor_pose_warning(log, loc, result.detection_stats)
+        if no_pose is not None:
+            result.warnings.append(no_pose)
     result.trajectories.update(loc.trajectories)
     result.load_maps.update(loc.load_maps)
     for name, obs in loc.load_observations.items():
@@ -1013,6 +1023,7 @@ def _run_into(
     fused_stats: dict = {}
     floor_xy = None
     if until in ("smooth", "run"):
+        result.fusion_expected = True
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
         # what the fusion and the evaluation need of the detections, taken now so that they
@@ -1147,6 +1158,34 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
         f"{n} front-camera load sightings corrected for a {readout_s * 1e3:.0f} ms readout are fused: "
         f"above {RS_SIGHTINGS_WARN_READOUT_S * 1e3:.0f} ms the correction leaves errors their "
         "covariance does not carry, so the fused covariances may be optimistic",
+    )
+
+
+def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: dict) -> LogWarning | None:
+    """A named, counted warning (count: the floor frames) when not one floor frame gave a PnP
+    pose: the run has nothing to localise from and no fused estimate.  Before, it said so only in
+    a note, so `--quiet` printed nothing, metrics.json listed no warning, the report no health
+    line, and `--strict` exited 0 (1280x720 or a 1.5x focal length with the default scenario:
+    the codes never whole in the narrower view)."""
+    pnp = loc.trajectories.get(str(Estimator.PNP))
+    if pnp is not None and len(pnp) > 0:
+        return None
+    n = len(log.floor)
+    with_code = int(detection_stats.get("floor_frames_with_code", 0))
+    rejected = int(detection_stats.get("rejected_total", 0))
+    w, h = log.floor.camera.width, log.floor.camera.height
+    seen = (
+        f"floor codes decoded in {with_code} of them but PnP posed none"
+        if with_code
+        else "no floor code decoded in any of them"
+    )
+    return LogWarning(
+        "no_floor_pose",
+        n,
+        f"none of the {n} floor-camera frames gave a pose ({seen}; {rejected} payloads rejected): "
+        f"nothing to localise from, no fused estimate. Check that whole codes fit the floor "
+        f"camera's view ({w}x{h}, fx {log.floor.camera.fu:.0f} px) at the flight's height, its "
+        "focus and exposure, and world.yaml's codes",
     )
 
 
