@@ -58,6 +58,7 @@ from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
+    add_stamp_covariance,
     fused_trajectory,
     resolve_time_offsets,
     shift_detections,
@@ -1014,6 +1015,13 @@ def _run_into(
         if no_pose is not None:
             result.warnings.append(no_pose)
     result.trajectories.update(loc.trajectories)
+    stamp_variance = _floor_stamp_variance(result)
+    if str(Estimator.PNP) in result.trajectories:
+        # the PnP poses as written: with the floor stamps' error (loc's, the back ends' input,
+        # without it: a common error no back end may average down; timeoffset.py)
+        result.trajectories[str(Estimator.PNP)] = add_stamp_covariance(
+            result.trajectories[str(Estimator.PNP)], stamp_variance
+        )
     result.load_maps.update(loc.load_maps)
     for name, obs in loc.load_observations.items():
         if name in RAW_ESTIMATORS:
@@ -1417,6 +1425,7 @@ def _fuse_into_result(
             if res.floor_codes is not None and fused_stage.as_built is not None
             else raw
         )
+        res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
         result.health[str(name)] = assess_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )
@@ -1427,6 +1436,14 @@ def _fuse_into_result(
             result.floor_codes[str(name)] = res.floor_codes
         fused_stats[name] = res.stats
     return fused_stats
+
+
+def _floor_stamp_variance(result: RunResult) -> float:
+    """E[stamp error^2] (s^2) of the floor frames as the outputs keep them: the floor camera's
+    estimated time offset's (timeoffset.CameraOffset.stamp_variance_s2), 0 without one."""
+    offsets = result.time_offsets
+    floor = None if offsets is None else offsets.cameras.get(CameraRole.FLOOR.value)
+    return 0.0 if floor is None else floor.stamp_variance_s2
 
 
 def _run_without_cameras(
