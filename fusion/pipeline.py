@@ -1425,10 +1425,12 @@ def _fuse_into_result(
             if res.floor_codes is not None and fused_stage.as_built is not None
             else raw
         )
-        res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
         result.health[str(name)] = assess_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )
+        # after the health: the stamps' error is common to the fixes and the estimate, so it
+        # has no place in their innovation's covariance
+        res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads

@@ -441,13 +441,15 @@ def _constant_twist(xi: np.ndarray, t_s: np.ndarray, base_var: float) -> Traject
 
 
 def test_stamp_variance_of_an_offset():
-    """What the outputs' stamps may be off by: an applied estimate its sigma, an unapplied one
-    the unbiased r^2 - sigma^2 (0 below sigma), a fixed or seed offset nothing."""
+    """What the outputs' stamps may be off by: an applied estimate its sigma, a significant one
+    left unapplied (below min_apply_s) all of it, one within apply_sigmas sigma (no offset) and
+    a fixed or seed offset nothing."""
     s = 1e-4
     est = OffsetSource.ESTIMATED
     assert CameraOffset("cam0", -0.012, s, est, applied_s=-0.012).stamp_variance_s2 == pytest.approx(s**2)
     assert CameraOffset("cam0", 0.3 * s, s, est).stamp_variance_s2 == 0.0
-    assert CameraOffset("cam0", 2 * s, s, est).stamp_variance_s2 == pytest.approx(3 * s**2)
+    assert CameraOffset("cam0", 2.9 * s, s, est).stamp_variance_s2 == 0.0
+    assert CameraOffset("cam0", 4e-4, s, est).stamp_variance_s2 == pytest.approx((4e-4) ** 2 + s**2)
     assert CameraOffset("cam0", 0.005, None, OffsetSource.FIXED, applied_s=0.005).stamp_variance_s2 == 0.0
     assert CameraOffset("cam0", 0.0, None, OffsetSource.SEED).stamp_variance_s2 == 0.0
     assert "stamp_sigma_ms" in CameraOffset("cam0", 0.0, s, est).as_dict()

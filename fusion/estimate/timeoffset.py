@@ -35,11 +35,14 @@ An estimated residual is applied only when it is significant (|r| > `apply_sigma
 > `min_apply_s`): a flight with no offset keeps its results unchanged.
 
 The stamps the outputs keep are off the truth by the offset's error: an applied estimate by its
-own error (variance sigma^2), an estimate left unapplied by the whole offset (r^2 - sigma^2 its
-unbiased estimate, E[r^2] = offset^2 + sigma^2, floored at 0).  A pose stamped delta off is
-T(t + delta) = T(t) Exp(delta xi), xi the body twist, so every floor pose (PnP and fused) gains
-the consider covariance E[delta^2] xi xi^T (`add_stamp_covariance`): common to every frame, so
-no back end may average it down (like the removed corner bias, cornerbias.py).  Without it a
+own error (variance sigma^2), a significant residual r left unapplied (|r| below min_apply_s)
+by all of it (r^2 + sigma^2); a residual within apply_sigmas sigma is taken as no offset (0:
+the unbiased max(r^2 - sigma^2, 0) was tried: it widened 6 of 23 sweep flights with no offset
+by their estimate's noise, NOTES-sweep14.md).  A pose stamped delta off is T(t + delta) =
+T(t) Exp(delta xi), xi the body twist, so every floor pose (PnP and fused) gains the consider
+covariance E[delta^2] xi xi^T (`add_stamp_covariance`), after the health (the error is common
+to the fixes and the estimate): common to every frame, so no back end may average it down
+(like the removed corner bias, cornerbias.py).  Without it a
 -12 ms offset recovered as -12.08 +- 0.11 ms left PnP / smoother 6-dof NEES 11.8 / 24.9 (the
 truth read 0.05 ms later: 5.2 / 13.9): PnP's rotation sigmas are 0.02-0.3 mrad.
 """
@@ -127,15 +130,16 @@ class CameraOffset:
 
     @property
     def stamp_variance_s2(self) -> float:
-        """E[(true - effective offset)^2], s^2, of an estimate: sigma^2 when applied, else the
-        unbiased r^2 - sigma^2 of the unapplied residual (floored at 0); 0 for a fixed or seed
-        offset (the user's, or unknown: nothing to say)."""
+        """E[(true - effective offset)^2], s^2: sigma^2 for an applied estimate; r^2 + sigma^2
+        for a residual r beyond TimeOffsetConfig.apply_sigmas sigma left unapplied (below
+        min_apply_s: the stamps keep all of it); 0 for one within it (taken as no offset, so
+        such a flight keeps its results bit for bit), for a fixed or a seed offset."""
         if self.source != OffsetSource.ESTIMATED or self.sigma_s is None:
             return 0.0
         left = self.offset_s - self.effective_s
-        if self.applied_s:
+        if self.applied_s or abs(left) > TimeOffsetConfig().apply_sigmas * self.sigma_s:
             return self.sigma_s**2 + left**2
-        return max(left**2 - self.sigma_s**2, 0.0)
+        return 0.0
 
     def as_dict(self) -> dict:
         return {
