@@ -55,6 +55,7 @@ from fusion.estimate.extrinsics import (
     read_extrinsics_groundtruth,
 )
 from fusion.estimate.fixes import merge_fixes
+from fusion.estimate.health import tilt_disagreement
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -1417,6 +1418,7 @@ def _fuse_into_result(
     max_iterations = FusionConfig().lm_max_iterations
     gimbaled = "cam0" in log.cameras and log.floor.camera.gimbaled
     fused_stats = {}
+    judged: dict[str, Trajectory] = {}
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1428,6 +1430,7 @@ def _fuse_into_result(
         result.health[str(name)] = assess_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )
+        judged[str(name)] = res.trajectory
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
@@ -1437,6 +1440,14 @@ def _fuse_into_result(
         if res.floor_codes is not None:
             result.floor_codes[str(name)] = res.floor_codes
         fused_stats[name] = res.stats
+    if gimbaled:
+        # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
+        # other (health.tilt_disagreement; the sweep's gimbaled flights, NOTES-sweep14.md)
+        for fused_name, reason in tilt_disagreement(judged).items():
+            health = result.health[fused_name]
+            health.reasons.append(reason)
+            if health.status == Status.OK:
+                health.status = Status.DEGRADED
     return fused_stats
 
 
