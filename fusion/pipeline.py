@@ -1174,8 +1174,8 @@ def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: 
     """A named, counted warning (count: the floor frames) when not one floor frame gave a PnP
     pose: the run has nothing to localise from and no fused estimate.  Before, it said so only in
     a note, so `--quiet` printed nothing, metrics.json listed no warning, the report no health
-    line, and `--strict` exited 0 (1280x720 or a 1.5x focal length with the default scenario:
-    the codes never whole in the narrower view)."""
+    line, and `--strict` exited 0 (1280x720 or a 1.5x focal length with the default scenario,
+    NOTES-sweep14.md)."""
     pnp = loc.trajectories.get(str(Estimator.PNP))
     if pnp is not None and len(pnp) > 0:
         return None
