@@ -619,7 +619,11 @@ def main(argv: list[str] | None = None) -> int:
             result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
             print(result.summary())
             if getattr(args, "strict", False) and not result.trusted:
-                print("fusion: --strict: an estimate is not trusted (see health above)", file=sys.stderr)
+                print(
+                    "fusion: --strict: an estimate is not trusted, or none was made "
+                    "(see health and warnings above)",
+                    file=sys.stderr,
+                )
                 return EXIT_NOT_TRUSTED
         elif args.command == "batch":
             from fusion.fleet import BatchConfig, run_batch

@@ -55,9 +55,11 @@ from fusion.estimate.extrinsics import (
     read_extrinsics_groundtruth,
 )
 from fusion.estimate.fixes import merge_fixes
+from fusion.estimate.health import tilt_disagreement
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
+    add_stamp_covariance,
     fused_trajectory,
     resolve_time_offsets,
     shift_detections,
@@ -185,9 +187,15 @@ class RunResult:
     extrinsics: MountRotation | None = None  # the floor camera's mount check / calibration
     noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
+    fusion_expected: bool = False  # the run went as far as the fusion (until smooth / run)
+
     @property
     def trusted(self) -> bool:
-        """True when every fused estimator ran and its health is ok (what --strict asks)."""
+        """True when every fused estimator ran and its health is ok (what --strict asks); a run
+        that was to fuse and has no fused estimate at all (no floor pose, no IMU nor velocity)
+        is not."""
+        if self.fusion_expected and not self.health and not self.failures:
+            return False
         return not self.failures and all(h.status == Status.OK for h in self.health.values())
 
     def summary(self) -> str:
@@ -1010,7 +1018,18 @@ def _run_into(
         if rs_sightings is not None:
             result.warnings.append(rs_sightings)
     result.notes += loc.notes
+    if fixes is None:
+        no_pose = no_floor_pose_warning(log, loc, result.detection_stats)
+        if no_pose is not None:
+            result.warnings.append(no_pose)
     result.trajectories.update(loc.trajectories)
+    stamp_variance = _floor_stamp_variance(result)
+    if str(Estimator.PNP) in result.trajectories:
+        # the PnP poses as written: with the floor stamps' error (loc's, the back ends' input,
+        # without it: a common error no back end may average down; timeoffset.py)
+        result.trajectories[str(Estimator.PNP)] = add_stamp_covariance(
+            result.trajectories[str(Estimator.PNP)], stamp_variance
+        )
     result.load_maps.update(loc.load_maps)
     for name, obs in loc.load_observations.items():
         if name in RAW_ESTIMATORS:
@@ -1020,6 +1039,7 @@ def _run_into(
     fused_stats: dict = {}
     floor_xy = None
     if until in ("smooth", "run"):
+        result.fusion_expected = True
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf)")
         # what the fusion and the evaluation need of the detections, taken now so that they
@@ -1154,6 +1174,34 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
         f"{n} front-camera load sightings corrected for a {readout_s * 1e3:.0f} ms readout are fused: "
         f"above {RS_SIGHTINGS_WARN_READOUT_S * 1e3:.0f} ms the correction leaves errors their "
         "covariance does not carry, so the fused covariances may be optimistic",
+    )
+
+
+def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: dict) -> LogWarning | None:
+    """A named, counted warning (count: the floor frames) when not one floor frame gave a PnP
+    pose: the run has nothing to localise from and no fused estimate.  Before, it said so only in
+    a note, so `--quiet` printed nothing, metrics.json listed no warning, the report no health
+    line, and `--strict` exited 0 (1280x720 or a 1.5x focal length with the default scenario,
+    NOTES-sweep14.md)."""
+    pnp = loc.trajectories.get(str(Estimator.PNP))
+    if pnp is not None and len(pnp) > 0:
+        return None
+    n = len(log.floor)
+    with_code = int(detection_stats.get("floor_frames_with_code", 0))
+    rejected = int(detection_stats.get("rejected_total", 0))
+    w, h = log.floor.camera.width, log.floor.camera.height
+    seen = (
+        f"floor codes decoded in {with_code} of them but PnP posed none"
+        if with_code
+        else "no floor code decoded in any of them"
+    )
+    return LogWarning(
+        "no_floor_pose",
+        n,
+        f"none of the {n} floor-camera frames gave a pose ({seen}; {rejected} payloads rejected): "
+        f"nothing to localise from, no fused estimate. Check that whole codes fit the floor "
+        f"camera's view ({w}x{h}, fx {log.floor.camera.fu:.0f} px) at the flight's height, its "
+        "focus and exposure, and world.yaml's codes",
     )
 
 
@@ -1377,6 +1425,7 @@ def _fuse_into_result(
     max_iterations = FusionConfig().lm_max_iterations
     gimbaled = "cam0" in log.cameras and log.floor.camera.gimbaled
     fused_stats = {}
+    judged: dict[str, Trajectory] = {}
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1388,13 +1437,33 @@ def _fuse_into_result(
         result.health[str(name)] = assess_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )
+        judged[str(name)] = res.trajectory
+        # after the health: the stamps' error is common to the fixes and the estimate, so it
+        # has no place in their innovation's covariance
+        res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads
         if res.floor_codes is not None:
             result.floor_codes[str(name)] = res.floor_codes
         fused_stats[name] = res.stats
+    if gimbaled:
+        # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
+        # other (health.tilt_disagreement; the sweep's gimbaled flights, NOTES-sweep14.md)
+        for fused_name, reason in tilt_disagreement(judged).items():
+            health = result.health[fused_name]
+            health.reasons.append(reason)
+            if health.status == Status.OK:
+                health.status = Status.DEGRADED
     return fused_stats
+
+
+def _floor_stamp_variance(result: RunResult) -> float:
+    """E[stamp error^2] (s^2) of the floor frames as the outputs keep them: the floor camera's
+    estimated time offset's (timeoffset.CameraOffset.stamp_variance_s2), 0 without one."""
+    offsets = result.time_offsets
+    floor = None if offsets is None else offsets.cameras.get(CameraRole.FLOOR.value)
+    return 0.0 if floor is None else floor.stamp_variance_s2
 
 
 def _run_without_cameras(

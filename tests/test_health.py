@@ -18,6 +18,8 @@ from fusion.estimate.health import (
     assess,
     assess_result,
     fix_nis,
+    tilt_disagreement,
+    tilt_nis,
 )
 from fusion.types import LoadMap, Trajectory
 from tests.test_ekf import ekf, faulty, make_flight
@@ -190,3 +192,38 @@ def test_level_fixes_compare_position_and_yaw_only():
     assert dim == 4 and len(idx) == n
     assert 2.5 < nis.mean() < 6.0  # chi-square with 4 dof: mean 4
     assert assess(fused, raw, level_fixes=True).status == Status.OK
+
+
+# ---------------------------------------------------------------- tilt of level-frame fixes
+
+
+def _tilted(T_true: np.ndarray, sigma_rad: float, offset_rad: np.ndarray, rng) -> Trajectory:
+    """Estimates of T_true whose roll / pitch err by N(0, sigma^2) plus a constant offset
+    (body frame), reported with sigma (roll / pitch) and 1 mm / 1 mrad elsewhere."""
+    xi = np.zeros((len(T_true), 6))
+    xi[:, :2] = rng.normal(0.0, sigma_rad, (len(T_true), 2)) + offset_rad
+    T = np.array([t @ gtsam.Pose3.Expmap(x).matrix() for t, x in zip(T_true, xi)])
+    cov = np.diag([sigma_rad**2] * 2 + [1e-6] + [1e-6] * 3)
+    stamps = np.arange(len(T_true), dtype=np.int64) * 33_333_333
+    return Trajectory("x", stamps, T, np.repeat(cov[None], len(T_true), 0))
+
+
+def test_tilt_disagreement_names_the_estimate_the_others_contradict():
+    """A gimbaled floor camera's fixes do not see roll / pitch; among three fused estimates
+    the one whose tilt is 20 mrad off with a 2 mrad sigma is named, the two consistent ones
+    (5 mrad sigma) are not; with two estimates that disagree both are; consistent ones never.
+    (The incremental smoother on the sweep's gimbaled flights: NEES 480 / 462, health ok.)"""
+    rng = np.random.default_rng(14)
+    yaw = np.linspace(0.0, 3.0, 300)
+    T_true = np.array(
+        [gtsam.Pose3(gtsam.Rot3.Ypr(y, 0.0, 0.2 * math.sin(y)), gtsam.Point3(y, 0, 1)).matrix() for y in yaw]
+    )
+    good_a = _tilted(T_true, 0.005, np.zeros(2), rng)
+    good_b = _tilted(T_true, 0.005, np.zeros(2), rng)
+    wrong = _tilted(T_true, 0.002, np.array([0.0, 0.02]), rng)
+    assert np.mean(tilt_nis(good_a, good_b)) < 2 * 1.5  # ~2 (dof) when consistent
+    out = tilt_disagreement({"smoother": good_a, "incremental": wrong, "ekf": good_b})
+    assert list(out) == ["incremental"] and "roll / pitch disagree with smoother, ekf" in out["incremental"]
+    assert set(tilt_disagreement({"smoother": good_a, "ekf": wrong})) == {"smoother", "ekf"}
+    assert tilt_disagreement({"smoother": good_a, "ekf": good_b}) == {}
+    assert tilt_disagreement({"smoother": good_a}) == {}

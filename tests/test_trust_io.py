@@ -406,3 +406,29 @@ def test_front_camera_clock_offset_is_a_named_warning_not_an_empty_map(tmp_path,
     assert "load_sightings_unsynchronised" in text
     names = [w["name"] for w in json.loads((out / "metrics.json").read_text())["warnings"]]
     assert "load_sightings_unsynchronised" in names
+
+
+def test_a_floor_camera_that_decodes_no_code_is_a_warning_and_not_trusted(tmp_path, capsys):
+    """Every floor frame readable but without a decodable code (a lens or resolution whose view
+    never holds a whole code: 1280x720 or focal x1.5 on the default scenario) leaves nothing to
+    localise from.  Before, only a note said so: no warning under --quiet, none in metrics.json,
+    and --strict exited 0 with no fused estimate at all."""
+    import cv2
+
+    log = _copy_sample(tmp_path)
+    for png in (log / "mav0" / "cam0" / "data").glob("*.png"):
+        img = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        assert cv2.imwrite(str(png), np.full_like(img, 128))
+    out = tmp_path / "out"
+    args = ["run", str(log), "--out", str(out), "--quiet", "--workers", "1"]
+    assert main(args + ["--strict"]) == 3
+    text = capsys.readouterr()
+    assert "warning: [no_floor_pose]" in text.out and "no floor code decoded" in text.out
+    assert "--strict" in text.err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert [w["name"] for w in metrics["warnings"]] == ["no_floor_pose"]
+    assert metrics["warnings"][0]["count"] == len(list((log / "mav0" / "cam0" / "data").glob("*.png")))
+    assert "no_floor_pose" in (out / "report.md").read_text().split("## Summary")[0]
+    # per-frame stage only: nothing was to be fused, so nothing is untrusted
+    assert main(["localize", str(log), "--out", str(tmp_path / "loc"), "--quiet", "--workers", "1"]) == 0
+    assert "no_floor_pose" in capsys.readouterr().out

@@ -38,13 +38,22 @@ import numpy as np
 from scipy.stats import chi2
 
 from fusion.errors import EstimationError
-from fusion.geometry import inv_T, se3_log, wrap_angle, yaw_of
+from fusion.geometry import inv_T, se3_log, so3_log, wrap_angle, yaw_of
 from fusion.types import Trajectory
 
 # stats keys of the back ends (smoother.py, ekf.py) that count gated / removed fixes
 _GATED_KEYS = ("gated_updates", "gated_pose_factors", "removed_pose_factors")
 
-__all__ = ["Health", "HealthConfig", "Status", "assess", "assess_result", "fix_nis"]
+__all__ = [
+    "Health",
+    "HealthConfig",
+    "Status",
+    "assess",
+    "assess_result",
+    "fix_nis",
+    "tilt_disagreement",
+    "tilt_nis",
+]
 
 
 class Status(str, Enum):
@@ -352,3 +361,69 @@ def assess_result(
         if health.status == Status.OK:
             health.status = Status.DEGRADED
     return health
+
+
+def tilt_nis(a: Trajectory, b: Trajectory, config: HealthConfig | None = None) -> np.ndarray:
+    """(M,) roll / pitch disagreement of two fused estimates at their common frames:
+    e = the first two components of Log(R_a^T R_b) (body frame of a), e^T (P_a + P_b)^-1 e over
+    their [rx, ry] blocks.  Estimates of one flight from the same data are positively
+    correlated, so Cov(a - b) <= P_a + P_b and the statistic is conservative."""
+    config = config or HealthConfig()
+    if a.covariances is None or b.covariances is None or not len(a) or not len(b):
+        return np.zeros(0)
+    j = _match(
+        np.asarray(a.timestamps_ns, np.int64),
+        np.asarray(b.timestamps_ns, np.int64),
+        int(config.max_sync_s * 1e9),
+    )
+    ib = np.flatnonzero(j >= 0)
+    ia = j[ib]
+    Ra = np.asarray(a.T_world_body)[ia, :3, :3]
+    Rb = np.asarray(b.T_world_body)[ib, :3, :3]
+    e = so3_log(np.einsum("nji,njk->nik", Ra, Rb))[:, :2]
+    S = np.asarray(a.covariances)[ia][:, :2, :2] + np.asarray(b.covariances)[ib][:, :2, :2]
+    return np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
+
+
+def tilt_disagreement(
+    trajectories: dict[str, Trajectory], config: HealthConfig | None = None
+) -> dict[str, str]:
+    """The fused estimates whose roll / pitch disagree with the others', with a reason each.
+
+    For fixes that do not measure roll and pitch (a gimbaled floor camera's level-frame poses)
+    the fix innovation (`assess`) cannot see a wrong tilt; the back ends, which infer it from the
+    IMU against the fixes in different ways, can be compared.  Two disagree when `tilt_nis`
+    exceeds chi2(fix_quantile, 2) at `inconsistent_degraded` of their common frames or more.
+    With three or more estimates, one is named when it disagrees with every other (a majority
+    says which); when every pair disagrees, or with two, all are named.  Measured on the
+    sweep14 flights (NOTES-sweep14.md): the incremental smoother at 6-dof NEES 480 / 462 on
+    two gimbaled flights disagreed at 91-99 % of the frames, every pair on the body-fixed demo
+    and 800x600 flights at 0 %."""
+    config = config or HealthConfig()
+    names = [n for n, t in trajectories.items() if t.covariances is not None and len(t)]
+    bound = chi2.ppf(config.fix_quantile, 2)
+    share: dict[tuple[str, str], float] = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            nis = tilt_nis(trajectories[a], trajectories[b], config)
+            if len(nis):
+                share[(a, b)] = share[(b, a)] = float(np.mean(nis > bound))
+    out: dict[str, str] = {}
+    for a in names:
+        others = [b for b in names if b != a and (a, b) in share]
+        bad = [b for b in others if share[(a, b)] >= config.inconsistent_degraded]
+        if not others or not bad:
+            continue
+        everyone = all(
+            share[(x, y)] >= config.inconsistent_degraded
+            for x in names
+            for y in names
+            if x < y and (x, y) in share
+        )
+        if len(bad) == len(others) or everyone:
+            worst = max(bad, key=lambda b: share[(a, b)])
+            out[a] = (
+                f"roll / pitch disagree with {', '.join(bad)} beyond their covariances at "
+                f"{100 * share[(a, worst)]:.0f} % of the frames (the fixes do not observe them)"
+            )
+    return out

@@ -33,6 +33,18 @@ delta is right.  Grid search, Brent, the same parabola refinement and curvature 
 
 An estimated residual is applied only when it is significant (|r| > `apply_sigmas` sigma and
 > `min_apply_s`): a flight with no offset keeps its results unchanged.
+
+The stamps the outputs keep are off the truth by the offset's error: an applied estimate by its
+own error (variance sigma^2), a significant residual r left unapplied (|r| below min_apply_s)
+by all of it (r^2 + sigma^2); a residual within apply_sigmas sigma is taken as no offset (0:
+the unbiased max(r^2 - sigma^2, 0) was tried: it widened 6 of 23 sweep flights with no offset
+by their estimate's noise, NOTES-sweep14.md).  A pose stamped delta off is T(t + delta) =
+T(t) Exp(delta xi), xi the body twist, so every floor pose (PnP and fused) gains the consider
+covariance E[delta^2] xi xi^T (`add_stamp_covariance`), after the health (the error is common
+to the fixes and the estimate): common to every frame, so no back end may average it down
+(like the removed corner bias, cornerbias.py).  Without it a
+-12 ms offset recovered as -12.08 +- 0.11 ms left PnP / smoother 6-dof NEES 11.8 / 24.9 (the
+truth read 0.05 ms later: 5.2 / 13.9): PnP's rotation sigmas are 0.02-0.3 mrad.
 """
 
 from __future__ import annotations
@@ -50,7 +62,7 @@ from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig
 from fusion.estimate.smoother import SolveReuse, smooth
-from fusion.geometry import PoseInterpolator
+from fusion.geometry import PoseInterpolator, inv_T, se3_log
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
 from fusion.types import CameraRole, Choice, LoadObservation, Trajectory
 
@@ -116,6 +128,19 @@ class CameraOffset:
         """The offset the outputs are stamped with: seed + applied."""
         return self.seed_s + self.applied_s
 
+    @property
+    def stamp_variance_s2(self) -> float:
+        """E[(true - effective offset)^2], s^2: sigma^2 for an applied estimate; r^2 + sigma^2
+        for a residual r beyond TimeOffsetConfig.apply_sigmas sigma left unapplied (below
+        min_apply_s: the stamps keep all of it); 0 for one within it (taken as no offset, so
+        such a flight keeps its results bit for bit), for a fixed or a seed offset."""
+        if self.source != OffsetSource.ESTIMATED or self.sigma_s is None:
+            return 0.0
+        left = self.offset_s - self.effective_s
+        if self.applied_s or abs(left) > TimeOffsetConfig().apply_sigmas * self.sigma_s:
+            return self.sigma_s**2 + left**2
+        return 0.0
+
     def as_dict(self) -> dict:
         return {
             "camera": self.camera,
@@ -127,6 +152,7 @@ class CameraOffset:
             "effective_ms": self.effective_s * MS_PER_S,
             "evaluations": self.evaluations,
             "note": self.note,
+            "stamp_sigma_ms": math.sqrt(self.stamp_variance_s2) * MS_PER_S,
         }
 
     def describe(self) -> str:
@@ -167,6 +193,43 @@ class TimeOffsets:
 
     def lines(self) -> list[str]:
         return [c.describe() for c in self.cameras.values()]
+
+
+STAMP_TWIST_MAX_GAP_S = 0.2
+"""Neighbouring poses farther apart than this do not give a pose's twist (`body_twists`)."""
+
+
+def body_twists(traj: Trajectory, max_gap_s: float = STAMP_TWIST_MAX_GAP_S) -> np.ndarray:
+    """(N, 6) body twist [omega (rad/s), v (m/s)] in Pose3 order at each pose of `traj`:
+    Log(T_a^-1 T_b) / (t_b - t_a) over its neighbours a, b (central, else one-sided, within
+    `max_gap_s`); zero for a pose with neither neighbour."""
+    n = len(traj)
+    out = np.zeros((n, 6))
+    if n < 2:
+        return out
+    t = np.asarray(traj.timestamps_ns, dtype=np.int64) * 1e-9
+    T = np.asarray(traj.T_world_body, dtype=float)
+    dt = np.diff(t)
+    near = dt <= max_gap_s  # (n - 1,) pose k and k + 1 are neighbours
+    prev = np.r_[False, near]
+    nxt = np.r_[near, False]
+    a = np.where(prev, np.arange(n) - 1, np.arange(n))
+    b = np.where(nxt, np.arange(n) + 1, np.arange(n))
+    ok = a != b
+    xi = se3_log(np.einsum("nij,njk->nik", inv_T(T[a[ok]]), T[b[ok]]))
+    out[ok] = xi / (t[b[ok]] - t[a[ok]])[:, None]
+    return out
+
+
+def add_stamp_covariance(traj: Trajectory, variance_s2: float) -> Trajectory:
+    """`traj` with each pose's covariance plus variance_s2 xi xi^T, xi its body twist
+    (`body_twists`): the pose's error from a stamp error of that variance (module docstring).
+    Unchanged without covariances or with a zero variance."""
+    if traj.covariances is None or not len(traj) or not variance_s2 > 0.0:
+        return traj
+    xi = body_twists(traj)
+    covs = np.asarray(traj.covariances) + variance_s2 * np.einsum("ni,nj->nij", xi, xi)
+    return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
 
 # =========================================================================== options
