@@ -119,8 +119,9 @@ STAGES = ("detect", "localize", "smooth", "run")
 WARM_START_MAX_SHIFT_S = 0.05
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
-    "the IMU against the fixes' motion, and the health does not check them (measured: 20-40 mrad "
-    "off with a claimed sigma of 1-6 mrad on simulated flights; BENCHMARKS.md, thirteenth session)"
+    "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
+    "each other (measured: 20-40 mrad off with a claimed sigma of 1-6 mrad on simulated flights, "
+    "often in every back end alike; BENCHMARKS.md, thirteenth session)"
 )
 """The batch smoother starts from the shared whole-flight solve's states only when each frame's
 stamp moved by at most this (the time-offset search's half-width; a start, not a result)."""
