@@ -22,6 +22,7 @@ from fusion.fleet import BatchConfig, FlightStatus, run_batch
 from fusion.fleet.batch import connect
 from fusion.fleet.flights import FlightRecord, expand_flights, output_names, read_state
 from fusion.fleet.parts import PartFile, read_part, write_part
+from fusion.fleet.summary import NO_HEALTH, flight_row
 from fusion.pipeline import RunConfig, run
 from fusion.sim.simulate import simulate
 
@@ -343,3 +344,16 @@ def test_batch_takes_the_run_options_every_flight_shares():
     assert cfg.time_offsets_s == pytest.approx({"cam1": -0.003})
     assert cfg.calibrate_readout
     assert _run_config(build_parser().parse_args(["batch", "a", "--out", "o"])).floor_map is None
+
+
+def test_a_flight_without_a_fused_estimate_says_why_in_the_summary(tmp_path):
+    """No floor pose, no health: the summary's detail names the log's warnings (it was empty)."""
+    (tmp_path / "f").mkdir()
+    warning = {
+        "name": "no_floor_pose",
+        "count": 241,
+        "message": "none of the 241 floor-camera frames gave a pose",
+    }
+    (tmp_path / "f" / "metrics.json").write_text(json.dumps({"health": {}, "warnings": [warning]}))
+    row = flight_row(tmp_path, FlightRecord("f", "/logs/f", status=FlightStatus.OK))
+    assert row.health == NO_HEALTH and row.health_detail == "no_floor_pose x241"

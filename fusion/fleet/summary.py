@@ -106,6 +106,12 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
     details += [
         f"{n} failed: {f.get('reason')}" for n, f in (metrics.get("estimator_failures") or {}).items()
     ]
+    if not known:  # no fused estimate: the log's warnings say why (e.g. no_floor_pose)
+        details += [
+            f"{w.get('name')} x{w.get('count')}"
+            for w in metrics.get("warnings") or []
+            if isinstance(w, dict) and w.get("name")
+        ]
     row.health_detail = "; ".join(details)
     pnp = (metrics.get("estimator_stats") or {}).get(str(FALLBACK)) or {}
     if pnp.get("n_frames"):
