@@ -15,6 +15,7 @@ import csv
 import logging
 import math
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -367,12 +368,22 @@ _REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked")
 def detection_statistics(log: FlightLog, det, world) -> dict:
     """Frames with a (valid) floor code, codes per frame, rejected payloads by reason."""
 
-    floor = det.by_frame("cam0")
-    classified = {t: classify(d, world) for t, d in floor.items()}
-    n_valid = [len(c.floor) for c in classified.values() if c.floor]
-    front = det.by_frame("cam1") if log.front is not None else {}
-    classified_front = [classify(d, world) for d in front.values()]
-    rejected = rejection_counts(list(classified.values()) + classified_front)
+    # one frame classified at a time: the whole flight's classified sightings at once were a
+    # ~80 MiB transient on a 30-minute flight, whose freed heap the later stages stacked on
+    # (BENCHMARKS.md, mem14); the counts (and the reasons' order) are the same
+    rejected: Counter = Counter()
+    n_valid: list[int] = []
+    for d in det.by_frame("cam0").values():
+        c = classify(d, world)
+        if c.floor:
+            n_valid.append(len(c.floor))
+        rejected.update(rejection_counts([c]))
+    front_with_load, load_sightings = 0, 0
+    for d in (det.by_frame("cam1") if log.front is not None else {}).values():
+        c = classify(d, world)
+        front_with_load += bool(c.loads)
+        load_sightings += len(c.loads)
+        rejected.update(rejection_counts([c]))
     return {
         "backend": det.backend,
         "from_cache": bool(det.from_cache),
@@ -382,12 +393,12 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
         "floor_frames_with_code_fraction": len(n_valid) / max(1, len(log.floor)),
         "floor_codes_per_frame_with_code": float(np.mean(n_valid)) if n_valid else 0.0,
         "front_frames": len(log.front) if log.front is not None else 0,
-        "front_frames_with_load_code": sum(1 for c in classified_front if c.loads),
-        "load_sightings": sum(len(c.loads) for c in classified_front),
+        "front_frames_with_load_code": front_with_load,
+        "load_sightings": load_sightings,
         "frames_skipped": len(det.skipped),
         "skipped_messages": det.skipped[:20],
         "rejected_total": int(sum(rejected.values())),
-        "rejected_by_reason": rejected,
+        "rejected_by_reason": dict(rejected),
         # per camera: codes whose refinement failed its self-check (kept the decoder's corners,
         # by reason) and codes tracked through frames where they did not decode (fusion.qr.track)
         "refinement": {

@@ -218,6 +218,73 @@ def test_solve_inflated_solves_twice_and_inflates_the_second_input():
     assert res.stats["correlation_inflation"]["trace_ratio_median"] > 1.5
 
 
+def test_solve_inflated_lets_the_first_solve_go_before_the_second():
+    """The first solve's result is only read for the inflation and its noise scales: nothing
+    holds it while the second solve runs (a whole flight's poses and covariances)."""
+    import gc
+    import weakref
+
+    inf = inflation(np.array([0.5, 0.3]), 2)
+    raw = trajectory(np.tile(np.eye(6), (4, 1, 1)))
+    firsts: list = []
+
+    class Result:
+        def __init__(self, traj):
+            self.trajectory, self.stats = traj, {"noise_scales": None}
+
+    def fn(frame_t, imu, raw_, load_obs, **kw):
+        if firsts:
+            gc.collect()
+            assert firsts[0]() is None, "the first solve's result is still referenced"
+        res = Result(trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1))))
+        firsts.append(weakref.ref(res))
+        return res
+
+    for keep in (False, True):
+        firsts.clear()
+        res = co.solve_inflated(
+            fn, None, None, raw, [], inflation=inf, two_sided=True, keep_noise_scales=keep
+        )
+        assert len(firsts) == 2 and res.stats["correlation_inflation"]["trace_ratio_median"] > 1.5
+
+
+@pytest.mark.parametrize("block_rows", [1, 3, 7, 4096])
+def test_directional_inflation_in_blocks_is_the_whole_to_the_bit(monkeypatch, block_rows):
+    """Frames are independent: any block size gives the same covariances, bit for bit (random
+    covariances, three classes, frames without a fused pose or finite covariance left as they were)."""
+    rng = np.random.default_rng(21)
+    n, k = 53, 3
+
+    def spd(m):
+        A = rng.normal(size=(m, 6, 6))
+        return A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(6)
+
+    t = np.arange(n, dtype=np.int64) * 100_000_000
+    terms = spd(n * k).reshape(n, k, 6, 6) * 0.1
+    rho = np.zeros((k, co.MAX_LAG))
+    rho[:, :3] = rng.uniform(0.1, 0.4, (k, 3))
+    inf = co.CorrelationInflation(t, terms, rho, np.array([3, 2, 1]), 1 + 2 * rho.sum(axis=1), 50_000_000)
+    R = spd(n)
+    R[5, 0, 0] = np.nan  # not finite: left as it was
+    raw = Trajectory("pnp", t, np.tile(np.eye(4), (n, 1, 1)), R)
+    fused_t = np.delete(t, [9, 30])  # no fused pose at two frames
+    fused_T = np.tile(np.eye(4), (len(fused_t), 1, 1))
+    fused = Trajectory("smoother", fused_t, fused_T, 0.01 * spd(len(fused_t)))
+    monkeypatch.setattr(co, "DIRECTIONAL_BLOCK_ROWS", 10**6)
+    whole = inf.directional(raw, fused, two_sided=True).covariances
+    monkeypatch.setattr(co, "DIRECTIONAL_BLOCK_ROWS", block_rows)
+    for two_sided in (True, False):
+        ref = whole if two_sided else None
+        if ref is None:
+            monkeypatch.setattr(co, "DIRECTIONAL_BLOCK_ROWS", 10**6)
+            ref = inf.directional(raw, fused, two_sided=False).covariances
+            monkeypatch.setattr(co, "DIRECTIONAL_BLOCK_ROWS", block_rows)
+        got = inf.directional(raw, fused, two_sided=two_sided).covariances
+        assert np.array_equal(got, ref, equal_nan=True)
+    assert not np.array_equal(whole, R, equal_nan=True)  # something was inflated
+    assert np.array_equal(whole[[5, 9, 30]], R[[5, 9, 30]], equal_nan=True)
+
+
 def test_estimate_inflation_white_flight_is_none_and_lengths_checked():
     rng = np.random.default_rng(3)
     frames = synthetic_frames(rng, 60, 0.0)

@@ -565,6 +565,38 @@ def test_associate_many_equals_associating_each_trajectory_alone():
     assert many["b"].n_outside_gt == 1 and many["c"].n_outside_gt > 0
 
 
+def test_association_rows_are_views_of_consecutive_samples_and_copies_otherwise():
+    """A trajectory associated on every sample (a fused one) shares its poses and covariances
+    with the association (read-only views: no copy at the report's memory peak); one with a
+    dropped sample gets copies; the values are those of indexing either way."""
+    gt = make_gt(duration_s=6.0)
+    rng = np.random.default_rng(11)
+    a = sample(gt, every=5, name="a")
+    a.covariances = np.tile(np.eye(6), (len(a), 1, 1)) * rng.uniform(1, 2, (len(a), 1, 1))
+    b = Trajectory("b", a.timestamps_ns.copy(), a.T_world_body.copy(), a.covariances.copy())
+    b.T_world_body[3, 1, 3] = np.nan  # dropped: the rows kept are not consecutive
+    c = Trajectory("c", a.timestamps_ns - 2 * NS, a.T_world_body.copy(), a.covariances.copy())
+    many = M.associate_many(gt.timestamps_ns, gt.T_world_body, {"a": a, "b": b, "c": c})
+    got = many["a"]
+    assert np.shares_memory(got.T_world_body_est, a.T_world_body)
+    assert np.shares_memory(got.covariances, a.covariances)
+    assert not got.T_world_body_est.flags.writeable and not got.covariances.flags.writeable
+    assert not np.shares_memory(many["b"].T_world_body_est, b.T_world_body)
+    # c starts before the truth: its rows inside are consecutive, a view of the tail
+    assert many["c"].n_outside_gt > 0 and np.shares_memory(many["c"].covariances, c.covariances)
+    for name, traj in {"a": a, "b": b, "c": c}.items():
+        g, idx = many[name], many[name].index_est
+        assert np.array_equal(g.T_world_body_est, traj.T_world_body[idx])
+        assert np.array_equal(g.covariances, traj.covariances[idx])
+        assert np.array_equal(g.timestamps_ns, traj.timestamps_ns[idx])
+        alone = M.associate(gt.timestamps_ns, gt.T_world_body, traj)
+        assert np.array_equal(g.T_world_body_gt, alone.T_world_body_gt)
+    # the evaluation of a view-backed association leaves the trajectory as it was
+    before = a.T_world_body.copy()
+    M.evaluate(gt, {"a": a}, {}, None, None, common_reference="a")
+    assert np.array_equal(a.T_world_body, before)
+
+
 @pytest.mark.parametrize("piece_rows", [1, 7, 1000, 10**6])
 def test_groundtruth_tum_written_in_pieces_is_the_text_of_the_whole(tmp_path, monkeypatch, piece_rows):
     """export_groundtruth_tum converts the truth to poses a piece at a time (memory); the file

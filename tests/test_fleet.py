@@ -243,6 +243,21 @@ class _KillOnReport(WorkerPlugin):
             os._exit(1)
 
 
+def test_the_merge_and_front_context_run_beside_the_report_not_on_its_worker(flights, cluster, tmp_path):
+    """The report task runs where the flight's log is, the floor merge and the front context on
+    the other worker (batch._Driver._placement: the heap they free stays in their process)."""
+    import time
+
+    client = cluster[1]
+    client.get_task_stream()  # the scheduler records task placement from now on
+    t0 = time.time()
+    res = run_batch([flights / "a" / "flight"], tmp_path / "out", _cfg(cluster))
+    assert res.failed == []
+    where = {str(r["key"]).split("-", 1)[0]: r["worker"] for r in client.get_task_stream(start=t0)}
+    assert where["report"] == where["open"]
+    assert where["merge"] != where["report"] and where["frontctx"] != where["report"]
+
+
 def test_a_worker_dying_twice_fails_the_flight(flights, cluster, tmp_path):
     shutil.copytree(flights / "a" / "flight", tmp_path / "dies")
     cluster[1].register_plugin(_KillOnReport("dies", "", ""), name="kill")

@@ -372,6 +372,45 @@ def test_rejected_codes_are_not_used():
     assert stats.rejections == {"outside_world": 1, "duplicate_floor": 2, "wrong_camera": 1, "not_ours": 1}
 
 
+def test_detection_statistics_one_frame_at_a_time_are_those_of_the_whole_flight():
+    """pipeline.detection_statistics classifies a frame at a time (memory): the counts and the
+    rejection reasons, in their order, as classifying every frame first gives them."""
+    from types import SimpleNamespace
+
+    from fusion.pipeline import detection_statistics
+    from fusion.qr.codes import rejection_counts
+    from fusion.qr.detect import CameraStats, DetectionResult
+
+    good = floor_dets(T_FOUR, FOUR[:3])
+    uv = good[0].corners_px
+    dets = []
+    for k in range(6):
+        ts = 10 * k
+        dets += [QRDetection(d.camera, ts, d.payload, d.corners_px, d.corners_raw_px) for d in good[: k % 4]]
+        if k % 2:
+            dets += [QRDetection("cam0", ts, "http://example.com", uv, uv)]
+        if k == 3:
+            dets += [QRDetection("cam0", ts, "0/1/1", uv, uv), QRDetection("cam0", ts, "0/1/1", uv, uv)]
+            dets += [QRDetection("cam0", ts, "0/500/0", uv, uv), QRDetection("cam0", ts, "1/box-7", uv, uv)]
+        dets += [QRDetection("cam1", ts + 5, "1/box-7", uv, uv)] * (k % 3)
+        if k == 4:
+            dets += [QRDetection("cam1", ts + 5, "0/0/0", uv, uv), QRDetection("cam1", ts + 5, "1/", uv, uv)]
+    det = DetectionResult(dets, {"cam0": CameraStats(), "cam1": CameraStats()})
+    log = SimpleNamespace(floor=[0] * 6, front=[0] * 6)
+    got = detection_statistics(log, det, WORLD)
+    # the former formulation: every frame classified, then counted
+    classified = [classify(d, WORLD) for d in det.by_frame("cam0").values()]
+    front = [classify(d, WORLD) for d in det.by_frame("cam1").values()]
+    n_valid = [len(c.floor) for c in classified if c.floor]
+    rejected = rejection_counts(classified + front)
+    assert list(got["rejected_by_reason"].items()) == list(rejected.items()) and len(rejected) >= 4
+    assert got["rejected_total"] == sum(rejected.values())
+    assert got["floor_frames_with_code"] == len(n_valid)
+    assert got["floor_codes_per_frame_with_code"] == float(np.mean(n_valid))
+    assert got["front_frames_with_load_code"] == sum(1 for c in front if c.loads) > 0
+    assert got["load_sightings"] == sum(len(c.loads) for c in front)
+
+
 def test_misplaced_code_is_dropped_as_outlier():
     T = T_FOUR
     dets = floor_dets(T, FOUR)

@@ -428,6 +428,30 @@ def test_group_leverages_match_the_dense_hat_matrix():
     assert comps[vc.NoiseGroup.POSE].dof == pytest.approx(A.shape[0] - A.shape[1], abs=3.0)
 
 
+def test_whitened_system_is_the_triplets_matrix_to_the_bit():
+    """whitened_system takes A's entries out of the triplets before building it (memory): the
+    same CSR matrix (indices, index type, values) and right-hand side as the matrix built from
+    all the triplets at once, and GTSAM's dense Jacobian."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(8)
+    graph, values, _ = pose_chain(rng, 30)
+    lin = graph.linearize(values)
+    n, m = values.dim(), 6 * graph.size()
+    A, b = vc.whitened_system(lin, n, m)
+    trip = lin.sparseJacobian_()
+    rows, cols = trip[0].astype(np.int64) - 1, trip[1].astype(np.int64) - 1
+    keep = cols < n
+    b0 = np.zeros(m)
+    b0[rows[~keep]] = trip[2][~keep]
+    A0 = sp.csr_matrix((trip[2][keep], (rows[keep], cols[keep])), shape=(m, n))
+    assert A.indices.dtype == A0.indices.dtype and A.indptr.dtype == A0.indptr.dtype
+    assert np.array_equal(A.indptr, A0.indptr) and np.array_equal(A.indices, A0.indices)
+    assert np.array_equal(A.data, A0.data) and np.array_equal(b, b0)
+    dense, rhs = lin.jacobian()
+    assert np.array_equal(A.toarray(), dense) and np.array_equal(b, rhs)
+
+
 def test_ekf_reports_pose_nis():
     fl = make_flight(seed=2, duration_s=5.0, gaps=())
     res = run_ekf(fl.frame_t, fl.imu, fl.raw, fl.load_obs, front_camera=FRONT_CAM)

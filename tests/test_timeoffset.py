@@ -110,6 +110,21 @@ def test_midpoint_specific_force_is_the_half_step_rotation():
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("block", [1, 7, 64])
+def test_midpoint_specific_force_in_blocks_is_the_whole_to_the_bit(monkeypatch, block):
+    """Rows are independent: turned a block at a time (memory) they are the same to the bit."""
+    from fusion.estimate import smoother
+
+    rng = np.random.default_rng(9)
+    gyr = rng.normal(0.0, 2.0, (50, 3))
+    gyr[:5] *= 1e-12  # the small-angle branch
+    acc = rng.normal(0.0, 10.0, (50, 3))
+    dts = rng.uniform(1e-4, 5e-3, 50)
+    whole = midpoint_specific_force(gyr, acc, dts)
+    monkeypatch.setattr(smoother, "MIDPOINT_BLOCK_ROWS", block)
+    assert np.array_equal(midpoint_specific_force(gyr, acc, dts), whole)
+
+
 @pytest.mark.parametrize("seed", [3, 4])
 def test_floor_offset_unbiased_on_a_noise_free_flight(seed):
     """GTSAM rotates a sub-interval's specific force with the attitude at its start; without the

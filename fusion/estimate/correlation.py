@@ -52,6 +52,9 @@ Z_GATE = 3.09
 corner-bias gate's level, fusion.estimate.cornerbias)."""
 MIN_PAIRS = 20
 """Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
+DIRECTIONAL_BLOCK_ROWS = 4096
+"""Frames per block of `CorrelationInflation.directional` (each frame's inflation is its own:
+the result is the same for any block size; a block's temporaries are ~17 MB)."""
 
 
 @dataclass
@@ -210,26 +213,31 @@ class CorrelationInflation:
         j = nearest_frames(t_f, t)
         close &= np.abs(t_f[j] - t) <= self.tolerance_ns
         R = np.asarray(raw.covariances, dtype=float)
-        P = np.asarray(fused.covariances, dtype=float)[j]
-        ok = close & np.isfinite(R).all(axis=(1, 2)) & np.isfinite(P).all(axis=(1, 2))
+        P = np.asarray(fused.covariances, dtype=float)
+        ok = close & np.isfinite(R).all(axis=(1, 2)) & np.isfinite(P).all(axis=(1, 2))[j]
         idx = np.flatnonzero(ok)
         if not len(idx):
             return raw
-        try:
-            L = np.linalg.cholesky(R[idx])
-        except np.linalg.LinAlgError:
-            return raw
-        Li = np.linalg.inv(L)
-        Pw = Li @ P[idx] @ np.swapaxes(Li, 1, 2)
-        mu, U = np.linalg.eigh(0.5 * (Pw + np.swapaxes(Pw, 1, 2)))  # (m, 6), (m, 6, 6)
-        n_dir = 1.0 / np.maximum(mu, 1e-12)
-        Ew = Li[:, None] @ self.class_terms[nearest[idx]] @ np.swapaxes(Li, 1, 2)[:, None]  # (m, k, 6, 6)
-        share = np.einsum("mai,mcab,mbi->mci", U, Ew, U)  # (m, k, 6): e_ci
-        taus = self.average_taus(n_dir, two_sided)  # (m, k, 6)
-        d = np.sum((taus - 1.0) * share, axis=1)  # (m, 6)
-        LU = L @ U
         covs = R.copy()
-        covs[idx] += np.einsum("mai,mi,mbi->mab", LU, d, LU)
+        # frames are independent: in blocks of rows, so that the (m, k, 6, 6) temporaries stay
+        # small (all of a 30-minute flight's frames at once: ~0.2 GB at the fusion's peak)
+        for lo in range(0, len(idx), DIRECTIONAL_BLOCK_ROWS):
+            rows = idx[lo : lo + DIRECTIONAL_BLOCK_ROWS]
+            try:
+                L = np.linalg.cholesky(R[rows])
+            except np.linalg.LinAlgError:
+                return raw
+            Li = np.linalg.inv(L)
+            Pw = Li @ P[j[rows]] @ np.swapaxes(Li, 1, 2)
+            mu, U = np.linalg.eigh(0.5 * (Pw + np.swapaxes(Pw, 1, 2)))  # (m, 6), (m, 6, 6)
+            n_dir = 1.0 / np.maximum(mu, 1e-12)
+            # (m, k, 6, 6)
+            Ew = Li[:, None] @ self.class_terms[nearest[rows]] @ np.swapaxes(Li, 1, 2)[:, None]
+            share = np.einsum("mai,mcab,mbi->mci", U, Ew, U)  # (m, k, 6): e_ci
+            taus = self.average_taus(n_dir, two_sided)  # (m, k, 6)
+            d = np.sum((taus - 1.0) * share, axis=1)  # (m, 6)
+            LU = L @ U
+            covs[rows] += np.einsum("mai,mi,mbi->mab", LU, d, LU)
         return Trajectory(raw.name, raw.timestamps_ns, raw.T_world_body, covs)
 
     def average_taus(self, n_eff: np.ndarray, two_sided: bool) -> np.ndarray:
@@ -287,8 +295,15 @@ def solve_inflated(
     first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
     inflated = inflation.directional(raw, first.trajectory, two_sided)
     report = first.stats.get("noise_scales") if keep_noise_scales else None
+    # the first solve's result (a whole flight's poses and covariances, its stats) is not
+    # needed past here: let it go before the second solve, not after it
+    del first
+    ratio = np.ones(0)
+    if raw.covariances is not None and inflated.covariances is not None and len(raw):
+        ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
     if report is not None:
         again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
+        del inflated  # `again` is what the second solve takes
         config = kwargs.get("config")
         if config is not None:
             kwargs = dict(
@@ -301,9 +316,6 @@ def solve_inflated(
         res.stats["noise_scales"] = dict(report, inflated_solve=True)
     else:
         res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
-    ratio = np.ones(0)
-    if raw.covariances is not None and inflated.covariances is not None and len(raw):
-        ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
     res.stats["correlation_inflation"] = {
         "two_sided": bool(two_sided),
         "trace_ratio_median": float(np.median(ratio)) if len(ratio) else 1.0,

@@ -170,6 +170,10 @@ def imu_subintervals(frame_t: np.ndarray, imu: ImuData, covered: np.ndarray):
     return k_of, (e - s) * 1e-9, gyr, acc
 
 
+MIDPOINT_BLOCK_ROWS = 65536
+"""Sub-intervals turned at once by midpoint_specific_force (~1.6 MB per (rows, 3) temporary)."""
+
+
 def midpoint_specific_force(gyr: np.ndarray, acc: np.ndarray, dts: np.ndarray) -> np.ndarray:
     """(M, 3) each sub-interval's specific force `acc` turned by Exp(gyr dt / 2): expressed in the
     body frame at the sub-interval's start, as seen at its midpoint.  GTSAM's preintegration
@@ -178,7 +182,15 @@ def midpoint_specific_force(gyr: np.ndarray, acc: np.ndarray, dts: np.ndarray) -
     velocity then lags the attitude, and a cost profile over a camera's time offset is least
     about 0.04 IMU periods late (0.22 ms at 200 Hz).  Turning a by half the sub-interval's
     rotation first makes that product R(t_mid) a, the midpoint rule (exact for a constant rate
-    over the sub-interval); Rodrigues' formula, vectorised."""
+    over the sub-interval); Rodrigues' formula, vectorised, in blocks of rows (each row is its
+    own: the same to the bit; a 30-minute flight's ~0.4 M rows at once were ~80 MB of
+    temporaries at the time-offset stage's memory peak, BENCHMARKS.md, mem14)."""
+    if len(gyr) > MIDPOINT_BLOCK_ROWS:
+        out = np.empty(np.broadcast_shapes(np.shape(gyr), np.shape(acc)))
+        for lo in range(0, len(gyr), MIDPOINT_BLOCK_ROWS):
+            hi = lo + MIDPOINT_BLOCK_ROWS
+            out[lo:hi] = midpoint_specific_force(gyr[lo:hi], acc[lo:hi], dts[lo:hi])
+        return out
     phi = 0.5 * gyr * dts[:, None]
     th = np.linalg.norm(phi, axis=1)[:, None]
     small = th < 1e-8

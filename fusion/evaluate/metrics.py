@@ -157,22 +157,37 @@ def associate(
         T_gt, mask = np.zeros((0, 4, 4)), np.zeros(len(t_est), dtype=bool)
     else:
         mask = _inside_span(np.asarray(gt_timestamps_ns, dtype=np.int64), t_est)
-        T_gt = truth_at[1][np.searchsorted(truth_at[0], t_est[mask])]
+        T_gt = _rows_of(truth_at[1], np.searchsorted(truth_at[0], t_est[mask]))
     finite = np.isfinite(np.asarray(traj.T_world_body, dtype=float).reshape(len(t_est), 16)).all(axis=1)
     idx = np.flatnonzero(mask & finite)
-    T_gt = T_gt[finite[mask]]
+    finite_inside = finite[mask]
+    if not finite_inside.all():
+        T_gt = T_gt[finite_inside]
     cov = None
     if traj.covariances is not None and len(traj.covariances) == len(traj):
-        cov = np.asarray(traj.covariances)[idx]
+        cov = _rows_of(np.asarray(traj.covariances), idx)
     return Association(
         traj.name,
-        np.asarray(traj.timestamps_ns, dtype=np.int64)[idx],
-        np.asarray(traj.T_world_body)[idx],
+        _rows_of(np.asarray(traj.timestamps_ns, dtype=np.int64), idx),
+        _rows_of(np.asarray(traj.T_world_body), idx),
         T_gt,
         cov,
         idx,
         int(len(traj) - len(idx)),
     )
+
+
+def _rows_of(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """a[idx] for sorted row indices `idx`: a read-only view of `a` when they are consecutive
+    (every sample of a fused trajectory, the truth table's rows at the frame stamps), else a
+    copy.  The same values either way; the views spare the evaluation's and the plots'
+    associations a copy of each trajectory's poses and covariances (30-minute flight: ~23 MB
+    each, held for every estimator at the report's memory peak, BENCHMARKS.md)."""
+    if len(idx) and bool(np.all(np.diff(idx) == 1)):
+        view = a[int(idx[0]) : int(idx[-1]) + 1]
+        view.flags.writeable = False
+        return view
+    return a[idx]
 
 
 def associate_many(

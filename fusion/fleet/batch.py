@@ -297,9 +297,13 @@ class _Driver:
     def _key(self, fl: _Flight, what: str) -> str:
         return f"{what}-{fl.rec.name}-a{fl.rec.attempts}"
 
-    def _submit(self, fl: _Flight, key: str, fn, *args, hold: bool = False) -> Future:
-        """`fn(*args)` on the cluster; with `hold`, the flight keeps its future (see _Flight)."""
-        fut = self.client.submit(fn, *args, key=key, priority=fl.priority, pure=False, retries=0)
+    def _submit(
+        self, fl: _Flight, key: str, fn, *args, hold: bool = False, workers: list[str] | None = None
+    ) -> Future:
+        """`fn(*args)` on the cluster; with `hold`, the flight keeps its future (see _Flight);
+        `workers`: where to run it if one of them can (others may take it)."""
+        where: dict[str, Any] = {"workers": workers, "allow_other_workers": True} if workers else {}
+        fut = self.client.submit(fn, *args, key=key, priority=fl.priority, pure=False, retries=0, **where)
         if hold:
             fl.futures.append(fut)
         return fut
@@ -323,6 +327,7 @@ class _Driver:
             self.frames_total += plan.n_frames
         log = fl.futures[0]
         cfg = self.run_cfg
+        report_at, merge_at = self._placement(log)
         parts = str(parts_folder(self.out, fl.rec.name, fl.rec.attempts))
         detected, floor, front = [], [], []
         for i, chunk in enumerate(plan.chunks):
@@ -342,9 +347,13 @@ class _Driver:
         for i, (camera, d) in enumerate(detected):
             if camera == tasks.FLOOR:
                 floor.append(self._submit(fl, self._key(fl, f"floor{i:04d}"), tasks.floor_task, log, d, cfg))
-        merged = self._submit(fl, self._key(fl, "merge"), tasks.merge_floor_task, cfg, parts, *floor)
+        merged = self._submit(
+            fl, self._key(fl, "merge"), tasks.merge_floor_task, cfg, parts, *floor, workers=merge_at
+        )
         if any(camera == tasks.FRONT for camera, _ in detected):
-            context = self._submit(fl, self._key(fl, "frontctx"), tasks.front_context_task, log, merged, cfg)
+            context = self._submit(
+                fl, self._key(fl, "frontctx"), tasks.front_context_task, log, merged, cfg, workers=merge_at
+            )
             for i, (camera, d) in enumerate(detected):
                 if camera == tasks.FRONT:
                     front.append(
@@ -365,6 +374,7 @@ class _Driver:
             merged,
             *front,
             hold=True,
+            workers=report_at,
         )
         fl.report = report
         self._watch(fl, report, "report")
@@ -375,6 +385,24 @@ class _Driver:
             plan.duration_s,
             len(plan.chunks),
         )
+
+    def _placement(self, log: Future) -> tuple[list[str] | None, list[str] | None]:
+        """(where the report task should run, where the merge and the front context should):
+        the report on a worker holding the flight's log (Dask would put it there for the log's
+        bytes anyway), the merge and the front context on the others.  Those two hold every
+        floor chunk's result and the merged one at once, and the heap they free stays with
+        their worker's process (glibc): on the report's worker it lay under the report task's
+        own peak (BENCHMARKS.md, mem14).  (None, None) with one worker or when the log's
+        place is not known: Dask's own choice."""
+        try:
+            holders = list(self.client.who_has([log]).get(log.key, ()))
+            workers = list(self.client.scheduler_info()["workers"])
+        except (OSError, TimeoutError, KeyError):
+            return None, None
+        others = [w for w in workers if w not in holders]
+        if not holders or not others:
+            return None, None
+        return holders[:1], others
 
     # ------------------------------------------------------------------ outcomes
 
