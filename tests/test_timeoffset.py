@@ -468,6 +468,10 @@ def test_stamp_variance_of_an_offset():
     assert CameraOffset("cam0", 0.005, None, OffsetSource.FIXED, applied_s=0.005).stamp_variance_s2 == 0.0
     assert CameraOffset("cam0", 0.0, None, OffsetSource.SEED).stamp_variance_s2 == 0.0
     assert "stamp_sigma_ms" in CameraOffset("cam0", 0.0, s, est).as_dict()
+    # judged by the run's own rule: 2.9 sigma is significant under apply_sigmas 2
+    assert CameraOffset("cam0", 2.9 * s, s, est, apply_sigmas=2.0).stamp_variance_s2 == pytest.approx(
+        (2.9 * s) ** 2 + s**2
+    )
 
 
 def test_stamp_error_is_carried_by_the_pose_covariance():

@@ -122,6 +122,9 @@ class CameraOffset:
     applied_s: float = 0.0  # shift added to the reader's stamps in this run
     note: str = ""
     evaluations: int = 0  # cost evaluations of the profile
+    # the significance rule the estimate was judged by (TimeOffsetConfig.apply_sigmas; None:
+    # the default's), for stamp_variance_s2
+    apply_sigmas: float | None = None
 
     @property
     def effective_s(self) -> float:
@@ -137,7 +140,8 @@ class CameraOffset:
         if self.source != OffsetSource.ESTIMATED or self.sigma_s is None:
             return 0.0
         left = self.offset_s - self.effective_s
-        if self.applied_s or abs(left) > TimeOffsetConfig().apply_sigmas * self.sigma_s:
+        k = TimeOffsetConfig().apply_sigmas if self.apply_sigmas is None else self.apply_sigmas
+        if self.applied_s or abs(left) > k * self.sigma_s:
             return self.sigma_s**2 + left**2
         return 0.0
 
@@ -663,6 +667,7 @@ def resolve_time_offsets(
                 applied,
                 fp.note,
                 fp.evaluations,
+                config.apply_sigmas,
             )
         except EstimationError as e:
             out.cameras[floor] = CameraOffset(floor, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
@@ -695,6 +700,7 @@ def resolve_time_offsets(
             applied,
             fr.note,
             fr.evaluations,
+            config.apply_sigmas,
         )
     except EstimationError as e:
         out.cameras[front] = CameraOffset(front, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
