@@ -118,14 +118,14 @@ logger = logging.getLogger(__name__)
 
 STAGES = ("detect", "localize", "smooth", "run")
 WARM_START_MAX_SHIFT_S = 0.05
+"""The batch smoother starts from the shared whole-flight solve's states only when each frame's
+stamp moved by at most this (the time-offset search's half-width; a start, not a result)."""
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
     "each other (measured: 20-40 mrad off with a claimed sigma of 1-6 mrad on simulated flights, "
     "often in every back end alike; BENCHMARKS.md, thirteenth session)"
 )
-"""The batch smoother starts from the shared whole-flight solve's states only when each frame's
-stamp moved by at most this (the time-offset search's half-width; a start, not a result)."""
 
 
 @dataclass
@@ -1438,6 +1438,7 @@ def _fuse_into_result(
     gimbaled = "cam0" in log.cameras and log.floor.camera.gimbaled
     fused_stats = {}
     judged: dict[str, Trajectory] = {}
+    stamp_variance = _floor_stamp_variance(result)
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1452,7 +1453,7 @@ def _fuse_into_result(
         judged[str(name)] = res.trajectory
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
-        res.trajectory = add_stamp_covariance(res.trajectory, _floor_stamp_variance(result))
+        res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads
