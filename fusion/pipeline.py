@@ -57,6 +57,7 @@ from fusion.estimate.extrinsics import (
 )
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.health import tilt_disagreement
+from fusion.estimate.loadconsider import add_load_consider_covariance
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -1066,6 +1067,8 @@ def _run_into(
             result.warnings.append(unsynced)
         timings["fuse_s"] = time.perf_counter() - t
     result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
+    if log.front is not None:
+        _add_load_consider(log, loc, result)
 
     _write_estimates(out_dir, result)
     if until == "run":
@@ -1469,6 +1472,29 @@ def _fuse_into_result(
             if health.status == Status.OK:
                 health.status = Status.DEGRADED
     return fused_stats
+
+
+def _add_load_consider(log: FlightLog, loc: LocalizeResult, result: RunResult) -> None:
+    """Every load map's covariance plus the errors common to all sightings of a code
+    (fusion.estimate.loadconsider): the body pose's, the label's print error, the front camera's
+    stamps.  The pose's from the batch smoother's covariances for every map (the part of the
+    pose error the flight cannot average away, the same for every back end: they share the
+    fixes), else from the map's own trajectory (a localize run: PnP's, conservative)."""
+    assert log.front is not None
+    offsets = result.time_offsets
+    front = None if offsets is None else offsets.cameras.get(CameraRole.FRONT.value)
+    stamp_variance = 0.0 if front is None else front.stamp_variance_s2
+    smoother = result.trajectories.get(str(Estimator.SMOOTHER))
+    for name, load_map in result.load_maps.items():
+        own = result.trajectories.get(name)
+        result.load_maps[name] = add_load_consider_covariance(
+            load_map,
+            loc.camera_frame_observations,
+            smoother if smoother is not None and smoother.covariances is not None else own,
+            log.front.camera,
+            log.world.load_side_sigma_rel,
+            stamp_variance,
+        )
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

@@ -5,7 +5,8 @@
     floor_qr: {side_m: 0.20, payload_unit_m: 1.0,
                placement_sigma_m: 0.01, placement_sigma_deg: 1.0}  # optional: how exactly the
                                                     # codes were laid (0 and 0: exactly)
-    load_qr:  {side_m: 0.15}
+    load_qr:  {side_m: 0.15, side_sigma_m: 0.0003}     # optional: how exactly the labels
+                                                    # were printed (absent: 0.2 % of the side)
     bounds_m: {x: [xmin, xmax], y: [ymin, ymax]}      # optional: the size of the space
 
 Load code positions are what we map, so they are not in `world.yaml`; a simulated flight writes
@@ -38,6 +39,12 @@ class LoadCode:
         return make_T(R_world_loadsymbol(self.normal_yaw), np.asarray(self.p_world, dtype=float))
 
 
+DEFAULT_LOAD_SIDE_SIGMA_REL = 0.002
+"""A load label's printed side's relative error (1 sigma) when world.yaml does not state it: an
+office printer's scale error, a few tenths of a percent (0.3 mm on a 15 cm label).  It moves the
+mapped load along the camera's ray by as much, in every sighting (fusion.estimate.loadconsider).
+A simulated flight states 0 (its codes are exact)."""
+
 CODE_SIDE_RANGE_M = (0.01, 2.0)
 """Printed QR codes from a 1 cm label to a 2 m floor tile: a side outside this range in world.yaml
 is a unit mistake (cm or mm for m), not a code: every metric output would scale with it."""
@@ -56,18 +63,30 @@ class World:
     # None: not stated in world.yaml (the estimator's defaults, 1 cm and 1 deg)
     placement_sigma_m: float | None = None
     placement_sigma_deg: float | None = None
+    # how far a load label's printed side is off side_m (1 sigma, m; fusion.estimate.loadconsider);
+    # None: not stated in world.yaml (DEFAULT_LOAD_SIDE_SIGMA_REL of the side)
+    load_side_sigma_m: float | None = None
 
     def __post_init__(self):
         for name in ("floor_side_m", "payload_unit_m", "load_side_m"):
             v = getattr(self, name)
             if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise WorldError(f"world: {name} must be a positive number, got {v!r}")
-        for name in ("placement_sigma_m", "placement_sigma_deg"):
+        for name in ("placement_sigma_m", "placement_sigma_deg", "load_side_sigma_m"):
             v = getattr(self, name)
             if v is not None and (
                 isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0)
             ):
-                raise WorldError(f"world: floor_qr.{name} must be a number >= 0, got {v!r}")
+                key = "load_qr.side_sigma_m" if name == "load_side_sigma_m" else f"floor_qr.{name}"
+                raise WorldError(f"world: {key} must be a number >= 0, got {v!r}")
+
+    @property
+    def load_side_sigma_rel(self) -> float:
+        """The load labels' printed side's relative error (1 sigma): world.yaml's
+        load_qr.side_sigma_m / side_m, or DEFAULT_LOAD_SIDE_SIGMA_REL when it is not stated."""
+        if self.load_side_sigma_m is None:
+            return DEFAULT_LOAD_SIDE_SIGMA_REL
+        return self.load_side_sigma_m / self.load_side_m
 
     # ---------------------------------------------------------------- floor codes
     def floor_code_position(self, payload: FloorPayload) -> np.ndarray:
@@ -101,6 +120,8 @@ class World:
             "floor_qr": {"side_m": float(self.floor_side_m), "payload_unit_m": float(self.payload_unit_m)},
             "load_qr": {"side_m": float(self.load_side_m)},
         }
+        if self.load_side_sigma_m is not None:
+            data["load_qr"]["side_sigma_m"] = float(self.load_side_sigma_m)
         for name in ("placement_sigma_m", "placement_sigma_deg"):
             if getattr(self, name) is not None:
                 data["floor_qr"][name] = float(getattr(self, name))
@@ -136,6 +157,14 @@ class World:
         load_side_m = strict_float(
             load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
         )
+        load_side_sigma_m = strict_float(
+            load.get("side_sigma_m"), f"{source}: load_qr.side_sigma_m", WorldError, allow_none=True
+        )
+        if load_side_sigma_m is not None and not 0 <= load_side_sigma_m < load_side_m:
+            raise WorldError(
+                f"{source}: load_qr.side_sigma_m is {load_side_sigma_m:g} m: a print error must be "
+                f">= 0 and below the side ({load_side_m:g} m; in metres: cm or mm given?)"
+            )
         for key, side in (("floor_qr.side_m", floor_side_m), ("load_qr.side_m", load_side_m)):
             lo, hi = CODE_SIDE_RANGE_M
             if not lo <= side <= hi:
@@ -165,6 +194,7 @@ class World:
                 load_side_m=load_side_m,
                 bounds_x_m=bounds_m.get("x"),
                 bounds_y_m=bounds_m.get("y"),
+                load_side_sigma_m=load_side_sigma_m,
                 **placement,
             )
         except WorldError as e:

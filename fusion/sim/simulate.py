@@ -216,7 +216,8 @@ def simulate(
     `placement_error_m` / `placement_error_deg`: the floor codes are stuck down off their
     payload's pose by N(0, sigma) per axis and in yaw (drawn from the seed); world.yaml then
     states these sigmas as floor_qr.placement_sigma_m / _deg (0 and 0, the default: exactly
-    laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses.
+    laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses; it states
+    the load labels' print error as load_qr.side_sigma_m 0 (they are rendered exactly).
     `time_offset_ms` ({"cam0": ms, "cam1": ms}, or one number for both): camera-IMU clock
     offsets, Kalibr's sign (t_imu = t_cam + offset): each frame is rendered at its true time t
     and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
@@ -309,6 +310,7 @@ def simulate(
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
             raise SimulationError(f"{name} must be a number >= 0, got {v!r}")
     sc.layout.world.placement_sigma_m = float(placement_error_m)
+    sc.layout.world.load_side_sigma_m = 0.0  # the rendered labels are exact
     sc.layout.world.placement_sigma_deg = float(placement_error_deg)
     if placement_error_m > 0 or placement_error_deg > 0:
         sc.layout.floor_offsets = placement_offsets(

@@ -1,0 +1,121 @@
+"""Errors common to every sighting of a load code, carried into the load maps' covariances as
+"consider" terms (Schmidt's consider covariance; Bierman 1977, ch. VI), as
+`timeoffset.add_stamp_covariance` and `cornerbias` do for the poses.
+
+A load is placed from its sightings, each its camera-frame centre p_cam (the front camera's
+single-code PnP) hung from the body pose of its frame; every back end combines a load's n
+sightings as if their errors were independent, and so shrinks them ~1/n.  Three errors are not:
+
+- the body pose's: the sightings of one load span a few seconds, over which the floor fixes'
+  error hardly changes (the same floor codes in view, their corner biases, the floor stamps;
+  what the back ends model as white).  Measured on the demo flight (BENCHMARKS.md, fourteenth
+  session): the sightings placed with the true poses have mean errors of -0.04 to +0.01 mm;
+  with the PnP poses 0.1-0.36 mm, the same in every back end's map, whose sigmas were 0.01-0.04
+  mm (load-map NEES: smoother 18, EKF 150, of 3).  So each load's covariance gains the pose's
+  own, mean_i J_i P_i J_i^T (J_i the world point's Jacobian with respect to the body pose, P_i
+  the map's own pose covariance at that frame): the pose error taken as common to the sightings
+  (an upper bound, first order; the smoothers' landmark marginals hold the part they model);
+- the printed side: a label printed s (1 + e) instead of world.yaml's s puts every sighting e
+  p_cam farther along its ray (e per label; sigma from world.yaml's `load_qr.side_sigma_m`,
+  `World.load_side_sigma_rel`);
+- the front camera's stamp error (its time offset's, `CameraOffset.stamp_variance_s2`): a
+  sighting placed with the pose delta off moves by delta times the velocity of the point fixed
+  to the body there.
+
+A common error theta moves sighting i's world point by u_i theta; the load's estimate, a mean of
+its sightings, by u theta, u the mean of the u_i: covariance sigma_theta^2 u u^T.  The plain
+mean, not the camera-frame information weights: those credit the sightings' bearings, 5-15x
+sharper than their depth in p_cam, with triangulating a scale error away (u 0.39 of the distance
+on the demo flight), while the sightings' world errors are as wide across the ray as along it
+(0.4-0.5 against 0.6-1.0 mm there: the pose's error).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from fusion.camera import CameraModel
+from fusion.estimate.ekf import load_points_world
+from fusion.estimate.timeoffset import body_twists
+from fusion.geometry import inv_T
+from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
+
+MAX_POSE_GAP_S = 0.1
+"""A sighting with no pose of the map's trajectory within this takes no part in the terms."""
+
+
+def add_load_consider_covariance(
+    load_map: LoadMap,
+    observations: Sequence[LoadObservation],
+    trajectory: Trajectory | None,
+    camera: CameraModel,
+    side_sigma_rel: float,
+    stamp_variance_s2: float = 0.0,
+) -> LoadMap:
+    """`load_map` with each load's covariance plus the module docstring's consider terms, from
+    its camera-frame `observations` (p_cam) hung from `trajectory` (the map's own poses and
+    covariances) through `camera`'s mount.  Loads without a covariance, or without a sighting
+    near a pose, are kept as they are (a new LoadMap; the estimates are not moved)."""
+    if trajectory is None or not len(trajectory) or not load_map.loads:
+        return load_map
+    terms = _common_terms(observations, trajectory, camera)
+    out = []
+    for est in load_map.loads:
+        term = terms.get(est.load_id)
+        if est.cov_world is None or term is None:
+            out.append(est)
+            continue
+        pose_cov, u_print, u_stamp = term
+        cov = np.asarray(est.cov_world, dtype=float) + pose_cov
+        cov += side_sigma_rel**2 * np.outer(u_print, u_print)
+        cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
+        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs))
+    return LoadMap(load_map.name, out)
+
+
+def _common_terms(
+    observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,))}: the means over a load's
+    sightings of J_i P_i J_i^T (zero without pose covariances) and of d p_world / d theta for
+    the printed side's relative error and the stamp error (s)."""
+    obs = [o for o in observations if o.p_cam is not None]
+    ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
+    if not obs or not len(ts):
+        return {}
+    t = np.array([int(o.timestamp_ns) for o in obs], dtype=np.int64)
+    k = np.clip(np.searchsorted(ts, t), 1, max(len(ts) - 1, 1)) if len(ts) > 1 else np.zeros(len(t), int)
+    if len(ts) > 1:
+        k = np.where(np.abs(ts[k - 1] - t) < np.abs(ts[k] - t), k - 1, k)
+    near = np.abs(ts[k] - t) <= MAX_POSE_GAP_S * 1e9
+    if not np.any(near):
+        return {}
+    obs = [o for o, ok in zip(obs, near) if ok]
+    k = k[near]
+    T_wb = np.asarray(trajectory.T_world_body, dtype=float)[k]
+    p_cam = np.array([o.p_cam for o in obs], dtype=float)
+    p_world, J, R_wc = load_points_world(camera, T_wb, p_cam)
+    pose = np.zeros((len(obs), 3, 3))
+    if trajectory.covariances is not None:
+        P = np.asarray(trajectory.covariances, dtype=float)[k]
+        pose = J @ P @ J.transpose(0, 2, 1)
+    u_print = np.einsum("nij,nj->ni", R_wc, p_cam)  # p_world - the camera's centre
+    # the velocity of the world point fixed to the body, R_wb (omega x q + v)
+    xi = body_twists(trajectory)[k]
+    T_bw = inv_T(T_wb)
+    q = np.einsum("nij,nj->ni", T_bw[:, :3, :3], p_world) + T_bw[:, :3, 3]
+    u_stamp = np.einsum("nij,nj->ni", T_wb[:, :3, :3], np.cross(xi[:, :3], q) + xi[:, 3:])
+    ids = sorted({o.load_id for o in obs})
+    index = {lid: i for i, lid in enumerate(ids)}
+    which = np.array([index[o.load_id] for o in obs])
+    count = np.bincount(which, minlength=len(ids)).astype(float)
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        s = np.zeros((len(ids), *x.shape[1:]))
+        np.add.at(s, which, x)
+        return s / count.reshape(-1, *([1] * (x.ndim - 1)))
+
+    pose_m, print_m, stamp_m = mean(pose), mean(u_print), mean(u_stamp)
+    return {lid: (pose_m[i], print_m[i], stamp_m[i]) for lid, i in index.items()}

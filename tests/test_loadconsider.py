@@ -1,0 +1,132 @@
+"""The load maps' consider terms (fusion.estimate.loadconsider): errors common to all sightings
+of a load code (the body pose's, its printed side's, the front camera's stamps')."""
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from fusion.camera import CameraModel
+from fusion.errors import WorldError
+from fusion.estimate.loadconsider import add_load_consider_covariance
+from fusion.geometry import make_T
+from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
+from fusion.world import DEFAULT_LOAD_SIDE_SIGMA_REL, World
+
+LOAD = np.array([2.0, 2.7, 1.4])
+# a front camera looking along body x (z_cam = x_body, x_cam = -y_body, y_cam = -z_body)
+R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+CAMERA = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, T_body_cam=make_T(R_BODY_CAM, np.zeros(3)))
+YAW_90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pass(n: int = 60, speed: float = 1.0, rate: float = 30.0, pose_cov=None):
+    """A drone facing +y flying along x past the load at 1.25 m, centred on it: its trajectory (pose
+    covariance `pose_cov` at every frame, or none) and the true camera-frame code centres."""
+    t = np.arange(n) / rate
+    T = np.array([make_T(YAW_90, [LOAD[0] + speed * (ti - t[-1] / 2), LOAD[1] - 1.25, LOAD[2]]) for ti in t])
+    T_cw = np.linalg.inv(CAMERA.T_world_cam(T))
+    p_cam = np.einsum("nij,j->ni", T_cw[:, :3, :3], LOAD) + T_cw[:, :3, 3]
+    covs = None if pose_cov is None else np.tile(pose_cov, (n, 1, 1))
+    return Trajectory("pnp", (t * 1e9).astype(np.int64), T, covs), p_cam
+
+
+def _observations(traj, p_cam, sigma_m=1e-4):
+    cov = np.eye(3) * sigma_m**2
+    return [LoadObservation(int(ts), "L1", LOAD, None, p, cov) for ts, p in zip(traj.timestamps_ns, p_cam)]
+
+
+def _added(traj, p_cam, **kw):
+    lm = LoadMap("pnp", [LoadEstimate("L1", LOAD, np.zeros((3, 3)), len(p_cam))])
+    out = add_load_consider_covariance(lm, _observations(traj, p_cam), traj, CAMERA, **kw)
+    assert out.loads[0].p_world is LOAD  # the estimate is not moved
+    return out.loads[0].cov_world
+
+
+def test_a_print_error_is_carried_along_the_mean_ray():
+    traj, p_cam = _pass()
+    rays = LOAD - CAMERA.T_world_cam(traj.T_world_body)[:, :3, 3]
+    u = rays.mean(axis=0)
+    assert np.allclose(_added(traj, p_cam, side_sigma_rel=1e-3), 1e-6 * np.outer(u, u), atol=1e-15)
+    assert u[1] == pytest.approx(1.25) and abs(u[0]) < 1e-9  # the pass is symmetric about the load
+
+
+def test_a_stamp_error_is_carried_along_the_motion():
+    traj, p_cam = _pass(speed=1.0)
+    added = _added(traj, p_cam, side_sigma_rel=0.0, stamp_variance_s2=(1e-3) ** 2)
+    # no rotation, 1 m/s along x: a 1 ms stamp error moves every sighting by 1 mm along x
+    assert np.allclose(added, np.diag([1e-6, 0.0, 0.0]), atol=1e-12)
+
+
+def test_the_pose_error_is_not_averaged_down():
+    """A position-only pose covariance s^2 I at every frame: the load can be no better known
+    than the pose it hangs from (s^2 I); a yaw sigma adds its lever arm across the ray."""
+    s = 2e-4
+    P = np.zeros((6, 6))
+    P[3:, 3:] = np.eye(3) * s**2
+    traj, p_cam = _pass(pose_cov=P)
+    assert np.allclose(_added(traj, p_cam, side_sigma_rel=0.0), np.eye(3) * s**2, rtol=1e-6)
+    P[2, 2] = 1e-8  # yaw 0.1 mrad, about body z = world z
+    traj, p_cam = _pass(pose_cov=P)
+    added = _added(traj, p_cam, side_sigma_rel=0.0)
+    rays = LOAD - traj.T_world_body[:, :3, 3]
+    lever_x = np.mean(rays[:, 1] ** 2)  # the yaw moves the load along x by its y distance
+    assert added[0, 0] == pytest.approx(s**2 + 1e-8 * lever_x, rel=1e-6)
+
+
+def test_maps_with_common_errors_are_consistent_with_the_terms():
+    """Monte Carlo: each trial has one pose error for the whole pass (position, s per axis) and
+    a label printed (1 + e) too large; the map is the information-weighted mean of the sightings
+    as the EKF / PnP maps make it: its NEES against that covariance is far above 3, ~3 with the
+    terms."""
+    rng = np.random.default_rng(4)
+    s, sigma_m, sigma_rel = 2e-4, 2e-4, 1e-3
+    P = np.zeros((6, 6))
+    P[3:, 3:] = np.eye(3) * s**2
+    traj, p_cam = _pass(n=90, pose_cov=P)
+    T_wc = CAMERA.T_world_cam(traj.T_world_body)
+    nees_before, nees_after = [], []
+    for _ in range(300):
+        offset = rng.normal(0.0, s, 3)  # the poses' common position error
+        e = rng.normal(0.0, sigma_rel)
+        meas = p_cam / (1.0 + e) + rng.normal(0.0, sigma_m, p_cam.shape)
+        pts = np.einsum("nij,nj->ni", T_wc[:, :3, :3], meas) + T_wc[:, :3, 3] + offset
+        est = pts.mean(axis=0)
+        cov = np.eye(3) * (sigma_m**2 + s**2) / len(pts)  # each sighting's, averaged
+        lm = LoadMap("pnp", [LoadEstimate("L1", est, cov, len(pts))])
+        out = add_load_consider_covariance(lm, _observations(traj, meas, sigma_m), traj, CAMERA, sigma_rel)
+        d = est - LOAD
+        nees_before.append(d @ np.linalg.solve(cov, d))
+        nees_after.append(d @ np.linalg.solve(out.loads[0].cov_world, d))
+    lo, hi = chi2.ppf([0.001, 0.999], 3 * 300) / 300
+    assert np.mean(nees_before) > 20.0
+    assert lo < np.mean(nees_after) < hi
+
+
+def test_loads_without_covariance_or_pose_are_kept():
+    traj, p_cam = _pass()
+    obs = _observations(traj, p_cam)
+    far = LoadObservation(int(traj.timestamps_ns[-1] + 5e9), "L2", LOAD, None, p_cam[0], np.eye(3))
+    lm = LoadMap("paper", [LoadEstimate("L1", LOAD, None, 1), LoadEstimate("L2", LOAD, np.eye(3), 1)])
+    out = add_load_consider_covariance(lm, [*obs, far], traj, CAMERA, 1e-3)
+    assert out.loads[0].cov_world is None
+    assert np.array_equal(out.loads[1].cov_world, np.eye(3))  # its one sighting 5 s from any pose
+    assert add_load_consider_covariance(lm, obs, None, CAMERA, 1e-3) is lm
+
+
+def test_world_yaml_load_side_sigma():
+    w = World.from_yaml({"floor_qr": {"side_m": 0.2}, "load_qr": {"side_m": 0.15, "side_sigma_m": 0.0003}})
+    assert w.load_side_sigma_rel == pytest.approx(0.002)
+    assert World.from_yaml(w.to_yaml()) == w
+    assert World().load_side_sigma_rel == DEFAULT_LOAD_SIDE_SIGMA_REL  # not stated
+    assert World(load_side_sigma_m=0.0).load_side_sigma_rel == 0.0
+    for bad, why in ((-1, ">= 0"), (0.3, "below the side"), ("1mm", "load_qr.side_sigma_m")):
+        with pytest.raises(WorldError, match=why):
+            World.from_yaml({"floor_qr": {"side_m": 0.2}, "load_qr": {"side_m": 0.15, "side_sigma_m": bad}})
+
+
+def test_simulated_world_states_exact_labels(tmp_path):
+    from fusion.fileio import load_yaml
+    from fusion.sim.simulate import simulate
+
+    simulate(tmp_path / "a", duration_s=0.2, camera_rate_hz=10, workers=1, progress=False)
+    assert load_yaml(tmp_path / "a" / "world.yaml")["load_qr"]["side_sigma_m"] == 0.0
