@@ -76,11 +76,13 @@ def add_load_consider_covariance(
 
 
 def _common_terms(
-    observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel
+    observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel, block: int = 2048
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,))}: the means over a load's
     sightings of J_i P_i J_i^T (zero without pose covariances) and of d p_world / d theta for
-    the printed side's relative error and the stamp error (s)."""
+    the printed side's relative error and the stamp error (s).  In blocks of `block` sightings
+    (the 13 poses of each through the mount), so a long flight's ~10^5 sightings need no more
+    memory than the EKF's load map."""
     obs = [o for o in observations if o.p_cam is not None]
     ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
     if not obs or not len(ts):
@@ -89,33 +91,33 @@ def _common_terms(
     k = np.clip(np.searchsorted(ts, t), 1, max(len(ts) - 1, 1)) if len(ts) > 1 else np.zeros(len(t), int)
     if len(ts) > 1:
         k = np.where(np.abs(ts[k - 1] - t) < np.abs(ts[k] - t), k - 1, k)
-    near = np.abs(ts[k] - t) <= MAX_POSE_GAP_S * 1e9
-    if not np.any(near):
+    near = np.flatnonzero(np.abs(ts[k] - t) <= MAX_POSE_GAP_S * 1e9)
+    if not len(near):
         return {}
-    obs = [o for o, ok in zip(obs, near) if ok]
-    k = k[near]
-    T_wb = np.asarray(trajectory.T_world_body, dtype=float)[k]
-    p_cam = np.array([o.p_cam for o in obs], dtype=float)
-    p_world, J, R_wc = load_points_world(camera, T_wb, p_cam)
-    pose = np.zeros((len(obs), 3, 3))
-    if trajectory.covariances is not None:
-        P = np.asarray(trajectory.covariances, dtype=float)[k]
-        pose = J @ P @ J.transpose(0, 2, 1)
-    u_print = np.einsum("nij,nj->ni", R_wc, p_cam)  # p_world - the camera's centre
-    # the velocity of the world point fixed to the body, R_wb (omega x q + v)
-    xi = body_twists(trajectory)[k]
-    T_bw = inv_T(T_wb)
-    q = np.einsum("nij,nj->ni", T_bw[:, :3, :3], p_world) + T_bw[:, :3, 3]
-    u_stamp = np.einsum("nij,nj->ni", T_wb[:, :3, :3], np.cross(xi[:, :3], q) + xi[:, 3:])
-    ids = sorted({o.load_id for o in obs})
+    ids = sorted({obs[i].load_id for i in near})
     index = {lid: i for i, lid in enumerate(ids)}
-    which = np.array([index[o.load_id] for o in obs])
-    count = np.bincount(which, minlength=len(ids)).astype(float)
-
-    def mean(x: np.ndarray) -> np.ndarray:
-        s = np.zeros((len(ids), *x.shape[1:]))
-        np.add.at(s, which, x)
-        return s / count.reshape(-1, *([1] * (x.ndim - 1)))
-
-    pose_m, print_m, stamp_m = mean(pose), mean(u_print), mean(u_stamp)
-    return {lid: (pose_m[i], print_m[i], stamp_m[i]) for lid, i in index.items()}
+    twists = body_twists(trajectory)
+    T_all = np.asarray(trajectory.T_world_body, dtype=float)
+    P_all = None if trajectory.covariances is None else np.asarray(trajectory.covariances, dtype=float)
+    sums = [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3)), np.zeros((len(ids), 3))]
+    count = np.zeros(len(ids))
+    for a in range(0, len(near), block):
+        part = near[a : a + block]
+        kk = k[part]
+        which = np.array([index[obs[i].load_id] for i in part])
+        T_wb = T_all[kk]
+        p_cam = np.array([obs[i].p_cam for i in part], dtype=float)
+        p_world, J, R_wc = load_points_world(camera, T_wb, p_cam)
+        if P_all is not None:
+            np.add.at(sums[0], which, J @ P_all[kk] @ J.transpose(0, 2, 1))
+        np.add.at(sums[1], which, np.einsum("nij,nj->ni", R_wc, p_cam))  # p_world - camera centre
+        # the velocity of the world point fixed to the body, R_wb (omega x q + v)
+        xi = twists[kk]
+        T_bw = inv_T(T_wb)
+        q = np.einsum("nij,nj->ni", T_bw[:, :3, :3], p_world) + T_bw[:, :3, 3]
+        u_stamp = np.einsum("nij,nj->ni", T_wb[:, :3, :3], np.cross(xi[:, :3], q) + xi[:, 3:])
+        np.add.at(sums[2], which, u_stamp)
+        np.add.at(count, which, 1.0)
+    return {
+        lid: (sums[0][i] / count[i], sums[1][i] / count[i], sums[2][i] / count[i]) for lid, i in index.items()
+    }
