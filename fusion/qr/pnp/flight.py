@@ -214,7 +214,9 @@ def aggregate_load_observations(observations: list[LoadObservation], name: str =
     p = P sum C_i^-1 p_i (observations without cov_world get the plain mean, cov None).
 
     Caveat: observations taken from nearby drone poses share pose error, so P is optimistic when
-    they are many; the factor-graph back end models that correlation properly."""
+    they are many (load-map NEES 10-36 of 3 on the sweep's flights); the run adds that shared
+    error, with the label's print error and the front stamps', as consider terms
+    (fusion.estimate.loadconsider)."""
     by_id: dict[str, list[LoadObservation]] = {}
     for o in observations:
         by_id.setdefault(o.load_id, []).append(o)
