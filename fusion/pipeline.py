@@ -57,7 +57,7 @@ from fusion.estimate.extrinsics import (
 )
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.health import tilt_disagreement
-from fusion.estimate.loadconsider import add_load_consider_covariance
+from fusion.estimate.loadconsider import add_load_consider_covariance, add_places_spread
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -112,6 +112,7 @@ from fusion.types import (
     Trajectory,
 )
 from fusion.warehouse import floorcodes
+from fusion.warehouse.inventory import AMBIGUITY_SEPARATION_M, ambiguous_places
 from fusion.warehouse.runs import WORLD_YAML
 from fusion.warehouse.view3d import floor_codes_from_payloads
 
@@ -1044,6 +1045,9 @@ def _run_into(
             result.trajectories[str(Estimator.PNP)], stamp_variance
         )
     result.load_maps.update(loc.load_maps)
+    places = loads_at_two_places(loc.load_observations.get(str(Estimator.PNP), []))
+    if places:
+        result.warnings.append(loads_at_two_places_warning(places))
     for name, obs in loc.load_observations.items():
         if name in RAW_ESTIMATORS:
             write_load_observations_csv(out_dir / f"load_observations_{name}.csv", obs)
@@ -1068,7 +1072,7 @@ def _run_into(
         timings["fuse_s"] = time.perf_counter() - t
     result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
     if log.front is not None:
-        _add_load_consider(log, loc, result)
+        _add_load_consider(log, loc, result, places)
 
     _write_estimates(out_dir, result)
     if until == "run":
@@ -1217,6 +1221,49 @@ def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: 
         f"nothing to localise from, no fused estimate. Check that whole codes fit the floor "
         f"camera's view ({w}x{h}, fx {log.floor.camera.fu:.0f} px) at the flight's height, its "
         "focus and exposure, and world.yaml's codes",
+    )
+
+
+PLACE_CHECK_MAX_SIGHTINGS = 1000
+"""One id's raw sightings are thinned to at most this many (every k-th) for the place check's
+single-linkage clustering, whose memory is quadratic (a minute's hover in front of one label is
+~1,800 sightings)."""
+
+
+def loads_at_two_places(observations: list[LoadObservation]) -> dict[str, list[np.ndarray]]:
+    """{load id: its places (3,)} for the ids whose raw PnP sightings form two or more places
+    (`warehouse.inventory.ambiguous_places`: clusters more than AMBIGUITY_SEPARATION_M apart,
+    each of at least MIN_CLUSTER_OBS sightings): a duplicated label, or a load moved while the
+    drone flew.  Every back end maps such an id at one position, an average of the places or one
+    of them, with a millimetre sigma (the sample flight with one label read as another's id:
+    smoother 0.6 m from both places, sigma 4 mm)."""
+    by_id: dict[str, list[np.ndarray]] = {}
+    for o in observations:
+        by_id.setdefault(o.load_id, []).append(np.asarray(o.p_world, dtype=float))
+    found = {}
+    for load_id, points in by_id.items():
+        pts = np.array(points)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        stride = max(1, -(-len(pts) // PLACE_CHECK_MAX_SIGHTINGS))
+        places = ambiguous_places(pts[::stride])
+        if len(places) >= 2:
+            found[load_id] = places
+    return found
+
+
+def loads_at_two_places_warning(found: dict[str, list[np.ndarray]]) -> LogWarning:
+    """The named, counted warning (count: the ids) for `loads_at_two_places`' ids (the first
+    five with their places)."""
+    shown = sorted(found.items())[:5]
+    at = {lid: ", ".join(f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})" for p in places) for lid, places in shown}
+    listed = "; ".join(f"{lid} at {where}" for lid, where in at.items())
+    more = f"; and {len(found) - len(shown)} more" if len(found) > len(shown) else ""
+    return LogWarning(
+        "load_seen_at_two_places",
+        len(found),
+        f"{len(found)} load id(s) read at places more than {AMBIGUITY_SEPARATION_M:.2f} m apart: "
+        f"{listed}{more} (m). A duplicated label, or a load moved during the flight: their mapped "
+        "positions are not to be trusted (their sigmas include the places' spread)",
     )
 
 
@@ -1474,12 +1521,16 @@ def _fuse_into_result(
     return fused_stats
 
 
-def _add_load_consider(log: FlightLog, loc: LocalizeResult, result: RunResult) -> None:
+def _add_load_consider(
+    log: FlightLog, loc: LocalizeResult, result: RunResult, places: dict[str, list[np.ndarray]]
+) -> None:
     """Every load map's covariance plus the errors common to all sightings of a code
     (fusion.estimate.loadconsider): the body pose's, the label's print error, the front camera's
     stamps.  The pose's from the batch smoother's covariances for every map (the part of the
     pose error the flight cannot average away, the same for every back end: they share the
-    fixes), else from the map's own trajectory (a localize run: PnP's, conservative)."""
+    fixes), else from the map's own trajectory (a localize run: PnP's, conservative).  An id
+    read at several `places` (loads_at_two_places) gains their spread about its estimate,
+    mean_k (c_k - p)(c_k - p)^T: where that label is, the map cannot say."""
     assert log.front is not None
     offsets = result.time_offsets
     front = None if offsets is None else offsets.cameras.get(CameraRole.FRONT.value)
@@ -1495,6 +1546,8 @@ def _add_load_consider(log: FlightLog, loc: LocalizeResult, result: RunResult) -
             log.world.load_side_sigma_rel,
             stamp_variance,
         )
+        if places:
+            result.load_maps[name] = add_places_spread(result.load_maps[name], places)
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

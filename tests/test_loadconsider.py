@@ -145,3 +145,58 @@ def test_blocks_give_the_same_terms():
     for lid in one:
         for a, b in zip(one[lid], many[lid]):
             assert np.allclose(a, b, rtol=1e-12, atol=1e-18)
+
+
+def test_an_id_at_two_places_is_found_and_its_sigma_covers_them():
+    from fusion.estimate.loadconsider import add_places_spread
+    from fusion.pipeline import loads_at_two_places, loads_at_two_places_warning
+
+    rng = np.random.default_rng(2)
+    a = LOAD + rng.normal(0, 0.002, (40, 3))
+    b = LOAD + [2.0, 0, 0] + rng.normal(0, 0.002, (30, 3))
+    obs = [LoadObservation(i, "L1", p) for i, p in enumerate(np.vstack([a, b]))]
+    obs += [LoadObservation(i, "L2", p) for i, p in enumerate(a)]  # one place
+    obs += [LoadObservation(99, "L2", LOAD + [5.0, 0, 0])]  # and one stray sighting
+    found = loads_at_two_places(obs)
+    assert list(found) == ["L1"] and len(found["L1"]) == 2
+    w = loads_at_two_places_warning(found)
+    assert w.name == "load_seen_at_two_places" and w.count == 1 and "L1 at (2.00, 2.70, 1.40)" in w.message
+    mid = LOAD + [0.9, 0, 0]  # e.g. the information-weighted mean of both places
+    lm = LoadMap(
+        "ekf", [LoadEstimate("L1", mid, np.eye(3) * 1e-8, 70), LoadEstimate("L2", LOAD, np.eye(3) * 1e-8, 40)]
+    )
+    out = add_places_spread(lm, found)
+    sx = np.sqrt(out.loads[0].cov_world[0, 0])
+    assert 0.9 < sx < 1.2  # the places 0.9 and 1.1 m either side
+    assert np.array_equal(out.loads[1].cov_world, lm.loads[1].cov_world)
+
+
+def test_a_run_names_a_label_read_at_two_places(tmp_path, capsys):
+    """The sample flight with its second load's label read as the first's id (a duplicated
+    label): the run warns, and no map keeps a millimetre sigma for that id."""
+    import csv
+    import json
+    import shutil
+    from pathlib import Path
+
+    from fusion.cli import main
+
+    sample = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
+    log = tmp_path / "log"
+    shutil.copytree(sample, log)
+    out = tmp_path / "out"
+    args = ["run", str(log), "--out", str(out), "--quiet", "--workers", "1", "--no-incremental"]
+    assert main(args) == 0
+    assert "load_seen_at_two_places" not in capsys.readouterr().out
+    cache = out / "detections.csv"
+    cache.write_text(cache.read_text().replace(",1/P-02-2,", ",1/P-01-2,"))
+    assert main([*args, "--force"]) == 0
+    text = capsys.readouterr().out
+    assert "detections reused" in text and "warning: [load_seen_at_two_places] x1" in text
+    assert "P-01-2 at (1.50, 2.70, 1.40), (3.50, 2.70, 1.40)" in text
+    names = [w["name"] for w in json.loads((out / "metrics.json").read_text())["warnings"]]
+    assert "load_seen_at_two_places" in names
+    for est in ("pnp", "smoother", "ekf"):
+        with open(out / f"loads_{est}.csv", encoding="utf-8") as f:
+            row = next(r for r in csv.DictReader(f) if r["id"] == "P-01-2")
+        assert float(row["sigma_x_m"]) > 0.5, est  # the places are 2 m apart along x

@@ -121,3 +121,20 @@ def _common_terms(
     return {
         lid: (sums[0][i] / count[i], sums[1][i] / count[i], sums[2][i] / count[i]) for lid, i in index.items()
     }
+
+
+def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) -> LoadMap:
+    """`load_map` with each load read at several `places` {load id: centres (3,)} given their
+    spread about its estimate, mean_k (c_k - p)(c_k - p)^T, on top of its covariance (a
+    duplicated label, or a load moved during the flight: which place is meant, the map cannot
+    say; pipeline.loads_at_two_places).  Loads without a covariance are kept as they are."""
+    out = []
+    for est in load_map.loads:
+        centres = places.get(est.load_id)
+        if not centres or est.cov_world is None:
+            out.append(est)
+            continue
+        d = np.asarray(centres, dtype=float) - np.asarray(est.p_world, dtype=float)
+        cov = np.asarray(est.cov_world, dtype=float) + d.T @ d / len(d)
+        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs))
+    return LoadMap(load_map.name, out)
