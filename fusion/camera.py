@@ -36,6 +36,15 @@ from fusion.geometry import inv_T, is_rigid_transform, level_frame
 MOUNTS = ("body_fixed", "gimbaled")
 MAX_READOUT_S = 1.0
 """A whole-frame readout longer than this (s) is a unit mistake (line delay given in ms or us)."""
+DEFAULT_MOUNT_SIGMA_DEG = 0.1
+DEFAULT_MOUNT_SIGMA_M = 0.002
+"""How well T_BS is known (1 sigma per axis: rotation, translation) when sensor.yaml does not say
+(`T_BS_sigma_deg`, `T_BS_sigma_m`): a camera-IMU calibration's usual accuracy, a tenth of a
+degree and two millimetres.  The front camera's carries into every mapped load
+(fusion.estimate.loadconsider); the simulator states 0 (its mounts are what it writes)."""
+MAX_MOUNT_SIGMA_DEG = 30.0
+MAX_MOUNT_SIGMA_M = 1.0
+"""A T_BS sigma beyond these is a unit mistake (radians for degrees, mm for m)."""
 
 
 class StampRow(str, Enum):
@@ -67,6 +76,9 @@ class CameraModel:
     mount: str = "body_fixed"
     line_delay_s: float = 0.0  # rolling shutter: row readout time (s per row); 0 = global
     stamp_row: StampRow = StampRow.FIRST  # the row the image timestamp belongs to
+    # how well T_body_cam is known, 1 sigma per axis (deg, m); None: not stated in sensor.yaml
+    mount_sigma_deg: float | None = None
+    mount_sigma_m: float | None = None
 
     def __post_init__(self):
         self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
@@ -119,6 +131,14 @@ class CameraModel:
         if self.mount != "gimbaled":
             return np.broadcast_to(self.T_body_cam, T_world_body.shape).copy()
         return inv_T(T_world_body) @ self.T_world_cam(T_world_body)
+
+    @property
+    def mount_sigmas(self) -> tuple[float, float]:
+        """(rad, m): how well T_body_cam is known, 1 sigma per axis (sensor.yaml's
+        T_BS_sigma_deg / T_BS_sigma_m, else DEFAULT_MOUNT_SIGMA_DEG / _M)."""
+        deg = DEFAULT_MOUNT_SIGMA_DEG if self.mount_sigma_deg is None else self.mount_sigma_deg
+        m = DEFAULT_MOUNT_SIGMA_M if self.mount_sigma_m is None else self.mount_sigma_m
+        return math.radians(deg), m
 
     @property
     def gimbaled(self) -> bool:
@@ -221,6 +241,9 @@ class CameraModel:
                 if self.rolling_shutter
                 else {}
             ),
+            # written only when stated, likewise
+            **({} if self.mount_sigma_deg is None else {"T_BS_sigma_deg": float(self.mount_sigma_deg)}),
+            **({} if self.mount_sigma_m is None else {"T_BS_sigma_m": float(self.mount_sigma_m)}),
         }
 
     @classmethod
@@ -266,6 +289,17 @@ class CameraModel:
             raise CameraModelError(
                 f"{source}: 'stamp_row' {stamp_row!r} is not one of {[r.value for r in StampRow]}"
             )
+        sigmas = {}
+        for key, limit in (("T_BS_sigma_deg", MAX_MOUNT_SIGMA_DEG), ("T_BS_sigma_m", MAX_MOUNT_SIGMA_M)):
+            v = data.get(key)
+            if v is None:
+                continue
+            number = isinstance(v, (int, float)) and not isinstance(v, bool)
+            if not (number and math.isfinite(v) and 0 <= v <= limit):
+                raise CameraModelError(
+                    f"{source}: '{key}' must be a number from 0 to {limit:g}, got {v!r} (a unit mistake?)"
+                )
+            sigmas[key] = float(v)
         fu, fv, cu, cv = intr
         return cls(
             int(res[0]),
@@ -280,6 +314,8 @@ class CameraModel:
             mount=mount,
             line_delay_s=line_delay,
             stamp_row=StampRow(stamp_row),
+            mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
+            mount_sigma_m=sigmas.get("T_BS_sigma_m"),
         )
 
     @classmethod

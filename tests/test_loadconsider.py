@@ -15,7 +15,17 @@ from fusion.world import DEFAULT_LOAD_SIDE_SIGMA_REL, World
 LOAD = np.array([2.0, 2.7, 1.4])
 # a front camera looking along body x (z_cam = x_body, x_cam = -y_body, y_cam = -z_body)
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-CAMERA = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, T_body_cam=make_T(R_BODY_CAM, np.zeros(3)))
+CAMERA = CameraModel(
+    640,
+    480,
+    550.0,
+    550.0,
+    320.0,
+    240.0,
+    T_body_cam=make_T(R_BODY_CAM, np.zeros(3)),
+    mount_sigma_deg=0.0,
+    mount_sigma_m=0.0,
+)
 YAW_90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
@@ -55,6 +65,44 @@ def test_a_stamp_error_is_carried_along_the_motion():
     added = _added(traj, p_cam, side_sigma_rel=0.0, stamp_variance_s2=(1e-3) ** 2)
     # no rotation, 1 m/s along x: a 1 ms stamp error moves every sighting by 1 mm along x
     assert np.allclose(added, np.diag([1e-6, 0.0, 0.0]), atol=1e-12)
+
+
+def test_the_front_mount_error_moves_the_load_across_the_ray():
+    """A load straight ahead at 1.25 m, seen from one pose: a mount rotation sigma moves it by
+    1.25 m x sigma across the ray (x by the yaw, z by the pitch) and not along it; a shift
+    sigma by as much along each axis.  Not stated in sensor.yaml: 0.1 deg and 2 mm."""
+    from dataclasses import replace
+
+    traj, p_cam = _pass(n=1)
+    cam = replace(CAMERA, mount_sigma_deg=0.5, mount_sigma_m=0.0)
+    lm = LoadMap("pnp", [LoadEstimate("L1", LOAD, np.zeros((3, 3)), 1)])
+    added = add_load_consider_covariance(lm, _observations(traj, p_cam), traj, cam, 0.0).loads[0].cov_world
+    s = np.radians(0.5) * 1.25
+    assert np.allclose(added, np.diag([s**2, 0.0, s**2]), atol=1e-12)
+    cam = replace(CAMERA, mount_sigma_deg=0.0, mount_sigma_m=0.003)
+    added = add_load_consider_covariance(lm, _observations(traj, p_cam), traj, cam, 0.0).loads[0].cov_world
+    assert np.allclose(added, np.eye(3) * 0.003**2, atol=1e-15)
+    assert replace(CAMERA, mount_sigma_deg=None, mount_sigma_m=None).mount_sigmas == (np.radians(0.1), 0.002)
+
+
+def test_mount_sigmas_in_sensor_yaml():
+    from fusion.errors import CameraModelError
+
+    data = CAMERA.to_sensor_yaml()
+    assert data["T_BS_sigma_deg"] == 0.0 and CameraModel.from_sensor_yaml(data).mount_sigmas == (0.0, 0.0)
+    for key in ("T_BS_sigma_deg", "T_BS_sigma_m"):
+        del data[key]
+    assert (
+        "T_BS_sigma_deg" not in CameraModel.from_sensor_yaml(data).to_sensor_yaml()
+    )  # not stated: not written
+    for key, bad in (
+        ("T_BS_sigma_deg", 45.0),
+        ("T_BS_sigma_m", -1.0),
+        ("T_BS_sigma_m", "2mm"),
+        ("T_BS_sigma_deg", True),
+    ):
+        with pytest.raises(CameraModelError, match=key):
+            CameraModel.from_sensor_yaml({**data, key: bad}, "cam1/sensor.yaml")
 
 
 def test_the_pose_error_is_not_averaged_down():
@@ -124,12 +172,24 @@ def test_world_yaml_load_side_sigma():
             World.from_yaml({"floor_qr": {"side_m": 0.2}, "load_qr": {"side_m": 0.15, "side_sigma_m": bad}})
 
 
-def test_simulated_world_states_exact_labels(tmp_path):
+def test_simulated_flights_state_exact_labels_and_mounts(tmp_path):
     from fusion.fileio import load_yaml
     from fusion.sim.simulate import simulate
 
     simulate(tmp_path / "a", duration_s=0.2, camera_rate_hz=10, workers=1, progress=False)
     assert load_yaml(tmp_path / "a" / "world.yaml")["load_qr"]["side_sigma_m"] == 0.0
+    front = load_yaml(tmp_path / "a" / "mav0" / "cam1" / "sensor.yaml")
+    assert front["T_BS_sigma_deg"] == 0.0 and front["T_BS_sigma_m"] == 0.0  # exact mounts
+    simulate(
+        tmp_path / "b",
+        extrinsic_error_deg={"cam1": (0.3, 0.0, 0.4)},
+        duration_s=0.2,
+        camera_rate_hz=10,
+        workers=1,
+        progress=False,
+    )
+    front = load_yaml(tmp_path / "b" / "mav0" / "cam1" / "sensor.yaml")
+    assert front["T_BS_sigma_deg"] == pytest.approx(np.sqrt(0.25 / 3))  # the error's RMS per axis
 
 
 def test_blocks_give_the_same_terms():

@@ -4,7 +4,7 @@
 
 A load is placed from its sightings, each its camera-frame centre p_cam (the front camera's
 single-code PnP) hung from the body pose of its frame; every back end combines a load's n
-sightings as if their errors were independent, and so shrinks them ~1/n.  Three errors are not:
+sightings as if their errors were independent, and so shrinks them ~1/n.  Four errors are not:
 
 - the body pose's: the sightings of one load span a few seconds, over which the floor fixes'
   error hardly changes (the same floor codes in view, their corner biases, the floor stamps;
@@ -20,7 +20,12 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Three 
   `World.load_side_sigma_rel`);
 - the front camera's stamp error (its time offset's, `CameraOffset.stamp_variance_s2`): a
   sighting placed with the pose delta off moves by delta times the velocity of the point fixed
-  to the body there.
+  to the body there;
+- the front camera's mount, T_BS (sensor.yaml's `T_BS_sigma_deg` / `T_BS_sigma_m`, absent: a
+  calibration's usual 0.1 deg and 2 mm, `CameraModel.mount_sigmas`; the simulator states its
+  own): a rotation dtheta of the camera about its centre in the body frame moves a sighting by
+  -R_wb [R_bc p_cam]x dtheta, a shift dt by R_wb dt (the level frame's R for a gimbaled
+  camera).  On a real drone this is likely the largest of the four: 0.1 deg is 2 mm at 1.25 m.
 
 A common error theta moves sighting i's world point by u_i theta; the load's estimate, a mean of
 its sightings, by u theta, u the mean of the u_i: covariance sigma_theta^2 u u^T.  The plain
@@ -61,26 +66,29 @@ def add_load_consider_covariance(
     if trajectory is None or not len(trajectory) or not load_map.loads:
         return load_map
     terms = _common_terms(observations, trajectory, camera)
+    sigma_rot, sigma_shift = camera.mount_sigmas
     out = []
     for est in load_map.loads:
         term = terms.get(est.load_id)
         if est.cov_world is None or term is None:
             out.append(est)
             continue
-        pose_cov, u_print, u_stamp = term
+        pose_cov, u_print, u_stamp, U_rot, U_shift = term
         cov = np.asarray(est.cov_world, dtype=float) + pose_cov
         cov += side_sigma_rel**2 * np.outer(u_print, u_print)
         cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
+        cov += sigma_rot**2 * U_rot @ U_rot.T + sigma_shift**2 * U_shift @ U_shift.T
         out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs))
     return LoadMap(load_map.name, out)
 
 
 def _common_terms(
     observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel, block: int = 2048
-) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,))}: the means over a load's
-    sightings of J_i P_i J_i^T (zero without pose covariances) and of d p_world / d theta for
-    the printed side's relative error and the stamp error (s).  In blocks of `block` sightings
+) -> dict[str, tuple[np.ndarray, ...]]:
+    """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,), U_rot (3, 3), U_shift
+    (3, 3))}: the means over a load's sightings of J_i P_i J_i^T (zero without pose covariances)
+    and of d p_world / d theta for the printed side's relative error, the stamp error (s) and
+    the mount's rotation (rad) and shift (m) in the body frame.  In blocks of `block` sightings
     (the 13 poses of each through the mount), so a long flight's ~10^5 sightings need no more
     memory than the EKF's load map."""
     obs = [o for o in observations if o.p_cam is not None]
@@ -100,6 +108,8 @@ def _common_terms(
     T_all = np.asarray(trajectory.T_world_body, dtype=float)
     P_all = None if trajectory.covariances is None else np.asarray(trajectory.covariances, dtype=float)
     sums = [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3)), np.zeros((len(ids), 3))]
+    sums += [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3, 3))]
+    R_bc = np.asarray(camera.T_body_cam, dtype=float)[:3, :3]
     count = np.zeros(len(ids))
     for a in range(0, len(near), block):
         part = near[a : a + block]
@@ -117,10 +127,16 @@ def _common_terms(
         q = np.einsum("nij,nj->ni", T_bw[:, :3, :3], p_world) + T_bw[:, :3, 3]
         u_stamp = np.einsum("nij,nj->ni", T_wb[:, :3, :3], np.cross(xi[:, :3], q) + xi[:, 3:])
         np.add.at(sums[2], which, u_stamp)
+        # the mount: the camera's parent frame (the body, or its level frame when gimbaled)
+        R_wp = R_wc @ R_bc.T
+        v = np.einsum("ij,nj->ni", R_bc, p_cam)  # the point from the camera's centre, parent frame
+        skew = np.zeros((len(v), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        skew -= skew.transpose(0, 2, 1)
+        np.add.at(sums[3], which, -R_wp @ skew)
+        np.add.at(sums[4], which, R_wp)
         np.add.at(count, which, 1.0)
-    return {
-        lid: (sums[0][i] / count[i], sums[1][i] / count[i], sums[2][i] / count[i]) for lid, i in index.items()
-    }
+    return {lid: tuple(x[i] / count[i] for x in sums) for lid, i in index.items()}
 
 
 def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) -> LoadMap:

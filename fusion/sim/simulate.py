@@ -227,7 +227,8 @@ def simulate(
     `extrinsic_error_deg` ({"cam0": (rx, ry, rz)}, degrees): each named camera's true mount is
     its nominal one turned by that rotation vector in the body frame about the camera's centre
     (fusion.estimate.extrinsics.corrected_mount); the images are rendered with the true mount
-    while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life);
+    while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life) and states
+    the error's RMS per axis as its T_BS_sigma_deg (0 for an exact mount, and T_BS_sigma_m 0);
     `extrinsics_groundtruth.csv` holds the errors.  `velocity_rate_hz` (None: the scenario's
     30 Hz, stamped with the frames): the velocity sensor's own rate."""
     from fusion.log import LogFormat
@@ -362,9 +363,12 @@ def simulate(
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
         writer.write_world(sc.layout.world)
         for name, cam in sc.cameras.items():
+            # the mount's sigma as it is: 0, or the RMS per axis of an extrinsic error given
+            err = mount_err.get(name)
+            sigma_deg = 0.0 if err is None else float(np.degrees(np.sqrt(np.mean(err**2))))
             writer.add_camera(
                 name,
-                cam,
+                replace(cam, mount_sigma_deg=sigma_deg, mount_sigma_m=0.0),
                 comment=f"fusion simulator, scenario {scenario}, "
                 f"{'floor' if name == 'cam0' else 'front'} camera",
             )
