@@ -121,8 +121,9 @@ _EYE15 = np.eye(15)
 _LOAD_JACOBIAN_STEP = 1e-6  # body-pose perturbation (rad, m) for the load-point Jacobian
 _TILT_SIGMA_RAD = 0.05  # roll / pitch 1-sigma of a start or reset from position + yaw
 LEVEL_START_MIN_FIXES = 5
-"""Fewest level fixes in the start window (FusionConfig.ekf_level_start_s) for a batch start;
-with fewer the filter starts at the first fix as before."""
+"""Fewest level fixes in the start window: a window of FusionConfig.ekf_level_start_s with fewer
+(sparse fixes at the start) is extended to this many fixes; a flight with fewer fixes in all
+starts at the first fix as before."""
 ITERATE_MIN_ROTATION_RAD = 0.01
 """An update whose attitude correction exceeds this is iterated (`_Ekf._iterate`): the
 measurement relinearised at the corrected state until the correction settles."""
@@ -818,9 +819,9 @@ def level_batch_start(
     config: FusionConfig,
 ) -> LevelStart | None:
     """Batch-smooth the first `config.ekf_level_start_s` seconds of level fixes (from frame k0,
-    the first inlier fix, to the last fix within the window) and return the solution with the
-    joint marginal of the last frame's pose, velocity and biases; None when the window holds
-    fewer than LEVEL_START_MIN_FIXES fixes or the solve fails.
+    the first inlier fix, to the last fix within the window, or to the LEVEL_START_MIN_FIXES-th
+    fix if that is later) and return the solution with the joint marginal of the last frame's
+    pose, velocity and biases; None when the flight has fewer fixes or the solve fails.
 
     Why: level fixes (position + yaw) leave roll / pitch to the accelerometer against the
     fixes' second difference, where they trade with the accelerometer bias.  Started from the
@@ -841,10 +842,12 @@ def level_batch_start(
     if rawp.covariances is None:  # the paper's position + yaw: not level-frame PnP poses
         return None
     fix_k = rawp.frame_idx
-    in_win = (fix_k >= k0) & (frame_t[fix_k] - frame_t[k0] <= window_ns)
-    if int(in_win.sum()) < LEVEL_START_MIN_FIXES:
+    after = np.unique(fix_k[fix_k >= k0])  # the fixes' frames from k0 on, in time order
+    if len(after) < LEVEL_START_MIN_FIXES:
         return None
-    k_end = int(fix_k[in_win].max())
+    in_time = after[frame_t[after] - frame_t[k0] <= window_ns]
+    k_end = int(max(in_time[-1], after[LEVEL_START_MIN_FIXES - 1]))
+    in_win = (fix_k >= k0) & (fix_k <= k_end)
     if k_end + 1 >= len(frame_t):
         return None
     t_win = frame_t[k0 : k_end + 1]
