@@ -1052,8 +1052,10 @@ def run_ekf(
         T_out[k - k0, :3, :3] = f.R
         T_out[k - k0, :3, 3] = f.p
         cov_out[k - k0] = f.kf.P[:6, :6]
-    _imu_to_body(f, T_out, cov_out)
-    if start is not None:  # the window's frames: the batch solution (k_end's is the filter's start)
+    # the filter's frames (from k_from) to the body; the window's before them are the batch
+    # solution's, in the body frame already (k_end's is the filter's start)
+    _imu_to_body(f, T_out[k_from - k0 :], cov_out[k_from - k0 :])
+    if start is not None:
         T_out[: start.k_end - k0] = start.T_world_body[:-1]
         cov_out[: start.k_end - k0] = start.cov_body[:-1]
 
