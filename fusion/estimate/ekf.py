@@ -831,10 +831,10 @@ def level_batch_start(
     thirteenth session), the EKF inconsistency of Huang, Mourikis & Roumeliotis (IJRR 29(5),
     2010) on a weakly observable direction.  A batch solve iterates to the nonlinear optimum and
     its marginal keeps the tilt-bias correlation, so the filter starts near the truth with an
-    honest joint prior (the "batch initialisation" of a filter, e.g. Bar-Shalom, Li & Kirubarajan,
-    "Estimation with Applications to Tracking and Navigation", 2001, sec. 5.5.3; here a
-    Gauss-Newton / LM solve of the window, `smoother.build_problem` / `solve`, and GTSAM's
-    Marginals).  The window's outputs are smoothed, a start-up look-ahead of
+    honest joint prior (a filter initialised from the least-squares estimate of its first
+    measurements, as tracking filters are; here the nonlinear least-squares solve of the window,
+    `smoother.build_problem` / `solve`, and its covariance from GTSAM's Marginals, the inverse of
+    the information at the solution).  The window's outputs are smoothed, a start-up look-ahead of
     `ekf_level_start_s` like `first_velocity`'s 0.5 s; from k_end on the filter is causal.
     Velocity samples are given to the window only up to half-way to the next frame, so each is
     used once, at the frame it is used at in the filter (common.velocity_at_frames)."""
