@@ -11,6 +11,11 @@ smoother), so an IMU mounted off the body frame needs no lever-arm approximation
 measurements are mapped to the body with T_body_imu (Pose3 adjoint).  After each update the
 error is injected into the nominal state and reset to zero (reset Jacobian taken as identity).
 
+Start: at the first fix, or, with level fixes (a gimbaled floor camera) and an IMU, from a
+batch solve of the first `FusionConfig.ekf_level_start_s` of fixes and its joint marginal
+(`level_batch_start`: level fixes leave roll / pitch to the accelerometer, where they trade with
+its bias, and a start at tilt 0 +- 10 deg made the filter inconsistent there).
+
 Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or position + yaw
 (yaw wrap-around handled by filterpy's `residual` hook) for the paper's output and for the
 level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
@@ -70,10 +75,13 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
+from fusion.errors import EstimationError
 from fusion.estimate import factors
 from fusion.estimate.common import (
     FusionConfig,
     FusionResult,
+    RawPoses,
+    SolveHealth,
     first_velocity,
     fix_jumps,
     group_load_obs,
@@ -82,7 +90,8 @@ from fusion.estimate.common import (
     retime_load_obs,
     velocity_at_frames,
 )
-from fusion.estimate.smoother import imu_coverage, imu_subintervals
+from fusion.estimate.factors import B, V, X
+from fusion.estimate.smoother import build_problem, imu_coverage, imu_subintervals, solve
 from fusion.estimate.variance import nis_component
 from fusion.geometry import (
     adjoint,
@@ -101,7 +110,7 @@ from fusion.geometry import (
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, Trajectory
 
-__all__ = ["EkfRecovery", "run_ekf"]
+__all__ = ["EkfRecovery", "LevelStart", "level_batch_start", "run_ekf"]
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +120,10 @@ _EYE3 = np.eye(3)  # read-only identities (np.eye per call was ~3 % of the EKF's
 _EYE15 = np.eye(15)
 _LOAD_JACOBIAN_STEP = 1e-6  # body-pose perturbation (rad, m) for the load-point Jacobian
 _TILT_SIGMA_RAD = 0.05  # roll / pitch 1-sigma of a start or reset from position + yaw
+LEVEL_START_MIN_FIXES = 5
+"""Fewest level fixes in the start window: a window of FusionConfig.ekf_level_start_s with fewer
+(sparse fixes at the start) is extended to this many fixes; a flight with fewer fixes in all
+starts at the first fix as before."""
 ITERATE_MIN_ROTATION_RAD = 0.01
 """An update whose attitude correction exceeds this is iterated (`_Ekf._iterate`): the
 measurement relinearised at the corrected state until the correction settles."""
@@ -776,6 +789,137 @@ def _imu_to_body(f: _Ekf, T_out: np.ndarray, cov_out: np.ndarray, block: int = 4
         T[:] = T @ f.T_ib
 
 
+@dataclass
+class LevelStart:
+    """The EKF's start from a batch solve of its first level fixes (level_batch_start).
+
+    k_end: the window's last frame (a fix), where the filter takes over; T_world_body
+    (k_end - k0 + 1, 4, 4) and cov_body (same, 6, 6; Pose3 order, body frame): the batch
+    solution and its marginal covariances at frames k0..k_end (the EKF's output there);
+    v_world (3,): body velocity at k_end; bias_accel / bias_gyro (3,) IMU frame; joint (15, 15):
+    the joint marginal covariance of [X(k_end) (Pose3 tangent), V(k_end), B(k_end) (accel,
+    gyro)] in GTSAM's order of those blocks."""
+
+    k_end: int
+    T_world_body: np.ndarray
+    cov_body: np.ndarray
+    v_world: np.ndarray
+    bias_accel: np.ndarray
+    bias_gyro: np.ndarray
+    joint: np.ndarray
+
+
+def level_batch_start(
+    frame_t: np.ndarray,
+    imu: ImuData,
+    rawp: RawPoses,
+    k0: int,
+    velocity: VelocityData | None,
+    floor_camera: CameraModel,
+    config: FusionConfig,
+) -> LevelStart | None:
+    """Batch-smooth the first `config.ekf_level_start_s` seconds of level fixes (from frame k0,
+    the first inlier fix, to the last fix within the window, or to the LEVEL_START_MIN_FIXES-th
+    fix if that is later) and return the solution with the joint marginal of the last frame's
+    pose, velocity and biases; None when the flight has fewer fixes or the solve fails.
+
+    Why: level fixes (position + yaw) leave roll / pitch to the accelerometer against the
+    fixes' second difference, where they trade with the accelerometer bias.  Started from the
+    first fix with tilt 0 +- 10 deg (the truth may roll 13 deg) and a tilt uncorrelated with the
+    bias, the filter linearises its first updates far from the truth and gains bias information
+    it does not have (b_x sigma 0.1 -> 0.011 m/s^2 in 1.3 s, estimate 26 sigma off: BENCHMARKS.md,
+    thirteenth session), the EKF inconsistency of Huang, Mourikis & Roumeliotis (IJRR 29(5),
+    2010) on a weakly observable direction.  A batch solve iterates to the nonlinear optimum and
+    its marginal keeps the tilt-bias correlation, so the filter starts near the truth with an
+    honest joint prior (a filter initialised from the least-squares estimate of its first
+    measurements, as tracking filters are; here the nonlinear least-squares solve of the window,
+    `smoother.build_problem` / `solve`, and its covariance from GTSAM's Marginals, the inverse of
+    the information at the solution).  The window's outputs are smoothed, a start-up look-ahead of
+    `ekf_level_start_s` like `first_velocity`'s 0.5 s; from k_end on the filter is causal.
+    Velocity samples are given to the window only up to half-way to the next frame, so each is
+    used once, at the frame it is used at in the filter (common.velocity_at_frames)."""
+    window_ns = config.ekf_level_start_s * 1e9
+    if rawp.covariances is None:  # the paper's position + yaw: not level-frame PnP poses
+        return None
+    fix_k = rawp.frame_idx
+    after = np.unique(fix_k[fix_k >= k0])  # the fixes' frames from k0 on, in time order
+    if len(after) < LEVEL_START_MIN_FIXES:
+        return None
+    in_time = after[frame_t[after] - frame_t[k0] <= window_ns]
+    k_end = int(max(in_time[-1], after[LEVEL_START_MIN_FIXES - 1]))
+    in_win = (fix_k >= k0) & (fix_k <= k_end)
+    if k_end + 1 >= len(frame_t):
+        return None
+    t_win = frame_t[k0 : k_end + 1]
+    raw = Trajectory("raw", frame_t[fix_k[in_win]], rawp.T_world_body[in_win], rawp.covariances[in_win])
+    vel_win = None
+    if velocity is not None:
+        t_cut = (frame_t[k_end] + frame_t[k_end + 1]) / 2
+        keep = velocity.timestamps_ns < t_cut
+        if keep.any():
+            vel_win = VelocityData(
+                velocity.timestamps_ns[keep], velocity.v_body_m_s[keep], velocity.noise_m_s
+            )
+    try:
+        pb = build_problem(t_win, imu, raw, None, None, vel_win, config, floor_camera=floor_camera)
+        graph = pb.graph()
+        res, graph, _ = solve(graph, pb.initial, config, SolveHealth())
+        values = res.values
+        marg = gtsam.Marginals(graph, values)
+        n = len(t_win)
+        keys = [X(n - 1), V(n - 1), B(n - 1)]
+        kv = gtsam.KeyVector()
+        for key in keys:
+            kv.append(key)
+        jm = marg.jointMarginalCovariance(kv)
+        dims = (6, 3, 6)
+        offs = np.cumsum((0,) + dims)
+        joint = np.zeros((15, 15))
+        for a, ka in enumerate(keys):
+            for b, kb in enumerate(keys):
+                joint[offs[a] : offs[a + 1], offs[b] : offs[b + 1]] = jm.at(ka, kb)
+        T = np.array([values.atPose3(X(k)).matrix() for k in range(n)])
+        cov = np.array([marg.marginalCovariance(X(k)) for k in range(n)])
+    except (RuntimeError, ValueError, EstimationError) as e:
+        log.warning("EKF: no batch start from the first level fixes (%s); starting at the first fix", e)
+        return None
+    bias = values.atConstantBias(B(n - 1))
+    return LevelStart(
+        k_end=k_end,
+        T_world_body=T,
+        cov_body=0.5 * (cov + cov.transpose(0, 2, 1)),
+        v_world=np.asarray(values.atVector(V(n - 1)), float),
+        bias_accel=np.asarray(bias.accelerometer(), float),
+        bias_gyro=np.asarray(bias.gyroscope(), float),
+        joint=0.5 * (joint + joint.T),
+    )
+
+
+def _start_from_batch(f: _Ekf, start: LevelStart, imu: ImuData, t_ns: int) -> None:
+    """The filter's nominal state and covariance at frame start.k_end from the batch start.
+
+    Error state from GTSAM's: [dtheta, dp] = J_body^-1 xi_body (_Ekf.J_body: xi_imu = [dtheta,
+    R^T dp], xi_body = Ad_bi xi_imu), dv = the body velocity's error (the lever arm's
+    omega x t_imu_body term taken at the nominal rate, without its uncertainty: zero when the IMU
+    is at the body origin), dbg / dba = the ConstantBias blocks (accelerometer first in GTSAM)."""
+    T_wb = start.T_world_body[-1]
+    T_wi = T_wb @ f.T_bi
+    f.R, f.p = T_wi[:3, :3].copy(), T_wi[:3, 3].copy()
+    f.bg, f.ba = start.bias_gyro.copy(), start.bias_accel.copy()
+    i = int(np.clip(np.searchsorted(imu.timestamps_ns, t_ns), 0, len(imu.timestamps_ns) - 1))
+    f.omega = np.asarray(imu.gyro_rad_s[i], float) - f.bg
+    # body_velocity's h inverted: v_world_body = v + R (omega x t_imu_body)
+    f.v = start.v_world - f.R @ cross3(f.omega, f.T_ib[:3, 3])
+    J = np.zeros((15, 15))
+    J[:6, :6] = np.linalg.inv(f.J_body())
+    J[_V, 6:9] = _EYE3
+    J[_BG, 12:15] = _EYE3
+    J[_BA, 9:12] = _EYE3
+    P = J @ start.joint @ J.T
+    f.kf.x = np.zeros(15)
+    f.kf.P = 0.5 * (P + P.T)
+
+
 def level_fix_covariance(T_level: np.ndarray, cov_level: np.ndarray) -> np.ndarray:
     """4x4 covariance of [p_world (3), yaw] of a level-frame pose T_level = [Rz(yaw), p] whose
     6x6 covariance (Pose3 order, right perturbation T = T_level Exp(xi)) is cov_level: to first
@@ -805,8 +949,13 @@ def run_ekf(
     used; a gimbaled floor camera's raw poses are level-frame poses (pnp.py), fused as position + yaw.
     The filter starts at the first (inlier) raw pose (`stats['frames_before_first_fix']` earlier
     frames have no estimate), with the velocity from a line through the first 0.5 s of raw
-    positions (start-up look-ahead, as smooth_incremental).  Trajectory at the remaining frame
-    times, with the filtered (causal) covariance mapped to the body frame (Pose3 order).
+    positions (start-up look-ahead, as smooth_incremental).  With level fixes (a gimbaled floor
+    camera's PnP poses) and an IMU it starts instead from a batch solve of the fixes within
+    `config.ekf_level_start_s` of the first (level_batch_start: the window's frames are that
+    solve's, `stats['batch_start_frames']` of them; the filter runs from the window's last fix
+    on, its prior the solve's joint marginal of pose, velocity and biases there).  Trajectory at
+    the remaining frame times, with the filtered (causal) covariance mapped to the body frame
+    (Pose3 order).
     stats: pose_updates, rejected_pose_factors, gated_updates, inflated_updates, resets, ..."""
     config = config or FusionConfig()
     recovery = recovery or EkfRecovery()
@@ -847,6 +996,13 @@ def run_ekf(
     f.kf.P[_V, _V] = np.eye(3) * config.velocity_prior_sigma_m_s**2
     f.kf.P[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s**2
     f.kf.P[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2**2
+    start = None
+    if level_fixes and imu is not None and config.ekf_level_start_s > 0:
+        assert floor_camera is not None  # level_fixes
+        start = level_batch_start(frame_t, imu, rawp, k0, velocity, floor_camera, config)
+    if start is not None:
+        assert imu is not None  # a batch start is made only with an IMU
+        _start_from_batch(f, start, imu, frame_t[start.k_end])
     paper_Rm = np.diag(np.r_[np.asarray(config.paper_sigma_xyz_m, float), config.paper_sigma_yaw_rad] ** 2)
 
     covered = np.zeros(max(n - 1, 0), bool)
@@ -861,19 +1017,22 @@ def run_ekf(
     T_out = np.empty((n - k0, 4, 4))
     cov_out = np.empty((n - k0, 6, 6))
     n_pose_updates = 0
-    for k in range(k0, n):
-        if k > k0:
+    k_from = k0 if start is None else start.k_end  # the batch start used the fixes up to k_end
+    for k in range(k_from, n):
+        if k > k_from:
             if covered[k - 1]:
                 rows = slice(first[k - 1], first[k])
                 f.predict_imu_block(acc[rows], gyr[rows], dts[rows], noise)
             else:
                 f.predict_random_walk((frame_t[k] - frame_t[k - 1]) * 1e-9, noise)
-        if vmask[k]:
+        # frame k_end's fix and velocity are in the batch start already
+        has_vel = bool(vmask[k]) and not (start is not None and k == k_from)
+        if has_vel:
             # the gravity term of the samples' time shift at the predicted attitude (body)
             v_meas = vel.measured(k, f.R @ f.T_ib[:3, :3])
             sigma_v = float(vel.sigma_m_s[k])
-        m = raw_at.get(k)
-        if m is not None and k > k0:
+        m = raw_at.get(k) if k > k_from else None
+        if m is not None:
             t_s = frame_t[k] * 1e-9
             T_m = rawp.T_world_body[m]
             if raw_cov is not None and not level_fixes:
@@ -882,24 +1041,30 @@ def run_ekf(
                 fix = f.position_yaw_fix(t_s, T_m, level_fix_covariance(T_m, raw_cov[m]), raw_cov[m])
             else:
                 fix = f.position_yaw_fix(t_s, T_m, paper_Rm)
-            if vmask[k]:
+            if has_vel:
                 f.update_fix_and_velocity(fix, v_meas, sigma_v)
             else:
                 f._fix_update(fix)
             n_pose_updates += 1
-        elif vmask[k]:
+        elif has_vel:
             f.update_body_velocity(v_meas, sigma_v)
         # the IMU pose and its error covariance now; mapped to the body after the loop, in one go
         T_out[k - k0, :3, :3] = f.R
         T_out[k - k0, :3, 3] = f.p
         cov_out[k - k0] = f.kf.P[:6, :6]
-    _imu_to_body(f, T_out, cov_out)
+    # the filter's frames (from k_from) to the body; the window's before them are the batch
+    # solution's, in the body frame already (k_end's is the filter's start)
+    _imu_to_body(f, T_out[k_from - k0 :], cov_out[k_from - k0 :])
+    if start is not None:
+        T_out[: start.k_end - k0] = start.T_world_body[:-1]
+        cov_out[: start.k_end - k0] = start.cov_body[:-1]
 
     loads = _map_loads(
         frame_t, load_obs if front_camera is not None else None, front_camera, T_out, cov_out, k0, config
     )
     stats: dict[str, Any] = {
         "frames_before_first_fix": k0,
+        "batch_start_frames": 0 if start is None else start.k_end - k0 + 1,
         "pose_updates": n_pose_updates,
         "rejected_pose_factors": f.rejected,
         "gated_updates": f.gated,
