@@ -56,7 +56,8 @@ frame through the front camera's mount, p = T_world_cam(T_world_body) p_cam (Cam
 gimbaled camera hangs from the level frame), covariance R_wc cov_cam R_wc^T + J P_pose J^T (J by
 central differences on the body pose, mount-agnostic), and the observations of one load are
 fused by information weighting (this ignores the correlation of pose errors between frames, so
-the load covariance is optimistic).
+the load covariance is optimistic by itself: the run adds the error the sightings share as
+consider terms, fusion.estimate.loadconsider).
 """
 
 from __future__ import annotations
