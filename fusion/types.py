@@ -187,6 +187,9 @@ class LoadEstimate:
     p_world: np.ndarray  # (3,)
     cov_world: np.ndarray | None  # (3, 3) or None when unknown
     n_obs: int
+    # the part of cov_world every flight of this label and front camera shares (its print and
+    # the mount's errors, estimate.loadconsider): merging flights does not average it down
+    cov_shared: np.ndarray | None = None
 
 
 @dataclass

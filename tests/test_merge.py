@@ -25,9 +25,10 @@ FRONT = load_yaml(SAMPLE / "mav0" / "cam1" / "sensor.yaml")
 COV = np.diag([0.002, 0.003, 0.002]) ** 2
 
 
-def _fake_run(root: Path, loads: dict, world: dict = WORLD, x_range=(1.5, 1.5)) -> Path:
+def _fake_run(root: Path, loads: dict, world: dict = WORLD, x_range=(1.5, 1.5), shared=None) -> Path:
     """A run folder: the smoother's trajectory (hovering at y = 1.5, z = 1.4 facing +y over
-    x_range), its load map {id: p} with covariance COV, and run.json."""
+    x_range), its load map {id: p} with covariance COV (plus `shared`, its part every flight
+    shares, when given), and run.json."""
     root.mkdir(parents=True)
     xs = np.linspace(*x_range, 20)
     T = np.array([make_T(rot_z(math.pi / 2), [x, 1.5, 1.4]) for x in xs])
@@ -37,7 +38,13 @@ def _fake_run(root: Path, loads: dict, world: dict = WORLD, x_range=(1.5, 1.5)) 
     )
     write_loads_json(
         root / "loads_smoother.json",
-        LoadMap("smoother", [LoadEstimate(k, np.asarray(v, float), COV, 10) for k, v in loads.items()]),
+        LoadMap(
+            "smoother",
+            [
+                LoadEstimate(k, np.asarray(v, float), COV if shared is None else COV + shared, 10, shared)
+                for k, v in loads.items()
+            ],
+        ),
     )
     (root / RUN_RECORD).write_text(
         json.dumps({"log": "x", "world_yaml": world, "front_camera_sensor_yaml": FRONT})
@@ -77,7 +84,8 @@ def test_information_weighted_mean():
     rng = np.random.default_rng(1)
     P1, P2 = np.diag([1e-4, 4e-4, 1e-4]), np.diag([4e-4, 1e-4, 1e-4])
     p1, p2 = rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.01
-    p, P = _fuse(p1, P1, p2, P2)
+    p, P, S = _fuse(p1, P1, None, p2, P2, None)
+    assert S is None
     np.testing.assert_allclose(P, np.diag([0.8e-4, 0.8e-4, 0.5e-4]))
     np.testing.assert_allclose(p, [(4 * p1[0] + p2[0]) / 5, (p1[1] + 4 * p2[1]) / 5, (p1[2] + p2[2]) / 2])
 
@@ -129,3 +137,44 @@ def test_cli_merge_writes_map_with_escaped_ids(tmp_path, capsys):
     data = json.loads((out / "map.json").read_text(encoding="utf-8"))
     assert len(data["loads"]) == 2 and load_yaml(out / "world.yaml") == WORLD
     assert main(["map", "merge", str(r0), "--out", str(out), "-q"]) == 1  # exists, no --force
+
+
+def test_merge_does_not_average_down_what_flights_share(tmp_path):
+    """Ten flights of the same labels and camera: each label's print / mount error is the same in
+    every flight (S), the rest independent (COV).  Fused as if all independent, the merged maps
+    are overconfident; with the shared part kept, their NEES is ~3."""
+    rng = np.random.default_rng(3)
+    S = np.diag([0.004, 0.006, 0.004]) ** 2
+    nees_kept, nees_ignored = [], []
+    for trial in range(6):
+        truth = {f"L{i}": np.array([1.0 + 0.1 * i, 2.7, 1.4]) for i in range(8)}
+        common = {i: np.linalg.cholesky(S) @ rng.normal(size=3) for i in truth}
+        flights = [
+            {i: p + common[i] + np.linalg.cholesky(COV) @ rng.normal(size=3) for i, p in truth.items()}
+            for _ in range(10)
+        ]
+        for shared, out in ((S, nees_kept), (None, nees_ignored)):
+            runs = []
+            for k, loads in enumerate(flights):
+                root = tmp_path / f"t{trial}-{shared is None}-{k}"
+                if shared is None:  # the same covariance, but nothing marked shared
+                    root.mkdir(parents=True)
+                    _fake_run(root / "r", loads, shared=None)
+                    js = root / "r" / "loads_smoother.json"
+                    data = json.loads(js.read_text())
+                    for l in data["loads"]:
+                        l["cov_world_m2"] = (COV + S).tolist()
+                    js.write_text(json.dumps(data))
+                    runs.append(load_run(root / "r"))
+                else:
+                    runs.append(load_run(_fake_run(root, loads, shared=S)))
+            res = merge_runs(runs)
+            assert res.changes == []
+            for l in res.loads:
+                d = l.p_world - truth[l.load_id]
+                out.append(d @ np.linalg.solve(l.cov_world, d))
+            if shared is not None:
+                np.testing.assert_allclose(res.loads[0].cov_shared, S)
+                np.testing.assert_allclose(res.loads[0].cov_world, COV / 10 + S)
+    assert 1.5 < np.mean(nees_kept) < 5.0  # 48 loads, chi2(3)
+    assert np.mean(nees_ignored) > 8.0

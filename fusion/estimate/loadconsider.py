@@ -27,6 +27,9 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Four e
   -R_wb [R_bc p_cam]x dtheta, a shift dt by R_wb dt (the level frame's R for a gimbaled
   camera).  On a real drone this is likely the largest of the four: 0.1 deg is 2 mm at 1.25 m.
 
+The label's and the mount's terms are also kept apart (`LoadEstimate.cov_shared`): every flight
+of that label and front camera shares them, so `fusion map merge` does not average them down.
+
 A common error theta moves sighting i's world point by u_i theta; the load's estimate, a mean of
 its sightings, by u theta, u the mean of the u_i: covariance sigma_theta^2 u u^T.  The plain
 mean, not the camera-frame information weights: those credit the sightings' bearings, 5-15x
@@ -74,11 +77,16 @@ def add_load_consider_covariance(
             out.append(est)
             continue
         pose_cov, u_print, u_stamp, U_rot, U_shift = term
-        cov = np.asarray(est.cov_world, dtype=float) + pose_cov
-        cov += side_sigma_rel**2 * np.outer(u_print, u_print)
+        # the label's and the mount's are every flight's of this label and camera (cov_shared)
+        shared = side_sigma_rel**2 * np.outer(u_print, u_print)
+        shared += sigma_rot**2 * U_rot @ U_rot.T + sigma_shift**2 * U_shift @ U_shift.T
+        cov = np.asarray(est.cov_world, dtype=float) + pose_cov + shared
         cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
-        cov += sigma_rot**2 * U_rot @ U_rot.T + sigma_shift**2 * U_shift @ U_shift.T
-        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs))
+        if est.cov_shared is not None:
+            shared = shared + est.cov_shared
+        out.append(
+            LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, 0.5 * (shared + shared.T))
+        )
     return LoadMap(load_map.name, out)
 
 
@@ -152,5 +160,5 @@ def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) ->
             continue
         d = np.asarray(centres, dtype=float) - np.asarray(est.p_world, dtype=float)
         cov = np.asarray(est.cov_world, dtype=float) + d.T @ d / len(d)
-        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs))
+        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, est.cov_shared))
     return LoadMap(load_map.name, out)

@@ -137,6 +137,8 @@ def write_loads_json(path: Path, load_map: LoadMap) -> None:
                 "p_world_m": [float(v) for v in l.p_world],
                 "cov_world_m2": None if l.cov_world is None else np.asarray(l.cov_world).tolist(),
                 "n_obs": int(l.n_obs),
+                # the part every flight of this label and camera shares (LoadEstimate.cov_shared)
+                **({} if l.cov_shared is None else {"cov_shared_m2": np.asarray(l.cov_shared).tolist()}),
             }
             for l in sorted(load_map.loads, key=lambda l: l.load_id)
         ],

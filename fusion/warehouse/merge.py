@@ -3,9 +3,12 @@
 Runs are taken in the order given (flight order).  For each load id the merged state (p, P) is
 the information-weighted fusion of its estimates since it last changed (covariance intersection
 is not needed: the flights' load errors are independent given the floor, whose placement error
-the as-built floor codes of item 1 will take over):
+the as-built floor codes of item 1 will take over), except the part every flight shares
+(`LoadEstimate.cov_shared`: the label's print error and the front camera's mount error,
+fusion.estimate.loadconsider), which no number of flights averages down: with A_i = P_i - S_i,
 
-    P = (sum_i P_i^-1)^-1,   p = P sum_i P_i^-1 p_i          (Bar-Shalom et al. 2001, eq. 8.4-5)
+    A = (sum_i A_i^-1)^-1,   p = A sum_i A_i^-1 p_i          (Bar-Shalom et al. 2001, eq. 8.4-5)
+    P = A + S,  S the largest S_i (by trace; one label, one camera: the S_i are alike)
 
 Between the state and a new flight's estimate (p_k, P_k) of the same id the change test of
 `inventory.moved_test` runs with covariance P + P_k + MERGE_TOLERANCE_M^2 I:
@@ -65,6 +68,7 @@ class MergedLoad:
     n_obs: int
     n_runs: int  # flights fused into this estimate (since its last change)
     last_run: int  # index of the last flight that read it
+    cov_shared: np.ndarray | None = None  # (3, 3) m^2: the part of cov_world every flight shares
 
 
 @dataclass
@@ -113,11 +117,25 @@ def check_same_warehouse(runs: list[RunOutputs]) -> dict:
     return ref
 
 
-def _fuse(p_a, P_a, p_b, P_b) -> tuple[np.ndarray, np.ndarray]:
-    """Information-weighted fusion of two independent estimates (module docstring)."""
-    I_a, I_b = np.linalg.inv(P_a), np.linalg.inv(P_b)
-    P = np.linalg.inv(I_a + I_b)
-    return P @ (I_a @ p_a + I_b @ p_b), 0.5 * (P + P.T)
+def _fuse(p_a, P_a, S_a, p_b, P_b, S_b) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(p, P, S): information-weighted fusion of two estimates whose covariances P_a, P_b hold
+    the shared parts S_a, S_b (None: nothing shared), which are not averaged down (module
+    docstring).  A part P - S that is not positive definite is taken as P (S as 0)."""
+    A_a, A_b = _independent(P_a, S_a), _independent(P_b, S_b)
+    I_a, I_b = np.linalg.inv(A_a), np.linalg.inv(A_b)
+    A = np.linalg.inv(I_a + I_b)
+    shared = [S for S, A_, P in ((S_a, A_a, P_a), (S_b, A_b, P_b)) if S is not None and A_ is not P]
+    S = max(shared, key=lambda m: float(np.trace(m))) if shared else None
+    P = A if S is None else A + S
+    return A @ (I_a @ p_a + I_b @ p_b), 0.5 * (P + P.T), S
+
+
+def _independent(P: np.ndarray, S: np.ndarray | None) -> np.ndarray:
+    """P - S when positive definite, else P."""
+    if S is None:
+        return P
+    A = P - S
+    return A if np.linalg.eigvalsh(0.5 * (A + A.T))[0] > 0 else P
 
 
 def merge_runs(runs: list[RunOutputs]) -> MergeResult:
@@ -139,20 +157,21 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
         for lid, l in sorted(seen.items()):
             cur = state.get(lid)
             p_new, P_new = np.asarray(l.p_world, float), np.asarray(l.cov_world, float)
+            S_new = None if l.cov_shared is None else np.asarray(l.cov_shared, float)
             if cur is None:
                 if k > 0:
                     changes.append(Change(lid, ChangeKind.APPEARED, k, None, p_new, n_obs=l.n_obs))
-                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k)
+                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new)
                 continue
             dist, sigma, stat, pval = moved_test(p_new, cur.cov_world + P_new, cur.p_world, MERGE_TOLERANCE_M)
             if pval < MOVED_ALPHA:
                 changes.append(
                     Change(lid, ChangeKind.MOVED, k, cur.p_world, p_new, dist, sigma, stat, pval, l.n_obs)
                 )
-                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k)
+                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new)
             else:
-                p, P = _fuse(cur.p_world, cur.cov_world, p_new, P_new)
-                state[lid] = MergedLoad(lid, p, P, cur.n_obs + l.n_obs, cur.n_runs + 1, k)
+                p, P, S = _fuse(cur.p_world, cur.cov_world, cur.cov_shared, p_new, P_new, S_new)
+                state[lid] = MergedLoad(lid, p, P, cur.n_obs + l.n_obs, cur.n_runs + 1, k, S)
         unseen = sorted(set(state) - set(seen))
         if k == 0 or not unseen:
             continue
@@ -218,6 +237,7 @@ def write_merge(out: Path, result: MergeResult) -> None:
                 "id": l.load_id,
                 "p_world_m": l.p_world.tolist(),
                 "cov_world_m2": l.cov_world.tolist(),
+                **({} if l.cov_shared is None else {"cov_shared_m2": l.cov_shared.tolist()}),
                 "n_obs": int(l.n_obs),
                 "n_runs": int(l.n_runs),
                 "last_run": int(l.last_run),

@@ -142,11 +142,12 @@ def read_load_map(out_dir: Path, estimator: str) -> LoadMap:
             loads = []
             for i, l in enumerate(data["loads"]):
                 p = np.asarray(l["p_world_m"], dtype=float).reshape(3)
-                cov = l.get("cov_world_m2")
+                cov, shared = (l.get(k) for k in ("cov_world_m2", "cov_shared_m2"))
                 cov = None if cov is None else np.asarray(cov, dtype=float).reshape(3, 3)
-                if not np.all(np.isfinite(p)) or (cov is not None and not np.all(np.isfinite(cov))):
+                shared = None if shared is None else np.asarray(shared, dtype=float).reshape(3, 3)
+                if not all(x is None or np.all(np.isfinite(x)) for x in (p, cov, shared)):
                     raise ValueError(f"load {i}: non-finite value")
-                loads.append(LoadEstimate(str(l["id"]), p, cov, int(l.get("n_obs", 0))))
+                loads.append(LoadEstimate(str(l["id"]), p, cov, int(l.get("n_obs", 0)), shared))
         except (ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
             raise WarehouseError(f"{js}: malformed load map ({e.__class__.__name__}: {e})") from None
         return LoadMap(estimator, loads)
