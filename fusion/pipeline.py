@@ -1526,7 +1526,7 @@ def _add_load_consider(
 ) -> None:
     """Every load map's covariance plus the errors common to all sightings of a code
     (fusion.estimate.loadconsider): the body pose's, the label's print error, the front camera's
-    stamps.  The pose's from the batch smoother's covariances for every map (the part of the
+    stamps and mount.  The pose's from the batch smoother's covariances for every map (the part of the
     pose error the flight cannot average away, the same for every back end: they share the
     fixes), else from the map's own trajectory (a localize run: PnP's, conservative).  An id
     read at several `places` (loads_at_two_places) gains their spread about its estimate,
