@@ -11,10 +11,13 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Four e
   what the back ends model as white).  Measured on the demo flight (BENCHMARKS.md, fourteenth
   session): the sightings placed with the true poses have mean errors of -0.04 to +0.01 mm;
   with the PnP poses 0.1-0.36 mm, the same in every back end's map, whose sigmas were 0.01-0.04
-  mm (load-map NEES: smoother 18, EKF 150, of 3).  So each load's covariance gains the pose's
-  own, mean_i J_i P_i J_i^T (J_i the world point's Jacobian with respect to the body pose, P_i
-  the map's own pose covariance at that frame): the pose error taken as common to the sightings
-  (an upper bound, first order; the smoothers' landmark marginals hold the part they model);
+  mm (load-map NEES: smoother 18, EKF 150, of 3).  So each load's covariance gains the pose's,
+  mean_i J_i P_i J_i^T (J_i the world point's Jacobian with respect to the body pose, P_i the
+  `trajectory`'s pose covariance at that frame): the pose error taken as common to the
+  sightings.  The run passes the batch smoother's trajectory for every map (pipeline.
+  _add_load_consider): the slow part of the pose error is the fixes', shared by every back end,
+  and the smoother's P is the closest measure of it; each map's own P, mostly white noise for PnP
+  and the EKF, made their maps 3-10x too conservative (BENCHMARKS.md, fourteenth session);
 - the printed side: a label printed s (1 + e) instead of world.yaml's s puts every sighting e
   p_cam farther along its ray (e per label; sigma from world.yaml's `load_qr.side_sigma_m`,
   `World.load_side_sigma_rel`);
@@ -63,8 +66,8 @@ def add_load_consider_covariance(
     stamp_variance_s2: float = 0.0,
 ) -> LoadMap:
     """`load_map` with each load's covariance plus the module docstring's consider terms, from
-    its camera-frame `observations` (p_cam) hung from `trajectory` (the map's own poses and
-    covariances) through `camera`'s mount.  Loads without a covariance, or without a sighting
+    its camera-frame `observations` (p_cam) hung from `trajectory` (poses and covariances) through
+    `camera`'s mount.  Loads without a covariance, or without a sighting
     near a pose, are kept as they are (a new LoadMap; the estimates are not moved)."""
     if trajectory is None or not len(trajectory) or not load_map.loads:
         return load_map
