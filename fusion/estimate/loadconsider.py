@@ -17,7 +17,8 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Four e
   sightings.  The run passes the batch smoother's trajectory for every map (pipeline.
   _add_load_consider): the slow part of the pose error is the fixes', shared by every back end,
   and the smoother's P is the closest measure of it; each map's own P, mostly white noise for PnP
-  and the EKF, made their maps 3-10x too conservative (BENCHMARKS.md, fourteenth session);
+  and the EKF, made their maps too conservative (NEES 0.0-1.7 of 3; BENCHMARKS.md, fourteenth
+  session);
 - the printed side: a label printed s (1 + e) instead of world.yaml's s puts every sighting e
   p_cam farther along its ray (e per label; sigma from world.yaml's `load_qr.side_sigma_m`,
   `World.load_side_sigma_rel`);
