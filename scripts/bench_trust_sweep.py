@@ -1,0 +1,149 @@
+"""End-to-end honesty on flights the model was not tuned on (issue 10.3, trust): simulate a sweep
+of short flights that vary what the tuned ones did not (resolution, frame rate, focal length,
+lens distortion, velocity-sensor rate, camera effects, rolling shutter, time offsets, a gimbaled
+floor camera), run `fusion run` on each, and tabulate per back end the 6-dof pose NEES (band
+[3, 12]) and the load map's 3-dof NEES against the 95 % interval of the mean of the flight's load
+count (metrics.json `mean_interval_95_independent`), with ATE and health.
+
+    python3 scripts/bench_trust_sweep.py WORK [--flights NAME ...] [--table OUT.md]
+
+Flights are simulated once into WORK/flights/NAME (kept, reused); runs go to WORK/runs/NAME (a
+`detections.csv` already there is reused by `fusion run` when the images are unchanged).  The
+flights are the thirteenth session's sweep (BENCHMARKS.md, "Trust on flights the model was not
+tuned on"); the load-map columns are the fourteenth session's table.  Slow: 1-3 minutes per flight
+on 2 cores (most of it rendering and detection); every flight is independent, so a subset can be
+run with --flights.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+FLIGHTS: dict[str, str] = {
+    "demo20": "--duration 20",
+    "clip22d1": "--duration 12 --seed 0 --overexposure 2.2 --defocus 1",
+    "r800": "--duration 12 --seed 1 --start 5 --resolution 800x600",
+    "r1024": "--duration 10 --seed 2 --start 10 --resolution 1024x768",
+    "r1280": "--duration 8 --seed 3 --start 15 --resolution 1280x960",
+    "r320": "--duration 12 --seed 4 --resolution 320x240",
+    "fps10": "--duration 20 --seed 6 --fps 10",
+    "fps15": "--duration 15 --seed 7 --start 8 --fps 15",
+    "fps60": "--duration 8 --seed 8 --start 20 --fps 60",
+    "f07": "--duration 12 --seed 9 --focal-scale 0.7",
+    "barrel": "--duration 12 --seed 11 --distortion -0.35 0.12 0.001 -0.001",
+    "pincush": "--duration 12 --seed 12 --start 4 --distortion 0.25 0.08 -0.001 0.001",
+    "vel5": "--duration 15 --seed 13 --velocity-rate-hz 5",
+    "vel10": "--duration 12 --seed 14 --start 10 --velocity-rate-hz 10",
+    "vel100": "--duration 12 --seed 15 --velocity-rate-hz 100",
+    "real": "--duration 12 --seed 16 --camera-effects realistic",
+    "real_n8j60": "--duration 12 --seed 17 --start 7 --camera-effects realistic --noise 8 --jpeg 60",
+    "real_e30": "--duration 12 --seed 18 --camera-effects realistic --exposure 0.03",
+    "ro10": "--duration 12 --seed 19 --readout-ms 10",
+    "ro25real": "--duration 12 --seed 20 --start 5 --readout-ms 25 --camera-effects realistic",
+    "to8": "--duration 15 --seed 21 --time-offset-ms 8",
+    "tom12": "--duration 15 --seed 22 --start 5 --time-offset-ms -12",
+    "gimb": "--duration 15 --seed 23 --scenario gimbaled",
+    "gimb_r800": "--duration 12 --seed 24 --scenario gimbaled --resolution 800x600 --fps 15",
+    "gimb27": "--duration 12 --seed 27 --start 4 --scenario gimbaled",
+    "f07_r800_barrel": (
+        "--duration 12 --seed 25 --focal-scale 0.7 --resolution 800x600 --distortion -0.3 0.1 0 0"
+    ),
+    "fps10_vel5_to5": "--duration 20 --seed 26 --fps 10 --velocity-rate-hz 5 --time-offset-ms 5",
+}
+ESTIMATORS = ("pnp", "smoother", "incremental", "ekf")
+POSE_BAND = (3.0, 12.0)
+
+
+def fusion(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "fusion.cli", *args], capture_output=True, text=True)
+
+
+def run_flight(work: Path, name: str) -> dict:
+    """Simulate (once) and run one flight; its row: per estimator (pose NEES 6, load NEES 3, its
+    interval, ATE mm, health), the warnings, the wall time."""
+    flight, out = work / "flights" / name, work / "runs" / name
+    t0 = time.time()
+    if not (flight / "mav0").exists():
+        r = fusion("simulate", str(flight), *shlex.split(FLIGHTS[name]), "--workers", "1", "-q")
+        if r.returncode:
+            return {"name": name, "error": f"simulate: {r.stderr.strip().splitlines()[-1:]}"}
+    out.mkdir(parents=True, exist_ok=True)
+    r = fusion("run", str(flight), "--out", str(out), "--workers", "1", "-q", "--force")
+    if not (out / "metrics.json").exists():
+        return {"name": name, "error": f"run: {r.stderr.strip().splitlines()[-1:]}"}
+    m = json.loads((out / "metrics.json").read_text())
+    row: dict = {"name": name, "wall_s": round(time.time() - t0, 1)}
+    for est in ESTIMATORS:
+        t = m.get("trajectories", {}).get(est, {})
+        lm = (m.get("load_maps", {}).get(est) or {}).get("nees_3dof") or {}
+        ate = t.get("ate_rmse_m")
+        row[est] = {
+            "pose_nees6": (t.get("nees_pose_6dof") or {}).get("nees_mean"),
+            "load_nees3": lm.get("nees_mean"),
+            "loads": lm.get("n", 0),
+            "interval": lm.get("mean_interval_95_independent"),
+            "ate_mm": None if ate is None else 1e3 * ate,
+            "health": (m.get("health", {}).get(est) or {}).get("status"),
+        }
+    row["warnings"] = [f"{w['name']} x{w['count']}" for w in m.get("warnings", [])]
+    return row
+
+
+def cell(v: float | None, lo: float, hi: float) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.1f}" if lo <= v <= hi else f"**{v:.1f}**"
+
+
+def table(rows: list[dict]) -> str:
+    cols = " | ".join(f"{e} pose / loads" for e in ESTIMATORS)
+    lines = [f"| flight | {cols} | loads (interval) | warnings |", "|" + "---|" * (len(ESTIMATORS) + 3)]
+    inside = total = 0
+    for row in rows:
+        if "error" in row:
+            lines.append(f"| {row['name']} | {row['error']} |" + " |" * (len(ESTIMATORS) + 1))
+            continue
+        cells = []
+        interval = row[ESTIMATORS[0]]["interval"] or row["smoother"]["interval"]
+        for est in ESTIMATORS:
+            r = row[est]
+            lo, hi = interval or (0.0, float("inf"))
+            cells.append(f"{cell(r['pose_nees6'], *POSE_BAND)} / {cell(r['load_nees3'], lo, hi)}")
+            if r["load_nees3"] is not None and interval:
+                total += 1
+                inside += lo <= r["load_nees3"] <= hi
+        n = row["smoother"]["loads"] or row["pnp"]["loads"]
+        where = f"{n} ({interval[0]:.1f}–{interval[1]:.1f})" if interval else str(n)
+        warned = ", ".join(row["warnings"])
+        lines.append(f"| {row['name']} | " + " | ".join(cells) + f" | {where} | {warned} |")
+    lines.append("")
+    lines.append(f"Load maps inside their interval: {inside} of {total}. Bold: outside the band / interval.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("work", type=Path)
+    ap.add_argument("--flights", nargs="+", choices=sorted(FLIGHTS), default=list(FLIGHTS))
+    ap.add_argument("--table", type=Path, help="write the markdown table here too")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.flights:
+        row = run_flight(args.work, name)
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    text = table(rows)
+    print(text)
+    if args.table:
+        args.table.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
