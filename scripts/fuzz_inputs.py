@@ -31,6 +31,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 
 TEXT_SUFFIXES = (".csv", ".yaml", ".json")
 GRAVITY = 9.80665
@@ -245,6 +246,20 @@ def _world_side_zero(d: Path) -> None:
     p.write_text(re.sub(r"side_m: [0-9.]+", "side_m: 0", p.read_text(), count=1))
 
 
+def _world_load_sigma_mm(d: Path) -> None:
+    """The labels' print error given in mm (0.3 meaning 0.3 mm): 0.3 m, twice the side."""
+    data = yaml.safe_load((d / "world.yaml").read_text())
+    data.setdefault("load_qr", {})["side_sigma_m"] = 0.3
+    (d / "world.yaml").write_text(yaml.safe_dump(data))
+
+
+def _sensor_mount_sigma_mm(d: Path) -> None:
+    """The front camera's mount sigma given in mm (2 meaning 2 mm): 2 m."""
+    p = d / "mav0/cam1/sensor.yaml"
+    lines = [line for line in _lines(p) if not line.startswith("T_BS_sigma_m:")]
+    _set_lines(p, [*lines, "T_BS_sigma_m: 2\n"])
+
+
 def _groundtruth_short_row(d: Path) -> None:
     p = d / "mav0/state_groundtruth_estimate0/data.csv"
     ls = _lines(p)
@@ -312,6 +327,8 @@ CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "world_missing": ("world.yaml deleted", _world_missing),
     "world_side_cm": ("world.yaml floor side in cm", _world_side_cm),
     "world_side_zero": ("world.yaml floor side 0", _world_side_zero),
+    "world_load_sigma_mm": ("world.yaml load_qr.side_sigma_m 0.3 (mm meant)", _world_load_sigma_mm),
+    "sensor_mount_sigma_mm": ("cam1/sensor.yaml T_BS_sigma_m 2 (mm meant)", _sensor_mount_sigma_mm),
     "groundtruth_short_row": ("ground truth: a row of 3 fields", _groundtruth_short_row),
     "groundtruth_other_frame": ("ground truth 100 m off in x", _groundtruth_other_frame),
     "loads_text": ("loads_groundtruth.csv: a coordinate 'abc'", _loads_text),
