@@ -503,6 +503,11 @@ CASES_BY_KIND = {"euroc": EUROC_CASES, "video": VIDEO_CASES, "bag": BAG_CASES}
 ALL_CASES = {**EUROC_CASES, **VIDEO_CASES, **BAG_CASES}
 
 
+NEED_ROWS = (("imu0", 901), ("cam0", 61))
+"""Rows a EuRoC flight's streams need: the cases break rows at fixed places (IMU row 900, camera
+row 60), an 8 s simulated flight has them."""
+
+
 def flight_kind(flight: Path) -> str:
     """'bag' (a .bag or .mcap file), 'video' (a folder with cam0.mkv / camchain) or 'euroc'."""
     if flight.is_file():
@@ -531,6 +536,14 @@ def main() -> int:
     if wrong:
         ap.error(f"{', '.join(wrong)}: not a case for a {log_kind} log (see --list)")
     args.cases = args.cases or list(CASES_BY_KIND[log_kind])
+    if log_kind == "euroc":
+        short = [
+            f"{p.relative_to(args.flight)} has {n - 1} rows, the cases need {need}"
+            for p, need in ((args.flight / f"mav0/{stream}/data.csv", need) for stream, need in NEED_ROWS)
+            if p.exists() and (n := len(_lines(p))) - 1 < need
+        ]
+        if short:
+            ap.error(f"{args.flight}: too short a flight ({'; '.join(short)}): simulate one of 8 s or more")
     print(
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {platform.machine()}, "
         f"{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; flight {args.flight}\n"
