@@ -57,7 +57,7 @@ from fusion.estimate.extrinsics import (
 )
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.health import tilt_disagreement
-from fusion.estimate.loadconsider import add_load_consider_covariance, add_places_spread
+from fusion.estimate.loadconsider import add_departure, add_load_consider_covariance, add_places_spread
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -1530,7 +1530,8 @@ def _add_load_consider(
     pose error the flight cannot average away, the same for every back end: they share the
     fixes), else from the map's own trajectory (a localize run: PnP's, conservative).  An id
     read at several `places` (loads_at_two_places) gains their spread about its estimate,
-    mean_k (c_k - p)(c_k - p)^T: where that label is, the map cannot say."""
+    mean_k (c_k - p)(c_k - p)^T: where that label is, the map cannot say.  Last, every other
+    map gains its departure from the smoother's map (loadconsider.add_departure)."""
     assert log.front is not None
     offsets = result.time_offsets
     front = None if offsets is None else offsets.cameras.get(CameraRole.FRONT.value)
@@ -1548,6 +1549,12 @@ def _add_load_consider(
         )
         if places:
             result.load_maps[name] = add_places_spread(result.load_maps[name], places)
+    # every other map's departure from the batch smoother's (loadconsider.add_departure)
+    reference = result.load_maps.get(str(Estimator.SMOOTHER))
+    if reference is not None:
+        for name in result.load_maps:
+            if name != str(Estimator.SMOOTHER):
+                result.load_maps[name] = add_departure(result.load_maps[name], reference)
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

@@ -260,3 +260,17 @@ def test_a_run_names_a_label_read_at_two_places(tmp_path, capsys):
         with open(out / f"loads_{est}.csv", encoding="utf-8") as f:
             row = next(r for r in csv.DictReader(f) if r["id"] == "P-01-2")
         assert float(row["sigma_x_m"]) > 0.5, est  # the places are 2 m apart along x
+
+
+def test_a_maps_departure_from_the_smoothers_is_added():
+    from fusion.estimate.loadconsider import add_departure
+
+    own = np.diag([1e-8, 4e-8, 1e-8])
+    ref = LoadMap("smoother", [LoadEstimate("L1", LOAD, np.eye(3) * 1e-8, 50)])
+    moved = LOAD + [0.0003, -0.0004, 0.0]
+    lm = LoadMap("ekf", [LoadEstimate("L1", moved, own, 50, np.eye(3)), LoadEstimate("L2", LOAD, own, 9)])
+    out = add_departure(lm, ref)
+    d = moved - LOAD
+    assert np.allclose(out.loads[0].cov_world, own + np.outer(d, d), atol=1e-18)
+    assert out.loads[0].p_world is moved and np.array_equal(out.loads[0].cov_shared, np.eye(3))
+    assert out.loads[1].cov_world is own  # not in the smoother's map: kept

@@ -166,3 +166,27 @@ def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) ->
         cov = np.asarray(est.cov_world, dtype=float) + d.T @ d / len(d)
         out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, est.cov_shared))
     return LoadMap(load_map.name, out)
+
+
+def add_departure(load_map: LoadMap, reference: LoadMap) -> LoadMap:
+    """`load_map` with each load's covariance plus d d^T, d its departure from the `reference`
+    map's estimate of the same load (the batch smoother's: the best estimate the flight has).
+    Why: this map's error is d plus the reference's error, and d is known in the run; for an
+    estimate whose error is orthogonal to the departure (the smoother's, in the linear-Gaussian
+    case: d is a function of the data) its mean squared error is the reference's plus d d^T, so
+    the map's own covariance plus d d^T errs on the safe side.  The filter's lag (EKF) and the
+    per-frame poses' noise (PnP) move a load slowly over its sightings, which the map's own
+    covariance averages away: on the sweep's 28 flights the EKF's load maps outside the chi2
+    interval of their load count on 9, on 2 with d d^T (BENCHMARKS.md, fourteenth session).
+    Loads without a covariance, or that the reference does not hold, are kept."""
+    ref = {est.load_id: est for est in reference.loads}
+    out = []
+    for est in load_map.loads:
+        r = ref.get(est.load_id)
+        if est.cov_world is None or r is None:
+            out.append(est)
+            continue
+        d = np.asarray(est.p_world, dtype=float) - np.asarray(r.p_world, dtype=float)
+        cov = np.asarray(est.cov_world, dtype=float) + np.outer(d, d)
+        out.append(LoadEstimate(est.load_id, est.p_world, cov, est.n_obs, est.cov_shared))
+    return LoadMap(load_map.name, out)
