@@ -881,7 +881,7 @@ def level_batch_start(
         T = np.array([values.atPose3(X(k)).matrix() for k in range(n)])
         cov = np.array([marg.marginalCovariance(X(k)) for k in range(n)])
     except (RuntimeError, ValueError, EstimationError) as e:
-        log.warning("EKF: no batch start from the first level fixes (%s); starting at the first fix", e)
+        log.warning("no batch start from the first level fixes (%s); starting at the first fix", e)
         return None
     bias = values.atConstantBias(B(n - 1))
     return LevelStart(
