@@ -356,25 +356,59 @@ def test_incremental_gimbaled_start_mid_roll_tilt_is_consistent():
     assert np.mean(nees) <= 4.0 and max(nees) < 8.0, nees
 
 
-def test_incremental_batch_start_is_the_window_solve_and_body_fixed_flights_do_not_take_it():
+def aisle_load_sightings(fl: dict, seed: int) -> tuple[list[LoadObservation], dict]:
+    """Sightings of two rack codes by the gimbaled front camera (every second frame, 5 / 5 /
+    10 mm noise): "A" is in view from the flight's start, "B" only later."""
+    cam = make_cameras(mount="gimbaled")["cam1"]
+    loads = {"A": np.array([1.5, 2.7, 1.4]), "B": np.array([3.5, 2.7, 1.4])}
+    rng = np.random.default_rng(100 + seed)
+    cov_cam = np.diag([0.005, 0.005, 0.01]) ** 2
+    obs = []
+    for k in range(0, len(fl["frame_t"]), 2):
+        for load_id, p_world in loads.items():
+            p_cam = (inv_T(cam.T_world_cam(fl["T_true"][k])) @ np.r_[p_world, 1.0])[:3]
+            if p_cam[2] > 0.3 and abs(p_cam[0]) < p_cam[2] and abs(p_cam[1]) < p_cam[2]:
+                noise = rng.standard_normal(3) * np.sqrt(np.diag(cov_cam))
+                obs.append(
+                    LoadObservation(int(fl["frame_t"][k]), load_id, np.zeros(3), None, p_cam + noise, cov_cam)
+                )
+    return obs, loads
+
+
+@pytest.mark.parametrize("with_loads", [False, True])
+def test_incremental_batch_start_is_the_window_solve_and_body_fixed_flights_do_not_take_it(with_loads):
     """The incremental smoother's output over the start window is the batch solve's (poses and
-    marginals); full-pose fixes observe the tilt and take no batch start: the outputs are those
-    with the start switched off, to the bit."""
+    marginals), and its first own frame's marginal is the batch's there: with load sightings
+    in the window too (their loads enter the joint prior, none is lost).  Full-pose fixes
+    observe the tilt and take no batch start: the outputs are those with the start switched
+    off, to the bit."""
     fl = aisle_flight(0)
     cfg = FusionConfig()
-    res = smooth_incremental(fl["frame_t"], fl["imu"], fl["raw"], [], floor_camera=fl["floor"], config=cfg)
+    obs, loads = aisle_load_sightings(fl, 0) if with_loads else ([], {})
+    cam = make_cameras(mount="gimbaled")["cam1"] if with_loads else None
+    res = smooth_incremental(
+        fl["frame_t"], fl["imu"], fl["raw"], obs, cam, floor_camera=fl["floor"], config=cfg
+    )
     rawp = prepare_raw(fl["frame_t"], fl["raw"], cfg)
     k0 = int(rawp.frame_idx[inlier_raw_mask(rawp, cfg, fl["frame_t"])].min())
-    start = level_batch_start(fl["frame_t"], fl["imu"], rawp, k0, None, fl["floor"], cfg)
+    start = level_batch_start(
+        fl["frame_t"], fl["imu"], rawp, k0, None, fl["floor"], cfg, load_obs=obs, front_camera=cam
+    )
     assert start is not None
+    assert start.load_ids == (("A",) if with_loads else ())
     n = res.stats["batch_start_frames"]
     assert n == start.k_end - k0 + 1
     np.testing.assert_allclose(res.trajectory.T_world_body[: n - 1], start.T_world_body[:-1], atol=1e-12)
     np.testing.assert_allclose(res.trajectory.covariances[: n - 1], start.cov_body[:-1], atol=1e-18)
-    # at the window's last frame the engine's estimate starts from the batch's, its marginal
-    # no wider than the batch's (the prior plus that frame's load-free factors: none here)
+    # at the window's last frame the engine holds the batch's joint prior and nothing else
     np.testing.assert_allclose(res.trajectory.T_world_body[n - 1], start.T_world_body[-1], atol=1e-6)
-    np.testing.assert_allclose(res.trajectory.covariances[n - 1], start.cov_body[-1], rtol=1e-4, atol=1e-15)
+    np.testing.assert_allclose(res.trajectory.covariances[n - 1], start.cov_body[-1], rtol=1e-6, atol=1e-15)
+    if with_loads:
+        by_id = res.loads.by_id()
+        assert set(by_id) == set(loads)
+        for load_id, p_world in loads.items():
+            d = by_id[load_id].p_world - p_world
+            assert d @ np.linalg.solve(by_id[load_id].cov_world, d) < 16.3  # chi2(3) 99.9 %
     body = make_flight(seed=0)
     on = smooth_incremental(body["frame_t"], body["imu"], body["raw"], [], floor_camera=body["floor"])
     off = smooth_incremental(

@@ -1511,12 +1511,14 @@ def level_start(
     front_camera: CameraModel | None,
     config: FusionConfig,
     floor_camera: CameraModel | None,
+    load_obs: list[LoadObservation] | None = None,
 ) -> LevelStart | None:
     """The incremental smoother's batch start (ekf.level_batch_start, the EKF's: a batch solve
     of the level fixes within `config.ekf_level_start_s` of the first inlier fix and the joint
     marginal of its last frame's pose, velocity and biases), or None: without level fixes
     (RawPoseInput.LEVEL_POSE: a gimbaled floor camera's PnP poses), without an IMU, with the
-    start switched off (0 s) or when the window has too few fixes or its solve fails.
+    start switched off (0 s) or when the window has too few fixes or its solve fails.  The
+    load sightings within the window are in its solve (their loads in the joint marginal).
 
     Why: the engine otherwise starts at the first fix with roll / pitch at the level fix's 0
     +- `initial_roll_pitch_sigma_rad` (the truth may roll 13 deg).  iSAM2 takes one Gauss-Newton
@@ -1542,7 +1544,17 @@ def level_start(
     inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config)
     if inp.imu is None:
         return None
-    return level_batch_start(inp.frame_t, inp.imu, inp.raw, pb.k_first, inp.velocity, floor_camera, config)
+    return level_batch_start(
+        inp.frame_t,
+        inp.imu,
+        inp.raw,
+        pb.k_first,
+        inp.velocity,
+        floor_camera,
+        config,
+        load_obs=load_obs,
+        front_camera=inp.front_camera,
+    )
 
 
 def level_start_prior(
@@ -1551,17 +1563,50 @@ def level_start_prior(
     pose: gtsam.Pose3,
     velocity: np.ndarray,
     bias: gtsam.imuBias.ConstantBias,
+    loads: list[tuple[int, np.ndarray]] | None = None,
+    joint_loads: np.ndarray | None = None,
 ) -> gtsam.LinearContainerFactor:
     """A Gaussian prior on [X(k), V(k), B(k)] jointly: mean (pose, velocity, bias), covariance
     `joint` (15, 15) in GTSAM's tangent order of those blocks (Pose3 [rot, trans], then the
     velocity, then ConstantBias [accel, gyro]: ekf.LevelStart.joint), as the linear factor
     I dx = 0 with that covariance held at the mean, whitened (W dx = 0, W = chol(joint)^-1: the
     wrapped JacobianFactor takes a diagonal model only) (gtsam.LinearContainerFactor: its error
-    at other values through each variable's localCoordinates, the chart GTSAM's Marginals use)."""
+    at other values through each variable's localCoordinates, the chart GTSAM's Marginals use).
+    `loads` [(key, p_world (3,))] with `joint_loads` (15 + 3m, 15 + 3m), the joint covariance
+    of [X, V, B, loads...]: the prior is on all of them, as the information matrix summed from
+    one- and two-key HessianFactors (the wrapper builds a factor on at most three keys)."""
     lin = gtsam.Values()
     lin.insert(j=X(k), pose3=pose)
     lin.insert(V(k), np.asarray(velocity, float))
     lin.insert(j=B(k), constant_bias=bias)
+    if loads:
+        assert joint_loads is not None  # given with loads
+        keys = [X(k), V(k), B(k)] + [key for key, _ in loads]
+        for key, p in loads:
+            lin.insert(key, np.asarray(p, float))
+        info = np.linalg.inv(0.5 * (joint_loads + joint_loads.T))
+        info = 0.5 * (info + info.T)
+        offs = np.cumsum([0, 6, 3, 6] + [3] * len(loads))
+        parts = gtsam.GaussianFactorGraph()
+        for a, ka in enumerate(keys):
+            sa = slice(offs[a], offs[a + 1])
+            parts.add(gtsam.HessianFactor(ka, info[sa, sa], np.zeros(offs[a + 1] - offs[a]), 0.0))
+            for b in range(a + 1, len(keys)):
+                sb = slice(offs[b], offs[b + 1])
+                da, db = offs[a + 1] - offs[a], offs[b + 1] - offs[b]
+                parts.add(
+                    gtsam.HessianFactor(
+                        ka,
+                        keys[b],
+                        np.zeros((da, da)),
+                        info[sa, sb],
+                        np.zeros(da),
+                        np.zeros((db, db)),
+                        np.zeros(db),
+                        0.0,
+                    )
+                )
+        return gtsam.LinearContainerFactor(gtsam.HessianFactor(parts), lin)
     W = np.linalg.inv(np.linalg.cholesky(0.5 * (joint + joint.T)))
     jf = gtsam.JacobianFactor(
         X(k), W[:, :6], V(k), W[:, 6:9], B(k), W[:, 9:], np.zeros(15), gtsam.noiseModel.Unit.Create(15)
@@ -1738,9 +1783,10 @@ def _smooth_incremental_run(
     pose_k = gtsam.Pose3(pb.T_init[k0])
     vel_k = pb.v_init[k0]
     bias_k = gtsam.imuBias.ConstantBias()
-    level = level_start(pb, frame_times_ns, imu, raw, velocity, front_camera, config, floor_camera)
+    level = level_start(pb, frame_times_ns, imu, raw, velocity, front_camera, config, floor_camera, load_obs)
     k_begin = k0  # the engine's first frame: k0, or the batch start's last frame
-    start_prior = None  # the batch start's joint prior on X, V, B at k_begin
+    start_prior = None  # the batch start's joint prior on X, V, B (and loads) at k_begin
+    start_loads: dict[int, np.ndarray] = {}  # load j -> its batch estimate (window loads)
     if level is not None:
         k_begin = start = level.k_end
         n_win = level.k_end - k0
@@ -1749,7 +1795,17 @@ def _smooth_incremental_run(
         pose_k = gtsam.Pose3(level.T_world_body[-1])
         vel_k = level.v_world
         bias_k = gtsam.imuBias.ConstantBias(level.bias_accel, level.bias_gyro)
-        start_prior = level_start_prior(k_begin, level.joint, pose_k, vel_k, bias_k)
+        # the window's loads: variables from the start (generation 0), in the joint prior
+        start_loads = {pb.load_ids.index(lid): p for lid, p in zip(level.load_ids, level.p_loads)}
+        start_prior = level_start_prior(
+            k_begin,
+            level.joint,
+            pose_k,
+            vel_k,
+            bias_k,
+            [(L(j), p) for j, p in start_loads.items()],
+            level.joint_loads,
+        )
 
     def lkey(j: int) -> int:
         return L(j + gen[j] * LOAD_GENERATION_STRIDE)
@@ -1789,9 +1845,16 @@ def _smooth_incremental_run(
             vals.insert(j=B(k), constant_bias=bias_guess)
             new_keys.append(B(k))
         if k == k_begin and start_prior is not None:
-            # the batch start: its joint marginal of pose, velocity and biases at k_begin is the
-            # prior, and the window's fixes and velocity (k_begin's too) are in it already
+            # the batch start: its joint marginal of pose, velocity, biases (and the window's
+            # loads) at k_begin is the prior, and the window's fixes, velocity and load sightings
+            # (k_begin's too) are in it already
             g.add(start_prior)
+            for j, p in start_loads.items():
+                left.pop(j, None)
+                gen[j] = 0
+                last_seen[j] = tk
+                vals.insert(L(j), np.asarray(p, float))
+                new_keys.append(L(j))
         elif fresh and k > k0:
             # restart: the state carries over as priors (velocity, bias at their estimates;
             # attitude at the guess, loosely, as a position + yaw fix leaves roll / pitch
@@ -1853,8 +1916,8 @@ def _smooth_incremental_run(
         for i in by_frame[k]:
             if oldest[i] < start or i == skip:
                 continue
-            if k == k_begin and start_prior is not None and load_of[i] < 0:
-                continue  # frame k_begin's fix and velocity: in the batch start's window
+            if k == k_begin and start_prior is not None:
+                continue  # frame k_begin's fix, velocity and loads: in the batch start's window
             f = pb.factors[i]
             j = load_of[i]
             if j >= 0:
