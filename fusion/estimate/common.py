@@ -130,9 +130,10 @@ class FusionConfig:
     unknown_velocity_sigma_m_s: float = 2.0
     # Incremental start from position + yaw fixes: roll / pitch prior (the IMU pins them next)
     initial_roll_pitch_sigma_rad: float = math.radians(10.0)
-    # EKF with level fixes (a gimbaled floor camera) and an IMU: started from a batch solve of
-    # the fixes within this many seconds of the first one, its joint marginal of pose, velocity
-    # and biases as the filter's prior (ekf.level_batch_start); 0 starts at the first fix
+    # EKF and incremental smoother with level fixes (a gimbaled floor camera) and an IMU: started
+    # from a batch solve of the fixes within this many seconds of the first one, its joint
+    # marginal of pose, velocity and biases as the prior (ekf.level_batch_start,
+    # smoother.level_start); 0 starts both at the first fix
     ekf_level_start_s: float = 1.5
     # First velocity: least-squares line through up to `first_velocity_fixes` inlier raw
     # positions within `first_velocity_window_s` of the first fix.

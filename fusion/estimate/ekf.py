@@ -67,7 +67,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gtsam
@@ -91,7 +91,7 @@ from fusion.estimate.common import (
     retime_load_obs,
     velocity_at_frames,
 )
-from fusion.estimate.factors import B, V, X
+from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.smoother import build_problem, imu_coverage, imu_subintervals, solve
 from fusion.estimate.variance import nis_component
 from fusion.geometry import (
@@ -799,7 +799,10 @@ class LevelStart:
     solution and its marginal covariances at frames k0..k_end (the EKF's output there);
     v_world (3,): body velocity at k_end; bias_accel / bias_gyro (3,) IMU frame; joint (15, 15):
     the joint marginal covariance of [X(k_end) (Pose3 tangent), V(k_end), B(k_end) (accel,
-    gyro)] in GTSAM's order of those blocks."""
+    gyro)] in GTSAM's order of those blocks.  With load observations (the incremental
+    smoother's start): load_ids (m,) the loads seen in the window, p_loads (m, 3) world, and
+    joint_loads (15 + 3m, 15 + 3m) the joint marginal of [X, V, B, L_0 .. L_m-1] (None
+    without)."""
 
     k_end: int
     T_world_body: np.ndarray
@@ -808,6 +811,9 @@ class LevelStart:
     bias_accel: np.ndarray
     bias_gyro: np.ndarray
     joint: np.ndarray
+    load_ids: tuple[str, ...] = ()
+    p_loads: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    joint_loads: np.ndarray | None = None
 
 
 def level_batch_start(
@@ -818,6 +824,9 @@ def level_batch_start(
     velocity: VelocityData | None,
     floor_camera: CameraModel,
     config: FusionConfig,
+    *,
+    load_obs: list[LoadObservation] | None = None,
+    front_camera: CameraModel | None = None,
 ) -> LevelStart | None:
     """Batch-smooth the first `config.ekf_level_start_s` seconds of level fixes (from frame k0,
     the first inlier fix, to the last fix within the window, or to the LEVEL_START_MIN_FIXES-th
@@ -838,7 +847,11 @@ def level_batch_start(
     the information at the solution).  The window's outputs are smoothed, a start-up look-ahead of
     `ekf_level_start_s` like `first_velocity`'s 0.5 s; from k_end on the filter is causal.
     Velocity samples are given to the window only up to half-way to the next frame, so each is
-    used once, at the frame it is used at in the filter (common.velocity_at_frames)."""
+    used once, at the frame it is used at in the filter (common.velocity_at_frames).
+    `load_obs` / `front_camera` (the incremental smoother, whose load variables live in its
+    graph): the load sightings before the same cut are in the window's graph too, and the
+    joint marginal takes in their loads (LevelStart.load_ids); the EKF maps its loads from its
+    output poses afterwards and passes none."""
     window_ns = config.ekf_level_start_s * 1e9
     if rawp.covariances is None:  # the paper's position + yaw: not level-frame PnP poses
         return None
@@ -854,15 +867,25 @@ def level_batch_start(
     t_win = frame_t[k0 : k_end + 1]
     raw = Trajectory("raw", frame_t[fix_k[in_win]], rawp.T_world_body[in_win], rawp.covariances[in_win])
     vel_win = None
+    t_cut = (frame_t[k_end] + frame_t[k_end + 1]) / 2
+    obs_win = [o for o in load_obs or [] if o.timestamp_ns < t_cut] if front_camera is not None else []
     if velocity is not None:
-        t_cut = (frame_t[k_end] + frame_t[k_end + 1]) / 2
         keep = velocity.timestamps_ns < t_cut
         if keep.any():
             vel_win = VelocityData(
                 velocity.timestamps_ns[keep], velocity.v_body_m_s[keep], velocity.noise_m_s
             )
     try:
-        pb = build_problem(t_win, imu, raw, None, None, vel_win, config, floor_camera=floor_camera)
+        pb = build_problem(
+            t_win,
+            imu,
+            raw,
+            obs_win or None,
+            front_camera if obs_win else None,
+            vel_win,
+            config,
+            floor_camera=floor_camera,
+        )
         graph = pb.graph()
         res, graph, _ = solve(graph, pb.initial, config, SolveHealth())
         values = res.values
@@ -881,8 +904,22 @@ def level_batch_start(
                 joint[offs[a] : offs[a + 1], offs[b] : offs[b + 1]] = jm.at(ka, kb)
         T = np.array([values.atPose3(X(k)).matrix() for k in range(n)])
         cov = np.array([marg.marginalCovariance(X(k)) for k in range(n)])
+        joint_loads = None
+        if pb.loads:
+            all_keys = keys + [L(j) for j in range(len(pb.loads))]
+            kv = gtsam.KeyVector()
+            for key in all_keys:
+                kv.append(key)
+            jl = marg.jointMarginalCovariance(kv)
+            offs_l = np.cumsum((0,) + dims + (3,) * len(pb.loads))
+            joint_loads = np.zeros((offs_l[-1], offs_l[-1]))
+            for a, ka in enumerate(all_keys):
+                for b, kb in enumerate(all_keys):
+                    joint_loads[offs_l[a] : offs_l[a + 1], offs_l[b] : offs_l[b + 1]] = jl.at(ka, kb)
+            joint_loads = 0.5 * (joint_loads + joint_loads.T)
+        p_loads = np.array([values.atPoint3(L(j)) for j in range(len(pb.loads))]).reshape(-1, 3)
     except (RuntimeError, ValueError, EstimationError) as e:
-        log.warning("EKF: no batch start from the first level fixes (%s); starting at the first fix", e)
+        log.warning("no batch start from the first level fixes (%s); starting at the first fix", e)
         return None
     bias = values.atConstantBias(B(n - 1))
     return LevelStart(
@@ -893,6 +930,9 @@ def level_batch_start(
         bias_accel=np.asarray(bias.accelerometer(), float),
         bias_gyro=np.asarray(bias.gyroscope(), float),
         joint=0.5 * (joint + joint.T),
+        load_ids=tuple(pb.load_ids),
+        p_loads=p_loads,
+        joint_loads=joint_loads,
     )
 
 

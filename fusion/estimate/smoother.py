@@ -32,7 +32,7 @@ import time
 from collections.abc import Iterator, Mapping
 from collections.abc import Set as AbstractSet
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gtsam
 import numpy as np
@@ -89,6 +89,9 @@ __all__ = [
     "smooth_incremental",
     "warm_values",
 ]
+
+if TYPE_CHECKING:  # ekf imports this module
+    from fusion.estimate.ekf import LevelStart
 
 log = logging.getLogger(__name__)
 GRAVITY_W = np.array([0.0, 0.0, -GRAVITY_M_S2])
@@ -1499,6 +1502,118 @@ def _new_engine(config: FusionConfig, factorization: str = ISAM_FALLBACK_FACTORI
     return fixedlag.TimeOrderedFixedLag(float(lag), params)
 
 
+def level_start(
+    pb: Problem,
+    frame_times_ns,
+    imu: ImuData | None,
+    raw: Trajectory,
+    velocity: VelocityData | None,
+    front_camera: CameraModel | None,
+    config: FusionConfig,
+    floor_camera: CameraModel | None,
+    load_obs: list[LoadObservation] | None = None,
+) -> LevelStart | None:
+    """The incremental smoother's batch start (ekf.level_batch_start, the EKF's: a batch solve
+    of the level fixes within `config.ekf_level_start_s` of the first inlier fix and the joint
+    marginal of its last frame's pose, velocity and biases), or None: without level fixes
+    (RawPoseInput.LEVEL_POSE: a gimbaled floor camera's PnP poses), without an IMU, with the
+    start switched off (0 s) or when the window has too few fixes or its solve fails.  The
+    load sightings within the window are in its solve (their loads in the joint marginal).
+
+    Why: the engine otherwise starts at the first fix with roll / pitch at the level fix's 0
+    +- `initial_roll_pitch_sigma_rad` (the truth may roll 13 deg).  iSAM2 takes one Gauss-Newton
+    step per update and relinearises every `isam_relinearize_skip` (10) updates, and with a lag
+    of `incremental_lag_s` (0.5 s, 15 frames) the first states are marginalised while still
+    linearised at tilts 0.1-0.4 rad off.  There PnP's tight level yaw (sigma ~0.06 mrad) reads as
+    information on roll / pitch (the yaw's Jacobian turns with the tilt it is taken at), and the
+    marginal factors keep it: a linear factor is fixed where it was taken, the inconsistency of
+    a marginalised wrong linearisation point (Huang, Mourikis & Roumeliotis, IJRR 29(5), 2010).
+    On `gimb27` (NOTES-inc15.md) the roll stayed -150 to -186 mrad off with sigma 2-3 mrad for
+    the whole flight without the velocity sensor (-40 to -61 with it); with no lag, with
+    relinearisation at every update, or with the fixes' yaw variance x200 it came back to
+    within ~20 mrad: the marginalised linearisation is the cause.  The batch start iterates the
+    window to convergence first, so the engine's first linearisation point is near the truth
+    and its prior carries the window's tilt-bias correlation."""
+    if not pb.has_imu or pb.raw_input is not RawPoseInput.LEVEL_POSE or config.ekf_level_start_s <= 0:
+        return None
+    if floor_camera is None:
+        return None
+    # a cycle otherwise: ekf builds its start with this module's build_problem / solve
+    from fusion.estimate.ekf import level_batch_start
+
+    inp = prepare_inputs(frame_times_ns, imu, raw, velocity, front_camera, config)
+    if inp.imu is None:
+        return None
+    return level_batch_start(
+        inp.frame_t,
+        inp.imu,
+        inp.raw,
+        pb.k_first,
+        inp.velocity,
+        floor_camera,
+        config,
+        load_obs=load_obs,
+        front_camera=inp.front_camera,
+    )
+
+
+def level_start_prior(
+    k: int,
+    joint: np.ndarray,
+    pose: gtsam.Pose3,
+    velocity: np.ndarray,
+    bias: gtsam.imuBias.ConstantBias,
+    loads: list[tuple[int, np.ndarray]] | None = None,
+    joint_loads: np.ndarray | None = None,
+) -> gtsam.LinearContainerFactor:
+    """A Gaussian prior on [X(k), V(k), B(k)] jointly: mean (pose, velocity, bias), covariance
+    `joint` (15, 15) in GTSAM's tangent order of those blocks (Pose3 [rot, trans], then the
+    velocity, then ConstantBias [accel, gyro]: ekf.LevelStart.joint), as the linear factor
+    I dx = 0 with that covariance held at the mean, whitened (W dx = 0, W = chol(joint)^-1: the
+    wrapped JacobianFactor takes a diagonal model only) (gtsam.LinearContainerFactor: its error
+    at other values through each variable's localCoordinates, the chart GTSAM's Marginals use).
+    `loads` [(key, p_world (3,))] with `joint_loads` (15 + 3m, 15 + 3m), the joint covariance
+    of [X, V, B, loads...]: the prior is on all of them, as the information matrix summed from
+    one- and two-key HessianFactors (the wrapper builds a factor on at most three keys)."""
+    lin = gtsam.Values()
+    lin.insert(j=X(k), pose3=pose)
+    lin.insert(V(k), np.asarray(velocity, float))
+    lin.insert(j=B(k), constant_bias=bias)
+    if loads:
+        assert joint_loads is not None  # given with loads
+        keys = [X(k), V(k), B(k)] + [key for key, _ in loads]
+        for key, p in loads:
+            lin.insert(key, np.asarray(p, float))
+        info = np.linalg.inv(0.5 * (joint_loads + joint_loads.T))
+        info = 0.5 * (info + info.T)
+        offs = np.cumsum([0, 6, 3, 6] + [3] * len(loads))
+        parts = gtsam.GaussianFactorGraph()
+        for a, ka in enumerate(keys):
+            sa = slice(offs[a], offs[a + 1])
+            parts.add(gtsam.HessianFactor(ka, info[sa, sa], np.zeros(offs[a + 1] - offs[a]), 0.0))
+            for b in range(a + 1, len(keys)):
+                sb = slice(offs[b], offs[b + 1])
+                da, db = offs[a + 1] - offs[a], offs[b + 1] - offs[b]
+                parts.add(
+                    gtsam.HessianFactor(
+                        ka,
+                        keys[b],
+                        np.zeros((da, da)),
+                        info[sa, sb],
+                        np.zeros(da),
+                        np.zeros((db, db)),
+                        np.zeros(db),
+                        0.0,
+                    )
+                )
+        return gtsam.LinearContainerFactor(gtsam.HessianFactor(parts), lin)
+    W = np.linalg.inv(np.linalg.cholesky(0.5 * (joint + joint.T)))
+    jf = gtsam.JacobianFactor(
+        X(k), W[:, :6], V(k), W[:, 6:9], B(k), W[:, 9:], np.zeros(15), gtsam.noiseModel.Unit.Create(15)
+    )
+    return gtsam.LinearContainerFactor(jf, lin)
+
+
 def smooth_incremental(
     frame_times_ns,
     imu: ImuData | None,
@@ -1542,7 +1657,12 @@ def smooth_incremental(
 
     Output starts at the first raw-pose frame (`stats['frames_before_first_fix']` earlier
     frames have no estimate).  The velocity prior at the start uses the first 0.5 s of raw poses
-    (a start-up look-ahead).  Loads: the estimate and marginal covariance of each load's latest
+    (a start-up look-ahead).  With level fixes (a gimbaled floor camera's PnP poses) and an IMU
+    the engine starts instead at the last fix within `config.ekf_level_start_s` of the first,
+    from the batch solve of that window (level_start: the EKF's start, ekf.level_batch_start),
+    its joint marginal of pose, velocity and biases as the prior; the window's frames are that
+    solve's (`stats['batch_start_frames']` of them, a start-up look-ahead as the EKF's).
+    Loads: the estimate and marginal covariance of each load's latest
     variable at the end of the flight."""
     config = config or FusionConfig()
     args = (frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera)
@@ -1663,6 +1783,29 @@ def _smooth_incremental_run(
     pose_k = gtsam.Pose3(pb.T_init[k0])
     vel_k = pb.v_init[k0]
     bias_k = gtsam.imuBias.ConstantBias()
+    level = level_start(pb, frame_times_ns, imu, raw, velocity, front_camera, config, floor_camera, load_obs)
+    k_begin = k0  # the engine's first frame: k0, or the batch start's last frame
+    start_prior = None  # the batch start's joint prior on X, V, B (and loads) at k_begin
+    start_loads: dict[int, np.ndarray] = {}  # load j -> its batch estimate (window loads)
+    if level is not None:
+        k_begin = start = level.k_end
+        n_win = level.k_end - k0
+        T_out[:n_win] = level.T_world_body[:-1]
+        cov_out[:n_win] = level.cov_body[:-1]
+        pose_k = gtsam.Pose3(level.T_world_body[-1])
+        vel_k = level.v_world
+        bias_k = gtsam.imuBias.ConstantBias(level.bias_accel, level.bias_gyro)
+        # the window's loads: variables from the start (generation 0), in the joint prior
+        start_loads = {pb.load_ids.index(lid): p for lid, p in zip(level.load_ids, level.p_loads)}
+        start_prior = level_start_prior(
+            k_begin,
+            level.joint,
+            pose_k,
+            vel_k,
+            bias_k,
+            [(L(j), p) for j, p in start_loads.items()],
+            level.joint_loads,
+        )
 
     def lkey(j: int) -> int:
         return L(j + gen[j] * LOAD_GENERATION_STRIDE)
@@ -1701,7 +1844,18 @@ def _smooth_incremental_run(
         if pb.has_imu:
             vals.insert(j=B(k), constant_bias=bias_guess)
             new_keys.append(B(k))
-        if fresh and k > k0:
+        if k == k_begin and start_prior is not None:
+            # the batch start: its joint marginal of pose, velocity, biases (and the window's
+            # loads) at k_begin is the prior, and the window's fixes, velocity and load sightings
+            # (k_begin's too) are in it already
+            g.add(start_prior)
+            for j, p in start_loads.items():
+                left.pop(j, None)
+                gen[j] = 0
+                last_seen[j] = tk
+                vals.insert(L(j), np.asarray(p, float))
+                new_keys.append(L(j))
+        elif fresh and k > k0:
             # restart: the state carries over as priors (velocity, bias at their estimates;
             # attitude at the guess, loosely, as a position + yaw fix leaves roll / pitch
             # free); the position comes from this frame's fix (or, singular, a weak prior)
@@ -1748,7 +1902,7 @@ def _smooth_incremental_run(
                     ),
                 )
             )
-        if weak or (fresh and k > k0 and k not in pose_at):
+        if weak or (fresh and k > k0 and k not in pose_at and not (k == k_begin and start_prior is not None)):
             for f in weak_priors(vals, config):
                 if gtsam.Symbol(f.keys()[0]).chr() == ord("x"):
                     g.add(f)
@@ -1762,6 +1916,8 @@ def _smooth_incremental_run(
         for i in by_frame[k]:
             if oldest[i] < start or i == skip:
                 continue
+            if k == k_begin and start_prior is not None:
+                continue  # frame k_begin's fix, velocity and loads: in the batch start's window
             f = pb.factors[i]
             j = load_of[i]
             if j >= 0:
@@ -1802,7 +1958,7 @@ def _smooth_incremental_run(
         else:
             engine.update(g, vals, dict.fromkeys(new_keys, tk))
 
-    k = k0
+    k = k_begin
     while k < n:
         tk = float(t_rel[k])
         # causal initial guess: IMU prediction, else the raw pose, else the previous state
@@ -1815,6 +1971,8 @@ def _smooth_incremental_run(
             pose_guess, vel_guess = pose_k, vel_k
         if k == k0:
             pose_guess = gtsam.Pose3(pb.T_init[k0])
+        elif k == k_begin:
+            pose_guess = pose_k  # the batch start's
         fresh = k == start
         # innovation gate (as the EKF's): a fix beyond the outlier gate of the IMU prediction
         # is not added (a misprinted code pulls a fixed-lag window through any kernel); it
@@ -1909,6 +2067,7 @@ def _smooth_incremental_run(
     stats = dict(
         pb.counts.as_dict(),
         frames_before_first_fix=k0,
+        batch_start_frames=0 if level is None else level.k_end - k0 + 1,
         time_build_s=t_build,
         time_s=elapsed,
         incremental_lag_s=lag,
