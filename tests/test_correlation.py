@@ -151,6 +151,32 @@ def test_a_series_with_no_lag_1_correlation_but_a_slow_part_is_found():
     assert used >= 5 and tau > 2.5
 
 
+def test_a_removed_common_error_is_not_counted_again():
+    """A constant error per code (a common bias, carried by its consider term) correlates the
+    residuals at every lag by its share of their sum of squares; given that sum of squares the
+    class reads white again, and its share is reported."""
+    rng = np.random.default_rng(12)
+    n, codes = 150, 3
+    common = rng.normal(0.0, 0.7, size=(codes, 8))
+    frames = [
+        FrameCodeResiduals(
+            tuple(f"r{c}" for c in range(codes)),
+            np.array([REF] * codes, dtype=np.int8),
+            (common + rng.normal(size=(codes, 8))).astype(np.float32),
+        )
+        for _ in range(n)
+    ]
+    traj = trajectory(np.tile(np.eye(6), (n, 1, 1)), n=n)
+    G = np.tile(0.5 * np.eye(6), (n, 2, 1, 1))
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2))
+    assert inf is not None and report["classes"]["refined"]["tau"] > 5
+    sum_sq = n * float(np.sum(common**2))
+    report, inf = co.estimate_inflation(traj, frames, G, np.ones(2), common_sum_sq={"refined": sum_sq})
+    assert inf is None and report["classes"]["refined"]["tau"] == 1.0
+    total = sum(float(np.sum(f.whitened.astype(float) ** 2)) for f in frames)
+    assert report["classes"]["refined"]["common_share"] == pytest.approx(sum_sq / total, abs=1e-4)
+
+
 def inflation(rho_dec, used_dec, n=4, share=None):
     """A CorrelationInflation of n frames with the decoder class's rho and lags (refined white),
     class terms: decoder `share` of an identity covariance, refined the rest."""

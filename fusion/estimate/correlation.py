@@ -354,6 +354,18 @@ def solve_inflated(
     return res
 
 
+def common_share(frames: Sequence[FrameCodeResiduals | None], cls: int, sum_sq: float) -> float:
+    """`sum_sq` over the sum of squares of class `cls`'s whitened residuals in `frames`, at most 1
+    (0 without residuals): a common error's share of every lag's rho (estimate_inflation)."""
+    total = 0.0
+    for fr in frames:
+        if fr is None or not len(fr.payloads):
+            continue
+        r = np.asarray(fr.whitened, dtype=float)[np.asarray(fr.classes) == cls]
+        total += float(np.sum(r[np.isfinite(r).all(axis=1)] ** 2))
+    return min(sum_sq / total, 1.0) if total > 0 else 0.0
+
+
 def estimate_inflation(
     traj: Trajectory,
     frames: Sequence[FrameCodeResiduals | None],
@@ -361,13 +373,20 @@ def estimate_inflation(
     class_scales: np.ndarray,
     apply: bool = True,
     exclude: dict[str, str] | None = None,
+    common_sum_sq: dict[str, float] | None = None,
 ) -> tuple[dict, CorrelationInflation | None]:
     """Per corner class tau_c of the flight's PnP frames (`traj`, one pose per entry of `frames`
     and of `class_covariances` (k, 6, 6) G_c, in order), and the back ends' inflation when
     `apply` and some tau_c > 1 (None otherwise).  `class_scales` (k,): the variance factors
     applied to the classes (1 when none).  `exclude` {class: reason}: classes whose tau is
-    reported but not applied (the reason in the report's `not_applied`).  Returns the JSON-ready
-    report (per class ClassCorrelation.as_dict, `applied`) and the inflation."""
+    reported but not applied (the reason in the report's `not_applied`).  `common_sum_sq`
+    {class: sum of squares}: the part of the class's whitened residuals that a removed common
+    error explains (the corner bias: cornerbias.BiasConsider.residual_sum_sq), whose consider
+    term carries it.  A common error correlates the residuals at every lag by its share q of the
+    class's sum of squares, so q is taken off every lag's rho before the sum (the inflation
+    (tau - 1) s_c G_c is then 2 sum (rho - q) of the class's variance: that of the rest of the
+    error, not counted twice); reported as `common_share`.  Returns the JSON-ready report (per
+    class ClassCorrelation.as_dict, `applied`) and the inflation."""
     if len(frames) != len(traj) or len(class_covariances) != len(traj):
         raise ValueError(
             f"correlation: {len(frames)} frames of residuals and {len(class_covariances)} of class "
@@ -379,8 +398,15 @@ def estimate_inflation(
     taus = np.ones(len(CORNER_CLASSES))
     for c, name in enumerate(CORNER_CLASSES):
         rho_c, pairs, n, codes = acf[name]
+        share = 0.0
+        if common_sum_sq and common_sum_sq.get(name, 0.0) > 0.0:
+            share = common_share(frames, c, common_sum_sq[name])
+            rho_c = rho_c - share
+            acf[name] = (rho_c, pairs, n, codes)
         tau, n_used = integrated_time(rho_c, pairs)
         report["classes"][name] = ClassCorrelation(rho_c, pairs, n_used, tau, n, codes).as_dict()
+        if share > 0.0:
+            report["classes"][name]["common_share"] = round(share, 4)
         if exclude and name in exclude:
             report["classes"][name]["not_applied"] = exclude[name]
             continue
