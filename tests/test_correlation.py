@@ -209,7 +209,7 @@ def test_long_average_variance_factor_is_the_share_weighted_tau_and_unit_free():
     # holding half the rotation and none of the translation: the mean over whitened directions
     # is 1 + (tau - 1) (3 * 0.5) / 6; a trace ratio would read ~1 (the translation's alone)
     D = np.diag([1e-8] * 3 + [1.0] * 3)
-    terms = np.zeros_like(inf.class_terms)
+    terms = np.zeros((4, 2, 6, 6))
     terms[:, DEC] = np.diag([0.5e-8] * 3 + [0.0] * 3)
     terms[:, REF] = D - terms[:, DEC]
     scaled = co.CorrelationInflation(inf.timestamps_ns, terms, inf.rho, inf.lags_used, inf.taus, 50_000_000)
@@ -381,10 +381,36 @@ def test_estimate_inflation_white_flight_is_none_and_lengths_checked():
     frames = synthetic_frames(rng, 60, 0.8)
     report, inf = co.estimate_inflation(traj, frames, G, np.array([1.0, 2.0]))
     assert inf is not None and report["applied"] and report["classes"]["decoder"]["tau"] > 2
-    np.testing.assert_allclose(inf.class_terms[0, DEC], 1.0 * np.eye(6))  # scale 2 x share 0.5
+    # only the inflated class's terms are kept: scale 2 x share 0.5
+    assert list(inf.classes) == [DEC] and inf.terms(np.arange(60)).shape == (60, 1, 6, 6)
+    np.testing.assert_allclose(inf.terms([0])[0, 0], 1.0 * np.eye(6))
     assert co.estimate_inflation(traj, frames, G, np.ones(2), apply=False)[1] is None
     with pytest.raises(ValueError, match="60 frames of residuals"):
         co.estimate_inflation(trajectory(np.tile(np.eye(6), (4, 1, 1))), frames, G, np.ones(2))
+
+
+def test_terms_of_the_inflated_classes_alone_give_the_same_covariances_to_the_bit():
+    """CorrelationInflation keeps the terms of the classes with tau > 1 only, each 6 x 6 as its
+    upper triangle in float32 (a 30-minute flight's float64 terms were 31 MB per class, alive at
+    the run's peak): add_to and directional are those of all classes' terms, to the bit."""
+    rng = np.random.default_rng(13)
+    n = 40
+    A = rng.normal(size=(n, 2, 6, 6))
+    G = np.einsum("ncij,nckj->ncik", A, A)  # (n, 2, 6, 6), PSD
+    full = dataclasses.replace(inflation(np.array([0.6, 0.45, 0.3]), 3, n=n, share=0.3), class_terms=G)
+    compact = dataclasses.replace(full, class_terms=G[:, [DEC]], classes=np.array([DEC]))
+    assert compact.class_terms.shape == (n, 1, 21) and compact.class_terms.dtype == np.float32
+    # unpacked symmetric, within float32's rounding
+    np.testing.assert_allclose(compact.terms(np.arange(n)), G[:, [DEC]], rtol=1e-6, atol=1e-6)
+    B = rng.normal(size=(n, 6, 6))
+    raw = trajectory(np.einsum("nij,nkj->nik", B, B) + np.eye(6), n=n)
+    fused = trajectory(0.2 * raw.covariances, n=n)
+    assert np.array_equal(compact.add_to(raw).covariances, full.add_to(raw).covariances)
+    for two_sided in (False, True):
+        assert np.array_equal(
+            compact.directional(raw, fused, two_sided).covariances,
+            full.directional(raw, fused, two_sided).covariances,
+        )
 
 
 def test_pose_scale_floor():

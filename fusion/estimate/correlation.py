@@ -61,6 +61,8 @@ Z_GATE = 3.09
 value (one-sided 10^-3, the corner-bias gate's level, fusion.estimate.cornerbias)."""
 MIN_PAIRS = 20
 """Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
+_TRIU = np.triu_indices(6)
+"""The upper triangle of a 6 x 6 (rows, columns): CorrelationInflation's packed terms."""
 DIRECTIONAL_BLOCK_ROWS = 4096
 """Frames per block of `CorrelationInflation.directional` (each frame's inflation is its own:
 the result is the same for any block size; a block's temporaries are ~17 MB)."""
@@ -179,10 +181,19 @@ def integrated_time(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> tu
 class CorrelationInflation:
     """The back ends' extra input covariance of each PnP frame for time-correlated corner
     errors: stamps (n,), per class c the frame's class covariance at its applied scale
-    `class_terms` (n, k, 6, 6) s_c G_c, and per class the autocorrelation `rho` (k, MAX_LAG),
-    the lags summed `lags_used` (k,) and `taus` (k,).  `add_to` adds sum_c (tau_c - 1) s_c G_c
-    (a long average: the batch smoother); `filter_taus` the inflation of a filter's shorter,
-    one-sided average (EKF, fixed-lag smoother: `solve_inflated`)."""
+    `class_terms` s_c G_c of the m classes `classes` (indices into the k CORNER_CLASSES; None:
+    all k in order), given as (n, m, 6, 6) and kept packed (`terms` unpacks rows), and per
+    class the autocorrelation `rho` (k, MAX_LAG), the lags summed `lags_used` (k,) and `taus`
+    (k,).  `add_to` adds sum_c (tau_c - 1) s_c G_c (a long average: the batch smoother);
+    `filter_taus` the inflation of a filter's shorter, one-sided average (EKF, fixed-lag
+    smoother: `solve_inflated`).
+
+    Memory: the terms are alive through every back end's solves (a 30-minute flight's
+    (n, k, 6, 6) float64 were 31 MB per class, and its first smoother solve the run's peak:
+    +34 MiB, BENCHMARKS.md corr15), so `estimate_inflation` keeps the inflated classes only
+    (the others' weight is exactly 0) and each 6 x 6 is kept as its upper triangle in float32
+    (21 numbers, 4.5 MB per class on 30 minutes; an added inflation term, where float32's
+    relative 6e-8 is far below anything the NEES can tell)."""
 
     timestamps_ns: np.ndarray
     class_terms: np.ndarray
@@ -190,6 +201,24 @@ class CorrelationInflation:
     lags_used: np.ndarray
     taus: np.ndarray
     tolerance_ns: int = 0
+    classes: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        terms = np.asarray(self.class_terms)
+        if terms.ndim == 4:  # (n, m, 6, 6) given: packed
+            self.class_terms = np.ascontiguousarray(terms[..., _TRIU[0], _TRIU[1]], dtype=np.float32)
+
+    def terms(self, index) -> np.ndarray:
+        """(len, m, 6, 6) float64 s_c G_c of the frames `index` (an index into the stamps)."""
+        packed = np.asarray(self.class_terms[index], dtype=float)
+        out = np.empty((*packed.shape[:-1], 6, 6))
+        out[..., _TRIU[0], _TRIU[1]] = packed
+        out[..., _TRIU[1], _TRIU[0]] = packed
+        return out
+
+    def _classes(self) -> np.ndarray:
+        """(m,) the CORNER_CLASSES indices of class_terms' second axis."""
+        return np.arange(len(self.taus)) if self.classes is None else np.asarray(self.classes, dtype=int)
 
     def _nearest(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(index of the nearest PnP stamp, whether within tolerance_ns) for stamps t."""
@@ -203,11 +232,11 @@ class CorrelationInflation:
         milliseconds), else none.  Unchanged without covariances."""
         if traj.covariances is None or not len(traj) or not len(self.timestamps_ns):
             return traj
-        w = np.asarray(self.taus if taus is None else taus, dtype=float) - 1.0
+        w = (np.asarray(self.taus if taus is None else taus, dtype=float) - 1.0)[self._classes()]
         t = np.asarray(traj.timestamps_ns, dtype=np.int64)
         nearest, close = self._nearest(t)
         covs = np.array(traj.covariances, dtype=float, copy=True)
-        covs[close] += np.einsum("c,ncij->nij", w, self.class_terms[nearest[close]])
+        covs[close] += np.einsum("c,ncij->nij", w, self.terms(nearest[close]))
         return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
     def long_average_variance_factor(self, traj: Trajectory) -> float:
@@ -263,9 +292,9 @@ class CorrelationInflation:
             mu, U = np.linalg.eigh(0.5 * (Pw + np.swapaxes(Pw, 1, 2)))  # (m, 6), (m, 6, 6)
             n_dir = 1.0 / np.maximum(mu, 1e-12)
             # (m, k, 6, 6)
-            Ew = Li[:, None] @ self.class_terms[nearest[rows]] @ np.swapaxes(Li, 1, 2)[:, None]
+            Ew = Li[:, None] @ self.terms(nearest[rows]) @ np.swapaxes(Li, 1, 2)[:, None]
             share = np.einsum("mai,mcab,mbi->mci", U, Ew, U)  # (m, k, 6): e_ci
-            taus = self.average_taus(n_dir, two_sided)  # (m, k, 6)
+            taus = self.average_taus(n_dir, two_sided)[:, self._classes()]  # (m, k', 6)
             d = np.sum((taus - 1.0) * share, axis=1)  # (m, 6)
             LU = L @ U
             covs[rows] += np.einsum("mai,mi,mbi->mab", LU, d, LU)
@@ -413,10 +442,10 @@ def estimate_inflation(
         taus[c] = tau
     if not (apply and np.any(taus > 1.0)) or traj.covariances is None or not len(traj):
         return report, None
-    terms = (
-        np.asarray(class_covariances, dtype=float)
-        * np.asarray(class_scales, dtype=float)[None, :, None, None]
-    )
+    # only the inflated classes' terms are kept (CorrelationInflation: the memory of long flights)
+    active = np.flatnonzero(taus > 1.0)
+    terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
+    terms *= np.asarray(class_scales, dtype=float)[active][None, :, None, None]
     # the lags as the estimator summed them (monotone-cut), so that a long average's factor
     # (CorrelationInflation.average_taus) tends to tau
     rho = np.zeros((len(CORNER_CLASSES), MAX_LAG))
@@ -431,4 +460,4 @@ def estimate_inflation(
     )
     dt = int(np.median(np.diff(t))) if len(t) > 1 else 0
     report["applied"] = True
-    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2)
+    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2, classes=active)
