@@ -511,6 +511,7 @@ def test_solve_inflated_keeps_the_first_solves_noise_scales():
     )
     (c1, l1, cfg1), (c2, l2, cfg2) = calls
     assert cfg1 is cfg and cfg2.noise_scale_iterations == 0 and cfg2.corner_noise_scale == pytest.approx(3.0)
+    assert cfg1.check_noise and not cfg2.check_noise  # the second solve's chi2 is not measured
     np.testing.assert_allclose(l2, 0.25 * np.eye(3))
     inflated = inf.directional(raw, trajectory(np.tile(1e-6 * np.eye(6), (4, 1, 1))), True).covariances
     np.testing.assert_allclose(c2, 1.5 * inflated)

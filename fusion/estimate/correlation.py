@@ -347,7 +347,8 @@ def solve_inflated(
     estimates them: variance.solve_noise_scaled): the noise scales of the first solve (per
     camera, cam0 for the poses and tight corners, cam1 for the loads) are applied to the second
     as they are and not estimated again (the inflated covariances would read as too large: the
-    residuals of a correlated error understate it), and its report is the first solve's.  Its
+    residuals of a correlated error understate it, so their chi2/dof is not measured at all:
+    FusionConfig.check_noise off), and its report is the first solve's.  Its
     stats gain `correlation_inflation`: the median over the frames of the inflated covariance's
     trace over the raw one's."""
     from fusion.estimate import variance
@@ -366,10 +367,17 @@ def solve_inflated(
         del inflated  # `again` is what the second solve takes
         config = kwargs.get("config")
         if config is not None:
+            # nor are its variance components measured (check_noise off): its report is the
+            # first solve's, and they were the second solve's memory peak (the smoother windows'
+            # leverages, with the inflated poses alive beside `raw`: a 30-minute flight's run
+            # 870 -> 891 MiB; BENCHMARKS.md corr15)
             kwargs = dict(
                 kwargs,
                 config=replace(
-                    config, noise_scale_iterations=0, corner_noise_scale=config.corner_noise_scale * s0
+                    config,
+                    noise_scale_iterations=0,
+                    check_noise=False,
+                    corner_noise_scale=config.corner_noise_scale * s0,
                 ),
             )
         res = fn(frame_times_ns, imu, again, load_again, **kwargs)
