@@ -469,11 +469,6 @@ def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tupl
     return (log.front.camera, log.world, floor.trajectories.get("paper"), floor.trajectories["pnp"], cfg)
 
 
-CORRELATION_EXCLUDE = {"refined": "the removed corner bias's consider term carries it (cornerbias.py)"}
-"""Corner classes whose time correlation is not inflated on a flight whose common corner bias
-was removed (the bias model's class: fusion.qr.pnp.bias)."""
-
-
 def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     """The raw trajectories and PnP statistics of a flight from its `localize_floor_chunk`
     results, in time order (no load observations yet)."""
@@ -511,9 +506,12 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         [g for p in parts for g in p["pnp_stats"].frame_class_covariance],
         variance.applied_class_scales(stats["pnp"]["noise_scale"]),
         cfg.estimate_noise_scale and cfg.inflate_correlated,
-        # a removed corner bias (refined corners only) is in these residuals, correlated over
-        # every frame, and its consider term already carries it: not counted twice
-        exclude=CORRELATION_EXCLUDE if bias_report is not None and bias_report.get("applied") else None,
+        # a removed corner bias (refined corners only, the bias model's class: fusion.qr.pnp.bias)
+        # is in these residuals, correlated over every frame, and its consider term already
+        # carries it: its share is taken off the correlation, the rest of the refined corners'
+        # correlated error inflated (it was 1-5 % of their residuals on the sweep14 flights,
+        # whose refined residuals kept rho ~0.1 to lag 19: BENCHMARKS.md, corr15)
+        common_sum_sq={"refined": consider.residual_sum_sq} if consider is not None else None,
     )
     trajectories["pnp"] = traj_pnp
     return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider, correlation=inflation)

@@ -162,6 +162,31 @@ def test_correction_removes_the_pose_bias_and_adds_the_consider_covariance():
     np.testing.assert_allclose(out.covariances - traj.covariances, S @ C @ np.swapaxes(S, 1, 2), atol=1e-18)
 
 
+def test_consider_knows_the_removed_bias_share_of_the_residuals():
+    """BiasConsider.residual_sum_sq = sum_f b^T N_f b = sum_f |M A b|^2: on a noise-free dilated
+    flight the residuals are the bias as the poses left it, so it is their whole sum of squares
+    (what fusion.estimate.correlation takes off the refined corners' correlation)."""
+    rng = np.random.default_rng(9)
+    frames = {}
+    while len(frames) < 40:
+        T = aim(
+            body_pose(0, 0, rng.uniform(2.3, 2.8), rng.uniform(-180, 180), 0.0, 0.0), np.mean(FOUR, axis=0)
+        )
+        ts = (len(frames) + 1) * 100_000_000
+        try:
+            frames[ts] = biased(floor_dets(T, FOUR, ts=ts), B_TRUE)
+        except AssertionError:
+            continue
+    traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
+    _, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
+    assert report["applied"] and consider is not None
+    est = estimate_corner_bias(stats.frame_bias, 1.0)
+    expected = sum(float(est.bias_px @ t.normal @ est.bias_px) for t in stats.frame_bias)
+    assert consider.residual_sum_sq == pytest.approx(expected, rel=1e-9)
+    seen = sum(float(np.sum(r.whitened.astype(float) ** 2)) for r in stats.frame_code_residuals)
+    assert consider.residual_sum_sq == pytest.approx(seen, rel=0.02)
+
+
 def test_no_significant_bias_leaves_the_trajectory_as_it_is():
     frames, _ = flight_frames(60, seed=2, b=np.zeros(2))
     traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)

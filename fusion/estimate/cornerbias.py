@@ -208,11 +208,16 @@ def _determined(covariance_px2: np.ndarray) -> np.ndarray:
 @dataclass
 class BiasConsider:
     """What the fused back ends need to carry a corrected flight's bias uncertainty: the PnP
-    frames' stamps (n,) and sensitivities (n, 6, p), and Cov(b) (p, p)."""
+    frames' stamps (n,) and sensitivities (n, 6, p), and Cov(b) (p, p).  `residual_sum_sq`:
+    the removed bias's share of the frames' whitened PnP residuals, sum_f b^T N_f b (N_f = A^T M A,
+    FrameBiasTerms.normal: |M A b|^2, the bias as the residuals see it once each pose absorbed
+    its part), for the time-correlation estimate (fusion.estimate.correlation: a common error
+    correlates the residuals at every lag, and this term already carries it)."""
 
     timestamps_ns: np.ndarray
     sensitivities: np.ndarray
     covariance_px2: np.ndarray
+    residual_sum_sq: float = 0.0
 
     def covariances(self, timestamps_ns: np.ndarray) -> np.ndarray:
         """(m, 6, 6) consider covariances S Cov(b) S^T at `timestamps_ns`, S the nearest PnP
@@ -274,6 +279,10 @@ def correct_pnp_trajectory(
             S[i][:, t.params] = t.sensitivity_q
     dxi = -S @ est.bias_px  # (n, 6): xi_true ≈ xi_est - S b
     T = np.stack([T_wb @ se3_exp(d) for T_wb, d in zip(traj.T_world_body, dxi)])
-    consider = BiasConsider(np.asarray(traj.timestamps_ns, dtype=np.int64), S, est.consider_px2)
+    residual_sum_sq = sum(
+        float(est.bias_px[t.params] @ t.normal_q @ est.bias_px[t.params]) for t in terms if t is not None
+    )
+    stamps = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    consider = BiasConsider(stamps, S, est.consider_px2, residual_sum_sq)
     out = Trajectory(traj.name, traj.timestamps_ns, T, traj.covariances)
     return consider.add_to(out), est.as_dict(True), consider

@@ -19,10 +19,19 @@ pose): rho(l) = the mean product of a code's residuals l frames apart over their
 pooled over codes and the 8 coordinates.  A residual r = (I - P) w keeps the part of the corner
 error w that the pose did not absorb; with the geometry nearly the same between neighbouring
 frames E[r_t r_(t+l)^T] = (I - P) E[w_t w_(t+l)^T] (I - P), so rho is w's correlation as far as
-the residual space shows it.  tau sums rho(1), rho(2), ... while each is significant
-(rho(l) > Z_GATE / sqrt(pairs(l)), the standard error of an autocorrelation of white noise,
-Bartlett 1946; pairs counted per code, not per coordinate, conservatively) up to MAX_LAG frames,
-and is 1 when rho(1) is not: a white flight is left exactly as it was.
+the residual space shows it.  tau is Geyer's initial monotone sequence estimator (Geyer,
+"Practical Markov chain Monte Carlo", Statistical Science 7(4), 1992, sec. 3.3): the sums of
+adjacent lags Gamma_k = rho(2k) + rho(2k + 1) (rho(0) = 1) are positive and decreasing for any
+reversible stationary series, so the sum runs over k while Gamma_k > 0 (initial positive
+sequence), each Gamma_k cut to the smallest before it (initial monotone), up to MAX_LAG frames;
+tau = -1 + 2 sum_k Gamma_k.  The window thus does not end at a lag that happens to be small
+(the 800x600 sweep flight: rho = 0.02 / 0.17 / 0.17 / 0.11 / ... at lags 1 / 2 / 3 / 4, tau 3.7;
+the former rule, which stopped at the first lag below the significance gate, read tau = 1).  A
+white flight is left exactly as it was: tau is 1 unless the window's sum of rho is significant,
+sum rho > Z_GATE sqrt(sum_l 1 / pairs(l)) (each rho(l) of white noise has the standard error
+1 / sqrt(pairs(l)), Bartlett 1946; pairs counted per code, not per coordinate, conservatively;
+a false alarm on white residuals in 1.6e-3 of seeded trials, the window being chosen on the
+same data).
 
 Use: the back ends' input covariance of a PnP frame becomes cov + sum_c (tau_c - 1) s_c G_c
 (G_c the class's share of the frame's covariance, s_c its applied variance factor: the frame's
@@ -48,10 +57,12 @@ from fusion.types import Trajectory
 MAX_LAG = 20
 """Most frame lags summed into tau (2 s at 10 fps)."""
 Z_GATE = 3.09
-"""A lag's autocorrelation counts when above this many standard errors (one-sided 10^-3, the
-corner-bias gate's level, fusion.estimate.cornerbias)."""
+"""The summed autocorrelation counts when above this many standard errors of its white-noise
+value (one-sided 10^-3, the corner-bias gate's level, fusion.estimate.cornerbias)."""
 MIN_PAIRS = 20
 """Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
+_TRIU = np.triu_indices(6)
+"""The upper triangle of a 6 x 6 (rows, columns): CorrelationInflation's packed terms."""
 DIRECTIONAL_BLOCK_ROWS = 4096
 """Frames per block of `CorrelationInflation.directional` (each frame's inflation is its own:
 the result is the same for any block size; a block's temporaries are ~17 MB)."""
@@ -131,27 +142,58 @@ def class_autocorrelation(
     return out
 
 
-def integrated_time(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> tuple[float, int]:
-    """(tau, lags used): 1 + 2 sum rho(l) over l = 1, 2, ... while rho(l) > z / sqrt(pairs(l))
-    and pairs(l) >= MIN_PAIRS (the first lag that fails ends the sum)."""
-    total = 0.0
-    used = 0
-    for r, p in zip(rho, pairs):
-        if p < MIN_PAIRS or not math.isfinite(r) or r <= z / math.sqrt(p):
+def monotone_sequence(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> np.ndarray:
+    """The autocorrelation (m,) at lags 1..m that Geyer's initial monotone sequence estimator sums
+    (Geyer 1992, sec. 3.3; the module's docstring): Gamma_0 = 1 + rho(1), Gamma_k = rho(2k) +
+    rho(2k + 1) for k >= 1 while Gamma_k > 0 and both lags have >= MIN_PAIRS finite pairs, each
+    pair of lags scaled so that its Gamma is min(Gamma_0..Gamma_k).  Empty (tau = 1) when lag 1
+    has too few pairs or the window's sum is not significant: sum rho <= z sqrt(sum 1 / pairs)."""
+    rho = np.asarray(rho, dtype=float)
+    pairs = np.asarray(pairs)
+    if not len(rho) or pairs[0] < MIN_PAIRS or not math.isfinite(rho[0]):
+        return np.zeros(0)
+    kept = [float(rho[0])]
+    gamma_min = 1.0 + float(rho[0])
+    for a in range(1, len(rho) - 1, 2):  # lags a + 1 = 2k and a + 2 = 2k + 1
+        b = a + 1
+        if min(pairs[a], pairs[b]) < MIN_PAIRS or not (math.isfinite(rho[a]) and math.isfinite(rho[b])):
             break
-        total += float(r)
-        used += 1
-    return 1.0 + 2.0 * total, used
+        gamma = float(rho[a] + rho[b])
+        if gamma <= 0.0:
+            break
+        cut = min(gamma, gamma_min) / gamma
+        gamma_min = min(gamma, gamma_min)
+        kept += [float(rho[a]) * cut, float(rho[b]) * cut]
+    out = np.array(kept)
+    if not out.sum() > z * math.sqrt(float(np.sum(1.0 / pairs[: len(out)]))):
+        return np.zeros(0)
+    return out
+
+
+def integrated_time(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> tuple[float, int]:
+    """(tau, lags used): 1 + 2 sum of `monotone_sequence` (Geyer's initial monotone sequence
+    estimator, -1 + 2 sum_k Gamma_k), and its length; (1, 0) when the sum is not significant."""
+    kept = monotone_sequence(rho, pairs, z)
+    return 1.0 + 2.0 * float(kept.sum()), len(kept)
 
 
 @dataclass
 class CorrelationInflation:
     """The back ends' extra input covariance of each PnP frame for time-correlated corner
     errors: stamps (n,), per class c the frame's class covariance at its applied scale
-    `class_terms` (n, k, 6, 6) s_c G_c, and per class the autocorrelation `rho` (k, MAX_LAG),
-    the lags summed `lags_used` (k,) and `taus` (k,).  `add_to` adds sum_c (tau_c - 1) s_c G_c
-    (a long average: the batch smoother); `filter_taus` the inflation of a filter's shorter,
-    one-sided average (EKF, fixed-lag smoother: `solve_inflated`)."""
+    `class_terms` s_c G_c of the m classes `classes` (indices into the k CORNER_CLASSES; None:
+    all k in order), given as (n, m, 6, 6) and kept packed (`terms` unpacks rows), and per
+    class the autocorrelation `rho` (k, MAX_LAG), the lags summed `lags_used` (k,) and `taus`
+    (k,).  `add_to` adds sum_c (tau_c - 1) s_c G_c (a long average: the batch smoother);
+    `filter_taus` the inflation of a filter's shorter, one-sided average (EKF, fixed-lag
+    smoother: `solve_inflated`).
+
+    Memory: the terms are alive through every back end's solves (a 30-minute flight's
+    (n, k, 6, 6) float64 were 31 MB per class, and its first smoother solve the run's peak:
+    +34 MiB, BENCHMARKS.md corr15), so `estimate_inflation` keeps the inflated classes only
+    (the others' weight is exactly 0) and each 6 x 6 is kept as its upper triangle in float32
+    (21 numbers, 4.5 MB per class on 30 minutes; an added inflation term, where float32's
+    relative 6e-8 is far below anything the NEES can tell)."""
 
     timestamps_ns: np.ndarray
     class_terms: np.ndarray
@@ -159,6 +201,24 @@ class CorrelationInflation:
     lags_used: np.ndarray
     taus: np.ndarray
     tolerance_ns: int = 0
+    classes: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        terms = np.asarray(self.class_terms)
+        if terms.ndim == 4:  # (n, m, 6, 6) given: packed
+            self.class_terms = np.ascontiguousarray(terms[..., _TRIU[0], _TRIU[1]], dtype=np.float32)
+
+    def terms(self, index) -> np.ndarray:
+        """(len, m, 6, 6) float64 s_c G_c of the frames `index` (an index into the stamps)."""
+        packed = np.asarray(self.class_terms[index], dtype=float)
+        out = np.empty((*packed.shape[:-1], 6, 6))
+        out[..., _TRIU[0], _TRIU[1]] = packed
+        out[..., _TRIU[1], _TRIU[0]] = packed
+        return out
+
+    def _classes(self) -> np.ndarray:
+        """(m,) the CORNER_CLASSES indices of class_terms' second axis."""
+        return np.arange(len(self.taus)) if self.classes is None else np.asarray(self.classes, dtype=int)
 
     def _nearest(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(index of the nearest PnP stamp, whether within tolerance_ns) for stamps t."""
@@ -172,11 +232,11 @@ class CorrelationInflation:
         milliseconds), else none.  Unchanged without covariances."""
         if traj.covariances is None or not len(traj) or not len(self.timestamps_ns):
             return traj
-        w = np.asarray(self.taus if taus is None else taus, dtype=float) - 1.0
+        w = (np.asarray(self.taus if taus is None else taus, dtype=float) - 1.0)[self._classes()]
         t = np.asarray(traj.timestamps_ns, dtype=np.int64)
         nearest, close = self._nearest(t)
         covs = np.array(traj.covariances, dtype=float, copy=True)
-        covs[close] += np.einsum("c,ncij->nij", w, self.class_terms[nearest[close]])
+        covs[close] += np.einsum("c,ncij->nij", w, self.terms(nearest[close]))
         return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
     def long_average_variance_factor(self, traj: Trajectory) -> float:
@@ -232,9 +292,9 @@ class CorrelationInflation:
             mu, U = np.linalg.eigh(0.5 * (Pw + np.swapaxes(Pw, 1, 2)))  # (m, 6), (m, 6, 6)
             n_dir = 1.0 / np.maximum(mu, 1e-12)
             # (m, k, 6, 6)
-            Ew = Li[:, None] @ self.class_terms[nearest[rows]] @ np.swapaxes(Li, 1, 2)[:, None]
+            Ew = Li[:, None] @ self.terms(nearest[rows]) @ np.swapaxes(Li, 1, 2)[:, None]
             share = np.einsum("mai,mcab,mbi->mci", U, Ew, U)  # (m, k, 6): e_ci
-            taus = self.average_taus(n_dir, two_sided)  # (m, k, 6)
+            taus = self.average_taus(n_dir, two_sided)[:, self._classes()]  # (m, k', 6)
             d = np.sum((taus - 1.0) * share, axis=1)  # (m, 6)
             LU = L @ U
             covs[rows] += np.einsum("mai,mi,mbi->mab", LU, d, LU)
@@ -287,7 +347,8 @@ def solve_inflated(
     estimates them: variance.solve_noise_scaled): the noise scales of the first solve (per
     camera, cam0 for the poses and tight corners, cam1 for the loads) are applied to the second
     as they are and not estimated again (the inflated covariances would read as too large: the
-    residuals of a correlated error understate it), and its report is the first solve's.  Its
+    residuals of a correlated error understate it, so their chi2/dof is not measured at all:
+    FusionConfig.check_noise off), and its report is the first solve's.  Its
     stats gain `correlation_inflation`: the median over the frames of the inflated covariance's
     trace over the raw one's."""
     from fusion.estimate import variance
@@ -306,10 +367,17 @@ def solve_inflated(
         del inflated  # `again` is what the second solve takes
         config = kwargs.get("config")
         if config is not None:
+            # nor are its variance components measured (check_noise off): its report is the
+            # first solve's, and they were the second solve's memory peak (the smoother windows'
+            # leverages, with the inflated poses alive beside `raw`: a 30-minute flight's run
+            # 870 -> 891 MiB; BENCHMARKS.md corr15)
             kwargs = dict(
                 kwargs,
                 config=replace(
-                    config, noise_scale_iterations=0, corner_noise_scale=config.corner_noise_scale * s0
+                    config,
+                    noise_scale_iterations=0,
+                    check_noise=False,
+                    corner_noise_scale=config.corner_noise_scale * s0,
                 ),
             )
         res = fn(frame_times_ns, imu, again, load_again, **kwargs)
@@ -323,6 +391,18 @@ def solve_inflated(
     return res
 
 
+def common_share(frames: Sequence[FrameCodeResiduals | None], cls: int, sum_sq: float) -> float:
+    """`sum_sq` over the sum of squares of class `cls`'s whitened residuals in `frames`, at most 1
+    (0 without residuals): a common error's share of every lag's rho (estimate_inflation)."""
+    total = 0.0
+    for fr in frames:
+        if fr is None or not len(fr.payloads):
+            continue
+        r = np.asarray(fr.whitened, dtype=float)[np.asarray(fr.classes) == cls]
+        total += float(np.sum(r[np.isfinite(r).all(axis=1)] ** 2))
+    return min(sum_sq / total, 1.0) if total > 0 else 0.0
+
+
 def estimate_inflation(
     traj: Trajectory,
     frames: Sequence[FrameCodeResiduals | None],
@@ -330,13 +410,20 @@ def estimate_inflation(
     class_scales: np.ndarray,
     apply: bool = True,
     exclude: dict[str, str] | None = None,
+    common_sum_sq: dict[str, float] | None = None,
 ) -> tuple[dict, CorrelationInflation | None]:
     """Per corner class tau_c of the flight's PnP frames (`traj`, one pose per entry of `frames`
     and of `class_covariances` (k, 6, 6) G_c, in order), and the back ends' inflation when
     `apply` and some tau_c > 1 (None otherwise).  `class_scales` (k,): the variance factors
     applied to the classes (1 when none).  `exclude` {class: reason}: classes whose tau is
-    reported but not applied (the reason in the report's `not_applied`).  Returns the JSON-ready
-    report (per class ClassCorrelation.as_dict, `applied`) and the inflation."""
+    reported but not applied (the reason in the report's `not_applied`).  `common_sum_sq`
+    {class: sum of squares}: the part of the class's whitened residuals that a removed common
+    error explains (the corner bias: cornerbias.BiasConsider.residual_sum_sq), whose consider
+    term carries it.  A common error correlates the residuals at every lag by its share q of the
+    class's sum of squares, so q is taken off every lag's rho before the sum (the inflation
+    (tau - 1) s_c G_c is then 2 sum (rho - q) of the class's variance: that of the rest of the
+    error, not counted twice); reported as `common_share`.  Returns the JSON-ready report (per
+    class ClassCorrelation.as_dict, `applied`) and the inflation."""
     if len(frames) != len(traj) or len(class_covariances) != len(traj):
         raise ValueError(
             f"correlation: {len(frames)} frames of residuals and {len(class_covariances)} of class "
@@ -348,19 +435,31 @@ def estimate_inflation(
     taus = np.ones(len(CORNER_CLASSES))
     for c, name in enumerate(CORNER_CLASSES):
         rho_c, pairs, n, codes = acf[name]
+        share = 0.0
+        if common_sum_sq and common_sum_sq.get(name, 0.0) > 0.0:
+            share = common_share(frames, c, common_sum_sq[name])
+            rho_c = rho_c - share
+            acf[name] = (rho_c, pairs, n, codes)
         tau, n_used = integrated_time(rho_c, pairs)
         report["classes"][name] = ClassCorrelation(rho_c, pairs, n_used, tau, n, codes).as_dict()
+        if share > 0.0:
+            report["classes"][name]["common_share"] = round(share, 4)
         if exclude and name in exclude:
             report["classes"][name]["not_applied"] = exclude[name]
             continue
         taus[c] = tau
     if not (apply and np.any(taus > 1.0)) or traj.covariances is None or not len(traj):
         return report, None
-    terms = (
-        np.asarray(class_covariances, dtype=float)
-        * np.asarray(class_scales, dtype=float)[None, :, None, None]
-    )
-    rho = np.stack([np.nan_to_num(acf[name][0]) for name in CORNER_CLASSES])
+    # only the inflated classes' terms are kept (CorrelationInflation: the memory of long flights)
+    active = np.flatnonzero(taus > 1.0)
+    terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
+    terms *= np.asarray(class_scales, dtype=float)[active][None, :, None, None]
+    # the lags as the estimator summed them (monotone-cut), so that a long average's factor
+    # (CorrelationInflation.average_taus) tends to tau
+    rho = np.zeros((len(CORNER_CLASSES), MAX_LAG))
+    for c, name in enumerate(CORNER_CLASSES):
+        kept = monotone_sequence(*acf[name][:2])
+        rho[c, : len(kept)] = kept
     used = np.array(
         [
             report["classes"][name]["lags_used"] if taus[c] > 1.0 else 0
@@ -369,4 +468,4 @@ def estimate_inflation(
     )
     dt = int(np.median(np.diff(t))) if len(t) > 1 else 0
     report["applied"] = True
-    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2)
+    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2, classes=active)
