@@ -274,3 +274,19 @@ def test_a_maps_departure_from_the_smoothers_is_added():
     assert np.allclose(out.loads[0].cov_world, own + np.outer(d, d), atol=1e-18)
     assert out.loads[0].p_world is moved and np.array_equal(out.loads[0].cov_shared, np.eye(3))
     assert out.loads[1].cov_world is own  # not in the smoother's map: kept
+
+
+def test_at_least_grows_a_covariance_only_where_it_holds_less():
+    from fusion.estimate.loadconsider import at_least
+
+    C = np.diag([4.0, 1.0, 1.0])
+    D = np.diag([1.0, 3.0, 0.5])
+    assert np.allclose(at_least(C, D), np.diag([4.0, 3.0, 1.0]))
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        A, B = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        C, D = A @ A.T + 0.1 * np.eye(3), B @ B.T
+        out = at_least(C, D)
+        assert np.linalg.eigvalsh(out - C).min() > -1e-9 and np.linalg.eigvalsh(out - D).min() > -1e-9
+        assert np.allclose(at_least(C, 0.5 * C), C)  # already held: unchanged
+    assert np.allclose(at_least(np.zeros((3, 3)), D), D)  # no own covariance: the pose's

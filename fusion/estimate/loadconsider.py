@@ -11,10 +11,12 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Four e
   what the back ends model as white).  Measured on the demo flight (BENCHMARKS.md, fourteenth
   session): the sightings placed with the true poses have mean errors of -0.04 to +0.01 mm;
   with the PnP poses 0.1-0.36 mm, the same in every back end's map, whose sigmas were 0.01-0.04
-  mm (load-map NEES: smoother 18, EKF 150, of 3).  So each load's covariance gains the pose's,
+  mm (load-map NEES: smoother 18, EKF 150, of 3).  So each load's covariance is kept at least at the pose's,
   mean_i J_i P_i J_i^T (J_i the world point's Jacobian with respect to the body pose, P_i the
   `trajectory`'s pose covariance at that frame): the pose error taken as common to the
-  sightings.  The run passes the batch smoother's trajectory for every map (pipeline.
+  sightings, as a floor under the map's own covariance (`at_least`: the map's covariance
+  grown only where it holds less than that, since a smoother's landmark marginal already holds
+  the pose error it models).  The run passes the batch smoother's trajectory for every map (pipeline.
   _add_load_consider): the slow part of the pose error is the fixes', shared by every back end,
   and the smoother's P is the closest measure of it; each map's own P, mostly white noise for PnP
   and the EKF, made their maps too conservative (NEES 0.0-1.7 of 3; BENCHMARKS.md, fourteenth
@@ -84,7 +86,7 @@ def add_load_consider_covariance(
         # the label's and the mount's are every flight's of this label and camera (cov_shared)
         shared = side_sigma_rel**2 * np.outer(u_print, u_print)
         shared += sigma_rot**2 * U_rot @ U_rot.T + sigma_shift**2 * U_shift @ U_shift.T
-        cov = np.asarray(est.cov_world, dtype=float) + pose_cov + shared
+        cov = at_least(np.asarray(est.cov_world, dtype=float), pose_cov) + shared
         cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
         if est.cov_shared is not None:
             shared = shared + est.cov_shared
@@ -92,6 +94,24 @@ def add_load_consider_covariance(
             LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, 0.5 * (shared + shared.T))
         )
     return LoadMap(load_map.name, out)
+
+
+def at_least(C: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The least covariance >= C that is also >= D along C's whitened eigenvectors: C^1/2 Q
+    max(Lambda, 1) Q^T C^T/2 with Q Lambda Q^T = C^-1/2 D C^-T/2 (C itself where it already holds
+    D).  The load's own covariance already holds the part of the pose error its back end
+    modelled (a smoother's landmark marginal); adding J P J^T on top counted it twice (after the
+    time-correlation inflation, corr15: 11 of 108 maps below their chi2 interval, demo20's
+    smoother 1.1)."""
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return C + D
+    Li = np.linalg.inv(L)
+    lam, Q = np.linalg.eigh(Li @ D @ Li.T)
+    M = L @ Q
+    out = (M * np.maximum(lam, 1.0)) @ M.T
+    return 0.5 * (out + out.T)
 
 
 def _common_terms(
