@@ -125,8 +125,8 @@ stamp moved by at most this (the time-offset search's half-width; a start, not a
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
-    "each other (measured: 20-40 mrad off with a claimed sigma of 1-6 mrad on simulated flights, "
-    "often in every back end alike; BENCHMARKS.md, thirteenth session)"
+    "each other (measured: pitch 14-22 mrad off with a claimed sigma of ~5 mrad on simulated "
+    "flights, in every back end alike; BENCHMARKS.md, thirteenth and fourteenth sessions)"
 )
 
 

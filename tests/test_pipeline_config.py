@@ -94,7 +94,7 @@ def test_floor_inputs_keep_the_floor_code_grid_of_the_detections(sample_as_built
 
 def test_a_gimbaled_floor_camera_says_its_fused_tilt_is_unchecked(sample_as_built, monkeypatch):
     """Level-frame fixes give position and yaw: the fused roll / pitch are the IMU's against the
-    fixes' motion, which the health does not check (20-40 mrad off with sigma 1-6 mrad on
+    fixes' motion, which the health does not check (14-40 mrad off with sigma 1-6 mrad on
     simulated gimbaled flights, BENCHMARKS.md): the run says so; a body-fixed camera does not."""
     import fusion.pipeline as P
 
