@@ -57,7 +57,12 @@ from fusion.estimate.extrinsics import (
 )
 from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.health import tilt_disagreement
-from fusion.estimate.loadconsider import add_departure, add_load_consider_covariance, add_places_spread
+from fusion.estimate.loadconsider import (
+    add_departure,
+    add_load_consider_covariance,
+    add_places_spread,
+    common_terms,
+)
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -1535,15 +1540,20 @@ def _add_load_consider(
     front = None if offsets is None else offsets.cameras.get(CameraRole.FRONT.value)
     stamp_variance = 0.0 if front is None else front.stamp_variance_s2
     smoother = result.trajectories.get(str(Estimator.SMOOTHER))
+    terms: dict[int, dict] = {}  # common_terms per trajectory: every map's is the smoother's
     for name, load_map in result.load_maps.items():
         own = result.trajectories.get(name)
+        traj = smoother if smoother is not None and smoother.covariances is not None else own
+        if traj is not None and id(traj) not in terms:
+            terms[id(traj)] = common_terms(loc.camera_frame_observations, traj, log.front.camera)
         result.load_maps[name] = add_load_consider_covariance(
             load_map,
             loc.camera_frame_observations,
-            smoother if smoother is not None and smoother.covariances is not None else own,
+            traj,
             log.front.camera,
             log.world.load_side_sigma_rel,
             stamp_variance,
+            terms=None if traj is None else terms[id(traj)],
         )
         if places:
             result.load_maps[name] = add_places_spread(result.load_maps[name], places)

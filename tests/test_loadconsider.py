@@ -193,14 +193,14 @@ def test_simulated_flights_state_exact_labels_and_mounts(tmp_path):
 
 
 def test_blocks_give_the_same_terms():
-    from fusion.estimate.loadconsider import _common_terms
+    from fusion.estimate.loadconsider import common_terms
 
     P = np.diag([1e-8, 2e-8, 3e-8, 1e-8, 4e-8, 9e-8])
     traj, p_cam = _pass(n=50, pose_cov=P)
     obs = _observations(traj, p_cam)
     obs += [LoadObservation(o.timestamp_ns, "L2", LOAD, None, o.p_cam * 1.1, None) for o in obs[::3]]
-    one = _common_terms(obs, traj, CAMERA, block=10_000)
-    many = _common_terms(obs, traj, CAMERA, block=7)
+    one = common_terms(obs, traj, CAMERA, block=10_000)
+    many = common_terms(obs, traj, CAMERA, block=7)
     assert one.keys() == many.keys() == {"L1", "L2"}
     for lid in one:
         for a, b in zip(one[lid], many[lid]):

@@ -46,7 +46,7 @@ on the demo flight), while the sightings' world errors are as wide across the ra
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -67,21 +67,23 @@ def add_load_consider_covariance(
     camera: CameraModel,
     side_sigma_rel: float,
     stamp_variance_s2: float = 0.0,
+    terms: dict[str, tuple[np.ndarray, ...]] | None = None,
 ) -> LoadMap:
     """`load_map` with each load's covariance plus the module docstring's consider terms, from
     its camera-frame `observations` (p_cam) hung from `trajectory` (poses and covariances) through
-    `camera`'s mount.  Loads without a covariance, or without a sighting
-    near a pose, are kept as they are (a new LoadMap; the estimates are not moved)."""
+    `camera`'s mount.  `terms`: `common_terms` of those, when already made (the run hangs every
+    map from the same trajectory).  Loads without a covariance, or without a sighting near a
+    pose, are kept as they are (a new LoadMap; the estimates are not moved)."""
     if trajectory is None or not len(trajectory) or not load_map.loads:
         return load_map
-    terms = _common_terms(observations, trajectory, camera)
+    if terms is None:
+        terms = common_terms(observations, trajectory, camera)
     sigma_rot, sigma_shift = camera.mount_sigmas
-    out = []
-    for est in load_map.loads:
+
+    def grow(est: LoadEstimate) -> tuple[np.ndarray, np.ndarray] | None:
         term = terms.get(est.load_id)
-        if est.cov_world is None or term is None:
-            out.append(est)
-            continue
+        if term is None:
+            return None
         pose_cov, u_print, u_stamp, U_rot, U_shift = term
         # the label's and the mount's are every flight's of this label and camera (cov_shared)
         shared = side_sigma_rel**2 * np.outer(u_print, u_print)
@@ -90,9 +92,25 @@ def add_load_consider_covariance(
         cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
         if est.cov_shared is not None:
             shared = shared + est.cov_shared
-        out.append(
-            LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, 0.5 * (shared + shared.T))
-        )
+        return cov, 0.5 * (shared + shared.T)
+
+    return _grown(load_map, grow)
+
+
+def _grown(
+    load_map: LoadMap, grow: Callable[[LoadEstimate], tuple[np.ndarray, np.ndarray | None] | None]
+) -> LoadMap:
+    """`load_map` with each load's covariance (and shared part) as `grow(load)` gives them, a
+    (cov_world, cov_shared) pair, or as it was when `grow` gives None or the load has no
+    covariance (a new LoadMap; the estimates are not moved)."""
+    out = []
+    for est in load_map.loads:
+        new = None if est.cov_world is None else grow(est)
+        if new is None:
+            out.append(est)
+            continue
+        cov, shared = new
+        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, shared))
     return LoadMap(load_map.name, out)
 
 
@@ -114,7 +132,7 @@ def at_least(C: np.ndarray, D: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
-def _common_terms(
+def common_terms(
     observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel, block: int = 2048
 ) -> dict[str, tuple[np.ndarray, ...]]:
     """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,), U_rot (3, 3), U_shift
@@ -176,16 +194,15 @@ def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) ->
     spread about its estimate, mean_k (c_k - p)(c_k - p)^T, on top of its covariance (a
     duplicated label, or a load moved during the flight: which place is meant, the map cannot
     say; pipeline.loads_at_two_places).  Loads without a covariance are kept as they are."""
-    out = []
-    for est in load_map.loads:
+
+    def grow(est: LoadEstimate) -> tuple[np.ndarray, np.ndarray | None] | None:
         centres = places.get(est.load_id)
-        if not centres or est.cov_world is None:
-            out.append(est)
-            continue
+        if not centres:
+            return None
         d = np.asarray(centres, dtype=float) - np.asarray(est.p_world, dtype=float)
-        cov = np.asarray(est.cov_world, dtype=float) + d.T @ d / len(d)
-        out.append(LoadEstimate(est.load_id, est.p_world, 0.5 * (cov + cov.T), est.n_obs, est.cov_shared))
-    return LoadMap(load_map.name, out)
+        return np.asarray(est.cov_world, dtype=float) + d.T @ d / len(d), est.cov_shared
+
+    return _grown(load_map, grow)
 
 
 def add_departure(load_map: LoadMap, reference: LoadMap) -> LoadMap:
@@ -199,14 +216,12 @@ def add_departure(load_map: LoadMap, reference: LoadMap) -> LoadMap:
     covariance averages away: on the sweep's 28 flights the EKF's load maps outside the chi2
     interval of their load count on 9, on 2 with d d^T (BENCHMARKS.md, fourteenth session).
     Loads without a covariance, or that the reference does not hold, are kept."""
-    ref = {est.load_id: est for est in reference.loads}
-    out = []
-    for est in load_map.loads:
-        r = ref.get(est.load_id)
-        if est.cov_world is None or r is None:
-            out.append(est)
-            continue
-        d = np.asarray(est.p_world, dtype=float) - np.asarray(r.p_world, dtype=float)
-        cov = np.asarray(est.cov_world, dtype=float) + np.outer(d, d)
-        out.append(LoadEstimate(est.load_id, est.p_world, cov, est.n_obs, est.cov_shared))
-    return LoadMap(load_map.name, out)
+    ref = {est.load_id: est.p_world for est in reference.loads}
+
+    def grow(est: LoadEstimate) -> tuple[np.ndarray, np.ndarray | None] | None:
+        if est.load_id not in ref:
+            return None
+        d = np.asarray(est.p_world, dtype=float) - np.asarray(ref[est.load_id], dtype=float)
+        return np.asarray(est.cov_world, dtype=float) + np.outer(d, d), est.cov_shared
+
+    return _grown(load_map, grow)
