@@ -50,6 +50,37 @@ CODE_SIDE_RANGE_M = (0.01, 2.0)
 is a unit mistake (cm or mm for m), not a code: every metric output would scale with it."""
 
 
+UNCERTAINTY_KEYS = frozenset(
+    {"floor_qr.placement_sigma_m", "floor_qr.placement_sigma_deg", "load_qr.side_sigma_m"}
+)
+"""world.yaml's statements of how exactly the codes were laid and printed: one flight's may
+state them and another's not (then the defaults apply) for the same codes; they do not tell
+warehouses apart (warehouse_differences)."""
+
+
+def _flat(data: dict, prefix: str = "") -> dict[str, object]:
+    """{"section.key": value} of a world.yaml mapping, nested mappings flattened."""
+    out: dict[str, object] = {}
+    for k, v in data.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{name}."))
+        else:
+            out[name] = v
+    return out
+
+
+def warehouse_differences(a: dict, b: dict) -> tuple[list[str], list[str]]:
+    """(keys in which two world.yaml mappings describe different warehouses, uncertainty keys
+    in which they differ), each as sorted "section.key" names.  Every key but UNCERTAINTY_KEYS
+    tells warehouses apart (codes' sizes, payload unit, bounds, and any key this version does
+    not know, conservatively); a flight stating a print or placement sigma and one that does not
+    (or another value) fly the same warehouse."""
+    fa, fb = _flat(a), _flat(b)
+    differ = sorted(k for k in set(fa) | set(fb) if fa.get(k) != fb.get(k))
+    return [k for k in differ if k not in UNCERTAINTY_KEYS], [k for k in differ if k in UNCERTAINTY_KEYS]
+
+
 @dataclass
 class World:
     """What is known of the warehouse before flying."""

@@ -18,6 +18,7 @@ from fusion.log.files import write_loads_json, write_tum
 from fusion.types import LoadEstimate, LoadMap, Trajectory
 from fusion.warehouse.merge import ChangeKind, merge_runs
 from fusion.warehouse.runs import RUN_RECORD, load_run
+from fusion.world import warehouse_differences
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 WORLD = load_yaml(SAMPLE / "world.yaml")
@@ -119,6 +120,24 @@ def test_merge_refuses_other_warehouse_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "refusing to merge" in err
     assert not (tmp_path / "m").exists()
+
+
+def test_merge_takes_runs_stating_other_sigmas_as_one_warehouse(tmp_path):
+    """A flight whose world.yaml states the labels' print sigma and one that does not (an older
+    log, or another operator) fly the same warehouse: merged, with a note; a different label
+    side still refuses."""
+    assert "side_sigma_m" in WORLD["load_qr"]
+    unstated = dict(WORLD, load_qr={"side_m": WORLD["load_qr"]["side_m"]})
+    assert warehouse_differences(WORLD, unstated) == ([], ["load_qr.side_sigma_m"])
+    r0 = _fake_run(tmp_path / "r0", {"A": [1.5, 2.7, 1.4]})
+    r1 = _fake_run(tmp_path / "r1", {"A": [1.5, 2.7, 1.4]}, world=unstated)
+    res = merge_runs([load_run(r0), load_run(r1)])
+    assert res.world_yaml == WORLD and res.loads[0].n_runs == 2
+    assert any("load_qr.side_sigma_m" in n for n in res.notes)
+    bigger = dict(unstated, load_qr={"side_m": 0.2})
+    r2 = _fake_run(tmp_path / "r2", {"A": [1.5, 2.7, 1.4]}, world=bigger)
+    with pytest.raises(WarehouseError, match=r"differs in load_qr\.side_m\)"):
+        merge_runs([load_run(r0), load_run(r2)])
 
 
 def test_cli_merge_writes_map_with_escaped_ids(tmp_path, capsys):

@@ -42,7 +42,7 @@ from fusion.estimate.asbuilt import (
 from fusion.evaluate.plots import plot_floor_code_offsets
 from fusion.fileio import atomic_open, csv_safe, load_yaml
 from fusion.warehouse import escape
-from fusion.world import World
+from fusion.world import World, warehouse_differences
 
 __all__ = [
     "MERGED_FLOOR_CODES_CSV",
@@ -72,8 +72,8 @@ def read_floor_map(map_dir: Path, world_yaml: dict) -> PriorMap:
     if not csv_path.is_file():
         raise WarehouseError(f"{csv_path}: not found (is {map_dir} the --out of `fusion map merge`?)")
     theirs = load_yaml(map_dir / WORLD_YAML, WarehouseError)
-    if theirs != world_yaml:
-        keys = sorted(k for k in set(theirs) | set(world_yaml) if theirs.get(k) != world_yaml.get(k))
+    keys, _ = warehouse_differences(theirs, world_yaml)
+    if keys:
         raise WarehouseError(
             f"{map_dir}: a map of a different warehouse (world.yaml differs in {', '.join(keys)}); "
             "refusing to use it as this flight's floor-code prior"

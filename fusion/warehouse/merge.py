@@ -42,7 +42,7 @@ from fusion.warehouse import escape
 from fusion.warehouse.floorcodes import MergedFloorCode, merge_floor_codes, write_merged_floor_codes
 from fusion.warehouse.inventory import MIN_FRAMES_IN_VIEW, MOVED_ALPHA, moved_test, visibility
 from fusion.warehouse.runs import RunOutputs, load_run
-from fusion.world import World
+from fusion.world import World, warehouse_differences
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +97,11 @@ class MergeResult:
     floor_codes: list[MergedFloorCode] = field(default_factory=list)  # as-built, fused
 
 
-def check_same_warehouse(runs: list[RunOutputs]) -> dict:
-    """The common world.yaml of `runs`; WarehouseError if one is unknown or they differ."""
+def check_same_warehouse(runs: list[RunOutputs], notes: list[str] | None = None) -> dict:
+    """The common world.yaml of `runs` (the first run's); WarehouseError if one is unknown or
+    they describe different warehouses (world.warehouse_differences).  Runs that differ only in
+    their stated print / placement sigmas are the same warehouse: each run's map already carries
+    its own, and `notes` (when given) says which keys differ."""
     worlds = []
     for r in runs:
         if r.world_yaml is None:
@@ -107,13 +110,20 @@ def check_same_warehouse(runs: list[RunOutputs]) -> dict:
             )
         worlds.append(r.world_yaml)
     ref = worlds[0]
+    sigma_keys: set[str] = set()
     for r, w in zip(runs[1:], worlds[1:], strict=True):
-        if w != ref:
-            keys = sorted(k for k in set(ref) | set(w) if ref.get(k) != w.get(k))
+        keys, sigmas = warehouse_differences(ref, w)
+        if keys:
             raise WarehouseError(
                 f"{r.out_dir}: a different warehouse than {runs[0].out_dir} "
                 f"(world.yaml differs in {', '.join(keys)}); refusing to merge"
             )
+        sigma_keys.update(sigmas)
+    if sigma_keys and notes is not None:
+        notes.append(
+            f"the runs' world.yaml state different {', '.join(sorted(sigma_keys))} (each run's map "
+            f"carries its own); the merged world.yaml is {runs[0].out_dir}'s"
+        )
     return ref
 
 
@@ -142,8 +152,8 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
     """Fuse the load maps of `runs` (flight order) and list the changes between flights."""
     if len(runs) < 1:
         raise WarehouseError("map merge needs at least one run")
-    world_yaml = check_same_warehouse(runs)
     notes: list[str] = []
+    world_yaml = check_same_warehouse(runs, notes)
     state: dict[str, MergedLoad] = {}
     changes: list[Change] = []
     for k, run in enumerate(runs):
