@@ -814,11 +814,36 @@ def fuse_stage(
     for i, (name, fn, kwargs) in enumerate(solvers):
         if name != Estimator.SMOOTHER and not at_once:
             calls: list[tuple[Callable[..., Any], tuple, dict[str, Any]]] = []
+            # the tight incremental smoother takes corners, not poses
+            inflated = [n_ for n_, _, _ in solvers[i:] if not (cfg.tight and n_ == Estimator.INCREMENTAL)]
+            causal = None
+            if inflation is not None and len(inflated) > 1:
+                # one causal pass (the EKF's) inflates the poses for both (correlation.causal_inflated)
+                try:
+                    causal = correlation.causal_inflated(
+                        run_ekf,
+                        frame_t,
+                        log.imu,
+                        raw,
+                        load_obs,
+                        inflation=inflation,
+                        front_camera=front,
+                        velocity=log.velocity,
+                        config=fcfg,
+                        floor_camera=floor_camera,
+                    )
+                except Exception as e:  # each back end then takes its own first pass
+                    logger.info(
+                        "the EKF's pass on the raw poses failed (%s): each back end inflates its own", e
+                    )
             for n_, f, kw in solvers[i:]:
                 common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kw)
-                # the tight incremental smoother takes corners, not poses
-                if inflation is None or (cfg.tight and n_ == Estimator.INCREMENTAL):
+                if inflation is None or n_ not in inflated:
                     calls.append((f, (frame_t, log.imu, raw, load_obs), common))
+                elif causal is not None:
+                    calls.append(
+                        (correlation.solve_on_inflated, (f, frame_t, log.imu, raw, causal, load_obs), common)
+                    )
                 else:
                     calls.append(
                         (
@@ -833,20 +858,10 @@ def fuse_stage(
                 res = at_once.pop(name).get()
             else:
                 common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kwargs)
-                if inflation is None or cfg.tight:  # the tight smoother takes corners, not poses
-                    res = fn(frame_t, log.imu, raw, load_obs, **common)
-                else:
-                    res = correlation.solve_inflated(
-                        fn,
-                        frame_t,
-                        log.imu,
-                        raw,
-                        load_obs,
-                        inflation=inflation,
-                        two_sided=True,
-                        keep_noise_scales=True,
-                        **common,
-                    )
+                if inflation is not None and not cfg.tight:  # the tight smoother takes corners
+                    # each window solved twice in its own process, the second solve warm
+                    common["solver"] = correlation.InflatedSmoother(inflation)
+                res = fn(frame_t, log.imu, raw, load_obs, **common)
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue

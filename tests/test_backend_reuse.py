@@ -10,12 +10,13 @@ import gtsam
 import numpy as np
 import pytest
 
+from fusion.estimate import correlation, variance
 from fusion.estimate import smoother as smoother_module
-from fusion.estimate import variance
 from fusion.estimate.common import FusionConfig
+from fusion.estimate.ekf import run_ekf
 from fusion.estimate.extrinsics import estimate_mount_and_states, estimate_mount_and_trajectory
 from fusion.estimate.factors import B, V, X
-from fusion.estimate.smoother import SolveReuse, smooth, warm_values
+from fusion.estimate.smoother import SolveReuse, smooth, smooth_incremental, warm_values
 from fusion.pipeline import SharedWholeFlight
 from tests.test_estimate import FRONT_CAM, make_flight
 from tests.test_extrinsics import FLOOR_CAM
@@ -130,3 +131,72 @@ def test_shared_whole_flight_warm_start_needs_the_same_frames():
     assert shared.warm_start(t[:-1]) is None  # other frames (fixes merged in)
     assert shared.warm_start(t + int(0.2e9)) is None  # beyond WARM_START_MAX_SHIFT_S
     assert math.isclose(float(np.abs(shared.frame_t - t).max()), 70_000.0)
+
+
+def _flight_inflation(raw, share=0.5, rho=(0.5, 0.3)):
+    """A CorrelationInflation over `raw`'s frames: one class holding `share` of each frame's
+    covariance, correlated over len(rho) lags (tau = 1 + 2 sum rho)."""
+    lags = len(rho)
+    rho_all = np.zeros((1, correlation.MAX_LAG))
+    rho_all[0, :lags] = rho
+    terms = share * np.asarray(raw.covariances)[:, None]
+    return correlation.CorrelationInflation(
+        np.asarray(raw.timestamps_ns, np.int64),
+        terms,
+        rho_all,
+        np.array([lags]),
+        np.array([1 + 2 * sum(rho)]),
+        tolerance_ns=16_000_000,
+    )
+
+
+def test_inflated_smoother_starts_its_second_solve_warm(flight, monkeypatch):
+    """correlation.InflatedSmoother (a window's two solves in one process): the second solve
+    starts from the first's solution and reuses its preintegrated IMU; the same optimum,
+    covariances and noise-scale report as solve_inflated's two separate solves."""
+    cfg = FusionConfig(lm_relative_tol=TIGHT_TOL)
+    inf = _flight_inflation(flight.raw)
+    args = (flight.frame_t, flight.imu, flight.raw, flight.load_obs)
+    kw = dict(front_camera=FRONT_CAM, velocity=flight.velocity, config=cfg)
+    initial_errors: list[float] = []
+    real_smooth = smoother_module.smooth
+
+    def recording(*a, **k):
+        res = real_smooth(*a, **k)
+        initial_errors.append(res.stats["initial_error"])
+        return res
+
+    monkeypatch.setattr(smoother_module, "smooth", recording)
+    warm = correlation.InflatedSmoother(inf)(*args, **kw)
+    cold = correlation.solve_inflated(
+        real_smooth, *args, inflation=inf, two_sided=True, keep_noise_scales=True, **kw
+    )
+    assert np.abs(_positions(warm) - _positions(cold)).max() < SAME_OPTIMUM_M
+    np.testing.assert_allclose(
+        warm.trajectory.covariances, cold.trajectory.covariances, rtol=1e-6, atol=1e-14
+    )
+    assert warm.stats["noise_scales"] == cold.stats["noise_scales"]
+    assert warm.stats["correlation_inflation"] == pytest.approx(cold.stats["correlation_inflation"])
+    first, second = initial_errors
+    assert second < 1e-3 * first and second < 1e-3 * cold.stats["initial_error"]  # it did start warm
+
+
+def test_one_causal_pass_inflates_the_ekf_and_the_incremental_smoother_alike(flight):
+    """The EKF's and the incremental smoother's outputs are both the marginal of frame k as known
+    at frame k: inflated from either's pass, the poses' covariances agree (the run takes the
+    EKF's for both, correlation.causal_inflated)."""
+    inf = _flight_inflation(flight.raw)
+    args = (flight.frame_t, flight.imu, flight.raw, flight.load_obs)
+    kw = dict(front_camera=FRONT_CAM, velocity=flight.velocity, config=FusionConfig())
+    by_ekf = correlation.causal_inflated(run_ekf, *args, inflation=inf, **kw)
+    by_inc = correlation.causal_inflated(smooth_incremental, *args, inflation=inf, **kw)
+    raw_tr = np.trace(flight.raw.covariances, axis1=1, axis2=2)
+    grown_ekf = np.trace(by_ekf.covariances, axis1=1, axis2=2) / raw_tr
+    grown_inc = np.trace(by_inc.covariances, axis1=1, axis2=2) / raw_tr
+    assert np.median(grown_ekf) > 1.2  # the inflation is material
+    assert np.median(np.abs(grown_ekf / grown_inc - 1)) < 0.02
+    res = correlation.solve_on_inflated(smooth_incremental, *args[:3], by_ekf, args[3], **kw)
+    assert res.stats["correlation_inflation"] == {
+        "two_sided": False,
+        "trace_ratio_median": pytest.approx(np.median(grown_ekf)),
+    }

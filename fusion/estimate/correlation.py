@@ -337,31 +337,37 @@ def solve_inflated(
     inflation: CorrelationInflation,
     two_sided: bool,
     keep_noise_scales: bool = False,
+    reuse=None,
     **kwargs,
 ):
     """A back end `fn` (smooth / smooth_windowed: `two_sided`; run_ekf, smooth_incremental: not;
     the same call as theirs) on PnP poses `raw` whose corner errors are correlated in time:
     solved once on `raw` as it is, then again on `raw` with each frame's covariance inflated for
     the average that solve took of the frames, direction by direction
-    (`CorrelationInflation.directional`).  `keep_noise_scales` (the batch smoother, which
-    estimates them: variance.solve_noise_scaled): the noise scales of the first solve (per
-    camera, cam0 for the poses and tight corners, cam1 for the loads) are applied to the second
-    as they are and not estimated again (the inflated covariances would read as too large: the
-    residuals of a correlated error understate it, so their chi2/dof is not measured at all:
-    FusionConfig.check_noise off), and its report is the first solve's.  Its
-    stats gain `correlation_inflation`: the median over the frames of the inflated covariance's
-    trace over the raw one's."""
+    (`CorrelationInflation.directional`).  `reuse` (smooth only: a smoother.SolveReuse): given to
+    both solves, so that the second starts from the first's solution and reuses its
+    preintegrated IMU (a `warm_start` in kwargs is the first solve's only).
+    `keep_noise_scales` (the batch smoother, which estimates them: variance.solve_noise_scaled):
+    the noise scales of the first solve (per camera, cam0 for the poses and tight corners, cam1
+    for the loads) are applied to the second as they are and not estimated again (the inflated
+    covariances would read as too large: the residuals of a correlated error understate it, so
+    their chi2/dof is not measured at all: FusionConfig.check_noise off), and its report is the
+    first solve's.  Its stats gain `correlation_inflation`: the median over the frames of the
+    inflated covariance's trace over the raw one's."""
     from fusion.estimate import variance
 
-    first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
+    if reuse is not None:
+        first = fn(frame_times_ns, imu, raw, load_obs, reuse=reuse, **kwargs)
+        kwargs = {k: v for k, v in kwargs.items() if k != "warm_start"}
+        kwargs["reuse"] = reuse
+    else:
+        first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
     inflated = inflation.directional(raw, first.trajectory, two_sided)
     report = first.stats.get("noise_scales") if keep_noise_scales else None
     # the first solve's result (a whole flight's poses and covariances, its stats) is not
     # needed past here: let it go before the second solve, not after it
     del first
-    ratio = np.ones(0)
-    if raw.covariances is not None and inflated.covariances is not None and len(raw):
-        ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
+    ratio = _trace_ratio(raw, inflated)
     if report is not None:
         again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
         del inflated  # `again` is what the second solve takes
@@ -386,9 +392,73 @@ def solve_inflated(
         res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
     res.stats["correlation_inflation"] = {
         "two_sided": bool(two_sided),
-        "trace_ratio_median": float(np.median(ratio)) if len(ratio) else 1.0,
+        "trace_ratio_median": ratio,
     }
     return res
+
+
+def causal_inflated(
+    fn, frame_times_ns, imu, raw: Trajectory, load_obs, *, inflation: CorrelationInflation, **kwargs
+):
+    """`raw` inflated for the one-sided average a causal back end takes of the frames, from
+    `fn`'s solve on `raw` as it is (the first of `solve_inflated`'s two, two_sided False).  The
+    EKF's and the incremental smoother's outputs are both the marginal of frame k as known at
+    frame k, from the same factors, so the run takes one such pass, the EKF's (the cheaper), for
+    both (pipeline.fuse_stage).  An approximation for the incremental smoother, measured: from
+    either's pass the inflated traces differ by 0.1 % (median), at most 0.7 %, on
+    tests/test_backend_reuse.py's flight; on the 28 sweep flights its 6-dof NEES moved by -0.5 to
+    +21 % (r800 6.90 -> 8.00, fps60 3.46 -> 4.19: its own, tighter covariance had inflated more),
+    no flight's verdict changed; its own first pass cost ~9 CPU s on the 10-minute flight
+    (BENCHMARKS.md, fifteenth session)."""
+    first = fn(frame_times_ns, imu, raw, load_obs, **kwargs)
+    return inflation.directional(raw, first.trajectory, two_sided=False)
+
+
+def solve_on_inflated(fn, frame_times_ns, imu, raw: Trajectory, inflated: Trajectory, load_obs, **kwargs):
+    """`fn` on the inflated poses of `causal_inflated` (`raw` as they were), its stats gaining
+    `correlation_inflation` as solve_inflated's."""
+    res = fn(frame_times_ns, imu, inflated, load_obs, **kwargs)
+    res.stats["correlation_inflation"] = {
+        "two_sided": False,
+        "trace_ratio_median": _trace_ratio(raw, inflated),
+    }
+    return res
+
+
+def _trace_ratio(raw: Trajectory, inflated: Trajectory) -> float:
+    """The median over the frames of the inflated covariance's trace over the raw one's."""
+    if raw.covariances is None or inflated.covariances is None or not len(raw):
+        return 1.0
+    ratio = np.trace(inflated.covariances, axis1=1, axis2=2) / np.trace(raw.covariances, axis1=1, axis2=2)
+    return float(np.median(ratio))
+
+
+@dataclass(frozen=True)
+class InflatedSmoother:
+    """The batch smoother of one window (smooth_windowed's `solver`; or of a whole short
+    flight) solved as `solve_inflated` does, both solves in the window's own process: the
+    second starts from the first's solution and reuses its preintegrated IMU (smoother.
+    SolveReuse), and applies the noise scales the window's first solve estimated.  Solved over
+    the whole flight instead (first every window, then every window again with the flight's
+    merged scales), the second pass started cold and rebuilt every IMU factor."""
+
+    inflation: CorrelationInflation
+
+    def __call__(self, frame_times_ns, imu, raw: Trajectory, load_obs, **kwargs):
+        from fusion.estimate.smoother import SolveReuse, smooth
+
+        return solve_inflated(
+            smooth,
+            frame_times_ns,
+            imu,
+            raw,
+            load_obs,
+            inflation=self.inflation,
+            two_sided=True,
+            keep_noise_scales=True,
+            reuse=SolveReuse(),
+            **kwargs,
+        )
 
 
 def common_share(frames: Sequence[FrameCodeResiduals | None], cls: int, sum_sq: float) -> float:
