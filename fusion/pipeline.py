@@ -63,6 +63,7 @@ from fusion.estimate.loadconsider import (
     add_places_spread,
     common_terms,
 )
+from fusion.estimate.tiltconsider import add_tilt_consider, tilt_consider_sigma_rad
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -1492,6 +1493,7 @@ def _fuse_into_result(
     fused_stats = {}
     judged: dict[str, Trajectory] = {}
     stamp_variance = _floor_stamp_variance(result)
+    tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1507,6 +1509,11 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
+        if gimbaled and log.imu is not None:
+            # level fixes: the tilt to the levelling limit (tiltconsider.py); after the tilt
+            # comparison too, the back ends share the fixes whose error it covers
+            res.trajectory = add_tilt_consider(res.trajectory, tilt_sigma)
+            res.stats["tilt_consider_sigma_rad"] = tilt_sigma
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads
