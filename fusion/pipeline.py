@@ -131,8 +131,10 @@ stamp moved by at most this (the time-offset search's half-width; a start, not a
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
-    "each other (measured: pitch 14-22 mrad off with a claimed sigma of ~5 mrad on simulated "
-    "flights, in every back end alike; BENCHMARKS.md, thirteenth and fourteenth sessions)"
+    "each other.  Their sigma includes the levelling limit, the accelerometer bias prior over g "
+    "(~10 mrad per axis), because the fixes' time-correlated errors move the tilt more than the "
+    "back ends can tell (simulated flights: pitch up to 21 mrad off, in every back end alike; "
+    "BENCHMARKS.md, gimb16)"
 )
 
 
