@@ -63,7 +63,6 @@ from fusion.estimate.loadconsider import (
     add_places_spread,
     common_terms,
 )
-from fusion.estimate.tiltconsider import add_tilt_consider, tilt_consider_sigma_rad
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -131,10 +130,8 @@ stamp moved by at most this (the time-offset search's half-width; a start, not a
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
-    "each other.  Their sigma includes the levelling limit, the accelerometer bias prior over g "
-    "(~10 mrad per axis), because the fixes' time-correlated errors move the tilt more than the "
-    "back ends can tell (simulated flights: pitch up to 21 mrad off, in every back end alike; "
-    "BENCHMARKS.md, gimb16)"
+    "each other (measured: pitch 14-22 mrad off with a claimed sigma of ~5 mrad on simulated "
+    "flights, in every back end alike; BENCHMARKS.md, thirteenth and fourteenth sessions)"
 )
 
 
@@ -1495,7 +1492,6 @@ def _fuse_into_result(
     fused_stats = {}
     judged: dict[str, Trajectory] = {}
     stamp_variance = _floor_stamp_variance(result)
-    tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1511,11 +1507,6 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
-        if gimbaled and log.imu is not None:
-            # level fixes: the tilt to the levelling limit (tiltconsider.py); after the tilt
-            # comparison too, the back ends share the fixes whose error it covers
-            res.trajectory = add_tilt_consider(res.trajectory, tilt_sigma)
-            res.stats["tilt_consider_sigma_rad"] = tilt_sigma
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads
