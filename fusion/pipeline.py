@@ -130,8 +130,9 @@ stamp moved by at most this (the time-offset search's half-width; a start, not a
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
-    "each other (measured: pitch 14-22 mrad off with a claimed sigma of ~5 mrad on simulated "
-    "flights, in every back end alike; BENCHMARKS.md, thirteenth and fourteenth sessions)"
+    "each other.  PnP takes the camera as level to its sensor.yaml T_BS_sigma_deg (0.1 deg when "
+    "not stated); measured on simulated flights: tilt consistent when the level is stated exact, "
+    "pitch up to 20 mrad off with a claimed sigma of ~5 mrad at 0.1 deg (BENCHMARKS.md, gimb16)"
 )
 
 
