@@ -63,6 +63,7 @@ from fusion.estimate.loadconsider import (
     add_places_spread,
     common_terms,
 )
+from fusion.estimate.tiltconsider import add_tilt_consider, tilt_consider_sigma_rad
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -130,8 +131,10 @@ stamp moved by at most this (the time-offset search's half-width; a start, not a
 GIMBALED_TILT_NOTE = (
     "gimbaled floor camera: its fixes give position and yaw only; the fused roll / pitch come from "
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
-    "each other (measured: pitch 14-22 mrad off with a claimed sigma of ~5 mrad on simulated "
-    "flights, in every back end alike; BENCHMARKS.md, thirteenth and fourteenth sessions)"
+    "each other.  PnP takes the camera as level to its sensor.yaml T_BS_sigma_deg (0.1 deg when "
+    "not stated).  Stated exact, the tilt was consistent on simulated flights; otherwise it carries "
+    "a consider term of the accelerometer bias prior over g (~10 mrad per axis), because pitch "
+    "was up to 20 mrad off with a claimed sigma of ~5 mrad even at 0.01 deg (BENCHMARKS.md, gimb16)"
 )
 
 
@@ -1507,6 +1510,10 @@ def _fuse_into_result(
     fused_stats = {}
     judged: dict[str, Trajectory] = {}
     stamp_variance = _floor_stamp_variance(result)
+    tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
+    # PnP conditions a gimbaled camera's pose on its level to the mount sigma
+    # (floor.condition_on_level); only a level stated exact removes the fixes' tilt-coupled error
+    level_uncertain = gimbaled and log.floor.camera.mount_sigmas[0] > 0.0
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1522,6 +1529,12 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
+        if level_uncertain and log.imu is not None:
+            # level fixes from a camera whose level is not known exactly: the tilt to the
+            # levelling limit (tiltconsider.py); after the tilt comparison too, the back ends
+            # share the fixes whose error it covers
+            res.trajectory = add_tilt_consider(res.trajectory, tilt_sigma)
+            res.stats["tilt_consider_sigma_rad"] = tilt_sigma
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads

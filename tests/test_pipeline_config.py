@@ -112,3 +112,39 @@ def test_a_gimbaled_floor_camera_says_its_fused_tilt_is_unchecked(sample_as_buil
     )
     assert P.GIMBALED_TILT_NOTE in P.fuse_stage(gimbaled, loc, cfg, det).notes
     assert P.GIMBALED_TILT_NOTE not in P.fuse_stage(log, loc, cfg, det).notes
+
+
+def test_the_tilt_consider_reaches_a_gimbaled_camera_whose_level_is_not_stated_exact(sample_as_built):
+    """With level fixes and an IMU, every fused trajectory's rotation block gains the levelling
+    limit (tiltconsider.py) after the health, unless the camera states its level exact (mount
+    sigma 0: PnP's pose is then conditioned on it, floor.condition_on_level); a body-fixed floor
+    camera gets nothing."""
+    import fusion.pipeline as P
+    from fusion.estimate import FusionConfig
+    from fusion.estimate.tiltconsider import tilt_consider_covariance, tilt_consider_sigma_rad
+
+    log, det, loc = sample_as_built
+    cfg = RunConfig(workers=1, progress=False, incremental=False)
+    floor = log.floor
+
+    def with_camera(**changes):
+        return replace(
+            log, cameras={**log.cameras, "cam0": replace(floor, camera=replace(floor.camera, **changes))}
+        )
+
+    sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
+    cases = (
+        (with_camera(mount="gimbaled", mount_sigma_deg=None), True),  # 0.1 deg, the default
+        (with_camera(mount="gimbaled", mount_sigma_deg=0.0), False),
+        (log, False),
+    )
+    for flight, added in cases:
+        result = P.RunResult(Path("."), {})
+        stats = P._fuse_into_result(flight, loc, cfg, det, None, result)
+        assert result.trajectories and not result.failures
+        for name, traj in result.trajectories.items():
+            assert ("tilt_consider_sigma_rad" in stats[name]) is added
+            if added:
+                assert stats[name]["tilt_consider_sigma_rad"] == sigma
+                extra = traj.covariances[:, :3, :3] - tilt_consider_covariance(traj.T_world_body, sigma)
+                assert np.all(np.linalg.eigvalsh(extra)[:, 0] > 0)

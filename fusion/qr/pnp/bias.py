@@ -199,6 +199,18 @@ def frames_bias_and_residuals(
     Atr = np.zeros((F, N_BINS, k))
     np.add.at(Atr, (frame_of, bins), np.einsum("nij,ni->nj", Pw, rw))
     JtA = np.moveaxis(JtA_bins, 2, 1).reshape(F, 6, p)  # columns: bin 0's k, bin 1's k, ...
+    if camera.gimbaled:
+        # the pose is the level frame, conditioned on its roll = pitch = 0 (floor.condition_on_level):
+        # the gimbal's attitude as information on [rx, ry], or, known exactly, those two fixed
+        sigma = camera.mount_sigmas[0]
+        if sigma > 0.0:
+            H[:, :2, :2] += np.eye(2) / sigma**2
+        else:
+            H[:, :2, :] = 0.0
+            H[:, :, :2] = 0.0
+            H[:, 0, 0] = H[:, 1, 1] = 1.0
+            JtA[:, :2, :] = 0.0
+            Jtr[:, :2] = 0.0
     AtA_full = np.zeros((F, p, p))
     for j in range(N_BINS):  # block diagonal: a code's columns are its own bin's
         AtA_full[:, k * j : k * j + k, k * j : k * j + k] = AtA[:, j]

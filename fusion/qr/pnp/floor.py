@@ -19,7 +19,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
-from fusion.geometry import cross_rows, level_frame, so3_exp_stack, wrap_angle
+from fusion.geometry import cross_rows, level_frame, se3_exp, so3_exp_stack, so3_log, wrap_angle
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp.ippe import ippe_or_none, opencv_starts
 from fusion.qr.pnp.lm import (
@@ -448,6 +448,7 @@ def estimate_floor_poses(
             continue
         G = G_c[j]
         if gimbaled:
+            T, cov, G = condition_on_level(T, cov, G, camera.mount_sigmas[0])
             T = level_frame(T)
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
             cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad**2] * 2 + [0.0] * 4)
@@ -467,6 +468,36 @@ def estimate_floor_poses(
             class_redundancy=T_c[j],
         )
     return out
+
+
+def condition_on_level(
+    T_world_parent: np.ndarray, cov: np.ndarray, class_covariance: np.ndarray, sigma_rad: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A gimbaled camera's free 6-dof PnP pose conditioned on what the gimbal tells: its parent
+    frame (the level body frame) has roll = pitch = 0, to `sigma_rad` per axis.
+
+    PnP solves the camera's parent pose with roll and pitch free; with one or two codes in view a
+    small tilt and a horizontal shift nearly explain the same corners (the camera looks down),
+    so the free solution's x / y error carries its roll / pitch error, frame after frame while
+    the same codes are in view.  Levelling that pose (zeroing roll / pitch) keeps the shift.
+    Here the known attitude enters as a linear-Gaussian measurement of the perturbation's
+    [rx, ry] (Gaussian conditioning, e.g. Bishop, "Pattern Recognition and Machine Learning",
+    2006, eqs. 2.81-2.82; one Gauss-Newton step of the constrained problem): with the pose
+    T = L Exp(rho) (L its level frame, rho its roll / pitch) and the truth T Exp(xi),
+    xi ~ N(0, C), the level truth says xi_r = -rho (first order), so
+    xi | . ~ N(K (-rho), M C M^T + sigma^2 K K^T), K = C_:r (C_rr + sigma^2 I)^-1, M = I - K S
+    (S picks [rx, ry]).  Returns the pose T Exp(-K rho), its covariance, and the corner classes'
+    shares M G_c M^T (`class_covariance` (k, 6, 6): PnPResult.class_covariance, whose sum is
+    the covariance without the gimbal term)."""
+    T = np.asarray(T_world_parent, dtype=float)
+    C = np.asarray(cov, dtype=float)
+    rho = so3_log(level_frame(T)[:3, :3].T @ T[:3, :3])[:2]
+    K = C[:, :2] @ np.linalg.inv(C[:2, :2] + sigma_rad**2 * np.eye(2))
+    M = np.eye(6)
+    M[:, :2] -= K
+    cov_c = M @ C @ M.T + sigma_rad**2 * (K @ K.T)
+    G = M @ np.asarray(class_covariance, dtype=float) @ M.T
+    return T @ se3_exp(-K @ rho), 0.5 * (cov_c + cov_c.T), G
 
 
 def class_parts(
@@ -537,8 +568,10 @@ def estimate_floor_pose(
 
     "gimbaled" camera: the camera is stabilised, so the airframe's roll and pitch are not observed.
     The returned T_world_body is then the LEVEL body frame (roll = pitch = 0, estimated yaw and
-    position), and its covariance keeps the PnP marginal of [rz, tx, ty, tz] while rx and ry get
-    variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no correlation.
+    position): the free pose conditioned on its level attitude, known to the camera's mount sigma
+    (`condition_on_level`), and its covariance keeps the conditioned [rz, tx, ty, tz] block
+    while rx and ry get variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no
+    correlation.
 
     Many frames: `estimate_floor_poses` (the same, far cheaper per frame: scripts/bench_pnp.py)."""
     return estimate_floor_poses(
