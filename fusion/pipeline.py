@@ -63,7 +63,7 @@ from fusion.estimate.loadconsider import (
     add_places_spread,
     common_terms,
 )
-from fusion.estimate.tiltconsider import add_tilt_consider, tilt_consider_sigma_rad
+from fusion.estimate.tiltconsider import add_tilt_consider, level_kept_fraction, tilt_consider_sigma_rad
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
@@ -133,8 +133,9 @@ GIMBALED_TILT_NOTE = (
     "the IMU against the fixes' motion, and the health can only compare the back ends' tilts with "
     "each other.  PnP takes the camera as level to its sensor.yaml T_BS_sigma_deg (0.1 deg when "
     "not stated).  Stated exact, the tilt was consistent on simulated flights; otherwise it carries "
-    "a consider term of the accelerometer bias prior over g (~10 mrad per axis), because pitch "
-    "was up to 20 mrad off with a claimed sigma of ~5 mrad even at 0.01 deg (BENCHMARKS.md, gimb16)"
+    "a consider term that grows with that sigma against PnP's own tilt sigma up to the "
+    "accelerometer bias prior over g (~10 mrad per axis), because pitch was up to 20 mrad off "
+    "with a claimed sigma of ~5 mrad at 0.1 deg and 15 at 0.01 deg (BENCHMARKS.md, gimb16 / lev16)"
 )
 
 
@@ -352,6 +353,9 @@ class LocalizeResult:
     bias_consider: cornerbias.BiasConsider | None = None
     # the back ends' extra input covariance for time-correlated corner errors (correlation.py)
     correlation: correlation.CorrelationInflation | None = None
+    # a gimbaled floor camera's free PnP tilt covariances (N, 2, 2), before the level
+    # conditioning (PnPStats.frame_free_tilt_covariance): the tilt consider's share
+    free_tilt_covariances: np.ndarray | None = None
 
 
 @dataclass
@@ -522,7 +526,17 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         common_sum_sq={"refined": consider.residual_sum_sq} if consider is not None else None,
     )
     trajectories["pnp"] = traj_pnp
-    return LocalizeResult(trajectories, {}, {}, stats, notes, bias_consider=consider, correlation=inflation)
+    free_tilt = [c for p in parts for c in p["pnp_stats"].frame_free_tilt_covariance]
+    return LocalizeResult(
+        trajectories,
+        {},
+        {},
+        stats,
+        notes,
+        bias_consider=consider,
+        correlation=inflation,
+        free_tilt_covariances=np.array(free_tilt).reshape(-1, 2, 2) if free_tilt else None,
+    )
 
 
 def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) -> LocalizeResult:
@@ -542,6 +556,7 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
             notes,
             bias_consider=floor.bias_consider,
             correlation=floor.correlation,
+            free_tilt_covariances=floor.free_tilt_covariances,
         )
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
@@ -556,7 +571,15 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     # they also take the sightings at frames without a raw pose (e.g. floor blackouts).
     camera_frame = obs["pnp"] + [o for p in parts for o in p["unposed"]]
     return LocalizeResult(
-        trajectories, obs, maps, floor.stats, notes, camera_frame, floor.bias_consider, floor.correlation
+        trajectories,
+        obs,
+        maps,
+        floor.stats,
+        notes,
+        camera_frame,
+        floor.bias_consider,
+        floor.correlation,
+        floor.free_tilt_covariances,
     )
 
 
@@ -1510,10 +1533,15 @@ def _fuse_into_result(
     fused_stats = {}
     judged: dict[str, Trajectory] = {}
     stamp_variance = _floor_stamp_variance(result)
-    tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
     # PnP conditions a gimbaled camera's pose on its level to the mount sigma
-    # (floor.condition_on_level); only a level stated exact removes the fixes' tilt-coupled error
-    level_uncertain = gimbaled and log.floor.camera.mount_sigmas[0] > 0.0
+    # (floor.condition_on_level), which keeps the share f of the fixes' tilt-coupled error
+    # (0 with the level stated exact, ~1 once the mount sigma is well above PnP's own tilt
+    # sigma): the consider grows with it (tiltconsider.level_kept_fraction)
+    kept = (
+        level_kept_fraction(loc.free_tilt_covariances, log.floor.camera.mount_sigmas[0]) if gimbaled else 0.0
+    )
+    tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2, kept)
+    level_uncertain = gimbaled and tilt_sigma > 0.0
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1535,6 +1563,7 @@ def _fuse_into_result(
             # share the fixes whose error it covers
             res.trajectory = add_tilt_consider(res.trajectory, tilt_sigma)
             res.stats["tilt_consider_sigma_rad"] = tilt_sigma
+            res.stats["level_kept_fraction"] = kept
         result.trajectories[name] = res.trajectory
         if log.front is not None:
             result.load_maps[name] = res.loads

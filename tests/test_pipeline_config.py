@@ -116,9 +116,10 @@ def test_a_gimbaled_floor_camera_says_its_fused_tilt_is_unchecked(sample_as_buil
 
 def test_the_tilt_consider_reaches_a_gimbaled_camera_whose_level_is_not_stated_exact(sample_as_built):
     """With level fixes and an IMU, every fused trajectory's rotation block gains the levelling
-    limit (tiltconsider.py) after the health, unless the camera states its level exact (mount
-    sigma 0: PnP's pose is then conditioned on it, floor.condition_on_level); a body-fixed floor
-    camera gets nothing."""
+    limit (tiltconsider.py) after the health, scaled by the share of the fixes' tilt-coupled
+    error that PnP's level conditioning keeps (floor.condition_on_level,
+    tiltconsider.level_kept_fraction): none with the level stated exact (mount sigma 0), the full
+    limit without the free tilt covariances; a body-fixed floor camera gets nothing."""
     import fusion.pipeline as P
     from fusion.estimate import FusionConfig
     from fusion.estimate.tiltconsider import tilt_consider_covariance, tilt_consider_sigma_rad
@@ -132,19 +133,27 @@ def test_the_tilt_consider_reaches_a_gimbaled_camera_whose_level_is_not_stated_e
             log, cameras={**log.cameras, "cam0": replace(floor, camera=replace(floor.camera, **changes))}
         )
 
-    sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
+    full = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2)
+    # PnP's free tilt known to 0.2 mrad on every frame: a level stated to 0.01 deg keeps the share
+    # f = s^2 / (c + s^2) of the tilt-coupled error (tiltconsider.level_kept_fraction)
+    c, s = (2e-4) ** 2, np.radians(0.01)
+    known = replace(loc, free_tilt_covariances=np.tile(c * np.eye(2), (5, 1, 1)))
     cases = (
-        (with_camera(mount="gimbaled", mount_sigma_deg=None), True),  # 0.1 deg, the default
-        (with_camera(mount="gimbaled", mount_sigma_deg=0.0), False),
-        (log, False),
+        # 0.1 deg, the default; the sample's PnP ran body-fixed, so no free tilt: the full term
+        (with_camera(mount="gimbaled", mount_sigma_deg=None), loc, full),
+        (with_camera(mount="gimbaled", mount_sigma_deg=0.01), known, np.sqrt(s**2 / (c + s**2)) * full),
+        (with_camera(mount="gimbaled", mount_sigma_deg=0.0), loc, None),
+        (with_camera(mount="gimbaled", mount_sigma_deg=0.0), known, None),
+        (log, loc, None),
     )
-    for flight, added in cases:
+    for flight, localized, sigma in cases:
+        added = sigma is not None
         result = P.RunResult(Path("."), {})
-        stats = P._fuse_into_result(flight, loc, cfg, det, None, result)
+        stats = P._fuse_into_result(flight, localized, cfg, det, None, result)
         assert result.trajectories and not result.failures
         for name, traj in result.trajectories.items():
             assert ("tilt_consider_sigma_rad" in stats[name]) is added
             if added:
-                assert stats[name]["tilt_consider_sigma_rad"] == sigma
+                assert np.isclose(stats[name]["tilt_consider_sigma_rad"], sigma, rtol=1e-12)
                 extra = traj.covariances[:, :3, :3] - tilt_consider_covariance(traj.T_world_body, sigma)
                 assert np.all(np.linalg.eigvalsh(extra)[:, 0] > 0)

@@ -1030,6 +1030,32 @@ def test_gimbaled_pose_is_conditioned_on_its_level_attitude():
     assert 0.7 * 4 <= np.mean(nees) <= 1.3 * 4, np.mean(nees)
 
 
+def test_gimbaled_pose_keeps_its_free_tilt_covariance():
+    """PnPResult.free_tilt_covariance: a gimbaled camera's free solve's [rx, ry] block before the
+    level conditioning (the body-fixed solve of the same corners), for the tilt consider's share
+    (tiltconsider.level_kept_fraction); None for a body-fixed camera."""
+    from dataclasses import replace
+
+    gimbaled = CameraModel(
+        640,
+        480,
+        600.0,
+        600.0,
+        319.5,
+        239.5,
+        T_body_cam=FLOOR_CAM.T_body_cam,
+        mount="gimbaled",
+        mount_sigma_deg=0.01,
+    )
+    free = replace(gimbaled, mount="body_fixed")
+    truth = aim(body_pose(0.5, 0.5, 1.3, -60.0), (0.0, 0.0), camera=gimbaled)
+    floor = floor_of(floor_dets(truth, [(0, 0)], camera=gimbaled, rng=np.random.default_rng(2), sigma=SIGMA))
+    res = estimate_floor_pose(floor, gimbaled, SIGMA)
+    res_free = estimate_floor_pose(floor, free, SIGMA)
+    assert res_free.free_tilt_covariance is None
+    np.testing.assert_allclose(res.free_tilt_covariance, res_free.covariance[:2, :2], rtol=1e-9)
+
+
 def test_condition_on_level_is_the_gaussian_conditional():
     """sigma 0: the [rz, tx, ty, tz] block is the Schur complement C_22 - C_21 C_11^-1 C_12, the
     returned pose is level to second order, and the class shares keep summing to the covariance."""

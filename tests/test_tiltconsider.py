@@ -63,3 +63,56 @@ def test_add_tilt_consider_changes_the_rotation_block_only():
     assert add_tilt_consider(traj, 0.0) is traj
     bare = Trajectory("smoother", traj.timestamps_ns, T, None)
     assert add_tilt_consider(bare, 0.01) is bare
+
+
+def test_the_consider_shrinks_with_the_share_the_level_conditioning_keeps():
+    """sqrt(f) sigma_b / g: the full levelling limit at f = 1 (and by default), none at f = 0."""
+    full = tilt_consider_sigma_rad(0.1)
+    assert tilt_consider_sigma_rad(0.1, 1.0) == full
+    assert tilt_consider_sigma_rad(0.1, 0.0) == 0.0
+    assert np.isclose(tilt_consider_sigma_rad(0.1, 0.25), 0.5 * full)
+
+
+def test_level_kept_fraction_is_continuous_from_an_exact_level_to_none():
+    """0 at a level stated exact, 1 with nothing to shrink it (no covariances) or a level far
+    looser than PnP's tilt, sigma^2 / (c + sigma^2) for frames of one tilt variance c, and
+    monotone in sigma in between (no switch at sigma > 0)."""
+    from fusion.estimate.tiltconsider import level_kept_fraction
+
+    rng = np.random.default_rng(11)
+    A = rng.standard_normal((50, 2, 2)) * 3e-4
+    C = A @ np.swapaxes(A, 1, 2) + 1e-9 * np.eye(2)
+    assert level_kept_fraction(C, 0.0) == 0.0
+    assert level_kept_fraction(None, 0.0) == 0.0
+    assert level_kept_fraction(None, 1e-3) == 1.0
+    assert level_kept_fraction(np.zeros((0, 2, 2)), 1e-3) == 1.0
+    assert level_kept_fraction(C, 1.0) > 0.999
+    sigmas = np.radians([1e-6, 1e-4, 1e-3, 3e-3, 0.01, 0.03, 0.1, 1.0])
+    f = [level_kept_fraction(C, s) for s in sigmas]
+    assert f[0] < 1e-6 and np.all(np.diff(f) > 0.0), f
+    c = 2e-7
+    one = np.tile(np.eye(2) * c, (7, 1, 1))
+    for s in (1e-5, 4e-4, 3e-3):
+        assert np.isclose(level_kept_fraction(one, s), s**2 / (c + s**2), rtol=1e-12)
+
+
+def test_level_kept_fraction_is_the_conditioned_share_of_the_tilt_coupled_variance():
+    """One frame whose horizontal error is a lever h times its tilt error plus independent noise
+    v (tx = -h ry + n, ty = h rx + n): PnP's level conditioning (floor.condition_on_level) at
+    sigma leaves tx / ty the variance v + f h^2 c, f the share this module gives (f h^2 c the
+    tilt error kept plus the gimbal's own level error)."""
+    from fusion.estimate.tiltconsider import level_kept_fraction
+    from fusion.qr.pnp.floor import condition_on_level
+
+    c, h, v = (2e-4) ** 2, 1.3, (2e-5) ** 2
+    L = np.zeros((6, 6))  # the pose error as a linear map of independent unit draws
+    L[0, 0] = L[1, 1] = np.sqrt(c)
+    L[2, 2] = 1e-4
+    L[3, 1], L[4, 0] = -h * np.sqrt(c), h * np.sqrt(c)
+    L[3, 3] = L[4, 4] = L[5, 5] = np.sqrt(v)
+    C = L @ L.T
+    T = np.eye(4)
+    for s in np.radians([1e-4, 3e-3, 0.01, 0.1]):
+        _, C_c, _ = condition_on_level(T, C, C[None], s)
+        f = level_kept_fraction(C[None, :2, :2], s)
+        np.testing.assert_allclose(np.diag(C_c)[3:5], v + f * h**2 * c, rtol=1e-9)

@@ -56,6 +56,9 @@ class PnPStats:
     # per posed frame: each code's whitened corner residuals (fusion.qr.pnp.bias), for the time
     # correlation of the corner errors (fusion.estimate.correlation)
     frame_code_residuals: list[FrameCodeResiduals] = field(default_factory=list)
+    # per posed frame of a gimbaled camera: the free solve's [rx, ry] covariance before the
+    # level conditioning (PnPResult.free_tilt_covariance), for fusion.estimate.tiltconsider
+    frame_free_tilt_covariance: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -89,6 +92,7 @@ class PnPStats:
             frame_class_covariance=[c for p in parts for c in p.frame_class_covariance],
             frame_bias=[b for p in parts for b in p.frame_bias],
             frame_code_residuals=[r for p in parts for r in p.frame_code_residuals],
+            frame_free_tilt_covariance=[c for p in parts for c in p.frame_free_tilt_covariance],
         )
 
 
@@ -140,6 +144,8 @@ def pnp_trajectory(
             stats.frame_class_chi2.append(res.class_chi2)
             stats.frame_class_redundancy.append(res.class_redundancy)
             stats.frame_class_covariance.append(res.class_covariance)
+            if res.free_tilt_covariance is not None:
+                stats.frame_free_tilt_covariance.append(res.free_tilt_covariance)
             used.append([s for s in floor if s.detection.payload in res.payloads])
             used_T.append(res.T_world_body)
         bias, residuals = frames_bias_and_residuals(

@@ -71,7 +71,10 @@ class PnPResult:
     fusion.estimate.variance.pnp_class_components: `class_chi2` (k,) the class's share of chi2;
     `class_covariance` (k, 6, 6) G_c = H^-1 H_c H^-1, the class's share of `covariance` (H_c its
     codes' information, sum_c G_c = covariance less the gimbal prior); `class_redundancy` (k, k)
-    T with E[chi2_c] = sum_c' T[c, c'] s_c' when class c' has variance factor s_c' (`class_parts`)."""
+    T with E[chi2_c] = sum_c' T[c, c'] s_c' when class c' has variance factor s_c' (`class_parts`).
+    `free_tilt_covariance` (2, 2): a gimbaled camera's free solve's [rx, ry] block before
+    `condition_on_level` (None for a body-fixed camera), for the tilt consider's share
+    (fusion.estimate.tiltconsider.level_kept_fraction)."""
 
     T_world_body: np.ndarray
     covariance: np.ndarray
@@ -85,6 +88,7 @@ class PnPResult:
     ambiguous: bool = False
     dropped_payloads: list[str] = field(default_factory=list)
     chi2: float = math.nan
+    free_tilt_covariance: np.ndarray | None = None
 
 
 @dataclass
@@ -447,7 +451,9 @@ def estimate_floor_poses(
         if not good:
             continue
         G = G_c[j]
+        free_tilt = None
         if gimbaled:
+            free_tilt = cov[:2, :2].copy()
             T, cov, G = condition_on_level(T, cov, G, camera.mount_sigmas[0])
             T = level_frame(T)
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
@@ -466,6 +472,7 @@ def estimate_floor_poses(
             class_chi2=chi2_c[j],
             class_covariance=G,
             class_redundancy=T_c[j],
+            free_tilt_covariance=free_tilt,
         )
     return out
 
