@@ -1245,7 +1245,7 @@ def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: 
     pose: the run has nothing to localise from and no fused estimate.  Before, it said so only in
     a note, so `--quiet` printed nothing, metrics.json listed no warning, the report no health
     line, and `--strict` exited 0 (1280x720 or a 1.5x focal length with the default scenario,
-    NOTES-sweep14.md)."""
+    BENCHMARKS.md, sweep14)."""
     pnp = loc.trajectories.get(str(Estimator.PNP))
     if pnp is not None and len(pnp) > 0:
         return None
@@ -1572,7 +1572,7 @@ def _fuse_into_result(
         fused_stats[name] = res.stats
     if gimbaled:
         # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
-        # other (health.tilt_disagreement; the sweep's gimbaled flights, NOTES-sweep14.md)
+        # other (health.tilt_disagreement; the sweep's gimbaled flights, BENCHMARKS.md, sweep14)
         for fused_name, reason in tilt_disagreement(judged).items():
             health = result.health[fused_name]
             health.reasons.append(reason)

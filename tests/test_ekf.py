@@ -345,7 +345,7 @@ def test_incremental_gimbaled_start_mid_roll_tilt_is_consistent():
     tight yaw (0.06 mrad) reads as tilt information, and the marginals kept it: tilt NEES 367.0
     / 314.4 / 351.1 / 314.9 (the same with `ekf_level_start_s=0`); from the batch start
     (smoother.level_start, the EKF's level_batch_start) 0.15 / 0.71 / 0.24 / 0.13 (conservative
-    here; 1.0 on the rendered `gimb27`: NOTES-inc15.md)."""
+    here; 1.0 on the rendered `gimb27`: BENCHMARKS.md, inc15)."""
     nees = []
     for seed in range(4):
         fl = aisle_flight(seed)

@@ -396,7 +396,7 @@ def tilt_disagreement(
     exceeds chi2(fix_quantile, 2) at `inconsistent_degraded` of their common frames or more.
     With three or more estimates, one is named when it disagrees with every other (a majority
     says which); when every pair disagrees, or with two, all are named.  Measured on the
-    sweep14 flights (NOTES-sweep14.md): the incremental smoother at 6-dof NEES 480 / 462 on
+    sweep14 flights (BENCHMARKS.md, sweep14): the incremental smoother at 6-dof NEES 480 / 462 on
     two gimbaled flights disagreed at 91-99 % of the frames, every pair on the body-fixed demo
     and 800x600 flights at 0 %."""
     config = config or HealthConfig()

@@ -1528,7 +1528,7 @@ def level_start(
     information on roll / pitch (the yaw's Jacobian turns with the tilt it is taken at), and the
     marginal factors keep it: a linear factor is fixed where it was taken, the inconsistency of
     a marginalised wrong linearisation point (Huang, Mourikis & Roumeliotis, IJRR 29(5), 2010).
-    On `gimb27` (NOTES-inc15.md) the roll stayed -150 to -186 mrad off with sigma 2-3 mrad for
+    On `gimb27` (BENCHMARKS.md, inc15) the roll stayed -150 to -186 mrad off with sigma 2-3 mrad for
     the whole flight without the velocity sensor (-40 to -61 with it); with no lag, with
     relinearisation at every update, or with the fixes' yaw variance x200 it came back to
     within ~20 mrad: the marginalised linearisation is the cause.  The batch start iterates the

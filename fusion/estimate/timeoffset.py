@@ -38,7 +38,7 @@ The stamps the outputs keep are off the truth by the offset's error: an applied 
 own error (variance sigma^2), a significant residual r left unapplied (|r| below min_apply_s)
 by all of it (r^2 + sigma^2); a residual within apply_sigmas sigma is taken as no offset (0:
 the unbiased max(r^2 - sigma^2, 0) was tried: it widened 6 of 23 sweep flights with no offset
-by their estimate's noise, NOTES-sweep14.md).  A pose stamped delta off is T(t + delta) =
+by their estimate's noise, BENCHMARKS.md, sweep14).  A pose stamped delta off is T(t + delta) =
 T(t) Exp(delta xi), xi the body twist, so every floor pose (PnP and fused) gains the consider
 covariance E[delta^2] xi xi^T (`add_stamp_covariance`), after the health (the error is common
 to the fixes and the estimate): common to every frame, so no back end may average it down
