@@ -1541,7 +1541,6 @@ def _fuse_into_result(
         level_kept_fraction(loc.free_tilt_covariances, log.floor.camera.mount_sigmas[0]) if gimbaled else 0.0
     )
     tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2, kept)
-    level_uncertain = gimbaled and tilt_sigma > 0.0
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1557,7 +1556,7 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
-        if level_uncertain and log.imu is not None:
+        if tilt_sigma > 0.0 and log.imu is not None:  # 0 unless gimbaled
             # level fixes from a camera whose level is not known exactly: the tilt to the
             # levelling limit (tiltconsider.py); after the tilt comparison too, the back ends
             # share the fixes whose error it covers

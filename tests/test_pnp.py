@@ -137,6 +137,14 @@ T_FOUR = aim(body_pose(0, 0, 2.6, 35.0, roll_deg=4.0, pitch_deg=-3.0), (0.45, 0.
 # ============================================================================ model and Jacobians
 
 
+def gimbaled_camera(**kw) -> CameraModel:
+    """A 640x480 floor camera on a gimbal (mount "gimbaled") at FLOOR_CAM's mount; `kw`: more
+    CameraModel fields (distortion, mount_sigma_deg)."""
+    return CameraModel(
+        640, 480, 600.0, 600.0, 319.5, 239.5, T_body_cam=FLOOR_CAM.T_body_cam, mount="gimbaled", **kw
+    )
+
+
 def test_se3_exp_matches_gtsam_expmap():
     rng = np.random.default_rng(1)
     for _ in range(20):
@@ -212,17 +220,7 @@ def test_exact_recovery_without_noise_body_fixed(centres, yaw_deg):
 
 
 def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
-    cam = CameraModel(
-        640,
-        480,
-        600.0,
-        600.0,
-        319.5,
-        239.5,
-        distortion=DIST,
-        T_body_cam=FLOOR_CAM.T_body_cam,
-        mount="gimbaled",
-    )
+    cam = gimbaled_camera(distortion=DIST)
     T_tilted = body_pose(0.5, 0.5, 2.6, -60.0, roll_deg=12.0, pitch_deg=8.0)
     res = estimate_floor_pose(floor_of(floor_dets(T_tilted, FOUR, camera=cam)), cam)
     level = make_T(rot_z(math.radians(-60.0)), [0.5, 0.5, 2.6])
@@ -234,17 +232,7 @@ def test_gimbaled_camera_gives_level_frame_and_inflated_roll_pitch():
 
 
 def test_gimbaled_yaw_and_position_covariance_is_consistent():
-    cam = CameraModel(
-        640,
-        480,
-        600.0,
-        600.0,
-        319.5,
-        239.5,
-        distortion=DIST,
-        T_body_cam=FLOOR_CAM.T_body_cam,
-        mount="gimbaled",
-    )
+    cam = gimbaled_camera(distortion=DIST)
     rng = np.random.default_rng(17)
     nees = []
     for _ in range(150):
@@ -999,18 +987,7 @@ def test_gimbaled_pose_is_conditioned_on_its_level_attitude():
     consistent (4-dof NEES ~4 over seeded draws)."""
     from dataclasses import replace
 
-    gimbaled = CameraModel(
-        640,
-        480,
-        600.0,
-        600.0,
-        319.5,
-        239.5,
-        distortion=DIST,
-        T_body_cam=FLOOR_CAM.T_body_cam,
-        mount="gimbaled",
-    )
-    gimbaled = replace(gimbaled, mount_sigma_deg=0.0)
+    gimbaled = gimbaled_camera(distortion=DIST, mount_sigma_deg=0.0)
     free = replace(gimbaled, mount="body_fixed")
     truth = aim(body_pose(0.5, 0.5, 1.3, -60.0), (0.0, 0.0), camera=gimbaled)
     rng = np.random.default_rng(23)
@@ -1036,17 +1013,7 @@ def test_gimbaled_pose_keeps_its_free_tilt_covariance():
     (tiltconsider.level_kept_fraction); None for a body-fixed camera."""
     from dataclasses import replace
 
-    gimbaled = CameraModel(
-        640,
-        480,
-        600.0,
-        600.0,
-        319.5,
-        239.5,
-        T_body_cam=FLOOR_CAM.T_body_cam,
-        mount="gimbaled",
-        mount_sigma_deg=0.01,
-    )
+    gimbaled = gimbaled_camera(mount_sigma_deg=0.01)
     free = replace(gimbaled, mount="body_fixed")
     truth = aim(body_pose(0.5, 0.5, 1.3, -60.0), (0.0, 0.0), camera=gimbaled)
     floor = floor_of(floor_dets(truth, [(0, 0)], camera=gimbaled, rng=np.random.default_rng(2), sigma=SIGMA))
@@ -1085,17 +1052,7 @@ def test_gimbaled_bias_sensitivity_keeps_the_level_attitude():
 
     from fusion.qr.pnp.bias import frame_bias_terms
 
-    gimbaled = CameraModel(
-        640,
-        480,
-        600.0,
-        600.0,
-        319.5,
-        239.5,
-        T_body_cam=FLOOR_CAM.T_body_cam,
-        mount="gimbaled",
-        mount_sigma_deg=0.0,
-    )
+    gimbaled = gimbaled_camera(mount_sigma_deg=0.0)
     T = aim(body_pose(0.5, 0.5, 1.3, -60.0), (0.2, 0.15), camera=gimbaled)  # the code off-centre
     floor = floor_of(floor_dets(T, [(0, 0)], camera=gimbaled))
     level = estimate_floor_pose(floor, gimbaled, SIGMA).T_world_body
