@@ -330,6 +330,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="the velocity sensor's rate (default: the scenario's 30 Hz, stamped with the frames)",
     )
     p.add_argument(
+        "--imu-noise-scale",
+        type=float,
+        default=1.0,
+        metavar="K",
+        help="the IMU's noise densities and bias random walks K x the scenario's (a worse IMU, "
+        "or one on a vibrating frame; imu0/sensor.yaml states them; default 1)",
+    )
+    p.add_argument(
+        "--imu-noise-stated",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="imu0/sensor.yaml states F x the IMU's true noise (default 1: honest; below 1 an "
+        "optimistic datasheet, e.g. without the propellers' vibration)",
+    )
+    p.add_argument(
         "--readout-ms",
         type=float,
         default=None,
@@ -606,6 +622,8 @@ def main(argv: list[str] | None = None) -> int:
                     None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}
                 ),
                 velocity_rate_hz=args.velocity_rate_hz,
+                imu_noise_scale=args.imu_noise_scale,
+                imu_noise_stated=args.imu_noise_stated,
             )
             print(
                 f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "

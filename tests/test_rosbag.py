@@ -491,14 +491,28 @@ def test_inspect_names_a_topic_recorded_with_two_message_types(tmp_path, capsys)
 
 @pytest.mark.parametrize("fmt,name", [("rosbag2", "s.mcap"), ("rosbag1", "s.bag"), ("video", "s")])
 def test_simulate_writes_every_format(tmp_path, fmt, name):
+    from fusion.log import ImuNoise
     from fusion.sim.simulate import simulate
 
-    res = simulate(tmp_path / "s", duration_s=0.2, camera_rate_hz=10, workers=1, progress=False, fmt=fmt)
+    # every option reaches the conversion path too (the velocity's own rate was once dropped)
+    res = simulate(
+        tmp_path / "s",
+        duration_s=0.4,
+        camera_rate_hz=10,
+        workers=1,
+        progress=False,
+        fmt=fmt,
+        velocity_rate_hz=5.0,
+        imu_noise_stated=0.5,
+    )
     assert res.root == tmp_path / name and res.root.exists()
     assert not (tmp_path / "s.euroc").exists()
     flight = open_flight(res.root)
     assert len(flight.floor) == res.n_frames and len(flight.imu.timestamps_ns) == res.n_imu
     assert flight.floor.load_image(0).shape == (480, 640)
+    assert len(flight.velocity.timestamps_ns) == 3  # 0, 200, 400 ms
+    stated = flight.imu.noise.gyroscope_noise_density
+    assert stated == pytest.approx(0.5 * ImuNoise().gyroscope_noise_density)
 
 
 def test_roles_by_type_and_overrides(tmp_path):

@@ -406,12 +406,41 @@ def test_simulate_writes_a_readable_deterministic_log(tmp_path):
         dict(resolution="800x600"),
         dict(velocity_rate_hz=0.0),
         dict(velocity_rate_hz=float("inf")),
+        dict(imu_noise_scale=0.0),
+        dict(imu_noise_stated=-1.0),
+        dict(imu_noise_scale=float("nan")),
     ],
 )
 def test_simulate_rejects_bad_input(tmp_path, kwargs):
     with pytest.raises(SimulationError):
         simulate(tmp_path / "x", progress=False, workers=1, **kwargs)
     assert not (tmp_path / "x").exists()
+
+
+def test_simulate_imu_noise_scaled_and_stated(tmp_path):
+    """--imu-noise-scale K: the samples' white noise K x the scenario's; --imu-noise-stated F:
+    sensor.yaml states F x the truth (an optimistic datasheet at F < 1)."""
+    from fusion.log import ImuNoise
+    from fusion.sim.imu import true_imu
+
+    res = simulate(
+        tmp_path / "n",
+        duration_s=4.0,
+        camera_rate_hz=5.0,
+        seed=3,
+        workers=1,
+        progress=False,
+        imu_noise_scale=3.0,
+        imu_noise_stated=1 / 3,
+    )
+    log = read_flight(res.root)
+    nominal = ImuNoise()
+    assert log.imu.noise.accelerometer_noise_density == pytest.approx(nominal.accelerometer_noise_density)
+    assert log.imu.noise.gyroscope_random_walk == pytest.approx(nominal.gyroscope_random_walk)
+    gyro, _ = true_imu(build_scenario("default").trajectory, log.imu.timestamps_ns * 1e-9)
+    white = log.imu.gyro_rad_s - gyro - log.groundtruth.bias_gyro
+    expected = 3.0 * nominal.gyroscope_noise_density * np.sqrt(log.imu.rate_hz)
+    np.testing.assert_allclose(white.std(), expected, rtol=0.05)
 
 
 def test_simulate_refuses_to_overwrite(tmp_path):

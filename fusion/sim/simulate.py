@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import cv2
@@ -25,7 +25,7 @@ from fusion.estimate.extrinsics import (
     write_extrinsics_groundtruth,
 )
 from fusion.geometry import inv_T, quat_wxyz_from_R, yaw_of
-from fusion.log import FlightLogWriter, GroundTruth
+from fusion.log import FlightLogWriter, GroundTruth, ImuNoise
 from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.placement import placement_offsets
@@ -188,6 +188,8 @@ def simulate(
     camera_options: CameraOptions | None = None,
     extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
     velocity_rate_hz: float | None = None,
+    imu_noise_scale: float = 1.0,
+    imu_noise_stated: float = 1.0,
 ) -> SimulationResult:
     """Simulate `scenario` for `duration_s` (None: the scenario's length) and write the flight
     log to `out_dir` (EuRoC layout: world.yaml, cam0 floor + cam1 front at `camera_rate_hz`,
@@ -230,8 +232,15 @@ def simulate(
     while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life) and states
     the error's RMS per axis as its T_BS_sigma_deg (0 for an exact mount, and T_BS_sigma_m 0);
     `extrinsics_groundtruth.csv` holds the errors.  `velocity_rate_hz` (None: the scenario's
-    30 Hz, stamped with the frames): the velocity sensor's own rate."""
+    30 Hz, stamped with the frames): the velocity sensor's own rate.
+    `imu_noise_scale`: the IMU's white noise densities and bias random walks are this many times
+    the scenario's (a worse IMU, or one on a vibrating frame); `imu_noise_stated`: imu0's
+    sensor.yaml states this many times the true values (1: an honest calibration; below 1 an
+    optimistic datasheet, e.g. one that leaves out the propellers' vibration)."""
     from fusion.log import LogFormat
+
+    # every argument but the destination, for the conversion path (nothing left out by hand)
+    forwarded = {k: v for k, v in locals().items() if k not in ("out_dir", "overwrite", "fmt", "LogFormat")}
 
     try:
         fmt = LogFormat(fmt)
@@ -240,28 +249,7 @@ def simulate(
             f"unknown format {fmt!r}; expected one of {', '.join(f.value for f in LogFormat)}"
         ) from None
     if fmt != LogFormat.EUROC:
-        return _simulate_as(
-            fmt,
-            out_dir,
-            overwrite,
-            scenario=scenario,
-            duration_s=duration_s,
-            seed=seed,
-            progress=progress,
-            workers=workers,
-            resolution=resolution,
-            camera_rate_hz=camera_rate_hz,
-            noise_sigma_dn=noise_sigma_dn,
-            png_compression=png_compression,
-            check_readable=check_readable,
-            start_s=start_s,
-            readout_s=readout_s,
-            placement_error_m=placement_error_m,
-            placement_error_deg=placement_error_deg,
-            time_offset_ms=time_offset_ms,
-            camera_options=camera_options,
-            extrinsic_error_deg=extrinsic_error_deg,
-        )
+        return _simulate_as(fmt, out_dir, overwrite, **forwarded)
     t_wall = time.perf_counter()
     if not isinstance(scenario, Scenario) and scenario not in SCENARIOS:
         raise SimulationError(f"unknown scenario {scenario!r}; expected one of {SCENARIOS}")
@@ -328,9 +316,11 @@ def simulate(
         cam.rate_hz = camera_rate_hz
     traj = sc.trajectory
 
+    true_noise = _scaled_noise(sc.imu_noise, _positive("IMU noise scale", imu_noise_scale))
     imu, bias_g, bias_a = synthesize_imu(
-        traj, sc.imu_rate_hz, sc.imu_noise, np.random.default_rng([seed, _STREAM_IMU])
+        traj, sc.imu_rate_hz, true_noise, np.random.default_rng([seed, _STREAM_IMU])
     )
+    imu.noise = _scaled_noise(true_noise, _positive("stated IMU noise", imu_noise_stated))
     t0_ns, t1_ns = int(round(start_s * 1e9)), int(round((start_s + duration_s) * 1e9))
     keep = (imu.timestamps_ns >= t0_ns) & (imu.timestamps_ns <= t1_ns)
     imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (
@@ -489,6 +479,17 @@ def _mount_errors_rad(extrinsic_error_deg, names: list[str]) -> dict[str, np.nda
 
 
 _FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}
+
+
+def _positive(name: str, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+        raise SimulationError(f"{name} must be a positive number, got {v!r}")
+    return float(v)
+
+
+def _scaled_noise(noise: ImuNoise, k: float) -> ImuNoise:
+    """Every density and random walk of `noise` times k."""
+    return ImuNoise(**{f.name: getattr(noise, f.name) * k for f in fields(ImuNoise)})
 
 
 def _simulate_as(fmt, out: Path, overwrite: bool, **kwargs) -> SimulationResult:
