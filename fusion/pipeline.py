@@ -837,6 +837,7 @@ def fuse_stage(
     # run at once on `workers` processes (fusion.parallel.call_each), each outcome then taken
     # here in order, as if run here
     at_once: dict[Estimator, Outcome] = {}
+    imu = log.imu  # with the noise scale the smoother estimates for it, if any, after the smoother
     for i, (name, fn, kwargs) in enumerate(solvers):
         if name != Estimator.SMOOTHER and not at_once:
             calls: list[tuple[Callable[..., Any], tuple, dict[str, Any]]] = []
@@ -849,7 +850,7 @@ def fuse_stage(
                     causal = correlation.causal_inflated(
                         run_ekf,
                         frame_t,
-                        log.imu,
+                        imu,
                         raw,
                         load_obs,
                         inflation=inflation,
@@ -865,16 +866,16 @@ def fuse_stage(
             for n_, f, kw in solvers[i:]:
                 common = dict(front_camera=front, velocity=log.velocity, config=fcfg, **kw)
                 if inflation is None or n_ not in inflated:
-                    calls.append((f, (frame_t, log.imu, raw, load_obs), common))
+                    calls.append((f, (frame_t, imu, raw, load_obs), common))
                 elif causal is not None:
                     calls.append(
-                        (correlation.solve_on_inflated, (f, frame_t, log.imu, raw, causal, load_obs), common)
+                        (correlation.solve_on_inflated, (f, frame_t, imu, raw, causal, load_obs), common)
                     )
                 else:
                     calls.append(
                         (
                             correlation.solve_inflated,
-                            (f, frame_t, log.imu, raw, load_obs),
+                            (f, frame_t, imu, raw, load_obs),
                             dict(common, inflation=inflation, two_sided=False),
                         )
                     )
@@ -887,7 +888,7 @@ def fuse_stage(
                 if inflation is not None and not cfg.tight:  # the tight smoother takes corners
                     # each window solved twice in its own process, the second solve warm
                     common["solver"] = correlation.InflatedSmoother(inflation)
-                res = fn(frame_t, log.imu, raw, load_obs, **common)
+                res = fn(frame_t, imu, raw, load_obs, **common)
         except FusionError as e:
             out.failures[name] = EstimatorFailure(name, str(e), type(e).__name__)
             continue
@@ -912,6 +913,7 @@ def fuse_stage(
             raw, load_obs, corner_scale = variance.apply_smoother_scales(
                 res.stats.get("noise_scales"), raw, load_obs
             )
+            imu = variance.scaled_imu(imu, variance.imu_scale_of(res.stats.get("noise_scales")))
             if inflation is not None:  # its terms are shares of raw's covariance: scaled alike
                 inflation = replace(inflation, class_terms=inflation.class_terms * corner_scale)
             fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)

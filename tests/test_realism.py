@@ -366,6 +366,58 @@ def test_smoother_noise_scale_recovers_pose_noise_and_keeps_a_right_model():
     assert 3.0 < e_off < 12.0 < e_unscaled, (e_off, e_unscaled)
 
 
+def test_the_imu_keeps_its_stated_noise_inside_the_band_and_is_scaled_above_it():
+    """The IMU is the reference: its stated noise stands while its chi2/dof is inside
+    IMU_WARN_BAND; above it (densities too small) its scale is estimated like the cameras',
+    never below 1."""
+    lo, hi = vc.IMU_WARN_BAND
+    inside = {vc.NoiseGroup.IMU: vc.VarianceComponent(1.8 * 1000.0, 1000.0, 100)}
+    assert vc.next_noise_scales(vc.NoiseScales(), inside) is None
+    above = {vc.NoiseGroup.IMU: vc.VarianceComponent(6.0 * 1000.0, 1000.0, 100)}
+    assert vc.next_noise_scales(vc.NoiseScales(), above).imu == pytest.approx(6.0)
+    # once scaled, iterated like any group, never below 1
+    again = {vc.NoiseGroup.IMU: vc.VarianceComponent(1.5 * 1000.0, 1000.0, 100)}
+    assert vc.next_noise_scales(vc.NoiseScales(imu=6.0), again).imu == pytest.approx(9.0)
+    quiet = {vc.NoiseGroup.IMU: vc.VarianceComponent(0.1 * 1000.0, 1000.0, 100)}
+    assert vc.next_noise_scales(vc.NoiseScales(imu=2.0), quiet).imu == 1.0
+    assert vc.next_noise_scales(vc.NoiseScales(), quiet) is None  # below the band: only a warning
+    fl = make_flight(seed=5, duration_s=4.0, gaps=())
+    assert vc.scaled_imu(fl.imu, 1.0) is fl.imu and vc.scaled_imu(None, 4.0) is None
+    scaled = vc.scaled_imu(fl.imu, 4.0)
+    assert scaled.gyro_rad_s is fl.imu.gyro_rad_s
+    assert scaled.noise.accelerometer_random_walk == pytest.approx(2.0 * fl.imu.noise.accelerometer_random_walk)
+
+
+def test_an_imu_noisier_than_stated_is_scaled_and_the_fused_poses_stay_honest():
+    """An IMU whose imu0/sensor.yaml states a third of its real noise (a datasheet on a
+    vibrating airframe): the smoother's IMU chi2/dof is far above the band, so its noise scale is
+    estimated (~9 in variance) and applied, with a warning; the fused NEES comes back in band,
+    and the scale reaches the report for the back ends after the smoother."""
+    from dataclasses import replace
+
+    from fusion.log import ImuNoise
+
+    true = ImuNoise()
+    fl = make_flight(
+        seed=9,
+        duration_s=8.0,
+        gaps=((3.0, 5.0),),
+        imu_noise=ImuNoise(**{k: 3.0 * v for k, v in vars(true).items()}),
+    )
+    fl.imu = replace(fl.imu, noise=true)  # stated: a third of the truth
+    res = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM)
+    rep = res.stats["noise_scales"]
+    assert 4.0 < vc.imu_scale_of(rep) < 16.0 and rep["imu_warning"], rep
+    assert abs(rep["imu_chi2_per_dof"] - 1.0) < 0.3, rep
+    unscaled = smooth(
+        fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM, config=FusionConfig(noise_scale_iterations=0)
+    )
+    e_scaled = nees(res.trajectory, fl.T_true).mean()
+    e_unscaled = nees(unscaled.trajectory, fl.T_true).mean()
+    assert 3.0 < e_scaled < 12.0 and e_unscaled > 1.5 * e_scaled, (e_scaled, e_unscaled)
+    assert "at its noise x" in vc.summary_line({"smoother": rep})
+
+
 def test_tight_corner_noise_scale():
     cam = make_cameras()["cam0"]
     fl = make_flight(seed=13, duration_s=4.0, gaps=())

@@ -370,6 +370,7 @@ def solve_inflated(
     ratio = _trace_ratio(raw, inflated)
     if report is not None:
         again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
+        imu = variance.scaled_imu(imu, variance.imu_scale_of(report))
         del inflated  # `again` is what the second solve takes
         config = kwargs.get("config")
         if config is not None:

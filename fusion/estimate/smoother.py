@@ -516,6 +516,7 @@ class SolveReuse:
 def _pims_key(imu: ImuData, config: FusionConfig) -> tuple:
     return (
         id(imu),
+        tuple(vars(imu.noise).values()),  # a noise-scaled copy (variance.scaled_imu) differs
         len(imu.timestamps_ns),
         config.max_imu_gap_s,
         config.integration_sigma,

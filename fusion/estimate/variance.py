@@ -373,17 +373,54 @@ class NoiseScales:
     pose: float = 1.0
     corners: float = 1.0
     load: float = 1.0
+    imu: float = 1.0
 
     def of(self, group: NoiseGroup) -> float:
         return float(getattr(self, str(group), 1.0))
+
+
+def scaled_imu(imu, scale: float):
+    """`imu` (ImuData or None) with every noise density and random walk of its imu0 noise model
+    times sqrt(`scale`) (a variance factor); the same object at scale 1.  The samples are shared,
+    not copied."""
+    if imu is None or scale == 1.0:
+        return imu
+    from fusion.log import ImuNoise
+
+    k = math.sqrt(scale)
+    noise = ImuNoise(**{key: value * k for key, value in vars(imu.noise).items()})
+    return replace(imu, noise=noise)
+
+
+def imu_scale_of(report: dict | None) -> float:
+    """The IMU noise scale the batch smoother applied (`solve_with_noise_scales`' report), 1 when
+    none."""
+    return float(((report or {}).get("imu") or {}).get("scale", 1.0))
 
 
 def next_noise_scales(scales: NoiseScales, comps: dict | None, pose_floor: float = 0.0) -> NoiseScales | None:
     """The iterated estimator's next scales: every applicable group (pose, corners, load) with
     enough degrees of freedom and chi2/dof off 1 by more than SCALE_TOLERANCE gets its scale
     multiplied by its chi2/dof (clamped; the pose group's at least `pose_floor`:
-    FusionConfig.pose_scale_floor); None when none changes (converged)."""
+    FusionConfig.pose_scale_floor); None when none changes (converged).
+
+    The IMU, the reference, keeps its stated noise while its chi2/dof is inside IMU_WARN_BAND;
+    above it (imu0/sensor.yaml's densities too small: a datasheet's figures on a vibrating
+    airframe, the common case) its scale is estimated like the cameras', never below 1 (an IMU
+    quieter than stated is left as stated: conservative, and its chi2 below the band is only
+    a warning)."""
     change = False
+    c = (comps or {}).get(NoiseGroup.IMU)
+    if c is not None and c.usable:
+        if scales.imu == 1.0:
+            new = clamp_scale(c.scale) if c.scale > IMU_WARN_BAND[1] else 1.0
+        elif abs(c.scale - 1.0) > SCALE_TOLERANCE:
+            new = max(1.0, clamp_scale(scales.imu * c.scale))
+        else:
+            new = scales.imu
+        if new != scales.imu:
+            scales = replace(scales, imu=new)
+            change = True
     for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
         c = (comps or {}).get(g)
         if c is None or not c.usable or abs(c.scale - 1.0) <= SCALE_TOLERANCE:
@@ -418,8 +455,9 @@ def solve_with_noise_scales(
     (the fixes disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is
     outside IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
     JSON-ready report: per group the applied scale, the final chi2/dof and dof; per camera the
-    applied scale; the IMU's chi2/dof (checked, never rescaled: a warning outside
-    IMU_WARN_BAND)."""
+    applied scale; the IMU's final chi2/dof (a warning outside IMU_WARN_BAND) and, when its
+    stated noise was too small (next_noise_scales), `imu`: the scale applied to it (a warning
+    too: the IMU's noise densities are a calibration the user should correct)."""
     budget = max(int(iterations), 0)
 
     def resolves(scales_: NoiseScales, left: int) -> ResolvePredicate:
@@ -432,6 +470,8 @@ def solve_with_noise_scales(
     scales = NoiseScales()
     res = solve(scales, resolves=resolves(scales, budget))
     n_solves = 1
+    first = (res.stats.get("variance_components") or {}).get(NoiseGroup.IMU)
+    first_imu_chi2 = first.scale if first is not None else math.nan
     skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
     for i in range(0 if skip else budget):
         new = next_noise_scales(scales, res.stats.get("variance_components"), pose_floor)
@@ -453,6 +493,15 @@ def solve_with_noise_scales(
     report: dict = {"solves": n_solves, "groups": {}, "cameras": {}}
     if skip:
         report["not_applied"] = skip
+    if scales.imu != 1.0:
+        report["imu"] = {"scale": scales.imu, "sigma_factor": math.sqrt(scales.imu)}
+        log.warning(
+            "%s: the IMU factors' chi2/dof was %.2f at the noise densities of imu0/sensor.yaml "
+            "(ideal 1): they look too small; estimated and applied: x%.2f (sigma) for this flight",
+            what,
+            first_imu_chi2,
+            math.sqrt(scales.imu),
+        )
     for g, c in comps.items():
         entry = c.as_dict()
         if g in CAMERA_OF_GROUP:
@@ -469,6 +518,8 @@ def solve_with_noise_scales(
             }
         report["groups"][str(g)] = entry
     imu = comps.get(NoiseGroup.IMU)
+    if "imu" in report:
+        report["imu_warning"] = True
     if imu is not None and imu.usable:
         report["imu_chi2_per_dof"] = imu.scale
         lo, hi = IMU_WARN_BAND
@@ -497,7 +548,7 @@ def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -
     def solve(scales: NoiseScales, imu_=imu, **kw):
         final["scales"] = scales
         return once(
-            imu_,
+            scaled_imu(imu_, scales.imu),
             scale_trajectory(raw, scales.pose),
             scale_load_observations(load_obs, scales.load) if load_obs else load_obs,
             replace(config, corner_noise_scale=config.corner_noise_scale * scales.corners),
@@ -740,8 +791,10 @@ def summary_line(summary: dict) -> str:
     for cam, c in sorted((sm.get("cameras") or {}).items()):
         parts.append(f"smoother {cam} {c['scale']:.2f} ({c['dof']:.0f} dof)")
     if "imu_chi2_per_dof" in sm:
+        imu_scale = imu_scale_of(sm)
         parts.append(
             f"IMU {sm['imu_chi2_per_dof']:.2f}"
+            + (f" at its noise x{math.sqrt(imu_scale):.2f} (sigma)" if imu_scale != 1.0 else "")
             + (" (check its noise densities)" if sm.get("imu_warning") else "")
         )
     nis = summary.get("ekf_pose_nis")

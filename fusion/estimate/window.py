@@ -53,6 +53,7 @@ from scipy.spatial.transform import Rotation
 
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
+from fusion.estimate import variance
 from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode, match_to_frames
 from fusion.estimate.extrinsics import MountRotation, estimate_mount_and_states, merge_mount_rotations
 from fusion.estimate.smoother import (
@@ -249,6 +250,12 @@ def _merge_noise_scales(parts: list[dict | None]) -> dict | None:
     imu = [r["imu_chi2_per_dof"] for r in reports if "imu_chi2_per_dof" in r]
     if imu:
         out["imu_chi2_per_dof"] = float(np.mean(imu))
+    # the IMU's noise scale where a window estimated one (variance.next_noise_scales), else 1:
+    # the windows' mean, for the back ends after the smoother
+    imu_scales = [variance.imu_scale_of(r) for r in reports]
+    if any(s != 1.0 for s in imu_scales):
+        scale = float(np.mean(imu_scales))
+        out["imu"] = {"scale": scale, "sigma_factor": math.sqrt(scale), "windows": imu_scales}
     if any(r.get("imu_warning") for r in reports):
         out["imu_warning"] = True
     not_applied = sorted({r["not_applied"] for r in reports if "not_applied" in r})
