@@ -916,7 +916,12 @@ def fuse_stage(
             imu = variance.scaled_imu(imu, variance.imu_scale_of(res.stats.get("noise_scales")))
             if inflation is not None:  # its terms are shares of raw's covariance: scaled alike
                 inflation = replace(inflation, class_terms=inflation.class_terms * corner_scale)
-            fcfg = replace(fcfg, corner_noise_scale=fcfg.corner_noise_scale * corner_scale)
+            fcfg = replace(
+                fcfg,
+                corner_noise_scale=fcfg.corner_noise_scale * corner_scale,
+                velocity_noise_scale=fcfg.velocity_noise_scale
+                * variance.velocity_scale_of(res.stats.get("noise_scales")),
+            )
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():

@@ -418,6 +418,36 @@ def test_an_imu_noisier_than_stated_is_scaled_and_the_fused_poses_stay_honest():
     assert "at its noise x" in vc.summary_line({"smoother": rep})
 
 
+def test_a_velocity_sensor_noisier_than_stated_is_scaled_like_the_imu():
+    """A velocity sensor stating a tenth of its noise (0.005 m/s against 0.05): its factors'
+    chi2/dof is far above the band, so its scale is estimated and applied (the EKF and the
+    incremental smoother get it through the config); stated right, it is left alone."""
+    from dataclasses import replace
+
+    fl = make_flight(seed=4, duration_s=8.0, gaps=((3.0, 5.0),))
+    right = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM, velocity=fl.velocity)
+    rep = right.stats["noise_scales"]
+    assert vc.velocity_scale_of(rep) == 1.0 and abs(rep["velocity_chi2_per_dof"] - 1.0) < 0.3, rep
+    fl.velocity = replace(fl.velocity, noise_m_s=0.005)
+    res = smooth(fl.frame_t, fl.imu, fl.raw, fl.load_obs, FRONT_CAM, velocity=fl.velocity)
+    rep = res.stats["noise_scales"]
+    assert 50.0 < vc.velocity_scale_of(rep) < 200.0 and rep["velocity_warning"], rep
+    assert abs(rep["velocity_chi2_per_dof"] - 1.0) < 0.3, rep
+    assert "velocity" in vc.summary_line({"smoother": rep})
+    unscaled = smooth(
+        fl.frame_t,
+        fl.imu,
+        fl.raw,
+        fl.load_obs,
+        FRONT_CAM,
+        velocity=fl.velocity,
+        config=FusionConfig(noise_scale_iterations=0),
+    )
+    e_scaled = nees(res.trajectory, fl.T_true).mean()
+    e_unscaled = nees(unscaled.trajectory, fl.T_true).mean()
+    assert 3.0 < e_scaled < 12.0 and e_unscaled > 1.5 * e_scaled, (e_scaled, e_unscaled)
+
+
 def test_tight_corner_noise_scale():
     cam = make_cameras()["cam0"]
     fl = make_flight(seed=13, duration_s=4.0, gaps=())

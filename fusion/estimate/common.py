@@ -195,6 +195,9 @@ class FusionConfig:
     # factors' covariance (set by that estimation).
     noise_scale_iterations: int = 2
     corner_noise_scale: float = 1.0
+    # multiplies the velocity sensor's stated variance (noise_m_s^2; set by that estimation when
+    # the velocity factors' chi2/dof is above variance.IMU_WARN_BAND)
+    velocity_noise_scale: float = 1.0
     # the least variance factor the estimation may give the per-frame pose group (0: none): 1
     # when the poses' errors are correlated in time (fusion.estimate.correlation), which makes
     # the smoother's residuals smaller than the errors' variance (it follows their slow part)
@@ -461,7 +464,7 @@ def velocity_at_frames(
     sums = np.stack([np.bincount(k, weights=v[:, a], minlength=n) for a in range(3)], axis=1)
     v_body = sums / safe[:, None]
     dt_mean = np.bincount(k, weights=np.where(carried, dt, 0.0), minlength=n) / safe
-    sigma = np.where(mask, float(vel.noise_m_s) / np.sqrt(safe), 0.0)
+    sigma = np.where(mask, float(vel.noise_m_s) * math.sqrt(config.velocity_noise_scale) / np.sqrt(safe), 0.0)
     return FrameVelocities(mask, v_body, dt_mean, sigma)
 
 

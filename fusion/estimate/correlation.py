@@ -385,6 +385,7 @@ def solve_inflated(
                     noise_scale_iterations=0,
                     check_noise=False,
                     corner_noise_scale=config.corner_noise_scale * s0,
+                    velocity_noise_scale=config.velocity_noise_scale * variance.velocity_scale_of(report),
                 ),
             )
         res = fn(frame_times_ns, imu, again, load_again, **kwargs)

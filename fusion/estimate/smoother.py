@@ -62,7 +62,12 @@ from fusion.estimate.common import (
 )
 from fusion.estimate.factors import B, L, V, X
 from fusion.estimate.marginals import chain_marginals, chain_marginals_with_codes
-from fusion.estimate.variance import ResolvePredicate, problem_variance_components, solve_noise_scaled
+from fusion.estimate.variance import (
+    NoiseGroup,
+    ResolvePredicate,
+    problem_variance_components,
+    solve_noise_scaled,
+)
 from fusion.geometry import make_T, rot_z, yaw_of
 from fusion.log.euroc import ImuData, VelocityData
 from fusion.qr.pnp import corner_whitening
@@ -387,6 +392,7 @@ class Problem:
     factors: list = field(default_factory=list)  # gtsam factors
     factor_frame: list[int] = field(default_factory=list)  # frame index per factor
     robust: dict[int, RobustFactor] = field(default_factory=dict)  # by factor index
+    velocity: list[int] = field(default_factory=list)  # the velocity factors' indices
     load_args: dict[int, LoadFactorArgs] = field(default_factory=dict)  # by factor index
     loads: list[LoadTrack] = field(default_factory=list)  # by load index j
     pims: Mapping[int, gtsam.PreintegratedCombinedMeasurements] = field(default_factory=dict)
@@ -715,6 +721,7 @@ def build_problem(
     vel = velocity_at_frames(frame_t, velocity, config, imu)
     for k in np.flatnonzero(vel.mask).tolist():
         v_k = vel.measured(k, pb.T_init[k, :3, :3])
+        pb.velocity.append(len(pb.factors))
         pb.add(factors.body_velocity_factor(k, v_k, float(vel.sigma_m_s[k])), k)
     pb.counts.velocity_factors = int(vel.mask.sum())
 
@@ -1270,9 +1277,9 @@ def _smooth_once(
             at_solution = graph.linearize(values)
         except (RuntimeError, ValueError) as e:
             log.debug("no linearisation at the solution: %s", e)
-        variance_components = problem_variance_components(
-            pb.factors, {i: str(r.kind) for i, r in pb.robust.items()}, drop, graph, values, at_solution
-        )
+        kinds = {i: str(r.kind) for i, r in pb.robust.items()}
+        kinds.update(dict.fromkeys(pb.velocity, str(NoiseGroup.VELOCITY)))
+        variance_components = problem_variance_components(pb.factors, kinds, drop, graph, values, at_solution)
     if lin is not None:
         at_solution = None  # the covariances use the last step's linearisation
     release_heap()

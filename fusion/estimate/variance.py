@@ -58,7 +58,8 @@ chi-square gets a warning (`thin_class_warnings`; the corner-bias gate's level, 
 SCALE_TOLERANCE = 0.1
 """The smoother stops re-solving once every applied group's chi2/dof is within 1 +- this."""
 IMU_WARN_BAND = (0.5, 2.0)
-"""The IMU group's chi2/dof outside this band: its noise densities are probably wrong."""
+"""A stated sensor's (STATED_SENSORS: IMU, velocity) chi2/dof outside this band: its stated noise is
+probably wrong."""
 HUTCHINSON_PROBES = 32
 """Most random probes of a group's leverage (group_leverages); groups with fewer rows are exact."""
 HUTCHINSON_MIN_PROBES = 8
@@ -81,6 +82,7 @@ class NoiseGroup(Choice):
     LOAD = "load"  # load-code centres (cam1)
     FLOOR_CODE = "floor_code"  # as-built floor-code sightings (cam0): measured, not rescaled
     IMU = "imu"  # preintegrated IMU and bias random walk
+    VELOCITY = "velocity"  # the velocity sensor's samples (vel0)
     OTHER = "other"  # priors, velocity, bridges
 
 
@@ -374,6 +376,7 @@ class NoiseScales:
     corners: float = 1.0
     load: float = 1.0
     imu: float = 1.0
+    velocity: float = 1.0
 
     def of(self, group: NoiseGroup) -> float:
         return float(getattr(self, str(group), 1.0))
@@ -398,28 +401,55 @@ def imu_scale_of(report: dict | None) -> float:
     return float(((report or {}).get("imu") or {}).get("scale", 1.0))
 
 
+def velocity_scale_of(report: dict | None) -> float:
+    """The velocity sensor's noise scale the batch smoother applied, 1 when none."""
+    return float(((report or {}).get("velocity") or {}).get("scale", 1.0))
+
+
+STATED_SENSORS = {
+    NoiseGroup.IMU: ("IMU", "the noise densities of imu0/sensor.yaml"),
+    NoiseGroup.VELOCITY: ("velocity", "noise_m_s of vel0/sensor.yaml"),
+}
+"""The sensors whose noise the user states (a calibration, a datasheet) rather than the
+project's own model: kept as stated inside IMU_WARN_BAND (next_noise_scales)."""
+
+
 def next_noise_scales(scales: NoiseScales, comps: dict | None, pose_floor: float = 0.0) -> NoiseScales | None:
     """The iterated estimator's next scales: every applicable group (pose, corners, load) with
     enough degrees of freedom and chi2/dof off 1 by more than SCALE_TOLERANCE gets its scale
     multiplied by its chi2/dof (clamped; the pose group's at least `pose_floor`:
     FusionConfig.pose_scale_floor); None when none changes (converged).
 
-    The IMU, the reference, keeps its stated noise while its chi2/dof is inside IMU_WARN_BAND;
-    above it (imu0/sensor.yaml's densities too small: a datasheet's figures on a vibrating
-    airframe, the common case) its scale is estimated like the cameras', never below 1 (an IMU
-    quieter than stated is left as stated: conservative, and its chi2 below the band is only
-    a warning)."""
+    The sensors whose noise the user states (STATED_SENSORS: the IMU, the reference, and the
+    velocity sensor) keep it while their chi2/dof is inside IMU_WARN_BAND; above it (the stated
+    noise too small: an IMU datasheet's figures on a vibrating airframe, the common case; an
+    optical-flow sensor over a poor floor) the scale is estimated like the cameras', never
+    below 1 (a sensor quieter than stated is left as stated: conservative, and its chi2 below
+    the band is only a warning)."""
     change = False
-    c = (comps or {}).get(NoiseGroup.IMU)
-    if c is not None and c.usable:
-        if scales.imu == 1.0:
-            new = clamp_scale(c.scale) if c.scale > IMU_WARN_BAND[1] else 1.0
+    # a sensor stated far too precise drags the estimate and so raises the others' residuals
+    # too (an optical-flow sensor stated 10x too precise put the IMU's chi2/dof at 29): of the
+    # stated sensors above the band and not yet scaled, only the worst is scaled in one step
+    above = {
+        g: c.scale
+        for g in STATED_SENSORS
+        if (c := (comps or {}).get(g)) is not None and c.usable and scales.of(g) == 1.0
+        if c.scale > IMU_WARN_BAND[1]
+    }
+    worst = max(above, key=above.__getitem__) if above else None
+    for g in STATED_SENSORS:
+        c = (comps or {}).get(g)
+        if c is None or not c.usable:
+            continue
+        now = scales.of(g)
+        if now == 1.0:
+            new = clamp_scale(c.scale) if g == worst else 1.0
         elif abs(c.scale - 1.0) > SCALE_TOLERANCE:
-            new = max(1.0, clamp_scale(scales.imu * c.scale))
+            new = max(1.0, clamp_scale(now * c.scale))
         else:
-            new = scales.imu
-        if new != scales.imu:
-            scales = replace(scales, imu=new)
+            new = now
+        if new != now:
+            scales = replace(scales, **{str(g): new})
             change = True
     for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
         c = (comps or {}).get(g)
@@ -470,8 +500,7 @@ def solve_with_noise_scales(
     scales = NoiseScales()
     res = solve(scales, resolves=resolves(scales, budget))
     n_solves = 1
-    first = (res.stats.get("variance_components") or {}).get(NoiseGroup.IMU)
-    first_imu_chi2 = first.scale if first is not None else math.nan
+    first = res.stats.get("variance_components") or {}
     skip = "fixes disagree with the IMU" if res.health.gate_skipped else ""
     for i in range(0 if skip else budget):
         new = next_noise_scales(scales, res.stats.get("variance_components"), pose_floor)
@@ -493,15 +522,19 @@ def solve_with_noise_scales(
     report: dict = {"solves": n_solves, "groups": {}, "cameras": {}}
     if skip:
         report["not_applied"] = skip
-    if scales.imu != 1.0:
-        report["imu"] = {"scale": scales.imu, "sigma_factor": math.sqrt(scales.imu)}
-        log.warning(
-            "%s: the IMU factors' chi2/dof was %.2f at the noise densities of imu0/sensor.yaml "
-            "(ideal 1): they look too small; estimated and applied: x%.2f (sigma) for this flight",
-            what,
-            first_imu_chi2,
-            math.sqrt(scales.imu),
-        )
+    for g, (name, where) in STATED_SENSORS.items():
+        if scales.of(g) != 1.0:
+            report[str(g)] = {"scale": scales.of(g), "sigma_factor": math.sqrt(scales.of(g))}
+            report[f"{g}_warning"] = True
+            log.warning(
+                "%s: the %s factors' chi2/dof was %.2f at %s (ideal 1): it looks too small; "
+                "estimated and applied: x%.2f (sigma) for this flight",
+                what,
+                name,
+                first[g].scale,
+                where,
+                math.sqrt(scales.of(g)),
+            )
     for g, c in comps.items():
         entry = c.as_dict()
         if g in CAMERA_OF_GROUP:
@@ -517,22 +550,23 @@ def solve_with_noise_scales(
                 "group": str(g),
             }
         report["groups"][str(g)] = entry
-    imu = comps.get(NoiseGroup.IMU)
-    if "imu" in report:
-        report["imu_warning"] = True
-    if imu is not None and imu.usable:
-        report["imu_chi2_per_dof"] = imu.scale
+    for g, (name, where) in STATED_SENSORS.items():
+        c = comps.get(g)
+        if c is None or not c.usable:
+            continue
+        report[f"{g}_chi2_per_dof"] = c.scale
         lo, hi = IMU_WARN_BAND
-        if not lo <= imu.scale <= hi:
+        if not lo <= c.scale <= hi:
             log.warning(
-                "%s: the IMU factors' chi2/dof is %.2f (ideal 1, %.0f dof): the IMU noise densities "
-                "in imu0/sensor.yaml look %s",
+                "%s: the %s factors' chi2/dof is %.2f (ideal 1, %.0f dof): %s looks %s",
                 what,
-                imu.scale,
-                imu.dof,
-                "too small" if imu.scale > hi else "too large",
+                name,
+                c.scale,
+                c.dof,
+                where,
+                "too small" if c.scale > hi else "too large",
             )
-            report["imu_warning"] = True
+            report[f"{g}_warning"] = True
     return res, report
 
 
@@ -551,7 +585,11 @@ def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -
             scaled_imu(imu_, scales.imu),
             scale_trajectory(raw, scales.pose),
             scale_load_observations(load_obs, scales.load) if load_obs else load_obs,
-            replace(config, corner_noise_scale=config.corner_noise_scale * scales.corners),
+            replace(
+                config,
+                corner_noise_scale=config.corner_noise_scale * scales.corners,
+                velocity_noise_scale=config.velocity_noise_scale * scales.velocity,
+            ),
             **kw,
         )
 
@@ -790,13 +828,14 @@ def summary_line(summary: dict) -> str:
     sm = summary.get("smoother") or {}
     for cam, c in sorted((sm.get("cameras") or {}).items()):
         parts.append(f"smoother {cam} {c['scale']:.2f} ({c['dof']:.0f} dof)")
-    if "imu_chi2_per_dof" in sm:
-        imu_scale = imu_scale_of(sm)
-        parts.append(
-            f"IMU {sm['imu_chi2_per_dof']:.2f}"
-            + (f" at its noise x{math.sqrt(imu_scale):.2f} (sigma)" if imu_scale != 1.0 else "")
-            + (" (check its noise densities)" if sm.get("imu_warning") else "")
-        )
+    for g, (name, _) in STATED_SENSORS.items():
+        if f"{g}_chi2_per_dof" in sm:
+            scale = float((sm.get(str(g)) or {}).get("scale", 1.0))
+            parts.append(
+                f"{name} {sm[f'{g}_chi2_per_dof']:.2f}"
+                + (f" at its noise x{math.sqrt(scale):.2f} (sigma)" if scale != 1.0 else "")
+                + (" (check its noise)" if sm.get(f"{g}_warning") else "")
+            )
     nis = summary.get("ekf_pose_nis")
     if nis and nis.get("dof"):
         parts.append(f"EKF pose NIS/dim {nis['scale']:.2f}")

@@ -247,17 +247,18 @@ def _merge_noise_scales(parts: list[dict | None]) -> dict | None:
             else float(np.mean([e["scale"] for e in entries]))
         )
         out["cameras"][cam] = dict(entries[0], scale=scale, sigma_factor=math.sqrt(scale), dof=dof)
-    imu = [r["imu_chi2_per_dof"] for r in reports if "imu_chi2_per_dof" in r]
-    if imu:
-        out["imu_chi2_per_dof"] = float(np.mean(imu))
-    # the IMU's noise scale where a window estimated one (variance.next_noise_scales), else 1:
-    # the windows' mean, for the back ends after the smoother
-    imu_scales = [variance.imu_scale_of(r) for r in reports]
-    if any(s != 1.0 for s in imu_scales):
-        scale = float(np.mean(imu_scales))
-        out["imu"] = {"scale": scale, "sigma_factor": math.sqrt(scale), "windows": imu_scales}
-    if any(r.get("imu_warning") for r in reports):
-        out["imu_warning"] = True
+    # a stated sensor's noise scale where a window estimated one (variance.next_noise_scales),
+    # else 1: the windows' mean, for the back ends after the smoother
+    for g in variance.STATED_SENSORS:
+        scales = [float((r.get(str(g)) or {}).get("scale", 1.0)) for r in reports]
+        if any(s != 1.0 for s in scales):
+            scale = float(np.mean(scales))
+            out[str(g)] = {"scale": scale, "sigma_factor": math.sqrt(scale), "windows": scales}
+        chi2 = [r[f"{g}_chi2_per_dof"] for r in reports if f"{g}_chi2_per_dof" in r]
+        if chi2:
+            out[f"{g}_chi2_per_dof"] = float(np.mean(chi2))
+        if any(r.get(f"{g}_warning") for r in reports):
+            out[f"{g}_warning"] = True
     not_applied = sorted({r["not_applied"] for r in reports if "not_applied" in r})
     if not_applied:
         out["not_applied"] = "; ".join(not_applied)
