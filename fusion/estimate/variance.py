@@ -83,7 +83,7 @@ class NoiseGroup(Choice):
     FLOOR_CODE = "floor_code"  # as-built floor-code sightings (cam0): measured, not rescaled
     IMU = "imu"  # preintegrated IMU and bias random walk
     VELOCITY = "velocity"  # the velocity sensor's samples (vel0)
-    OTHER = "other"  # priors, velocity, bridges
+    OTHER = "other"  # priors, bridges
 
 
 CAMERA_OF_GROUP = {NoiseGroup.POSE: "cam0", NoiseGroup.CORNERS: "cam0", NoiseGroup.LOAD: "cam1"}
@@ -407,8 +407,8 @@ def velocity_scale_of(report: dict | None) -> float:
 
 
 STATED_SENSORS = {
-    NoiseGroup.IMU: ("IMU", "the noise densities of imu0/sensor.yaml"),
-    NoiseGroup.VELOCITY: ("velocity", "noise_m_s of vel0/sensor.yaml"),
+    NoiseGroup.IMU: ("IMU", "imu0/sensor.yaml's noise densities"),
+    NoiseGroup.VELOCITY: ("velocity", "vel0/sensor.yaml's noise_m_s"),
 }
 """The sensors whose noise the user states (a calibration, a datasheet) rather than the
 project's own model: kept as stated inside IMU_WARN_BAND (next_noise_scales)."""
@@ -485,9 +485,10 @@ def solve_with_noise_scales(
     (the fixes disagree with the IMU: a fault) or when, rescaled, the IMU group's chi2/dof is
     outside IMU_WARN_BAND (the reference itself does not fit).  Returns the last result and a
     JSON-ready report: per group the applied scale, the final chi2/dof and dof; per camera the
-    applied scale; the IMU's final chi2/dof (a warning outside IMU_WARN_BAND) and, when its
-    stated noise was too small (next_noise_scales), `imu`: the scale applied to it (a warning
-    too: the IMU's noise densities are a calibration the user should correct)."""
+    applied scale; per stated sensor (STATED_SENSORS: IMU, velocity) its final chi2/dof
+    (`imu_chi2_per_dof`, `velocity_chi2_per_dof`; a warning outside IMU_WARN_BAND) and, when its
+    stated noise was too small (next_noise_scales), the scale applied to it (`imu`, `velocity`;
+    a warning too: the stated noise is a calibration the user should correct)."""
     budget = max(int(iterations), 0)
 
     def resolves(scales_: NoiseScales, left: int) -> ResolvePredicate:
@@ -527,11 +528,11 @@ def solve_with_noise_scales(
             report[str(g)] = {"scale": scales.of(g), "sigma_factor": math.sqrt(scales.of(g))}
             report[f"{g}_warning"] = True
             log.warning(
-                "%s: the %s factors' chi2/dof was %.2f at %s (ideal 1): it looks too small; "
+                "%s: the %s factors' chi2/dof was %.2f at %s (ideal 1): too small; "
                 "estimated and applied: x%.2f (sigma) for this flight",
                 what,
                 name,
-                first[g].scale,
+                first[g].scale if g in first else math.nan,
                 where,
                 math.sqrt(scales.of(g)),
             )
@@ -558,7 +559,7 @@ def solve_with_noise_scales(
         lo, hi = IMU_WARN_BAND
         if not lo <= c.scale <= hi:
             log.warning(
-                "%s: the %s factors' chi2/dof is %.2f (ideal 1, %.0f dof): %s looks %s",
+                "%s: the %s factors' chi2/dof is %.2f (ideal 1, %.0f dof): %s seem %s",
                 what,
                 name,
                 c.scale,
