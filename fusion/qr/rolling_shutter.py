@@ -117,6 +117,9 @@ FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
 BIAS_MAX_GAP_S = 0.1
 """Gyro bias: only consecutive poses at most this far apart give a rotation rate."""
+ATTITUDE_GAP_FRAMES = 1.5
+"""The IMU track's attitude between consecutive poses further apart than this many median pose
+spacings (a frame or more without a pose) comes from the gyro (`_gyro_attitude_in_gaps`)."""
 OMEGA_BIAS_PRIOR_RAD_S = 0.005
 """Gyro bias sigma when it cannot be estimated (too few poses)."""
 OMEGA_POSE_SIGMA_RAD_S = 0.02
@@ -229,8 +232,10 @@ class ReadoutCalibration:
 class _ImuTrack:
     """The IMU's body rate and world acceleration integrated on its own time grid: cumulative
     gyro integral (body rate means over any window), and the world acceleration
-    a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses) integrated twice
-    (trapezoid), so that positions can be fitted with the IMU's short-term motion removed."""
+    a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses, and inside a gap
+    of the poses turned from the nearest one by the gyro, `_gyro_attitude_in_gaps`) integrated
+    twice (trapezoid), so that positions can be fitted with the IMU's short-term motion removed;
+    the gyro bias (`_gyro_bias`) as `gyro_bias`, `gyro_bias_sigma`."""
 
     def __init__(self, imu, trajectory: Trajectory):
         self.t = imu.timestamps_ns * 1e-9
@@ -240,6 +245,8 @@ class _ImuTrack:
         self.G = np.vstack([np.zeros(3), np.cumsum(0.5 * (self.gyro[1:] + self.gyro[:-1]) * dt, axis=0)])
         ts = trajectory.timestamps_ns * 1e-9
         R = interpolate_poses(ts, trajectory.T_world_body, np.clip(self.t, ts[0], ts[-1]))[:, :3, :3]
+        self.gyro_bias, self.gyro_bias_sigma = _gyro_bias(self, trajectory)
+        _gyro_attitude_in_gaps(R, self.t, self.G, self.gyro_bias, ts, trajectory.T_world_body[:, :3, :3])
         f_body = imu.accel_m_s2 @ R_bs.T
         self.a_world = np.einsum("nij,nj->ni", R, f_body) - np.array([0.0, 0.0, GRAVITY_M_S2])
         self.V = np.vstack(
@@ -277,6 +284,43 @@ class _ImuTrack:
         vector over [t0, t] to first order (the rate's change of axis within a readout, a
         second-order term, is left out)."""
         return self._at(self.G, np.asarray(t, float)) - self._at(self.G, np.asarray(t0, float))
+
+
+def _gyro_attitude_in_gaps(
+    R: np.ndarray, t: np.ndarray, G: np.ndarray, bias: np.ndarray, ts: np.ndarray, R_poses: np.ndarray
+) -> None:
+    """`R` (N, 3, 3) world-from-body attitudes at the IMU times `t` (N,) s, in place: inside a
+    gap of the poses (`ts` (M,) s, `R_poses` (M, 3, 3); consecutive poses more than
+    ATTITUDE_GAP_FRAMES median spacings apart) from the nearest pose's attitude turned by the
+    gyro (cumulative integral `G` (N, 3) rad, less `bias` (3,) rad/s), instead of the slerp between
+    the poses either side.  The slerp knows nothing of the turn in between: across the realism
+    bench's 1 s floor blackout it tilted the IMU's world acceleration by ~0.27 m/s^2, and the
+    velocities extrapolated to the gap's frames were 45-87 mm/s off (BENCHMARKS.md, rs17)."""
+    if len(ts) < 2:
+        return
+    spacing = np.diff(ts)
+    for i in np.flatnonzero(spacing > ATTITUDE_GAP_FRAMES * float(np.median(spacing))):
+        ta, tb = ts[i], ts[i + 1]
+        j = np.flatnonzero((t > ta) & (t < tb))
+        if not len(j):
+            continue
+        mid = 0.5 * (ta + tb)
+        g_at = [np.array([np.interp(x, t, G[:, c]) for c in range(3)]) for x in (ta, tb)]
+        left, right = j[t[j] <= mid], j[t[j] > mid][::-1]
+        # from pose i forward and from pose i + 1 backward: R(t_k) = R(t_prev) Exp(∫ω - b) over
+        # [t_prev, t_k] (negative going backward), the rate constant between samples (Forster
+        # et al. 2017, eq. 24)
+        for R_anchor, g_anchor, t_anchor, run in (
+            (R_poses[i], g_at[0], ta, left),
+            (R_poses[i + 1], g_at[1], tb, right),
+        ):
+            g_prev = np.vstack([g_anchor, G[run[:-1]]])
+            t_prev = np.concatenate([[t_anchor], t[run[:-1]]])
+            steps = so3_exp_stack((G[run] - g_prev) - bias * (t[run] - t_prev)[:, None])
+            Rk = R_anchor
+            for n, k in enumerate(run):
+                Rk = Rk @ steps[n]
+                R[k] = Rk
 
 
 def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
@@ -328,7 +372,7 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
     t_s = stamps_ns * 1e-9
     if imu is not None and len(imu.timestamps_ns) > 1:
         track = _ImuTrack(imu, trajectory)
-        bias, bias_sigma = _gyro_bias(track, trajectory)
+        bias, bias_sigma = track.gyro_bias, track.gyro_bias_sigma
         t0 = t_s + float(camera.row_time_offset_s(0.0))
         t1 = t_s + float(camera.row_time_offset_s(camera.height - 1.0))
         # a readout beyond the IMU's samples (the flight's first or last frame): the rate over
