@@ -299,28 +299,35 @@ def _gyro_attitude_in_gaps(
     if len(ts) < 2:
         return
     spacing = np.diff(ts)
-    for i in np.flatnonzero(spacing > ATTITUDE_GAP_FRAMES * float(np.median(spacing))):
-        ta, tb = ts[i], ts[i + 1]
-        j = np.flatnonzero((t > ta) & (t < tb))
-        if not len(j):
-            continue
-        mid = 0.5 * (ta + tb)
-        g_at = [np.array([np.interp(x, t, G[:, c]) for c in range(3)]) for x in (ta, tb)]
-        left, right = j[t[j] <= mid], j[t[j] > mid][::-1]
-        # from pose i forward and from pose i + 1 backward: R(t_k) = R(t_prev) Exp(∫ω - b) over
-        # [t_prev, t_k] (negative going backward), the rate constant between samples (Forster
-        # et al. 2017, eq. 24)
-        for R_anchor, g_anchor, t_anchor, run in (
-            (R_poses[i], g_at[0], ta, left),
-            (R_poses[i + 1], g_at[1], tb, right),
-        ):
-            g_prev = np.vstack([g_anchor, G[run[:-1]]])
-            t_prev = np.concatenate([[t_anchor], t[run[:-1]]])
-            steps = so3_exp_stack((G[run] - g_prev) - bias * (t[run] - t_prev)[:, None])
-            Rk = R_anchor
-            for n, k in enumerate(run):
-                Rk = Rk @ steps[n]
-                R[k] = Rk
+    gap = spacing > ATTITUDE_GAP_FRAMES * float(np.median(spacing))
+    i = np.searchsorted(ts, t, side="right") - 1  # the poses either side of each sample: i, i + 1
+    inside = (i >= 0) & (i < len(ts) - 1) & (t > ts[np.clip(i, 0, len(ts) - 1)])
+    inside[inside] = gap[i[inside]]
+    if not inside.any():
+        return
+    # from pose i forward and from pose i + 1 backward: R(t_k) = R(t_prev) Exp(∫ω - b) over
+    # [t_prev, t_k] (negative going backward), the rate constant between samples (Forster et
+    # al. 2017, eq. 24); one loop over the gaps' samples (per gap, 13,000 single-frame gaps of a
+    # 30-minute flight cost 17 CPU s)
+    k = np.flatnonzero(inside)
+    gi = i[k]
+    forward = t[k] <= 0.5 * (ts[gi] + ts[gi + 1])
+    t_anchor = np.where(forward, ts[gi], ts[gi + 1])
+    g_anchor = np.column_stack([np.interp(t_anchor, t, G[:, c]) for c in range(3)])
+    prev = np.where(forward, k - 1, k + 1)  # the neighbour towards the anchor
+    first = np.where(forward, ~np.isin(prev, k) | (i[np.clip(prev, 0, len(t) - 1)] != gi), False)
+    last = np.where(~forward, ~np.isin(prev, k) | (i[np.clip(prev, 0, len(t) - 1)] != gi), False)
+    start = first | last  # the sample next to its anchor pose
+    prev = np.clip(prev, 0, len(t) - 1)
+    g_prev = np.where(start[:, None], g_anchor, G[prev])
+    t_prev = np.where(start, t_anchor, t[prev])
+    steps = so3_exp_stack((G[k] - g_prev) - bias * (t[k] - t_prev)[:, None])
+    R_anchor = np.where(forward, gi, gi + 1)
+    for order in (np.flatnonzero(forward), np.flatnonzero(~forward)[::-1]):
+        Rk = np.eye(3)
+        for n in order:
+            Rk = (R_poses[R_anchor[n]] if start[n] else Rk) @ steps[n]
+            R[k[n]] = Rk
 
 
 def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
