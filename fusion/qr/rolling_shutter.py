@@ -117,6 +117,9 @@ FIT_MAX_SPAN_IMU_S = 0.6
 """With an IMU the fit window is wider: the IMU carries the motion's short-term part."""
 BIAS_MAX_GAP_S = 0.1
 """Gyro bias: only consecutive poses at most this far apart give a rotation rate."""
+ATTITUDE_GAP_FRAMES = 1.5
+"""The IMU track's attitude between consecutive poses further apart than this many median pose
+spacings (a frame or more without a pose) comes from the gyro (`_gyro_attitude_in_gaps`)."""
 OMEGA_BIAS_PRIOR_RAD_S = 0.005
 """Gyro bias sigma when it cannot be estimated (too few poses)."""
 OMEGA_POSE_SIGMA_RAD_S = 0.02
@@ -229,8 +232,10 @@ class ReadoutCalibration:
 class _ImuTrack:
     """The IMU's body rate and world acceleration integrated on its own time grid: cumulative
     gyro integral (body rate means over any window), and the world acceleration
-    a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses) integrated twice
-    (trapezoid), so that positions can be fitted with the IMU's short-term motion removed."""
+    a = R f + g (R interpolated from the PnP poses, geometry.interpolate_poses, and inside a gap
+    of the poses turned from the nearest one by the gyro, `_gyro_attitude_in_gaps`) integrated
+    twice (trapezoid), so that positions can be fitted with the IMU's short-term motion removed;
+    the gyro bias (`_gyro_bias`) as `gyro_bias`, `gyro_bias_sigma`."""
 
     def __init__(self, imu, trajectory: Trajectory):
         self.t = imu.timestamps_ns * 1e-9
@@ -240,6 +245,8 @@ class _ImuTrack:
         self.G = np.vstack([np.zeros(3), np.cumsum(0.5 * (self.gyro[1:] + self.gyro[:-1]) * dt, axis=0)])
         ts = trajectory.timestamps_ns * 1e-9
         R = interpolate_poses(ts, trajectory.T_world_body, np.clip(self.t, ts[0], ts[-1]))[:, :3, :3]
+        self.gyro_bias, self.gyro_bias_sigma = _gyro_bias(self, trajectory)
+        _gyro_attitude_in_gaps(R, self.t, self.G, self.gyro_bias, ts, trajectory.T_world_body[:, :3, :3])
         f_body = imu.accel_m_s2 @ R_bs.T
         self.a_world = np.einsum("nij,nj->ni", R, f_body) - np.array([0.0, 0.0, GRAVITY_M_S2])
         self.V = np.vstack(
@@ -279,6 +286,50 @@ class _ImuTrack:
         return self._at(self.G, np.asarray(t, float)) - self._at(self.G, np.asarray(t0, float))
 
 
+def _gyro_attitude_in_gaps(
+    R: np.ndarray, t: np.ndarray, G: np.ndarray, bias: np.ndarray, ts: np.ndarray, R_poses: np.ndarray
+) -> None:
+    """`R` (N, 3, 3) world-from-body attitudes at the IMU times `t` (N,) s, in place: inside a
+    gap of the poses (`ts` (M,) s, `R_poses` (M, 3, 3); consecutive poses more than
+    ATTITUDE_GAP_FRAMES median spacings apart) from the nearest pose's attitude turned by the
+    gyro (cumulative integral `G` (N, 3) rad, less `bias` (3,) rad/s), instead of the slerp between
+    the poses either side.  The slerp knows nothing of the turn in between: across the realism
+    bench's 1 s floor blackout it tilted the IMU's world acceleration by ~0.27 m/s^2, and the
+    velocities extrapolated to the gap's frames were 45-87 mm/s off (BENCHMARKS.md, rs17)."""
+    if len(ts) < 2:
+        return
+    spacing = np.diff(ts)
+    gap = spacing > ATTITUDE_GAP_FRAMES * float(np.median(spacing))
+    i = np.searchsorted(ts, t, side="right") - 1  # the poses either side of each sample: i, i + 1
+    inside = (i >= 0) & (i < len(ts) - 1) & (t > ts[np.clip(i, 0, len(ts) - 1)])
+    inside[inside] = gap[i[inside]]
+    if not inside.any():
+        return
+    # from pose i forward and from pose i + 1 backward: R(t_k) = R(t_prev) Exp(∫ω - b) over
+    # [t_prev, t_k] (negative going backward), the rate constant between samples (Forster et
+    # al. 2017, eq. 24); one loop over the gaps' samples (per gap, 13,000 single-frame gaps of a
+    # 30-minute flight cost 17 CPU s)
+    k = np.flatnonzero(inside)
+    gi = i[k]
+    forward = t[k] <= 0.5 * (ts[gi] + ts[gi + 1])
+    t_anchor = np.where(forward, ts[gi], ts[gi + 1])
+    g_anchor = np.column_stack([np.interp(t_anchor, t, G[:, c]) for c in range(3)])
+    prev = np.where(forward, k - 1, k + 1)  # the neighbour towards the anchor
+    first = np.where(forward, ~np.isin(prev, k) | (i[np.clip(prev, 0, len(t) - 1)] != gi), False)
+    last = np.where(~forward, ~np.isin(prev, k) | (i[np.clip(prev, 0, len(t) - 1)] != gi), False)
+    start = first | last  # the sample next to its anchor pose
+    prev = np.clip(prev, 0, len(t) - 1)
+    g_prev = np.where(start[:, None], g_anchor, G[prev])
+    t_prev = np.where(start, t_anchor, t[prev])
+    steps = so3_exp_stack((G[k] - g_prev) - bias * (t[k] - t_prev)[:, None])
+    R_anchor = np.where(forward, gi, gi + 1)
+    for order in (np.flatnonzero(forward), np.flatnonzero(~forward)[::-1]):
+        Rk = np.eye(3)
+        for n in order:
+            Rk = (R_poses[R_anchor[n]] if start[n] else Rk) @ steps[n]
+            R[k[n]] = Rk
+
+
 def _gyro_bias(track: _ImuTrack, trajectory: Trajectory) -> tuple[np.ndarray, float]:
     """Gyro bias (3,) and its 1-sigma (rad/s): the median over consecutive poses (at most
     BIAS_MAX_GAP_S apart) of the gyro's mean rate minus the poses' rotation rate (so3_log)."""
@@ -302,7 +353,10 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
     (`_gyro_bias`); velocity = a trimmed quadratic fit of the positions of up to
     2 FIT_HALF_WINDOW_IMU poses within FIT_MAX_SPAN_IMU_S, after removing the IMU's
     double-integrated world acceleration (`_ImuTrack.displacement`; the quadratic term takes
-    up the accelerometer bias), acceleration = the IMU's at the stamp plus that term.
+    up the accelerometer bias), acceleration = the IMU's at the stamp plus that term; where the
+    window is one-sided (a flight's end, a gap's edge) a line less the median quadratic term of
+    the 2 FIT_HALF_WINDOW_IMU nearest two-sided fits, its spread (1.4826 MAD) times the window's
+    mean distance from the stamp added to the velocity's sigma (`_fit_motion`).
     Without: a trimmed quadratic fit of the positions of 2 FIT_HALF_WINDOW poses within
     FIT_MAX_SPAN_S, and the rotation rate between the nearest poses either side.
     Velocity covariance from the fit residuals; body-rate covariance (`omega_cov`) from the gyro
@@ -324,11 +378,12 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         return out
     T = trajectory.T_world_body
     track = None
+    bias = np.zeros(3)
     half, span_max = FIT_HALF_WINDOW, FIT_MAX_SPAN_S
     t_s = stamps_ns * 1e-9
     if imu is not None and len(imu.timestamps_ns) > 1:
         track = _ImuTrack(imu, trajectory)
-        bias, bias_sigma = _gyro_bias(track, trajectory)
+        bias, bias_sigma = track.gyro_bias, track.gyro_bias_sigma
         t0 = t_s + float(camera.row_time_offset_s(0.0))
         t1 = t_s + float(camera.row_time_offset_s(camera.height - 1.0))
         # a readout beyond the IMU's samples (the flight's first or last frame): the rate over
@@ -342,60 +397,115 @@ def frame_motion(trajectory: Trajectory, stamps_ns: np.ndarray, camera: CameraMo
         var = track.noise_density**2 / readout + bias_sigma**2
         out.omega_cov = np.tile(var * np.eye(3), (n, 1, 1))
         half, span_max = FIT_HALF_WINDOW_IMU, FIT_MAX_SPAN_IMU_S
-    for k, t in enumerate(stamps_ns.tolist()):
+    windows: list[tuple[np.ndarray, np.ndarray, bool] | None] = []
+    for t in stamps_ns.tolist():
         i = int(np.searchsorted(ts, t))
         lo, hi = max(0, i - half), min(len(ts), i + half)
         idx = np.arange(lo, hi)
         dt = (ts[idx] - t) * 1e-9
         idx, dt = idx[np.abs(dt) <= span_max], dt[np.abs(dt) <= span_max]
         if len(idx) < MIN_FIT_POSES or (track is None and (dt.min() > 0 or dt.max() < 0)):
-            continue  # too few poses, or all on one side (extrapolation) without an IMU
-        y = T[idx, :3, 3]
-        if track is not None:
-            y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
-        # at the flight's ends (the window all on one side) a quadratic extrapolates badly; with
-        # an IMU the positions less its motion are nearly linear in time, so a line is fitted
-        one_sided = min(int(np.sum(dt < 0)), int(np.sum(dt > 0))) < MIN_FIT_POSES
-        degree = 1 if track is not None and one_sided else FIT_DEGREE
-        A = np.column_stack([dt**j / math.factorial(j) for j in range(degree + 1)])
-        keep = np.ones(len(idx), bool)
-        for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
-            coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
-            r = np.linalg.norm(y - A @ coef, axis=1)
-            scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
-            new_keep = r <= scale
-            if new_keep.sum() < degree + 2 or np.array_equal(new_keep, keep):
-                break
-            keep = new_keep
-        A, idx, dt, y = A[keep], idx[keep], dt[keep], y[keep]
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        resid = y - A @ coef
-        dof = len(idx) - degree - 1
-        var_p = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
-        sig2 = max(var_p * float(np.linalg.pinv(A.T @ A)[1, 1]), MIN_VELOCITY_SIGMA_M_S**2)
-        near = idx[int(np.argmin(np.abs(dt)))]
-        if track is None:
-            a, b = idx[dt <= 0][-1], idx[dt >= 0][0]
-            if a == b:
-                a, b = (a - 1, a) if a > 0 else (a, a + 1)
-            span = (ts[b] - ts[a]) * 1e-9
-            if span <= 0:
-                continue
-            out.omega_body[k] = so3_log(T[a, :3, :3].T @ T[b, :3, :3]) / span
-        # the pose at the stamp: the nearest pose's rotation turned back by the body rate
-        back = float((t - ts[near]) * 1e-9)
-        turn = out.omega_body[k] * back
-        if track is not None:  # (the nearest pose may be a few frames away: the gyro's rotation)
-            turn = track.rotation(np.array([ts[near] * 1e-9]), np.array([t * 1e-9]))[0] - bias * back
-        out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(turn[None])[0]
-        out.T_world_body[k, :3, 3] = coef[0]
-        out.v_world[k] = coef[1]
-        out.a_world[k] = coef[2] if degree >= 2 else 0.0
-        if track is not None:
-            out.a_world[k] += track._at(track.a_world, np.array([t * 1e-9]))[0]
-        out.v_cov[k] = sig2 * np.eye(3)
-        out.valid[k] = True
+            windows.append(None)  # too few poses, or all on one side (extrapolation) without an IMU
+            continue
+        # at the flight's ends and a gap's edges (the window all on one side) a quadratic
+        # extrapolates badly; with an IMU the positions less its motion are nearly linear in
+        # time, so a line is fitted, less the acceleration the IMU leaves (below)
+        windows.append((idx, dt, min(int(np.sum(dt < 0)), int(np.sum(dt > 0))) < MIN_FIT_POSES))
+    # the quadratic term of the two-sided fits: the world acceleration the IMU track leaves (its
+    # accelerometer bias, nearly constant: seed 0 of the realism bench 0.099 / -0.060 / 0.010
+    # m/s^2, MAD 0.008-0.013); a one-sided window's line left it out, and its slope then erred by
+    # it times the window's mean distance from the stamp (27-40 mm/s against a 3 mm/s sigma at
+    # the edges of a 1 s floor blackout; BENCHMARKS.md, rs17)
+    quad = np.full((n, 3), np.nan)
+    deferred = []
+    for k, window in enumerate(windows):
+        if window is None:
+            continue
+        if track is not None and window[2]:
+            deferred.append(k)
+            continue
+        quad[k] = _fit_motion(out, k, window, ts, T, track, bias, FIT_DEGREE, None)
+    two_sided = np.flatnonzero(np.isfinite(quad[:, 0]))
+    for k in deferred:
+        known = None
+        if len(two_sided) >= MIN_FIT_POSES:
+            m = 2 * FIT_HALF_WINDOW_IMU  # the m two-sided frames nearest in time
+            j = int(np.searchsorted(stamps_ns[two_sided], stamps_ns[k]))
+            cand = two_sided[max(0, j - m) : j + m]
+            near = cand[np.argsort(np.abs(stamps_ns[cand] - stamps_ns[k]), kind="stable")[:m]]
+            q = quad[near]
+            q_med = np.median(q, axis=0)
+            known = (q_med, float(np.max(1.4826 * np.median(np.abs(q - q_med), axis=0))))
+        _fit_motion(out, k, windows[k], ts, T, track, bias, 1, known)  # type: ignore[arg-type]
     return out
+
+
+def _fit_motion(
+    out: FrameMotion,
+    k: int,
+    window: tuple[np.ndarray, np.ndarray, bool],
+    ts: np.ndarray,
+    T: np.ndarray,
+    track: _ImuTrack | None,
+    bias: np.ndarray,
+    degree: int,
+    known_quad: tuple[np.ndarray, float] | None,
+) -> np.ndarray:
+    """Frame k of `out` (in place) from the poses (`ts` ns, `T`) of its fit `window` (pose
+    indices, their times from the stamp (s), one-sided): a trimmed polynomial fit of `degree`
+    through the positions less the IMU's motion (`track`); `known_quad` (q (3,) m/s^2, its
+    sigma): a quadratic term taken as known (removed before a line fit; its sigma times the
+    window's mean distance from the stamp added to the velocity's).  Returns the fitted
+    quadratic term (3,) (NaN when not fitted or the frame is left invalid)."""
+    idx, dt, one_sided = window
+    t = int(out.timestamps_ns[k])
+    y = T[idx, :3, 3]
+    if track is not None:
+        y = y - track.displacement(t * 1e-9, t * 1e-9 + dt)
+    if known_quad is not None:
+        y = y - 0.5 * known_quad[0] * (dt**2)[:, None]
+    A = np.column_stack([dt**j / math.factorial(j) for j in range(degree + 1)])
+    keep = np.ones(len(idx), bool)
+    for _ in range(FIT_ROBUST_ROUNDS):  # trimmed least squares: PnP has outlier poses
+        coef, *_ = np.linalg.lstsq(A[keep], y[keep], rcond=None)
+        r = np.linalg.norm(y - A @ coef, axis=1)
+        scale = max(FIT_TRIM_MAD * 1.4826 * float(np.median(r[keep])), FIT_TRIM_MIN_M)
+        new_keep = r <= scale
+        if new_keep.sum() < degree + 2 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    A, idx, dt, y = A[keep], idx[keep], dt[keep], y[keep]
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    resid = y - A @ coef
+    dof = len(idx) - degree - 1
+    var_p = float(np.sum(resid**2) / (3 * dof)) if dof > 0 else 0.0
+    sig2 = max(var_p * float(np.linalg.pinv(A.T @ A)[1, 1]), MIN_VELOCITY_SIGMA_M_S**2)
+    if known_quad is not None:
+        sig2 += (known_quad[1] * float(np.mean(dt))) ** 2
+    near = idx[int(np.argmin(np.abs(dt)))]
+    if track is None:
+        a, b = idx[dt <= 0][-1], idx[dt >= 0][0]
+        if a == b:
+            a, b = (a - 1, a) if a > 0 else (a, a + 1)
+        span = (ts[b] - ts[a]) * 1e-9
+        if span <= 0:
+            return np.full(3, np.nan)
+        out.omega_body[k] = so3_log(T[a, :3, :3].T @ T[b, :3, :3]) / span
+    # the pose at the stamp: the nearest pose's rotation turned back by the body rate
+    back = float((t - ts[near]) * 1e-9)
+    turn = out.omega_body[k] * back
+    if track is not None:  # (the nearest pose may be a few frames away: the gyro's rotation)
+        turn = track.rotation(np.array([ts[near] * 1e-9]), np.array([t * 1e-9]))[0] - bias * back
+    out.T_world_body[k, :3, :3] = T[near, :3, :3] @ so3_exp_stack(turn[None])[0]
+    out.T_world_body[k, :3, 3] = coef[0]
+    out.v_world[k] = coef[1]
+    quad = coef[2] if degree >= 2 else (known_quad[0] if known_quad is not None else np.zeros(3))
+    out.a_world[k] = quad
+    if track is not None:
+        out.a_world[k] += track._at(track.a_world, np.array([t * 1e-9]))[0]
+    out.v_cov[k] = sig2 * np.eye(3)
+    out.valid[k] = True
+    return np.asarray(coef[2], float).copy() if degree >= 2 else np.full(3, np.nan)
 
 
 # ============================================================================ corners
