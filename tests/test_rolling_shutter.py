@@ -645,7 +645,7 @@ def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_thei
 
     C_pose, C_sight = np.eye(6) * 1e-6, np.eye(3) * 1e-8
     report = RollingShutterReport(
-        readout_s={"cam0": 0.03, "cam1": 0.03},
+        readout_s={"cam0": 0.04, "cam1": 0.04},
         pose_cov_added={100: C_pose},
         sighting_cov_added={"cam1": {(200, "L1"): C_sight}},
     )
