@@ -397,6 +397,99 @@ def solve_inflated(
     return res
 
 
+def solve_inflated_twice(
+    fn,
+    frame_times_ns,
+    imu,
+    raw: Trajectory,
+    load_obs,
+    *,
+    inflation: CorrelationInflation,
+    reuse=None,
+    **kwargs,
+):
+    """The batch smoother (`fn`: smooth; two-sided) on time-correlated PnP poses `raw` in two
+    solves instead of solve_inflated's noise-scale iteration (two or three solves) and its
+    inflated solve:
+
+    1. solved once at the nominal noise, its variance components giving each group its scale
+       s_g (variance.first_solve_scales: the scales the iteration's report would apply after
+       this solve), and its marginal covariances taken at those scales from its own
+       linearisation (FusionConfig.covariances_at_first_scales: each group's whitened rows
+       over sqrt(s_g));
+    2. solved again, warm, at the scales s_g on `raw` inflated direction by direction
+       (`CorrelationInflation.directional`) from those covariances, measuring no variance
+       components (as solve_inflated's second solve); the report is the first solve's.
+
+    Why the covariances at s_g and not at the nominal noise: the inflation reads, per direction
+    of a frame's pose, n = 1 / eigenvalue of R^-1/2 P R^-T/2, the frames' worth of raw
+    information the fused pose holds; at the linearisation point P^-1 = sum_g H_g / s_g (H_g a
+    group's Hessian), so a group's scale changes n through its share of the pose's information
+    (the loads' scale, 0.1-0.7 on the sweep flights, moved the fused covariances by up to 2x in
+    single directions, median 3 %).  Unlike the iteration, s_g is not checked by a solve at
+    s_g (the iteration applied s_g times that solve's chi2/dof, within 10 % of 1 when it
+    stopped).  The iteration is kept (solve_inflated, warm from the first solve) when the first
+    solve cannot say its scales: the fixes disagree with the IMU (its gate skipped, or the
+    IMU-rejected retry), the IMU's chi2/dof outside variance.IMU_WARN_BAND (the iteration then
+    decides whether any scale applies), or its covariances are not those at s_g (the
+    approximate or Bayes-tree marginals)."""
+    from fusion.estimate import variance
+    from fusion.estimate.common import FusionConfig
+
+    config = kwargs.get("config") or FusionConfig()
+    rest = {k: v for k, v in kwargs.items() if k not in ("config", "warm_start")}
+    one = replace(config, noise_scale_iterations=0, covariances_at_first_scales=True)
+    first = fn(
+        frame_times_ns,
+        imu,
+        raw,
+        load_obs,
+        reuse=reuse,
+        config=one,
+        **dict(rest, warm_start=kwargs.get("warm_start")),
+    )
+    report = first.stats.get("noise_scales") or {}
+    imu_c = report.get("imu_chi2_per_dof")
+    lo, hi = variance.IMU_WARN_BAND
+    why = ""
+    if first.stats.get("imu_rejected") or report.get("not_applied"):
+        why = "the fixes disagree with the IMU"
+    elif imu_c is not None and not lo <= imu_c <= hi:
+        why = "the IMU's chi2/dof is outside its band"
+    elif first.stats.get("covariance_scales") is None or first.trajectory.covariances is None:
+        why = "no covariances at the first solve's scales"
+    if why or config.noise_scale_iterations <= 0:
+        del first
+        res = solve_inflated(
+            fn,
+            frame_times_ns,
+            imu,
+            raw,
+            load_obs,
+            inflation=inflation,
+            two_sided=True,
+            keep_noise_scales=True,
+            reuse=reuse,
+            config=config,
+            **rest,
+        )
+        if why:
+            res.stats["noise_scales"] = dict(res.stats.get("noise_scales") or {}, two_solves_not_applied=why)
+        return res
+    inflated = inflation.directional(raw, first.trajectory, two_sided=True)
+    del first
+    ratio = _trace_ratio(raw, inflated)
+    again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
+    del inflated
+    config2 = replace(
+        config, noise_scale_iterations=0, check_noise=False, corner_noise_scale=config.corner_noise_scale * s0
+    )
+    res = fn(frame_times_ns, imu, again, load_again, reuse=reuse, config=config2, **rest)
+    res.stats["noise_scales"] = dict(report, inflated_solve=True, two_solves=True)
+    res.stats["correlation_inflation"] = {"two_sided": True, "trace_ratio_median": ratio}
+    return res
+
+
 def causal_inflated(
     fn, frame_times_ns, imu, raw: Trajectory, load_obs, *, inflation: CorrelationInflation, **kwargs
 ):
@@ -436,28 +529,21 @@ def _trace_ratio(raw: Trajectory, inflated: Trajectory) -> float:
 @dataclass(frozen=True)
 class InflatedSmoother:
     """The batch smoother of one window (smooth_windowed's `solver`; or of a whole short
-    flight) solved as `solve_inflated` does, both solves in the window's own process: the
+    flight) solved as `solve_inflated_twice` does, both solves in the window's own process: the
     second starts from the first's solution and reuses its preintegrated IMU (smoother.
     SolveReuse), and applies the noise scales the window's first solve estimated.  Solved over
     the whole flight instead (first every window, then every window again with the flight's
-    merged scales), the second pass started cold and rebuilt every IMU factor."""
+    merged scales), the second pass started cold and rebuilt every IMU factor.  Before
+    solve_inflated_twice, each window's noise-scale iteration took two or three solves before
+    the inflated one (BENCHMARKS.md, two17)."""
 
     inflation: CorrelationInflation
 
     def __call__(self, frame_times_ns, imu, raw: Trajectory, load_obs, **kwargs):
         from fusion.estimate.smoother import SolveReuse, smooth
 
-        return solve_inflated(
-            smooth,
-            frame_times_ns,
-            imu,
-            raw,
-            load_obs,
-            inflation=self.inflation,
-            two_sided=True,
-            keep_noise_scales=True,
-            reuse=SolveReuse(),
-            **kwargs,
+        return solve_inflated_twice(
+            smooth, frame_times_ns, imu, raw, load_obs, inflation=self.inflation, reuse=SolveReuse(), **kwargs
         )
 
 
