@@ -277,3 +277,15 @@ def test_one_causal_pass_inflates_the_ekf_and_the_incremental_smoother_alike(fli
         "two_sided": False,
         "trace_ratio_median": pytest.approx(np.median(grown_ekf)),
     }
+
+
+def test_merged_window_reports_say_whether_every_window_took_two_solves():
+    from fusion.estimate.window import _merge_noise_scales
+
+    cams = {"cam0": {"scale": 1.0, "dof": 100.0, "group": "pose"}}
+    two = {"solves": 1, "cameras": cams, "inflated_solve": True, "two_solves": True}
+    kept = {"solves": 2, "cameras": cams, "inflated_solve": True, "two_solves_not_applied": "why"}
+    merged = _merge_noise_scales([two, kept])
+    assert merged["inflated_solve"] and not merged["two_solves"] and merged["two_solves_not_applied"] == "why"
+    assert _merge_noise_scales([two, two])["two_solves"]
+    assert "two_solves" not in _merge_noise_scales([{"solves": 1, "cameras": cams}])
