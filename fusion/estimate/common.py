@@ -205,6 +205,11 @@ class FusionConfig:
     # measure each group's chi2/dof at all (False: neither scaled nor checked; the time-offset
     # profile's many solves, whose shifted frames misfit on purpose)
     check_noise: bool = True
+    # the marginal covariances at the scales this solve's chi2/dof give its groups
+    # (variance.first_solve_scales), from this solve's linearisation with each group's rows
+    # reweighted, instead of at the scales it was solved with (the batch smoother's first of two
+    # solves on time-correlated poses: correlation.solve_inflated_twice)
+    covariances_at_first_scales: bool = False
     corner_behind_residual: float = 1e3
     # Incremental mode: iSAM2 inside gtsam's IncrementalFixedLagSmoother; states older than
     # `incremental_lag_s` are marginalised (loads too, re-created when seen again); None = plain

@@ -399,6 +399,160 @@ def solve_inflated(
     return res
 
 
+def solve_inflated_twice(
+    fn,
+    frame_times_ns,
+    imu,
+    raw: Trajectory,
+    load_obs,
+    *,
+    inflation: CorrelationInflation,
+    reuse=None,
+    **kwargs,
+):
+    """The batch smoother (`fn`: smooth; two-sided) on time-correlated PnP poses `raw`, one
+    solve fewer than solve_inflated's noise-scale iteration (one to three solves) and its
+    inflated solve:
+
+    1. solved once at the nominal noise, its variance components giving each group its scale
+       s_g (variance.first_solve_scales: the scales the iteration's report would apply after
+       this solve), and its marginal covariances taken at those scales from its own
+       linearisation (FusionConfig.covariances_at_first_scales: each group's whitened rows
+       over sqrt(s_g));
+    2. solved again, warm, at s_g on `raw` inflated direction by direction
+       (`CorrelationInflation.directional`) from those covariances, its variance components
+       measured: the noise-scale iteration goes on in these inflated solves (its stopping rule,
+       variance.next_noise_scales, and its budget, config.noise_scale_iterations, counted from
+       here) for every group but the poses, whose scale stays solve 1's (the inflated poses'
+       residuals understate them: solve_inflated's report keeps the first solve's too).
+
+    Why the covariances at s_g and not at the nominal noise: the inflation reads, per direction
+    of a frame's pose, n = 1 / eigenvalue of R^-1/2 P R^-T/2, the frames' worth of raw
+    information the fused pose holds; at the linearisation point P^-1 = sum_g H_g / s_g (H_g a
+    group's Hessian), so a group's scale changes n through its share of the pose's information
+    (the loads' scale, 0.1-0.7 on the sweep flights, moved the fused covariances by up to 2x in
+    single directions).  Why the iteration goes on: the loads' first step stops 2-48 % short of
+    where it ends on the sweep flights, and with the loads so weighted the smoother's pose NEES
+    on a clipping flight (x2.6, seed 0) fell below 3 (BENCHMARKS.md, two17).  The inflation is
+    not redone as the loads' scale moves (from solve 1's covariances at s_g).  The iteration is
+    kept as it was (solve_inflated, warm from the first solve) when the first solve cannot say
+    its scales: the fixes disagree with the IMU (its gate skipped, or the IMU-rejected retry),
+    a stated sensor's (IMU, velocity) chi2/dof outside variance.IMU_WARN_BAND (the iteration
+    then decides whether any scale applies, the sensor's included), or its covariances are not
+    those at s_g (the approximate or Bayes-tree marginals).  Memory: the inflated solves
+    measure variance components again (solve_inflated's second solve did not: corr15's b77f841,
+    the 30-minute flight's peak)."""
+    from fusion.estimate import variance
+    from fusion.estimate.common import FusionConfig
+
+    config = kwargs.get("config") or FusionConfig()
+    rest = {k: v for k, v in kwargs.items() if k not in ("config", "warm_start")}
+    one = replace(config, noise_scale_iterations=0, covariances_at_first_scales=True)
+    first = fn(
+        frame_times_ns,
+        imu,
+        raw,
+        load_obs,
+        reuse=reuse,
+        config=one,
+        **dict(rest, warm_start=kwargs.get("warm_start")),
+    )
+    report = first.stats.get("noise_scales") or {}
+    lo, hi = variance.IMU_WARN_BAND
+    outside = [
+        name
+        for g, (name, _) in variance.STATED_SENSORS.items()
+        if (c := report.get(f"{g}_chi2_per_dof")) is not None and not lo <= c <= hi
+    ]
+    why = ""
+    if first.stats.get("imu_rejected") or report.get("not_applied"):
+        why = "the fixes disagree with the IMU"
+    elif outside:
+        # the iteration decides whether that sensor's stated noise is scaled (next_noise_scales)
+        why = f"the {outside[0]}'s chi2/dof is outside its band"
+    elif first.stats.get("covariance_scales") is None or first.trajectory.covariances is None:
+        why = "no covariances at the first solve's scales"
+    if why or config.noise_scale_iterations <= 0:
+        del first
+        res = solve_inflated(
+            fn,
+            frame_times_ns,
+            imu,
+            raw,
+            load_obs,
+            inflation=inflation,
+            two_sided=True,
+            keep_noise_scales=True,
+            reuse=reuse,
+            config=config,
+            **rest,
+        )
+        if why:
+            res.stats["noise_scales"] = dict(res.stats.get("noise_scales") or {}, two_solves_not_applied=why)
+        return res
+    inflated = inflation.directional(raw, first.trajectory, two_sided=True)
+    scales = variance.NoiseScales(**first.stats["covariance_scales"])
+    del first
+    ratio = _trace_ratio(raw, inflated)
+    # the noise-scale iteration goes on in the inflated solves, for every group but the poses
+    # (held at the first solve's: the inflated poses' residuals understate them), with its
+    # stopping rule and budget; the first step is solve 1's
+    pose = variance.NoiseGroup.POSE
+    steps, last = 0, {}
+    while True:
+        cfg_k = replace(
+            config,
+            noise_scale_iterations=0,
+            check_noise=True,
+            corner_noise_scale=config.corner_noise_scale * scales.corners,
+        )
+        res = fn(
+            frame_times_ns,
+            imu,
+            variance.scale_trajectory(inflated, scales.pose),
+            variance.scale_load_observations(load_obs, scales.load) if load_obs else load_obs,
+            reuse=reuse,
+            config=cfg_k,
+            **rest,
+        )
+        steps += 1
+        last = (res.stats.get("noise_scales") or {}).get("groups", {})
+        comps = {
+            variance.NoiseGroup(g): variance.VarianceComponent(
+                e["chi2"], e["dof"], e["n"], e.get("n_gated", 0)
+            )
+            for g, e in last.items()
+            # the poses held at solve 1's scale; the stated sensors, in band at solve 1, as stated
+            if g != str(pose) and variance.NoiseGroup(g) not in variance.STATED_SENSORS
+        }
+        new = variance.next_noise_scales(scales, comps)
+        if new is None or steps >= config.noise_scale_iterations:
+            break
+        scales = new
+    del inflated
+    groups = {g: dict(e) for g, e in last.items()}
+    if str(pose) in report.get("groups", {}):
+        groups[str(pose)] = dict(report["groups"][str(pose)])
+    cameras = {}
+    for g, cam in variance.CAMERA_OF_GROUP.items():
+        if str(g) in groups:
+            groups[str(g)]["applied_scale"] = scales.of(g)
+            cameras[cam] = {
+                "scale": scales.of(g),
+                "sigma_factor": math.sqrt(scales.of(g)),
+                "dof": groups[str(g)]["dof"],
+                "group": str(g),
+            }
+    out = {"solves": 1 + steps, "inflated_solves": steps, "groups": groups, "cameras": cameras}
+    for g in variance.STATED_SENSORS:
+        for key in (f"{g}_chi2_per_dof", f"{g}_warning"):
+            if key in report:
+                out[key] = report[key]
+    res.stats["noise_scales"] = dict(out, inflated_solve=True, two_solves=True)
+    res.stats["correlation_inflation"] = {"two_sided": True, "trace_ratio_median": ratio}
+    return res
+
+
 def causal_inflated(
     fn, frame_times_ns, imu, raw: Trajectory, load_obs, *, inflation: CorrelationInflation, **kwargs
 ):
@@ -438,28 +592,21 @@ def _trace_ratio(raw: Trajectory, inflated: Trajectory) -> float:
 @dataclass(frozen=True)
 class InflatedSmoother:
     """The batch smoother of one window (smooth_windowed's `solver`; or of a whole short
-    flight) solved as `solve_inflated` does, both solves in the window's own process: the
+    flight) solved as `solve_inflated_twice` does, both solves in the window's own process: the
     second starts from the first's solution and reuses its preintegrated IMU (smoother.
     SolveReuse), and applies the noise scales the window's first solve estimated.  Solved over
     the whole flight instead (first every window, then every window again with the flight's
-    merged scales), the second pass started cold and rebuilt every IMU factor."""
+    merged scales), the second pass started cold and rebuilt every IMU factor.  Before
+    solve_inflated_twice, each window's noise-scale iteration took one to three solves before
+    the inflated one; now the inflated solves carry the iteration on (BENCHMARKS.md, two17)."""
 
     inflation: CorrelationInflation
 
     def __call__(self, frame_times_ns, imu, raw: Trajectory, load_obs, **kwargs):
         from fusion.estimate.smoother import SolveReuse, smooth
 
-        return solve_inflated(
-            smooth,
-            frame_times_ns,
-            imu,
-            raw,
-            load_obs,
-            inflation=self.inflation,
-            two_sided=True,
-            keep_noise_scales=True,
-            reuse=SolveReuse(),
-            **kwargs,
+        return solve_inflated_twice(
+            smooth, frame_times_ns, imu, raw, load_obs, inflation=self.inflation, reuse=SolveReuse(), **kwargs
         )
 
 

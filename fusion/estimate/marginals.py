@@ -41,9 +41,10 @@ def chain_marginals(
     n_loads: int,
     work_mb: float = 64.0,
     group: int = 1,
+    row_weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """See _chain_marginals (no floor-code variables)."""
-    out = _chain_marginals(lin, n_frames, has_bias, n_loads, 0, work_mb, group)
+    out = _chain_marginals(lin, n_frames, has_bias, n_loads, 0, work_mb, group, row_weights)
     return None if out is None else (out[0], out[1])
 
 
@@ -55,11 +56,12 @@ def chain_marginals_with_codes(
     n_codes: int,
     work_mb: float = 64.0,
     group: int = 1,
+    row_weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """chain_marginals plus the (n_codes, 6, 6) marginals of the as-built floor codes F(c)
     (Pose3 order, code frame): like the loads, border variables of the chain
     (fusion.estimate.asbuilt)."""
-    return _chain_marginals(lin, n_frames, has_bias, n_loads, n_codes, work_mb, group)
+    return _chain_marginals(lin, n_frames, has_bias, n_loads, n_codes, work_mb, group, row_weights)
 
 
 def _chain_marginals(
@@ -70,6 +72,7 @@ def _chain_marginals(
     n_codes: int,
     work_mb: float = 64.0,
     group: int = 1,
+    row_weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Marginal covariances of X(0..n_frames-1) ((N, 6, 6), Pose3 order, body frame) and of
     L(0..n_loads-1) ((n_loads, 3, 3), world) from a linearised graph whose factors are
@@ -78,7 +81,11 @@ def _chain_marginals(
     Returns None when the graph does not have that structure (the caller then falls back to
     gtsam).  The pose rows of W = A^-1 C (N x 6 x 3 n_loads) are kept in float64 below
     4 * `work_mb` MB, else in float32; `group` frames form one block of the recursions (same
-    result, fewer but larger numpy steps)."""
+    result, fewer but larger numpy steps).  `row_weights` (lin.size(),): factor i's whitened
+    rows times row_weights[i] (1 / sqrt(s) gives the marginals of the same linearisation with
+    that factor's covariance times s: its Hessian block A^T A / s)."""
+    if row_weights is not None and len(row_weights) != lin.size():
+        raise ValueError(f"{len(row_weights)} row weights for {lin.size()} linearised factors")
     slot = {_X: (0, 6), _V: (6, 3)}
     if has_bias:
         slot[_B] = (9, 6)
@@ -143,7 +150,10 @@ def _chain_marginals(
         if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
             return None
         keys_of.append(f.keys())
-        jac_of.append(f.jacobian()[0])  # whitened (robust weights included)
+        jac = f.jacobian()[0]  # whitened (robust weights included)
+        if row_weights is not None and row_weights[i] != 1.0:
+            jac = jac * float(row_weights[i])
+        jac_of.append(jac)
     if not keys_of:
         return None
     # key signatures, vectorised: (chr, frame offset from the factor's first frame) per key

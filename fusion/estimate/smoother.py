@@ -65,6 +65,8 @@ from fusion.estimate.marginals import chain_marginals, chain_marginals_with_code
 from fusion.estimate.variance import (
     NoiseGroup,
     ResolvePredicate,
+    factor_groups,
+    first_solve_scales,
     problem_variance_components,
     solve_noise_scaled,
 )
@@ -1271,14 +1273,15 @@ def _smooth_once(
         reuse.values = values
     t_opt = time.perf_counter() - t0 - t_build
     variance_components: dict | None = {}
+    # each factor's variance group beyond the IMU's and "other" (variance.factor_groups)
+    kinds = {i: str(r.kind) for i, r in pb.robust.items()}
+    kinds.update(dict.fromkeys(pb.velocity, str(NoiseGroup.VELOCITY)))
     at_solution = None  # the graph linearised at `values` (the variance components')
     if config.check_noise:
         try:
             at_solution = graph.linearize(values)
         except (RuntimeError, ValueError) as e:
             log.debug("no linearisation at the solution: %s", e)
-        kinds = {i: str(r.kind) for i, r in pb.robust.items()}
-        kinds.update(dict.fromkeys(pb.velocity, str(NoiseGroup.VELOCITY)))
         variance_components = problem_variance_components(pb.factors, kinds, drop, graph, values, at_solution)
     if lin is not None:
         at_solution = None  # the covariances use the last step's linearisation
@@ -1293,21 +1296,45 @@ def _smooth_once(
     skip_covariances = resolves is not None and resolves(variance_components, health)
     if skip_covariances:
         covariance_method = "skipped"
+    covariance_scales = None  # config.covariances_at_first_scales: the scales they are at
     if config.compute_covariances and not skip_covariances:
         if lin is None:  # the last step was damped: linearise at the solution
             lin = at_solution if at_solution is not None else graph.linearize(values)
+        weights = None
+        approximate = n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None
+        if (
+            config.covariances_at_first_scales
+            and variance_components
+            and lin.size() == graph.size()
+            and not approximate  # (those marginals take no weights: at the solve's own scales)
+        ):
+            # the covariances of the graph at the scales s_g that these variance components
+            # give (what the next solve applies), from this linearisation: each group's
+            # whitened rows times 1 / sqrt(s_g) (its Hessian block over s_g; exact at this
+            # point for the Gaussian and the inlier robust rows, whose kernel weight is 1 at
+            # either scale; a row beyond the kernel keeps the weight of its residual here)
+            scales = first_solve_scales(variance_components, config.pose_scale_floor)
+            groups = factor_groups(pb.factors, kinds, drop, graph.size())
+            weights = np.array([1.0 / math.sqrt(scales.of(g)) for g in groups])
+            covariance_scales = {
+                str(g): scales.of(g) for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD)
+            }
         bulk: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None
         try:
-            if n_codes > asbuilt.EXACT_MARGINALS_MAX_CODES and pb.as_built is not None:
+            if approximate and pb.as_built is not None:
                 bulk = asbuilt.approximate_marginals(lin, values, n, pb.has_imu, len(pb.loads), pb.as_built)
                 covariance_method = "chain_given_codes"
             elif n_codes:
-                bulk = chain_marginals_with_codes(lin, n, pb.has_imu, len(pb.loads), n_codes)
+                bulk = chain_marginals_with_codes(
+                    lin, n, pb.has_imu, len(pb.loads), n_codes, row_weights=weights
+                )
             else:
-                two = chain_marginals(lin, n, pb.has_imu, len(pb.loads))
+                two = chain_marginals(lin, n, pb.has_imu, len(pb.loads), row_weights=weights)
                 bulk = None if two is None else (two[0], two[1], None)
         except np.linalg.LinAlgError:
             bulk = None
+        if bulk is None:
+            covariance_scales = None  # gtsam's Bayes tree below: at the solve's own scales
         if bulk is not None:
             cov, lc, ccov = bulk
             lcov = dict(enumerate(lc))
@@ -1355,6 +1382,8 @@ def _smooth_once(
         stats[f"rejected_{word}_factors"] = rej[kind]
     stats["health"] = health.as_dict()
     stats["variance_components"] = variance_components
+    if config.covariances_at_first_scales:
+        stats["covariance_scales"] = covariance_scales
     traj = Trajectory(str(Estimator.SMOOTHER), pb.frame_t.copy(), T, cov)
     out = FusionResult(traj, loads, stats, health)
     if pb.as_built is not None and as_built is not None:

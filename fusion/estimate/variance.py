@@ -334,6 +334,23 @@ def imu_group(factor) -> bool:
     return isinstance(factor, (gtsam.CombinedImuFactor, gtsam.ImuFactor))
 
 
+def factor_groups(factors: Sequence, robust_kinds: dict[int, str], skip, graph_size: int) -> list[NoiseGroup]:
+    """The NoiseGroup of each factor of a smoother's final graph (graph_size factors): the
+    problem's `factors` except those in `skip` (in order), then any priors the solver appended
+    (OTHER).  A factor's group: its robust kind (`robust_kinds` by factor index), IMU for
+    preintegrated IMU factors, else OTHER."""
+    groups: list[NoiseGroup] = []
+    for i, f in enumerate(factors):
+        if i in skip:
+            continue
+        kind = robust_kinds.get(i)
+        if kind is not None:
+            groups.append(NoiseGroup(kind))
+        else:
+            groups.append(NoiseGroup.IMU if imu_group(f) else NoiseGroup.OTHER)
+    return groups + [NoiseGroup.OTHER] * (graph_size - len(groups))
+
+
 def problem_variance_components(
     factors: Sequence,
     robust_kinds: dict[int, str],
@@ -348,16 +365,7 @@ def problem_variance_components(
     OTHER).  A factor's group: its robust kind (pose, corners, load: `robust_kinds` by factor
     index, the NoiseGroup values), IMU for preintegrated IMU factors, else OTHER.  None when the
     linearised system is singular (then nothing is rescaled)."""
-    groups: list[NoiseGroup] = []
-    for i, f in enumerate(factors):
-        if i in skip:
-            continue
-        kind = robust_kinds.get(i)
-        if kind is not None:
-            groups.append(NoiseGroup(kind))
-        else:
-            groups.append(NoiseGroup.IMU if imu_group(f) else NoiseGroup.OTHER)
-    groups += [NoiseGroup.OTHER] * (graph.size() - len(groups))
+    groups = factor_groups(factors, robust_kinds, skip, graph.size())
     try:
         return graph_variance_components([graph.at(i) for i in range(graph.size())], groups, values, lin)
     except (np.linalg.LinAlgError, RuntimeError, ValueError) as e:
@@ -463,6 +471,22 @@ def next_noise_scales(scales: NoiseScales, comps: dict | None, pose_floor: float
         scales = replace(scales, **{str(g): new})
         change = True
     return scales if change else None
+
+
+def first_solve_scales(comps: dict | None, pose_floor: float = 0.0) -> NoiseScales:
+    """The scales that one solve at the nominal noise (all scales 1) reports for its groups
+    (solve_with_noise_scales with no iteration: each camera's scale is its group's chi2/dof when
+    usable, else 1; the pose group's at least `pose_floor`), clamped as apply_smoother_scales
+    clamps them: what the batch smoother's inflated solve then applies to each group
+    (correlation.solve_inflated_twice)."""
+    out = NoiseScales()
+    for g in (NoiseGroup.POSE, NoiseGroup.CORNERS, NoiseGroup.LOAD):
+        c = (comps or {}).get(g)
+        s2 = c.scale if c is not None and c.usable else 1.0
+        if g == NoiseGroup.POSE:
+            s2 = max(s2, pose_floor)
+        out = replace(out, **{str(g): clamp_scale(s2)})
+    return out
 
 
 ResolvePredicate = Callable[[dict | None, Any], bool]

@@ -262,6 +262,13 @@ def _merge_noise_scales(parts: list[dict | None]) -> dict | None:
     not_applied = sorted({r["not_applied"] for r in reports if "not_applied" in r})
     if not_applied:
         out["not_applied"] = "; ".join(not_applied)
+    # correlation.solve_inflated_twice: whether every window took two solves, and why not
+    for key in ("inflated_solve", "two_solves"):
+        if any(key in r for r in reports):
+            out[key] = all(r.get(key, False) for r in reports)
+    kept = sorted({r["two_solves_not_applied"] for r in reports if "two_solves_not_applied" in r})
+    if kept:
+        out["two_solves_not_applied"] = "; ".join(kept)
     out["windows"] = [{cam: e["scale"] for cam, e in r.get("cameras", {}).items()} for r in reports]
     return out
 
