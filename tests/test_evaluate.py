@@ -679,7 +679,9 @@ def test_heap_frozen_frees_what_is_made_inside_and_releases_the_rest():
         n = gc.get_freeze_count()
         with _heap_frozen():
             pass
-        assert gc.get_freeze_count() == n  # not unfrozen by us
+        # not unfrozen by us (that would leave 0); a frozen object freed meanwhile (by another
+        # thread of the test process) lowers the count by one: a CI run once read n - 2
+        assert gc.get_freeze_count() > n // 2
     finally:
         gc.unfreeze()
 
