@@ -12,6 +12,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Iterator
@@ -101,13 +102,27 @@ def is_regular_file(path: Path) -> bool:
         return False
 
 
+class _Yaml12Floats(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's floats: an exponent without a decimal point (`2e-4`,
+    `-1E+3`) is a number, as yaml-cpp (ROS, Kalibr's tools) and YAML 1.2 read it; PyYAML's YAML
+    1.1 resolver reads it as the string '2e-4', and a hand-written imu.yaml or sensor.yaml that
+    says `gyroscope_noise_density: 2e-4` was refused ("expected a number, got str")."""
+
+
+_Yaml12Floats.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 def load_yaml(path: Path, error: type[FusionError] = FusionError) -> dict:
-    """Read a YAML mapping; a missing, non-regular or malformed file raises `error` naming the
-    file (and line)."""
+    """Read a YAML mapping (YAML 1.2's floats: `_Yaml12Floats`); a missing, non-regular or
+    malformed file raises `error` naming the file (and line)."""
     path = Path(path)
     try:
         with open_regular(path, error, newline=None) as f:
-            data = yaml.safe_load(f)
+            data = yaml.load(f, Loader=_Yaml12Floats)  # a SafeLoader: no arbitrary objects
     except yaml.MarkedYAMLError as e:
         line = e.problem_mark.line + 1 if e.problem_mark else "?"
         raise error(f"{path}:{line}: not valid YAML ({e.problem})") from None

@@ -282,6 +282,22 @@ def _rewrite_csv(path, fn):
     )
 
 
+def test_an_exponent_without_a_decimal_point_is_a_number(log_dir):
+    """YAML 1.2 (yaml-cpp, ROS, Kalibr's tools) reads `2e-4` as a number; PyYAML's 1.1 resolver
+    read it as a string and the noise density was refused.  A quoted one stays a string."""
+    imu_yaml = log_dir / "mav0" / "imu0" / "sensor.yaml"
+    _set_yaml_line(imu_yaml, "gyroscope_noise_density", "2e-4")
+    _set_yaml_line(imu_yaml, "accelerometer_noise_density", "-3E-3")
+    with pytest.raises(LogError, match="accelerometer_noise_density: must be positive"):
+        read_flight(log_dir)
+    _set_yaml_line(imu_yaml, "accelerometer_noise_density", "3E-3")
+    noise = read_flight(log_dir).imu.noise
+    assert (noise.gyroscope_noise_density, noise.accelerometer_noise_density) == (2e-4, 3e-3)
+    _set_yaml_line(imu_yaml, "gyroscope_noise_density", "'2e-4'")
+    with pytest.raises(LogError, match="gyroscope_noise_density: expected a number, got str"):
+        read_flight(log_dir)
+
+
 @pytest.mark.parametrize(
     "case, match",
     [
