@@ -910,18 +910,11 @@ def fuse_stage(
         out.results[name] = res
         if name == Estimator.SMOOTHER and cfg.estimate_noise_scale:
             # the smoother's noise scales, estimated on the whole flight, for the other back ends
-            raw, load_obs, corner_scale = variance.apply_smoother_scales(
-                res.stats.get("noise_scales"), raw, load_obs
-            )
-            imu = variance.scaled_imu(imu, variance.imu_scale_of(res.stats.get("noise_scales")))
+            report = res.stats.get("noise_scales")
+            raw, load_obs, corner_scale = variance.apply_smoother_scales(report, raw, load_obs)
+            imu, fcfg = variance.apply_smoother_sensor_scales(report, imu, fcfg)
             if inflation is not None:  # its terms are shares of raw's covariance: scaled alike
                 inflation = replace(inflation, class_terms=inflation.class_terms * corner_scale)
-            fcfg = replace(
-                fcfg,
-                corner_noise_scale=fcfg.corner_noise_scale * corner_scale,
-                velocity_noise_scale=fcfg.velocity_noise_scale
-                * variance.velocity_scale_of(res.stats.get("noise_scales")),
-            )
         for reason in res.health.reasons:
             out.notes.append(f"{name}: {reason}")
     for name, failure in out.failures.items():

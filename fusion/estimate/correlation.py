@@ -369,25 +369,16 @@ def solve_inflated(
     del first
     ratio = _trace_ratio(raw, inflated)
     if report is not None:
-        again, load_again, s0 = variance.apply_smoother_scales(report, inflated, load_obs)
-        imu = variance.scaled_imu(imu, variance.imu_scale_of(report))
+        again, load_again, _ = variance.apply_smoother_scales(report, inflated, load_obs)
         del inflated  # `again` is what the second solve takes
         config = kwargs.get("config")
         if config is not None:
+            imu, config = variance.apply_smoother_sensor_scales(report, imu, config)
             # nor are its variance components measured (check_noise off): its report is the
             # first solve's, and they were the second solve's memory peak (the smoother windows'
             # leverages, with the inflated poses alive beside `raw`: a 30-minute flight's run
             # 870 -> 891 MiB; BENCHMARKS.md corr15)
-            kwargs = dict(
-                kwargs,
-                config=replace(
-                    config,
-                    noise_scale_iterations=0,
-                    check_noise=False,
-                    corner_noise_scale=config.corner_noise_scale * s0,
-                    velocity_noise_scale=config.velocity_noise_scale * variance.velocity_scale_of(report),
-                ),
-            )
+            kwargs = dict(kwargs, config=replace(config, noise_scale_iterations=0, check_noise=False))
         res = fn(frame_times_ns, imu, again, load_again, **kwargs)
         res.stats["noise_scales"] = dict(report, inflated_solve=True)
     else:

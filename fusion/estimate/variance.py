@@ -396,11 +396,7 @@ def scaled_imu(imu, scale: float):
     not copied."""
     if imu is None or scale == 1.0:
         return imu
-    from fusion.log import ImuNoise
-
-    k = math.sqrt(scale)
-    noise = ImuNoise(**{key: value * k for key, value in vars(imu.noise).items()})
-    return replace(imu, noise=noise)
+    return replace(imu, noise=imu.noise.scaled(math.sqrt(scale)))
 
 
 def imu_scale_of(report: dict | None) -> float:
@@ -805,6 +801,20 @@ def apply_smoother_scales(report: dict | None, raw: Trajectory, load_obs):
     s0 = clamp_scale(float(cams.get("cam0", {}).get("scale", 1.0)))
     s1 = clamp_scale(float(cams.get("cam1", {}).get("scale", 1.0)))
     return scale_trajectory(raw, s0), (scale_load_observations(load_obs, s1) if load_obs else load_obs), s0
+
+
+def apply_smoother_sensor_scales(report: dict | None, imu, config):
+    """(imu, config) with the batch smoother's final scales (`solve_noise_scaled`'s report) of
+    what is not an input array: the IMU's noise (`scaled_imu`), the tight corner factors' (cam0's,
+    `corner_noise_scale`) and the velocity sensor's (`velocity_noise_scale`); with
+    `apply_smoother_scales`, for the back ends after the smoother and its own inflated solve."""
+    s0 = clamp_scale(float((report or {}).get("cameras", {}).get("cam0", {}).get("scale", 1.0)))
+    config = replace(
+        config,
+        corner_noise_scale=config.corner_noise_scale * s0,
+        velocity_noise_scale=config.velocity_noise_scale * velocity_scale_of(report),
+    )
+    return scaled_imu(imu, imu_scale_of(report)), config
 
 
 def nis_component(nis: Sequence[float], dims: Sequence[int]) -> VarianceComponent:

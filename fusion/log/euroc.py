@@ -31,7 +31,7 @@ import shutil
 import struct
 from array import array
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 from pathlib import Path
 
 import cv2
@@ -145,6 +145,10 @@ class ImuNoise:
     gyroscope_random_walk: float = 1.9e-5  # rad / s^2 / sqrt(Hz)
     accelerometer_noise_density: float = 2.0e-3  # m / s^2 / sqrt(Hz)
     accelerometer_random_walk: float = 3.0e-3  # m / s^3 / sqrt(Hz)
+
+    def scaled(self, k: float) -> ImuNoise:
+        """Every density and random walk times k (sigmas: a variance factor's square root)."""
+        return ImuNoise(*(k * v for v in astuple(self)))
 
 
 @dataclass

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -24,8 +24,9 @@ from fusion.estimate.extrinsics import (
     corrected_camera,
     write_extrinsics_groundtruth,
 )
+from fusion.fileio import strict_float
 from fusion.geometry import inv_T, quat_wxyz_from_R, yaw_of
-from fusion.log import FlightLogWriter, GroundTruth, ImuNoise
+from fusion.log import FlightLogWriter, GroundTruth
 from fusion.parallel import parallel_map, worker_count
 from fusion.sim.imu import sample_times_ns, synthesize_imu, synthesize_velocity
 from fusion.sim.placement import placement_offsets
@@ -316,11 +317,14 @@ def simulate(
         cam.rate_hz = camera_rate_hz
     traj = sc.trajectory
 
-    true_noise = _scaled_noise(sc.imu_noise, _positive("IMU noise scale", imu_noise_scale))
+    noise_scale = strict_float(imu_noise_scale, "IMU noise scale", SimulationError, positive=True)
+    true_noise = sc.imu_noise.scaled(noise_scale)
     imu, bias_g, bias_a = synthesize_imu(
         traj, sc.imu_rate_hz, true_noise, np.random.default_rng([seed, _STREAM_IMU])
     )
-    imu.noise = _scaled_noise(true_noise, _positive("stated IMU noise", imu_noise_stated))
+    imu.noise = true_noise.scaled(
+        strict_float(imu_noise_stated, "stated IMU noise", SimulationError, positive=True)
+    )
     t0_ns, t1_ns = int(round(start_s * 1e9)), int(round((start_s + duration_s) * 1e9))
     keep = (imu.timestamps_ns >= t0_ns) & (imu.timestamps_ns <= t1_ns)
     imu.timestamps_ns, imu.gyro_rad_s, imu.accel_m_s2 = (
@@ -479,17 +483,6 @@ def _mount_errors_rad(extrinsic_error_deg, names: list[str]) -> dict[str, np.nda
 
 
 _FORMAT_SUFFIX = {"rosbag1": ".bag", "rosbag2": ".mcap", "video": ""}
-
-
-def _positive(name: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-        raise SimulationError(f"{name} must be a positive number, got {v!r}")
-    return float(v)
-
-
-def _scaled_noise(noise: ImuNoise, k: float) -> ImuNoise:
-    """Every density and random walk of `noise` times k."""
-    return ImuNoise(**{f.name: getattr(noise, f.name) * k for f in fields(ImuNoise)})
 
 
 def _simulate_as(fmt, out: Path, overwrite: bool, **kwargs) -> SimulationResult:
