@@ -45,6 +45,19 @@ degree and two millimetres.  The front camera's carries into every mapped load
 MAX_MOUNT_SIGMA_DEG = 30.0
 MAX_MOUNT_SIGMA_M = 1.0
 """A T_BS sigma beyond these is a unit mistake (radians for degrees, mm for m)."""
+DEFAULT_FOCAL_SIGMA_REL = 0.002
+DEFAULT_PRINCIPAL_POINT_SIGMA_PX = 1.0
+"""How well the intrinsics are known (1 sigma: the focal lengths' relative error, the principal
+point's in px) when sensor.yaml does not say (`intrinsics_sigma: [fu, fv, cu, cv]` px, as
+Kalibr's results-cam.txt gives them after "+-"): a calibration's usual accuracy, a few tenths of
+a percent and a pixel (the calibration's own sigma is smaller: it leaves out the lens's focus
+and temperature drift between calibrating and flying).  A focal length 0.5 % off puts a floor
+camera 0.5 % too high in every frame: 6.6 mm at 1.3 m, against PnP sigmas of ~0.1 mm (BENCHMARKS.md,
+seventeenth session).  Every pose and load carries it as a consider term
+(fusion.estimate.cornerbias.BiasConsider, fusion.estimate.loadconsider); the simulator states 0
+(its intrinsics are what it renders with)."""
+MAX_FOCAL_SIGMA_REL = 0.2
+"""An intrinsics sigma beyond this share of the focal length is a unit or typing mistake."""
 
 
 class StampRow(str, Enum):
@@ -79,6 +92,8 @@ class CameraModel:
     # how well T_body_cam is known, 1 sigma per axis (deg, m); None: not stated in sensor.yaml
     mount_sigma_deg: float | None = None
     mount_sigma_m: float | None = None
+    # how well [fu, fv, cu, cv] are known, 1 sigma (px); None: not stated in sensor.yaml
+    intrinsics_sigma_px: tuple[float, ...] | None = None
 
     def __post_init__(self):
         self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
@@ -139,6 +154,15 @@ class CameraModel:
         deg = DEFAULT_MOUNT_SIGMA_DEG if self.mount_sigma_deg is None else self.mount_sigma_deg
         m = DEFAULT_MOUNT_SIGMA_M if self.mount_sigma_m is None else self.mount_sigma_m
         return math.radians(deg), m
+
+    @property
+    def intrinsics_sigmas(self) -> np.ndarray:
+        """(4,) px: how well [fu, fv, cu, cv] are known, 1 sigma (sensor.yaml's intrinsics_sigma,
+        else DEFAULT_FOCAL_SIGMA_REL of the focal lengths and DEFAULT_PRINCIPAL_POINT_SIGMA_PX)."""
+        if self.intrinsics_sigma_px is not None:
+            return np.asarray(self.intrinsics_sigma_px, dtype=float)
+        f, c = DEFAULT_FOCAL_SIGMA_REL, DEFAULT_PRINCIPAL_POINT_SIGMA_PX
+        return np.array([f * self.fu, f * self.fv, c, c])
 
     @property
     def gimbaled(self) -> bool:
@@ -244,6 +268,11 @@ class CameraModel:
             # written only when stated, likewise
             **({} if self.mount_sigma_deg is None else {"T_BS_sigma_deg": float(self.mount_sigma_deg)}),
             **({} if self.mount_sigma_m is None else {"T_BS_sigma_m": float(self.mount_sigma_m)}),
+            **(
+                {}
+                if self.intrinsics_sigma_px is None
+                else {"intrinsics_sigma": [float(v) for v in self.intrinsics_sigma_px]}
+            ),
         }
 
     @classmethod
@@ -301,6 +330,15 @@ class CameraModel:
                 )
             sigmas[key] = float(v)
         fu, fv, cu, cv = intr
+        intr_sigma = None
+        if data.get("intrinsics_sigma") is not None:
+            intr_sigma = _floats(data["intrinsics_sigma"], 4, "intrinsics_sigma", source)
+            limit = MAX_FOCAL_SIGMA_REL * min(fu, fv)
+            if not all(math.isfinite(v) and 0 <= v <= limit for v in intr_sigma):
+                raise CameraModelError(
+                    f"{source}: 'intrinsics_sigma' must be 4 numbers from 0 to {limit:g} px "
+                    f"({MAX_FOCAL_SIGMA_REL:g} of the focal length), got {intr_sigma} (a unit mistake?)"
+                )
         return cls(
             int(res[0]),
             int(res[1]),
@@ -316,6 +354,7 @@ class CameraModel:
             stamp_row=StampRow(stamp_row),
             mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
             mount_sigma_m=sigmas.get("T_BS_sigma_m"),
+            intrinsics_sigma_px=None if intr_sigma is None else tuple(intr_sigma),
         )
 
     @classmethod

@@ -25,6 +25,7 @@ import gtsam
 import numpy as np
 
 from fusion import __version__
+from fusion.camera import DEFAULT_FOCAL_SIGMA_REL, DEFAULT_PRINCIPAL_POINT_SIGMA_PX
 from fusion.errors import EstimationError, FusionError, LogError
 from fusion.estimate import (
     FusionConfig,
@@ -356,6 +357,8 @@ class LocalizeResult:
     # a gimbaled floor camera's free PnP tilt covariances (N, 2, 2), before the level
     # conditioning (PnPStats.frame_free_tilt_covariance): the tilt consider's share
     free_tilt_covariances: np.ndarray | None = None
+    # the floor camera's intrinsics error, for every output pose (cornerbias.intrinsics_consider)
+    intrinsics_consider: cornerbias.BiasConsider | None = None
 
 
 @dataclass
@@ -527,6 +530,7 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     )
     trajectories["pnp"] = traj_pnp
     free_tilt = [c for p in parts for c in p["pnp_stats"].frame_free_tilt_covariance]
+    sigmas = next((p["intrinsics_sigmas"] for p in parts if "intrinsics_sigmas" in p), None)
     return LocalizeResult(
         trajectories,
         {},
@@ -536,6 +540,11 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         bias_consider=consider,
         correlation=inflation,
         free_tilt_covariances=np.array(free_tilt).reshape(-1, 2, 2) if free_tilt else None,
+        intrinsics_consider=None
+        if sigmas is None
+        else cornerbias.intrinsics_consider(
+            traj_pnp, [b for p in parts for b in p["pnp_stats"].frame_bias], sigmas
+        ),
     )
 
 
@@ -557,6 +566,7 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
             bias_consider=floor.bias_consider,
             correlation=floor.correlation,
             free_tilt_covariances=floor.free_tilt_covariances,
+            intrinsics_consider=floor.intrinsics_consider,
         )
     if "paper" in trajectories:
         errors = [p["paper_error"] for p in parts if p["paper_error"]]
@@ -580,6 +590,7 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
         floor.bias_consider,
         floor.correlation,
         floor.free_tilt_covariances,
+        floor.intrinsics_consider,
     )
 
 
@@ -598,6 +609,7 @@ def localize_floor_chunk(context, frames: dict) -> dict:
     except EstimationError as e:
         out["paper_error"] = str(e)
     out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(frames, camera, world, cfg.corner_sigma_px)
+    out["intrinsics_sigmas"] = camera.intrinsics_sigmas
     return out
 
 
@@ -1076,6 +1088,13 @@ def _run_into(
         if rs_sightings is not None:
             result.warnings.append(rs_sightings)
     result.notes += loc.notes
+    unstated = sorted(n for n, c in log.cameras.items() if c.camera.intrinsics_sigma_px is None)
+    if unstated:
+        result.notes.append(
+            f"{', '.join(unstated)}: no intrinsics_sigma in sensor.yaml: every pose and load assumes "
+            f"the focal lengths known to {100 * DEFAULT_FOCAL_SIGMA_REL:g} % and the principal point to "
+            f"{DEFAULT_PRINCIPAL_POINT_SIGMA_PX:g} px (a calibration's usual error; state yours)"
+        )
     if fixes is None:
         no_pose = no_floor_pose_warning(log, loc, result.detection_stats)
         if no_pose is not None:
@@ -1088,6 +1107,10 @@ def _run_into(
         result.trajectories[str(Estimator.PNP)] = add_stamp_covariance(
             result.trajectories[str(Estimator.PNP)], stamp_variance
         )
+        if loc.intrinsics_consider is not None:  # likewise (cornerbias.intrinsics_consider)
+            result.trajectories[str(Estimator.PNP)] = loc.intrinsics_consider.add_to(
+                result.trajectories[str(Estimator.PNP)]
+            )
     result.load_maps.update(loc.load_maps)
     places = loads_at_two_places(loc.load_observations.get(str(Estimator.PNP), []))
     if places:
@@ -1558,6 +1581,11 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
+        if loc.intrinsics_consider is not None:
+            # the floor camera's intrinsics error: common to the fixes and the estimate alike
+            # (cornerbias.intrinsics_consider)
+            window = cornerbias.FUSED_CONSIDER_WINDOW_S
+            res.trajectory = loc.intrinsics_consider.add_to(res.trajectory, window)
         if tilt_sigma > 0.0 and log.imu is not None:  # 0 unless gimbaled
             # level fixes from a camera whose level is not known exactly: the tilt to the
             # levelling limit (tiltconsider.py); after the tilt comparison too, the back ends

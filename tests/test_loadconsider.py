@@ -25,6 +25,7 @@ CAMERA = CameraModel(
     T_body_cam=make_T(R_BODY_CAM, np.zeros(3)),
     mount_sigma_deg=0.0,
     mount_sigma_m=0.0,
+    intrinsics_sigma_px=(0.0,) * 4,
 )
 YAW_90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 

@@ -207,8 +207,10 @@ def _determined(covariance_px2: np.ndarray) -> np.ndarray:
 
 @dataclass
 class BiasConsider:
-    """What the fused back ends need to carry a corrected flight's bias uncertainty: the PnP
-    frames' stamps (n,) and sensitivities (n, 6, p), and Cov(b) (p, p).  `residual_sum_sq`:
+    """An error common to every PnP frame, as a consider term of the poses: the PnP frames'
+    stamps (n,) and sensitivities (n, 6, p), and the error's covariance (p, p).  Made for a
+    corrected flight's bias uncertainty (Cov(b), `correct_pnp_trajectory`) and for the stated
+    intrinsics' error (`intrinsics_consider`).  `residual_sum_sq`:
     the removed bias's share of the frames' whitened PnP residuals, sum_f b^T N_f b (N_f = A^T M A,
     FrameBiasTerms.normal: |M A b|^2, the bias as the residuals see it once each pose absorbed
     its part), for the time-correlation estimate (fusion.estimate.correlation: a common error
@@ -219,17 +221,30 @@ class BiasConsider:
     covariance_px2: np.ndarray
     residual_sum_sq: float = 0.0
 
-    def covariances(self, timestamps_ns: np.ndarray) -> np.ndarray:
+    def covariances(self, timestamps_ns: np.ndarray, window_s: float = 0.0) -> np.ndarray:
         """(m, 6, 6) consider covariances S Cov(b) S^T at `timestamps_ns`, S the nearest PnP
-        frame's sensitivity."""
-        S = self.sensitivities[nearest_frames(self.timestamps_ns, timestamps_ns)]
-        return np.einsum("nip,pq,njq->nij", S, self.covariance_px2, S)
+        frame's sensitivity; with `window_s` > 0, the mean of S Cov(b) S^T over the PnP frames
+        within window_s of each stamp (the nearest one where there is none): a fused pose is a
+        weighted mean of the fixes around it, so its share of the common error spans their
+        sensitivities, not one frame's (whose S Cov(b) S^T has rank p < 6)."""
+        t = np.asarray(timestamps_ns, dtype=np.int64)
+        if window_s <= 0.0:
+            S = self.sensitivities[nearest_frames(self.timestamps_ns, t)]
+            return np.einsum("nip,pq,njq->nij", S, self.covariance_px2, S)
+        per_frame = np.einsum("nip,pq,njq->nij", self.sensitivities, self.covariance_px2, self.sensitivities)
+        cum = np.concatenate([np.zeros((1, 6, 6)), np.cumsum(per_frame, axis=0)])
+        w = int(round(window_s * 1e9))
+        lo = np.searchsorted(self.timestamps_ns, t - w, side="left")
+        hi = np.searchsorted(self.timestamps_ns, t + w, side="right")
+        n = (hi - lo)[:, None, None]
+        near = per_frame[nearest_frames(self.timestamps_ns, t)]
+        return np.where(n > 0, (cum[hi] - cum[lo]) / np.maximum(n, 1), near)
 
-    def add_to(self, traj: Trajectory) -> Trajectory:
+    def add_to(self, traj: Trajectory, window_s: float = 0.0) -> Trajectory:
         """`traj` with the consider covariances added (unchanged without covariances)."""
         if traj.covariances is None or not len(traj):
             return traj
-        covs = traj.covariances + self.covariances(traj.timestamps_ns)
+        covs = traj.covariances + self.covariances(traj.timestamps_ns, window_s)
         return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
 
@@ -286,3 +301,51 @@ def correct_pnp_trajectory(
     consider = BiasConsider(stamps, S, est.consider_px2, residual_sum_sq)
     out = Trajectory(traj.name, traj.timestamps_ns, T, traj.covariances)
     return consider.add_to(out), est.as_dict(True), consider
+
+
+FUSED_CONSIDER_WINDOW_S = 1.0
+"""The span (s, either side) of PnP frames whose intrinsics sensitivities a fused pose's consider
+term averages (BiasConsider.covariances): a back end's pose is a weighted mean of the fixes
+around it (and trades tilt with the accelerometer bias over seconds), so its share of the common
+error spans their sensitivities, not the nearest frame's alone.  Chosen on the demo flight with
+its focal length 0.5 % or its principal point 1.5 / 1.0 px off (0, 0.5, 1 and 2 s: the smoother's
+NEES 111, 15.0, 11.3 and 3.7 / 43, 11.8, 6.6 and 3.7 with the focal lengths' errors then taken
+independent); measured on flights it was not chosen on in BENCHMARKS.md, seventeenth session."""
+
+
+def intrinsics_consider(
+    traj: Trajectory, terms: Sequence[FrameBiasTerms | None], sigmas_px: np.ndarray
+) -> BiasConsider | None:
+    """The floor camera's intrinsics error as a consider term of every pose: the PnP frames'
+    (one per entry of `terms`, in order) sensitivities to [fu, fv, cu, cv]
+    (FrameBiasTerms.intrinsics_sensitivity; zero where a frame has none) with covariance
+    diag(`sigmas_px`^2) (CameraModel.intrinsics_sigmas).  A focal length off by e in relative
+    terms puts every frame's camera e farther from the floor: no number of frames, and no back
+    end, averages it down (the IMU would see it only through vertical accelerations), so the
+    pipeline adds it to every output pose's covariance after the fusion and the health checks,
+    not to the back ends' inputs.  None when every sigma is 0 or no frame has a sensitivity."""
+    sig = np.asarray(sigmas_px, dtype=float)
+    if len(terms) != len(traj):
+        raise ValueError(f"intrinsics consider: {len(terms)} frames of terms for {len(traj)} PnP poses")
+    if not np.any(sig > 0.0) or all(t is None or t.intrinsics_sensitivity is None for t in terms):
+        return None
+    S = np.zeros((len(terms), 6, len(sig)), dtype=np.float32)
+    for i, t in enumerate(terms):
+        if t is not None and t.intrinsics_sensitivity is not None:
+            S[i] = t.intrinsics_sensitivity
+    stamps = np.asarray(traj.timestamps_ns, dtype=np.int64)
+    return BiasConsider(stamps, S, intrinsics_covariance(sig))
+
+
+def intrinsics_covariance(sigmas_px: np.ndarray) -> np.ndarray:
+    """(4, 4) covariance of the error in [fu, fv, cu, cv] from its 1-sigma `sigmas_px`: the two
+    focal lengths' errors fully correlated (a lens's focal length is off, or drifts with focus
+    and temperature, by one factor in both directions; their ratio is the sensor's pixel aspect,
+    known far better), the principal point's independent.  Taken independent, fu against fv
+    reads as a stretched image, which PnP explains by tilting the camera: 5 mrad of tilt and 6
+    mm of lateral shift per frame on the demo flight from a 0.2 % sigma, an error calibrations do
+    not make (BENCHMARKS.md, seventeenth session)."""
+    s = np.asarray(sigmas_px, dtype=float)
+    C = np.diag(s**2)
+    C[0, 1] = C[1, 0] = s[0] * s[1]
+    return C

@@ -31,10 +31,21 @@ sightings as if their errors were independent, and so shrinks them ~1/n.  Four e
   calibration's usual 0.1 deg and 2 mm, `CameraModel.mount_sigmas`; the simulator states its
   own): a rotation dtheta of the camera about its centre in the body frame moves a sighting by
   -R_wb [R_bc p_cam]x dtheta, a shift dt by R_wb dt (the level frame's R for a gimbaled
-  camera).  On a real drone this is likely the largest of the four: 0.1 deg is 2 mm at 1.25 m.
+  camera).  On a real drone this is likely the largest of the four: 0.1 deg is 2 mm at 1.25 m;
+- the front camera's intrinsics (sensor.yaml's `intrinsics_sigma`, absent: 0.2 % of the focal
+  lengths and 1 px, `CameraModel.intrinsics_sigmas`): single-code PnP reads the depth from the
+  code's size in px, Z = f s / size, so a stated fu off by dfu moves p_cam = (X, Y, Z) by
+  (-X, Y, Z) dfu / (2 fu) (the depth from the mean of the two sizes, the bearing (u - cu) / fu
+  scaled back), fv likewise, and a principal point off by dcu by -Z dcu / fu across the ray (a
+  frontal code's first order; `intrinsics_jacobian`, within 10 % of single-code PnP for codes up
+  to ~20 deg off the axis, tests/test_intrinsics.py).  fu and fv off in opposite directions are not
+  first order: PnP reads the stretched square as a tilted one and takes the depth from its longer
+  side; for independent errors of equal sigma the Jacobian's depth variance, sigma^2 / 2, is below
+  that min / max's (~0.68 sigma^2); a calibration's fu and fv errors are mostly common.
 
-The label's and the mount's terms are also kept apart (`LoadEstimate.cov_shared`): every flight
-of that label and front camera shares them, so `fusion map merge` does not average them down.
+The label's, the mount's and the intrinsics' terms are also kept apart (`LoadEstimate.cov_shared`):
+every flight of that label and front camera shares them, so `fusion map merge` does not average
+them down.
 
 A common error theta moves sighting i's world point by u_i theta; the load's estimate, a mean of
 its sightings, by u theta, u the mean of the u_i: covariance sigma_theta^2 u u^T.  The plain
@@ -79,15 +90,18 @@ def add_load_consider_covariance(
     if terms is None:
         terms = common_terms(observations, trajectory, camera)
     sigma_rot, sigma_shift = camera.mount_sigmas
+    sigma_intr = camera.intrinsics_sigmas
 
     def grow(est: LoadEstimate) -> tuple[np.ndarray, np.ndarray] | None:
         term = terms.get(est.load_id)
         if term is None:
             return None
-        pose_cov, u_print, u_stamp, U_rot, U_shift = term
-        # the label's and the mount's are every flight's of this label and camera (cov_shared)
+        pose_cov, u_print, u_stamp, U_rot, U_shift, U_intr = term
+        # the label's, the mount's and the intrinsics' are every flight's of this label and
+        # camera (cov_shared)
         shared = side_sigma_rel**2 * np.outer(u_print, u_print)
         shared += sigma_rot**2 * U_rot @ U_rot.T + sigma_shift**2 * U_shift @ U_shift.T
+        shared += (U_intr * sigma_intr**2) @ U_intr.T
         cov = at_least(np.asarray(est.cov_world, dtype=float), pose_cov) + shared
         cov += stamp_variance_s2 * np.outer(u_stamp, u_stamp)
         if est.cov_shared is not None:
@@ -136,9 +150,10 @@ def common_terms(
     observations: Sequence[LoadObservation], trajectory: Trajectory, camera: CameraModel, block: int = 2048
 ) -> dict[str, tuple[np.ndarray, ...]]:
     """{load_id: (pose covariance (3, 3), u_print (3,), u_stamp (3,), U_rot (3, 3), U_shift
-    (3, 3))}: the means over a load's sightings of J_i P_i J_i^T (zero without pose covariances)
-    and of d p_world / d theta for the printed side's relative error, the stamp error (s) and
-    the mount's rotation (rad) and shift (m) in the body frame.  In blocks of `block` sightings
+    (3, 3), U_intr (3, 4))}: the means over a load's sightings of J_i P_i J_i^T (zero without
+    pose covariances) and of d p_world / d theta for the printed side's relative error, the
+    stamp error (s), the mount's rotation (rad) and shift (m) in the body frame and the
+    intrinsics [fu, fv, cu, cv] (px, `intrinsics_jacobian`).  In blocks of `block` sightings
     (the 13 poses of each through the mount), so a long flight's ~10^5 sightings need no more
     memory than the EKF's load map."""
     obs = [o for o in observations if o.p_cam is not None]
@@ -158,7 +173,7 @@ def common_terms(
     T_all = np.asarray(trajectory.T_world_body, dtype=float)
     P_all = None if trajectory.covariances is None else np.asarray(trajectory.covariances, dtype=float)
     sums = [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3)), np.zeros((len(ids), 3))]
-    sums += [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3, 3))]
+    sums += [np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3, 3)), np.zeros((len(ids), 3, 4))]
     R_bc = np.asarray(camera.T_body_cam, dtype=float)[:3, :3]
     count = np.zeros(len(ids))
     for a in range(0, len(near), block):
@@ -185,8 +200,24 @@ def common_terms(
         skew -= skew.transpose(0, 2, 1)
         np.add.at(sums[3], which, -R_wp @ skew)
         np.add.at(sums[4], which, R_wp)
+        np.add.at(sums[5], which, R_wc @ intrinsics_jacobian(camera, p_cam))
         np.add.at(count, which, 1.0)
     return {lid: tuple(x[i] / count[i] for x in sums) for lid, i in index.items()}
+
+
+def intrinsics_jacobian(camera: CameraModel, p_cam: np.ndarray) -> np.ndarray:
+    """(n, 3, 4) d p_cam / d [fu, fv, cu, cv] of single-code PnP's code centres `p_cam` (n, 3),
+    first order for a frontal code (module docstring): the depth read from the code's two sizes
+    in px, the lateral position from the bearing."""
+    p = np.asarray(p_cam, dtype=float).reshape(-1, 3)
+    X, Y, Z = p[:, 0], p[:, 1], p[:, 2]
+    fu, fv = camera.fu, camera.fv
+    J = np.zeros((len(p), 3, 4))
+    J[:, 0, 0], J[:, 1, 0], J[:, 2, 0] = -X / (2 * fu), Y / (2 * fu), Z / (2 * fu)
+    J[:, 0, 1], J[:, 1, 1], J[:, 2, 1] = X / (2 * fv), -Y / (2 * fv), Z / (2 * fv)
+    J[:, 0, 2] = -Z / fu
+    J[:, 1, 3] = -Z / fv
+    return J
 
 
 def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) -> LoadMap:

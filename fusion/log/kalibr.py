@@ -18,7 +18,8 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
 Kalibr's cam0 is our floor camera, cam1 the front camera (CameraRole).  The body frame is the
 IMU frame rotated by `T_body_imu` (identity unless the IMU is mounted otherwise, e.g. PX4's FRD),
 so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`,
-`stamp_row` for a camera stamped at its middle row) are ignored by Kalibr.
+`stamp_row` for a camera stamped at its middle row, `intrinsics_sigma` [fu, fv, cu, cv] px as
+Kalibr's results-cam.txt reports them after "+-") are ignored by Kalibr.
 
 imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block), keys
 accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
@@ -33,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MOUNTS, CameraModel, StampRow
+from fusion.camera import MAX_FOCAL_SIGMA_REL, MOUNTS, CameraModel, StampRow
 from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
@@ -143,6 +144,15 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             CameraModel(int(res[0]), int(res[1]), 1.0, 1.0, 0.0, 0.0, **rs)
         except CameraModelError as e:
             raise LogError(f"{where}.line_delay/stamp_row: {e}") from None
+        intr_sigma = None
+        if block.get("intrinsics_sigma") is not None:
+            intr_sigma = tuple(_numbers(block["intrinsics_sigma"], 4, f"{where}.intrinsics_sigma"))
+            limit = MAX_FOCAL_SIGMA_REL * min(fu, fv)
+            if not all(0 <= v <= limit for v in intr_sigma):
+                raise LogError(
+                    f"{where}.intrinsics_sigma: must be 4 numbers from 0 to {limit:g} px, got "
+                    f"{list(intr_sigma)} (a unit mistake?)"
+                )
         cam = CameraModel(
             int(res[0]),
             int(res[1]),
@@ -154,6 +164,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
             mount=mount,
+            intrinsics_sigma_px=intr_sigma,
             **rs,
         )
         topic = block.get("rostopic")
@@ -188,6 +199,8 @@ def write_camchain(
         }
         if cam.mount != MOUNTS[0]:
             block["mount"] = cam.mount
+        if cam.intrinsics_sigma_px is not None:
+            block["intrinsics_sigma"] = [float(v) for v in cam.intrinsics_sigma_px]
         if cam.rolling_shutter:
             block["line_delay"] = float(cam.line_delay_s)
             if cam.stamp_row != StampRow.FIRST:

@@ -231,7 +231,8 @@ def simulate(
     its nominal one turned by that rotation vector in the body frame about the camera's centre
     (fusion.estimate.extrinsics.corrected_mount); the images are rendered with the true mount
     while sensor.yaml keeps the nominal T_BS (a wrong calibration, as in real life) and states
-    the error's RMS per axis as its T_BS_sigma_deg (0 for an exact mount, and T_BS_sigma_m 0);
+    the error's RMS per axis as its T_BS_sigma_deg (0 for an exact mount, and T_BS_sigma_m 0;
+    intrinsics_sigma 0: the images are rendered with the intrinsics it writes);
     `extrinsics_groundtruth.csv` holds the errors.  `velocity_rate_hz` (None: the scenario's
     30 Hz, stamped with the frames): the velocity sensor's own rate.
     `imu_noise_scale`: the IMU's white noise densities and bias random walks are this many times
@@ -362,7 +363,8 @@ def simulate(
             sigma_deg = 0.0 if err is None else float(np.degrees(np.sqrt(np.mean(err**2))))
             writer.add_camera(
                 name,
-                replace(cam, mount_sigma_deg=sigma_deg, mount_sigma_m=0.0),
+                # its intrinsics are exact: those it renders with
+                replace(cam, mount_sigma_deg=sigma_deg, mount_sigma_m=0.0, intrinsics_sigma_px=(0.0,) * 4),
                 comment=f"fusion simulator, scenario {scenario}, "
                 f"{'floor' if name == 'cam0' else 'front'} camera",
             )

@@ -95,12 +95,15 @@ class FrameBiasTerms:
     whitened pose Jacobian): the bias normal equations with the pose eliminated.
     `sensitivity` (6, p) S = (J^T J)^-1 J^T A: the PnP pose's error, body-frame right
     perturbation [rx, ry, rz, tx, ty, tz], per unit of bias (first order: xi_est = xi_true + S b).
-    Stored: `params` (q,), `normal_q` (q, q), `rhs_q` (q,), `sensitivity_q` (6, q)."""
+    Stored: `params` (q,), `normal_q` (q, q), `rhs_q` (q,), `sensitivity_q` (6, q).
+    `intrinsics_sensitivity` (6, 4) float32: the PnP pose's error per px of error in the stated
+    [fu, fv, cu, cv] (xi_est = xi_true + S_K (stated - true)), `intrinsics_sensitivities`."""
 
     params: np.ndarray
     normal_q: np.ndarray
     rhs_q: np.ndarray
     sensitivity_q: np.ndarray
+    intrinsics_sensitivity: np.ndarray | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -132,6 +135,21 @@ class FrameCodeResiduals:
     payloads: tuple[str, ...]
     classes: np.ndarray
     whitened: np.ndarray
+
+
+INTRINSICS = ("fu", "fv", "cu", "cv")
+
+
+def intrinsics_patterns(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
+    """(n, 8, 4) d corner px / d [fu, fv, cu, cv] at the projected corners `uv` (n, 4, 2): u = fu
+    x_d + cu, v = fv y_d + cv with x_d, y_d the distorted normalised coordinates."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 4, 2)
+    out = np.zeros((len(uv), 4, 2, len(INTRINSICS)))
+    out[:, :, 0, 0] = (uv[..., 0] - camera.cu) / camera.fu
+    out[:, :, 1, 1] = (uv[..., 1] - camera.cv) / camera.fv
+    out[:, :, 0, 2] = 1.0
+    out[:, :, 1, 3] = 1.0
+    return out.reshape(len(uv), CORNER_COORDINATES, len(INTRINSICS))
 
 
 def frame_bias_terms(
@@ -199,6 +217,10 @@ def frames_bias_and_residuals(
     Atr = np.zeros((F, N_BINS, k))
     np.add.at(Atr, (frame_of, bins), np.einsum("nij,ni->nj", Pw, rw))
     JtA = np.moveaxis(JtA_bins, 2, 1).reshape(F, 6, p)  # columns: bin 0's k, bin 1's k, ...
+    # the intrinsics (every corner's, decoder fallbacks too): a stated value off by d moves the
+    # predicted corners by D d, so the pose by -(J^T J)^-1 J^T D d
+    JtD = np.zeros((F, 6, len(INTRINSICS)))
+    np.add.at(JtD, frame_of, np.swapaxes(Jw, 1, 2) @ (W @ intrinsics_patterns(camera, uv)))
     if camera.gimbaled:
         # the pose is the level frame, conditioned on its roll = pitch = 0 (floor.condition_on_level):
         # the gimbal's attitude as information on [rx, ry], or, known exactly, those two fixed
@@ -210,6 +232,7 @@ def frames_bias_and_residuals(
             H[:, :, :2] = 0.0
             H[:, 0, 0] = H[:, 1, 1] = 1.0
             JtA[:, :2, :] = 0.0
+            JtD[:, :2, :] = 0.0
             Jtr[:, :2] = 0.0
     AtA_full = np.zeros((F, p, p))
     for j in range(N_BINS):  # block diagonal: a code's columns are its own bin's
@@ -219,13 +242,14 @@ def frames_bias_and_residuals(
     if not ok.any():
         return out, residuals
     S = np.linalg.solve(H[ok], JtA[ok])  # (m, 6, p) = H^-1 J^T A
+    S_K = -np.linalg.solve(H[ok], JtD[ok]).astype(np.float32)  # (m, 6, 4)
     N = AtA_full[ok] - np.swapaxes(JtA[ok], 1, 2) @ S  # A^T M A
     y = Atr.reshape(F, p)[ok] - np.einsum("mip,mi->mp", S, Jtr[ok])  # A^T M r
     has_bin = np.zeros((F, N_BINS), dtype=bool)
     has_bin[frame_of, bins] = True
-    for f, S_f, N_f, y_f in zip(np.flatnonzero(ok), S, N, y):
-        if np.all(np.isfinite(S_f)):
+    for f, S_f, N_f, y_f, K_f in zip(np.flatnonzero(ok), S, N, y, S_K):
+        if np.all(np.isfinite(S_f)) and np.all(np.isfinite(K_f)):
             # the bins without codes have zero columns in A, hence in S, N and y: left out
             q = (k * np.flatnonzero(has_bin[f])[:, None] + np.arange(k)).ravel()
-            out[f] = FrameBiasTerms(q, N_f[np.ix_(q, q)], y_f[q], S_f[:, q])
+            out[f] = FrameBiasTerms(q, N_f[np.ix_(q, q)], y_f[q], S_f[:, q], K_f)
     return out, residuals
