@@ -438,9 +438,11 @@ class _Ekf:
         Ft = F.transpose(0, 2, 1)
         Q = self._q_density(noise)[None, :] * dts[:, None]  # (K, 15) diagonal of Q
         P = self.kf.P
-        for i in range(K):  # filterpy's predict: P = F P F^T + Q
-            P = np.dot(F[i], P).dot(Ft[i])
-            P.flat[::16] += Q[i]  # Q is diagonal: adding its zeros would leave P's entries exact
+        dot = np.dot
+        for F_i, Ft_i, Q_i in zip(F, Ft, Q):  # filterpy's predict: P = F P F^T + Q
+            P = dot(F_i, P).dot(Ft_i)
+            diagonal = P.reshape(225)[::16]  # a view (P is a new contiguous array)
+            diagonal += Q_i  # Q is diagonal: adding its zeros would leave P's entries exact
         self.R = R
         self.p = self.p + np.add.reduce(dp, axis=0)
         self.v = v_start[-1]
