@@ -623,7 +623,7 @@ class _Ekf:
     def _retract(self, X0: tuple[np.ndarray, ...], dx: np.ndarray) -> None:
         """Nominal state = X0 [+] dx (rotation on the right, the rest added)."""
         R0, p0, v0, bg0, ba0 = X0
-        self.R = R0 @ so3_exp_floats(dx[None, _TH])[0]  # so3_exp's numbers
+        self.R = R0 @ so3_exp(dx[_TH])
         self.p = p0 + dx[_P]
         self.v = v0 + dx[_V]
         self.bg = bg0 + dx[_BG]
