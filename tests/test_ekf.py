@@ -878,3 +878,20 @@ def test_kf_update_singular_innovation_raises_as_filterpy():
         kf.update(np.ones(3), lambda x: H, lambda x: H @ x, R=np.zeros((3, 3)))
     with pytest.raises(np.linalg.LinAlgError):
         _kf_update(kf, np.ones(3), H, lambda x: H @ x, np.zeros((3, 3)), np.subtract)
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+def test_inv_is_scipys_inv_to_the_bit(monkeypatch, kernel):
+    """_inv = scipy.linalg.inv (filterpy's S^-1) on innovation-like matrices, through scipy's
+    kernel where this scipy has it and through scipy.linalg.inv itself where not."""
+    import scipy.linalg
+
+    from fusion.estimate import ekf
+
+    if not kernel:
+        monkeypatch.setattr(ekf, "_scipy_inv_kernel", None)
+    rng = np.random.default_rng(44)
+    for dim in (3, 4, 6, 9):
+        A = rng.normal(size=(dim, dim))
+        S = A @ A.T + np.eye(dim) * 1e-6
+        assert np.array_equal(ekf._inv(S), scipy.linalg.inv(S))

@@ -135,10 +135,23 @@ ITERATE_TOL = 1e-10
 """Largest change of the error state (rad, m, m/s) between two iterations that ends them."""
 
 
-try:  # scipy.linalg.inv's kernel (scipy >= 1.16), without its per-call argument checks
-    from scipy.linalg._batched_linalg import _inv as _scipy_inv_kernel
-except ImportError:  # pragma: no cover - older or newer scipy: scipy.linalg.inv itself
-    _scipy_inv_kernel = None
+def _inv_kernel():
+    """scipy.linalg.inv's LAPACK kernel (a private name of scipy 1.17: `_inv(a, structure,
+    overwrite_a, lower)` -> (inverse, errors)), or None where it is missing or does not answer
+    as that on a test matrix (another scipy): _inv then takes scipy.linalg.inv itself."""
+    try:
+        from scipy.linalg._batched_linalg import _inv as kernel
+
+        probe = np.array([[4.0, 1.0], [2.0, 3.0]])
+        out, errors = kernel(probe, -1, False, False)
+        if errors or not np.array_equal(out, scipy.linalg.inv(probe)):
+            return None
+        return kernel
+    except Exception:  # noqa: BLE001 - any failure: the public function
+        return None
+
+
+_scipy_inv_kernel = _inv_kernel()
 
 
 def _inv(S: np.ndarray) -> np.ndarray:
