@@ -859,12 +859,14 @@ def fuse_stage(
             if inflation is not None and len(inflated) > 1:
                 # one causal pass (the EKF's) inflates the poses for both (correlation.causal_inflated)
                 try:
+                    # without the sightings: the EKF maps loads after filtering, from its poses,
+                    # so they change nothing the inflation takes (its pose covariances)
                     causal = correlation.causal_inflated(
                         run_ekf,
                         frame_t,
                         imu,
                         raw,
-                        load_obs,
+                        None,
                         inflation=inflation,
                         front_camera=front,
                         velocity=log.velocity,

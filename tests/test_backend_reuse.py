@@ -287,6 +287,27 @@ def test_one_causal_pass_inflates_the_ekf_and_the_incremental_smoother_alike(fli
     }
 
 
+def test_the_ekfs_causal_pass_without_the_sightings_inflates_to_the_bit(flight):
+    """The run's causal pass leaves the load sightings out (pipeline.fuse_stage): the EKF maps
+    loads after filtering, from its poses, so the inflated poses are those with them, bit for
+    bit, and the pass maps nothing."""
+    assert flight.load_obs  # the sightings are there to leave out
+    inf = _flight_inflation(flight.raw)
+    kw = dict(front_camera=FRONT_CAM, velocity=flight.velocity, config=FusionConfig())
+    with_loads = correlation.causal_inflated(
+        run_ekf, flight.frame_t, flight.imu, flight.raw, flight.load_obs, inflation=inf, **kw
+    )
+    without = correlation.causal_inflated(
+        run_ekf, flight.frame_t, flight.imu, flight.raw, None, inflation=inf, **kw
+    )
+    assert np.array_equal(without.timestamps_ns, with_loads.timestamps_ns)
+    assert np.array_equal(without.T_world_body, with_loads.T_world_body)
+    assert np.array_equal(without.covariances, with_loads.covariances)
+    assert not np.array_equal(without.covariances, flight.raw.covariances)  # inflated
+    bare = run_ekf(flight.frame_t, flight.imu, flight.raw, None, **kw)
+    assert not bare.loads.loads
+
+
 def test_merged_window_reports_say_whether_every_window_took_two_solves():
     from fusion.estimate.window import _merge_noise_scales
 

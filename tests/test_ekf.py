@@ -829,3 +829,69 @@ def test_load_points_world_batch_equals_one_at_a_time():
         np.testing.assert_allclose(pts[i], p1, rtol=0, atol=1e-12)
         np.testing.assert_allclose(J[i], J1, rtol=0, atol=1e-9)
         np.testing.assert_allclose(R_wc[i], cam.T_world_cam(T[i])[:3, :3], rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("dim_z", [3, 4, 6, 9])
+def test_kf_update_is_filterpys_update_to_the_bit(dim_z):
+    """_kf_update = filterpy's ExtendedKalmanFilter.update (the Joseph form) on the same inputs:
+    x, P, S, S^-1, K and y bit for bit, and new arrays bound (the old x, P unchanged: _trial's
+    `before`), for a wrapped-angle residual too."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    from fusion.estimate.ekf import _kf_update, _yaw_residual
+
+    rng = np.random.default_rng(40 + dim_z)
+    A = rng.normal(size=(15, 15))
+    P0 = A @ A.T * 1e-3
+    x0 = rng.normal(size=15) * 1e-3
+    H = rng.normal(size=(dim_z, 15))
+    hx0 = rng.normal(size=dim_z)
+    B = rng.normal(size=(dim_z, dim_z))
+    R = B @ B.T * 1e-2 + np.eye(dim_z) * 1e-4
+    z = rng.normal(size=dim_z)
+    residual = _yaw_residual if dim_z == 4 else np.subtract
+    if dim_z == 4:
+        z[3], hx0[3] = 3.1, -3.1  # across +-pi: the residual hook matters
+    ref, ours = ExtendedKalmanFilter(dim_x=15, dim_z=dim_z), ExtendedKalmanFilter(dim_x=15, dim_z=dim_z)
+    for kf in (ref, ours):
+        kf.x, kf.P = x0.copy(), P0.copy()
+    ref.update(z, lambda x: H, lambda x: hx0 + H @ x, R=R, residual=residual)
+    x_before, P_before = ours.x, ours.P
+    _kf_update(ours, z, H, lambda x: hx0 + H @ x, R, residual)
+    for name in ("x", "P", "S", "SI", "K", "y"):
+        assert np.array_equal(getattr(ours, name), getattr(ref, name)), name
+    assert np.array_equal(x_before, x0) and np.array_equal(P_before, P0)
+    assert ours.x is not x_before and ours.P is not P_before
+    assert not np.array_equal(ours.x, x0)  # the update did something
+
+
+def test_kf_update_singular_innovation_raises_as_filterpy():
+    """A singular S: scipy.linalg.inv's own error, as filterpy's update gives."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    from fusion.estimate.ekf import _kf_update
+
+    kf = ExtendedKalmanFilter(dim_x=15, dim_z=3)
+    kf.x, kf.P = np.zeros(15), np.zeros((15, 15))
+    H = np.zeros((3, 15))
+    with pytest.raises(np.linalg.LinAlgError):
+        kf.update(np.ones(3), lambda x: H, lambda x: H @ x, R=np.zeros((3, 3)))
+    with pytest.raises(np.linalg.LinAlgError):
+        _kf_update(kf, np.ones(3), H, lambda x: H @ x, np.zeros((3, 3)), np.subtract)
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+def test_inv_is_scipys_inv_to_the_bit(monkeypatch, kernel):
+    """_inv = scipy.linalg.inv (filterpy's S^-1) on innovation-like matrices, through scipy's
+    kernel where this scipy has it and through scipy.linalg.inv itself where not."""
+    import scipy.linalg
+
+    from fusion.estimate import ekf
+
+    if not kernel:
+        monkeypatch.setattr(ekf, "_scipy_inv_kernel", None)
+    rng = np.random.default_rng(44)
+    for dim in (3, 4, 6, 9):
+        A = rng.normal(size=(dim, dim))
+        S = A @ A.T + np.eye(dim) * 1e-6
+        assert np.array_equal(ekf._inv(S), scipy.linalg.inv(S))

@@ -20,7 +20,8 @@ Updates: QR pose (6-dof, residual Log(T_hat^-1 T_meas) in the body frame), or po
 (yaw wrap-around handled by filterpy's `residual` hook) for the paper's output and for the
 level-frame pose of a gimbaled floor camera (pnp.py gives roll/pitch no information there: its
 world position and yaw, with their covariance, are what the fix measures), and body velocity.
-The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py).
+The update is filterpy's, in Joseph form (P = (I-KH) P (I-KH)^T + K R K^T, filterpy/kalman/EKF.py),
+its arithmetic reproduced without the per-call copies and checks (`_kf_update`, the same numbers).
 A frame's fix and body velocity are one stacked filterpy update when both are within their
 robust thresholds (`_Ekf.update_fix_and_velocity`; the two in turn otherwise), and the gates'
 Mahalanobis distances come from filterpy's own innovation and S^-1 (`_Ekf._trial`).
@@ -72,6 +73,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter
 
 from fusion.camera import CameraModel
@@ -131,6 +133,56 @@ measurement relinearised at the corrected state until the correction settles."""
 ITERATE_MAX = 8
 ITERATE_TOL = 1e-10
 """Largest change of the error state (rad, m, m/s) between two iterations that ends them."""
+
+
+def _inv_kernel():
+    """scipy.linalg.inv's LAPACK kernel (a private name of scipy 1.17: `_inv(a, structure,
+    overwrite_a, lower)` -> (inverse, errors)), or None where it is missing or does not answer
+    as that on a test matrix (another scipy): _inv then takes scipy.linalg.inv itself."""
+    try:
+        from scipy.linalg._batched_linalg import _inv as kernel
+
+        probe = np.array([[4.0, 1.0], [2.0, 3.0]])
+        out, errors = kernel(probe, -1, False, False)
+        if errors or not np.array_equal(out, scipy.linalg.inv(probe)):
+            return None
+        return kernel
+    except Exception:  # noqa: BLE001 - any failure: the public function
+        return None
+
+
+_scipy_inv_kernel = _inv_kernel()
+
+
+def _inv(S: np.ndarray) -> np.ndarray:
+    """scipy.linalg.inv(S) (filterpy's S^-1), the same numbers: for a finite float64 matrix its
+    LAPACK kernel is called directly (the checks around it were ~2/3 of its ~35 us per update);
+    anything else, or a kernel that reports an error (singular S), through scipy.linalg.inv
+    itself, so its errors and warnings are filterpy's."""
+    if _scipy_inv_kernel is not None and S.dtype == np.float64 and S.ndim == 2 and np.isfinite(S).all():
+        out, errors = _scipy_inv_kernel(S, -1, False, False)
+        if not errors:
+            return out
+    return scipy.linalg.inv(S)
+
+
+def _kf_update(kf: ExtendedKalmanFilter, z: np.ndarray, H: np.ndarray, hx, R: np.ndarray, residual) -> None:
+    """filterpy's ExtendedKalmanFilter.update(z, lambda x: H, hx, R=R, residual=residual) for an
+    array R and z, the same arithmetic in the same order (the Joseph form, filterpy/kalman/EKF.py):
+    S, S^-1, K, y, x and P are set as it sets them and bound to new arrays (`_trial`'s `before`
+    keeps the old ones).  Left out: its copies of z, x and P into z / x_post / P_post (a
+    deepcopy of z per update; nothing here reads them) and its argument checks, ~1/3 of the
+    update's time (BENCHMARKS.md, speed18).  hx: h(x) at kf.x (a callable, as filterpy's)."""
+    P = kf.P
+    PHT = np.dot(P, H.T)
+    kf.S = np.dot(H, PHT) + R
+    kf.SI = _inv(kf.S)
+    kf.K = PHT.dot(kf.SI)
+    kf.y = residual(z, hx(kf.x))
+    kf.x = kf.x + np.dot(kf.K, kf.y)
+    I_KH = kf._I - np.dot(kf.K, H)
+    kf.P = np.dot(I_KH, P).dot(I_KH.T) + np.dot(kf.K, R).dot(kf.K.T)
+    kf._log_likelihood = kf._likelihood = kf._mahalanobis = None
 
 
 _EYE15_STACKS: dict[int, np.ndarray] = {}
@@ -399,9 +451,11 @@ class _Ekf:
         Ft = F.transpose(0, 2, 1)
         Q = self._q_density(noise)[None, :] * dts[:, None]  # (K, 15) diagonal of Q
         P = self.kf.P
-        for i in range(K):  # filterpy's predict: P = F P F^T + Q
-            P = np.dot(F[i], P).dot(Ft[i])
-            P.flat[::16] += Q[i]  # Q is diagonal: adding its zeros would leave P's entries exact
+        dot = np.dot
+        for F_i, Ft_i, Q_i in zip(F, Ft, Q):  # filterpy's predict: P = F P F^T + Q
+            P = dot(F_i, P).dot(Ft_i)
+            diagonal = P.reshape(225)[::16]  # a view (P is a new contiguous array)
+            diagonal += Q_i  # Q is diagonal: adding its zeros would leave P's entries exact
         self.R = R
         self.p = self.p + np.add.reduce(dp, axis=0)
         self.v = v_start[-1]
@@ -469,7 +523,7 @@ class _Ekf:
     def _apply(self, m: _Measurement, Rm: np.ndarray) -> None:
         """filterpy's update of m with covariance Rm (m.R, or inflated), injected."""
         P0 = self.kf.P
-        self.kf.update(m.z, lambda x: m.H, lambda x: m.hx + m.H @ x, R=Rm, residual=m.residual)
+        _kf_update(self.kf, m.z, m.H, lambda x: m.hx + m.H @ x, Rm, m.residual)
         self._inject(m, Rm, P0)
 
     def _trial(self, m: _Measurement) -> tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray]]:
@@ -478,7 +532,7 @@ class _Ekf:
         innovation and S^-1 (d^2 = y^T S^-1 y), so S is formed and inverted once per
         measurement; most updates keep this result (d within the robust threshold)."""
         before = (self.kf.x, self.kf.P)  # filterpy's update binds new arrays: these stay as they were
-        self.kf.update(m.z, lambda x: m.H, lambda x: m.hx + m.H @ x, R=m.R, residual=m.residual)
+        _kf_update(self.kf, m.z, m.H, lambda x: m.hx + m.H @ x, m.R, m.residual)
         y = np.asarray(self.kf.y, float).ravel()
         return math.sqrt(max(float(y @ self.kf.SI @ y), 0.0)), y, before
 
@@ -582,7 +636,7 @@ class _Ekf:
     def _retract(self, X0: tuple[np.ndarray, ...], dx: np.ndarray) -> None:
         """Nominal state = X0 [+] dx (rotation on the right, the rest added)."""
         R0, p0, v0, bg0, ba0 = X0
-        self.R = R0 @ so3_exp_floats(dx[None, _TH])[0]  # so3_exp's numbers
+        self.R = R0 @ so3_exp(dx[_TH])
         self.p = p0 + dx[_P]
         self.v = v0 + dx[_V]
         self.bg = bg0 + dx[_BG]
@@ -629,9 +683,7 @@ class _Ekf:
             h0 = hx - Hd @ d
             self.kf.x = np.zeros(15)
             self.kf.P = P0
-            self.kf.update(
-                z, lambda x, Hd=Hd: Hd, lambda x, Hd=Hd, h0=h0: h0 + Hd @ x, R=Rm, residual=m.residual
-            )
+            _kf_update(self.kf, z, Hd, lambda x, Hd=Hd, h0=h0: h0 + Hd @ x, Rm, m.residual)
             d_new = self.kf.x.ravel()
             self._retract(X0, d_new)
             step = float(np.max(np.abs(d_new - d)))
