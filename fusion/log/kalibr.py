@@ -12,13 +12,16 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
       T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
       timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
       line_delay: 0.0                  # s per row, rolling shutter (optional; stamp = row 0)
+      T_BS_sigma_deg: 0.1              # ours, optional: how well T_cam_imu is known, 1 sigma per
+      T_BS_sigma_m: 0.002              #   axis (as in sensor.yaml; absent: 0.1 deg / 2 mm)
       rostopic: /cam0/image_raw
     cam1: ...
 
 Kalibr's cam0 is our floor camera, cam1 the front camera (CameraRole).  The body frame is the
 IMU frame rotated by `T_body_imu` (identity unless the IMU is mounted otherwise, e.g. PX4's FRD),
 so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`,
-`stamp_row` for a camera stamped at its middle row) are ignored by Kalibr.
+`stamp_row` for a camera stamped at its middle row, `T_BS_sigma_deg` / `T_BS_sigma_m` when
+stated) are ignored by Kalibr.
 
 imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block), keys
 accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
@@ -33,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MOUNTS, CameraModel, StampRow
+from fusion.camera import MOUNTS, CameraModel, StampRow, stated_mount_sigmas
 from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
@@ -143,6 +146,10 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             CameraModel(int(res[0]), int(res[1]), 1.0, 1.0, 0.0, 0.0, **rs)
         except CameraModelError as e:
             raise LogError(f"{where}.line_delay/stamp_row: {e}") from None
+        try:
+            sigmas = stated_mount_sigmas(block, where)
+        except CameraModelError as e:
+            raise LogError(str(e)) from None
         cam = CameraModel(
             int(res[0]),
             int(res[1]),
@@ -154,6 +161,8 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
             mount=mount,
+            mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
+            mount_sigma_m=sigmas.get("T_BS_sigma_m"),
             **rs,
         )
         topic = block.get("rostopic")
@@ -188,6 +197,13 @@ def write_camchain(
         }
         if cam.mount != MOUNTS[0]:
             block["mount"] = cam.mount
+        # how well T_BS is known: written only when stated, as in sensor.yaml (without it the
+        # reader takes the default 0.1 deg / 2 mm, and a simulated video or bag's load maps read
+        # NEES 0.0 against the exact mount its sensor.yaml states)
+        if cam.mount_sigma_deg is not None:
+            block["T_BS_sigma_deg"] = float(cam.mount_sigma_deg)
+        if cam.mount_sigma_m is not None:
+            block["T_BS_sigma_m"] = float(cam.mount_sigma_m)
         if cam.rolling_shutter:
             block["line_delay"] = float(cam.line_delay_s)
             if cam.stamp_row != StampRow.FIRST:
