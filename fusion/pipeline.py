@@ -1640,7 +1640,7 @@ def _floor_mount_covariance(log: FlightLog, result: RunResult) -> np.ndarray:
     """(6, 6) the body poses' covariance from the floor camera's mount rotation error
     (fusion.estimate.mountconsider): the stated sigma per axis, the estimate's on the axes
     --calibrate-extrinsics applied; zero without a floor camera, for a gimbaled one (its level
-    carries the mount: tiltconsider) and for a mount stated exact."""
+    carries the mount: tiltconsider) and for a mount stated exact or not stated."""
     if "cam0" not in log.cameras or log.floor.camera.gimbaled:
         return np.zeros((6, 6))
     mount = result.extrinsics

@@ -46,11 +46,17 @@ def test_a_mount_error_within_its_sigma_is_covered_by_the_term():
 
 def test_sigmas_stated_and_applied():
     class Cam:
-        mount_sigmas = (math.radians(0.3), 0.0)
+        mount_sigma_deg: float | None = 0.3
 
     s = mount_sigmas_rad(Cam(), ["y", "z"], np.radians([1.0, 0.02, 0.03]))  # type: ignore[arg-type]
     np.testing.assert_allclose(s, np.radians([0.3, 0.02, 0.03]))
     assert np.all(mount_sigmas_rad(Cam(), [], None) == math.radians(0.3))  # type: ignore[arg-type]
+    unstated = Cam()
+    unstated.mount_sigma_deg = None  # not stated: no term (the 0.1 deg default is not assumed)
+    np.testing.assert_array_equal(mount_sigmas_rad(unstated, [], None), 0.0)  # type: ignore[arg-type]
+    np.testing.assert_allclose(
+        mount_sigmas_rad(unstated, ["z"], np.radians([1, 1, 0.03])), np.radians([0, 0, 0.03])
+    )  # type: ignore[arg-type]
     traj = Trajectory("t", np.array([0]), np.eye(4)[None], np.eye(6)[None])
     assert add_mount_consider(traj, np.zeros((6, 6))) is traj
 

@@ -16,12 +16,19 @@ covariance analysis).  The IMU's gravity observes part of a roll / pitch error i
 a constant tilt and the accelerometer bias are the same residual while the body does not turn
 (the mount check reports such axes as unexcited), so the whole stated sigma is kept.
 
-Per axis the sigma is the stated one (`CameraModel.mount_sigmas`, 0.1 deg when not stated), and
-on the axes --calibrate-extrinsics applied, the estimate's own sigma.  A gimbaled floor camera
+Per axis the sigma is the stated one (sensor.yaml's `T_BS_sigma_deg`), and on the axes
+--calibrate-extrinsics applied, the estimate's own sigma.  A mount whose sigma is not stated gets
+no term on the other axes, as before: `CameraModel.mount_sigmas`' 0.1 deg default would widen
+every such log's floor poses (the lead's sweep flights simulated before the simulator stated its
+mounts: r800 PnP / smoother / EKF NEES 6.6 / 8.1 / 7.5 -> 3.5 / 4.1 / 4.2, its load maps 5.4-6.1
+-> 0.0-0.1 of 3 through the load maps' pose term), a choice left to the project (BENCHMARKS.md,
+held18).  A gimbaled floor camera
 is left out: its level poses carry the mount's tilt through PnP's level conditioning and the
 tilt consider (fusion.estimate.tiltconsider)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -36,9 +43,10 @@ __all__ = ["add_mount_consider", "mount_consider_covariance", "mount_sigmas_rad"
 
 def mount_sigmas_rad(camera: CameraModel, applied_axes: list[str], applied_sigma_rad) -> np.ndarray:
     """(3,) rad: the mount rotation's 1-sigma per body axis that the outputs keep: the stated
-    `camera.mount_sigmas[0]`, or on `applied_axes` (those --calibrate-extrinsics corrected) the
-    estimate's `applied_sigma_rad` (3,)."""
-    out = np.full(3, camera.mount_sigmas[0])
+    `camera.mount_sigma_deg` (0 when not stated: module docstring), or on `applied_axes` (those
+    --calibrate-extrinsics corrected) the estimate's `applied_sigma_rad` (3,)."""
+    stated = 0.0 if camera.mount_sigma_deg is None else math.radians(camera.mount_sigma_deg)
+    out = np.full(3, stated)
     for i, axis in enumerate(AXES):
         if axis in applied_axes and applied_sigma_rad is not None:
             out[i] = float(applied_sigma_rad[i])
