@@ -503,8 +503,11 @@ def _body_tilt_from_imu(trajectory: Trajectory, imu) -> Trajectory:
         f_mean[near] = np.column_stack([np.interp(ts[near], t_imu, f_body[:, c]) for c in range(3)])
     p = T[:, :3, 3]
     up_g = np.zeros((len(ts), 3))
+    # each pose's window as an index range (the poses are in time order): O(N), not O(N^2)
+    fit_lo = np.searchsorted(ts, ts - TILT_ACCEL_HALF_WINDOW_S, side="left")
+    fit_hi = np.searchsorted(ts, ts + TILT_ACCEL_HALF_WINDOW_S, side="right")
     for k in range(len(ts)):
-        sel = np.flatnonzero(np.abs(ts - ts[k]) <= TILT_ACCEL_HALF_WINDOW_S)
+        sel = np.arange(fit_lo[k], fit_hi[k])
         a = np.zeros(3)
         if len(sel) >= MIN_FIT_POSES + 1 and ts[sel].min() < ts[k] < ts[sel].max():
             dt = ts[sel] - ts[k]
@@ -515,9 +518,12 @@ def _body_tilt_from_imu(trajectory: Trajectory, imu) -> Trajectory:
         up_g[k] = R_gk[k] @ (R_tilt.T @ np.array([0.0, 0.0, 1.0]))
     # averaged over the window in the gyro's frame, back to each pose's body frame
     R_world = np.empty_like(T[:, :3, :3])
+    lo = np.searchsorted(ts, ts - TILT_SMOOTH_HALF_WINDOW_S, side="left")
+    hi = np.searchsorted(ts, ts + TILT_SMOOTH_HALF_WINDOW_S, side="right")
+    cum = np.vstack([np.zeros(3), np.cumsum(up_g, axis=0)])
+    mean_up = (cum[hi] - cum[lo]) / (hi - lo)[:, None]
     for k in range(len(ts)):
-        sel = np.abs(ts - ts[k]) <= TILT_SMOOTH_HALF_WINDOW_S
-        up_b = R_gk[k].T @ up_g[sel].mean(axis=0)
+        up_b = R_gk[k].T @ mean_up[k]
         R_tilt = _smallest_rotation(up_b, np.array([0.0, 0.0, 1.0]))
         R0 = T[k, :3, :3] @ R_tilt
         R_world[k] = rot_z(float(yaw_of(T[k, :3, :3]) - yaw_of(R0))) @ R0  # keep the pose's yaw
