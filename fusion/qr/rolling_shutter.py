@@ -518,10 +518,10 @@ def _body_tilt_from_imu(trajectory: Trajectory, imu) -> Trajectory:
         up_g[k] = R_gk[k] @ (R_tilt.T @ np.array([0.0, 0.0, 1.0]))
     # averaged over the window in the gyro's frame, back to each pose's body frame
     R_world = np.empty_like(T[:, :3, :3])
-    lo = np.searchsorted(ts, ts - TILT_SMOOTH_HALF_WINDOW_S, side="left")
-    hi = np.searchsorted(ts, ts + TILT_SMOOTH_HALF_WINDOW_S, side="right")
+    win_lo = np.searchsorted(ts, ts - TILT_SMOOTH_HALF_WINDOW_S, side="left")
+    win_hi = np.searchsorted(ts, ts + TILT_SMOOTH_HALF_WINDOW_S, side="right")
     cum = np.vstack([np.zeros(3), np.cumsum(up_g, axis=0)])
-    mean_up = (cum[hi] - cum[lo]) / (hi - lo)[:, None]
+    mean_up = (cum[win_hi] - cum[win_lo]) / (win_hi - win_lo)[:, None]
     for k in range(len(ts)):
         up_b = R_gk[k].T @ mean_up[k]
         R_tilt = _smallest_rotation(up_b, np.array([0.0, 0.0, 1.0]))
