@@ -318,17 +318,7 @@ class CameraModel:
             raise CameraModelError(
                 f"{source}: 'stamp_row' {stamp_row!r} is not one of {[r.value for r in StampRow]}"
             )
-        sigmas = {}
-        for key, limit in (("T_BS_sigma_deg", MAX_MOUNT_SIGMA_DEG), ("T_BS_sigma_m", MAX_MOUNT_SIGMA_M)):
-            v = data.get(key)
-            if v is None:
-                continue
-            number = isinstance(v, (int, float)) and not isinstance(v, bool)
-            if not (number and math.isfinite(v) and 0 <= v <= limit):
-                raise CameraModelError(
-                    f"{source}: '{key}' must be a number from 0 to {limit:g}, got {v!r} (a unit mistake?)"
-                )
-            sigmas[key] = float(v)
+        sigmas = stated_mount_sigmas(data, source)
         fu, fv, cu, cv = intr
         intr_sigma = None
         if data.get("intrinsics_sigma") is not None:
@@ -363,6 +353,24 @@ class CameraModel:
 
     def save(self, path: Path, comment: str = "") -> None:
         dump_yaml(self.to_sensor_yaml(comment), path)
+
+
+def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:
+    """{"T_BS_sigma_deg": deg, "T_BS_sigma_m": m}: the mount's stated 1-sigma per axis, the keys
+    present in `data` (a sensor.yaml or a Kalibr camchain block); raises CameraModelError naming
+    `source` and the key for a value that is not a number in [0, MAX_MOUNT_SIGMA_*]."""
+    sigmas = {}
+    for key, limit in (("T_BS_sigma_deg", MAX_MOUNT_SIGMA_DEG), ("T_BS_sigma_m", MAX_MOUNT_SIGMA_M)):
+        v = data.get(key)
+        if v is None:
+            continue
+        number = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if not (number and math.isfinite(v) and 0 <= v <= limit):
+            raise CameraModelError(
+                f"{source}: '{key}' must be a number from 0 to {limit:g}, got {v!r} (a unit mistake?)"
+            )
+        sigmas[key] = float(v)
+    return sigmas
 
 
 def _floats(value, n: int, key: str, source: str, error=CameraModelError) -> list[float]:

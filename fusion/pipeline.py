@@ -64,6 +64,7 @@ from fusion.estimate.loadconsider import (
     add_places_spread,
     common_terms,
 )
+from fusion.estimate.mountconsider import add_mount_consider, mount_consider_covariance, mount_sigmas_rad
 from fusion.estimate.tiltconsider import add_tilt_consider, level_kept_fraction, tilt_consider_sigma_rad
 from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
@@ -1104,10 +1105,12 @@ def _run_into(
     result.trajectories.update(loc.trajectories)
     stamp_variance = _floor_stamp_variance(result)
     if str(Estimator.PNP) in result.trajectories:
-        # the PnP poses as written: with the floor stamps' error (loc's, the back ends' input,
-        # without it: a common error no back end may average down; timeoffset.py)
-        result.trajectories[str(Estimator.PNP)] = add_stamp_covariance(
-            result.trajectories[str(Estimator.PNP)], stamp_variance
+        # the PnP poses as written: with the floor stamps' error and the mount's (loc's, the
+        # back ends' input, without them: common errors no back end may average down;
+        # timeoffset.py, mountconsider.py)
+        result.trajectories[str(Estimator.PNP)] = add_mount_consider(
+            add_stamp_covariance(result.trajectories[str(Estimator.PNP)], stamp_variance),
+            _floor_mount_covariance(log, result),
         )
         if loc.intrinsics_consider is not None:  # likewise (cornerbias.intrinsics_consider)
             result.trajectories[str(Estimator.PNP)] = loc.intrinsics_consider.add_to(
@@ -1568,6 +1571,7 @@ def _fuse_into_result(
         level_kept_fraction(loc.free_tilt_covariances, log.floor.camera.mount_sigmas[0]) if gimbaled else 0.0
     )
     tilt_sigma = tilt_consider_sigma_rad(FusionConfig().bias_prior_sigma_accel_m_s2, kept)
+    mount_covariance = _floor_mount_covariance(log, result)
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
@@ -1583,6 +1587,7 @@ def _fuse_into_result(
         # after the health: the stamps' error is common to the fixes and the estimate, so it
         # has no place in their innovation's covariance
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
+        res.trajectory = add_mount_consider(res.trajectory, mount_covariance)
         if loc.intrinsics_consider is not None:
             # the floor camera's intrinsics error: common to the fixes and the estimate alike
             # (cornerbias.intrinsics_consider)
@@ -1659,6 +1664,19 @@ def _floor_stamp_variance(result: RunResult) -> float:
     offsets = result.time_offsets
     floor = None if offsets is None else offsets.cameras.get(CameraRole.FLOOR.value)
     return 0.0 if floor is None else floor.stamp_variance_s2
+
+
+def _floor_mount_covariance(log: FlightLog, result: RunResult) -> np.ndarray:
+    """(6, 6) the body poses' covariance from the floor camera's mount rotation error
+    (fusion.estimate.mountconsider): the stated sigma per axis, the estimate's on the axes
+    --calibrate-extrinsics applied; zero without a floor camera, for a gimbaled one (its level
+    carries the mount: tiltconsider) and for a mount stated exact or not stated."""
+    if "cam0" not in log.cameras or log.floor.camera.gimbaled:
+        return np.zeros((6, 6))
+    mount = result.extrinsics
+    applied = list(mount.significant_axes) if mount is not None and mount.applied else []
+    sigma = mount_sigmas_rad(log.floor.camera, applied, None if mount is None else mount.sigma_rad)
+    return mount_consider_covariance(log.floor.camera.T_body_cam, sigma)
 
 
 def _run_without_cameras(

@@ -119,6 +119,48 @@ def test_camchain_round_trip(tmp_path):
     assert back["cam1"].timeshift_ns == 3_000_000 and back["cam0"].rostopic == "/a"
 
 
+def test_camchain_keeps_the_stated_mount_sigmas(tmp_path):
+    """A simulated flight states its mount exactly (T_BS_sigma 0 / 0); written as a video log's
+    camchain and read back it must still say so, not fall back to the 0.1 deg / 2 mm default
+    (the video flight's load maps read NEES 0.0 of 3 on it); unstated stays unstated."""
+    stated = CameraModel(
+        640,
+        480,
+        500.0,
+        500.0,
+        320.0,
+        240.0,
+        np.zeros(4),
+        make_T(R_BODY_FLOORCAM, [0, 0, -0.05]),
+        mount_sigma_deg=0.0,
+        mount_sigma_m=0.0,
+    )
+    unstated = CameraModel(640, 480, 400.0, 400.0, 320.0, 240.0, np.zeros(4), make_T(rot_z(0.3), [0.1, 0, 0]))
+    other = CameraModel(
+        640,
+        480,
+        400.0,
+        400.0,
+        320.0,
+        240.0,
+        np.zeros(4),
+        np.eye(4),
+        mount_sigma_deg=0.05,
+        mount_sigma_m=0.001,
+    )
+    path = tmp_path / "c.yaml"
+    write_camchain(path, {"cam0": stated, "cam1": unstated, "cam2": other}, {})
+    back = read_camchain(path)
+    assert back["cam0"].camera.mount_sigmas == (0.0, 0.0)
+    assert (back["cam1"].camera.mount_sigma_deg, back["cam1"].camera.mount_sigma_m) == (None, None)
+    assert (back["cam2"].camera.mount_sigma_deg, back["cam2"].camera.mount_sigma_m) == (0.05, 0.001)
+    data = yaml.safe_load(path.read_text())
+    data["cam0"]["T_BS_sigma_deg"] = 90.0  # a unit mistake is named, not taken
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(LogError, match=r"cam0: 'T_BS_sigma_deg' must be a number"):
+        read_camchain(path)
+
+
 def test_imu_yaml_both_layouts(tmp_path):
     noise = ImuNoise(1.1e-4, 2.2e-5, 3.3e-3, 4.4e-4)
     flat = tmp_path / "imu.yaml"

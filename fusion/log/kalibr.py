@@ -12,14 +12,17 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
       T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
       timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
       line_delay: 0.0                  # s per row, rolling shutter (optional; stamp = row 0)
+      T_BS_sigma_deg: 0.1              # ours, optional: how well T_cam_imu is known, 1 sigma per
+      T_BS_sigma_m: 0.002              #   axis (as in sensor.yaml; absent: 0.1 deg / 2 mm)
       rostopic: /cam0/image_raw
     cam1: ...
 
 Kalibr's cam0 is our floor camera, cam1 the front camera (CameraRole).  The body frame is the
 IMU frame rotated by `T_body_imu` (identity unless the IMU is mounted otherwise, e.g. PX4's FRD),
 so T_body_cam = T_body_imu * inv(T_cam_imu).  Extra keys we write (`mount`, `rate_hz`,
-`stamp_row` for a camera stamped at its middle row, `intrinsics_sigma` [fu, fv, cu, cv] px as
-Kalibr's results-cam.txt reports them after "+-") are ignored by Kalibr.
+`stamp_row` for a camera stamped at its middle row, `T_BS_sigma_deg` / `T_BS_sigma_m` when
+stated, `intrinsics_sigma` [fu, fv, cu, cv] px as Kalibr's results-cam.txt reports them after
+"+-") are ignored by Kalibr.
 
 imu.yaml: either Kalibr's input format (flat keys) or its output (`imu0:` block), keys
 accelerometer_noise_density, accelerometer_random_walk, gyroscope_noise_density,
@@ -34,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MAX_FOCAL_SIGMA_REL, MOUNTS, CameraModel, StampRow
+from fusion.camera import MAX_FOCAL_SIGMA_REL, MOUNTS, CameraModel, StampRow, stated_mount_sigmas
 from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
@@ -153,6 +156,10 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
                     f"{where}.intrinsics_sigma: must be 4 numbers from 0 to {limit:g} px, got "
                     f"{list(intr_sigma)} (a unit mistake?)"
                 )
+        try:
+            sigmas = stated_mount_sigmas(block, where)
+        except CameraModelError as e:
+            raise LogError(str(e)) from None
         cam = CameraModel(
             int(res[0]),
             int(res[1]),
@@ -165,6 +172,8 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             rate_hz=float(block.get("rate_hz", 30.0)),
             mount=mount,
             intrinsics_sigma_px=intr_sigma,
+            mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
+            mount_sigma_m=sigmas.get("T_BS_sigma_m"),
             **rs,
         )
         topic = block.get("rostopic")
@@ -201,6 +210,13 @@ def write_camchain(
             block["mount"] = cam.mount
         if cam.intrinsics_sigma_px is not None:
             block["intrinsics_sigma"] = [float(v) for v in cam.intrinsics_sigma_px]
+        # how well T_BS is known: written only when stated, as in sensor.yaml (without it the
+        # reader takes the default 0.1 deg / 2 mm, and a simulated video or bag's load maps read
+        # NEES 0.0 against the exact mount its sensor.yaml states)
+        if cam.mount_sigma_deg is not None:
+            block["T_BS_sigma_deg"] = float(cam.mount_sigma_deg)
+        if cam.mount_sigma_m is not None:
+            block["T_BS_sigma_m"] = float(cam.mount_sigma_m)
         if cam.rolling_shutter:
             block["line_delay"] = float(cam.line_delay_s)
             if cam.stamp_row != StampRow.FIRST:
