@@ -1143,6 +1143,9 @@ def _run_into(
             result.warnings.append(unsynced)
         timings["fuse_s"] = time.perf_counter() - t
     result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
+    imu_or_mount = _imu_scale_or_mount_note(result.extrinsics, fused_stats)
+    if imu_or_mount is not None:
+        result.notes.append(imu_or_mount)
     if log.front is not None:
         _add_load_consider(log, loc, result, places)
 
@@ -1656,6 +1659,23 @@ def _add_load_consider(
         for name in result.load_maps:
             if name != str(Estimator.SMOOTHER):
                 result.load_maps[name] = add_departure(result.load_maps[name], reference)
+
+
+def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> str | None:
+    """A note when the batch smoother scaled the stated IMU noise up while the floor camera's
+    mount check found a significant rotation it did not apply: a mount off by w tilts every fix
+    against the gravity the IMU sees, and the smoother reads that as IMU noise (`held18`, to6_ext:
+    an honest IMU scaled x2.89 by a 0.5 deg mount error).  None otherwise."""
+    report = (fused_stats.get(str(Estimator.SMOOTHER)) or {}).get("noise_scales") or {}
+    imu = report.get(str(variance.NoiseGroup.IMU))
+    if mount is None or not mount.significant or mount.applied or not isinstance(imu, dict):
+        return None
+    return (
+        f"the IMU's stated noise was scaled x{imu['sigma_factor']:.2f} for this flight, but the floor "
+        f"camera's mount is off ({', '.join(mount.significant_axes)}; extrinsic_rotation_bias): its "
+        "tilt against gravity reads as IMU noise. Calibrate the mount (--calibrate-extrinsics) "
+        "before changing imu0/sensor.yaml"
+    )
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

@@ -324,3 +324,20 @@ def test_mount_in_windows_on_every_third_frame():
     # a rate at or above the frames' keeps every frame: the every-frame solve itself
     same, _, _ = estimate_mount_windowed(t, imu, raw, None, FLOOR_CAM, window=windows, frame_rate_hz=30.0)
     np.testing.assert_array_equal(same.rotvec_rad, full.rotvec_rad)
+
+
+def test_an_imu_scale_beside_a_significant_mount_is_said_to_be_the_mounts():
+    """held18's to6_ext: a 0.5 deg mount error read as IMU noise (x2.89); the run says so when the
+    mount check found it and did not apply it, and says nothing otherwise."""
+    from fusion.estimate.extrinsics import MountRotation, MountSource
+    from fusion.pipeline import _imu_scale_or_mount_note
+
+    stats = {"smoother": {"noise_scales": {"imu": {"scale": 8.38, "sigma_factor": 2.89}, "imu_warning": True}}}
+    off = MountRotation("cam0", MountSource.ESTIMATED, significant_axes=["y", "z"])
+    note = _imu_scale_or_mount_note(off, stats)
+    assert note is not None and "x2.89" in note and "(y, z; extrinsic_rotation_bias)" in note
+    assert _imu_scale_or_mount_note(MountRotation("cam0", MountSource.ESTIMATED), stats) is None
+    applied = MountRotation("cam0", MountSource.ESTIMATED, significant_axes=["y"], applied=True)
+    assert _imu_scale_or_mount_note(applied, stats) is None
+    assert _imu_scale_or_mount_note(off, {"smoother": {"noise_scales": {}}}) is None
+    assert _imu_scale_or_mount_note(None, stats) is None
