@@ -1587,19 +1587,28 @@ def _fuse_into_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )
         judged[str(name)] = res.trajectory
-        # after the health: the stamps' error is common to the fixes and the estimate, so it
-        # has no place in their innovation's covariance
+    if gimbaled:
+        # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
+        # other (health.tilt_disagreement; the sweep's gimbaled flights, BENCHMARKS.md, sweep14)
+        for fused_name, reason in tilt_disagreement(judged).items():
+            health = result.health[fused_name]
+            health.reasons.append(reason)
+            if health.status == Status.OK:
+                health.status = Status.DEGRADED
+    del judged
+    # after the health and the tilt comparison, the errors common to the fixes and every
+    # estimate, which have no place in their innovations' covariances
+    for name, res in fused_stage.results.items():
         res.trajectory = add_stamp_covariance(res.trajectory, stamp_variance)
         res.trajectory = add_mount_consider(res.trajectory, mount_covariance)
         if loc.intrinsics_consider is not None:
-            # the floor camera's intrinsics error: common to the fixes and the estimate alike
-            # (cornerbias.intrinsics_consider)
+            # the floor camera's intrinsics error (cornerbias.intrinsics_consider), in place:
+            # these covariances are this result's own, no longer read as they were
             window = cornerbias.FUSED_CONSIDER_WINDOW_S
-            res.trajectory = loc.intrinsics_consider.add_to(res.trajectory, window)
+            res.trajectory = loc.intrinsics_consider.add_to(res.trajectory, window, in_place=True)
         if tilt_sigma > 0.0 and log.imu is not None:  # 0 unless gimbaled
             # level fixes from a camera whose level is not known exactly: the tilt to the
-            # levelling limit (tiltconsider.py); after the tilt comparison too, the back ends
-            # share the fixes whose error it covers
+            # levelling limit (tiltconsider.py); the back ends share the fixes whose error it covers
             res.trajectory = add_tilt_consider(res.trajectory, tilt_sigma)
             res.stats["tilt_consider_sigma_rad"] = tilt_sigma
             res.stats["level_kept_fraction"] = kept
@@ -1609,14 +1618,6 @@ def _fuse_into_result(
         if res.floor_codes is not None:
             result.floor_codes[str(name)] = res.floor_codes
         fused_stats[name] = res.stats
-    if gimbaled:
-        # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
-        # other (health.tilt_disagreement; the sweep's gimbaled flights, BENCHMARKS.md, sweep14)
-        for fused_name, reason in tilt_disagreement(judged).items():
-            health = result.health[fused_name]
-            health.reasons.append(reason)
-            if health.status == Status.OK:
-                health.status = Status.DEGRADED
     return fused_stats
 
 
