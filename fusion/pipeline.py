@@ -1112,10 +1112,6 @@ def _run_into(
             add_stamp_covariance(result.trajectories[str(Estimator.PNP)], stamp_variance),
             _floor_mount_covariance(log, result),
         )
-        if loc.intrinsics_consider is not None:  # likewise (cornerbias.intrinsics_consider)
-            result.trajectories[str(Estimator.PNP)] = loc.intrinsics_consider.add_to(
-                result.trajectories[str(Estimator.PNP)]
-            )
     result.load_maps.update(loc.load_maps)
     places = loads_at_two_places(loc.load_observations.get(str(Estimator.PNP), []))
     if places:
@@ -1142,6 +1138,13 @@ def _run_into(
         if unsynced is not None:
             result.warnings.append(unsynced)
         timings["fuse_s"] = time.perf_counter() - t
+    pnp_out = result.trajectories.get(str(Estimator.PNP))
+    if loc.intrinsics_consider is not None and pnp_out is not None:
+        # the PnP poses as written, with the floor camera's intrinsics error
+        # (cornerbias.intrinsics_consider); now, not with the stamps' above: in place, once no
+        # back end reads these covariances (a copy kept beside the back ends' input had raised
+        # fusion batch's report worker on the 30-minute flight 949 -> 965 MiB)
+        result.trajectories[str(Estimator.PNP)] = loc.intrinsics_consider.add_to(pnp_out, in_place=True)
     result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
     imu_or_mount = _imu_scale_or_mount_note(result.extrinsics, fused_stats)
     if imu_or_mount is not None:
