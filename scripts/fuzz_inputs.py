@@ -253,6 +253,21 @@ def _world_load_sigma_mm(d: Path) -> None:
     (d / "world.yaml").write_text(yaml.safe_dump(data))
 
 
+def _sensor_intrinsics_sigma_relative(d: Path) -> None:
+    """The intrinsics' sigma given as a fraction of the focal length for fu (0.002) but in px
+    for the rest, and one of them negative: -1 px."""
+    p = d / "mav0/cam0/sensor.yaml"
+    lines = [line for line in _lines(p) if not line.startswith("intrinsics_sigma:")]
+    _set_lines(p, [*lines, "intrinsics_sigma: [0.002, 0.002, 1.0, -1.0]\n"])
+
+
+def _sensor_intrinsics_sigma_three(d: Path) -> None:
+    """The intrinsics' sigma with three numbers (the principal point's given once)."""
+    p = d / "mav0/cam0/sensor.yaml"
+    lines = [line for line in _lines(p) if not line.startswith("intrinsics_sigma:")]
+    _set_lines(p, [*lines, "intrinsics_sigma: [1.1, 1.1, 1.0]\n"])
+
+
 def _sensor_mount_sigma_mm(d: Path) -> None:
     """The front camera's mount sigma given in mm (2 meaning 2 mm): 2 m."""
     p = d / "mav0/cam1/sensor.yaml"
@@ -329,6 +344,14 @@ CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "world_side_zero": ("world.yaml floor side 0", _world_side_zero),
     "world_load_sigma_mm": ("world.yaml load_qr.side_sigma_m 0.3 (mm meant)", _world_load_sigma_mm),
     "sensor_mount_sigma_mm": ("cam1/sensor.yaml T_BS_sigma_m 2 (mm meant)", _sensor_mount_sigma_mm),
+    "sensor_intrinsics_sigma_negative": (
+        "cam0/sensor.yaml intrinsics_sigma with a negative entry",
+        _sensor_intrinsics_sigma_relative,
+    ),
+    "sensor_intrinsics_sigma_three": (
+        "cam0/sensor.yaml intrinsics_sigma of 3 numbers",
+        _sensor_intrinsics_sigma_three,
+    ),
     "groundtruth_short_row": ("ground truth: a row of 3 fields", _groundtruth_short_row),
     "groundtruth_other_frame": ("ground truth 100 m off in x", _groundtruth_other_frame),
     "loads_text": ("loads_groundtruth.csv: a coordinate 'abc'", _loads_text),
