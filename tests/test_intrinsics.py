@@ -173,3 +173,16 @@ def test_a_misstated_focal_length_is_in_every_outputs_covariance(miscalibrated):
     said = [n for n in miscalibrated["default"]["notes"] if "intrinsics_sigma" in n]
     assert len(said) == 1 and said[0].startswith("cam0: ") and "0.2 %" in said[0]
     assert not [n for n in miscalibrated["stated_exact"]["notes"] if "intrinsics_sigma" in n]
+
+
+def test_inspect_says_how_well_each_camera_is_known():
+    """`fusion inspect` lists each camera's intrinsics and mount sigma, stated or assumed."""
+    from fusion.log.inspect import calibration_line
+
+    line = calibration_line("cam0", FLOOR_CAM)
+    assert "fu 1.2 fv 1.2 cu 1 cv 1 px (assumed: not in sensor.yaml)" in line
+    assert "mount sigma not stated (the run's mount check measures it)" in line
+    stated = dataclasses.replace(FRONT_CAM, intrinsics_sigma_px=(0.5, 0.5, 0.3, 0.3))
+    line = calibration_line("cam1", stated)
+    assert "fu 0.5 fv 0.5 cu 0.3 cv 0.3 px (stated)" in line
+    assert "mount sigma 0.1 deg, 2 mm (assumed: not in sensor.yaml)" in line

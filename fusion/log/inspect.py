@@ -4,11 +4,13 @@ the IMU's units look like rad/s and m/s^2."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import LogError
 from fusion.log.options import LogFormat, LogOptions, StampSource
@@ -53,6 +55,7 @@ class LogReport:
     roles: dict[str, str] = field(default_factory=dict)  # role -> stream
     imu_units: str = ""
     problems: list[str] = field(default_factory=list)
+    calibration: list[str] = field(default_factory=list)  # per camera: how well it is known
 
     def format_text(self) -> str:
         bag = self.format in (LogFormat.ROSBAG1, LogFormat.ROSBAG2)
@@ -74,9 +77,27 @@ class LogReport:
             lines.append(f"{ROLE_NAMES[role]:<13}: {self.roles.get(role, '(none)')}")
         if self.imu_units:
             lines.append(f"IMU units    : {self.imu_units}")
+        lines += self.calibration
         for p in self.problems:
             lines.append(f"problem: {p}")
         return "\n".join(lines)
+
+
+def calibration_line(name: str, camera: CameraModel) -> str:
+    """How well a camera's calibration is known, as the run will take it: its intrinsics' and
+    mount's 1-sigma, stated in sensor.yaml (or the camchain) or assumed (the defaults)."""
+    fu, fv, cu, cv = camera.intrinsics_sigmas
+    intr = "stated" if camera.intrinsics_sigma_px is not None else "assumed: not in sensor.yaml"
+    deg, m = camera.mount_sigmas
+    if camera.mount_sigma_deg is not None or camera.mount_sigma_m is not None:
+        mount = f"mount sigma {math.degrees(deg):.3g} deg, {1000 * m:.3g} mm (stated)"
+    elif name == CameraRole.FLOOR.value and not camera.gimbaled:
+        # an unstated floor mount adds nothing to the poses: the run's mount check measures it
+        mount = "mount sigma not stated (the run's mount check measures it)"
+    else:
+        mount = f"mount sigma {math.degrees(deg):.3g} deg, {1000 * m:.3g} mm (assumed: not in sensor.yaml)"
+    px = f"fu {fu:.3g} fv {fv:.3g} cu {cu:.3g} cv {cv:.3g} px"
+    return f"{name} calib  : intrinsics sigma {px} ({intr}); {mount}"
 
 
 def time_stats(name: str, msgtype: str, t_ns, role: str = "") -> StreamStats:
@@ -145,6 +166,7 @@ def _inspect_flight(path: Path, opts: LogOptions, report: LogReport) -> None:
         kind = type(cam).__name__.replace("CameraStream", "").lower() or "images"
         report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns, ROLE_NAMES[name]))
         report.roles[name] = name
+        report.calibration.append(calibration_line(name, cam.camera))
     if flight.imu is not None:
         report.streams.append(time_stats("imu0", "imu", flight.imu.timestamps_ns, "IMU"))
         report.roles["imu0"] = "imu0"
