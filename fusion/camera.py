@@ -320,15 +320,7 @@ class CameraModel:
             )
         sigmas = stated_mount_sigmas(data, source)
         fu, fv, cu, cv = intr
-        intr_sigma = None
-        if data.get("intrinsics_sigma") is not None:
-            intr_sigma = _floats(data["intrinsics_sigma"], 4, "intrinsics_sigma", source)
-            limit = MAX_FOCAL_SIGMA_REL * min(fu, fv)
-            if not all(math.isfinite(v) and 0 <= v <= limit for v in intr_sigma):
-                raise CameraModelError(
-                    f"{source}: 'intrinsics_sigma' must be 4 numbers from 0 to {limit:g} px "
-                    f"({MAX_FOCAL_SIGMA_REL:g} of the focal length), got {intr_sigma} (a unit mistake?)"
-                )
+        intr_sigma = stated_intrinsics_sigma(data.get("intrinsics_sigma"), fu, fv, source)
         return cls(
             int(res[0]),
             int(res[1]),
@@ -344,7 +336,7 @@ class CameraModel:
             stamp_row=StampRow(stamp_row),
             mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
             mount_sigma_m=sigmas.get("T_BS_sigma_m"),
-            intrinsics_sigma_px=None if intr_sigma is None else tuple(intr_sigma),
+            intrinsics_sigma_px=intr_sigma,
         )
 
     @classmethod
@@ -371,6 +363,24 @@ def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:
             )
         sigmas[key] = float(v)
     return sigmas
+
+
+def stated_intrinsics_sigma(
+    value, fu: float, fv: float, source: str, key: str = "intrinsics_sigma"
+) -> tuple[float, ...] | None:
+    """The intrinsics' stated 1-sigma [fu, fv, cu, cv] px from `value` (a sensor.yaml's or Kalibr
+    camchain block's `key`; None when absent); raises CameraModelError naming `source` and `key`
+    unless it is 4 numbers from 0 to MAX_FOCAL_SIGMA_REL of the focal length."""
+    if value is None:
+        return None
+    sigma = _floats(value, 4, key, source)
+    limit = MAX_FOCAL_SIGMA_REL * min(fu, fv)
+    if not all(0 <= v <= limit for v in sigma):
+        raise CameraModelError(
+            f"{source}: '{key}' must be 4 numbers from 0 to {limit:g} px "
+            f"({MAX_FOCAL_SIGMA_REL:g} of the focal length), got {sigma} (a unit mistake?)"
+        )
+    return tuple(sigma)
 
 
 def _floats(value, n: int, key: str, source: str, error=CameraModelError) -> list[float]:

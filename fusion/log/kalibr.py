@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MAX_FOCAL_SIGMA_REL, MOUNTS, CameraModel, StampRow, stated_mount_sigmas
+from fusion.camera import MOUNTS, CameraModel, StampRow, stated_intrinsics_sigma, stated_mount_sigmas
 from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
@@ -147,17 +147,11 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             CameraModel(int(res[0]), int(res[1]), 1.0, 1.0, 0.0, 0.0, **rs)
         except CameraModelError as e:
             raise LogError(f"{where}.line_delay/stamp_row: {e}") from None
-        intr_sigma = None
-        if block.get("intrinsics_sigma") is not None:
-            intr_sigma = tuple(_numbers(block["intrinsics_sigma"], 4, f"{where}.intrinsics_sigma"))
-            limit = MAX_FOCAL_SIGMA_REL * min(fu, fv)
-            if not all(0 <= v <= limit for v in intr_sigma):
-                raise LogError(
-                    f"{where}.intrinsics_sigma: must be 4 numbers from 0 to {limit:g} px, got "
-                    f"{list(intr_sigma)} (a unit mistake?)"
-                )
         try:
             sigmas = stated_mount_sigmas(block, where)
+            intr_sigma = stated_intrinsics_sigma(
+                block.get("intrinsics_sigma"), fu, fv, str(path), f"{key}.intrinsics_sigma"
+            )
         except CameraModelError as e:
             raise LogError(str(e)) from None
         cam = CameraModel(
