@@ -227,36 +227,26 @@ class BiasConsider:
         within window_s of each stamp (the nearest one where there is none): a fused pose is a
         weighted mean of the fixes around it, so its share of the common error spans their
         sensitivities, not one frame's (whose S Cov(b) S^T has rank p < 6)."""
-        t = np.asarray(timestamps_ns, dtype=np.int64)
-        if window_s <= 0.0:
-            S = self.sensitivities[nearest_frames(self.timestamps_ns, t)]
-            return np.einsum("nip,pq,njq->nij", S, self.covariance_px2, S)
-        out = np.zeros((len(t), 6, 6))
-        self._add_windowed(out, t, window_s)
+        out = np.zeros((len(timestamps_ns), 6, 6))
+        self._add_windowed(out, np.asarray(timestamps_ns, dtype=np.int64), window_s)
         return out
 
     def add_to(self, traj: Trajectory, window_s: float = 0.0, in_place: bool = False) -> Trajectory:
         """`traj` with the consider covariances added (unchanged without covariances).
-        `in_place` (with `window_s` > 0): into traj's own covariance array, which the caller
-        owns: a 30-minute flight's fused covariances are 15 MB, whose copy beside the original
-        had raised `fusion batch`'s report worker by as much (949 -> 964 MiB)."""
+        `in_place`: into traj's own covariance array, which the caller owns: a 30-minute flight's
+        fused covariances are 15 MB, whose copy beside the original had raised `fusion batch`'s
+        report worker by as much (949 -> 964 MiB)."""
         if traj.covariances is None or not len(traj):
             return traj
-        t = np.asarray(traj.timestamps_ns, dtype=np.int64)
         own = (
             in_place
             and isinstance(traj.covariances, np.ndarray)
             and traj.covariances.dtype == float
             and traj.covariances.flags.writeable
         )
-        if window_s <= 0.0 and not own:
-            covs = traj.covariances + self.covariances(t)
-        else:
-            covs = traj.covariances if own else np.array(traj.covariances, dtype=float)
-            self._add_windowed(covs, t, window_s)
-            if own:
-                return traj
-        return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
+        covs = traj.covariances if own else np.array(traj.covariances, dtype=float)
+        self._add_windowed(covs, np.asarray(traj.timestamps_ns, dtype=np.int64), window_s)
+        return traj if own else Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
     def _add_windowed(self, out: np.ndarray, t: np.ndarray, window_s: float, block: int = 4096) -> None:
         """`covariances(t, window_s)` added into `out` (m, 6, 6) (window_s 0: the nearest frame's),

@@ -97,7 +97,8 @@ class FrameBiasTerms:
     perturbation [rx, ry, rz, tx, ty, tz], per unit of bias (first order: xi_est = xi_true + S b).
     Stored: `params` (q,), `normal_q` (q, q), `rhs_q` (q,), `sensitivity_q` (6, q).
     `intrinsics_sensitivity` (6, 4) float32: the PnP pose's error per px of error in the stated
-    [fu, fv, cu, cv] (xi_est = xi_true + S_K (stated - true)), `intrinsics_sensitivities`."""
+    [fu, fv, cu, cv] (xi_est = xi_true + S_K (stated - true)); None when the camera states its
+    intrinsics exact."""
 
     params: np.ndarray
     normal_q: np.ndarray
@@ -218,9 +219,12 @@ def frames_bias_and_residuals(
     np.add.at(Atr, (frame_of, bins), np.einsum("nij,ni->nj", Pw, rw))
     JtA = np.moveaxis(JtA_bins, 2, 1).reshape(F, 6, p)  # columns: bin 0's k, bin 1's k, ...
     # the intrinsics (every corner's, decoder fallbacks too): a stated value off by d moves the
-    # predicted corners by D d, so the pose by -(J^T J)^-1 J^T D d
+    # predicted corners by D d, so the pose by -(J^T J)^-1 J^T D d; not for intrinsics stated
+    # exact, whose consider term is none (cornerbias.intrinsics_consider)
+    with_intrinsics = bool(np.any(camera.intrinsics_sigmas > 0.0))
     JtD = np.zeros((F, 6, len(INTRINSICS)))
-    np.add.at(JtD, frame_of, np.swapaxes(Jw, 1, 2) @ (W @ intrinsics_patterns(camera, uv)))
+    if with_intrinsics:
+        np.add.at(JtD, frame_of, np.swapaxes(Jw, 1, 2) @ (W @ intrinsics_patterns(camera, uv)))
     if camera.gimbaled:
         # the pose is the level frame, conditioned on its roll = pitch = 0 (floor.condition_on_level):
         # the gimbal's attitude as information on [rx, ry], or, known exactly, those two fixed
@@ -242,13 +246,17 @@ def frames_bias_and_residuals(
     if not ok.any():
         return out, residuals
     S = np.linalg.solve(H[ok], JtA[ok])  # (m, 6, p) = H^-1 J^T A
-    S_K = -np.linalg.solve(H[ok], JtD[ok]).astype(np.float32)  # (m, 6, 4)
+    S_K = (
+        -np.linalg.solve(H[ok], JtD[ok]).astype(np.float32)  # (m, 6, 4)
+        if with_intrinsics
+        else [None] * int(ok.sum())
+    )
     N = AtA_full[ok] - np.swapaxes(JtA[ok], 1, 2) @ S  # A^T M A
     y = Atr.reshape(F, p)[ok] - np.einsum("mip,mi->mp", S, Jtr[ok])  # A^T M r
     has_bin = np.zeros((F, N_BINS), dtype=bool)
     has_bin[frame_of, bins] = True
     for f, S_f, N_f, y_f, K_f in zip(np.flatnonzero(ok), S, N, y, S_K):
-        if np.all(np.isfinite(S_f)) and np.all(np.isfinite(K_f)):
+        if np.all(np.isfinite(S_f)) and (K_f is None or np.all(np.isfinite(K_f))):
             # the bins without codes have zero columns in A, hence in S, N and y: left out
             q = (k * np.flatnonzero(has_bin[f])[:, None] + np.arange(k)).ravel()
             out[f] = FrameBiasTerms(q, N_f[np.ix_(q, q)], y_f[q], S_f[:, q], K_f)
