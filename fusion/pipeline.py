@@ -505,13 +505,23 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     # a corner class with too few degrees of freedom for its own factor whose residuals are
     # nonetheless far beyond its model (variance.thin_class_warnings): said in the summary
     notes += stats["pnp"]["noise_scale"].get("thin_class_warnings", [])
-    # a corner bias common to the flight (issue 10.3): removed when significant
+    # a corner bias common to the flight (issue 10.3): removed when significant, but not with
+    # the floor codes' placement uncertain: a common dilation then trades with the codes'
+    # spacing, and its estimate is off by several of its sigma (exact codes, 0.15 px noise:
+    # +0.03-0.05 px against sigma 0.015; BENCHMARKS.md, eighteenth session)
+    placement = next((p["pnp_stats"].placement for p in parts if p["pnp_stats"].placement is not None), None)
     traj_pnp, bias_report, consider = cornerbias.correct_pnp_trajectory(
         traj_pnp,
         [b for p in parts for b in p["pnp_stats"].frame_bias],
         float(stats["pnp"]["noise_scale"].get("scale", math.nan)),
-        cfg.estimate_noise_scale and cfg.correct_corner_bias,
+        cfg.estimate_noise_scale and cfg.correct_corner_bias and placement is None,
     )
+    if placement is not None and bias_report is not None and cfg.correct_corner_bias:
+        notes.append(
+            f"floor-corner bias not removed: with the floor codes laid to {100 * placement.sigma_m:.1f} cm / "
+            f"{math.degrees(placement.sigma_rad):.1f} deg (world.yaml), a common corner dilation cannot be "
+            "told from the codes' spacing"
+        )
     if bias_report is not None:
         stats["pnp"]["corner_bias"] = bias_report
     # corner errors correlated in time (issue 10.3): the back ends' inputs count them as fewer
@@ -528,6 +538,9 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
         # correlated error inflated (it was 1-5 % of their residuals on the sweep14 flights,
         # whose refined residuals kept rho ~0.1 to lag 19: BENCHMARKS.md, corr15)
         common_sum_sq={"refined": consider.residual_sum_sq} if consider is not None else None,
+        # floor codes laid off their payloads (world.yaml's placement sigma): every frame seeing
+        # the same code carries the same error
+        placement_covariances=[g for p in parts for g in p["pnp_stats"].frame_placement_covariance],
     )
     trajectories["pnp"] = traj_pnp
     free_tilt = [c for p in parts for c in p["pnp_stats"].frame_free_tilt_covariance]

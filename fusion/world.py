@@ -15,6 +15,7 @@ them to `loads_groundtruth.csv`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +49,12 @@ A simulated flight states 0 (its codes are exact)."""
 CODE_SIDE_RANGE_M = (0.01, 2.0)
 """Printed QR codes from a 1 cm label to a 2 m floor tile: a side outside this range in world.yaml
 is a unit mistake (cm or mm for m), not a code: every metric output would scale with it."""
+
+
+DEFAULT_PLACEMENT_SIGMA_M = 0.01
+"""world.yaml's `placement_sigma_m` when absent: codes stuck down by hand, 1 cm per axis."""
+DEFAULT_PLACEMENT_SIGMA_DEG = 1.0
+"""world.yaml's `placement_sigma_deg` when absent."""
 
 
 UNCERTAINTY_KEYS = frozenset(
@@ -268,3 +275,28 @@ class Layout:
         """(N, 3) world positions of the floor codes' centres."""
         xy = np.asarray(self.floor_codes_xy, dtype=float) * self.world.payload_unit_m
         return np.column_stack([xy, np.zeros(len(xy))])
+
+
+@dataclass(frozen=True)
+class Placement:
+    """How far floor codes may lie from their payload's pose (1 sigma per axis: x and y in m, yaw
+    in rad): world.yaml's floor_qr.placement_sigma_m / _deg, the defaults where it says nothing.
+    Used by the batch smoother's as-built codes (fusion.estimate.asbuilt) and by PnP's corner
+    whitening (fusion.qr.pnp.whitening.floor_whitening)."""
+
+    sigma_m: float = DEFAULT_PLACEMENT_SIGMA_M
+    sigma_rad: float = math.radians(DEFAULT_PLACEMENT_SIGMA_DEG)
+
+    @property
+    def enabled(self) -> bool:
+        """0 m and 0 deg: the payloads are exact (today's model)."""
+        return self.sigma_m > 0 or self.sigma_rad > 0
+
+    @classmethod
+    def from_world(cls, world: World) -> Placement:
+        sm = getattr(world, "placement_sigma_m", None)
+        sd = getattr(world, "placement_sigma_deg", None)
+        return cls(
+            DEFAULT_PLACEMENT_SIGMA_M if sm is None else float(sm),
+            math.radians(DEFAULT_PLACEMENT_SIGMA_DEG if sd is None else float(sd)),
+        )

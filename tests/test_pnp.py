@@ -55,6 +55,9 @@ WORLD = World(
     load_side_m=0.15,
     bounds_x_m=(-10.0, 10.0),
     bounds_y_m=(-10.0, 10.0),
+    # the codes these tests draw lie exactly on their payloads (tests/test_placement.py: not)
+    placement_sigma_m=0.0,
+    placement_sigma_deg=0.0,
 )
 DIST = [-0.12, 0.03, 0.0008, -0.0005]
 FLOOR_CAM = CameraModel(
@@ -568,6 +571,8 @@ RENDER_WORLD = World(
     load_side_m=0.30,
     bounds_x_m=(-10.0, 10.0),
     bounds_y_m=(-10.0, 10.0),
+    placement_sigma_m=0.0,
+    placement_sigma_deg=0.0,
 )
 
 

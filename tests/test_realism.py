@@ -215,7 +215,7 @@ def pnp_frames(sigma_true_px: float, seed: int, n_frames: int = 60):
 @pytest.mark.parametrize("factor", [1.0, 2.0])
 def test_pnp_chi2_recovers_the_corner_noise_scale(factor):
     frames, cam = pnp_frames(0.15 * factor, seed=3)
-    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0))
+    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0), 0.0, 0.0)  # laid exactly
     traj, stats = pnp_trajectory(frames, cam, world)
     assert stats.n_posed > 40 and len(stats.frame_chi2) == stats.n_posed
     scaled, report = vc.scale_pnp_trajectory(traj, [stats])
@@ -242,7 +242,7 @@ def test_pnp_noise_scales_per_corner_class_recover_each_class_and_its_nees():
             noisy = s.detection.corners_px + rng.normal(0.0, sigma_true, (4, 2))
             dets.append(dataclasses.replace(s.detection, corners_px=noisy, corner_sigma_px=sigma_claimed))
         frames[ts] = dets
-    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0))
+    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0), 0.0, 0.0)  # laid exactly
     traj, stats = pnp_trajectory(frames, cam, world)
     assert stats.n_posed == 120
     # the class pieces add up to the frame's chi2, dof and covariance
@@ -295,7 +295,7 @@ def _two_class_frames(seed: int, refined_every: int, sigma_refined: tuple[float,
             noisy = s.detection.corners_px + rng.normal(0.0, sigma_true, (4, 2))
             dets.append(dataclasses.replace(s.detection, corners_px=noisy, corner_sigma_px=sigma_claimed))
         frames[ts] = dets
-    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0))
+    world = World(0.12, 1.0, 0.15, (-20.0, 20.0), (-20.0, 20.0), 0.0, 0.0)  # laid exactly
     traj, stats = pnp_trajectory(frames, cam, world)
     truth = dict(zip(fl.frame_t.tolist(), fl.T_true))
     return traj, stats, np.array([truth[int(t)] for t in traj.timestamps_ns])
@@ -385,7 +385,9 @@ def test_the_imu_keeps_its_stated_noise_inside_the_band_and_is_scaled_above_it()
     assert vc.scaled_imu(fl.imu, 1.0) is fl.imu and vc.scaled_imu(None, 4.0) is None
     scaled = vc.scaled_imu(fl.imu, 4.0)
     assert scaled.gyro_rad_s is fl.imu.gyro_rad_s
-    assert scaled.noise.accelerometer_random_walk == pytest.approx(2.0 * fl.imu.noise.accelerometer_random_walk)
+    assert scaled.noise.accelerometer_random_walk == pytest.approx(
+        2.0 * fl.imu.noise.accelerometer_random_walk
+    )
 
 
 def test_an_imu_noisier_than_stated_is_scaled_and_the_fused_poses_stay_honest():

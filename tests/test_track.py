@@ -141,7 +141,7 @@ def _track_flight_fixture(n: int = 14, blurred=range(3, 11), seed: int = 3, occl
     from tests.test_restamp import _strip
 
     camera = CameraModel(640, 480, 520.0, 520.0, 320.0, 240.0, T_body_cam=make_T(R_DOWN, np.zeros(3)))
-    world = World(0.20, 0.5, 0.15)  # codes 0.5 m apart: two in view
+    world = World(0.20, 0.5, 0.15, placement_sigma_m=0.0, placement_sigma_deg=0.0)  # 0.5 m apart: two in view
     codes = placed_floor_codes(np.array([[0, 0], [1, 0], [0, 1], [1, 1]]), 0.5, 0.20, ecc)
     rng = np.random.default_rng(seed)
     images, stamps, truths = [], [], []

@@ -53,7 +53,7 @@ from fusion.geometry import adjoint, inv_T, make_T, rot_z, se3_exp, se3_log, wra
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp import estimate_floor_poses
 from fusion.types import Trajectory
-from fusion.world import World
+from fusion.world import DEFAULT_PLACEMENT_SIGMA_DEG, DEFAULT_PLACEMENT_SIGMA_M, Placement, World
 
 __all__ = [
     "DEFAULT_PLACEMENT_SIGMA_DEG",
@@ -77,10 +77,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PLACEMENT_SIGMA_M = 0.01
-"""world.yaml's `placement_sigma_m` when absent: codes stuck down by hand, 1 cm per axis."""
-DEFAULT_PLACEMENT_SIGMA_DEG = 1.0
-"""world.yaml's `placement_sigma_deg` when absent."""
 FLOOR_Z_SIGMA_M = 1e-4
 """Prior sigma of a floor code's height (it lies on the floor, z = 0)."""
 FLOOR_TILT_SIGMA_RAD = 1e-4
@@ -119,28 +115,6 @@ class AsBuiltError(FusionError):
 
 
 # =========================================================================== inputs
-
-
-@dataclass(frozen=True)
-class Placement:
-    """How far floor codes may lie from their payload's pose (1 sigma per axis)."""
-
-    sigma_m: float = DEFAULT_PLACEMENT_SIGMA_M
-    sigma_rad: float = math.radians(DEFAULT_PLACEMENT_SIGMA_DEG)
-
-    @property
-    def enabled(self) -> bool:
-        """0 m and 0 deg: the payloads are exact (today's model)."""
-        return self.sigma_m > 0 or self.sigma_rad > 0
-
-    @classmethod
-    def from_world(cls, world: World) -> Placement:
-        sm = getattr(world, "placement_sigma_m", None)
-        sd = getattr(world, "placement_sigma_deg", None)
-        return cls(
-            DEFAULT_PLACEMENT_SIGMA_M if sm is None else float(sm),
-            math.radians(DEFAULT_PLACEMENT_SIGMA_DEG if sd is None else float(sd)),
-        )
 
 
 def code_prior_cov(sigma_m: float, sigma_rad: float) -> np.ndarray:

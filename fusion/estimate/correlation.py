@@ -63,6 +63,13 @@ MIN_PAIRS = 20
 """Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
 _TRIU = np.triu_indices(6)
 """The upper triangle of a 6 x 6 (rows, columns): CorrelationInflation's packed terms."""
+PLACEMENT_MAX_LAG = 3000
+"""Most frame lags of the floor codes' placement correlation (`placement_autocorrelation`):
+100 s at 30 fps; the sum stops earlier, where no code is seen again."""
+PLACEMENT_MIN_RHO = 1e-3
+"""`placement_autocorrelation` stops at the first lag whose correlation is below this."""
+PLACEMENT = len(CORNER_CLASSES)
+"""Index of the floor codes' placement in CorrelationInflation's classes, after the corner classes."""
 DIRECTIONAL_BLOCK_ROWS = 4096
 """Frames per block of `CorrelationInflation.directional` (each frame's inflation is its own:
 the result is the same for any block size; a block's temporaries are ~17 MB)."""
@@ -140,6 +147,42 @@ def class_autocorrelation(
         rho = np.where(pairs > 0, rho, np.nan)
         out[name] = (rho, pairs, n, len(np.unique(code[sel])))
     return out
+
+
+def placement_autocorrelation(
+    frame_index: np.ndarray, frames: Sequence[FrameCodeResiduals | None], max_lag: int = PLACEMENT_MAX_LAG
+) -> np.ndarray:
+    """rho_p (L,) at lags 1..L of the floor codes' placement error in the PnP poses (frame_index
+    (n,) of the n `frames`, their codes' payloads): a code laid off its payload moves every pose
+    that sees it by the same amount, so the share of a frame's placement error still present l
+    frames later is the share of its codes seen again then (codes weighed equally), averaged
+    over the frames with a posed frame l later.  Not estimated from residuals (a single code's
+    frame absorbs its placement whole): from which codes each frame saw.  Stops at the first lag
+    below PLACEMENT_MIN_RHO or at `max_lag`."""
+    kept = [(int(f), fr) for f, fr in zip(frame_index, frames) if fr is not None and len(fr.payloads)]
+    if not kept:
+        return np.zeros(0)
+    names: dict[str, int] = {}
+    code = np.array([names.setdefault(p, len(names)) for _, fr in kept for p in fr.payloads], dtype=np.int64)
+    frame = np.repeat(np.array([f for f, _ in kept], dtype=np.int64), [len(fr.payloads) for _, fr in kept])
+    weight = np.repeat([1.0 / len(fr.payloads) for _, fr in kept], [len(fr.payloads) for _, fr in kept])
+    span = int(frame.max() - frame.min()) + max_lag + 1
+    key = code * span + (frame - frame.min())
+    order = np.argsort(key, kind="stable")
+    key, frame, weight = key[order], frame[order], weight[order]
+    posed = np.unique(frame)
+    rho: list[float] = []
+    for lag in range(1, max_lag + 1):
+        later = np.isin(frame + lag, posed)  # the sighting's frame has a posed frame lag later
+        if not later.any():
+            break
+        j = np.minimum(np.searchsorted(key, key + lag), len(key) - 1)
+        again = later & (key[j] == key + lag)
+        r = float(np.sum(weight[again]) / np.sum(weight[later]))
+        if r < PLACEMENT_MIN_RHO:
+            break
+        rho.append(r)
+    return np.array(rho)
 
 
 def monotone_sequence(rho: np.ndarray, pairs: np.ndarray, z: float = Z_GATE) -> np.ndarray:
@@ -308,7 +351,12 @@ class CorrelationInflation:
         w_i = a^i, i >= 0): c(l) = a^l, n_eff = (1 + a) / (1 - a).  Two-sided (a smoother:
         w_i = a^|i|): c(l) = a^l (2 + (l - 1)(1 - a^2)) / (1 + a^2), n_eff = (1 + a)^3 /
         ((1 - a)(1 + a^2)).  Tends to the flight's tau as n_eff grows; 1 at n_eff = 1.
-        Returns (m, k, d)."""
+        The floor codes' placement (class PLACEMENT) takes its tau_p at any n_eff: the error is
+        the same in every frame of a code's run, and a back end's average does not decay over
+        frames as the weights above assume (its IMU carries the run's earlier frames), so each
+        run is counted as one placement error (place60, 60 s, codes 1 cm / 0.5 deg off:
+        incremental / EKF NEES 13.7 / 9.5 with the weighted average, 6.2 / 5.1 so;
+        BENCHMARKS.md, eighteenth session).  Returns (m, k, d)."""
         n = np.clip(np.nan_to_num(np.asarray(n_eff, dtype=float), nan=1.0), 1.0, 1e12)
         if two_sided:
             grid = np.linspace(0.0, 1.0 - 1e-6, 20001)
@@ -318,6 +366,9 @@ class CorrelationInflation:
             a = (n - 1.0) / (n + 1.0)
         out = np.ones((n.shape[0], len(self.taus), n.shape[1]))
         for c, used in enumerate(self.lags_used):
+            if c == PLACEMENT:  # each code's placement counts once, whatever the average
+                out[:, c, :] = self.taus[c]
+                continue
             for lag in range(1, int(used) + 1):
                 if two_sided:
                     w = a**lag * (2.0 + (lag - 1) * (1.0 - a**2)) / (1.0 + a**2)
@@ -621,6 +672,7 @@ def estimate_inflation(
     apply: bool = True,
     exclude: dict[str, str] | None = None,
     common_sum_sq: dict[str, float] | None = None,
+    placement_covariances: Sequence[np.ndarray] | None = None,
 ) -> tuple[dict, CorrelationInflation | None]:
     """Per corner class tau_c of the flight's PnP frames (`traj`, one pose per entry of `frames`
     and of `class_covariances` (k, 6, 6) G_c, in order), and the back ends' inflation when
@@ -632,9 +684,19 @@ def estimate_inflation(
     term carries it.  A common error correlates the residuals at every lag by its share q of the
     class's sum of squares, so q is taken off every lag's rho before the sum (the inflation
     (tau - 1) s_c G_c is then 2 sum (rho - q) of the class's variance: that of the rest of the
-    error, not counted twice); reported as `common_share`.  Returns the JSON-ready report (per
+    error, not counted twice); reported as `common_share`.
+    `placement_covariances` (one (k, 6, 6) per frame, PnPResult.placement_covariance; None or
+    empty when the floor codes are laid exactly): the part of each G_c that the codes' placement
+    explains, common to the frames that see the same codes: it is taken out of the classes'
+    terms and inflated on its own, as class PLACEMENT, by tau_p = 1 + 2 sum rho_p
+    (`placement_autocorrelation`; reported as `placement`).  Returns the JSON-ready report (per
     class ClassCorrelation.as_dict, `applied`) and the inflation."""
-    if len(frames) != len(traj) or len(class_covariances) != len(traj):
+    with_placement = placement_covariances is not None and len(placement_covariances) > 0
+    if (
+        len(frames) != len(traj)
+        or len(class_covariances) != len(traj)
+        or (with_placement and len(placement_covariances or ()) != len(traj))
+    ):
         raise ValueError(
             f"correlation: {len(frames)} frames of residuals and {len(class_covariances)} of class "
             f"covariances for {len(traj)} PnP poses"
@@ -658,24 +720,36 @@ def estimate_inflation(
             report["classes"][name]["not_applied"] = exclude[name]
             continue
         taus[c] = tau
+    rho_p = np.zeros(0)
+    if with_placement:
+        rho_p = placement_autocorrelation(frame_indices(t), frames)
+        taus = np.append(taus, 1.0 + 2.0 * float(rho_p.sum()))
+        report["placement"] = {"tau": round(float(taus[PLACEMENT]), 3), "lags_used": len(rho_p)}
     if not (apply and np.any(taus > 1.0)) or traj.covariances is None or not len(traj):
         return report, None
     # only the inflated classes' terms are kept (CorrelationInflation: the memory of long flights)
     active = np.flatnonzero(taus > 1.0)
-    terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
-    terms *= np.asarray(class_scales, dtype=float)[active][None, :, None, None]
+    scales = np.asarray(class_scales, dtype=float)
+    if with_placement:  # the placement's parts out of the classes, into a class of their own
+        G = np.stack([np.asarray(g, dtype=float) for g in class_covariances]) * scales[None, :, None, None]
+        Gp = np.stack([np.asarray(g, dtype=float) for g in placement_covariances or ()])
+        Gp *= scales[None, :, None, None]
+        terms = np.concatenate([G - Gp, Gp.sum(axis=1, keepdims=True)], axis=1)[:, active]
+    else:
+        terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
+        terms *= scales[active][None, :, None, None]
     # the lags as the estimator summed them (monotone-cut), so that a long average's factor
     # (CorrelationInflation.average_taus) tends to tau
-    rho = np.zeros((len(CORNER_CLASSES), MAX_LAG))
+    rho = np.zeros((len(taus), max(MAX_LAG, len(rho_p))))
     for c, name in enumerate(CORNER_CLASSES):
         kept = monotone_sequence(*acf[name][:2])
         rho[c, : len(kept)] = kept
-    used = np.array(
-        [
-            report["classes"][name]["lags_used"] if taus[c] > 1.0 else 0
-            for c, name in enumerate(CORNER_CLASSES)
-        ]
-    )
+    used = [
+        report["classes"][name]["lags_used"] if taus[c] > 1.0 else 0 for c, name in enumerate(CORNER_CLASSES)
+    ]
+    if with_placement:
+        rho[PLACEMENT, : len(rho_p)] = rho_p
+        used.append(len(rho_p))
     dt = int(np.median(np.diff(t))) if len(t) > 1 else 0
     report["applied"] = True
-    return report, CorrelationInflation(t, terms, rho, used, taus, dt // 2, classes=active)
+    return report, CorrelationInflation(t, terms, rho, np.array(used), taus, dt // 2, classes=active)

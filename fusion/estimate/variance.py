@@ -889,7 +889,10 @@ def summary_line(summary: dict) -> str:
     if corr and corr.get("applied"):
         parts.append(
             "cam0 corner errors correlated over frames (back ends' input x "
-            + ", ".join(f"{n} {c['tau']:.1f}" for n, c in corr["classes"].items() if c["tau"] > 1.0)
+            + ", ".join(
+                [f"{n} {c['tau']:.1f}" for n, c in corr["classes"].items() if c["tau"] > 1.0]
+                + ([f"placement {corr['placement']['tau']:.1f}"] if "placement" in corr else [])
+            )
             + ")"
         )
     return ("noise chi2/dof (1 = as modelled; applied): " + ", ".join(parts)) if parts else ""

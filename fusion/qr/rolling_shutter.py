@@ -65,14 +65,14 @@ from fusion.qr.codes import classify
 from fusion.qr.pnp import (
     DEFAULT_CORNER_SIGMA_PX,
     LoadFrame,
-    corner_whitening,
     estimate_floor_poses,
     estimate_load_observations_frames,
+    floor_whitening,
     pnp_trajectory,
 )
 from fusion.qr.refine import refine_frames
 from fusion.types import LoadObservation, QRDetection, Trajectory
-from fusion.world import World
+from fusion.world import Placement, World
 
 log_ = logging.getLogger(__name__)
 
@@ -1213,11 +1213,13 @@ def refine_at_stamp(
 # ============================================================================ calibration
 
 
-def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def _frames_cost(
+    frames: list[list], camera: CameraModel, sigma: float, placement: Placement | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Whitened reprojection cost (chi^2) of the PnP pose of each of `frames` (each a list of
     floor sightings) and its degrees of freedom (8 per code - 6; 0, 0 for an unposed frame or
     one with a code left out)."""
-    results = estimate_floor_poses(frames, camera, sigma)
+    results = estimate_floor_poses(frames, camera, sigma, placement=placement)
     cost, dof = np.zeros(len(frames)), np.zeros(len(frames), dtype=int)
     for i, (sightings, res) in enumerate(zip(frames, results)):
         if res is None or res.dropped_payloads:
@@ -1226,7 +1228,7 @@ def _frames_cost(frames: list[list], camera: CameraModel, sigma: float) -> tuple
         T_cw = inv_T(res.T_world_cam)
         pred = camera.project(P @ T_cw[:3, :3].T + T_cw[:3, 3]).reshape(-1, 8)
         z = np.concatenate([np.asarray(s.detection.corners_px, float) for s in sightings]).reshape(-1, 8)
-        W = corner_whitening([s.detection for s in sightings], sigma)
+        W = floor_whitening(sightings, sigma, placement)
         r = np.einsum("cij,cj->ci", W, z - pred)
         if np.all(np.isfinite(r)):
             cost[i], dof[i] = float(np.sum(r**2)), r.size - 6
@@ -1295,7 +1297,7 @@ def _readout_cost(chosen: dict, batch: CornerBatch, camera, world, motion, reado
     cam = replace(camera, line_delay_s=readout_s / camera.height)
     fixed = apply_corners(chosen, batch, batch.moved(cam, motion))
     views = [classify(fixed[ts], world).floor for ts in chosen]
-    return _frames_cost(views, cam, sigma_px)
+    return _frames_cost(views, cam, sigma_px, Placement.from_world(world))
 
 
 def _golden_readout(frames, stamps, motion: FrameMotion, camera, world, imu, sigma_px, upper, max_frames):

@@ -48,7 +48,7 @@ from fusion.qr.pnp.load import (
     position_jacobian_wrt_body,
 )
 from fusion.qr.pnp.undistort import undistort
-from fusion.qr.pnp.whitening import DEFAULT_CORNER_SIGMA_PX, corner_sigmas, corner_whitening
+from fusion.qr.pnp.whitening import DEFAULT_CORNER_SIGMA_PX, corner_sigmas, corner_whitening, floor_whitening
 
 __all__ = [
     "AMBIGUITY_CHI2",
@@ -68,6 +68,7 @@ __all__ = [
     "estimate_floor_poses",
     "estimate_load_observations",
     "estimate_load_observations_frames",
+    "floor_whitening",
     "pnp_load_observations",
     "pnp_trajectory",
     "pose_at",

@@ -20,8 +20,9 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.geometry import cross_rows
 from fusion.qr.codes import FloorSighting
-from fusion.qr.pnp.whitening import CORNER_CLASSES, CORNER_COORDINATES, corner_classes, corner_whitening
+from fusion.qr.pnp.whitening import CORNER_CLASSES, CORNER_COORDINATES, corner_classes, floor_whitening
 from fusion.qr.reprojection import Projector
+from fusion.world import Placement
 
 SIZE_BIN_EDGES_PX: tuple[float, ...] = tuple(32.0 * 2.0 ** (k / 2) for k in range(1, 7))
 """Edges (px) of the code-size bins, a factor sqrt(2) apart from 45 to 256 px (the code's mean
@@ -170,21 +171,26 @@ def frames_bias_terms(
 
 
 def frames_bias_and_residuals(
-    camera: CameraModel, frames: list[list[FloorSighting]], T_world_body: np.ndarray, corner_sigma_px: float
+    camera: CameraModel,
+    frames: list[list[FloorSighting]],
+    T_world_body: np.ndarray,
+    corner_sigma_px: float,
+    placement: Placement | None = None,
 ) -> tuple[list[FrameBiasTerms | None], list[FrameCodeResiduals]]:
     """Per posed frame (frames (F,) lists of the sightings each pose used, T_world_body
     (F, 4, 4)): its `FrameBiasTerms` (None when the pose's information is singular) and its
     `FrameCodeResiduals`, from one reprojection of all codes.  The codes' whitening, patterns and
     Jacobians are computed together (the reprojection is
     fusion.qr.reprojection.floor_reprojection's, per code's own pose), the per-frame sums by
-    code, and the 6 x 6 solves batched."""
+    code, and the 6 x 6 solves batched.  `placement`: the codes' placement sigma, whitened as
+    PnP whitens it (`floor_whitening`)."""
     F, k, p = len(frames), len(BIN_PARAMS), N_PARAMS
     if not F:
         return [], []
     sightings = [s for f in frames for s in f]
     frame_of = np.repeat(np.arange(F), [len(f) for f in frames])  # (n,) each code's frame
     dets = [s.detection for s in sightings]
-    W = corner_whitening(dets, corner_sigma_px)  # (n, 8, 8)
+    W = floor_whitening(sightings, corner_sigma_px, placement)  # (n, 8, 8)
     corners = np.stack([np.asarray(d.corners_px, dtype=float) for d in dets])  # (n, 4, 2)
     # floor_reprojection, each code at its frame's pose: p_body = R^T (P - t)
     T = np.asarray(T_world_body, dtype=float)[frame_of]  # (n, 4, 4)

@@ -16,7 +16,7 @@ from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
-from fusion.world import World
+from fusion.world import Placement, World
 
 FRAMES_PER_BATCH = 512
 """Frames solved together by `pnp_trajectory` / `pnp_load_observations` (bounded memory)."""
@@ -59,6 +59,11 @@ class PnPStats:
     # per posed frame of a gimbaled camera: the free solve's [rx, ry] covariance before the
     # level conditioning (PnPResult.free_tilt_covariance), for fusion.estimate.tiltconsider
     frame_free_tilt_covariance: list[np.ndarray] = field(default_factory=list)
+    # per posed frame, with the floor codes' placement uncertain: each class's placement share
+    # (PnPResult.placement_covariance, float32), for fusion.estimate.correlation; else empty
+    frame_placement_covariance: list[np.ndarray] = field(default_factory=list)
+    # world.yaml's placement sigma the codes were weighed with (world.Placement; None: exact)
+    placement: Placement | None = None
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -93,6 +98,8 @@ class PnPStats:
             frame_bias=[b for p in parts for b in p.frame_bias],
             frame_code_residuals=[r for p in parts for r in p.frame_code_residuals],
             frame_free_tilt_covariance=[c for p in parts for c in p.frame_free_tilt_covariance],
+            frame_placement_covariance=[c for p in parts for c in p.frame_placement_covariance],
+            placement=next((p.placement for p in parts if p.placement is not None), None),
         )
 
 
@@ -107,8 +114,10 @@ def pnp_trajectory(
     (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
     left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used.
     Each frame is solved on its own (`estimate_floor_pose`), FRAMES_PER_BATCH frames at a time
-    (`estimate_floor_poses`)."""
-    stats = PnPStats()
+    (`estimate_floor_poses`), weighing its codes by world.yaml's placement sigma
+    (`world.Placement.from_world`: absent, the defaults; 0 / 0, exactly laid)."""
+    placement = Placement.from_world(world)
+    stats = PnPStats(placement=placement if placement.enabled else None)
     ts_out, T_out, cov_out, rms = [], [], [], []
     codes_seen = []
     per_pose: Counter = Counter()
@@ -126,7 +135,7 @@ def pnp_trajectory(
         used: list = []  # per posed frame: the sightings its pose used, and the pose
         used_T: list = []
         for (ts, floor), res in zip(
-            batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px)
+            batch, estimate_floor_poses([f for _, f in batch], camera, corner_sigma_px, placement=placement)
         ):
             if res is None:
                 stats.n_unsolved += 1
@@ -146,10 +155,12 @@ def pnp_trajectory(
             stats.frame_class_covariance.append(res.class_covariance)
             if res.free_tilt_covariance is not None:
                 stats.frame_free_tilt_covariance.append(res.free_tilt_covariance)
+            if res.placement_covariance is not None:
+                stats.frame_placement_covariance.append(res.placement_covariance.astype(np.float32))
             used.append([s for s in floor if s.detection.payload in res.payloads])
             used_T.append(res.T_world_body)
         bias, residuals = frames_bias_and_residuals(
-            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px
+            camera, used, np.array(used_T).reshape(-1, 4, 4), corner_sigma_px, placement
         )
         stats.frame_bias += bias
         stats.frame_code_residuals += residuals

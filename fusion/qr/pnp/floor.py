@@ -39,10 +39,12 @@ from fusion.qr.pnp.whitening import (
     CORNER_COORDINATES,
     DEFAULT_CORNER_SIGMA_PX,
     corner_classes,
-    corner_whitening,
+    floor_whitening,
+    placement_jacobians,
 )
 from fusion.qr.reprojection import Projector
 from fusion.types import Mount
+from fusion.world import Placement
 
 GIMBAL_ROLL_PITCH_SIGMA_RAD = math.radians(10.0)
 """Standard deviation given to the (unobserved) airframe roll and pitch with a gimbaled camera."""
@@ -53,6 +55,10 @@ DUPLICATE_START_M = 1e-3
 """Two starts of a view closer than these (rotation, position) are one start."""
 MIN_RAY_DOWN = 1e-6
 """A corner's ray (body frame, unit z) must point down by at least this to meet the floor."""
+PLACEMENT_GATE_SIGMAS = 3.0
+"""With the codes' placement uncertain, a frame's reprojection RMS may exceed max_rms_px by this
+many times the RMS by which its codes' placement sigma moves their corners (codes laid within
+3 sigma of their payloads are not outliers; a wrong code is metres off)."""
 CHI2_BOUND_SIGMAS = 5.0
 """`chi2_bound`: how many standard deviations above a chi-square's mean a plausible fit may be."""
 
@@ -74,7 +80,12 @@ class PnPResult:
     T with E[chi2_c] = sum_c' T[c, c'] s_c' when class c' has variance factor s_c' (`class_parts`).
     `free_tilt_covariance` (2, 2): a gimbaled camera's free solve's [rx, ry] block before
     `condition_on_level` (None for a body-fixed camera), for the tilt consider's share
-    (fusion.estimate.tiltconsider.level_kept_fraction)."""
+    (fusion.estimate.tiltconsider.level_kept_fraction).
+    `placement_covariance` (k, 6, 6): with the codes' placement uncertain (`floor_whitening`),
+    the part of each class's G_c that their placement explains, H^-1 A_c^T B_c B_c^T A_c H^-1
+    (A the whitened pose Jacobian, B the whitened placement Jacobian times its sigma, of the
+    class's codes; `class_parts`): the part of the error common to every frame that sees the
+    same codes (fusion.estimate.correlation); None when the codes are laid exactly."""
 
     T_world_body: np.ndarray
     covariance: np.ndarray
@@ -89,6 +100,7 @@ class PnPResult:
     dropped_payloads: list[str] = field(default_factory=list)
     chi2: float = math.nan
     free_tilt_covariance: np.ndarray | None = None
+    placement_covariance: np.ndarray | None = None
 
 
 @dataclass
@@ -147,8 +159,8 @@ class FloorProblems:
         uv, _ = self.projector.project(p_cam.reshape(-1, 3), jacobian=False)
         return uv.reshape(self.z.shape) - self.z
 
-    def normal_equations(self, R: np.ndarray, t: np.ndarray) -> NormalEquations:
-        """Whitened normal equations; d p_cam / d xi = R_cb [[p_body]x, -I]."""
+    def _augmented(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, N, 2, 7) [J | r] at poses R, t: J = d px / d xi, d p_cam / d xi = R_cb [[p_body]x, -I]."""
         K, N = self.P.shape[:2]
         p_body = ((self.P - t[:, None, :]) @ R).reshape(-1, 3)  # (K N, 3)
         uv, J_proj = self.projector.project(p_body @ self.R_cb.T + self.t_cb)
@@ -157,7 +169,17 @@ class FloorProblems:
         Jr[:, :, :3] = cross_rows(A, p_body)  # A [p_body]x
         Jr[:, :, 3:6] = -A
         Jr[:, :, 6] = uv - self.z.reshape(-1, 2)
-        return NormalEquations.from_augmented(Jr.reshape(K, N, 2, 7), self.W)
+        return Jr.reshape(K, N, 2, 7)
+
+    def normal_equations(self, R: np.ndarray, t: np.ndarray) -> NormalEquations:
+        """Whitened normal equations at poses R, t."""
+        return NormalEquations.from_augmented(self._augmented(R, t), self.W)
+
+    def whitened_jacobian(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(K, 8 n, 6) whitened pose Jacobian W d px / d xi at poses R, t."""
+        K, N = self.P.shape[:2]
+        J = self._augmented(R, t)[..., :6].reshape(K, N // 4, CORNER_COORDINATES, 6)
+        return (self.W @ J).reshape(K, 2 * N, 6)
 
     @staticmethod
     def retract(R: np.ndarray, t: np.ndarray, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -211,10 +233,18 @@ def chi2_bound(dof: int) -> float:
 
 class FloorCodes:
     """The floor codes of a batch of frames, stacked: world corners P (c, 4, 3), symbol centres
-    (c, 3), observed px uv (c, 4, 2), undistorted xn (c, 4, 2), whitening W (c, 8, 8), corner
+    (c, 3), observed px uv (c, 4, 2), undistorted xn (c, 4, 2), whitening W (c, 8, 8) (with the
+    codes' `placement` when enabled: `floor_whitening`), each code's placement px (c,) (the
+    RMS per corner coordinate by which its placement sigma moves its corners; 0 without), corner
     classes (c,) and edge vectors E (c, 2) (`_edge_vectors`)."""
 
-    def __init__(self, sightings: list[FloorSighting], camera: CameraModel, sigma: float):
+    def __init__(
+        self,
+        sightings: list[FloorSighting],
+        camera: CameraModel,
+        sigma: float,
+        placement: Placement | None = None,
+    ):
         self.P = np.array(
             [np.asarray(s.corners_world, dtype=float).reshape(4, 3) for s in sightings]
         ).reshape(-1, 4, 3)
@@ -225,7 +255,13 @@ class FloorCodes:
             [np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings]
         ).reshape(-1, 4, 2)
         self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
-        self.W = corner_whitening([s.detection for s in sightings], sigma)
+        self.W = floor_whitening(sightings, sigma, placement)
+        self.placement_px = np.zeros(len(sightings))
+        self.placement_J: np.ndarray | None = None  # (c, 8, 3) d(px)/d(x, y, yaw) times the sigmas
+        if placement is not None and placement.enabled and len(sightings):
+            J = placement_jacobians(self.uv, self.P[:, :, :2], self.centres[:, :2])
+            self.placement_J = J * np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+            self.placement_px = np.sqrt(np.sum(self.placement_J**2, axis=(1, 2)) / CORNER_COORDINATES)
         self.classes = corner_classes([s.detection for s in sightings])  # (c,) CORNER_CLASSES
         self.E = _edge_vectors(self.xn, camera)
 
@@ -401,10 +437,14 @@ def estimate_floor_poses(
     ambiguity_chi2: float = AMBIGUITY_CHI2,
     gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
     sqpnp_fallback: bool = True,
+    placement: Placement | None = None,
 ) -> list[PnPResult | None]:
     """`estimate_floor_pose` of many frames (each a list of floor sightings), computed together:
     the corners undistorted and whitened at once, and the views refined in batches (one
-    vectorised evaluation per LM step for all frames with the same number of codes)."""
+    vectorised evaluation per LM step for all frames with the same number of codes).
+    `placement`: how far the codes may lie off their payloads (world.yaml; `floor_whitening`),
+    None or 0 / 0 for exactly laid codes; a frame's RMS gate then widens by
+    PLACEMENT_GATE_SIGMAS times its codes' placement px."""
     sigma = float(corner_sigma_px)
     if not sigma > 0:
         raise EstimationError(f"corner_sigma_px must be positive, got {corner_sigma_px!r}")
@@ -414,7 +454,7 @@ def estimate_floor_poses(
     if not owner:
         return out
     all_sightings = [s for i in owner for s in frames[i]]
-    codes = FloorCodes(all_sightings, camera, sigma)
+    codes = FloorCodes(all_sightings, camera, sigma, placement)
     first = np.cumsum([0] + [len(frames[i]) for i in owner])
     views = [np.arange(a, b) for a, b in zip(first[:-1], first[1:])]
     dropped: list[list[str]] = [[] for _ in owner]
@@ -426,7 +466,10 @@ def estimate_floor_poses(
         for k, sol in zip(pending, sols):
             if sol is None:
                 continue
-            if sol.candidate.rms_px <= max_rms_px:
+            gate = max_rms_px
+            if placement is not None and placement.enabled:
+                gate += PLACEMENT_GATE_SIGMAS * math.sqrt(float(np.mean(codes.placement_px[views[k]] ** 2)))
+            if sol.candidate.rms_px <= gate:
                 done[k] = sol
             elif len(views[k]) > 1:  # leave out the worst-fitting code and solve again
                 r = sol.candidate.residual_px
@@ -440,7 +483,7 @@ def estimate_floor_poses(
     ks = sorted(done)
     accepted = [done[k] for k in ks]
     covs, ok = covariances(np.array([s.candidate.information for s in accepted]))  # (J^T W J)^-1
-    chi2_c, G_c, T_c = class_parts(codes, [views[k] for k in ks], accepted, covs, camera)
+    chi2_c, G_c, T_c, G_p = class_parts(codes, [views[k] for k in ks], accepted, covs, camera)
     gimbaled = camera.mount == Mount.GIMBALED
     Ts = np.zeros((len(accepted), 4, 4))
     Ts[:, :3, :3] = [s.candidate.R_world_body for s in accepted]
@@ -450,7 +493,8 @@ def estimate_floor_poses(
     for j, (k, sol, T, T_world_cam, cov, good) in enumerate(zip(ks, accepted, Ts, Ts_world_cam, covs, ok)):
         if not good:
             continue
-        G = G_c[j]
+        # the classes' shares, and their placement parts (transformed alike)
+        G = G_c[j] if G_p is None else np.concatenate([G_c[j], G_p[j]])
         free_tilt = None
         if gimbaled:
             free_tilt = cov[:2, :2].copy()
@@ -459,6 +503,7 @@ def estimate_floor_poses(
             keep = np.diag([0.0, 0.0, 1.0, 1.0, 1.0, 1.0])
             cov = keep @ cov @ keep + np.diag([gimbal_roll_pitch_sigma_rad**2] * 2 + [0.0] * 4)
             G = keep @ G @ keep
+        G, G_place = (G, None) if G_p is None else (G[: len(CORNER_CLASSES)], G[len(CORNER_CLASSES) :])
         out[owner[k]] = PnPResult(
             T_world_body=T,
             covariance=cov,
@@ -473,6 +518,7 @@ def estimate_floor_poses(
             class_covariance=G,
             class_redundancy=T_c[j],
             free_tilt_covariance=free_tilt,
+            placement_covariance=G_place,
         )
     return out
 
@@ -513,7 +559,7 @@ def class_parts(
     solutions: list[FloorSolution],
     covs: np.ndarray,
     camera: CameraModel,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Per frame and corner class c (CORNER_CLASSES): chi2_c (F, k), G_c = C H_c C (F, k, 6, 6)
     and the redundancy matrix T (F, k, k), of frames solved on codes `views` at `solutions`
     with covariances C = H^-1 `covs` (F, 6, 6); H_c, chi2_c sum the whitened normal equations of
@@ -522,7 +568,9 @@ def class_parts(
     class c' rows have variance s_c' gives E[r^T D_c r] = sum_c' s_c' tr(D_c (I - P) D_c' (I - P)),
     i.e. T[c, c'] = [c = c'] (m_c - 2 tr(C H_c)) + tr(C H_c C H_c') (Helmert's variance-component
     estimation, Helmert 1924; Koch 1999, sec. 3.6); each row sums to the class's redundancy
-    m_c - tr(C H_c), and all of T to 8 n - 6."""
+    m_c - tr(C H_c), and all of T to 8 n - 6.  With the codes' placement uncertain
+    (`FloorCodes.placement_J`), also each class's placement share (F, k, 6, 6)
+    (PnPResult.placement_covariance), else None."""
     k = len(CORNER_CLASSES)
     F = len(solutions)
     idx = np.concatenate(views) if F else np.zeros(0, dtype=np.int64)
@@ -542,7 +590,15 @@ def class_parts(
     G_c = CH @ covs[:, None]
     T = np.einsum("fcij,fdji->fcd", CH, CH)  # tr(C H_c C H_d)
     T += np.eye(k)[None] * (m_c - 2.0 * np.trace(CH, axis1=2, axis2=3))[:, :, None]
-    return chi2_c, G_c, T
+    G_p = None
+    if codes.placement_J is not None:
+        # the placement's share: each code's whitened placement Jacobian B = W J_p diag(sigma)
+        # meets the pose through A^T B (A its whitened pose Jacobian)
+        AtB = np.swapaxes(one.whitened_jacobian(R, t), 1, 2) @ (codes.W[idx] @ codes.placement_J[idx])
+        M_c = np.zeros((F, k, 6, 6))
+        np.add.at(M_c, (frame, cls), AtB @ np.swapaxes(AtB, 1, 2))
+        G_p = covs[:, None] @ M_c @ covs[:, None]
+    return chi2_c, G_c, T, G_p
 
 
 def estimate_floor_pose(
@@ -554,6 +610,7 @@ def estimate_floor_pose(
     ambiguity_chi2: float = AMBIGUITY_CHI2,
     gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
     sqpnp_fallback: bool = True,
+    placement: Placement | None = None,
 ) -> PnPResult | None:
     """Body pose from all floor codes of one floor-camera frame, or None (no code, no solution,
     or reprojection RMS above `max_rms_px` even after leaving out the worst-fitting codes).
@@ -580,6 +637,8 @@ def estimate_floor_pose(
     while rx and ry get variance gimbal_roll_pitch_sigma_rad^2 ((10 deg)^2 by default) and no
     correlation.
 
+    `placement`: how far the codes may lie off their payloads (`estimate_floor_poses`).
+
     Many frames: `estimate_floor_poses` (the same, far cheaper per frame: scripts/bench_pnp.py)."""
     return estimate_floor_poses(
         [sightings],
@@ -589,4 +648,5 @@ def estimate_floor_pose(
         ambiguity_chi2=ambiguity_chi2,
         gimbal_roll_pitch_sigma_rad=gimbal_roll_pitch_sigma_rad,
         sqpnp_fallback=sqpnp_fallback,
+        placement=placement,
     )[0]

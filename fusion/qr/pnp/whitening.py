@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from fusion.qr.refine import FALLBACK_SIGMA_PX
+from fusion.world import Placement
 
 DEFAULT_CORNER_SIGMA_PX = 0.15
 """Refined-corner error per pixel coordinate (DESIGN.md: about 0.13 px mean after refinement)."""
@@ -76,3 +77,86 @@ def corner_classes(detections) -> np.ndarray:
         if s is not None and math.isclose(float(s), FALLBACK_SIGMA_PX):
             out[i] = CORNER_CLASSES.index("decoder")
     return out
+
+
+def floor_whitening(sightings, default_sigma_px: float, placement: Placement | None) -> np.ndarray:
+    """(n, 8, 8) whitening of floor sightings' corners (fusion.qr.codes.FloorSighting) against
+    their codes' NOMINAL world corners: `corner_whitening`'s, or, when the codes' placement is
+    uncertain (`placement` enabled: world.yaml's floor_qr.placement_sigma_m / _deg), the inverse
+    Cholesky factor of C_i + J_i diag(s_m^2, s_m^2, s_rad^2) J_i^T, J_i the corners' pixel
+    Jacobian in the code's world x, y and yaw about its centre (`placement_jacobians`).  A code
+    laid 1 cm off its payload moves its corners by ~4 px at 1.3 m against a corner sigma of
+    0.15 px: PnP on the nominal corners then has to weigh its codes by that, and its covariance
+    carries it (a single code's pose by the whole placement error; codes that disagree by
+    centimetres are fitted within their placement, not by tilting the pose).  The solve's
+    pose-free Jacobian: the 4-point homography of each code's floor-plane corners to its
+    observed pixels, whose derivative at a corner is d(px)/d(floor point) to first order
+    (exact for a pinhole; the lens's distortion across one code changes it by its curvature).
+    The error's tilt and height are not modelled (a flat floor)."""
+    if placement is None or not placement.enabled:
+        return corner_whitening([s.detection for s in sightings], default_sigma_px)
+    W0 = corner_whitening([s.detection for s in sightings], default_sigma_px)
+    if not len(W0):
+        return W0
+    uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings])
+    P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)[:, :2] for s in sightings])
+    c = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)[:2] for s in sightings])
+    J = placement_jacobians(uv, P, c)  # (n, 8, 3)
+    S = np.square([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+    L0 = np.linalg.inv(W0)  # the corner covariance's Cholesky factor (W0 = L0^-1)
+    C = L0 @ np.swapaxes(L0, 1, 2) + (J * S) @ np.swapaxes(J, 1, 2)
+    out = W0.copy()
+    idx = np.flatnonzero(np.isfinite(C).all(axis=(1, 2)))
+    try:
+        out[idx] = np.linalg.inv(np.linalg.cholesky(C[idx]))
+    except np.linalg.LinAlgError:
+        for i in idx.tolist():
+            try:
+                out[i] = np.linalg.inv(np.linalg.cholesky(C[i]))
+            except np.linalg.LinAlgError:
+                pass  # keeps the corners' own whitening
+    return out
+
+
+def placement_jacobians(uv: np.ndarray, P_xy: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
+    """(n, 8, 3) d(corner px)/d(code x, y, yaw) of n floor codes: uv (n, 4, 2) their observed
+    corners, P_xy (n, 4, 2) their nominal world corners on the floor, centre_xy (n, 2) the
+    centres they turn about.  Each code's homography H (floor -> px) from its 4 correspondences
+    (direct linear transform with h_33 = 1, about the code's centre and mean pixel for
+    conditioning; Hartley & Zisserman 2004, sec. 4.1); d(u, v)/d(X, Y) = [[h00 - u h20, h01 - u h21],
+    [h10 - v h20, h11 - v h21]] / w at each corner; a yaw dpsi moves corner X by
+    dpsi (-(Y - cy), X - cx).  A code whose 4 points are degenerate gets zeros (no inflation)."""
+    n = len(uv)
+    X = P_xy - centre_xy[:, None, :]  # (n, 4, 2)
+    m = uv.mean(axis=1, keepdims=True)
+    u = uv - m
+    A = np.zeros((n, 8, 8))
+    b = u.reshape(n, 8)
+    A[:, 0::2, 0:2] = X
+    A[:, 0::2, 2] = 1.0
+    A[:, 1::2, 3:5] = X
+    A[:, 1::2, 5] = 1.0
+    A[:, 0::2, 6:8] = -u[:, :, 0:1] * X
+    A[:, 1::2, 6:8] = -u[:, :, 1:2] * X
+    h = np.zeros((n, 8))
+    good = np.isfinite(A).all(axis=(1, 2)) & np.isfinite(b).all(axis=1)
+    good[good] = np.abs(np.linalg.det(A[good])) > 0.0
+    if good.any():
+        try:
+            h[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:  # one singular among them: one at a time
+            for i in np.flatnonzero(good).tolist():
+                try:
+                    h[i] = np.linalg.solve(A[i], b[i])
+                except np.linalg.LinAlgError:
+                    good[i] = False
+    H = np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+    w = X @ H[:, 2, :2, None] + 1.0  # (n, 4, 1) the homography's scale at each corner
+    J_xy = np.empty((n, 4, 2, 2))
+    J_xy[:, :, 0, :] = (H[:, None, 0, :2] - u[:, :, 0:1] * H[:, None, 2, :2]) / w
+    J_xy[:, :, 1, :] = (H[:, None, 1, :2] - u[:, :, 1:2] * H[:, None, 2, :2]) / w
+    turn = np.stack([-X[:, :, 1], X[:, :, 0]], axis=2)  # (n, 4, 2) d(corner)/d(yaw)
+    J = np.concatenate([J_xy, (J_xy @ turn[:, :, :, None])], axis=3)  # (n, 4, 2, 3)
+    J = J.reshape(n, 8, 3)
+    J[~(good & np.isfinite(J).all(axis=(1, 2)))] = 0.0
+    return J
