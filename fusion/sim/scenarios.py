@@ -252,7 +252,8 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
     Longer flights (`min_duration_s` beyond one lap): the survey repeats, each lap returning
     along x = 0.5 to aisle 1 and flying the same passes with the same four blackouts at the same
     places, so a 10-minute flight is eight or nine laps of the same warehouse."""
-    world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0))
+    # laid exactly on the grid (Layout.floor_offsets: not)
+    world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0), placement_sigma_m=0.0, placement_sigma_deg=0.0)
     floor = [(x, y) for x in range(0, 11) for y in range(0, 8) if not (y in (3, 4) and 1 <= x <= 9)]
     loads = []
     for col, x in enumerate([1.5, 3.5, 5.5, 7.5], start=1):
@@ -358,7 +359,8 @@ def _paper_a5(name: str, resolution, mount: str) -> Scenario:
     footprint) and still has 2.3 px modules at the highest (2.86 m).  Load codes 0.15 m.  Flight:
     take-off, the codes in table order with a 2.5 s hover each, landing; about 100 s.  Blackouts
     on the floor camera during three transits (0.5, 1, 2 s)."""
-    world = World(0.25, 0.5, 0.15, (-1.0, 9.5), (0.0, 7.0))
+    # laid exactly on the grid (Layout.floor_offsets: not)
+    world = World(0.25, 0.5, 0.15, (-1.0, 9.5), (0.0, 7.0), placement_sigma_m=0.0, placement_sigma_deg=0.0)
     floor = [(i, j) for i in range(-2, 20) for j in range(0, 15)]
     loads = [
         LoadCode(f"QR{k + 1}", (x / 100, y / 100, z / 100), -math.pi / 2)
