@@ -15,7 +15,7 @@ from fusion.estimate import correlation as co
 from fusion.geometry import inv_T, rot_z, transform_points
 from fusion.qr.pnp import estimate_floor_pose, floor_whitening
 from fusion.qr.pnp.bias import FrameCodeResiduals
-from fusion.qr.pnp.whitening import corner_whitening, placement_jacobians
+from fusion.qr.pnp.whitening import corner_whitening, placement_jacobians, placement_pixel_jacobians
 from fusion.types import QRDetection, Trajectory
 from fusion.world import Placement
 
@@ -62,17 +62,31 @@ def test_whitening_adds_the_placement_to_the_corner_covariance():
     W0 = corner_whitening([s.detection for s in sightings], SIGMA)
     assert np.array_equal(floor_whitening(sightings, SIGMA, None), W0)
     assert np.array_equal(floor_whitening(sightings, SIGMA, Placement(0.0, 0.0)), W0)
-    W = floor_whitening(sightings, SIGMA, PLACED)
+    W = floor_whitening(sightings, SIGMA, PLACED, FLOOR_CAM)
     uv = np.array([s.detection.corners_px for s in sightings])
     P = np.array([s.corners_world[:, :2] for s in sightings])
-    J = placement_jacobians(uv, P, np.array([s.centre_world[:2] for s in sightings]))
+    J = placement_pixel_jacobians(FLOOR_CAM, uv, P, np.array([s.centre_world[:2] for s in sightings]))
     S = np.diag([PLACED.sigma_m**2, PLACED.sigma_m**2, PLACED.sigma_rad**2])
-    C = SIGMA**2 * np.eye(8) + J @ S @ np.swapaxes(J, 1, 2)
+    # the turn's second order: the corners pulled towards the centre by (P - c) d^2 / 2
+    r = P - np.array([s.centre_world[:2] for s in sightings])[:, None, :]
+    shrink = np.einsum("nkij,nkj->nki", J[:, :, :2].reshape(-1, 4, 2, 2), r).reshape(-1, 8)
+    shrink *= math.sqrt(0.75) * PLACED.sigma_rad**2
+    C = SIGMA**2 * np.eye(8) + J @ S @ np.swapaxes(J, 1, 2) + shrink[:, :, None] * shrink[:, None, :]
     assert np.allclose(np.linalg.inv(np.swapaxes(W, 1, 2) @ W), C, rtol=1e-8)
 
 
-@pytest.mark.parametrize("centres,height", [(FOUR, 2.6), ([(0, 0), (1, 0)], 2.0), ([(0, 0)], 1.2)])
-def test_pose_from_misplaced_codes_is_consistent_with_the_placement_sigma(centres, height):
+@pytest.mark.parametrize(
+    "centres,height,sigma,placed",
+    [
+        (FOUR, 2.6, SIGMA, PLACED),
+        ([(0, 0), (1, 0)], 2.0, SIGMA, PLACED),
+        ([(0, 0)], 1.2, SIGMA, PLACED),
+        # clean renders' corners (0.026 px) and a 2 deg turn: the turn's second order counts
+        (FOUR, 2.6, 0.026, Placement(0.01, math.radians(2.0))),
+        ([(0, 0), (1, 0)], 2.0, 0.026, Placement(0.01, math.radians(2.0))),
+    ],
+)
+def test_pose_from_misplaced_codes_is_consistent_with_the_placement_sigma(centres, height, sigma, placed):
     """Codes drawn off their payloads by the stated sigma: the pose's NEES is chi-square(6)
     with the placement in the whitening, and far beyond without (the poses are cm off while
     their covariance says 0.1 mm)."""
@@ -81,10 +95,10 @@ def test_pose_from_misplaced_codes_is_consistent_with_the_placement_sigma(centre
     T = body_pose(cx + 0.05, cy - 0.04, height, 30.0, roll_deg=3.0, pitch_deg=-2.0)
     nees_with, nees_without, dropped = [], [], 0
     for _ in range(150):
-        offsets = rng.normal(0.0, 1.0, (len(centres), 3)) * [PLACED.sigma_m, PLACED.sigma_m, PLACED.sigma_rad]
-        sightings = floor_of(misplaced_dets(T, centres, offsets, rng))
-        for placement, out in ((PLACED, nees_with), (None, nees_without)):
-            res = estimate_floor_pose(sightings, FLOOR_CAM, SIGMA, placement=placement)
+        offsets = rng.normal(0.0, 1.0, (len(centres), 3)) * [placed.sigma_m, placed.sigma_m, placed.sigma_rad]
+        sightings = floor_of(misplaced_dets(T, centres, offsets, rng, sigma))
+        for placement, out in ((placed, nees_with), (None, nees_without)):
+            res = estimate_floor_pose(sightings, FLOOR_CAM, sigma, placement=placement)
             if res is None or res.dropped_payloads:
                 dropped += placement is not None
                 continue

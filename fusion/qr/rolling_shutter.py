@@ -1228,7 +1228,7 @@ def _frames_cost(
         T_cw = inv_T(res.T_world_cam)
         pred = camera.project(P @ T_cw[:3, :3].T + T_cw[:3, 3]).reshape(-1, 8)
         z = np.concatenate([np.asarray(s.detection.corners_px, float) for s in sightings]).reshape(-1, 8)
-        W = floor_whitening(sightings, sigma, placement)
+        W = floor_whitening(sightings, sigma, placement, camera)
         r = np.einsum("cij,cj->ci", W, z - pred)
         if np.all(np.isfinite(r)):
             cost[i], dof[i] = float(np.sum(r**2)), r.size - 6

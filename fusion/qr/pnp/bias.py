@@ -190,7 +190,7 @@ def frames_bias_and_residuals(
     sightings = [s for f in frames for s in f]
     frame_of = np.repeat(np.arange(F), [len(f) for f in frames])  # (n,) each code's frame
     dets = [s.detection for s in sightings]
-    W = floor_whitening(sightings, corner_sigma_px, placement)  # (n, 8, 8)
+    W = floor_whitening(sightings, corner_sigma_px, placement, camera)  # (n, 8, 8)
     corners = np.stack([np.asarray(d.corners_px, dtype=float) for d in dets])  # (n, 4, 2)
     # floor_reprojection, each code at its frame's pose: p_body = R^T (P - t)
     T = np.asarray(T_world_body, dtype=float)[frame_of]  # (n, 4, 4)

@@ -40,7 +40,8 @@ from fusion.qr.pnp.whitening import (
     DEFAULT_CORNER_SIGMA_PX,
     corner_classes,
     floor_whitening,
-    placement_jacobians,
+    placement_pixel_jacobians,
+    placement_sigmas,
 )
 from fusion.qr.reprojection import Projector
 from fusion.types import Mount
@@ -255,12 +256,12 @@ class FloorCodes:
             [np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings]
         ).reshape(-1, 4, 2)
         self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
-        self.W = floor_whitening(sightings, sigma, placement)
+        self.W = floor_whitening(sightings, sigma, placement, camera)
         self.placement_px = np.zeros(len(sightings))
         self.placement_J: np.ndarray | None = None  # (c, 8, 3) d(px)/d(x, y, yaw) times the sigmas
         if placement is not None and placement.enabled and len(sightings):
-            J = placement_jacobians(self.uv, self.P[:, :, :2], self.centres[:, :2])
-            self.placement_J = J * np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+            J = placement_pixel_jacobians(camera, self.uv, self.P[:, :, :2], self.centres[:, :2])
+            self.placement_J = J * placement_sigmas(placement)
             self.placement_px = np.sqrt(np.sum(self.placement_J**2, axis=(1, 2)) / CORNER_COORDINATES)
         self.classes = corner_classes([s.detection for s in sightings])  # (c,) CORNER_CLASSES
         self.E = _edge_vectors(self.xn, camera)

@@ -7,7 +7,10 @@ import math
 
 import numpy as np
 
+from fusion.camera import CameraModel
+from fusion.qr.pnp.undistort import undistort
 from fusion.qr.refine import FALLBACK_SIGMA_PX
+from fusion.qr.reprojection import Projector
 from fusion.world import Placement
 
 DEFAULT_CORNER_SIGMA_PX = 0.15
@@ -79,37 +82,42 @@ def corner_classes(detections) -> np.ndarray:
     return out
 
 
-def floor_whitening(sightings, default_sigma_px: float, placement: Placement | None) -> np.ndarray:
+def floor_whitening(
+    sightings, default_sigma_px: float, placement: Placement | None, camera: CameraModel | None = None
+) -> np.ndarray:
     """(n, 8, 8) whitening of floor sightings' corners (fusion.qr.codes.FloorSighting) against
     their codes' NOMINAL world corners: `corner_whitening`'s, or, when the codes' placement is
     uncertain (`placement` enabled: world.yaml's floor_qr.placement_sigma_m / _deg), the inverse
     Cholesky factor of C_i + J_i diag(s_m^2, s_m^2, s_rad^2) J_i^T, J_i the corners' pixel
-    Jacobian in the code's world x, y and yaw about its centre (`placement_jacobians`).  A code
-    laid 1 cm off its payload moves its corners by ~4 px at 1.3 m against a corner sigma of
-    0.15 px: PnP on the nominal corners then has to weigh its codes by that, and its covariance
-    carries it (a single code's pose by the whole placement error; codes that disagree by
-    centimetres are fitted within their placement, not by tilting the pose).  The solve's
-    pose-free Jacobian: the 4-point homography of each code's floor-plane corners to its
-    observed pixels, whose derivative at a corner is d(px)/d(floor point) to first order
-    (exact for a pinhole; the lens's distortion across one code changes it by its curvature).
-    The error's tilt and height are not modelled (a flat floor)."""
-    if placement is None or not placement.enabled:
-        return corner_whitening([s.detection for s in sightings], default_sigma_px)
+    Jacobian in the code's world x, y and yaw about its centre (`placement_pixel_jacobians`;
+    `camera` required then).  A code laid 1 cm off its payload moves its corners by ~4 px at
+    1.3 m against a corner sigma of 0.03-0.15 px: PnP on the nominal corners then has to weigh
+    its codes by that, and its covariance carries it (a single code's pose by the whole placement
+    error; codes that disagree by centimetres are fitted within their placement, not by tilting
+    the pose).  The error's tilt and height are not modelled (a flat floor)."""
     W0 = corner_whitening([s.detection for s in sightings], default_sigma_px)
-    if not len(W0):
+    if placement is None or not placement.enabled or not len(W0):
         return W0
+    if camera is None:
+        raise ValueError("floor_whitening: a placement sigma needs the camera")
     uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings])
     P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)[:, :2] for s in sightings])
     c = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)[:2] for s in sightings])
-    J = placement_jacobians(uv, P, c)  # (n, 8, 3)
-    S = np.square([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+    J = placement_pixel_jacobians(camera, uv, P, c)  # (n, 8, 3)
+    # the turn's second order: a code turned by d moves its corners by the tangent J_yaw d less
+    # (P - c) d^2 / 2 towards its centre (a shrink the tangent cannot take; E[(d^2 / 2)^2] =
+    # 3 s^4 / 4 for d ~ N(0, s^2)), i.e. along d(px)/d(floor point) (P - c)
+    r = (P - c[:, None, :])[..., None]  # (n, 4, 2, 1)
+    shrink = (J[:, :, :2].reshape(-1, 4, 2, 2) @ r).reshape(-1, CORNER_COORDINATES)
+    shrink *= math.sqrt(0.75) * placement.sigma_rad**2
+    J = J * placement_sigmas(placement)
     L0 = np.linalg.inv(W0)  # the corner covariance's Cholesky factor (W0 = L0^-1)
-    C = L0 @ np.swapaxes(L0, 1, 2) + (J * S) @ np.swapaxes(J, 1, 2)
+    C = L0 @ np.swapaxes(L0, 1, 2) + J @ np.swapaxes(J, 1, 2) + shrink[:, :, None] * shrink[:, None, :]
     out = W0.copy()
     idx = np.flatnonzero(np.isfinite(C).all(axis=(1, 2)))
     try:
         out[idx] = np.linalg.inv(np.linalg.cholesky(C[idx]))
-    except np.linalg.LinAlgError:
+    except np.linalg.LinAlgError:  # one is not positive definite: one at a time
         for i in idx.tolist():
             try:
                 out[i] = np.linalg.inv(np.linalg.cholesky(C[i]))
@@ -118,9 +126,31 @@ def floor_whitening(sightings, default_sigma_px: float, placement: Placement | N
     return out
 
 
+def placement_sigmas(placement: Placement) -> np.ndarray:
+    """(3,) the placement's sigma of a code's x (m), y (m) and yaw (rad)."""
+    return np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+
+
+def placement_pixel_jacobians(
+    camera: CameraModel, uv: np.ndarray, P_xy: np.ndarray, centre_xy: np.ndarray
+) -> np.ndarray:
+    """(n, 8, 3) d(corner px)/d(code x, y, yaw) of n floor codes observed at uv (n, 4, 2) (distorted
+    px): `placement_jacobians` of the undistorted corners (exact for the ideal camera), through
+    the lens's Jacobian d(px)/d(normalised point) at each corner.  Taken in pixels directly, the
+    homography would carry the lens's curvature across the code (a fraction of a percent of a
+    4 px move: at the 0.03 px corner sigma of clean renders, enough to tilt the pose)."""
+    n = len(uv)
+    xn = undistort(camera, uv.reshape(-1, 2))  # (4 n, 2)
+    _, D = Projector(camera).project(np.column_stack([xn, np.ones(len(xn))]))  # (4 n, 2, 3)
+    J = placement_jacobians(xn.reshape(n, 4, 2), P_xy, centre_xy).reshape(n, 4, 2, 3)
+    out = D[:, :, :2].reshape(n, 4, 2, 2) @ J
+    return out.reshape(n, CORNER_COORDINATES, 3)
+
+
 def placement_jacobians(uv: np.ndarray, P_xy: np.ndarray, centre_xy: np.ndarray) -> np.ndarray:
-    """(n, 8, 3) d(corner px)/d(code x, y, yaw) of n floor codes: uv (n, 4, 2) their observed
-    corners, P_xy (n, 4, 2) their nominal world corners on the floor, centre_xy (n, 2) the
+    """(n, 8, 3) d(corner image point)/d(code x, y, yaw) of n floor codes: uv (n, 4, 2) their
+    observed corners (ideal pinhole points: `placement_pixel_jacobians` takes distorted pixels
+    there), P_xy (n, 4, 2) their nominal world corners on the floor, centre_xy (n, 2) the
     centres they turn about.  Each code's homography H (floor -> px) from its 4 correspondences
     (direct linear transform with h_33 = 1, about the code's centre and mean pixel for
     conditioning; Hartley & Zisserman 2004, sec. 4.1); d(u, v)/d(X, Y) = [[h00 - u h20, h01 - u h21],
