@@ -173,3 +173,14 @@ def test_inflation_moves_the_placement_out_of_the_classes_and_counts_each_code_o
     # without placement terms: as before, no inflation of white residuals
     _, none = co.estimate_inflation(traj, frames, G, np.ones(2))
     assert none is None
+
+
+def test_inspect_says_how_the_floor_codes_are_taken():
+    from fusion.log.inspect import placement_line
+    from fusion.world import World
+
+    assert placement_line(World()) == "floor codes: placement sigma 1 cm, 1 deg (assumed: not in world.yaml)"
+    assert placement_line(World(placement_sigma_m=0.02, placement_sigma_deg=0.5)).endswith(
+        "2 cm, 0.5 deg (stated)"
+    )
+    assert "laid exactly" in placement_line(World(placement_sigma_m=0.0, placement_sigma_deg=0.0))

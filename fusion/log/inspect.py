@@ -16,6 +16,7 @@ from fusion.errors import LogError
 from fusion.log.options import LogFormat, LogOptions, StampSource
 from fusion.log.sources import detect_format, open_flight
 from fusion.types import CameraRole
+from fusion.world import Placement, World
 
 GAP_FACTOR = 2.5
 """A step longer than this many median steps is a gap."""
@@ -100,6 +101,18 @@ def calibration_line(name: str, camera: CameraModel) -> str:
     return f"{name} calib  : intrinsics sigma {px} ({intr}); {mount}"
 
 
+def placement_line(world: World) -> str:
+    """How exactly the floor codes lie on their payloads, as PnP and the back ends will take it
+    (world.Placement: world.yaml's floor_qr.placement_sigma_m / _deg, or the defaults)."""
+    p = Placement.from_world(world)
+    stated = world.placement_sigma_m is not None or world.placement_sigma_deg is not None
+    how = "stated" if stated else "assumed: not in world.yaml"
+    if not p.enabled:
+        return f"floor codes: laid exactly on their payloads ({how})"
+    sigma = f"{100 * p.sigma_m:.3g} cm, {math.degrees(p.sigma_rad):.3g} deg"
+    return f"floor codes: placement sigma {sigma} ({how})"
+
+
 def time_stats(name: str, msgtype: str, t_ns, role: str = "") -> StreamStats:
     """Statistics of a stream's times as recorded (unsorted)."""
     t = np.asarray(t_ns, np.int64)
@@ -167,6 +180,7 @@ def _inspect_flight(path: Path, opts: LogOptions, report: LogReport) -> None:
         report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns, ROLE_NAMES[name]))
         report.roles[name] = name
         report.calibration.append(calibration_line(name, cam.camera))
+    report.calibration.append(placement_line(flight.world))
     if flight.imu is not None:
         report.streams.append(time_stats("imu0", "imu", flight.imu.timestamps_ns, "IMU"))
         report.roles["imu0"] = "imu0"
