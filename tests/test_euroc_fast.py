@@ -10,7 +10,6 @@ import pytest
 import fusion.log.euroc as euroc
 from fusion.errors import LogError
 from fusion.log import read_flight
-
 from tests.test_log import write_small_log
 
 HEADER = "#timestamp [ns],a,b,c\n"
@@ -64,8 +63,18 @@ def _number_texts(rng, n):
     return out
 
 
+@pytest.fixture(params=[None, 7, 64, 1000], ids=["block-default", "block-7", "block-64", "block-1000"])
+def block(request, monkeypatch):
+    """The fast path's block size: the default (one block for these small files) and blocks
+    smaller than a line, than a few lines, than the file (rows, comments and errors straddling
+    the blocks' ends)."""
+    if request.param is not None:
+        monkeypatch.setattr(euroc, "_FAST_BLOCK_BYTES", request.param)
+    return request.param
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_fast_path_equals_the_row_parser_to_the_bit(tmp_path, seed):
+def test_fast_path_equals_the_row_parser_to_the_bit(tmp_path, seed, block):
     rng = np.random.default_rng(seed)
     n = 300
     t = np.cumsum(rng.integers(1, 10**7, n)) + int(rng.integers(0, 10**18))
@@ -116,6 +125,8 @@ GOOD = [HEADER.rstrip("\n"), "10,1.5,2,3", "20,4,5,6", "30,7,8,9"]
         lambda L: L[:2] + ["9223372036854775808,4,5,6"] + L[3:],  # INT64_MAX + 1
         lambda L: L[:2] + ["10,4,5,6"] + L[3:],  # duplicate timestamp
         lambda L: L[:2] + ["5,4,5,6"] + L[3:],  # backwards
+        lambda L: L + ["#" + "x" * 70] + ["30,1,2,3"],  # duplicate after a long comment
+        lambda L: L + ["29,1,2,3"],  # backwards in the last row
         lambda L: L[:2] + ['20,"4",5,6'] + L[3:],  # quoted (the row parser reads it)
         lambda L: L[:1],  # no data rows
         lambda L: [],  # empty file
@@ -128,7 +139,7 @@ GOOD = [HEADER.rstrip("\n"), "10,1.5,2,3", "20,4,5,6", "30,7,8,9"]
         lambda L: [L[0] + " \u00b5s"] + L[1:],  # non-ASCII header
     ],
 )
-def test_anything_unusual_is_left_to_the_row_parser(tmp_path, edit):
+def test_anything_unusual_is_left_to_the_row_parser(tmp_path, edit, block):
     """The fast path declines (None) every file it cannot read exactly as the row parser does;
     _numeric_csv then gives the row parser's value or its one-line error, naming file and line."""
     path = tmp_path / "data.csv"
@@ -147,9 +158,14 @@ def test_anything_unusual_is_left_to_the_row_parser(tmp_path, edit):
 
 @pytest.mark.parametrize(
     "data",
-    [b"\xef\xbb\xbf" + "\n".join(GOOD).encode(), "\r\n".join(GOOD).encode(), b"10,1,2,3\n\xff\n", b"10,1,2\x00,3\n"],
+    [
+        b"\xef\xbb\xbf" + "\n".join(GOOD).encode(),
+        "\r\n".join(GOOD).encode(),
+        b"10,1,2,3\n\xff\n",
+        b"10,1,2\x00,3\n",
+    ],
 )
-def test_byte_order_mark_crlf_and_bad_bytes_left_to_the_row_parser(tmp_path, data):
+def test_byte_order_mark_crlf_and_bad_bytes_left_to_the_row_parser(tmp_path, data, block):
     path = tmp_path / "data.csv"
     path.write_bytes(data)
     assert euroc._numeric_csv_fast(path, 4) is None
