@@ -241,3 +241,31 @@ def test_the_data_folder_a_symlink_and_dotted_names(tmp_path):
     csv_path.write_text("\n".join(lines) + "\n")
     with pytest.raises(LogError, match=r"cam0/data.csv:3: file name '..' points outside"):
         read_flight(root)
+
+
+def test_a_link_differing_only_in_case_is_resolved(tmp_path, monkeypatch):
+    """On a case-insensitive file system 'X.PNG' in data.csv opens the link 'x.png': a name
+    whose lower case is a link's is resolved like a link (here, on a case-sensitive one, it
+    resolves to itself; the point is that it goes through resolve())."""
+    root = tmp_path / "flight"
+    write_small_log(root)
+    data = root / "mav0" / "cam0" / "data"
+    files = sorted(data.iterdir())
+    (data / "link.png").symlink_to(files[0].name)
+    csv_path = root / "mav0" / "cam0" / "data.csv"
+    lines = csv_path.read_text().splitlines()
+    t, _ = lines[1].split(",")
+    lines[1] = f"{t},LINK.png"
+    csv_path.write_text("\n".join(lines) + "\n")
+    resolved = []
+    real_resolve = type(data).resolve
+
+    def spy(self, *a, **k):
+        resolved.append(self.name)
+        return real_resolve(self, *a, **k)
+
+    monkeypatch.setattr(type(data), "resolve", spy)
+    log = read_flight(root)
+    assert "LINK.png" in resolved
+    assert log.floor.paths[0] == real_resolve(data) / "LINK.png"
+    assert sum(n.endswith(".png") for n in resolved) == 1  # the plain names are not resolved

@@ -572,13 +572,14 @@ with a dot): inside the data folder unless it names a symbolic link there."""
 
 
 def _symlinked_names(data_dir: Path) -> set[str] | None:
-    """The names of the symbolic links directly in `data_dir` (one listing, no stat per entry
-    where the file system gives the entry's type); an empty set when it is no folder (every
-    name then resolves to itself inside it); None when it cannot be listed (each name is then
-    resolved)."""
+    """The names of the symbolic links directly in `data_dir`, lower-cased (a case-insensitive
+    file system finds 'a.png' for 'A.png': such a name is resolved too), from one listing (no
+    stat per entry where the file system gives the entry's type); an empty set when it is no
+    folder (every name then resolves to itself inside it); None when it cannot be listed (each
+    name is then resolved)."""
     try:
         with os.scandir(data_dir) as entries:
-            return {e.name for e in entries if e.is_symlink()}
+            return {e.name.lower() for e in entries if e.is_symlink()}
     except (FileNotFoundError, NotADirectoryError):
         return set()
     except OSError:
@@ -604,7 +605,7 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
         fname = row[1]
         if not fname:
             raise LogError(f"{csv_path}:{lineno}: empty file name")
-        if links is not None and fname not in links and _PLAIN_NAME.fullmatch(fname):
+        if links is not None and _PLAIN_NAME.fullmatch(fname) and fname.lower() not in links:
             # what resolve() returns for it (data_dir is resolved; the name is one component,
             # not '.' or '..', and no symbolic link), without its lstat of every component
             path = data_dir / fname
