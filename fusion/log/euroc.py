@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import json
 import math
 import os
@@ -418,12 +419,123 @@ def _check_monotonic(t: int, prev: int | None, path: Path, lineno: int) -> None:
         raise LogError(f"{path}:{lineno}: {what} timestamp {t} (previous {prev})")
 
 
+_FAST_DATA_BYTES = np.zeros(256, bool)
+_FAST_DATA_BYTES[list(b"0123456789.eE+-,\n")] = True
+"""The bytes a data row of _numeric_csv_fast may hold: plain decimal numbers, commas, newlines
+(no blanks, quotes, carriage returns, NaN / inf, underscores, '#' after a row's start)."""
+_FAST_TIMESTAMP_DIGITS = 19
+"""Longest timestamp _timestamp accepts (19 digits; the value then checked against INT64_MAX)."""
+_FAST_BLOCK_BYTES = 1 << 22
+"""_numeric_csv_fast reads and parses this many bytes at a time (whole lines): its temporaries
+stay a few MB whatever the file's size (the whole 35 MB ground truth of the 10-minute flight
+at once peaked 66 MB above the row parser)."""
+
+
+def _numeric_csv_fast(path: Path, ncols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """_numeric_csv's (timestamps_ns (N,) int64, values (N, ncols - 1) float64, line numbers
+    (N,) int64) of a well-formed file by numpy's C parser (np.loadtxt, whose floats are CPython's
+    PyOS_string_to_double, as float() in _numbers: the same values to the bit), or None whenever
+    the file is anything but plain: not ASCII (a BOM too), quotes, carriage returns, NUL, a
+    blank or indented line, a '#' other than at a row's start, a character outside
+    _FAST_DATA_BYTES in a data row, a row of another field count, a timestamp that is not 1-19
+    digits or exceeds INT64_MAX, timestamps not strictly increasing, a value numpy cannot parse
+    or that is not finite, no data row.  On None the row parser reads the file again and raises
+    its one-line error naming the file and line (or accepts what only it accepts, e.g. CRLF
+    line ends or blanks around a field): every error and every accepted value stay the row
+    parser's.  Comment rows are lines starting with '#' (the row parser's header_prefix) and
+    empty lines are skipped, as csv.reader and _rows do; line numbers count every line.  Read
+    in blocks of whole lines (_FAST_BLOCK_BYTES)."""
+    ts_parts, val_parts, line_parts = [], [], []
+    lines_before = 0
+    with open_regular(path, LogError, binary=True) as f:
+        tail = b""
+        while True:
+            chunk = f.read(_FAST_BLOCK_BYTES)
+            buf = tail + chunk
+            cut = len(buf) if not chunk else buf.rfind(b"\n") + 1
+            block, tail = buf[:cut], buf[cut:]
+            del buf
+            if block:
+                parsed = _parse_block(block, ncols)
+                if parsed is None:
+                    return None
+                ts, vals, lines_, n_lines = parsed
+                ts_parts.append(ts)
+                val_parts.append(vals)
+                line_parts.append(lines_ + lines_before)
+                lines_before += n_lines
+            if not chunk:
+                break
+    ts = np.concatenate(ts_parts) if ts_parts else np.zeros(0, np.int64)
+    if not len(ts) or (len(ts) > 1 and not (np.diff(ts) > 0).all()):
+        return None
+    return ts, np.concatenate(val_parts), np.concatenate(line_parts)
+
+
+def _parse_block(raw: bytes, ncols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+    """_numeric_csv_fast on one block of whole lines: (timestamps (N,) int64, values
+    (N, ncols - 1), line numbers (N,) 1-based within the block, the block's line count), or
+    None when anything in it is unusual (_numeric_csv_fast's list; the timestamps' order is
+    checked by the caller, across blocks)."""
+    if not raw.isascii() or b'"' in raw or b"\r" in raw or b"\x00" in raw:
+        return None
+    text = np.frombuffer(raw, np.uint8)
+    newlines = np.flatnonzero(text == ord("\n"))
+    starts = np.r_[0, newlines + 1]
+    ends = np.r_[newlines, len(text)]
+    if starts[-1] == len(text):  # the last line ended by its newline
+        starts, ends = starts[:-1], ends[:-1]
+    empty = starts == ends
+    comment = ~empty & (text[np.minimum(starts, len(text) - 1)] == ord("#"))
+    rows = np.flatnonzero(~empty & ~comment)
+    # every byte outside the data bytes lies in a comment row
+    odd = np.flatnonzero(~_FAST_DATA_BYTES[text])
+    if len(odd) and not comment[np.searchsorted(starts, odd, side="right") - 1].all():
+        return None
+    if not len(rows):
+        return np.zeros(0, np.int64), np.zeros((0, ncols - 1)), np.zeros(0, np.int64), len(starts)
+    # each data row has ncols - 1 commas
+    commas = np.flatnonzero(text == ord(","))
+    row_start = starts[rows]
+    if ((np.searchsorted(commas, ends[rows]) - np.searchsorted(commas, row_start)) != ncols - 1).any():
+        return None
+    # the timestamp: 1-19 digits, then the row's first comma
+    head = text[np.minimum(row_start[:, None] + np.arange(_FAST_TIMESTAMP_DIGITS + 1), len(text) - 1)]
+    width = np.argmin((head >= ord("0")) & (head <= ord("9")), axis=1)  # first non-digit (0: none)
+    if width.min() < 1 or not (head[np.arange(len(rows)), width] == ord(",")).all():
+        return None
+    dtype = np.dtype([("t", np.uint64), ("v", np.float64, (ncols - 1,))])
+    try:
+        table = np.loadtxt(
+            io.BytesIO(raw),
+            dtype=dtype,
+            delimiter=",",
+            comments="#",
+            quotechar=None,
+            ndmin=1,
+            encoding="ascii",
+        )
+    except ValueError:
+        return None
+    if len(table) != len(rows) or not (table["t"] <= INT64_MAX).all():
+        return None
+    vals = np.ascontiguousarray(table["v"]).reshape(len(rows), ncols - 1)
+    if not np.isfinite(vals).all():
+        return None
+    return table["t"].astype(np.int64), vals, (rows + 1).astype(np.int64), len(starts)
+
+
 def _numeric_csv(path: Path, ncols: int, with_lines: bool = False):
     """Read a `timestamp, v1, ..., v{ncols-1}` CSV with strictly increasing timestamps:
-    (timestamps_ns, values) and, with `with_lines`, each row's line number.  The rows are
-    gathered in typed buffers, 8 bytes a number, which the arrays then view (as lists of Python
-    floats, ~0.6 kB a ground-truth row: reading a 2-minute flight peaked at 22.8 MB traced and
-    left the process 64 MB larger, against 8.7 and 8 MB now; BENCHMARKS.md)."""
+    (timestamps_ns, values) and, with `with_lines`, each row's line number.  A well-formed file
+    is read by numpy's C parser (_numeric_csv_fast, the same numbers to the bit); anything else
+    by the row parser below, which names the first bad line.  The rows are gathered in typed
+    buffers, 8 bytes a number, which the arrays then view (as lists of Python floats, ~0.6 kB a
+    ground-truth row: reading a 2-minute flight peaked at 22.8 MB traced and left the process
+    64 MB larger, against 8.7 and 8 MB now; BENCHMARKS.md)."""
+    fast = _numeric_csv_fast(path, ncols)
+    if fast is not None:
+        return fast if with_lines else fast[:2]
     ts, vals, lines, prev = array("q"), array("d"), array("q"), None
     for lineno, row in _rows(path, ncols):
         t = _timestamp(row[0], path, lineno)
@@ -454,6 +566,26 @@ def _check_sensor_numbers(cfg: dict, source: str, camera: bool) -> None:
                 raise LogError(f"{source}: resolution must be two positive whole numbers")
 
 
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
+"""An image file name that is one path component and neither '.' nor '..' (it cannot start
+with a dot): inside the data folder unless it names a symbolic link there."""
+
+
+def _symlinked_names(data_dir: Path) -> set[str] | None:
+    """The names of the symbolic links directly in `data_dir`, lower-cased (a case-insensitive
+    file system finds 'a.png' for 'A.png': such a name is resolved too), from one listing (no
+    stat per entry where the file system gives the entry's type); an empty set when it is no
+    folder (every name then resolves to itself inside it); None when it cannot be listed (each
+    name is then resolved)."""
+    try:
+        with os.scandir(data_dir) as entries:
+            return {e.name.lower() for e in entries if e.is_symlink()}
+    except (FileNotFoundError, NotADirectoryError):
+        return set()
+    except OSError:
+        return None
+
+
 def _read_camera(cam_dir: Path, name: str) -> CameraStream:
     sensor_path = cam_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
@@ -463,6 +595,7 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
     except CameraModelError as e:
         raise LogError(str(e)) from None
     data_dir = (cam_dir / "data").resolve()
+    links = _symlinked_names(data_dir)
     csv_path = cam_dir / "data.csv"
     ts, paths, lines, prev = [], [], [], None
     for lineno, row in _rows(csv_path, 2):
@@ -472,9 +605,16 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
         fname = row[1]
         if not fname:
             raise LogError(f"{csv_path}:{lineno}: empty file name")
-        path = (data_dir / fname).resolve()
-        if data_dir not in path.parents:
-            raise LogError(f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside {cam_dir / 'data'}")
+        if links is not None and _PLAIN_NAME.fullmatch(fname) and fname.lower() not in links:
+            # what resolve() returns for it (data_dir is resolved; the name is one component,
+            # not '.' or '..', and no symbolic link), without its lstat of every component
+            path = data_dir / fname
+        else:
+            path = (data_dir / fname).resolve()
+            if data_dir not in path.parents:
+                raise LogError(
+                    f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside {cam_dir / 'data'}"
+                )
         ts.append(t)
         paths.append(path)
         lines.append(lineno)
