@@ -39,9 +39,9 @@ from fusion.qr.pnp.whitening import (
     CORNER_COORDINATES,
     DEFAULT_CORNER_SIGMA_PX,
     corner_classes,
-    floor_whitening,
-    placement_pixel_jacobians,
-    placement_sigmas,
+    corner_whitening,
+    placement_factors,
+    whitening_with,
 )
 from fusion.qr.reprojection import Projector
 from fusion.types import Mount
@@ -84,8 +84,8 @@ class PnPResult:
     (fusion.estimate.tiltconsider.level_kept_fraction).
     `placement_covariance` (k, 6, 6): with the codes' placement uncertain (`floor_whitening`),
     the part of each class's G_c that their placement explains, H^-1 A_c^T B_c B_c^T A_c H^-1
-    (A the whitened pose Jacobian, B the whitened placement Jacobian times its sigma, of the
-    class's codes; `class_parts`): the part of the error common to every frame that sees the
+    (A the whitened pose Jacobian, B the whitened placement factors, of the class's codes;
+    `class_parts`): the part of the error common to every frame that sees the
     same codes (fusion.estimate.correlation); None when the codes are laid exactly."""
 
     T_world_body: np.ndarray
@@ -256,13 +256,13 @@ class FloorCodes:
             [np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings]
         ).reshape(-1, 4, 2)
         self.xn = undistort(camera, self.uv.reshape(-1, 2)).reshape(-1, 4, 2)
-        self.W = floor_whitening(sightings, sigma, placement, camera)
+        self.W = corner_whitening([s.detection for s in sightings], sigma)
         self.placement_px = np.zeros(len(sightings))
-        self.placement_J: np.ndarray | None = None  # (c, 8, 3) d(px)/d(x, y, yaw) times the sigmas
+        self.placement_F: np.ndarray | None = None  # (c, 8, 4) the placement's factors
         if placement is not None and placement.enabled and len(sightings):
-            J = placement_pixel_jacobians(camera, self.uv, self.P[:, :, :2], self.centres[:, :2])
-            self.placement_J = J * placement_sigmas(placement)
-            self.placement_px = np.sqrt(np.sum(self.placement_J**2, axis=(1, 2)) / CORNER_COORDINATES)
+            self.placement_F = placement_factors(camera, sightings, placement)
+            self.W = whitening_with(self.W, self.placement_F)
+            self.placement_px = np.sqrt(np.sum(self.placement_F**2, axis=(1, 2)) / CORNER_COORDINATES)
         self.classes = corner_classes([s.detection for s in sightings])  # (c,) CORNER_CLASSES
         self.E = _edge_vectors(self.xn, camera)
 
@@ -467,9 +467,8 @@ def estimate_floor_poses(
         for k, sol in zip(pending, sols):
             if sol is None:
                 continue
-            gate = max_rms_px
-            if placement is not None and placement.enabled:
-                gate += PLACEMENT_GATE_SIGMAS * math.sqrt(float(np.mean(codes.placement_px[views[k]] ** 2)))
+            placed_px = math.sqrt(float(np.mean(codes.placement_px[views[k]] ** 2)))  # 0: laid exactly
+            gate = max_rms_px + PLACEMENT_GATE_SIGMAS * placed_px
             if sol.candidate.rms_px <= gate:
                 done[k] = sol
             elif len(views[k]) > 1:  # leave out the worst-fitting code and solve again
@@ -570,7 +569,7 @@ def class_parts(
     i.e. T[c, c'] = [c = c'] (m_c - 2 tr(C H_c)) + tr(C H_c C H_c') (Helmert's variance-component
     estimation, Helmert 1924; Koch 1999, sec. 3.6); each row sums to the class's redundancy
     m_c - tr(C H_c), and all of T to 8 n - 6.  With the codes' placement uncertain
-    (`FloorCodes.placement_J`), also each class's placement share (F, k, 6, 6)
+    (`FloorCodes.placement_F`), also each class's placement share (F, k, 6, 6)
     (PnPResult.placement_covariance), else None."""
     k = len(CORNER_CLASSES)
     F = len(solutions)
@@ -592,10 +591,15 @@ def class_parts(
     T = np.einsum("fcij,fdji->fcd", CH, CH)  # tr(C H_c C H_d)
     T += np.eye(k)[None] * (m_c - 2.0 * np.trace(CH, axis1=2, axis2=3))[:, :, None]
     G_p = None
-    if codes.placement_J is not None:
-        # the placement's share: each code's whitened placement Jacobian B = W J_p diag(sigma)
-        # meets the pose through A^T B (A its whitened pose Jacobian)
-        AtB = np.swapaxes(one.whitened_jacobian(R, t), 1, 2) @ (codes.W[idx] @ codes.placement_J[idx])
+    if codes.placement_F is not None:
+        # the placement's share: each code's whitened placement factors B = W F
+        # (whitening.placement_factors) meet the pose through A^T B (A its whitened pose Jacobian)
+        # of x, y and yaw only: the turn's second order (the factors' last column, a bound that a
+        # single code's pose absorbs whole) stays in the corner classes' share; counted once per
+        # code run with the rest it took place60's incremental smoother / EKF NEES 3.4 / 3.1 to
+        # 2.0 / 1.8 and p101's 10.1 / 5.8 to 2.9 / 3.2 (BENCHMARKS.md, eighteenth session)
+        B = codes.W[idx] @ codes.placement_F[idx][:, :, :3]
+        AtB = np.swapaxes(one.whitened_jacobian(R, t), 1, 2) @ B
         M_c = np.zeros((F, k, 6, 6))
         np.add.at(M_c, (frame, cls), AtB @ np.swapaxes(AtB, 1, 2))
         G_p = covs[:, None] @ M_c @ covs[:, None]

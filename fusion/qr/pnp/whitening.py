@@ -87,32 +87,26 @@ def floor_whitening(
 ) -> np.ndarray:
     """(n, 8, 8) whitening of floor sightings' corners (fusion.qr.codes.FloorSighting) against
     their codes' NOMINAL world corners: `corner_whitening`'s, or, when the codes' placement is
-    uncertain (`placement` enabled: world.yaml's floor_qr.placement_sigma_m / _deg), the inverse
-    Cholesky factor of C_i + J_i diag(s_m^2, s_m^2, s_rad^2) J_i^T, J_i the corners' pixel
-    Jacobian in the code's world x, y and yaw about its centre (`placement_pixel_jacobians`;
-    `camera` required then).  A code laid 1 cm off its payload moves its corners by ~4 px at
-    1.3 m against a corner sigma of 0.03-0.15 px: PnP on the nominal corners then has to weigh
-    its codes by that, and its covariance carries it (a single code's pose by the whole placement
-    error; codes that disagree by centimetres are fitted within their placement, not by tilting
-    the pose).  The error's tilt and height are not modelled (a flat floor)."""
+    uncertain (`placement` enabled: world.yaml's floor_qr.placement_sigma_m / _deg), that of
+    C_i + F_i F_i^T (`placement_factors`; `camera` required then).  A code laid 1 cm off its
+    payload moves its corners by ~4 px at 1.3 m against a corner sigma of 0.03-0.15 px: PnP on
+    the nominal corners then has to weigh its codes by that, and its covariance carries it (a
+    single code's pose by the whole placement error; codes that disagree by centimetres are
+    fitted within their placement, not by tilting the pose).  The error's tilt and height are
+    not modelled (a flat floor)."""
     W0 = corner_whitening([s.detection for s in sightings], default_sigma_px)
     if placement is None or not placement.enabled or not len(W0):
         return W0
     if camera is None:
         raise ValueError("floor_whitening: a placement sigma needs the camera")
-    uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings])
-    P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)[:, :2] for s in sightings])
-    c = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)[:2] for s in sightings])
-    J = placement_pixel_jacobians(camera, uv, P, c)  # (n, 8, 3)
-    # the turn's second order: a code turned by d moves its corners by the tangent J_yaw d less
-    # (P - c) d^2 / 2 towards its centre (a shrink the tangent cannot take; E[(d^2 / 2)^2] =
-    # 3 s^4 / 4 for d ~ N(0, s^2)), i.e. along d(px)/d(floor point) (P - c)
-    r = (P - c[:, None, :])[..., None]  # (n, 4, 2, 1)
-    shrink = (J[:, :, :2].reshape(-1, 4, 2, 2) @ r).reshape(-1, CORNER_COORDINATES)
-    shrink *= math.sqrt(0.75) * placement.sigma_rad**2
-    J = J * placement_sigmas(placement)
+    return whitening_with(W0, placement_factors(camera, sightings, placement))
+
+
+def whitening_with(W0: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """(n, 8, 8) whitening of the corner covariances W0^-1 W0^-T + F F^T (F (n, 8, m)): inverse
+    Cholesky factors; a code whose sum is not positive definite keeps W0."""
     L0 = np.linalg.inv(W0)  # the corner covariance's Cholesky factor (W0 = L0^-1)
-    C = L0 @ np.swapaxes(L0, 1, 2) + J @ np.swapaxes(J, 1, 2) + shrink[:, :, None] * shrink[:, None, :]
+    C = L0 @ np.swapaxes(L0, 1, 2) + F @ np.swapaxes(F, 1, 2)
     out = W0.copy()
     idx = np.flatnonzero(np.isfinite(C).all(axis=(1, 2)))
     try:
@@ -126,9 +120,22 @@ def floor_whitening(
     return out
 
 
-def placement_sigmas(placement: Placement) -> np.ndarray:
-    """(3,) the placement's sigma of a code's x (m), y (m) and yaw (rad)."""
-    return np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+def placement_factors(camera: CameraModel, sightings, placement: Placement) -> np.ndarray:
+    """(n, 8, 4) F with F F^T the pixel covariance that the codes' placement adds to each floor
+    sighting's corners: J_p diag(s_m, s_m, s_yaw) (`placement_pixel_jacobians`, the code's x, y
+    and yaw about its centre) and the turn's second order g: a code turned by d has its corners
+    (P - c) d^2 / 2 nearer its centre than the tangent J_yaw d puts them (a shrink the tangent
+    cannot take), E[(d^2 / 2)^2] = 3 s_yaw^4 / 4, so g = sqrt(3 / 4) s_yaw^2 d(px)/d(floor point)
+    (P - c).  At clean renders' 0.026 px corners a 2 deg sigma without g read NEES 27.5 of 6
+    (tests/test_placement.py)."""
+    uv = np.array([np.asarray(s.detection.corners_px, dtype=float).reshape(4, 2) for s in sightings])
+    P = np.array([np.asarray(s.corners_world, dtype=float).reshape(4, 3)[:, :2] for s in sightings])
+    c = np.array([np.asarray(s.centre_world, dtype=float).reshape(3)[:2] for s in sightings])
+    J = placement_pixel_jacobians(camera, uv, P, c)  # (n, 8, 3)
+    r = (P - c[:, None, :])[..., None]  # (n, 4, 2, 1)
+    g = (J[:, :, :2].reshape(-1, 4, 2, 2) @ r).reshape(-1, CORNER_COORDINATES, 1)
+    sigmas = np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+    return np.concatenate([J * sigmas, math.sqrt(0.75) * placement.sigma_rad**2 * g], axis=2)
 
 
 def placement_pixel_jacobians(
