@@ -730,11 +730,15 @@ def estimate_inflation(
     # only the inflated classes' terms are kept (CorrelationInflation: the memory of long flights)
     active = np.flatnonzero(taus > 1.0)
     scales = np.asarray(class_scales, dtype=float)
-    if with_placement:  # the placement's parts out of the classes, into a class of their own
-        G = np.stack([np.asarray(g, dtype=float) for g in class_covariances]) * scales[None, :, None, None]
-        Gp = np.stack([np.asarray(g, dtype=float) for g in placement_covariances or ()])
-        Gp *= scales[None, :, None, None]
-        terms = np.concatenate([G - Gp, Gp.sum(axis=1, keepdims=True)], axis=1)[:, active]
+    if with_placement:  # the placement's parts out of the classes, into a class of their own,
+        # in blocks of frames, packed as CorrelationInflation keeps them (no flight-long float64)
+        terms = np.empty((len(t), len(active), len(_TRIU[0])), dtype=np.float32)
+        for lo in range(0, len(t), DIRECTIONAL_BLOCK_ROWS):
+            hi = min(lo + DIRECTIONAL_BLOCK_ROWS, len(t))
+            G = np.asarray(class_covariances[lo:hi], dtype=float) * scales[None, :, None, None]
+            Gp = np.asarray((placement_covariances or [])[lo:hi], dtype=float) * scales[None, :, None, None]
+            block = np.concatenate([G - Gp, Gp.sum(axis=1, keepdims=True)], axis=1)[:, active]
+            terms[lo:hi] = block[..., _TRIU[0], _TRIU[1]]
     else:
         terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
         terms *= scales[active][None, :, None, None]
