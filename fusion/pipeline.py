@@ -1081,6 +1081,9 @@ def _run_into(
         undeclared = undeclared_rolling_shutter_warning(log, det, loc, cfg)
         if undeclared is not None:
             result.warnings.append(undeclared)
+    wide = placement_too_wide_warning(log.world)
+    if wide is not None:
+        result.warnings.append(wide)
     timings["localize_s"] = time.perf_counter() - t
     t = time.perf_counter()
     det, loc = track_stage(log, detected, det, loc, cfg, result)
@@ -1357,6 +1360,32 @@ def loads_at_two_places_warning(found: dict[str, list[np.ndarray]]) -> LogWarnin
         f"{len(found)} load id(s) read at places more than {AMBIGUITY_SEPARATION_M:.2f} m apart: "
         f"{listed}{more} (m). A duplicated label, or a load moved during the flight: their mapped "
         "positions are not to be trusted (their sigmas include the places' spread)",
+    )
+
+
+PLACEMENT_LINEAR_M = 0.05
+PLACEMENT_LINEAR_DEG = 5.0
+"""The largest floor-code placement sigma (world.yaml) at which PnP's first-order placement
+whitening was measured honest (qr.pnp.whitening.floor_whitening; p20 stating 5 cm / 5 deg: PnP
+NEES 5.8; 10 cm / 10 deg: 14.8, 20 cm / 20 deg: 57 with a 58 mm height bias; BENCHMARKS.md,
+eighteenth session)."""
+
+
+def placement_too_wide_warning(world) -> LogWarning | None:
+    """A named warning when world.yaml states the floor codes' placement sigma beyond
+    PLACEMENT_LINEAR_M / _DEG: PnP's first-order model of it (and so the poses of the
+    incremental smoother and the EKF) then fails; the batch smoother's as-built codes do not
+    linearise it that way."""
+    p = Placement.from_world(world)
+    if p.sigma_m <= PLACEMENT_LINEAR_M and math.degrees(p.sigma_rad) <= PLACEMENT_LINEAR_DEG:
+        return None
+    return LogWarning(
+        "placement_sigma_too_wide",
+        1,
+        f"world.yaml: floor codes laid to {100 * p.sigma_m:.3g} cm / {math.degrees(p.sigma_rad):.3g} deg, "
+        f"beyond the {100 * PLACEMENT_LINEAR_M:.0f} cm / {PLACEMENT_LINEAR_DEG:.0f} deg that PnP's placement "
+        "model holds to: the PnP, incremental and EKF poses may be off by centimetres beyond their sigma "
+        "(the batch smoother's as-built codes are not affected); survey the codes or state a tighter sigma",
     )
 
 

@@ -184,3 +184,14 @@ def test_inspect_says_how_the_floor_codes_are_taken():
         "2 cm, 0.5 deg (stated)"
     )
     assert "laid exactly" in placement_line(World(placement_sigma_m=0.0, placement_sigma_deg=0.0))
+
+
+def test_a_placement_beyond_the_linear_model_is_a_named_warning():
+    from fusion.pipeline import placement_too_wide_warning
+    from fusion.world import World
+
+    assert placement_too_wide_warning(World()) is None  # the 1 cm / 1 deg default
+    assert placement_too_wide_warning(World(placement_sigma_m=0.05, placement_sigma_deg=5.0)) is None
+    w = placement_too_wide_warning(World(placement_sigma_m=0.2, placement_sigma_deg=1.0))
+    assert w is not None and w.name == "placement_sigma_too_wide" and "20 cm" in w.message
+    assert placement_too_wide_warning(World(placement_sigma_m=0.01, placement_sigma_deg=20.0)) is not None
