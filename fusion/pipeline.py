@@ -123,6 +123,7 @@ from fusion.warehouse import floorcodes
 from fusion.warehouse.inventory import AMBIGUITY_SEPARATION_M, ambiguous_places
 from fusion.warehouse.runs import WORLD_YAML
 from fusion.warehouse.view3d import floor_codes_from_payloads
+from fusion.world import FloorLayout
 
 logger = logging.getLogger(__name__)
 
@@ -474,8 +475,19 @@ def _localize_front_packed(context, packed) -> dict:
 
 
 def floor_context(log: FlightLog, cfg: RunConfig) -> tuple:
-    """What every `localize_floor_chunk` needs: (floor camera, world, cfg)."""
-    return (log.floor.camera, log.world, cfg)
+    """What every `localize_floor_chunk` needs: (floor camera, world, cfg, floor layout)."""
+    return (log.floor.camera, log.world, cfg, floor_layout(log, cfg))
+
+
+def floor_layout(log: FlightLog, cfg: RunConfig) -> FloorLayout | None:
+    """`fusion run --map`'s floor codes for PnP (world.FloorLayout: the map's pose and covariance
+    of each code it holds, world.yaml's placement sigma for the others); None without --map or
+    when world.yaml says the codes are laid exactly (the as-built codes' rule: the map unused)."""
+    placement = Placement.from_world(log.world)
+    if cfg.floor_map is None or not placement.enabled:
+        return None
+    prior = floorcodes.read_floor_map(cfg.floor_map, _world_yaml(log))
+    return FloorLayout(placement, dict(prior.codes))
 
 
 def front_context(log: FlightLog, floor: LocalizeResult, cfg: RunConfig) -> tuple:
@@ -518,9 +530,8 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     )
     if placement is not None and bias_report is not None and cfg.correct_corner_bias:
         notes.append(
-            f"floor-corner bias not removed: with the floor codes laid to {100 * placement.sigma_m:.1f} cm / "
-            f"{math.degrees(placement.sigma_rad):.1f} deg (world.yaml), a common corner dilation cannot be "
-            "told from the codes' spacing"
+            "floor-corner bias not removed: with the floor codes' placement uncertain (world.yaml's "
+            "placement sigma, or --map's), a common corner dilation cannot be told from the codes' spacing"
         )
     if bias_report is not None:
         stats["pnp"]["corner_bias"] = bias_report
@@ -614,7 +625,7 @@ _LOCALIZE_PRELOAD = ("fusion.pipeline",)
 def localize_floor_chunk(context, frames: dict) -> dict:
     """Paper and PnP poses of the floor frames {timestamp_ns: detections} of one chunk."""
 
-    camera, world, cfg = context
+    camera, world, cfg, layout = context
     out: dict[str, Any] = {"paper": None, "paper_error": None}
     # the paper's Algorithms read decoded codes only; tracked ones (fusion.qr.track) go to PnP
     decoded = {t: kept for t, ds in frames.items() if (kept := [d for d in ds if not d.tracked])}
@@ -622,7 +633,9 @@ def localize_floor_chunk(context, frames: dict) -> dict:
         out["paper"] = paper.paper_trajectory(decoded, camera, world, cfg.th_px)
     except EstimationError as e:
         out["paper_error"] = str(e)
-    out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(frames, camera, world, cfg.corner_sigma_px)
+    out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(
+        frames, camera, world, cfg.corner_sigma_px, layout=layout
+    )
     out["intrinsics_sigmas"] = camera.intrinsics_sigmas
     return out
 

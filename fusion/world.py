@@ -292,6 +292,10 @@ class Placement:
         """0 m and 0 deg: the payloads are exact (today's model)."""
         return self.sigma_m > 0 or self.sigma_rad > 0
 
+    def covariance(self, code_id: str | None = None) -> np.ndarray:
+        """(3, 3) covariance of a code's (x, y, yaw) about its payload's pose (any code)."""
+        return np.diag(np.square([self.sigma_m, self.sigma_m, self.sigma_rad]))
+
     @classmethod
     def from_world(cls, world: World) -> Placement:
         sm = getattr(world, "placement_sigma_m", None)
@@ -300,3 +304,42 @@ class Placement:
             DEFAULT_PLACEMENT_SIGMA_M if sm is None else float(sm),
             math.radians(DEFAULT_PLACEMENT_SIGMA_DEG if sd is None else float(sd)),
         )
+
+
+@dataclass(frozen=True)
+class FloorLayout:
+    """Where the floor codes lie, as far as the run knows: a merged map's (x, y, yaw) and its
+    (3, 3) covariance per code id (`fusion map merge`, given to `fusion run --map`), and about
+    its payload's pose by world.yaml's placement sigma (`default`) for every other code.  Like
+    Placement, `enabled` and `covariance(code_id)`; `place` moves a floor sighting's world
+    corners to the map's pose of its code."""
+
+    default: Placement
+    codes: dict = field(default_factory=dict)  # id -> ((3,) x m, y m, yaw rad; (3, 3) covariance)
+
+    @property
+    def enabled(self) -> bool:
+        return self.default.enabled or bool(self.codes)
+
+    def covariance(self, code_id: str | None = None) -> np.ndarray:
+        if code_id is not None and code_id in self.codes:
+            return np.asarray(self.codes[code_id][1], dtype=float)
+        return self.default.covariance()
+
+    def place(self, sighting):
+        """`sighting` (fusion.qr.codes.FloorSighting) with its world corners and centre where the
+        map puts its code (turned about the centre by the map's yaw), or as it is."""
+        from dataclasses import replace
+
+        from fusion.conventions import floor_payload
+
+        entry = self.codes.get(floor_payload(sighting.payload.x, sighting.payload.y))
+        if entry is None:
+            return sighting
+        x, y, yaw = (float(v) for v in entry[0])
+        c0 = np.asarray(sighting.centre_world, dtype=float)
+        c, s = math.cos(yaw), math.sin(yaw)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        centre = np.array([x, y, float(c0[2])])
+        corners = (np.asarray(sighting.corners_world, dtype=float) - c0) @ R.T + centre
+        return replace(sighting, centre_world=centre, corners_world=corners)

@@ -72,7 +72,7 @@ from fusion.qr.pnp import (
 )
 from fusion.qr.refine import refine_frames
 from fusion.types import LoadObservation, QRDetection, Trajectory
-from fusion.world import Placement, World
+from fusion.world import FloorLayout, Placement, World
 
 log_ = logging.getLogger(__name__)
 
@@ -1214,7 +1214,7 @@ def refine_at_stamp(
 
 
 def _frames_cost(
-    frames: list[list], camera: CameraModel, sigma: float, placement: Placement | None = None
+    frames: list[list], camera: CameraModel, sigma: float, placement: Placement | FloorLayout | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Whitened reprojection cost (chi^2) of the PnP pose of each of `frames` (each a list of
     floor sightings) and its degrees of freedom (8 per code - 6; 0, 0 for an unposed frame or

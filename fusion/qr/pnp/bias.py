@@ -22,7 +22,7 @@ from fusion.geometry import cross_rows
 from fusion.qr.codes import FloorSighting
 from fusion.qr.pnp.whitening import CORNER_CLASSES, CORNER_COORDINATES, corner_classes, floor_whitening
 from fusion.qr.reprojection import Projector
-from fusion.world import Placement
+from fusion.world import FloorLayout, Placement
 
 SIZE_BIN_EDGES_PX: tuple[float, ...] = tuple(32.0 * 2.0 ** (k / 2) for k in range(1, 7))
 """Edges (px) of the code-size bins, a factor sqrt(2) apart from 45 to 256 px (the code's mean
@@ -175,7 +175,7 @@ def frames_bias_and_residuals(
     frames: list[list[FloorSighting]],
     T_world_body: np.ndarray,
     corner_sigma_px: float,
-    placement: Placement | None = None,
+    placement: Placement | FloorLayout | None = None,
 ) -> tuple[list[FrameBiasTerms | None], list[FrameCodeResiduals]]:
     """Per posed frame (frames (F,) lists of the sightings each pose used, T_world_body
     (F, 4, 4)): its `FrameBiasTerms` (None when the pose's information is singular) and its

@@ -16,7 +16,7 @@ from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
 from fusion.qr.pnp.whitening import CORNER_COORDINATES, DEFAULT_CORNER_SIGMA_PX
 from fusion.types import LoadEstimate, LoadMap, LoadObservation, QRDetection, Trajectory
-from fusion.world import Placement, World
+from fusion.world import FloorLayout, Placement, World
 
 FRAMES_PER_BATCH = 512
 """Frames solved together by `pnp_trajectory` / `pnp_load_observations` (bounded memory)."""
@@ -62,8 +62,8 @@ class PnPStats:
     # per posed frame, with the floor codes' placement uncertain: each class's placement share
     # (PnPResult.placement_covariance, float32), for fusion.estimate.correlation; else empty
     frame_placement_covariance: list[np.ndarray] = field(default_factory=list)
-    # world.yaml's placement sigma the codes were weighed with (world.Placement; None: exact)
-    placement: Placement | None = None
+    # how the codes' placement was weighed (world.Placement, or --map's FloorLayout; None: exact)
+    placement: Placement | FloorLayout | None = None
 
     @classmethod
     def merged(cls, parts: list[PnPStats]) -> PnPStats:
@@ -109,14 +109,16 @@ def pnp_trajectory(
     world: World,
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
     name: str = "pnp",
+    layout: FloorLayout | None = None,
 ) -> tuple[Trajectory, PnPStats]:
     """Per-frame PnP body poses of a floor-camera flight: {timestamp_ns: detections} ->
     (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
     left out (counted in the stats); rejected payloads (fusion.qr.codes.classify) are never used.
     Each frame is solved on its own (`estimate_floor_pose`), FRAMES_PER_BATCH frames at a time
     (`estimate_floor_poses`), weighing its codes by world.yaml's placement sigma
-    (`world.Placement.from_world`: absent, the defaults; 0 / 0, exactly laid)."""
-    placement = Placement.from_world(world)
+    (`world.Placement.from_world`: absent, the defaults; 0 / 0, exactly laid), or by `layout`
+    (`fusion run --map`: the codes a merged map holds where it puts them, to its covariance)."""
+    placement: Placement | FloorLayout = layout if layout is not None else Placement.from_world(world)
     stats = PnPStats(placement=placement if placement.enabled else None)
     ts_out, T_out, cov_out, rms = [], [], [], []
     codes_seen = []
@@ -127,7 +129,7 @@ def pnp_trajectory(
         codes = classify(frames[ts], world)
         codes_seen.append(codes)
         if codes.floor:
-            with_floor.append((ts, codes.floor))
+            with_floor.append((ts, [layout.place(s) for s in codes.floor] if layout else codes.floor))
         else:
             stats.n_without_floor_code += 1
     for b in range(0, len(with_floor), FRAMES_PER_BATCH):

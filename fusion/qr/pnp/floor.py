@@ -45,7 +45,7 @@ from fusion.qr.pnp.whitening import (
 )
 from fusion.qr.reprojection import Projector
 from fusion.types import Mount
-from fusion.world import Placement
+from fusion.world import FloorLayout, Placement
 
 GIMBAL_ROLL_PITCH_SIGMA_RAD = math.radians(10.0)
 """Standard deviation given to the (unobserved) airframe roll and pitch with a gimbaled camera."""
@@ -244,7 +244,7 @@ class FloorCodes:
         sightings: list[FloorSighting],
         camera: CameraModel,
         sigma: float,
-        placement: Placement | None = None,
+        placement: Placement | FloorLayout | None = None,
     ):
         self.P = np.array(
             [np.asarray(s.corners_world, dtype=float).reshape(4, 3) for s in sightings]
@@ -438,7 +438,7 @@ def estimate_floor_poses(
     ambiguity_chi2: float = AMBIGUITY_CHI2,
     gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
     sqpnp_fallback: bool = True,
-    placement: Placement | None = None,
+    placement: Placement | FloorLayout | None = None,
 ) -> list[PnPResult | None]:
     """`estimate_floor_pose` of many frames (each a list of floor sightings), computed together:
     the corners undistorted and whitened at once, and the views refined in batches (one
@@ -615,7 +615,7 @@ def estimate_floor_pose(
     ambiguity_chi2: float = AMBIGUITY_CHI2,
     gimbal_roll_pitch_sigma_rad: float = GIMBAL_ROLL_PITCH_SIGMA_RAD,
     sqpnp_fallback: bool = True,
-    placement: Placement | None = None,
+    placement: Placement | FloorLayout | None = None,
 ) -> PnPResult | None:
     """Body pose from all floor codes of one floor-camera frame, or None (no code, no solution,
     or reprojection RMS above `max_rms_px` even after leaving out the worst-fitting codes).

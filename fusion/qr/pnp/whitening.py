@@ -8,10 +8,11 @@ import math
 import numpy as np
 
 from fusion.camera import CameraModel
+from fusion.conventions import floor_payload
 from fusion.qr.pnp.undistort import undistort
 from fusion.qr.refine import FALLBACK_SIGMA_PX
 from fusion.qr.reprojection import Projector
-from fusion.world import Placement
+from fusion.world import FloorLayout, Placement
 
 DEFAULT_CORNER_SIGMA_PX = 0.15
 """Refined-corner error per pixel coordinate (DESIGN.md: about 0.13 px mean after refinement)."""
@@ -83,7 +84,10 @@ def corner_classes(detections) -> np.ndarray:
 
 
 def floor_whitening(
-    sightings, default_sigma_px: float, placement: Placement | None, camera: CameraModel | None = None
+    sightings,
+    default_sigma_px: float,
+    placement: Placement | FloorLayout | None,
+    camera: CameraModel | None = None,
 ) -> np.ndarray:
     """(n, 8, 8) whitening of floor sightings' corners (fusion.qr.codes.FloorSighting) against
     their codes' NOMINAL world corners: `corner_whitening`'s, or, when the codes' placement is
@@ -120,10 +124,11 @@ def whitening_with(W0: np.ndarray, F: np.ndarray) -> np.ndarray:
     return out
 
 
-def placement_factors(camera: CameraModel, sightings, placement: Placement) -> np.ndarray:
+def placement_factors(camera: CameraModel, sightings, placement: Placement | FloorLayout) -> np.ndarray:
     """(n, 8, 4) F with F F^T the pixel covariance that the codes' placement adds to each floor
-    sighting's corners: J_p diag(s_m, s_m, s_yaw) (`placement_pixel_jacobians`, the code's x, y
-    and yaw about its centre) and the turn's second order g: a code turned by d has its corners
+    sighting's corners: J_p S (`placement_pixel_jacobians`, the code's x, y and yaw about its
+    centre; S S^T the code's (x, y, yaw) covariance: world.yaml's sigmas, or a merged map's for
+    the codes it holds) and the turn's second order g: a code turned by d has its corners
     (P - c) d^2 / 2 nearer its centre than the tangent J_yaw d puts them (a shrink the tangent
     cannot take), E[(d^2 / 2)^2] = 3 s_yaw^4 / 4, so g = sqrt(3 / 4) s_yaw^2 d(px)/d(floor point)
     (P - c).  At clean renders' 0.026 px corners a 2 deg sigma without g read NEES 27.5 of 6
@@ -134,8 +139,13 @@ def placement_factors(camera: CameraModel, sightings, placement: Placement) -> n
     J = placement_pixel_jacobians(camera, uv, P, c)  # (n, 8, 3)
     r = (P - c[:, None, :])[..., None]  # (n, 4, 2, 1)
     g = (J[:, :, :2].reshape(-1, 4, 2, 2) @ r).reshape(-1, CORNER_COORDINATES, 1)
-    sigmas = np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
-    return np.concatenate([J * sigmas, math.sqrt(0.75) * placement.sigma_rad**2 * g], axis=2)
+    if isinstance(placement, Placement):  # one sigma for every code
+        sigmas = np.array([placement.sigma_m, placement.sigma_m, placement.sigma_rad])
+        return np.concatenate([J * sigmas, math.sqrt(0.75) * placement.sigma_rad**2 * g], axis=2)
+    cov = np.array([placement.covariance(floor_payload(s.payload.x, s.payload.y)) for s in sightings])
+    w, V = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    S = V * np.sqrt(np.maximum(w, 0.0))[:, None, :]  # S S^T = cov
+    return np.concatenate([J @ S, math.sqrt(0.75) * cov[:, 2, 2, None, None] * g], axis=2)
 
 
 def placement_pixel_jacobians(
