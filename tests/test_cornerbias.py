@@ -215,7 +215,7 @@ def test_consider_covariances_take_the_nearest_frame():
 def test_the_pipeline_corrects_only_on_the_honest_path(on):
     frames, truth = flight_frames(60, seed=4, b=B_TRUE)
     cfg = pipeline.RunConfig(workers=1, progress=False, correct_corner_bias=on, corner_sigma_px=NOISE)
-    part = pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, cfg), frames)
+    part = pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, cfg, None), frames)
     loc = pipeline.merge_floor_parts([part], cfg)
     report = loc.stats["pnp"]["corner_bias"]
     assert report["significant"] and report["applied"] == on

@@ -463,7 +463,7 @@ def test_pipeline_carries_the_inflation_only_when_asked():
     from test_pnp import FLOOR_CAM
 
     frames = pnp_flight(60, 6, 0.8)
-    parts = [pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, pipeline.RunConfig()), frames)]
+    parts = [pipeline.localize_floor_chunk((FLOOR_CAM, WORLD, pipeline.RunConfig(), None), frames)]
     on = pipeline.merge_floor_parts(parts, pipeline.RunConfig())
     assert on.correlation is not None and on.stats["pnp"]["correlation"]["applied"]
     off = pipeline.merge_floor_parts(parts, pipeline.RunConfig(inflate_correlated=False))
