@@ -170,10 +170,12 @@ def placement_autocorrelation(
     key = code * span + (frame - frame.min())
     order = np.argsort(key, kind="stable")
     key, frame, weight = key[order], frame[order], weight[order]
-    posed = np.unique(frame)
+    offset = frame - frame.min()
+    posed = np.zeros(int(offset.max()) + max_lag + 2, dtype=bool)  # posed[f]: frame f was posed
+    posed[offset] = True
     rho: list[float] = []
     for lag in range(1, max_lag + 1):
-        later = np.isin(frame + lag, posed)  # the sighting's frame has a posed frame lag later
+        later = posed[offset + lag]  # the sighting's frame has a posed frame lag later
         if not later.any():
             break
         j = np.minimum(np.searchsorted(key, key + lag), len(key) - 1)
