@@ -627,14 +627,22 @@ def localize_floor_chunk(context, frames: dict) -> dict:
 
     camera, world, cfg, layout = context
     out: dict[str, Any] = {"paper": None, "paper_error": None}
+    # each frame classified once for both estimators (classify is ~1/8 of this stage's CPU; PnP
+    # held every frame's FrameCodes to the end of the chunk before, for its rejection counts)
+    codes = {t: classify(ds, world) for t, ds in frames.items()}
     # the paper's Algorithms read decoded codes only; tracked ones (fusion.qr.track) go to PnP
-    decoded = {t: kept for t, ds in frames.items() if (kept := [d for d in ds if not d.tracked])}
+    decoded, decoded_codes = frames, codes  # every code decoded (no track pass): the same frames
+    if any(d.tracked for ds in frames.values() for d in ds):
+        decoded = {t: kept for t, ds in frames.items() if (kept := [d for d in ds if not d.tracked])}
+        # a frame with a tracked code is classified again without it (its duplicates may differ)
+        decoded_codes = {t: codes[t] for t, kept in decoded.items() if len(kept) == len(frames[t])}
     try:
-        out["paper"] = paper.paper_trajectory(decoded, camera, world, cfg.th_px)
+        out["paper"] = paper.paper_trajectory(decoded, camera, world, cfg.th_px, codes=decoded_codes)
     except EstimationError as e:
         out["paper_error"] = str(e)
+    del decoded, decoded_codes
     out["pnp"], out["pnp_stats"] = pnp.pnp_trajectory(
-        frames, camera, world, cfg.corner_sigma_px, layout=layout
+        frames, camera, world, cfg.corner_sigma_px, layout=layout, frame_codes=codes
     )
     out["intrinsics_sigmas"] = camera.intrinsics_sigmas
     return out
@@ -646,14 +654,21 @@ def localize_front_chunk(context, frames: dict) -> dict:
 
     camera, world, traj_paper, traj_pnp, cfg = context
     out: dict[str, Any] = {"paper": [], "paper_error": None}
+    # each frame classified once for the three users below, which read only its load codes: the
+    # frames that have any keep them (lists PnP's batch held for its posed frames before)
+    loads = {t: c.loads for t, ds in frames.items() if (c := classify(ds, world)).loads}
     if traj_paper is not None:
         try:
-            out["paper"] = paper.paper_load_observations(frames, camera, world, traj_paper, cfg.th_px)
+            out["paper"] = paper.paper_load_observations(
+                frames, camera, world, traj_paper, cfg.th_px, loads=loads
+            )
         except EstimationError as e:
             out["paper_error"] = str(e)
-    out["pnp"] = pnp.pnp_load_observations(frames, camera, world, traj_pnp, cfg.corner_sigma_px)
+    out["pnp"] = pnp.pnp_load_observations(
+        frames, camera, world, traj_pnp, cfg.corner_sigma_px, frame_loads=loads
+    )
     out["unposed"] = _unposed_load_observations(
-        frames, {o.timestamp_ns for o in out["pnp"]}, camera, world, cfg.corner_sigma_px
+        frames, {o.timestamp_ns for o in out["pnp"]}, camera, world, cfg.corner_sigma_px, loads
     )
     return out
 
@@ -718,16 +733,20 @@ def _merge_pnp_stats(parts: list) -> dict:
 
 
 def _unposed_load_observations(
-    front_frames, posed_ns: set[int], camera, world, sigma_px
+    front_frames, posed_ns: set[int], camera, world, sigma_px, frame_loads: dict | None = None
 ) -> list[LoadObservation]:
     """Camera-frame load observations (p_cam, cov_cam) of the front frames not in `posed_ns`;
-    their p_world is meaningless (identity drone pose) and must not be used."""
+    their p_world is meaningless (identity drone pose) and must not be used.  frame_loads:
+    {timestamp_ns: classify(front_frames[ts], world).loads} of every frame with a load code,
+    when the caller has them (a frame not in it has none)."""
 
     batch: list[LoadFrame] = []
     for ts in sorted(set(front_frames) - posed_ns):
-        codes = classify(front_frames[ts], world)
-        if codes.loads:
-            batch.append(LoadFrame(codes.loads, np.eye(4), None))
+        loads = (
+            frame_loads.get(ts, []) if frame_loads is not None else classify(front_frames[ts], world).loads
+        )
+        if loads:
+            batch.append(LoadFrame(loads, np.eye(4), None))
     if not batch:
         return []
     per_frame = estimate_load_observations_frames(batch, camera, world, sigma_px)

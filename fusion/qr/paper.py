@@ -43,7 +43,7 @@ from fusion.camera import CameraModel
 from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
 from fusion.geometry import make_T, rot_z, wrap_angle
-from fusion.qr.codes import FLOOR_CAMERA, FRONT_CAMERA, classify
+from fusion.qr.codes import FLOOR_CAMERA, FRONT_CAMERA, FrameCodes, LoadSighting, classify
 from fusion.types import (
     LoadEstimate,
     LoadMap,
@@ -232,12 +232,15 @@ def localize_frame(
     *,
     undistort: bool = False,
     centre: str = "geometric",
+    codes: FrameCodes | None = None,
 ) -> PaperPose | None:
     """Algorithm 1 (Drone 3D Localization) on one floor-camera frame.
 
     detections: the frame's decoded codes (camera "cam0"); only valid floor codes are used
     (fusion.qr.codes.classify: payloads not ours, duplicates, codes outside the world are
     dropped).  camera: the floor camera (FL = camera.fu, px).  th_px: Th (px).
+    codes: `classify(detections, world)` when the caller has it already (its `floor` is the
+    same with or without other cameras' detections); None: classified here.
     Returns None when no valid floor code is in view.
 
     lines 1-9: MinQR = the code whose centre (diagonal intersection, Sec. 3.2.3) is nearest
@@ -245,7 +248,9 @@ def localize_frame(
     first code (line 6 uses a strict '>').
     """
     _check_mount(camera, R_BODY_FLOORCAM, "floor")
-    frame = classify([d for d in detections if d.camera == FLOOR_CAMERA], world)
+    frame = (
+        codes if codes is not None else classify([d for d in detections if d.camera == FLOOR_CAMERA], world)
+    )
     if not frame.floor:
         return None
     fc = frame_centre_px(camera, centre)
@@ -281,13 +286,19 @@ def paper_trajectory(
     undistort: bool = False,
     centre: str = "geometric",
     name: str = "paper",
+    codes: dict[int, FrameCodes] | None = None,
 ) -> Trajectory:
     """Algorithm 1 on every floor frame {timestamp_ns: detections}; frames without a valid floor
     code are left out.  T_world_body has roll = pitch = 0; covariances None (the paper gives none).
+    codes: {timestamp_ns: classify(frames[t], world)} for the frames the caller classified
+    already (shared with PnP: one classification a frame); the others are classified here.
     """
     ts, Ts = [], []
     for t in sorted(frames):
-        pose = localize_frame(frames[t], camera, world, th_px, undistort=undistort, centre=centre)
+        frame_codes = codes.get(t) if codes is not None else None
+        pose = localize_frame(
+            frames[t], camera, world, th_px, undistort=undistort, centre=centre, codes=frame_codes
+        )
         if pose is not None:
             ts.append(int(t))
             Ts.append(pose.T_world_body)
@@ -412,6 +423,7 @@ def map_loads_frame(
     undistort: bool = False,
     centre: str = "geometric",
     axis_tol_deg: float = AXIS_TOL_DEG,
+    loads: list[LoadSighting] | None = None,
 ) -> list[LoadObservation]:
     """Algorithm 4 (LoadMapping) on one front-camera frame: every valid load code (camera "cam1";
     fusion.qr.codes.classify) -> a LoadObservation with p_world only (m).
@@ -421,13 +433,16 @@ def map_loads_frame(
     looking along the heading, perpendicular to the code's face (Assumption 8).
     lines 1-4: each code's centre (diagonal intersection); line 5: Dist <= Th -> Algorithm 5
     (line 6), else Algorithm 6 (line 8); line 9: collect.
+    loads: `classify(detections, world).loads` when the caller has it already (the same with or
+    without other cameras' detections); None: classified here.
     """
     _check_mount(camera, R_BODY_FRONTCAM, "front")
-    frame = classify([d for d in detections if d.camera == FRONT_CAMERA], world)
+    if loads is None:
+        loads = classify([d for d in detections if d.camera == FRONT_CAMERA], world).loads
     fc = frame_centre_px(camera, centre)
     drone_xyz = np.asarray(drone_xyz, dtype=float).reshape(3)
     out = []
-    for s in frame.loads:
+    for s in loads:
         corners = _pixels(camera, s.detection.corners_px, undistort)
         if not np.all(np.isfinite(corners)):
             continue
@@ -474,11 +489,15 @@ def paper_load_observations(
     max_gap_s: float = 0.05,
     undistort: bool = False,
     centre: str = "geometric",
+    loads: dict[int, list[LoadSighting]] | None = None,
 ) -> list[LoadObservation]:
     """Algorithm 4 on every front frame {timestamp_ns: detections}, with the drone pose of the
     `trajectory` frame nearest in time (the paper records both cameras together, Sec. 4.1.1);
     frames with no pose within `max_gap_s` are skipped.  Position and yaw come from the pose;
-    its roll / pitch are ignored (the paper's front camera is level, Assumption 8)."""
+    its roll / pitch are ignored (the paper's front camera is level, Assumption 8).
+    loads: {timestamp_ns: classify(front_frames[t], world).loads} of every frame with a load
+    code, when the caller has classified them already (shared with PnP); a frame not in it has
+    none.  None: each frame classified here."""
     ts = np.asarray(trajectory.timestamps_ns, dtype=np.int64)
     out: list[LoadObservation] = []
     if len(ts) == 0:
@@ -493,7 +512,15 @@ def paper_load_observations(
         yaw = math.atan2(T[1, 0], T[0, 0])
         out.extend(
             map_loads_frame(
-                front_frames[t], front_camera, world, T[:3, 3], yaw, th_px, undistort=undistort, centre=centre
+                front_frames[t],
+                front_camera,
+                world,
+                T[:3, 3],
+                yaw,
+                th_px,
+                undistort=undistort,
+                centre=centre,
+                loads=loads.get(t, []) if loads is not None else None,
             )
         )
     return out

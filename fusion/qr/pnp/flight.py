@@ -10,7 +10,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.geometry import interpolate_pose
-from fusion.qr.codes import classify, rejection_counts
+from fusion.qr.codes import FrameCodes, LoadSighting, classify, rejection_counts
 from fusion.qr.pnp.bias import FrameBiasTerms, FrameCodeResiduals, frames_bias_and_residuals
 from fusion.qr.pnp.floor import estimate_floor_poses
 from fusion.qr.pnp.load import LoadFrame, estimate_load_observations_frames
@@ -110,6 +110,7 @@ def pnp_trajectory(
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
     name: str = "pnp",
     layout: FloorLayout | None = None,
+    frame_codes: dict[int, FrameCodes] | None = None,
 ) -> tuple[Trajectory, PnPStats]:
     """Per-frame PnP body poses of a floor-camera flight: {timestamp_ns: detections} ->
     (Trajectory with (N, 6, 6) covariances, PnPStats).  Frames with no usable floor code are
@@ -117,7 +118,9 @@ def pnp_trajectory(
     Each frame is solved on its own (`estimate_floor_pose`), FRAMES_PER_BATCH frames at a time
     (`estimate_floor_poses`), weighing its codes by world.yaml's placement sigma
     (`world.Placement.from_world`: absent, the defaults; 0 / 0, exactly laid), or by `layout`
-    (`fusion run --map`: the codes a merged map holds where it puts them, to its covariance)."""
+    (`fusion run --map`: the codes a merged map holds where it puts them, to its covariance).
+    frame_codes: {timestamp_ns: classify(frames[ts], world)} the caller has already; others
+    classified here."""
     placement: Placement | FloorLayout = layout if layout is not None else Placement.from_world(world)
     stats = PnPStats(placement=placement if placement.enabled else None)
     ts_out, T_out, cov_out, rms = [], [], [], []
@@ -126,7 +129,9 @@ def pnp_trajectory(
     with_floor = []
     for ts in sorted(frames):
         stats.n_frames += 1
-        codes = classify(frames[ts], world)
+        codes = (
+            frame_codes[ts] if frame_codes is not None and ts in frame_codes else classify(frames[ts], world)
+        )
         codes_seen.append(codes)
         if codes.floor:
             with_floor.append((ts, [layout.place(s) for s in codes.floor] if layout else codes.floor))
@@ -205,20 +210,24 @@ def pnp_load_observations(
     trajectory: Trajectory,
     corner_sigma_px: float = DEFAULT_CORNER_SIGMA_PX,
     max_gap_s: float = MAX_POSE_GAP_S,
+    frame_loads: dict[int, list[LoadSighting]] | None = None,
 ) -> list[LoadObservation]:
     """Load observations of a flight's front-camera frames ({timestamp_ns: detections}), placed
     with the drone pose of `trajectory` at each frame (`pose_at`); frames without a pose are
     skipped.  Rejected payloads (classify) are never used.  Solved FRAMES_PER_BATCH frames at a
-    time (`estimate_load_observations_frames`)."""
+    time (`estimate_load_observations_frames`).  frame_loads: {timestamp_ns: classify(...).loads}
+    of every frame with a load code, classified by the caller (a frame not in it has none)."""
     todo = []
     for ts in sorted(front_frames):
-        codes = classify(front_frames[ts], world)
-        if not codes.loads:
+        loads = (
+            frame_loads.get(ts, []) if frame_loads is not None else classify(front_frames[ts], world).loads
+        )
+        if not loads:
             continue
         pose = pose_at(trajectory, ts, max_gap_s)
         if pose is None:
             continue
-        todo.append(LoadFrame(codes.loads, pose[0], pose[1]))
+        todo.append(LoadFrame(loads, pose[0], pose[1]))
     out: list[LoadObservation] = []
     for b in range(0, len(todo), FRAMES_PER_BATCH):
         for obs in estimate_load_observations_frames(
