@@ -57,6 +57,11 @@ DEFAULT_PLACEMENT_SIGMA_DEG = 1.0
 """world.yaml's `placement_sigma_deg` when absent."""
 
 
+MAX_PLACEMENT_SIGMA_DEG = 30.0
+"""world.yaml's floor_qr.placement_sigma_deg must be below this: a code turned by ~45 deg has its
+edges on the other diagonal (PnP's edge-implied yaw then picks the wrong quarter turn)."""
+
+
 UNCERTAINTY_KEYS = frozenset(
     {"floor_qr.placement_sigma_m", "floor_qr.placement_sigma_deg", "load_qr.side_sigma_m"}
 )
@@ -192,6 +197,17 @@ class World:
         for name, v in placement.items():
             if v is not None and v < 0:
                 raise WorldError(f"{source}: floor_qr.{name} must be >= 0, got {v!r}")
+        sm, sd = placement["placement_sigma_m"], placement["placement_sigma_deg"]
+        if sm is not None and sm >= floor_side_m:
+            raise WorldError(
+                f"{source}: floor_qr.placement_sigma_m is {sm:g} m, a code's own side ({floor_side_m:g} m) "
+                "or more: codes laid that loosely are not a grid (in metres: cm or mm given?)"
+            )
+        if sd is not None and sd >= MAX_PLACEMENT_SIGMA_DEG:
+            raise WorldError(
+                f"{source}: floor_qr.placement_sigma_deg is {sd:g} deg: a code turned that far reads as "
+                f"another orientation (it must be below {MAX_PLACEMENT_SIGMA_DEG:g})"
+            )
         load_side_m = strict_float(
             load.get("side_m", 0.15), f"{source}: load_qr.side_m", WorldError, positive=True
         )

@@ -253,6 +253,19 @@ def _world_load_sigma_mm(d: Path) -> None:
     (d / "world.yaml").write_text(yaml.safe_dump(data))
 
 
+def _world_placement_cm(d: Path) -> None:
+    """The floor codes' placement sigma given in cm (1 meaning 1 cm): 1 m, five codes' sides."""
+    data = yaml.safe_load((d / "world.yaml").read_text())
+    data.setdefault("floor_qr", {}).update(placement_sigma_m=1.0, placement_sigma_deg=1.0)
+    (d / "world.yaml").write_text(yaml.safe_dump(data))
+
+
+def _world_placement_negative(d: Path) -> None:
+    data = yaml.safe_load((d / "world.yaml").read_text())
+    data.setdefault("floor_qr", {})["placement_sigma_deg"] = -0.5
+    (d / "world.yaml").write_text(yaml.safe_dump(data))
+
+
 def _sensor_intrinsics_sigma_relative(d: Path) -> None:
     """The intrinsics' sigma given as a fraction of the focal length for fu (0.002) but in px
     for the rest, and one of them negative: -1 px."""
@@ -343,6 +356,8 @@ CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "world_side_cm": ("world.yaml floor side in cm", _world_side_cm),
     "world_side_zero": ("world.yaml floor side 0", _world_side_zero),
     "world_load_sigma_mm": ("world.yaml load_qr.side_sigma_m 0.3 (mm meant)", _world_load_sigma_mm),
+    "world_placement_cm": ("world.yaml placement_sigma_m 1 (cm meant)", _world_placement_cm),
+    "world_placement_negative": ("world.yaml placement_sigma_deg -0.5", _world_placement_negative),
     "sensor_mount_sigma_mm": ("cam1/sensor.yaml T_BS_sigma_m 2 (mm meant)", _sensor_mount_sigma_mm),
     "sensor_intrinsics_sigma_negative": (
         "cam0/sensor.yaml intrinsics_sigma with a negative entry",

@@ -242,3 +242,24 @@ def test_a_merged_map_places_its_codes_for_pnp():
     assert rms["map"] < 0.6 * rms["nominal"], rms
     for name in nees:
         assert 0.5 * 6 <= nees[name] <= 1.6 * 6, nees
+
+
+def test_world_yaml_refuses_a_placement_sigma_no_hand_laid_floor_has(tmp_path):
+    """A code's own side or more (cm given for m), or a turn that reads as another orientation:
+    a one-line error naming the file; within the bounds, the warning's range."""
+    from fusion.errors import WorldError
+    from fusion.world import World
+
+    for floor_qr, words in (
+        ("{side_m: 0.2, placement_sigma_m: 1.0}", "placement_sigma_m is 1 m"),
+        ("{side_m: 0.2, placement_sigma_deg: 45}", "placement_sigma_deg is 45 deg"),
+    ):
+        p = tmp_path / "world.yaml"
+        p.write_text(f"floor_qr: {floor_qr}\nload_qr: {{side_m: 0.15}}\n")
+        with pytest.raises(WorldError, match=words) as e:
+            World.load(p)
+        assert str(p) in str(e.value) and "\n" not in str(e.value)
+    p.write_text(
+        "floor_qr: {side_m: 0.2, placement_sigma_m: 0.1, placement_sigma_deg: 10}\nload_qr: {side_m: 0.15}\n"
+    )
+    assert World.load(p).placement_sigma_m == 0.1
