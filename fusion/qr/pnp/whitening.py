@@ -90,8 +90,9 @@ def floor_whitening(
     camera: CameraModel | None = None,
 ) -> np.ndarray:
     """(n, 8, 8) whitening of floor sightings' corners (fusion.qr.codes.FloorSighting) against
-    their codes' NOMINAL world corners: `corner_whitening`'s, or, when the codes' placement is
-    uncertain (`placement` enabled: world.yaml's floor_qr.placement_sigma_m / _deg), that of
+    their codes' world corners as given (the payloads', or a merged map's: world.FloorLayout):
+    `corner_whitening`'s, or, when where the codes lie is uncertain (`placement` enabled:
+    world.yaml's floor_qr.placement_sigma_m / _deg, or a map's covariances), that of
     C_i + F_i F_i^T (`placement_factors`; `camera` required then).  A code laid 1 cm off its
     payload moves its corners by ~4 px at 1.3 m against a corner sigma of 0.03-0.15 px: PnP on
     the nominal corners then has to weigh its codes by that, and its covariance carries it (a
