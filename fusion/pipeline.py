@@ -1113,7 +1113,7 @@ def _run_into(
         undeclared = undeclared_rolling_shutter_warning(log, det, loc, cfg)
         if undeclared is not None:
             result.warnings.append(undeclared)
-    wide = placement_too_wide_warning(log.world)
+    wide = placement_too_wide_warning(log.world, floor_layout(log, cfg))
     if wide is not None:
         result.warnings.append(wide)
     timings["localize_s"] = time.perf_counter() - t
@@ -1403,21 +1403,33 @@ NEES 5.8; 10 cm / 10 deg: 14.8, 20 cm / 20 deg: 57 with a 58 mm height bias; BEN
 eighteenth session)."""
 
 
-def placement_too_wide_warning(world) -> LogWarning | None:
+def placement_too_wide_warning(world, layout: FloorLayout | None = None) -> LogWarning | None:
     """A named warning when world.yaml states the floor codes' placement sigma beyond
-    PLACEMENT_LINEAR_M / _DEG: PnP's first-order model of it (and so the poses of the
-    incremental smoother and the EKF) then fails; the batch smoother's as-built codes do not
-    linearise it that way."""
+    PLACEMENT_LINEAR_M / _DEG, or `layout` (`fusion run --map`) gives codes such a sigma: PnP's
+    first-order model of it (and so the poses of the incremental smoother and the EKF) then
+    fails; the batch smoother's as-built codes do not linearise it that way."""
     p = Placement.from_world(world)
-    if p.sigma_m <= PLACEMENT_LINEAR_M and math.degrees(p.sigma_rad) <= PLACEMENT_LINEAR_DEG:
+    wide_world = p.sigma_m > PLACEMENT_LINEAR_M or math.degrees(p.sigma_rad) > PLACEMENT_LINEAR_DEG
+    wide_map = []
+    if layout is not None:
+        for cid, (_, cov) in sorted(layout.codes.items()):
+            sd = np.sqrt(np.maximum(np.diag(np.asarray(cov, dtype=float)), 0.0))
+            if max(sd[0], sd[1]) > PLACEMENT_LINEAR_M or math.degrees(sd[2]) > PLACEMENT_LINEAR_DEG:
+                wide_map.append(cid)
+    if not wide_world and not wide_map:
         return None
+    where = (
+        f"world.yaml: floor codes laid to {100 * p.sigma_m:.3g} cm / {math.degrees(p.sigma_rad):.3g} deg"
+        if wide_world
+        else f"--map: {len(wide_map)} floor code(s) known only that loosely (first {wide_map[0]})"
+    )
     return LogWarning(
         "placement_sigma_too_wide",
-        1,
-        f"world.yaml: floor codes laid to {100 * p.sigma_m:.3g} cm / {math.degrees(p.sigma_rad):.3g} deg, "
-        f"beyond the {100 * PLACEMENT_LINEAR_M:.0f} cm / {PLACEMENT_LINEAR_DEG:.0f} deg that PnP's placement "
-        "model holds to: the PnP, incremental and EKF poses may be off by centimetres beyond their sigma "
-        "(the batch smoother's as-built codes are not affected); survey the codes or state a tighter sigma",
+        1 if wide_world else len(wide_map),
+        f"{where}, beyond the {100 * PLACEMENT_LINEAR_M:.0f} cm / {PLACEMENT_LINEAR_DEG:.0f} deg that PnP's "
+        "placement model holds to: the PnP, incremental and EKF poses may be off by centimetres beyond "
+        "their sigma (the batch smoother's as-built codes are not affected); survey the codes or state a "
+        "tighter sigma",
     )
 
 

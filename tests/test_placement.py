@@ -195,6 +195,17 @@ def test_a_placement_beyond_the_linear_model_is_a_named_warning():
     w = placement_too_wide_warning(World(placement_sigma_m=0.2, placement_sigma_deg=1.0))
     assert w is not None and w.name == "placement_sigma_too_wide" and "20 cm" in w.message
     assert placement_too_wide_warning(World(placement_sigma_m=0.01, placement_sigma_deg=20.0)) is not None
+    # a map's codes known only loosely
+    from fusion.world import FloorLayout
+
+    tight = np.diag(np.square([0.002, 0.002, math.radians(0.1)]))
+    loose = np.diag(np.square([0.08, 0.002, math.radians(0.1)]))
+    layout = FloorLayout(Placement(), {"0/0/0": (np.zeros(3), tight), "0/1/0": (np.zeros(3), loose)})
+    w = placement_too_wide_warning(World(), layout)
+    assert w is not None and w.count == 1 and "0/1/0" in w.message and "--map" in w.message
+    assert (
+        placement_too_wide_warning(World(), FloorLayout(Placement(), {"0/0/0": (np.zeros(3), tight)})) is None
+    )
 
 
 def test_a_merged_map_places_its_codes_for_pnp():
