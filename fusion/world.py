@@ -16,15 +16,15 @@ them to `loads_groundtruth.csv`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from fusion.conventions import FloorPayload, symbol_corners_S
+from fusion.conventions import FloorPayload, floor_payload, symbol_corners_S
 from fusion.errors import WorldError
 from fusion.fileio import dump_yaml, load_yaml, strict_float, strict_floats
-from fusion.geometry import R_world_loadsymbol, make_T, transform_points
+from fusion.geometry import R_world_loadsymbol, make_T, rot_z, transform_points
 
 
 @dataclass(frozen=True)
@@ -345,17 +345,11 @@ class FloorLayout:
     def place(self, sighting):
         """`sighting` (fusion.qr.codes.FloorSighting) with its world corners and centre where the
         map puts its code (turned about the centre by the map's yaw), or as it is."""
-        from dataclasses import replace
-
-        from fusion.conventions import floor_payload
-
         entry = self.codes.get(floor_payload(sighting.payload.x, sighting.payload.y))
         if entry is None:
             return sighting
         x, y, yaw = (float(v) for v in entry[0])
         c0 = np.asarray(sighting.centre_world, dtype=float)
-        c, s = math.cos(yaw), math.sin(yaw)
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         centre = np.array([x, y, float(c0[2])])
-        corners = (np.asarray(sighting.corners_world, dtype=float) - c0) @ R.T + centre
+        corners = (np.asarray(sighting.corners_world, dtype=float) - c0) @ rot_z(yaw).T + centre
         return replace(sighting, centre_world=centre, corners_world=corners)

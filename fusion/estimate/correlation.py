@@ -732,18 +732,16 @@ def estimate_inflation(
     # only the inflated classes' terms are kept (CorrelationInflation: the memory of long flights)
     active = np.flatnonzero(taus > 1.0)
     scales = np.asarray(class_scales, dtype=float)
-    if with_placement:  # the placement's parts out of the classes, into a class of their own,
-        # in blocks of frames, packed as CorrelationInflation keeps them (no flight-long float64)
-        terms = np.empty((len(t), len(active), len(_TRIU[0])), dtype=np.float32)
-        for lo in range(0, len(t), DIRECTIONAL_BLOCK_ROWS):
-            hi = min(lo + DIRECTIONAL_BLOCK_ROWS, len(t))
-            G = np.asarray(class_covariances[lo:hi], dtype=float) * scales[None, :, None, None]
+    # in blocks of frames, packed as CorrelationInflation keeps them (no flight-long float64);
+    # the placement's parts out of the classes, into a class of their own
+    terms = np.empty((len(t), len(active), len(_TRIU[0])), dtype=np.float32)
+    for lo in range(0, len(t), DIRECTIONAL_BLOCK_ROWS):
+        hi = min(lo + DIRECTIONAL_BLOCK_ROWS, len(t))
+        G = np.asarray(class_covariances[lo:hi], dtype=float) * scales[None, :, None, None]
+        if with_placement:
             Gp = np.asarray((placement_covariances or [])[lo:hi], dtype=float) * scales[None, :, None, None]
-            block = np.concatenate([G - Gp, Gp.sum(axis=1, keepdims=True)], axis=1)[:, active]
-            terms[lo:hi] = block[..., _TRIU[0], _TRIU[1]]
-    else:
-        terms = np.stack([np.asarray(g, dtype=float)[active] for g in class_covariances])
-        terms *= scales[active][None, :, None, None]
+            G = np.concatenate([G - Gp, Gp.sum(axis=1, keepdims=True)], axis=1)
+        terms[lo:hi] = G[:, active][..., _TRIU[0], _TRIU[1]]
     # the lags as the estimator summed them (monotone-cut), so that a long average's factor
     # (CorrelationInflation.average_taus) tends to tau
     rho = np.zeros((len(taus), max(MAX_LAG, len(rho_p))))
