@@ -46,7 +46,6 @@ from fusion.estimate.asbuilt import (
     AsBuiltInput,
     FloorCodeMap,
     Placement,
-    as_built_fixes,
     write_floor_codes_csv,
 )
 from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, interpolable_load_times, match_to_frames
@@ -1667,11 +1666,7 @@ def _fuse_into_result(
     for name, res in fused_stage.results.items():
         # as built, the smoother's fixes are the sightings on the estimated codes, not PnP on
         # the nominal ones
-        fixes_of = (
-            as_built_fixes(fused_stage.as_built, res.floor_codes)
-            if res.floor_codes is not None and fused_stage.as_built is not None
-            else raw
-        )
+        fixes_of = res.code_fixes if res.code_fixes is not None else raw
         result.health[str(name)] = assess_result(
             res, fixes_of, max_iterations=max_iterations, level_fixes=gimbaled
         )

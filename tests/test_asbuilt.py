@@ -46,8 +46,9 @@ SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 SIGHTING_COV = np.diag([math.radians(0.1)] * 3 + [0.003] * 3) ** 2
 
 
-def _flight(seed: int, duration_s: float, offsets_of, placement: Placement):
-    """A synthetic flight over a 1 m grid: frame_t, imu, raw (PnP from the nominal grid),
+def _flight(seed: int, duration_s: float, offsets_of, placement: Placement, placement_in_fixes: bool = False):
+    """A synthetic flight over a 1 m grid: frame_t, imu, raw (PnP from the nominal grid; with
+    `placement_in_fixes` its covariance holds the placement's share, as the pipeline's PnP's does),
     AsBuiltInput, ids, true offsets (N, 3)."""
     rng = np.random.default_rng(seed)
     traj = random_aisle_survey(duration_s, rng)
@@ -59,7 +60,15 @@ def _flight(seed: int, duration_s: float, offsets_of, placement: Placement):
     ids = [floor_payload(x, y) for x, y in xy]
     offsets = offsets_of(ids)
     ab, fk, fT, fcov = synthetic_sightings(
-        frame_t, T_true, ids, xy, true_code_poses(xy, offsets), SIGHTING_COV, placement, rng
+        frame_t,
+        T_true,
+        ids,
+        xy,
+        true_code_poses(xy, offsets),
+        SIGHTING_COV,
+        placement,
+        rng,
+        placement_in_fixes=placement_in_fixes,
     )
     return frame_t, imu, Trajectory("pnp", frame_t[fk], fT, fcov), ab, ids, offsets
 

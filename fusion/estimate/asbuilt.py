@@ -34,7 +34,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import gtsam
@@ -68,6 +68,7 @@ __all__ = [
     "build_input",
     "code_prior_cov",
     "floor_code_estimates",
+    "merge_window_maps",
     "read_floor_codes_csv",
     "read_groundtruth_csv",
     "sightings_from_frames",
@@ -177,6 +178,19 @@ class AsBuiltInput:
     sightings: CodeSightings
     placement: Placement
     notes: list[str] = field(default_factory=list)
+
+    def between(self, t0_ns: int | None, t1_ns: int | None) -> AsBuiltInput:
+        """The same codes with only the sightings stamped in [t0_ns, t1_ns) (None: unbounded),
+        e.g. a window's share (fusion.estimate.window)."""
+        t = self.sightings.timestamps_ns
+        keep = np.ones(len(t), dtype=bool)
+        if t0_ns is not None:
+            keep &= t >= t0_ns
+        if t1_ns is not None:
+            keep &= t < t1_ns
+        s = self.sightings
+        kept = CodeSightings(s.timestamps_ns[keep], s.code[keep], s.T_code_body[keep], s.cov[keep])
+        return replace(self, sightings=kept)
 
 
 @dataclass
@@ -517,6 +531,23 @@ def floor_code_estimates(
         out.append(est)
     out.sort(key=lambda e: e.code_id)
     return FloorCodeMap(estimator, out, as_built.placement)
+
+
+def merge_window_maps(maps: list[FloorCodeMap]) -> FloorCodeMap:
+    """One floor-code map from the maps of windows solved on disjoint sightings (fusion.estimate.
+    window): per code, the estimate of the window that saw it most (the first of a tie).  Not
+    their information-weighted mean: every window's estimate rests on the same prior, and its
+    covariance holds that window's common shift of the floor, fixed by the priors of all the
+    codes it saw (module docstring, "Gauge"), so neighbouring windows share most of their
+    information about where a code is; a mean would count it once per window."""
+    best: dict[str, FloorCodeEstimate] = {}
+    for m in maps:
+        for c in m.codes:
+            if c.code_id not in best or c.n_obs > best[c.code_id].n_obs:
+                best[c.code_id] = c
+    placement = maps[0].placement if maps else Placement()
+    estimator = maps[0].estimator if maps else ""
+    return FloorCodeMap(estimator, [best[k] for k in sorted(best)], placement)
 
 
 def as_built_fixes(as_built: AsBuiltInput, fmap: FloorCodeMap) -> Trajectory:

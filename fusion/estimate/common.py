@@ -270,6 +270,9 @@ class FusionResult:
     stats: dict = field(default_factory=dict)
     health: SolveHealth = field(default_factory=SolveHealth)
     floor_codes: Any = None  # fusion.estimate.asbuilt.FloorCodeMap (batch smoother, as-built)
+    # as built, the per-frame fixes on the estimated codes (asbuilt.as_built_fixes): what the
+    # health monitor judges the smoother against, instead of PnP on the nominal codes
+    code_fixes: Trajectory | None = None
 
 
 # =========================================================================== input checks

@@ -29,8 +29,16 @@ only places it lacks information the whole-flight solve has):
   per camera: the windows' scales weighted by their degrees of freedom (each window estimates
   its own: Förstner's variance components per window).
 
-Not windowed (solved whole, with a log line): a flight with as-built floor codes (their
-variables span the flight).  Tight coupling's corner factors are windowed like the poses.
+- As-built floor codes (fusion.estimate.asbuilt): each sighting, like a load sighting, is given
+  to the one window whose cut range holds it; the window's other frames (its overlaps beyond
+  the cuts) keep their PnP fixes on the nominal codes, whose covariance holds the placement's
+  share (fusion.qr.pnp.whitening).  Every window starts from the codes' priors, and each code is
+  taken from the window that saw it most (asbuilt.merge_window_maps: the windows' estimates
+  share the prior and their floor's common shift, so they are not averaged).  A code seen in
+  several windows is thus less certain than in a whole-flight solve, and the trajectory near a
+  cut rests on its window's codes only; before, such a flight was solved whole, and took
+  4.2 GB at 30 minutes (BENCHMARKS.md).
+- Tight coupling's corner factors are windowed like the poses.
 
 Windows are independent solves, so `workers` > 1 solves up to WINDOW_WORKERS of them at once on
 worker processes (fusion.parallel); the result is the same as one at a time (each window is
@@ -54,6 +62,7 @@ from scipy.spatial.transform import Rotation
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
 from fusion.estimate import variance
+from fusion.estimate.asbuilt import FloorCodeMap, merge_window_maps
 from fusion.estimate.common import FusionConfig, FusionResult, SolveHealth, SolveMode, match_to_frames
 from fusion.estimate.extrinsics import MountRotation, estimate_mount_and_states, merge_mount_rotations
 from fusion.estimate.smoother import (
@@ -170,12 +179,14 @@ def _window_inputs(win: Window, frame_t: np.ndarray, imu, raw: Trajectory, load_
     raw = _rows(raw, (tr >= t0) & (tr <= t1))
     o0 = int(frame_t[win.out_first]) if win.out_first > 0 else None
     o1 = int(frame_t[win.out_stop]) if win.out_stop < len(frame_t) else None
+    kw = dict(kwargs)
+    if kw.get("as_built") is not None:
+        kw["as_built"] = kw["as_built"].between(t0, t1 + 1)
     loads = [
         o
         for o in load_obs or []
         if (o0 is None or o.timestamp_ns >= o0) and (o1 is None or o.timestamp_ns < o1)
     ]
-    kw = dict(kwargs)
     if kw.get("velocity") is not None:
         tv = np.asarray(kw["velocity"].timestamps_ns)
         kw["velocity"] = _rows(kw["velocity"], (tv >= t0 - pad) & (tv <= t1 + pad))
@@ -293,6 +304,10 @@ _SUMMED = (
     "time_build_s",
     "time_optimize_s",
     "time_covariance_s",
+    "floor_code_factors",
+    "floor_code_frames",
+    "gated_floor_code_factors",
+    "rejected_floor_code_factors",
     "time_s",
     "initial_error",
     "final_error",
@@ -345,8 +360,8 @@ def smooth_windowed(
 ) -> FusionResult:
     """`smoother.smooth` (same arguments and result), a flight longer than
     window.min_flight_s solved in overlapping windows one at a time (module docstring: the
-    stitching rule); stats['windows'] lists them.  A shorter flight, or one with as-built floor
-    codes, is `smooth` itself; so is a flight with a window the smoother cannot solve on its own
+    stitching rule); stats['windows'] lists them.  A shorter flight is `smooth` itself; so is a
+    flight with a window the smoother cannot solve on its own
     (EstimationError, e.g. no fix in it), with a health note saying so.  `solver`: the
     smoother of one window or of the whole flight (default `smoother.smooth`).  `warm_start`:
     the initial values of a whole-flight solve (`smooth`'s); the windows start cold (their keys
@@ -363,19 +378,20 @@ def smooth_windowed(
         config=config,
         floor_frames=floor_frames,
         floor_camera=floor_camera,
+        as_built=as_built,
     )
     frame_t = np.asarray(frame_times_ns)
     plan = plan_windows(frame_t, window) if frame_t.ndim == 1 and len(frame_t) else []
-    if len(plan) <= 1 or as_built is not None:
-        if len(plan) > 1:
-            log.info("smoother: as-built floor codes span the flight: solved whole, not in windows")
-        return solver(frame_times_ns, imu, raw, load_obs, as_built=as_built, warm_start=warm_start, **kwargs)
+    if len(plan) <= 1:
+        return solver(frame_times_ns, imu, raw, load_obs, warm_start=warm_start, **kwargs)
     log.info("smoother: %d frames in %d overlapping windows", len(frame_t), len(plan))
     poses: list[np.ndarray] = []
     covs: list[np.ndarray | None] = []
     maps: list[LoadMap] = []
     healths: list[SolveHealth] = []
     stats: list[dict] = []
+    code_maps: list[FloorCodeMap] = []
+    code_fixes: list[Trajectory] = []
     n_workers = min(workers, WINDOW_WORKERS) if sendable(solver) else 1
     tasks = (
         (
@@ -389,23 +405,25 @@ def smooth_windowed(
     parts = parallel_map(_solve_window, tasks, n_workers, preload=("fusion.estimate.window",))
     for i, win in enumerate(plan):
         try:
-            T_part, cov_part, loads_part, health_part, stats_part = next(parts)
+            T_part, cov_part, loads_part, codes_part, health_part, stats_part = next(parts)
         except EstimationError as e:
             # e.g. a window inside a long blackout (no fix): the whole flight bridges it
             t_s = (int(frame_t[win.first]) - int(frame_t[0])) / _NS
             reason = f"window {i + 1} of {len(plan)} (from {t_s:.1f} s) not solvable on its own ({e})"
             log.warning("smoother: %s: solving the whole flight instead", reason)
-            del poses, covs, maps, healths, stats, parts
+            del poses, covs, maps, code_maps, code_fixes, healths, stats, parts
             release_heap()
-            whole = solver(
-                frame_times_ns, imu, raw, load_obs, as_built=as_built, warm_start=warm_start, **kwargs
-            )
+            whole = solver(frame_times_ns, imu, raw, load_obs, warm_start=warm_start, **kwargs)
             whole.health.note(f"{reason}: solved as one window (memory not bounded)")
             whole.stats["health"] = whole.health.as_dict()
             return whole
         poses.append(T_part)
         covs.append(cov_part)
         maps.append(loads_part)
+        if codes_part[0] is not None:
+            code_maps.append(codes_part[0])
+        if codes_part[1] is not None:
+            code_fixes.append(codes_part[1])
         healths.append(health_part)
         stats.append(stats_part)
     name = str(Estimator.SMOOTHER)
@@ -413,7 +431,26 @@ def smooth_windowed(
     traj = Trajectory(name, frame_t.astype(np.int64), np.concatenate(poses), cov)
     loads = merge_loads(maps, name)
     health = _merge_health(healths, {e.load_id for e in loads.loads})
-    return FusionResult(traj, loads, _merge_stats(stats, plan, frame_t, health), health)
+    merged_stats = _merge_stats(stats, plan, frame_t, health)
+    out = FusionResult(traj, loads, merged_stats, health)
+    if as_built is not None:
+        out.floor_codes = merge_window_maps(code_maps)
+        merged_stats["floor_code_variables"] = len(out.floor_codes.codes)
+        # each frame's fixes on the codes its own window estimated (their common shift is the
+        # window's), not on the merged map's
+        out.code_fixes = _concatenate(code_fixes) if code_fixes else None
+    return out
+
+
+def _concatenate(parts: list[Trajectory]) -> Trajectory:
+    """The trajectories `parts` (consecutive, disjoint in time) end to end."""
+    covs = [p.covariances for p in parts if p.covariances is not None]
+    return Trajectory(
+        parts[0].name,
+        np.concatenate([p.timestamps_ns for p in parts]),
+        np.concatenate([p.T_world_body for p in parts]),
+        np.concatenate(covs) if len(covs) == len(parts) else None,
+    )
 
 
 def frame_stride(frame_t: np.ndarray, rate_hz: float) -> int:
@@ -540,11 +577,17 @@ def _states_arrays(states: gtsam.Values, a: int, b: int) -> tuple[np.ndarray, np
 
 def _solve_window(context: None, task: tuple) -> tuple:
     """One window of smooth_windowed: its output frames' poses [a:b] and covariances, its load
-    map, health and stats (the rest of the result is let go here, not sent back)."""
+    map, floor-code map (as-built; else None), health and stats (the rest of the result is let go
+    here, not sent back)."""
     solver, a, b, frame_t, imu, raw, loads, kwargs = task
     res = solver(frame_t, imu, raw, loads, **kwargs)
     cov = None if res.trajectory.covariances is None else res.trajectory.covariances[a:b]
-    out = (res.trajectory.T_world_body[a:b], cov, res.loads, res.health, res.stats)
+    fixes = res.code_fixes
+    if fixes is not None:  # those of the output frames, on this window's codes
+        t = np.asarray(fixes.timestamps_ns)
+        keep = (t >= frame_t[a]) & ((t < frame_t[b]) if b < len(frame_t) else True)
+        fixes = _rows(fixes, keep)
+    out = (res.trajectory.T_world_body[a:b], cov, res.loads, (res.floor_codes, fixes), res.health, res.stats)
     del res
     release_heap()  # the window's GTSAM heap back to the system before the next one
     return out

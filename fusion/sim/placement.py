@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.estimate.asbuilt import AsBuiltInput, CodePrior, CodeSightings, Placement, code_prior_cov
-from fusion.geometry import inv_T, make_T, rot_z, se3_exp, se3_log
+from fusion.geometry import adjoint, inv_T, make_T, rot_z, se3_exp, se3_log
 
 __all__ = ["placement_offsets", "synthetic_sightings", "true_code_poses"]
 
@@ -51,15 +51,20 @@ def synthetic_sightings(
     placement: Placement,
     rng: np.random.Generator,
     radius_per_height: float = SIGHTING_RADIUS_PER_HEIGHT,
+    placement_in_fixes: bool = False,
 ) -> tuple[AsBuiltInput, np.ndarray, np.ndarray, np.ndarray]:
     """Per-code sightings and the joint per-frame poses of a floor whose codes lie at
     T_world_code_true.  Returns (AsBuiltInput with payload priors, frame indices with a fix (M,),
     raw T_world_body (M, 4, 4) computed from the nominal poses (the mean of the codes' in
-    tangent space), raw covariances (M, 6, 6) = cov / codes in view)."""
+    tangent space), raw covariances (M, 6, 6) = cov / codes in view, plus, with
+    `placement_in_fixes`, the placement's share as PnP states it (fusion.qr.pnp.whitening): the
+    mean of the n codes' placement errors, each moving the body by Ad(T_code_body^-1) delta, so
+    (1 / n^2) sum_c Ad P_prior Ad^T)."""
     nominal_xy_m = np.asarray(nominal_xy_m, float).reshape(-1, 2)
     L = np.linalg.cholesky(cov)
     T_nom = np.array([make_T(np.eye(3), np.array([x, y, 0.0])) for x, y in nominal_xy_m])
     inv_true = np.array([inv_T(T) for T in T_world_code_true])
+    prior_cov = code_prior_cov(placement.sigma_m, placement.sigma_rad)
     t_s, c_s, T_s = [], [], []
     fix_k, fix_T, fix_cov = [], [], []
     for k, T in enumerate(T_world_body):
@@ -68,18 +73,21 @@ def synthetic_sightings(
         if not len(seen):
             continue
         poses = []
+        placed = np.zeros((6, 6))
         for c in seen.tolist():
             T_cb = inv_true[c] @ T @ se3_exp(L @ rng.standard_normal(6))
             t_s.append(int(frame_t_ns[k]))
             c_s.append(c)
             T_s.append(T_cb)
             poses.append(T_nom[c] @ T_cb)
+            if placement_in_fixes:
+                Ad = adjoint(inv_T(T_cb))
+                placed += Ad @ prior_cov @ Ad.T
         ref = poses[0]
         xi = se3_log(np.array([inv_T(ref) @ P for P in poses])).mean(axis=0)
         fix_k.append(k)
         fix_T.append(ref @ se3_exp(xi))
-        fix_cov.append(cov / len(seen))
-    prior_cov = code_prior_cov(placement.sigma_m, placement.sigma_rad)
+        fix_cov.append(cov / len(seen) + placed / len(seen) ** 2)
     codes = [CodePrior(cid, T_nom[i], T_nom[i], prior_cov) for i, cid in enumerate(ids)]
     S = len(t_s)
     sightings = CodeSightings(
