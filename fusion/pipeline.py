@@ -16,7 +16,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -122,7 +122,7 @@ from fusion.warehouse import floorcodes
 from fusion.warehouse.inventory import AMBIGUITY_SEPARATION_M, ambiguous_places
 from fusion.warehouse.runs import WORLD_YAML
 from fusion.warehouse.view3d import floor_codes_from_payloads
-from fusion.world import FloorLayout
+from fusion.world import FloorLayout, World
 
 logger = logging.getLogger(__name__)
 
@@ -784,14 +784,36 @@ class FloorInputs:
     codes_xy: np.ndarray | None  # world (x, y) of the floor codes decoded (_floor_codes_seen)
 
 
+class ClassifiedOnRead(Mapping):
+    """{timestamp_ns: [FloorSighting]} of a camera's detections {timestamp_ns: [QRDetection]},
+    each frame classified when it is read: the as-built input reads every frame once, and the
+    whole flight's sightings held at once were ~55 MB on a 30-minute flight."""
+
+    def __init__(self, frames: dict[int, list], world: World) -> None:
+        self._frames, self._world = frames, world
+
+    def __getitem__(self, t: int) -> list:
+        return classify(self._frames[t], self._world).floor
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._frames)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+
 def floor_inputs(log: FlightLog, det: DetectionResult, cfg: RunConfig) -> FloorInputs:
     """FloorInputs of the detections `det` of `log` (final stamps and mount: take them just
     before the fusion).  Each frame's floor sightings are classified only when a graph uses
     them (tight corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight."""
     if "cam0" not in log.cameras:
         return FloorInputs(None, [], {}, None)
-    used = cfg.tight or Placement.from_world(log.world).enabled
-    sightings = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()} if used else {}
+    sightings: Mapping[int, list] = {}
+    if cfg.tight:
+        sightings = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
+    elif Placement.from_world(log.world).enabled:
+        # the as-built input reads each frame once
+        sightings = ClassifiedOnRead(det.by_frame("cam0"), log.world)
     as_built, notes = floorcodes.as_built_input(
         log.world,
         _world_yaml(log),
@@ -801,7 +823,8 @@ def floor_inputs(log: FlightLog, det: DetectionResult, cfg: RunConfig) -> FloorI
         cfg.tight,
         cfg.floor_map,
     )
-    return FloorInputs(as_built, notes, sightings if cfg.tight else {}, _floor_codes_seen(det, log))
+    tight_frames = dict(sightings) if cfg.tight else {}
+    return FloorInputs(as_built, notes, tight_frames, _floor_codes_seen(det, log))
 
 
 def fuse_stage(

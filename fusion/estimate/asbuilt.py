@@ -34,6 +34,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -210,26 +211,46 @@ def code_id(payload: FloorPayload) -> str:
 
 
 def sightings_from_frames(
-    floor_frames: dict[int, list[FloorSighting]], camera: CameraModel, corner_sigma_px: float
-) -> list[tuple[int, FloorPayload, np.ndarray, np.ndarray]]:
-    """[(timestamp_ns, payload, T_code_body (4, 4), cov (6, 6))] from single-code PnP of every
-    floor sighting (codes that fail PnP are left out), SIGHTINGS_PER_PNP_CALL at a time (each
-    sighting is its own view: the same poses as one call)."""
-    items = [(t, s) for t in sorted(floor_frames) for s in floor_frames[t]]
-    out = []
-    for first in range(0, len(items), SIGHTINGS_PER_PNP_CALL):
-        chunk = items[first : first + SIGHTINGS_PER_PNP_CALL]
+    floor_frames: Mapping[int, list[FloorSighting]], camera: CameraModel, corner_sigma_px: float
+) -> tuple[np.ndarray, list[FloorPayload], np.ndarray, np.ndarray]:
+    """(timestamps_ns (S,), payloads [S], T_code_body (S, 4, 4), cov (S, 6, 6)) from single-code
+    PnP of every floor sighting (codes that fail PnP are left out), frame by frame in time order,
+    SIGHTINGS_PER_PNP_CALL at a time (each sighting is its own view: the same poses as one call);
+    `floor_frames` is read one frame at a time (it may classify each frame when read)."""
+    t_parts: list[np.ndarray] = []
+    T_parts: list[np.ndarray] = []
+    cov_parts: list[np.ndarray] = []
+    payloads: list[FloorPayload] = []
+    chunk: list[tuple[int, FloorSighting]] = []
+
+    def flush() -> None:
         res = estimate_floor_poses([[s] for _, s in chunk], camera, corner_sigma_px)
-        for (t, s), r in zip(chunk, res):
-            if r is None:
-                continue
-            T_wn = make_T(np.eye(3), np.asarray(s.centre_world, float))
-            out.append((int(t), s.payload, inv_T(T_wn) @ r.T_world_body, r.covariance))
-    return out
+        kept = [(t, s, r) for (t, s), r in zip(chunk, res) if r is not None]
+        chunk.clear()
+        if not kept:
+            return
+        t_parts.append(np.array([t for t, _, _ in kept], dtype=np.int64))
+        payloads.extend(s.payload for _, s, _ in kept)
+        # T_world_nominal^-1 T_world_body, the nominal pose a translation: t - centre
+        T = np.array([r.T_world_body for _, _, r in kept])
+        T[:, :3, 3] -= np.array([np.asarray(s.centre_world, float) for _, s, _ in kept])
+        T_parts.append(T)
+        cov_parts.append(np.array([r.covariance for _, _, r in kept]))
+
+    for t in sorted(floor_frames):
+        for s in floor_frames[t]:
+            chunk.append((int(t), s))
+            if len(chunk) == SIGHTINGS_PER_PNP_CALL:
+                flush()
+    if chunk:
+        flush()
+    if not t_parts:
+        return np.zeros(0, np.int64), [], np.zeros((0, 4, 4)), np.zeros((0, 6, 6))
+    return np.concatenate(t_parts), payloads, np.concatenate(T_parts), np.concatenate(cov_parts)
 
 
 def build_input(
-    floor_frames: dict[int, list[FloorSighting]],
+    floor_frames: Mapping[int, list[FloorSighting]],
     camera: CameraModel,
     world: World,
     placement: Placement,
@@ -241,13 +262,13 @@ def build_input(
     level pose, not a relative pose)."""
     if camera.gimbaled:
         raise EstimationError("as-built floor codes need a body-fixed floor camera")
-    raw = sightings_from_frames(floor_frames, camera, corner_sigma_px)
+    t_s, payloads, T_code_body, cov_s = sightings_from_frames(floor_frames, camera, corner_sigma_px)
     index: dict[str, int] = {}
     codes: list[CodePrior] = []
     notes: list[str] = []
     n_map = 0
     base_cov = code_prior_cov(placement.sigma_m, placement.sigma_rad)
-    for _, payload, _, _ in raw:
+    for payload in payloads:
         cid = code_id(payload)
         if cid in index:
             continue
@@ -265,13 +286,8 @@ def build_input(
             f"floor-code prior: {n_map} of {len(codes)} codes seen from the map {prior_map.source}, "
             "the others from their payloads"
         )
-    S = len(raw)
-    sightings = CodeSightings(
-        np.array([r[0] for r in raw], dtype=np.int64),
-        np.array([index[code_id(r[1])] for r in raw], dtype=np.int64),
-        np.array([r[2] for r in raw]).reshape(S, 4, 4),
-        np.array([r[3] for r in raw]).reshape(S, 6, 6),
-    )
+    code = np.array([index[code_id(p)] for p in payloads], dtype=np.int64)
+    sightings = CodeSightings(t_s, code, T_code_body, cov_s)
     return AsBuiltInput(codes, sightings, placement, notes)
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +89,7 @@ def read_floor_map(map_dir: Path, world_yaml: dict) -> PriorMap:
 def as_built_input(
     world: World,
     world_yaml: dict,
-    floor_frames: dict,
+    floor_frames: Mapping,
     floor_camera: CameraModel,
     corner_sigma_px: float,
     tight: bool = False,
