@@ -30,6 +30,10 @@ _CHR_SHIFT = 56
 _IDX_MASK = (1 << _CHR_SHIFT) - 1
 _X, _V, _B, _L, _F = ord("x"), ord("v"), ord("b"), ord("l"), ord("f")
 _BORDER_DIMS = {_L: 3, _F: 6}  # variables outside the chain: loads (Point3), floor codes (Pose3)
+BORDER_BLOCK_FRAMES = 512
+"""Frames per block of the border variables' term of the pose covariances (W Sc^-1 W^T): each
+block holds two (frames, 6, m) temporaries; 4096 frames were 2 x 46 MB on a 180 s window with
+34 as-built codes, the window's peak."""
 
 __all__ = ["chain_marginals", "chain_marginals_with_codes"]
 
@@ -294,9 +298,9 @@ def _chain_marginals(
             W_next = W
     WX = WX.reshape(ng * g, 6, m)[:n]
     Sc_inv = _spd_inv(Dl_full - 0.5 * (CtW + CtW.T))
-    for a in range(0, n, 4096):  # in frame blocks: WX @ Sc^-1 would be another WX
-        w = WX[a : a + 4096].astype(np.float64)
-        cov[a : a + 4096] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
+    for a in range(0, n, BORDER_BLOCK_FRAMES):  # in frame blocks: WX @ Sc^-1 would be another WX
+        w = np.asarray(WX[a : a + BORDER_BLOCK_FRAMES], np.float64)
+        cov[a : a + BORDER_BLOCK_FRAMES] += np.matmul(np.matmul(w, Sc_inv), w.transpose(0, 2, 1))
     lcov = np.array([Sc_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in range(n_loads)]).reshape(-1, 3, 3)
     f0 = border_first[_F]
     ccov = np.array(
