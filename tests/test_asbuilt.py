@@ -111,7 +111,11 @@ def test_perfect_floor_flags_nothing():
     assert max(np.linalg.norm(c.offset_xy_m) for c in res.floor_codes.codes) < 0.01
 
 
-def test_code_marginals_equal_gtsam():
+@pytest.mark.parametrize("block", [512, 7])
+def test_code_marginals_equal_gtsam(block, monkeypatch):
+    from fusion.estimate import marginals
+
+    monkeypatch.setattr(marginals, "BORDER_BLOCK_FRAMES", block)  # 7: blocks that do not divide 120 frames
     frame_t, imu, raw, ab, _, _ = _flight(
         5, 4.0, lambda ids: np.random.default_rng(1).normal(0, 0.01, (len(ids), 3)), Placement()
     )
