@@ -505,8 +505,8 @@ def merge_floor_parts(parts: list[dict], cfg: RunConfig) -> LocalizeResult:
     if paper_errors:
         notes.append(f"paper estimator not run: {paper_errors[0]}")
     else:
-        trajectories["paper"] = _concat([p["paper"] for p in parts], "paper")
-    traj_pnp = _concat([p["pnp"] for p in parts], "pnp")
+        trajectories["paper"] = Trajectory.concatenate([p["paper"] for p in parts], "paper")
+    traj_pnp = Trajectory.concatenate([p["pnp"] for p in parts], "pnp")
     stats = {"pnp": _merge_pnp_stats([p["pnp_stats"] for p in parts])}
     # honest sigma (issue 10): the flight's reprojection chi2/dof, per corner class, scales the
     # PnP covariances
@@ -690,19 +690,6 @@ def _chunks(frames: dict, n: int) -> list[dict]:
     if not keys:
         return [{}]
     return [{k: frames[k] for k in keys[a:b]} for a, b in chunk_bounds(len(keys), n)]
-
-
-def _concat(trajs: list[Trajectory], name: str) -> Trajectory:
-    trajs = [t for t in trajs if len(t)]
-    if not trajs:
-        return Trajectory.empty(name)
-    covs = [t.covariances for t in trajs if t.covariances is not None]
-    return Trajectory(
-        name,
-        np.concatenate([t.timestamps_ns for t in trajs]),
-        np.concatenate([t.T_world_body for t in trajs]),
-        np.concatenate(covs) if len(covs) == len(trajs) else None,
-    )
 
 
 def _merge_pnp_stats(parts: list) -> dict:

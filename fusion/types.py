@@ -143,6 +143,21 @@ class Trajectory:
     def empty(cls, name: str) -> Trajectory:
         return cls(name, np.zeros(0, dtype=np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)))
 
+    @classmethod
+    def concatenate(cls, parts: list[Trajectory], name: str) -> Trajectory:
+        """`parts` (consecutive, disjoint in time) end to end; covariances only when every
+        non-empty part has them."""
+        parts = [t for t in parts if len(t)]
+        if not parts:
+            return cls.empty(name)
+        covs = [t.covariances for t in parts if t.covariances is not None]
+        return cls(
+            name,
+            np.concatenate([t.timestamps_ns for t in parts]),
+            np.concatenate([t.T_world_body for t in parts]),
+            np.concatenate(covs) if len(covs) == len(parts) else None,
+        )
+
 
 @dataclass
 class PositionTrack:

@@ -29,15 +29,17 @@ only places it lacks information the whole-flight solve has):
   per camera: the windows' scales weighted by their degrees of freedom (each window estimates
   its own: Förstner's variance components per window).
 
-- As-built floor codes (fusion.estimate.asbuilt): each sighting, like a load sighting, is given
-  to the one window whose cut range holds it; the window's other frames (its overlaps beyond
-  the cuts) keep their PnP fixes on the nominal codes, whose covariance holds the placement's
-  share (fusion.qr.pnp.whitening).  Every window starts from the codes' priors, and each code is
-  taken from the window that saw it most (asbuilt.merge_window_maps: the windows' estimates
-  share the prior and their floor's common shift, so they are not averaged).  A code seen in
-  several windows is thus less certain than in a whole-flight solve, and the trajectory near a
-  cut rests on its window's codes only; before, such a flight was solved whole, and took
-  4.2 GB at 30 minutes (BENCHMARKS.md).
+- As-built floor codes (fusion.estimate.asbuilt): each window takes the sightings of all its
+  frames (overlaps included, as it takes their fixes) and estimates the codes it sees from
+  their priors; each code is taken from the window that saw it most (asbuilt.
+  merge_window_maps: the windows' estimates share the prior and their floor's common shift, so
+  they are not averaged as the loads are), and each output frame's as-built fixes (what the
+  health monitor judges it against) are those on its own window's codes (FusionResult.
+  code_fixes).  A code seen in several windows is thus less certain than in a whole-flight
+  solve.  Giving the windows disjoint sightings instead left their overlaps on PnP fixes of
+  the nominal codes, whose placement share is correlated from frame to frame: pose NEES 35
+  against 5.5 on a synthetic flight (BENCHMARKS.md, nineteenth session).  Before, such a flight
+  was solved whole, and took 4.2 GB at 30 minutes.
 - Tight coupling's corner factors are windowed like the poses.
 
 Windows are independent solves, so `workers` > 1 solves up to WINDOW_WORKERS of them at once on
@@ -438,19 +440,8 @@ def smooth_windowed(
         merged_stats["floor_code_variables"] = len(out.floor_codes.codes)
         # each frame's fixes on the codes its own window estimated (their common shift is the
         # window's), not on the merged map's
-        out.code_fixes = _concatenate(code_fixes) if code_fixes else None
+        out.code_fixes = Trajectory.concatenate(code_fixes, "pnp") if code_fixes else None
     return out
-
-
-def _concatenate(parts: list[Trajectory]) -> Trajectory:
-    """The trajectories `parts` (consecutive, disjoint in time) end to end."""
-    covs = [p.covariances for p in parts if p.covariances is not None]
-    return Trajectory(
-        parts[0].name,
-        np.concatenate([p.timestamps_ns for p in parts]),
-        np.concatenate([p.T_world_body for p in parts]),
-        np.concatenate(covs) if len(covs) == len(parts) else None,
-    )
 
 
 def frame_stride(frame_t: np.ndarray, rate_hz: float) -> int:
