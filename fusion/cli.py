@@ -186,7 +186,7 @@ def _add_fusion_choices(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="S",
         help="the batch smoother solves flights longer than 5 min in overlapping windows of S seconds "
-        "(bounded memory; default 180); 0: always the whole flight",
+        "(bounded memory; default 180, 120 with as-built floor codes); 0: always the whole flight",
     )
 
 

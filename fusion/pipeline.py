@@ -75,7 +75,13 @@ from fusion.estimate.timeoffset import (
     shift_log,
     whole_flight_input,
 )
-from fusion.estimate.window import WINDOW_S, WindowConfig, estimate_mount_windowed, smooth_windowed
+from fusion.estimate.window import (
+    AS_BUILT_WINDOW_S,
+    WINDOW_S,
+    WindowConfig,
+    estimate_mount_windowed,
+    smooth_windowed,
+)
 from fusion.evaluate.metrics import evaluate, export_groundtruth_tum, to_jsonable, write_metrics
 from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
@@ -177,8 +183,9 @@ class RunConfig:
     # (it made the clean demo's PnP ATE worse: BENCHMARKS.md)
     track: bool = False
     # the batch smoother solves flights longer than window.WINDOW_MIN_FLIGHT_S in overlapping
-    # windows of this length (bounded memory: fusion.estimate.window); 0: always the whole flight
-    smoother_window_s: float = WINDOW_S
+    # windows of this length (bounded memory: fusion.estimate.window); 0: always the whole
+    # flight; None: WINDOW_S, or AS_BUILT_WINDOW_S when the floor codes are as built
+    smoother_window_s: float | None = None
 
 
 @dataclass
@@ -890,7 +897,7 @@ def fuse_stage(
         smoother_kwargs["warm_start"] = shared.warm_start(frame_t)
         # the batch smoother is their only user: let the whole flight's states go with it
         shared.states = None
-    smoother_kwargs["window"] = _window_config(cfg)
+    smoother_kwargs["window"] = _window_config(cfg, as_built="as_built" in smoother_kwargs)
     smoother_kwargs["solver"] = smooth
     workers = backend_workers(cfg, len(frame_t))
     smoother_kwargs["workers"] = workers
@@ -1486,10 +1493,14 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     return det
 
 
-def _window_config(cfg: RunConfig) -> WindowConfig:
-    """The windows long flights are solved in (fusion.estimate.window; 0 s: never)."""
-    if cfg.smoother_window_s > 0:
-        return WindowConfig(window_s=cfg.smoother_window_s)
+def _window_config(cfg: RunConfig, as_built: bool = False) -> WindowConfig:
+    """The windows long flights are solved in (fusion.estimate.window; 0 s: never); `as_built`:
+    the smoother estimates the floor codes (shorter windows by default: AS_BUILT_WINDOW_S)."""
+    window_s = cfg.smoother_window_s
+    if window_s is None:
+        window_s = AS_BUILT_WINDOW_S if as_built else WINDOW_S
+    if window_s > 0:
+        return WindowConfig(window_s=window_s)
     return WindowConfig(min_flight_s=math.inf)
 
 

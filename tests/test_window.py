@@ -12,6 +12,7 @@ import pytest
 from fusion.errors import EstimationError
 from fusion.estimate import FusionConfig, smooth
 from fusion.estimate.window import (
+    AS_BUILT_WINDOW_S,
     WINDOW_MIN_FLIGHT_S,
     WINDOW_S,
     WindowConfig,
@@ -165,11 +166,16 @@ def test_merge_loads_is_the_information_weighted_mean():
 
 def test_cli_option_sets_the_window_and_refuses_a_window_inside_the_overlap(capsys):
     from fusion.cli import _run_config, build_parser
+    from fusion.pipeline import _window_config
 
     args = build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "0"])
     assert _run_config(args).smoother_window_s == 0.0
     args = build_parser().parse_args(["run", "log", "--out", "out"])
-    assert _run_config(args).smoother_window_s == WINDOW_S
+    assert _run_config(args).smoother_window_s is None  # the flight decides:
+    assert _window_config(_run_config(args)).window_s == WINDOW_S
+    assert _window_config(_run_config(args), as_built=True).window_s == AS_BUILT_WINDOW_S
+    args = build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "180"])
+    assert _window_config(_run_config(args), as_built=True).window_s == 180.0  # as asked
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "log", "--out", "out", "--smoother-window-s", "20"])
     assert "more than the windows' 30 s overlap" in capsys.readouterr().err

@@ -80,6 +80,7 @@ from fusion.parallel import parallel_map, sendable
 from fusion.types import Estimator, LoadEstimate, LoadMap, Trajectory
 
 __all__ = [
+    "AS_BUILT_WINDOW_S",
     "Window",
     "WindowConfig",
     "estimate_mount_windowed",
@@ -94,6 +95,12 @@ WINDOW_MIN_FLIGHT_S = 300.0
 """Flights up to this long are solved whole (today's exact solution); ~0.7 GB peak at 5 min."""
 WINDOW_S = 180.0
 """Longest window: ~0.5 GB peak for a two-camera 30 fps window (BENCHMARKS.md)."""
+AS_BUILT_WINDOW_S = 120.0
+"""Longest window of a flight with as-built floor codes (the default whenever world.yaml does not
+say the codes are exact): such a window holds a factor per code in view of each frame, not one
+pose factor per frame, and the code variables' dense columns in its marginals.  On the
+30-minute flight `fusion batch`'s worker peaked at 1,070 MiB with 180 s windows and 952 MiB with
+120 s (ATE 0.966 / 0.961 mm; the smoother's CPU +12 %: more overlap; BENCHMARKS.md)."""
 WINDOW_OVERLAP_S = 30.0
 """Overlap of consecutive windows; output frames are at least half of it from a window's end."""
 WINDOW_WORKERS = 2
