@@ -164,6 +164,26 @@ def test_merge_loads_is_the_information_weighted_mean():
     assert c.cov_world is None and np.allclose(c.p_world, 0.75)
 
 
+def test_merge_window_maps_takes_each_code_from_the_window_that_saw_it_most():
+    from fusion.estimate.asbuilt import FloorCodeEstimate, FloorCodeMap, Placement, merge_window_maps
+
+    def code(cid, x, n):
+        return FloorCodeEstimate(
+            cid, np.zeros(3), np.diag([1.0, 1.0, 1.0, 1.0]) + np.eye(4, k=3) * x, None, n
+        )
+
+    maps = [
+        FloorCodeMap("smoother", [code("0/1/0", 0.1, 5), code("0/2/0", 0.2, 9)]),
+        FloorCodeMap("smoother", [code("0/1/0", 0.3, 7), code("0/2/0", 0.4, 9), code("0/3/0", 0.5, 1)]),
+    ]
+    placement = Placement(0.01, math.radians(1.0))
+    out = merge_window_maps(maps, "smoother", placement).by_id()
+    assert [out[k].p_world[0] for k in ("0/1/0", "0/2/0", "0/3/0")] == [0.3, 0.2, 0.5]  # a tie: the first
+    assert [out[k].n_obs for k in ("0/1/0", "0/2/0", "0/3/0")] == [7, 9, 1]
+    empty = merge_window_maps([], "smoother", placement)
+    assert empty.codes == [] and empty.estimator == "smoother" and empty.placement == placement
+
+
 def test_cli_option_sets_the_window_and_refuses_a_window_inside_the_overlap(capsys):
     from fusion.cli import _run_config, build_parser
     from fusion.pipeline import _window_config

@@ -553,7 +553,7 @@ def floor_code_estimates(
     return FloorCodeMap(estimator, out, as_built.placement)
 
 
-def merge_window_maps(maps: list[FloorCodeMap]) -> FloorCodeMap:
+def merge_window_maps(maps: list[FloorCodeMap], estimator: str, placement: Placement) -> FloorCodeMap:
     """One floor-code map from the maps of windows solved on disjoint sightings (fusion.estimate.
     window): per code, the estimate of the window that saw it most (the first of a tie).  Not
     their information-weighted mean: every window's estimate rests on the same prior, and its
@@ -565,8 +565,6 @@ def merge_window_maps(maps: list[FloorCodeMap]) -> FloorCodeMap:
         for c in m.codes:
             if c.code_id not in best or c.n_obs > best[c.code_id].n_obs:
                 best[c.code_id] = c
-    placement = maps[0].placement if maps else Placement()
-    estimator = maps[0].estimator if maps else ""
     return FloorCodeMap(estimator, [best[k] for k in sorted(best)], placement)
 
 

@@ -443,7 +443,7 @@ def smooth_windowed(
     merged_stats = _merge_stats(stats, plan, frame_t, health)
     out = FusionResult(traj, loads, merged_stats, health)
     if as_built is not None:
-        out.floor_codes = merge_window_maps(code_maps)
+        out.floor_codes = merge_window_maps(code_maps, name, as_built.placement)
         merged_stats["floor_code_variables"] = len(out.floor_codes.codes)
         # each frame's fixes on the codes its own window estimated (their common shift is the
         # window's), not on the merged map's
