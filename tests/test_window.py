@@ -251,7 +251,9 @@ def test_as_built_floor_codes_are_windowed_too():
         return np.c_[rng.normal(0, 0.01, (len(ids), 2)), rng.normal(0, math.radians(1.0), len(ids))]
 
     frame_t, imu, raw, ab, ids, true = _flight(8, 60.0, offsets, placement, placement_in_fixes=True)
-    whole = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
+    # the whole flight as the pipeline solves it (smooth_windowed: one window, its as-built fixes)
+    one = WindowConfig(min_flight_s=math.inf)
+    whole = smooth_windowed(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab, window=one)
     win = smooth_windowed(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab, window=WINDOWS)
     assert len(win.stats["windows"]) == 4
     assert win.stats["floor_code_variables"] == len(win.floor_codes.codes) == len(whole.floor_codes.codes)

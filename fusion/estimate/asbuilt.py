@@ -35,7 +35,7 @@ import csv
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import gtsam
@@ -182,19 +182,6 @@ class AsBuiltInput:
     sightings: CodeSightings
     placement: Placement
     notes: list[str] = field(default_factory=list)
-
-    def between(self, t0_ns: int | None, t1_ns: int | None) -> AsBuiltInput:
-        """The same codes with only the sightings stamped in [t0_ns, t1_ns) (None: unbounded),
-        e.g. a window's share (fusion.estimate.window)."""
-        t = self.sightings.timestamps_ns
-        keep = np.ones(len(t), dtype=bool)
-        if t0_ns is not None:
-            keep &= t >= t0_ns
-        if t1_ns is not None:
-            keep &= t < t1_ns
-        s = self.sightings
-        kept = CodeSightings(s.timestamps_ns[keep], s.code[keep], s.T_code_body[keep], s.cov[keep])
-        return replace(self, sightings=kept)
 
 
 @dataclass
@@ -554,8 +541,8 @@ def floor_code_estimates(
 
 
 def merge_window_maps(maps: list[FloorCodeMap], estimator: str, placement: Placement) -> FloorCodeMap:
-    """One floor-code map from the maps of windows solved on disjoint sightings (fusion.estimate.
-    window): per code, the estimate of the window that saw it most (the first of a tie).  Not
+    """One floor-code map from the maps of a flight's windows (fusion.estimate.window): per
+    code, the estimate of the window that saw it most (the first of a tie).  Not
     their information-weighted mean: every window's estimate rests on the same prior, and its
     covariance holds that window's common shift of the floor, fixed by the priors of all the
     codes it saw (module docstring, "Gauge"), so neighbouring windows share most of their

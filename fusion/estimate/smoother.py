@@ -1390,7 +1390,6 @@ def _smooth_once(
         out.floor_codes = asbuilt.floor_code_estimates(
             values, pb.as_built, as_built, ccov, str(Estimator.SMOOTHER)
         )
-        out.code_fixes = asbuilt.as_built_fixes(as_built, out.floor_codes)
         stats.update(
             asbuilt.graph_stats(pb.as_built, gated[FactorKind.FLOOR_CODE], rej[FactorKind.FLOOR_CODE])
         )
