@@ -802,9 +802,10 @@ def floor_inputs(log: FlightLog, det: DetectionResult, cfg: RunConfig) -> FloorI
     them (tight corner factors, as-built floor codes): ~1 s of Python on a 10-minute flight."""
     if "cam0" not in log.cameras:
         return FloorInputs(None, [], {}, None)
-    sightings: Mapping[int, list] = {}
+    tight_frames: dict[int, list] = {}
+    sightings: Mapping[int, list] = tight_frames
     if cfg.tight:
-        sightings = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
+        sightings = tight_frames = {t: classify(d, log.world).floor for t, d in det.by_frame("cam0").items()}
     elif Placement.from_world(log.world).enabled:
         # the as-built input reads each frame once
         sightings = ClassifiedOnRead(det.by_frame("cam0"), log.world)
@@ -817,7 +818,6 @@ def floor_inputs(log: FlightLog, det: DetectionResult, cfg: RunConfig) -> FloorI
         cfg.tight,
         cfg.floor_map,
     )
-    tight_frames = dict(sightings) if cfg.tight else {}
     return FloorInputs(as_built, notes, tight_frames, _floor_codes_seen(det, log))
 
 
