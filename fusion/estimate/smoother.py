@@ -1671,9 +1671,14 @@ def smooth_incremental(
     `config.incremental_lag_s`: states older than the lag are marginalised, so the cost per frame
     stays bounded however long the flight.  A load's variable is marginalised too once it has not
     been seen for the lag; when the load is seen again a new variable (next generation,
-    L(j + g * LOAD_GENERATION_STRIDE)) starts from a Gaussian prior = the old variable's
-    estimate and marginal covariance just before it left (its correlation with the states still
-    in the window is dropped: slightly optimistic, causal).  `incremental_lag_s=None`: plain
+    L(j + g * LOAD_GENERATION_STRIDE)) starts with no prior, as a sliding-window estimator's
+    landmark does: marginalising the old variable put what its sightings told of the states
+    into the window already, and its marginal is made of those states' information.  Given
+    back as a prior (until 2026-12-05) it was counted twice, and more with every generation:
+    6-dof NEES 11.3 on a 10-minute flight over an exactly laid floor and 20.5 on a 330 s one
+    over misplaced codes, 2.1 and 7.9 without it, the ATE 10.1 -> 9.8 and 16.8 -> 16.8 mm
+    (BENCHMARKS.md, twentieth session).  Loads seen again after the lag thus close no loop here;
+    the batch smoother closes them.  `incremental_lag_s=None`: plain
     iSAM2 over the whole flight (exact, but loads re-seen after a long time make it re-solve
     much of the graph, so its cost grows with the flight).  Memory: the problem is built without
     its IMU factors (`build_problem(lazy_imu=True)`); each frame's IMU factor is made from a
@@ -1686,8 +1691,9 @@ def smooth_incremental(
     from the prediction match: they move as the IMU says) and no two consecutive fixes of the
     last reinit_lookback_s jumped faster than reinit_max_speed_m_s (fixes_jumped: a misprinted
     code read while crossing it), e.g. after a long blackout, the engine restarts at the latest
-    fix: that fix's factor, priors on velocity and bias at their current estimates, loads
-    carried over as priors.  A singular update is handled the same way (health.linear_fallbacks).
+    fix: that fix's factor, priors on velocity and bias at their current estimates (a load
+    seen again gets a new variable, as after leaving the window).  A singular update is
+    handled the same way (health.linear_fallbacks).
     Innovation gate: a fix whose position lies beyond config.outlier_gate (Mahalanobis, against
     the IMU prediction, innovation_distance) is not added (stats['gated_pose_factors']); it
     still counts towards a re-initialisation streak.
@@ -1699,8 +1705,8 @@ def smooth_incremental(
     from the batch solve of that window (level_start: the EKF's start, ekf.level_batch_start),
     its joint marginal of pose, velocity and biases as the prior; the window's frames are that
     solve's (`stats['batch_start_frames']` of them, a start-up look-ahead as the EKF's).
-    Loads: the estimate and marginal covariance of each load's latest
-    variable at the end of the flight."""
+    Loads: each load's variables' estimates and marginal covariances (the latest's at the end of
+    the flight) combined as independent (`combine_generations`)."""
     config = config or FusionConfig()
     args = (frame_times_ns, imu, raw, load_obs, front_camera, velocity, config, floor_frames, floor_camera)
     try:
@@ -1710,6 +1716,26 @@ def smooth_incremental(
         res = _smooth_incremental(*args, factorization=ISAM_FALLBACK_FACTORIZATION)
         res.stats["cholesky_failure"] = str(e)
     return res
+
+
+def combine_generations(estimates: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
+    """One load's (estimate, covariance) from its incremental variables' (`estimates`), each
+    generation's marginal taken as independent of the others: the information-weighted mean.
+    Their pose errors are shared in part (the same floor codes), so the result is as
+    optimistic as that share, as the prior chain before it was (each generation the last one's
+    marginal as its prior)
+    (load 3-dof NEES on the twentieth session's flights: 0.4-1.9)."""
+    if len(estimates) == 1:
+        p, c = estimates[0]
+        return np.asarray(p, float).copy(), np.asarray(c, float).copy()
+    info = np.zeros((3, 3))
+    vec = np.zeros(3)
+    for p, c in estimates:
+        w = np.linalg.inv(0.5 * (c + c.T))
+        info += w
+        vec += w @ np.asarray(p, float)
+    cov = np.linalg.inv(info)
+    return cov @ vec, 0.5 * (cov + cov.T)
 
 
 def _smooth_incremental(
@@ -1803,6 +1829,7 @@ def _smooth_incremental_run(
     gen: dict[int, int] = {}  # load j -> generation of its current variable
     last_seen: dict[int, float] = {}  # load j -> time stamp of its current variable
     left: dict[int, tuple] = {}  # load j -> (estimate, covariance) when it left the window
+    earlier: dict[int, list[tuple]] = {}  # load j -> its earlier variables' (estimate, covariance)
     n_generations = 0
     reorders = 0  # engine updates that re-eliminated the whole window (fixedlag), engines before
     start = k0  # factors on states before `start` are left out
@@ -1848,7 +1875,7 @@ def _smooth_incremental_run(
         return L(j + gen[j] * LOAD_GENERATION_STRIDE)
 
     def restart(k: int, reason: str) -> None:
-        """A fresh engine whose first state will be frame k (loads carried over as priors)."""
+        """A fresh engine whose first state will be frame k (a load seen again: a new variable)."""
         nonlocal engine, start, reorders
         for j in list(gen):
             if j not in left:
@@ -1961,19 +1988,15 @@ def _smooth_incremental_run(
                 if j not in gen or j in left:  # first sighting, or back after leaving
                     if j not in gen:
                         gen[j] = 0
-                        a = pb.load_args[i]
-                        T_wc = cam.T_world_cam(pose_guess.matrix())
-                        guess = T_wc[:3, :3] @ a.p_cam + T_wc[:3, 3]
                     else:
+                        # a new variable with no prior: what the old one knew came from states
+                        # whose information the window holds already (see the docstring)
                         gen[j] += 1
                         n_generations += 1
-                        guess, cov = left.pop(j)
-                        g.add(
-                            gtsam.PriorFactorPoint3(
-                                lkey(j), guess, gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
-                            )
-                        )
-                    vals.insert(lkey(j), guess)
+                        earlier.setdefault(j, []).append(left.pop(j))
+                    a = pb.load_args[i]
+                    T_wc = cam.T_world_cam(pose_guess.matrix())
+                    vals.insert(lkey(j), T_wc[:3, :3] @ a.p_cam + T_wc[:3, 3])
                 if gen[j] > 0:
                     a = pb.load_args[i]
                     f = factors.load_factor(
@@ -2103,13 +2126,14 @@ def _smooth_incremental_run(
 
     loads = []
     for j, track in enumerate(pb.loads):
-        if j not in gen:
-            continue
+        gens = list(earlier.get(j, []))
         if j in left:
-            p, c = left[j]
-        else:
-            p, c = engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j))
-        loads.append(LoadEstimate(track.load_id, np.asarray(p, float).copy(), c, track.n_obs))
+            gens.append(left[j])
+        elif j in gen:
+            gens.append((engine.calculateEstimatePoint3(lkey(j)), engine.marginalCovariance(lkey(j))))
+        if gens:
+            p, c = combine_generations(gens)
+            loads.append(LoadEstimate(track.load_id, p, c, track.n_obs))
     elapsed = time.perf_counter() - t0
     duration = (pb.frame_t[-1] - pb.frame_t[k0]) * 1e-9
     stats = dict(
