@@ -68,10 +68,14 @@ __all__ = [
     "add_factors",
     "build_input",
     "code_prior_cov",
+    "common_shift_covs",
     "floor_code_estimates",
     "merge_window_maps",
+    "shared_cells",
+    "read_floor_code_rows",
     "read_floor_codes_csv",
     "read_groundtruth_csv",
+    "shift_jacobians",
     "sightings_from_frames",
     "write_floor_codes_csv",
     "write_groundtruth_csv",
@@ -94,6 +98,21 @@ SIGHTINGS_PER_PNP_CALL = 4096
 whole flight's took +327 MB at its peak on a 10-minute flight (34,865 sightings)."""
 FLOOR_CODES_CSV = "floor_codes_{}.csv"
 FLOOR_CODES_GROUNDTRUTH_CSV = "floor_codes_groundtruth.csv"
+SHARED_COLUMNS = [
+    "prior_x_m",
+    "prior_y_m",
+    "prior_yaw_deg",
+    "prior_sigma_x_m",
+    "prior_sigma_y_m",
+    "prior_sigma_yaw_deg",
+    "shared_sigma_x_m",
+    "shared_sigma_y_m",
+    "shared_sigma_yaw_deg",
+]
+"""What a code's estimate shares with every other flight's: the prior it started from (its
+payload with world.yaml's placement sigma, or `--map`'s) and the floor's common shift, which only
+the priors fix (module docstring, "Gauge"); `fusion map merge` counts both once
+(fusion.warehouse.floorcodes.merge_floor_codes).  Empty in files written before them."""
 FLOOR_CODE_COLUMNS = [
     "id",
     "nominal_x_m",
@@ -111,6 +130,7 @@ FLOOR_CODE_COLUMNS = [
     "sigma_yaw_deg",
     "n_obs",
     "misplaced",
+    *SHARED_COLUMNS,
 ]
 GROUNDTRUTH_COLUMNS = ["id", "x_m", "y_m", "yaw_deg"]
 
@@ -447,6 +467,9 @@ class FloorCodeEstimate:
     cov: np.ndarray | None
     n_obs: int
     misplaced: bool = False
+    prior_xy_yaw: np.ndarray | None = None  # (3,) x, y (m), yaw (rad): the prior's mean
+    prior_cov_xy_yaw: np.ndarray | None = None  # (3, 3): the prior's covariance
+    shared_cov_xy_yaw: np.ndarray | None = None  # (3, 3): the floor's common shift, part of cov
 
     @property
     def p_world(self) -> np.ndarray:
@@ -523,21 +546,59 @@ def floor_code_estimates(
     covs: np.ndarray | None,
     estimator: str,
 ) -> FloorCodeMap:
-    """FloorCodeMap from a solution: F(v) estimates, covs (V, 6, 6) or None, flags set."""
+    """FloorCodeMap from a solution: F(v) estimates, covs (V, 6, 6) or None, flags set, each
+    code's prior and its share of the floor's common shift (`common_shift_covs`) kept for
+    `fusion map merge`."""
     out = []
-    for v, c in enumerate(graph_info.code_of_var):
-        prior = as_built.codes[c]
+    priors = [as_built.codes[c] for c in graph_info.code_of_var]
+    shift = None
+    if covs is not None and priors:
+        xy = np.array([p.T_world_prior[:2, 3] for p in priors])
+        Q = np.array([pose_cov_to_xy_yaw_cov(p.T_world_prior, p.cov_prior) for p in priors])
+        shift = common_shift_covs(xy, Q)
+    for v, prior in enumerate(priors):
+        T = values.atPose3(F(v)).matrix()
         est = FloorCodeEstimate(
             prior.code_id,
             prior.T_world_nominal[:3, 3].copy(),
-            values.atPose3(F(v)).matrix(),
+            T,
             None if covs is None else np.asarray(covs[v]),
             graph_info.n_obs[v],
+            prior_xy_yaw=np.array([*prior.T_world_prior[:2, 3], yaw_of(prior.T_world_prior[:3, :3])]),
+            prior_cov_xy_yaw=pose_cov_to_xy_yaw_cov(prior.T_world_prior, prior.cov_prior),
+            shared_cov_xy_yaw=None if shift is None else shift[v],
         )
         est.misplaced = is_misplaced(est)
         out.append(est)
     out.sort(key=lambda e: e.code_id)
     return FloorCodeMap(estimator, out, as_built.placement)
+
+
+def shift_jacobians(xy: np.ndarray) -> np.ndarray:
+    """(C, 3, 3): how a planar rigid motion delta = (t_x, t_y, theta) of the codes at `xy` (C, 2)
+    about their centroid moves each code's x, y, yaw: [[1, 0, -(y - y_0)], [0, 1, x - x_0],
+    [0, 0, 1]]."""
+    d = np.asarray(xy, float) - np.mean(xy, axis=0)
+    J = np.zeros((len(d), 3, 3))
+    J[:, 0, 0] = J[:, 1, 1] = J[:, 2, 2] = 1.0
+    J[:, 0, 2] = -d[:, 1]
+    J[:, 1, 2] = d[:, 0]
+    return J
+
+
+def common_shift_covs(xy: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """(C, 3, 3) x, y, yaw: each code's share of the floor's common shift in a solve over codes
+    at `xy` (C, 2) with prior covariances `Q` (C, 3, 3), which only those priors fix (module
+    docstring, "Gauge").  The shift is a planar rigid motion delta (shift_jacobians: code c
+    moves by J_c delta), so the priors give it the information sum_c J_c^T Q_c^-1 J_c and code c
+    the covariance J_c Cov(delta) J_c^T: its position's share grows with its distance from the
+    centroid, and the rotation is fixed mostly by the spread of the priors' positions, not by
+    their yaw (nine codes over 3 m at 1 cm and 1 deg: 0.33 deg from the yaw priors alone, 0.09
+    with the positions).  Every flight over these codes shares it: the codes are where they
+    were laid, whoever looks."""
+    J = shift_jacobians(xy)
+    info = np.einsum("nji,njk,nkl->il", J, np.linalg.inv(Q), J)
+    return J @ np.linalg.inv(info) @ J.transpose(0, 2, 1)
 
 
 def merge_window_maps(maps: list[FloorCodeMap], estimator: str, placement: Placement) -> FloorCodeMap:
@@ -616,8 +677,25 @@ def write_floor_codes_csv(path: Path, fmap: FloorCodeMap) -> None:
                     _f(math.degrees(sig[2]) if math.isfinite(sig[2]) else math.nan),
                     c.n_obs,
                     int(c.misplaced),
+                    *shared_cells(c.prior_xy_yaw, c.prior_cov_xy_yaw, c.shared_cov_xy_yaw),
                 ]
             )
+
+
+def _sigmas_cells(cov: np.ndarray | None) -> list[str]:
+    """x, y sigma (m) and yaw sigma (deg) of an (x, y, yaw) covariance; empty cells for None."""
+    if cov is None:
+        return ["", "", ""]
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return [_f(sig[0]), _f(sig[1]), _f(math.degrees(sig[2]))]
+
+
+def shared_cells(
+    prior: np.ndarray | None, prior_cov: np.ndarray | None, shared: np.ndarray | None
+) -> list[str]:
+    """The SHARED_COLUMNS cells of one code."""
+    mean = ["", "", ""] if prior is None else [_f(prior[0]), _f(prior[1]), _f(math.degrees(prior[2]))]
+    return [*mean, *_sigmas_cells(prior_cov), *_sigmas_cells(shared)]
 
 
 def _num(row: dict, col: str, path: Path, line: int) -> float:
@@ -630,9 +708,38 @@ def _num(row: dict, col: str, path: Path, line: int) -> float:
     return v
 
 
-def read_floor_codes_csv(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
-    """{id: ((3,) x, y, yaw rad; (3, 3) diagonal covariance; n_obs)} from a floor_codes CSV
-    (ours or a merged map's).  AsBuiltError naming the file and line."""
+@dataclass
+class FloorCodeRow:
+    """One row of a floor_codes CSV: x, y, yaw (rad) and its diagonal covariance, sightings, and
+    what it shares with other flights (SHARED_COLUMNS; None when the file has them empty)."""
+
+    xy_yaw: np.ndarray  # (3,)
+    cov: np.ndarray  # (3, 3)
+    n_obs: int
+    prior_xy_yaw: np.ndarray | None = None
+    prior_cov: np.ndarray | None = None
+    shared_cov: np.ndarray | None = None
+
+
+def _xy_yaw(row: dict, cols: tuple[str, str, str], path: Path, line: int) -> np.ndarray:
+    """x, y (as written) and yaw (degrees in the file, radians out) from three columns."""
+    x, y, yaw = (_num(row, c, path, line) for c in cols)
+    return np.array([x, y, math.radians(yaw)])
+
+
+def _sigmas_cov(
+    row: dict, cols: tuple[str, str, str], path: Path, line: int, zero: bool = False
+) -> np.ndarray:
+    """The diagonal covariance of three sigma columns, each positive (or, `zero`, not negative)."""
+    sig = _xy_yaw(row, cols, path, line)
+    if np.any(sig < 0) or (not zero and np.any(sig == 0)):
+        raise AsBuiltError(f"{path}:{line}: sigmas must be {'non-negative' if zero else 'positive'}")
+    return np.diag(sig**2)
+
+
+def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
+    """{id: FloorCodeRow} from a floor_codes CSV (ours or a merged map's).  AsBuiltError naming
+    the file and line."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -642,29 +749,33 @@ def read_floor_codes_csv(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, 
     need = {"id", "x_m", "y_m", "yaw_deg", "sigma_x_m", "sigma_y_m", "sigma_yaw_deg", "n_obs"}
     if rows and not need <= set(rows[0]):
         raise AsBuiltError(f"{path}:1: missing columns {sorted(need - set(rows[0]))}")
-    out = {}
+    out: dict[str, FloorCodeRow] = {}
     for line, row in enumerate(rows, start=2):
         cid = csv_unsafe(row["id"])
         if cid in out:
             raise AsBuiltError(f"{path}:{line}: floor code {cid!r} listed twice")
-        xyyaw = np.array(
-            [
-                _num(row, "x_m", path, line),
-                _num(row, "y_m", path, line),
-                math.radians(_num(row, "yaw_deg", path, line)),
-            ]
+        r = FloorCodeRow(
+            _xy_yaw(row, ("x_m", "y_m", "yaw_deg"), path, line),
+            _sigmas_cov(row, ("sigma_x_m", "sigma_y_m", "sigma_yaw_deg"), path, line),
+            int(_num(row, "n_obs", path, line)),
         )
-        sig = np.array(
-            [
-                _num(row, "sigma_x_m", path, line),
-                _num(row, "sigma_y_m", path, line),
-                math.radians(_num(row, "sigma_yaw_deg", path, line)),
-            ]
-        )
-        if np.any(sig <= 0):
-            raise AsBuiltError(f"{path}:{line}: sigmas must be positive")
-        out[cid] = (xyyaw, np.diag(sig**2), int(_num(row, "n_obs", path, line)))
+        if row.get("prior_x_m"):
+            r.prior_xy_yaw = _xy_yaw(row, ("prior_x_m", "prior_y_m", "prior_yaw_deg"), path, line)
+            r.prior_cov = _sigmas_cov(
+                row, ("prior_sigma_x_m", "prior_sigma_y_m", "prior_sigma_yaw_deg"), path, line
+            )
+        if row.get("shared_sigma_x_m"):
+            r.shared_cov = _sigmas_cov(
+                row, ("shared_sigma_x_m", "shared_sigma_y_m", "shared_sigma_yaw_deg"), path, line, zero=True
+            )
+        out[cid] = r
     return out
+
+
+def read_floor_codes_csv(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray, int]]:
+    """{id: ((3,) x, y, yaw rad; (3, 3) diagonal covariance; n_obs)} from a floor_codes CSV
+    (read_floor_code_rows without what the rows share)."""
+    return {cid: (r.xy_yaw, r.cov, r.n_obs) for cid, r in read_floor_code_rows(path).items()}
 
 
 def write_groundtruth_csv(path: Path, ids: list[str], xy_yaw: np.ndarray) -> None:

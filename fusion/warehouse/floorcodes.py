@@ -33,15 +33,23 @@ from fusion.estimate.asbuilt import (
     AsBuiltError,
     AsBuiltInput,
     FloorCodeMap,
+    FloorCodeRow,
     Placement,
     PriorMap,
     build_input,
+    code_prior_cov,
+    common_shift_covs,
     groundtruth_errors,
+    pose_cov_to_xy_yaw_cov,
+    read_floor_code_rows,
     read_floor_codes_csv,
     read_groundtruth_csv,
+    shared_cells,
+    shift_jacobians,
 )
 from fusion.evaluate.plots import plot_floor_code_offsets
 from fusion.fileio import atomic_open, csv_safe, load_yaml
+from fusion.geometry import make_T
 from fusion.warehouse import escape
 from fusion.world import World, warehouse_differences
 
@@ -227,16 +235,47 @@ def floor_code_section(out_dir: Path, fmap: FloorCodeMap, log_root: str | Path |
 class MergedFloorCode:
     code_id: str
     xy_yaw: np.ndarray  # (3,) world x, y (m), yaw (rad)
-    cov: np.ndarray  # (3, 3)
+    cov: np.ndarray  # (3, 3), the shared part included
     n_obs: int
     n_runs: int
+    prior_xy_yaw: np.ndarray | None = None  # (3,) the prior counted once (world.yaml's)
+    prior_cov: np.ndarray | None = None  # (3, 3)
+    shared_cov: np.ndarray | None = None  # (3, 3): the largest common shift of the runs
 
 
-def merge_floor_codes(run_dirs: list[Path], estimator: str) -> tuple[list[MergedFloorCode], list[str]]:
-    """Information-weighted fusion of the runs' floor_codes_<estimator>.csv (Bar-Shalom et al.
-    2001, eq. 8.4-5, as merge.py's loads; the CSVs keep per-axis sigmas, so each run's
-    covariance is diagonal).  Runs without the file are noted and skipped."""
-    info: dict[str, list] = {}
+def merge_floor_codes(
+    run_dirs: list[Path], estimator: str, world: World
+) -> tuple[list[MergedFloorCode], list[str]]:
+    """The runs' floor_codes_<estimator>.csv merged into one map of the floor.
+
+    Every run's estimate of a code holds what every other run's holds too
+    (asbuilt.SHARED_COLUMNS): the prior it started from, and the floor's common shift g, a
+    planar rigid motion of all the codes it saw that only those priors fix
+    (asbuilt.common_shift_covs).  Fused per code as independent (Bar-Shalom et al. 2001,
+    eq. 8.4-5, until 2026-12-05), a code seen in n runs had both counted n times: on 20
+    synthetic floors of 8 flights each the merged codes' 3-dof NEES rose with the runs behind
+    them (2 runs 4.6, 4 runs 5.9, 8 runs 7.1; BENCHMARKS.md, twentieth session).  Here each
+    run r gives the codes' places up to a rigid motion delta_r of its own, and the payload
+    priors of world.yaml fix the floor once.  Per run and code, per axis, with p its variance,
+    g its share of the run's common shift and q the run's prior,
+
+        d = 1 / (p - g) - 1 / q    (0 when not positive)
+
+    is what the run's own sightings say of the code relative to the run's other codes, and the
+    merged map is the least-squares solution of
+
+        x_rc = x_c + J_c delta_r + n_rc,  n_rc ~ N(0, 1 / d)     every run r, code c
+        x_c ~ N(m_c, q_c)                                         every code, once (world.yaml)
+
+    with x_c the codes and delta_r free (J_c as in common_shift_covs, about the run's centroid
+    of the codes' priors); each code's covariance is its marginal, the merged floor's common
+    shift included (the delta_r are eliminated first: a Schur complement of 3 x runs).  One run
+    gives back its own estimate and sigma to first order.  A CSV without the shared columns
+    (written before them): its prior is taken as world.yaml's and g as 0.  A run made with
+    `--map` started from the map: d is what it added, and the map's information counts through
+    the runs it was merged from (merge those too).  Runs without the file are noted and
+    skipped; a code id that is not a floor payload is a WarehouseError naming the file."""
+    runs: list[tuple[Path, dict[str, FloorCodeRow]]] = []
     notes = []
     for d in run_dirs:
         path = Path(d) / FLOOR_CODES_CSV.format(estimator)
@@ -244,26 +283,93 @@ def merge_floor_codes(run_dirs: list[Path], estimator: str) -> tuple[list[Merged
             notes.append(f"{d}: no {path.name} (floor codes laid exactly, or not estimated): not merged")
             continue
         try:
-            codes = read_floor_codes_csv(path)
+            rows = read_floor_code_rows(path)
         except AsBuiltError as e:
             raise WarehouseError(str(e)) from None
-        for cid, (xyyaw, cov, n) in codes.items():
-            I = np.linalg.inv(cov)
-            acc = info.setdefault(cid, [np.zeros((3, 3)), np.zeros(3), 0, 0, None])
-            ref = acc[4] if acc[4] is not None else xyyaw[2]
-            acc[4] = ref
-            v = xyyaw.copy()
-            v[2] = ref + math.remainder(v[2] - ref, 2 * math.pi)  # yaw near the first run's
-            acc[0] += I
-            acc[1] += I @ v
-            acc[2] += n
-            acc[3] += 1
-    out = []
-    for cid in sorted(info):
-        I, b, n, runs, _ = info[cid]
-        P = np.linalg.inv(I)
-        out.append(MergedFloorCode(cid, P @ b, 0.5 * (P + P.T), n, runs))
+        for cid in rows:
+            if not isinstance(parse_payload(cid), FloorPayload):
+                raise WarehouseError(f"{path}: {cid!r} is not a floor-code payload")
+        runs.append((path, rows))
+    ids = sorted({cid for _, rows in runs for cid in rows})
+    if not ids:
+        return [], notes
+    index = {cid: i for i, cid in enumerate(ids)}
+    priors = [_world_prior(cid, world) for cid in ids]
+    m = np.array([mp for mp, _ in priors])
+    q = np.array([qp for _, qp in priors])
+    n_c, n_r = len(ids), len(runs)
+    # normal equations: codes' blocks diagonal per axis (Hc: (C, 3)), the runs' shifts dense
+    Hc = 1.0 / q
+    bc = m / q
+    Hcd = np.zeros((n_c, 3, 3 * n_r))  # code c x all shifts
+    Hd = np.zeros((3 * n_r, 3 * n_r))
+    bd = np.zeros(3 * n_r)
+    n_obs = np.zeros(n_c, dtype=np.int64)
+    n_runs = np.zeros(n_c, dtype=np.int64)
+    for r, (_, rows) in enumerate(runs):
+        cs = np.array([index[cid] for cid in rows])
+        x = np.array([row.xy_yaw for row in rows.values()])
+        x[:, 2] = m[cs, 2] + np.remainder(x[:, 2] - m[cs, 2] + math.pi, 2 * math.pi) - math.pi
+        p = np.array([np.diag(row.cov) for row in rows.values()])
+        g = np.array(
+            [np.zeros(3) if row.shared_cov is None else np.diag(row.shared_cov) for row in rows.values()]
+        )
+        qr = np.array(
+            [q[c] if row.prior_cov is None else np.diag(row.prior_cov) for c, row in zip(cs, rows.values())]
+        )
+        a = p - np.minimum(g, p)
+        with np.errstate(divide="ignore"):
+            w = np.where(a > 0, 1.0 / np.where(a > 0, a, 1.0) - 1.0 / qr, 0.0)
+        w = np.maximum(w, 0.0)  # (k, 3): each axis's weight 1 / var(n)
+        J = shift_jacobians(m[cs, :2])
+        sl = slice(3 * r, 3 * r + 3)
+        # a code appears once in a run: plain fancy-indexed sums
+        Hc[cs] += w
+        bc[cs] += w * x
+        WJ = w[:, :, None] * J  # W J per code
+        Hcd[cs, :, sl] += WJ
+        Hd[sl, sl] += np.einsum("kji,kjl->il", J, WJ)
+        bd[sl] += np.einsum("kji,kj->i", J, w * x)
+        n_obs[cs] += [row.n_obs for row in rows.values()]
+        n_runs[cs] += 1
+    # eliminate the codes (diagonal) into the shifts, solve, back-substitute
+    Hc_inv = 1.0 / Hc
+    S = Hd - np.einsum("cik,ci,cil->kl", Hcd, Hc_inv, Hcd)
+    S_inv = np.linalg.pinv(S, hermitian=True)
+    delta = S_inv @ (bd - np.einsum("cik,ci->k", Hcd, Hc_inv * bc))
+    xc = Hc_inv * (bc - np.einsum("cik,k->ci", Hcd, delta))
+    B = Hc_inv[:, :, None] * Hcd  # Hc^-1 Hcd
+    cov = np.einsum("ci,ij->cij", Hc_inv, np.eye(3)) + np.einsum("cik,kl,cjl->cij", B, S_inv, B)
+    shared = common_shift_covs(m[:, :2], np.einsum("ci,ij->cij", q, np.eye(3)))
+    out = [
+        MergedFloorCode(
+            cid,
+            xc[i],
+            0.5 * (cov[i] + cov[i].T),
+            int(n_obs[i]),
+            int(n_runs[i]),
+            m[i],
+            np.diag(q[i]),
+            np.minimum(np.diag(np.diag(shared[i])), np.diag(np.diag(cov[i]))),
+        )
+        for i, cid in enumerate(ids)
+    ]
     return out, notes
+
+
+def _diag_or_zero(cov: np.ndarray | None) -> np.ndarray:
+    return np.zeros(3) if cov is None else np.diag(cov)
+
+
+def _world_prior(cid: str, world: World) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y, yaw), (x, y, yaw) variances: world.yaml's prior of a floor code (its payload's
+    place, the placement sigma)."""
+    payload = parse_payload(cid)
+    assert isinstance(payload, FloorPayload)
+    placement = Placement.from_world(world)
+    T_nom = make_T(np.eye(3), world.floor_code_position(payload))
+    cov = pose_cov_to_xy_yaw_cov(T_nom, code_prior_cov(placement.sigma_m, placement.sigma_rad))
+    return np.array([T_nom[0, 3], T_nom[1, 3], 0.0]), np.diag(cov).copy()
 
 
 def write_merged_floor_codes(out_dir: Path, codes: list[MergedFloorCode], payload_unit_m: float) -> Path:
@@ -299,6 +405,7 @@ def write_merged_floor_codes(out_dir: Path, codes: list[MergedFloorCode], payloa
                     f"{math.degrees(sig[2]):.6f}",
                     c.n_obs,
                     0,
+                    *shared_cells(c.prior_xy_yaw, c.prior_cov, c.shared_cov),
                     c.n_runs,
                 ]
             )

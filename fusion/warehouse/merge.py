@@ -223,13 +223,13 @@ def run_merge(
         raise OutputError(f"{out}: exists; use --force to write into it")
     runs = [load_run(p, estimator) for p in run_outs]
     result = merge_runs(runs)
-    result.floor_codes, notes = merge_floor_codes([r.out_dir for r in runs], Estimator.SMOOTHER)
+    world = World.from_yaml(result.world_yaml, f"{runs[0].out_dir}/run.json")
+    result.floor_codes, notes = merge_floor_codes([r.out_dir for r in runs], Estimator.SMOOTHER, world)
     if result.floor_codes:
         result.notes += notes
     out.mkdir(parents=True, exist_ok=True)
     write_merge(out, result)
     if result.floor_codes:
-        world = World.from_yaml(result.world_yaml, f"{runs[0].out_dir}/run.json")
         write_merged_floor_codes(out, result.floor_codes, world.payload_unit_m)
     return result
 
