@@ -380,6 +380,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="... and by N(0, this) degrees in yaw (default 0)",
     )
     p.add_argument(
+        "--placement-seed",
+        type=int,
+        default=None,
+        help="draw the floor codes' placement errors from this seed instead of --seed: flights of "
+        "different seeds over one floor (for `fusion map merge`)",
+    )
+    p.add_argument(
         "--format",
         choices=("euroc", "rosbag1", "rosbag2", "video"),
         default="euroc",
@@ -613,6 +620,7 @@ def main(argv: list[str] | None = None) -> int:
                 readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
                 placement_error_m=args.placement_error_m,
                 placement_error_deg=args.placement_error_deg,
+                placement_seed=args.placement_seed,
                 png_compression=args.png_compression,
                 time_offset_ms=(
                     {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None

@@ -179,6 +179,13 @@ def test_simulator_places_codes_off_grid(tmp_path):
     truth = read_groundtruth_csv(tmp_path / "a" / "floor_codes_groundtruth.csv")
     off = np.array([t[:2] - np.array([float(v) for v in cid.split("/")[1:]]) for cid, t in truth.items()])
     assert 0.01 < np.sqrt(np.mean(off**2)) < 0.03
+    # another flight over the same floor: another seed, the placement seed of the first
+    simulate(tmp_path / "c", placement_error_m=0.02, placement_error_deg=1.0, seed=4, placement_seed=3, **kw)
+    same = read_groundtruth_csv(tmp_path / "c" / "floor_codes_groundtruth.csv")
+    assert same.keys() == truth.keys() and all(np.array_equal(same[k], truth[k]) for k in truth)
+    simulate(tmp_path / "d", placement_error_m=0.02, placement_error_deg=1.0, seed=3, placement_seed=4, **kw)
+    other = read_groundtruth_csv(tmp_path / "d" / "floor_codes_groundtruth.csv")
+    assert not any(np.array_equal(other[k], truth[k]) for k in truth)
     simulate(tmp_path / "b", **kw)  # default: exactly laid, and it says so
     floor = load_yaml(tmp_path / "b" / "world.yaml")["floor_qr"]
     assert floor["placement_sigma_m"] == 0.0 and floor["placement_sigma_deg"] == 0.0

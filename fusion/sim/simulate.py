@@ -185,6 +185,7 @@ def simulate(
     readout_s: float | None = None,
     placement_error_m: float = 0.0,
     placement_error_deg: float = 0.0,
+    placement_seed: int | None = None,
     time_offset_ms: dict[str, float] | float | None = None,
     camera_options: CameraOptions | None = None,
     extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
@@ -217,7 +218,8 @@ def simulate(
     each frame is rendered with one true pose per row (`render.rolling_shutter_poses`) and the
     line delay is written to the cameras' sensor.yaml (`line_delay_s`).
     `placement_error_m` / `placement_error_deg`: the floor codes are stuck down off their
-    payload's pose by N(0, sigma) per axis and in yaw (drawn from the seed); world.yaml then
+    payload's pose by N(0, sigma) per axis and in yaw (drawn from `placement_seed`, None: from
+    `seed`; one placement seed and several seeds: several flights over one floor); world.yaml then
     states these sigmas as floor_qr.placement_sigma_m / _deg (0 and 0, the default: exactly
     laid, today's model), and `floor_codes_groundtruth.csv` holds the true poses; it states
     the load labels' print error as load_qr.side_sigma_m 0 (they are rendered exactly).
@@ -305,7 +307,10 @@ def simulate(
     sc.layout.world.placement_sigma_deg = float(placement_error_deg)
     if placement_error_m > 0 or placement_error_deg > 0:
         sc.layout.floor_offsets = placement_offsets(
-            len(sc.layout.floor_codes_xy), placement_error_m, math.radians(placement_error_deg), seed
+            len(sc.layout.floor_codes_xy),
+            placement_error_m,
+            math.radians(placement_error_deg),
+            seed if placement_seed is None else placement_seed,
         )
     workers = worker_count(workers)
     if workers > 1 and mp.current_process().name != "MainProcess":
