@@ -46,6 +46,7 @@ from fusion.estimate.asbuilt import (
     AsBuiltInput,
     FloorCodeMap,
     Placement,
+    common_shift,
     write_floor_codes_csv,
 )
 from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, interpolable_load_times, match_to_frames
@@ -59,6 +60,7 @@ from fusion.estimate.fixes import merge_fixes
 from fusion.estimate.health import tilt_disagreement
 from fusion.estimate.loadconsider import (
     add_departure,
+    add_floor_shift,
     add_load_consider_covariance,
     add_places_spread,
     common_terms,
@@ -1759,12 +1761,31 @@ def _add_load_consider(
         )
         if places:
             result.load_maps[name] = add_places_spread(result.load_maps[name], places)
+    # the floor's common shift, which every flight over these codes shares
+    shift = _floor_common_shift(result)
+    if shift is not None:
+        for name in result.load_maps:
+            result.load_maps[name] = add_floor_shift(result.load_maps[name], *shift)
     # every other map's departure from the batch smoother's (loadconsider.add_departure)
     reference = result.load_maps.get(str(Estimator.SMOOTHER))
     if reference is not None:
         for name in result.load_maps:
             if name != str(Estimator.SMOOTHER):
                 result.load_maps[name] = add_departure(result.load_maps[name], reference)
+
+
+def _floor_common_shift(result: RunResult) -> tuple[np.ndarray, np.ndarray] | None:
+    """The floor's common shift (asbuilt.common_shift: centroid, Cov(delta)) over the codes of
+    the batch smoother's as-built map, from their priors; None without one (a floor laid
+    exactly: nothing shared).  One shift for the whole flight, though a long flight's windows
+    each fix their own from fewer codes (a larger one)."""
+    fmap = result.floor_codes.get(str(Estimator.SMOOTHER))
+    codes = [] if fmap is None else [c for c in fmap.codes if c.prior_xy_yaw is not None]
+    if not codes:
+        return None
+    xy = np.array([np.asarray(c.prior_xy_yaw)[:2] for c in codes])
+    Q = np.array([c.prior_cov_xy_yaw for c in codes])
+    return common_shift(xy, Q)
 
 
 def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> str | None:

@@ -134,6 +134,35 @@ def test_code_marginals_equal_gtsam(block, monkeypatch):
         np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
 
 
+def test_approximate_code_marginals_near_exact(monkeypatch):
+    """Beyond EXACT_MARGINALS_MAX_CODES the codes' covariances are approximate: their x, y, yaw
+    sigma stay near the exact marginals'.  The floor's common shift is a rigid motion
+    (common_shift_covs); as the summed 6 x 6 priors it had yaw 3-4.5 times too wide and x / y
+    down to half."""
+    from fusion.estimate import asbuilt
+
+    placement = Placement(0.01, math.radians(1.0))
+
+    def offsets(ids):
+        rng = np.random.default_rng(5)
+        return np.c_[rng.normal(0, 0.01, (len(ids), 2)), rng.normal(0, placement.sigma_rad, len(ids))]
+
+    frame_t, imu, raw, ab, _, _ = _flight(2, 30.0, offsets, placement, True)
+    maps = {}
+    for mode, most in (("exact", 10**6), ("approximate", 0)):
+        monkeypatch.setattr(asbuilt, "EXACT_MARGINALS_MAX_CODES", most)
+        maps[mode] = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab).floor_codes.by_id()
+    ratios = np.array(
+        [
+            np.sqrt(np.diag(maps["approximate"][cid].cov_xy_yaw) / np.diag(c.cov_xy_yaw))
+            for cid, c in maps["exact"].items()
+            if c.n_obs >= 10
+        ]
+    )
+    assert len(ratios) > 10
+    assert ratios.min() > 0.75 and ratios.max() < 1.1, (ratios.min(axis=0), ratios.max(axis=0))
+
+
 def test_floor_codes_csv_escaped_round_trip(tmp_path):
     cov = np.diag([1e-8, 1e-8, 1e-4, 4e-6, 9e-6, 1e-8])
     codes = [

@@ -277,6 +277,33 @@ def test_a_maps_departure_from_the_smoothers_is_added():
     assert out.loads[1].cov_world is own  # not in the smoother's map: kept
 
 
+def test_the_floors_common_shift_is_shared():
+    """A load's share of the floor's common shift (a rigid motion of the codes only their
+    priors fix) moves into its shared part: J Cov(delta) J^T, J turning about the codes'
+    centroid; the covariance stays; a share the covariance cannot hold is scaled into it."""
+    from fusion.estimate.asbuilt import common_shift
+    from fusion.estimate.loadconsider import add_floor_shift
+    from fusion.warehouse.merge import _fuse
+
+    xy = np.array([[x, y] for x in range(3) for y in range(3)], dtype=float)
+    Q = np.repeat(np.diag([0.01**2, 0.01**2, np.radians(1.0) ** 2])[None], len(xy), axis=0)
+    centroid, cov_delta = common_shift(xy, Q)
+    assert np.allclose(centroid, [1.0, 1.0])
+    p = np.array([4.0, 1.0, 1.5])  # 3 m from the centroid along x: the turn moves it along y
+    J = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 3.0], [0.0, 0.0, 0.0]])
+    T = J @ cov_delta @ J.T
+    wide, tight = 2 * T + np.eye(3) * 1e-6, np.eye(3) * 1e-6
+    lm = LoadMap("smoother", [LoadEstimate("L1", p, wide, 40), LoadEstimate("L2", p, tight, 40, tight / 4)])
+    out = add_floor_shift(lm, centroid, cov_delta)
+    a, b = out.loads
+    assert np.array_equal(a.cov_world, wide) and np.allclose(a.cov_shared, T)
+    assert T[1, 1] > T[0, 0] > 0 and T[2, 2] == 0
+    assert np.all(np.linalg.eigvalsh(b.cov_world - b.cov_shared) > 0)  # scaled into what it holds
+    # two flights' estimates fused: the shift is not averaged down
+    _, P, _ = _fuse(p, a.cov_world, a.cov_shared, p, a.cov_world, a.cov_shared)
+    assert np.all(np.linalg.eigvalsh(P - T) > 0) and P[1, 1] < a.cov_world[1, 1]
+
+
 def test_at_least_grows_a_covariance_only_where_it_holds_less():
     from fusion.estimate.loadconsider import at_least
 

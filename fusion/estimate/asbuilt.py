@@ -68,6 +68,7 @@ __all__ = [
     "add_factors",
     "build_input",
     "code_prior_cov",
+    "common_shift",
     "common_shift_covs",
     "floor_code_estimates",
     "merge_window_maps",
@@ -384,8 +385,12 @@ def approximate_marginals(
       held at their estimates (every F column dropped from the linearised factors);
     - code c: inv(Lambda_prior + sum_s A_F^T (I + A_X S_k A_X^T)^-1 A_F) over its sightings s
       (whitened Jacobians A_F, A_X; S_k the pose covariance given the codes), plus the
-      covariance of the floor's common shift, which only the priors fix: inv(sum_c Lambda_prior)
-      (module docstring, "Gauge");
+      code's share of the floor's common shift, which only the priors fix (module docstring,
+      "Gauge"; `common_shift_covs`: a planar rigid motion, so a code's share grows with its
+      distance from the codes' centroid; the codes' summed 6 x 6 prior information, used
+      until 2026-12-05, ignored that lever arm: x / y sigma 0.50-0.97 of the exact marginals'
+      and yaw 3.2-4.5 times on six synthetic 30 s flights, now BENCHMARKS.md, twentieth
+      session);
     - pose k: S_k + Ad(M^-1) Cov(F_c) Ad(M^-1)^T, c the code seen at frame k that the flight saw
       most, M = F_c^-1 X_k (the pose moves rigidly with the code it sees); frames without a
       sighting take the term of the nearest frame with one.
@@ -427,8 +432,7 @@ def approximate_marginals(
         AX = np.stack([t[3] for t in sight])
         eff = np.eye(AX.shape[1])[None] + AX @ S[ks] @ AX.transpose(0, 2, 1)
         np.add.at(info, cs, AF.transpose(0, 2, 1) @ np.linalg.solve(eff, AF))
-    gauge = np.linalg.inv(prior_info.sum(axis=0))
-    ccov = np.linalg.inv(info) + gauge[None]
+    ccov = np.linalg.inv(info) + _gauge_terms(values, prior_info)
     cov = S.copy()
     if sight:
         best: dict[int, int] = {}
@@ -451,6 +455,24 @@ def approximate_marginals(
         )
         cov += add[near]
     return 0.5 * (cov + cov.transpose(0, 2, 1)), lcov, 0.5 * (ccov + ccov.transpose(0, 2, 1))
+
+
+def _gauge_terms(values: gtsam.Values, prior_info: np.ndarray) -> np.ndarray:
+    """(C, 6, 6) code frame: each code's share of the floor's common shift (`common_shift_covs`
+    for x, y, yaw, from the codes' estimated places and their priors' information `prior_info`
+    (C, 6, 6)); tilt and height as the summed priors fix them (their flat-floor sigmas)."""
+    T = np.array([values.atPose3(F(c)).matrix() for c in range(len(prior_info))])
+    summed = np.linalg.inv(prior_info.sum(axis=0))
+    Q = np.array([pose_cov_to_xy_yaw_cov(T[c], np.linalg.inv(prior_info[c])) for c in range(len(T))])
+    shift = common_shift_covs(T[:, :2, 3], Q)
+    out = np.repeat(summed[None], len(T), axis=0)
+    planar = [2, 3, 4]  # rz, tx, ty
+    for c in range(len(T)):
+        C = xy_yaw_cov_to_pose_cov(T[c], shift[c])
+        out[c][np.ix_(planar, range(6))] = 0.0
+        out[c][np.ix_(range(6), planar)] = 0.0
+        out[c][np.ix_(planar, planar)] = C[np.ix_(planar, planar)]
+    return out
 
 
 # =========================================================================== results
@@ -597,8 +619,16 @@ def common_shift_covs(xy: np.ndarray, Q: np.ndarray) -> np.ndarray:
     with the positions).  Every flight over these codes shares it: the codes are where they
     were laid, whoever looks."""
     J = shift_jacobians(xy)
+    return J @ common_shift(xy, Q)[1] @ J.transpose(0, 2, 1)
+
+
+def common_shift(xy: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The floor's common shift over codes at `xy` (C, 2) with prior covariances `Q` (C, 3, 3)
+    (x, y, yaw): the centroid (2,) it turns about and Cov(delta) (3, 3), delta = (t_x, t_y,
+    theta) (common_shift_covs)."""
+    J = shift_jacobians(xy)
     info = np.einsum("nji,njk,nkl->il", J, np.linalg.inv(Q), J)
-    return J @ np.linalg.inv(info) @ J.transpose(0, 2, 1)
+    return np.mean(np.asarray(xy, float), axis=0), np.linalg.inv(info)
 
 
 def merge_window_maps(maps: list[FloorCodeMap], estimator: str, placement: Placement) -> FloorCodeMap:

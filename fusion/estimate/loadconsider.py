@@ -236,6 +236,40 @@ def add_places_spread(load_map: LoadMap, places: dict[str, list[np.ndarray]]) ->
     return _grown(load_map, grow)
 
 
+def add_floor_shift(load_map: LoadMap, centroid: np.ndarray, cov_delta: np.ndarray) -> LoadMap:
+    """`load_map` with each load's share of the floor's common shift in its shared part
+    (`cov_shared`): the floor codes' places are fixed only by their priors up to a planar rigid
+    motion delta = (t_x, t_y, theta) about `centroid` (2,) with covariance `cov_delta`
+    (asbuilt.common_shift), and every pose, so every load, moves with it: by J delta, J =
+    [[1, 0, -(y - y_0)], [0, 1, x - x_0], [0, 0, 0]].  Every flight over these codes shares it
+    (they are where they were laid), so `fusion map merge` must not average it down: four
+    rendered 45 s flights over one floor merged had load NEES 7.1 from two flights and 14.5 from
+    three (BENCHMARKS.md, twentieth session).  The load's covariance already holds it (the
+    poses' covariance, `add_load_consider_covariance`); it is moved into the shared part only as
+    far as the covariance keeps a positive-definite rest (scaled down to 0.9 of where it would
+    not).  Loads without a covariance are kept."""
+    c0 = np.asarray(centroid, dtype=float)
+
+    def grow(est: LoadEstimate) -> tuple[np.ndarray, np.ndarray] | None:
+        d = np.asarray(est.p_world, dtype=float)[:2] - c0
+        J = np.array([[1.0, 0.0, -d[1]], [0.0, 1.0, d[0]], [0.0, 0.0, 0.0]])
+        T = J @ cov_delta @ J.T
+        P = np.asarray(est.cov_world, dtype=float)
+        S = np.zeros((3, 3)) if est.cov_shared is None else np.asarray(est.cov_shared, dtype=float)
+        # the largest alpha <= 1 with P - S - alpha T positive definite (0.9 of the bound)
+        try:
+            L = np.linalg.cholesky(0.5 * (P - S + (P - S).T))
+        except np.linalg.LinAlgError:  # the shared part fills the covariance already
+            return None
+        M = np.linalg.solve(L, np.linalg.solve(L, T).T)
+        top = float(np.linalg.eigvalsh(0.5 * (M + M.T))[-1])
+        alpha = 1.0 if top <= 0.9 else 0.9 / top
+        shared = S + alpha * T
+        return P, 0.5 * (shared + shared.T)
+
+    return _grown(load_map, grow)
+
+
 def add_departure(load_map: LoadMap, reference: LoadMap) -> LoadMap:
     """`load_map` with each load's covariance plus d d^T, d its departure from the `reference`
     map's estimate of the same load (the batch smoother's: the best estimate the flight has).
