@@ -16,6 +16,7 @@ from fusion.fileio import load_yaml
 from fusion.geometry import make_T, rot_z
 from fusion.log.files import write_loads_json, write_tum
 from fusion.types import LoadEstimate, LoadMap, Trajectory
+from fusion.warehouse.inventory import view_cone
 from fusion.warehouse.merge import ChangeKind, merge_runs
 from fusion.warehouse.runs import RUN_RECORD, load_run
 from fusion.world import warehouse_differences
@@ -26,17 +27,30 @@ FRONT = load_yaml(SAMPLE / "mav0" / "cam1" / "sensor.yaml")
 COV = np.diag([0.002, 0.003, 0.002]) ** 2
 
 
-def _fake_run(root: Path, loads: dict, world: dict = WORLD, x_range=(1.5, 1.5), shared=None) -> Path:
-    """A run folder: the smoother's trajectory (hovering at y = 1.5, z = 1.4 facing +y over
-    x_range), its load map {id: p} with covariance COV (plus `shared`, its part every flight
-    shares, when given), and run.json."""
+def _fake_run(
+    root: Path,
+    loads: dict,
+    world: dict = WORLD,
+    x_range=(1.5, 1.5),
+    shared=None,
+    y: float = 1.5,
+    sightings: bool = False,
+) -> Path:
+    """A run folder: the smoother's trajectory (hovering at y, z = 1.4 over x_range, facing +y
+    from y < 2.7, -y from beyond), its load map {id: p} with covariance COV (plus `shared`, its
+    part every flight shares, when given), run.json and, with `sightings`, the raw sightings of
+    every load at every pose (load_observations_pnp.csv)."""
     root.mkdir(parents=True)
     xs = np.linspace(*x_range, 20)
-    T = np.array([make_T(rot_z(math.pi / 2), [x, 1.5, 1.4]) for x in xs])
-    write_tum(
-        root / "trajectory_smoother.tum",
-        Trajectory("smoother", np.arange(20, dtype=np.int64) * 100_000_000, T),
-    )
+    yaw = math.pi / 2 if y < 2.7 else -math.pi / 2
+    T = np.array([make_T(rot_z(yaw), [x, y, 1.4]) for x in xs])
+    stamps = np.arange(20, dtype=np.int64) * 100_000_000
+    write_tum(root / "trajectory_smoother.tum", Trajectory("smoother", stamps, T))
+    if sightings:
+        rows = [f"{t},{k},{v[0]},{v[1]},{v[2]},0.01,0.01,0.01" for k, v in loads.items() for t in stamps]
+        (root / "load_observations_pnp.csv").write_text(
+            "timestamp_ns,id,x_m,y_m,z_m,sigma_x_m,sigma_y_m,sigma_z_m\n" + "\n".join(rows) + "\n"
+        )
     write_loads_json(
         root / "loads_smoother.json",
         LoadMap(
@@ -89,6 +103,34 @@ def test_information_weighted_mean():
     assert S is None
     np.testing.assert_allclose(P, np.diag([0.8e-4, 0.8e-4, 0.5e-4]))
     np.testing.assert_allclose(p, [(4 * p1[0] + p2[0]) / 5, (p1[1] + 4 * p2[1]) / 5, (p1[2] + p2[2]) / 2])
+
+
+def test_merge_needs_the_labels_face_in_view_to_call_it_gone(tmp_path):
+    """A load read from one side of its rack is not 'disappeared' when a later flight passes
+    behind the rack (the label faces away, the rack is between), however close; it is when a
+    later flight passes on its side without reading it."""
+    a = np.array([1.5, 2.7, 1.4])
+    r0 = _fake_run(tmp_path / "r0", {"A": a}, y=1.5, sightings=True)  # read from -y
+    behind = _fake_run(tmp_path / "behind", {}, y=3.9, sightings=True)  # 1.2 m away, the rack's back
+    res = merge_runs([load_run(r) for r in (r0, behind)])
+    assert res.changes == [] and [l.load_id for l in res.loads] == ["A"]
+    front = _fake_run(tmp_path / "front", {}, y=1.5, sightings=True)
+    res = merge_runs([load_run(r) for r in (r0, behind, front)])
+    assert [(c.load_id, c.kind, c.run_index) for c in res.changes] == [("A", ChangeKind.DISAPPEARED, 2)]
+    # without the sightings' stamps the face is unknown: the flight behind the rack calls it gone
+    res = merge_runs([load_run(_fake_run(tmp_path / "r0x", {"A": a})), load_run(behind)])
+    assert [(c.load_id, c.kind) for c in res.changes] == [("A", ChangeKind.DISAPPEARED)]
+    assert any("judged in view from any side" in n for n in res.notes)
+
+
+def test_view_cone():
+    d = np.array([[0.0, -1.0, 0.0], [0.5, -0.5, 0.0], [-0.5, -0.5, 0.0]])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    axis, cos_min = view_cone(d)
+    np.testing.assert_allclose(axis, [0, -1, 0], atol=1e-12)
+    assert cos_min == pytest.approx(math.cos(math.radians(45)))
+    assert view_cone(np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])) is None  # both sides of a rack
+    assert view_cone(np.zeros((0, 3))) is None
 
 
 def test_merge_no_false_moves_on_repeated_flights(tmp_path):

@@ -18,7 +18,8 @@ Each load gets one status (`Status`):
 
 Limits: the run knows no rack geometry and the manifest no face orientation, so a place hidden
 behind a rack or seen from behind its face counts as in view when it is in the image at
-readable range (the readable-range limit keeps the far face of a rack out in our warehouses).
+readable range.  `fusion map merge` knows more: the directions earlier flights read a load
+from (`view_cone`), and counts a pose in view only from inside them.
 """
 
 from __future__ import annotations
@@ -63,6 +64,9 @@ surveyed': one frame may be blurred (a tenth of a second at 30 fps covers that).
 AMBIGUITY_SEPARATION_M = 0.30
 """Raw sightings of one id farther apart than this (single linkage) are different places: a
 raw PnP load observation is off by a few centimetres at most, pallets stand a rack slot apart."""
+MAX_CONE_HALF_ANGLE_DEG = 80.0
+"""view_cone: sightings of one id spread wider than this around their mean direction are not
+one face's (a QR code reads to about 60-70 degrees off its normal)."""
 MIN_CLUSTER_OBS = 3
 """Sightings a place needs to count for 'ambiguous' (a single outlier does not make one)."""
 
@@ -152,19 +156,63 @@ def moved_test(
     return dist, sigma, stat, float(chi2.sf(stat, 3))
 
 
+def view_cone(directions: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """The cone of directions a code was read from: (k, 3) unit vectors from the code to the
+    camera at its sightings -> (axis, cos of the half angle), the axis their normalised mean and
+    the half angle the widest of them from it.  None without directions, or when they spread
+    over more than MAX_CONE_HALF_ANGLE_DEG around their mean (one id read from both sides of
+    a rack: no one face to judge by)."""
+    d = np.asarray(directions, dtype=float).reshape(-1, 3)
+    if len(d) == 0:
+        return None
+    axis = d.sum(axis=0)
+    norm = float(np.linalg.norm(axis))
+    if norm <= 0:
+        return None
+    axis /= norm
+    cos_min = float(np.min(d @ axis))
+    if cos_min < np.cos(np.radians(MAX_CONE_HALF_ANGLE_DEG)):
+        return None
+    return axis, cos_min
+
+
+def sighting_directions(
+    point_world: np.ndarray, times_ns: np.ndarray, trajectory: Trajectory, camera: CameraModel
+) -> np.ndarray:
+    """(k, 3) unit vectors from a code at `point_world` to the front camera at the sightings'
+    stamps (the trajectory's nearest pose; none without a trajectory)."""
+    times = np.asarray(times_ns, dtype=np.int64)
+    if len(trajectory) == 0 or len(times) == 0:
+        return np.zeros((0, 3))
+    t = trajectory.timestamps_ns
+    i = np.clip(np.searchsorted(t, times), 1, len(t) - 1)
+    i -= (times - t[i - 1]) < (t[i] - times)  # the nearer of the two neighbours
+    centres = camera.T_world_cam(trajectory.T_world_body[i])[:, :3, 3]
+    d = centres - np.asarray(point_world, dtype=float)
+    n = np.linalg.norm(d, axis=1)
+    return d[n > 0] / n[n > 0, None]
+
+
 def visibility(
-    points_world: np.ndarray, trajectory: Trajectory, camera: CameraModel, side_m: float
+    points_world: np.ndarray,
+    trajectory: Trajectory,
+    camera: CameraModel,
+    side_m: float,
+    cones: list[tuple[np.ndarray, float] | None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For each of (M, 3) code centres: the number of trajectory poses at which the front camera
     sees it inside the image (the whole symbol, approximated by its projected half side as the
-    margin), in front of the camera, at readable range (projected side >= MIN_READABLE_SIDE_PX),
-    and the largest projected side in px (0 if never in front).  Returns ((M,) int, (M,) float)."""
+    margin), in front of the camera, at readable range (projected side >= MIN_READABLE_SIDE_PX)
+    and, where `cones` gives the code's (view_cone: the directions it was read from before), from
+    inside that cone; and the largest projected side in px (0 if never in front).
+    Returns ((M,) int, (M,) float)."""
     pts = np.asarray(points_world, dtype=float).reshape(-1, 3)
     counts = np.zeros(len(pts), dtype=int)
     best = np.zeros(len(pts))
     if len(trajectory) == 0 or len(pts) == 0:
         return counts, best
-    T_cam_world = inv_T(camera.T_world_cam(trajectory.T_world_body))  # (N, 4, 4)
+    T_world_cam = camera.T_world_cam(trajectory.T_world_body)  # (N, 4, 4)
+    T_cam_world = inv_T(T_world_cam)
     f = min(camera.fu, camera.fv)
     for j, p in enumerate(pts):
         p_cam = np.einsum("nij,j->ni", T_cam_world[:, :3, :3], p) + T_cam_world[:, :3, 3]
@@ -181,6 +229,10 @@ def visibility(
             & (uv[:, 1] <= camera.height - 1 - margin)
         )
         readable = inside & (side_px >= MIN_READABLE_SIDE_PX)
+        cone = None if cones is None else cones[j]
+        if cone is not None:
+            d = T_world_cam[:, :3, 3] - p
+            readable &= d @ cone[0] >= cone[1] * np.linalg.norm(d, axis=1)
         counts[j] = int(np.count_nonzero(readable))
         best[j] = float(np.max(np.where(inside, side_px, 0.0), initial=0.0))
     return counts, best

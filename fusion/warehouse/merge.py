@@ -17,8 +17,14 @@ Between the state and a new flight's estimate (p_k, P_k) of the same id the chan
   chi2 and p-value;
 - appeared: an id first read in a later flight (significance: its sightings);
 - disappeared: an id of the state not read in a flight whose front camera had its place in view
-  at readable range in at least MIN_FRAMES_IN_VIEW poses (significance: those poses); it leaves
-  the merged map.  Not in view: kept, unchanged.
+  at readable range, and from inside the cone of directions the flights that read it read it
+  from (inventory.view_cone: its face, and a line of sight past the racks), in at least
+  MIN_FRAMES_IN_VIEW poses (significance: those poses); it leaves the merged map.  Not in
+  view: kept, unchanged.  Without the cone (before 2026-12-05, and still for a load whose
+  runs left no load_observations_pnp.csv, with a note), a flight down the next aisle, behind
+  the rack the label faces away from, deleted it: a load of four rendered flights
+  (scripts/bench_map_merge_rendered.py) was listed as disappeared, 24 poses "in view" through
+  the rack.
 
 Runs of different warehouses (their world.yaml differ) are refused.
 """
@@ -40,7 +46,14 @@ from fusion.log.files import LOADS_COLUMNS
 from fusion.types import Estimator
 from fusion.warehouse import escape
 from fusion.warehouse.floorcodes import MergedFloorCode, merge_floor_codes, write_merged_floor_codes
-from fusion.warehouse.inventory import MIN_FRAMES_IN_VIEW, MOVED_ALPHA, moved_test, visibility
+from fusion.warehouse.inventory import (
+    MIN_FRAMES_IN_VIEW,
+    MOVED_ALPHA,
+    moved_test,
+    sighting_directions,
+    view_cone,
+    visibility,
+)
 from fusion.warehouse.runs import RunOutputs, load_run
 from fusion.world import World, warehouse_differences
 
@@ -69,6 +82,7 @@ class MergedLoad:
     n_runs: int  # flights fused into this estimate (since its last change)
     last_run: int  # index of the last flight that read it
     cov_shared: np.ndarray | None = None  # (3, 3) m^2: the part of cov_world every flight shares
+    view_dirs: np.ndarray | None = None  # (k, 3): directions from the load to the camera that read it
 
 
 @dataclass
@@ -148,6 +162,16 @@ def _independent(P: np.ndarray, S: np.ndarray | None) -> np.ndarray:
     return A if np.linalg.eigvalsh(0.5 * (A + A.T))[0] > 0 else P
 
 
+def _view_dirs(run: RunOutputs, load_id: str, p_world: np.ndarray) -> np.ndarray | None:
+    """Directions from the load to the front camera at the run's sightings of it
+    (inventory.sighting_directions); None when the run has no stamped sightings of it or no
+    front camera."""
+    times = run.observation_times_ns.get(load_id)
+    if times is None or run.front_camera is None:
+        return None
+    return sighting_directions(p_world, times, run.trajectory, run.front_camera)
+
+
 def merge_runs(runs: list[RunOutputs]) -> MergeResult:
     """Fuse the load maps of `runs` (flight order) and list the changes between flights."""
     if len(runs) < 1:
@@ -168,20 +192,22 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
             cur = state.get(lid)
             p_new, P_new = np.asarray(l.p_world, float), np.asarray(l.cov_world, float)
             S_new = None if l.cov_shared is None else np.asarray(l.cov_shared, float)
+            dirs = _view_dirs(run, lid, p_new)
             if cur is None:
                 if k > 0:
                     changes.append(Change(lid, ChangeKind.APPEARED, k, None, p_new, n_obs=l.n_obs))
-                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new)
+                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new, dirs)
                 continue
             dist, sigma, stat, pval = moved_test(p_new, cur.cov_world + P_new, cur.p_world, MERGE_TOLERANCE_M)
             if pval < MOVED_ALPHA:
                 changes.append(
                     Change(lid, ChangeKind.MOVED, k, cur.p_world, p_new, dist, sigma, stat, pval, l.n_obs)
                 )
-                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new)
+                state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new, dirs)
             else:
                 p, P, S = _fuse(cur.p_world, cur.cov_world, cur.cov_shared, p_new, P_new, S_new)
-                state[lid] = MergedLoad(lid, p, P, cur.n_obs + l.n_obs, cur.n_runs + 1, k, S)
+                both = None if cur.view_dirs is None or dirs is None else np.vstack([cur.view_dirs, dirs])
+                state[lid] = MergedLoad(lid, p, P, cur.n_obs + l.n_obs, cur.n_runs + 1, k, S, both)
         unseen = sorted(set(state) - set(seen))
         if k == 0 or not unseen:
             continue
@@ -189,11 +215,20 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
         if run.front_camera is None or world is None:
             notes.append(f"{run.out_dir}: front camera unknown: loads it did not read are kept")
             continue
+        dirs_of = [state[lid].view_dirs for lid in unseen]
+        cones = [None if d is None else view_cone(d) for d in dirs_of]
+        if any(d is None for d in dirs_of):
+            notes.append(
+                f"{run.out_dir}: {sum(d is None for d in dirs_of)} loads it did not "
+                "read were mapped without their sightings' stamps (no load_observations_pnp.csv): "
+                "judged in view from any side, a rack between included"
+            )
         frames, _ = visibility(
             np.array([state[lid].p_world for lid in unseen]),
             run.trajectory,
             run.front_camera,
             world.load_side_m,
+            cones,
         )
         for lid, n in zip(unseen, frames, strict=False):
             if n >= MIN_FRAMES_IN_VIEW:

@@ -13,7 +13,7 @@ import csv
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,7 @@ class RunOutputs:
     world_yaml: dict | None
     front_camera: CameraModel | None
     log_path: str | None
+    observation_times_ns: dict[str, np.ndarray] = field(default_factory=dict)  # {id: (n,)}, as observations
 
     @property
     def world(self) -> World | None:
@@ -97,7 +98,7 @@ def load_run(out_dir: Path, estimator: str = Estimator.SMOOTHER, log: Path | Non
         traj = read_tum(tum, estimator)
     except FusionError as e:
         raise WarehouseError(str(e)) from None
-    observations = read_observations(out_dir / OBSERVATIONS_CSV)
+    observation_times, observations = read_observation_rows(out_dir / OBSERVATIONS_CSV)
     world_yaml, camera, log_path = None, None, None
     if log is not None:
         log = Path(log)
@@ -112,7 +113,9 @@ def load_run(out_dir: Path, estimator: str = Estimator.SMOOTHER, log: Path | Non
         if cam is not None:
             camera = _camera(lambda d: CameraModel.from_sensor_yaml(d, f"{out_dir}/{RUN_RECORD}"), cam)
         log_path = record.get("log")
-    return RunOutputs(out_dir, estimator, load_map, traj, observations, world_yaml, camera, log_path)
+    return RunOutputs(
+        out_dir, estimator, load_map, traj, observations, world_yaml, camera, log_path, observation_times
+    )
 
 
 def _camera(loader, arg) -> CameraModel:
@@ -163,10 +166,16 @@ def read_load_map(out_dir: Path, estimator: str) -> LoadMap:
 def read_observations(path: Path) -> dict[str, np.ndarray]:
     """Raw per-frame load observations `timestamp_ns,id,x_m,y_m,z_m,...` as {id: (n, 3) p_world};
     {} when the file is absent (a run without a front camera)."""
+    return read_observation_rows(path)[1]
+
+
+def read_observation_rows(path: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """read_observations with each sighting's stamp: ({id: (n,) timestamp_ns}, {id: (n, 3)})."""
     path = Path(path)
     if not path.exists():
-        return {}
+        return {}, {}
     out: dict[str, list] = {}
+    stamps: dict[str, list] = {}
     with open(path, encoding="utf-8", newline="") as f:
         for lineno, row in enumerate(csv.reader(f), start=1):
             if lineno == 1 or not row:
@@ -174,10 +183,18 @@ def read_observations(path: Path) -> dict[str, np.ndarray]:
             if len(row) < 5:
                 raise WarehouseError(f"{path}:{lineno}: expected at least 5 fields, found {len(row)}")
             try:
+                t = int(row[0])
+            except ValueError:
+                raise WarehouseError(f"{path}:{lineno}: timestamp_ns is not an integer") from None
+            try:
                 p = [float(v) for v in row[2:5]]
             except ValueError:
                 raise WarehouseError(f"{path}:{lineno}: a position is not a number") from None
             if not all(math.isfinite(v) for v in p):
                 raise WarehouseError(f"{path}:{lineno}: NaN or infinite position")
             out.setdefault(row[1], []).append(p)
-    return {k: np.asarray(v) for k, v in out.items()}
+            stamps.setdefault(row[1], []).append(t)
+    return (
+        {k: np.asarray(v, dtype=np.int64) for k, v in stamps.items()},
+        {k: np.asarray(v) for k, v in out.items()},
+    )
