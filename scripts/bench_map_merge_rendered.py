@@ -12,7 +12,9 @@ against the simulator's ground truth, by the number of flights behind each estim
   `fusion run --map` reads); and the independent per-code information fusion that
   `fusion map merge` used before 2026-12-05 (for comparison);
 - loads (x, y, z): each run's loads_smoother.json, the merged map.json, and the independent
-  fusion of the runs' covariances.
+  fusion of the runs' covariances;
+- the changes the merge lists between flights: the simulator moves no load, so every "moved" and
+  "disappeared" is false.
 
 Existing flights and runs in WORKDIR are reused (delete them to redo); the merge is redone.
 
@@ -177,6 +179,12 @@ def main() -> None:
         f"\n# bench_map_merge_rendered {datetime.date.today()}: {args.flights} flights of "
         f"{args.duration:g} s, placement {100 * args.placement_error_m:g} cm / "
         f"{args.placement_error_deg:g} deg (seed {args.placement_seed}), {wd}"
+    )
+    with open(merged_dir / "changes.csv", newline="") as f:
+        kinds = collections.Counter(r["change"] for r in csv.DictReader(f))
+    print(
+        f"changes between flights (the simulator moves no load: every 'moved' and 'disappeared' is "
+        f"false): {dict(sorted(kinds.items()))}"
     )
     print(f"runs' own floor codes: 3-dof NEES {np.mean(own):.2f} over {len(own)} (code, run)")
     print(f"runs' own load maps: 3-dof NEES {np.mean(own_loads):.2f} over {len(own_loads)} (load, run)")
