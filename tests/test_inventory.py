@@ -20,6 +20,7 @@ from fusion.warehouse.inventory import (
     MOVED_ALPHA,
     Status,
     ambiguous_places,
+    face_cone,
     moved_test,
     run_inventory,
     visibility,
@@ -60,6 +61,16 @@ def test_wms_export_units_converted(tmp_path):
     assert m[0].tolerance_m == pytest.approx(0.02) and m[1].tolerance_m == DEFAULT_TOLERANCE_M
 
 
+def test_manifest_face_yaw_optional_in_both_layouts(tmp_path):
+    m = read_manifest(_write(tmp_path / "m.csv", "id,x_m,y_m,z_m,face_yaw_deg\nA,1,2,3,-90\nB,4,5,6,\n"))
+    assert m[0].face_yaw_rad == pytest.approx(-math.pi / 2) and m[1].face_yaw_rad is None
+    w = read_manifest(
+        _write(tmp_path / "w.csv", "location,pallet_id,x,y,z,unit,face_yaw_deg\nL1,P1,1500,2700,700,mm,90\n")
+    )
+    assert w[0].face_yaw_rad == pytest.approx(math.pi / 2)
+    assert read_manifest(_write(tmp_path / "n.csv", "id,x_m,y_m,z_m\nA,1,2,3\n"))[0].face_yaw_rad is None
+
+
 @pytest.mark.parametrize(
     "text, line, words",
     [
@@ -72,6 +83,7 @@ def test_wms_export_units_converted(tmp_path):
         ("id,x_m,y_m,z_m,tolerance_m\nA,1,2,3,-1\n", 2, "negative tolerance"),
         ("location,pallet_id,x,y,z,unit\nL1,P1,1,2,3,m\nL2,P2,1,2,3,in\n", 3, "unit: 'in' is not one of"),
         ("location,pallet_id,x,y,z\nL1,P1,1,2,3\n", 1, "missing column(s) unit"),
+        ("id,x_m,y_m,z_m,face_yaw_deg\nA,1,2,3,south\n", 2, "column face_yaw_deg: 'south' is not a number"),
     ],
 )
 def test_bad_manifest_one_line_error_naming_line(tmp_path, text, line, words):
@@ -146,6 +158,20 @@ def test_visibility_field_of_view_and_readable_range():
     assert n.tolist() == [30, 0, 0, 0, 0]
     assert side[0] == pytest.approx(camera.fu * 0.15 / (1.2 - 0.12), rel=1e-3)
     assert side[3] < MIN_READABLE_SIDE_PX < side[0]
+
+
+def test_visibility_from_in_front_of_the_label_only():
+    """A label on the rack's -y face (facing -y), 1.2 m from a drone in the next aisle (y = 3.9)
+    looking at the rack's back: in the image at readable range, so 'in view' without its face;
+    with it (face_cone), not; the drone in front of it (y = 1.5) sees it either way."""
+    camera = make_cameras()["cam1"]
+    p = np.array([[1.5, 2.7, 1.4]])
+    behind = _hover_trajectory(1.5, 1.5, y=3.9, yaw=-math.pi / 2)
+    front = _hover_trajectory(1.5, 1.5)
+    assert visibility(p, behind, camera, 0.15)[0].tolist() == [30]
+    assert visibility(p, behind, camera, 0.15, [face_cone(-math.pi / 2)])[0].tolist() == [0]
+    assert visibility(p, front, camera, 0.15, [face_cone(-math.pi / 2)])[0].tolist() == [30]
+    assert visibility(p, behind, camera, 0.15, [face_cone(None)])[0].tolist() == [30]
 
 
 def test_ambiguous_places_two_clusters_not_one_outlier():

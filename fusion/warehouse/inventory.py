@@ -9,17 +9,21 @@ Each load gets one status (`Status`):
   innovation squared of a 3-vector is chi-square with 3 degrees of freedom);
 - moved: read, test failed; reported with |d| and its sigma sqrt(u^T Sigma_map u), u = d/|d|;
 - missing: expected, not read, and its place was in the front camera's field of view at readable
-  range (see `visibility`) in at least MIN_FRAMES_IN_VIEW poses of the fused trajectory;
+  range (see `visibility`), and in front of its label when the manifest gives its face
+  (`face_yaw_deg`, up to MAX_READ_OBLIQUITY_DEG off its normal), in at least MIN_FRAMES_IN_VIEW
+  poses of the fused trajectory;
 - not_surveyed: expected, not read, never (or too briefly) in view at readable range;
 - unexpected: read, not in the manifest;
 - ambiguous: the run's raw load observations of one id form two or more separate clusters
   (AMBIGUITY_SEPARATION_M apart, each of at least MIN_CLUSTER_OBS sightings): the same id at two
   places, whatever the manifest says.
 
-Limits: the run knows no rack geometry and the manifest no face orientation, so a place hidden
-behind a rack or seen from behind its face counts as in view when it is in the image at
-readable range.  `fusion map merge` knows more: the directions earlier flights read a load
-from (`view_cone`), and counts a pose in view only from inside them.
+Limits: the run knows no rack geometry, so without the manifest's `face_yaw_deg` a place hidden
+behind a rack or seen from behind its face counts as in view when it is in the image at readable
+range (one of four rendered 45 s flights called a load "missing" through its rack).  With it,
+a rack between the camera and a label it faces away from is left out; a rack or pallet in front
+of the label is not.  `fusion map merge` knows the faces from the flights themselves: the
+directions earlier flights read a load from (`view_cone`).
 """
 
 from __future__ import annotations
@@ -64,6 +68,9 @@ surveyed': one frame may be blurred (a tenth of a second at 30 fps covers that).
 AMBIGUITY_SEPARATION_M = 0.30
 """Raw sightings of one id farther apart than this (single linkage) are different places: a
 raw PnP load observation is off by a few centimetres at most, pallets stand a rack slot apart."""
+MAX_READ_OBLIQUITY_DEG = 60.0
+"""A label seen more than this off its normal (the manifest's face_yaw_deg) is not counted as
+seen: QR codes read to about 60-70 degrees off their normal, so a miss beyond is no evidence."""
 MAX_CONE_HALF_ANGLE_DEG = 80.0
 """view_cone: sightings of one id spread wider than this around their mean direction are not
 one face's (a QR code reads to about 60-70 degrees off its normal)."""
@@ -154,6 +161,15 @@ def moved_test(
         return dist, sigma, float("inf"), 0.0
     stat = float(d @ np.linalg.solve(S, d))
     return dist, sigma, stat, float(chi2.sf(stat, 3))
+
+
+def face_cone(face_yaw_rad: float | None) -> tuple[np.ndarray, float] | None:
+    """The directions a label facing `face_yaw_rad` (its outward normal's yaw; None: unknown)
+    reads from, as a view_cone: up to MAX_READ_OBLIQUITY_DEG off its normal."""
+    if face_yaw_rad is None:
+        return None
+    axis = np.array([np.cos(face_yaw_rad), np.sin(face_yaw_rad), 0.0])
+    return axis, float(np.cos(np.radians(MAX_READ_OBLIQUITY_DEG)))
 
 
 def view_cone(directions: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -274,7 +290,11 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
             )
         else:
             frames, best = visibility(
-                np.array([e.p_world for e in not_read]), run.trajectory, run.front_camera, world.load_side_m
+                np.array([e.p_world for e in not_read]),
+                run.trajectory,
+                run.front_camera,
+                world.load_side_m,
+                [face_cone(e.face_yaw_rad) for e in not_read],
             )
             view = {e.load_id: (int(n), float(b)) for e, n, b in zip(not_read, frames, best, strict=True)}
     rows: list[InventoryRow] = []

@@ -3,15 +3,15 @@
 Two CSV layouts are read (the header decides which; column names are case-insensitive, cells are
 stripped, `,` or `;` separated, UTF-8 with or without a byte-order mark):
 
-1. **Plain manifest** (ours): `id,x_m,y_m,z_m[,tolerance_m]` in metres, world frame W of
-   world.yaml (z up, floor z = 0), the load code's symbol centre.
+1. **Plain manifest** (ours): `id,x_m,y_m,z_m[,tolerance_m][,face_yaw_deg]` in metres, world
+   frame W of world.yaml (z up, floor z = 0), the load code's symbol centre.
 
 2. **WMS location export**: one row per pallet as warehouse-management systems export their
    bin/handling-unit list with coordinates (SAP EWM "storage bin" + "handling unit", Manhattan
    "location" + "LPN" and similar):
 
-       location,pallet_id,x,y,z,unit[,tolerance]
-       A-01-01,PAL-000123,1500,2700,700,mm,10
+       location,pallet_id,x,y,z,unit[,tolerance][,face_yaw_deg]
+       A-01-01,PAL-000123,1500,2700,700,mm,10,-90
 
    `location` is the WMS bin code (kept and reported), `pallet_id` the id printed in the load's
    QR code (`1/<pallet_id>`), `x,y,z` the label's centre in the warehouse frame (the same frame
@@ -20,6 +20,12 @@ stripped, `,` or `;` separated, UTF-8 with or without a byte-order mark):
 
 `tolerance_m` is the 1-sigma placement spread of the expected position per axis (how precisely
 the system knows where a pallet stands); DEFAULT_TOLERANCE_M when absent.
+
+`face_yaw_deg` (optional, either layout; a cell may be empty) is the direction the label faces,
+the yaw of its outward normal in the world frame in degrees (-90: it faces -y, the aisle on the
+rack's -y side).  The inventory then counts a pose as seeing the place only from in front of
+the label (inventory.MAX_READ_OBLIQUITY_DEG): without it, a flight down the next aisle, behind
+the rack, would call a load it could not have read "missing".
 
 Bad input (duplicate ids, missing columns, short rows, non-numeric or non-finite cells, foreign
 units, empty or unprintable ids) raises WarehouseError with one line naming file and line.
@@ -47,21 +53,23 @@ UNIT_TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 """Units accepted in the WMS export's `unit` column (anything else is refused)."""
 
 PLAIN_COLUMNS = ("id", "x_m", "y_m", "z_m")
-PLAIN_OPTIONAL = ("tolerance_m",)
+PLAIN_OPTIONAL = ("tolerance_m", "face_yaw_deg")
 WMS_COLUMNS = ("location", "pallet_id", "x", "y", "z", "unit")
-WMS_OPTIONAL = ("tolerance",)
+WMS_OPTIONAL = ("tolerance", "face_yaw_deg")
 
 
 @dataclass(frozen=True)
 class ExpectedLoad:
     """One manifest entry: `p_world` (3,) in m, `tolerance_m` 1-sigma per axis, the WMS location
-    code (None for a plain manifest) and the 1-based line it came from."""
+    code (None for a plain manifest), the 1-based line it came from, and the yaw (rad) of the
+    label's outward normal when the manifest gives it."""
 
     load_id: str
     p_world: np.ndarray
     tolerance_m: float
     location: str | None
     line: int
+    face_yaw_rad: float | None = None
 
 
 def read_manifest(path: Path) -> list[ExpectedLoad]:
@@ -117,7 +125,7 @@ def _plain_row(cells: dict, path: Path, lineno: int) -> ExpectedLoad:
     load_id = _load_id(cells["id"], "id", path, lineno)
     p = np.array([_number(cells[c], c, path, lineno) for c in ("x_m", "y_m", "z_m")])
     tol = _tolerance(cells.get("tolerance_m", ""), "tolerance_m", 1.0, path, lineno)
-    return ExpectedLoad(load_id, p, tol, None, lineno)
+    return ExpectedLoad(load_id, p, tol, None, lineno, _face(cells, path, lineno))
 
 
 def _wms_row(cells: dict, path: Path, lineno: int) -> ExpectedLoad:
@@ -130,7 +138,12 @@ def _wms_row(cells: dict, path: Path, lineno: int) -> ExpectedLoad:
     scale = UNIT_TO_M[unit]
     p = np.array([_number(cells[c], c, path, lineno) * scale for c in ("x", "y", "z")])
     tol = _tolerance(cells.get("tolerance", ""), "tolerance", scale, path, lineno)
-    return ExpectedLoad(load_id, p, tol, cells["location"], lineno)
+    return ExpectedLoad(load_id, p, tol, cells["location"], lineno, _face(cells, path, lineno))
+
+
+def _face(cells: dict, path: Path, lineno: int) -> float | None:
+    text = cells.get("face_yaw_deg", "")
+    return math.radians(_number(text, "face_yaw_deg", path, lineno)) if text else None
 
 
 def _load_id(text: str, column: str, path: Path, lineno: int) -> str:
