@@ -18,13 +18,16 @@ from fusion.conventions import floor_payload
 from fusion.errors import WarehouseError, WorldError
 from fusion.estimate import FusionConfig, smooth
 from fusion.estimate.asbuilt import (
+    AsBuiltError,
     F,
     FloorCodeEstimate,
     FloorCodeMap,
     Placement,
+    common_shift_covs,
     read_floor_code_rows,
     read_floor_codes_csv,
     read_groundtruth_csv,
+    shift_jacobians,
     write_floor_codes_csv,
 )
 from fusion.estimate.factors import X
@@ -176,13 +179,19 @@ def test_floor_codes_csv_escaped_round_trip(tmp_path):
     rows = list(csv.reader(path.read_text().splitlines()))
     m = rows[0].index("misplaced")
     assert rows[1][0] == "'=HYPERLINK(1)" and rows[1][m] == "1" and rows[2][m] == "0"
-    assert rows[1][m + 1 :] == [""] * 9  # no prior or common shift given: empty, and read as None
+    assert rows[1][m + 1 :] == [""] * 9 + ["0"]  # no prior or common shift: empty, read as None
     back = read_floor_codes_csv(path)
     xyyaw, c3, n = back["=HYPERLINK(1)"]
     np.testing.assert_allclose(xyyaw, [0.03, 0.0, 0.01], atol=1e-6)
     assert n == 25
     np.testing.assert_allclose(np.sqrt(np.diag(c3)), [0.002, 0.003, 0.01], rtol=1e-3)
     assert read_floor_code_rows(path)["0/1/2"].shared_cov is None
+    assert read_floor_code_rows(path)["0/1/2"].shift_group == 0
+    bad = path.read_text().splitlines()
+    bad[2] = bad[2][: bad[2].rindex(",")] + ",1.5"
+    path.write_text("\n".join(bad) + "\n")
+    with pytest.raises(AsBuiltError, match=r"floor_codes_smoother.csv:3: shift_group is not a whole number"):
+        read_floor_code_rows(path)
 
 
 def test_world_yaml_placement_fields():
@@ -414,6 +423,69 @@ def test_map_merge_counts_the_prior_and_common_shift_once(tmp_path):
     assert len(merged_z2) > 30
     assert 2.0 < np.mean(merged_z2) < 4.2, np.mean(merged_z2)  # 3.3
     assert np.mean(independent_z2) > 4.6, np.mean(independent_z2)  # 5.2: the test can fail
+
+
+def _window_posterior(m, t, q, r, rng):
+    """A window's posterior of its codes (C, 3) x, y, yaw: each code seen with noise r
+    relative to a free planar rigid motion of them all (the drone sees codes only relative to
+    itself), and each code's payload prior N(m, q).  Returns x (C, 3), the marginals' variances
+    (C, 3)."""
+    n = len(m)
+    J = shift_jacobians(m[:, :2])
+    y = t + np.einsum("cij,j->ci", J, rng.normal(0, 0.05, 3)) + rng.normal(0, np.sqrt(r), (n, 3))
+    A = np.zeros((3 * n, 3 * n + 3))
+    A[:, : 3 * n] = np.eye(3 * n)
+    A[:, 3 * n :] = J.reshape(3 * n, 3)
+    H = A.T @ np.diag(np.tile(1 / r, n)) @ A
+    H[: 3 * n, : 3 * n] += np.diag(np.tile(1 / q, n))
+    b = A.T @ (np.tile(1 / r, n) * y.ravel())
+    b[: 3 * n] += (m / q).ravel()
+    P = np.linalg.inv(H)
+    return (P @ b)[: 3 * n].reshape(n, 3), np.diag(P)[: 3 * n].reshape(n, 3)
+
+
+def test_map_merge_gives_each_window_its_own_shift(tmp_path):
+    """A long flight's floor codes come from its windows, each of which fixed its own common
+    shift from the priors of the codes it saw (merge_window_maps): merged with one shift for
+    the whole flight, the windows' shifts were taken as one and the merged codes read a NEES of
+    4.4 where the truth asks 3 (25 floors, two flights of two windows each: linear-Gaussian
+    posteriors, written as `fusion run` writes them); one shift per window (the file's
+    shift_group) gives 3.2."""
+    rng = np.random.default_rng(3)
+    world = World(placement_sigma_m=0.01, placement_sigma_deg=1.0)
+    q = np.array([0.01**2, 0.01**2, math.radians(1.0) ** 2])
+    r = np.array([0.002**2, 0.002**2, math.radians(0.1) ** 2])
+    ids = [floor_payload(x, 0) for x in range(12)]
+    m = np.c_[np.arange(12.0), np.zeros(12), np.zeros(12)]
+    windows = [np.arange(0, 8), np.arange(4, 12)]  # each code from one: 0-5 the first, 6-11 the second
+    cols = ["id", "x_m", "y_m", "yaw_deg", "sigma_x_m", "sigma_y_m", "sigma_yaw_deg", "n_obs"]
+    cols += ["shared_sigma_x_m", "shared_sigma_y_m", "shared_sigma_yaw_deg", "shift_group"]
+    z2: dict[bool, list[float]] = {True: [], False: []}
+    for floor in range(25):
+        t = m + rng.normal(0, np.sqrt(q), m.shape)
+        runs: dict[bool, list[Path]] = {True: [], False: []}
+        for run in range(2):
+            rows = []
+            for w, idx in enumerate(windows):
+                x, p = _window_posterior(m[idx], t[idx], q, r, rng)
+                g = np.diagonal(common_shift_covs(m[idx, :2], np.array([np.diag(q)] * len(idx))), 0, 1, 2)
+                keep = idx < 6 if w == 0 else idx >= 6
+                for c, xc, pc, gc in zip(idx[keep], x[keep], p[keep], g[keep]):
+                    sig = np.sqrt(np.r_[pc, gc])
+                    sig[[2, 5]] = np.degrees(sig[[2, 5]])
+                    rows.append([ids[c], xc[0], xc[1], math.degrees(xc[2]), *sig[:3], 50, *sig[3:], w])
+            for grouped in (True, False):
+                d = tmp_path / f"{floor}-{run}-{grouped}"
+                d.mkdir()
+                with open(d / "floor_codes_smoother.csv", "w", newline="") as f:
+                    csv.writer(f).writerows([cols] + [row[:-1] + [row[-1] if grouped else 0] for row in rows])
+                runs[grouped].append(d)
+        for grouped in (True, False):
+            for c in floorcodes.merge_floor_codes(runs[grouped], "smoother", world)[0]:
+                e = c.xy_yaw - t[ids.index(c.code_id)]
+                z2[grouped].append(float(e @ np.linalg.solve(c.cov, e)))
+    assert 2.5 < np.mean(z2[True]) < 3.6
+    assert np.mean(z2[False]) > 4.0  # one shift per flight: the windows' shifts taken as one
 
 
 def test_report_html_highlights_misplaced_codes():

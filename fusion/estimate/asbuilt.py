@@ -35,7 +35,7 @@ import csv
 import logging
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import gtsam
@@ -132,7 +132,10 @@ FLOOR_CODE_COLUMNS = [
     "n_obs",
     "misplaced",
     *SHARED_COLUMNS,
+    "shift_group",
 ]
+"""`shift_group`: the codes of one file with the same number carry the same common shift (one
+solve's: a long flight's window, merge_window_maps); empty or absent: 0, one solve."""
 GROUNDTRUTH_COLUMNS = ["id", "x_m", "y_m", "yaw_deg"]
 
 
@@ -492,6 +495,7 @@ class FloorCodeEstimate:
     prior_xy_yaw: np.ndarray | None = None  # (3,) x, y (m), yaw (rad): the prior's mean
     prior_cov_xy_yaw: np.ndarray | None = None  # (3, 3): the prior's covariance
     shared_cov_xy_yaw: np.ndarray | None = None  # (3, 3): the floor's common shift, part of cov
+    shift_group: int = 0  # the solve (window) whose common shift it carries
 
     @property
     def p_world(self) -> np.ndarray:
@@ -639,10 +643,10 @@ def merge_window_maps(maps: list[FloorCodeMap], estimator: str, placement: Place
     codes it saw (module docstring, "Gauge"), so neighbouring windows share most of their
     information about where a code is; a mean would count it once per window."""
     best: dict[str, FloorCodeEstimate] = {}
-    for m in maps:
+    for i, m in enumerate(maps):
         for c in m.codes:
             if c.code_id not in best or c.n_obs > best[c.code_id].n_obs:
-                best[c.code_id] = c
+                best[c.code_id] = replace(c, shift_group=i)
     return FloorCodeMap(estimator, [best[k] for k in sorted(best)], placement)
 
 
@@ -708,6 +712,7 @@ def write_floor_codes_csv(path: Path, fmap: FloorCodeMap) -> None:
                     c.n_obs,
                     int(c.misplaced),
                     *shared_cells(c.prior_xy_yaw, c.prior_cov_xy_yaw, c.shared_cov_xy_yaw),
+                    c.shift_group,
                 ]
             )
 
@@ -749,6 +754,7 @@ class FloorCodeRow:
     prior_xy_yaw: np.ndarray | None = None
     prior_cov: np.ndarray | None = None
     shared_cov: np.ndarray | None = None
+    shift_group: int = 0
 
 
 def _xy_yaw(row: dict, cols: tuple[str, str, str], path: Path, line: int) -> np.ndarray:
@@ -794,6 +800,11 @@ def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
             r.prior_cov = _sigmas_cov(
                 row, ("prior_sigma_x_m", "prior_sigma_y_m", "prior_sigma_yaw_deg"), path, line
             )
+        if row.get("shift_group"):
+            g = row["shift_group"]
+            if not g.isdigit():
+                raise AsBuiltError(f"{path}:{line}: shift_group is not a whole number: {g!r}")
+            r.shift_group = int(g)
         if row.get("shared_sigma_x_m"):
             r.shared_cov = _sigmas_cov(
                 row, ("shared_sigma_x_m", "shared_sigma_y_m", "shared_sigma_yaw_deg"), path, line, zero=True

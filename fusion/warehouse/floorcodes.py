@@ -269,7 +269,12 @@ def merge_floor_codes(
 
     with x_c the codes and delta_r free (J_c as in common_shift_covs, about the run's centroid
     of the codes' priors); each code's covariance is its marginal, the merged floor's common
-    shift included (the delta_r are eliminated first: a Schur complement of 3 x runs).  One run
+    shift included (the delta_r are eliminated first: a Schur complement of 3 x runs).  A long
+    flight's codes come from its windows, each of which fixed its own shift (the file's
+    shift_group, asbuilt.merge_window_maps): one delta per run and shift group.  One delta for
+    the whole run took the windows' shifts as one: 3-dof NEES 4.4 against 3.2 on linear-Gaussian
+    two-window flights (tests/test_asbuilt.py); 2.77 against 2.67 on two rendered 400 s flights
+    of five windows each, whose windows see mostly the same codes (BENCHMARKS.md).  One run
     gives back its own estimate and sigma to first order.  A CSV without the shared columns
     (written before them): its prior is taken as world.yaml's and g as 0.  A run made with
     `--map` started from the map: d is what it added, and the map's information counts through
@@ -297,8 +302,15 @@ def merge_floor_codes(
     priors = [_world_prior(cid, world) for cid in ids]
     m = np.array([mp for mp, _ in priors])
     q = np.array([qp for _, qp in priors])
-    n_c, n_r = len(ids), len(runs)
-    # normal equations: codes' blocks diagonal per axis (Hc: (C, 3)), the runs' shifts dense
+    n_c = len(ids)
+    # one shift per run and shift group (a long flight's windows each fix their own)
+    groups = [
+        {cid: row for cid, row in rows.items() if row.shift_group == k}
+        for _, rows in runs
+        for k in sorted({row.shift_group for row in rows.values()})
+    ]
+    n_r = len(groups)
+    # normal equations: codes' blocks diagonal per axis (Hc: (C, 3)), the shifts dense
     Hc = 1.0 / q
     bc = m / q
     Hcd = np.zeros((n_c, 3, 3 * n_r))  # code c x all shifts
@@ -306,7 +318,7 @@ def merge_floor_codes(
     bd = np.zeros(3 * n_r)
     n_obs = np.zeros(n_c, dtype=np.int64)
     n_runs = np.zeros(n_c, dtype=np.int64)
-    for r, (_, rows) in enumerate(runs):
+    for r, rows in enumerate(groups):
         cs = np.array([index[cid] for cid in rows])
         x = np.array([row.xy_yaw for row in rows.values()])
         x[:, 2] = m[cs, 2] + np.remainder(x[:, 2] - m[cs, 2] + math.pi, 2 * math.pi) - math.pi
@@ -406,6 +418,7 @@ def write_merged_floor_codes(out_dir: Path, codes: list[MergedFloorCode], payloa
                     c.n_obs,
                     0,
                     *shared_cells(c.prior_xy_yaw, c.prior_cov, c.shared_cov),
+                    0,
                     c.n_runs,
                 ]
             )
