@@ -21,6 +21,7 @@ Existing flights and runs in WORKDIR are reused (delete them to redo); the merge
     PYTHONPATH=$PWD python3 scripts/bench_map_merge_rendered.py WORKDIR [--flights 4]
         [--duration 45] [--stagger 15] [--seed 201] [--placement-seed 77]
         [--placement-error-m 0.01] [--placement-error-deg 1] [--workers 1]
+        [--simulate-args "--camera-effects realistic ..."]
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import csv
 import datetime
 import json
 import math
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -107,6 +109,11 @@ def main() -> None:
     ap.add_argument("--placement-error-deg", type=float, default=1.0)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--min-obs", type=int, default=10)
+    ap.add_argument(
+        "--simulate-args",
+        default="",
+        help="more `fusion simulate` options, e.g. '--camera-effects realistic'",
+    )
     args = ap.parse_args()
     wd = args.workdir
     wd.mkdir(parents=True, exist_ok=True)
@@ -119,7 +126,8 @@ def main() -> None:
                 "--placement-seed", str(args.placement_seed),
                 "--placement-error-m", f"{args.placement_error_m:g}",
                 "--placement-error-deg", f"{args.placement_error_deg:g}",
-                "--workers", str(args.workers), "-q", "--force"])  # fmt: skip
+                "--workers", str(args.workers), "-q", "--force",
+                *shlex.split(args.simulate_args)])  # fmt: skip
         if not (out / "run.json").is_file():
             sh([*FUSION, "run", str(log), "--out", str(out), "--workers", str(args.workers), "-q", "--force"])
         outs.append(out)
@@ -178,7 +186,7 @@ def main() -> None:
     print(
         f"\n# bench_map_merge_rendered {datetime.date.today()}: {args.flights} flights of "
         f"{args.duration:g} s, placement {100 * args.placement_error_m:g} cm / "
-        f"{args.placement_error_deg:g} deg (seed {args.placement_seed}), {wd}"
+        f"{args.placement_error_deg:g} deg (seed {args.placement_seed}) {args.simulate_args}, {wd}"
     )
     with open(merged_dir / "changes.csv", newline="") as f:
         kinds = collections.Counter(r["change"] for r in csv.DictReader(f))
