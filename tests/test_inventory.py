@@ -26,6 +26,7 @@ from fusion.warehouse.inventory import (
     visibility,
 )
 from fusion.warehouse.manifest import DEFAULT_TOLERANCE_M, read_manifest
+from fusion.warehouse.runs import read_observation_rows
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 
@@ -280,3 +281,25 @@ def test_inventory_log_option_and_no_record(sample_run, tmp_path):
     with open(run / "inventory.csv", encoding="utf-8") as f:
         rows = {r["id"]: r["status"] for r in csv.DictReader(f)}
     assert rows == {"PHANTOM": "missing", "P-01-2": "unexpected", "P-02-2": "unexpected"}
+
+
+@pytest.mark.parametrize(
+    "row, words",
+    [
+        ("100,A,1,2", "expected at least 5 fields, found 4"),
+        ("1.5e9,A,1,2,3", "timestamp_ns is not an integer"),
+        ("100,A,1,two,3", "a position is not a number"),
+        ("100,A,1,inf,3", "NaN or infinite position"),
+    ],
+)
+def test_bad_load_observations_one_line_error(tmp_path, row, words):
+    path = _write(
+        tmp_path / "load_observations_pnp.csv", f"timestamp_ns,id,x_m,y_m,z_m\n100,A,1,2,3\n{row}\n"
+    )
+    with pytest.raises(WarehouseError) as e:
+        read_observation_rows(path)
+    assert str(e.value).startswith(f"{path}:3: ") and words in str(e.value)
+    times, points = read_observation_rows(
+        _write(path, "timestamp_ns,id,x_m,y_m,z_m\n100,A,1,2,3\n200,A,1,2,4\n")
+    )
+    assert times["A"].tolist() == [100, 200] and points["A"].shape == (2, 3)
