@@ -21,6 +21,7 @@ from fusion.warehouse.inventory import (
     Status,
     ambiguous_places,
     face_cone,
+    sighting_directions,
     moved_test,
     run_inventory,
     visibility,
@@ -303,3 +304,14 @@ def test_bad_load_observations_one_line_error(tmp_path, row, words):
         _write(path, "timestamp_ns,id,x_m,y_m,z_m\n100,A,1,2,3\n200,A,1,2,4\n")
     )
     assert times["A"].tolist() == [100, 200] and points["A"].shape == (2, 3)
+
+
+def test_sighting_directions_take_the_nearest_pose():
+    camera = make_cameras()["cam1"]
+    traj = _hover_trajectory(0.0, 2.9, n=30)  # x = 0.1 m per 0.1 s
+    p = np.array([1.5, 2.7, 1.4])
+    d = sighting_directions(p, np.array([1_040_000_000, 1_060_000_000]), traj, camera)  # poses 10, 11
+    centres = camera.T_world_cam(traj.T_world_body[[10, 11]])[:, :3, 3] - p
+    np.testing.assert_allclose(d, centres / np.linalg.norm(centres, axis=1)[:, None])
+    one = Trajectory("smoother", traj.timestamps_ns[:1], traj.T_world_body[:1])
+    assert sighting_directions(p, np.array([5, 10**12]), one, camera).shape == (2, 3)

@@ -201,8 +201,11 @@ def sighting_directions(
     if len(trajectory) == 0 or len(times) == 0:
         return np.zeros((0, 3))
     t = trajectory.timestamps_ns
-    i = np.clip(np.searchsorted(t, times), 1, len(t) - 1)
-    i -= (times - t[i - 1]) < (t[i] - times)  # the nearer of the two neighbours
+    if len(t) == 1:
+        i = np.zeros(len(times), dtype=np.int64)
+    else:
+        i = np.clip(np.searchsorted(t, times), 1, len(t) - 1)
+        i -= (times - t[i - 1]) < (t[i] - times)  # the nearer of the two neighbours
     centres = camera.T_world_cam(trajectory.T_world_body[i])[:, :3, 3]
     d = centres - np.asarray(point_world, dtype=float)
     n = np.linalg.norm(d, axis=1)

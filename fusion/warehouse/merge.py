@@ -206,7 +206,8 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
                 state[lid] = MergedLoad(lid, p_new, P_new, l.n_obs, 1, k, S_new, dirs)
             else:
                 p, P, S = _fuse(cur.p_world, cur.cov_world, cur.cov_shared, p_new, P_new, S_new)
-                both = None if cur.view_dirs is None or dirs is None else np.vstack([cur.view_dirs, dirs])
+                known = [d for d in (cur.view_dirs, dirs) if d is not None]
+                both = np.vstack(known) if known else None
                 state[lid] = MergedLoad(lid, p, P, cur.n_obs + l.n_obs, cur.n_runs + 1, k, S, both)
         unseen = sorted(set(state) - set(seen))
         if k == 0 or not unseen:
