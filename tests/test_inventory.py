@@ -21,9 +21,9 @@ from fusion.warehouse.inventory import (
     Status,
     ambiguous_places,
     face_cone,
-    sighting_directions,
     moved_test,
     run_inventory,
+    sighting_directions,
     visibility,
 )
 from fusion.warehouse.manifest import DEFAULT_TOLERANCE_M, read_manifest
