@@ -148,8 +148,8 @@ def test_batch_writes_each_flight_as_run_does_and_records_the_bad_one(batch, fli
         (h["status"] for h in metrics["health"].values()), key=["ok", "degraded", "diverged"].index
     )
     assert float(rows[a]["ate_rmse_m"]) == pytest.approx(metrics["trajectories"]["smoother"]["ate_rmse_m"])
-    assert float(rows[a]["coverage"]) == pytest.approx(
-        metrics["estimator_stats"]["pnp"]["n_posed"] / metrics["estimator_stats"]["pnp"]["n_frames"]
+    assert float(rows[a]["coverage"]) == pytest.approx(  # of every floor frame, not only those read
+        metrics["estimator_stats"]["pnp"]["n_posed"] / metrics["detection"]["floor_frames"], abs=1e-6
     )
     assert float(rows[a]["compute_s"]) > 0 and int(rows[a]["frames"]) == 2 * (1 + int(FLIGHT_S * FPS))
     md = (out / "fleet.md").read_text()
@@ -372,3 +372,17 @@ def test_a_flight_without_a_fused_estimate_says_why_in_the_summary(tmp_path):
     (tmp_path / "f" / "metrics.json").write_text(json.dumps({"health": {}, "warnings": [warning]}))
     row = flight_row(tmp_path, FlightRecord("f", "/logs/f", status=FlightStatus.OK))
     assert row.health == NO_HEALTH and row.health_detail == "no_floor_pose x241"
+
+
+def test_coverage_is_of_every_floor_frame(tmp_path):
+    """PnP's n_frames counts only the frames with a detection: coverage is n_posed over every
+    floor frame of the log (a flight that read its codes in half its frames read 100 %)."""
+    (tmp_path / "f").mkdir()
+    metrics = {
+        "health": {"smoother": {"status": "ok"}},
+        "estimator_stats": {"pnp": {"n_frames": 645, "n_posed": 640}},
+        "detection": {"floor_frames": 1351},
+    }
+    (tmp_path / "f" / "metrics.json").write_text(json.dumps(metrics))
+    row = flight_row(tmp_path, FlightRecord("f", "/logs/f", status=FlightStatus.OK))
+    assert row.coverage == pytest.approx(640 / 1351)

@@ -114,8 +114,11 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
         ]
     row.health_detail = "; ".join(details)
     pnp = (metrics.get("estimator_stats") or {}).get(str(FALLBACK)) or {}
-    if pnp.get("n_frames"):
-        row.coverage = pnp.get("n_posed", 0) / pnp["n_frames"]
+    # every floor frame of the log, not PnP's n_frames (the frames with a detection only: a
+    # flight whose codes were read in half its frames read 100 % until 2026-12-05)
+    n_floor = (metrics.get("detection") or {}).get("floor_frames") or pnp.get("n_frames")
+    if n_floor:
+        row.coverage = pnp.get("n_posed", 0) / n_floor
     traj = (metrics.get("trajectories") or {}).get(str(HEADLINE)) or {}
     row.ate_rmse_m = traj.get("ate_rmse_m")
     maps = metrics.get("load_maps") or {}
