@@ -1921,6 +1921,9 @@ def _evaluate_and_report(
         log.loads_groundtruth,
         log.blackouts,
         result.detection_stats,
+        # evo's `-a` beside the unaligned ATE: what is left once a rigid offset (an as-built
+        # floor's common shift, a truth in another frame) is taken out
+        align=True,
         position_yaw_only=("paper", str(Estimator.PNP)) if level_pnp else ("paper",),
     )
     metrics["estimator_stats"] = to_jsonable({**raw_stats, **fused_stats})

@@ -37,7 +37,16 @@ def test_run_writes_every_output(run_out):
     fused = metrics["trajectories"]["smoother"]
     raw = metrics["trajectories"]["pnp"]
     assert fused["ate_rmse_m"] < raw["ate_rmse_m"]
-    assert (run_out / "report.md").read_text().startswith("# fusion report")
+    # evo's -a beside the unaligned ATE (a rigid fit can only lower it)
+    assert 0 < fused["ate_aligned"]["ate_rmse_m"] <= fused["ate_rmse_m"]
+    report = (run_out / "report.md").read_text()
+    assert report.startswith("# fusion report")
+    row = next(
+        r
+        for r in report.split("### Absolute and relative errors")[1].splitlines()
+        if r.startswith("| smoother")
+    )
+    assert row.split("|")[5].strip() not in ("", "–")  # the SE(3)-aligned column
     for png in ("trajectories.png", "position_errors.png", "error_boxplots.png", "load_map.png"):
         assert (run_out / png).stat().st_size > 10_000
     assert not list(run_out.glob("*.part")) and not list(run_out.glob(".*"))
