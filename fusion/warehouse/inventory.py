@@ -292,6 +292,12 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
                 "were not read are all reported as not surveyed"
             )
         else:
+            faceless = sum(e.face_yaw_rad is None for e in not_read)
+            if faceless:
+                notes.append(
+                    f"{faceless} loads not read have no face_yaw_deg in the manifest: a pose behind "
+                    "their rack counts as seeing them (a 'missing' there may be hidden)"
+                )
             frames, best = visibility(
                 np.array([e.p_world for e in not_read]),
                 run.trajectory,
@@ -413,7 +419,9 @@ def inventory_markdown(result: InventoryResult) -> list[str]:
         f"Moved: chi-square test (3 dof, alpha {MOVED_ALPHA:g}) of the difference with "
         "the map covariance plus the placement tolerance. Missing: not read although in the "
         f"front camera's view with the code spanning at least {MIN_READABLE_SIDE_PX:.0f} px "
-        f"in at least {MIN_FRAMES_IN_VIEW} poses; not surveyed otherwise.",
+        f"in at least {MIN_FRAMES_IN_VIEW} poses (from in front of the label, within "
+        f"{MAX_READ_OBLIQUITY_DEG:.0f} deg of its normal, where the manifest gives its "
+        "face_yaw_deg); not surveyed otherwise.",
         "",
     ]
     for note in result.notes:
