@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import gtsam
@@ -23,6 +24,7 @@ from fusion.estimate.asbuilt import (
     FloorCodeEstimate,
     FloorCodeMap,
     Placement,
+    apply_prior_map,
     common_shift_covs,
     read_floor_code_rows,
     read_floor_codes_csv,
@@ -328,6 +330,7 @@ def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
     b = _fake_floor_run(tmp_path / "b", world, {"0/1/2": ((1.0, 2.0), 0.03), **others}, 0.004)
     merged = run_merge([a, b], tmp_path / "map")
     byid = {c.code_id: c for c in merged.floor_codes}
+
     # relative to the others (the floor's common shift is the priors' to fix): between the runs
     def off(cid):
         return byid[cid].xy_yaw[0] - float(cid.split("/")[1])
@@ -423,6 +426,62 @@ def test_map_merge_counts_the_prior_and_common_shift_once(tmp_path):
     assert len(merged_z2) > 30
     assert 2.0 < np.mean(merged_z2) < 4.2, np.mean(merged_z2)  # 3.3
     assert np.mean(independent_z2) > 4.6, np.mean(independent_z2)  # 5.2: the test can fail
+
+
+def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path):
+    """Four flights of a floor merged into a map; a fifth flight solved with the map as its
+    codes' prior.  The map's codes share its common shift (only world.yaml's priors fix it):
+    taken as independent priors, the fifth flight's codes were surer than they are (3-dof NEES
+    12.8 on six floors; a rendered fifth flight's smoother read pose NEES 62); with the shift as
+    one variable D, 4.0 (the map's per-axis sigma: its x-yaw correlations are not in the CSV)."""
+    sigma_m, sigma_deg = 0.01, 1.0
+    placement = Placement(sigma_m, math.radians(sigma_deg))
+    world = World(placement_sigma_m=sigma_m, placement_sigma_deg=sigma_deg)
+    z2: dict[bool, list[float]] = {True: [], False: []}
+    for floor in range(6):
+
+        def offsets(ids, floor=floor):
+            rng = np.random.default_rng([floor, 11])
+            return np.c_[rng.normal(0, sigma_m, (len(ids), 2)), rng.normal(0, placement.sigma_rad, len(ids))]
+
+        dirs = []
+        for flight in range(4):
+            frame_t, imu, raw, ab, ids, true = _flight(
+                1000 + 10 * floor + flight, 20.0, offsets, placement, True
+            )
+            res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
+            dirs.append(tmp_path / f"{floor}-{flight}")
+            dirs[-1].mkdir()
+            write_floor_codes_csv(dirs[-1] / "floor_codes_smoother.csv", res.floor_codes)
+        map_dir = tmp_path / f"map{floor}"
+        map_dir.mkdir()
+        floorcodes.write_merged_floor_codes(
+            map_dir, floorcodes.merge_floor_codes(dirs, "smoother", world)[0], 1.0
+        )
+        world.save(map_dir / "world.yaml")
+        prior = floorcodes.read_floor_map(map_dir, world.to_yaml())
+        assert prior.shift is not None and len(prior.shared) == len(prior.codes)
+        frame_t, imu, raw, ab, ids, true = _flight(1000 + 10 * floor + 9, 20.0, offsets, placement, True)
+        truth = {cid: np.array([*map(float, cid.split("/")[1:]), 0.0]) + o for cid, o in zip(ids, true)}
+        for once in (True, False):
+            used = prior if once else replace(prior, shift=None)
+            codes, shift_cov, n_map = apply_prior_map(ab.codes, used)
+            assert n_map > 5 and (shift_cov is not None) == once
+            res = smooth(
+                frame_t,
+                imu,
+                raw,
+                [],
+                config=FusionConfig(),
+                as_built=replace(ab, codes=codes, shift_cov=shift_cov),
+            )
+            for c in res.floor_codes.codes:
+                if c.n_obs >= 10 and c.code_id in prior.codes:
+                    e = np.r_[c.p_world[:2], c.yaw_rad] - truth[c.code_id]
+                    z2[once].append(float(e @ np.linalg.solve(c.cov_xy_yaw, e)))
+    assert len(z2[True]) > 30
+    assert 1.5 < np.mean(z2[True]) < 5.5, np.mean(z2[True])  # 4.0 (the map's per-axis sigma)
+    assert np.mean(z2[False]) > 2 * np.mean(z2[True]), (np.mean(z2[False]), np.mean(z2[True]))  # 12.8
 
 
 def _window_posterior(m, t, q, r, rng):

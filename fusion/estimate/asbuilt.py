@@ -40,7 +40,7 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import F
+from gtsam.symbol_shorthand import D, F
 
 from fusion.camera import CameraModel
 from fusion.conventions import FloorPayload, floor_payload, parse_payload
@@ -88,6 +88,13 @@ FLOOR_Z_SIGMA_M = 1e-4
 """Prior sigma of a floor code's height (it lies on the floor, z = 0)."""
 FLOOR_TILT_SIGMA_RAD = 1e-4
 """Prior sigma of a floor code's roll and pitch (flat floor)."""
+OWN_PART_MIN = 0.01
+"""A map code's own part of its prior variance, per axis, is at least this share of it (the
+merged map states its share of the common shift clipped to its variance)."""
+SHIFT_HELD_SIGMA = 1e-5
+"""Sigma (rad, m) of the map shift's tilt and height: a floor shift is planar."""
+SHIFT_KEY = D(0)
+"""The variable of a merged map's common shift (AsBuiltInput.shift_cov), a Pose3."""
 ZERO_SIGMA_FLOOR = 1e-6
 """A placement sigma of 0 next to a non-zero one (m or rad): the 0 axis is held this tightly."""
 MISPLACED_SIGMAS = 3.0
@@ -182,6 +189,9 @@ class CodePrior:
     T_world_prior: np.ndarray  # (4, 4)
     cov_prior: np.ndarray  # (6, 6)
     from_map: bool = False
+    # (6, 6): the prior's own part when the code's map shares a common shift (AsBuiltInput.
+    # shift_cov): its prior then hangs from that shift's variable (add_factors)
+    cov_own: np.ndarray | None = None
 
 
 @dataclass
@@ -206,6 +216,9 @@ class AsBuiltInput:
     sightings: CodeSightings
     placement: Placement
     notes: list[str] = field(default_factory=list)
+    # (6, 6) Pose3 covariance (world frame, at the identity) of the map's common shift D, which
+    # every code with a cov_own shares (map_shift_cov); None: the priors are independent
+    shift_cov: np.ndarray | None = None
 
 
 @dataclass
@@ -214,6 +227,11 @@ class PriorMap:
 
     codes: dict[str, tuple[np.ndarray, np.ndarray]]
     source: str = ""
+    # each code's share of the map's common shift (3, 3), and the shift itself (centroid (2,),
+    # Cov(delta) (3, 3), common_shift): a merged map's codes are not independent; None for a map
+    # written without the shared columns
+    shared: dict[str, np.ndarray] = field(default_factory=dict)
+    shift: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def code_id(payload: FloorPayload) -> str:
@@ -276,8 +294,6 @@ def build_input(
     t_s, payloads, T_code_body, cov_s = sightings_from_frames(floor_frames, camera, corner_sigma_px)
     index: dict[str, int] = {}
     codes: list[CodePrior] = []
-    notes: list[str] = []
-    n_map = 0
     base_cov = code_prior_cov(placement.sigma_m, placement.sigma_rad)
     for payload in payloads:
         cid = code_id(payload)
@@ -285,21 +301,68 @@ def build_input(
             continue
         index[cid] = len(codes)
         T_nom = make_T(np.eye(3), world.floor_code_position(payload))
-        T_prior, cov, from_map = T_nom, base_cov, False
-        if prior_map is not None and cid in prior_map.codes:
-            xyyaw, c3 = prior_map.codes[cid]
-            T_prior = make_T(rot_z(float(xyyaw[2])), np.array([xyyaw[0], xyyaw[1], T_nom[2, 3]]))
-            cov, from_map = xy_yaw_cov_to_pose_cov(T_prior, c3), True
-            n_map += 1
-        codes.append(CodePrior(cid, T_nom, T_prior, cov, from_map))
+        codes.append(CodePrior(cid, T_nom, T_nom, base_cov))
+    notes: list[str] = []
+    shift_cov = None
     if prior_map is not None:
+        codes, shift_cov, n_map = apply_prior_map(codes, prior_map)
         notes.append(
             f"floor-code prior: {n_map} of {len(codes)} codes seen from the map {prior_map.source}, "
             "the others from their payloads"
         )
     code = np.array([index[code_id(p)] for p in payloads], dtype=np.int64)
     sightings = CodeSightings(t_s, code, T_code_body, cov_s)
-    return AsBuiltInput(codes, sightings, placement, notes)
+    return AsBuiltInput(codes, sightings, placement, notes, shift_cov)
+
+
+def apply_prior_map(
+    codes: list[CodePrior], prior_map: PriorMap
+) -> tuple[list[CodePrior], np.ndarray | None, int]:
+    """The codes' priors with a merged map's where it has them: (codes, shift_cov, how many from
+    the map).  A map that states each code's share of its common shift (PriorMap.shift) gives
+    its codes the rest as their own part (cov_own) and the shift once (shift_cov, map_shift_cov),
+    so that the flight takes the map's common shift once, not once per code: with a four-flight
+    map of 34 codes taken as independent priors, a fifth flight's smoother read pose NEES 62
+    (BENCHMARKS.md, twenty-first session)."""
+    out: list[CodePrior] = []
+    n_map = 0
+    for c in codes:
+        if c.code_id not in prior_map.codes:
+            out.append(c)
+            continue
+        xyyaw, c3 = prior_map.codes[c.code_id]
+        T_prior = make_T(rot_z(float(xyyaw[2])), np.array([xyyaw[0], xyyaw[1], c.T_world_nominal[2, 3]]))
+        cov_own = None
+        if prior_map.shift is not None and c.code_id in prior_map.shared:
+            p, g = np.diag(c3), np.diag(prior_map.shared[c.code_id])
+            cov_own = xy_yaw_cov_to_pose_cov(T_prior, np.diag(np.maximum(p - g, OWN_PART_MIN * p)))
+        out.append(
+            CodePrior(
+                c.code_id, c.T_world_nominal, T_prior, xy_yaw_cov_to_pose_cov(T_prior, c3), True, cov_own
+            )
+        )
+        n_map += 1
+    shift = prior_map.shift
+    shift_cov = (
+        map_shift_cov(*shift) if shift is not None and any(c.cov_own is not None for c in out) else None
+    )
+    return out, shift_cov, n_map
+
+
+def map_shift_cov(centroid: np.ndarray, cov_delta: np.ndarray) -> np.ndarray:
+    """(6, 6) Pose3 covariance (rotation first; world frame at the identity) of a rigid motion D
+    of the floor that turns by theta about `centroid` and shifts by (t_x, t_y), delta = (t_x,
+    t_y, theta) ~ N(0, cov_delta) (common_shift): D = Exp(M delta), its translation t +
+    (I - R) c ~ (t_x + theta c_y, t_y - theta c_x) to first order; tilt and height held
+    (SHIFT_HELD_SIGMA)."""
+    cx, cy = float(centroid[0]), float(centroid[1])
+    M = np.zeros((6, 3))
+    M[2, 2] = 1.0
+    M[3, 0], M[3, 2] = 1.0, cy
+    M[4, 1], M[4, 2] = 1.0, -cx
+    C = M @ np.asarray(cov_delta, float) @ M.T
+    C[[0, 1, 5], [0, 1, 5]] += SHIFT_HELD_SIGMA**2
+    return 0.5 * (C + C.T)
 
 
 # =========================================================================== smoother hook
@@ -336,14 +399,35 @@ def add_factors(pb, as_built: AsBuiltInput, frame_t: np.ndarray, fix_frames, con
             out.n_obs.append(0)
             prior = as_built.codes[c]
             v = var_of[c]
-            pb.add(
-                gtsam.PriorFactorPose3(
-                    F(v),
-                    gtsam.Pose3(prior.T_world_prior),
-                    gtsam.noiseModel.Gaussian.Covariance(prior.cov_prior),
-                ),
-                k,
-            )
+            if prior.cov_own is not None and as_built.shift_cov is not None:
+                # a merged map's code: its own part about the map's common shift D, which all of
+                # them share (one prior on D), not the whole map sigma each as if independent
+                if not pb.initial.exists(SHIFT_KEY):
+                    pb.add(
+                        gtsam.PriorFactorPose3(
+                            SHIFT_KEY, gtsam.Pose3(), gtsam.noiseModel.Gaussian.Covariance(as_built.shift_cov)
+                        ),
+                        k,
+                    )
+                    pb.initial.insert(SHIFT_KEY, gtsam.Pose3())
+                pb.add(
+                    gtsam.BetweenFactorPose3(
+                        SHIFT_KEY,
+                        F(v),
+                        gtsam.Pose3(prior.T_world_prior),
+                        gtsam.noiseModel.Gaussian.Covariance(prior.cov_own),
+                    ),
+                    k,
+                )
+            else:
+                pb.add(
+                    gtsam.PriorFactorPose3(
+                        F(v),
+                        gtsam.Pose3(prior.T_world_prior),
+                        gtsam.noiseModel.Gaussian.Covariance(prior.cov_prior),
+                    ),
+                    k,
+                )
             pb.initial.insert(F(v), gtsam.Pose3(prior.T_world_prior))
         v = var_of[c]
         out.n_obs[v] += 1
@@ -404,6 +488,8 @@ def approximate_marginals(
     f_chr = ord("f")
     cond = gtsam.GaussianFactorGraph()
     prior_info = np.zeros((n_codes, 6, 6))
+    shift_info = np.zeros((6, 6))  # a merged map's common shift D (add_factors)
+    on_shift: set[int] = set()  # the codes whose prior hangs from D
     sight: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (code, frame, A_F, A_X)
     for i in range(lin.size()):
         f = lin.at(i)
@@ -411,6 +497,16 @@ def approximate_marginals(
             continue
         keys = list(f.keys())
         is_f = [gtsam.Symbol(k).chr() == f_chr for k in keys]
+        if SHIFT_KEY in keys:  # a merged map's shift: its prior, or a code's own part about it
+            A, b = f.jacobian()
+            if any(is_f):
+                jf = is_f.index(True)
+                A_F = A[:, 6 * jf : 6 * jf + 6]
+                prior_info[gtsam.Symbol(keys[jf]).index()] += A_F.T @ A_F
+                on_shift.add(gtsam.Symbol(keys[jf]).index())
+            else:
+                shift_info += A.T @ A
+            continue
         if not any(is_f):
             cond.push_back(f)
             continue
@@ -435,7 +531,13 @@ def approximate_marginals(
         AX = np.stack([t[3] for t in sight])
         eff = np.eye(AX.shape[1])[None] + AX @ S[ks] @ AX.transpose(0, 2, 1)
         np.add.at(info, cs, AF.transpose(0, 2, 1) @ np.linalg.solve(eff, AF))
-    ccov = np.linalg.inv(info) + _gauge_terms(values, prior_info)
+    gauge = _gauge_terms(values, prior_info)
+    if on_shift:  # the map's codes share its shift D: F = D T_prior, so Ad(F^-1) Cov(D) Ad(F^-1)^T
+        shift_cov = np.linalg.inv(shift_info)
+        for c in on_shift:
+            Ad = adjoint(inv_T(values.atPose3(F(c)).matrix()))
+            gauge[c] = Ad @ shift_cov @ Ad.T
+    ccov = np.linalg.inv(info) + gauge
     cov = S.copy()
     if sight:
         best: dict[int, int] = {}

@@ -38,11 +38,11 @@ from fusion.estimate.asbuilt import (
     PriorMap,
     build_input,
     code_prior_cov,
+    common_shift,
     common_shift_covs,
     groundtruth_errors,
     pose_cov_to_xy_yaw_cov,
     read_floor_code_rows,
-    read_floor_codes_csv,
     read_groundtruth_csv,
     shared_cells,
     shift_jacobians,
@@ -88,10 +88,21 @@ def read_floor_map(map_dir: Path, world_yaml: dict) -> PriorMap:
             "refusing to use it as this flight's floor-code prior"
         )
     try:
-        codes = read_floor_codes_csv(csv_path)
+        rows = read_floor_code_rows(csv_path)
     except AsBuiltError as e:
         raise WarehouseError(str(e)) from None
-    return PriorMap({cid: (xyyaw, cov) for cid, (xyyaw, cov, _) in codes.items()}, str(map_dir))
+    prior = PriorMap({cid: (r.xy_yaw, r.cov) for cid, r in rows.items()}, str(map_dir))
+    # the codes' common shift (merge_floor_codes: the merged floor's, fixed by world.yaml's
+    # priors of all its codes), so that a flight takes it once, not once per code
+    if rows and all(
+        r.prior_xy_yaw is not None and r.prior_cov is not None and r.shared_cov is not None
+        for r in rows.values()
+    ):
+        xy = np.array([r.prior_xy_yaw[:2] for r in rows.values() if r.prior_xy_yaw is not None])
+        Q = np.array([r.prior_cov for r in rows.values() if r.prior_cov is not None])
+        prior.shift = common_shift(xy, Q)
+        prior.shared = {cid: r.shared_cov for cid, r in rows.items() if r.shared_cov is not None}
+    return prior
 
 
 def as_built_input(
