@@ -376,6 +376,31 @@ def _independent_fusion(rows):
     return P @ sum(np.linalg.inv(r.cov) @ r.xy_yaw for r in rows), P
 
 
+def _floor_offsets(seed, placement: Placement):
+    """A floor's placement errors: the same for every flight over it (drawn from `seed`)."""
+
+    def offsets(ids):
+        rng = np.random.default_rng(seed)
+        return np.c_[
+            rng.normal(0, placement.sigma_m, (len(ids), 2)), rng.normal(0, placement.sigma_rad, len(ids))
+        ]
+
+    return offsets
+
+
+def _surveys(root: Path, seeds, offsets, placement: Placement):
+    """20 s flights over one floor, each solved by the batch smoother with the as-built codes and
+    its floor_codes_smoother.csv written to root/<seed>: (folders, ids, true offsets)."""
+    dirs = []
+    for seed in seeds:
+        frame_t, imu, raw, ab, ids, true = _flight(seed, 20.0, offsets, placement, True)
+        res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
+        dirs.append(root / str(seed))
+        dirs[-1].mkdir(parents=True)
+        write_floor_codes_csv(dirs[-1] / "floor_codes_smoother.csv", res.floor_codes)
+    return dirs, ids, true
+
+
 def test_map_merge_counts_the_prior_and_common_shift_once(tmp_path):
     """Eight flights over each of four floors (each floor's placement errors the same for its
     flights) merged: the 3-dof NEES against the true placement of the codes seen in three or
@@ -387,18 +412,10 @@ def test_map_merge_counts_the_prior_and_common_shift_once(tmp_path):
     world = World(placement_sigma_m=sigma_m, placement_sigma_deg=sigma_deg)
     merged_z2, independent_z2 = [], []
     for floor in range(4):
-
-        def offsets(ids, floor=floor):
-            rng = np.random.default_rng([floor, 7])
-            return np.c_[rng.normal(0, sigma_m, (len(ids), 2)), rng.normal(0, placement.sigma_rad, len(ids))]
-
-        dirs = []
-        for flight in range(8):
-            frame_t, imu, raw, ab, ids, true = _flight(100 * floor + flight, 20.0, offsets, placement, True)
-            res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
-            dirs.append(tmp_path / f"{floor}-{flight}")
-            dirs[-1].mkdir()
-            write_floor_codes_csv(dirs[-1] / "floor_codes_smoother.csv", res.floor_codes)
+        offsets = _floor_offsets([floor, 7], placement)
+        dirs, ids, true = _surveys(
+            tmp_path / str(floor), [100 * floor + f for f in range(8)], offsets, placement
+        )
         truth = {cid: np.array([*map(float, cid.split("/")[1:]), 0.0]) + o for cid, o in zip(ids, true)}
         rows: dict[str, list] = {}
         for d in dirs:
@@ -439,20 +456,10 @@ def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path):
     world = World(placement_sigma_m=sigma_m, placement_sigma_deg=sigma_deg)
     z2: dict[bool, list[float]] = {True: [], False: []}
     for floor in range(6):
-
-        def offsets(ids, floor=floor):
-            rng = np.random.default_rng([floor, 11])
-            return np.c_[rng.normal(0, sigma_m, (len(ids), 2)), rng.normal(0, placement.sigma_rad, len(ids))]
-
-        dirs = []
-        for flight in range(4):
-            frame_t, imu, raw, ab, ids, true = _flight(
-                1000 + 10 * floor + flight, 20.0, offsets, placement, True
-            )
-            res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=ab)
-            dirs.append(tmp_path / f"{floor}-{flight}")
-            dirs[-1].mkdir()
-            write_floor_codes_csv(dirs[-1] / "floor_codes_smoother.csv", res.floor_codes)
+        offsets = _floor_offsets([floor, 11], placement)
+        dirs, _, _ = _surveys(
+            tmp_path / str(floor), [1000 + 10 * floor + f for f in range(4)], offsets, placement
+        )
         map_dir = tmp_path / f"map{floor}"
         map_dir.mkdir()
         floorcodes.write_merged_floor_codes(
