@@ -17,7 +17,7 @@ import pytest
 from fusion import pipeline
 from fusion.conventions import floor_payload
 from fusion.errors import WarehouseError, WorldError
-from fusion.estimate import FusionConfig, smooth
+from fusion.estimate import FusionConfig, asbuilt, smooth
 from fusion.estimate.asbuilt import (
     AsBuiltError,
     F,
@@ -445,16 +445,19 @@ def test_map_merge_counts_the_prior_and_common_shift_once(tmp_path):
     assert np.mean(independent_z2) > 4.6, np.mean(independent_z2)  # 5.2: the test can fail
 
 
-def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path):
+def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path, monkeypatch):
     """Four flights of a floor merged into a map; a fifth flight solved with the map as its
     codes' prior.  The map's codes share its common shift (only world.yaml's priors fix it):
     taken as independent priors, the fifth flight's codes were surer than they are (3-dof NEES
     12.8 on six floors; a rendered fifth flight's smoother read pose NEES 62); with the shift as
-    one variable D, 4.0 (the map's per-axis sigma: its x-yaw correlations are not in the CSV)."""
+    one variable D, 4.0 (the map's per-axis sigma: its x-yaw correlations are not in the CSV).
+    The approximate marginals (beyond EXACT_MARGINALS_MAX_CODES) give the map's codes their
+    share of D too: x, y, yaw sigma 0.89-1.19 of the exact ones."""
     sigma_m, sigma_deg = 0.01, 1.0
     placement = Placement(sigma_m, math.radians(sigma_deg))
     world = World(placement_sigma_m=sigma_m, placement_sigma_deg=sigma_deg)
     z2: dict[bool, list[float]] = {True: [], False: []}
+    ratio = []  # the approximate marginals' sigma over the exact ones, with the map's shift
     for floor in range(6):
         offsets = _floor_offsets([floor, 11], placement)
         dirs, _, _ = _surveys(
@@ -486,6 +489,22 @@ def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path):
                 if c.n_obs >= 10 and c.code_id in prior.codes:
                     e = np.r_[c.p_world[:2], c.yaw_rad] - truth[c.code_id]
                     z2[once].append(float(e @ np.linalg.solve(c.cov_xy_yaw, e)))
+            if once and floor < 2:  # beyond EXACT_MARGINALS_MAX_CODES: the approximate marginals
+                monkeypatch.setattr(asbuilt, "EXACT_MARGINALS_MAX_CODES", 1)
+                approx = smooth(
+                    frame_t,
+                    imu,
+                    raw,
+                    [],
+                    config=FusionConfig(),
+                    as_built=replace(ab, codes=codes, shift_cov=shift_cov),
+                )
+                monkeypatch.undo()
+                exact = res.floor_codes.by_id()
+                for c in approx.floor_codes.codes:
+                    if c.n_obs >= 10 and c.code_id in prior.codes:
+                        ratio.append(np.sqrt(np.diag(c.cov_xy_yaw) / np.diag(exact[c.code_id].cov_xy_yaw)))
+    assert len(ratio) > 10 and 0.8 < np.min(ratio) and np.max(ratio) < 1.25, np.array(ratio)  # 0.89-1.19
     assert len(z2[True]) > 30
     assert 1.5 < np.mean(z2[True]) < 5.5, np.mean(z2[True])  # 4.0 (the map's per-axis sigma)
     assert np.mean(z2[False]) > 2 * np.mean(z2[True]), (np.mean(z2[False]), np.mean(z2[True]))  # 12.8
