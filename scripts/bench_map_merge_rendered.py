@@ -8,8 +8,8 @@ against the simulator's ground truth, by the number of flights behind each estim
 
 - floor codes (x, y, yaw; codes seen in at least --min-obs frames by every run that saw them):
   each run's own floor_codes_smoother.csv; the merge (`merge_floor_codes` on the runs, with its
-  full covariances, and floor_codes_merged.csv, which holds their diagonal: what
-  `fusion run --map` reads); and the independent per-code information fusion that
+  full covariances, and floor_codes_merged.csv: what `fusion run --map` reads, its sigma and,
+  since 2026-12-05, their correlations); and the independent per-code information fusion that
   `fusion map merge` used before 2026-12-05 (for comparison);
 - loads (x, y, z): each run's loads_smoother.json, the merged map.json, and the independent
   fusion of the runs' covariances;
@@ -149,7 +149,7 @@ def main() -> None:
             if r.n_obs >= args.min_obs:
                 rows[cid].append(r)
                 own.append(z2(r.xy_yaw, r.cov, codes[cid], angle=2))
-    # the merge's full covariances (floor_codes_merged.csv holds their diagonal; both below)
+    # the merge's full covariances, and floor_codes_merged.csv's (its sigma and correlations)
     merged_codes, _ = merge_floor_codes(outs, "smoother", World.load(wd / "f1" / "world.yaml"))
     merged_rows = read_floor_code_rows(merged_dir / "floor_codes_merged.csv")
     m_codes: dict[int, list[float]] = collections.defaultdict(list)

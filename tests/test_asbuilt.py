@@ -31,6 +31,7 @@ from fusion.estimate.asbuilt import (
     read_groundtruth_csv,
     shift_jacobians,
     write_floor_codes_csv,
+    xy_yaw_cov_to_pose_cov,
 )
 from fusion.estimate.factors import X
 from fusion.estimate.marginals import chain_marginals_with_codes
@@ -181,7 +182,8 @@ def test_floor_codes_csv_escaped_round_trip(tmp_path):
     rows = list(csv.reader(path.read_text().splitlines()))
     m = rows[0].index("misplaced")
     assert rows[1][0] == "'=HYPERLINK(1)" and rows[1][m] == "1" and rows[2][m] == "0"
-    assert rows[1][m + 1 :] == [""] * 9 + ["0"]  # no prior or common shift: empty, read as None
+    # no prior or common shift: empty, read as None; shift group 0; then the correlations
+    assert rows[1][m + 1 : m + 11] == [""] * 9 + ["0"] and all(-1 <= float(v) <= 1 for v in rows[1][m + 11 :])
     back = read_floor_codes_csv(path)
     xyyaw, c3, n = back["=HYPERLINK(1)"]
     np.testing.assert_allclose(xyyaw, [0.03, 0.0, 0.01], atol=1e-6)
@@ -189,10 +191,24 @@ def test_floor_codes_csv_escaped_round_trip(tmp_path):
     np.testing.assert_allclose(np.sqrt(np.diag(c3)), [0.002, 0.003, 0.01], rtol=1e-3)
     assert read_floor_code_rows(path)["0/1/2"].shared_cov is None
     assert read_floor_code_rows(path)["0/1/2"].shift_group == 0
+    # the x-yaw / y-yaw correlation of a code off the floor's centre comes back
+    C = np.array([[4e-6, 1e-6, 2e-6], [1e-6, 9e-6, -1e-6], [2e-6, -1e-6, 4e-6]])
+    turned = FloorCodeEstimate(
+        "0/3/2", np.array([3.0, 2.0, 0.0]), make_T(np.eye(3), [3.0, 2.0, 0.0]), None, 9
+    )
+    turned.cov = xy_yaw_cov_to_pose_cov(turned.T_world_code, C)
+    write_floor_codes_csv(path, FloorCodeMap("smoother", [turned]))
+    np.testing.assert_allclose(read_floor_code_rows(path)["0/3/2"].cov, C, rtol=1e-5, atol=1e-12)
+    write_floor_codes_csv(path, FloorCodeMap("smoother", codes))
     bad = path.read_text().splitlines()
-    bad[2] = bad[2][: bad[2].rindex(",")] + ",1.5"
-    path.write_text("\n".join(bad) + "\n")
+    cells = bad[2].split(",")
+    cells[-4] = "1.5"  # shift_group
+    path.write_text("\n".join([*bad[:2], ",".join(cells)]) + "\n")
     with pytest.raises(AsBuiltError, match=r"floor_codes_smoother.csv:3: shift_group is not a whole number"):
+        read_floor_code_rows(path)
+    cells[-4], cells[-2] = "0", "1.5"  # corr_x_yaw
+    path.write_text("\n".join([*bad[:2], ",".join(cells)]) + "\n")
+    with pytest.raises(AsBuiltError, match=r"floor_codes_smoother.csv:3: corr_x_yaw is not a correlation"):
         read_floor_code_rows(path)
 
 
@@ -449,8 +465,8 @@ def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path, monkey
     """Four flights of a floor merged into a map; a fifth flight solved with the map as its
     codes' prior.  The map's codes share its common shift (only world.yaml's priors fix it):
     taken as independent priors, the fifth flight's codes were surer than they are (3-dof NEES
-    12.8 on six floors; a rendered fifth flight's smoother read pose NEES 62); with the shift as
-    one variable D, 4.0 (the map's per-axis sigma: its x-yaw correlations are not in the CSV).
+    12.4 on six floors; a rendered fifth flight's smoother read pose NEES 62); with the shift as
+    one variable D, 4.1.
     The approximate marginals (beyond EXACT_MARGINALS_MAX_CODES) give the map's codes their
     share of D too: x, y, yaw sigma 0.89-1.19 of the exact ones."""
     sigma_m, sigma_deg = 0.01, 1.0
@@ -506,8 +522,8 @@ def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path, monkey
                         ratio.append(np.sqrt(np.diag(c.cov_xy_yaw) / np.diag(exact[c.code_id].cov_xy_yaw)))
     assert len(ratio) > 10 and 0.8 < np.min(ratio) and np.max(ratio) < 1.25, np.array(ratio)  # 0.89-1.19
     assert len(z2[True]) > 30
-    assert 1.5 < np.mean(z2[True]) < 5.5, np.mean(z2[True])  # 4.0 (the map's per-axis sigma)
-    assert np.mean(z2[False]) > 2 * np.mean(z2[True]), (np.mean(z2[False]), np.mean(z2[True]))  # 12.8
+    assert 1.5 < np.mean(z2[True]) < 5.5, np.mean(z2[True])  # 4.1
+    assert np.mean(z2[False]) > 2 * np.mean(z2[True]), (np.mean(z2[False]), np.mean(z2[True]))  # 12.4
 
 
 def _window_posterior(m, t, q, r, rng):

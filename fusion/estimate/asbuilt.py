@@ -70,6 +70,7 @@ __all__ = [
     "code_prior_cov",
     "common_shift",
     "common_shift_covs",
+    "correlation_cells",
     "floor_code_estimates",
     "merge_window_maps",
     "shared_cells",
@@ -80,6 +81,7 @@ __all__ = [
     "sightings_from_frames",
     "write_floor_codes_csv",
     "write_groundtruth_csv",
+    "xy_yaw_cov_to_pose_cov",
 ]
 
 log = logging.getLogger(__name__)
@@ -89,8 +91,7 @@ FLOOR_Z_SIGMA_M = 1e-4
 FLOOR_TILT_SIGMA_RAD = 1e-4
 """Prior sigma of a floor code's roll and pitch (flat floor)."""
 OWN_PART_MIN = 0.01
-"""A map code's own part of its prior variance, per axis, is at least this share of it (the
-merged map states its share of the common shift clipped to its variance)."""
+"""A map code's own part of its prior covariance is at least this share of it (own_part)."""
 SHIFT_HELD_SIGMA = 1e-5
 """Sigma (rad, m) of the map shift's tilt and height: a floor shift is planar."""
 SHIFT_KEY = D(0)
@@ -121,6 +122,9 @@ SHARED_COLUMNS = [
 payload with world.yaml's placement sigma, or `--map`'s) and the floor's common shift, which only
 the priors fix (module docstring, "Gauge"); `fusion map merge` counts both once
 (fusion.warehouse.floorcodes.merge_floor_codes).  Empty in files written before them."""
+CORRELATION_COLUMNS = ["corr_x_y", "corr_x_yaw", "corr_y_yaw"]
+"""The x-y, x-yaw and y-yaw correlation coefficients of a code's estimate: the floor's common
+rotation moves x and y with yaw by the code's lever arm, which per-axis sigma alone drop."""
 FLOOR_CODE_COLUMNS = [
     "id",
     "nominal_x_m",
@@ -140,9 +144,12 @@ FLOOR_CODE_COLUMNS = [
     "misplaced",
     *SHARED_COLUMNS,
     "shift_group",
+    *CORRELATION_COLUMNS,
 ]
 """`shift_group`: the codes of one file with the same number carry the same common shift (one
-solve's: a long flight's window, merge_window_maps); empty or absent: 0, one solve."""
+solve's: a long flight's window, merge_window_maps); empty or absent: 0, one solve.
+CORRELATION_COLUMNS: the correlation coefficients of x, y, yaw (with the sigma columns, the full
+3 x 3 covariance; empty or absent: 0)."""
 GROUNDTRUTH_COLUMNS = ["id", "x_m", "y_m", "yaw_deg"]
 
 
@@ -334,8 +341,7 @@ def apply_prior_map(
         T_prior = make_T(rot_z(float(xyyaw[2])), np.array([xyyaw[0], xyyaw[1], c.T_world_nominal[2, 3]]))
         cov_own = None
         if prior_map.shift is not None and c.code_id in prior_map.shared:
-            p, g = np.diag(c3), np.diag(prior_map.shared[c.code_id])
-            cov_own = xy_yaw_cov_to_pose_cov(T_prior, np.diag(np.maximum(p - g, OWN_PART_MIN * p)))
+            cov_own = xy_yaw_cov_to_pose_cov(T_prior, own_part(c3, prior_map.shared[c.code_id]))
         out.append(
             CodePrior(
                 c.code_id, c.T_world_nominal, T_prior, xy_yaw_cov_to_pose_cov(T_prior, c3), True, cov_own
@@ -347,6 +353,17 @@ def apply_prior_map(
         map_shift_cov(*shift) if shift is not None and any(c.cov_own is not None for c in out) else None
     )
     return out, shift_cov, n_map
+
+
+def own_part(cov: np.ndarray, shared: np.ndarray) -> np.ndarray:
+    """cov - shared, kept at least OWN_PART_MIN of cov along cov's whitened eigenvectors (a map
+    clips a code's shared part to its variance, and rounds both)."""
+    L = np.linalg.cholesky(cov)
+    Li = np.linalg.inv(L)
+    lam, V = np.linalg.eigh(Li @ (cov - shared) @ Li.T)
+    M = L @ V
+    out = (M * np.maximum(lam, OWN_PART_MIN)) @ M.T
+    return 0.5 * (out + out.T)
 
 
 def map_shift_cov(centroid: np.ndarray, cov_delta: np.ndarray) -> np.ndarray:
@@ -815,6 +832,7 @@ def write_floor_codes_csv(path: Path, fmap: FloorCodeMap) -> None:
                     int(c.misplaced),
                     *shared_cells(c.prior_xy_yaw, c.prior_cov_xy_yaw, c.shared_cov_xy_yaw),
                     c.shift_group,
+                    *correlation_cells(C),
                 ]
             )
 
@@ -825,6 +843,17 @@ def _sigmas_cells(cov: np.ndarray | None) -> list[str]:
         return ["", "", ""]
     sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     return [_f(sig[0]), _f(sig[1]), _f(math.degrees(sig[2]))]
+
+
+def correlation_cells(cov: np.ndarray | None) -> list[str]:
+    """The CORRELATION_COLUMNS cells of an (x, y, yaw) covariance; empty for None."""
+    if cov is None:
+        return ["", "", ""]
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    if not np.all(sig > 0):
+        return ["", "", ""]
+    r = cov / np.outer(sig, sig)
+    return [_f(float(np.clip(r[i, j], -1.0, 1.0))) for i, j in ((0, 1), (0, 2), (1, 2))]
 
 
 def shared_cells(
@@ -875,6 +904,26 @@ def _sigmas_cov(
     return np.diag(sig**2)
 
 
+def _with_correlations(cov: np.ndarray, row: dict, path: Path, line: int) -> np.ndarray:
+    """A diagonal (x, y, yaw) covariance with the row's CORRELATION_COLUMNS (those empty or absent:
+    0); AsBuiltError naming the file and line for a coefficient outside [-1, 1] or a matrix that
+    is not a covariance."""
+    if not any(row.get(c) for c in CORRELATION_COLUMNS):
+        return cov
+    r = np.eye(3)
+    for (i, j), col in zip(((0, 1), (0, 2), (1, 2)), CORRELATION_COLUMNS):
+        if row.get(col):
+            v = _num(row, col, path, line)
+            if not -1.0 <= v <= 1.0:
+                raise AsBuiltError(f"{path}:{line}: {col} is not a correlation in [-1, 1]: {v:g}")
+            r[i, j] = r[j, i] = v
+    sig = np.sqrt(np.diag(cov))
+    out = r * np.outer(sig, sig)
+    if np.linalg.eigvalsh(r)[0] < -1e-9:
+        raise AsBuiltError(f"{path}:{line}: the correlations do not make a covariance")
+    return out
+
+
 def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
     """{id: FloorCodeRow} from a floor_codes CSV (ours or a merged map's).  AsBuiltError naming
     the file and line."""
@@ -894,7 +943,9 @@ def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
             raise AsBuiltError(f"{path}:{line}: floor code {cid!r} listed twice")
         r = FloorCodeRow(
             _xy_yaw(row, ("x_m", "y_m", "yaw_deg"), path, line),
-            _sigmas_cov(row, ("sigma_x_m", "sigma_y_m", "sigma_yaw_deg"), path, line),
+            _with_correlations(
+                _sigmas_cov(row, ("sigma_x_m", "sigma_y_m", "sigma_yaw_deg"), path, line), row, path, line
+            ),
             int(_num(row, "n_obs", path, line)),
         )
         if row.get("prior_x_m"):

@@ -40,6 +40,7 @@ from fusion.estimate.asbuilt import (
     code_prior_cov,
     common_shift,
     common_shift_covs,
+    correlation_cells,
     groundtruth_errors,
     pose_cov_to_xy_yaw_cov,
     read_floor_code_rows,
@@ -101,7 +102,8 @@ def read_floor_map(map_dir: Path, world_yaml: dict) -> PriorMap:
         xy = np.array([r.prior_xy_yaw[:2] for r in rows.values() if r.prior_xy_yaw is not None])
         Q = np.array([r.prior_cov for r in rows.values() if r.prior_cov is not None])
         prior.shift = common_shift(xy, Q)
-        prior.shared = {cid: r.shared_cov for cid, r in rows.items() if r.shared_cov is not None}
+        # each code's share, J_c Cov(delta) J_c^T in full (the file states its diagonal)
+        prior.shared = dict(zip(rows, common_shift_covs(xy, Q)))
     return prior
 
 
@@ -430,6 +432,7 @@ def write_merged_floor_codes(out_dir: Path, codes: list[MergedFloorCode], payloa
                     0,
                     *shared_cells(c.prior_xy_yaw, c.prior_cov, c.shared_cov),
                     0,
+                    *correlation_cells(c.cov),
                     c.n_runs,
                 ]
             )
