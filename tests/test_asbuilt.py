@@ -24,7 +24,9 @@ from fusion.estimate.asbuilt import (
     FloorCodeEstimate,
     FloorCodeMap,
     Placement,
+    PriorMap,
     apply_prior_map,
+    common_shift,
     common_shift_covs,
     read_floor_code_rows,
     read_floor_codes_csv,
@@ -108,6 +110,45 @@ def test_misplaced_code_recovered_and_flagged():
         return math.sqrt(np.mean(np.sum((traj.positions_xyz - T_true[:, :3, 3]) ** 2, axis=1)))
 
     assert rmse(res.trajectory) < 0.6 * rmse(today.trajectory)
+
+
+def test_code_marginals_equal_gtsam_with_a_maps_shift():
+    """With a merged map's common shift D (a border variable on factors with no chain key), the
+    chain marginals still equal gtsam's."""
+    frame_t, imu, raw, ab, _, _ = _flight(
+        6, 4.0, lambda ids: np.random.default_rng(2).normal(0, 0.01, (len(ids), 3)), Placement()
+    )
+    xy = np.array([c.T_world_nominal[:2, 3] for c in ab.codes])
+    Q = np.array([np.diag([1e-4, 1e-4, math.radians(1.0) ** 2])] * len(xy))
+    prior = PriorMap(
+        {c.code_id: (np.r_[p, 0.0], 0.6 * q) for c, p, q in zip(ab.codes, xy, Q)},
+        "map",
+        dict(zip((c.code_id for c in ab.codes), 0.5 * common_shift_covs(xy, Q))),
+        common_shift(xy, 0.5 * Q),
+    )
+    codes, shift_cov, _ = apply_prior_map(ab.codes, prior)
+    pb = build_problem(
+        frame_t,
+        imu,
+        raw,
+        [],
+        None,
+        None,
+        FusionConfig(),
+        as_built=replace(ab, codes=codes, shift_cov=shift_cov),
+    )
+    graph = pb.graph()
+    values = levenberg_marquardt(graph, pb.initial).values
+    assert values.exists(asbuilt.SHIFT_KEY)
+    n_codes = len(pb.as_built.code_of_var)
+    cov, _, ccov = chain_marginals_with_codes(graph.linearize(values), len(frame_t), True, 0, n_codes)
+    marg = gtsam.Marginals(graph, values)
+    for c in range(n_codes):
+        ref = marg.marginalCovariance(F(c))
+        np.testing.assert_allclose(ccov[c], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    for k in range(0, len(frame_t), 11):
+        ref = marg.marginalCovariance(X(k))
+        np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
 
 
 def test_perfect_floor_flags_nothing():

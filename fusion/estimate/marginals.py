@@ -28,7 +28,7 @@ import numpy as np
 
 _CHR_SHIFT = 56
 _IDX_MASK = (1 << _CHR_SHIFT) - 1
-_X, _V, _B, _L, _F = ord("x"), ord("v"), ord("b"), ord("l"), ord("f")
+_X, _V, _B, _L, _F, _D = ord("x"), ord("v"), ord("b"), ord("l"), ord("f"), ord("d")
 _BORDER_DIMS = {_L: 3, _F: 6}  # variables outside the chain: loads (Point3), floor codes (Pose3)
 BORDER_BLOCK_FRAMES = 512
 """Frames per block of the border variables' term of the pose covariances (W Sc^-1 W^T): each
@@ -94,7 +94,14 @@ def _chain_marginals(
     if has_bias:
         slot[_B] = (9, 6)
     s = 15 if has_bias else 9
-    n, m = n_frames, 3 * n_loads + 6 * n_codes
+    # a merged map's common shift D (fusion.estimate.asbuilt.SHIFT_KEY): a border variable after
+    # the codes, on factors with no chain key (its prior, and each map code's own part about it)
+    shift_factors = [
+        i
+        for i in range(lin.size())
+        if lin.at(i) is not None and any(gtsam.Symbol(k).chr() == _D for k in lin.at(i).keys())
+    ]
+    n, m = n_frames, 3 * n_loads + 6 * n_codes + (6 if shift_factors else 0)
     D = np.zeros((n, s, s))
     E = np.zeros((max(n - 1, 0), s, s))
     Dl_full = np.zeros((m, m))
@@ -146,10 +153,29 @@ def _chain_marginals(
                             blk,
                         )
 
+    d0 = 3 * n_loads + 6 * n_codes  # D's first border column
+    for i in shift_factors:
+        f = lin.at(i)
+        if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
+            return None
+        dcols: list[int] = []
+        for k in f.keys():
+            sym = gtsam.Symbol(k)
+            if sym.chr() == _D and sym.index() == 0:
+                dcols += range(d0, d0 + 6)
+            elif sym.chr() == _F:
+                dcols += range(border_first[_F] + 6 * sym.index(), border_first[_F] + 6 * sym.index() + 6)
+            else:
+                return None  # D beside a chain variable or a load: not this structure
+        jac = f.jacobian()[0]
+        if row_weights is not None and row_weights[i] != 1.0:
+            jac = jac * float(row_weights[i])
+        Dl_full[np.ix_(dcols, dcols)] += jac.T @ jac
+    skip = set(shift_factors)
     keys_of, jac_of = [], []
     for i in range(lin.size()):
         f = lin.at(i)
-        if f is None:
+        if f is None or i in skip:
             continue
         if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
             return None
