@@ -112,6 +112,22 @@ def test_misplaced_code_recovered_and_flagged():
     assert rmse(res.trajectory) < 0.6 * rmse(today.trajectory)
 
 
+def _assert_chain_marginals_equal_gtsam(pb, n_frames: int) -> None:
+    """The problem solved; its chain marginals of the codes and of every 11th pose equal
+    gtsam.Marginals' to 1e-6."""
+    graph = pb.graph()
+    values = levenberg_marquardt(graph, pb.initial).values
+    n_codes = len(pb.as_built.code_of_var)
+    cov, _, ccov = chain_marginals_with_codes(graph.linearize(values), n_frames, True, 0, n_codes)
+    marg = gtsam.Marginals(graph, values)
+    for c in range(n_codes):
+        ref = marg.marginalCovariance(F(c))
+        np.testing.assert_allclose(ccov[c], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    for k in range(0, n_frames, 11):
+        ref = marg.marginalCovariance(X(k))
+        np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+
+
 def test_code_marginals_equal_gtsam_with_a_maps_shift():
     """With a merged map's common shift D (a border variable on factors with no chain key), the
     chain marginals still equal gtsam's."""
@@ -137,18 +153,8 @@ def test_code_marginals_equal_gtsam_with_a_maps_shift():
         FusionConfig(),
         as_built=replace(ab, codes=codes, shift_cov=shift_cov),
     )
-    graph = pb.graph()
-    values = levenberg_marquardt(graph, pb.initial).values
-    assert values.exists(asbuilt.SHIFT_KEY)
-    n_codes = len(pb.as_built.code_of_var)
-    cov, _, ccov = chain_marginals_with_codes(graph.linearize(values), len(frame_t), True, 0, n_codes)
-    marg = gtsam.Marginals(graph, values)
-    for c in range(n_codes):
-        ref = marg.marginalCovariance(F(c))
-        np.testing.assert_allclose(ccov[c], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
-    for k in range(0, len(frame_t), 11):
-        ref = marg.marginalCovariance(X(k))
-        np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    assert pb.initial.exists(asbuilt.SHIFT_KEY)
+    _assert_chain_marginals_equal_gtsam(pb, len(frame_t))
 
 
 def test_perfect_floor_flags_nothing():
@@ -168,17 +174,7 @@ def test_code_marginals_equal_gtsam(block, monkeypatch):
         5, 4.0, lambda ids: np.random.default_rng(1).normal(0, 0.01, (len(ids), 3)), Placement()
     )
     pb = build_problem(frame_t, imu, raw, [], None, None, FusionConfig(), as_built=ab)
-    graph = pb.graph()
-    values = levenberg_marquardt(graph, pb.initial).values
-    n_codes = len(pb.as_built.code_of_var)
-    cov, _, ccov = chain_marginals_with_codes(graph.linearize(values), len(frame_t), True, 0, n_codes)
-    marg = gtsam.Marginals(graph, values)
-    for c in range(n_codes):
-        ref = marg.marginalCovariance(F(c))
-        np.testing.assert_allclose(ccov[c], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
-    for k in range(0, len(frame_t), 11):
-        ref = marg.marginalCovariance(X(k))
-        np.testing.assert_allclose(cov[k], ref, rtol=1e-6, atol=1e-6 * np.abs(ref).max())
+    _assert_chain_marginals_equal_gtsam(pb, len(frame_t))
 
 
 def test_approximate_code_marginals_near_exact(monkeypatch):
@@ -534,28 +530,15 @@ def test_a_flight_over_a_merged_map_takes_its_common_shift_once(tmp_path, monkey
             used = prior if once else replace(prior, shift=None)
             codes, shift_cov, n_map = apply_prior_map(ab.codes, used)
             assert n_map > 5 and (shift_cov is not None) == once
-            res = smooth(
-                frame_t,
-                imu,
-                raw,
-                [],
-                config=FusionConfig(),
-                as_built=replace(ab, codes=codes, shift_cov=shift_cov),
-            )
+            with_map = replace(ab, codes=codes, shift_cov=shift_cov)
+            res = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=with_map)
             for c in res.floor_codes.codes:
                 if c.n_obs >= 10 and c.code_id in prior.codes:
                     e = np.r_[c.p_world[:2], c.yaw_rad] - truth[c.code_id]
                     z2[once].append(float(e @ np.linalg.solve(c.cov_xy_yaw, e)))
             if once and floor < 2:  # beyond EXACT_MARGINALS_MAX_CODES: the approximate marginals
                 monkeypatch.setattr(asbuilt, "EXACT_MARGINALS_MAX_CODES", 1)
-                approx = smooth(
-                    frame_t,
-                    imu,
-                    raw,
-                    [],
-                    config=FusionConfig(),
-                    as_built=replace(ab, codes=codes, shift_cov=shift_cov),
-                )
+                approx = smooth(frame_t, imu, raw, [], config=FusionConfig(), as_built=with_map)
                 monkeypatch.undo()
                 exact = res.floor_codes.by_id()
                 for c in approx.floor_codes.codes:
