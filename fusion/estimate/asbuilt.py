@@ -235,8 +235,8 @@ class PriorMap:
     codes: dict[str, tuple[np.ndarray, np.ndarray]]
     source: str = ""
     # each code's share of the map's common shift (3, 3), and the shift itself (centroid (2,),
-    # Cov(delta) (3, 3), common_shift): a merged map's codes are not independent; None for a map
-    # written without the shared columns
+    # Cov(delta) (3, 3), common_shift): a merged map's codes are not independent; empty / None
+    # for a map written without the prior and shared columns
     shared: dict[str, np.ndarray] = field(default_factory=dict)
     shift: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -356,8 +356,9 @@ def apply_prior_map(
 
 
 def own_part(cov: np.ndarray, shared: np.ndarray) -> np.ndarray:
-    """cov - shared, kept at least OWN_PART_MIN of cov along cov's whitened eigenvectors (a map
-    clips a code's shared part to its variance, and rounds both)."""
+    """cov - shared, kept at least OWN_PART_MIN of cov along cov's whitened eigenvectors (the
+    share of the shift that world.yaml's priors give can exceed what the map's rounded
+    covariance holds along some direction)."""
     L = np.linalg.cholesky(cov)
     Li = np.linalg.inv(L)
     lam, V = np.linalg.eigh(Li @ (cov - shared) @ Li.T)
