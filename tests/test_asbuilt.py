@@ -420,6 +420,21 @@ def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
     base = sample_runs["default"].floor_codes["smoother"].by_id()["0/1/2"]
     # pulled towards the map's +1.4 cm (sigma 5.9 mm: four codes fix its common shift)
     assert est.offset_xy_m[0] > base.offset_xy_m[0] + 0.002, (est.offset_xy_m, base.offset_xy_m)
+    assert not any("independent priors" in n for n in res.notes)
+    # a map written before the prior / shared columns: used, and the run says what that costs
+    csv_path = tmp_path / "map" / "floor_codes_merged.csv"
+    keep = ["id", "x_m", "y_m", "yaw_deg", "sigma_x_m", "sigma_y_m", "sigma_yaw_deg", "n_obs"]
+    old_rows = list(csv.DictReader(csv_path.read_text().splitlines()))
+    csv_path.write_text("\n".join([",".join(keep)] + [",".join(r[k] for k in keep) for r in old_rows]) + "\n")
+    res = pipeline.run(
+        log,
+        out,
+        pipeline.RunConfig(
+            progress=False, incremental=False, workers=1, floor_map=tmp_path / "map", force=True
+        ),
+        until="smooth",
+    )
+    assert any("taken as independent priors" in n for n in res.notes)
 
 
 def _independent_fusion(rows):

@@ -317,6 +317,12 @@ def build_input(
             f"floor-code prior: {n_map} of {len(codes)} codes seen from the map {prior_map.source}, "
             "the others from their payloads"
         )
+        if n_map and prior_map.shift is None:
+            notes.append(
+                f"the map {prior_map.source} states no prior / shared columns (written before "
+                "2026-12-05): its codes are taken as independent priors, so its common shift counts "
+                "once per code and the floor's sigma is too small; run `fusion map merge` again"
+            )
     code = np.array([index[code_id(p)] for p in payloads], dtype=np.int64)
     sightings = CodeSightings(t_s, code, T_code_body, cov_s)
     return AsBuiltInput(codes, sightings, placement, notes, shift_cov)
