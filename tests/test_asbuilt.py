@@ -407,14 +407,14 @@ def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
     out = tmp_path / "out"
     out.mkdir()
     shutil.copy(sample_runs["default"].out_dir / "detections.csv", out / "detections.csv")
-    res = pipeline.run(
-        log,
-        out,
-        pipeline.RunConfig(
+
+    def run_with_map():
+        config = pipeline.RunConfig(
             progress=False, incremental=False, workers=1, floor_map=tmp_path / "map", force=True
-        ),
-        until="smooth",
-    )
+        )
+        return pipeline.run(log, out, config, until="smooth")
+
+    res = run_with_map()
     assert any("2 of" in n and "from the map" in n for n in res.notes)
     est = res.floor_codes["smoother"].by_id()["0/1/2"]
     base = sample_runs["default"].floor_codes["smoother"].by_id()["0/1/2"]
@@ -426,14 +426,7 @@ def test_merge_fuses_floor_codes_and_run_uses_the_map(tmp_path, sample_runs):
     keep = ["id", "x_m", "y_m", "yaw_deg", "sigma_x_m", "sigma_y_m", "sigma_yaw_deg", "n_obs"]
     old_rows = list(csv.DictReader(csv_path.read_text().splitlines()))
     csv_path.write_text("\n".join([",".join(keep)] + [",".join(r[k] for k in keep) for r in old_rows]) + "\n")
-    res = pipeline.run(
-        log,
-        out,
-        pipeline.RunConfig(
-            progress=False, incremental=False, workers=1, floor_map=tmp_path / "map", force=True
-        ),
-        until="smooth",
-    )
+    res = run_with_map()
     assert any("taken as independent priors" in n for n in res.notes)
 
 

@@ -94,20 +94,14 @@ def _chain_marginals(
     if has_bias:
         slot[_B] = (9, 6)
     s = 15 if has_bias else 9
-    # a merged map's common shift D (fusion.estimate.asbuilt.SHIFT_KEY): a border variable after
-    # the codes, on factors with no chain key (its prior, and each map code's own part about it)
-    shift_factors = [
-        i
-        for i in range(lin.size())
-        if lin.at(i) is not None and any(gtsam.Symbol(k).chr() == _D for k in lin.at(i).keys())
-    ]
-    n, m = n_frames, 3 * n_loads + 6 * n_codes + (6 if shift_factors else 0)
+    n = n_frames
     D = np.zeros((n, s, s))
     E = np.zeros((max(n - 1, 0), s, s))
-    Dl_full = np.zeros((m, m))
     dims = {_X: 6, _V: 3, _B: 6, **_BORDER_DIMS}
     border_first = {_L: 0, _F: 3 * n_loads}  # first border column of each kind
-    c_rows, c_cols, c_vals = [], [], []
+    c_rows: list[np.ndarray] = []
+    c_cols: list[np.ndarray] = []
+    c_vals: list[np.ndarray] = []
 
     def flush(sig: tuple, items: list) -> None:
         """Add the Hessian blocks A^T A of factors with one key signature to D, E, C, Dl."""
@@ -153,13 +147,31 @@ def _chain_marginals(
                             blk,
                         )
 
-    d0 = 3 * n_loads + 6 * n_codes  # D's first border column
-    for i in shift_factors:
+    keys_of, jac_of = [], []
+    # a merged map's common shift D (fusion.estimate.asbuilt.SHIFT_KEY): a border variable after
+    # the codes, on factors with no chain key (its prior, and each map code's own part about it)
+    shift_of = []
+    for i in range(lin.size()):
         f = lin.at(i)
+        if f is None:
+            continue
         if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
             return None
+        jac = f.jacobian()[0]  # whitened (robust weights included)
+        if row_weights is not None and row_weights[i] != 1.0:
+            jac = jac * float(row_weights[i])
+        keys = f.keys()
+        if any(k >> _CHR_SHIFT == _D for k in keys):
+            shift_of.append((keys, jac))
+            continue
+        keys_of.append(keys)
+        jac_of.append(jac)
+    m = 3 * n_loads + 6 * n_codes + (6 if shift_of else 0)
+    Dl_full = np.zeros((m, m))
+    d0 = 3 * n_loads + 6 * n_codes  # D's first border column
+    for keys, jac in shift_of:
         dcols: list[int] = []
-        for k in f.keys():
+        for k in keys:
             sym = gtsam.Symbol(k)
             if sym.chr() == _D and sym.index() == 0:
                 dcols += range(d0, d0 + 6)
@@ -167,23 +179,7 @@ def _chain_marginals(
                 dcols += range(border_first[_F] + 6 * sym.index(), border_first[_F] + 6 * sym.index() + 6)
             else:
                 return None  # D beside a chain variable or a load: not this structure
-        jac = f.jacobian()[0]
-        if row_weights is not None and row_weights[i] != 1.0:
-            jac = jac * float(row_weights[i])
         Dl_full[np.ix_(dcols, dcols)] += jac.T @ jac
-    skip = set(shift_factors)
-    keys_of, jac_of = [], []
-    for i in range(lin.size()):
-        f = lin.at(i)
-        if f is None or i in skip:
-            continue
-        if isinstance(f, gtsam.JacobianFactor) and f.isConstrained():
-            return None
-        keys_of.append(f.keys())
-        jac = f.jacobian()[0]  # whitened (robust weights included)
-        if row_weights is not None and row_weights[i] != 1.0:
-            jac = jac * float(row_weights[i])
-        jac_of.append(jac)
     if not keys_of:
         return None
     # key signatures, vectorised: (chr, frame offset from the factor's first frame) per key

@@ -163,14 +163,10 @@ def read_load_map(out_dir: Path, estimator: str) -> LoadMap:
         raise WarehouseError(str(e)) from None
 
 
-def read_observations(path: Path) -> dict[str, np.ndarray]:
-    """Raw per-frame load observations `timestamp_ns,id,x_m,y_m,z_m,...` as {id: (n, 3) p_world};
-    {} when the file is absent (a run without a front camera)."""
-    return read_observation_rows(path)[1]
-
-
 def read_observation_rows(path: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """read_observations with each sighting's stamp: ({id: (n,) timestamp_ns}, {id: (n, 3)})."""
+    """Raw per-frame load observations `timestamp_ns,id,x_m,y_m,z_m,...` as ({id: (n,)
+    timestamp_ns}, {id: (n, 3) p_world}); ({}, {}) when the file is absent (a run without a
+    front camera)."""
     path = Path(path)
     if not path.exists():
         return {}, {}
