@@ -129,17 +129,18 @@ def main() -> None:
         )
     n = args.floors
     print(f"\nmerged map over {n} floors, chi2 per dof (1 if honest):")
+    dof = sums["dof"]
     print(
-        f"  marginal {sums['marginal'] / sums['dof']:.3f}   joint (own independent + shift) {sums['joint'] / sums['dof']:.3f}"
+        f"  marginal {sums['marginal'] / dof:.3f}   joint (own independent + shift) {sums['joint'] / dof:.3f}"
     )
-    print(
-        f"  shift {sums['shift'] / (3 * n):.3f}   own-part residual per code {sums['residual'] / sums['dof_resid']:.3f}"
-    )
+    resid = sums["residual"] / sums["dof_resid"]
+    print(f"  shift {sums['shift'] / (3 * n):.3f}   own-part residual per code {resid:.3f}")
     for name, z in (("flight with --map", np.array(with_map)), ("flight alone", np.array(alone))):
         se = z.std(0, ddof=1) / math.sqrt(n)
+        nees = z.sum(1)
         print(
-            f"{name}: code z^2 x / y / yaw {z.mean(0).round(2)} (se {se.round(2)}); 3-dof NEES {z.sum(1).mean():.2f}"
-            f" (se {z.sum(1).std(ddof=1) / math.sqrt(n):.2f})"
+            f"{name}: code z^2 x / y / yaw {z.mean(0).round(2)} (se {se.round(2)}); "
+            f"3-dof NEES {nees.mean():.2f} (se {nees.std(ddof=1) / math.sqrt(n):.2f})"
         )
 
 
