@@ -1,11 +1,21 @@
-"""Pinhole camera with radial-tangential (plumb-bob) distortion and its mount on the body.
+"""Pinhole camera with radial-tangential (plumb-bob) or equidistant (fisheye) distortion, and
+its mount on the body.
 
-Read from / written to EuRoC/Kalibr-style `sensor.yaml`.  The distortion model is OpenCV's with
-k3 = 0 (Kalibr's `radial-tangential`: [k1, k2, p1, p2]):
+Read from / written to EuRoC/Kalibr-style `sensor.yaml`.  Two distortion models, Kalibr's two for
+a pinhole camera (`distortion_model`, four coefficients each):
 
-    x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
-    y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
-    u = fu x_d + cu,   v = fv y_d + cv
+- `radial-tangential` (`radtan`, ROS's `plumb_bob`): OpenCV's with k3 = 0, [k1, k2, p1, p2]:
+
+      x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
+      y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
+
+- `equidistant` (Kalibr's `pinhole-equi`, OpenCV's `cv2.fisheye`, Kannala & Brandt 2006 with
+  four terms), [k1, k2, k3, k4], for wide-angle lenses:
+
+      theta = atan(r),  theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+      (x_d, y_d) = (theta_d / r) (x, y)
+
+and then u = fu x_d + cu,   v = fv y_d + cv  (r^2 = x^2 + y^2, x = X / Z, y = Y / Z).
 
 Rolling shutter (optional `sensor.yaml` keys, both absent for a global shutter):
 
@@ -27,6 +37,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from fusion.errors import CameraModelError
@@ -34,6 +45,16 @@ from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform, level_frame
 
 MOUNTS = ("body_fixed", "gimbaled")
+RADTAN = "radtan"
+EQUIDISTANT = "equidistant"
+DISTORTION_MODELS = {
+    "radial-tangential": RADTAN,
+    "radtan": RADTAN,
+    "plumb_bob": RADTAN,
+    "equidistant": EQUIDISTANT,
+    "equi": EQUIDISTANT,
+}
+"""The distortion models' names as sensor.yaml, Kalibr and ROS write them -> ours."""
 MAX_READOUT_S = 1.0
 """A whole-frame readout longer than this (s) is a unit mistake (line delay given in ms or us)."""
 DEFAULT_MOUNT_SIGMA_DEG = 0.1
@@ -83,7 +104,7 @@ class CameraModel:
     fv: float
     cu: float
     cv: float
-    distortion: np.ndarray = field(default_factory=lambda: np.zeros(4))  # k1, k2, p1, p2
+    distortion: np.ndarray = field(default_factory=lambda: np.zeros(4))  # radtan k1, k2, p1, p2; equi k1..k4
     T_body_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     rate_hz: float = 30.0
     mount: str = "body_fixed"
@@ -94,9 +115,16 @@ class CameraModel:
     mount_sigma_m: float | None = None
     # how well [fu, fv, cu, cv] are known, 1 sigma (px); None: not stated in sensor.yaml
     intrinsics_sigma_px: tuple[float, ...] | None = None
+    distortion_model: str = RADTAN  # RADTAN or EQUIDISTANT (module docstring)
 
     def __post_init__(self):
         self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
+        if self.distortion_model not in DISTORTION_MODELS:
+            raise CameraModelError(
+                f"unknown distortion model {self.distortion_model!r}; "
+                f"expected one of {sorted(DISTORTION_MODELS)}"
+            )
+        self.distortion_model = DISTORTION_MODELS[self.distortion_model]
         self.T_body_cam = np.asarray(self.T_body_cam, dtype=float).reshape(4, 4)
         if self.mount not in MOUNTS:
             raise CameraModelError(f"unknown camera mount {self.mount!r}; expected one of {MOUNTS}")
@@ -120,9 +148,28 @@ class CameraModel:
         return np.array([[self.fu, 0.0, self.cu], [0.0, self.fv, self.cv], [0.0, 0.0, 1.0]])
 
     @property
+    def equidistant(self) -> bool:
+        return self.distortion_model == EQUIDISTANT
+
+    @property
+    def distorted(self) -> bool:
+        """Whether pixels differ from the ideal pinhole's: any coefficient, or the equidistant
+        model at all (with k = 0 it is the f-theta lens, not a pinhole)."""
+        return self.equidistant or bool(np.any(self.distortion))
+
+    @property
     def dist_cv(self) -> np.ndarray:
-        """Distortion vector in OpenCV order (k1, k2, p1, p2, k3=0)."""
-        return np.r_[self.distortion, 0.0]
+        """Distortion vector as OpenCV takes it: (k1, k2, p1, p2, k3=0) for cv2's pinhole
+        functions, (k1, k2, k3, k4) for cv2.fisheye's (equidistant)."""
+        return self.distortion.copy() if self.equidistant else np.r_[self.distortion, 0.0]
+
+    def cv_undistort_points(self, pts: np.ndarray, P: np.ndarray | None, criteria: tuple) -> np.ndarray:
+        """OpenCV's iterative undistortion of distorted pixels `pts` (N, 1, 2) float64, for this
+        camera's distortion model (cv2.undistortPoints, or cv2.fisheye.undistortPoints for the
+        equidistant one): normalised coordinates, or pixels of camera matrix P when given."""
+        if self.equidistant:
+            return cv2.fisheye.undistortPoints(pts, self.K, self.dist_cv, P=P, criteria=criteria)
+        return cv2.undistortPoints(pts, self.K, self.dist_cv, None, None, P, criteria)
 
     @property
     def image_centre_px(self) -> np.ndarray:
@@ -191,6 +238,12 @@ class CameraModel:
     # ------------------------------------------------------------------ projection
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) ideal normalised coordinates -> distorted normalised coordinates."""
+        if self.equidistant:
+            r = np.hypot(xy[..., 0], xy[..., 1])
+            theta = np.arctan(r)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                scale = np.where(r > 1e-12, equidistant_theta_d(theta, self.distortion) / r, 1.0)
+            return xy * scale[..., None]
         k1, k2, p1, p2 = self.distortion
         x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
@@ -217,8 +270,10 @@ class CameraModel:
         1e-12 for the distortion of ordinary lenses inside the image."""
         uv = np.asarray(uv, dtype=float)
         xd = np.stack([(uv[..., 0] - self.cu) / self.fu, (uv[..., 1] - self.cv) / self.fv], axis=-1)
-        if not np.any(self.distortion):
+        if not self.distorted:
             return xd
+        if self.equidistant:
+            return _equidistant_undistort(xd, self.distortion, iterations)
         k1, k2, p1, p2 = self.distortion
         xy = xd.copy()
         for _ in range(iterations):
@@ -256,7 +311,7 @@ class CameraModel:
             "resolution": [int(self.width), int(self.height)],
             "camera_model": "pinhole",
             "intrinsics": [float(self.fu), float(self.fv), float(self.cu), float(self.cv)],
-            "distortion_model": "radial-tangential",
+            "distortion_model": "equidistant" if self.equidistant else "radial-tangential",
             "distortion_coefficients": [float(v) for v in self.distortion],
             "mount": self.mount,
             # written only for a rolling shutter, so global-shutter files stay as they were
@@ -290,8 +345,11 @@ class CameraModel:
         if model != "pinhole":
             raise CameraModelError(f"{source}: camera_model {model!r} is not supported (pinhole only)")
         dist_model = data.get("distortion_model", "radial-tangential")
-        if dist_model not in ("radial-tangential", "radtan", "plumb_bob"):
-            raise CameraModelError(f"{source}: distortion_model {dist_model!r} is not supported")
+        if dist_model not in DISTORTION_MODELS:
+            raise CameraModelError(
+                f"{source}: distortion_model {dist_model!r} is not supported "
+                f"(one of {', '.join(sorted(DISTORTION_MODELS))})"
+            )
         T = read_T_BS(need("T_BS"), source)
         res = _floats(need("resolution"), 2, "resolution", source)
         intr = _floats(need("intrinsics"), 4, "intrinsics", source)
@@ -337,6 +395,7 @@ class CameraModel:
             mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),
             mount_sigma_m=sigmas.get("T_BS_sigma_m"),
             intrinsics_sigma_px=intr_sigma,
+            distortion_model=dist_model,
         )
 
     @classmethod
@@ -345,6 +404,38 @@ class CameraModel:
 
     def save(self, path: Path, comment: str = "") -> None:
         dump_yaml(self.to_sensor_yaml(comment), path)
+
+
+def equidistant_theta_d(theta: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """The equidistant model's distorted angle theta (1 + k1 theta^2 + ... + k4 theta^8)."""
+    t2 = theta * theta
+    return theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+
+def equidistant_dtheta_d(theta: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """d theta_d / d theta: 1 + 3 k1 theta^2 + 5 k2 theta^4 + 7 k3 theta^6 + 9 k4 theta^8."""
+    t2 = theta * theta
+    return 1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])))
+
+
+def _equidistant_undistort(xd: np.ndarray, k: np.ndarray, iterations: int) -> np.ndarray:
+    """Distorted normalised coordinates -> ideal ones for the equidistant model: theta from
+    theta_d(theta) = |x_d| by Newton's method (from theta = |x_d|), then r = tan(theta) along
+    x_d's direction.  A radius the lens cannot reach (theta_d not monotonic up to it, or theta at
+    or beyond 90 degrees) gives NaN."""
+    rd = np.hypot(xd[..., 0], xd[..., 1])
+    theta = rd.copy()
+    for _ in range(iterations):
+        step = (equidistant_theta_d(theta, k) - rd) / equidistant_dtheta_d(theta, k)
+        theta = theta - step
+        if np.nanmax(np.abs(step), initial=0.0) < 1e-15:
+            break
+    bad = ~((theta >= 0.0) & (theta < 0.5 * math.pi - 1e-9)) | (equidistant_dtheta_d(theta, k) <= 0.0)
+    bad |= np.abs(equidistant_theta_d(theta, k) - rd) > 1e-9 * np.maximum(rd, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(rd > 1e-12, np.tan(theta) / rd, 1.0)
+    scale = np.where(bad, np.nan, scale)
+    return xd * scale[..., None]
 
 
 def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:

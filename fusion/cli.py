@@ -80,7 +80,14 @@ def _add_camera_effect_options(p: argparse.ArgumentParser) -> None:
         nargs=4,
         default=None,
         metavar=("K1", "K2", "P1", "P2"),
-        help="both cameras' radial-tangential coefficients",
+        help="both cameras' distortion coefficients (radial-tangential k1 k2 p1 p2; equidistant k1..k4)",
+    )
+    g.add_argument(
+        "--distortion-model",
+        choices=("radtan", "equidistant"),
+        default=None,
+        help="both cameras' distortion model (default: the scenario's, radtan); equidistant is "
+        "Kalibr's pinhole-equi (OpenCV's fisheye), for wide-angle lenses",
     )
 
 
@@ -101,6 +108,7 @@ def _camera_options(args):
         occlusion_fraction=args.occlusion,
         focal_scale=args.focal_scale,
         distortion=tuple(args.distortion) if args.distortion is not None else None,
+        distortion_model=args.distortion_model,
     )
 
 

@@ -177,7 +177,7 @@ def test_imu_yaml_both_layouts(tmp_path):
     [
         (lambda d: d["cam0"].pop("T_cam_imu"), r"cam0: missing key 'T_cam_imu'"),
         (lambda d: d["cam0"].update(camera_model="omni"), r"cam0.camera_model: 'omni'"),
-        (lambda d: d["cam0"].update(distortion_model="equidistant"), r"cam0.distortion_model"),
+        (lambda d: d["cam0"].update(distortion_model="omni"), r"cam0.distortion_model"),
         (lambda d: d["cam0"].update(intrinsics=[1, 2, 3]), r"cam0.intrinsics: expected a list of 4"),
         (lambda d: d["cam0"]["T_cam_imu"][0].__setitem__(0, 2.0), r"cam0.T_cam_imu: not a rigid"),
         (lambda d: d["cam0"].update(timeshift_cam_imu="soon"), r"timeshift_cam_imu: not a number"),

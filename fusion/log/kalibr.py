@@ -6,8 +6,8 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
     cam0:
       camera_model: pinhole            # only pinhole is supported
       intrinsics: [fu, fv, pu, pv]
-      distortion_model: radtan         # radial-tangential [k1, k2, r1, r2]
-      distortion_coeffs: [k1, k2, r1, r2]
+      distortion_model: radtan         # radial-tangential [k1, k2, r1, r2], or
+      distortion_coeffs: [k1, k2, r1, r2]  # equidistant [k1, k2, k3, k4] (pinhole-equi)
       resolution: [w, h]
       T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
       timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
@@ -44,7 +44,7 @@ from fusion.geometry import inv_T, is_rigid_transform
 from fusion.log.euroc import ImuNoise
 from fusion.types import CameraRole
 
-KALIBR_DISTORTION_MODELS = ("radtan", "radial-tangential", "plumb_bob")
+KALIBR_DISTORTION_MODELS = ("radtan", "radial-tangential", "plumb_bob", "equidistant", "equi")
 NOISE_KEYS = (
     "gyroscope_noise_density",
     "gyroscope_random_walk",
@@ -162,6 +162,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             cu,
             cv,
             distortion=np.array(dist),
+            distortion_model=dmodel,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
             mount=mount,
@@ -192,7 +193,7 @@ def write_camchain(
         block = {
             "camera_model": "pinhole",
             "intrinsics": [float(cam.fu), float(cam.fv), float(cam.cu), float(cam.cv)],
-            "distortion_model": "radtan",
+            "distortion_model": "equidistant" if cam.equidistant else "radtan",
             "distortion_coeffs": [float(v) for v in cam.distortion],
             "resolution": [int(cam.width), int(cam.height)],
             "T_cam_imu": [[float(v) for v in row] for row in T_cam_imu],

@@ -612,23 +612,33 @@ class BagCameraStream(CameraStream):
 
 
 def camera_from_info(info, where: str) -> CameraModel:
-    """Intrinsics and distortion from a CameraInfo (plumb_bob, k3 = 0); T_body_cam identity:
-    callers must supply the extrinsics."""
+    """Intrinsics and distortion from a CameraInfo (plumb_bob with k3 = 0, or equidistant
+    k1..k4); T_body_cam identity: callers must supply the extrinsics."""
     K = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
     D = np.asarray(_field(info, "d", "D"), float).reshape(-1)
     model = str(info.distortion_model)
-    if model not in ("plumb_bob", "rational_polynomial", "") or (
+    equi = model == "equidistant"
+    if (model not in ("plumb_bob", "rational_polynomial", "") and not equi) or (
         len(D) > 4 and np.any(np.abs(D[4:]) > 1e-12)
     ):
         raise LogError(
             f"{where}: distortion {model!r} with coefficients {D.tolist()} is not "
-            "supported (radial-tangential k1, k2, p1, p2)"
+            "supported (radial-tangential k1, k2, p1, p2, or equidistant k1..k4)"
         )
     dist = np.zeros(4)
     dist[: min(4, len(D))] = D[:4]
     if K[0, 0] <= 0 or K[1, 1] <= 0 or int(info.width) < 1 or int(info.height) < 1:
         raise LogError(f"{where}: CameraInfo has no calibration (zero K or size)")
-    return CameraModel(int(info.width), int(info.height), K[0, 0], K[1, 1], K[0, 2], K[1, 2], distortion=dist)
+    return CameraModel(
+        int(info.width),
+        int(info.height),
+        K[0, 0],
+        K[1, 1],
+        K[0, 2],
+        K[1, 2],
+        distortion=dist,
+        distortion_model="equidistant" if equi else "radtan",
+    )
 
 
 def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, ts):
@@ -636,14 +646,15 @@ def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, 
     Info = ts.types[CAMERA_INFO]
     K = cam.K.reshape(-1)
     P = np.c_[cam.K, np.zeros(3)].reshape(-1)
-    arrays = {"d": np.r_[cam.distortion, 0.0], "k": K, "r": np.eye(3).reshape(-1), "p": P}
+    d = cam.distortion if cam.equidistant else np.r_[cam.distortion, 0.0]
+    arrays = {"d": d, "k": K, "r": np.eye(3).reshape(-1), "p": P}
     if ros1:
         arrays = {k.upper(): v for k, v in arrays.items()}
     return Info(
         header=_header(ts, stamp_ns, frame_id, ros1),
         height=cam.height,
         width=cam.width,
-        distortion_model="plumb_bob",
+        distortion_model="equidistant" if cam.equidistant else "plumb_bob",
         binning_x=0,
         binning_y=0,
         roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),

@@ -125,7 +125,7 @@ class _Distortion:
     """Undistorted pixels <-> distorted pixels for one camera (identity without a camera)."""
 
     def __init__(self, camera: CameraModel | None):
-        self.camera = camera if camera is not None and np.any(camera.distortion) else None
+        self.camera = camera if camera is not None and camera.distorted else None
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) distorted -> undistorted pixels: OpenCV's iterative inverse run to 1e-14, the
@@ -134,14 +134,16 @@ class _Distortion:
             return uv
         c = self.camera
         uv = np.ascontiguousarray(uv, dtype=np.float64).reshape(-1, 1, 2)
-        out = cv2.undistortPoints(uv, c.K, c.dist_cv, None, None, c.K, _UNDISTORT_CRITERIA)
-        return out.reshape(-1, 2)
+        return c.cv_undistort_points(uv, c.K, _UNDISTORT_CRITERIA).reshape(-1, 2)
 
     def distort_xy(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted -> distorted pixels, x and y as separate arrays (keeps their dtype)."""
         if self.camera is None:
             return x, y
         c = self.camera
+        if c.equidistant:  # not a hot path for any camera we simulate: the model's own, in float64
+            uv = self.distort(np.stack([x, y], axis=-1).astype(np.float64))
+            return uv[..., 0].astype(x.dtype), uv[..., 1].astype(y.dtype)
         k1, k2, p1, p2 = (x.dtype.type(v) for v in c.distortion)
         xn = (x - x.dtype.type(c.cu)) * x.dtype.type(1.0 / c.fu)
         yn = (y - y.dtype.type(c.cv)) * y.dtype.type(1.0 / c.fv)

@@ -23,7 +23,7 @@ from typing import Literal, overload
 
 import numpy as np
 
-from fusion.camera import CameraModel
+from fusion.camera import CameraModel, equidistant_dtheta_d, equidistant_theta_d
 from fusion.errors import EstimationError
 from fusion.geometry import cross_rows
 
@@ -34,9 +34,11 @@ class Projector:
     """CameraModel.project with its Jacobian, the camera's constants read once: the PnP
     estimator's LM evaluates it a few times per frame, so it is written out entry by entry."""
 
-    __slots__ = ("k1", "k2", "f", "c", "p12", "p21", "M_tangential")
+    __slots__ = ("k1", "k2", "f", "c", "p12", "p21", "M_tangential", "equi")
 
     def __init__(self, camera: CameraModel):
+        # the equidistant model's four coefficients, or None for radial-tangential
+        self.equi = camera.distortion.copy() if camera.equidistant else None
         self.k1, self.k2, p1, p2 = (float(v) for v in camera.distortion)
         self.f = np.array([float(camera.fu), float(camera.fv)])
         self.c = np.array([float(camera.cu), float(camera.cv)])
@@ -64,6 +66,8 @@ class Projector:
         Z = p_cam[:, 2:3]
         iz = 1.0 / np.where(Z > 1e-9, Z, np.nan)  # (N, 1)
         xy = p_cam[:, :2] * iz  # (N, 2) x, y
+        if self.equi is not None:
+            return self._project_equidistant(xy, iz, jacobian)
         sq = xy * xy
         r2 = sq[:, 0:1] + sq[:, 1:2]
         radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
@@ -81,10 +85,45 @@ class Projector:
         D[:, 0, 1:] = d01
         D[:, 1, :1] = d01
         FD = D * (self.f * iz)[:, :, None]  # rows fu / Z D[0], fv / Z D[1]
-        J = np.empty((len(p_cam), 2, 3))
-        J[:, :, :2] = FD
-        J[:, :, 2] = -(FD @ xy[:, :, None])[:, :, 0]
-        return uv, J
+        return uv, _chain_pinhole(FD, xy)
+
+    def _project_equidistant(
+        self, xy: np.ndarray, iz: np.ndarray, jacobian: bool
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """`project` for the equidistant model (fusion/camera.py): x_d = s(r) (x, y), s = theta_d
+        / r, theta = atan(r); D = s I + (s'(r) / r) (x, y)^T (x, y), s'(r) = (theta_d'(theta) r /
+        (1 + r^2) - theta_d) / r^2, whose ratio to r tends to 2 (k1 - 1/3) at the centre."""
+        k = self.equi
+        assert k is not None
+        r2 = xy[:, 0] ** 2 + xy[:, 1] ** 2
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        centre = r < 1e-8
+        rs = np.where(centre, 1.0, r)
+        td = equidistant_theta_d(theta, k)
+        scale = np.where(centre, 1.0, td / rs)
+        uv = xy * scale[:, None] * self.f + self.c
+        if not jacobian:
+            return uv, None
+        ds_over_r = np.where(
+            centre,
+            2.0 * (k[0] - 1.0 / 3.0),
+            (equidistant_dtheta_d(theta, k) * rs / (1.0 + r2) - td) / (rs**3),
+        )
+        D = ds_over_r[:, None, None] * (xy[:, :, None] * xy[:, None, :])
+        D[:, 0, 0] += scale
+        D[:, 1, 1] += scale
+        FD = D * (self.f * iz)[:, :, None]
+        return uv, _chain_pinhole(FD, xy)
+
+
+def _chain_pinhole(FD: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """d(pixels)/d(p_cam) (N, 2, 3) from FD = F D / Z (N, 2, 2): F D P with P = [[1, 0, -x],
+    [0, 1, -y]] / Z."""
+    J = np.empty((len(FD), 2, 3))
+    J[:, :, :2] = FD
+    J[:, :, 2] = -(FD @ xy[:, :, None])[:, :, 0]
+    return J
 
 
 def floor_reprojection(

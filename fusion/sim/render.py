@@ -204,7 +204,16 @@ _RAYS: dict[tuple, _CameraRays] = {}
 
 
 def _camera_key(camera: CameraModel) -> tuple:
-    return (camera.width, camera.height, camera.fu, camera.fv, camera.cu, camera.cv, tuple(camera.distortion))
+    return (
+        camera.width,
+        camera.height,
+        camera.fu,
+        camera.fv,
+        camera.cu,
+        camera.cv,
+        camera.distortion_model,
+        tuple(camera.distortion),
+    )
 
 
 def _rays(camera: CameraModel) -> _CameraRays:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from fusion.camera import CameraModel
+from fusion.camera import DISTORTION_MODELS, CameraModel
 from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload
 from fusion.errors import SimulationError
 from fusion.geometry import make_T
@@ -148,8 +148,10 @@ class CameraOptions:
     gain on top of the scenario's slow swing; above 1 whites clip), `contrast`, `glare_fraction`,
     `occlusion_fraction`; `exposure_s` (None: the scenario's 8 ms): motion blur is the image
     motion during it.  Geometric: `focal_scale` multiplies both cameras' focal lengths (a
-    narrower or wider lens), `distortion` (k1, k2, p1, p2) replaces both cameras' coefficients
-    (None: the scenario's).  Resolution is simulate()'s own argument."""
+    narrower or wider lens), `distortion` (four coefficients: k1, k2, p1, p2, or k1..k4 with
+    `distortion_model` "equidistant") replaces both cameras' coefficients (None: the scenario's),
+    `distortion_model` both cameras' model (None: the scenario's, radial-tangential; a model
+    without coefficients starts from zero distortion).  Resolution is simulate()'s own argument."""
 
     noise_dn: float | None = None
     shot_noise_dn: float = 0.0
@@ -163,6 +165,7 @@ class CameraOptions:
     exposure_s: float | None = None
     focal_scale: float = 1.0
     distortion: tuple[float, float, float, float] | None = None
+    distortion_model: str | None = None
 
     def __post_init__(self):
         if not (self.focal_scale > 0 and math.isfinite(self.focal_scale)):
@@ -170,7 +173,12 @@ class CameraOptions:
         if self.exposure_s is not None and not (0 <= self.exposure_s < 1.0):
             raise SimulationError(f"exposure must be in [0, 1) s, got {self.exposure_s}")
         if self.distortion is not None and len(self.distortion) != 4:
-            raise SimulationError("distortion: four coefficients k1, k2, p1, p2")
+            raise SimulationError("distortion: four coefficients k1, k2, p1, p2 (equidistant: k1..k4)")
+        if self.distortion_model is not None and self.distortion_model not in DISTORTION_MODELS:
+            raise SimulationError(
+                f"unknown distortion model {self.distortion_model!r}; "
+                f"expected one of {sorted(DISTORTION_MODELS)}"
+            )
         RenderEffects(**self.render_fields())  # validates the photometric values
 
     def render_fields(self) -> dict:
@@ -224,6 +232,12 @@ def apply_camera_options(sc: Scenario, options: CameraOptions) -> Scenario:
         if options.focal_scale != 1.0:
             cam.fu *= options.focal_scale
             cam.fv *= options.focal_scale
+        if (
+            options.distortion_model is not None
+            and DISTORTION_MODELS[options.distortion_model] != cam.distortion_model
+        ):
+            cam.distortion_model = DISTORTION_MODELS[options.distortion_model]
+            cam.distortion = np.zeros(4)  # the other model's coefficients mean something else
         if options.distortion is not None:
             cam.distortion = np.asarray(options.distortion, dtype=float)
     if options.noise_dn is not None:

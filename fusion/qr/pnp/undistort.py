@@ -1,6 +1,7 @@
-"""Distorted pixels -> ideal normalised coordinates, fast: OpenCV's iterative undistortPoints,
-verified once per camera against CameraModel.undistort_normalized (and checked per call where it
-was not verified), with CameraModel's Newton inversion as the fallback."""
+"""Distorted pixels -> ideal normalised coordinates, fast: OpenCV's iterative undistortPoints
+(cv2.fisheye's for an equidistant lens), verified once per camera against
+CameraModel.undistort_normalized (and checked per call where it was not verified), with
+CameraModel's Newton inversion as the fallback."""
 
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ def opencv_undistorts(camera: CameraModel) -> bool:
         camera.fv,
         camera.cu,
         camera.cv,
+        camera.distortion_model,
         *camera.distortion.tolist(),
     )
     ok = _VERIFIED.get(key)
@@ -50,9 +52,7 @@ def opencv_undistorts(camera: CameraModel) -> bool:
 def undistort_checked(camera: CameraModel, uv: np.ndarray) -> np.ndarray | None:
     """OpenCV's undistortPoints of (N, 2) pixels, or None where distorting back misses by more
     than ROUND_TRIP_TOL_PX."""
-    xn = cv2.undistortPoints(
-        cv_points(uv), camera.K, camera.dist_cv, None, None, None, UNDISTORT_CRITERIA
-    ).reshape(-1, 2)
+    xn = camera.cv_undistort_points(cv_points(uv), None, UNDISTORT_CRITERIA).reshape(-1, 2)
     back, _ = Projector(camera).project(np.column_stack([xn, np.ones(len(xn))]), jacobian=False)
     return xn if np.all(np.abs(back - uv) < ROUND_TRIP_TOL_PX) else None
 
@@ -71,8 +71,6 @@ def undistort(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
         and np.all(uv >= -IMAGE_MARGIN * size)
         and np.all(uv <= (1.0 + IMAGE_MARGIN) * size)
     ):
-        return cv2.undistortPoints(
-            cv_points(uv), camera.K, camera.dist_cv, None, None, None, UNDISTORT_CRITERIA
-        ).reshape(-1, 2)
+        return camera.cv_undistort_points(cv_points(uv), None, UNDISTORT_CRITERIA).reshape(-1, 2)
     xn = undistort_checked(camera, uv)
     return camera.undistort_normalized(uv) if xn is None else xn
