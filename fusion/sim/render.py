@@ -183,8 +183,9 @@ class _CameraRays:
         xy = camera.undistort_normalized(np.stack([u, v], axis=-1))
         self.xn = np.ascontiguousarray(xy[..., 0], dtype=np.float64)
         self.yn = np.ascontiguousarray(xy[..., 1], dtype=np.float64)
-        # largest normalised radius inside the image: projections farther out may fold back
-        self.r_max = float(np.sqrt(self.xn**2 + self.yn**2).max())
+        # largest normalised radius inside the image: projections farther out may fold back (a
+        # fisheye's pixels beyond 90 degrees off the axis have no ray: NaN, left out)
+        self.r_max = float(np.nanmax(np.sqrt(self.xn**2 + self.yn**2)))
         self.half_size = ((w + 1) // 2, (h + 1) // 2)
         uh, vh = np.meshgrid(
             2.0 * np.arange(self.half_size[0]) + 0.5, 2.0 * np.arange(self.half_size[1]) + 0.5
@@ -193,10 +194,10 @@ class _CameraRays:
         self.half_x = np.ascontiguousarray(xyh[..., 0], dtype=np.float32)
         self.half_y = np.ascontiguousarray(xyh[..., 1], dtype=np.float32)
         self.bounds_xy = (
-            float(self.xn.min()),
-            float(self.xn.max()),
-            float(self.yn.min()),
-            float(self.yn.max()),
+            float(np.nanmin(self.xn)),
+            float(np.nanmax(self.xn)),
+            float(np.nanmin(self.yn)),
+            float(np.nanmax(self.yn)),
         )
 
 
