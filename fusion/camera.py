@@ -4,10 +4,12 @@ its mount on the body.
 Read from / written to EuRoC/Kalibr-style `sensor.yaml`.  Two distortion models, Kalibr's two for
 a pinhole camera (`distortion_model`, four coefficients each):
 
-- `radial-tangential` (`radtan`, ROS's `plumb_bob`): OpenCV's with k3 = 0, [k1, k2, p1, p2]:
+- `radial-tangential` (`radtan`, ROS's `plumb_bob`): OpenCV's five-coefficient model, [k1, k2,
+  p1, p2] and `k3` (Kalibr's radtan has no k3: 0; sensor.yaml, OpenCV and ROS may give a fifth
+  coefficient):
 
-      x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
-      y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
+      x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
+      y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
 
 - `equidistant` (Kalibr's `pinhole-equi`, OpenCV's `cv2.fisheye`, Kannala & Brandt 2006 with
   four terms), [k1, k2, k3, k4], for wide-angle lenses:
@@ -116,6 +118,7 @@ class CameraModel:
     # how well [fu, fv, cu, cv] are known, 1 sigma (px); None: not stated in sensor.yaml
     intrinsics_sigma_px: tuple[float, ...] | None = None
     distortion_model: str = RADTAN  # RADTAN or EQUIDISTANT (module docstring)
+    k3: float = 0.0  # radial-tangential only: OpenCV's fifth coefficient
 
     def __post_init__(self):
         self.distortion = np.asarray(self.distortion, dtype=float).reshape(4)
@@ -125,6 +128,9 @@ class CameraModel:
                 f"expected one of {sorted(DISTORTION_MODELS)}"
             )
         self.distortion_model = DISTORTION_MODELS[self.distortion_model]
+        self.k3 = float(self.k3)
+        if self.k3 and self.equidistant:
+            raise CameraModelError("k3 is a radial-tangential coefficient; the equidistant model has k1..k4")
         self.T_body_cam = np.asarray(self.T_body_cam, dtype=float).reshape(4, 4)
         if self.mount not in MOUNTS:
             raise CameraModelError(f"unknown camera mount {self.mount!r}; expected one of {MOUNTS}")
@@ -155,13 +161,13 @@ class CameraModel:
     def distorted(self) -> bool:
         """Whether pixels differ from the ideal pinhole's: any coefficient, or the equidistant
         model at all (with k = 0 it is the f-theta lens, not a pinhole)."""
-        return self.equidistant or bool(np.any(self.distortion))
+        return self.equidistant or bool(np.any(self.distortion)) or self.k3 != 0.0
 
     @property
     def dist_cv(self) -> np.ndarray:
-        """Distortion vector as OpenCV takes it: (k1, k2, p1, p2, k3=0) for cv2's pinhole
+        """Distortion vector as OpenCV takes it: (k1, k2, p1, p2, k3) for cv2's pinhole
         functions, (k1, k2, k3, k4) for cv2.fisheye's (equidistant)."""
-        return self.distortion.copy() if self.equidistant else np.r_[self.distortion, 0.0]
+        return self.distortion.copy() if self.equidistant else np.r_[self.distortion, self.k3]
 
     def cv_undistort_points(self, pts: np.ndarray, P: np.ndarray | None, criteria: tuple) -> np.ndarray:
         """OpenCV's iterative undistortion of distorted pixels `pts` (N, 1, 2) float64, for this
@@ -245,9 +251,10 @@ class CameraModel:
                 scale = np.where(r > 1e-12, equidistant_theta_d(theta, self.distortion) / r, 1.0)
             return xy * scale[..., None]
         k1, k2, p1, p2 = self.distortion
+        k3 = self.k3
         x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2
+        radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
         xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         return np.stack([xd, yd], axis=-1)
@@ -275,12 +282,13 @@ class CameraModel:
         if self.equidistant:
             return _equidistant_undistort(xd, self.distortion, iterations)
         k1, k2, p1, p2 = self.distortion
+        k3 = self.k3
         xy = xd.copy()
         for _ in range(iterations):
             x, y = xy[..., 0], xy[..., 1]
             r2 = x * x + y * y
-            radial = 1.0 + k1 * r2 + k2 * r2 * r2
-            dradial = 2.0 * k1 + 4.0 * k2 * r2  # d(radial)/d(r2) * 2
+            radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+            dradial = 2.0 * k1 + 4.0 * k2 * r2 + 6.0 * k3 * r2 * r2  # d(radial)/d(r2) * 2
             f = self.distort_normalized(xy) - xd
             j11 = radial + x * dradial * x + 2.0 * p1 * y + 6.0 * p2 * x
             j12 = x * dradial * y + 2.0 * p1 * x + 2.0 * p2 * y
@@ -312,7 +320,8 @@ class CameraModel:
             "camera_model": "pinhole",
             "intrinsics": [float(self.fu), float(self.fv), float(self.cu), float(self.cv)],
             "distortion_model": "equidistant" if self.equidistant else "radial-tangential",
-            "distortion_coefficients": [float(v) for v in self.distortion],
+            # OpenCV's k3 written only when set, so files without it stay as they were
+            "distortion_coefficients": [float(v) for v in self.distortion] + ([self.k3] if self.k3 else []),
             "mount": self.mount,
             # written only for a rolling shutter, so global-shutter files stay as they were
             **(
@@ -353,9 +362,9 @@ class CameraModel:
         T = read_T_BS(need("T_BS"), source)
         res = _floats(need("resolution"), 2, "resolution", source)
         intr = _floats(need("intrinsics"), 4, "intrinsics", source)
-        dist = _floats(
-            data.get("distortion_coefficients", [0, 0, 0, 0]), 4, "distortion_coefficients", source
-        )
+        coeffs = data.get("distortion_coefficients", [0, 0, 0, 0])
+        n_coeffs = 5 if DISTORTION_MODELS[dist_model] == RADTAN and _len(coeffs) == 5 else 4
+        dist = _floats(coeffs, n_coeffs, "distortion_coefficients", source)
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise CameraModelError(f"{source}: resolution and focal lengths must be positive")
         rate = float(data.get("rate_hz", 30.0))
@@ -386,7 +395,8 @@ class CameraModel:
             fv,
             cu,
             cv,
-            distortion=np.asarray(dist),
+            distortion=np.asarray(dist[:4]),
+            k3=dist[4] if n_coeffs == 5 else 0.0,
             T_body_cam=T,
             rate_hz=rate,
             mount=mount,
@@ -472,6 +482,13 @@ def stated_intrinsics_sigma(
             f"({MAX_FOCAL_SIGMA_REL:g} of the focal length), got {sigma} (a unit mistake?)"
         )
     return tuple(sigma)
+
+
+def _len(value) -> int:
+    try:
+        return len(value)
+    except TypeError:
+        return -1
 
 
 def _floats(value, n: int, key: str, source: str, error=CameraModelError) -> list[float]:

@@ -201,6 +201,13 @@ def test_simulated_fisheye_flight_states_its_lens(tmp_path):
         assert stream.camera.equidistant and np.allclose(stream.camera.distortion, K4)
     with pytest.raises(SimulationError, match="distortion model"):
         CameraOptions(distortion_model="fov")
+    # an EuRoC folder whose sensor.yaml gives OpenCV's five radial-tangential coefficients
+    sensor = tmp_path / "f" / "mav0" / "cam0" / "sensor.yaml"
+    data = yaml.safe_load(sensor.read_text())
+    data.update(distortion_model="radial-tangential", distortion_coefficients=list(CV5))
+    sensor.write_text(yaml.safe_dump(data))
+    cam0 = read_flight(tmp_path / "f").cameras["cam0"].camera
+    assert not cam0.equidistant and cam0.k3 == CV5[4] and np.allclose(cam0.distortion, CV5[:4])
 
 
 # A real lens: the TUM VI dataset's cam0 (Schubert et al., "The TUM VI Benchmark for Evaluating
@@ -243,3 +250,78 @@ def test_a_real_fisheye_calibration_renders_decodes_and_refines(tmp_path):
     assert len(raw) <= 2 and len(dets) >= 6, (len(raw), len(dets))
     err = [np.abs(d.corners_px - project_code_corners(cam, T_wc, by_payload[d.payload])).max() for d in dets]
     assert max(err) < 0.15, err
+
+
+# ============================================================================ OpenCV's k3 (radtan)
+
+CV5 = (-0.29, 0.095, 4e-4, -3e-4, -0.014)  # k1, k2, p1, p2, k3 as cv2.calibrateCamera gives them
+
+
+def radtan5() -> CameraModel:
+    return CameraModel(
+        640,
+        480,
+        600.0,
+        601.0,
+        322.0,
+        241.0,
+        np.array(CV5[:4]),
+        make_T(R_BODY_FLOORCAM, [0.05, 0, -0.03]),
+        k3=CV5[4],
+    )
+
+
+def test_radtan_k3_matches_opencv_and_inverts():
+    cam = radtan5()
+    rng = np.random.default_rng(4)
+    p = np.column_stack([rng.uniform(-0.5, 0.5, 200), rng.uniform(-0.38, 0.38, 200), np.ones(200)])
+    ref, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), cam.K, np.array(CV5))
+    np.testing.assert_allclose(cam.project(p), ref.reshape(-1, 2), atol=1e-9)
+    uv, J = Projector(cam).project(p)
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    h = 1e-6
+    proj = Projector(cam)
+    Jn = np.stack(
+        [
+            (proj.project(p + h * e, False)[0] - proj.project(p - h * e, False)[0]) / (2 * h)
+            for e in np.eye(3)
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(J, Jn, atol=1e-5)
+    np.testing.assert_allclose(cam.undistort_normalized(uv), p[:, :2], atol=1e-10)
+    np.testing.assert_allclose(undistort(cam, uv), p[:, :2], atol=1e-10)
+    T = aim(body_pose(0, 0, 2.6, 35.0, roll_deg=4.0, pitch_deg=-3.0), (0.45, 0.6), camera=cam)
+    res = estimate_floor_pose(floor_of(floor_dets(T, FOUR, camera=cam)), cam)
+    assert res is not None
+    np.testing.assert_allclose(res.T_world_body, T, atol=1e-9)
+
+
+def test_k3_in_every_file_that_can_state_it(tmp_path):
+    from fusion.log.kalibr import read_camchain, write_camchain
+    from fusion.log.rosbag import CAMERA_INFO, camera_from_info, camera_info_msg, typestore_for
+
+    cam = radtan5()
+    cam.save(tmp_path / "sensor.yaml")
+    assert CameraModel.load(tmp_path / "sensor.yaml").k3 == CV5[4]
+    write_camchain(tmp_path / "camchain.yaml", {"cam0": cam}, {})
+    assert read_camchain(tmp_path / "camchain.yaml")["cam0"].camera.k3 == CV5[4]
+    ts = typestore_for(False)
+    msg = ts.deserialize_cdr(
+        ts.serialize_cdr(camera_info_msg(cam, 0, "cam", False, ts), CAMERA_INFO), CAMERA_INFO
+    )
+    assert msg.distortion_model == "plumb_bob" and len(msg.d) == 5
+    assert camera_from_info(msg, "bag").k3 == CV5[4]
+    # without k3 the files stay as they were: four coefficients
+    CameraModel(640, 480, 600.0, 601.0, 322.0, 241.0, np.array(CV5[:4])).save(tmp_path / "s4.yaml")
+    assert len(yaml.safe_load((tmp_path / "s4.yaml").read_text())["distortion_coefficients"]) == 4
+    # the equidistant model has no k3 of its own: refused, not ignored
+    with pytest.raises(CameraModelError, match="k3"):
+        CameraModel(640, 480, 600.0, 601.0, 322.0, 241.0, np.zeros(4), distortion_model="equidistant", k3=0.1)
+    data = yaml.safe_load((tmp_path / "sensor.yaml").read_text())
+    data["distortion_coefficients"] = [0.1, 0.0, 0.0]
+    (tmp_path / "sensor.yaml").write_text(yaml.safe_dump(data))
+    with pytest.raises(
+        CameraModelError, match=r"sensor\.yaml: 'distortion_coefficients' must be a list of 4"
+    ):
+        CameraModel.load(tmp_path / "sensor.yaml")

@@ -559,7 +559,9 @@ def _check_sensor_numbers(cfg: dict, source: str, camera: bool) -> None:
         strict_floats(cfg["T_BS"]["data"], 16, f"{source}: T_BS.data", LogError)
     if not camera:
         return
-    for key, n in (("resolution", 2), ("intrinsics", 4), ("distortion_coefficients", 4)):
+    coeffs = cfg.get("distortion_coefficients")
+    n_coeffs = 5 if isinstance(coeffs, list) and len(coeffs) == 5 else 4  # OpenCV's k3 (camera.py)
+    for key, n in (("resolution", 2), ("intrinsics", 4), ("distortion_coefficients", n_coeffs)):
         if key in cfg:
             vals = strict_floats(cfg[key], n, f"{source}: {key}", LogError)
             if key == "resolution" and any(v != int(v) or v < 1 for v in vals):

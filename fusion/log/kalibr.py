@@ -6,8 +6,8 @@ camchain-imucam.yaml (Kalibr wiki "Yaml formats"):
     cam0:
       camera_model: pinhole            # only pinhole is supported
       intrinsics: [fu, fv, pu, pv]
-      distortion_model: radtan         # radial-tangential [k1, k2, r1, r2], or
-      distortion_coeffs: [k1, k2, r1, r2]  # equidistant [k1, k2, k3, k4] (pinhole-equi)
+      distortion_model: radtan         # radial-tangential [k1, k2, r1, r2] (OpenCV's k3 may
+      distortion_coeffs: [k1, k2, r1, r2]  # follow), or equidistant [k1, k2, k3, k4] (pinhole-equi)
       resolution: [w, h]
       T_cam_imu: 4x4 rows              # maps IMU-frame points into the camera frame
       timeshift_cam_imu: 0.0           # s;  t_imu = t_cam + timeshift_cam_imu
@@ -83,6 +83,13 @@ def _matrix(value, where: str) -> np.ndarray:
     return T
 
 
+def _len(value) -> int:
+    try:
+        return len(value)
+    except TypeError:
+        return -1
+
+
 def _numbers(value, n: int, where: str) -> list[float]:
     try:
         out = [float(v) for v in value]
@@ -119,7 +126,10 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
                 raise LogError(f"{where}: missing key '{need}'")
         intr = _numbers(block["intrinsics"], 4, f"{where}.intrinsics")
         res = _numbers(block["resolution"], 2, f"{where}.resolution")
-        dist = _numbers(block.get("distortion_coeffs", [0, 0, 0, 0]), 4, f"{where}.distortion_coeffs")
+        coeffs = block.get("distortion_coeffs", [0, 0, 0, 0])
+        # radtan: Kalibr's four, or OpenCV's five (k3 last; an extension Kalibr does not write)
+        n_coeffs = 5 if dmodel in ("radtan", "radial-tangential", "plumb_bob") and _len(coeffs) == 5 else 4
+        dist = _numbers(coeffs, n_coeffs, f"{where}.distortion_coeffs")
         if "T_cam_imu" not in block:
             raise LogError(
                 f"{where}: missing key 'T_cam_imu' (a camchain-imucam.yaml from "
@@ -161,7 +171,8 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             fv,
             cu,
             cv,
-            distortion=np.array(dist),
+            distortion=np.array(dist[:4]),
+            k3=dist[4] if n_coeffs == 5 else 0.0,
             distortion_model=dmodel,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
             rate_hz=float(block.get("rate_hz", 30.0)),
@@ -194,7 +205,7 @@ def write_camchain(
             "camera_model": "pinhole",
             "intrinsics": [float(cam.fu), float(cam.fv), float(cam.cu), float(cam.cv)],
             "distortion_model": "equidistant" if cam.equidistant else "radtan",
-            "distortion_coeffs": [float(v) for v in cam.distortion],
+            "distortion_coeffs": [float(v) for v in cam.distortion] + ([cam.k3] if cam.k3 else []),
             "resolution": [int(cam.width), int(cam.height)],
             "T_cam_imu": [[float(v) for v in row] for row in T_cam_imu],
             "timeshift_cam_imu": float((timeshift_ns or {}).get(key, 0)) * 1e-9,

@@ -612,21 +612,24 @@ class BagCameraStream(CameraStream):
 
 
 def camera_from_info(info, where: str) -> CameraModel:
-    """Intrinsics and distortion from a CameraInfo (plumb_bob with k3 = 0, or equidistant
+    """Intrinsics and distortion from a CameraInfo (plumb_bob k1, k2, p1, p2, k3, or equidistant
     k1..k4); T_body_cam identity: callers must supply the extrinsics."""
     K = np.asarray(_field(info, "k", "K"), float).reshape(3, 3)
     D = np.asarray(_field(info, "d", "D"), float).reshape(-1)
     model = str(info.distortion_model)
     equi = model == "equidistant"
+    # plumb_bob: OpenCV's k1, k2, p1, p2, k3; rational_polynomial adds k4..k6 (a denominator we
+    # do not model: refused unless zero); equidistant: k1..k4
+    n_used = 4 if equi else 5
     if (model not in ("plumb_bob", "rational_polynomial", "") and not equi) or (
-        len(D) > 4 and np.any(np.abs(D[4:]) > 1e-12)
+        len(D) > n_used and np.any(np.abs(D[n_used:]) > 1e-12)
     ):
         raise LogError(
             f"{where}: distortion {model!r} with coefficients {D.tolist()} is not "
-            "supported (radial-tangential k1, k2, p1, p2, or equidistant k1..k4)"
+            "supported (plumb_bob k1, k2, p1, p2, k3, or equidistant k1..k4)"
         )
-    dist = np.zeros(4)
-    dist[: min(4, len(D))] = D[:4]
+    dist = np.zeros(5)
+    dist[: min(n_used, len(D))] = D[:n_used]
     if K[0, 0] <= 0 or K[1, 1] <= 0 or int(info.width) < 1 or int(info.height) < 1:
         raise LogError(f"{where}: CameraInfo has no calibration (zero K or size)")
     return CameraModel(
@@ -636,7 +639,8 @@ def camera_from_info(info, where: str) -> CameraModel:
         K[1, 1],
         K[0, 2],
         K[1, 2],
-        distortion=dist,
+        distortion=dist[:4],
+        k3=0.0 if equi else float(dist[4]),
         distortion_model="equidistant" if equi else "radtan",
     )
 
@@ -646,7 +650,7 @@ def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, 
     Info = ts.types[CAMERA_INFO]
     K = cam.K.reshape(-1)
     P = np.c_[cam.K, np.zeros(3)].reshape(-1)
-    d = cam.distortion if cam.equidistant else np.r_[cam.distortion, 0.0]
+    d = cam.dist_cv
     arrays = {"d": d, "k": K, "r": np.eye(3).reshape(-1), "p": P}
     if ros1:
         arrays = {k.upper(): v for k, v in arrays.items()}

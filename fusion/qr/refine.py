@@ -145,12 +145,13 @@ class _Distortion:
             uv = self.distort(np.stack([x, y], axis=-1).astype(np.float64))
             return uv[..., 0].astype(x.dtype), uv[..., 1].astype(y.dtype)
         k1, k2, p1, p2 = (x.dtype.type(v) for v in c.distortion)
+        k3 = x.dtype.type(c.k3)
         xn = (x - x.dtype.type(c.cu)) * x.dtype.type(1.0 / c.fu)
         yn = (y - y.dtype.type(c.cv)) * y.dtype.type(1.0 / c.fv)
         xy2 = xn * yn
         x2, y2 = xn * xn, yn * yn
         r2 = x2 + y2
-        radial = 1 + r2 * (k1 + k2 * r2)
+        radial = 1 + r2 * (k1 + k2 * r2 + k3 * r2 * r2)
         xd = xn * radial + (2 * p1) * xy2 + p2 * (r2 + 2 * x2)
         yd = yn * radial + p1 * (r2 + 2 * y2) + (2 * p2) * xy2
         return xd * x.dtype.type(c.fu) + x.dtype.type(c.cu), yd * y.dtype.type(c.fv) + y.dtype.type(c.cv)

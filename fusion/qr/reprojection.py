@@ -34,12 +34,13 @@ class Projector:
     """CameraModel.project with its Jacobian, the camera's constants read once: the PnP
     estimator's LM evaluates it a few times per frame, so it is written out entry by entry."""
 
-    __slots__ = ("k1", "k2", "f", "c", "p12", "p21", "M_tangential", "equi")
+    __slots__ = ("k1", "k2", "k3", "f", "c", "p12", "p21", "M_tangential", "equi")
 
     def __init__(self, camera: CameraModel):
         # the equidistant model's four coefficients, or None for radial-tangential
         self.equi = camera.distortion.copy() if camera.equidistant else None
         self.k1, self.k2, p1, p2 = (float(v) for v in camera.distortion)
+        self.k3 = float(camera.k3)
         self.f = np.array([float(camera.fu), float(camera.fv)])
         self.c = np.array([float(camera.cu), float(camera.cv)])
         self.p12 = np.array([p1, p2])
@@ -58,7 +59,7 @@ class Projector:
         """(N, 3) camera-frame points -> distorted pixels (N, 2) and d(pixels)/d(p_cam) (N, 2, 3)
         (None when not `jacobian`).  Points at or behind the camera (z <= 1e-9) give NaN.
 
-        Model (fusion/camera.py): x = X/Z, y = Y/Z, r^2 = x^2 + y^2, radial = 1 + k1 r^2 + k2 r^4,
+        Model (fusion/camera.py): x = X/Z, y = Y/Z, r^2 = x^2 + y^2, radial = 1 + k1 r^2 + k2 r^4 + k3 r^6,
         x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2), y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y,
         u = fu x_d + cu, v = fv y_d + cv; the Jacobian is F D P with F = diag(fu, fv),
         D = d(x_d, y_d)/d(x, y), P = d(x, y)/d(X, Y, Z) = [[1, 0, -x], [0, 1, -y]] / Z.  Written
@@ -70,13 +71,13 @@ class Projector:
             return self._project_equidistant(xy, iz, jacobian)
         sq = xy * xy
         r2 = sq[:, 0:1] + sq[:, 1:2]
-        radial = 1.0 + r2 * (self.k1 + self.k2 * r2)
+        radial = 1.0 + r2 * (self.k1 + self.k2 * r2 + self.k3 * r2 * r2)
         cross = xy[:, 0:1] * xy[:, 1:2]  # x y
         xy_d = xy * radial + (2.0 * cross) * self.p12 + (r2 + 2.0 * sq) * self.p21
         uv = xy_d * self.f + self.c
         if not jacobian:
             return uv, None
-        dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2)  # d(radial)/dx = dr x
+        dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2 + 3.0 * self.k3 * r2 * r2)  # d(radial)/dx = dr x
         D = np.empty((len(p_cam), 2, 2))
         diag = radial + dr * sq + xy @ self.M_tangential
         D[:, 0, 0] = diag[:, 0]

@@ -39,6 +39,7 @@ def opencv_undistorts(camera: CameraModel) -> bool:
         camera.cv,
         camera.distortion_model,
         *camera.distortion.tolist(),
+        camera.k3,
     )
     ok = _VERIFIED.get(key)
     if ok is None:
