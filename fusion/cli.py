@@ -46,6 +46,11 @@ def _time_offsets_ms(text: str) -> dict[str, float]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _clock_drift_ppm(text: str) -> dict[str, float]:
+    """--clock-drift-ppm: "PPM" or "cam0=PPM,cam1=PPM" -> {camera: ppm} (the offsets' syntax)."""
+    return {k: v * 1e3 for k, v in _time_offsets_ms(text).items()}  # parsed as ms, given in s
+
+
 TIME_OFFSET_HELP = (
     "camera-IMU clock offsets in ms, t_imu = t_cam + offset (Kalibr's timeshift_cam_imu sign): "
     "MS for both cameras, or cam0=MS,cam1=MS (a camera left out is estimated).  Default: both "
@@ -409,6 +414,13 @@ def build_parser() -> argparse.ArgumentParser:
         "stamped its true time minus the offset): MS for both cameras, or cam0=MS,cam1=MS",
     )
     p.add_argument(
+        "--clock-drift-ppm",
+        type=_clock_drift_ppm,
+        default=None,
+        help="camera clocks running fast by PPM parts per million (the offset grows by PPM us per "
+        "second of flight): PPM for both cameras, or cam0=PPM,cam1=PPM",
+    )
+    p.add_argument(
         "--extrinsic-error-deg",
         type=float,
         nargs=3,
@@ -633,6 +645,7 @@ def main(argv: list[str] | None = None) -> int:
                 time_offset_ms=(
                     {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
                 ),
+                clock_drift_ppm=args.clock_drift_ppm,
                 camera_options=_camera_options(args),
                 extrinsic_error_deg=(
                     None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}

@@ -1301,9 +1301,12 @@ def add_readout_covariances(
         return 0 if time_offsets is None else time_offsets.shift_ns(camera)
 
     if report.pose_cov_added:
-        s = shift(CameraRole.FLOOR.value)
+        floor = CameraRole.FLOOR.value
         pnp_key = str(Estimator.PNP)
-        added = {t + s: c for t, c in report.pose_cov_added.items()}
+        stamps = np.fromiter(report.pose_cov_added, dtype=np.int64)
+        if time_offsets is not None:
+            stamps = time_offsets.stamps(floor, stamps)  # the clock rate's correction included
+        added = dict(zip(stamps.tolist(), report.pose_cov_added.values()))
         loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
     for camera, by_key in report.sighting_cov_added.items():
         if camera != CameraRole.FRONT.value or not by_key:

@@ -27,6 +27,7 @@ from fusion.estimate.timeoffset import (
     estimate_front_offset,
     parse_time_offsets_ms,
     resolve_time_offsets,
+    shift_log,
 )
 from fusion.geometry import inv_T, make_T
 from fusion.log.euroc import CameraStream, FlightLog, ImuNoise, read_flight
@@ -227,6 +228,73 @@ def test_simulator_stamps_frames_with_the_offset(tmp_path):
     np.testing.assert_array_equal(log_.front.timestamps_ns, true_ns + 5_000_000)
     with pytest.raises(Exception, match="unknown camera"):
         simulate(tmp_path / "x", duration_s=0.2, workers=1, progress=False, time_offset_ms={"cam9": 1})
+
+
+# ============================================================================ clock rate
+
+
+def _drifting(fl, ppm: float):
+    """The flight `fl` with its floor camera's clock running fast by `ppm` (the offset grows by
+    ppm 1e-6 per second of flight, as the simulator's --clock-drift-ppm)."""
+    t = fl["truth"].timestamps_ns
+    drift = np.round(ppm * 1e-6 * (t - t[0])).astype(np.int64)
+    t_floor = fl["t_floor"] - drift
+    return {
+        **fl,
+        "t_floor": t_floor,
+        "raw": Trajectory("pnp", t_floor, fl["raw"].T_world_body, fl["raw"].covariances),
+    }
+
+
+def test_a_drifting_floor_clock_is_measured_and_corrected():
+    """A 24 s flight whose floor camera clock runs 500 ppm fast (12 ms over the flight, on top of
+    a 7 ms offset): one offset for the flight leaves its ends 6 ms off; the rate is found from
+    the first and last thirds, applied, and the corrected floor stamps are the true times within
+    1 ms over the whole flight."""
+    fl = _drifting(_flight(24.0, 8, 0.007), 500.0)
+    cfg = TimeOffsetConfig(profile_window_s=4.0)
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
+    c0 = off.cameras["cam0"]
+    assert c0.drift is not None and c0.drift.applied and c0.drift.sigma is not None
+    assert abs(c0.drift.rate - 500e-6) < max(3 * c0.drift.sigma, 50e-6), c0.drift.as_dict()
+    corrected = shift_log(_log(fl), off).floor.timestamps_ns
+    err_ms = np.abs(corrected - fl["truth"].timestamps_ns) * 1e-6
+    assert err_ms.max() < 1.0, err_ms.max()
+    assert "clock rate +" in off.lines()[0] and off.as_dict()["cam0"]["clock_drift"]["applied"]
+    # the stamps' consider term holds the rate's own uncertainty over the flight
+    assert c0.stamp_variance_s2 >= c0.drift.stamp_variance_s2 > 0
+
+
+def test_a_steady_clock_keeps_its_stamps_and_a_short_flight_is_not_checked():
+    fl = _flight(24.0, 9, 0.0)
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=4.0))
+    c0 = off.cameras["cam0"]
+    assert c0.drift is not None and not c0.drift.applied
+    assert abs(c0.drift.rate) < 3 * c0.drift.sigma
+    assert not off.any_applied
+    np.testing.assert_array_equal(shift_log(_log(fl), off).floor.timestamps_ns, fl["t_floor"])
+    short = resolve_time_offsets(
+        _log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=10.0)
+    )
+    assert short.cameras["cam0"].drift is None  # 24 s < 3 windows of 10 s
+
+
+def test_simulator_stamps_frames_with_a_clock_drift(tmp_path):
+    res = simulate(
+        tmp_path / "s",
+        duration_s=0.35,
+        camera_rate_hz=10,
+        workers=1,
+        progress=False,
+        clock_drift_ppm={"cam0": 1e4},
+    )
+    log_ = read_flight(res.root)
+    true_ns = np.array([0, 100, 200, 300]) * 1_000_000
+    np.testing.assert_array_equal(log_.floor.timestamps_ns, true_ns - true_ns // 100)  # 1 % fast
+    assert log_.front is not None
+    np.testing.assert_array_equal(log_.front.timestamps_ns, true_ns)
+    with pytest.raises(Exception, match="clock drift for unknown camera"):
+        simulate(tmp_path / "x", duration_s=0.2, workers=1, progress=False, clock_drift_ppm={"cam9": 1})
 
 
 # ============================================================================ pipeline

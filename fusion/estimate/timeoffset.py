@@ -108,6 +108,68 @@ class TimeOffsetConfig:
     # the smoother's relative tolerance while profiling: tight enough that E's solve noise is
     # far below its change over xatol_s
     profile_lm_relative_tol: float = 1e-9
+    # the floor camera's clock rate (ClockDrift): checked on flights of at least this many
+    # profile windows (a window in each of the flight's first and last thirds)
+    check_drift: bool = True
+    drift_min_windows: float = 3.0
+
+
+@dataclass
+class ClockDrift:
+    """The floor camera's clock rate against the IMU's: the offset grows as r(t) = r(t_ref) +
+    rate (t - t_ref), t the log's stamp.  A camera stamping with its own oscillator drifts by
+    its frequency error (tens of ppm: 20 ppm is 12 ms over a 10-minute flight, 2.4 cm at
+    2 m/s), which one offset per flight cannot hold.  Estimated from the floor profiles of a
+    window in each of the flight's first and last thirds (`points`: window centre ns, residual
+    s, sigma s); applied, like an offset, when significant (|rate| beyond apply_sigmas sigma and
+    the drift over the flight beyond min_apply_s): the floor stamps are then corrected by
+    rate (t - t_ref) before the flight's offset is estimated."""
+
+    rate: float  # s of offset per s of camera time
+    sigma: float | None
+    t_ref_ns: int  # the flight's middle: the correction is 0 there
+    span_s: float  # the flight's floor stamps' span
+    points: list[tuple[int, float, float | None]] = field(default_factory=list)
+    applied: bool = False
+    offset_s: float = 0.0  # the fitted line's residual offset at t_ref
+    offset_sigma_s: float | None = None
+
+    def correction_ns(self, t_ns: np.ndarray) -> np.ndarray:
+        """ns to add to stamps `t_ns` (log clock) for the rate: 0 unless applied."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        if not self.applied:
+            return np.zeros_like(t)
+        return np.round(self.rate * (t - self.t_ref_ns).astype(float)).astype(np.int64)
+
+    @property
+    def stamp_variance_s2(self) -> float:
+        """E[stamp error^2] over the flight that the applied rate leaves: sigma^2 span^2 / 12
+        (the mean of (t - t_ref)^2 over a flight centred on t_ref)."""
+        return (self.sigma or 0.0) ** 2 * self.span_s**2 / 12.0 if self.applied else 0.0
+
+    def as_dict(self) -> dict:
+        return {
+            "rate_ppm": self.rate * 1e6,
+            "sigma_ppm": None if self.sigma is None else self.sigma * 1e6,
+            "applied": self.applied,
+            "over_flight_ms": self.rate * self.span_s * MS_PER_S,
+            "windows": [
+                {
+                    "t_s": t / NS_PER_S,
+                    "residual_ms": r * MS_PER_S,
+                    "sigma_ms": None if sg is None else sg * MS_PER_S,
+                }
+                for t, r, sg in self.points
+            ],
+        }
+
+    def describe(self) -> str:
+        sig = "" if self.sigma is None else f" ± {self.sigma * 1e6:.1f}"
+        used = "applied" if self.applied else "not applied (not significant)"
+        return (
+            f"clock rate {self.rate * 1e6:+.1f}{sig} ppm ({self.rate * self.span_s * MS_PER_S:+.2f} ms over "
+            f"the flight); {used}"
+        )
 
 
 @dataclass
@@ -125,6 +187,7 @@ class CameraOffset:
     # the significance rule the estimate was judged by (TimeOffsetConfig.apply_sigmas; None:
     # the default's), for stamp_variance_s2
     apply_sigmas: float | None = None
+    drift: ClockDrift | None = None  # the floor camera's clock rate, when checked
 
     @property
     def effective_s(self) -> float:
@@ -137,13 +200,14 @@ class CameraOffset:
         for a residual r beyond TimeOffsetConfig.apply_sigmas sigma left unapplied (below
         min_apply_s: the stamps keep all of it); 0 for one within it (taken as no offset, so
         such a flight keeps its results bit for bit), for a fixed or a seed offset."""
+        rate = 0.0 if self.drift is None else self.drift.stamp_variance_s2
         if self.source != OffsetSource.ESTIMATED or self.sigma_s is None:
-            return 0.0
+            return rate
         left = self.offset_s - self.effective_s
         k = TimeOffsetConfig().apply_sigmas if self.apply_sigmas is None else self.apply_sigmas
         if self.applied_s or abs(left) > k * self.sigma_s:
-            return self.sigma_s**2 + left**2
-        return 0.0
+            return self.sigma_s**2 + left**2 + rate
+        return rate
 
     def as_dict(self) -> dict:
         return {
@@ -157,6 +221,7 @@ class CameraOffset:
             "evaluations": self.evaluations,
             "note": self.note,
             "stamp_sigma_ms": math.sqrt(self.stamp_variance_s2) * MS_PER_S,
+            "clock_drift": None if self.drift is None else self.drift.as_dict(),
         }
 
     def describe(self) -> str:
@@ -171,9 +236,10 @@ class CameraOffset:
         else:
             used = "log stamps used"
         note = f"; {self.note}" if self.note else ""
+        drift = "" if self.drift is None else f"; {self.drift.describe()}"
         return (
             f"time offset {self.camera} ({role}): {self.offset_s * MS_PER_S:+.2f}{sig} ms, "
-            f"{self.source}{seed}; {used}{note}"
+            f"{self.source}{seed}; {used}{drift}{note}"
         )
 
 
@@ -184,13 +250,26 @@ class TimeOffsets:
     cameras: dict[str, CameraOffset] = field(default_factory=dict)
 
     def shift_ns(self, camera: str) -> int:
-        """ns to add to the reader's stamps of `camera` (0 for an unknown camera)."""
+        """ns to add to the reader's stamps of `camera` (0 for an unknown camera), the clock
+        rate's correction aside (`stamps`)."""
         c = self.cameras.get(camera)
         return 0 if c is None else int(round(c.applied_s * NS_PER_S))
 
+    def stamps(self, camera: str, t_ns) -> np.ndarray:
+        """The reader's stamps `t_ns` of `camera` in the IMU clock: the applied shift, and the
+        applied clock rate's correction (ClockDrift) at each stamp."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        c = self.cameras.get(camera)
+        drift = None if c is None else c.drift
+        return t + self.shift_ns(camera) + (0 if drift is None else drift.correction_ns(t))
+
+    def drift_applied(self, camera: str) -> bool:
+        c = self.cameras.get(camera)
+        return c is not None and c.drift is not None and c.drift.applied
+
     @property
     def any_applied(self) -> bool:
-        return any(self.shift_ns(name) != 0 for name in self.cameras)
+        return any(self.shift_ns(name) != 0 or self.drift_applied(name) for name in self.cameras)
 
     def as_dict(self) -> dict:
         return {name: c.as_dict() for name, c in self.cameras.items()}
@@ -363,6 +442,7 @@ class FloorProfile:
     evaluations: int
     note: str = ""
     whole_flight: bool = True  # False: profiled on a window of the flight (profile_window_s)
+    window_ns: tuple[int, int] = (0, 0)  # the stamps profiled (log clock)
 
 
 def estimate_floor_offset(
@@ -454,7 +534,78 @@ def estimate_floor_offset(
         len(cache),
         note,
         whole_flight=(t1 - t0) < int(config.profile_window_s * NS_PER_S),
+        window_ns=(int(t0), int(t1)),
     )
+
+
+def estimate_floor_drift(
+    frame_t: np.ndarray,
+    imu: ImuData | None,
+    raw: Trajectory,
+    main: FloorProfile,
+    velocity: VelocityData | None = None,
+    floor_camera: CameraModel | None = None,
+    config: TimeOffsetConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+    variance_factor: float = 1.0,
+) -> ClockDrift | None:
+    """The floor camera's clock rate (ClockDrift): the floor profile (estimate_floor_offset) of
+    the flight's first third and of its last third, each on its best window, with the flight's
+    own profile `main` (unless its window overlaps one of theirs: the same fixes), and the
+    weighted least-squares line through their residuals; `ClockDrift.offset_s` is the line at
+    the flight's middle.  None when not checked: TimeOffsetConfig.check_drift off, a flight
+    shorter than drift_min_windows profile windows, or a profile without curvature (sigma).
+    `variance_factor` widens each window's sigma as resolve_time_offsets widens the flight's
+    (time-correlated fixes).  EstimationError when a third cannot be profiled."""
+    config = config or TimeOffsetConfig()
+    frame_t = np.asarray(frame_t, dtype=np.int64)
+    if not config.check_drift or len(frame_t) < 2 or main.sigma_s is None:
+        return None
+    t0, t1 = int(frame_t[0]), int(frame_t[-1])
+    span_s = (t1 - t0) / NS_PER_S
+    if span_s < config.drift_min_windows * config.profile_window_s:
+        return None
+    widen = math.sqrt(max(variance_factor, 1.0))
+    third = (t1 - t0) // 3
+    profiles = []
+    for a, b in ((t0, t0 + third), (t1 - third, t1)):
+        rsel = (raw.timestamps_ns >= a) & (raw.timestamps_ns <= b)
+        part = Trajectory(
+            raw.name,
+            raw.timestamps_ns[rsel],
+            raw.T_world_body[rsel],
+            None if raw.covariances is None else raw.covariances[rsel],
+        )
+        fsel = (frame_t >= a) & (frame_t <= b)
+        profiles.append(
+            estimate_floor_offset(frame_t[fsel], imu, part, velocity, floor_camera, config, fusion_config)
+        )
+    if not any(_overlap(main.window_ns, fp.window_ns) for fp in profiles):
+        profiles.append(main)
+    if any(fp.sigma_s is None for fp in profiles):
+        return None
+    t = np.array([(fp.window_ns[0] + fp.window_ns[1]) / 2.0 for fp in profiles])
+    r = np.array([fp.residual_s for fp in profiles])
+    w = 1.0 / (np.array([fp.sigma_s for fp in profiles], dtype=float) * widen) ** 2
+    t_ref = (t0 + t1) // 2
+    x = (t - t_ref) / NS_PER_S
+    A = np.column_stack([np.ones_like(x), x])
+    cov = np.linalg.inv(A.T @ (w[:, None] * A))
+    offset, rate = cov @ (A.T @ (w * r))
+    sigma = math.sqrt(cov[1, 1])
+    applied = abs(rate) > config.apply_sigmas * sigma and abs(rate) * span_s > config.min_apply_s
+    points: list[tuple[int, float, float | None]] = [
+        (int(round(ti)), float(ri), 1.0 / math.sqrt(wi)) for ti, ri, wi in zip(t, r, w)
+    ]
+    drift = ClockDrift(
+        float(rate), sigma, t_ref, span_s, points, bool(applied), float(offset), math.sqrt(cov[0, 0])
+    )
+    log.info("floor camera clock rate: %s", drift.describe())
+    return drift
+
+
+def _overlap(a: tuple[int, int], b: tuple[int, int]) -> bool:
+    return a[0] < b[1] and b[0] < a[1]
 
 
 # =========================================================================== front camera
@@ -633,6 +784,8 @@ def resolve_time_offsets(
             floor, fixed_s[floor], None, OffsetSource.FIXED, seed, fixed_s[floor] - seed
         )
     else:
+        drift: ClockDrift | None = None
+        drift_note = ""
         try:
             if raw is None or len(raw) == 0:
                 raise EstimationError("no floor-code fix: the floor camera's offset cannot be estimated")
@@ -645,29 +798,53 @@ def resolve_time_offsets(
                 config,
                 fusion_config,
             )
+            try:
+                drift = estimate_floor_drift(
+                    log_.floor.timestamps_ns,
+                    log_.imu,
+                    raw,
+                    fp,
+                    log_.velocity,
+                    log_.floor.camera,
+                    config,
+                    fusion_config,
+                    floor_variance_factor,
+                )
+            except EstimationError as e:
+                drift_note = f"clock rate not checked ({e})"
+            residual, sigma_fp = fp.residual_s, fp.sigma_s
+            if sigma_fp is not None:
+                sigma_fp *= math.sqrt(max(floor_variance_factor, 1.0))
+            if drift is not None and drift.applied:
+                # the offset is the rate's line at the flight's middle (where the correction is
+                # 0); the front profile and the whole-flight solve read the corrected floor stamps
+                residual, sigma_fp = drift.offset_s, drift.offset_sigma_s
+                stream = copy.copy(log_.floor)
+                stream.timestamps_ns = stream.timestamps_ns + drift.correction_ns(stream.timestamps_ns)
+                log_ = replace(log_, cameras={**log_.cameras, floor: stream})
+                raw = replace(raw, timestamps_ns=raw.timestamps_ns + drift.correction_ns(raw.timestamps_ns))
+                fused_shift_ns = int(round(residual * NS_PER_S))
             # the profile's trajectory, unless it covers only a window of the flight; a profile
             # without curvature (sigma None) leaves the offset undetermined: the front profile
             # then reads the trajectory at the log's floor stamps, not at that arbitrary minimum
-            if fp.sigma_s is None:
+            elif fp.sigma_s is None:
                 pass
             elif fp.whole_flight:
                 fused = fp.trajectory
             else:
                 fused_shift_ns = int(round(fp.residual_s * NS_PER_S))
-            sigma_fp = fp.sigma_s
-            if sigma_fp is not None:
-                sigma_fp *= math.sqrt(max(floor_variance_factor, 1.0))
-            applied = fp.residual_s if _significant(fp.residual_s, sigma_fp, config) else 0.0
+            applied = residual if _significant(residual, sigma_fp, config) else 0.0
             out.cameras[floor] = CameraOffset(
                 floor,
-                seed + fp.residual_s,
+                seed + residual,
                 sigma_fp,
                 OffsetSource.ESTIMATED,
                 seed,
                 applied,
-                fp.note,
+                "; ".join(n for n in (fp.note, drift_note) if n),
                 fp.evaluations,
                 config.apply_sigmas,
+                drift,
             )
         except EstimationError as e:
             out.cameras[floor] = CameraOffset(floor, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
@@ -785,22 +962,20 @@ def shift_log(log_: FlightLog, offsets: TimeOffsets) -> FlightLog:
     added); frames still stream from the same files."""
     cams = {}
     for name, stream in log_.cameras.items():
-        d = offsets.shift_ns(name)
-        if d:
+        if offsets.shift_ns(name) or offsets.drift_applied(name):
             stream = copy.copy(stream)
-            stream.timestamps_ns = np.asarray(stream.timestamps_ns, dtype=np.int64) + d
+            stream.timestamps_ns = offsets.stamps(name, stream.timestamps_ns)
         cams[name] = stream
     return replace(log_, cameras=cams)
 
 
 def shift_detections(det, offsets: TimeOffsets):
     """A copy of a DetectionResult with each detection's stamp shifted like its camera's."""
+    moved = {name for name in offsets.cameras if offsets.shift_ns(name) or offsets.drift_applied(name)}
     return replace(
         det,
         detections=[
-            replace(d, timestamp_ns=int(d.timestamp_ns) + offsets.shift_ns(d.camera))
-            if offsets.shift_ns(d.camera)
-            else d
+            replace(d, timestamp_ns=int(offsets.stamps(d.camera, d.timestamp_ns))) if d.camera in moved else d
             for d in det.detections
         ],
     )

@@ -187,6 +187,7 @@ def simulate(
     placement_error_deg: float = 0.0,
     placement_seed: int | None = None,
     time_offset_ms: dict[str, float] | float | None = None,
+    clock_drift_ppm: dict[str, float] | float | None = None,
     camera_options: CameraOptions | None = None,
     extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
     velocity_rate_hz: float | None = None,
@@ -227,6 +228,9 @@ def simulate(
     offsets, Kalibr's sign (t_imu = t_cam + offset): each frame is rendered at its true time t
     and logged with the stamp t - offset (ground truth, IMU and velocity stay in the true clock);
     frames whose stamp would fall before the flight's start are left out.
+    `clock_drift_ppm` (likewise per camera): each camera's clock runs fast by that many ppm of
+    the flight's time: the stamp is t - offset - ppm 1e-6 (t - start), the offset growing over
+    the flight as a free-running camera oscillator's does (fusion.estimate.timeoffset.ClockDrift).
     `camera_options` (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus,
     ...) and lens changes (focal length, distortion) on top of the scenario's.
     `extrinsic_error_deg` ({"cam0": (rx, ry, rz)}, degrees): each named camera's true mount is
@@ -355,9 +359,17 @@ def simulate(
     ]
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
     offset_ns = _camera_offsets_ns(time_offset_ms, list(sc.cameras))
+    drift_ns = _camera_offsets_ns(clock_drift_ppm, list(sc.cameras), "clock drift")  # ppm x 1e6
+
+    def stamp_ns(name: str, t_ns):
+        """The logged stamp of camera `name` for true time(s) t_ns."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        drift = np.round(drift_ns.get(name, 0) * 1e-12 * (t - t0_ns)).astype(np.int64)
+        return t - offset_ns.get(name, 0) - drift
+
     mount_err = _mount_errors_rad(extrinsic_error_deg, list(sc.cameras))
-    if offset_ns:
-        frame_ns = frame_ns[frame_ns - max(offset_ns.values()) >= t0_ns]
+    if offset_ns or drift_ns:
+        frame_ns = frame_ns[np.all([stamp_ns(n, frame_ns) >= t0_ns for n in sc.cameras], axis=0)]
 
     readable: list[bool] = []
     with FlightLogWriter(Path(out_dir), overwrite=overwrite) as writer:
@@ -405,7 +417,7 @@ def simulate(
             cpu_s[0] += cpu
             for k, pngs, ok in results:
                 for name, png in zip(names, pngs):
-                    writer.write_frame_png(name, int(frame_ns[k]) - offset_ns.get(name, 0), png)
+                    writer.write_frame_png(name, int(stamp_ns(name, frame_ns[k])), png)
                 if ok is not None:
                     readable.append(ok)
                 if bar is not None:
@@ -449,22 +461,23 @@ def simulate(
     )
 
 
-def _camera_offsets_ns(time_offset_ms, names: list[str]) -> dict[str, int]:
-    """{camera: offset ns} from `time_offset_ms` (a number for every camera, or a dict);
-    SimulationError for an unknown camera or a non-finite value."""
+def _camera_offsets_ns(time_offset_ms, names: list[str], what: str = "time offset") -> dict[str, int]:
+    """{camera: value x 1e6 as int} from `time_offset_ms` (a number for every camera, or a
+    dict): ms -> ns for offsets, ppm -> 1e-6 ppm for clock drifts; SimulationError naming
+    `what` for an unknown camera or a non-finite value."""
     if time_offset_ms is None:
         return {}
     given = time_offset_ms if isinstance(time_offset_ms, dict) else {n: time_offset_ms for n in names}
     out = {}
     for name, ms in given.items():
         if name not in names:
-            raise SimulationError(f"time offset for unknown camera {name!r}; cameras: {', '.join(names)}")
+            raise SimulationError(f"{what} for unknown camera {name!r}; cameras: {', '.join(names)}")
         try:
             v = float(ms)
         except (TypeError, ValueError):
-            raise SimulationError(f"time offset of {name}: {ms!r} is not a number") from None
+            raise SimulationError(f"{what} of {name}: {ms!r} is not a number") from None
         if not math.isfinite(v):
-            raise SimulationError(f"time offset of {name} must be finite, got {ms!r}")
+            raise SimulationError(f"{what} of {name} must be finite, got {ms!r}")
         out[name] = int(round(v * 1e6))
     return out
 
