@@ -112,6 +112,11 @@ class TimeOffsetConfig:
     # profile windows (a window in each of the flight's first and last thirds)
     check_drift: bool = True
     drift_min_windows: float = 3.0
+    # profiles made again on the corrected stamps after a rate is applied: a window's estimate
+    # belongs to where its fixes see motion, not to its centre, which the first line misreads
+    # while the offset still drifts across the window (100 ppm over 100 s: 108 +- 2 ppm, the
+    # offset at the middle 0.7 ms off; BENCHMARKS.md, twenty-second session)
+    drift_refinements: int = 1
 
 
 @dataclass
@@ -604,6 +609,15 @@ def estimate_floor_drift(
     return drift
 
 
+def _rate_corrected(log_: FlightLog, raw: Trajectory, drift: ClockDrift) -> tuple[FlightLog, Trajectory]:
+    """The log's floor stamps and the PnP poses' stamps corrected for the clock rate."""
+    floor = CameraRole.FLOOR.value
+    stream = copy.copy(log_.floor)
+    stream.timestamps_ns = stream.timestamps_ns + drift.correction_ns(stream.timestamps_ns)
+    moved = replace(raw, timestamps_ns=raw.timestamps_ns + drift.correction_ns(raw.timestamps_ns))
+    return replace(log_, cameras={**log_.cameras, floor: stream}), moved
+
+
 def _overlap(a: tuple[int, int], b: tuple[int, int]) -> bool:
     return a[0] < b[1] and b[0] < a[1]
 
@@ -818,11 +832,34 @@ def resolve_time_offsets(
             if drift is not None and drift.applied:
                 # the offset is the rate's line at the flight's middle (where the correction is
                 # 0); the front profile and the whole-flight solve read the corrected floor stamps
+                for _ in range(config.drift_refinements):
+                    lg, rw = _rate_corrected(log_, raw, drift)
+                    again = estimate_floor_drift(
+                        lg.floor.timestamps_ns,
+                        lg.imu,
+                        rw,
+                        estimate_floor_offset(
+                            lg.floor.timestamps_ns,
+                            lg.imu,
+                            rw,
+                            lg.velocity,
+                            lg.floor.camera,
+                            config,
+                            fusion_config,
+                        ),
+                        lg.velocity,
+                        lg.floor.camera,
+                        config,
+                        fusion_config,
+                        floor_variance_factor,
+                    )
+                    if again is None:
+                        break
+                    drift = replace(
+                        again, rate=drift.rate + again.rate, t_ref_ns=drift.t_ref_ns, applied=True
+                    )
                 residual, sigma_fp = drift.offset_s, drift.offset_sigma_s
-                stream = copy.copy(log_.floor)
-                stream.timestamps_ns = stream.timestamps_ns + drift.correction_ns(stream.timestamps_ns)
-                log_ = replace(log_, cameras={**log_.cameras, floor: stream})
-                raw = replace(raw, timestamps_ns=raw.timestamps_ns + drift.correction_ns(raw.timestamps_ns))
+                log_, raw = _rate_corrected(log_, raw, drift)
                 fused_shift_ns = int(round(residual * NS_PER_S))
             # the profile's trajectory, unless it covers only a window of the flight; a profile
             # without curvature (sigma None) leaves the offset undetermined: the front profile
