@@ -1297,22 +1297,22 @@ def add_readout_covariances(
     back ends' landmark measurements), keyed by stamps shifted like them when `time_offsets`
     were applied."""
 
-    def shift(camera: str) -> int:
-        return 0 if time_offsets is None else time_offsets.shift_ns(camera)
+    def moved(camera: str, stamps: list[int]) -> list[int]:
+        """The stamps as the applied offsets moved them (the clock rate's correction included)."""
+        if time_offsets is None:
+            return stamps
+        return time_offsets.stamps(camera, np.array(stamps, dtype=np.int64)).tolist()
 
     if report.pose_cov_added:
         floor = CameraRole.FLOOR.value
         pnp_key = str(Estimator.PNP)
-        stamps = np.fromiter(report.pose_cov_added, dtype=np.int64)
-        if time_offsets is not None:
-            stamps = time_offsets.stamps(floor, stamps)  # the clock rate's correction included
-        added = dict(zip(stamps.tolist(), report.pose_cov_added.values()))
+        added = dict(zip(moved(floor, list(report.pose_cov_added)), report.pose_cov_added.values()))
         loc.trajectories[pnp_key] = add_pose_covariance(loc.trajectories[pnp_key], added)
     for camera, by_key in report.sighting_cov_added.items():
         if camera != CameraRole.FRONT.value or not by_key:
             continue  # load sightings come from the front camera only
-        s = shift(camera)
-        sightings = {(t + s, load_id): c for (t, load_id), c in by_key.items()}
+        stamps = moved(camera, [t for t, _ in by_key])
+        sightings = {(t, load_id): c for t, ((_, load_id), c) in zip(stamps, by_key.items())}
         loc.camera_frame_observations = add_sighting_covariance(loc.camera_frame_observations, sightings)
 
 

@@ -6,6 +6,7 @@ clock emptied every fused load map."""
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import gtsam
@@ -263,6 +264,26 @@ def test_a_drifting_floor_clock_is_measured_and_corrected():
     assert "clock rate +" in off.lines()[0] and off.as_dict()["cam0"]["clock_drift"]["applied"]
     # the stamps' consider term holds the rate's own uncertainty over the flight
     assert c0.stamp_variance_s2 >= c0.drift.stamp_variance_s2 > 0
+
+
+def test_a_drifting_front_clock_is_measured_from_the_thirds_of_its_sightings():
+    """The front camera's clock 400 ppm fast (9.6 ms over 24 s): its profile on the sightings of
+    each third of the flight gives the rate; the sightings' corrected stamps are within 1 ms."""
+    fl = _flight(24.0, 4, 0.0, 0.003)
+    t_true = np.array([o.timestamp_ns for o in fl["obs"]]) + 3_000_000
+    drift = np.round(400e-6 * (t_true - fl["truth"].timestamps_ns[0])).astype(np.int64)
+    obs = [replace(o, timestamp_ns=int(o.timestamp_ns - d)) for o, d in zip(fl["obs"], drift)]
+    t_front = fl["t_front"] - np.round(
+        400e-6 * (fl["truth"].timestamps_ns - fl["truth"].timestamps_ns[0])
+    ).astype(np.int64)
+    fl = {**fl, "obs": obs, "t_front": t_front}
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=4.0))
+    c1 = off.cameras["cam1"]
+    assert c1.drift is not None and c1.drift.applied, c1.as_dict()
+    assert abs(c1.drift.rate - 400e-6) < max(3 * c1.drift.sigma, 40e-6), c1.drift.as_dict()
+    err_ms = np.abs(off.stamps("cam1", [o.timestamp_ns for o in obs]) - t_true) * 1e-6
+    assert err_ms.max() < 1.0, err_ms.max()
+    assert not off.drift_applied("cam0")
 
 
 def test_a_steady_clock_keeps_its_stamps_and_a_short_flight_is_not_checked():
