@@ -633,15 +633,24 @@ def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
 
 def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_their_shifts():
     """pipeline.add_readout_covariances: the floor pose covariance by the floor stamps, the
-    front sightings' by (stamp, load), each shifted by its camera's applied time offset; and the
-    named warning for a front camera read out longer than RS_SIGHTINGS_WARN_READOUT_S."""
+    front sightings' by (stamp, load), each shifted by its camera's applied time offset (the
+    floor's clock-rate correction included); and the named warning for a front camera read out
+    longer than RS_SIGHTINGS_WARN_READOUT_S."""
     from fusion import pipeline
+    from fusion.estimate.timeoffset import CameraOffset, ClockDrift, OffsetSource, TimeOffsets
     from fusion.qr.rolling_shutter import RollingShutterReport
     from fusion.types import LoadObservation
 
-    class Offsets:  # TimeOffsets.shift_ns: the cameras' stamps moved by the applied offsets
-        def shift_ns(self, camera: str) -> int:
-            return {"cam0": 7, "cam1": -3}[camera]
+    est = OffsetSource.ESTIMATED
+    # the floor camera's stamps moved by 7 ns and by 1 % of their distance from 0 (100 -> 108),
+    # the front camera's by -3 ns
+    rate = ClockDrift(0.01, 1e-4, 0, 1.0, applied=True)
+    offsets = TimeOffsets(
+        {
+            "cam0": CameraOffset("cam0", 7e-9, 1e-9, est, 0.0, 7e-9, drift=rate),
+            "cam1": CameraOffset("cam1", -3e-9, 1e-9, est, 0.0, -3e-9),
+        }
+    )
 
     C_pose, C_sight = np.eye(6) * 1e-6, np.eye(3) * 1e-8
     report = RollingShutterReport(
@@ -650,7 +659,7 @@ def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_thei
         sighting_cov_added={"cam1": {(200, "L1"): C_sight}},
     )
     traj = Trajectory(
-        "pnp", np.array([107, 207], dtype=np.int64), np.tile(np.eye(4), (2, 1, 1)), np.zeros((2, 6, 6))
+        "pnp", np.array([108, 207], dtype=np.int64), np.tile(np.eye(4), (2, 1, 1)), np.zeros((2, 6, 6))
     )
     obs = [
         LoadObservation(197, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
@@ -658,7 +667,7 @@ def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_thei
         LoadObservation(200, "L1", np.zeros(3), p_cam=np.ones(3), cov_cam=np.zeros((3, 3))),
     ]
     loc = pipeline.LocalizeResult({"pnp": traj}, {}, {}, {}, camera_frame_observations=obs)
-    pipeline.add_readout_covariances(loc, report, Offsets())
+    pipeline.add_readout_covariances(loc, report, offsets)
     np.testing.assert_array_equal(loc.trajectories["pnp"].covariances, [C_pose, np.zeros((6, 6))])
     assert [float(o.cov_cam[0, 0]) for o in loc.camera_frame_observations] == [1e-8, 0.0, 0.0]
     warning = pipeline.rolling_shutter_sightings_warning(report)
