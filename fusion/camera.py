@@ -154,6 +154,22 @@ class CameraModel:
         return np.array([[self.fu, 0.0, self.cu], [0.0, self.fv, self.cv], [0.0, 0.0, 1.0]])
 
     @property
+    def projection_key(self) -> tuple:
+        """Everything that decides where a ray lands in the image (size, intrinsics, distortion
+        model and coefficients): the key of the caches built per camera."""
+        return (
+            self.width,
+            self.height,
+            self.fu,
+            self.fv,
+            self.cu,
+            self.cv,
+            self.distortion_model,
+            *self.distortion.tolist(),
+            self.k3,
+        )
+
+    @property
     def equidistant(self) -> bool:
         return self.distortion_model == EQUIDISTANT
 

@@ -241,15 +241,7 @@ _RECTIFY: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 def _rectify_maps(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     """cv2.remap maps from a fisheye (equidistant) image to the pinhole image of the same size and
     intrinsics; cached per camera."""
-    key = (
-        camera.width,
-        camera.height,
-        camera.fu,
-        camera.fv,
-        camera.cu,
-        camera.cv,
-        *camera.distortion.tolist(),
-    )
+    key = camera.projection_key
     maps = _RECTIFY.get(key)
     if maps is None:
         u, v = np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float))

@@ -204,21 +204,8 @@ class _CameraRays:
 _RAYS: dict[tuple, _CameraRays] = {}
 
 
-def _camera_key(camera: CameraModel) -> tuple:
-    return (
-        camera.width,
-        camera.height,
-        camera.fu,
-        camera.fv,
-        camera.cu,
-        camera.cv,
-        camera.distortion_model,
-        tuple(camera.distortion),
-    )
-
-
 def _rays(camera: CameraModel) -> _CameraRays:
-    key = _camera_key(camera)
+    key = camera.projection_key
     r = _RAYS.get(key)
     if r is None:
         if len(_RAYS) > 8:

@@ -30,17 +30,7 @@ def opencv_undistorts(camera: CameraModel) -> bool:
     """Whether OpenCV's iterative undistortPoints reproduces CameraModel.undistort_normalized
     (to ROUND_TRIP_TOL_PX on distorting back) over a grid covering the image and an
     IMAGE_MARGIN margin; cached per camera parameters."""
-    key = (
-        camera.width,
-        camera.height,
-        camera.fu,
-        camera.fv,
-        camera.cu,
-        camera.cv,
-        camera.distortion_model,
-        *camera.distortion.tolist(),
-        camera.k3,
-    )
+    key = camera.projection_key
     ok = _VERIFIED.get(key)
     if ok is None:
         lo, hi = -IMAGE_MARGIN, 1.0 + IMAGE_MARGIN
