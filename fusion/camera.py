@@ -319,6 +319,46 @@ class CameraModel:
                 break
         return xy
 
+    def lens_fold(self) -> tuple[float, float] | None:
+        """A pixel (u, v) of the image where the distortion model cannot be inverted (it folds:
+        two rays land on one pixel, so the inverse is wrong or undefined there), or None.
+        Checked on a 33 x 25 grid over the whole image: undistorted, then projected back within
+        1e-6 px.  An equidistant lens's pixels beyond 90 degrees off the axis (a fisheye wider
+        than a hemisphere) have no pinhole ray and are not folds: they are skipped when its
+        theta_d(theta) rises monotonically to their radius."""
+        if not self.distorted:
+            return None
+        u, v = np.meshgrid(np.linspace(0.0, self.width - 1.0, 33), np.linspace(0.0, self.height - 1.0, 25))
+        uv = np.column_stack([u.ravel(), v.ravel()])
+        xy = self.undistort_normalized(uv)
+        ok = np.all(np.isfinite(xy), axis=1)
+        if self.equidistant:
+            rd = np.hypot((uv[:, 0] - self.cu) / self.fu, (uv[:, 1] - self.cv) / self.fv)
+            theta = np.linspace(0.0, 0.5 * math.pi, 2001)
+            td = equidistant_theta_d(theta, self.distortion)
+            rising = np.all(np.diff(td) > 0.0)
+            beyond = rd >= td[-1]  # past 90 degrees, reached while theta_d still rises
+            ok |= ~ok & beyond & rising
+        back = self.project(np.column_stack([np.where(np.isfinite(xy), xy, 0.0), np.ones(len(xy))]))
+        good = np.isfinite(xy).all(axis=1)
+        ok &= ~good | (np.abs(back - uv).max(axis=1) < 1e-6)
+        if np.all(ok):
+            return None
+        i = int(np.flatnonzero(~ok)[0])
+        return float(uv[i, 0]), float(uv[i, 1])
+
+    def check_lens(self, source: str) -> None:
+        """CameraModelError naming `source` when the distortion folds inside the image
+        (`lens_fold`): a wrong calibration, or a lens this model cannot hold, would otherwise
+        turn that region's corners into rays metres off, silently."""
+        fold = self.lens_fold()
+        if fold is not None:
+            raise CameraModelError(
+                f"{source}: the {self.distortion_model} distortion {self.dist_cv.tolist()} folds inside the "
+                f"image (not invertible at pixel ({fold[0]:.0f}, {fold[1]:.0f})): a wrong calibration, or "
+                "coefficients for another model or image size"
+            )
+
     def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
         """(N, 2) distorted pixels -> (N, 2) pixels of the ideal (distortion-free) pinhole camera."""
         xy = self.undistort_normalized(uv)
@@ -404,7 +444,7 @@ class CameraModel:
         sigmas = stated_mount_sigmas(data, source)
         fu, fv, cu, cv = intr
         intr_sigma = stated_intrinsics_sigma(data.get("intrinsics_sigma"), fu, fv, source)
-        return cls(
+        cam = cls(
             int(res[0]),
             int(res[1]),
             fu,
@@ -423,6 +463,8 @@ class CameraModel:
             intrinsics_sigma_px=intr_sigma,
             distortion_model=dist_model,
         )
+        cam.check_lens(source)
+        return cam
 
     @classmethod
     def load(cls, path: Path) -> CameraModel:

@@ -204,7 +204,11 @@ def test_simulated_fisheye_flight_states_its_lens(tmp_path):
     # an EuRoC folder whose sensor.yaml gives OpenCV's five radial-tangential coefficients
     sensor = tmp_path / "f" / "mav0" / "cam0" / "sensor.yaml"
     data = yaml.safe_load(sensor.read_text())
-    data.update(distortion_model="radial-tangential", distortion_coefficients=list(CV5))
+    data.update(
+        distortion_model="radial-tangential",
+        distortion_coefficients=list(CV5),
+        intrinsics=[600, 601, 322, 241],
+    )
     sensor.write_text(yaml.safe_dump(data))
     cam0 = read_flight(tmp_path / "f").cameras["cam0"].camera
     assert not cam0.equidistant and cam0.k3 == CV5[4] and np.allclose(cam0.distortion, CV5[:4])
@@ -325,3 +329,39 @@ def test_k3_in_every_file_that_can_state_it(tmp_path):
         CameraModelError, match=r"sensor\.yaml: 'distortion_coefficients' must be a list of 4"
     ):
         CameraModel.load(tmp_path / "sensor.yaml")
+
+
+def test_a_lens_that_folds_inside_the_image_is_refused_where_it_is_read(tmp_path):
+    """k1 = -0.9 at f = 300 px turns the radial factor negative before the image's corners: its
+    inverse there came back 1e14 px off, silently.  sensor.yaml, the camchain, a CameraInfo and
+    the simulator's options now refuse it, naming the file / key; ordinary and real lenses (TUM
+    VI's fisheye, whose corners lie beyond 90 degrees) pass."""
+    from fusion.log.kalibr import read_camchain, write_camchain
+    from fusion.log.rosbag import CAMERA_INFO, camera_from_info, camera_info_msg, typestore_for
+    from fusion.sim.scenarios import CameraOptions, apply_camera_options, build_scenario
+
+    bad = CameraModel(640, 480, 300.0, 300.0, 320.0, 240.0, np.array([-0.9, 0.0, 0.0, 0.0]))
+    assert bad.lens_fold() is not None
+    assert radtan5().lens_fold() is None and fisheye().lens_fold() is None
+    t = TUMVI_CAM0
+    tumvi = CameraModel(
+        512, 512, *t["intrinsics"], np.array(t["distortion_coeffs"]), distortion_model="equidistant"
+    )
+    assert tumvi.lens_fold() is None
+    assert fisheye(k=(-0.2, 0.0, 0.0, 0.0)).lens_fold() is not None  # theta_d turns back before 90 deg
+    bad.save(tmp_path / "sensor.yaml")
+    with pytest.raises(
+        CameraModelError, match=r"sensor\.yaml: the radtan distortion .* folds inside the image"
+    ):
+        CameraModel.load(tmp_path / "sensor.yaml")
+    write_camchain(tmp_path / "camchain.yaml", {"cam0": bad}, {})
+    with pytest.raises(LogError, match=r"camchain\.yaml: cam0: the radtan distortion .* folds"):
+        read_camchain(tmp_path / "camchain.yaml")
+    ts = typestore_for(True)
+    msg = ts.deserialize_ros1(
+        ts.serialize_ros1(camera_info_msg(bad, 0, "cam", True, ts), CAMERA_INFO), CAMERA_INFO
+    )
+    with pytest.raises(LogError, match="bag: CameraInfo: the radtan distortion .* folds"):
+        camera_from_info(msg, "bag")
+    with pytest.raises(SimulationError, match="--distortion: .* folds"):
+        apply_camera_options(build_scenario("default"), CameraOptions(distortion=(-3.0, 0.0, 0.0, 0.0)))

@@ -182,6 +182,10 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             mount_sigma_m=sigmas.get("T_BS_sigma_m"),
             **rs,
         )
+        try:
+            cam.check_lens(where)
+        except CameraModelError as e:
+            raise LogError(str(e)) from None
         topic = block.get("rostopic")
         out[str(key)] = KalibrCamera(str(key), cam, str(topic) if topic else None, int(round(shift_s * 1e9)))
     if not out:

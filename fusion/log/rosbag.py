@@ -632,7 +632,7 @@ def camera_from_info(info, where: str) -> CameraModel:
     dist[: min(n_used, len(D))] = D[:n_used]
     if K[0, 0] <= 0 or K[1, 1] <= 0 or int(info.width) < 1 or int(info.height) < 1:
         raise LogError(f"{where}: CameraInfo has no calibration (zero K or size)")
-    return CameraModel(
+    cam = CameraModel(
         int(info.width),
         int(info.height),
         K[0, 0],
@@ -643,6 +643,11 @@ def camera_from_info(info, where: str) -> CameraModel:
         k3=0.0 if equi else float(dist[4]),
         distortion_model="equidistant" if equi else "radtan",
     )
+    try:
+        cam.check_lens(f"{where}: CameraInfo")
+    except CameraModelError as e:
+        raise LogError(str(e)) from None
+    return cam
 
 
 def camera_info_msg(cam: CameraModel, stamp_ns: int, frame_id: str, ros1: bool, ts):

@@ -14,7 +14,7 @@ import numpy as np
 
 from fusion.camera import DISTORTION_MODELS, CameraModel
 from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, load_payload
-from fusion.errors import SimulationError
+from fusion.errors import CameraModelError, SimulationError
 from fusion.geometry import make_T
 from fusion.log import ImuNoise
 from fusion.qr.symbol import SIM_ECC
@@ -240,6 +240,11 @@ def apply_camera_options(sc: Scenario, options: CameraOptions) -> Scenario:
             cam.distortion = np.zeros(4)  # the other model's coefficients mean something else
         if options.distortion is not None:
             cam.distortion = np.asarray(options.distortion, dtype=float)
+        if options.distortion is not None or options.distortion_model is not None:
+            try:
+                cam.check_lens("--distortion")
+            except CameraModelError as e:
+                raise SimulationError(str(e)) from None
     if options.noise_dn is not None:
         sc.noise_sigma_dn = float(options.noise_dn)
     if options.exposure_s is not None:
