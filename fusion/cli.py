@@ -421,6 +421,13 @@ def build_parser() -> argparse.ArgumentParser:
         "second of flight): PPM for both cameras, or cam0=PPM,cam1=PPM",
     )
     p.add_argument(
+        "--stamp-jitter-ms",
+        type=_time_offsets_ms,
+        default=None,
+        help="camera stamps off by white noise of this sigma (ms; a driver stamping on arrival): "
+        "MS for both cameras, or cam0=MS,cam1=MS",
+    )
+    p.add_argument(
         "--extrinsic-error-deg",
         type=float,
         nargs=3,
@@ -646,6 +653,9 @@ def main(argv: list[str] | None = None) -> int:
                     {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
                 ),
                 clock_drift_ppm=args.clock_drift_ppm,
+                stamp_jitter_ms=(
+                    {k: v * 1e3 for k, v in args.stamp_jitter_ms.items()} if args.stamp_jitter_ms else None
+                ),
                 camera_options=_camera_options(args),
                 extrinsic_error_deg=(
                     None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}

@@ -318,6 +318,25 @@ def test_simulator_stamps_frames_with_a_clock_drift(tmp_path):
         simulate(tmp_path / "x", duration_s=0.2, workers=1, progress=False, clock_drift_ppm={"cam9": 1})
 
 
+def test_simulator_jitters_stamps_when_asked(tmp_path):
+    res = simulate(
+        tmp_path / "s",
+        duration_s=2.0,
+        camera_rate_hz=20,
+        workers=1,
+        progress=False,
+        stamp_jitter_ms={"cam0": 2.0},
+    )
+    log_ = read_flight(res.root)
+    assert log_.front is not None
+    true_ns = log_.front.timestamps_ns  # the front camera's stamps are the true times
+    err_ms = (log_.floor.timestamps_ns - true_ns) * 1e-6
+    assert 1.0 < np.std(err_ms) < 3.0 and np.abs(err_ms).max() <= 0.45 * 50.0
+    assert np.all(np.diff(log_.floor.timestamps_ns) > 0)
+    with pytest.raises(Exception, match="stamp jitter must be >= 0"):
+        simulate(tmp_path / "x", duration_s=0.2, workers=1, progress=False, stamp_jitter_ms=-1.0)
+
+
 # ============================================================================ pipeline
 
 

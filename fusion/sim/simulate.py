@@ -34,7 +34,7 @@ from fusion.sim.render import render_view, rolling_shutter_poses
 from fusion.sim.scenarios import SCENARIOS, CameraOptions, Scenario, apply_camera_options, build_scenario
 
 CAMERA_RATE_HZ = 30.0
-_STREAM_IMU, _STREAM_VEL, _STREAM_FRAME = 1, 2, 3
+_STREAM_IMU, _STREAM_VEL, _STREAM_FRAME, _STREAM_JITTER = 1, 2, 3, 4
 
 
 @dataclass
@@ -188,6 +188,7 @@ def simulate(
     placement_seed: int | None = None,
     time_offset_ms: dict[str, float] | float | None = None,
     clock_drift_ppm: dict[str, float] | float | None = None,
+    stamp_jitter_ms: dict[str, float] | float | None = None,
     camera_options: CameraOptions | None = None,
     extrinsic_error_deg: dict[str, tuple[float, float, float]] | None = None,
     velocity_rate_hz: float | None = None,
@@ -231,6 +232,8 @@ def simulate(
     `clock_drift_ppm` (likewise per camera): each camera's clock runs fast by that many ppm of
     the flight's time: the stamp is t - offset - ppm 1e-6 (t - start), the offset growing over
     the flight as a free-running camera oscillator's does (fusion.estimate.timeoffset.ClockDrift).
+    `stamp_jitter_ms` (likewise per camera): each stamp off by white Gaussian noise of that
+    sigma (a driver stamping frames on arrival); stamps stay increasing.
     `camera_options` (fusion.sim.scenarios.CameraOptions): camera effects (JPEG, noise, defocus,
     ...) and lens changes (focal length, distortion) on top of the scenario's.
     `extrinsic_error_deg` ({"cam0": (rx, ry, rz)}, degrees): each named camera's true mount is
@@ -360,15 +363,31 @@ def simulate(
     frame_ns = sample_times_ns(duration_s, camera_rate_hz, t0_ns)
     offset_ns = _camera_offsets_ns(time_offset_ms, list(sc.cameras))
     drift_ns = _camera_offsets_ns(clock_drift_ppm, list(sc.cameras), "clock drift")  # ppm x 1e6
+    jitter_ns = _camera_offsets_ns(stamp_jitter_ms, list(sc.cameras), "stamp jitter")
+    if any(v < 0 for v in jitter_ns.values()):
+        raise SimulationError("stamp jitter must be >= 0 ms")
+    period_ns, first_ns = 1e9 / camera_rate_hz, int(frame_ns[0]) if len(frame_ns) else t0_ns
+    jitter = {  # per camera and frame index, drawn once; at most 0.45 period so stamps keep their order
+        n: np.clip(
+            np.random.default_rng([seed, _STREAM_JITTER, i]).normal(0.0, v, len(frame_ns) + 1),
+            -0.45 * period_ns,
+            0.45 * period_ns,
+        )
+        for i, (n, v) in enumerate(sorted(jitter_ns.items()))
+    }
 
     def stamp_ns(name: str, t_ns):
         """The logged stamp of camera `name` for true time(s) t_ns."""
         t = np.asarray(t_ns, dtype=np.int64)
         drift = np.round(drift_ns.get(name, 0) * 1e-12 * (t - t0_ns)).astype(np.int64)
-        return t - offset_ns.get(name, 0) - drift
+        out = t - offset_ns.get(name, 0) - drift
+        if name in jitter:
+            k = np.clip(np.round((t - first_ns) / period_ns).astype(np.int64), 0, len(jitter[name]) - 1)
+            out = out + np.round(jitter[name][k]).astype(np.int64)
+        return out
 
     mount_err = _mount_errors_rad(extrinsic_error_deg, list(sc.cameras))
-    if offset_ns or drift_ns:
+    if offset_ns or drift_ns or jitter_ns:
         frame_ns = frame_ns[np.all([stamp_ns(n, frame_ns) >= t0_ns for n in sc.cameras], axis=0)]
 
     readable: list[bool] = []
