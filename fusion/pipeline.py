@@ -1156,6 +1156,7 @@ def _run_into(
         rs_sightings = rolling_shutter_sightings_warning(result.rolling_shutter)
         if rs_sightings is not None:
             result.warnings.append(rs_sightings)
+    _add_stamp_jitter(loc, result)
     result.notes += loc.notes
     unstated = sorted(n for n, c in log.cameras.items() if c.camera.intrinsics_sigma_px is None)
     if unstated:
@@ -1805,6 +1806,28 @@ def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> 
         f"camera's mount is off ({', '.join(mount.significant_axes)}; extrinsic_rotation_bias): its "
         "tilt against gravity reads as IMU noise. Calibrate the mount (--calibrate-extrinsics) "
         "before changing imu0/sensor.yaml"
+    )
+
+
+def _add_stamp_jitter(loc: LocalizeResult, result: RunResult) -> None:
+    """`loc`'s PnP fixes (in place) with the floor stamps' significant jitter (timeoffset.
+    StampJitter) in their covariances, s xi xi^T per fix: white per frame, so measurement noise
+    for every back end; and the named warning."""
+    offsets = result.time_offsets
+    floor = None if offsets is None else offsets.cameras.get(CameraRole.FLOOR.value)
+    jitter = None if floor is None else floor.jitter
+    pnp = str(Estimator.PNP)
+    if jitter is None or not jitter.significant or pnp not in loc.trajectories:
+        return
+    loc.trajectories[pnp] = add_stamp_covariance(loc.trajectories[pnp], jitter.sigma_s**2)
+    result.warnings.append(
+        LogWarning(
+            "floor_stamp_jitter",
+            1,
+            f"the floor camera's stamps jitter by {jitter.sigma_s * 1e3:.2f} ms (1 sigma, {jitter.n} fixes): "
+            "every fix's covariance takes it along the motion. Stamp frames at exposure (a hardware "
+            "trigger, or the driver's sensor timestamp) rather than on arrival",
+        )
     )
 
 

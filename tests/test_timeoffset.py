@@ -318,6 +318,24 @@ def test_simulator_stamps_frames_with_a_clock_drift(tmp_path):
         simulate(tmp_path / "x", duration_s=0.2, workers=1, progress=False, clock_drift_ppm={"cam9": 1})
 
 
+def test_stamp_jitter_is_estimated_and_a_steady_clock_reads_none():
+    """Floor stamps off by 3 ms of white noise: the profile's fixes against its smoothed
+    trajectory give a significant jitter (the likelihood ratio far beyond chi2_1's 0.001
+    quantile) of the right size; exact stamps read none."""
+    fl = _flight(8.0, 3, 0.0)
+    rng = np.random.default_rng(5)
+    jit = np.round(rng.normal(0.0, 3e6, len(fl["t_floor"]))).astype(np.int64)
+    noisy = Trajectory("pnp", fl["t_floor"] + jit, fl["raw"].T_world_body, fl["raw"].covariances)
+    fp = estimate_floor_offset(fl["t_floor"] + jit, fl["imu"], noisy, floor_camera=FLOOR_CAM)
+    assert fp.jitter is not None and fp.jitter.significant, fp.jitter
+    assert 1.0 * MS < fp.jitter.sigma_s < 4.0 * MS, fp.jitter
+    steady = estimate_floor_offset(fl["t_floor"], fl["imu"], fl["raw"], floor_camera=FLOOR_CAM)
+    assert steady.jitter is not None and not steady.jitter.significant, steady.jitter
+    off = resolve_time_offsets(_log({**fl, "t_floor": fl["t_floor"] + jit, "raw": noisy}), noisy, fl["obs"])
+    assert off.cameras["cam0"].jitter is not None and "stamp jitter" in off.lines()[0]
+    assert off.as_dict()["cam0"]["stamp_jitter"]["significant"]
+
+
 def test_simulator_jitters_stamps_when_asked(tmp_path):
     res = simulate(
         tmp_path / "s",
@@ -362,6 +380,35 @@ def _smooth(log_dir: Path, out: Path, offsets_s: dict | None = None):
     """`fusion smooth` through the library (no report): the RunResult."""
     cfg = RunConfig(workers=1, progress=False, incremental=False, time_offsets_s=offsets_s)
     return pipeline.run(log_dir, out, cfg, until="smooth")
+
+
+def test_a_run_with_jittered_floor_stamps_says_so_and_widens_its_fixes(tmp_path):
+    """The sample flight with its floor stamps off by 4 ms of white noise: `fusion smooth` names
+    the jitter (warning floor_stamp_jitter) and the PnP fixes' covariances take it; the exact
+    stamps give neither."""
+    rng = np.random.default_rng(2)
+    dst = tmp_path / "jit"
+    shutil.copytree(SAMPLE, dst)
+    csv = dst / "mav0" / "cam0" / "data.csv"
+    lines = csv.read_text().splitlines()
+    rows = [
+        f"{int(t) + int(np.clip(rng.normal(0, 4e6), -4.5e7, 4.5e7))},{f}"
+        for t, f in (line.split(",") for line in lines[1:])
+    ]
+    csv.write_text("\n".join([lines[0], *rows]) + "\n")
+    jittered = _smooth(dst, tmp_path / "o1")
+    exact = _smooth(SAMPLE, tmp_path / "o2")
+    names = [w.name for w in jittered.warnings]
+    assert "floor_stamp_jitter" in names, jittered.time_offsets.as_dict()
+    assert "floor_stamp_jitter" not in [w.name for w in exact.warnings]
+    jitter = jittered.time_offsets.cameras["cam0"].jitter
+    assert jitter is not None and 2 * MS < jitter.sigma_s < 8 * MS, jitter
+    # the fixes widen along the motion by about what 4 ms of it moves them (this slow flight:
+    # a third of their position variance)
+    cov_j = jittered.trajectories["pnp"].covariances
+    cov_e = exact.trajectories["pnp"].covariances
+    ratio = np.trace(cov_j[:, 3:, 3:], axis1=1, axis2=2) / np.trace(cov_e[:, 3:, 3:], axis1=1, axis2=2)
+    assert np.median(ratio) > 1.2 and np.all(ratio >= 1.0 - 1e-9), np.median(ratio)
 
 
 @pytest.fixture(scope="module")

@@ -117,6 +117,79 @@ class TimeOffsetConfig:
     # while the offset still drifts across the window (100 ppm over 100 s: 108 +- 2 ppm, the
     # offset at the middle 0.7 ms off; BENCHMARKS.md, twenty-second session)
     drift_refinements: int = 1
+    # per-frame stamp noise of the floor camera (StampJitter): a likelihood-ratio statistic
+    # beyond this (chi2_1 at 0.001) and a sigma beyond jitter_min_s make it significant
+    jitter_lr_threshold: float = 10.83
+    jitter_min_s: float = 2e-4
+    jitter_iterations: int = 4
+
+
+@dataclass
+class StampJitter:
+    """White noise on the floor camera's stamps, sigma_s per frame (a driver that stamps a
+    frame on arrival, after a variable transfer latency).  A stamp off by d puts the PnP pose at
+    T(t + d) = T(t) Exp(d xi), xi the body twist, so each fix's error gains d xi along the
+    motion: PnP poses of 0.1 mm sigma read 3 mm off at 1 m/s and 3 ms.  Estimated by maximum
+    likelihood from the floor profile's fixes against its smoothed trajectory (residual e_k,
+    covariance C_k, twist xi_k): e_k ~ N(0, C_k + s xi_k xi_k^T), s = sigma^2; `lr` the
+    likelihood-ratio statistic against s = 0.  Significant (TimeOffsetConfig.jitter_*): the
+    fixes' covariances take s xi xi^T before any back end (white per frame, it is measurement
+    noise, not a common error)."""
+
+    sigma_s: float
+    lr: float
+    n: int
+    significant: bool = False
+
+    def as_dict(self) -> dict:
+        return {
+            "sigma_ms": self.sigma_s * MS_PER_S,
+            "lr": self.lr,
+            "fixes": self.n,
+            "significant": self.significant,
+        }
+
+    def describe(self) -> str:
+        used = "applied to the fixes" if self.significant else "not significant"
+        return f"stamp jitter {self.sigma_s * MS_PER_S:.2f} ms ({used})"
+
+
+def estimate_stamp_jitter(
+    raw: Trajectory, smoothed: Trajectory, config: TimeOffsetConfig | None = None
+) -> StampJitter | None:
+    """StampJitter of the fixes `raw` (their covariances) against `smoothed` (the same clock):
+    None without covariances or with fewer than 10 fixes inside the smoothed span."""
+    config = config or TimeOffsetConfig()
+    if raw.covariances is None or len(smoothed) < 2:
+        return None
+    ts = smoothed.timestamps_ns
+    inside = (raw.timestamps_ns >= ts[0]) & (raw.timestamps_ns <= ts[-1])
+    if inside.sum() < 10:
+        return None
+    t = raw.timestamps_ns[inside]
+    T_s = PoseInterpolator(ts, smoothed.T_world_body)(t)
+    e = se3_log(
+        np.einsum("nji,njk->nik", inv_T(T_s), raw.T_world_body[inside])
+        if False
+        else inv_T(T_s) @ raw.T_world_body[inside]
+    )
+    twist_all = body_twists(smoothed)
+    xi = np.stack([np.interp(t, ts, twist_all[:, a]) for a in range(6)], axis=1)
+    Ci = np.linalg.inv(np.asarray(raw.covariances)[inside])
+    q = np.einsum("ni,nij,nj->n", xi, Ci, xi)
+    a = np.einsum("ni,nij,nj->n", xi, Ci, e)
+
+    def minus2loglik(s: float) -> float:  # up to the terms without s
+        return float(np.sum(np.log1p(s * q) - s * a**2 / (1.0 + s * q)))
+
+    hi = (config.search_half_width_s) ** 2
+    res = minimize_scalar(
+        lambda u: minus2loglik(u * u), bounds=(0.0, math.sqrt(hi)), method="bounded", options={"xatol": 1e-6}
+    )
+    sigma = float(abs(res.x))
+    lr = max(0.0, minus2loglik(0.0) - minus2loglik(sigma * sigma))
+    significant = lr > config.jitter_lr_threshold and sigma > config.jitter_min_s
+    return StampJitter(sigma, lr, int(inside.sum()), bool(significant))
 
 
 @dataclass
@@ -193,6 +266,7 @@ class CameraOffset:
     # the default's), for stamp_variance_s2
     apply_sigmas: float | None = None
     drift: ClockDrift | None = None  # the floor camera's clock rate, when checked
+    jitter: StampJitter | None = None  # the floor camera's stamp noise, when estimated
 
     @property
     def effective_s(self) -> float:
@@ -227,6 +301,7 @@ class CameraOffset:
             "note": self.note,
             "stamp_sigma_ms": math.sqrt(self.stamp_variance_s2) * MS_PER_S,
             "clock_drift": None if self.drift is None else self.drift.as_dict(),
+            "stamp_jitter": None if self.jitter is None else self.jitter.as_dict(),
         }
 
     def describe(self) -> str:
@@ -242,6 +317,8 @@ class CameraOffset:
             used = "log stamps used"
         note = f"; {self.note}" if self.note else ""
         drift = "" if self.drift is None else f"; {self.drift.describe()}"
+        if self.jitter is not None and self.jitter.significant:
+            drift += f"; {self.jitter.describe()}"
         return (
             f"time offset {self.camera} ({role}): {self.offset_s * MS_PER_S:+.2f}{sig} ms, "
             f"{self.source}{seed}; {used}{drift}{note}"
@@ -448,6 +525,7 @@ class FloorProfile:
     note: str = ""
     whole_flight: bool = True  # False: profiled on a window of the flight (profile_window_s)
     window_ns: tuple[int, int] = (0, 0)  # the stamps profiled (log clock)
+    jitter: StampJitter | None = None  # the fixes' stamp noise at the estimate
 
 
 def estimate_floor_offset(
@@ -540,7 +618,48 @@ def estimate_floor_offset(
         note,
         whole_flight=(t1 - t0) < int(config.profile_window_s * NS_PER_S),
         window_ns=(int(t0), int(t1)),
+        jitter=_profile_jitter(
+            frames, imu, _shift_traj(sub, d_best), trajs[d_best], d_best, velocity, floor_camera, pcfg, config
+        ),
     )
+
+
+def _profile_jitter(
+    frames: np.ndarray,
+    imu: ImuData | None,
+    fixes: Trajectory,
+    smoothed: Trajectory,
+    d_ns: int,
+    velocity: VelocityData | None,
+    floor_camera: CameraModel | None,
+    pcfg: FusionConfig,
+    config: TimeOffsetConfig,
+) -> StampJitter | None:
+    """estimate_stamp_jitter of the profile's fixes (shifted by the estimate d_ns) against its
+    smoothed trajectory; when significant, solved again with the fixes widened by the jitter
+    found and estimated again, `jitter_iterations` times: the smoother follows fixes it takes
+    as exact, which hid about half of the jitter (4 ms read 1.9 ms on the sample flight)."""
+    jitter = estimate_stamp_jitter(fixes, smoothed, config)
+    for _ in range(config.jitter_iterations):
+        if jitter is None or not jitter.significant:
+            break
+        res = smooth(
+            frames + d_ns,
+            imu,
+            add_stamp_covariance(fixes, jitter.sigma_s**2),
+            None,
+            velocity=velocity,
+            config=pcfg,
+            floor_camera=floor_camera,
+        )
+        again = estimate_stamp_jitter(fixes, res.trajectory, config)
+        if again is None:
+            break
+        done = abs(again.sigma_s - jitter.sigma_s) < 0.05 * jitter.sigma_s
+        jitter = again
+        if done:
+            break
+    return jitter
 
 
 def estimate_floor_drift(
@@ -893,19 +1012,20 @@ def resolve_time_offsets(
                 # 0); the front profile and the whole-flight solve read the corrected floor stamps
                 for _ in range(config.drift_refinements):
                     lg, rw = _rate_corrected(log_, raw, drift)
+                    fp = estimate_floor_offset(
+                        lg.floor.timestamps_ns,
+                        lg.imu,
+                        rw,
+                        lg.velocity,
+                        lg.floor.camera,
+                        config,
+                        fusion_config,
+                    )
                     again = estimate_floor_drift(
                         lg.floor.timestamps_ns,
                         lg.imu,
                         rw,
-                        estimate_floor_offset(
-                            lg.floor.timestamps_ns,
-                            lg.imu,
-                            rw,
-                            lg.velocity,
-                            lg.floor.camera,
-                            config,
-                            fusion_config,
-                        ),
+                        fp,
                         lg.velocity,
                         lg.floor.camera,
                         config,
@@ -941,6 +1061,7 @@ def resolve_time_offsets(
                 fp.evaluations,
                 config.apply_sigmas,
                 drift,
+                fp.jitter,
             )
         except EstimationError as e:
             out.cameras[floor] = CameraOffset(floor, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
