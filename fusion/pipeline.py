@@ -76,6 +76,7 @@ from fusion.estimate.timeoffset import (
     shift_detections,
     shift_log,
     whole_flight_input,
+    widen_sightings,
 )
 from fusion.estimate.window import (
     AS_BUILT_WINDOW_S,
@@ -1156,7 +1157,7 @@ def _run_into(
         rs_sightings = rolling_shutter_sightings_warning(result.rolling_shutter)
         if rs_sightings is not None:
             result.warnings.append(rs_sightings)
-    _add_stamp_jitter(loc, result)
+    _add_stamp_jitter(log, loc, result)
     result.notes += loc.notes
     unstated = sorted(n for n, c in log.cameras.items() if c.camera.intrinsics_sigma_px is None)
     if unstated:
@@ -1809,26 +1810,44 @@ def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> 
     )
 
 
-def _add_stamp_jitter(loc: LocalizeResult, result: RunResult) -> None:
-    """`loc`'s PnP fixes (in place) with the floor stamps' significant jitter (timeoffset.
-    StampJitter) in their covariances, s xi xi^T per fix: white per frame, so measurement noise
-    for every back end; and the named warning."""
+def _add_stamp_jitter(log: FlightLog, loc: LocalizeResult, result: RunResult) -> None:
+    """`loc` (in place) with the cameras' significant stamp jitter (timeoffset.StampJitter):
+    the floor camera's in the PnP fixes' covariances (s xi xi^T per fix), the front camera's in
+    the load sightings' camera-frame covariances (s u u^T, u the point's rate with the stamp):
+    white per frame, so measurement noise for every back end; a named warning per camera.  The
+    per-frame estimators' own load maps (paper, PnP) are made before and do not take it."""
     offsets = result.time_offsets
-    floor = None if offsets is None else offsets.cameras.get(CameraRole.FLOOR.value)
-    jitter = None if floor is None else floor.jitter
-    pnp = str(Estimator.PNP)
-    if jitter is None or not jitter.significant or pnp not in loc.trajectories:
+    if offsets is None:
         return
-    loc.trajectories[pnp] = add_stamp_covariance(loc.trajectories[pnp], jitter.sigma_s**2)
-    result.warnings.append(
-        LogWarning(
-            "floor_stamp_jitter",
-            1,
-            f"the floor camera's stamps jitter by {jitter.sigma_s * 1e3:.2f} ms (1 sigma, {jitter.n} fixes): "
-            "every fix's covariance takes it along the motion. Stamp frames at exposure (a hardware "
-            "trigger, or the driver's sensor timestamp) rather than on arrival",
+    pnp = str(Estimator.PNP)
+    for role in (CameraRole.FLOOR, CameraRole.FRONT):
+        c = offsets.cameras.get(role.value)
+        jitter = None if c is None else c.jitter
+        if jitter is None or not jitter.significant or pnp not in loc.trajectories:
+            continue
+        s2 = jitter.sigma_s**2
+        if role == CameraRole.FLOOR:
+            loc.trajectories[pnp] = add_stamp_covariance(loc.trajectories[pnp], s2)
+            name, what = "floor", f"{jitter.n} fixes): every fix's covariance takes it along the motion"
+        elif role.value in log.cameras:
+            loc.camera_frame_observations = widen_sightings(
+                loc.camera_frame_observations, loc.trajectories[pnp], log.cameras[role.value].camera, s2
+            )
+            name = "front"
+            what = (
+                f"{jitter.n} load sightings): the fused load maps' sightings take it (not the per-frame maps)"
+            )
+        else:
+            continue
+        result.warnings.append(
+            LogWarning(
+                f"{name}_stamp_jitter",
+                1,
+                f"the {name} camera's ({role.value}) stamps jitter by {jitter.sigma_s * 1e3:.2f} ms "
+                f"(1 sigma, {what}. Stamp frames at exposure (a hardware trigger, or the driver's "
+                "sensor timestamp) rather than on arrival",
+            )
         )
-    )
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

@@ -336,6 +336,27 @@ def test_stamp_jitter_is_estimated_and_a_steady_clock_reads_none():
     assert off.as_dict()["cam0"]["stamp_jitter"]["significant"]
 
 
+def test_front_stamp_jitter_is_estimated_from_the_sightings_and_widens_them():
+    """The front camera's sightings stamped with 3 ms of white noise: their residuals from
+    their landmarks, against how fast each point moves with the stamp, give the jitter; exact
+    stamps give none (the covariances' own scale is free: only an excess along the motion
+    counts); widen_sightings adds s u u^T in the camera frame."""
+    from fusion.estimate.timeoffset import widen_sightings
+
+    fl = _flight(8.0, 4, 0.0)
+    rng = np.random.default_rng(1)
+    obs = [replace(o, timestamp_ns=int(o.timestamp_ns + rng.normal(0, 3e6))) for o in fl["obs"]]
+    fr = estimate_front_offset(fl["truth"], obs, FRONT_CAM)
+    assert fr.jitter is not None and fr.jitter.significant and 2 * MS < fr.jitter.sigma_s < 4 * MS, fr.jitter
+    exact = estimate_front_offset(fl["truth"], fl["obs"], FRONT_CAM)
+    assert exact.jitter is not None and not exact.jitter.significant, exact.jitter
+    wide = widen_sightings(obs, fl["truth"], FRONT_CAM, (3 * MS) ** 2)
+    extra = np.array([np.trace(w.cov_cam - o.cov_cam) for w, o in zip(wide, obs)])
+    assert np.all(extra >= 0) and np.median(extra) > 0
+    # what the widening adds is (3 ms x the point's speed)^2: a 1 m/s point gains 9 mm^2
+    assert np.median(np.sqrt(extra)) / (3 * MS) < 5.0
+
+
 def test_simulator_jitters_stamps_when_asked(tmp_path):
     res = simulate(
         tmp_path / "s",

@@ -134,7 +134,8 @@ class StampJitter:
     covariance C_k, twist xi_k): e_k ~ N(0, C_k + s xi_k xi_k^T), s = sigma^2; `lr` the
     likelihood-ratio statistic against s = 0.  Significant (TimeOffsetConfig.jitter_*): the
     fixes' covariances take s xi xi^T before any back end (white per frame, it is measurement
-    noise, not a common error)."""
+    noise, not a common error).  The front camera's likewise from its load sightings against
+    their landmarks (`estimate_front_offset`), widening the sightings (`widen_sightings`)."""
 
     sigma_s: float
     lr: float
@@ -168,28 +169,42 @@ def estimate_stamp_jitter(
         return None
     t = raw.timestamps_ns[inside]
     T_s = PoseInterpolator(ts, smoothed.T_world_body)(t)
-    e = se3_log(
-        np.einsum("nji,njk->nik", inv_T(T_s), raw.T_world_body[inside])
-        if False
-        else inv_T(T_s) @ raw.T_world_body[inside]
-    )
+    e = se3_log(inv_T(T_s) @ raw.T_world_body[inside])
     twist_all = body_twists(smoothed)
     xi = np.stack([np.interp(t, ts, twist_all[:, a]) for a in range(6)], axis=1)
-    Ci = np.linalg.inv(np.asarray(raw.covariances)[inside])
-    q = np.einsum("ni,nij,nj->n", xi, Ci, xi)
-    a = np.einsum("ni,nij,nj->n", xi, Ci, e)
+    return _jitter_ml(e, np.asarray(raw.covariances)[inside], xi, config)
 
-    def minus2loglik(s: float) -> float:  # up to the terms without s
-        return float(np.sum(np.log1p(s * q) - s * a**2 / (1.0 + s * q)))
 
-    hi = (config.search_half_width_s) ** 2
+def _jitter_ml(e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetConfig) -> StampJitter:
+    """Maximum likelihood of s = sigma^2 in e_k ~ N(0, k C_k + s u_k u_k^T) (residuals e (n, d),
+    covariances C (n, d, d), the residual's rate of change with the stamp u (n, d)), k a free
+    scale of the stated covariances: only an excess along u reads as jitter, not covariances
+    stated too small in every direction (the sample flight's front sightings, exact stamps, read
+    2.1 ms with k held at 1).  With g = s / k, by the determinant lemma
+    -2 log L = sum d log k + log(1 + g q) + (b - g a^2 / (1 + g q)) / k, q = u^T C^-1 u,
+    a = u^T C^-1 e, b = e^T C^-1 e, and k's optimum in closed form for each g; the likelihood
+    ratio against g = 0 (k free) for its significance."""
+    Ci = np.linalg.inv(C)
+    q = np.einsum("ni,nij,nj->n", u, Ci, u)
+    a = np.einsum("ni,nij,nj->n", u, Ci, e)
+    b = np.einsum("ni,nij,nj->n", e, Ci, e)
+    nd = e.size
+
+    def scale(g: float) -> float:
+        return max(float(np.sum(b - g * a**2 / (1.0 + g * q))) / nd, 1e-300)
+
+    def minus2loglik(g: float) -> float:  # k at its optimum, up to the terms without g
+        return nd * math.log(scale(g)) + float(np.sum(np.log1p(g * q)))
+
+    hi = config.search_half_width_s
     res = minimize_scalar(
-        lambda u: minus2loglik(u * u), bounds=(0.0, math.sqrt(hi)), method="bounded", options={"xatol": 1e-6}
+        lambda x: minus2loglik(x * x), bounds=(0.0, hi), method="bounded", options={"xatol": 1e-6}
     )
-    sigma = float(abs(res.x))
-    lr = max(0.0, minus2loglik(0.0) - minus2loglik(sigma * sigma))
+    g = float(res.x) ** 2
+    lr = max(0.0, minus2loglik(0.0) - minus2loglik(g))
+    sigma = math.sqrt(g * scale(g))
     significant = lr > config.jitter_lr_threshold and sigma > config.jitter_min_s
-    return StampJitter(sigma, lr, int(inside.sum()), bool(significant))
+    return StampJitter(sigma, lr, len(e), bool(significant))
 
 
 @dataclass
@@ -776,6 +791,21 @@ def landmark_cost(
     interpolated at `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
     Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3), load
     index `group` (M,)) from its landmark, rho Huber's with `threshold`."""
+    return _landmark_fit(trajectory, t_ns, group, p_cam, info_cam, front_camera, threshold, iterations)[0]
+
+
+def _landmark_fit(
+    trajectory: PoseInterpolator,
+    t_ns: np.ndarray,
+    group: np.ndarray,
+    p_cam: np.ndarray,
+    info_cam: np.ndarray,
+    front_camera: CameraModel,
+    threshold: float,
+    iterations: int,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """landmark_cost's cost, each sighting's world residual from its landmark (M, 3) and its
+    world information (M, 3, 3)."""
     T = trajectory(t_ns)
     T_wc = front_camera.T_world_cam(T)
     R = T_wc[:, :3, :3]
@@ -784,6 +814,7 @@ def landmark_cost(
     n_g = int(group.max()) + 1
     w = np.ones(len(t_ns))
     d = np.zeros(len(t_ns))
+    r = np.zeros_like(p_w)
     Wp = np.einsum("nij,nj->ni", W, p_w)
     for _ in range(iterations + 1):
         # per-landmark sums by bincount (the same additions in the same order as np.add.at,
@@ -797,7 +828,56 @@ def landmark_cost(
         d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
         w = np.where(d <= threshold, 1.0, threshold / np.maximum(d, 1e-12))
     rho = np.where(d <= threshold, 0.5 * d**2, threshold * (d - 0.5 * threshold))
-    return float(rho.sum())
+    return float(rho.sum()), r, W
+
+
+def sighting_rates(
+    trajectory: PoseInterpolator,
+    t_ns: np.ndarray,
+    p_cam: np.ndarray,
+    front_camera: CameraModel,
+    h_s: float = 0.005,
+) -> np.ndarray:
+    """(M, 3) how fast each sighting's world point moves with its stamp (m/s): d/dt of
+    T_world_cam(T(t)) p_cam, by central differences of the interpolated trajectory (a gimbaled
+    camera's level frame included)."""
+    t = np.asarray(t_ns, dtype=float)
+    lo, hi = float(trajectory.ts[0]), float(trajectory.ts[-1])
+    ta = np.clip(t - h_s * NS_PER_S, lo, hi)
+    tb = np.clip(t + h_s * NS_PER_S, lo, hi)
+
+    def world(tq: np.ndarray) -> np.ndarray:
+        T_wc = front_camera.T_world_cam(trajectory(tq))
+        return np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
+
+    dt = (tb - ta) / NS_PER_S
+    rate = (world(tb) - world(ta)) / np.where(dt > 0, dt, 1.0)[:, None]
+    return np.where((dt > 0)[:, None], rate, 0.0)
+
+
+def widen_sightings(
+    sightings: list[LoadObservation], trajectory: Trajectory, front_camera: CameraModel, variance_s2: float
+) -> list[LoadObservation]:
+    """The front camera's sightings with their camera-frame covariance plus variance_s2 u u^T,
+    u their point's rate of change with the stamp in the camera frame (sighting_rates along
+    `trajectory`, the drone in the sightings' clock): white stamp noise of that variance."""
+    if not sightings or variance_s2 <= 0.0 or len(trajectory) < 2:
+        return sightings
+    poses = PoseInterpolator(trajectory.timestamps_ns, trajectory.T_world_body)
+    out = []
+    for o in sightings:
+        if o.p_cam is None or o.cov_cam is None:
+            out.append(o)
+            continue
+        t = np.array([o.timestamp_ns], dtype=float)
+        if not poses.ts[0] <= t[0] <= poses.ts[-1]:
+            out.append(o)  # outside the trajectory: its rate is not known (the back ends drop it)
+            continue
+        u_w = sighting_rates(poses, t, np.asarray(o.p_cam, float)[None], front_camera)[0]
+        R_wc = front_camera.T_world_cam(poses(t))[0, :3, :3]
+        u_c = R_wc.T @ u_w
+        out.append(replace(o, cov_cam=np.asarray(o.cov_cam, float) + variance_s2 * np.outer(u_c, u_c)))
+    return out
 
 
 @dataclass
@@ -807,6 +887,7 @@ class FrontProfile:
     sightings: int
     note: str = ""
     evaluations: int = 0
+    jitter: StampJitter | None = None  # the sightings' stamp noise at the estimate
 
 
 def estimate_front_offset(
@@ -863,8 +944,13 @@ def estimate_front_offset(
     note = ""
     if abs(r_ms) > S_ms - step_ms:
         note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
+    # the sightings' stamp jitter at the estimate: residuals from their landmarks against the
+    # rate their points move with the stamp
+    tq = t.astype(float) + r_ms * 1e6
+    _, resid, W = _landmark_fit(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
+    jitter = _jitter_ml(resid, np.linalg.inv(W), sighting_rates(poses, tq, p_cam, front_camera), config)
     return FrontProfile(
-        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0]
+        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], jitter
     )
 
 
@@ -1099,8 +1185,11 @@ def resolve_time_offsets(
                 )
         except EstimationError as e:
             drift_note = f"clock rate not checked ({e})"
+        jitter = fr.jitter
         if front_drift is not None and front_drift.applied:
             residual, sigma = front_drift.offset_s, front_drift.offset_sigma_s
+            corrected = _sightings_corrected(sightings, front_drift)
+            jitter = estimate_front_offset(fused, corrected, front_camera, config, fusion_config).jitter
         # the trajectory's clock carries the floor estimate's error one to one
         floor_sigma = out.cameras[floor].sigma_s if floor in out.cameras else None
         if sigma is not None and floor_sigma is not None:
@@ -1117,6 +1206,7 @@ def resolve_time_offsets(
             fr.evaluations,
             config.apply_sigmas,
             front_drift,
+            jitter,
         )
     except EstimationError as e:
         out.cameras[front] = CameraOffset(front, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
