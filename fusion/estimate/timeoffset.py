@@ -151,7 +151,7 @@ class StampJitter:
         }
 
     def describe(self) -> str:
-        used = "applied to the fixes" if self.significant else "not significant"
+        used = "widening the fixes / sightings" if self.significant else "not significant"
         return f"stamp jitter {self.sigma_s * MS_PER_S:.2f} ms ({used})"
 
 
