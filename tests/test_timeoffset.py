@@ -527,9 +527,9 @@ def test_usable_sightings_drops_each_kind_of_bad_sighting():
 
 
 def test_landmark_cost_sums_per_landmark_as_the_loop_does():
-    """landmark_cost's per-landmark sums (bincount) against np.add.at, the code it replaced:
+    """landmark_fit's per-landmark sums (bincount) against np.add.at, the code it replaced:
     the same cost to the last bit on random sightings of 4 loads."""
-    from fusion.estimate.timeoffset import landmark_cost
+    from fusion.estimate.timeoffset import landmark_fit
     from fusion.geometry import PoseInterpolator
 
     rng = np.random.default_rng(21)
@@ -542,7 +542,7 @@ def test_landmark_cost_sums_per_landmark_as_the_loop_does():
     p_cam = rng.normal([0.0, 0.0, 2.0], 0.3, (m, 3))
     A = rng.normal(0.0, 0.01, (m, 3, 3))
     info_cam = np.linalg.inv(A @ np.swapaxes(A, 1, 2) + 1e-6 * np.eye(3))
-    got = landmark_cost(poses, tq, group, p_cam, info_cam, FRONT_CAM, 2.0, 3)
+    got = landmark_fit(poses, tq, group, p_cam, info_cam, FRONT_CAM, 2.0, 3)[0]
 
     T_wc = FRONT_CAM.T_world_cam(poses(tq))
     R = T_wc[:, :3, :3]

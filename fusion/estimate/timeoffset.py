@@ -777,24 +777,7 @@ def _usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
     return [o for (o, _, _), keep in zip(shaped, ok) if keep]
 
 
-def landmark_cost(
-    trajectory: PoseInterpolator,
-    t_ns: np.ndarray,
-    group: np.ndarray,
-    p_cam: np.ndarray,
-    info_cam: np.ndarray,
-    front_camera: CameraModel,
-    threshold: float,
-    iterations: int,
-) -> float:
-    """The load-landmark factors' robust cost with the drone on `trajectory` (T_world_body
-    interpolated at `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i), d_i the
-    Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3), load
-    index `group` (M,)) from its landmark, rho Huber's with `threshold`."""
-    return _landmark_fit(trajectory, t_ns, group, p_cam, info_cam, front_camera, threshold, iterations)[0]
-
-
-def _landmark_fit(
+def landmark_fit(
     trajectory: PoseInterpolator,
     t_ns: np.ndarray,
     group: np.ndarray,
@@ -804,8 +787,11 @@ def _landmark_fit(
     threshold: float,
     iterations: int,
 ) -> tuple[float, np.ndarray, np.ndarray]:
-    """landmark_cost's cost, each sighting's world residual from its landmark (M, 3) and its
-    world information (M, 3, 3)."""
+    """The load-landmark factors' robust cost with the drone on `trajectory` (T_world_body
+    interpolated at `t_ns` (M,)) and each landmark at its Huber-IRLS weighted mean: sum rho(d_i),
+    d_i the Mahalanobis distance of sighting i (p_cam (M, 3), information info_cam (M, 3, 3),
+    load index `group` (M,)) from its landmark, rho Huber's with `threshold`; with each
+    sighting's world residual from its landmark (M, 3) and its world information (M, 3, 3)."""
     T = trajectory(t_ns)
     T_wc = front_camera.T_world_cam(T)
     R = T_wc[:, :3, :3]
@@ -930,7 +916,7 @@ def estimate_front_offset(
     def cost_ms(r_ms: float) -> float:
         n_eval[0] += 1
         tq = t.astype(float) + r_ms * 1e6
-        return landmark_cost(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
+        return landmark_fit(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)[0]
 
     S_ms, step_ms = S * MS_PER_S, config.front_grid_step_s * MS_PER_S
     grid = np.arange(-S_ms, S_ms + 0.5 * step_ms, step_ms)
@@ -947,7 +933,7 @@ def estimate_front_offset(
     # the sightings' stamp jitter at the estimate: residuals from their landmarks against the
     # rate their points move with the stamp
     tq = t.astype(float) + r_ms * 1e6
-    _, resid, W = _landmark_fit(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
+    _, resid, W = landmark_fit(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
     jitter = _jitter_ml(resid, np.linalg.inv(W), sighting_rates(poses, tq, p_cam, front_camera), config)
     return FrontProfile(
         r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], jitter
