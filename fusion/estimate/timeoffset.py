@@ -172,10 +172,18 @@ def estimate_stamp_jitter(
     e = se3_log(inv_T(T_s) @ raw.T_world_body[inside])
     twist_all = body_twists(smoothed)
     xi = np.stack([np.interp(t, ts, twist_all[:, a]) for a in range(6)], axis=1)
-    return _jitter_ml(e, np.asarray(raw.covariances)[inside], xi, config)
+    return _jitter_ml(e, np.asarray(raw.covariances)[inside], xi, config, slice(3, 6))
 
 
-def _jitter_ml(e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetConfig) -> StampJitter:
+JITTER_GATE_M = 0.3
+"""A residual farther than this (m) is no stamp jitter's (a stamp error within the offsets'
++-50 ms search moves a point at 3 m/s by 0.15 m): a wrong fix or a duplicated label, left out of
+the jitter's estimate (a duplicated label 2 m away read 46 s of jitter)."""
+
+
+def _jitter_ml(
+    e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetConfig, position: slice = slice(None)
+) -> StampJitter:
     """Maximum likelihood of s = sigma^2 in e_k ~ N(0, k C_k + s u_k u_k^T) (residuals e (n, d),
     covariances C (n, d, d), the residual's rate of change with the stamp u (n, d)), k a free
     scale of the stated covariances: only an excess along u reads as jitter, not covariances
@@ -183,7 +191,12 @@ def _jitter_ml(e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetCo
     2.1 ms with k held at 1).  With g = s / k, by the determinant lemma
     -2 log L = sum d log k + log(1 + g q) + (b - g a^2 / (1 + g q)) / k, q = u^T C^-1 u,
     a = u^T C^-1 e, b = e^T C^-1 e, and k's optimum in closed form for each g; the likelihood
-    ratio against g = 0 (k free) for its significance."""
+    ratio against g = 0 (k free) for its significance, which also needs sigma inside the offsets'
+    search width.  Residuals whose `position` part is beyond JITTER_GATE_M are left out."""
+    keep = np.linalg.norm(e[:, position], axis=1) <= JITTER_GATE_M
+    e, C, u = e[keep], C[keep], u[keep]
+    if len(e) < 10:
+        return StampJitter(0.0, 0.0, len(e), False)
     Ci = np.linalg.inv(C)
     q = np.einsum("ni,nij,nj->n", u, Ci, u)
     a = np.einsum("ni,nij,nj->n", u, Ci, e)
@@ -203,7 +216,7 @@ def _jitter_ml(e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetCo
     g = float(res.x) ** 2
     lr = max(0.0, minus2loglik(0.0) - minus2loglik(g))
     sigma = math.sqrt(g * scale(g))
-    significant = lr > config.jitter_lr_threshold and sigma > config.jitter_min_s
+    significant = lr > config.jitter_lr_threshold and config.jitter_min_s < sigma < config.search_half_width_s
     return StampJitter(sigma, lr, len(e), bool(significant))
 
 
