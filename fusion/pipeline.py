@@ -1813,30 +1813,31 @@ def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> 
 def _add_stamp_jitter(log: FlightLog, loc: LocalizeResult, result: RunResult) -> None:
     """`loc` (in place) with the cameras' significant stamp jitter (timeoffset.StampJitter):
     the floor camera's in the PnP fixes' covariances (s xi xi^T per fix), the front camera's in
-    the load sightings' camera-frame covariances (s u u^T, u the point's rate with the stamp):
-    white per frame, so measurement noise for every back end; a named warning per camera.  The
-    per-frame estimators' own load maps (paper, PnP) are made before and do not take it."""
+    the load sightings' covariances (s u u^T, u the point's rate with the stamp) and PnP's load
+    map made again from them: white per frame, so measurement noise for every back end; a named
+    warning per camera.  The paper's load map (its own method) does not take it."""
     offsets = result.time_offsets
     if offsets is None:
         return
-    pnp = str(Estimator.PNP)
+    key = str(Estimator.PNP)
     for role in (CameraRole.FLOOR, CameraRole.FRONT):
         c = offsets.cameras.get(role.value)
         jitter = None if c is None else c.jitter
-        if jitter is None or not jitter.significant or pnp not in loc.trajectories:
+        if jitter is None or not jitter.significant or key not in loc.trajectories:
             continue
         s2 = jitter.sigma_s**2
+        fixes = loc.trajectories[key]
         if role == CameraRole.FLOOR:
-            loc.trajectories[pnp] = add_stamp_covariance(loc.trajectories[pnp], s2)
+            loc.trajectories[key] = add_stamp_covariance(fixes, s2)
             name, what = "floor", f"{jitter.n} fixes): every fix's covariance takes it along the motion"
         elif role.value in log.cameras:
-            loc.camera_frame_observations = widen_sightings(
-                loc.camera_frame_observations, loc.trajectories[pnp], log.cameras[role.value].camera, s2
-            )
-            name = "front"
-            what = (
-                f"{jitter.n} load sightings): the fused load maps' sightings take it (not the per-frame maps)"
-            )
+            camera = log.cameras[role.value].camera
+            loc.camera_frame_observations = widen_sightings(loc.camera_frame_observations, fixes, camera, s2)
+            if loc.load_observations.get(key):
+                # PnP's own load map, made from its sightings before the jitter was known
+                loc.load_observations[key] = widen_sightings(loc.load_observations[key], fixes, camera, s2)
+                loc.load_maps[key] = pnp.aggregate_load_observations(loc.load_observations[key], name=key)
+            name, what = "front", f"{jitter.n} load sightings): the fused and PnP load maps take it"
         else:
             continue
         result.warnings.append(

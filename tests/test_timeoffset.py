@@ -355,6 +355,11 @@ def test_front_stamp_jitter_is_estimated_from_the_sightings_and_widens_them():
     assert np.all(extra >= 0) and np.median(extra) > 0
     # what the widening adds is (3 ms x the point's speed)^2: a 1 m/s point gains 9 mm^2
     assert np.median(np.sqrt(extra)) / (3 * MS) < 5.0
+    # a sighting placed in the world (PnP's load map) widens there by the same motion
+    placed = [replace(o, cov_world=np.eye(3) * 1e-6) for o in obs[:20]]
+    wide_w = widen_sightings(placed, fl["truth"], FRONT_CAM, (3 * MS) ** 2)
+    extra_w = np.array([np.trace(w.cov_world) - 3e-6 for w in wide_w])
+    np.testing.assert_allclose(extra_w, extra[:20], rtol=1e-9)  # a rotation keeps the trace
 
 
 def test_simulator_jitters_stamps_when_asked(tmp_path):

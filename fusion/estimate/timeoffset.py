@@ -859,7 +859,8 @@ def widen_sightings(
 ) -> list[LoadObservation]:
     """The front camera's sightings with their camera-frame covariance plus variance_s2 u u^T,
     u their point's rate of change with the stamp in the camera frame (sighting_rates along
-    `trajectory`, the drone in the sightings' clock): white stamp noise of that variance."""
+    `trajectory`, the drone in the sightings' clock), and their world covariance (when they
+    have one) likewise in the world frame: white stamp noise of that variance."""
     if not sightings or variance_s2 <= 0.0 or len(trajectory) < 2:
         return sightings
     poses = PoseInterpolator(trajectory.timestamps_ns, trajectory.T_world_body)
@@ -875,7 +876,16 @@ def widen_sightings(
         u_w = sighting_rates(poses, t, np.asarray(o.p_cam, float)[None], front_camera)[0]
         R_wc = front_camera.T_world_cam(poses(t))[0, :3, :3]
         u_c = R_wc.T @ u_w
-        out.append(replace(o, cov_cam=np.asarray(o.cov_cam, float) + variance_s2 * np.outer(u_c, u_c)))
+        cov_world = o.cov_world
+        if cov_world is not None:
+            cov_world = np.asarray(cov_world, float) + variance_s2 * np.outer(u_w, u_w)
+        out.append(
+            replace(
+                o,
+                cov_cam=np.asarray(o.cov_cam, float) + variance_s2 * np.outer(u_c, u_c),
+                cov_world=cov_world,
+            )
+        )
     return out
 
 
