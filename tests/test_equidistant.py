@@ -365,3 +365,13 @@ def test_a_lens_that_folds_inside_the_image_is_refused_where_it_is_read(tmp_path
         camera_from_info(msg, "bag")
     with pytest.raises(SimulationError, match="--distortion: .* folds"):
         apply_camera_options(build_scenario("default"), CameraOptions(distortion=(-3.0, 0.0, 0.0, 0.0)))
+
+
+def test_inspect_says_which_lens_it_read():
+    from fusion.log.inspect import lens_line
+
+    assert "equidistant [-0.012, 0.021, -0.006, 0.0009] (k1..k4)" in lens_line("cam0", fisheye())
+    assert "radtan [-0.29, 0.095, 0.0004, -0.0003, -0.014] (k1, k2, p1, p2, k3)" in lens_line(
+        "cam0", radtan5()
+    )
+    assert lens_line("cam1", radtan5()).startswith("cam1 lens   : 640x480, f 600.0 / 601.0")

@@ -101,6 +101,16 @@ def calibration_line(name: str, camera: CameraModel) -> str:
     return f"{name} calib  : intrinsics sigma {px} ({intr}); {mount}"
 
 
+def lens_line(name: str, camera: CameraModel) -> str:
+    """The camera model as the run will use it: size, intrinsics and distortion (model and
+    coefficients), so that a user sees whether a fisheye or OpenCV's k3 was read."""
+    k = ", ".join(f"{v:.4g}" for v in camera.dist_cv[: 4 if camera.equidistant or not camera.k3 else 5])
+    names = "k1..k4" if camera.equidistant else ("k1, k2, p1, p2, k3" if camera.k3 else "k1, k2, p1, p2")
+    size = f"{camera.width}x{camera.height}"
+    f = f"f {camera.fu:.1f} / {camera.fv:.1f}, c {camera.cu:.1f} / {camera.cv:.1f} px"
+    return f"{name} lens   : {size}, {f}; {camera.distortion_model} [{k}] ({names})"
+
+
 def placement_line(world: World) -> str:
     """How exactly the floor codes lie on their payloads, as PnP and the back ends will take it
     (world.Placement: world.yaml's floor_qr.placement_sigma_m / _deg, or the defaults)."""
@@ -179,6 +189,7 @@ def _inspect_flight(path: Path, opts: LogOptions, report: LogReport) -> None:
         kind = type(cam).__name__.replace("CameraStream", "").lower() or "images"
         report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns, ROLE_NAMES[name]))
         report.roles[name] = name
+        report.calibration.append(lens_line(name, cam.camera))
         report.calibration.append(calibration_line(name, cam.camera))
     report.calibration.append(placement_line(flight.world))
     if flight.imu is not None:
