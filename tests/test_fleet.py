@@ -374,6 +374,24 @@ def test_a_flight_without_a_fused_estimate_says_why_in_the_summary(tmp_path):
     assert row.health == NO_HEALTH and row.health_detail == "no_floor_pose x241"
 
 
+def test_the_summary_lists_each_flights_warnings(tmp_path):
+    """A fleet operator sees which flights warned of what (a jittering camera clock here), in
+    fleet.csv's `warnings` column and fleet.md's Warnings section."""
+    from fusion.fleet.summary import write_summary
+
+    for name, warnings in (("a", [{"name": "floor_stamp_jitter", "count": 1, "message": "..."}]), ("b", [])):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "metrics.json").write_text(
+            json.dumps({"health": {"smoother": {"status": "ok"}}, "warnings": warnings})
+        )
+    records = [FlightRecord(n, f"/logs/{n}", status=FlightStatus.OK) for n in ("a", "b")]
+    write_summary(tmp_path, records)
+    rows = _rows(tmp_path)
+    assert rows["a"]["warnings"] == "floor_stamp_jitter x1" and rows["b"]["warnings"] == ""
+    md = (tmp_path / "fleet.md").read_text()
+    assert "## Warnings" in md and "- a: floor_stamp_jitter x1" in md and "- b:" not in md
+
+
 def test_coverage_is_of_every_floor_frame(tmp_path):
     """PnP's n_frames counts only the frames with a detection: coverage is n_posed over every
     floor frame of the log (a flight that read its codes in half its frames read 100 %)."""

@@ -54,6 +54,7 @@ COLUMNS = (
     "failure",
     "health_detail",
     "path",
+    "warnings",
 )
 
 
@@ -75,6 +76,7 @@ class FlightRow:
     failure: str = ""
     health_detail: str = ""
     path: str = ""
+    warnings: str = ""  # the run's named warnings, "name xcount; ..." (clock, lens, mount, ...)
 
 
 def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
@@ -113,6 +115,11 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
             if isinstance(w, dict) and w.get("name")
         ]
     row.health_detail = "; ".join(details)
+    row.warnings = "; ".join(
+        f"{w.get('name')} x{w.get('count')}"
+        for w in metrics.get("warnings") or []
+        if isinstance(w, dict) and w.get("name")
+    )
     pnp = (metrics.get("estimator_stats") or {}).get(str(FALLBACK)) or {}
     # every floor frame of the log, not PnP's n_frames (the frames with a detection only: a
     # flight whose codes were read in half its frames read 100 % until 2026-12-05)
@@ -219,6 +226,12 @@ def _write_md(path: Path, rows: list[FlightRow], plots: list[Path]) -> Path:
     if not_ok:
         lines += ["", "## Health below ok", ""]
         lines += [f"- {_md(r.flight)}: {_md(r.health_detail)}" for r in not_ok]
+    warned = [r for r in ok if r.warnings]
+    if warned:
+        # what each run warned of (a camera's clock or stamps, its mount, the log): a drone
+        # whose flights all warn alike needs its setup fixed, not its flights re-run
+        lines += ["", "## Warnings", ""]
+        lines += [f"- {_md(r.flight)}: {_md(r.warnings)}" for r in warned]
     if plots:
         lines += [""] + [f"![{p.stem}]({p.name})" for p in plots]
     with atomic_open(path) as f:
