@@ -1626,6 +1626,20 @@ def _apply_time_offsets(
         floor_variance_factor=factor,
     )
     result.time_offsets = offsets
+    drifting = {n: c.drift for n, c in offsets.cameras.items() if c.drift is not None and c.drift.applied}
+    if drifting:
+        each = "; ".join(
+            f"{n} {d.rate * 1e6:+.1f} ppm ({d.rate * d.span_s * 1e3:+.2f} ms over the flight)"
+            for n, d in drifting.items()
+        )
+        result.warnings.append(
+            LogWarning(
+                "camera_clock_drift",
+                len(drifting),
+                f"camera clocks running against the IMU's: {each}; corrected. A camera stamping with its "
+                "own oscillator: stamp with the IMU's clock (or synchronise them) to avoid it",
+            )
+        )
     if not offsets.any_applied:
         return log, det, loc
     log, det = shift_log(log, offsets), shift_detections(det, offsets)
