@@ -419,7 +419,7 @@ class CameraModel:
         res = _floats(need("resolution"), 2, "resolution", source)
         intr = _floats(need("intrinsics"), 4, "intrinsics", source)
         coeffs = data.get("distortion_coefficients", [0, 0, 0, 0])
-        n_coeffs = 5 if DISTORTION_MODELS[dist_model] == RADTAN and _len(coeffs) == 5 else 4
+        n_coeffs = coefficient_count(dist_model, coeffs)
         dist = _floats(coeffs, n_coeffs, "distortion_coefficients", source)
         if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
             raise CameraModelError(f"{source}: resolution and focal lengths must be positive")
@@ -542,11 +542,14 @@ def stated_intrinsics_sigma(
     return tuple(sigma)
 
 
-def _len(value) -> int:
+def coefficient_count(model: str, coeffs) -> int:
+    """How many distortion coefficients a file's list for `model` (any DISTORTION_MODELS name)
+    should hold: five for a radial-tangential list of five (OpenCV's k3 last), else four."""
     try:
-        return len(value)
+        five = len(coeffs) == 5
     except TypeError:
-        return -1
+        five = False
+    return 5 if five and DISTORTION_MODELS.get(model) == RADTAN else 4
 
 
 def _floats(value, n: int, key: str, source: str, error=CameraModelError) -> list[float]:

@@ -123,10 +123,16 @@ class TimeOffsetConfig:
     jitter_min_s: float = 2e-4
     jitter_iterations: int = 4
 
+    @property
+    def profile_margin_s(self) -> float:
+        """How far inside the IMU's span the floor profile's window keeps (no shifted frame
+        may leave it): the search width, a curvature step and the tolerance."""
+        return self.search_half_width_s + self.curvature_step_s + self.xatol_s
+
 
 @dataclass
 class StampJitter:
-    """White noise on the floor camera's stamps, sigma_s per frame (a driver that stamps a
+    """White noise on a camera's stamps, sigma_s per frame (a driver that stamps a
     frame on arrival, after a variable transfer latency).  A stamp off by d puts the PnP pose at
     T(t + d) = T(t) Exp(d xi), xi the body twist, so each fix's error gains d xi along the
     motion: PnP poses of 0.1 mm sigma read 3 mm off at 1 m/s and 3 ms.  Estimated by maximum
@@ -222,14 +228,14 @@ def _jitter_ml(
 
 @dataclass
 class ClockDrift:
-    """The floor camera's clock rate against the IMU's: the offset grows as r(t) = r(t_ref) +
+    """A camera's clock rate against the IMU's: the offset grows as r(t) = r(t_ref) +
     rate (t - t_ref), t the log's stamp.  A camera stamping with its own oscillator drifts by
     its frequency error (tens of ppm: 20 ppm is 12 ms over a 10-minute flight, 2.4 cm at
-    2 m/s), which one offset per flight cannot hold.  Estimated from the floor profiles of a
-    window in each of the flight's first and last thirds (`points`: window centre ns, residual
-    s, sigma s); applied, like an offset, when significant (|rate| beyond apply_sigmas sigma and
-    the drift over the flight beyond min_apply_s): the floor stamps are then corrected by
-    rate (t - t_ref) before the flight's offset is estimated."""
+    2 m/s), which one offset per flight cannot hold.  Estimated from the camera's offset in
+    parts of the flight (`points`: time ns, residual s, sigma s; estimate_floor_drift,
+    estimate_front_drift); applied, like an offset, when significant (|rate| beyond
+    apply_sigmas sigma and the drift over the flight beyond min_apply_s): the camera's stamps
+    are then corrected by rate (t - t_ref) before its offset is taken."""
 
     rate: float  # s of offset per s of camera time
     sigma: float | None
@@ -293,8 +299,8 @@ class CameraOffset:
     # the significance rule the estimate was judged by (TimeOffsetConfig.apply_sigmas; None:
     # the default's), for stamp_variance_s2
     apply_sigmas: float | None = None
-    drift: ClockDrift | None = None  # the floor camera's clock rate, when checked
-    jitter: StampJitter | None = None  # the floor camera's stamp noise, when estimated
+    drift: ClockDrift | None = None  # the camera's clock rate, when checked
+    jitter: StampJitter | None = None  # the camera's stamp noise, when estimated
 
     @property
     def effective_s(self) -> float:
@@ -344,12 +350,12 @@ class CameraOffset:
         else:
             used = "log stamps used"
         note = f"; {self.note}" if self.note else ""
-        drift = "" if self.drift is None else f"; {self.drift.describe()}"
+        clock = "" if self.drift is None else f"; {self.drift.describe()}"
         if self.jitter is not None and self.jitter.significant:
-            drift += f"; {self.jitter.describe()}"
+            clock += f"; {self.jitter.describe()}"
         return (
             f"time offset {self.camera} ({role}): {self.offset_s * MS_PER_S:+.2f}{sig} ms, "
-            f"{self.source}{seed}; {used}{drift}{note}"
+            f"{self.source}{seed}; {used}{clock}{note}"
         )
 
 
@@ -564,18 +570,19 @@ def estimate_floor_offset(
     floor_camera: CameraModel | None = None,
     config: TimeOffsetConfig | None = None,
     fusion_config: FusionConfig | None = None,
+    jitter: bool = True,
 ) -> FloorProfile:
     """Residual offset of the floor camera: frames `frame_t` and PnP poses `raw` (the log's
-    stamps) against the IMU / velocity, by the smoother's cost profile (module docstring).
+    stamps) against the IMU / velocity, by the smoother's cost profile (module docstring), and
+    with `jitter` the fixes' stamp jitter at the estimate (`_profile_jitter`: more smoother
+    solves when it is significant; the clock-rate profiles of a flight's parts skip it).
     EstimationError when neither IMU nor velocity or no raw pose lies in the profile window."""
     config = config or TimeOffsetConfig()
     fusion_config = fusion_config or FusionConfig()
     if imu is None and velocity is None:
         raise EstimationError("neither IMU nor velocity: the floor camera's offset cannot be estimated")
     S = config.search_half_width_s
-    t0, t1 = profile_window(
-        frame_t, raw, imu, config.profile_window_s, S + config.curvature_step_s + config.xatol_s
-    )
+    t0, t1 = profile_window(frame_t, raw, imu, config.profile_window_s, config.profile_margin_s)
     fsel = (frame_t >= t0) & (frame_t <= t1)
     rsel = (raw.timestamps_ns >= t0) & (raw.timestamps_ns <= t1)
     if rsel.sum() < 2:
@@ -648,7 +655,9 @@ def estimate_floor_offset(
         window_ns=(int(t0), int(t1)),
         jitter=_profile_jitter(
             frames, imu, _shift_traj(sub, d_best), trajs[d_best], d_best, velocity, floor_camera, pcfg, config
-        ),
+        )
+        if jitter
+        else None,
     )
 
 
@@ -729,26 +738,25 @@ def estimate_floor_drift(
             None if raw.covariances is None else raw.covariances[rsel],
         )
         fsel = (frame_t >= a) & (frame_t <= b)
-        margin = config.search_half_width_s + config.curvature_step_s + config.xatol_s
-        if (
-            len(part)
-            and profile_window(frame_t[fsel], part, imu, config.profile_window_s, margin) == main.window_ns
-        ):
+        window = (
+            profile_window(frame_t[fsel], part, imu, config.profile_window_s, config.profile_margin_s)
+            if len(part)
+            else None
+        )
+        if window == main.window_ns:
             profiles.append(main)  # the flight's own window is this third's best: the same solves
             continue
         profiles.append(
-            estimate_floor_offset(frame_t[fsel], imu, part, velocity, floor_camera, config, fusion_config)
+            estimate_floor_offset(
+                frame_t[fsel], imu, part, velocity, floor_camera, config, fusion_config, jitter=False
+            )
         )
     if not any(_overlap(main.window_ns, fp.window_ns) for fp in profiles):
         profiles.append(main)
     if any(fp.sigma_s is None for fp in profiles):
         return None
     centres = [(fp.window_ns[0] + fp.window_ns[1]) // 2 for fp in profiles]
-    points: list[tuple[int, float, float | None]] = [
-        (tc, fp.residual_s, float(fp.sigma_s) * widen)
-        for tc, fp in zip(centres, profiles)
-        if fp.sigma_s is not None
-    ]
+    points = [(tc, fp.residual_s, float(fp.sigma_s or 0.0) * widen) for tc, fp in zip(centres, profiles)]
     return _drift_line(points, (t0 + t1) // 2, span_s, config)
 
 
@@ -905,6 +913,7 @@ def estimate_front_offset(
     front_camera: CameraModel,
     config: TimeOffsetConfig | None = None,
     fusion_config: FusionConfig | None = None,
+    jitter: bool = True,
 ) -> FrontProfile:
     """Residual offset of the front camera: its load sightings (camera-frame p_cam / cov_cam,
     the log's stamps) against `trajectory` (the fused drone poses in the IMU clock), by the
@@ -953,13 +962,17 @@ def estimate_front_offset(
     note = ""
     if abs(r_ms) > S_ms - step_ms:
         note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
-    # the sightings' stamp jitter at the estimate: residuals from their landmarks against the
-    # rate their points move with the stamp
-    tq = t.astype(float) + r_ms * 1e6
-    _, resid, W = landmark_fit(poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations)
-    jitter = _jitter_ml(resid, np.linalg.inv(W), sighting_rates(poses, tq, p_cam, front_camera), config)
+    found = None
+    if jitter:
+        # the sightings' stamp jitter at the estimate: residuals from their landmarks against
+        # the rate their points move with the stamp
+        tq = t.astype(float) + r_ms * 1e6
+        _, resid, W = landmark_fit(
+            poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
+        )
+        found = _jitter_ml(resid, np.linalg.inv(W), sighting_rates(poses, tq, p_cam, front_camera), config)
     return FrontProfile(
-        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], jitter
+        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], found
     )
 
 
@@ -985,11 +998,11 @@ def estimate_front_drift(
     if span_s < config.drift_min_windows * config.profile_window_s:
         return None
     edges = [t0 + (t1 - t0) * k // 3 for k in range(4)]
-    points: list[tuple[int, float, float | None]] = []
+    points: list[tuple[int, float, float]] = []
     for k in range(3):
         sel = (t >= edges[k]) & ((t < edges[k + 1]) if k < 2 else (t <= edges[k + 1]))
         part = [o for o, keep in zip(obs, sel) if keep]
-        fr = estimate_front_offset(trajectory, part, front_camera, config, fusion_config)
+        fr = estimate_front_offset(trajectory, part, front_camera, config, fusion_config, jitter=False)
         if fr.sigma_s is None:
             return None
         points.append((int(np.mean(t[sel])), fr.residual_s, fr.sigma_s))
@@ -997,13 +1010,13 @@ def estimate_front_drift(
 
 
 def _drift_line(
-    points: list[tuple[int, float, float | None]], t_ref: int, span_s: float, config: TimeOffsetConfig
+    points: list[tuple[int, float, float]], t_ref: int, span_s: float, config: TimeOffsetConfig
 ) -> ClockDrift:
     """The weighted least-squares line r(t) = offset + rate (t - t_ref) through (t ns, r s,
-    sigma s) `points` (every sigma set), applied when significant (ClockDrift)."""
+    sigma s) `points`, applied when significant (ClockDrift)."""
     x = np.array([(ti - t_ref) / NS_PER_S for ti, _, _ in points])
     r = np.array([ri for _, ri, _ in points])
-    w = np.array([1.0 / float(sg) ** 2 for _, _, sg in points if sg is not None])
+    w = np.array([1.0 / sg**2 for _, _, sg in points])
     A = np.column_stack([np.ones_like(x), x])
     cov = np.linalg.inv(A.T @ (w[:, None] * A))
     offset, rate = cov @ (A.T @ (w * r))
@@ -1015,7 +1028,7 @@ def _drift_line(
     sigma = math.sqrt(cov[1, 1])
     applied = abs(rate) > config.apply_sigmas * sigma and abs(rate) * span_s > config.min_apply_s
     drift = ClockDrift(
-        float(rate), sigma, t_ref, span_s, points, bool(applied), float(offset), math.sqrt(cov[0, 0])
+        float(rate), sigma, t_ref, span_s, list(points), bool(applied), float(offset), math.sqrt(cov[0, 0])
     )
     log.info("clock rate: %s", drift.describe())
     return drift

@@ -108,18 +108,14 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
     details += [
         f"{n} failed: {f.get('reason')}" for n, f in (metrics.get("estimator_failures") or {}).items()
     ]
-    if not known:  # no fused estimate: the log's warnings say why (e.g. no_floor_pose)
-        details += [
-            f"{w.get('name')} x{w.get('count')}"
-            for w in metrics.get("warnings") or []
-            if isinstance(w, dict) and w.get("name")
-        ]
-    row.health_detail = "; ".join(details)
     row.warnings = "; ".join(
         f"{w.get('name')} x{w.get('count')}"
         for w in metrics.get("warnings") or []
         if isinstance(w, dict) and w.get("name")
     )
+    if not known and row.warnings:  # no fused estimate: the log's warnings say why (e.g. no_floor_pose)
+        details.append(row.warnings)
+    row.health_detail = "; ".join(details)
     pnp = (metrics.get("estimator_stats") or {}).get(str(FALLBACK)) or {}
     # every floor frame of the log, not PnP's n_frames (the frames with a detection only: a
     # flight whose codes were read in half its frames read 100 % until 2026-12-05)

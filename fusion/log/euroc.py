@@ -38,7 +38,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fusion.camera import CameraModel, read_T_BS
+from fusion.camera import CameraModel, coefficient_count, read_T_BS
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import (
     MANIFEST_FORMAT,
@@ -559,8 +559,9 @@ def _check_sensor_numbers(cfg: dict, source: str, camera: bool) -> None:
         strict_floats(cfg["T_BS"]["data"], 16, f"{source}: T_BS.data", LogError)
     if not camera:
         return
-    coeffs = cfg.get("distortion_coefficients")
-    n_coeffs = 5 if isinstance(coeffs, list) and len(coeffs) == 5 else 4  # OpenCV's k3 (camera.py)
+    n_coeffs = coefficient_count(
+        cfg.get("distortion_model", "radial-tangential"), cfg.get("distortion_coefficients")
+    )
     for key, n in (("resolution", 2), ("intrinsics", 4), ("distortion_coefficients", n_coeffs)):
         if key in cfg:
             vals = strict_floats(cfg[key], n, f"{source}: {key}", LogError)

@@ -37,14 +37,22 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.camera import MOUNTS, CameraModel, StampRow, stated_intrinsics_sigma, stated_mount_sigmas
+from fusion.camera import (
+    DISTORTION_MODELS,
+    MOUNTS,
+    CameraModel,
+    StampRow,
+    coefficient_count,
+    stated_intrinsics_sigma,
+    stated_mount_sigmas,
+)
 from fusion.errors import CameraModelError, LogError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform
 from fusion.log.euroc import ImuNoise
 from fusion.types import CameraRole
 
-KALIBR_DISTORTION_MODELS = ("radtan", "radial-tangential", "plumb_bob", "equidistant", "equi")
+KALIBR_DISTORTION_MODELS = tuple(DISTORTION_MODELS)
 NOISE_KEYS = (
     "gyroscope_noise_density",
     "gyroscope_random_walk",
@@ -81,13 +89,6 @@ def _matrix(value, where: str) -> np.ndarray:
     if not is_rigid_transform(T, atol=1e-5):
         raise LogError(f"{where}: not a rigid transform")
     return T
-
-
-def _len(value) -> int:
-    try:
-        return len(value)
-    except TypeError:
-        return -1
 
 
 def _numbers(value, n: int, where: str) -> list[float]:
@@ -128,7 +129,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
         res = _numbers(block["resolution"], 2, f"{where}.resolution")
         coeffs = block.get("distortion_coeffs", [0, 0, 0, 0])
         # radtan: Kalibr's four, or OpenCV's five (k3 last; an extension Kalibr does not write)
-        n_coeffs = 5 if dmodel in ("radtan", "radial-tangential", "plumb_bob") and _len(coeffs) == 5 else 4
+        n_coeffs = coefficient_count(dmodel, coeffs)
         dist = _numbers(coeffs, n_coeffs, f"{where}.distortion_coeffs")
         if "T_cam_imu" not in block:
             raise LogError(
