@@ -263,7 +263,8 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
             "--calibrate-extrinsics",
             action="store_true",
             help="estimate the floor camera's mount rotation error (a Rot3 in the batch smoother, "
-            "reported with its sigma) and, when significant, apply it to every output",
+            "reported with its sigma) and the front camera's (against the floor camera's poses) "
+            "and, when significant, apply them to every output",
         )
         _add_fusion_choices(p)
         p.add_argument(
@@ -486,7 +487,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--calibrate-extrinsics",
         action="store_true",
-        help="estimate each flight's floor-camera mount rotation error and, when significant, apply it",
+        help="estimate each flight's floor- and front-camera mount rotation errors and, when "
+        "significant, apply them",
     )
     p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"

@@ -52,8 +52,10 @@ from fusion.estimate.asbuilt import (
 from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, interpolable_load_times, match_to_frames
 from fusion.estimate.extrinsics import (
     MountRotation,
+    MountSource,
     apply_mount,
     check_mount,
+    estimate_front_mount,
     read_extrinsics_groundtruth,
 )
 from fusion.estimate.fixes import merge_fixes
@@ -210,6 +212,7 @@ class RunResult:
     floor_codes: dict[str, FloorCodeMap] = field(default_factory=dict)  # as-built, by estimator
     time_offsets: TimeOffsets | None = None  # camera-IMU clock offsets, applied to every output
     extrinsics: MountRotation | None = None  # the floor camera's mount check / calibration
+    front_extrinsics: MountRotation | None = None  # the front camera's (estimate_front_mount)
     noise_scales: dict = field(default_factory=dict)  # variance.noise_summary (metrics.json)
 
     fusion_expected: bool = False  # the run went as far as the fusion (until smooth / run)
@@ -296,6 +299,8 @@ class RunResult:
             lines += self.time_offsets.lines()
         if self.extrinsics is not None:
             lines.append(self.extrinsics.describe())
+        if self.front_extrinsics is not None:
+            lines.append(self.front_extrinsics.describe())
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for name, failure in self.failures.items():
@@ -1152,6 +1157,8 @@ def _run_into(
     log, det, loc = _apply_time_offsets(log, det, loc, cfg, result, shared)
     if mount_check and not cfg.calibrate_extrinsics:
         log, loc = _apply_extrinsics(log, det, loc, cfg, result, None if shared is None else shared.mount)
+    if mount_check:
+        log, loc = _apply_front_extrinsics(log, det, loc, cfg, result)
     if result.rolling_shutter is not None:
         add_readout_covariances(loc, result.rolling_shutter, result.time_offsets)
         rs_sightings = rolling_shutter_sightings_warning(result.rolling_shutter)
@@ -1214,7 +1221,7 @@ def _run_into(
         # fusion batch's report worker on the 30-minute flight 949 -> 965 MiB)
         result.trajectories[str(Estimator.PNP)] = loc.intrinsics_consider.add_to(pnp_out, in_place=True)
     result.noise_scales = variance.noise_summary(loc.stats.get("pnp", {}), fused_stats)
-    imu_or_mount = _imu_scale_or_mount_note(result.extrinsics, fused_stats)
+    imu_or_mount = _imu_scale_or_mount_note([result.extrinsics, result.front_extrinsics], fused_stats)
     if imu_or_mount is not None:
         result.notes.append(imu_or_mount)
     if log.front is not None:
@@ -1676,6 +1683,37 @@ def _apply_extrinsics(
     return log, localize_stage(log, det, cfg)
 
 
+def _apply_front_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
+    """The front camera's mount check (extrinsics.estimate_front_mount: its load sightings hung
+    from the PnP body poses, on the final stamps and the floor mount as the back ends take it)
+    into `result.front_extrinsics`, its warning when significant; with `cfg.calibrate_extrinsics`
+    a significant correction is applied to the front camera and the per-frame estimates made
+    again with it.  Nothing without a front camera or its sightings."""
+    pnp_traj = loc.trajectories.get(str(Estimator.PNP))
+    if log.front is None or not loc.camera_frame_observations or pnp_traj is None or len(pnp_traj) < 2:
+        return log, loc
+    _progress(cfg, "front camera mount check")
+    try:
+        mount = estimate_front_mount(
+            pnp_traj,
+            loc.camera_frame_observations,
+            log.front.camera,
+            fusion_config=FusionConfig(robust_kernel=_robust_kernel(cfg)),
+        )
+    except EstimationError as e:
+        mount = MountRotation(CameraRole.FRONT.value, MountSource.NOT_ESTIMATED, note=str(e))
+    result.front_extrinsics = mount
+    if not mount.significant:
+        return log, loc
+    if not cfg.calibrate_extrinsics:
+        warning = mount.warning()
+        if warning is not None:
+            result.warnings.append(warning)
+        return log, loc
+    log = apply_mount(log, mount)
+    return log, localize_stage(log, det, cfg)
+
+
 def _fuse_into_result(
     log: FlightLog,
     loc: LocalizeResult,
@@ -1807,20 +1845,24 @@ def _floor_common_shift(result: RunResult) -> tuple[np.ndarray, np.ndarray] | No
     return common_shift(xy, Q)
 
 
-def _imu_scale_or_mount_note(mount: MountRotation | None, fused_stats: dict) -> str | None:
-    """A note when the batch smoother scaled the stated IMU noise up while the floor camera's
-    mount check found a significant rotation it did not apply: a mount off by w tilts every fix
-    against the gravity the IMU sees, and the smoother reads that as IMU noise (`held18`, to6_ext:
-    an honest IMU scaled x2.89 by a 0.5 deg mount error).  None otherwise."""
+def _imu_scale_or_mount_note(mounts: list[MountRotation | None], fused_stats: dict) -> str | None:
+    """A note when the batch smoother scaled the stated IMU noise up while a camera's mount check
+    found a significant rotation it did not apply: a floor mount off by w tilts every fix against
+    the gravity the IMU sees, a front mount off turns the load sightings against the fixes, and
+    the smoother reads either as IMU noise (`held18`, to6_ext: an honest IMU scaled x2.89 by a
+    0.5 deg floor mount error; a 0.5 deg roll of the front camera: x2.70).  None otherwise."""
     report = (fused_stats.get(str(Estimator.SMOOTHER)) or {}).get("noise_scales") or {}
     imu = report.get(str(variance.NoiseGroup.IMU))
-    if mount is None or not mount.significant or mount.applied or not isinstance(imu, dict):
+    off = [m for m in mounts if m is not None and m.significant and not m.applied]
+    if not off or not isinstance(imu, dict):
         return None
+    which = "; ".join(
+        f"the {m.role} camera's ({', '.join(m.significant_axes)}; {m.warning_name})" for m in off
+    )
     return (
-        f"the IMU's stated noise was scaled x{imu['sigma_factor']:.2f} for this flight, but the floor "
-        f"camera's mount is off ({', '.join(mount.significant_axes)}; extrinsic_rotation_bias): its "
-        "tilt against gravity reads as IMU noise. Calibrate the mount (--calibrate-extrinsics) "
-        "before changing imu0/sensor.yaml"
+        f"the IMU's stated noise was scaled x{imu['sigma_factor']:.2f} for this flight, but a camera's "
+        f"mount is off ({which}): the smoother reads it as IMU noise. Calibrate the mounts "
+        "(--calibrate-extrinsics) before changing imu0/sensor.yaml"
     )
 
 
@@ -2015,6 +2057,11 @@ def _evaluate_and_report(
     if result.extrinsics is not None:
         truth = read_extrinsics_groundtruth(log.root) if "cam0" in log.cameras else {}
         metrics["extrinsics"] = result.extrinsics.as_dict(truth.get(result.extrinsics.camera))
+    if result.front_extrinsics is not None:
+        truth = read_extrinsics_groundtruth(log.root) if log.front is not None else {}
+        metrics["front_extrinsics"] = result.front_extrinsics.as_dict(
+            truth.get(result.front_extrinsics.camera)
+        )
     metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)

@@ -14,10 +14,11 @@ import pytest
 
 from fusion.camera import CameraModel
 from fusion.cli import main
-from fusion.conventions import R_BODY_FLOORCAM
+from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
 from fusion.estimate.extrinsics import (
     EXTRINSICS_GROUNDTRUTH_CSV,
+    FRONT_WARNING_NAME,
     WARNING_NAME,
     ExtrinsicsConfig,
     MountRotation,
@@ -25,6 +26,7 @@ from fusion.estimate.extrinsics import (
     check_mount,
     corrected_camera,
     corrected_mount,
+    estimate_front_mount,
     estimate_mount_and_states,
     estimate_mount_rotation,
     merge_mount_rotations,
@@ -39,7 +41,7 @@ from fusion.log.files import read_tum
 from fusion.sim.imu import synthesize_imu
 from fusion.sim.simulate import simulate
 from fusion.sim.trajectory import Keyframe, KeyframeTrajectory, random_aisle_survey
-from fusion.types import Trajectory
+from fusion.types import LoadObservation, Trajectory
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
 FLOOR_CAM = CameraModel(
@@ -233,6 +235,9 @@ def test_check_warns_and_calibration_applies_on_the_sample_flight(tmp_path):
     ok = _run(SAMPLE, tmp_path / "nominal")
     assert ok["extrinsics"]["significant_axes"] == [] and ok["extrinsics"]["applied"] is False
     assert WARNING_NAME not in [w["name"] for w in ok["warnings"]]
+    assert (
+        ok["front_extrinsics"]["source"] == "estimated" and ok["front_extrinsics"]["significant_axes"] == []
+    )
     # the corrected mount reaches the per-frame estimates: PnP's attitudes move back to the
     # correctly calibrated run's
     ref = read_tum(tmp_path / "nominal" / "trajectory_pnp.tum")
@@ -332,12 +337,98 @@ def test_an_imu_scale_beside_a_significant_mount_is_said_to_be_the_mounts():
     from fusion.estimate.extrinsics import MountRotation, MountSource
     from fusion.pipeline import _imu_scale_or_mount_note
 
-    stats = {"smoother": {"noise_scales": {"imu": {"scale": 8.38, "sigma_factor": 2.89}, "imu_warning": True}}}
+    stats = {
+        "smoother": {"noise_scales": {"imu": {"scale": 8.38, "sigma_factor": 2.89}, "imu_warning": True}}
+    }
     off = MountRotation("cam0", MountSource.ESTIMATED, significant_axes=["y", "z"])
-    note = _imu_scale_or_mount_note(off, stats)
+    note = _imu_scale_or_mount_note([off, None], stats)
     assert note is not None and "x2.89" in note and "(y, z; extrinsic_rotation_bias)" in note
-    assert _imu_scale_or_mount_note(MountRotation("cam0", MountSource.ESTIMATED), stats) is None
+    assert _imu_scale_or_mount_note([MountRotation("cam0", MountSource.ESTIMATED)], stats) is None
     applied = MountRotation("cam0", MountSource.ESTIMATED, significant_axes=["y"], applied=True)
-    assert _imu_scale_or_mount_note(applied, stats) is None
-    assert _imu_scale_or_mount_note(off, {"smoother": {"noise_scales": {}}}) is None
-    assert _imu_scale_or_mount_note(None, stats) is None
+    assert _imu_scale_or_mount_note([applied], stats) is None
+    assert _imu_scale_or_mount_note([off], {"smoother": {"noise_scales": {}}}) is None
+    assert _imu_scale_or_mount_note([None, None], stats) is None
+    front = MountRotation("cam1", MountSource.ESTIMATED, significant_axes=["x"])
+    note = _imu_scale_or_mount_note([None, front], stats)
+    assert note is not None and "front camera's (x; front_extrinsic_rotation_bias)" in note
+
+
+# ============================================================================ the front camera
+
+FRONT_CAM = CameraModel(
+    640, 480, 500.0, 500.0, 320.0, 240.0, T_body_cam=make_T(R_BODY_FRONTCAM, [0.08, 0.0, 0.02])
+)
+
+
+def _front_sightings(f_deg, seed: int, sigma_m: float = 0.002):
+    """A 20 s survey's body trajectory at 30 Hz and load sightings by a front camera whose true
+    mount is FRONT_CAM's turned by f_deg: loads ahead of the drone, each sighting p_cam with
+    white noise of `sigma_m` per axis, its covariance stated as such."""
+    rng = np.random.default_rng(seed)
+    traj = random_aisle_survey(20.0, rng)
+    t = np.round(np.arange(0.0, 20.0, 1 / 30.0) * 1e9).astype(np.int64)
+    T_wb = traj.state(t * 1e-9).T_world_body
+    true_cam = corrected_camera(FRONT_CAM, np.radians(f_deg))
+    loads = {
+        f"L{i}": T_wb[k] @ np.array([2.0, rng.uniform(-0.6, 0.6), rng.uniform(-0.3, 0.3), 1.0])
+        for i, k in enumerate(range(0, len(t), 60))
+    }
+    out = []
+    for k, T in enumerate(T_wb):
+        T_cw = inv_T(T @ true_cam.T_body_cam)
+        for lid, p in loads.items():
+            pc = (T_cw @ p)[:3]
+            if pc[2] > 0.5 and abs(pc[0]) < 0.8 * pc[2] and abs(pc[1]) < 0.6 * pc[2]:
+                pc = pc + sigma_m * rng.standard_normal(3)
+                out.append(LoadObservation(int(t[k]), lid, np.zeros(3), None, pc, sigma_m**2 * np.eye(3)))
+    return Trajectory("smoother", t, T_wb, None), out
+
+
+@pytest.mark.parametrize("f_deg", [(0.5, 0.0, 0.0), (0.0, -0.4, 0.3)])
+def test_front_mount_recovered_against_the_body_trajectory(f_deg):
+    traj, obs = _front_sightings(f_deg, seed=3)
+    m = estimate_front_mount(traj, obs, FRONT_CAM)
+    assert m.camera == "cam1" and m.source is MountSource.ESTIMATED
+    err = np.degrees(so3_log(so3_exp(m.rotvec_rad) @ so3_exp(np.radians(f_deg)).T))
+    sig = np.degrees(m.sigma_rad)
+    assert np.all(np.abs(err) < 4 * sig + 1e-3), (err, sig)
+    assert np.all(sig < 0.05)
+    assert set(m.significant_axes) == {a for a, v in zip("xyz", f_deg) if v}
+    w = m.warning()
+    assert w is not None and w.name == FRONT_WARNING_NAME and "front camera" in w.message
+    assert "(front)" in m.describe()
+
+
+def test_front_mount_right_is_not_significant_and_too_few_sightings_is_an_error():
+    traj, obs = _front_sightings((0.0, 0.0, 0.0), seed=4)
+    m = estimate_front_mount(traj, obs, FRONT_CAM)
+    assert not m.significant and m.warning() is None
+    with pytest.raises(EstimationError, match="sightings"):
+        estimate_front_mount(traj, obs[:5], FRONT_CAM)
+    with pytest.raises(EstimationError, match="gimbaled"):
+        from dataclasses import replace
+
+        estimate_front_mount(traj, obs, replace(FRONT_CAM, mount="gimbaled"))
+
+
+def test_front_mount_check_and_calibration_on_the_sample_flight(tmp_path):
+    """A front camera whose sensor.yaml is 0.5 deg off in roll (about its optical axis): the
+    floor check cannot see it, the front check warns, --calibrate-extrinsics applies it and the
+    batch smoother's load sightings fit again."""
+    f_deg = (0.5, 0.0, 0.0)
+    dst = tmp_path / "log"
+    shutil.copytree(SAMPLE, dst)
+    path = dst / "mav0" / "cam1" / "sensor.yaml"
+    data = load_yaml(path, EstimationError)
+    T = np.array(data["T_BS"]["data"], float).reshape(4, 4)
+    data["T_BS"]["data"] = [float(v) for v in corrected_mount(T, -np.radians(f_deg)).reshape(-1)]
+    dump_yaml(data, path)
+    m = _run(dst, tmp_path / "check")
+    e = m["front_extrinsics"]
+    assert e["source"] == "estimated" and not e["applied"] and e["significant_axes"] == ["x"]
+    assert abs(e["rotvec_deg"][0] - f_deg[0]) < 0.1
+    assert [w["name"] for w in m["warnings"]].count(FRONT_WARNING_NAME) == 1
+    m = _run(dst, tmp_path / "cal", "--calibrate-extrinsics")
+    e = m["front_extrinsics"]
+    assert e["applied"] and FRONT_WARNING_NAME not in [w["name"] for w in m["warnings"]]
+    assert "**Front camera mount rotation** (`cam1`)" in (tmp_path / "cal" / "report.md").read_text()

@@ -507,7 +507,7 @@ def test_newton_profile_minimum_finds_the_vertex_and_falls_back():
 def test_usable_sightings_drops_each_kind_of_bad_sighting():
     """The batched check keeps exactly the sightings with a finite (3,) point and a finite
     positive-definite (3, 3) covariance, in order."""
-    from fusion.estimate.timeoffset import _usable_sightings
+    from fusion.estimate.timeoffset import usable_sightings
 
     good = np.diag([1e-4, 2e-4, 3e-4])
 
@@ -526,9 +526,9 @@ def test_usable_sightings_drops_each_kind_of_bad_sighting():
         (obs(np.ones(3), -good), False),
         (obs(2 * np.ones(3), 2 * good), True),
     ]
-    kept = _usable_sightings([o for o, _ in cases])
+    kept = usable_sightings([o for o, _ in cases])
     assert kept == [o for o, ok in cases if ok]
-    assert _usable_sightings([]) == [] and _usable_sightings([cases[1][0]]) == []
+    assert usable_sightings([]) == [] and usable_sightings([cases[1][0]]) == []
 
 
 def test_landmark_cost_sums_per_landmark_as_the_loop_does():

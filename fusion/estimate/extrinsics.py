@@ -65,7 +65,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
-from fusion.estimate.common import FusionConfig, RawPoseInput, SolveHealth
+from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, FusionConfig, RawPoseInput, SolveHealth
 from fusion.estimate.factors import X
 from fusion.estimate.smoother import (
     FactorKind,
@@ -76,21 +76,27 @@ from fusion.estimate.smoother import (
     robust_distances,
     solve,
 )
+from fusion.estimate.timeoffset import usable_sightings
 from fusion.fileio import atomic_open
-from fusion.geometry import make_T, so3_exp, so3_log
+from fusion.geometry import PoseInterpolator, make_T, skew_stack, so3_exp, so3_log
 from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
-from fusion.types import CameraRole, Choice, Estimator, Trajectory
+from fusion.types import CameraRole, Choice, Estimator, LoadObservation, Trajectory
 
 log = logging.getLogger(__name__)
 
 E = gtsam.symbol_shorthand.E  # E(0): the floor camera's mount rotation error (Rot3)
 WARNING_NAME = "extrinsic_rotation_bias"
+FRONT_WARNING_NAME = "front_extrinsic_rotation_bias"
 AXES = ("x", "y", "z")
 EXTRINSICS_GROUNDTRUTH_CSV = "extrinsics_groundtruth.csv"  # the simulator's true mount errors
 GROUNDTRUTH_COLUMNS = ["camera", "rx_deg", "ry_deg", "rz_deg"]
 NOMINAL_MOUNT_SIGMA_RAD = 1e-8
 """The prior holding E0 at the nominal mount in nominal_mount_trajectory (a constraint in effect:
 the PnP attitudes' sigma is ~1e-3 rad)."""
+FRONT_MOUNT_MIN_SIGHTINGS = 20  # of loads seen twice or more (estimate_front_mount)
+FRONT_MOUNT_MAX_ITERATIONS = 30
+FRONT_MOUNT_STEP_TOL_RAD = 1e-9
+FRONT_MOUNT_MAX_HALVINGS = 20
 
 
 class MountSource(Choice):
@@ -286,9 +292,17 @@ class MountRotation:
                 out["correction_error_deg"] = np.degrees(err).tolist()
         return out
 
+    @property
+    def role(self) -> str:
+        return "front" if self.camera == CameraRole.FRONT.value else "floor"
+
+    @property
+    def warning_name(self) -> str:
+        return FRONT_WARNING_NAME if self.camera == CameraRole.FRONT.value else WARNING_NAME
+
     def describe(self) -> str:
         """One line: `mount rotation cam0 (floor): x +2.01 ± 0.02, y ... deg; applied`."""
-        head = f"mount rotation {self.camera} (floor)"
+        head = f"mount rotation {self.camera} ({self.role})"
         if self.rotvec_rad is None or self.sigma_rad is None:
             return f"{head}: not estimated ({self.note})"
         w, s = np.degrees(self.rotvec_rad), np.degrees(self.sigma_rad)
@@ -318,11 +332,20 @@ class MountRotation:
         parts = ", ".join(
             f"{a} {w[i]:+.2f} ± {s[i]:.2f} deg" for i, a in enumerate(AXES) if a in self.significant_axes
         )
+        if self.camera == CameraRole.FRONT.value:
+            what = (
+                f"the front camera's load sightings disagree with the floor camera and the IMU by a "
+                f"constant rotation of its mount ({parts}): one camera's T_BS looks off"
+            )
+        else:
+            what = (
+                f"the floor camera's PnP attitudes disagree with the IMU by a constant rotation ({parts}): "
+                "sensor.yaml's T_BS looks off"
+            )
         return LogWarning(
-            WARNING_NAME,
+            self.warning_name,
             len(self.significant_axes),
-            f"the floor camera's PnP attitudes disagree with the IMU by a constant rotation ({parts}): "
-            "sensor.yaml's T_BS looks off; run with --calibrate-extrinsics to estimate and apply it",
+            f"{what}; run with --calibrate-extrinsics to estimate and apply it",
         )
 
 
@@ -582,6 +605,151 @@ def apply_mount(log_: FlightLog, mount: MountRotation) -> FlightLog:
     cams[mount.camera] = stream
     mount.applied = True
     return replace(log_, cameras=cams)
+
+
+# =========================================================================== the front camera
+
+
+def estimate_front_mount(
+    trajectory: Trajectory,
+    sightings: list[LoadObservation],
+    front_camera: CameraModel,
+    config: ExtrinsicsConfig | None = None,
+    fusion_config: FusionConfig | None = None,
+) -> MountRotation:
+    """The front camera's mount rotation error f (T_body_cam_true = [exp(f^) R_bc, t_bc], body
+    frame, as the floor's) in the body frame that `trajectory` defines (the floor camera's fixes
+    and the IMU, fused: its attitude is the floor camera's to ~0.01 deg): each load sighting
+    p_cam (camera frame, its stamp on the trajectory's clock) hung from the interpolated body
+    pose, the loads' world positions free.  Gauss-Newton on f with the landmarks eliminated
+    (Schur complement; at each step every landmark at its weighted mean, Huber-IRLS weights at
+    the robust threshold as the smoother's load factors), the floor's weak prior on f
+    (`prior_sigma_deg`); the covariance the reduced Hessian's inverse, inflated by sqrt(chi^2 /
+    dof) when the fit is worse than its noise model (as the floor's).  The trajectory is taken
+    as exact: its attitude's error (~0.01 deg) is well below any mount error worth correcting.
+
+    Why: the floor camera's check (the IMU against its fixes) is blind to what the IMU cannot
+    see, and a front mount error is not in it at all: a 0.5 deg roll of either camera turned the
+    load sightings against the floor fixes (smoothers `diverged`, the IMU's noise scaled x2.7 and
+    blamed).  This estimate sees any rotation between the two cameras.  It cannot say which of
+    them is off where the IMU does not (the floor's roll at near-constant heading): with the
+    floor camera off, correcting the front one instead makes the cameras agree and leaves the
+    body's attitude off by the floor's error, which the floor mount's stated sigma covers.
+    EstimationError with too few sightings of loads seen twice, or a gimbaled front camera."""
+    config = config or ExtrinsicsConfig()
+    fusion_config = fusion_config or FusionConfig()
+    front = CameraRole.FRONT.value
+    t0 = time.perf_counter()
+    if front_camera.gimbaled:
+        raise EstimationError("a gimbaled front camera: its mount rotation is not estimated")
+    ts = trajectory.timestamps_ns
+    obs = usable_sightings(sightings) if len(ts) >= 2 else []
+    if obs:
+        # the body pose interpolated between samples at most LOAD_INTERP_MAX_GAP_S apart
+        t_obs = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
+        i = np.clip(np.searchsorted(ts, t_obs), 1, len(ts) - 1)
+        near = (t_obs >= ts[0]) & (t_obs <= ts[-1]) & (ts[i] - ts[i - 1] <= LOAD_INTERP_MAX_GAP_S * 1e9)
+        obs = [o for o, k in zip(obs, near) if k]
+    ids = np.array([o.load_id for o in obs])
+    if len(obs):
+        _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+        keep = counts[inverse] >= 2
+        obs = [o for o, k in zip(obs, keep) if k]
+        ids = ids[keep]
+    if len(obs) < FRONT_MOUNT_MIN_SIGHTINGS:
+        raise EstimationError(
+            f"{len(obs)} sightings of loads seen twice or more (at least {FRONT_MOUNT_MIN_SIGHTINGS} "
+            "needed): the front camera's mount rotation cannot be estimated"
+        )
+    _, group = np.unique(ids, return_inverse=True)
+    n_g = int(group.max()) + 1
+    t = np.array([o.timestamp_ns for o in obs], dtype=float)
+    p_cam = np.array([o.p_cam for o in obs], dtype=float)
+    C = np.array([o.cov_cam for o in obs], dtype=float)
+    info_cam = np.linalg.inv(0.5 * (C + np.swapaxes(C, 1, 2)))
+    T = PoseInterpolator(ts, trajectory.T_world_body)(t)
+    R_wb = T[:, :3, :3]
+    T_bc = np.asarray(front_camera.T_body_cam, float)
+    v = p_cam @ T_bc[:3, :3].T  # the sighting's direction in the body frame, nominal mount
+    c_w = np.einsum("nij,j->ni", R_wb, T_bc[:3, 3]) + T[:, :3, 3]  # the camera's centre
+    thr = fusion_config.threshold(3)
+    prior_info = np.eye(3) / math.radians(config.prior_sigma_deg) ** 2
+
+    def bysum(x: np.ndarray) -> np.ndarray:  # per-landmark sums of (M, ...) rows
+        flat = x.reshape(len(x), -1)
+        out = np.stack([np.bincount(group, flat[:, c], n_g) for c in range(flat.shape[1])], axis=1)
+        return out.reshape((n_g, *x.shape[1:]))
+
+    def fit(f: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """At mount error f, each landmark at its mean weighted by w: the robust cost, the new
+        Huber weights, the reduced Hessian and gradient of f (landmarks eliminated)."""
+        R_f = so3_exp(f)
+        u = v @ R_f.T
+        p_w = np.einsum("nij,nj->ni", R_wb, u) + c_w
+        R_wc = R_wb @ (R_f @ T_bc[:3, :3])
+        W = R_wc @ info_cam @ np.swapaxes(R_wc, 1, 2)
+        wW = w[:, None, None] * W
+        H_LL = bysum(wW)
+        landmarks = np.linalg.solve(H_LL, bysum(np.einsum("nij,nj->ni", wW, p_w))[:, :, None])[:, :, 0]
+        r = p_w - landmarks[group]
+        d = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, W, r), 0.0))
+        cost = float(np.where(d <= thr, 0.5 * d**2, thr * (d - 0.5 * thr)).sum())
+        cost += 0.5 * float(f @ prior_info @ f)
+        # residual r_i = p_w(f) - L_g: d r / d delta = -R_wb [u]x (f -> log(exp(delta^) exp(f^)))
+        J = -R_wb @ skew_stack(u)
+        JtW = np.swapaxes(J, 1, 2) @ wW
+        H_fL = bysum(-JtW)  # (G, 3, 3)
+        S = (JtW @ J).sum(axis=0) + prior_info
+        S -= np.einsum("gij,gjk,gkl->il", H_fL, np.linalg.inv(H_LL), np.swapaxes(H_fL, 1, 2))
+        b = np.einsum("nij,nj->i", JtW, r) + prior_info @ f
+        return cost, np.where(d <= thr, 1.0, thr / np.maximum(d, 1e-12)), S, b
+
+    # IRLS: Gauss-Newton steps at fixed weights, each halved until the cost falls
+    f = np.zeros(3)
+    cost, w_next, S, b = fit(f, np.ones(len(obs)))
+    iterations = 0
+    for iterations in range(1, FRONT_MOUNT_MAX_ITERATIONS + 1):
+        w = w_next
+        cost, _, S, b = fit(f, w)
+        step = -np.linalg.solve(S, b)
+        for _ in range(FRONT_MOUNT_MAX_HALVINGS):
+            f_new = so3_log(so3_exp(step) @ so3_exp(f))
+            cost_new, w_next, S_new, b_new = fit(f_new, w)
+            if cost_new <= cost:
+                break
+            step = 0.5 * step
+        else:
+            break
+        f, cost, S, b = f_new, cost_new, S_new, b_new
+        log.debug(
+            "front mount iteration %d: cost %.6g, step %.3g deg",
+            iterations,
+            cost,
+            math.degrees(float(np.linalg.norm(step))),
+        )
+        if np.linalg.norm(step) < FRONT_MOUNT_STEP_TOL_RAD:
+            break
+    cost, _, S, _ = fit(f, w_next)
+    cov = np.linalg.inv(S)
+    dof = 3 * (len(obs) - n_g) - 3
+    if dof > 0:
+        cov = cov * max(1.0, 2.0 * cost / dof)
+    out = _classify(
+        MountRotation(
+            front, MountSource.ESTIMATED, f, 0.5 * (cov + cov.T), fixes=len(obs), iterations=iterations
+        ),
+        config,
+    )
+    out.time_s = time.perf_counter() - t0
+    log.info(
+        "front camera mount rotation: %s deg (sigma %s deg), %d sightings of %d loads, %.2f s",
+        np.round(np.degrees(f), 3),
+        np.round(np.degrees(np.sqrt(np.diag(cov))), 3),
+        len(obs),
+        n_g,
+        out.time_s,
+    )
+    return out
 
 
 # =========================================================================== ground truth

@@ -776,7 +776,7 @@ def _overlap(a: tuple[int, int], b: tuple[int, int]) -> bool:
 # =========================================================================== front camera
 
 
-def _usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
+def usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
     """The sightings with a finite camera-frame point (3,) and a finite positive-definite
     covariance (3, 3); the eigenvalue check batched over all of them (one call, not one per
     sighting: ~9 000 on the 10-minute flight)."""
@@ -923,7 +923,7 @@ def estimate_front_offset(
     S = config.search_half_width_s
     S_ns = int((S + config.front_curvature_step_s) * NS_PER_S)
     ts = trajectory.timestamps_ns
-    obs = [o for o in _usable_sightings(sightings) if ts[0] + S_ns <= o.timestamp_ns <= ts[-1] - S_ns]
+    obs = [o for o in usable_sightings(sightings) if ts[0] + S_ns <= o.timestamp_ns <= ts[-1] - S_ns]
     ids = np.array([o.load_id for o in obs])
     if len(obs):
         uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
@@ -989,7 +989,7 @@ def estimate_front_drift(
     checked (check_drift off, a span shorter than drift_min_windows profile windows, a profile
     without curvature); EstimationError when a third has too few sightings."""
     config = config or TimeOffsetConfig()
-    obs = _usable_sightings(sightings)
+    obs = usable_sightings(sightings)
     if not config.check_drift or len(obs) < 2:
         return None
     t = np.array([o.timestamp_ns for o in obs], dtype=np.int64)

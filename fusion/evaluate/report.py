@@ -232,27 +232,35 @@ def _time_offset_lines(m: dict) -> list[str]:
 
 
 def _mount_lines(m: dict) -> list[str]:
-    """The floor camera's mount rotation check / calibration (fusion.estimate.extrinsics)."""
-    e = m.get("extrinsics") or {}
-    if not e:
-        return []
-    if e.get("rotvec_deg") is None:
-        return [f"**Floor camera mount rotation**: not estimated ({md_text(e.get('note', DASH))}).", ""]
-    axes = ", ".join(
-        f"{a} {v:+.3f} ± {d:.3f}" for a, v, d in zip("xyz", e["rotvec_deg"], e.get("sigma_deg") or [0.0] * 3)
-    )
-    sig_axes = e.get("significant_axes") or []
-    corr = ", ".join(f"{a} {v:+.3f}" for a, v in zip("xyz", e.get("correction_deg") or []) if a in sig_axes)
-    if e.get("applied"):
-        used = f"applied to every output ({corr} deg)"
-    else:
-        used = "significant: run with --calibrate-extrinsics" if sig_axes else "not significant"
-    truth = (
-        f"; error against the simulator's truth {'/'.join(f'{v:+.3f}' for v in e['error_deg'])} deg"
-        if e.get("error_deg")
-        else ""
-    )
-    return [f"**Floor camera mount rotation** (body frame, deg): {axes}; {used}{truth}.", ""]
+    """The cameras' mount rotation checks / calibrations (fusion.estimate.extrinsics)."""
+    out = []
+    for key, title in (("extrinsics", "Floor"), ("front_extrinsics", "Front")):
+        e = m.get(key) or {}
+        if not e:
+            continue
+        head = f"**{title} camera mount rotation** ({md_code(e.get('camera', DASH))})"
+        if e.get("rotvec_deg") is None:
+            out += [f"{head}: not estimated ({md_text(e.get('note', DASH))}).", ""]
+            continue
+        axes = ", ".join(
+            f"{a} {v:+.3f} ± {d:.3f}"
+            for a, v, d in zip("xyz", e["rotvec_deg"], e.get("sigma_deg") or [0.0] * 3)
+        )
+        sig_axes = e.get("significant_axes") or []
+        corr = ", ".join(
+            f"{a} {v:+.3f}" for a, v in zip("xyz", e.get("correction_deg") or []) if a in sig_axes
+        )
+        if e.get("applied"):
+            used = f"applied to every output ({corr} deg)"
+        else:
+            used = "significant: run with --calibrate-extrinsics" if sig_axes else "not significant"
+        truth = (
+            f"; error against the simulator's truth {'/'.join(f'{v:+.3f}' for v in e['error_deg'])} deg"
+            if e.get("error_deg")
+            else ""
+        )
+        out += [f"{head} (body frame, deg): {axes}; {used}{truth}.", ""]
+    return out
 
 
 def _summary_section(m: dict, trajectories: dict[str, Trajectory], gt, blackouts) -> list[str]:
