@@ -1,4 +1,6 @@
-"""Floor camera-body rotation: a small rotation error of T_body_cam, estimated in the batch smoother.
+"""Camera-body rotations: a small rotation error of the floor camera's T_body_cam, estimated in
+the batch smoother, and of the front camera's, against the floor camera's poses
+(`estimate_front_mount`, its own docstring).
 
 Model.  The log's mount T_body_cam = [R_bc, t_bc] (sensor.yaml T_BS) is off by a small rotation
 of the camera about its own centre, expressed in the body frame:
