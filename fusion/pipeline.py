@@ -1901,8 +1901,9 @@ def _add_stamp_jitter(log: FlightLog, loc: LocalizeResult, result: RunResult) ->
                 f"{name}_stamp_jitter",
                 1,
                 f"the {name} camera's ({role.value}) stamps jitter by {jitter.sigma_s * 1e3:.2f} ms "
-                f"(1 sigma, {what}. Stamp frames at exposure (a hardware trigger, or the driver's "
-                "sensor timestamp) rather than on arrival",
+                f"(1 sigma, {what}; or its images blur along the motion as much (a long "
+                "exposure). Stamp frames at exposure (a hardware trigger, or the driver's sensor "
+                "timestamp) rather than on arrival, or shorten the exposure",
             )
         )
 
