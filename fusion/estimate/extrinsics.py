@@ -99,6 +99,11 @@ FRONT_MOUNT_MIN_SIGHTINGS = 20  # of loads seen twice or more (estimate_front_mo
 FRONT_MOUNT_MAX_ITERATIONS = 30
 FRONT_MOUNT_STEP_TOL_RAD = 1e-9
 FRONT_MOUNT_MAX_HALVINGS = 20
+FRONT_MOUNT_TRAJECTORY_SIGMA_DEG = 0.01
+"""Added in quadrature to each axis' sigma of estimate_front_mount: the PnP body poses it takes
+as exact carry their attitude's error (~0.01 deg), common to the sightings near each pose.
+Without it, flights with no mount error read up to 0.014 deg against a fit's sigma of
+0.001-0.007 (6.5 sigma on the 10-minute flight: BENCHMARKS.md, twenty-third session)."""
 
 
 class MountSource(Choice):
@@ -628,7 +633,8 @@ def estimate_front_mount(
     the robust threshold as the smoother's load factors), the floor's weak prior on f
     (`prior_sigma_deg`); the covariance the reduced Hessian's inverse, inflated by sqrt(chi^2 /
     dof) when the fit is worse than its noise model (as the floor's).  The trajectory is taken
-    as exact: its attitude's error (~0.01 deg) is well below any mount error worth correcting.
+    as exact (its attitude's error, ~0.01 deg, is well below any mount error worth correcting):
+    FRONT_MOUNT_TRAJECTORY_SIGMA_DEG is added to each axis' sigma for it.
 
     Why: the floor camera's check (the IMU against its fixes) is blind to what the IMU cannot
     see, and a front mount error is not in it at all: a 0.5 deg roll of either camera turned the
@@ -736,6 +742,7 @@ def estimate_front_mount(
     dof = 3 * (len(obs) - n_g) - 3
     if dof > 0:
         cov = cov * max(1.0, 2.0 * cost / dof)
+    cov = cov + np.eye(3) * math.radians(FRONT_MOUNT_TRAJECTORY_SIGMA_DEG) ** 2
     out = _classify(
         MountRotation(
             front, MountSource.ESTIMATED, f, 0.5 * (cov + cov.T), fixes=len(obs), iterations=iterations
