@@ -1694,6 +1694,11 @@ def _apply_front_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunCo
         return log, loc
     _progress(cfg, "front camera mount check")
     try:
+        if "cam0" in log.cameras and log.floor.camera.gimbaled:
+            raise EstimationError(
+                "a gimbaled floor camera: its PnP poses are level, no body attitude to hang the "
+                "front camera from"
+            )
         mount = estimate_front_mount(
             pnp_traj,
             loc.camera_frame_observations,

@@ -432,3 +432,18 @@ def test_front_mount_check_and_calibration_on_the_sample_flight(tmp_path):
     e = m["front_extrinsics"]
     assert e["applied"] and FRONT_WARNING_NAME not in [w["name"] for w in m["warnings"]]
     assert "**Front camera mount rotation** (`cam1`)" in (tmp_path / "cal" / "report.md").read_text()
+
+
+def test_front_mount_is_not_checked_against_a_gimbaled_floor_cameras_level_poses(tmp_path):
+    """A gimbaled floor camera's PnP poses are level (roll = pitch = 0): the front camera hung
+    from them would read the body's tilt as its own mount error, so it is not estimated."""
+    dst = tmp_path / "log"
+    shutil.copytree(SAMPLE, dst)
+    path = dst / "mav0" / "cam0" / "sensor.yaml"
+    data = load_yaml(path, EstimationError)
+    data["mount"] = "gimbaled"
+    dump_yaml(data, path)
+    m = _run(dst, tmp_path / "out")
+    e = m["front_extrinsics"]
+    assert e["source"] == "not_estimated" and "gimbaled floor camera" in e["note"]
+    assert FRONT_WARNING_NAME not in [w["name"] for w in m["warnings"]]
