@@ -23,6 +23,7 @@ FLIGHTS = {
     "front_pitch_yaw": ({"cam1": (0.0, 0.5, 0.3)}, []),
     "floor_all": ({"cam0": (0.5, -0.3, 0.2)}, []),
     "floor_all_offset6": ({"cam0": (0.5, -0.3, 0.2)}, ["--time-offset-ms", "6"]),
+    "front_roll_small": ({"cam1": (0.05, 0.0, 0.0)}, []),  # below the floor camera's 0.1 deg floor
 }
 ESTIMATORS = ("pnp", "smoother", "incremental", "ekf")
 

@@ -384,7 +384,7 @@ def _front_sightings(f_deg, seed: int, sigma_m: float = 0.002):
     return Trajectory("smoother", t, T_wb, None), out
 
 
-@pytest.mark.parametrize("f_deg", [(0.5, 0.0, 0.0), (0.0, -0.4, 0.3)])
+@pytest.mark.parametrize("f_deg", [(0.5, 0.0, 0.0), (0.0, -0.4, 0.3), (0.05, 0.0, 0.0)])
 def test_front_mount_recovered_against_the_body_trajectory(f_deg):
     traj, obs = _front_sightings(f_deg, seed=3)
     m = estimate_front_mount(traj, obs, FRONT_CAM)

@@ -99,6 +99,11 @@ FRONT_MOUNT_MIN_SIGHTINGS = 20  # of loads seen twice or more (estimate_front_mo
 FRONT_MOUNT_MAX_ITERATIONS = 30
 FRONT_MOUNT_STEP_TOL_RAD = 1e-9
 FRONT_MOUNT_MAX_HALVINGS = 20
+FRONT_MOUNT_MIN_SIGNIFICANT_DEG = 0.03
+"""estimate_front_mount's floor on a significant axis (with its 3 sigma), below the floor
+camera's 0.1 deg: the load sightings see far less than the IMU does (a 0.15 deg roll of the front
+camera made the batch smoother's pose NEES 149), and a flight without a mount error reads at
+most 0.014 deg (BENCHMARKS.md, twenty-third session)."""
 FRONT_MOUNT_TRAJECTORY_SIGMA_DEG = 0.01
 """Added in quadrature to each axis' sigma of estimate_front_mount: the PnP body poses it takes
 as exact carry their attitude's error (~0.01 deg), common to the sightings near each pose.
@@ -342,7 +347,8 @@ class MountRotation:
         if self.camera == CameraRole.FRONT.value:
             what = (
                 f"the front camera's load sightings disagree with the floor camera and the IMU by a "
-                f"constant rotation of its mount ({parts}): one camera's T_BS looks off"
+                f"constant rotation of its mount ({parts}): one camera's T_BS, or its intrinsics, "
+                "looks off"
             )
         else:
             what = (
@@ -644,7 +650,7 @@ def estimate_front_mount(
     floor camera off, correcting the front one instead makes the cameras agree and leaves the
     body's attitude off by the floor's error, which the floor mount's stated sigma covers.
     EstimationError with too few sightings of loads seen twice, or a gimbaled front camera."""
-    config = config or ExtrinsicsConfig()
+    config = config or ExtrinsicsConfig(min_significant_deg=FRONT_MOUNT_MIN_SIGNIFICANT_DEG)
     fusion_config = fusion_config or FusionConfig()
     front = CameraRole.FRONT.value
     t0 = time.perf_counter()
