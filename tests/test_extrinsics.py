@@ -360,12 +360,18 @@ FRONT_CAM = CameraModel(
 )
 
 
-def _front_sightings(f_deg, seed: int, sigma_m: float = 0.002):
+def _front_sightings(
+    f_deg, seed: int, sigma_m: float = 0.002, stated_m: float | None = None, noise_seed=None
+):
     """A 20 s survey's body trajectory at 30 Hz and load sightings by a front camera whose true
     mount is FRONT_CAM's turned by f_deg: loads ahead of the drone, each sighting p_cam with
-    white noise of `sigma_m` per axis, its covariance stated as such."""
+    white noise of `sigma_m` per axis, its covariance stated as `stated_m` (default: as it is).
+    `noise_seed`: the sightings' noise drawn apart from the survey (same flight, new noise)."""
     rng = np.random.default_rng(seed)
     traj = random_aisle_survey(20.0, rng)
+    if noise_seed is not None:
+        rng = np.random.default_rng([seed, noise_seed])
+    stated_m = sigma_m if stated_m is None else stated_m
     t = np.round(np.arange(0.0, 20.0, 1 / 30.0) * 1e9).astype(np.int64)
     T_wb = traj.state(t * 1e-9).T_world_body
     true_cam = corrected_camera(FRONT_CAM, np.radians(f_deg))
@@ -380,7 +386,7 @@ def _front_sightings(f_deg, seed: int, sigma_m: float = 0.002):
             pc = (T_cw @ p)[:3]
             if pc[2] > 0.5 and abs(pc[0]) < 0.8 * pc[2] and abs(pc[1]) < 0.6 * pc[2]:
                 pc = pc + sigma_m * rng.standard_normal(3)
-                out.append(LoadObservation(int(t[k]), lid, np.zeros(3), None, pc, sigma_m**2 * np.eye(3)))
+                out.append(LoadObservation(int(t[k]), lid, np.zeros(3), None, pc, stated_m**2 * np.eye(3)))
     return Trajectory("smoother", t, T_wb, None), out
 
 
@@ -447,3 +453,42 @@ def test_front_mount_is_not_checked_against_a_gimbaled_floor_cameras_level_poses
     e = m["front_extrinsics"]
     assert e["source"] == "not_estimated" and "gimbaled floor camera" in e["note"]
     assert FRONT_WARNING_NAME not in [w["name"] for w in m["warnings"]]
+
+
+def test_front_mount_sigma_matches_the_spread_of_its_estimates_and_widens_with_the_noise():
+    """Over 30 noise draws of one flight the estimates scatter as the fit's sigma says (the
+    reported sigma less the trajectory's FRONT_MOUNT_TRAJECTORY_SIGMA_DEG), and sightings twice
+    as noisy as stated give a fit sigma about twice as large (the chi2 / dof inflation)."""
+    from fusion.estimate.extrinsics import FRONT_MOUNT_TRAJECTORY_SIGMA_DEG
+
+    def fit_sigma_deg(m):
+        return np.sqrt(np.degrees(m.sigma_rad) ** 2 - FRONT_MOUNT_TRAJECTORY_SIGMA_DEG**2)
+
+    runs = [
+        estimate_front_mount(*_front_sightings((0.3, 0.0, 0.0), seed=3, noise_seed=i), FRONT_CAM)
+        for i in range(30)
+    ]
+    w = np.degrees([m.rotvec_rad for m in runs])
+    sig = np.mean([fit_sigma_deg(m) for m in runs], axis=0)
+    spread = w.std(axis=0, ddof=1)
+    assert np.all(np.abs(spread / sig - 1.0) < 0.35), (spread, sig)
+    noisy = estimate_front_mount(
+        *_front_sightings((0.3, 0.0, 0.0), seed=3, sigma_m=0.004, stated_m=0.002), FRONT_CAM
+    )
+    ratio = fit_sigma_deg(noisy) / sig
+    assert np.all((ratio > 1.6) & (ratio < 2.5)), ratio
+
+
+def test_front_mount_leaves_out_sightings_across_a_gap_in_the_trajectory():
+    """A sighting whose body pose would be interpolated over more than LOAD_INTERP_MAX_GAP_S
+    (a floor-camera blackout) is not used: the same estimate and count as without it."""
+    traj, obs = _front_sightings((0.3, 0.0, 0.0), seed=3)
+    t = traj.timestamps_ns
+    gap = (t > t[200]) & (t < t[260])  # 2 s without a pose
+    holed = Trajectory(traj.name, t[~gap], traj.T_world_body[~gap], None)
+    inside = [o for o in obs if t[200] < o.timestamp_ns < t[260]]
+    assert len(inside) > 20
+    m = estimate_front_mount(holed, obs, FRONT_CAM)
+    ref = estimate_front_mount(holed, [o for o in obs if o not in inside], FRONT_CAM)
+    assert m.fixes == ref.fixes == len(obs) - len(inside)
+    np.testing.assert_allclose(m.rotvec_rad, ref.rotvec_rad, atol=1e-12)

@@ -659,10 +659,16 @@ def estimate_front_mount(
     ts = trajectory.timestamps_ns
     obs = usable_sightings(sightings) if len(ts) >= 2 else []
     if obs:
-        # the body pose interpolated between samples at most LOAD_INTERP_MAX_GAP_S apart
+        # the body pose on a sample, or interpolated between samples at most
+        # LOAD_INTERP_MAX_GAP_S apart
         t_obs = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
         i = np.clip(np.searchsorted(ts, t_obs), 1, len(ts) - 1)
-        near = (t_obs >= ts[0]) & (t_obs <= ts[-1]) & (ts[i] - ts[i - 1] <= LOAD_INTERP_MAX_GAP_S * 1e9)
+        on_sample = (ts[i] == t_obs) | (ts[i - 1] == t_obs)
+        near = (
+            (t_obs >= ts[0])
+            & (t_obs <= ts[-1])
+            & (on_sample | (ts[i] - ts[i - 1] <= LOAD_INTERP_MAX_GAP_S * 1e9))
+        )
         obs = [o for o, k in zip(obs, near) if k]
     ids = np.array([o.load_id for o in obs])
     if len(obs):
