@@ -634,7 +634,8 @@ def estimate_front_mount(
     frame, as the floor's) in the body frame that `trajectory` defines (the floor camera's fixes
     and the IMU, fused: its attitude is the floor camera's to ~0.01 deg): each load sighting
     p_cam (camera frame, its stamp on the trajectory's clock) hung from the interpolated body
-    pose, the loads' world positions free.  Gauss-Newton on f with the landmarks eliminated
+    pose, its covariance plus the nearest pose's (when the trajectory has covariances), the
+    loads' world positions free.  Gauss-Newton on f with the landmarks eliminated
     (Schur complement; at each step every landmark at its weighted mean, Huber-IRLS weights at
     the robust threshold as the smoother's load factors), the floor's weak prior on f
     (`prior_sigma_deg`); the covariance the reduced Hessian's inverse, inflated by sqrt(chi^2 /
@@ -686,12 +687,23 @@ def estimate_front_mount(
     t = np.array([o.timestamp_ns for o in obs], dtype=float)
     p_cam = np.array([o.p_cam for o in obs], dtype=float)
     C = np.array([o.cov_cam for o in obs], dtype=float)
-    info_cam = np.linalg.inv(0.5 * (C + np.swapaxes(C, 1, 2)))
+    C = 0.5 * (C + np.swapaxes(C, 1, 2))
     T = PoseInterpolator(ts, trajectory.T_world_body)(t)
     R_wb = T[:, :3, :3]
     T_bc = np.asarray(front_camera.T_body_cam, float)
     v = p_cam @ T_bc[:3, :3].T  # the sighting's direction in the body frame, nominal mount
     c_w = np.einsum("nij,j->ni", R_wb, T_bc[:3, 3]) + T[:, :3, 3]  # the camera's centre
+    # the body pose's own error at each sighting (its nearest sample's covariance, [r, t] body
+    # frame): X -> X exp([dr, dt]) moves the sighting's world point by R_wb (-[q]x dr + dt)
+    pose_cov = np.zeros((len(obs), 3, 3))
+    if trajectory.covariances is not None:
+        near = np.clip(np.searchsorted(ts, t), 1, len(ts) - 1)
+        near -= (t - ts[near - 1]) < (ts[near] - t)
+        q = v + T_bc[:3, 3]
+        J = np.concatenate([-skew_stack(q), np.broadcast_to(np.eye(3), (len(obs), 3, 3))], axis=2)
+        J = R_wb @ J
+        Sigma = np.asarray(trajectory.covariances, float)[near]
+        pose_cov = J @ Sigma @ np.swapaxes(J, 1, 2)
     thr = fusion_config.threshold(3)
     prior_info = np.eye(3) / math.radians(config.prior_sigma_deg) ** 2
 
@@ -707,7 +719,7 @@ def estimate_front_mount(
         u = v @ R_f.T
         p_w = np.einsum("nij,nj->ni", R_wb, u) + c_w
         R_wc = R_wb @ (R_f @ T_bc[:3, :3])
-        W = R_wc @ info_cam @ np.swapaxes(R_wc, 1, 2)
+        W = np.linalg.inv(R_wc @ C @ np.swapaxes(R_wc, 1, 2) + pose_cov)
         wW = w[:, None, None] * W
         H_LL = bysum(wW)
         landmarks = np.linalg.solve(H_LL, bysum(np.einsum("nij,nj->ni", wW, p_w))[:, :, None])[:, :, 0]
