@@ -529,3 +529,14 @@ def test_front_mount_takes_the_body_poses_own_error():
     spread = np.std(est, axis=0, ddof=1)
     assert spread.sum() < 0.75 * np.std(bare, axis=0, ddof=1).sum(), (spread, np.std(bare, axis=0, ddof=1))
     assert np.all(np.abs(spread / np.mean(claimed, axis=0) - 1.0) < 0.4), (spread, np.mean(claimed, axis=0))
+
+
+def test_front_mount_takes_a_pose_without_a_usable_covariance_as_exact():
+    """A trajectory whose pose covariances are partly NaN (a pose PnP could not bound) still gives
+    a finite estimate: those poses count as exact, the others as stated."""
+    traj, obs = _front_sightings((0.3, 0.0, 0.0), seed=3)
+    cov = np.repeat((1e-8 * np.eye(6))[None], len(traj), 0)
+    cov[::7] = np.nan
+    m = estimate_front_mount(Trajectory("pnp", traj.timestamps_ns, traj.T_world_body, cov), obs, FRONT_CAM)
+    assert np.all(np.isfinite(m.rotvec_rad)) and np.all(np.isfinite(m.cov_rad2))
+    assert abs(np.degrees(m.rotvec_rad[0]) - 0.3) < 0.01 and m.significant_axes == ["x"]

@@ -703,6 +703,7 @@ def estimate_front_mount(
         J = np.concatenate([-skew_stack(q), np.broadcast_to(np.eye(3), (len(obs), 3, 3))], axis=2)
         J = R_wb @ J
         Sigma = np.asarray(trajectory.covariances, float)[near]
+        Sigma[~np.isfinite(Sigma).all(axis=(1, 2))] = 0.0  # a pose without a usable covariance
         pose_cov = J @ Sigma @ np.swapaxes(J, 1, 2)
     thr = fusion_config.threshold(3)
     prior_info = np.eye(3) / math.radians(config.prior_sigma_deg) ** 2
@@ -736,9 +737,41 @@ def estimate_front_mount(
         b = np.einsum("nij,nj->i", JtW, r) + prior_info @ f
         return cost, np.where(d <= thr, 1.0, thr / np.maximum(d, 1e-12)), S, b
 
-    # IRLS: Gauss-Newton steps at fixed weights, each halved until the cost falls
+    try:
+        f, cov, cost, iterations = _front_mount_irls(fit, len(obs))
+    except np.linalg.LinAlgError as e:
+        raise EstimationError(f"the front camera's mount rotation: a singular system ({e})") from None
+    dof = 3 * (len(obs) - n_g) - 3
+    if dof > 0:
+        cov = cov * max(1.0, 2.0 * cost / dof)
+    cov = cov + np.eye(3) * math.radians(FRONT_MOUNT_TRAJECTORY_SIGMA_DEG) ** 2
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(cov))):
+        raise EstimationError("the front camera's mount rotation: the fit did not converge (not finite)")
+    out = _classify(
+        MountRotation(
+            front, MountSource.ESTIMATED, f, 0.5 * (cov + cov.T), fixes=len(obs), iterations=iterations
+        ),
+        config,
+    )
+    out.time_s = time.perf_counter() - t0
+    log.info(
+        "front camera mount rotation: %s deg (sigma %s deg), %d sightings of %d loads, %.2f s",
+        np.round(np.degrees(f), 3),
+        np.round(np.degrees(np.sqrt(np.diag(cov))), 3),
+        len(obs),
+        n_g,
+        out.time_s,
+    )
+    return out
+
+
+def _front_mount_irls(fit, n: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """estimate_front_mount's IRLS from f = 0: Gauss-Newton steps at fixed Huber weights, each
+    halved until the cost falls; the solution, the reduced Hessian's inverse there, its robust
+    cost and the iterations.  `fit(f, w)` -> (cost, next weights, reduced Hessian, gradient)
+    for the `n` sightings' weights w."""
     f = np.zeros(3)
-    cost, w_next, S, b = fit(f, np.ones(len(obs)))
+    cost, w_next, S, b = fit(f, np.ones(n))
     iterations = 0
     for iterations in range(1, FRONT_MOUNT_MAX_ITERATIONS + 1):
         w = w_next
@@ -762,27 +795,7 @@ def estimate_front_mount(
         if np.linalg.norm(step) < FRONT_MOUNT_STEP_TOL_RAD:
             break
     cost, _, S, _ = fit(f, w_next)
-    cov = np.linalg.inv(S)
-    dof = 3 * (len(obs) - n_g) - 3
-    if dof > 0:
-        cov = cov * max(1.0, 2.0 * cost / dof)
-    cov = cov + np.eye(3) * math.radians(FRONT_MOUNT_TRAJECTORY_SIGMA_DEG) ** 2
-    out = _classify(
-        MountRotation(
-            front, MountSource.ESTIMATED, f, 0.5 * (cov + cov.T), fixes=len(obs), iterations=iterations
-        ),
-        config,
-    )
-    out.time_s = time.perf_counter() - t0
-    log.info(
-        "front camera mount rotation: %s deg (sigma %s deg), %d sightings of %d loads, %.2f s",
-        np.round(np.degrees(f), 3),
-        np.round(np.degrees(np.sqrt(np.diag(cov))), 3),
-        len(obs),
-        n_g,
-        out.time_s,
-    )
-    return out
+    return f, np.linalg.inv(S), cost, iterations
 
 
 # =========================================================================== ground truth
