@@ -634,8 +634,9 @@ def estimate_front_mount(
     frame, as the floor's) in the body frame that `trajectory` defines (the floor camera's fixes
     and the IMU, fused: its attitude is the floor camera's to ~0.01 deg): each load sighting
     p_cam (camera frame, its stamp on the trajectory's clock) hung from the interpolated body
-    pose, its covariance plus the nearest pose's (when the trajectory has covariances), the
-    loads' world positions free.  Gauss-Newton on f with the landmarks eliminated
+    pose, its covariance plus the nearest pose's (when the trajectory has covariances; times the
+    number of sightings sharing that pose, whose common error they would otherwise count that
+    many times), the loads' world positions free.  Gauss-Newton on f with the landmarks eliminated
     (Schur complement; at each step every landmark at its weighted mean, Huber-IRLS weights at
     the robust threshold as the smoother's load factors), the floor's weak prior on f
     (`prior_sigma_deg`); the covariance the reduced Hessian's inverse, inflated by sqrt(chi^2 /
@@ -704,7 +705,10 @@ def estimate_front_mount(
         J = R_wb @ J
         Sigma = np.asarray(trajectory.covariances, float)[near]
         Sigma[~np.isfinite(Sigma).all(axis=(1, 2))] = 0.0  # a pose without a usable covariance
-        pose_cov = J @ Sigma @ np.swapaxes(J, 1, 2)
+        # the sightings of one frame share its pose's error: each takes it n_frame times, so
+        # that taken as independent they still say no more of it than one sighting would
+        _, frame_of, per_frame = np.unique(near, return_inverse=True, return_counts=True)
+        pose_cov = per_frame[frame_of][:, None, None] * (J @ Sigma @ np.swapaxes(J, 1, 2))
     thr = fusion_config.threshold(3)
     prior_info = np.eye(3) / math.radians(config.prior_sigma_deg) ** 2
 
