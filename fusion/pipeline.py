@@ -1672,15 +1672,7 @@ def _apply_extrinsics(
             log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
         )
     result.extrinsics = mount
-    if not mount.significant:
-        return log, loc
-    if not cfg.calibrate_extrinsics:
-        warning = mount.warning()
-        if warning is not None:
-            result.warnings.append(warning)
-        return log, loc
-    log = apply_mount(log, mount)
-    return log, localize_stage(log, det, cfg)
+    return _warn_or_apply_mount(log, det, loc, cfg, result, mount)
 
 
 def _apply_front_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult):
@@ -1708,6 +1700,15 @@ def _apply_front_extrinsics(log: FlightLog, det, loc: LocalizeResult, cfg: RunCo
     except EstimationError as e:
         mount = MountRotation(CameraRole.FRONT.value, MountSource.NOT_ESTIMATED, note=str(e))
     result.front_extrinsics = mount
+    return _warn_or_apply_mount(log, det, loc, cfg, result, mount)
+
+
+def _warn_or_apply_mount(
+    log: FlightLog, det, loc: LocalizeResult, cfg: RunConfig, result: RunResult, mount: MountRotation
+):
+    """A camera's mount check as the run takes it: nothing when not significant; its warning
+    without `cfg.calibrate_extrinsics`; with it, the correction applied to that camera and the
+    per-frame estimates made again (so every output carries the corrected mount)."""
     if not mount.significant:
         return log, loc
     if not cfg.calibrate_extrinsics:

@@ -67,7 +67,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
-from fusion.estimate.common import LOAD_INTERP_MAX_GAP_S, FusionConfig, RawPoseInput, SolveHealth
+from fusion.estimate.common import FusionConfig, RawPoseInput, SolveHealth, interpolable_load_times
 from fusion.estimate.factors import X
 from fusion.estimate.smoother import (
     FactorKind,
@@ -78,7 +78,7 @@ from fusion.estimate.smoother import (
     robust_distances,
     solve,
 )
-from fusion.estimate.timeoffset import usable_sightings
+from fusion.estimate.timeoffset import seen_twice, usable_sightings
 from fusion.fileio import atomic_open
 from fusion.geometry import PoseInterpolator, make_T, skew_stack, so3_exp, so3_log
 from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
@@ -660,24 +660,9 @@ def estimate_front_mount(
         raise EstimationError("a gimbaled front camera: its mount rotation is not estimated")
     ts = trajectory.timestamps_ns
     obs = usable_sightings(sightings) if len(ts) >= 2 else []
-    if obs:
-        # the body pose on a sample, or interpolated between samples at most
-        # LOAD_INTERP_MAX_GAP_S apart
-        t_obs = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
-        i = np.clip(np.searchsorted(ts, t_obs), 1, len(ts) - 1)
-        on_sample = (ts[i] == t_obs) | (ts[i - 1] == t_obs)
-        near = (
-            (t_obs >= ts[0])
-            & (t_obs <= ts[-1])
-            & (on_sample | (ts[i] - ts[i - 1] <= LOAD_INTERP_MAX_GAP_S * 1e9))
-        )
-        obs = [o for o, k in zip(obs, near) if k]
-    ids = np.array([o.load_id for o in obs])
-    if len(obs):
-        _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-        keep = counts[inverse] >= 2
-        obs = [o for o, k in zip(obs, keep) if k]
-        ids = ids[keep]
+    # the body pose on a sample, or interpolated between samples at most LOAD_INTERP_MAX_GAP_S apart
+    near = interpolable_load_times(ts, np.array([o.timestamp_ns for o in obs], dtype=np.int64))
+    obs, ids = seen_twice([o for o, k in zip(obs, near) if k])
     if len(obs) < FRONT_MOUNT_MIN_SIGHTINGS:
         raise EstimationError(
             f"{len(obs)} sightings of loads seen twice or more (at least {FRONT_MOUNT_MIN_SIGHTINGS} "

@@ -798,6 +798,17 @@ def usable_sightings(obs: list[LoadObservation]) -> list[LoadObservation]:
     return [o for (o, _, _), keep in zip(shaped, ok) if keep]
 
 
+def seen_twice(obs: list[LoadObservation]) -> tuple[list[LoadObservation], np.ndarray]:
+    """The sightings of loads seen twice or more (a landmark needs two to say anything of the
+    camera), and their load ids (M,)."""
+    ids = np.array([o.load_id for o in obs])
+    if not len(obs):
+        return obs, ids
+    _, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+    keep = counts[inverse] >= 2
+    return [o for o, k in zip(obs, keep) if k], ids[keep]
+
+
 def landmark_fit(
     trajectory: PoseInterpolator,
     t_ns: np.ndarray,
@@ -923,13 +934,9 @@ def estimate_front_offset(
     S = config.search_half_width_s
     S_ns = int((S + config.front_curvature_step_s) * NS_PER_S)
     ts = trajectory.timestamps_ns
-    obs = [o for o in usable_sightings(sightings) if ts[0] + S_ns <= o.timestamp_ns <= ts[-1] - S_ns]
-    ids = np.array([o.load_id for o in obs])
-    if len(obs):
-        uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-        keep = counts[inverse] >= 2
-        obs = [o for o, k in zip(obs, keep) if k]
-        ids = ids[keep]
+    obs, ids = seen_twice(
+        [o for o in usable_sightings(sightings) if ts[0] + S_ns <= o.timestamp_ns <= ts[-1] - S_ns]
+    )
     if len(obs) < config.min_load_sightings:
         raise EstimationError(
             f"{len(obs)} load sightings of loads seen twice or more (at least "
