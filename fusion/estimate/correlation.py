@@ -131,22 +131,33 @@ def class_autocorrelation(
     for c, name in enumerate(CORNER_CLASSES):
         sel = finite & (cls == c)
         key = code[sel] * span + (frame[sel] - (frame.min() if len(frame) else 0))
-        key, first = np.unique(key[::-1], return_index=True)  # one sighting per (code, frame)
-        rc = r[sel][::-1][first]
-        prod = np.zeros(max_lag)
-        pairs = np.zeros(max_lag, dtype=np.int64)
-        for lag in range(1, max_lag + 1):
-            j = np.searchsorted(key, key + lag)
-            j = np.minimum(j, len(key) - 1)
-            hit = key[j] == key + lag if len(key) else np.zeros(0, bool)
-            pairs[lag - 1] = int(hit.sum())
-            prod[lag - 1] = float(np.sum(rc[hit] * rc[j[hit]]))
-        n = len(key)
-        var = float(np.sum(rc * rc)) / n if n else 0.0
-        rho = prod / np.maximum(pairs, 1) / var if var > 0 else np.zeros(max_lag)
-        rho = np.where(pairs > 0, rho, np.nan)
+        rho, pairs, n = keyed_autocorrelation(key, r[sel], max_lag)
         out[name] = (rho, pairs, n, len(np.unique(code[sel])))
     return out
+
+
+def keyed_autocorrelation(
+    key: np.ndarray, r: np.ndarray, max_lag: int = MAX_LAG
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """(rho (max_lag,), pairs (max_lag,), n) of whitened residuals r (N, d) keyed code * span +
+    frame (span > the frames' range + max_lag, so that key + l is the same code l frames later):
+    rho(l) the mean product of the pairs l frames apart over the mean square, pooled over the d
+    coordinates (NaN at a lag without pairs); one residual per key (a code seen twice in one
+    frame keeps its last).  Vectorised: each partner found by a sorted search."""
+    key, first = np.unique(np.asarray(key)[::-1], return_index=True)
+    rc = np.asarray(r, dtype=float)[::-1][first]
+    prod = np.zeros(max_lag)
+    pairs = np.zeros(max_lag, dtype=np.int64)
+    for lag in range(1, max_lag + 1):
+        j = np.searchsorted(key, key + lag)
+        j = np.minimum(j, len(key) - 1)
+        hit = key[j] == key + lag if len(key) else np.zeros(0, bool)
+        pairs[lag - 1] = int(hit.sum())
+        prod[lag - 1] = float(np.sum(rc[hit] * rc[j[hit]]))
+    n = len(key)
+    var = float(np.sum(rc * rc)) / n if n else 0.0
+    rho = prod / np.maximum(pairs, 1) / var if var > 0 else np.zeros(max_lag)
+    return np.where(pairs > 0, rho, np.nan), pairs, n
 
 
 def placement_autocorrelation(

@@ -68,6 +68,7 @@ import numpy as np
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig, RawPoseInput, SolveHealth, interpolable_load_times
+from fusion.estimate.correlation import frame_indices, integrated_time, keyed_autocorrelation
 from fusion.estimate.factors import X
 from fusion.estimate.smoother import (
     FactorKind,
@@ -99,6 +100,9 @@ FRONT_MOUNT_MIN_SIGHTINGS = 20  # of loads seen twice or more (estimate_front_mo
 FRONT_MOUNT_MAX_ITERATIONS = 30
 FRONT_MOUNT_STEP_TOL_RAD = 1e-9
 FRONT_MOUNT_MAX_HALVINGS = 20
+FRONT_MOUNT_MAX_LAG = 20
+"""Frames of lag over which estimate_front_mount measures its residuals' correlation time (as
+fusion.estimate.correlation.MAX_LAG for the PnP residuals)."""
 FRONT_MOUNT_MIN_SIGNIFICANT_DEG = 0.03
 """estimate_front_mount's floor on a significant axis (with its 3 sigma), below the floor
 camera's 0.1 deg: the load sightings see far less than the IMU does (a 0.15 deg roll of the front
@@ -245,6 +249,9 @@ class MountRotation:
     fixes: int = 0
     iterations: int = 0
     time_s: float = 0.0
+    # the fit's residuals' integrated correlation time in frames, its covariance's factor (the
+    # front check; 1: white, or not measured)
+    correlation_time: float = 1.0
 
     @property
     def sigma_rad(self) -> np.ndarray | None:
@@ -291,6 +298,7 @@ class MountRotation:
             "fixes": self.fixes,
             "iterations": self.iterations,
             "time_s": self.time_s,
+            "correlation_time": self.correlation_time,
             "note": self.note,
         }
         if truth_rad is not None:
@@ -640,7 +648,14 @@ def estimate_front_mount(
     (Schur complement; at each step every landmark at its weighted mean, Huber-IRLS weights at
     the robust threshold as the smoother's load factors), the floor's weak prior on f
     (`prior_sigma_deg`); the covariance the reduced Hessian's inverse, inflated by sqrt(chi^2 /
-    dof) when the fit is worse than its noise model (as the floor's).  The trajectory is taken
+    dof) when the fit is worse than its noise model (as the floor's), and by the whitened
+    residuals' integrated correlation time tau over frames (a load's sightings l frames apart,
+    pooled; Geyer's initial monotone sequence with its significance gate, as fusion.estimate.
+    correlation does for the PnP residuals: tau = 1 when they are white): errors that persist
+    over frames (a rolling shutter's motion error in the PnP poses, a corner bias of one code)
+    make n sightings worth ~n / tau independent ones.  Without it a 15 ms readout with the
+    cameras' clocks 4 ms off read a front pitch of 0.050 +- 0.013 deg on a flight with no mount
+    error (tau 3.4 there; BENCHMARKS.md, twenty-fourth session).  The trajectory is taken
     as exact (its attitude's error, ~0.01 deg, is well below any mount error worth correcting):
     FRONT_MOUNT_TRAJECTORY_SIGMA_DEG is added to each axis' sigma for it.
 
@@ -702,9 +717,10 @@ def estimate_front_mount(
         out = np.stack([np.bincount(group, flat[:, c], n_g) for c in range(flat.shape[1])], axis=1)
         return out.reshape((n_g, *x.shape[1:]))
 
-    def fit(f: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    def fit(f: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """At mount error f, each landmark at its mean weighted by w: the robust cost, the new
-        Huber weights, the reduced Hessian and gradient of f (landmarks eliminated)."""
+        Huber weights, the reduced Hessian and gradient of f (landmarks eliminated), and the
+        residuals whitened by their covariance (N, 3)."""
         R_f = so3_exp(f)
         u = v @ R_f.T
         p_w = np.einsum("nij,nj->ni", R_wb, u) + c_w
@@ -724,29 +740,46 @@ def estimate_front_mount(
         S = (JtW @ J).sum(axis=0) + prior_info
         S -= np.einsum("gij,gjk,gkl->il", H_fL, np.linalg.inv(H_LL), np.swapaxes(H_fL, 1, 2))
         b = np.einsum("nij,nj->i", JtW, r) + prior_info @ f
-        return cost, np.where(d <= thr, 1.0, thr / np.maximum(d, 1e-12)), S, b
+        white = np.einsum("nji,nj->ni", np.linalg.cholesky(W), r)  # L^T r, W = L L^T
+        return cost, np.where(d <= thr, 1.0, thr / np.maximum(d, 1e-12)), S, b, white
 
     try:
-        f, cov, cost, iterations = _front_mount_irls(fit, len(obs))
+        f, cov, cost, iterations, white = _front_mount_irls(fit, len(obs))
     except np.linalg.LinAlgError as e:
         raise EstimationError(f"the front camera's mount rotation: a singular system ({e})") from None
     dof = 3 * (len(obs) - n_g) - 3
     if dof > 0:
         cov = cov * max(1.0, 2.0 * cost / dof)
+    # sightings of one load whose errors persist over frames say less than as many independent
+    # ones: the covariance times the residuals' integrated correlation time (1 when white)
+    frames = frame_indices(np.unique(t.astype(np.int64)))
+    frame = frames[np.searchsorted(np.unique(t.astype(np.int64)), t.astype(np.int64))]
+    span = int(frame.max()) + FRONT_MOUNT_MAX_LAG + 1
+    rho, pairs, _ = keyed_autocorrelation(group * span + frame, white, FRONT_MOUNT_MAX_LAG)
+    tau, _ = integrated_time(rho, pairs)
+    cov = cov * tau
     cov = cov + np.eye(3) * math.radians(FRONT_MOUNT_TRAJECTORY_SIGMA_DEG) ** 2
     if not (np.all(np.isfinite(f)) and np.all(np.isfinite(cov))):
         raise EstimationError("the front camera's mount rotation: the fit did not converge (not finite)")
     out = _classify(
         MountRotation(
-            front, MountSource.ESTIMATED, f, 0.5 * (cov + cov.T), fixes=len(obs), iterations=iterations
+            front,
+            MountSource.ESTIMATED,
+            f,
+            0.5 * (cov + cov.T),
+            fixes=len(obs),
+            iterations=iterations,
+            correlation_time=tau,
         ),
         config,
     )
     out.time_s = time.perf_counter() - t0
     log.info(
-        "front camera mount rotation: %s deg (sigma %s deg), %d sightings of %d loads, %.2f s",
+        "front camera mount rotation: %s deg (sigma %s deg, residuals' correlation time %.2f "
+        "frames), %d sightings of %d loads, %.2f s",
         np.round(np.degrees(f), 3),
         np.round(np.degrees(np.sqrt(np.diag(cov))), 3),
+        tau,
         len(obs),
         n_g,
         out.time_s,
@@ -754,21 +787,21 @@ def estimate_front_mount(
     return out
 
 
-def _front_mount_irls(fit, n: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+def _front_mount_irls(fit, n: int) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray]:
     """estimate_front_mount's IRLS from f = 0: Gauss-Newton steps at fixed Huber weights, each
     halved until the cost falls; the solution, the reduced Hessian's inverse there, its robust
-    cost and the iterations.  `fit(f, w)` -> (cost, next weights, reduced Hessian, gradient)
-    for the `n` sightings' weights w."""
+    cost, the iterations and the whitened residuals.  `fit(f, w)` -> (cost, next weights,
+    reduced Hessian, gradient, whitened residuals) for the `n` sightings' weights w."""
     f = np.zeros(3)
-    cost, w_next, S, b = fit(f, np.ones(n))
+    cost, w_next, S, b, _ = fit(f, np.ones(n))
     iterations = 0
     for iterations in range(1, FRONT_MOUNT_MAX_ITERATIONS + 1):
         w = w_next
-        cost, _, S, b = fit(f, w)
+        cost, _, S, b, _ = fit(f, w)
         step = -np.linalg.solve(S, b)
         for _ in range(FRONT_MOUNT_MAX_HALVINGS):
             f_new = so3_log(so3_exp(step) @ so3_exp(f))
-            cost_new, w_next, S_new, b_new = fit(f_new, w)
+            cost_new, w_next, S_new, b_new, _ = fit(f_new, w)
             if cost_new <= cost:
                 break
             step = 0.5 * step
@@ -783,8 +816,8 @@ def _front_mount_irls(fit, n: int) -> tuple[np.ndarray, np.ndarray, float, int]:
         )
         if np.linalg.norm(step) < FRONT_MOUNT_STEP_TOL_RAD:
             break
-    cost, _, S, _ = fit(f, w_next)
-    return f, np.linalg.inv(S), cost, iterations
+    cost, _, S, _, white = fit(f, w_next)
+    return f, np.linalg.inv(S), cost, iterations, white
 
 
 # =========================================================================== ground truth
