@@ -109,6 +109,7 @@ from fusion.qr.detect import (
 )
 from fusion.qr.pnp import LoadFrame, estimate_load_observations_frames
 from fusion.qr.predict import track_flight, tracked_fingerprint, with_tracked, without_tracked
+from fusion.qr.refine import SMALL_MODULE_PX
 from fusion.qr.rolling_shutter import (
     UNDECLARED_CHECK_CHI2_DOF,
     ReadoutCalibration,
@@ -252,6 +253,11 @@ class RunResult:
                         + (f" ({why})" if why else "")
                         + f"; {r.get('tracked', 0)} tracked sightings"
                     )
+                if r.get("small_module_codes"):
+                    lines.append(
+                        f"{cam}: {r['small_module_codes']} codes under {SMALL_MODULE_PX[1]} px per module "
+                        "(far or small labels): their corner sigma widened"
+                    )
         per = (self.metrics or {}).get("trajectories", {})
         header = (
             f"{'estimator':<12} {'poses':>6} {'x cm':>7} {'y cm':>7} {'z cm':>7} "
@@ -394,7 +400,7 @@ class Computed:
         return out
 
 
-_REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked")
+_REFINE_COUNTERS = ("refine_", "tracked", "frames_with_tracked", "small_module")
 """detect.CameraStats counters reported under detection_statistics' "refinement"."""
 
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import zxingcpp
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from fusion.camera import CameraModel
 from fusion.geometry import make_T, rot_z
@@ -275,3 +276,41 @@ def test_the_growth_is_used_only_where_it_is_significant():
         res = refine_code(img, corners, modules, cam)
         expected = second if significant else first
         np.testing.assert_allclose(res.corners_px, dist.distort(expected[0]), atol=1e-9)
+
+
+def _small_code_nees(module_px: float, n: int, seed: int) -> tuple[np.ndarray, RefineStats]:
+    """8-D corner NEES of `n` renders of a version-1 load code (0.15 m) at `module_px` px per
+    module, tilted up to 0.5 rad, noise 2 DN, as the front camera sees a far label; the stats."""
+    camera = CameraModel(640, 480, 550.0, 550.0, 321.0, 239.0)
+    code = PlacedCode("1/QR5", np.eye(4), 0.15)
+    rng = np.random.default_rng(seed)
+    stats = RefineStats()
+    nees = []
+    for _ in range(n):
+        tilt, azimuth = rng.uniform(0.0, 0.5), rng.uniform(0.0, 2 * np.pi)
+        axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+        R_cam = Rotation.from_rotvec(tilt * axis).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+        R_cam = R_cam @ rot_z(rng.uniform(-np.pi, np.pi))
+        depth = 550.0 * 0.15 / (code.modules * module_px)
+        T_world_cam = np.linalg.inv(make_T(R_cam, [rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), depth]))
+        truth = project_code_corners(camera, T_world_cam, code)
+        img = render_view(camera, T_world_cam, [code], rng, RenderEffects(noise_sigma_dn=2.0))
+        raw = np.round(truth + rng.normal(0.0, 0.7, truth.shape))
+        (res,) = refine_frames([img], [[(raw, code.modules)]], camera, stats=stats)[0]
+        if res is None or res.stage != 2:
+            continue
+        e = (res.corners_px - truth).reshape(-1)
+        nees.append(float(e @ np.linalg.solve(res.corner_cov_px2, e)))
+    return np.array(nees), stats
+
+
+def test_codes_about_a_pixel_per_module_get_an_honest_corner_sigma():
+    """At ~1 px per module the fit's propagated covariance no longer bounds its error (mean 8-D
+    corner NEES ~125 on such renders before; a far load label took its load 26 mm off at 4.3
+    sigma): the small-module sigma brings the mean near 8, and the codes are counted; codes of 3
+    px per module keep their covariance (none counted)."""
+    nees, stats = _small_code_nees(1.0, 40, seed=21)
+    assert len(nees) >= 30 and stats.small_modules == len(nees)
+    assert 2.0 < np.mean(nees) < 16.0, np.mean(nees)
+    big, big_stats = _small_code_nees(3.0, 10, seed=22)
+    assert big_stats.small_modules == 0 and len(big) >= 8

@@ -57,7 +57,7 @@ FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image s
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = (
     # change when refine.py's output changes
-    "finder-crossings+finder-model-homography+alignment+checks+dilation-3sigma+damped-widths/11"
+    "finder-crossings+finder-model-homography+alignment+checks+dilation-3sigma+damped-widths+small-modules/12"
 )
 CACHE_HEADER = (
     "camera",
@@ -133,6 +133,7 @@ class CameraStats:
     refine_high_residual: int = 0  # ... edge-point misfit of the homography
     refine_far_from_decoder: int = 0  # ... corners far from the decoder's
     refine_unmeasurable: int = 0  # finder edges not measurable at all
+    small_module_codes: int = 0  # refined codes under 1.25 px per module: corner sigma widened
     tracked: int = 0  # detections not decoded but tracked from earlier frames (fusion.qr.track)
     frames_with_tracked_only: int = 0  # frames whose only codes were tracked ones
 
@@ -365,6 +366,7 @@ def detect_frames(
         stats.refine_high_residual += rstats.high_residual
         stats.refine_far_from_decoder += rstats.far_from_decoder
         stats.refine_unmeasurable += rstats.unmeasurable
+        stats.small_module_codes += rstats.small_modules
         stats.refine_failed += rstats.fell_back + rstats.unmeasurable
     return out
 

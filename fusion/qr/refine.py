@@ -1182,6 +1182,7 @@ class RefineStats:
     high_residual: int = 0
     far_from_decoder: int = 0
     unmeasurable: int = 0
+    small_modules: int = 0  # refined, with the small-module sigma added (not a fallback)
 
     @property
     def fell_back(self) -> int:
@@ -1220,6 +1221,28 @@ class RefineResult:
 # rendered frames (tests/test_pnp.py `rendered_nees`; `scripts/bench_detect.py --calibrate`
 # prints the mean-matching A on single-code renders): 8-D corner NEES out of sample ~7.3.
 STAGE1_SIGMA_PX = 0.6  # corners from the boundary lines only (stage 2 failed or disabled)
+
+# Codes whose modules are about a pixel wide: the finder's one-module ring is then no wider
+# than the model's PSF box and the fit's propagated covariance no longer bounds its error.  On
+# renders of a load code (21 modules, 0.15 m, tilted up to 0.5 rad, noise 2 DN; 100-120 codes
+# per size) the calibrated model's mean 8-D corner NEES (ideal 8) is 6-15 from 1.4 to 3 px per
+# module, then 13-21 at 1.2-1.3, 26 / 53 / 71 at 1.15 / 1.1 / 1.05, 125 at 1.0 and 159 at 0.9;
+# the isotropic sigma that brings the mean to 8 is 0.017-0.03 px at 1.2-1.4, 0.10-0.16 px at
+# 1.05-1.15, 0.33 px at 1.0 and 0.39 px at 0.9 (BENCHMARKS.md, twenty-fourth session).  Such a
+# code (a load label 3.9 m away at f = 550 px) took a load 26 mm off at 4.3 sigma on a held-out
+# flight.  So below SMALL_MODULE_PX[1] px per module an isotropic SMALL_MODULE_SIGMA_PX x
+# (SMALL_MODULE_PX[1] - m) / (SMALL_MODULE_PX[1] - SMALL_MODULE_PX[0]) (capped at the full
+# value) is added to each corner coordinate's sigma (in quadrature): the refined corners are
+# still far better than the decoder's (0.2-0.4 px RMS against ~1.4 px), so they are kept with
+# an honest sigma rather than dropped.  Counted per camera (RefineStats.small_modules).
+SMALL_MODULE_PX = (1.0, 1.25)
+SMALL_MODULE_SIGMA_PX = 0.35
+
+
+def small_module_sigma_px(module_px: np.ndarray) -> np.ndarray:
+    """The isotropic corner sigma (px) added for codes of `module_px` px per module (above)."""
+    lo, hi = SMALL_MODULE_PX
+    return SMALL_MODULE_SIGMA_PX * np.clip((hi - np.asarray(module_px, float)) / (hi - lo), 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -1623,6 +1646,8 @@ def refine_frames(
         cov_u = np.stack([s[1] for _, s in done])
         cd = dist.distort(cu)
         cov_d = cov_model.apply(_distort_cov(dist, cu, cov_u))
+        small = small_module_sigma_px(np.array([s[3].module_px for _, s in done]))
+        cov_d = cov_d + (small * small)[:, None, None] * np.eye(8)
         sig = np.sqrt(np.mean(np.diagonal(cov_d, axis1=1, axis2=2), axis=1))
         for k, (j, s) in enumerate(done):
             i, c = todo[j]
@@ -1630,6 +1655,8 @@ def refine_frames(
             if reason is None:
                 results[i][c] = RefineResult(cd[k], float(sig[k]), s[2], 2, cov_d[k], s[3])
                 _count(stats, "refined")
+                if small[k] > 0:
+                    _count(stats, "small_modules")
             else:
                 results[i][c] = RefineResult(
                     raws[j].copy(), FALLBACK_SIGMA_PX, s[2], 0, FALLBACK_SIGMA_PX**2 * np.eye(8), s[3]
