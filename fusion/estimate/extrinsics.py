@@ -752,8 +752,8 @@ def estimate_front_mount(
         cov = cov * max(1.0, 2.0 * cost / dof)
     # sightings of one load whose errors persist over frames say less than as many independent
     # ones: the covariance times the residuals' integrated correlation time (1 when white)
-    frames = frame_indices(np.unique(t.astype(np.int64)))
-    frame = frames[np.searchsorted(np.unique(t.astype(np.int64)), t.astype(np.int64))]
+    stamps, frame_of = np.unique(t.astype(np.int64), return_inverse=True)
+    frame = frame_indices(stamps)[frame_of]
     span = int(frame.max()) + FRONT_MOUNT_MAX_LAG + 1
     rho, pairs, _ = keyed_autocorrelation(group * span + frame, white, FRONT_MOUNT_MAX_LAG)
     tau, _ = integrated_time(rho, pairs)
