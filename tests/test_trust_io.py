@@ -432,3 +432,26 @@ def test_a_floor_camera_that_decodes_no_code_is_a_warning_and_not_trusted(tmp_pa
     # per-frame stage only: nothing was to be fused, so nothing is untrusted
     assert main(["localize", str(log), "--out", str(tmp_path / "loc"), "--quiet", "--workers", "1"]) == 0
     assert "no_floor_pose" in capsys.readouterr().out
+
+
+def test_unplaced_load_sightings_at_the_flights_ends_are_not_blamed_on_a_clock_offset():
+    """A sighting stamped within a frame of the floor camera's first or last frame (cameras
+    started a frame apart, or a jittered stamp) is counted without the clock-offset hint; one
+    far outside keeps it."""
+    from types import SimpleNamespace
+
+    from fusion.pipeline import _unsynchronised_load_sightings
+
+    floor_t = np.arange(10, 110, dtype=np.int64) * 33_333_333
+    log = SimpleNamespace(front=object(), floor=SimpleNamespace(timestamps_ns=floor_t))
+
+    def warn(stamps):
+        obs = [SimpleNamespace(timestamp_ns=int(s)) for s in stamps]
+        return _unsynchronised_load_sightings(log, SimpleNamespace(camera_frame_observations=obs))
+
+    inside = list(floor_t[20:30])
+    assert warn(inside) is None
+    edge = warn(inside + [floor_t[0] - 20_000_000])  # 20 ms before the first floor frame
+    assert edge is not None and edge.count == 1 and "started or stopped apart" in edge.message
+    far = warn(inside + [floor_t[-1] + 5_000_000_000])
+    assert far is not None and "clock offset on cam1" in far.message
