@@ -519,6 +519,22 @@ def test_front_mount_leaves_out_sightings_across_a_gap_in_the_trajectory():
     np.testing.assert_allclose(m.rotvec_rad, ref.rotvec_rad, atol=1e-12)
 
 
+def test_front_mount_does_not_interpolate_the_pnp_poses_over_missing_frames():
+    """The PnP poses have no IMU between them: a sighting more than one missing frame from a pose
+    (here 5 frames missing, 200 ms at 30 Hz, within LOAD_INTERP_MAX_GAP_S) is left out, as a
+    straight line over such a gap of a turning drone is mm off (the sweep's pincushion flight
+    read a false 0.15 deg pitch from 20 such sightings); one missing frame still interpolates."""
+    traj, obs = _front_sightings((0.3, 0.0, 0.0), seed=3)
+    t = traj.timestamps_ns
+    for missing, left_out in ((range(201, 206), True), ([300], False)):
+        keep = ~np.isin(np.arange(len(t)), list(missing))
+        holed = Trajectory(traj.name, t[keep], traj.T_world_body[keep], None)
+        inside = [o for o in obs if o.timestamp_ns in set(t[list(missing)].tolist())]
+        assert inside
+        m = estimate_front_mount(holed, obs, FRONT_CAM)
+        assert m.fixes == len(obs) - (len(inside) if left_out else 0)
+
+
 def test_front_mount_takes_the_body_poses_own_error():
     """Body poses whose attitude error is stated in their covariances, one frame in ten 0.5 deg
     off, the rest 0.01 deg: carried to each sighting, those covariances weigh the bad frames

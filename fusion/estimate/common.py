@@ -596,10 +596,12 @@ LOAD_INTERP_MAX_GAP_S = 0.2
 placed by interpolation (`retime_load_obs`): the body's motion across the gap is not known."""
 
 
-def interpolable_load_times(frame_t: np.ndarray, t: np.ndarray) -> np.ndarray:
+def interpolable_load_times(
+    frame_t: np.ndarray, t: np.ndarray, max_gap_s: float = LOAD_INTERP_MAX_GAP_S
+) -> np.ndarray:
     """(M,) whether each load-sighting time `t` (M,) ns lies between two floor frames of `frame_t`
-    (N,) at most LOAD_INTERP_MAX_GAP_S apart (or on a frame): where `retime_load_obs` can place
-    it from the interpolated body pose."""
+    (N,) at most `max_gap_s` apart (or on a frame): where `retime_load_obs` can place it from the
+    interpolated body pose."""
     frame_t = np.asarray(frame_t, dtype=np.int64)
     t = np.asarray(t, dtype=np.int64)
     if len(frame_t) == 0 or len(t) == 0:
@@ -608,7 +610,7 @@ def interpolable_load_times(frame_t: np.ndarray, t: np.ndarray) -> np.ndarray:
     b = np.clip(np.searchsorted(frame_t, t), 0, len(frame_t) - 1)
     a = np.maximum(b - 1, 0)
     on_frame = frame_t[b] == t
-    gap_ok = (frame_t[b] - frame_t[a]) <= int(LOAD_INTERP_MAX_GAP_S * 1e9)
+    gap_ok = (frame_t[b] - frame_t[a]) <= int(max_gap_s * 1e9)
     return inside & (on_frame | gap_ok)
 
 

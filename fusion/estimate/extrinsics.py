@@ -67,7 +67,13 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
-from fusion.estimate.common import FusionConfig, RawPoseInput, SolveHealth, interpolable_load_times
+from fusion.estimate.common import (
+    LOAD_INTERP_MAX_GAP_S,
+    FusionConfig,
+    RawPoseInput,
+    SolveHealth,
+    interpolable_load_times,
+)
 from fusion.estimate.correlation import frame_indices, integrated_time, keyed_autocorrelation
 from fusion.estimate.factors import X
 from fusion.estimate.smoother import (
@@ -100,6 +106,11 @@ FRONT_MOUNT_MIN_SIGHTINGS = 20  # of loads seen twice or more (estimate_front_mo
 FRONT_MOUNT_MAX_ITERATIONS = 30
 FRONT_MOUNT_STEP_TOL_RAD = 1e-9
 FRONT_MOUNT_MAX_HALVINGS = 20
+FRONT_MOUNT_MAX_GAP_FRAMES = 2.5
+"""estimate_front_mount interpolates the PnP body pose over at most this many of their median
+frame intervals (one missing frame; and at most LOAD_INTERP_MAX_GAP_S): the sweep's pincushion
+flight (30 fps) read a false front pitch of 0.151 +- 0.043 deg from 20 of 153 sightings placed
+across 200 ms gaps, 0.032 +- 0.043 without them (BENCHMARKS.md, twenty-fourth session)."""
 FRONT_MOUNT_MAX_LAG = 20
 """Frames of lag over which estimate_front_mount measures its residuals' correlation time (as
 fusion.estimate.correlation.MAX_LAG for the PnP residuals)."""
@@ -675,8 +686,12 @@ def estimate_front_mount(
         raise EstimationError("a gimbaled front camera: its mount rotation is not estimated")
     ts = trajectory.timestamps_ns
     obs = usable_sightings(sightings) if len(ts) >= 2 else []
-    # the body pose on a sample, or interpolated between samples at most LOAD_INTERP_MAX_GAP_S apart
-    near = interpolable_load_times(ts, np.array([o.timestamp_ns for o in obs], dtype=np.int64))
+    # the body pose on a sample, or interpolated between samples at most FRONT_MOUNT_MAX_GAP_FRAMES
+    # frame intervals (and LOAD_INTERP_MAX_GAP_S) apart: the PnP poses have no IMU between them,
+    # and a straight line over a longer gap of a turning, accelerating drone is mm off
+    dt_s = float(np.median(np.diff(ts))) * 1e-9 if len(ts) >= 2 else 0.0
+    max_gap_s = min(LOAD_INTERP_MAX_GAP_S, FRONT_MOUNT_MAX_GAP_FRAMES * dt_s)
+    near = interpolable_load_times(ts, np.array([o.timestamp_ns for o in obs], dtype=np.int64), max_gap_s)
     obs, ids = seen_twice([o for o, k in zip(obs, near) if k])
     if len(obs) < FRONT_MOUNT_MIN_SIGHTINGS:
         raise EstimationError(
