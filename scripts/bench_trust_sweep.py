@@ -6,6 +6,11 @@ floor camera), run `fusion run` on each, and tabulate per back end the 6-dof pos
 count (metrics.json `mean_interval_95_independent`), with ATE and health.
 
     python3 scripts/bench_trust_sweep.py WORK [--flights NAME ...] [--table OUT.md]
+    python3 scripts/bench_trust_sweep.py WORK --held-out [--table OUT.md]
+
+`--held-out` runs HELD_OUT instead: the twenty-fourth session's flights, made after everything
+they test was written (bags and video among them; a flight with a mount error runs with
+--calibrate-extrinsics, RUN_ARGS).
 
 Flights are simulated once into WORK/flights/NAME (kept, reused); runs go to WORK/runs/NAME (a
 `detections.csv` already there is reused by `fusion run` when the images are unchanged).  The
