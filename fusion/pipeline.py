@@ -2077,14 +2077,11 @@ def _evaluate_and_report(
         )
     if result.time_offsets is not None:
         metrics["time_offsets"] = result.time_offsets.as_dict()
-    if result.extrinsics is not None:
-        truth = read_extrinsics_groundtruth(log.root) if "cam0" in log.cameras else {}
-        metrics["extrinsics"] = result.extrinsics.as_dict(truth.get(result.extrinsics.camera))
-    if result.front_extrinsics is not None:
-        truth = read_extrinsics_groundtruth(log.root) if log.front is not None else {}
-        metrics["front_extrinsics"] = result.front_extrinsics.as_dict(
-            truth.get(result.front_extrinsics.camera)
-        )
+    mounts = {"extrinsics": result.extrinsics, "front_extrinsics": result.front_extrinsics}
+    truth = read_extrinsics_groundtruth(log.root) if any(m is not None for m in mounts.values()) else {}
+    for key, mount in mounts.items():
+        if mount is not None:
+            metrics[key] = mount.as_dict(truth.get(mount.camera))
     metrics["noise_scales"] = to_jsonable(result.noise_scales)
     # written with or without ground truth: health, failures and warnings hold without it
     write_metrics(out_dir / "metrics.json", metrics)

@@ -201,12 +201,12 @@ def test_simulator_renders_the_true_mount_and_logs_the_nominal_one(tmp_path):
 # ============================================================================ pipeline
 
 
-def _miscalibrated_sample(tmp_path: Path, w_deg) -> Path:
-    """The sample flight whose cam0 sensor.yaml is off: the images were made with its mount,
+def _miscalibrated_sample(tmp_path: Path, w_deg, camera: str = "cam0") -> Path:
+    """The sample flight whose `camera`'s sensor.yaml is off: the images were made with its mount,
     the yaml now says that mount turned by -w (so the true mount is the logged one turned by w)."""
     dst = tmp_path / "log"
     shutil.copytree(SAMPLE, dst)
-    path = dst / "mav0" / "cam0" / "sensor.yaml"
+    path = dst / "mav0" / camera / "sensor.yaml"
     data = load_yaml(path, EstimationError)
     T = np.array(data["T_BS"]["data"], float).reshape(4, 4)
     data["T_BS"]["data"] = [float(v) for v in corrected_mount(T, -np.radians(w_deg)).reshape(-1)]
@@ -425,13 +425,7 @@ def test_front_mount_check_and_calibration_on_the_sample_flight(tmp_path):
     floor check cannot see it, the front check warns, --calibrate-extrinsics applies it and the
     batch smoother's load sightings fit again."""
     f_deg = (0.5, 0.0, 0.0)
-    dst = tmp_path / "log"
-    shutil.copytree(SAMPLE, dst)
-    path = dst / "mav0" / "cam1" / "sensor.yaml"
-    data = load_yaml(path, EstimationError)
-    T = np.array(data["T_BS"]["data"], float).reshape(4, 4)
-    data["T_BS"]["data"] = [float(v) for v in corrected_mount(T, -np.radians(f_deg)).reshape(-1)]
-    dump_yaml(data, path)
+    dst = _miscalibrated_sample(tmp_path, f_deg, "cam1")
     m = _run(dst, tmp_path / "check")
     e = m["front_extrinsics"]
     assert e["source"] == "estimated" and not e["applied"] and e["significant_axes"] == ["x"]
