@@ -631,6 +631,43 @@ def test_motion_sighting_covariance_matches_a_monte_carlo_of_the_motion(scene):
     assert out[1] is obs[1]
 
 
+def test_load_codes_moving_across_the_rows_are_corrected_at_their_unstretched_depth(scene, monkeypatch):
+    """The front camera (30 ms readout) climbing at 1 m/s: its load codes are stretched across
+    the rows by ~3 %, and their depth from that size put the correction ~1.5 % short (0.17 px,
+    0.3 mm per m/s on the sightings, read as a false 0.08 deg front pitch; BENCHMARKS.md,
+    twenty-fifth session).  With the depth from the corners moved to the stamp, the corners
+    are within 0.05 px of the stamp's projection, with exact motion and noise-free corners."""
+    import fusion.qr.rolling_shutter as rs_module
+
+    sc, _ = scene
+    world = sc.layout.world
+    cam = replace(sc.cameras["cam1"], line_delay_s=0.03 / 480)
+    loads = [c for c in sc.codes() if not c.is_floor]
+    T0 = sc.trajectory.state(np.array([7.5])).T_world_body[0]
+    v, w = np.array([0.3, 0.2, 1.0]), np.zeros(3)
+    body_at = constant_twist(T0, v, w)
+    dets, truth = [], []
+    for c in loads:
+        uv = project_code_corners_rolling(cam, body_at, 0.0, c)
+        if np.all(np.isfinite(uv)) and np.all(uv > 10) and np.all(uv < [cam.width - 10, cam.height - 10]):
+            dets.append(QRDetection("cam1", 0, c.payload, uv, uv.copy(), corner_cov_px2=0.05**2 * np.eye(8)))
+            truth.append(project_code_corners(cam, cam.T_world_cam(T0), c))
+    assert len(dets) >= 4
+    small = np.eye(3)[None] * 1e-6
+    motion = FrameMotion(
+        np.array([0]), T0[None] + 0.0, w[None], v[None], np.zeros((1, 3)), small, np.array([True]), small
+    )
+
+    def worst_px() -> float:
+        fixed, n = correct_frames({0: dets}, cam, world, motion)
+        assert n == 1
+        return max(float(np.abs(np.asarray(d.corners_px) - t).max()) for d, t in zip(fixed[0], truth))
+
+    assert worst_px() < 0.05
+    monkeypatch.setattr(rs_module, "LOAD_SIZE_PASSES", 0)  # the depth from the stretched size
+    assert worst_px() > 0.1
+
+
 def test_add_readout_covariances_reaches_pnp_poses_and_front_sightings_with_their_shifts():
     """pipeline.add_readout_covariances: the floor pose covariance by the floor stamps, the
     front sightings' by (stamp, load), each shifted by its camera's applied time offset (the
@@ -681,7 +718,7 @@ def test_size_depth_is_right_across_the_image_with_a_distorted_lens(centre_px):
     """A 0.15 m code facing the camera at 1.08 m: its depth from the undistorted edge within
     0.3 % anywhere in the image; the distorted-px edge (f side / edge) reads it too far near the
     border (barrel distortion shrinks the code there)."""
-    from fusion.qr.rolling_shutter import _size_depth
+    from fusion.qr.rolling_shutter import size_depths
 
     cam = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, distortion=np.array([-0.12, 0.03, 0.0, 0.0]))
     z, side = 1.08, 0.15
@@ -692,7 +729,7 @@ def test_size_depth_is_right_across_the_image_with_a_distorted_lens(centre_px):
     )
     uv = cam.project(corners)
     f = 0.5 * (cam.fu + cam.fv)
-    assert _size_depth(cam, uv, side, f) == pytest.approx(z, rel=3e-3)
+    assert size_depths(cam, uv, np.full(4, side)) == pytest.approx(np.full(4, z), rel=3e-3)
     edge_px = float(np.mean(np.linalg.norm(uv - np.roll(uv, 1, axis=0), axis=1)))
     if centre_px != (320.0, 240.0):
         assert f * side / edge_px > z * 1.01  # the old estimate near the border

@@ -78,6 +78,10 @@ log_ = logging.getLogger(__name__)
 
 CORRECTION_PASSES = 4
 """PnP -> motion -> corrected corners rounds of `correct_flight` after the first PnP."""
+LOAD_SIZE_PASSES = 1
+"""Rounds of `correct_frames` that take a load code's size-implied depth from its corners moved
+to the stamp (the first from the corners as read, stretched by the readout; a second round
+changes the depth by the stretch's square, ~0.1 %)."""
 FIT_HALF_WINDOW = 8
 """Poses each side of a stamp in the local quadratic fit of the position (velocity)."""
 FIT_MAX_SPAN_S = 0.5
@@ -645,8 +649,8 @@ def _body_poses_at(motion: FrameMotion, k: np.ndarray, dt: np.ndarray) -> np.nda
 class CornerBatch:
     """Corners of many detections, stacked (M = 4 per detection): observed px uv (M, 2), their
     normalised rays xn (M, 2), the known world point P (M, 3) (NaN for load codes), the
-    size-implied depth (M,), the motion index of their frame (M,); `where` [(timestamp_ns,
-    position in the frame)] per detection."""
+    size-implied depth (M,), the motion index of their frame (M,), the code's printed side (M,);
+    `where` [(timestamp_ns, position in the frame)] per detection."""
 
     uv: np.ndarray
     xn: np.ndarray
@@ -654,6 +658,7 @@ class CornerBatch:
     depth_fallback: np.ndarray
     k: np.ndarray
     where: list[tuple[int, int]]
+    side_m: np.ndarray
 
     def moved(self, camera: CameraModel, motion: FrameMotion) -> np.ndarray:
         """(M, 2) corners moved to their frame's stamp (module docstring, steps 1-3): each ray at
@@ -673,19 +678,36 @@ class CornerBatch:
         p_stamp = np.einsum("mij,mj->mi", T_cw[:, :3, :3], p_world) + T_cw[:, :3, 3]
         return camera.project(p_stamp)
 
+    def sized_by(self, camera: CameraModel, corners_px: np.ndarray) -> CornerBatch:
+        """This batch with each code's size-implied depth taken from `corners_px` (M, 2) where
+        they are finite: the corners moved to the stamp, whose size the readout no longer
+        stretches (`correct_frames`)."""
+        depth = size_depths(camera, corners_px, self.side_m)
+        return replace(self, depth_fallback=np.where(np.isfinite(depth), depth, self.depth_fallback))
 
-def _size_depth(camera: CameraModel, corners_px: np.ndarray, side_m: float, f: float) -> float:
-    """Depth (m) of a code of side `side_m` facing the camera from its corners (4, 2) px: side /
-    its mean edge in undistorted normalised coordinates (in distorted px, f side / edge, a front
-    camera's codes near the image border read up to 3.5 % too far, which left their readout
-    correction 0.2-0.3 px off at 30 ms; BENCHMARKS.md `gate` session); f side / edge px when the
-    undistortion fails."""
-    xn = camera.undistort_normalized(np.asarray(corners_px, float).reshape(4, 2))
-    edge_n = float(np.mean(np.linalg.norm(xn - np.roll(xn, 1, axis=0), axis=1)))
-    if np.isfinite(edge_n) and edge_n > 0:
-        return side_m / edge_n
-    c = np.asarray(corners_px, float).reshape(4, 2)
-    return f * side_m / max(float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1))), 1.0)
+
+def size_depths(camera: CameraModel, corners_px: np.ndarray, side_m: np.ndarray) -> np.ndarray:
+    """(M,) depth (m) of each code of side `side_m` (M,: one per corner) facing the camera, from
+    its corners (M, 2) px, 4 per code: side / its mean edge in undistorted normalised coordinates
+    (in distorted px, f side / edge, a front camera's codes near the image border read up to
+    3.5 % too far, which left their readout correction 0.2-0.3 px off at 30 ms; BENCHMARKS.md
+    `gate` session); f side / edge px where the undistortion fails; NaN where a corner is not
+    finite."""
+    c = np.asarray(corners_px, float).reshape(-1, 4, 2)
+    side = np.asarray(side_m, float).reshape(-1, 4)[:, 0]
+
+    def mean_edge(x: np.ndarray) -> np.ndarray:
+        return np.mean(np.linalg.norm(x - np.roll(x, 1, axis=1), axis=2), axis=1)
+
+    ok = np.all(np.isfinite(c), axis=(1, 2))
+    edge_n = np.full(len(c), np.nan)
+    if np.any(ok):
+        edge_n[ok] = mean_edge(camera.undistort_normalized(c[ok].reshape(-1, 2)).reshape(-1, 4, 2))
+    f = 0.5 * (camera.fu + camera.fv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fallback = f * side / np.maximum(mean_edge(c), 1.0)
+        depth = np.where(np.isfinite(edge_n) & (edge_n > 0), side / edge_n, fallback)
+    return np.repeat(np.where(ok, depth, np.nan), 4)
 
 
 def corner_batch(
@@ -693,8 +715,7 @@ def corner_batch(
 ) -> CornerBatch:
     """The floor and load codes' corners of the frames that have a motion estimate, stacked."""
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
-    f = 0.5 * (camera.fu + camera.fv)
-    uv, P, fallback, ks, where = [], [], [], [], []
+    uv, P, side, ks, where = [], [], [], [], []
     for ts, dets in frames.items():
         k = index.get(int(ts))
         if k is None or not motion.valid[k]:
@@ -709,20 +730,22 @@ def corner_batch(
                 continue
             uv.append(c)
             P.append(known.get(id(d), np.full((4, 3), np.nan)))
-            fallback.append(np.full(4, _size_depth(camera, c, sides[id(d)], f)))
+            side.append(np.full(4, sides[id(d)]))
             ks.append(np.full(4, k))
             where.append((int(ts), i))
     if not uv:
         e = np.zeros((0, 2))
-        return CornerBatch(e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [])
+        return CornerBatch(e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [], np.zeros(0))
     uv_all = np.concatenate(uv)
+    side_all = np.concatenate(side)
     return CornerBatch(
         uv_all,
         camera.undistort_normalized(uv_all),
         np.concatenate(P),
-        np.concatenate(fallback),
+        size_depths(camera, uv_all, side_all),
         np.concatenate(ks),
         where,
+        side_all,
     )
 
 
@@ -786,6 +809,12 @@ def correct_frames(
     if not camera.rolling_shutter:
         return {ts: list(d) for ts, d in frames.items()}, 0
     batch = corner_batch(frames, camera, world, motion)
+    # a load code's depth is its apparent size's: the readout stretches a code that moves across
+    # the rows (1 m/s up at 1.1 m and 30 ms: ~3 % of its height), and the stretched size put the
+    # correction ~1.5 % short (0.3 mm per m/s on the sightings, which a front mount check read as
+    # a 0.08 deg pitch; BENCHMARKS.md, twenty-fifth session): its size again once moved
+    for _ in range(LOAD_SIZE_PASSES):
+        batch = batch.sized_by(camera, batch.moved(camera, motion))
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     n = sum(1 for ts in frames if index.get(int(ts)) is not None and motion.valid[index[int(ts)]])
     return apply_corners(frames, batch, batch.moved(camera, motion)), n
@@ -900,7 +929,7 @@ def _correct_camera(
     done: set[tuple[int, int]] = set()
     if reader is not None:
         try:
-            refined, done = refine_at_stamp(frames, reader, cam, world, motion)
+            refined, done = refine_at_stamp(frames, reader, cam, world, motion, sized=fixed)
         except LogError as e:  # an image that read at detection and not now: as before
             log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
             refined, done = frames, set()
@@ -1134,6 +1163,7 @@ def refine_at_stamp(
     camera: CameraModel,
     world: World,
     motion: FrameMotion,
+    sized: dict[int, list[QRDetection]] | None = None,
 ) -> tuple[dict[int, list[QRDetection]], set[tuple[int, int]]]:
     """The floor and load codes of `frames` {timestamp_ns: detections} refined again from their
     images (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with
@@ -1143,7 +1173,9 @@ def refine_at_stamp(
     view, not of the readout-sheared one, whose edges no homography describes (a changing body
     rate bends them).  Returns the frames (re-refined codes replaced) and the (timestamp_ns,
     position) of the codes replaced: those refined by stage 2 and passing its self-check, in
-    frames with a motion estimate; the others are left for `correct_frames`."""
+    frames with a motion estimate; the others are left for `correct_frames`.  `sized`: the
+    same frames with their corners moved to the stamp (`correct_frames`), whose load codes' size
+    gives their depth (the corners as read are stretched by the readout)."""
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     out = {ts: list(dets) for ts, dets in frames.items()}
     done: set[tuple[int, int]] = set()
@@ -1158,12 +1190,19 @@ def refine_at_stamp(
             sorted_codes = classify(frames[ts], world)
             known = {id(s.detection): np.asarray(s.corners_world, float) for s in sorted_codes.floor}
             # a load code's plane is not known: the plane facing the stamp's camera at the depth
-            # its apparent size implies (as `correct_frames` does)
+            # its apparent size implies (as `correct_frames` does), in `sized` where given
             T_wc = camera.T_world_cam(motion.T_world_body[index[int(ts)]])
-            f = 0.5 * (camera.fu + camera.fv)
+            position = {id(d): i for i, d in enumerate(frames[ts])}
+            moved = sized.get(ts) if sized is not None else None
             for sighting in sorted_codes.loads:
-                c = np.asarray(sighting.detection.corners_px, float).reshape(4, 2)
-                centre = T_wc[:3, 3] + _size_depth(camera, c, world.load_side_m, f) * T_wc[:3, 2]
+                d = sighting.detection
+                seen = [moved[position[id(d)]].corners_px] if moved is not None else []
+                side = np.full(4, world.load_side_m)
+                for c in [*seen, d.corners_px]:  # as read where the correction gave nothing
+                    depth = size_depths(camera, np.asarray(c, float).reshape(4, 2), side)
+                    if np.isfinite(depth[0]):
+                        break
+                centre = T_wc[:3, 3] + depth[0] * T_wc[:3, 2]
                 known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
