@@ -666,9 +666,11 @@ def estimate_front_mount(
     over frames (a rolling shutter's motion error in the PnP poses, a corner bias of one code)
     make n sightings worth ~n / tau independent ones.  Without it a 15 ms readout with the
     cameras' clocks 4 ms off read a front pitch of 0.050 +- 0.013 deg on a flight with no mount
-    error (tau 3.4 there; BENCHMARKS.md, twenty-fourth session).  The trajectory is taken
-    as exact (its attitude's error, ~0.01 deg, is well below any mount error worth correcting):
-    FRONT_MOUNT_TRAJECTORY_SIGMA_DEG is added to each axis' sigma for it.
+    error (tau 3.4 there; BENCHMARKS.md, twenty-fourth session; the error that persisted, the
+    readout correction at a load code's stretched size, was then mended: tau 1.0, twenty-fifth).
+    The trajectory is taken as exact (its attitude's error, ~0.01 deg, is well below any mount
+    error worth correcting): FRONT_MOUNT_TRAJECTORY_SIGMA_DEG is added to each axis' sigma for
+    it.
 
     Why: the floor camera's check (the IMU against its fixes) is blind to what the IMU cannot
     see, and a front mount error is not in it at all: a 0.5 deg roll of either camera turned the
