@@ -78,10 +78,10 @@ log_ = logging.getLogger(__name__)
 
 CORRECTION_PASSES = 4
 """PnP -> motion -> corrected corners rounds of `correct_flight` after the first PnP."""
-LOAD_SIZE_PASSES = 1
-"""Rounds of `correct_frames` that take a load code's size-implied depth from its corners moved
-to the stamp (the first from the corners as read, stretched by the readout; a second round
-changes the depth by the stretch's square, ~0.1 %)."""
+LOAD_PLANE_PASSES = 2
+"""Rounds of `correct_frames` that place a load code's corners from the homography of its
+corners moved to the stamp (`CornerBatch.placed_by`; the first move at the depth of its size
+as read, stretched by the readout)."""
 FIT_HALF_WINDOW = 8
 """Poses each side of a stamp in the local quadratic fit of the position (velocity)."""
 FIT_MAX_SPAN_S = 0.5
@@ -649,8 +649,9 @@ def _body_poses_at(motion: FrameMotion, k: np.ndarray, dt: np.ndarray) -> np.nda
 class CornerBatch:
     """Corners of many detections, stacked (M = 4 per detection): observed px uv (M, 2), their
     normalised rays xn (M, 2), the known world point P (M, 3) (NaN for load codes), the
-    size-implied depth (M,), the motion index of their frame (M,), the code's printed side (M,);
-    `where` [(timestamp_ns, position in the frame)] per detection."""
+    size-implied depth (M,), the motion index of their frame (M,), the code's printed side (M,),
+    whether P is a floor code's known point (M,); `where` [(timestamp_ns, position in the
+    frame)] per detection."""
 
     uv: np.ndarray
     xn: np.ndarray
@@ -659,6 +660,7 @@ class CornerBatch:
     k: np.ndarray
     where: list[tuple[int, int]]
     side_m: np.ndarray
+    known: np.ndarray
 
     def moved(self, camera: CameraModel, motion: FrameMotion) -> np.ndarray:
         """(M, 2) corners moved to their frame's stamp (module docstring, steps 1-3): each ray at
@@ -678,12 +680,66 @@ class CornerBatch:
         p_stamp = np.einsum("mij,mj->mi", T_cw[:, :3, :3], p_world) + T_cw[:, :3, 3]
         return camera.project(p_stamp)
 
-    def sized_by(self, camera: CameraModel, corners_px: np.ndarray) -> CornerBatch:
-        """This batch with each code's size-implied depth taken from `corners_px` (M, 2) where
-        they are finite: the corners moved to the stamp, whose size the readout no longer
-        stretches (`correct_frames`)."""
-        depth = size_depths(camera, corners_px, self.side_m)
-        return replace(self, depth_fallback=np.where(np.isfinite(depth), depth, self.depth_fallback))
+    def placed_by(self, camera: CameraModel, motion: FrameMotion, corners_px: np.ndarray) -> CornerBatch:
+        """This batch with each load code's corners given world points: the code's corners in
+        the stamp's camera frame from the homography of `corners_px` (M, 2), its corners moved
+        to the stamp (`code_corner_points`), through the stamp's camera pose.  `moved` then
+        takes each corner's depth in its row's camera frame, as for a floor code's known
+        corners.  A code whose homography is degenerate keeps its size-implied depth."""
+        load = ~self.known
+        if not np.any(load):
+            return self
+        points = code_corner_points(camera, corners_px[load], self.side_m[load])
+        T_wc = camera.T_world_cam(motion.T_world_body[self.k[load]])
+        world = np.einsum("mij,mj->mi", T_wc[:, :3, :3], points) + T_wc[:, :3, 3]
+        P = self.P.copy()
+        P[load] = world
+        return replace(self, P=P)
+
+
+def code_corner_points(camera: CameraModel, corners_px: np.ndarray, side_m: np.ndarray) -> np.ndarray:
+    """(M, 3) each code's corners in the camera frame from its corners (M, 2) px, 4 per code in
+    symbol order (TL, TR, BR, BL), the code a square of side `side_m` (M,: one per corner): the
+    homography H from the unit square to the undistorted normalised corners (4 points: exact) is
+    mu [side r1, side r2, t], so each corner's depth is H_3 . [U, V, 1] / mu, mu = (|h1| + |h2|)
+    / (2 side) (Zhang 2000, "A flexible new technique for camera calibration", Sec. 2.3 / 3.1).
+    Unlike the size-implied depth, it sees a code turned away from the camera (the depth across
+    it and its centre's; 17 deg of yaw left the readout correction 0.2-0.5 px off at 30 ms).  NaN
+    rows for a code whose homography is degenerate or puts it behind the camera."""
+    c = np.asarray(corners_px, float).reshape(-1, 4, 2)
+    side = np.asarray(side_m, float).reshape(-1, 4)[:, 0]
+    n = len(c)
+    out = np.full((n, 4, 3), np.nan)
+    if n == 0:
+        return out.reshape(-1, 3)
+    xn = camera.undistort_normalized(c.reshape(-1, 2)).reshape(n, 4, 2)
+    U = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    A = np.zeros((n, 8, 8))
+    b = np.zeros((n, 8))
+    for i, (u, v) in enumerate(U):
+        x, y = xn[:, i, 0], xn[:, i, 1]
+        A[:, 2 * i, :3] = [u, v, 1.0]
+        A[:, 2 * i, 6:] = np.stack([-x * u, -x * v], axis=1)
+        A[:, 2 * i + 1, 3:6] = [u, v, 1.0]
+        A[:, 2 * i + 1, 6:] = np.stack([-y * u, -y * v], axis=1)
+        b[:, 2 * i], b[:, 2 * i + 1] = x, y
+    with np.errstate(invalid="ignore"):
+        ok = np.all(np.isfinite(A), axis=(1, 2)) & (
+            np.abs(np.linalg.det(np.where(np.isfinite(A), A, 0.0))) > 1e-14
+        )
+    if not np.any(ok):
+        return out.reshape(-1, 3)
+    h = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
+    H = np.concatenate([h, np.ones((len(h), 1))], axis=1).reshape(-1, 3, 3)
+    third = H[:, 2, :] @ np.column_stack([U, np.ones(4)]).T  # (k, 4): lambda_i mu
+    mu = 0.5 * (np.linalg.norm(H[:, :, 0], axis=1) + np.linalg.norm(H[:, :, 1], axis=1)) / side[ok]
+    mu = mu * np.sign(third.mean(axis=1))
+    depth = third / mu[:, None]
+    points = np.concatenate([xn[ok], np.ones((len(h), 4, 1))], axis=2) * depth[:, :, None]
+    good = np.all(depth > 0, axis=1) & np.all(np.isfinite(points), axis=(1, 2))
+    rows = np.flatnonzero(ok)[good]
+    out[rows] = points[good]
+    return out.reshape(-1, 3)
 
 
 def size_depths(camera: CameraModel, corners_px: np.ndarray, side_m: np.ndarray) -> np.ndarray:
@@ -735,17 +791,21 @@ def corner_batch(
             where.append((int(ts), i))
     if not uv:
         e = np.zeros((0, 2))
-        return CornerBatch(e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [], np.zeros(0))
+        return CornerBatch(
+            e, e, np.zeros((0, 3)), np.zeros(0), np.zeros(0, int), [], np.zeros(0), np.zeros(0, bool)
+        )
     uv_all = np.concatenate(uv)
     side_all = np.concatenate(side)
+    P_all = np.concatenate(P)
     return CornerBatch(
         uv_all,
         camera.undistort_normalized(uv_all),
-        np.concatenate(P),
+        P_all,
         size_depths(camera, uv_all, side_all),
         np.concatenate(ks),
         where,
         side_all,
+        np.all(np.isfinite(P_all), axis=1),
     )
 
 
@@ -809,12 +869,14 @@ def correct_frames(
     if not camera.rolling_shutter:
         return {ts: list(d) for ts, d in frames.items()}, 0
     batch = corner_batch(frames, camera, world, motion)
-    # a load code's depth is its apparent size's: the readout stretches a code that moves across
-    # the rows (1 m/s up at 1.1 m and 30 ms: ~3 % of its height), and the stretched size put the
-    # correction ~1.5 % short (0.3 mm per m/s on the sightings, which a front mount check read as
-    # a 0.08 deg pitch; BENCHMARKS.md, twenty-fifth session): its size again once moved
-    for _ in range(LOAD_SIZE_PASSES):
-        batch = batch.sized_by(camera, batch.moved(camera, motion))
+    # a load code's corners are first moved at the depth of its apparent size as read; then at
+    # their points from the moved corners' homography (`CornerBatch.placed_by`): the readout
+    # stretches a code that moves across the rows (1 m/s up at 1.1 m and 30 ms: ~3 % of its
+    # height), and the stretched size put the correction ~1.5 % short (0.3 mm per m/s on the
+    # sightings, which a front mount check read as a 0.08 deg pitch), and a code turned away
+    # from the camera is not at one depth (BENCHMARKS.md, twenty-fifth session)
+    for _ in range(LOAD_PLANE_PASSES):
+        batch = batch.placed_by(camera, motion, batch.moved(camera, motion))
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     n = sum(1 for ts in frames if index.get(int(ts)) is not None and motion.valid[index[int(ts)]])
     return apply_corners(frames, batch, batch.moved(camera, motion)), n
@@ -929,7 +991,7 @@ def _correct_camera(
     done: set[tuple[int, int]] = set()
     if reader is not None:
         try:
-            refined, done = refine_at_stamp(frames, reader, cam, world, motion, sized=fixed)
+            refined, done = refine_at_stamp(frames, reader, cam, world, motion, placed=fixed)
         except LogError as e:  # an image that read at detection and not now: as before
             log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
             refined, done = frames, set()
@@ -1157,13 +1219,29 @@ class _StampMap:
         return out
 
 
+def _load_code_plane(camera: CameraModel, T_wc: np.ndarray, at_stamp, as_read, side_m: float) -> np.ndarray:
+    """A load code's world plane for `refine_at_stamp`, as (2, 3) [a point on it, its normal]:
+    from the homography of its corners moved to the stamp `at_stamp` (`code_corner_points`; the
+    corners as read are stretched by the readout), else facing the stamp's camera (pose T_wc) at
+    the depth of its size as read (`as_read`)."""
+    side = np.full(4, side_m)
+    if at_stamp is not None:
+        points = code_corner_points(camera, np.asarray(at_stamp, float).reshape(4, 2), side)
+        normal = np.cross(points[1] - points[0], points[3] - points[0])
+        if np.all(np.isfinite(points)) and np.linalg.norm(normal) > 0:
+            R, t = T_wc[:3, :3], T_wc[:3, 3]
+            return np.vstack([R @ points.mean(axis=0) + t, R @ (normal / np.linalg.norm(normal))])
+    depth = size_depths(camera, np.asarray(as_read, float).reshape(4, 2), side)[0]
+    return np.vstack([T_wc[:3, 3] + depth * T_wc[:3, 2], T_wc[:3, 2]])
+
+
 def refine_at_stamp(
     frames: dict[int, list[QRDetection]],
     load_image,
     camera: CameraModel,
     world: World,
     motion: FrameMotion,
-    sized: dict[int, list[QRDetection]] | None = None,
+    placed: dict[int, list[QRDetection]] | None = None,
 ) -> tuple[dict[int, list[QRDetection]], set[tuple[int, int]]]:
     """The floor and load codes of `frames` {timestamp_ns: detections} refined again from their
     images (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with
@@ -1173,9 +1251,9 @@ def refine_at_stamp(
     view, not of the readout-sheared one, whose edges no homography describes (a changing body
     rate bends them).  Returns the frames (re-refined codes replaced) and the (timestamp_ns,
     position) of the codes replaced: those refined by stage 2 and passing its self-check, in
-    frames with a motion estimate; the others are left for `correct_frames`.  `sized`: the
-    same frames with their corners moved to the stamp (`correct_frames`), whose load codes' size
-    gives their depth (the corners as read are stretched by the readout)."""
+    frames with a motion estimate; the others are left for `correct_frames`.  `placed`: the
+    same frames with their corners moved to the stamp (`correct_frames`), from which a load
+    code's plane is taken (`_load_code_plane`)."""
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     out = {ts: list(dets) for ts, dets in frames.items()}
     done: set[tuple[int, int]] = set()
@@ -1189,21 +1267,14 @@ def refine_at_stamp(
         for ts in todo[start : start + REFINE_BATCH_FRAMES]:
             sorted_codes = classify(frames[ts], world)
             known = {id(s.detection): np.asarray(s.corners_world, float) for s in sorted_codes.floor}
-            # a load code's plane is not known: the plane facing the stamp's camera at the depth
-            # its apparent size implies (as `correct_frames` does), in `sized` where given
+            # a load code's plane is not known: from its corners moved to the stamp (`placed`)
             T_wc = camera.T_world_cam(motion.T_world_body[index[int(ts)]])
             position = {id(d): i for i, d in enumerate(frames[ts])}
-            moved = sized.get(ts) if sized is not None else None
+            moved = placed.get(ts) if placed is not None else None
             for sighting in sorted_codes.loads:
                 d = sighting.detection
-                seen = [moved[position[id(d)]].corners_px] if moved is not None else []
-                side = np.full(4, world.load_side_m)
-                for c in [*seen, d.corners_px]:  # as read where the correction gave nothing
-                    depth = size_depths(camera, np.asarray(c, float).reshape(4, 2), side)
-                    if np.isfinite(depth[0]):
-                        break
-                centre = T_wc[:3, 3] + depth[0] * T_wc[:3, 2]
-                known[id(sighting.detection)] = np.vstack([centre, T_wc[:3, 2]])  # (point, normal)
+                at_stamp = moved[position[id(d)]].corners_px if moved is not None else None
+                known[id(d)] = _load_code_plane(camera, T_wc, at_stamp, d.corners_px, world.load_side_m)
             chosen = [(i, d) for i, d in enumerate(frames[ts]) if id(d) in known and not d.tracked]
             if not chosen:
                 continue
