@@ -323,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", parents=[common], help="simulate a warehouse flight log with ground truth")
     p.add_argument("out", type=Path, help="output log folder")
-    p.add_argument("--scenario", default="default", help="default | gimbaled | paper_a5")
+    p.add_argument("--scenario", default="default", help="default | gimbaled | oblique | paper_a5")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(

@@ -10,7 +10,7 @@ import zxingcpp
 from fusion.camera import CameraModel
 from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM, symbol_corners_S
 from fusion.errors import SimulationError
-from fusion.geometry import make_T, rot_z
+from fusion.geometry import inv_T, make_T, rot_z
 from fusion.sim.render import (
     BLACKOUT_KINDS,
     PlacedCode,
@@ -452,7 +452,7 @@ def test_simulate_refuses_to_overwrite(tmp_path):
 
 
 def test_scenarios_build_and_gimbal_keeps_cameras_level():
-    for name in ("default", "gimbaled", "paper_a5"):
+    for name in ("default", "gimbaled", "oblique", "paper_a5"):
         sc = build_scenario(name)
         assert sc.trajectory.duration_s >= sc.duration_s >= 60.0
         kinds = {k for _, _, k in sc.blackouts}
@@ -470,6 +470,39 @@ def test_scenarios_build_and_gimbal_keeps_cameras_level():
     assert min(body) < 0.999  # a body-fixed one tilts
     with pytest.raises(SimulationError):
         build_scenario("default", resolution=(0, 10))
+
+
+def test_oblique_survey_sees_its_loads_at_an_angle():
+    """The "oblique" scenario flies the default survey turned +-0.4 rad from square to the rack
+    at each aisle waypoint: the same positions and blackouts, the heading alternately off by
+    +-0.4 rad at the hovers, and the front camera sees load codes there at 15-35 deg off their
+    normal (the default's at < 5 deg)."""
+    from fusion.sim.scenarios import OBLIQUE_YAW_RAD
+
+    default, oblique = build_scenario("default"), build_scenario("oblique")
+    assert default.blackouts == oblique.blackouts
+    kd, ko = default.trajectory.keyframes, oblique.trajectory.keyframes
+    assert len(kd) == len(ko)
+    np.testing.assert_allclose([k.p_world for k in ko], [k.p_world for k in kd])
+    hover = [i for i in range(4, 12) if np.allclose(kd[i].p_world, kd[i - 1].p_world)]  # aisle 1
+    turns = [ko[i].yaw_rad - kd[i].yaw_rad for i in hover]
+    assert len(turns) >= 3 and np.allclose(np.abs(turns), OBLIQUE_YAW_RAD) and len(set(np.sign(turns))) == 2
+
+    def angles(sc, t):
+        T_wc = sc.cameras["cam1"].T_world_cam(sc.trajectory.state(np.array([t])).T_world_body[0])
+        out = []
+        for load in sc.layout.loads:
+            p_cam = inv_T(T_wc) @ np.append(load.p_world, 1.0)
+            uv = sc.cameras["cam1"].project(p_cam[None, :3])[0]
+            if p_cam[2] > 0 and np.all(uv > 0) and np.all(uv < [640, 480]):
+                normal = load.T_world_symbol[:3, 2]
+                out.append(np.degrees(np.arccos(abs(normal @ T_wc[:3, 2]))))
+        return out
+
+    t_hover = [kd[i].t_s - 0.1 for i in hover]
+    assert max(max(angles(default, t), default=0.0) for t in t_hover) < 5.0
+    seen = [a for t in t_hover for a in angles(oblique, t)]
+    assert seen and 15.0 < min(seen) and max(seen) < 35.0
 
 
 def test_default_blackouts_hide_codes_that_would_be_readable():

@@ -2,7 +2,7 @@
 
 A `Scenario` is everything `simulate()` needs: the world (floor grid, load codes), the cameras,
 the trajectory, the IMU noise, the photometric effects and the floor-camera blackouts.
-Scenarios: "default", "gimbaled", "paper_a5" (see each builder's docstring).
+Scenarios: "default", "gimbaled", "oblique", "paper_a5" (see each builder's docstring).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from fusion.sim.render import PlacedCode, RenderEffects, placed_floor_codes
 from fusion.sim.trajectory import KeyframeTrajectory, survey_keyframes
 from fusion.world import Layout, LoadCode, World
 
-SCENARIOS = ("default", "gimbaled", "paper_a5")
+SCENARIOS = ("default", "gimbaled", "oblique", "paper_a5")
 RESOLUTIONS = {"640x480": (640, 480), "1280x720": (1280, 720)}
 
 # Focal length (px) of both cameras at 640x480 (60 deg horizontal field of view).  zxing-cpp
@@ -257,7 +257,14 @@ def apply_camera_options(sc: Scenario, options: CameraOptions) -> Scenario:
 # ============================================================================ default / gimbaled
 
 
-def _default(name: str, resolution, mount: str, min_duration_s: float | None = None) -> Scenario:
+OBLIQUE_YAW_RAD = 0.4
+"""The "oblique" scenario's turn from square to the rack at each aisle waypoint, alternately
++ and - (23 deg): its front camera sees the load codes at an angle."""
+
+
+def _default(
+    name: str, resolution, mount: str, min_duration_s: float | None = None, oblique_rad: float = 0.0
+) -> Scenario:
     """A 10 m x 7 m warehouse, one double-sided rack between two aisles, a 60 s survey.
 
     Floor: 0.20 m codes on a 1 m grid, x = 0..10, y = 0..7, none under the rack (y = 3, 4 for
@@ -270,7 +277,11 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
 
     Longer flights (`min_duration_s` beyond one lap): the survey repeats, each lap returning
     along x = 0.5 to aisle 1 and flying the same passes with the same four blackouts at the same
-    places, so a 10-minute flight is eight or nine laps of the same warehouse."""
+    places, so a 10-minute flight is eight or nine laps of the same warehouse.
+
+    `oblique_rad` (the "oblique" scenario): the same survey with the drone turned alternately by
+    +- that yaw from square to the rack at each aisle waypoint (the high pass between the aisles
+    as flown), so the front camera sees the codes at an angle."""
     # laid exactly on the grid (Layout.floor_offsets: not)
     world = World(0.20, 1.0, 0.15, (0.0, 10.0), (0.0, 7.0), placement_sigma_m=0.0, placement_sigma_deg=0.0)
     floor = [(x, y) for x in range(0, 11) for y in range(0, 8) if not (y in (3, 4) and 1 <= x <= 9)]
@@ -304,6 +315,11 @@ def _default(name: str, resolution, mount: str, min_duration_s: float | None = N
         (3.0, 5.5, 1.3, 3 * math.pi / 2),
         (1.5, 5.0, 2.0, 3 * math.pi / 2 - 0.5),
     ]
+    if oblique_rad:
+        aisle = [i for i in range(2, len(wps)) if i not in (10, 11)]  # not the high pass
+        for n, i in enumerate(aisle):
+            x, y, z, yaw, *rest = wps[i]
+            wps[i] = (x, y, z, yaw + (oblique_rad if n % 2 == 0 else -oblique_rad), *rest)
     lap = wps[2:]  # from the first hover in aisle 1 to the end
     all_wps = list(wps)
     if min_duration_s is not None and not (math.isfinite(min_duration_s) and min_duration_s <= MAX_SURVEY_S):
@@ -410,7 +426,8 @@ def build_scenario(
     name: str = "default", resolution=(640, 480), min_duration_s: float | None = None
 ) -> Scenario:
     """The scenario called `name` at camera `resolution` (width, height), flying at least
-    `min_duration_s` where the scenario can repeat (default, gimbaled); raises SimulationError."""
+    `min_duration_s` where the scenario can repeat (default, gimbaled, oblique); raises
+    SimulationError."""
     if isinstance(resolution, str):
         if resolution not in RESOLUTIONS:
             raise SimulationError(f"unknown resolution {resolution!r}; expected one of {list(RESOLUTIONS)}")
@@ -422,6 +439,8 @@ def build_scenario(
         return _default(name, (w, h), "body_fixed", min_duration_s)
     if name == "gimbaled":
         return _default(name, (w, h), "gimbaled", min_duration_s)
+    if name == "oblique":
+        return _default(name, (w, h), "body_fixed", min_duration_s, oblique_rad=OBLIQUE_YAW_RAD)
     if name == "paper_a5":
         return _paper_a5(name, (w, h), "body_fixed")
     raise SimulationError(f"unknown scenario {name!r}; expected one of {SCENARIOS}")
