@@ -78,6 +78,9 @@ log_ = logging.getLogger(__name__)
 
 CORRECTION_PASSES = 4
 """PnP -> motion -> corrected corners rounds of `correct_flight` after the first PnP."""
+MAX_HOMOGRAPHY_CONDITION = 1e10
+"""`code_corner_points` refuses a code whose 4-point homography system is worse conditioned
+(three corners on a line, coincident corners; a 12 px code reads ~230)."""
 LOAD_PLANE_PASSES = 2
 """Rounds of `correct_frames` that place a load code's corners from the homography of its
 corners moved to the stamp (`CornerBatch.placed_by`; the first move at the depth of its size
@@ -723,10 +726,8 @@ def code_corner_points(camera: CameraModel, corners_px: np.ndarray, side_m: np.n
         A[:, 2 * i + 1, 3:6] = [u, v, 1.0]
         A[:, 2 * i + 1, 6:] = np.stack([-y * u, -y * v], axis=1)
         b[:, 2 * i], b[:, 2 * i + 1] = x, y
-    with np.errstate(invalid="ignore"):
-        ok = np.all(np.isfinite(A), axis=(1, 2)) & (
-            np.abs(np.linalg.det(np.where(np.isfinite(A), A, 0.0))) > 1e-14
-        )
+    ok = np.all(np.isfinite(A), axis=(1, 2))
+    ok[ok] = np.linalg.cond(A[ok]) < MAX_HOMOGRAPHY_CONDITION
     if not np.any(ok):
         return out.reshape(-1, 3)
     h = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
@@ -734,8 +735,9 @@ def code_corner_points(camera: CameraModel, corners_px: np.ndarray, side_m: np.n
     third = H[:, 2, :] @ np.column_stack([U, np.ones(4)]).T  # (k, 4): lambda_i mu
     mu = 0.5 * (np.linalg.norm(H[:, :, 0], axis=1) + np.linalg.norm(H[:, :, 1], axis=1)) / side[ok]
     mu = mu * np.sign(third.mean(axis=1))
-    depth = third / mu[:, None]
-    points = np.concatenate([xn[ok], np.ones((len(h), 4, 1))], axis=2) * depth[:, :, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = third / mu[:, None]
+        points = np.concatenate([xn[ok], np.ones((len(h), 4, 1))], axis=2) * depth[:, :, None]
     good = np.all(depth > 0, axis=1) & np.all(np.isfinite(points), axis=(1, 2))
     rows = np.flatnonzero(ok)[good]
     out[rows] = points[good]
