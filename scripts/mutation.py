@@ -4,7 +4,7 @@
 Usage (from the repository root; never part of the test suite or CI):
 
     python3 scripts/mutation.py --limit 25 --markdown mutation-report.md   # all modules: 150
-    python3 scripts/mutation.py --only 'fusion.estimate.ekf.*' 'fusion.estimate.graph.*' --limit 60
+    python3 scripts/mutation.py --only 'fusion.estimate.ekf.*' 'fusion.estimate.factors.*' --limit 60
     python3 scripts/mutation.py --list        # mutants per module, time to run them all
     python3 scripts/mutation.py --report-only --limit 25   # re-print the verdicts of that sample
 
