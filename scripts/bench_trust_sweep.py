@@ -8,9 +8,10 @@ count (metrics.json `mean_interval_95_independent`), with ATE and health.
     python3 scripts/bench_trust_sweep.py WORK [--flights NAME ...] [--table OUT.md]
     python3 scripts/bench_trust_sweep.py WORK --held-out [--table OUT.md]
 
-`--held-out` runs HELD_OUT instead: the twenty-fourth session's flights, made after everything
-they test was written (bags and video among them; a flight with a mount error runs with
---calibrate-extrinsics, RUN_ARGS).
+`--held-out` runs HELD_OUT instead: the twenty-fourth and twenty-fifth sessions' flights, made
+after everything they test was written (bags and video among them; a flight with a mount error
+runs with --calibrate-extrinsics, RUN_ARGS; the twenty-fifth's rolling-shutter front cameras and
+`oblique` scenario).
 
 Flights are simulated once into WORK/flights/NAME (kept, reused); runs go to WORK/runs/NAME (a
 `detections.csv` already there is reused by `fusion run` when the images are unchanged).  The
@@ -95,6 +96,20 @@ HELD_OUT: dict[str, str] = {
     ),
     "h_ros2_fps20": "--duration 20 --seed 51 --fps 20 --format rosbag2 --vignetting 0.5 --exposure 0.025",
     "h_long_ro20": "--duration 40 --seed 52 --start 30 --camera-effects realistic --readout-ms 20",
+    # the twenty-fifth session's: rolling-shutter front cameras (seeds 70-74) and the `oblique`
+    # scenario, its loads seen 15-35 deg off their normal (seeds 80-82), made after the load
+    # sightings' readout correction they test
+    "hr_ro30_1024": "--duration 15 --seed 70 --start 8 --resolution 1024x768 --readout-ms 30",
+    "hr_ro25_real": "--duration 20 --seed 71 --start 20 --readout-ms 25 --camera-effects realistic",
+    "hr_ro16_fps60": "--duration 12 --seed 72 --start 3 --fps 60 --readout-ms 16",
+    "hr_ro20_800_off3": (
+        "--duration 20 --seed 74 --start 12 --resolution 800x600 --readout-ms 20 --time-offset-ms cam1=3"
+    ),
+    "ob_ro30": "--scenario oblique --duration 20 --seed 80 --readout-ms 30",
+    "ob_gs": "--scenario oblique --duration 20 --seed 81 --start 25",
+    "ob_ro20_real": (
+        "--scenario oblique --duration 20 --seed 82 --start 40 --readout-ms 20 --camera-effects realistic"
+    ),
 }
 RUN_ARGS: dict[str, str] = {"h_fish_mount": "--calibrate-extrinsics"}
 """`fusion run` options beyond the sweep's (a flight with a mount error is calibrated)."""
