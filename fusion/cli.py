@@ -434,8 +434,15 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=3,
         default=None,
         metavar=("RX", "RY", "RZ"),
-        help="the floor camera's true mount turned by this rotation vector (degrees, body x/y/z) "
-        "while sensor.yaml keeps the nominal T_BS; the truth goes to extrinsics_groundtruth.csv",
+        help="the camera's true mount turned by this rotation vector (degrees, body x/y/z) while "
+        "sensor.yaml keeps the nominal T_BS (the floor camera's unless --extrinsic-error-camera); "
+        "the truth goes to extrinsics_groundtruth.csv",
+    )
+    p.add_argument(
+        "--extrinsic-error-camera",
+        choices=("cam0", "cam1"),
+        default="cam0",
+        help="the camera --extrinsic-error-deg turns: cam0 the floor camera (default), cam1 the front one",
     )
 
     p = sub.add_parser("detect", parents=[common], help="detect and decode QR codes; writes detections.csv")
@@ -660,7 +667,9 @@ def main(argv: list[str] | None = None) -> int:
                 ),
                 camera_options=_camera_options(args),
                 extrinsic_error_deg=(
-                    None if args.extrinsic_error_deg is None else {"cam0": tuple(args.extrinsic_error_deg)}
+                    None
+                    if args.extrinsic_error_deg is None
+                    else {args.extrinsic_error_camera: tuple(args.extrinsic_error_deg)}
                 ),
                 velocity_rate_hz=args.velocity_rate_hz,
                 imu_noise_scale=args.imu_noise_scale,

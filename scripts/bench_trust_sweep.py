@@ -102,6 +102,9 @@ HELD_OUT: dict[str, str] = {
     "hr_ro30_1024": "--duration 15 --seed 70 --start 8 --resolution 1024x768 --readout-ms 30",
     "hr_ro25_real": "--duration 20 --seed 71 --start 20 --readout-ms 25 --camera-effects realistic",
     "hr_ro16_fps60": "--duration 12 --seed 72 --start 3 --fps 60 --readout-ms 16",
+    "hr_ro30_pitch01": (  # a true 0.1 deg front pitch: the run must warn of it
+        "--duration 20 --seed 73 --readout-ms 30 --extrinsic-error-deg 0 0.1 0 --extrinsic-error-camera cam1"
+    ),
     "hr_ro20_800_off3": (
         "--duration 20 --seed 74 --start 12 --resolution 800x600 --readout-ms 20 --time-offset-ms cam1=3"
     ),

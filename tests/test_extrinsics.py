@@ -181,6 +181,19 @@ def test_mount_rotation_cannot_be_estimated_without_imu_or_with_a_gimbal():
 # ============================================================================ simulator
 
 
+def test_simulate_cli_turns_the_front_camera_mount_when_asked(tmp_path):
+    """`fusion simulate --extrinsic-error-deg ... --extrinsic-error-camera cam1`: the front
+    camera's mount is the one turned (the library's {camera: rotation}); the default stays cam0."""
+    from fusion.cli import main
+
+    common = ["--duration", "0.1", "--workers", "1", "-q", "--extrinsic-error-deg", "0", "0.1", "0"]
+    assert main(["simulate", str(tmp_path / "front"), *common, "--extrinsic-error-camera", "cam1"]) == 0
+    assert main(["simulate", str(tmp_path / "floor"), *common]) == 0
+    front, floor = read_extrinsics_groundtruth(tmp_path / "front"), read_extrinsics_groundtruth(tmp_path / "floor")
+    assert list(front) == ["cam1"] and list(floor) == ["cam0"]
+    np.testing.assert_allclose(np.degrees(front["cam1"]), [0.0, 0.1, 0.0])
+
+
 def test_simulator_renders_the_true_mount_and_logs_the_nominal_one(tmp_path):
     kw = dict(duration_s=0.1, seed=0, progress=False, workers=1)
     simulate(tmp_path / "nominal", **kw)
