@@ -1183,6 +1183,9 @@ def _run_into(
         no_pose = no_floor_pose_warning(log, loc, result.detection_stats)
         if no_pose is not None:
             result.warnings.append(no_pose)
+    too_large = corner_bias_too_large_warning(loc)
+    if too_large is not None:
+        result.warnings.append(too_large)
     result.trajectories.update(loc.trajectories)
     stamp_variance = _floor_stamp_variance(result)
     if str(Estimator.PNP) in result.trajectories:
@@ -1357,6 +1360,28 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
         f"{n} front-camera load sightings corrected for a {readout_s * 1e3:.0f} ms readout are fused: "
         f"above {RS_SIGHTINGS_WARN_READOUT_S * 1e3:.0f} ms the correction leaves errors their "
         "covariance does not carry, so the fused covariances may be optimistic",
+    )
+
+
+def corner_bias_too_large_warning(loc: LocalizeResult) -> LogWarning | None:
+    """A named warning (count 1: the flight) when the floor camera's flight-wide corner dilation
+    is significant and confidently above cornerbias.MAX_BIAS_PX: the first-order correction does
+    not model it, so it is reported, not removed, and every PnP and fused pose carries it.  It was
+    a log line only: not in the summary's warnings, metrics.json or the report."""
+    bias = ((loc.stats or {}).get(str(Estimator.PNP)) or {}).get("corner_bias") or {}
+    if not (bias.get("significant") and bias.get("too_large")):
+        return None
+    worst = max(
+        (abs(float(x)) for b in bias.get("bins", []) if b.get("determined") for x in b["bias_px"]),
+        default=float("nan"),
+    )
+    return LogWarning(
+        "corner_bias_too_large",
+        1,
+        f"the floor camera's refined corners share a dilation of up to {worst:.3f} px over the "
+        f"flight (T = {float(bias['statistic']):.1f}), above the {cornerbias.MAX_BIAS_PX:g} px its "
+        "correction models: not removed, so every pose carries it. Check the codes' printed size "
+        "(world.yaml), the camera's focus and exposure (clipped whites thin the dark modules)",
     )
 
 

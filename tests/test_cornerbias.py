@@ -248,11 +248,22 @@ def test_each_code_size_bin_has_its_own_dilation():
 def test_an_implausibly_large_dilation_is_reported_not_removed(caplog):
     frames, _ = flight_frames(60, seed=6, b=np.array([0.0, 0.3]))
     traj, stats = pnp_trajectory(frames, FLOOR_CAM, WORLD, NOISE)
-    with caplog.at_level("WARNING", logger="fusion.estimate.cornerbias"):
+    with caplog.at_level("INFO", logger="fusion.estimate.cornerbias"):
         out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
     assert report["significant"] and report["too_large"] and not report["applied"]
     assert out is traj and consider is None
     assert "corner_bias_too_large" in caplog.text
+    # and the run says so by name (it was a log line only: not in the summary, metrics.json or
+    # the report)
+    from fusion.pipeline import LocalizeResult, corner_bias_too_large_warning
+
+    loc = LocalizeResult({"pnp": traj}, {}, {}, {"pnp": {"corner_bias": report}})
+    warning = corner_bias_too_large_warning(loc)
+    assert warning is not None and warning.name == "corner_bias_too_large" and warning.count == 1
+    assert "0.3" in warning.message and "not removed" in warning.message
+    ok = dict(report, too_large=False)
+    assert corner_bias_too_large_warning(LocalizeResult({"pnp": traj}, {}, {}, {"pnp": {"corner_bias": ok}})) is None
+    assert corner_bias_too_large_warning(LocalizeResult({"pnp": traj}, {}, {}, {"pnp": {}})) is None
 
 
 def test_a_bin_that_is_not_determined_is_not_judged_and_keeps_the_flight_as_it_is(caplog):
@@ -278,7 +289,7 @@ def test_a_bin_that_is_not_determined_is_not_judged_and_keeps_the_flight_as_it_i
     # the test statistic is the determined bin's alone: b_d^T Cov_dd^-1 b_d
     C = est.covariance_px2[hi, hi]
     assert est.statistic == pytest.approx(float(est.bias_px[hi] @ np.linalg.solve(C, est.bias_px[hi])))
-    with caplog.at_level("WARNING", logger="fusion.estimate.cornerbias"):
+    with caplog.at_level("INFO", logger="fusion.estimate.cornerbias"):
         out, report, consider = correct_pnp_trajectory(traj, stats.frame_bias, 1.0)
     assert out is traj and consider is None and not report["applied"]
     assert [b["determined"] for b in report["bins"]] == [j == j_hi for j in est.bins()]

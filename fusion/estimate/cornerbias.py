@@ -292,7 +292,8 @@ def correct_pnp_trajectory(
     # determined bins alone made the 30 ms rolling-shutter bench flights' smoother worse)
     applied = bool(apply and est.significant and not est.too_large and est.all_determined)
     if apply and est.significant and est.too_large:
-        log.warning(
+        # (the run's named warning is pipeline.corner_bias_too_large_warning's)
+        log.info(
             "corner_bias_too_large: a common floor-corner dilation of up to %.3f px (T = %.1f), "
             "above %.2f px by more than %g sigma: reported, not removed",
             float(np.max(np.abs(est.bias_px[est.determined]))),
