@@ -191,6 +191,23 @@ def _images(n, seed=0):
 
 
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_a_topic_without_header_stamps_falls_back_to_receive_time_with_a_named_warning(
+    tmp_path, world_and_calib, suffix
+):
+    """A camera driver that leaves header.stamp empty: its frames take the bag's receive time,
+    and the run says so by name (`bag_receive_time`, count: the topic's messages); it was a log
+    line only, so `-q` and `fusion batch` never said that one topic is on the recorder's clock."""
+    logt = [2_000_000_000 + k * 100_000_000 for k in range(4)]
+    bag = _write_bag(tmp_path / f"z{suffix}", _images(4), stamps=[0] * 4, log_times=logt)
+    flight = open_flight(bag, LogOptions(calib=world_and_calib))
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, np.array(logt) + 2_000_000)
+    named = [w for w in flight.warnings if w.name == "bag_receive_time"]
+    assert len(named) == 1 and named[0].count == 4 and "/cam/image_raw" in named[0].message
+    # the IMU has its stamps: no warning for it
+    assert "/imu" not in named[0].message
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
 def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, world_and_calib, suffix):
     imgs = _images(5)
     stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
@@ -542,6 +559,11 @@ def test_roles_by_type_and_overrides(tmp_path):
     assert assign_roles(tmp_path, {**types, "/imu2": IMU}, LogOptions(imu_topic="/imu2")).imu == "/imu2"
     with pytest.raises(LogError, match=r"3 image topics"):
         assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions())
+    # the floor topic named and two others left: no front camera, and the reader's named warning
+    # (`bag_image_topics_unused`) says which topics were passed over
+    r = assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions(floor_topic="/c/image"))
+    assert (r.floor, r.front, r.unused_images) == ("/c/image", None, ["/a/image", "/b/image"])
+    assert assign_roles(tmp_path, types, LogOptions()).unused_images == []
 
 
 def test_euroc_folder_as_calibration_for_a_bag(tmp_path, sample):

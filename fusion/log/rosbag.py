@@ -370,15 +370,27 @@ def scan_bag(
     return BagScan(path, ros1, scans, types, counts, truncated)
 
 
-def choose_times(scan: TopicScan, stamps: StampSource, where: str) -> np.ndarray:
+def choose_times(
+    scan: TopicScan, stamps: StampSource, where: str, warnings: list[LogWarning] | None = None
+) -> np.ndarray:
     """Per-message times (ns) of a topic: header stamps (falling back to receive time when the
-    header is empty) or receive time."""
+    header is empty) or receive time.  The fallback is a named warning in `warnings`
+    (`bag_receive_time`, count: the topic's messages): that topic is then on the recorder's
+    clock, with its transport delay and jitter, while the others keep their sensors' stamps
+    (a driver that leaves header.stamp empty is common), which the time-offset estimate and the
+    stamp-jitter check must then absorb."""
     log_ns = np.asarray(scan.log_ns, dtype=np.int64)
     if stamps == StampSource.RECEIVE:
         return log_ns
     hdr = scan.header_ns
     if any(h is None for h in hdr) or (len(hdr) and all(h == 0 for h in hdr)):
-        log.warning("%s: topic %s has no header stamps; using the bag's receive time", where, scan.topic)
+        message = (
+            f"{where}: topic {scan.topic} has no header stamps; using the bag's receive time "
+            "(the recorder's clock, with its transport delay and jitter)"
+        )
+        log.warning(message)
+        if warnings is not None:
+            warnings.append(LogWarning("bag_receive_time", len(log_ns), message))
         return log_ns
     return np.asarray(hdr, dtype=np.int64)
 
@@ -416,6 +428,7 @@ class Roles:
     front: str | None
     imu: str | None
     velocity: str | None
+    unused_images: list[str] = field(default_factory=list)  # image topics given no role
 
 
 def _topics_of(types: dict[str, str], wanted: tuple[str, ...], exclude=()) -> list[str]:
@@ -450,6 +463,7 @@ def assign_roles(
     for key, topic in (kalibr_topics or {}).items():
         named.setdefault(key, topic)
     images = _topics_of(types, IMAGE_TYPES)
+    unused: list[str] = []
     floor = opts.floor_topic or named.get(CameraRole.FLOOR.value)
     no_front = opts.front_topic == NO_TOPIC
     front = None if no_front else opts.front_topic or named.get(CameraRole.FRONT.value)
@@ -478,6 +492,7 @@ def assign_roles(
         log.warning(
             "%s: image topics %s not used; --front-topic picks the front camera", path, ", ".join(rest)
         )
+        unused = rest
     imu = check(opts.imu_topic or named.get("imu0"), (IMU,), "IMU")
     if imu is None:
         imus = _topics_of(types, (IMU,))
@@ -497,7 +512,7 @@ def assign_roles(
             if cands:
                 vel = cands[0]
                 break
-    return Roles(floor, front, imu, vel)
+    return Roles(floor, front, imu, vel, unused)
 
 
 # ============================================================================ camera streams
@@ -713,6 +728,16 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         raise LogError(
             f"{path}: no IMU topic (sensor_msgs/Imu) and no velocity topic; the bag holds {_listing(types)}"
         )
+    if roles.unused_images:
+        # the front camera is then not chosen: no load map, and nothing else would say why
+        warnings.append(
+            LogWarning(
+                "bag_image_topics_unused",
+                len(roles.unused_images),
+                f"{path}: image topics {', '.join(roles.unused_images)} not used, so no front camera "
+                "(no load map); --front-topic picks it",
+            )
+        )
     cam_topics = {CameraRole.FLOOR.value: roles.floor}
     if roles.front:
         cam_topics[CameraRole.FRONT.value] = roles.front
@@ -739,7 +764,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
         except ValueError as e:
             raise LogError(f"{where} message 0: {e}") from None
         cam, shift_ns = _camera_for(name, topic, calib, meta_cams, scan, infos, where)
-        t = choose_times(ts_scan, opts.stamps, str(path)) + shift_ns
+        t = choose_times(ts_scan, opts.stamps, str(path), warnings) + shift_ns
         shifts[name] = int(shift_ns)
         order, _, _ = sort_unique(t, where, warnings)
         if len(order) > 1 and name not in meta_cams:
@@ -806,7 +831,7 @@ def _imu_from_scan(s: TopicScan, opts, calib, meta, path, warnings=None) -> ImuD
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
-    t = choose_times(s, opts.stamps, str(path))
+    t = choose_times(s, opts.stamps, str(path), warnings)
     ga = np.array(s.data, dtype=float)
     g, a = ga[:, :3], ga[:, 3:]
     bad = np.flatnonzero(~np.isfinite(np.c_[g, a]).all(axis=1))
@@ -838,7 +863,7 @@ def _velocity_from_scan(s: TopicScan, opts, meta, path, warnings=None) -> Veloci
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
-    t = choose_times(s, opts.stamps, str(path))
+    t = choose_times(s, opts.stamps, str(path), warnings)
     v = np.array(s.data, dtype=float)
     if s.msgtype == ODOMETRY:
         v = v[:, 7:10]
