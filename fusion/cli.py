@@ -717,8 +717,11 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "import":
             from fusion.log.convert import import_flight
 
-            out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force)
+            said: list = []
+            out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force, warnings=said)
             print(f"wrote {out} (EuRoC layout)")
+            for w in said:  # what the EuRoC copy no longer says (the reader's, frames left out)
+                print(f"warning: {w}")
         elif args.command == "export":
             from fusion.log.convert import export_flight
 

@@ -190,6 +190,23 @@ def _images(n, seed=0):
     return [rng.integers(0, 255, size=(24, 32), dtype=np.uint8) for _ in range(n)]
 
 
+def test_import_passes_on_what_the_reader_warned(tmp_path, world_and_calib, capsys):
+    """`fusion import` of a bag with unordered and duplicate stamps: the EuRoC copy is sorted
+    and no longer shows them, so the import says them (they were dropped: a later run on the
+    copy cannot know)."""
+    from fusion.cli import main
+
+    stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
+    logt = [2_000_000_000 + k * 1000 for k in range(5)]  # received in this order
+    bag = _write_bag(tmp_path / "u.bag", _images(5), stamps=stamps, log_times=logt)
+    said: list = []
+    import_flight(bag, tmp_path / "copy", LogOptions(calib=world_and_calib), warnings=said)
+    assert {w.name for w in said} >= {"stamps_out_of_order", "stamps_duplicate"}
+    assert main(["import", str(bag), str(tmp_path / "copy2"), "--calib", str(world_and_calib)]) == 0
+    printed = capsys.readouterr().out
+    assert "warning: [stamps_out_of_order] x1" in printed and "warning: [stamps_duplicate] x1" in printed
+
+
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
 def test_a_topic_without_header_stamps_falls_back_to_receive_time_with_a_named_warning(
     tmp_path, world_and_calib, suffix

@@ -224,6 +224,19 @@ def test_ulog_imu_and_capture_times(video_dir, tmp_path):
         flight.floor.camera.T_body_cam, T_FLU_FRD @ short_flight().floor.camera.T_body_cam, atol=1e-12
     )
 
+    assert not [w for w in flight.warnings if w.name.startswith("stamps_")]
+    # a duplicated and a swapped sample: sorted, the duplicate dropped, both named and counted
+    # (they were a log line only; a bag's IMU topic names them the same way)
+    bad = rows[:10] + [rows[9]] + [rows[11], rows[10]] + rows[12:]
+    write_ulog(
+        d / "flight.ulg",
+        {"sensor_combined": (SENSOR_COMBINED, bad), "camera_capture": (CAMERA_CAPTURE, capture)},
+    )
+    flight = open_flight(d)
+    np.testing.assert_array_equal(flight.imu.timestamps_ns, imu.timestamps_ns)
+    named = {w.name: w.count for w in flight.warnings}
+    assert named.get("stamps_out_of_order") == 1 and named.get("stamps_duplicate") == 1
+
     write_ulog(d / "flight.ulg", {"camera_capture": (CAMERA_CAPTURE, capture)})
     with pytest.raises(
         LogError,

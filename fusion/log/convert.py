@@ -7,7 +7,7 @@ import logging
 from pathlib import Path
 
 from fusion.errors import LogError
-from fusion.log.euroc import FlightLog, FlightLogWriter
+from fusion.log.euroc import FlightLog, FlightLogWriter, LogWarning
 from fusion.log.options import LogFormat, LogOptions
 from fusion.log.sources import open_flight
 
@@ -18,10 +18,20 @@ def _as_flight(src, opts: LogOptions | None) -> FlightLog:
     return src if isinstance(src, FlightLog) else open_flight(Path(src), opts)
 
 
-def import_flight(src, out: Path, opts: LogOptions | None = None, overwrite: bool = False) -> Path:
+def import_flight(
+    src,
+    out: Path,
+    opts: LogOptions | None = None,
+    overwrite: bool = False,
+    warnings: list[LogWarning] | None = None,
+) -> Path:
     """Write the EuRoC layout of `src` (a path or a FlightLog) to `out`; images as PNG, frames
-    that cannot be read are skipped (their messages logged)."""
+    that cannot be read are skipped.  `warnings` (a list, extended): the reader's own named
+    warnings (a truncated bag, unordered stamps, ...: the EuRoC copy no longer carries them) and
+    one `frames_skipped` per camera (count: its frames left out; the copy simply lacks them)."""
     flight = _as_flight(src, opts)
+    if warnings is not None:
+        warnings.extend(flight.warnings)
     with FlightLogWriter(Path(out), overwrite=overwrite) as w:
         w.write_world(flight.world)
         for name, stream in sorted(flight.cameras.items()):
@@ -31,6 +41,15 @@ def import_flight(src, out: Path, opts: LogOptions | None = None, overwrite: boo
                     w.write_frame(name, frame.timestamp_ns, frame.image)
             for msg in stream.skipped:
                 log.warning("%s", msg)
+            if stream.skipped and warnings is not None:
+                warnings.append(
+                    LogWarning(
+                        "frames_skipped",
+                        len(stream.skipped),
+                        f"{name}: frames that could not be read were left out of the copy "
+                        f"(first: {stream.skipped[0]})",
+                    )
+                )
         if flight.imu is not None:
             w.write_imu(flight.imu)
         if flight.velocity is not None:

@@ -42,8 +42,10 @@ def _dataset(ulog, name: str):
     return min(sets, key=lambda d: d.multi_id) if sets else None
 
 
-def read_ulog_imu(path: Path, noise: ImuNoise | None = None) -> ImuData:
-    """IMU samples of `sensor_combined` (gyro and accel in FRD; T_body_imu = T_FLU_FRD)."""
+def read_ulog_imu(path: Path, noise: ImuNoise | None = None, warnings: list | None = None) -> ImuData:
+    """IMU samples of `sensor_combined` (gyro and accel in FRD; T_body_imu = T_FLU_FRD), sorted,
+    duplicates dropped; those are named, counted LogWarnings in `warnings`
+    (`stamps_out_of_order`, `stamps_duplicate`, as a bag's topics give them)."""
     path = Path(path)
     ulog = _open(path, [IMU_TOPIC])
     ds = _dataset(ulog, IMU_TOPIC)
@@ -60,16 +62,9 @@ def read_ulog_imu(path: Path, noise: ImuNoise | None = None) -> ImuData:
     bad = np.flatnonzero(~np.isfinite(np.c_[gyro, acc]).all(axis=1))
     if bad.size:
         raise LogError(f"{path}: {IMU_TOPIC} sample {int(bad[0])}: NaN or infinite value")
-    order = np.argsort(t, kind="stable")
-    keep = np.r_[True, np.diff(t[order]) > 0] if len(t) else np.zeros(0, bool)
-    if (~keep).sum() or np.any(np.diff(t) < 0):
-        log.warning(
-            "%s: %s had %d duplicate / out-of-order samples (sorted, duplicates dropped)",
-            path,
-            IMU_TOPIC,
-            int((~keep).sum() + np.sum(np.diff(t) < 0)),
-        )
-    idx = order[keep]
+    from fusion.log.rosbag import sort_unique
+
+    idx, _, _ = sort_unique(t, f"{path}: {IMU_TOPIC}", warnings)
     if not len(idx):
         raise LogError(f"{path}: '{IMU_TOPIC}' has no samples")
     rate = float(1e9 / np.median(np.diff(t[idx]))) if len(idx) > 1 else 200.0

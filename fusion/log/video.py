@@ -359,12 +359,13 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     imu_path = _find(folder, opts.imu, IMU_CSV_FILE, "*.ulg")
     imu, ulog_times = None, None
+    ulog_warnings: list[LogWarning] = []  # the ULog IMU's unordered / duplicate samples
     imu_yaml = _find(folder, opts.imu_calib, IMU_YAML_FILE)
     kimu = read_imu_yaml(imu_yaml) if imu_yaml else None
     if imu_path is not None and imu_path.suffix.lower() == ".ulg":
         from fusion.log.ulog import read_ulog_frame_times, read_ulog_imu
 
-        imu = read_ulog_imu(imu_path, kimu.noise if kimu else None)
+        imu = read_ulog_imu(imu_path, kimu.noise if kimu else None, ulog_warnings)
         ulog_times = read_ulog_frame_times(imu_path)
     elif imu_path is not None:
         imu = _read_imu_csv(imu_path, kimu, folder)
@@ -391,7 +392,7 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         kal = {k: (kc.camera, kc.timeshift_ns) for k, kc in read_camchain(calib_path, T_bi).items()}
 
     cameras: dict[str, CameraStream] = {}
-    warnings: list[LogWarning] = (
+    warnings: list[LogWarning] = ulog_warnings + (
         [] if noise_default is None else [LogWarning("imu_noise_default", 1, noise_default)]
     )
     for name, video in videos.items():
