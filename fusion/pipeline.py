@@ -1528,9 +1528,20 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     global-shutter corners.  Returns the detections to use."""
     if cfg.calibrate_readout:
         calib = calibrate_readout(det, log.floor.camera, log.world, log.imu, cfg.corner_sigma_px)
-        log.floor.camera.line_delay_s = calib.readout_s / log.floor.camera.height
         result.readout_calibration = calib
         result.notes.append(calib.note(CameraRole.FLOOR.value))
+        if math.isfinite(calib.sigma_s):
+            log.floor.camera.line_delay_s = calib.readout_s / log.floor.camera.height
+        else:  # a flat cost profile: the readout is not determined, so none is made up
+            result.warnings.append(
+                LogWarning(
+                    "readout_not_calibrated",
+                    calib.n_frames,
+                    f"--calibrate-readout: the floor camera's {calib.n_frames} frames do not determine "
+                    "its readout (a flat cost profile: too little motion?); the declared line_delay_s "
+                    f"({log.floor.camera.readout_s * 1e3:.2f} ms) is kept",
+                )
+            )
     cameras = {name: stream.camera for name, stream in log.cameras.items()}
     det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px, streams=log.cameras)
     result.notes += report.notes()

@@ -3,6 +3,8 @@ corners moved to the stamp before PnP, readout calibration."""
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import replace
 
 import numpy as np
@@ -262,6 +264,32 @@ def test_correct_flight_recovers_the_trajectory(synthetic_flight):
     assert report.pose_cov_added  # the motion's uncertainty enters the PnP covariance
     # the same flight with a global shutter: 4.0 mm (measured); uncorrected: 47 mm
     assert err(fixed) < 0.006 < 0.02 < err(det)
+
+
+def test_an_undetermined_readout_is_not_applied_and_says_so(monkeypatch):
+    """--calibrate-readout on a flight whose frames do not determine the readout (a flat cost
+    profile, sigma inf): the declared line delay is kept and the run warns by name; before, the
+    profile's midpoint was applied as if measured."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from fusion import pipeline
+    from fusion.qr.rolling_shutter import ReadoutCalibration, RollingShutterReport
+
+    cam = CameraModel(640, 480, 550.0, 550.0, 320.0, 240.0, line_delay_s=0.0)
+    log = SimpleNamespace(floor=SimpleNamespace(camera=cam), world=None, imu=None, cameras={})
+    result = pipeline.RunResult(Path("."), {})
+    cfg = pipeline.RunConfig(calibrate_readout=True)
+    monkeypatch.setattr(pipeline, "correct_flight", lambda det, *a, **k: (det, RollingShutterReport()))
+    for sigma, applied in ((math.inf, False), (0.0005, True)):
+        monkeypatch.setattr(
+            pipeline, "calibrate_readout", lambda *a, s=sigma, **k: ReadoutCalibration(0.015, s, 40, 1.0)
+        )
+        cam.line_delay_s = 0.0
+        result.warnings.clear()
+        pipeline._rolling_shutter(log, None, cfg, result)
+        assert (cam.line_delay_s > 0) == applied
+        assert [w.name for w in result.warnings] == ([] if applied else ["readout_not_calibrated"])
 
 
 def test_calibrate_readout_recovers_a_known_value(synthetic_flight):
