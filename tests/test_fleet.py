@@ -392,6 +392,22 @@ def test_the_summary_lists_each_flights_warnings(tmp_path):
     assert "## Warnings" in md and "- a: floor_stamp_jitter x1" in md and "- b:" not in md
 
 
+def test_an_unreadable_metrics_file_is_not_an_ok_row(tmp_path):
+    """A finished flight whose metrics.json cannot be read (truncated, hand-edited): its row said
+    nothing (health empty, so fleet.md listed it with the good ones); now health "unknown" with
+    the reason, and fleet.md lists it under "Health below ok"."""
+    from fusion.fleet.summary import UNREAD_HEALTH, write_summary
+
+    (tmp_path / "f").mkdir()
+    (tmp_path / "f" / "metrics.json").write_text('{"health": {"smoother": ')
+    rec = FlightRecord("f", "/logs/f", status=FlightStatus.OK)
+    row = flight_row(tmp_path, rec)
+    assert row.health == UNREAD_HEALTH and "metrics.json not read" in row.health_detail
+    write_summary(tmp_path, [rec])
+    md = (tmp_path / "fleet.md").read_text()
+    assert "## Health below ok" in md and "metrics.json not read" in md
+
+
 def test_coverage_is_of_every_floor_frame(tmp_path):
     """PnP's n_frames counts only the frames with a detection: coverage is n_posed over every
     floor frame of the log (a flight that read its codes in half its frames read 100 %)."""

@@ -37,6 +37,7 @@ HEADLINE = Estimator.SMOOTHER  # whose ATE and load map the summary shows
 FALLBACK = Estimator.PNP
 HEALTH_ORDER = (Status.OK, Status.DEGRADED, Status.DIVERGED)  # worst last
 NO_HEALTH = "none"  # no fused estimator ran (no IMU and no velocity, no floor code)
+UNREAD_HEALTH = "unknown"  # the flight finished but its metrics.json could not be read
 DPI = 110
 _HEALTH_COLOURS = {"ok": "#009e73", "degraded": "#e69f00", "diverged": "#d55e00", NO_HEALTH: "#999999"}
 COLUMNS = (
@@ -94,8 +95,10 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
     )
     if rec.status != FlightStatus.OK:
         return row
-    metrics = _read_metrics(Path(out) / rec.name / "metrics.json")
-    if metrics is None:
+    metrics, problem = _read_metrics(Path(out) / rec.name / "metrics.json")
+    if metrics is None:  # finished, but its health and warnings cannot be told: not "ok" for them
+        row.health = UNREAD_HEALTH
+        row.health_detail = f"metrics.json not read ({problem}): health, coverage and warnings unknown"
         return row
     health = metrics.get("health") or {}
     statuses = [str(h.get("status")) for h in health.values()]
@@ -131,14 +134,17 @@ def flight_row(out: Path, rec: FlightRecord) -> FlightRow:
     return row
 
 
-def _read_metrics(path: Path) -> dict | None:
+def _read_metrics(path: Path) -> tuple[dict | None, str]:
+    """(metrics.json's contents, "") or (None, why it could not be read)."""
     try:
         with open_regular(path, FleetError, newline=None) as f:
             data = json.load(f)
-        return data if isinstance(data, dict) else None
     except (FleetError, ValueError, UnicodeDecodeError) as e:
-        logger.warning("%s: cannot read (%s); the flight's summary row stays empty", path, e)
-        return None
+        logger.warning("%s: cannot read (%s); the flight's summary row says so", path, e)
+        return None, str(e).splitlines()[0] if str(e) else type(e).__name__
+    if not isinstance(data, dict):
+        return None, "not a JSON object"
+    return data, ""
 
 
 def write_summary(out: Path, records: list[FlightRecord]) -> list[Path]:
