@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import LogError
-from fusion.log.euroc import ImuData, ImuNoise
+from fusion.log.euroc import ImuData, ImuNoise, LogWarning
+from fusion.log.rosbag import sort_unique
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,9 @@ def _dataset(ulog, name: str):
     return min(sets, key=lambda d: d.multi_id) if sets else None
 
 
-def read_ulog_imu(path: Path, noise: ImuNoise | None = None, warnings: list | None = None) -> ImuData:
+def read_ulog_imu(
+    path: Path, noise: ImuNoise | None = None, warnings: list[LogWarning] | None = None
+) -> ImuData:
     """IMU samples of `sensor_combined` (gyro and accel in FRD; T_body_imu = T_FLU_FRD), sorted,
     duplicates dropped; those are named, counted LogWarnings in `warnings`
     (`stamps_out_of_order`, `stamps_duplicate`, as a bag's topics give them)."""
@@ -62,8 +65,6 @@ def read_ulog_imu(path: Path, noise: ImuNoise | None = None, warnings: list | No
     bad = np.flatnonzero(~np.isfinite(np.c_[gyro, acc]).all(axis=1))
     if bad.size:
         raise LogError(f"{path}: {IMU_TOPIC} sample {int(bad[0])}: NaN or infinite value")
-    from fusion.log.rosbag import sort_unique
-
     idx, _, _ = sort_unique(t, f"{path}: {IMU_TOPIC}", warnings)
     if not len(idx):
         raise LogError(f"{path}: '{IMU_TOPIC}' has no samples")

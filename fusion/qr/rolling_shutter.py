@@ -690,8 +690,6 @@ class CornerBatch:
         takes each corner's depth in its row's camera frame, as for a floor code's known
         corners.  A code whose homography is degenerate keeps its size-implied depth."""
         load = ~self.known
-        if not np.any(load):
-            return self
         points = code_corner_points(camera, corners_px[load], self.side_m[load])
         T_wc = camera.T_world_cam(motion.T_world_body[self.k[load]])
         world = np.einsum("mij,mj->mi", T_wc[:, :3, :3], points) + T_wc[:, :3, 3]
@@ -877,8 +875,9 @@ def correct_frames(
     # height), and the stretched size put the correction ~1.5 % short (0.3 mm per m/s on the
     # sightings, which a front mount check read as a 0.08 deg pitch), and a code turned away
     # from the camera is not at one depth (BENCHMARKS.md, twenty-fifth session)
-    for _ in range(LOAD_PLANE_PASSES):
-        batch = batch.placed_by(camera, motion, batch.moved(camera, motion))
+    if not np.all(batch.known):  # load codes (the floor camera's frames have none: no extra moves)
+        for _ in range(LOAD_PLANE_PASSES):
+            batch = batch.placed_by(camera, motion, batch.moved(camera, motion))
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     n = sum(1 for ts in frames if index.get(int(ts)) is not None and motion.valid[index[int(ts)]])
     return apply_corners(frames, batch, batch.moved(camera, motion)), n
