@@ -99,9 +99,11 @@ def _write_bag(
     log_times=None,
     encoding="mono8",
     topic="/cam/image_raw",
+    groundtruth_stamps=None,
 ):
     """A small bag: `images` (list of uint8 arrays) on `topic` with header `stamps` and receive
-    `log_times`, an IMU at 100 Hz, optionally a CameraInfo."""
+    `log_times`, an IMU at 100 Hz, optionally a CameraInfo, and with `groundtruth_stamps` our
+    /fusion/groundtruth Odometry with those header stamps, received 1 ms apart in list order."""
     from rosbags.rosbag1 import Writer as W1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as W2
@@ -165,6 +167,25 @@ def _write_bag(
                     linear_acceleration_covariance=np.zeros(9),
                 )
                 w.write(ci, t, ser(m, IMU))
+        if groundtruth_stamps is not None:
+            from fusion.log.rosbag import GROUNDTRUTH_TOPIC, ODOMETRY
+
+            cg = w.add_connection(GROUNDTRUTH_TOPIC, ODOMETRY, typestore=ts)
+            T = ts.types
+            zero = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+            for k, t in enumerate(groundtruth_stamps):
+                pose = T["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=T["geometry_msgs/msg/Pose"](
+                        position=T["geometry_msgs/msg/Point"](x=float(k), y=0.0, z=1.0),
+                        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                    ),
+                    covariance=np.zeros(36),
+                )
+                twist = T["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
+                )
+                m = T[ODOMETRY](header=_header(ts, t, "world", ros1), child_frame_id="body", pose=pose, twist=twist)
+                w.write(cg, 1_000_000_000 + k * 1_000_000, ser(m, ODOMETRY))
         for t, _, con, data in sorted(queue, key=lambda q: q[:2]):
             real.write(con, t, data)
     if not ros1:  # one .mcap file, as `ros2 bag` can read
@@ -247,6 +268,20 @@ def test_out_of_order_and_duplicate_stamps_are_sorted_and_counted(tmp_path, worl
     # receive time on request
     flight = open_flight(bag, LogOptions(calib=world_and_calib, stamps=StampSource.RECEIVE))
     np.testing.assert_array_equal(flight.floor.timestamps_ns, np.array(logt) + 2_000_000)
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_ground_truth_topic_out_of_order_is_a_named_counted_warning(tmp_path, world_and_calib, suffix):
+    """The bag's ground truth is sorted like every other topic, and says so like them
+    (`stamps_out_of_order` / `stamps_duplicate`, naming the topic): it was sorted silently, so a
+    truth recorded out of order scored the flight with nobody told."""
+    gt = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
+    bag = _write_bag(tmp_path / f"g{suffix}", _images(3), groundtruth_stamps=gt)
+    flight = open_flight(bag, LogOptions(calib=world_and_calib))
+    np.testing.assert_array_equal(flight.groundtruth.timestamps_ns, sorted(set(gt)))
+    np.testing.assert_array_equal(flight.groundtruth.p_world[:, 0], [0, 2, 1, 3])  # message k at x = k
+    named = {w.name: w for w in flight.warnings if "/fusion/groundtruth" in w.message}
+    assert named["stamps_out_of_order"].count == 1 and named["stamps_duplicate"].count == 1
 
 
 def test_image_encodings_decode_to_gray():

@@ -792,7 +792,7 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     vel = None
     if roles.velocity:
         vel = _velocity_from_scan(scan.topics[roles.velocity], opts, meta, path, warnings)
-    gt = _groundtruth_from_scan(scan.topics[gt_topic], path) if gt_topic else None
+    gt = _groundtruth_from_scan(scan.topics[gt_topic], path, warnings) if gt_topic else None
     world = find_world(path, opts, meta.get("world"), f"{path}: {METADATA_TOPIC}")
     loads = {str(k): np.asarray(v, float) for k, v in (meta.get("loads_groundtruth") or {}).items()} or None
     blackouts = (
@@ -878,13 +878,14 @@ def _velocity_from_scan(s: TopicScan, opts, meta, path, warnings=None) -> Veloci
     return VelocityData(t[order], v[order], noise or DEFAULT_VELOCITY_NOISE_M_S)
 
 
-def _groundtruth_from_scan(s: TopicScan, path) -> GroundTruth | None:
+def _groundtruth_from_scan(s: TopicScan, path, warnings=None) -> GroundTruth | None:
     if not s.data:
         return None
-    t = choose_times(s, StampSource.HEADER, str(path))
+    # its stamp problems are named like every topic's: the truth scores the flight
+    t = choose_times(s, StampSource.HEADER, str(path), warnings)
     x = np.array(s.data, dtype=float)
     p, q, v_body = x[:, 0:3], x[:, [6, 3, 4, 5]], x[:, 7:10]  # q: xyzw -> wxyz
-    order, _, _ = sort_unique(t, f"{path}: topic {s.topic}")
+    order, _, _ = sort_unique(t, f"{path}: topic {s.topic}", warnings)
     v_world = np.einsum("nij,nj->ni", R_from_quat_wxyz(q), v_body)
     zeros = np.zeros_like(p)  # IMU biases are not carried by the bag
     return GroundTruth(t[order], p[order], q[order], v_world[order], zeros[order], zeros[order])
