@@ -460,6 +460,27 @@ def test_truncated_mcap_keeps_its_complete_compressed_chunks(tmp_path):
     assert 0 < len(got) < 40 and len(got) % 12 == 0 and got == stamps[: len(got)]
 
 
+@pytest.mark.parametrize(
+    "suffix,said", [(".bag", "truncated or unindexed ROS 1 bag"), (".mcap", "truncated MCAP file")]
+)
+def test_inspect_says_a_bag_was_cut_short(tmp_path, world_and_calib, monkeypatch, capsys, suffix, said):
+    """`fusion inspect` of a damaged bag shows the recovered copy's counts and says what was
+    recovered (the note `fusion run` gives as `bag_truncated`): it showed the counts of a bag
+    cut short as if they were the recording's."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    good = _write_bag(tmp_path / f"full{suffix}", _images(20))
+    cut = tmp_path / f"cut{suffix}"
+    cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * 0.6)])
+    rep = inspect_log(cut, LogOptions(calib=world_and_calib))
+    assert rep.path == cut and any(f"cut{suffix}: {said}" in p for p in rep.problems)
+    assert rep.roles["cam0"] == "/cam/image_raw"
+    assert not inspect_log(good, LogOptions(calib=world_and_calib)).problems
+    assert main(["inspect", str(cut), "--calib", str(world_and_calib)]) == 0
+    assert f"problem: {cut}: {said}" in capsys.readouterr().out
+
+
 def _as_sqlite3(mcap: Path, folder: Path) -> Path:
     """The ROS 2 bag `mcap` rewritten with sqlite3 storage into `folder` (metadata.yaml + .db3)."""
     from rosbags.highlevel import AnyReader

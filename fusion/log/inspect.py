@@ -211,8 +211,12 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
     from fusion.log import rosbag as rb
     from fusion.log.sources import external_calibration
 
-    path = rb.readable_bag(path)
-    first = rb.scan_bag(path, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
+    # a damaged bag is read from a recovered copy (rosbag.readable_bag_and_note): its note says
+    # so, as `fusion run`'s bag_truncated does, else the counts below read as the recording's
+    bag, damage = rb.readable_bag_and_note(path)
+    if damage:
+        report.problems.append(damage)
+    first = rb.scan_bag(bag, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(rb.METADATA_TOPIC) and first.topics[rb.METADATA_TOPIC].first is not None:
         try:
@@ -239,7 +243,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
     if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
         role_of[rb.GROUNDTRUTH_TOPIC] = ROLE_NAMES["groundtruth"]
     imu_topic = roles.imu if roles else None
-    scan = rb.scan_bag(path, vectors={imu_topic} if imu_topic else set())
+    scan = rb.scan_bag(bag, vectors={imu_topic} if imu_topic else set())
     if scan.truncated:
         report.problems.append(scan.truncated)
     for topic in sorted(scan.types):
