@@ -533,6 +533,25 @@ def test_damaged_sqlite3_bags_read_what_is_there(tmp_path, world_and_calib, monk
         open_flight(cut, opts)
 
 
+def test_an_intact_bare_db3_file_is_not_called_truncated(tmp_path, world_and_calib, monkeypatch):
+    """A .db3 file given alone (no metadata.yaml beside it: a .db3 has none of its own) and read
+    whole is no damaged bag: it was a `bag_truncated` warning ("damaged ... no usable
+    metadata.yaml") with nothing missing.  Cut short, it still is one."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    good = _as_sqlite3(_write_bag(tmp_path / "g.mcap", _images(30)), tmp_path / "good")
+    opts = LogOptions(calib=world_and_calib)
+    db = tmp_path / "bare.db3"  # beside world.yaml
+    shutil.copy(next(good.glob("*.db3")), db)
+    flight = open_flight(db, opts)
+    assert len(flight.floor) == 30 and not [w for w in flight.warnings if w.name == "bag_truncated"]
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(db.read_bytes()[: int(db.stat().st_size * 0.5)])
+    (note,) = [w.message for w in open_flight(cut, opts).warnings if w.name == "bag_truncated"]
+    assert "stopped after" in note
+
+
 def test_bag_stamp_problems_are_named_counted_warnings(tmp_path, world_and_calib):
     stamps = [1_000_000_000, 1_200_000_000, 1_100_000_000, 1_300_000_000, 1_300_000_000]
     logt = [2_000_000_000 + k * 1000 for k in range(5)]  # recorded in this (header-unsorted) order

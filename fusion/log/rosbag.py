@@ -310,7 +310,8 @@ def _readable_ros2(path: Path) -> tuple[Path, str | None]:
     from fusion.log.sqliterecover import recovered_sqlite_bag
 
     copy, note = recovered_sqlite_bag(path)
-    log.warning(note)
+    if note:
+        log.warning(note)
     return copy, note
 
 

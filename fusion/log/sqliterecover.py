@@ -92,11 +92,10 @@ def recover_db3(files: list[Path], dst: Path) -> tuple[int, int, list[str]]:
     return n, n_unknown, notes
 
 
-def recovered_sqlite_bag(folder: Path) -> tuple[Path, str]:
+def recovered_sqlite_bag(folder: Path) -> tuple[Path, str | None]:
     """A readable MCAP copy of the sqlite3 bag `folder` (its *.db3 files, in name order; or one
-    .db3 file) in
-    the temp folder, reused while the files are unchanged, and a one-line note of what was read;
-    LogError when no message could be read."""
+    .db3 file) in the temp folder, reused while the files are unchanged, and a one-line note of
+    what was read (None for one .db3 file read whole); LogError when no message could be read."""
     folder = Path(folder)
     files = [folder] if folder.is_file() else sorted(folder.glob("*.db3"))
     if not files:
@@ -111,6 +110,10 @@ def recovered_sqlite_bag(folder: Path) -> tuple[Path, str]:
         dst.with_suffix(".partial").unlink(missing_ok=True)
         raise LogError(f"{folder}: ROS 2 sqlite3 bag with no readable message")
     dst.with_suffix(".partial").replace(dst)
+    if folder.is_file() and not notes and not n_unknown:
+        # a .db3 given alone has no metadata.yaml of its own to miss, and every row was read:
+        # nothing is damaged (the note became a bag_truncated warning with nothing missing)
+        return dst, None
     why = "; ".join(notes) if notes else "no usable metadata.yaml"
     skipped = f", {n_unknown} message(s) of unknown types left out" if n_unknown else ""
     read = f"read {n} message(s){skipped} from the copy {dst}"
