@@ -2105,6 +2105,10 @@ def _evaluate_and_report(
                 "check the truth's origin and world.yaml's code positions; the errors below are as given",
             )
         )
+    if result.floor_codes:
+        unread = floorcodes.groundtruth_warning(log.root)
+        if unread is not None:
+            result.warnings.append(unread)
     metrics["warnings"] = [w.to_dict() for w in result.warnings]
     metrics["health"] = {name: h.to_dict() for name, h in result.health.items()}
     if result.floor_codes:

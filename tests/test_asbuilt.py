@@ -353,6 +353,36 @@ def test_pipeline_writes_floor_codes(sample_runs):
     assert str(res.health["smoother"].status) == "ok"
 
 
+def test_a_malformed_floor_code_truth_is_the_runs_named_warning(sample_runs, tmp_path):
+    """The simulator's floor_codes_groundtruth.csv that cannot be read: the run ends whole, the
+    codes unscored, and says why by name with the file and line (`floor_codes_groundtruth_unreadable`):
+    it was a log line only, so metrics.json just lacked the errors; a file that is not UTF-8
+    was a traceback at the report."""
+    log = tmp_path / "log"
+    shutil.copytree(Path(sample_runs["default"].log_summary["path"]), log)
+    truth = log / "floor_codes_groundtruth.csv"
+    truth.write_text("id,x_m,y_m,yaw_deg\nnope,1.0,2.0,0.0\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    shutil.copy(sample_runs["default"].out_dir / "detections.csv", out / "detections.csv")
+    cfg = pipeline.RunConfig(progress=False, incremental=False, workers=1, force=True)
+    res = pipeline.run(log, out, cfg, until="run")
+    (w,) = [x for x in res.warnings if x.name == "floor_codes_groundtruth_unreadable"]
+    assert w.count == 1 and f"{truth}:2: 'nope' is not a floor code" in w.message
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "floor_codes_groundtruth_unreadable" in {x["name"] for x in metrics["warnings"]}
+    assert "groundtruth" not in metrics["floor_codes"]["smoother"]
+    assert "floor_codes_groundtruth_unreadable" in (out / "report.md").read_text()
+    # not UTF-8: the same one line, not a traceback; a good file or none: no warning
+    from fusion.warehouse.floorcodes import groundtruth_warning
+
+    truth.write_bytes(b"id,x_m,y_m,yaw_deg\n\xff\xfe,1,2,0\n")
+    w = groundtruth_warning(log)
+    assert w is not None and str(truth) in w.message and "UTF-8" in w.message
+    truth.unlink()
+    assert groundtruth_warning(log) is None
+
+
 def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Path:
     """A run folder with the files map merge reads, and floor_codes_smoother.csv."""
     root.mkdir(parents=True)

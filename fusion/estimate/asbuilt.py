@@ -989,9 +989,15 @@ def write_groundtruth_csv(path: Path, ids: list[str], xy_yaw: np.ndarray) -> Non
 
 
 def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
-    """{canonical id: (3,) x, y, yaw rad} from floor_codes_groundtruth.csv."""
+    """{canonical id: (3,) x, y, yaw rad} from floor_codes_groundtruth.csv; AsBuiltError naming
+    the file (and line) when it cannot be read."""
     path = Path(path)
-    rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
+    try:
+        rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
+    except UnicodeDecodeError as e:
+        raise AsBuiltError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    except (OSError, csv.Error) as e:
+        raise AsBuiltError(f"{path}: {e}") from None
     out = {}
     for line, row in enumerate(rows, start=2):
         raw = csv_unsafe(row.get("id") or "")
