@@ -1363,6 +1363,22 @@ def rolling_shutter_sightings_warning(report: RollingShutterReport) -> LogWarnin
     )
 
 
+def rolling_shutter_unreadable_warning(report: RollingShutterReport) -> LogWarning | None:
+    """A named warning (count: the frames) when images that gave detections did not read again
+    at the rolling-shutter stamp refinement (RollingShutterReport.unreadable_at_stamp): their
+    codes keep the corners moved to the stamp, less accurate than refined at it."""
+    n = sum(report.unreadable_at_stamp.values())
+    if n == 0:
+        return None
+    cams = ", ".join(f"{cam} {k}" for cam, k in sorted(report.unreadable_at_stamp.items()))
+    return LogWarning(
+        "rolling_shutter_images_unreadable",
+        n,
+        f"{n} image(s) that gave detections did not read again at the rolling-shutter refinement "
+        f"({cams}): their codes were moved to the stamp, not refined at it (less accurate corners)",
+    )
+
+
 def corner_bias_too_large_warning(loc: LocalizeResult) -> LogWarning | None:
     """A named warning (count 1: the flight) when the floor camera's flight-wide corner dilation
     is significant and confidently above cornerbias.MAX_BIAS_PX: the first-order correction does
@@ -1545,6 +1561,9 @@ def _rolling_shutter(log: FlightLog, det, cfg: RunConfig, result: RunResult):
     cameras = {name: stream.camera for name, stream in log.cameras.items()}
     det, report = correct_flight(det, cameras, log.world, log.imu, cfg.corner_sigma_px, streams=log.cameras)
     result.notes += report.notes()
+    unreadable = rolling_shutter_unreadable_warning(report)
+    if unreadable is not None:
+        result.warnings.append(unreadable)
     result.rolling_shutter = report
     return det
 

@@ -477,6 +477,47 @@ def test_refinement_at_the_stamp_beats_correcting_refined_corners(accelerating_f
     assert np.mean(e_stamp) < 0.05
 
 
+class _SomeUnreadable(_Frames):
+    """_Frames whose image 1 is a stream's skipped frame (None) and image 2 fails to read."""
+
+    def load_image(self, i):
+        if i == 1:
+            return None
+        if i == 2:
+            raise LogError("cam0/data/2.png: unreadable")
+        return self.images[i]
+
+
+def test_images_unreadable_at_the_stamp_refinement_are_named_and_counted(accelerating_flight):
+    """Frames whose image does not read again at the stamp refinement keep their corners moved to
+    the stamp (`correct_frames`), the other frames are still refined, and the run says how many
+    by name (`rolling_shutter_images_unreadable`).  Before, one image that raised dropped the
+    camera's whole refinement and the note said "0 code(s) refined" with no reason; one that gave
+    None was left out silently."""
+    sc, codes, traj, imu, _ = accelerating_flight
+    world = sc.layout.world
+    cam = replace(sc.cameras["cam0"], line_delay_s=0.03 / 480)
+    stamps = np.arange(1_000_000_000, 3_400_000_000, 400_000_000, dtype=np.int64)
+    images, dets = [], []
+    for ts in stamps.tolist():
+        view = rolling_shutter_poses(cam, lambda t: traj.state(np.atleast_1d(t)).T_world_body, ts * 1e-9)
+        images.append(render_view(cam, view, codes, None, RenderEffects(noise_sigma_dn=0.0)))
+        dets += detect_frame(images[-1], "cam0", ts, cam)
+    det = DetectionResult(dets, {})
+    _, good = correct_flight(det, {"cam0": cam}, world, imu, streams={"cam0": _Frames(stamps, images)})
+    _, report = correct_flight(det, {"cam0": cam}, world, imu, streams={"cam0": _SomeUnreadable(stamps, images)})
+    per_frame = {ts: len(ds) for ts, ds in det.by_frame("cam0").items()}
+    assert per_frame[int(stamps[1])] and per_frame[int(stamps[2])]
+    assert 0 < report.refined_at_stamp["cam0"] < good.refined_at_stamp["cam0"]
+    assert report.unreadable_at_stamp == {"cam0": 2}
+    assert "2 image(s) did not read again" in report.notes()[0]
+    from fusion.pipeline import rolling_shutter_unreadable_warning
+
+    warning = rolling_shutter_unreadable_warning(report)
+    assert warning is not None and warning.name == "rolling_shutter_images_unreadable" and warning.count == 2
+    assert good.unreadable_at_stamp == {} and rolling_shutter_unreadable_warning(good) is None
+
+
 def test_motion_from_the_codes_refined_at_the_stamp_in_a_fast_turn(scene, monkeypatch):
     """Rendered frames of a 1.75 rad/s turn, 30 ms readout (corrections up to ~23 px): the motion
     taken again from the poses of the codes refined at the stamp (STAMP_MOTION_PASSES) leaves

@@ -202,6 +202,8 @@ class RollingShutterReport:
     frames_uncorrected: dict[str, int] = field(default_factory=dict)
     motion_source: str = ""
     refined_at_stamp: dict[str, int] = field(default_factory=dict)  # codes refined at the stamp
+    # frames whose image did not read again at the stamp refinement (their codes corrected only)
+    unreadable_at_stamp: dict[str, int] = field(default_factory=dict)
     pose_cov_added: dict[int, np.ndarray] = field(default_factory=dict)  # cam0 PnP, by stamp
     # the other rolling-shutter cameras' load sightings: {camera: {(stamp, load_id): (3, 3)}},
     # the camera-frame covariance the motion's uncertainty adds (`motion_sighting_covariance`)
@@ -216,6 +218,12 @@ class RollingShutterReport:
             + (
                 f"; {self.refined_at_stamp[cam]} code(s) refined with their edges at the stamp"
                 if cam in self.refined_at_stamp
+                else ""
+            )
+            + (
+                f" ({self.unreadable_at_stamp[cam]} image(s) did not read again: their codes "
+                "moved to the stamp, not refined)"
+                if self.unreadable_at_stamp.get(cam)
                 else ""
             )
             for cam in self.readout_s
@@ -956,6 +964,8 @@ def correct_flight(
         fixed, n, n_refined = _correct_camera(frames, cam, world, motion, reader, name)
         if reader is not None:
             report.refined_at_stamp[name] = n_refined
+            if reader.unreadable:
+                report.unreadable_at_stamp[name] = len(reader.unreadable)
         corrected.extend(d for ts in sorted(fixed) for d in fixed[ts])
         if name == "cam0" and not cam.gimbaled:
             kappa = correction_scale_sigma(frames, fixed)
@@ -991,11 +1001,9 @@ def _correct_camera(
     fixed, n = correct_frames(frames, cam, world, motion)
     done: set[tuple[int, int]] = set()
     if reader is not None:
-        try:
-            refined, done = refine_at_stamp(frames, reader, cam, world, motion, placed=fixed)
-        except LogError as e:  # an image that read at detection and not now: as before
-            log_.warning("rolling shutter %s: codes not refined at the stamp (%s)", name, e)
-            refined, done = frames, set()
+        # an image that read at detection and not now leaves its frame's codes as corrected
+        # (the reader counts it: RollingShutterReport.unreadable_at_stamp)
+        refined, done = refine_at_stamp(frames, reader, cam, world, motion, placed=fixed)
         for ts, i in done:
             fixed[ts][i] = refined[ts][i]
     return _inflate_uncorrected(fixed, cam, motion), n, len(done)
@@ -1026,18 +1034,38 @@ def _inflate_uncorrected(
     return out
 
 
-def _image_reader(streams, name: str):
-    """`load_image(timestamp_ns)` of camera `name`'s stream, or None (no streams given)."""
+class _StampImages:
+    """`load_image(timestamp_ns)` of a camera stream for `refine_at_stamp`: None for an image
+    that does not read (the stream's None, or its LogError), whose stamp goes to `unreadable`.
+    One such image had raised out of the refinement, which then refined none of the camera's
+    codes with no reason given; one that gave None was left out unsaid."""
+
+    def __init__(self, stream, name: str):
+        self.stream, self.name = stream, name
+        self.at = {int(t): i for i, t in enumerate(np.asarray(stream.timestamps_ns).tolist())}
+        self.unreadable: set[int] = set()
+
+    def __call__(self, timestamp_ns: int) -> np.ndarray | None:
+        i = self.at.get(int(timestamp_ns))
+        if i is None:
+            return None
+        try:
+            image = self.stream.load_image(i)
+        except LogError as e:
+            log_.info(
+                "rolling shutter %s: frame %d not refined at the stamp (%s)", self.name, timestamp_ns, e
+            )
+            image = None
+        if image is None:
+            self.unreadable.add(int(timestamp_ns))
+        return image
+
+
+def _image_reader(streams, name: str) -> _StampImages | None:
+    """`load_image(timestamp_ns)` of camera `name`'s stream (_StampImages), or None (no streams
+    given)."""
     stream = None if streams is None else streams.get(name)
-    if stream is None:
-        return None
-    at = {int(t): i for i, t in enumerate(np.asarray(stream.timestamps_ns).tolist())}
-
-    def load(timestamp_ns: int):
-        i = at.get(int(timestamp_ns))
-        return None if i is None else stream.load_image(i)
-
-    return load
+    return None if stream is None else _StampImages(stream, name)
 
 
 def motion_pose_covariance(
