@@ -1221,6 +1221,9 @@ def _run_into(
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
+        ekf_start = ekf_batch_start_warning(fused_stats)
+        if ekf_start is not None:
+            result.warnings.append(ekf_start)
         timings["fuse_s"] = time.perf_counter() - t
     pnp_out = result.trajectories.get(str(Estimator.PNP))
     if loc.intrinsics_consider is not None and pnp_out is not None:
@@ -1376,6 +1379,23 @@ def rolling_shutter_unreadable_warning(report: RollingShutterReport) -> LogWarni
         n,
         f"{n} image(s) that gave detections did not read again at the rolling-shutter refinement "
         f"({cams}): their codes were moved to the stamp, not refined at it (less accurate corners)",
+    )
+
+
+def ekf_batch_start_warning(fused_stats: dict) -> LogWarning | None:
+    """A named warning (count 1) when the EKF's batch start from its first level fixes failed
+    (ekf.level_batch_start; stats['batch_start_failed'], the solve's error): it then starts at
+    the first fix with its tilt unsolved, the start that made its roll / pitch inconsistent.
+    It was a log line only."""
+    reason = (fused_stats.get(Estimator.EKF) or {}).get("batch_start_failed")
+    if reason is None:
+        return None
+    return LogWarning(
+        "ekf_batch_start_failed",
+        1,
+        f"the EKF's batch start from its first level fixes failed ({reason}): it started at the "
+        "first fix instead, its roll / pitch unsolved there, so its first seconds' tilt may be "
+        "inconsistent",
     )
 
 

@@ -282,6 +282,33 @@ def test_level_batch_start_is_the_window_solve_in_the_filter_state():
     np.testing.assert_allclose(f.kf.P[9:12, 9:12], start.joint[12:, 12:], atol=1e-18)  # gyro bias
 
 
+def test_a_failed_level_start_is_the_runs_named_warning(monkeypatch):
+    """A batch start whose solve fails (GTSAM's indeterminant system, say): the filter starts at
+    the first fix as before, its stats give the reason, and the run names it
+    (`ekf_batch_start_failed`).  It was a log line only, while the start it fell back to is the
+    one that made the filter's tilt inconsistent (module docstring, Start)."""
+    from fusion.estimate import ekf as ekf_module
+    from fusion.types import Estimator
+
+    fl = heading_flight(0)
+
+    def fails(*a, **k):
+        raise RuntimeError("Indeterminant linear system detected near variable 8646911284551352321")
+
+    monkeypatch.setattr(ekf_module, "solve", fails)
+    res = ekf(fl, floor_camera=fl["floor"])
+    assert res.stats["batch_start_frames"] == 0 and len(res.trajectory)
+    assert "Indeterminant linear system" in res.stats["batch_start_failed"]
+    from fusion.pipeline import ekf_batch_start_warning
+
+    w = ekf_batch_start_warning({Estimator.EKF: res.stats, Estimator.SMOOTHER: {}})
+    assert w is not None and w.name == "ekf_batch_start_failed" and w.count == 1
+    assert "Indeterminant linear system" in w.message
+    monkeypatch.undo()
+    good = ekf(fl, floor_camera=fl["floor"])
+    assert "batch_start_failed" not in good.stats and ekf_batch_start_warning({Estimator.EKF: good.stats}) is None
+
+
 def test_body_fixed_flights_do_not_take_the_level_start():
     """Full-pose fixes observe the tilt: no batch start, the filter exactly as with it off."""
     fl = make_flight(seed=0)

@@ -879,11 +879,13 @@ def level_batch_start(
     *,
     load_obs: list[LoadObservation] | None = None,
     front_camera: CameraModel | None = None,
+    failures: list[str] | None = None,
 ) -> LevelStart | None:
     """Batch-smooth the first `config.ekf_level_start_s` seconds of level fixes (from frame k0,
     the first inlier fix, to the last fix within the window, or to the LEVEL_START_MIN_FIXES-th
     fix if that is later) and return the solution with the joint marginal of the last frame's
-    pose, velocity and biases; None when the flight has fewer fixes or the solve fails.
+    pose, velocity and biases; None when the flight has fewer fixes or the solve fails (its
+    error then appended to `failures`: run_ekf's stats['batch_start_failed'], a run's warning).
 
     Why: level fixes (position + yaw) leave roll / pitch to the accelerometer against the
     fixes' second difference, where they trade with the accelerometer bias.  Started from the
@@ -972,6 +974,8 @@ def level_batch_start(
         p_loads = np.array([values.atPoint3(L(j)) for j in range(len(pb.loads))]).reshape(-1, 3)
     except (RuntimeError, ValueError, EstimationError) as e:
         log.warning("no batch start from the first level fixes (%s); starting at the first fix", e)
+        if failures is not None:
+            failures.append(str(e))
         return None
     bias = values.atConstantBias(B(n - 1))
     return LevelStart(
@@ -1090,9 +1094,12 @@ def run_ekf(
     f.kf.P[_BG, _BG] = np.eye(3) * config.bias_prior_sigma_gyro_rad_s**2
     f.kf.P[_BA, _BA] = np.eye(3) * config.bias_prior_sigma_accel_m_s2**2
     start = None
+    start_failed: list[str] = []  # the batch start's solve error: the run names it
     if level_fixes and imu is not None and config.ekf_level_start_s > 0:
         assert floor_camera is not None  # level_fixes
-        start = level_batch_start(frame_t, imu, rawp, k0, velocity, floor_camera, config)
+        start = level_batch_start(
+            frame_t, imu, rawp, k0, velocity, floor_camera, config, failures=start_failed
+        )
     if start is not None:
         assert imu is not None  # a batch start is made only with an IMU
         _start_from_batch(f, start, imu, frame_t[start.k_end])
@@ -1170,6 +1177,8 @@ def run_ekf(
         "bridged_intervals": int((~covered).sum()),
         "time_s": time.perf_counter() - t_start,
     }
+    if start_failed:
+        stats["batch_start_failed"] = start_failed[0]
     if imu is not None:
         t0, t1 = imu.timestamps_ns[0], imu.timestamps_ns[-1]
         stats["frames_outside_imu"] = int(((frame_t < t0) | (frame_t > t1)).sum())
