@@ -241,6 +241,25 @@ def test_cli_run_without_cameras(camera_less_log, tmp_path):
     assert (out / "report.md").exists() and not (out / "detections.csv").exists()
 
 
+def test_camera_less_heading_without_sideways_motion_is_the_runs_named_warning(camera_less_log, tmp_path):
+    """Fixes that never accelerate sideways (here a hover: every velocity change is gravity's)
+    do not give the in-motion alignment a heading: the run names it (`fixes_heading_unobserved`,
+    in the summary's warnings and metrics.json) instead of a log line only, and still ends."""
+    log, good = camera_less_log
+    rows = good.read_text().splitlines()
+    hover = ["t_ns,x,y,z,sigma_m"] + [f"{r.split(',')[0]},1.0,2.0,1.5,0.01" for r in rows[1:]]
+    fixes = write(tmp_path / "hover.csv", "\n".join(hover) + "\n")
+    out = tmp_path / "out"
+    assert main(["run", str(log), "--fixes", str(fixes), "--out", str(out), "--quiet"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    (w,) = [w for w in metrics["warnings"] if w["name"] == "fixes_heading_unobserved"]
+    assert w["count"] == 1 and "heading" in w["message"] and "m/s" in w["message"]
+    # fixes of the flight itself accelerate sideways: no warning
+    main(["run", str(log), "--fixes", str(good), "--out", str(tmp_path / "ok"), "--quiet"])
+    ok = json.loads((tmp_path / "ok" / "metrics.json").read_text())
+    assert not [w for w in ok["warnings"] if w["name"] == "fixes_heading_unobserved"]
+
+
 def test_cli_camera_less_needs_fixes_and_good_fixes(camera_less_log, tmp_path, capsys):
     log, _ = camera_less_log
     assert main(["run", str(log), "--out", str(tmp_path / "a"), "--quiet"]) == 1

@@ -32,7 +32,7 @@ import numpy as np
 from fusion.conventions import GRAVITY_M_S2
 from fusion.errors import EstimationError
 from fusion.geometry import integrate_gyro, interpolate_poses, rotation_aligning, se3_exp
-from fusion.log.euroc import ImuData
+from fusion.log.euroc import ImuData, LogWarning
 from fusion.log.fixes import PositionFixes
 from fusion.types import Trajectory
 
@@ -145,8 +145,8 @@ def align_attitude(fixes: PositionFixes, imu: ImuData) -> tuple[np.ndarray, dict
     R_w_i0, S = rotation_aligning(u, w)
     # the second singular value of sum u w^T ~ the sideways velocity changes' energy
     sideways = float(math.sqrt(max(S[1], 0.0) / len(a_idx)))
-    if sideways < ALIGN_MIN_SIDEWAYS_DV_M_S:
-        log.warning(
+    if sideways < ALIGN_MIN_SIDEWAYS_DV_M_S:  # the run's named warning is heading_warning's
+        log.info(
             "external fixes: the drone barely accelerated sideways (%.3f m/s RMS velocity "
             "change): the initial heading is a guess",
             sideways,
@@ -161,6 +161,23 @@ def align_attitude(fixes: PositionFixes, imu: ImuData) -> tuple[np.ndarray, dict
         "residual_rms_m_s": float(np.sqrt(np.mean(np.sum(resid**2, axis=1)))),
     }
     return R_wb, info
+
+
+def heading_warning(alignment: dict) -> LogWarning | None:
+    """A named warning (count 1: the alignment) when `align_attitude`'s sideways velocity change
+    is below ALIGN_MIN_SIDEWAYS_DV_M_S: the heading it gives the first fix (sigma
+    ALIGN_SIGMA_YAW_RAD) is then a guess that the IMU and the fixes may never correct.  It was a
+    log line only."""
+    sideways = alignment.get("sideways_dv_rms_m_s")
+    if sideways is None or sideways >= ALIGN_MIN_SIDEWAYS_DV_M_S:
+        return None
+    return LogWarning(
+        "fixes_heading_unobserved",
+        1,
+        f"external fixes without a camera: the drone barely accelerated sideways ({sideways:.3f} m/s "
+        f"RMS velocity change, {ALIGN_MIN_SIDEWAYS_DV_M_S:g} needed), so the initial heading is a "
+        "guess and the fused yaw may stay wrong",
+    )
 
 
 def _fuse_into(T_q: np.ndarray, C_q: np.ndarray, p_fix: np.ndarray, sigma: float):
