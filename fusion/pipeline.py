@@ -58,7 +58,7 @@ from fusion.estimate.extrinsics import (
     estimate_front_mount,
     read_extrinsics_groundtruth,
 )
-from fusion.estimate.fixes import align_attitude, heading_warning, merge_fixes
+from fusion.estimate.fixes import heading_warning, merge_fixes
 from fusion.estimate.health import tilt_disagreement
 from fusion.estimate.loadconsider import (
     add_departure,
@@ -776,6 +776,7 @@ class FuseStageResult:
     results: dict[Estimator, FusionResult] = field(default_factory=dict)
     failures: dict[Estimator, EstimatorFailure] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    warnings: list[LogWarning] = field(default_factory=list)  # the run's named warnings
     as_built: AsBuiltInput | None = None  # the smoother's as-built floor-code input
     raw: Trajectory | None = None  # the raw poses the back ends fused (PnP, with any fixes)
 
@@ -866,6 +867,9 @@ def fuse_stage(
         merged = merge_fixes(camera_t, raw, fixes, log.imu)
         raw = merged.raw
         out.notes.append(merged.note())
+        heading = heading_warning(merged.alignment) if merged.alignment else None
+        if heading is not None:  # camera-less: an attitude aligned from barely any sideways motion
+            out.warnings.append(heading)
     out.raw = raw
     if len(raw) == 0:
         out.notes.append("no floor code was read in this flight: nothing to fuse (no fused estimate)")
@@ -1224,9 +1228,6 @@ def _run_into(
         ekf_start = ekf_batch_start_warning(fused_stats)
         if ekf_start is not None:
             result.warnings.append(ekf_start)
-        heading = fixes_heading_warning(log, loc, fixes)
-        if heading is not None:
-            result.warnings.append(heading)
         timings["fuse_s"] = time.perf_counter() - t
     pnp_out = result.trajectories.get(str(Estimator.PNP))
     if loc.intrinsics_consider is not None and pnp_out is not None:
@@ -1817,6 +1818,7 @@ def _fuse_into_result(
     `shared`: the whole-flight solve of the time offsets / mount check (fuse_stage)."""
     fused_stage = fuse_stage(log, loc, cfg, det, fixes, shared)
     result.notes += fused_stage.notes
+    result.warnings += fused_stage.warnings
     result.failures = {str(k): v for k, v in fused_stage.failures.items()}
     raw = fused_stage.raw if fused_stage.raw is not None else loc.trajectories[str(Estimator.PNP)]
     max_iterations = FusionConfig().lm_max_iterations
@@ -2039,9 +2041,6 @@ def _run_without_cameras(
         t = time.perf_counter()
         _progress(cfg, "fusion (smoother, incremental, ekf) on the external fixes")
         fused_stats = _fuse_into_result(log, loc, cfg, None, fixes, result)
-        heading = fixes_heading_warning(log, loc, fixes)
-        if heading is not None:
-            result.warnings.append(heading)
         timings["fuse_s"] = time.perf_counter() - t
     _write_estimates(out_dir, result)
     if until == "run":
@@ -2051,22 +2050,6 @@ def _run_without_cameras(
         timings["report_s"] = time.perf_counter() - t
     result.timings_s = timings
     return result
-
-
-def fixes_heading_warning(
-    log: FlightLog, loc: LocalizeResult, fixes: PositionFixes | None
-) -> LogWarning | None:
-    """fixes.heading_warning of the attitude the fusion aligned from the external fixes, which
-    it does when there is no PnP pose to take the attitude from (merge_fixes).  Taken again
-    here, after the fusion: fuse_stage keeps its FixMerge to itself (about 0.8 s of gyro
-    integration on a 30-minute IMU at 200 Hz)."""
-    if fixes is None or log.imu is None or len(loc.trajectories.get(str(Estimator.PNP), ())) > 0:
-        return None
-    try:
-        _, alignment = align_attitude(fixes, log.imu)
-    except EstimationError:  # the fusion raised it already
-        return None
-    return heading_warning(alignment)
 
 
 def _unsynchronised_load_sightings(log: FlightLog, loc: LocalizeResult) -> LogWarning | None:
