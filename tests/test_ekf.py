@@ -299,14 +299,14 @@ def test_a_failed_level_start_is_the_runs_named_warning(monkeypatch):
     res = ekf(fl, floor_camera=fl["floor"])
     assert res.stats["batch_start_frames"] == 0 and len(res.trajectory)
     assert "Indeterminant linear system" in res.stats["batch_start_failed"]
-    from fusion.pipeline import ekf_batch_start_warning
+    from fusion.pipeline import batch_start_warnings
 
-    w = ekf_batch_start_warning({Estimator.EKF: res.stats, Estimator.SMOOTHER: {}})
-    assert w is not None and w.name == "ekf_batch_start_failed" and w.count == 1
+    (w,) = batch_start_warnings({Estimator.EKF: res.stats, Estimator.SMOOTHER: {}})
+    assert w.name == "ekf_batch_start_failed" and w.count == 1
     assert "Indeterminant linear system" in w.message
     monkeypatch.undo()
     good = ekf(fl, floor_camera=fl["floor"])
-    assert "batch_start_failed" not in good.stats and ekf_batch_start_warning({Estimator.EKF: good.stats}) is None
+    assert "batch_start_failed" not in good.stats and not batch_start_warnings({Estimator.EKF: good.stats})
 
 
 def test_body_fixed_flights_do_not_take_the_level_start():
@@ -381,6 +381,36 @@ def test_incremental_gimbaled_start_mid_roll_tilt_is_consistent():
         assert len(res.trajectory.timestamps_ns) == len(fl["frame_t"])
         nees.append(tilt_nees(res, fl))
     assert np.mean(nees) <= 4.0 and max(nees) < 8.0, nees
+
+
+def test_a_failed_incremental_level_start_is_the_runs_named_warning(monkeypatch):
+    """The incremental smoother's batch start whose solve fails: it starts at the first fix as
+    before, its stats give the reason (`batch_start_failed`; `batch_start_frames` 0 alone read
+    as "not attempted") and the run names it (`incremental_batch_start_failed`), as the EKF's.
+    It was a log line only, while that start is the one that kept its roll 150 mrad off for a
+    whole flight (smoother.level_start)."""
+    from fusion.estimate import ekf as ekf_module
+    from fusion.pipeline import batch_start_warnings
+    from fusion.types import Estimator
+
+    fl = aisle_flight(0)
+
+    def fails(*a, **k):
+        raise RuntimeError("Indeterminant linear system detected near variable 8646911284551352321")
+
+    monkeypatch.setattr(ekf_module, "solve", fails)
+    res = smooth_incremental(fl["frame_t"], fl["imu"], fl["raw"], [], floor_camera=fl["floor"])
+    assert res.stats["batch_start_frames"] == 0 and len(res.trajectory)
+    assert "Indeterminant linear system" in res.stats["batch_start_failed"]
+    (w,) = batch_start_warnings({Estimator.INCREMENTAL: res.stats, Estimator.EKF: {}})
+    assert w.name == "incremental_batch_start_failed" and w.count == 1
+    assert "Indeterminant linear system" in w.message and "incremental smoother" in w.message
+    both = batch_start_warnings({Estimator.INCREMENTAL: res.stats, Estimator.EKF: res.stats})
+    assert [x.name for x in both] == ["ekf_batch_start_failed", "incremental_batch_start_failed"]
+    monkeypatch.undo()
+    good = smooth_incremental(fl["frame_t"], fl["imu"], fl["raw"], [], floor_camera=fl["floor"])
+    assert good.stats["batch_start_frames"] > 0 and "batch_start_failed" not in good.stats
+    assert not batch_start_warnings({Estimator.INCREMENTAL: good.stats})
 
 
 def aisle_load_sightings(fl: dict, seed: int) -> tuple[list[LoadObservation], dict]:

@@ -883,27 +883,29 @@ def widen_sightings(
     if not sightings or variance_s2 <= 0.0 or len(trajectory) < 2:
         return sightings
     poses = PoseInterpolator(trajectory.timestamps_ns, trajectory.T_world_body)
-    out = []
-    for o in sightings:
-        if o.p_cam is None or o.cov_cam is None:
-            out.append(o)
-            continue
-        t = np.array([o.timestamp_ns], dtype=float)
-        if not poses.ts[0] <= t[0] <= poses.ts[-1]:
-            out.append(o)  # outside the trajectory: its rate is not known (the back ends drop it)
-            continue
-        u_w = sighting_rates(poses, t, np.asarray(o.p_cam, float)[None], front_camera)[0]
-        R_wc = front_camera.T_world_cam(poses(t))[0, :3, :3]
-        u_c = R_wc.T @ u_w
+    # all at once (one interpolation of the trajectory; one at a time it was ~0.8 ms a
+    # sighting, 12.7 s of a 10-minute flight's 16 k sightings): those with a camera-frame point
+    # and covariance inside the trajectory; the others (outside: their rate is not known, the
+    # back ends drop them) as they are
+    t = np.array([float(o.timestamp_ns) for o in sightings])
+    has_point = np.array([o.p_cam is not None and o.cov_cam is not None for o in sightings])
+    idx = np.flatnonzero(has_point & (t >= poses.ts[0]) & (t <= poses.ts[-1]))
+    out = list(sightings)
+    if not len(idx):
+        return out
+    p_cam = np.array([np.asarray(sightings[i].p_cam, float) for i in idx])
+    u_w = sighting_rates(poses, t[idx], p_cam, front_camera)
+    R_wc = front_camera.T_world_cam(poses(t[idx]))[:, :3, :3]
+    u_c = np.einsum("nji,nj->ni", R_wc, u_w)  # R_wc^T u_w
+    for k, i in enumerate(idx):
+        o = sightings[i]
         cov_world = o.cov_world
         if cov_world is not None:
-            cov_world = np.asarray(cov_world, float) + variance_s2 * np.outer(u_w, u_w)
-        out.append(
-            replace(
-                o,
-                cov_cam=np.asarray(o.cov_cam, float) + variance_s2 * np.outer(u_c, u_c),
-                cov_world=cov_world,
-            )
+            cov_world = np.asarray(cov_world, float) + variance_s2 * np.outer(u_w[k], u_w[k])
+        out[i] = replace(
+            o,
+            cov_cam=np.asarray(o.cov_cam, float) + variance_s2 * np.outer(u_c[k], u_c[k]),
+            cov_world=cov_world,
         )
     return out
 
