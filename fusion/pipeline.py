@@ -1225,9 +1225,7 @@ def _run_into(
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
-        ekf_start = ekf_batch_start_warning(fused_stats)
-        if ekf_start is not None:
-            result.warnings.append(ekf_start)
+        result.warnings += batch_start_warnings(fused_stats)
         timings["fuse_s"] = time.perf_counter() - t
     pnp_out = result.trajectories.get(str(Estimator.PNP))
     if loc.intrinsics_consider is not None and pnp_out is not None:
@@ -1386,21 +1384,30 @@ def rolling_shutter_unreadable_warning(report: RollingShutterReport) -> LogWarni
     )
 
 
-def ekf_batch_start_warning(fused_stats: dict) -> LogWarning | None:
-    """A named warning (count 1) when the EKF's batch start from its first level fixes failed
-    (ekf.level_batch_start; stats['batch_start_failed'], the solve's error): it then starts at
-    the first fix with its tilt unsolved, the start that made its roll / pitch inconsistent.
-    It was a log line only."""
-    reason = (fused_stats.get(Estimator.EKF) or {}).get("batch_start_failed")
-    if reason is None:
-        return None
-    return LogWarning(
-        "ekf_batch_start_failed",
-        1,
-        f"the EKF's batch start from its first level fixes failed ({reason}): it started at the "
-        "first fix instead, its roll / pitch unsolved there, so its first seconds' tilt may be "
-        "inconsistent",
-    )
+# what a back end's failed batch start costs it (batch_start_warnings)
+_BATCH_START_FALLBACK = {
+    Estimator.EKF: ("the EKF", "its first seconds' tilt may be inconsistent"),
+    # its first states are marginalised at that tilt and keep it (smoother.level_start)
+    Estimator.INCREMENTAL: ("the incremental smoother", "its tilt may stay off for the whole flight"),
+}
+
+
+def batch_start_warnings(fused_stats: dict) -> list[LogWarning]:
+    """A named warning (count 1) per back end whose batch start from its first level fixes
+    failed (ekf.level_batch_start, which the EKF and the incremental smoother share;
+    stats['batch_start_failed'], the solve's error): `ekf_batch_start_failed`,
+    `incremental_batch_start_failed`.  It then starts at the first fix with its tilt unsolved,
+    the start that made its roll / pitch inconsistent.  It was a log line only."""
+    out = []
+    for estimator, (who, cost) in _BATCH_START_FALLBACK.items():
+        reason = (fused_stats.get(estimator) or {}).get("batch_start_failed")
+        if reason is not None:
+            message = (
+                f"{who}'s batch start from its first level fixes failed ({reason}): it started at "
+                f"the first fix instead, its roll / pitch unsolved there, so {cost}"
+            )
+            out.append(LogWarning(f"{estimator}_batch_start_failed", 1, message))
+    return out
 
 
 def corner_bias_too_large_warning(loc: LocalizeResult) -> LogWarning | None:

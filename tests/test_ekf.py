@@ -390,7 +390,6 @@ def test_a_failed_incremental_level_start_is_the_runs_named_warning(monkeypatch)
     It was a log line only, while that start is the one that kept its roll 150 mrad off for a
     whole flight (smoother.level_start)."""
     from fusion.estimate import ekf as ekf_module
-    from fusion.pipeline import batch_start_warnings
     from fusion.types import Estimator
 
     fl = aisle_flight(0)
@@ -402,6 +401,8 @@ def test_a_failed_incremental_level_start_is_the_runs_named_warning(monkeypatch)
     res = smooth_incremental(fl["frame_t"], fl["imu"], fl["raw"], [], floor_camera=fl["floor"])
     assert res.stats["batch_start_frames"] == 0 and len(res.trajectory)
     assert "Indeterminant linear system" in res.stats["batch_start_failed"]
+    from fusion.pipeline import batch_start_warnings
+
     (w,) = batch_start_warnings({Estimator.INCREMENTAL: res.stats, Estimator.EKF: {}})
     assert w.name == "incremental_batch_start_failed" and w.count == 1
     assert "Indeterminant linear system" in w.message and "incremental smoother" in w.message

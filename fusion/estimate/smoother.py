@@ -1549,12 +1549,14 @@ def level_start(
     config: FusionConfig,
     floor_camera: CameraModel | None,
     load_obs: list[LoadObservation] | None = None,
+    failures: list[str] | None = None,
 ) -> LevelStart | None:
     """The incremental smoother's batch start (ekf.level_batch_start, the EKF's: a batch solve
     of the level fixes within `config.ekf_level_start_s` of the first inlier fix and the joint
     marginal of its last frame's pose, velocity and biases), or None: without level fixes
     (RawPoseInput.LEVEL_POSE: a gimbaled floor camera's PnP poses), without an IMU, with the
-    start switched off (0 s) or when the window has too few fixes or its solve fails.  The
+    start switched off (0 s) or when the window has too few fixes or its solve fails (its
+    error then appended to `failures`: stats['batch_start_failed'], a run's warning).  The
     load sightings within the window are in its solve (their loads in the joint marginal).
 
     Why: the engine otherwise starts at the first fix with roll / pitch at the level fix's 0
@@ -1591,6 +1593,7 @@ def level_start(
         config,
         load_obs=load_obs,
         front_camera=inp.front_camera,
+        failures=failures,
     )
 
 
@@ -1847,7 +1850,10 @@ def _smooth_incremental_run(
     pose_k = gtsam.Pose3(pb.T_init[k0])
     vel_k = pb.v_init[k0]
     bias_k = gtsam.imuBias.ConstantBias()
-    level = level_start(pb, frame_times_ns, imu, raw, velocity, front_camera, config, floor_camera, load_obs)
+    start_failed: list[str] = []  # the batch start's solve error: the run names it
+    level = level_start(
+        pb, frame_times_ns, imu, raw, velocity, front_camera, config, floor_camera, load_obs, start_failed
+    )
     k_begin = k0  # the engine's first frame: k0, or the batch start's last frame
     start_prior = None  # the batch start's joint prior on X, V, B (and loads) at k_begin
     start_loads: dict[int, np.ndarray] = {}  # load j -> its batch estimate (window loads)
@@ -2149,5 +2155,7 @@ def _smooth_incremental_run(
         realtime_factor=duration / max(elapsed - t_build, 1e-9),
         health=health.as_dict(),
     )
+    if start_failed:  # batch_start_frames 0 alone would read as "not attempted"
+        stats["batch_start_failed"] = start_failed[0]
     traj = Trajectory(str(Estimator.INCREMENTAL), pb.frame_t[k0:].copy(), T_out, cov_out)
     return FusionResult(traj, LoadMap(str(Estimator.INCREMENTAL), loads), stats, health)
