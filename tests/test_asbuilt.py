@@ -383,6 +383,26 @@ def test_a_malformed_floor_code_truth_is_the_runs_named_warning(sample_runs, tmp
     assert groundtruth_warning(log) is None
 
 
+def test_a_floor_code_truth_listing_a_code_twice_is_refused(tmp_path):
+    """floor_codes_groundtruth.csv giving one code two true poses (its id spelled either way):
+    one line naming the file and both lines, which the run gives as
+    `floor_codes_groundtruth_unreadable`.  The later row silently replaced the earlier, so the
+    codes were scored against whichever came last."""
+    from fusion.warehouse.floorcodes import groundtruth_warning
+
+    truth = tmp_path / "floor_codes_groundtruth.csv"
+    truth.write_text("id,x_m,y_m,yaw_deg\n0/1/2,1.0,2.0,0.0\n0/3/2,3.0,2.0,0.0\n0/1.0/2,1.1,2.0,0.0\n")
+    with pytest.raises(
+        AsBuiltError,
+        match=r"floor_codes_groundtruth.csv:4: floor code '0/1/2' listed twice \(first on line 2\)",
+    ):
+        read_groundtruth_csv(truth)
+    w = groundtruth_warning(tmp_path)
+    assert w is not None and w.name == "floor_codes_groundtruth_unreadable" and f"{truth}:4:" in w.message
+    truth.write_text("id,x_m,y_m,yaw_deg\n0/1/2,1.0,2.0,0.0\n0/3/2,3.0,2.0,0.0\n")
+    assert set(read_groundtruth_csv(truth)) == {"0/1/2", "0/3/2"} and groundtruth_warning(tmp_path) is None
+
+
 def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Path:
     """A run folder with the files map merge reads, and floor_codes_smoother.csv."""
     root.mkdir(parents=True)

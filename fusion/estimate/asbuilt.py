@@ -990,7 +990,7 @@ def write_groundtruth_csv(path: Path, ids: list[str], xy_yaw: np.ndarray) -> Non
 
 def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
     """{canonical id: (3,) x, y, yaw rad} from floor_codes_groundtruth.csv; AsBuiltError naming
-    the file (and line) when it cannot be read."""
+    the file (and line) when it cannot be read, or naming both lines of a code listed twice."""
     path = Path(path)
     try:
         rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
@@ -999,6 +999,7 @@ def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
     except (OSError, csv.Error) as e:
         raise AsBuiltError(f"{path}: {e}") from None
     out = {}
+    first_line: dict[str, int] = {}  # canonical id -> its line
     for line, row in enumerate(rows, start=2):
         raw = csv_unsafe(row.get("id") or "")
         try:
@@ -1007,7 +1008,14 @@ def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
             raise AsBuiltError(f"{path}:{line}: {raw!r} is not a floor code") from None
         if not isinstance(p, FloorPayload):
             raise AsBuiltError(f"{path}:{line}: {raw!r} is not a floor code")
-        out[code_id(p)] = np.array(
+        cid = code_id(p)
+        if cid in first_line:
+            # two true poses for one code: the later silently replaced the earlier
+            raise AsBuiltError(
+                f"{path}:{line}: floor code {cid!r} listed twice (first on line {first_line[cid]})"
+            )
+        first_line[cid] = line
+        out[cid] = np.array(
             [
                 _num(row, "x_m", path, line),
                 _num(row, "y_m", path, line),
