@@ -463,6 +463,18 @@ def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
         assert np.allclose(np.linalg.norm(log.groundtruth.q_world_body_wxyz, axis=1), 1.0)
 
 
+def test_inspect_shows_the_readers_named_warnings(log_dir):
+    """`fusion inspect` of an EuRoC folder lists the reader's named warnings as problems, as a
+    run's summary does: it dropped them, so a log the run warns about looked clean."""
+    from fusion.log.inspect import inspect_log
+
+    assert not inspect_log(log_dir).problems
+    gt_csv = log_dir / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
+    (problem,) = inspect_log(log_dir).problems
+    assert problem.startswith("[groundtruth_quaternion_not_unit] x50: ") and str(gt_csv) in problem
+
+
 def test_image_header_is_checked_before_decoding(log_dir, monkeypatch):
     """A PNG whose header claims 100000x100000 px is skipped and counted like any bad image,
     without being decoded (OpenCV would raise on it)."""

@@ -237,6 +237,12 @@ def test_ulog_imu_and_capture_times(video_dir, tmp_path):
     named = {w.name: w.count for w in flight.warnings}
     assert named.get("stamps_out_of_order") == 1 and named.get("stamps_duplicate") == 1
 
+    # `fusion inspect` says so too, as the run does: its streams are the sorted ones (no
+    # stamp out of order to count), so the warnings were its only trace, and it dropped them
+    problems = inspect_log(d).problems
+    assert any(p.startswith("[stamps_out_of_order] x1: ") and "sensor_combined" in p for p in problems)
+    assert any(p.startswith("[stamps_duplicate] x1: ") for p in problems)
+
     write_ulog(d / "flight.ulg", {"camera_capture": (CAMERA_CAPTURE, capture)})
     with pytest.raises(
         LogError,

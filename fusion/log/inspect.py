@@ -185,6 +185,9 @@ def inspect_log(path: Path, opts: LogOptions | None = None) -> LogReport:
 
 def _inspect_flight(path: Path, opts: LogOptions, report: LogReport) -> None:
     flight = open_flight(path, opts)
+    # the reader's named warnings, as `fusion run` gives them: its streams come sorted, so a
+    # stamp out of order, say, would otherwise show nowhere (a bag's are counted per topic)
+    report.problems += [str(w) for w in flight.warnings]
     for name, cam in sorted(flight.cameras.items()):
         kind = type(cam).__name__.replace("CameraStream", "").lower() or "images"
         report.streams.append(time_stats(name, f"camera ({kind})", cam.timestamps_ns, ROLE_NAMES[name]))
