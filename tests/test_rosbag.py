@@ -511,6 +511,7 @@ def test_damaged_sqlite3_bags_read_what_is_there(tmp_path, world_and_calib, monk
 
     def damage(f):
         return [w.message for w in f.warnings if w.name == "bag_truncated"]
+
     nometa = tmp_path / "nometa"
     shutil.copytree(good, nometa)
     (nometa / "metadata.yaml").unlink()
@@ -550,6 +551,36 @@ def test_an_intact_bare_db3_file_is_not_called_truncated(tmp_path, world_and_cal
     cut.write_bytes(db.read_bytes()[: int(db.stat().st_size * 0.5)])
     (note,) = [w.message for w in open_flight(cut, opts).warnings if w.name == "bag_truncated"]
     assert "stopped after" in note
+
+
+def test_a_bare_db3_files_unknown_types_are_counted_not_called_damage(tmp_path, world_and_calib, monkeypatch):
+    """A .db3 file given alone and read whole, with messages of a type the reader does not know:
+    they are left out of the copy it reads, and that is what the warning says
+    (`bag_unknown_types_left_out`, count: the messages, naming topic and type), in a run and in
+    `fusion inspect`.  It was a `bag_truncated` "damaged ... bag" with nothing missing."""
+    import sqlite3
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    good = _as_sqlite3(_write_bag(tmp_path / "g.mcap", _images(10)), tmp_path / "good")
+    db = tmp_path / "bare.db3"  # beside world.yaml
+    shutil.copy(next(good.glob("*.db3")), db)
+    con = sqlite3.connect(db)
+    with con:
+        con.execute("INSERT INTO topics VALUES (9, '/thing', 'my_msgs/msg/Thing', 'cdr', '', '')")
+        con.executemany(
+            "INSERT INTO messages (topic_id, timestamp, data) VALUES (9, ?, x'00010000')",
+            [(1_000_000_000 + k,) for k in range(4)],
+        )
+    con.close()
+    opts = LogOptions(calib=world_and_calib)
+    flight = open_flight(db, opts)
+    assert len(flight.floor) == 10 and not [w for w in flight.warnings if w.name == "bag_truncated"]
+    (w,) = [w for w in flight.warnings if w.name == "bag_unknown_types_left_out"]
+    assert w.count == 4 and str(db) in w.message and "/thing (my_msgs/msg/Thing): 4" in w.message
+    assert "damaged" not in w.message
+    (problem,) = inspect_log(db, opts).problems
+    assert problem.startswith("[bag_unknown_types_left_out] x4: ") and "damaged" not in problem
 
 
 def test_bag_stamp_problems_are_named_counted_warnings(tmp_path, world_and_calib):

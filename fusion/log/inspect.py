@@ -216,9 +216,11 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
 
     # a damaged bag is read from a recovered copy (rosbag.readable_bag_and_note): its note says
     # so, as `fusion run`'s bag_truncated does, else the counts below read as the recording's
-    bag, damage = rb.readable_bag_and_note(path)
+    left_out: list = []  # a sqlite3 copy's messages of unknown types, named as a run names them
+    bag, damage = rb.readable_bag_and_note(path, left_out)
     if damage:
         report.problems.append(damage)
+    report.problems += [str(w) for w in left_out]
     first = rb.scan_bag(bag, first_of={rb.METADATA_TOPIC}, topics={rb.METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(rb.METADATA_TOPIC) and first.topics[rb.METADATA_TOPIC].first is not None:

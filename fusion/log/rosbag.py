@@ -251,14 +251,15 @@ def readable_bag(path: Path) -> Path:
     return readable_bag_and_note(path)[0]
 
 
-def readable_bag_and_note(path: Path) -> tuple[Path, str | None]:
+def readable_bag_and_note(path: Path, warnings: list[LogWarning] | None = None) -> tuple[Path, str | None]:
     """(`path`, None), or for a ROS 1 bag that rosbags cannot open (cut short, so unindexed)
     an indexed copy of its complete messages (fusion.log.ros1recover), or for an MCAP file
     without its footer (a recording cut short) a copy of its complete records
-    (fusion.log.mcaprecover), with a one-line note of what was read."""
+    (fusion.log.mcaprecover), with a one-line note of what was read.  A copy of a sqlite3 bag
+    leaves out messages of unknown types: `bag_unknown_types_left_out` in `warnings`."""
     path = Path(path)
     if path.is_dir() or path.suffix == ".db3":
-        return _readable_ros2(path)
+        return _readable_ros2(path, warnings)
     if not path.is_file():
         return path, None
     if is_ros1(path):
@@ -289,7 +290,7 @@ def readable_bag_and_note(path: Path) -> tuple[Path, str | None]:
     return path, None
 
 
-def _readable_ros2(path: Path) -> tuple[Path, str | None]:
+def _readable_ros2(path: Path, warnings: list[LogWarning] | None = None) -> tuple[Path, str | None]:
     """A ROS 2 bag folder (or .db3 file) as readable_bag_and_note: as it is when rosbags opens
     it; a folder without metadata.yaml holding one .mcap file: that file; else, with .db3
     files, a copy of their readable messages (fusion.log.sqliterecover)."""
@@ -309,7 +310,7 @@ def _readable_ros2(path: Path) -> tuple[Path, str | None]:
                 return path, None  # _open_reader names the problem
     from fusion.log.sqliterecover import recovered_sqlite_bag
 
-    copy, note = recovered_sqlite_bag(path)
+    copy, note = recovered_sqlite_bag(path, warnings)
     if note:
         log.warning(note)
     return copy, note
@@ -713,8 +714,10 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     opts = opts or LogOptions()
     path = Path(path)
-    bag, damage = readable_bag_and_note(path)  # errors name `path`; reading goes through `bag`
+    left_out: list[LogWarning] = []  # a sqlite3 copy's messages of unknown types
+    bag, damage = readable_bag_and_note(path, left_out)  # errors name `path`; reading goes through `bag`
     warnings = [LogWarning("bag_truncated", 1, damage)] if damage else []
+    warnings += left_out
     first = scan_bag(bag, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
     meta: dict = {}
     if first.topics.get(METADATA_TOPIC) and first.topics[METADATA_TOPIC].first is not None:

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from fusion.errors import LogError
+from fusion.log.euroc import LogWarning
 
 log = logging.getLogger(__name__)
 
@@ -44,17 +45,18 @@ def _whole_pages_copy(src: Path, dst: Path) -> None:
     dst.write_bytes(bytes(out))
 
 
-def recover_db3(files: list[Path], dst: Path) -> tuple[int, int, list[str]]:
+def recover_db3(files: list[Path], dst: Path) -> tuple[int, dict[str, int], list[str]]:
     """Copy the readable messages of rosbag2 sqlite3 files (in order) into the MCAP file `dst`.
-    Returns (messages copied, messages of topics whose type is unknown and were left out,
-    one note per file that stopped early)."""
+    Returns (messages copied, {"topic (type)": messages left out} for topics whose type is
+    unknown, one note per file that stopped early)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from fusion.log.rosbag import typestore_for
 
     ts = typestore_for(False)
     notes: list[str] = []
-    n = n_unknown = 0
+    n = 0
+    unknown: dict[str, int] = {}
     work = Path(tempfile.mkdtemp(prefix=".recover-", dir=dst.parent))
     try:
         target = work / "bag"
@@ -73,10 +75,11 @@ def recover_db3(files: list[Path], dst: Path) -> tuple[int, int, list[str]]:
                     for topic_id, stamp, data in con.execute(
                         "SELECT topic_id, timestamp, data FROM messages ORDER BY id"
                     ):
-                        name, msgtype = topics.get(int(topic_id), ("", ""))
+                        name, msgtype = topics.get(int(topic_id), (f"topic id {topic_id}", ""))
                         if name not in conns:
                             if msgtype not in ts.types:
-                                n_unknown += 1
+                                what = f"{name} ({msgtype})"
+                                unknown[what] = unknown.get(what, 0) + 1
                                 continue
                             conns[name] = writer.add_connection(name, msgtype, typestore=ts)
                         writer.write(conns[name], int(stamp), bytes(data))
@@ -89,13 +92,15 @@ def recover_db3(files: list[Path], dst: Path) -> tuple[int, int, list[str]]:
         shutil.move(str(target / "bag.mcap"), str(dst))
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return n, n_unknown, notes
+    return n, unknown, notes
 
 
-def recovered_sqlite_bag(folder: Path) -> tuple[Path, str | None]:
+def recovered_sqlite_bag(folder: Path, warnings: list[LogWarning] | None = None) -> tuple[Path, str | None]:
     """A readable MCAP copy of the sqlite3 bag `folder` (its *.db3 files, in name order; or one
     .db3 file) in the temp folder, reused while the files are unchanged, and a one-line note of
-    what was read (None for one .db3 file read whole); LogError when no message could be read."""
+    what was damaged and read (None for one .db3 file read whole); LogError when no message
+    could be read.  Messages of types the typestore does not know cannot go into the copy: they
+    are a `bag_unknown_types_left_out` LogWarning in `warnings` (count: the messages)."""
     folder = Path(folder)
     files = [folder] if folder.is_file() else sorted(folder.glob("*.db3"))
     if not files:
@@ -105,16 +110,20 @@ def recovered_sqlite_bag(folder: Path) -> tuple[Path, str | None]:
     out_dir = Path(tempfile.gettempdir()) / RECOVERED_DIR
     out_dir.mkdir(exist_ok=True)
     dst = out_dir / f"{folder.stem}-{key[:16]}.mcap"
-    n, n_unknown, notes = recover_db3(files, dst.with_suffix(".partial"))
+    n, unknown, notes = recover_db3(files, dst.with_suffix(".partial"))
     if n == 0:
         dst.with_suffix(".partial").unlink(missing_ok=True)
         raise LogError(f"{folder}: ROS 2 sqlite3 bag with no readable message")
     dst.with_suffix(".partial").replace(dst)
-    if folder.is_file() and not notes and not n_unknown:
+    if unknown and warnings is not None:
+        # its own warning, not the damage note: a bag read whole was called damaged for these
+        n_unknown = sum(unknown.values())
+        kinds = ", ".join(f"{what}: {k}" for what, k in sorted(unknown.items()))
+        message = f"{folder}: {n_unknown} message(s) of unknown types left out of the copy read ({kinds})"
+        warnings.append(LogWarning("bag_unknown_types_left_out", n_unknown, message))
+    if folder.is_file() and not notes:
         # a .db3 given alone has no metadata.yaml of its own to miss, and every row was read:
         # nothing is damaged (the note became a bag_truncated warning with nothing missing)
         return dst, None
     why = "; ".join(notes) if notes else "no usable metadata.yaml"
-    skipped = f", {n_unknown} message(s) of unknown types left out" if n_unknown else ""
-    read = f"read {n} message(s){skipped} from the copy {dst}"
-    return dst, f"{folder}: damaged ROS 2 sqlite3 bag ({why}); {read}"
+    return dst, f"{folder}: damaged ROS 2 sqlite3 bag ({why}); read {n} message(s) from the copy {dst}"
