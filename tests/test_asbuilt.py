@@ -403,6 +403,21 @@ def test_a_floor_code_truth_listing_a_code_twice_is_refused(tmp_path):
     assert set(read_groundtruth_csv(truth)) == {"0/1/2", "0/3/2"} and groundtruth_warning(tmp_path) is None
 
 
+def test_floor_code_csv_errors_name_the_line_an_editor_shows(tmp_path):
+    """Blank lines in a floor-code CSV (a hand-edited truth file, a merged map) do not shift the
+    line an error names: csv.DictReader skips them, and counting its rows named the bad row a
+    line too early per blank line above it."""
+    truth = tmp_path / "floor_codes_groundtruth.csv"
+    truth.write_text("id,x_m,y_m,yaw_deg\n0/1/2,1.0,2.0,0.0\n\n\n0/3/2,oops,2.0,0.0\n")
+    with pytest.raises(AsBuiltError, match=r"floor_codes_groundtruth.csv:5:"):
+        read_groundtruth_csv(truth)
+    rows = tmp_path / "floor_codes.csv"
+    head = "id,x_m,y_m,yaw_deg,sigma_x_m,sigma_y_m,sigma_yaw_deg,n_obs\n"
+    rows.write_text(head + "0/1/2,1,2,0,0.01,0.01,0.5,3\n\n0/1/2,1,2,0,0.01,0.01,0.5,3\n")
+    with pytest.raises(AsBuiltError, match=r"floor_codes.csv:4: floor code '0/1/2' listed twice"):
+        read_floor_code_rows(rows)
+
+
 def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Path:
     """A run folder with the files map merge reads, and floor_codes_smoother.csv."""
     root.mkdir(parents=True)

@@ -931,6 +931,14 @@ def _with_correlations(cov: np.ndarray, row: dict, path: Path, line: int) -> np.
     return out
 
 
+def _numbered_rows(text: str) -> list[tuple[int, dict[str, str]]]:
+    """The CSV `text`'s records as (line, row): the line each ends on, as an editor counts
+    them (csv.DictReader skips blank lines, so counting its rows from 2 named a later row's
+    error a line too early for every blank line above it)."""
+    reader = csv.DictReader(text.splitlines())
+    return [(reader.line_num, row) for row in reader]
+
+
 def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
     """{id: FloorCodeRow} from a floor_codes CSV (ours or a merged map's).  AsBuiltError naming
     the file and line."""
@@ -939,12 +947,12 @@ def read_floor_code_rows(path: Path) -> dict[str, FloorCodeRow]:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise AsBuiltError(f"{path}: cannot read ({e.__class__.__name__})") from None
-    rows = list(csv.DictReader(text.splitlines()))
+    rows = _numbered_rows(text)
     need = {"id", "x_m", "y_m", "yaw_deg", "sigma_x_m", "sigma_y_m", "sigma_yaw_deg", "n_obs"}
-    if rows and not need <= set(rows[0]):
-        raise AsBuiltError(f"{path}:1: missing columns {sorted(need - set(rows[0]))}")
+    if rows and not need <= set(rows[0][1]):
+        raise AsBuiltError(f"{path}:1: missing columns {sorted(need - set(rows[0][1]))}")
     out: dict[str, FloorCodeRow] = {}
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
         cid = csv_unsafe(row["id"])
         if cid in out:
             raise AsBuiltError(f"{path}:{line}: floor code {cid!r} listed twice")
@@ -993,14 +1001,14 @@ def read_groundtruth_csv(path: Path) -> dict[str, np.ndarray]:
     the file (and line) when it cannot be read, or naming both lines of a code listed twice."""
     path = Path(path)
     try:
-        rows = list(csv.DictReader(path.read_text(encoding="utf-8").splitlines()))
+        rows = _numbered_rows(path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as e:
         raise AsBuiltError(f"{path}: not UTF-8 text (byte {e.start})") from None
     except (OSError, csv.Error) as e:
         raise AsBuiltError(f"{path}: {e}") from None
     out = {}
     first_line: dict[str, int] = {}  # canonical id -> its line
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
         raw = csv_unsafe(row.get("id") or "")
         try:
             p = parse_payload(raw)
