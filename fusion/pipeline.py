@@ -1225,7 +1225,6 @@ def _run_into(
         unsynced = _unsynchronised_load_sightings(log, loc)
         if unsynced is not None:
             result.warnings.append(unsynced)
-        result.warnings += batch_start_warnings(fused_stats)
         timings["fuse_s"] = time.perf_counter() - t
     pnp_out = result.trajectories.get(str(Estimator.PNP))
     if loc.intrinsics_consider is not None and pnp_out is not None:
@@ -1881,6 +1880,7 @@ def _fuse_into_result(
         if res.floor_codes is not None:
             result.floor_codes[str(name)] = res.floor_codes
         fused_stats[name] = res.stats
+    result.warnings += batch_start_warnings(fused_stats)  # (any run that fuses)
     return fused_stats
 
 
