@@ -420,6 +420,20 @@ def test_clean_log_has_no_warnings(log_dir):
     ],
 )
 def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
+    _spoil(log_dir, case)
+    log = read_flight(log_dir)
+    found = _warning_names(log)
+    assert name in found, log.warnings
+    assert found[name].count >= 1
+    import re
+
+    assert re.search(match, found[name].message), found[name].message
+    if case == "gt_quat_scaled":
+        assert np.allclose(np.linalg.norm(log.groundtruth.q_world_body_wxyz, axis=1), 1.0)
+
+
+def _spoil(log_dir, case):
+    """One of the mistakes of test_unit_and_clock_mistakes_are_named_warnings, made in the log."""
     mav = log_dir / "mav0"
     imu_csv = mav / "imu0" / "data.csv"
     gt_csv = mav / "state_groundtruth_estimate0" / "data.csv"
@@ -452,15 +466,6 @@ def test_unit_and_clock_mistakes_are_named_warnings(log_dir, case, name, match):
         _rewrite_csv(imu_csv, lambda t, v: (list(t[:20]) + list(t[40:]), np.r_[v[:20], v[40:]]))
     elif case == "accel_clipped":
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :5], np.minimum(v[:, 5], np.sort(v[:, 5])[-10])]))
-    log = read_flight(log_dir)
-    found = _warning_names(log)
-    assert name in found, log.warnings
-    assert found[name].count >= 1
-    import re
-
-    assert re.search(match, found[name].message), found[name].message
-    if case == "gt_quat_scaled":
-        assert np.allclose(np.linalg.norm(log.groundtruth.q_world_body_wxyz, axis=1), 1.0)
 
 
 def test_inspect_shows_the_readers_named_warnings(log_dir):
@@ -473,6 +478,23 @@ def test_inspect_shows_the_readers_named_warnings(log_dir):
     _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
     (problem,) = inspect_log(log_dir).problems
     assert problem.startswith("[groundtruth_quaternion_not_unit] x50: ") and str(gt_csv) in problem
+
+
+@pytest.mark.parametrize("case, name", [("imu_10hz", "rate_mismatch"), ("accel_clipped", "imu_saturated")])
+def test_inspect_shows_the_runs_plausibility_warnings(log_dir, case, name, capsys):
+    """`fusion inspect` of an EuRoC folder lists the run's plausibility warnings about the log's
+    data (euroc.check_log, as the reader gives them to the run), with the run's names and counts
+    (a bag's: test_rosbag.test_inspect_shows_the_plausibility_warnings_a_run_gives_for_a_bag)."""
+    from fusion.cli import main
+    from fusion.log.inspect import inspect_log
+
+    _spoil(log_dir, case)
+    run = read_flight(log_dir).warnings
+    assert name in {w.name for w in run}
+    assert inspect_log(log_dir).problems == [str(w) for w in run]
+    assert main(["inspect", str(log_dir)]) == 0
+    out = capsys.readouterr().out
+    assert all(f"problem: {w}" in out for w in run)
 
 
 def test_image_header_is_checked_before_decoding(log_dir, monkeypatch):

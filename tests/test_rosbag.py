@@ -100,10 +100,12 @@ def _write_bag(
     encoding="mono8",
     topic="/cam/image_raw",
     groundtruth_stamps=None,
+    imu_samples=None,
 ):
     """A small bag: `images` (list of uint8 arrays) on `topic` with header `stamps` and receive
-    `log_times`, an IMU at 100 Hz, optionally a CameraInfo, and with `groundtruth_stamps` our
-    /fusion/groundtruth Odometry with those header stamps, received 1 ms apart in list order."""
+    `log_times`, an IMU at 100 Hz (30 samples: constant, or `imu_samples` rows gyro xyz, accel
+    xyz), optionally a CameraInfo, and with `groundtruth_stamps` our /fusion/groundtruth
+    Odometry with those header stamps, received 1 ms apart in list order."""
     from rosbags.rosbag1 import Writer as W1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as W2
@@ -155,15 +157,16 @@ def _write_bag(
         if imu:
             ci = w.add_connection("/imu", IMU, typestore=ts)
             V = ts.types["geometry_msgs/msg/Vector3"]
-            for k in range(30):
+            samples = np.tile([0.01, 0, 0, 0, 0, 9.81], (30, 1)) if imu_samples is None else imu_samples
+            for k, (wx, wy, wz, ax, ay, az) in enumerate(np.asarray(samples, dtype=float)):
                 t = 1_000_000_000 + k * 10_000_000
                 m = ts.types[IMU](
                     header=_header(ts, t, "imu", ros1),
                     orientation=ts.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
                     orientation_covariance=np.zeros(9),
-                    angular_velocity=V(x=0.01, y=0.0, z=0.0),
+                    angular_velocity=V(x=wx, y=wy, z=wz),
                     angular_velocity_covariance=np.zeros(9),
-                    linear_acceleration=V(x=0.0, y=0.0, z=9.81),
+                    linear_acceleration=V(x=ax, y=ay, z=az),
                     linear_acceleration_covariance=np.zeros(9),
                 )
                 w.write(ci, t, ser(m, IMU))
@@ -209,6 +212,17 @@ def world_and_calib(tmp_path, sample):
 def _images(n, seed=0):
     rng = np.random.default_rng(seed)
     return [rng.integers(0, 255, size=(24, 32), dtype=np.uint8) for _ in range(n)]
+
+
+def _resting_imu(clipped=0, seed=1):
+    """_write_bag's 30 IMU samples of a plausible IMU at rest (the constant default reads as
+    clipped to euroc.check_log): white noise as the default ImuNoise states it at 100 Hz, gravity
+    on z; with `clipped`, that many accelerometer z readings sit at the axis' largest value."""
+    rng = np.random.default_rng(seed)
+    s = np.c_[rng.normal(scale=1.7e-3, size=(30, 3)), [0, 0, 9.81] + rng.normal(scale=0.02, size=(30, 3))]
+    if clipped:
+        s[:, 5] = np.minimum(s[:, 5], np.sort(s[:, 5])[-clipped])
+    return s
 
 
 def test_import_passes_on_what_the_reader_warned(tmp_path, world_and_calib, capsys):
@@ -470,7 +484,7 @@ def test_inspect_says_a_bag_was_cut_short(tmp_path, world_and_calib, monkeypatch
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    good = _write_bag(tmp_path / f"full{suffix}", _images(20))
+    good = _write_bag(tmp_path / f"full{suffix}", _images(20), imu_samples=_resting_imu())
     cut = tmp_path / f"cut{suffix}"
     cut.write_bytes(good.read_bytes()[: int(good.stat().st_size * 0.6)])
     rep = inspect_log(cut, LogOptions(calib=world_and_calib))
@@ -479,6 +493,28 @@ def test_inspect_says_a_bag_was_cut_short(tmp_path, world_and_calib, monkeypatch
     assert not inspect_log(good, LogOptions(calib=world_and_calib)).problems
     assert main(["inspect", str(cut), "--calib", str(world_and_calib)]) == 0
     assert f"problem: {cut}: {said}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_inspect_shows_the_plausibility_warnings_a_run_gives_for_a_bag(
+    tmp_path, world_and_calib, capsys, suffix
+):
+    """`fusion inspect` of a bag lists the run's plausibility warnings about its data
+    (euroc.check_log; here `imu_saturated`: an accelerometer axis clipped), with the run's names
+    and counts.  An EuRoC folder's were shown; a bag's only by the run, so a bag the run warns
+    about looked clean.  A bag the run cannot read is said to be unchecked, and why."""
+    opts = LogOptions(calib=world_and_calib)
+    clean = _write_bag(tmp_path / f"clean{suffix}", _images(5), imu_samples=_resting_imu())
+    assert not inspect_log(clean, opts).problems
+    clipped = _write_bag(tmp_path / f"clipped{suffix}", _images(5), imu_samples=_resting_imu(clipped=12))
+    (run,) = [w for w in open_flight(clipped, opts).warnings if w.name == "imu_saturated"]
+    assert run.count == 12
+    assert inspect_log(clipped, opts).problems == [str(run)]
+    assert main(["inspect", str(clipped), "--calib", str(world_and_calib)]) == 0
+    assert f"problem: {run}" in capsys.readouterr().out
+    (unchecked,) = inspect_log(clipped, LogOptions()).problems  # no calibration for /cam/image_raw
+    assert unchecked.startswith("plausibility not checked, the run could not read the log: ")
+    assert "no calibration" in unchecked
 
 
 def _as_sqlite3(mcap: Path, folder: Path) -> Path:
@@ -562,7 +598,9 @@ def test_a_bare_db3_files_unknown_types_are_counted_not_called_damage(tmp_path, 
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    good = _as_sqlite3(_write_bag(tmp_path / "g.mcap", _images(10)), tmp_path / "good")
+    good = _as_sqlite3(
+        _write_bag(tmp_path / "g.mcap", _images(10), imu_samples=_resting_imu()), tmp_path / "good"
+    )
     db = tmp_path / "bare.db3"  # beside world.yaml
     shutil.copy(next(good.glob("*.db3")), db)
     con = sqlite3.connect(db)

@@ -1,6 +1,7 @@
 """`inspect_log`: what a log holds, whatever its format - streams (topics), types, counts, rates,
-durations, gaps, out-of-order and duplicate stamps, which stream fills which role, and whether
-the IMU's units look like rad/s and m/s^2."""
+durations, gaps, out-of-order and duplicate stamps, which stream fills which role, whether
+the IMU's units look like rad/s and m/s^2, and the plausibility warnings a run would give about
+the log (euroc.check_log: rate_mismatch, imu_saturated, ...)."""
 
 from __future__ import annotations
 
@@ -263,3 +264,19 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
     if imu_topic and scan.topics[imu_topic].data:
         ga = np.array(scan.topics[imu_topic].data, dtype=float)
         report.imu_units = imu_units_verdict(ga[:, :3], ga[:, 3:])
+    if roles is not None:
+        report.problems += _bag_plausibility(path, opts)
+
+
+def _bag_plausibility(path: Path, opts: LogOptions) -> list[str]:
+    """The log's plausibility warnings as `fusion run` gives them (euroc.check_log: imu_saturated,
+    imu_gaps, clock_offset, ...) for a bag read as the run reads it, a second pass over it: an
+    EuRoC folder's or a video's come with open_flight's warnings, a bag's were shown by the run
+    only.  A bag the run could not read is said to be unchecked, with the reason."""
+    from fusion.log.euroc import check_log
+    from fusion.log.rosbag import read_bag
+
+    try:
+        return [str(w) for w in check_log(read_bag(path, opts))]
+    except LogError as e:
+        return [f"plausibility not checked, the run could not read the log: {e}"]
