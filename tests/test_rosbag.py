@@ -517,6 +517,29 @@ def test_inspect_shows_the_plausibility_warnings_a_run_gives_for_a_bag(
     assert "no calibration" in unchecked
 
 
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_a_bags_plausibility_warnings_name_the_bag_and_the_topic(tmp_path, world_and_calib, suffix):
+    """euroc.check_log's warnings about a bag name the bag and the topic as the bag reader's own
+    warnings do (`<bag>: topic /imu`), and a mount the camchain states names the camchain and
+    the camera's key: they named `<bag>/mav0/imu0/data.csv` and `<bag>/mav0/cam0/sensor.yaml`,
+    files that do not exist, as if the bag were an EuRoC folder."""
+    from fusion.camera import CameraModel
+    from fusion.geometry import make_T
+
+    bag = _write_bag(tmp_path / f"clipped{suffix}", _images(5), imu_samples=_resting_imu(clipped=12))
+    warnings = open_flight(bag, LogOptions(calib=world_and_calib)).warnings
+    (w,) = [w for w in warnings if w.name == "imu_saturated"]
+    assert w.count == 12
+    assert w.message.startswith(f"{bag}: topic /imu: 12 sample value(s) sit at an axis' extreme")
+    assert "mav0" not in w.message and "data.csv" not in w.message
+    far = tmp_path / "far-camchain.yaml"  # the camera 1.5 m from the IMU: millimetres?
+    cam = CameraModel(32, 24, 50.0, 50.0, 16.0, 12.0, T_body_cam=make_T(np.eye(3), [0, 0, 1.5]))
+    write_camchain(far, {"cam0": cam}, {"cam0": "/cam/image_raw"})
+    (w,) = [w for w in open_flight(bag, LogOptions(calib=far)).warnings if w.name == "T_BS_translation"]
+    assert w.count == 1 and w.message.startswith(f"{far}: cam0: T_BS puts cam0 1.5 m from the body origin")
+    assert "mav0" not in w.message
+
+
 def _as_sqlite3(mcap: Path, folder: Path) -> Path:
     """The ROS 2 bag `mcap` rewritten with sqlite3 storage into `folder` (metadata.yaml + .db3)."""
     from rosbags.highlevel import AnyReader

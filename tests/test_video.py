@@ -102,6 +102,22 @@ def test_missing_imu_noise_calibration_is_a_counted_warning(video_dir, tmp_path)
     ]
 
 
+def test_a_videos_plausibility_warnings_name_its_files(video_dir, tmp_path):
+    """euroc.check_log's warnings about a video log name the file the stream came from (here
+    imu.csv, clipped), not `<folder>/mav0/imu0/data.csv` as if it were an EuRoC folder."""
+    d = tmp_path / "v"
+    shutil.copytree(video_dir, d)
+    assert not open_flight(d).warnings
+    header, *rows = (d / "imu.csv").read_text().splitlines()
+    values = np.array([[float(v) for v in r.split(",")[1:]] for r in rows])
+    top = np.sort(values[:, 5])[-12]
+    clipped = [r.rsplit(",", 1)[0] + f",{float(min(v, top))!r}" for r, v in zip(rows, values[:, 5])]
+    (d / "imu.csv").write_text("\n".join([header, *clipped]) + "\n")
+    (w,) = [w for w in open_flight(d).warnings if w.name == "imu_saturated"]
+    assert w.count == 12 and w.message.startswith(f"{d / 'imu.csv'}: 12 sample value(s)")
+    assert "mav0" not in w.message
+
+
 def _vfr_video(path, images, pts):
     import av
 

@@ -333,6 +333,17 @@ def _max_image_bytes(width: int, height: int) -> int:
 
 
 @dataclass
+class StreamSource:
+    """Where a stream of a log that is not an EuRoC folder comes from, for check_log's messages
+    (an EuRoC folder's name its `mav0/<stream>/data.csv` and `sensor.yaml`): `data` the file of
+    its samples, or a bag and topic as the bag reader's own warnings name them (`<bag>: topic
+    /imu0`); `mount` the file (and key) stating its T_BS (None: `data`)."""
+
+    data: str
+    mount: str | None = None
+
+
+@dataclass
 class FlightLog:
     root: Path
     world: World
@@ -346,6 +357,9 @@ class FlightLog:
     # Kalibr's timeshift_cam_imu the reader already added to each camera's stamps (ns, t_imu =
     # t_cam + shift): the seed of the time-offset estimate (fusion.estimate.timeoffset)
     timeshift_ns: dict[str, int] = field(default_factory=dict)
+    # a bag's or a video's StreamSource by stream name ("cam0", "imu0", "vel0", "groundtruth"),
+    # for check_log's messages; empty for an EuRoC folder (its own files are named)
+    stream_sources: dict[str, StreamSource] = field(default_factory=dict)
 
     @property
     def floor(self) -> CameraStream:
@@ -756,9 +770,10 @@ def _declared_rate(sensor_path: Path) -> float | None:
 _UNIT_NAMES = {1: "microseconds", 2: "milliseconds", 3: "seconds"}
 
 
-def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None) -> list[LogWarning]:
-    """Timestamp units from the sample interval against sensor.yaml's rate_hz: a ratio of
-    1e-3 / 1e-6 / 1e-9 is a unit mistake (LogError); any other mismatch a warning."""
+def _check_rate(name: str, where: str, ts: np.ndarray, rate_hz: float | None) -> list[LogWarning]:
+    """Timestamp units from the sample interval against sensor.yaml's rate_hz (the one beside
+    `where`, an EuRoC data.csv): a ratio of 1e-3 / 1e-6 / 1e-9 is a unit mistake (LogError); any
+    other mismatch a warning.  `where` names the samples in the messages."""
     if len(ts) < 2:
         return []
     dt = float(np.median(np.diff(ts)))
@@ -768,7 +783,7 @@ def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
                 LogWarning(
                     "timestamp_units",
                     1,
-                    f"{csv_path}: timestamps advance {dt:g} per sample, i.e. faster "
+                    f"{where}: timestamps advance {dt:g} per sample, i.e. faster "
                     f"than {1e9 / MIN_PLAUSIBLE_DT_NS:g} Hz if they were nanoseconds: "
                     "are they in another unit?",
                 )
@@ -779,8 +794,8 @@ def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
     k = round(-decades / 3)
     if k in _UNIT_NAMES and abs(decades + 3 * k) < UNIT_MATCH_DECADES:
         raise LogError(
-            f"{csv_path}: timestamps advance {dt:g} per sample while "
-            f"{csv_path.parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
+            f"{where}: timestamps advance {dt:g} per sample while "
+            f"{Path(where).parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
             f"like {_UNIT_NAMES[k]}; EuRoC timestamps are nanoseconds"
         )
     if abs(decades) > math.log10(RATE_MISMATCH_FACTOR):
@@ -795,16 +810,17 @@ def _check_rate(name: str, csv_path: Path, ts: np.ndarray, rate_hz: float | None
     return []
 
 
-def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
+def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
     """Accelerometer in g (median |specific force| ~ 1: LogError), other magnitudes, gaps, gyro in
     deg/s (rates beyond GYRO_MAX_PLAUSIBLE_RAD_S, or white noise far above sensor.yaml's density,
-    estimated from first differences: std(diff)/sqrt(2) = sigma_d for white noise), clipping."""
+    estimated from first differences: std(diff)/sqrt(2) = sigma_d for white noise), clipping.
+    `where` names the samples in the messages."""
     out = []
     n = len(imu.timestamps_ns)
     a_norm = float(np.median(np.linalg.norm(imu.accel_m_s2, axis=1)))
     if ACCEL_IN_G_RANGE[0] <= a_norm <= ACCEL_IN_G_RANGE[1]:
         raise LogError(
-            f"{csv_path}: the accelerometer's median magnitude is {a_norm:.3g}, gravity "
+            f"{where}: the accelerometer's median magnitude is {a_norm:.3g}, gravity "
             f"is {GRAVITY_M_S2} m s^-2: the a_RS_S columns look like g; convert them "
             "to m s^-2"
         )
@@ -813,7 +829,7 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
             LogWarning(
                 "accelerometer_magnitude",
                 1,
-                f"{csv_path}: median |a_RS_S| is {a_norm:.3g} m s^-2, gravity is "
+                f"{where}: median |a_RS_S| is {a_norm:.3g} m s^-2, gravity is "
                 f"{GRAVITY_M_S2}: wrong units, scale or a broken sensor?",
             )
         )
@@ -833,7 +849,7 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
             LogWarning(
                 "gyroscope_units",
                 1,
-                f"{csv_path}: {why}: the gyro looks like deg/s (rad/s expected), or "
+                f"{where}: {why}: the gyro looks like deg/s (rad/s expected), or "
                 "sensor.yaml's noise is wrong",
             )
         )
@@ -846,7 +862,7 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
             LogWarning(
                 "imu_gaps",
                 len(gaps),
-                f"{csv_path}: {len(gaps)} gap(s) over {IMU_GAP_WARN_S * 1e3:g} ms between samples, "
+                f"{where}: {len(gaps)} gap(s) over {IMU_GAP_WARN_S * 1e3:g} ms between samples, "
                 f"{dt[gaps].sum() * 1e-9:.3g} s in all; the longest {dt[i] * 1e-9:.3g} s after "
                 f"timestamp {int(imu.timestamps_ns[i])} ({(int(imu.timestamps_ns[i]) - t0) * 1e-9:.2f} s "
                 "into the IMU): bridged by a random walk, the fused poses there rest on the cameras",
@@ -863,7 +879,7 @@ def _check_imu(imu: ImuData, csv_path: Path) -> list[LogWarning]:
             LogWarning(
                 "imu_saturated",
                 clipped,
-                f"{csv_path}: {clipped} sample value(s) sit at an axis' extreme: the "
+                f"{where}: {clipped} sample value(s) sit at an axis' extreme: the "
                 "IMU saturates (clipped motion)",
             )
         )
@@ -874,38 +890,45 @@ def _span(ts: np.ndarray) -> tuple[int, int]:
     return int(ts[0]), int(ts[-1])
 
 
+def _stream_sources(log: FlightLog) -> dict[str, StreamSource]:
+    """check_log's StreamSource of each stream: the reader's (a bag's, a video's: their files and
+    topics), else an EuRoC folder's `mav0/<stream>/data.csv` and `sensor.yaml`."""
+    names = [*log.cameras, "imu0", "vel0", "groundtruth"]
+    if log.stream_sources:
+        return {n: log.stream_sources.get(n) or StreamSource(f"{log.root}: {n}") for n in names}
+    mav = Path(log.root) / "mav0"
+    folders = {n: "state_groundtruth_estimate0" if n == "groundtruth" else n for n in names}
+    return {
+        n: StreamSource(str(mav / f / "data.csv"), str(mav / f / "sensor.yaml")) for n, f in folders.items()
+    }
+
+
 def check_log(log: FlightLog) -> list[LogWarning]:
     """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps and clipping,
     sensor clock offsets above CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not
     overlapping) and T_BS translations above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise
-    LogError; the rest are returned as warnings."""
-    mav = Path(log.root) / "mav0"
+    LogError; the rest are returned as warnings, naming the files (a bag's: the bag and topic)
+    as `log.stream_sources` says (an EuRoC folder's: mav0's)."""
+    src = _stream_sources(log)
+    euroc_folder = not log.stream_sources  # sensor.yaml may state a rate
+
+    def stated_rate(name: str) -> float | None:
+        return _declared_rate(Path(src[name].data).parent / "sensor.yaml") if euroc_folder else None
+
     out: list[LogWarning] = []
     streams: dict[str, np.ndarray] = {}
     for name, cam in log.cameras.items():
-        out += _check_rate(
-            name, mav / name / "data.csv", cam.timestamps_ns, _declared_rate(mav / name / "sensor.yaml")
-        )
+        out += _check_rate(name, src[name].data, cam.timestamps_ns, stated_rate(name))
         streams[name] = cam.timestamps_ns
     if log.imu is not None:
-        out += _check_rate(
-            "imu0",
-            mav / "imu0" / "data.csv",
-            log.imu.timestamps_ns,
-            _declared_rate(mav / "imu0" / "sensor.yaml"),
-        )
-        out += _check_imu(log.imu, mav / "imu0" / "data.csv")
+        out += _check_rate("imu0", src["imu0"].data, log.imu.timestamps_ns, stated_rate("imu0"))
+        out += _check_imu(log.imu, src["imu0"].data)
         streams["imu0"] = log.imu.timestamps_ns
     if log.velocity is not None:
-        out += _check_rate("vel0", mav / "vel0" / "data.csv", log.velocity.timestamps_ns, None)
+        out += _check_rate("vel0", src["vel0"].data, log.velocity.timestamps_ns, None)
         streams["vel0"] = log.velocity.timestamps_ns
     if log.groundtruth is not None:
-        out += _check_rate(
-            "groundtruth",
-            mav / "state_groundtruth_estimate0" / "data.csv",
-            log.groundtruth.timestamps_ns,
-            None,
-        )
+        out += _check_rate("groundtruth", src["groundtruth"].data, log.groundtruth.timestamps_ns, None)
         streams["groundtruth"] = log.groundtruth.timestamps_ns
     ref_name = "cam0" if "cam0" in streams else "imu0"
     ref0, ref1 = _span(streams[ref_name]) if ref_name in streams else (0, 0)
@@ -935,10 +958,11 @@ def check_log(log: FlightLog) -> list[LogWarning]:
                     f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)",
                 )
             )
-    mounts = {name: (mav / name / "sensor.yaml", cam.camera.T_body_cam) for name, cam in log.cameras.items()}
+    mounts = {name: cam.camera.T_body_cam for name, cam in log.cameras.items()}
     if log.imu is not None:
-        mounts["imu0"] = (mav / "imu0" / "sensor.yaml", log.imu.T_body_imu)
-    for name, (path, T) in mounts.items():
+        mounts["imu0"] = log.imu.T_body_imu
+    for name, T in mounts.items():
+        path = src[name].mount or src[name].data
         d = float(np.linalg.norm(np.asarray(T)[:3, 3]))
         if d > T_BS_MAX_TRANSLATION_M:
             out.append(

@@ -48,6 +48,7 @@ from fusion.log.euroc import (
     ImuData,
     ImuNoise,
     LogWarning,
+    StreamSource,
     VelocityData,
 )
 from fusion.log.options import LogOptions, StampSource
@@ -806,6 +807,28 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     )
     out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, warnings=warnings)
     out.timeshift_ns = shifts
+    out.stream_sources = _stream_sources(path, cam_topics, roles, gt_topic, calib, meta)
+    return out
+
+
+def _stream_sources(path, cam_topics, roles, gt_topic, calib, meta) -> dict[str, StreamSource]:
+    """Each stream's bag and topic as the reader's own warnings name them, and the file stating
+    its mount (the calibration given, else the bag's /fusion/metadata), for euroc.check_log's
+    messages: a bag has no mav0/<stream>/data.csv to name."""
+    meta_where = f"{path}: {METADATA_TOPIC}"  # as _metadata_cameras names it
+    out = {}
+    for name, topic in cam_topics.items():
+        given = calib is not None and name in calib.cameras
+        mount = calib.where.get(name) if given else f"{meta_where} cameras.{name}"
+        out[name] = StreamSource(f"{path}: topic {topic}", mount)
+    if roles.imu:
+        given = calib is not None and calib.imu_noise is not None  # its T_body_imu is used
+        mount = calib.where.get("imu0") if given else f"{meta_where} imu" if meta.get("imu") else None
+        out["imu0"] = StreamSource(f"{path}: topic {roles.imu}", mount)
+    if roles.velocity:
+        out["vel0"] = StreamSource(f"{path}: topic {roles.velocity}")
+    if gt_topic:
+        out["groundtruth"] = StreamSource(f"{path}: topic {gt_topic}")
     return out
 
 

@@ -89,6 +89,8 @@ class ExternalCalibration:
     topics: dict[str, str] = field(default_factory=dict)  # role name -> rostopic
     imu_noise: ImuNoise | None = None
     T_body_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
+    # role name / "imu0" -> the file (and key) stating its mount, for messages (check_log's)
+    where: dict[str, str] = field(default_factory=dict)
 
 
 def external_calibration(
@@ -110,6 +112,7 @@ def external_calibration(
                     continue
                 out.cameras[role.value] = kc.camera
                 out.timeshift_ns[role.value] = kc.timeshift_ns
+                out.where[role.value] = f"{calib}: {key}"  # as read_camchain's errors name it
                 if kc.rostopic:
                     out.topics[role.value] = kc.rostopic
     if opts.imu_calib is not None:
@@ -131,6 +134,7 @@ def _euroc_calibration(root: Path, out: ExternalCalibration) -> None:
                 out.cameras[name] = CameraModel.load(sensor)
             except CameraModelError as e:
                 raise LogError(str(e)) from None
+            out.where[name] = str(sensor)
     imu_yaml = mav / "imu0" / "sensor.yaml"
     if imu_yaml.is_file():
         cfg = load_yaml(imu_yaml, LogError)
@@ -140,6 +144,7 @@ def _euroc_calibration(root: Path, out: ExternalCalibration) -> None:
             raise LogError(f"{imu_yaml}: needs the four IMU noise numbers") from None
         if "T_BS" in cfg:
             out.T_body_imu = read_T_BS(cfg["T_BS"], str(imu_yaml), LogError)
+            out.where["imu0"] = str(imu_yaml)
     if not out.cameras:
         raise LogError(f"{mav}: no cam0/sensor.yaml or cam1/sensor.yaml")
 

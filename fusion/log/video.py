@@ -47,6 +47,7 @@ from fusion.log.euroc import (
     ImuData,
     ImuNoise,
     LogWarning,
+    StreamSource,
     VelocityData,
     _numeric_csv,
     _timestamp,
@@ -359,16 +360,20 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
     imu_path = _find(folder, opts.imu, IMU_CSV_FILE, "*.ulg")
     imu, ulog_times = None, None
+    sources: dict[str, StreamSource] = {}  # for euroc.check_log's messages: the files read
     ulog_warnings: list[LogWarning] = []  # the ULog IMU's unordered / duplicate samples
     imu_yaml = _find(folder, opts.imu_calib, IMU_YAML_FILE)
     kimu = read_imu_yaml(imu_yaml) if imu_yaml else None
     if imu_path is not None and imu_path.suffix.lower() == ".ulg":
-        from fusion.log.ulog import read_ulog_frame_times, read_ulog_imu
+        from fusion.log.ulog import IMU_TOPIC, read_ulog_frame_times, read_ulog_imu
 
         imu = read_ulog_imu(imu_path, kimu.noise if kimu else None, ulog_warnings)
         ulog_times = read_ulog_frame_times(imu_path)
+        sources["imu0"] = StreamSource(f"{imu_path}: {IMU_TOPIC}")  # as read_ulog_imu names it
     elif imu_path is not None:
         imu = _read_imu_csv(imu_path, kimu, folder)
+        stated_T = kimu is not None and (folder / IMU_YAML_FILE).is_file()  # T_i_b, if any
+        sources["imu0"] = StreamSource(str(imu_path), str(folder / IMU_YAML_FILE) if stated_T else None)
     noise_default = None
     if imu is not None and kimu is None:
         noise_default = f"{imu_path}: no IMU noise calibration (Kalibr imu.yaml); using defaults"
@@ -387,9 +392,11 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         if ext is None:  # only when no calibration is given, and calib_path is one
             raise LogError(f"{calib_path}: no camera calibration read")
         kal = {k: (cam, ext.timeshift_ns.get(k, 0)) for k, cam in ext.cameras.items()}
+        mounts = dict(ext.where)
     else:
         T_bi = imu.T_body_imu if imu is not None else None
         kal = {k: (kc.camera, kc.timeshift_ns) for k, kc in read_camchain(calib_path, T_bi).items()}
+        mounts = {k: f"{calib_path}: {k}" for k in kal}  # as read_camchain's errors name it
 
     cameras: dict[str, CameraStream] = {}
     warnings: list[LogWarning] = ulog_warnings + (
@@ -412,6 +419,12 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         )
         capture_times = ulog_times if name == CameraRole.FLOOR.value else None
         t, idx = _frame_times(video, pts, tb, rate, times, capture_times, opts, warnings)
+        stamped_by = str(video)  # where its times came from, as _frame_times picks it
+        if times is not None:
+            stamped_by = str(times)
+        elif capture_times is not None:
+            stamped_by = f"{imu_path}: camera capture times"
+        sources[name] = StreamSource(stamped_by, mounts.get(name))
         t = t + shift_ns
         if "rate_hz" not in _camchain_keys(calib_path, name) and len(t) > 1:
             cam.rate_hz = float(1e9 / np.median(np.diff(t)))
@@ -421,6 +434,7 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     vel_csv = folder / VELOCITY_CSV_FILE
     if vel_csv.is_file():
         ts, v = _numeric_csv(vel_csv, 4)
+        sources["vel0"] = StreamSource(str(vel_csv))
         noise = 0.05
         if (folder / VELOCITY_YAML_FILE).is_file():
             noise = float(load_yaml(folder / VELOCITY_YAML_FILE, LogError).get("noise_m_s", noise))
@@ -439,6 +453,9 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         log.warning("%s: no IMU (imu.csv or a .ulg) and no velocity.csv", path)
     out = FlightLog(path, world, cameras, imu, vel, gt, loads, blackouts, warnings + list(gt_warnings))
     out.timeshift_ns = {name: int(kal[name][1]) for name in cameras}  # added to the stamps above
+    if gt is not None:
+        sources["groundtruth"] = StreamSource(str(folder / GROUNDTRUTH_FILE))
+    out.stream_sources = sources
     return out
 
 
