@@ -540,6 +540,30 @@ def test_a_bags_plausibility_warnings_name_the_bag_and_the_topic(tmp_path, world
     assert "mav0" not in w.message
 
 
+def test_a_bag_imu_slower_than_its_kalibr_imu_yaml_says_is_a_rate_mismatch(tmp_path, world_and_calib):
+    """Kalibr's imu.yaml states the IMU's `update_rate`: a bag whose IMU runs at half of it gives
+    `rate_mismatch` naming the yaml and the topic, as an EuRoC folder's sensor.yaml `rate_hz`
+    does (the check looked for `<bag>/mav0/imu0/sensor.yaml` only, so it never fired for a bag).
+    A rate 1000x off is the yaml's mistake, not the stamps' units (a bag's are sec + nsec): a
+    warning too, not the refusal an EuRoC folder's CSV timestamps get."""
+    from fusion.log.kalibr import write_imu_yaml
+
+    bag = _write_bag(tmp_path / "slow.mcap", _images(5), imu_samples=_resting_imu())  # IMU 100 Hz
+    imu_yaml = tmp_path / "imu.yaml"
+    for stated, said in ((100.0, None), (200.0, "update_rate 200"), (0.1, "update_rate 0.1")):
+        write_imu_yaml(imu_yaml, euroc.ImuNoise(), stated, "/imu")
+        opts = LogOptions(calib=world_and_calib, imu_calib=imu_yaml)
+        flight = open_flight(bag, opts)
+        found = [w for w in flight.warnings if w.name == "rate_mismatch"]
+        if said is None:
+            assert not found, found
+            continue
+        (w,) = found
+        assert w.count == 1
+        assert w.message == f"{bag}: topic /imu: samples every 10 ms (100 Hz) but {imu_yaml} says {said}"
+        assert f"[rate_mismatch] x1: {w.message}" in inspect_log(bag, opts).problems
+
+
 def _as_sqlite3(mcap: Path, folder: Path) -> Path:
     """The ROS 2 bag `mcap` rewritten with sqlite3 storage into `folder` (metadata.yaml + .db3)."""
     from rosbags.highlevel import AnyReader

@@ -118,6 +118,21 @@ def test_a_videos_plausibility_warnings_name_its_files(video_dir, tmp_path):
     assert "mav0" not in w.message
 
 
+def test_a_video_imu_slower_than_its_imu_yaml_says_is_a_rate_mismatch(video_dir, tmp_path):
+    """imu.yaml's `update_rate` is checked against imu.csv's stamps as an EuRoC folder's
+    sensor.yaml `rate_hz` is: `rate_mismatch` naming imu.csv and imu.yaml (it never fired for
+    a video log: the check looked for `<folder>/mav0/imu0/sensor.yaml`)."""
+    d = tmp_path / "v"
+    shutil.copytree(video_dir, d)
+    text = (d / "imu.yaml").read_text()
+    assert "update_rate: 200.0" in text and not open_flight(d).warnings
+    (d / "imu.yaml").write_text(text.replace("update_rate: 200.0", "update_rate: 400.0"))
+    (w,) = [w for w in open_flight(d).warnings if w.name == "rate_mismatch"]
+    assert w.count == 1
+    said = f"samples every 5 ms (200 Hz) but {d / 'imu.yaml'} says update_rate 400"
+    assert w.message == f"{d / 'imu.csv'}: {said}"
+
+
 def _vfr_video(path, images, pts):
     import av
 

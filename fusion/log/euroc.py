@@ -106,7 +106,7 @@ GYRO_NOISE_RATIO_SUSPECT = 30.0  # measured / stated white noise (deg/s: 57x; ro
 # and conservative Kalibr densities stay well below)
 SATURATION_MIN_SAMPLES = 10  # repeats of an axis' extreme value that mean clipping
 SATURATION_MIN_FRACTION = 0.005
-RATE_MISMATCH_FACTOR = 1.5  # measured vs sensor.yaml rate_hz
+RATE_MISMATCH_FACTOR = 1.5  # measured vs sensor.yaml rate_hz (Kalibr imu.yaml: update_rate)
 UNIT_MATCH_DECADES = 0.3  # |log10(ratio) - 3k| below this: a factor 1000^k (units)
 MIN_PLAUSIBLE_DT_NS = 100_000  # faster than 10 kHz: timestamps are not nanoseconds
 CLOCK_OFFSET_MAX_S = 0.5  # streams shifted by more than this: a clock offset
@@ -337,10 +337,17 @@ class StreamSource:
     """Where a stream of a log that is not an EuRoC folder comes from, for check_log's messages
     (an EuRoC folder's name its `mav0/<stream>/data.csv` and `sensor.yaml`): `data` the file of
     its samples, or a bag and topic as the bag reader's own warnings name them (`<bag>: topic
-    /imu0`); `mount` the file (and key) stating its T_BS (None: `data`)."""
+    /imu0`); `mount` the file (and key) stating its T_BS (None: `data`); `rate_hz` a rate the
+    calibration states (Kalibr imu.yaml's update_rate), `rate_said` who says it ("<imu.yaml>
+    says update_rate"; None: the sensor.yaml beside an EuRoC data.csv).  `stamps_ns`: the
+    format fixes the stamps' unit (a bag's sec + nsec header, a ULog's microseconds), so a
+    stated rate 1000^k off is a `rate_mismatch`, not timestamps in another unit."""
 
     data: str
     mount: str | None = None
+    rate_hz: float | None = None
+    rate_said: str | None = None
+    stamps_ns: bool = False
 
 
 @dataclass
@@ -770,12 +777,16 @@ def _declared_rate(sensor_path: Path) -> float | None:
 _UNIT_NAMES = {1: "microseconds", 2: "milliseconds", 3: "seconds"}
 
 
-def _check_rate(name: str, where: str, ts: np.ndarray, rate_hz: float | None) -> list[LogWarning]:
-    """Timestamp units from the sample interval against sensor.yaml's rate_hz (the one beside
-    `where`, an EuRoC data.csv): a ratio of 1e-3 / 1e-6 / 1e-9 is a unit mistake (LogError); any
-    other mismatch a warning.  `where` names the samples in the messages."""
+def _check_rate(name: str, src: StreamSource, ts: np.ndarray) -> list[LogWarning]:
+    """Timestamp units from the sample interval against the stated rate (`src.rate_hz`: an EuRoC
+    folder's sensor.yaml rate_hz, Kalibr imu.yaml's update_rate): a ratio of 1e-3 / 1e-6 / 1e-9
+    is a unit mistake (LogError) unless the format fixes the unit; any other mismatch a warning.
+    `src.data` names the samples in the messages."""
     if len(ts) < 2:
         return []
+    where, rate_hz = src.data, src.rate_hz
+    if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+        rate_hz = None  # a rate of 0 or a negative one states nothing to compare with
     dt = float(np.median(np.diff(ts)))
     if rate_hz is None:
         if dt < MIN_PLAUSIBLE_DT_NS:
@@ -792,19 +803,20 @@ def _check_rate(name: str, where: str, ts: np.ndarray, rate_hz: float | None) ->
     expected = 1e9 / rate_hz
     decades = math.log10(dt / expected)
     k = round(-decades / 3)
-    if k in _UNIT_NAMES and abs(decades + 3 * k) < UNIT_MATCH_DECADES:
+    if k in _UNIT_NAMES and abs(decades + 3 * k) < UNIT_MATCH_DECADES and not src.stamps_ns:
+        said = src.rate_said or f"{Path(where).parent / 'sensor.yaml'} says rate_hz"
         raise LogError(
-            f"{where}: timestamps advance {dt:g} per sample while "
-            f"{Path(where).parent / 'sensor.yaml'} says rate_hz {rate_hz:g}: they look "
+            f"{where}: timestamps advance {dt:g} per sample while {said} {rate_hz:g}: they look "
             f"like {_UNIT_NAMES[k]}; EuRoC timestamps are nanoseconds"
         )
     if abs(decades) > math.log10(RATE_MISMATCH_FACTOR):
+        # an EuRoC folder's: named by its stream, "sensor.yaml" being the one in its folder
+        who, said = (name, "sensor.yaml says rate_hz") if src.rate_said is None else (where, src.rate_said)
         return [
             LogWarning(
                 "rate_mismatch",
                 1,
-                f"{name}: samples every {dt * 1e-6:.4g} ms ({1e9 / dt:.4g} Hz) but "
-                f"sensor.yaml says rate_hz {rate_hz:g}",
+                f"{who}: samples every {dt * 1e-6:.4g} ms ({1e9 / dt:.4g} Hz) but {said} {rate_hz:g}",
             )
         ]
     return []
@@ -892,15 +904,18 @@ def _span(ts: np.ndarray) -> tuple[int, int]:
 
 def _stream_sources(log: FlightLog) -> dict[str, StreamSource]:
     """check_log's StreamSource of each stream: the reader's (a bag's, a video's: their files and
-    topics), else an EuRoC folder's `mav0/<stream>/data.csv` and `sensor.yaml`."""
+    topics), else an EuRoC folder's `mav0/<stream>/data.csv` and `sensor.yaml` (its rate_hz, a
+    camera's or the IMU's)."""
     names = [*log.cameras, "imu0", "vel0", "groundtruth"]
     if log.stream_sources:
         return {n: log.stream_sources.get(n) or StreamSource(f"{log.root}: {n}") for n in names}
     mav = Path(log.root) / "mav0"
-    folders = {n: "state_groundtruth_estimate0" if n == "groundtruth" else n for n in names}
-    return {
-        n: StreamSource(str(mav / f / "data.csv"), str(mav / f / "sensor.yaml")) for n, f in folders.items()
-    }
+    out = {}
+    for n in names:
+        d = mav / ("state_groundtruth_estimate0" if n == "groundtruth" else n)
+        rate = _declared_rate(d / "sensor.yaml") if n in log.cameras or n == "imu0" else None
+        out[n] = StreamSource(str(d / "data.csv"), str(d / "sensor.yaml"), rate)
+    return out
 
 
 def check_log(log: FlightLog) -> list[LogWarning]:
@@ -910,25 +925,20 @@ def check_log(log: FlightLog) -> list[LogWarning]:
     LogError; the rest are returned as warnings, naming the files (a bag's: the bag and topic)
     as `log.stream_sources` says (an EuRoC folder's: mav0's)."""
     src = _stream_sources(log)
-    euroc_folder = not log.stream_sources  # sensor.yaml may state a rate
-
-    def stated_rate(name: str) -> float | None:
-        return _declared_rate(Path(src[name].data).parent / "sensor.yaml") if euroc_folder else None
-
     out: list[LogWarning] = []
     streams: dict[str, np.ndarray] = {}
     for name, cam in log.cameras.items():
-        out += _check_rate(name, src[name].data, cam.timestamps_ns, stated_rate(name))
+        out += _check_rate(name, src[name], cam.timestamps_ns)
         streams[name] = cam.timestamps_ns
     if log.imu is not None:
-        out += _check_rate("imu0", src["imu0"].data, log.imu.timestamps_ns, stated_rate("imu0"))
+        out += _check_rate("imu0", src["imu0"], log.imu.timestamps_ns)
         out += _check_imu(log.imu, src["imu0"].data)
         streams["imu0"] = log.imu.timestamps_ns
     if log.velocity is not None:
-        out += _check_rate("vel0", src["vel0"].data, log.velocity.timestamps_ns, None)
+        out += _check_rate("vel0", src["vel0"], log.velocity.timestamps_ns)
         streams["vel0"] = log.velocity.timestamps_ns
     if log.groundtruth is not None:
-        out += _check_rate("groundtruth", src["groundtruth"].data, log.groundtruth.timestamps_ns, None)
+        out += _check_rate("groundtruth", src["groundtruth"], log.groundtruth.timestamps_ns)
         streams["groundtruth"] = log.groundtruth.timestamps_ns
     ref_name = "cam0" if "cam0" in streams else "imu0"
     ref0, ref1 = _span(streams[ref_name]) if ref_name in streams else (0, 0)

@@ -812,9 +812,9 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
 
 def _stream_sources(path, cam_topics, roles, gt_topic, calib, meta) -> dict[str, StreamSource]:
-    """Each stream's bag and topic as the reader's own warnings name them, and the file stating
-    its mount (the calibration given, else the bag's /fusion/metadata), for euroc.check_log's
-    messages: a bag has no mav0/<stream>/data.csv to name."""
+    """Each stream's bag and topic as the reader's own warnings name them, the file stating its
+    mount (the calibration given, else the bag's /fusion/metadata) and the IMU's rate a Kalibr
+    imu.yaml states, for euroc.check_log: a bag has no mav0/<stream>/ to look in."""
     meta_where = f"{path}: {METADATA_TOPIC}"  # as _metadata_cameras names it
     out = {}
     for name, topic in cam_topics.items():
@@ -824,7 +824,9 @@ def _stream_sources(path, cam_topics, roles, gt_topic, calib, meta) -> dict[str,
     if roles.imu:
         given = calib is not None and calib.imu_noise is not None  # its T_body_imu is used
         mount = calib.where.get("imu0") if given else f"{meta_where} imu" if meta.get("imu") else None
-        out["imu0"] = StreamSource(f"{path}: topic {roles.imu}", mount)
+        # a bag's stamps are sec + nsec: a stated rate 1000x off is the yaml's mistake
+        rate, said = (calib.imu_rate_hz, calib.imu_rate_said) if calib is not None else (None, None)
+        out["imu0"] = StreamSource(f"{path}: topic {roles.imu}", mount, rate, said, stamps_ns=True)
     if roles.velocity:
         out["vel0"] = StreamSource(f"{path}: topic {roles.velocity}")
     if gt_topic:

@@ -91,6 +91,8 @@ class ExternalCalibration:
     T_body_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
     # role name / "imu0" -> the file (and key) stating its mount, for messages (check_log's)
     where: dict[str, str] = field(default_factory=dict)
+    imu_rate_hz: float | None = None  # Kalibr imu.yaml's update_rate, when it states one
+    imu_rate_said: str | None = None  # "<imu.yaml> says update_rate" (check_log's rate_mismatch)
 
 
 def external_calibration(
@@ -118,6 +120,8 @@ def external_calibration(
     if opts.imu_calib is not None:
         ki = read_imu_yaml(opts.imu_calib)
         out.imu_noise = ki.noise
+        if ki.rate_hz is not None:
+            out.imu_rate_hz, out.imu_rate_said = ki.rate_hz, f"{opts.imu_calib} says update_rate"
         if ki.rostopic:
             out.topics["imu0"] = ki.rostopic
     return out

@@ -369,11 +369,15 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
         imu = read_ulog_imu(imu_path, kimu.noise if kimu else None, ulog_warnings)
         ulog_times = read_ulog_frame_times(imu_path)
-        sources["imu0"] = StreamSource(f"{imu_path}: {IMU_TOPIC}")  # as read_ulog_imu names it
+        # as read_ulog_imu names it; its stamps are microseconds by the format
+        sources["imu0"] = StreamSource(f"{imu_path}: {IMU_TOPIC}", stamps_ns=True)
     elif imu_path is not None:
         imu = _read_imu_csv(imu_path, kimu, folder)
         stated_T = kimu is not None and (folder / IMU_YAML_FILE).is_file()  # T_i_b, if any
         sources["imu0"] = StreamSource(str(imu_path), str(folder / IMU_YAML_FILE) if stated_T else None)
+    if "imu0" in sources and kimu is not None and kimu.rate_hz is not None:
+        # checked against the stamps as an EuRoC folder's sensor.yaml rate_hz (check_log)
+        sources["imu0"].rate_hz, sources["imu0"].rate_said = kimu.rate_hz, f"{imu_yaml} says update_rate"
     noise_default = None
     if imu is not None and kimu is None:
         noise_default = f"{imu_path}: no IMU noise calibration (Kalibr imu.yaml); using defaults"
