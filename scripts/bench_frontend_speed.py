@@ -43,6 +43,8 @@ from fusion.parallel import keep_freed_memory
 from fusion.pipeline import (
     RunConfig,
     _unposed_load_observations,
+    floor_context,
+    front_context,
     localize_floor_chunk,
     localize_front_chunk,
     merge_floor_parts,
@@ -154,7 +156,7 @@ def stage_budget(log, n: int, repeats: int) -> dict:
         ):
             t["overhead"] = best_of(detect_all, repeats)
     cfg = RunConfig(workers=1, progress=False)
-    floor_ctx = (log.floor.camera, log.world, cfg)
+    floor_ctx = floor_context(log, cfg)  # the run's own (it grew the --map layout)
     paper_cost, pnp_cost = [], []
     for _ in range(repeats):
         # the paper's and PnP's halves of localize_*_chunk, timed apart
@@ -182,14 +184,7 @@ def stage_budget(log, n: int, repeats: int) -> dict:
     t0 = time.process_time()
     floor = merge_floor_parts([localize_floor_chunk(floor_ctx, dets["cam0"])], cfg)
     if "cam1" in dets and log.front is not None:
-        front_ctx = (
-            log.front.camera,
-            log.world,
-            floor.trajectories.get("paper"),
-            floor.trajectories["pnp"],
-            cfg,
-        )
-        localize_front_chunk(front_ctx, dets["cam1"])
+        localize_front_chunk(front_context(log, floor, cfg), dets["cam1"])
     t["localize_chunks"] = time.process_time() - t0
     codes = sum(len(d) for by in dets.values() for d in by.values())
     return {"t": t, "frames": n_frames, "codes": codes, "blobs": blobs_all, "frames_img": frames}
