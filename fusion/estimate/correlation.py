@@ -62,9 +62,9 @@ value (one-sided 5 %).  The costs are not symmetric: a white flight read as corr
 tau ~1.3 (covariances a little conservative), a correlated one read as white loses its whole
 inflation and the smoother's pose-scale floor (pipeline.fuse_stage), so its NEES jumps.  At
 3.09 (one-sided 10^-3, the corner-bias gate's level) 1 of the 27 sweep flights and 2 of 21
-held-out ones read white with tau 1.9; at 1.645 their fused NEES came nearer 6 (ob_ro20_real's
-smoother 11.1 -> 9.3, fps10_vel5_to5's 7.2 -> 5.1) and no pose NEES left its band
-(BENCHMARKS.md, twenty-seventh session)."""
+held-out ones read white with tau 1.9; at 1.645 their smoothers' NEES read 7.2 -> 5.1
+(fps10_vel5_to5), 11.1 -> 9.3 (ob_ro20_real), 5.5 -> 4.3 (h_occ_defocus), and no pose NEES
+left its band (BENCHMARKS.md, twenty-seventh session)."""
 MIN_PAIRS = 20
 """Fewer code pairs than this at a lag: the lag (and all later ones) is not used."""
 _TRIU = np.triu_indices(6)
