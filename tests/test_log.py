@@ -387,7 +387,7 @@ def test_clean_log_has_no_warnings(log_dir):
         (
             "gyro_deg_s",
             "gyroscope_units",
-            r"imu0/data.csv: white noise .*x sensor.yaml's "
+            r"imu0/data.csv: white noise .*x the stated "
             r"gyroscope_noise_density: the gyro looks like deg/s",
         ),
         (

@@ -411,8 +411,15 @@ def velocity_scale_of(report: dict | None) -> float:
 
 
 STATED_SENSORS = {
-    NoiseGroup.IMU: ("IMU", "imu0/sensor.yaml's noise densities"),
-    NoiseGroup.VELOCITY: ("velocity", "vel0/sensor.yaml's noise_m_s"),
+    # where the user states it: an EuRoC folder's sensor.yaml, a Kalibr imu.yaml, a bag's metadata
+    NoiseGroup.IMU: (
+        "IMU",
+        "the IMU's stated noise densities (imu0/sensor.yaml, Kalibr imu.yaml, a bag's metadata)",
+    ),
+    NoiseGroup.VELOCITY: (
+        "velocity",
+        "the velocity's stated noise_m_s (vel0/sensor.yaml, a video's velocity.yaml, a bag's metadata)",
+    ),
 }
 """The sensors whose noise the user states (a calibration, a datasheet) rather than the
 project's own model: kept as stated inside IMU_WARN_BAND (next_noise_scales)."""

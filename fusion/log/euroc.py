@@ -855,14 +855,14 @@ def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
         why = (
             f"99th percentile of |w| {p99:.3g} rad/s"
             if p99 > GYRO_MAX_PLAUSIBLE_RAD_S
-            else f"white noise {ratio:.3g}x sensor.yaml's gyroscope_noise_density"
+            else f"white noise {ratio:.3g}x the stated gyroscope_noise_density"
         )
         out.append(
             LogWarning(
                 "gyroscope_units",
                 1,
                 f"{where}: {why}: the gyro looks like deg/s (rad/s expected), or "
-                "sensor.yaml's noise is wrong",
+                "its stated noise is wrong (sensor.yaml, Kalibr imu.yaml, or the defaults)",
             )
         )
     dt = np.diff(imu.timestamps_ns)
