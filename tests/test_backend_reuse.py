@@ -174,11 +174,13 @@ def test_two_solves_agree_with_the_iteration_and_the_inflated_solve(
     args = (flight.frame_t, flight.imu, raw, load_obs)
     kw = dict(front_camera=FRONT_CAM, velocity=flight.velocity, config=cfg)
     initial_errors: list[float] = []
+    methods: list[str] = []
     real_smooth = smoother_module.smooth
 
     def recording(*a, **k):
         res = real_smooth(*a, **k)
         initial_errors.append(res.stats["initial_error"])
+        methods.append(res.stats["covariance_method"])
         return res
 
     monkeypatch.setattr(smoother_module, "smooth", recording)
@@ -198,6 +200,10 @@ def test_two_solves_agree_with_the_iteration_and_the_inflated_solve(
     )
     first, *later = initial_errors
     assert all(e < 1e-3 * first for e in later)
+    # the first solve's covariances feed the inflation, the last one's are the result; an
+    # inflated solve followed by another skips its own (nobody reads them)
+    assert methods[0] != "skipped" and methods[-1] != "skipped"
+    assert methods[1:-1] == ["skipped"] * (len(methods) - 2)
     sigma = np.sqrt(np.einsum("nii->ni", three.trajectory.covariances)[:, 3:])
     assert np.max(np.abs(_positions(two) - _positions(three)) / sigma) < TWO_SOLVE_POS_SIGMA
     Li = np.linalg.inv(np.linalg.cholesky(three.trajectory.covariances))
@@ -208,6 +214,46 @@ def test_two_solves_agree_with_the_iteration_and_the_inflated_solve(
     ratio = two.stats["correlation_inflation"]["trace_ratio_median"]
     assert ratio == pytest.approx(three.stats["correlation_inflation"]["trace_ratio_median"], rel=1e-3)
     assert ratio > 1.2  # the inflation is material
+
+
+def test_an_inflated_solve_followed_by_another_skips_its_covariances(flight, monkeypatch):
+    """solve_inflated_twice tells each inflated solve its own rule for solving again: one it
+    will discard skips its marginal covariances (covariance_method "skipped"), the last one
+    keeps them.  The noise-scale rule is made to ask for exactly one more round here (this
+    flight's converges after one)."""
+    cfg = FusionConfig(lm_relative_tol=TIGHT_TOL)
+    inf = _flight_inflation(flight.raw)
+    methods: list[str] = []
+    real_smooth = smoother_module.smooth
+
+    def recording(*a, **k):
+        res = real_smooth(*a, **k)
+        methods.append(res.stats["covariance_method"])
+        return res
+
+    first_round: list = []
+
+    def once_more(scales, comps, *rest):
+        if not first_round:
+            first_round.append(scales)
+        # a new, equal NoiseScales after the first inflated solve (one more round), then done
+        return replace(scales) if scales is first_round[0] else None
+
+    monkeypatch.setattr(smoother_module, "smooth", recording)
+    monkeypatch.setattr(variance, "next_noise_scales", once_more)
+    res = correlation.InflatedSmoother(inf)(
+        flight.frame_t,
+        flight.imu,
+        flight.raw,
+        flight.load_obs,
+        front_camera=FRONT_CAM,
+        velocity=flight.velocity,
+        config=cfg,
+    )
+    assert res.stats["noise_scales"]["inflated_solves"] == 2
+    assert len(methods) == 3 and methods[1] == "skipped"
+    assert methods[0] != "skipped" and methods[2] != "skipped"
+    assert res.trajectory.covariances is not None
 
 
 def test_covariances_at_first_scales_are_those_of_the_rescaled_problem(flight):

@@ -1127,6 +1127,7 @@ def smooth(
     as_built: asbuilt.AsBuiltInput | None = None,
     warm_start: gtsam.Values | None = None,
     reuse: SolveReuse | None = None,
+    resolves: ResolvePredicate | None = None,
 ) -> FusionResult:
     """Batch Levenberg-Marquardt smoothing of a whole flight (offline), with marginal covariances.
 
@@ -1152,7 +1153,9 @@ def smooth(
     solves after the first start from the previous solution and reuse its preintegrated IMU.
     A warm start changes only where Levenberg-Marquardt starts: the optimum is the same within
     its stopping tolerance.  `reuse`: a SolveReuse carried over from an earlier call (e.g. the
-    time-offset profile's solves of shifted frames), left holding this call's solution."""
+    time-offset profile's solves of shifted frames), left holding this call's solution.
+    `resolves` (variance.ResolvePredicate): whether the caller will solve again after the last
+    solve (then its covariances are skipped: stats covariance_method "skipped")."""
     config = config or FusionConfig()
     if reuse is None:
         reuse = SolveReuse()
@@ -1176,7 +1179,7 @@ def smooth(
             reuse=reuse if imu_ is imu else None,
         )
 
-    res, scaled = solve_noise_scaled(once, imu, raw, load_obs, config)  # variance.py
+    res, scaled = solve_noise_scaled(once, imu, raw, load_obs, config, then=resolves)  # variance.py
     if not (res.health.gate_skipped and imu is not None and config.reject_disagreeing_imu):
         return res
     # most fixes disagree with the IMU: its units, the world's scale or a clock are wrong, and

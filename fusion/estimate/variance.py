@@ -498,7 +498,11 @@ again after it: then that solve's covariances are never used and need not be com
 
 
 def solve_with_noise_scales(
-    solve: Callable[..., Any], iterations: int, what: str = "smoother", pose_floor: float = 0.0
+    solve: Callable[..., Any],
+    iterations: int,
+    what: str = "smoother",
+    pose_floor: float = 0.0,
+    then: ResolvePredicate | None = None,
 ) -> tuple[Any, dict]:
     """Iterated variance-component estimation around `solve(scales, resolves=pred) ->
     FusionResult` (whose stats['variance_components'] maps NoiseGroup -> VarianceComponent at
@@ -515,10 +519,15 @@ def solve_with_noise_scales(
     applied scale; per stated sensor (STATED_SENSORS: IMU, velocity) its final chi2/dof
     (`imu_chi2_per_dof`, `velocity_chi2_per_dof`; a warning outside IMU_WARN_BAND) and, when its
     stated noise was too small (next_noise_scales), the scale applied to it (`imu`, `velocity`;
-    a warning too: the stated noise is a calibration the user should correct)."""
+    a warning too: the stated noise is a calibration the user should correct).  `then`: with
+    no iteration left, the caller's own rule for whether it solves again after this
+    (correlation.solve_inflated_twice's iteration), so that a solve it will discard skips its
+    covariances too."""
     budget = max(int(iterations), 0)
 
     def resolves(scales_: NoiseScales, left: int) -> ResolvePredicate:
+        if left <= 0 and then is not None:
+            return then
         # Fixes that disagree with the IMU beyond the gate are a fault (units, world.yaml,
         # clock), not noise: the smoother's IMU-rejection path handles them, unscaled.
         return lambda comps, health: (
@@ -598,7 +607,9 @@ def solve_with_noise_scales(
     return res, report
 
 
-def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -> tuple:
+def solve_noise_scaled(
+    once: Callable, imu, raw: Trajectory, load_obs, config, then: ResolvePredicate | None = None
+) -> tuple:
     """The batch smoother's hook: `once(imu, raw, load_obs, config, require_motion=True,
     resolves=None)` (`resolves`: solve_with_noise_scales' ResolvePredicate) solved with the noise
     scales of `solve_with_noise_scales` (raw pose covariances, tight corner
@@ -622,7 +633,7 @@ def solve_noise_scaled(once: Callable, imu, raw: Trajectory, load_obs, config) -
         )
 
     res, report = solve_with_noise_scales(
-        solve, config.noise_scale_iterations, pose_floor=config.pose_scale_floor
+        solve, config.noise_scale_iterations, pose_floor=config.pose_scale_floor, then=then
     )
     res.stats.pop("variance_components", None)
     res.stats["noise_scales"] = report
