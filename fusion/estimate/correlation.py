@@ -26,8 +26,8 @@ reversible stationary series, so the sum runs over k while Gamma_k > 0 (initial 
 sequence), each Gamma_k cut to the smallest before it (initial monotone), up to MAX_LAG frames;
 tau = -1 + 2 sum_k Gamma_k.  The window thus does not end at a lag that happens to be small
 (the 800x600 sweep flight: rho = 0.02 / 0.17 / 0.17 / 0.11 / ... at lags 1 / 2 / 3 / 4, tau 3.7;
-the former rule, which stopped at the first lag below the significance gate, read tau = 1).  A
-white flight is left exactly as it was: tau is 1 unless the window's sum of rho is significant,
+the former rule, which stopped at the first lag below the significance gate, read tau = 1).
+tau is 1 unless the window's sum of rho is significant,
 sum rho > Z_GATE sqrt(sum_l 1 / pairs(l)) (each rho(l) of white noise has the standard error
 1 / sqrt(pairs(l)), Bartlett 1946; pairs counted per code, not per coordinate, conservatively;
 a false alarm on white residuals in 8 % of seeded trials, the window being chosen on the same
