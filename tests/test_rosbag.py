@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 import pytest
 
 from fusion.cli import main
@@ -562,6 +563,30 @@ def test_a_bag_imu_slower_than_its_kalibr_imu_yaml_says_is_a_rate_mismatch(tmp_p
         assert w.count == 1
         assert w.message == f"{bag}: topic /imu: samples every 10 ms (100 Hz) but {imu_yaml} says {said}"
         assert f"[rate_mismatch] x1: {w.message}" in inspect_log(bag, opts).problems
+
+
+def test_a_bag_read_with_an_euroc_calibration_folder_checks_its_imu_rate_hz(tmp_path, world_and_calib):
+    """`--calib FOLDER` (an EuRoC folder's mav0/*/sensor.yaml as the calibration): its
+    imu0/sensor.yaml `rate_hz` is a stated rate like Kalibr's update_rate, checked against the
+    bag's IMU stamps (it was read for the noise and mount only)."""
+    from fusion.camera import CameraModel
+
+    bag = _write_bag(tmp_path / "slow.mcap", _images(5), imu_samples=_resting_imu())  # IMU 100 Hz
+    mav = tmp_path / "calib" / "mav0"
+    (mav / "cam0").mkdir(parents=True)
+    (mav / "imu0").mkdir()
+    CameraModel(32, 24, 50.0, 50.0, 16.0, 12.0).save(mav / "cam0" / "sensor.yaml")
+    noise = {k: float(v) for k, v in vars(euroc.ImuNoise()).items()}
+    for stated, expect in ((100.0, False), (200.0, True)):
+        imu_yaml = mav / "imu0" / "sensor.yaml"
+        imu_yaml.write_text(yaml.safe_dump({**noise, "rate_hz": stated}))
+        flight = open_flight(bag, LogOptions(calib=tmp_path / "calib", world=tmp_path / "world.yaml"))
+        found = [w for w in flight.warnings if w.name == "rate_mismatch"]
+        if not expect:
+            assert not found, found
+            continue
+        (w,) = found
+        assert w.message == f"{bag}: topic /imu: samples every 10 ms (100 Hz) but {imu_yaml} says rate_hz 200"
 
 
 def _as_sqlite3(mcap: Path, folder: Path) -> Path:
