@@ -765,13 +765,22 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
 # ============================================================================ plausibility
 
 
+def stated_rate_hz(value: object) -> float | None:
+    """A rate as a calibration states it (sensor.yaml's rate_hz, Kalibr imu.yaml's update_rate)
+    when it is one check_log can compare with: a finite positive number; else None (it states
+    nothing: absent, 0, negative, infinite, not a number)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    v = float(value)
+    return v if math.isfinite(v) and v > 0 else None
+
+
 def _declared_rate(sensor_path: Path) -> float | None:
     """rate_hz as sensor.yaml states it (None when absent); the file was validated already."""
     try:
-        v = load_yaml(sensor_path, LogError).get("rate_hz")
+        return stated_rate_hz(load_yaml(sensor_path, LogError).get("rate_hz"))
     except LogError:
         return None
-    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 else None
 
 
 _UNIT_NAMES = {1: "microseconds", 2: "milliseconds", 3: "seconds"}
@@ -784,9 +793,7 @@ def _check_rate(name: str, src: StreamSource, ts: np.ndarray) -> list[LogWarning
     `src.data` names the samples in the messages."""
     if len(ts) < 2:
         return []
-    where, rate_hz = src.data, src.rate_hz
-    if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
-        rate_hz = None  # a rate of 0 or a negative one states nothing to compare with
+    where, rate_hz = src.data, stated_rate_hz(src.rate_hz)
     dt = float(np.median(np.diff(ts)))
     if rate_hz is None:
         if dt < MIN_PLAUSIBLE_DT_NS:

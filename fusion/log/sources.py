@@ -149,9 +149,9 @@ def _euroc_calibration(root: Path, out: ExternalCalibration) -> None:
         if "T_BS" in cfg:
             out.T_body_imu = read_T_BS(cfg["T_BS"], str(imu_yaml), LogError)
             out.where["imu0"] = str(imu_yaml)
-        rate = cfg.get("rate_hz")  # checked against a bag's IMU stamps as a folder's are (check_log)
-        if isinstance(rate, (int, float)) and not isinstance(rate, bool) and rate > 0:
-            out.imu_rate_hz, out.imu_rate_said = float(rate), f"{imu_yaml} says rate_hz"
+        rate = euroc.stated_rate_hz(cfg.get("rate_hz"))  # checked against a bag's IMU stamps (check_log)
+        if rate is not None:
+            out.imu_rate_hz, out.imu_rate_said = rate, f"{imu_yaml} says rate_hz"
     if not out.cameras:
         raise LogError(f"{mav}: no cam0/sensor.yaml or cam1/sensor.yaml")
 
