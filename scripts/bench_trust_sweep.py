@@ -195,12 +195,17 @@ def table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("work", type=Path)
-    ap.add_argument("--flights", nargs="+", choices=sorted({**FLIGHTS, **HELD_OUT}), default=list(FLIGHTS))
+    ap.add_argument(
+        "--flights",
+        nargs="+",
+        choices=sorted({**FLIGHTS, **HELD_OUT}),
+        help="run only these (default: every flight of the sweep, or of --held-out)",
+    )
     ap.add_argument("--held-out", action="store_true", help="run the HELD_OUT flights instead of the sweep")
     ap.add_argument("--table", type=Path, help="write the markdown table here too")
     args = ap.parse_args(argv)
     rows = []
-    for name in list(HELD_OUT) if args.held_out else args.flights:
+    for name in args.flights or list(HELD_OUT if args.held_out else FLIGHTS):
         row = run_flight(args.work, name)
         rows.append(row)
         print(json.dumps(row), flush=True)
