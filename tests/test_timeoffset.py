@@ -20,6 +20,7 @@ from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.estimate.smoother import midpoint_specific_force
 from fusion.estimate.timeoffset import (
     CameraOffset,
+    ClockDrift,
     OffsetSource,
     TimeOffsetConfig,
     add_stamp_covariance,
@@ -253,7 +254,7 @@ def test_a_drifting_floor_clock_is_measured_and_corrected():
     the first and last thirds, applied, and the corrected floor stamps are the true times within
     1 ms over the whole flight."""
     fl = _drifting(_flight(24.0, 8, 0.007), 500.0)
-    cfg = TimeOffsetConfig(profile_window_s=4.0)
+    cfg = TimeOffsetConfig(profile_window_s=4.0, drift_min_span_s=12.0)
     off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
     c0 = off.cameras["cam0"]
     assert c0.drift is not None and c0.drift.applied and c0.drift.sigma is not None
@@ -277,7 +278,8 @@ def test_a_drifting_front_clock_is_measured_from_the_thirds_of_its_sightings():
         400e-6 * (fl["truth"].timestamps_ns - fl["truth"].timestamps_ns[0])
     ).astype(np.int64)
     fl = {**fl, "obs": obs, "t_front": t_front}
-    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=4.0))
+    cfg = TimeOffsetConfig(profile_window_s=4.0, drift_min_span_s=12.0)
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
     c1 = off.cameras["cam1"]
     assert c1.drift is not None and c1.drift.applied, c1.as_dict()
     assert abs(c1.drift.rate - 400e-6) < max(3 * c1.drift.sigma, 40e-6), c1.drift.as_dict()
@@ -288,16 +290,43 @@ def test_a_drifting_front_clock_is_measured_from_the_thirds_of_its_sightings():
 
 def test_a_steady_clock_keeps_its_stamps_and_a_short_flight_is_not_checked():
     fl = _flight(24.0, 9, 0.0)
-    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=4.0))
+    cfg = TimeOffsetConfig(profile_window_s=4.0, drift_min_span_s=12.0)
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
     c0 = off.cameras["cam0"]
     assert c0.drift is not None and not c0.drift.applied
     assert abs(c0.drift.rate) < 3 * c0.drift.sigma
     assert not off.any_applied
     np.testing.assert_array_equal(shift_log(_log(fl), off).floor.timestamps_ns, fl["t_floor"])
-    short = resolve_time_offsets(
-        _log(fl), fl["raw"], fl["obs"], config=TimeOffsetConfig(profile_window_s=10.0)
-    )
-    assert short.cameras["cam0"].drift is None  # 24 s < 3 windows of 10 s
+    short = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=replace(cfg, drift_min_span_s=30.0))
+    assert short.cameras["cam0"].drift is None  # 24 s < drift_min_span_s (30 s)
+
+
+def test_a_rate_left_uncorrected_widens_the_stamps_by_what_it_may_hold():
+    """A rate below 3 sigma is not corrected, but the stamps' consider variance holds the
+    unbiased estimate of its square (rate^2 - sigma^2, at least 0) over the flight's span; an
+    applied rate only its sigma^2; the offset's own variance adds to either."""
+    span, t_ref = 32.0, 16_000_000_000
+    left = ClockDrift(33e-6, 19e-6, t_ref, span, applied=False)
+    assert left.stamp_variance_s2 == pytest.approx((33e-6**2 - 19e-6**2) * span**2 / 12)
+    assert ClockDrift(-1e-6, 8e-6, t_ref, 45.0, applied=False).stamp_variance_s2 == 0.0  # noise
+    applied = ClockDrift(33e-6, 19e-6, t_ref, span, applied=True)
+    assert applied.stamp_variance_s2 == pytest.approx(19e-6**2 * span**2 / 12)
+    offset = CameraOffset("cam0", 4e-3, 1e-4, OffsetSource.ESTIMATED, applied_s=4e-3, drift=left)
+    assert offset.stamp_variance_s2 == pytest.approx(1e-4**2 + left.stamp_variance_s2)
+
+
+def test_a_drift_is_checked_on_a_flight_shorter_than_three_profile_windows():
+    """A 36 s flight (the default 30 s profile window) whose floor clock runs 300 ppm fast:
+    10.8 ms over the flight, which one offset leaves 5.4 ms off at its ends.  Its thirds are
+    profiled whole; the rate is found and applied (three profile windows, 90 s, had been the
+    least span checked)."""
+    fl = _drifting(_flight(36.0, 10, 0.004), 300.0)
+    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"])
+    c0 = off.cameras["cam0"]
+    assert c0.drift is not None and c0.drift.applied and c0.drift.sigma is not None, c0.as_dict()
+    assert abs(c0.drift.rate - 300e-6) < max(3 * c0.drift.sigma, 60e-6), c0.drift.as_dict()
+    err_ms = np.abs(shift_log(_log(fl), off).floor.timestamps_ns - fl["truth"].timestamps_ns) * 1e-6
+    assert err_ms.max() < 1.0, err_ms.max()
 
 
 def test_simulator_stamps_frames_with_a_clock_drift(tmp_path):

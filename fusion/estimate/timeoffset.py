@@ -108,10 +108,11 @@ class TimeOffsetConfig:
     # the smoother's relative tolerance while profiling: tight enough that E's solve noise is
     # far below its change over xatol_s
     profile_lm_relative_tol: float = 1e-9
-    # the floor camera's clock rate (ClockDrift): checked on flights of at least this many
-    # profile windows (a window in each of the flight's first and last thirds)
+    # the cameras' clock rates (ClockDrift): checked on flights spanning at least this long,
+    # each third profiled on its best profile_window_s window, or whole when shorter (three
+    # profile windows, 90 s, had left 40 ppm unchecked on a 45 s flight: its ends 0.9 ms off)
     check_drift: bool = True
-    drift_min_windows: float = 3.0
+    drift_min_span_s: float = 30.0
     # profiles made again on the corrected stamps after a rate is applied: a window's estimate
     # belongs to where its fixes see motion, not to its centre, which the first line misreads
     # while the offset still drifts across the window (100 ppm over 100 s: 108 +- 2 ppm, the
@@ -255,9 +256,15 @@ class ClockDrift:
 
     @property
     def stamp_variance_s2(self) -> float:
-        """E[stamp error^2] over the flight that the applied rate leaves: sigma^2 span^2 / 12
-        (the mean of (t - t_ref)^2 over a flight centred on t_ref)."""
-        return (self.sigma or 0.0) ** 2 * self.span_s**2 / 12.0 if self.applied else 0.0
+        """E[stamp error^2] over the flight that the rate leaves: E[rate error^2] span^2 / 12 (the
+        mean of (t - t_ref)^2 over a flight centred on t_ref).  The rate's error is sigma^2 when
+        applied; when left unapplied (below 3 sigma) it is the whole rate, whose square has the
+        unbiased estimate max(rate^2 - sigma^2, 0): 40 ppm read 33 +- 19 on a 32 s flight and,
+        without the term, put every pose NEES at 17-19; rate^2 + sigma^2 instead also widened
+        the flights with no drift (BENCHMARKS.md, twenty-eighth session)."""
+        s2 = (self.sigma or 0.0) ** 2
+        rate_s2 = s2 if self.applied else max(self.rate**2 - s2, 0.0)
+        return rate_s2 * self.span_s**2 / 12.0
 
     def as_dict(self) -> dict:
         return {
@@ -715,7 +722,7 @@ def estimate_floor_drift(
     own profile `main` (unless its window overlaps one of theirs: the same fixes), and the
     weighted least-squares line through their residuals; `ClockDrift.offset_s` is the line at
     the flight's middle.  None when not checked: TimeOffsetConfig.check_drift off, a flight
-    shorter than drift_min_windows profile windows, or a profile without curvature (sigma).
+    shorter than drift_min_span_s, or a profile without curvature (sigma).
     `variance_factor` widens each window's sigma as resolve_time_offsets widens the flight's
     (time-correlated fixes).  EstimationError when a third cannot be profiled."""
     config = config or TimeOffsetConfig()
@@ -724,7 +731,7 @@ def estimate_floor_drift(
         return None
     t0, t1 = int(frame_t[0]), int(frame_t[-1])
     span_s = (t1 - t0) / NS_PER_S
-    if span_s < config.drift_min_windows * config.profile_window_s:
+    if span_s < config.drift_min_span_s:
         return None
     widen = math.sqrt(max(variance_factor, 1.0))
     third = (t1 - t0) // 3
@@ -995,7 +1002,7 @@ def estimate_front_drift(
     """The front camera's clock rate (ClockDrift): the front profile (estimate_front_offset) of
     the sightings of each third of their span, each at its sightings' mean stamp, and the
     weighted line through the three (independent: no sighting is in two).  None when not
-    checked (check_drift off, a span shorter than drift_min_windows profile windows, a profile
+    checked (check_drift off, a span shorter than drift_min_span_s, a profile
     without curvature); EstimationError when a third has too few sightings."""
     config = config or TimeOffsetConfig()
     obs = usable_sightings(sightings)
@@ -1004,7 +1011,7 @@ def estimate_front_drift(
     t = np.array([o.timestamp_ns for o in obs], dtype=np.int64)
     t0, t1 = int(t.min()), int(t.max())
     span_s = (t1 - t0) / NS_PER_S
-    if span_s < config.drift_min_windows * config.profile_window_s:
+    if span_s < config.drift_min_span_s:
         return None
     edges = [t0 + (t1 - t0) * k // 3 for k in range(4)]
     points: list[tuple[int, float, float]] = []
