@@ -113,6 +113,13 @@ HELD_OUT: dict[str, str] = {
     "ob_ro20_real": (
         "--scenario oblique --duration 20 --seed 82 --start 40 --readout-ms 20 --camera-effects realistic"
     ),
+    # twenty-eighth session: a camera clock drifting on a flight too short for the 90 s check
+    # (h_ro15_clock's 40 ppm on 45 s), and the same flight without the drift
+    "h_drift45": "--duration 45 --seed 91 --readout-ms 15 --time-offset-ms 4 --clock-drift-ppm 40",
+    "h_nodrift45": "--duration 45 --seed 92 --readout-ms 15 --time-offset-ms 4",
+    "h_drift32_800": (
+        "--duration 32 --seed 93 --fps 20 --resolution 800x600 --time-offset-ms -6 --clock-drift-ppm 40"
+    ),
 }
 RUN_ARGS: dict[str, str] = {"h_fish_mount": "--calibrate-extrinsics"}
 """`fusion run` options beyond the sweep's (a flight with a mount error is calibrated)."""
