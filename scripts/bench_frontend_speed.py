@@ -57,7 +57,7 @@ from fusion.qr.detect import (
     detect_frames,
     detection_chunks,
 )
-from fusion.qr.refine import refine_frames
+from fusion.qr.refine import POLISHED_CAMERAS, refine_frames
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -125,7 +125,8 @@ def stage_budget(log, n: int, repeats: int) -> dict:
         for name, ims in frames.items():
             cam = log.cameras[name].camera
             for b_im, b_raw in zip(batches(ims), batches(raws[name])):
-                refine_frames(b_im, [[(c.corners_px, c.modules) for c in rs] for rs in b_raw], cam)
+                codes = [[(c.corners_px, c.modules) for c in rs] for rs in b_raw]
+                refine_frames(b_im, codes, cam, polish=name in POLISHED_CAMERAS)
 
     t["refine"] = best_of(refine_all, repeats)
     dets: dict[str, dict[int, list]] = {}
@@ -149,10 +150,14 @@ def stage_budget(log, n: int, repeats: int) -> dict:
         cam = log.cameras[name].camera
         for b_im, b_raw in zip(batches(ims), batches(raws[name])):
             codes = [[(c.corners_px, c.modules) for c in rs] for rs in b_raw]
-            refined[tuple(id(im) for im in b_im)] = refine_frames(b_im, codes, cam)
+            refined[tuple(id(im) for im in b_im)] = refine_frames(
+                b_im, codes, cam, polish=name in POLISHED_CAMERAS
+            )
     with mock.patch.object(detect_module, "_detect_image", lambda im, backend: decoded[id(im)]):
         with mock.patch.object(
-            detect_module, "refine_frames", lambda ims, codes, cam, stats: refined[tuple(map(id, ims))]
+            detect_module,
+            "refine_frames",
+            lambda ims, codes, cam, stats, polish: refined[tuple(map(id, ims))],
         ):
             t["overhead"] = best_of(detect_all, repeats)
     cfg = RunConfig(workers=1, progress=False)

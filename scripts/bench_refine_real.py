@@ -111,7 +111,7 @@ def _match(ref: list[np.ndarray], raw: np.ndarray, module_px: float) -> np.ndarr
     return None
 
 
-def measure(dirs: list[Path], reference: dict[str, list[np.ndarray]] | None = None):
+def measure(dirs: list[Path], reference: dict[str, list[np.ndarray]] | None = None, polish: bool = False):
     rows = []
     for d in dirs:
         for path in sorted(Path(d).iterdir()):
@@ -121,7 +121,7 @@ def measure(dirs: list[Path], reference: dict[str, list[np.ndarray]] | None = No
             codes = decode(image)
             if not codes:
                 continue
-            res = refine_frames([image], [[(c, n) for _, c, n, _ in codes]], stats=STATS)[0]
+            res = refine_frames([image], [[(c, n) for _, c, n, _ in codes]], stats=STATS, polish=polish)[0]
             for (_text, raw, n, bits), r in zip(codes, res):
                 name = f"{path.parent.name}/{path.name}"
                 if reference is not None:
@@ -242,8 +242,13 @@ def main(argv=None) -> int:
     ap.add_argument("--csv", type=Path, default=None, help="write the reference corners here")
     ap.add_argument("--ref", type=Path, default=None, help="read reference corners (a --csv output)")
     ap.add_argument("--per-code", type=Path, default=None, help="write each code's corner errors here")
+    ap.add_argument(
+        "--polish",
+        action="store_true",
+        help="refine as the front camera does (sharp codes polished from whole pixels)",
+    )
     args = ap.parse_args(argv)
-    rows = measure(args.dirs, None if args.ref is None else read_reference(args.ref))
+    rows = measure(args.dirs, None if args.ref is None else read_reference(args.ref), args.polish)
     summarise(rows)
     if args.csv:
         write_csv(rows, args.csv)

@@ -48,7 +48,13 @@ from fusion.camera import CameraModel
 from fusion.errors import DetectionError
 from fusion.fileio import atomic_open, csv_safe, csv_unsafe, open_regular
 from fusion.parallel import keep_freed_memory, parallel_map, worker_count
-from fusion.qr.refine import FALLBACK_SIGMA_PX, RefineStats, modules_for_version, refine_frames
+from fusion.qr.refine import (
+    FALLBACK_SIGMA_PX,
+    POLISHED_CAMERAS,
+    RefineStats,
+    modules_for_version,
+    refine_frames,
+)
 from fusion.qr.track import CodeTracker
 from fusion.types import QRDetection
 
@@ -57,7 +63,7 @@ FORMAT_VERSION = 5  # 5: `tracked` column; 4: payloads spreadsheet-safe; image s
 CACHE_NAME = "detections.csv"
 REFINE_METHOD = (
     # change when refine.py's output changes
-    "finder-crossings+finder-model-homography+alignment+checks+dilation-3sigma+damped-widths+small-modules/12"
+    "finder-crossings+finder-model-homography+alignment+checks+dilation-3sigma+damped-widths+small-modules+front-pixel-polish/13"
 )
 CACHE_HEADER = (
     "camera",
@@ -322,7 +328,9 @@ def detect_frames(
     A code whose refinement fails its self-check keeps the decoder's corners with
     RAW_CORNER_SIGMA_PX (and that sigma squared times I_8 as covariance), counted by reason in
     `stats`.  With `tracker` (fusion.qr.track.CodeTracker, fed the frames in time order) codes
-    decoded in earlier frames and not decoded in a frame are tracked into it (`tracked=True`)."""
+    decoded in earlier frames and not decoded in a frame are tracked into it (`tracked=True`).
+    A camera named in POLISHED_CAMERAS (the front camera) has its sharp codes polished
+    (fusion.qr.refine._polish)."""
     timestamps_ns = [0] * len(images) if timestamps_ns is None else list(timestamps_ns)
     if camera is not None and camera.equidistant:
         decoded = [_detect_rectified(image, backend, camera) for image in images]
@@ -334,6 +342,7 @@ def detect_frames(
         [[(c.corners_px, c.modules) for c in codes] for codes, _ in decoded],
         camera,
         stats=rstats,
+        polish=camera_name in POLISHED_CAMERAS,
     )
     out = []
     for image, (codes, dropped), refined_frame, ts in zip(images, decoded, refined_all, timestamps_ns):

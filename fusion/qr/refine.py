@@ -66,6 +66,7 @@ import cv2
 import numpy as np
 
 from fusion.camera import CameraModel
+from fusion.types import CameraRole
 
 FINDER_MODULES = 7
 _SPAN_MARGIN = 0.6  # modules kept clear of a finder's ends (neighbouring edge, corner blur)
@@ -155,6 +156,18 @@ class _Distortion:
         xd = xn * radial + (2 * p1) * xy2 + p2 * (r2 + 2 * x2)
         yd = yn * radial + p1 * (r2 + 2 * y2) + (2 * p2) * xy2
         return xd * x.dtype.type(c.fu) + x.dtype.type(c.cu), yd * y.dtype.type(c.fv) + y.dtype.type(c.cv)
+
+    def gradient_to_distorted(self, xy: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Gradients (N, 2) of a function of the undistorted pixel at xy (N, 2) -> the same
+        gradients w.r.t. the distorted pixel: grad D^-1, D = d distorted / d undistorted there
+        (central differences of 0.5 px)."""
+        if self.camera is None:
+            return grad
+        e = 0.5
+        dx = (self.distort(xy + [e, 0.0]) - self.distort(xy - [e, 0.0])) / (2 * e)
+        dy = (self.distort(xy + [0.0, e]) - self.distort(xy - [0.0, e])) / (2 * e)
+        D = np.stack([dx, dy], axis=2)  # (N, 2, 2): columns d distorted / d x, d y
+        return np.linalg.solve(D.transpose(0, 2, 1), grad[..., None])[..., 0]
 
     def distort(self, uv: np.ndarray) -> np.ndarray:
         if self.camera is None:
@@ -304,6 +317,7 @@ _MODEL_GROUP = 3  # consecutive profiles averaged into one before the fit
 _MODEL_WINDOW = (-2.0, 3.0)  # sampled span (modules, + inwards)
 _MODEL_INNER_LO = -1.0  # interior edges: data modules beyond this
 _MODEL_UNIFORM = 11  # samples spread evenly over the window ...
+_UNIFORM_ON = (0, 1, 2)  # whole-pixel samples: the profiles of a group that take the uniform ones
 _MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)  # ... and 8 within 2 px of the edge
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
 # how each transition moves when the dark modules grow by d on every side (ink spread, clipped
@@ -320,9 +334,16 @@ GROWTH_MIN_Z = 3.0
 _MODEL_ITERATIONS = (0, 3, 1)  # Gauss-Newton iterations per pass (0: 50 % crossings only)
 _MODEL_STEP_CLIP = (0.35, 0.1)  # largest edge step per iteration (modules): first / later passes
 STAGE2_PASSES = len(_MODEL_ITERATIONS)
+_POLISH_ITERATIONS = 2  # Gauss-Newton iterations of the whole-pixel polish (_polish); 0: none
+_POLISH_MAX_MOVE_PX = 0.2  # a polish that moves a corner farther is not taken (_polish)
+_POLISH_MAX_WIDTH_PX = 2.0  # codes whose fitted blur box is wider are not polished (_polish)
+POLISHED_CAMERAS = frozenset({CameraRole.FRONT.value})
+"""The cameras (CameraRole values) whose codes get the whole-pixel polish (_polish): the front
+camera's load codes, not the floor camera's (see _polish)."""
 _WIDTH_GRID_PX = np.array([2.0, 4.5, 8.0])  # start of the width search (first model pass)
 _MODEL_MIN_WIDTH_PX = 0.5  # floor of the fitted motion-blur box width (px)
 _MODEL_PSF_PX = 1.5  # second box (px), its start: lens / pixel PSF and the bilinear sampling
+_PIXEL_PSF_PX = 0.5  # the same for whole-pixel samples (no interpolation's own blur)
 _MIN_GOOD_PROFILES = 10  # of 24 (averaged) per code
 # fit the second box's width too (True), or keep it at _MODEL_PSF_PX (False, the default): fitted,
 # it halves the defocus disc's bias (defocus r 1 flight: smoother NEES 54 -> 26, EKF 14 -> 10) and
@@ -611,6 +632,47 @@ def _sample_profiles(
     return vals, inside, clipped
 
 
+def _sample_pixels(
+    images: list[np.ndarray],
+    image_rows: np.ndarray,
+    dist: _Distortion,
+    H: np.ndarray,
+    uv: np.ndarray,
+    grad: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel values along profiles without interpolation: row i reads, for each point uv[i, k]
+    (module coordinates, mapped by H[i] (module -> undistorted px) and distorted), the pixel
+    whose centre is nearest, in images[image_rows[i]].  Returns (y (R, K) float32, inside (R, K),
+    clipped (R, K): the pixel is within _CLIP_MARGIN_DN of the image's top value, ds (R, K)
+    float32: how far that centre lies from the point along the profile, in modules, from
+    `grad` (R, 2), the gradient of the module offset along the profile in distorted pixels,
+    pixel (R, K): the pixel's index in its image)."""
+    H = H.astype(np.float32)
+    u = uv[..., 0].astype(np.float32)
+    v = uv[..., 1].astype(np.float32)
+    w = H[:, 2, 0:1] * u + H[:, 2, 1:2] * v + H[:, 2, 2:3]
+    x = (H[:, 0, 0:1] * u + H[:, 0, 1:2] * v + H[:, 0, 2:3]) / w
+    y = (H[:, 1, 0:1] * u + H[:, 1, 1:2] * v + H[:, 1, 2:3]) / w
+    x, y = dist.distort_xy(x, y)
+    xr, yr = np.rint(x), np.rint(y)
+    gr = grad.astype(np.float32)
+    ds = gr[:, 0:1] * (xr - x) + gr[:, 1:2] * (yr - y)
+    vals = np.empty(x.shape, np.float32)
+    inside = np.empty(x.shape, bool)
+    pixel = np.empty(x.shape, np.int64)
+    top = np.iinfo(np.uint8).max - _CLIP_MARGIN_DN
+    for i, rows in _rows_by_image(image_rows, len(images)):
+        img = images[i]
+        h, wd = img.shape
+        xi, yi = xr[rows], yr[rows]
+        inside[rows] = (xi >= 0) & (yi >= 0) & (xi <= wd - 1) & (yi <= h - 1)
+        col = np.clip(xi, 0, wd - 1).astype(np.intp)
+        row = np.clip(yi, 0, h - 1).astype(np.intp)
+        vals[rows] = img[row, col]
+        pixel[rows] = row * wd + col
+    return vals, inside, vals >= top, ds, pixel
+
+
 def _rows_by_image(image_rows: np.ndarray, n_images: int) -> list[tuple[int, slice | np.ndarray]]:
     """(image index, its rows) for the rows of a sampling array labelled by image (R,): slices
     when the labels are sorted (as refine_frames lays codes out, image by image: a slice is a
@@ -639,6 +701,7 @@ def _model_edge_points(
     fit_dilation: bool = True,
     psf0_px: np.ndarray | None = None,
     fit_psf: bool = True,
+    whole_pixels: bool = False,
 ) -> _ModelFit:
     """Fit the finder's known profile across each of the 12 finder edges of every code of a
     batch (module docstring), all codes' profiles in one array; code c is in images[image_of[c]].
@@ -673,45 +736,110 @@ def _model_edge_points(
     )
     bad_geom = ~(np.isfinite(g) & (g > 0))
     g = np.where(bad_geom, 1.0, g)
-    # samples: 11 over the window, 8 dense within 2 px of the predicted edge (per code)
-    lo, hi = _MODEL_WINDOW
-    s_code = np.sort(
-        np.concatenate(
-            [
-                np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM), (C, _MODEL_UNIFORM)),
-                _MODEL_DENSE_PX[None] / module_px[:, None],
-            ],
+    if whole_pixels:
+        # Each sample is the pixel nearest its point, at that pixel centre's own offset (module
+        # coordinates, to first order: the offset's gradient along `inward`).  Interpolating the
+        # image instead (bilinear) reads a sharp edge through a reconstruction that depends on
+        # where the edge falls between pixel centres, not a blur: edge errors of 0.02-0.045 px,
+        # systematic per edge (a code at ~4 px per module, 1 px ramps, or area-sampled), that no
+        # blur width in the model removes (BENCHMARKS.md, twenty-sixth session).  Per group, the
+        # middle profile's _MODEL_UNIFORM samples over the window and every profile's dense ones
+        # near the edge (where the edge's position is read), side by side, sorted by offset.
+        G = _MODEL_GROUP
+        lo, hi = _MODEL_WINDOW
+        dense = (_MODEL_DENSE_PX[None] / module_px[:, None])[pr.code]  # (P, D)
+        uniform = np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM), (P, _MODEL_UNIFORM))
+        blocks = [(j, b) for j in range(G) for b in ((uniform, dense) if j in _UNIFORM_ON else (dense,))]
+        s = np.concatenate([b for _, b in blocks], axis=1)  # (P, K)
+        K = s.shape[1]
+        at = pr.uv_sampled.reshape(P, G, 2)
+        at = np.concatenate([np.repeat(at[:, j : j + 1], b.shape[1], axis=1) for j, b in blocks], axis=1)
+        grad_u = np.stack([J[:, 1, 1], -J[:, 0, 1]], axis=1) / det[:, None]
+        grad_v = np.stack([-J[:, 1, 0], J[:, 0, 0]], axis=1) / det[:, None]
+        grad_in = np.where((pr.axis == 0)[:, None], grad_u, grad_v) * np.sum(pr.inward, axis=1)[:, None]
+        y, inside, clipped, ds, pixel = _sample_pixels(
+            images,
+            image_of[pr.code],
+            dist,
+            Hp,
+            at + s[..., None] * pr.inward[:, None, :],
+            dist.gradient_to_distorted(xy0, grad_in),
+        )
+        s = s + np.nan_to_num(ds)  # (NaN: bad_geom)
+        # a pixel read twice in a group (dense samples 0.5 px apart, profiles less than a pixel
+        # apart along the edge) is one sample, at one offset: its repeats are left out
+        by_pixel = np.argsort(pixel, axis=1, kind="stable")
+        repeat = np.zeros((P, K), bool)
+        sorted_pixel = np.take_along_axis(pixel, by_pixel, axis=1)
+        np.put_along_axis(repeat, by_pixel[:, 1:], sorted_pixel[:, 1:] == sorted_pixel[:, :-1], axis=1)
+        # sorted by offset, the repeats last and cut where no row has more unique pixels (the
+        # model's cost is per sample: about half of them are repeats)
+        order = np.argsort(np.where(repeat, np.inf, s), axis=1)
+        K = int(np.max(np.sum(~repeat, axis=1))) if P else 0
+        order = order[:, :K]
+        s, y, inside, clipped_any, repeat = (
+            np.take_along_axis(a, order, axis=1) for a in (s, y, inside, clipped, repeat)
+        )
+        s = s.astype(np.float32)
+        ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
+        used = np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None] & ~repeat
+        # clipped samples out of the fit where enough remain (module comment at _CLIP_MARGIN_DN)
+        unclipped = used & ~clipped_any
+        # (as a share of the samples: a binary image's light pixels are all at the top value, and
+        # its dark ones alone cannot place an edge; the interpolated profiles' 10 of 19)
+        # and only where some light samples remain unclipped (the edges' partly covered pixels): a
+        # profile's dark samples alone fix no contrast
+        with np.errstate(invalid="ignore"):  # (a row without used samples: NaN, no light ones)
+            mid = 0.5 * (
+                np.max(np.where(used, y, -np.inf), axis=1) + np.min(np.where(used, y, np.inf), axis=1)
+            )
+        light = np.sum(unclipped & (y > mid[:, None]), axis=1)
+        drop_clipped = (
+            np.sum(unclipped, axis=1) >= (_MIN_UNCLIPPED_SAMPLES / 19.0) * np.sum(used, axis=1)
+        ) & (light >= 3)
+        m = np.where(drop_clipped[:, None], unclipped, used).astype(np.float32)
+    else:
+        # samples: 11 over the window, 8 dense within 2 px of the predicted edge (per code)
+        lo, hi = _MODEL_WINDOW
+        s_code = np.sort(
+            np.concatenate(
+                [
+                    np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM), (C, _MODEL_UNIFORM)),
+                    _MODEL_DENSE_PX[None] / module_px[:, None],
+                ],
+                axis=1,
+            ),
             axis=1,
-        ),
-        axis=1,
-    )
-    s = s_code[pr.code]  # (P, K)
-    K = s.shape[1]
-    # (the crossings pass too: one profile per group was measurably worse on a flight)
-    y, inside, clipped = _sample_profiles(
-        images,
-        np.repeat(image_of[pr.code], _MODEL_GROUP),
-        dist,
-        np.repeat(Hp, _MODEL_GROUP, axis=0),
-        pr.uv_sampled,
-        np.repeat(pr.inward, _MODEL_GROUP, axis=0),
-        np.repeat(s, _MODEL_GROUP, axis=0),
-    )
-    # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
-    y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
-    clipped_any = np.any(clipped.reshape(P, _MODEL_GROUP, K), axis=1)
-    s = s.astype(np.float32)
-    ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
-    used = np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]
-    # clipped samples out of the fit where enough remain (module comment at _CLIP_MARGIN_DN)
-    unclipped = used & ~clipped_any
-    drop_clipped = np.sum(unclipped, axis=1) >= _MIN_UNCLIPPED_SAMPLES
-    m = np.where(drop_clipped[:, None], unclipped, used).astype(np.float32)
+        )
+        s = s_code[pr.code]  # (P, K)
+        K = s.shape[1]
+        # (the crossings pass too: one profile per group was measurably worse on a flight)
+        y, inside, clipped = _sample_profiles(
+            images,
+            np.repeat(image_of[pr.code], _MODEL_GROUP),
+            dist,
+            np.repeat(Hp, _MODEL_GROUP, axis=0),
+            pr.uv_sampled,
+            np.repeat(pr.inward, _MODEL_GROUP, axis=0),
+            np.repeat(s, _MODEL_GROUP, axis=0),
+        )
+        # the model fit runs in float32 (samples are 8-bit, edges wanted to ~1e-3 px)
+        y = y.reshape(P, _MODEL_GROUP, K).mean(axis=1)
+        clipped_any = np.any(clipped.reshape(P, _MODEL_GROUP, K), axis=1)
+        s = s.astype(np.float32)
+        ok = inside.reshape(P, -1).all(axis=1) & ~bad_geom
+        used = np.where(pr.boundary[:, None], True, s >= _MODEL_INNER_LO) & ok[:, None]
+        # clipped samples out of the fit where enough remain (module comment at _CLIP_MARGIN_DN)
+        unclipped = used & ~clipped_any
+        drop_clipped = np.sum(unclipped, axis=1) >= _MIN_UNCLIPPED_SAMPLES
+        m = np.where(drop_clipped[:, None], unclipped, used).astype(np.float32)
     inner = (~pr.boundary).astype(np.float32)[:, None]
     lbl = 2 * pr.code + pr.axis  # width groups
     max_w = 4.0 * module_px + 2.0  # (C,)
     g32 = g.astype(np.float32)[:, None]
-    psf = np.float32(_MODEL_PSF_PX) * g32
+    psf_box = _PIXEL_PSF_PX if whole_pixels else _MODEL_PSF_PX
+    per_profile = float(_MODEL_GROUP) if whole_pixels else 1.0
+    psf = np.float32(psf_box) * g32
     if width0_px is None:
         # e: the first crossing, from outside, of the level halfway between outside and darkest
         out_lvl = np.where(pr.boundary, y[:, 0], y[np.arange(P), np.argmin(np.abs(s + 0.5), axis=1)])
@@ -775,16 +903,16 @@ def _model_edge_points(
     any_free = bool(free_dil.any())  # (else the growth's terms are skipped: every clean frame)
     dil_sigma = np.full(2 * C, np.nan)
     psf_px = (
-        np.full(2 * C, _MODEL_PSF_PX)
+        np.full(2 * C, psf_box)
         if psf0_px is None
-        else np.nan_to_num(np.asarray(psf0_px, float).reshape(-1), nan=_MODEL_PSF_PX)
+        else np.nan_to_num(np.asarray(psf0_px, float).reshape(-1), nan=psf_box)
     )
     # the PSF's width is fitted on codes without clipped samples: where the growth d is free it
     # takes the clipped profiles' misfit, and a second shape parameter there was confounded with
     # it (b free on every code: clipping x2.2 smoother NEES 13 -> 30, and 4 real photographs
     # worse than the decoder by > 0.5 px instead of 1, two of them clipped; BENCHMARKS.md)
     free_psf = np.repeat(~clipped_code & bool(fit_psf), 2)
-    psf_px = np.where(free_psf, psf_px, _MODEL_PSF_PX)
+    psf_px = np.where(free_psf, psf_px, psf_box)
     free = np.stack([np.ones(2 * C, bool), free_psf, free_dil], axis=1)  # w, b, d
     for _ in range(iterations):
         wmod = width_px[lbl].astype(np.float32)[:, None] * g32
@@ -831,7 +959,7 @@ def _model_edge_points(
             )
             w_prior = var_r / _PSF_PRIOR_PX**2
             S[:, 1, 1] += w_prior
-            rhs[:, 1] += w_prior * (psf_px - _MODEL_PSF_PX)
+            rhs[:, 1] += w_prior * (psf_px - psf_box)
         S[fixed[:, :, None] | fixed[:, None, :]] = 0.0  # a fixed parameter's row and column
         rhs[fixed] = 0.0
         if any_free:
@@ -841,8 +969,14 @@ def _model_edge_points(
             var_g = np.bincount(lbl, np.sum(r * r, axis=1), 2 * C) / np.maximum(
                 np.bincount(lbl, np.maximum(m.sum(axis=1) - 5.0, 1.0), 2 * C), 1.0
             )
+            # (a group without usable samples has a zero row: its growth is unmeasured, NaN;
+            # whole pixels: the group's profiles side by side count as one profile, as sigma_e)
             with np.errstate(invalid="ignore", divide="ignore"):
-                dil_sigma = np.sqrt(var_g * np.linalg.inv(S_cov)[:, 2, 2])
+                invertible = np.all(np.isfinite(S_cov), axis=(1, 2))
+                invertible[invertible] = np.linalg.cond(S_cov[invertible]) < 1e12
+                S_inv = np.full_like(S_cov, np.nan)
+                S_inv[invertible] = np.linalg.inv(S_cov[invertible])
+                dil_sigma = np.sqrt(per_profile * var_g * S_inv[:, 2, 2])
         diag = np.einsum("gii->gi", S)
         # Levenberg damping: (w, b) are exchangeable in the model, so their difference is
         # unobservable where w ~ b; the damped step leaves it where it is
@@ -859,7 +993,12 @@ def _model_edge_points(
     rms = np.sqrt(np.sum(r * r, axis=1) / dof)
     contrast = -lev[:, 1]
     e = e.astype(np.float64)
-    sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12))).astype(np.float64) / g  # px
+    # Whole pixels: the _MODEL_GROUP profiles of a group cross the same edge a fraction of a
+    # module apart, and what the model misses of the edge's shape (compression, sharpening, a
+    # blur that is not two boxes) they miss alike, so their samples count as one profile's (on
+    # real photographs, counted as independent, the edge points' chi2/dof about the homography
+    # rose from a median of 2.4 to 5.5 and 3 in 10 codes fell back; BENCHMARKS.md)
+    sigma_e = (rms / np.sqrt(np.maximum(a, 1e-12) / per_profile)).astype(np.float64) / g  # px
     good = (
         ok
         & _contrast_ok(np.where(ok, contrast, 0.0).reshape(C, -1)).reshape(-1)
@@ -1331,6 +1470,7 @@ def _stage2(
     point_map=None,
     fit_dilation: bool = False,
     crossings_pass: bool = True,
+    polish: bool = False,
 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray, RefineQuality] | None], np.ndarray]:
     """Stage 2 for a batch of codes (code c in images[image_of[c]]) from their (4, 2)
     undistorted starting corners: per code (corners_u (4, 2), cov_stat (8, 8) undistorted px^2,
@@ -1342,6 +1482,7 @@ def _stage2(
     `crossings_pass=False`: the model passes start from the given corners (no 50 % crossings
     pass to lay them out: under motion blur the crossings move outwards and pull a start that is
     already close away from it; fusion.qr.track's starts are predictions and located symbols).
+    `polish`: the sharp codes' corners placed again from whole pixels (_polish).
     Also returns (C,) bool: the code's profiles had clipped samples."""
     C = len(ns)
     clipped = np.zeros(C, bool)
@@ -1428,6 +1569,23 @@ def _stage2(
             module_px,
         )
         kept_fit = fit if kept_fit is None else _merge_fit(kept_fit, fit, alive)
+    if polish and kept_fit is not None and _POLISH_ITERATIONS > 0 and np.any(alive):
+        Hs, kept_fit = _polish(
+            images,
+            image_of,
+            dist,
+            Hs,
+            module_px,
+            pr,
+            nsa,
+            width,
+            dilation,
+            fit_dilation,
+            psf,
+            kept_fit,
+            alive,
+            out,
+        )
     if fit_dilation and dilation is not None and dilation_sigma is not None:
         # the growth only where the data support it: |d| >= GROWTH_MIN_Z sigma in an edge
         # direction; elsewhere this run gives no result and the first run's corners stand
@@ -1444,6 +1602,116 @@ def _stage2(
     if kept_fit is not None and np.any(has & (nsa >= modules_for_version(2))):
         _add_alignment(images, image_of, dist, Hs, nsa, pr, kept_fit, has, raw, module_px, out)
     return out, clipped
+
+
+def _polish(
+    images,
+    image_of,
+    dist,
+    Hs,
+    module_px,
+    pr,
+    nsa,
+    width,
+    dilation,
+    fit_dilation,
+    psf,
+    kept: _ModelFit,
+    alive,
+    out,
+) -> tuple[np.ndarray, _ModelFit]:
+    """The last model pass's edges placed again from whole pixels (_model_edge_points'
+    `whole_pixels`) on the codes whose edges are sharp (fitted blur box at most
+    _POLISH_MAX_WIDTH_PX), their corners moved to them; everything else of the bilinear passes
+    kept: which codes are refined, their RefineQuality (the self-check) and their edge sigmas
+    (so the corner covariance, calibrated on them, is unchanged).
+
+    Why: bilinear samples of an edge about a pixel wide are a piecewise-linear reconstruction
+    whose shape depends on where the edge falls between pixel centres, and the model (a blurred
+    step) cannot follow it: 0.02-0.045 px of error per edge even from the true homography,
+    the same in every frame that sees the code alike (a hover), so no back end averages it;
+    codes at ~4 px per module or seen obliquely were refined 3-4x worse than others.  Whole
+    pixels read at their own offsets have no such reconstruction.  Only sharp codes: from 1.5
+    px of motion blur the polish no longer helped, and from 2 px it was worse (0.016 -> 0.021
+    px), where a wide ramp is what bilinear samples reconstruct well.  Not every pass: as the
+    fit's start and its self-check, whole pixels accepted and placed codes of real photographs
+    worse than the decoder by > 0.5 px (2 to 5 of 97, against 1), and cost 2.5x the samples.
+    A polish corrects hundredths of a pixel: one that moves a corner more than
+    _POLISH_MAX_MOVE_PX fits something else (compression, sharpening) and is not taken
+    (BENCHMARKS.md, twenty-seventh session).
+
+    Only the front camera's codes (POLISHED_CAMERAS).  On the trust sweep's and the held-out
+    flights the polished load codes made the load maps more accurate and more of them consistent
+    (93 of 108 and 59 of 80 inside their interval, against 89 and 54), with every floor pose
+    unchanged.  Polishing the floor codes too made the floor poses more accurate but their
+    sigma less honest: PnP's residuals and the corners' correlation time had been reading the
+    phase error, and what remains (errors common to a frame's corners: timing, readout) they do
+    not see, so smoother pose NEES reached 12-21 on timing-heavy flights (BENCHMARKS.md,
+    twenty-seventh and twenty-eighth sessions).  Updates `out` (per code) in place; returns the
+    homographies and the kept fit."""
+    C = len(nsa)
+    sharp = alive & (np.nan_to_num(np.max(width, axis=1), nan=np.inf) <= _POLISH_MAX_WIDTH_PX)
+    sharp &= np.array([o is not None for o in out], bool)
+    idx = np.flatnonzero(sharp)
+    if not len(idx):
+        return Hs, kept
+    per = len(pr.code) // C  # profiles per code, the same for every code (_model_layout)
+    rows = (idx[:, None] * per + np.arange(per)).ravel()
+    pr_s = _profiles([float(n) for n in nsa[idx]])
+    kept_s = _fit_rows(kept, idx, rows)
+    fit = _model_edge_points(
+        images,
+        image_of[idx],
+        dist,
+        Hs[idx],
+        module_px[idx],
+        pr_s,
+        width[idx],
+        _POLISH_ITERATIONS,
+        _MODEL_STEP_CLIP[1],
+        None if dilation is None else dilation[idx],
+        fit_dilation=fit_dilation,
+        psf0_px=None if psf is None else psf[idx],
+        fit_psf=FIT_PSF,
+        whole_pixels=True,
+    )
+    take_point = fit.good & kept_s.good
+    moved = replace(kept_s, points=np.where(take_point[:, None], fit.points, kept_s.points))
+    H, corners, cov, ok, _ = _fit_homographies(moved, pr_s, nsa[idx])
+    before = np.stack([out[ci][0] for ci in idx])
+    with np.errstate(invalid="ignore"):
+        move = np.max(np.linalg.norm(corners - before, axis=2), axis=1)
+    take = ok & (move <= _POLISH_MAX_MOVE_PX)
+    for k in np.nonzero(take)[0]:
+        o = out[idx[k]]
+        out[idx[k]] = (corners[k], cov[k], o[2], o[3])
+    Hs = Hs.copy()
+    Hs[idx[take]] = H[take]
+    points = kept.points.copy()
+    taken_rows = (idx[take][:, None] * per + np.arange(per)).ravel()
+    points[taken_rows] = moved.points.reshape(len(idx), per, 2)[take].reshape(-1, 2)
+    return Hs, replace(kept, points=points)
+
+
+def _fit_rows(fit: _ModelFit, idx: np.ndarray, rows: np.ndarray) -> _ModelFit:
+    """The codes `idx` of a batch's fit (their profiles: `rows`)."""
+
+    def per_code(a):
+        return None if a is None else a[idx]
+
+    return _ModelFit(
+        fit.points[rows],
+        fit.good[rows],
+        fit.sigma_px[rows],
+        fit.g[rows],
+        fit.width_px[idx],
+        fit.contrast[rows],
+        fit.rms[rows],
+        per_code(fit.dilation),
+        per_code(fit.clipped),
+        per_code(fit.psf_px),
+        per_code(fit.dilation_sigma),
+    )
 
 
 def _merge_fit(old: _ModelFit, new: _ModelFit, take: np.ndarray) -> _ModelFit:
@@ -1567,6 +1835,7 @@ def refine_frames(
     stats: RefineStats | None = None,
     point_map=None,
     crossings_pass: bool = True,
+    polish: bool = False,
 ) -> list[list[RefineResult | None]]:
     """Refined corners of every code of several images of one camera: codes[i] lists image i's
     (decoder corners (4, 2) TL, TR, BR, BL, modules per side or None); returns, per image, a
@@ -1583,6 +1852,8 @@ def refine_frames(
     image's points moved to the stamp time: fusion.qr.rolling_shutter.refine_at_stamp); the
     self-check judges the fit in the image as read.  `crossings_pass=False`: stage 2 without
     its first, 50 % crossings pass (_stage2; for starts already near the code, e.g. tracked ones).
+    `polish`: sharp codes' corners placed again from whole pixels (_polish; the cameras in
+    POLISHED_CAMERAS).
 
     One code: `refine_code`."""
     if len(images) != len(codes):
@@ -1616,7 +1887,7 @@ def refine_frames(
     stage2: list = [None] * len(todo)
     if finder_homography:
         stage2, clipped = _stage2(
-            images, image_of, dist, list(raw_u), ns, code_map, crossings_pass=crossings_pass
+            images, image_of, dist, list(raw_u), ns, code_map, crossings_pass=crossings_pass, polish=polish
         )
         redo = np.nonzero(clipped & np.array([s is not None for s in stage2], bool))[0]
         if len(redo):
@@ -1635,6 +1906,7 @@ def refine_frames(
                 sub_map,
                 True,
                 crossings_pass,
+                polish,
             )
             for r, s in zip(redo.tolist(), again):
                 first = stage2[r]

@@ -70,7 +70,7 @@ from fusion.qr.pnp import (
     floor_whitening,
     pnp_trajectory,
 )
-from fusion.qr.refine import refine_frames
+from fusion.qr.refine import POLISHED_CAMERAS, refine_frames
 from fusion.types import LoadObservation, QRDetection, Trajectory
 from fusion.world import FloorLayout, Placement, World
 
@@ -1003,7 +1003,9 @@ def _correct_camera(
     if reader is not None:
         # an image that read at detection and not now leaves its frame's codes as corrected
         # (the reader counts it: RollingShutterReport.unreadable_at_stamp)
-        refined, done = refine_at_stamp(frames, reader, cam, world, motion, placed=fixed)
+        refined, done = refine_at_stamp(
+            frames, reader, cam, world, motion, placed=fixed, polish=name in POLISHED_CAMERAS
+        )
         for ts, i in done:
             fixed[ts][i] = refined[ts][i]
     return _inflate_uncorrected(fixed, cam, motion), n, len(done)
@@ -1271,6 +1273,7 @@ def refine_at_stamp(
     world: World,
     motion: FrameMotion,
     placed: dict[int, list[QRDetection]] | None = None,
+    polish: bool = False,
 ) -> tuple[dict[int, list[QRDetection]], set[tuple[int, int]]]:
     """The floor and load codes of `frames` {timestamp_ns: detections} refined again from their
     images (`load_image(timestamp_ns) -> (H, W) uint8 or None`), from the decoder's corners, with
@@ -1282,7 +1285,8 @@ def refine_at_stamp(
     position) of the codes replaced: those refined by stage 2 and passing its self-check, in
     frames with a motion estimate; the others are left for `correct_frames`.  `placed`: the
     same frames with their corners moved to the stamp (`correct_frames`), from which a load
-    code's plane is taken (`_load_code_plane`)."""
+    code's plane is taken (`_load_code_plane`).  `polish`: refine_frames' (the front camera's
+    codes, POLISHED_CAMERAS)."""
     index = {int(t): k for k, t in enumerate(motion.timestamps_ns.tolist())}
     out = {ts: list(dets) for ts, dets in frames.items()}
     done: set[tuple[int, int]] = set()
@@ -1333,7 +1337,7 @@ def refine_at_stamp(
             for j, (normal, offset) in enumerate(plane):
                 plane_n[i, j], plane_d[i, j] = normal, offset
         results = refine_frames(
-            images, codes, camera, point_map=_StampMap(camera, motion, ks, plane_n, plane_d)
+            images, codes, camera, point_map=_StampMap(camera, motion, ks, plane_n, plane_d), polish=polish
         )
         for frame_results, frame_where in zip(results, where):
             for res, (ts, i) in zip(frame_results, frame_where):
