@@ -299,6 +299,11 @@ def test_a_steady_clock_keeps_its_stamps_and_a_short_flight_is_not_checked():
     np.testing.assert_array_equal(shift_log(_log(fl), off).floor.timestamps_ns, fl["t_floor"])
     short = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=replace(cfg, drift_min_span_s=30.0))
     assert short.cameras["cam0"].drift is None  # 24 s < drift_min_span_s (30 s)
+    # ... and the run says so: such a drift would be in no sigma
+    for cam in ("cam0", "cam1"):
+        assert "clock rate not checked (a 2" in short.cameras[cam].note, short.cameras[cam].note
+        assert "s span, under 30 s)" in short.cameras[cam].describe()
+    assert "clock rate not checked" not in off.cameras["cam0"].note
 
 
 def test_a_rate_left_uncorrected_widens_the_stamps_by_what_it_may_hold():

@@ -1058,6 +1058,17 @@ def _sightings_corrected(sightings: list[LoadObservation], drift: ClockDrift) ->
 # =========================================================================== a run's offsets
 
 
+def _too_short_for_drift(stamps_ns, config: TimeOffsetConfig) -> str:
+    """The note of a camera whose clock rate was not checked for the flight's span: such a drift
+    is in no sigma (h_ro15_clock's 40 ppm over 20 s left its smoother at NEES 12; DESIGN.md), so
+    the run says so; '' when the span was long enough (or the check is off)."""
+    t = np.asarray(stamps_ns, dtype=np.int64)
+    span_s = float(t.max() - t.min()) / NS_PER_S if len(t) else 0.0
+    if not config.check_drift or span_s >= config.drift_min_span_s:
+        return ""
+    return f"clock rate not checked (a {span_s:.1f} s span, under {config.drift_min_span_s:.0f} s)"
+
+
 def _significant(r: float, sigma: float | None, config: TimeOffsetConfig) -> bool:
     return sigma is not None and abs(r) > config.apply_sigmas * sigma and abs(r) > config.min_apply_s
 
@@ -1128,6 +1139,8 @@ def resolve_time_offsets(
                 )
             except EstimationError as e:
                 drift_note = f"clock rate not checked ({e})"
+            else:
+                drift_note = _too_short_for_drift(log_.floor.timestamps_ns, config) if drift is None else ""
             residual, sigma_fp = fp.residual_s, fp.sigma_s
             if sigma_fp is not None:
                 sigma_fp *= math.sqrt(max(floor_variance_factor, 1.0))
@@ -1223,6 +1236,11 @@ def resolve_time_offsets(
                 )
         except EstimationError as e:
             drift_note = f"clock rate not checked ({e})"
+        else:
+            if front_drift is None:
+                drift_note = _too_short_for_drift(
+                    [o.timestamp_ns for o in usable_sightings(sightings)], config
+                )
         jitter = fr.jitter
         if front_drift is not None and front_drift.applied:
             residual, sigma = front_drift.offset_s, front_drift.offset_sigma_s
