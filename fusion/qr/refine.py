@@ -317,7 +317,6 @@ _MODEL_GROUP = 3  # consecutive profiles averaged into one before the fit
 _MODEL_WINDOW = (-2.0, 3.0)  # sampled span (modules, + inwards)
 _MODEL_INNER_LO = -1.0  # interior edges: data modules beyond this
 _MODEL_UNIFORM = 11  # samples spread evenly over the window ...
-_UNIFORM_ON = (0, 1, 2)  # whole-pixel samples: the profiles of a group that take the uniform ones
 _MODEL_DENSE_PX = np.arange(-1.75, 1.8, 0.5)  # ... and 8 within 2 px of the edge
 _MODEL_STEPS = np.array([-1.0, 0.0, 1.0, 2.0])  # data | dark | light | dark transitions (modules)
 # how each transition moves when the dark modules grow by d on every side (ink spread, clipped
@@ -742,14 +741,14 @@ def _model_edge_points(
         # image instead (bilinear) reads a sharp edge through a reconstruction that depends on
         # where the edge falls between pixel centres, not a blur: edge errors of 0.02-0.045 px,
         # systematic per edge (a code at ~4 px per module, 1 px ramps, or area-sampled), that no
-        # blur width in the model removes (BENCHMARKS.md, twenty-sixth session).  Per group, the
-        # middle profile's _MODEL_UNIFORM samples over the window and every profile's dense ones
-        # near the edge (where the edge's position is read), side by side, sorted by offset.
+        # blur width in the model removes (BENCHMARKS.md, twenty-sixth session).  Per group,
+        # each profile's _MODEL_UNIFORM samples over the window and its dense ones near the edge
+        # (where the edge's position is read), side by side, sorted by offset.
         G = _MODEL_GROUP
         lo, hi = _MODEL_WINDOW
         dense = (_MODEL_DENSE_PX[None] / module_px[:, None])[pr.code]  # (P, D)
         uniform = np.broadcast_to(np.linspace(lo, hi, _MODEL_UNIFORM), (P, _MODEL_UNIFORM))
-        blocks = [(j, b) for j in range(G) for b in ((uniform, dense) if j in _UNIFORM_ON else (dense,))]
+        blocks = [(j, b) for j in range(G) for b in (uniform, dense)]
         s = np.concatenate([b for _, b in blocks], axis=1)  # (P, K)
         K = s.shape[1]
         at = pr.uv_sampled.reshape(P, G, 2)
@@ -1642,7 +1641,7 @@ def _polish(
 
     Only the front camera's codes (POLISHED_CAMERAS).  On the trust sweep's and the held-out
     flights the polished load codes made the load maps more accurate and more of them consistent
-    (93 of 108 and 59 of 80 inside their interval, against 89 and 54), with every floor pose
+    (93 of 108 and 60 of 80 inside their interval, against 89 and 54), with every floor pose
     unchanged.  Polishing the floor codes too made the floor poses more accurate but their
     sigma less honest: PnP's residuals and the corners' correlation time had been reading the
     phase error, and what remains (errors common to a frame's corners: timing, readout) they do
