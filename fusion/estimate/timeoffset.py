@@ -1046,7 +1046,7 @@ def _drift_line(
     drift = ClockDrift(
         float(rate), sigma, t_ref, span_s, list(points), bool(applied), float(offset), math.sqrt(cov[0, 0])
     )
-    log.info("clock rate: %s", drift.describe())
+    log.info("%s", drift.describe())
     return drift
 
 
