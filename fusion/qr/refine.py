@@ -157,16 +157,23 @@ class _Distortion:
         yd = yn * radial + p1 * (r2 + 2 * y2) + (2 * p2) * xy2
         return xd * x.dtype.type(c.fu) + x.dtype.type(c.cu), yd * y.dtype.type(c.fv) + y.dtype.type(c.cv)
 
+    def jacobian(self, xy: np.ndarray, step: float) -> np.ndarray:
+        """(..., 2, 2) d distorted / d undistorted at the undistorted pixels xy (..., 2), columns
+        d / dx, d / dy, by central differences of `step` px (a camera is given)."""
+        cols = []
+        for j in range(2):
+            d = np.zeros(2)
+            d[j] = step
+            cols.append((self.distort(xy + d) - self.distort(xy - d)) / (2 * step))
+        return np.stack(cols, axis=-1)
+
     def gradient_to_distorted(self, xy: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """Gradients (N, 2) of a function of the undistorted pixel at xy (N, 2) -> the same
         gradients w.r.t. the distorted pixel: grad D^-1, D = d distorted / d undistorted there
         (central differences of 0.5 px)."""
         if self.camera is None:
             return grad
-        e = 0.5
-        dx = (self.distort(xy + [e, 0.0]) - self.distort(xy - [e, 0.0])) / (2 * e)
-        dy = (self.distort(xy + [0.0, e]) - self.distort(xy - [0.0, e])) / (2 * e)
-        D = np.stack([dx, dy], axis=2)  # (N, 2, 2): columns d distorted / d x, d y
+        D = self.jacobian(xy, 0.5)
         return np.linalg.solve(D.transpose(0, 2, 1), grad[..., None])[..., 0]
 
     def distort(self, uv: np.ndarray) -> np.ndarray:
@@ -1405,12 +1412,7 @@ def _distort_cov(dist: _Distortion, corners_u: np.ndarray, cov_u: np.ndarray) ->
     """(C, 8, 8) covariances of undistorted corners (C, 4, 2) -> of the distorted corners."""
     if dist.camera is None:
         return cov_u
-    h = 1e-3
-    Jd = np.zeros(corners_u.shape[:2] + (2, 2))
-    for j in range(2):
-        d = np.zeros(2)
-        d[j] = h
-        Jd[..., :, j] = (dist.distort(corners_u + d) - dist.distort(corners_u - d)) / (2 * h)
+    Jd = dist.jacobian(corners_u, 1e-3)
     C = len(corners_u)
     Jb = np.zeros((C, 8, 8))
     for k in range(4):
