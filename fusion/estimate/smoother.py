@@ -864,7 +864,7 @@ def levenberg_marquardt(
     if errors is not None:
         errors.append(err)
     lam = 0.0  # try the Gauss-Newton step first; damp only when it fails to descend
-    keys = [int(k) for k in values.keys()]
+    dims = values.dims()  # each variable's tangent dimension, for the damping
     it = 0
     stop = LMStop.ITERATION_LIMIT
     lin = None
@@ -876,7 +876,7 @@ def levenberg_marquardt(
             system = lin
             if lam > 0:
                 system = lin.clone()
-                _add_damping(system, keys, lam)
+                _add_damping(system, dims, lam)
             tree = (
                 system.eliminateMultifrontal(ordering, gtsam.EliminateQR)
                 if qr
@@ -911,18 +911,12 @@ def levenberg_marquardt(
     return LMResult(values, it, lin if undamped and stop is LMStop.CONVERGED else None, stop)
 
 
-def _add_damping(lin: gtsam.GaussianFactorGraph, keys, lam: float) -> None:
+def _add_damping(lin: gtsam.GaussianFactorGraph, dims: dict[int, int], lam: float) -> None:
+    """Identity damping lam * I on every variable, sized by its own tangent dimension (a factor
+    of the wrong size on a variable is undefined behaviour in GTSAM's elimination)."""
     s = math.sqrt(lam)
-    for k in keys:
-        d = _dim_of(k)
+    for k, d in dims.items():
         lin.push_back(gtsam.JacobianFactor(k, s * np.eye(d), np.zeros(d), gtsam.noiseModel.Unit.Create(d)))
-
-
-def _dim_of(key: int) -> int:
-    # "e": the floor camera's mount rotation error (Rot3), estimate/extrinsics.py
-    return {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3, ord("f"): 6, ord("e"): 3}[
-        gtsam.Symbol(key).chr()
-    ]
 
 
 def weak_priors(values: gtsam.Values, config: FusionConfig) -> list:
