@@ -4,6 +4,7 @@ no offset keeps today's results.  The issue's motivation: a 15 ms offset on the 
 clock emptied every fused load map."""
 
 import json
+import logging
 import math
 import shutil
 from dataclasses import replace
@@ -248,14 +249,17 @@ def _drifting(fl, ppm: float):
     }
 
 
-def test_a_drifting_floor_clock_is_measured_and_corrected():
+def test_a_drifting_floor_clock_is_measured_and_corrected(caplog):
     """A 24 s flight whose floor camera clock runs 500 ppm fast (12 ms over the flight, on top of
     a 7 ms offset): one offset for the flight leaves its ends 6 ms off; the rate is found from
     the first and last thirds, applied, and the corrected floor stamps are the true times within
-    1 ms over the whole flight."""
+    1 ms over the whole flight.  The log line of each rate names its camera."""
     fl = _drifting(_flight(24.0, 8, 0.007), 500.0)
     cfg = TimeOffsetConfig(profile_window_s=4.0, drift_min_span_s=12.0)
-    off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
+    with caplog.at_level(logging.INFO, logger="fusion"):
+        off = resolve_time_offsets(_log(fl), fl["raw"], fl["obs"], config=cfg)
+    rates = [r.getMessage() for r in caplog.records if "clock rate" in r.getMessage()]
+    assert any(m.startswith("cam0 (floor): clock rate +") for m in rates), rates
     c0 = off.cameras["cam0"]
     assert c0.drift is not None and c0.drift.applied and c0.drift.sigma is not None
     assert abs(c0.drift.rate - 500e-6) < max(3 * c0.drift.sigma, 50e-6), c0.drift.as_dict()

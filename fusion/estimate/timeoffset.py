@@ -764,7 +764,7 @@ def estimate_floor_drift(
         return None
     centres = [(fp.window_ns[0] + fp.window_ns[1]) // 2 for fp in profiles]
     points = [(tc, fp.residual_s, float(fp.sigma_s or 0.0) * widen) for tc, fp in zip(centres, profiles)]
-    return _drift_line(points, (t0 + t1) // 2, span_s, config)
+    return _drift_line(points, (t0 + t1) // 2, span_s, config, CameraRole.FLOOR.value)
 
 
 def _rate_corrected(log_: FlightLog, raw: Trajectory, drift: ClockDrift) -> tuple[FlightLog, Trajectory]:
@@ -1022,14 +1022,14 @@ def estimate_front_drift(
         if fr.sigma_s is None:
             return None
         points.append((int(np.mean(t[sel])), fr.residual_s, fr.sigma_s))
-    return _drift_line(points, (t0 + t1) // 2, span_s, config)
+    return _drift_line(points, (t0 + t1) // 2, span_s, config, CameraRole.FRONT.value)
 
 
 def _drift_line(
-    points: list[tuple[int, float, float]], t_ref: int, span_s: float, config: TimeOffsetConfig
+    points: list[tuple[int, float, float]], t_ref: int, span_s: float, config: TimeOffsetConfig, camera: str
 ) -> ClockDrift:
     """The weighted least-squares line r(t) = offset + rate (t - t_ref) through (t ns, r s,
-    sigma s) `points`, applied when significant (ClockDrift)."""
+    sigma s) `points`, applied when significant (ClockDrift); logged with the `camera`'s name."""
     x = np.array([(ti - t_ref) / NS_PER_S for ti, _, _ in points])
     r = np.array([ri for _, ri, _ in points])
     w = np.array([1.0 / sg**2 for _, _, sg in points])
@@ -1046,7 +1046,8 @@ def _drift_line(
     drift = ClockDrift(
         float(rate), sigma, t_ref, span_s, list(points), bool(applied), float(offset), math.sqrt(cov[0, 0])
     )
-    log.info("%s", drift.describe())
+    role = "floor" if camera == CameraRole.FLOOR.value else "front"
+    log.info("%s (%s): %s", camera, role, drift.describe())
     return drift
 
 
