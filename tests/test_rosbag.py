@@ -519,6 +519,29 @@ def test_inspect_shows_the_plausibility_warnings_a_run_gives_for_a_bag(
 
 
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_inspect_reads_a_bags_messages_once(tmp_path, world_and_calib, monkeypatch, suffix):
+    """`fusion inspect` of a bag passes over its messages once: the plausibility check builds the
+    run's log from inspect's own pass (rosbag.BagPass) instead of reading the bag again (it read
+    it twice, a long wait on a large bag); the warnings are the run's all the same."""
+    from fusion.log import rosbag as rb
+
+    opts = LogOptions(calib=world_and_calib)
+    clipped = _write_bag(tmp_path / f"clipped{suffix}", _images(5), imu_samples=_resting_imu(clipped=12))
+    (run,) = [w for w in open_flight(clipped, opts).warnings if w.name == "imu_saturated"]
+    passes: list = []
+    scan = rb.scan_bag
+
+    def counted(bag, vectors=None, first_of=None, topics=None):
+        if topics != {rb.METADATA_TOPIC}:  # the metadata topic's own small read aside
+            passes.append(topics)
+        return scan(bag, vectors, first_of, topics)
+
+    monkeypatch.setattr(rb, "scan_bag", counted)
+    assert inspect_log(clipped, opts).problems == [str(run)]
+    assert passes == [None], passes  # one pass, over every topic
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
 def test_a_bags_plausibility_warnings_name_the_bag_and_the_topic(tmp_path, world_and_calib, suffix):
     """euroc.check_log's warnings about a bag name the bag and the topic as the bag reader's own
     warnings do (`<bag>: topic /imu`), and a mount the camchain states names the camchain and

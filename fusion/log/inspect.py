@@ -249,7 +249,15 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
     if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
         role_of[rb.GROUNDTRUTH_TOPIC] = ROLE_NAMES["groundtruth"]
     imu_topic = roles.imu if roles else None
-    scan = rb.scan_bag(bag, vectors={imu_topic} if imu_topic else set())
+    # one pass over every topic, decoding what the run's reader decodes too (its sensors' numbers,
+    # each camera's first image and calibration), so that the plausibility check below reads
+    # the log from it instead of a second pass over the bag
+    vectors = {t for t in (roles.imu, roles.velocity) if t} if roles else set()
+    if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
+        vectors.add(rb.GROUNDTRUTH_TOPIC)
+    first_of = {t for t, ty in first.types.items() if ty == rb.CAMERA_INFO}
+    first_of |= {t for t in (roles.floor, roles.front) if t} if roles else set()
+    scan = rb.scan_bag(bag, vectors=vectors, first_of=first_of)
     if scan.truncated:
         report.problems.append(scan.truncated)
     for topic in sorted(scan.types):
@@ -265,18 +273,20 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
         ga = np.array(scan.topics[imu_topic].data, dtype=float)
         report.imu_units = imu_units_verdict(ga[:, :3], ga[:, 3:])
     if roles is not None:
-        report.problems += _bag_plausibility(path, opts)
+        done = rb.BagPass(bag, damage, left_out, scan, vectors, first_of)
+        report.problems += _bag_plausibility(path, opts, done)
 
 
-def _bag_plausibility(path: Path, opts: LogOptions) -> list[str]:
+def _bag_plausibility(path: Path, opts: LogOptions, done) -> list[str]:
     """The log's plausibility warnings as `fusion run` gives them (euroc.check_log: imu_saturated,
-    imu_gaps, clock_offset, ...) for a bag read as the run reads it, a second pass over it: an
-    EuRoC folder's or a video's come with open_flight's warnings, a bag's were shown by the run
-    only.  A bag the run could not read is said to be unchecked, with the reason."""
+    imu_gaps, clock_offset, ...) for a bag read as the run reads it, from the pass `done`
+    (rosbag.BagPass) inspect made over it: an EuRoC folder's or a video's come with open_flight's
+    warnings, a bag's were shown by the run only.  A bag the run could not read is said to be
+    unchecked, with the reason."""
     from fusion.log.euroc import check_log
     from fusion.log.rosbag import read_bag
 
     try:
-        return [str(w) for w in check_log(read_bag(path, opts))]
+        return [str(w) for w in check_log(read_bag(path, opts, done))]
     except LogError as e:
         return [f"plausibility not checked, the run could not read the log: {e}"]

@@ -709,14 +709,38 @@ def _metadata_cameras(meta: dict, where: str) -> dict[str, CameraModel]:
 # ============================================================================ reading
 
 
-def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
-    """Open a ROS 1 (.bag) or ROS 2 (folder or .mcap) bag as a FlightLog; images stream."""
+@dataclass
+class BagPass:
+    """A bag as `fusion inspect` has already read it, for `read_bag` to build the run's log from
+    without reading it again: its readable form (`readable_bag_and_note`: a recovered copy of a
+    damaged bag), that call's note and warnings, and one `scan_bag` pass with the `vectors` and
+    `first_of` topics it decoded."""
+
+    bag: Path
+    damage: str | None
+    left_out: list[LogWarning]
+    scan: BagScan
+    vectors: set[str]
+    first_of: set[str]
+
+    def covers(self, topics: set[str], vectors: set[str], first_of: set[str]) -> bool:
+        """Whether this pass read what a scan of `topics` with these `vectors` and `first_of`
+        would have: every topic, their numbers and their first messages."""
+        return topics <= set(self.scan.topics) and vectors <= self.vectors and first_of <= self.first_of
+
+
+def read_bag(path: Path, opts: LogOptions | None = None, done: BagPass | None = None) -> FlightLog:
+    """Open a ROS 1 (.bag) or ROS 2 (folder or .mcap) bag as a FlightLog; images stream.  `done`:
+    the pass `fusion inspect` made over it (BagPass), reused where it covers the run's topics."""
     from fusion.log.sources import external_calibration, find_world  # cycle: sources -> rosbag
 
     opts = opts or LogOptions()
     path = Path(path)
-    left_out: list[LogWarning] = []  # a sqlite3 copy's messages of unknown types
-    bag, damage = readable_bag_and_note(path, left_out)  # errors name `path`; reading goes through `bag`
+    if done is None:
+        left_out: list[LogWarning] = []  # a sqlite3 copy's messages of unknown types
+        bag, damage = readable_bag_and_note(path, left_out)  # errors name `path`; reading goes through `bag`
+    else:
+        bag, damage, left_out = done.bag, done.damage, list(done.left_out)
     warnings = [LogWarning("bag_truncated", 1, damage)] if damage else []
     warnings += left_out
     first = scan_bag(bag, first_of={METADATA_TOPIC}, topics={METADATA_TOPIC})
@@ -752,7 +776,11 @@ def read_bag(path: Path, opts: LogOptions | None = None) -> FlightLog:
     if gt_topic:
         deser.add(gt_topic)
     want = set(cam_topics.values()) | deser | set(infos)
-    scan = scan_bag(bag, vectors=deser, first_of=set(cam_topics.values()) | set(infos), topics=want)
+    first_of = set(cam_topics.values()) | set(infos)
+    if done is not None and done.covers(want, deser, first_of):
+        scan = done.scan
+    else:
+        scan = scan_bag(bag, vectors=deser, first_of=first_of, topics=want)
     if scan.truncated:
         warnings.append(LogWarning("bag_truncated", 1, scan.truncated))
 
