@@ -120,6 +120,18 @@ HELD_OUT: dict[str, str] = {
     "h_drift32_800": (
         "--duration 32 --seed 93 --fps 20 --resolution 800x600 --time-offset-ms -6 --clock-drift-ppm 40"
     ),
+    # twenty-ninth session: settings no flight combined before (a 1920x1080 wide lens, 25 fps
+    # with 20 ms exposure blur, a 3x noisier IMU with a 20 Hz velocity sensor, a gimbaled
+    # rolling-shutter ROS 2 bag, the Table A5 hover as video, oblique loads through a fisheye),
+    # seeds 100-105, made after all the code they test
+    "n_1920_wide_real": (
+        "--duration 15 --seed 100 --resolution 1920x1080 --focal-scale 0.55 --camera-effects realistic"
+    ),
+    "n_fps25_exp20": "--duration 15 --seed 101 --start 6 --fps 25 --exposure 0.02 --noise 3",
+    "n_imu3_vel20": "--duration 20 --seed 102 --imu-noise-scale 3 --velocity-rate-hz 20",
+    "n_gimb_ro20_mcap": "--scenario gimbaled --duration 15 --seed 103 --readout-ms 20 --format rosbag2",
+    "n_a5_video": "--scenario paper_a5 --duration 15 --seed 104 --format video --jpeg 85",
+    "n_ob_fish": "--scenario oblique --duration 15 --seed 105 --distortion-model equidistant",
 }
 RUN_ARGS: dict[str, str] = {"h_fish_mount": "--calibrate-extrinsics"}
 """`fusion run` options beyond the sweep's (a flight with a mount error is calibrated)."""
