@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from fusion.log.options import LogFormat, LogOptions, StampSource
 from fusion.log.sources import detect_format, open_flight
 from fusion.types import CameraRole
 from fusion.world import Placement, World
+
+if TYPE_CHECKING:  # rosbag (and rosbags) imported when a bag is inspected
+    from fusion.log.rosbag import BagPass
 
 GAP_FACTOR = 2.5
 """A step longer than this many median steps is a gap."""
@@ -277,7 +281,7 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
         report.problems += _bag_plausibility(path, opts, done)
 
 
-def _bag_plausibility(path: Path, opts: LogOptions, done) -> list[str]:
+def _bag_plausibility(path: Path, opts: LogOptions, done: BagPass) -> list[str]:
     """The log's plausibility warnings as `fusion run` gives them (euroc.check_log: imu_saturated,
     imu_gaps, clock_offset, ...) for a bag read as the run reads it, from the pass `done`
     (rosbag.BagPass) inspect made over it: an EuRoC folder's or a video's come with open_flight's
