@@ -61,6 +61,7 @@ from scipy.optimize import minimize_scalar
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig
+from fusion.estimate.correlation import MAX_LAG, frame_indices, integrated_time, keyed_autocorrelation
 from fusion.estimate.smoother import SolveReuse, smooth
 from fusion.geometry import PoseInterpolator, inv_T, se3_log
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
@@ -139,7 +140,8 @@ class StampJitter:
     motion: PnP poses of 0.1 mm sigma read 3 mm off at 1 m/s and 3 ms.  Estimated by maximum
     likelihood from the floor profile's fixes against its smoothed trajectory (residual e_k,
     covariance C_k, twist xi_k): e_k ~ N(0, C_k + s xi_k xi_k^T), s = sigma^2; `lr` the
-    likelihood-ratio statistic against s = 0.  Significant (TimeOffsetConfig.jitter_*): the
+    likelihood-ratio statistic against s = 0, judged as lr / `correlation_time` (`_jitter_ml`).
+    Significant (TimeOffsetConfig.jitter_*): the
     fixes' covariances take s xi xi^T before any back end (white per frame, it is measurement
     noise, not a common error).  The front camera's likewise from its load sightings against
     their landmarks (`estimate_front_offset`), widening the sightings (`widen_sightings`)."""
@@ -148,6 +150,7 @@ class StampJitter:
     lr: float
     n: int
     significant: bool = False
+    correlation_time: float = 1.0  # the residuals' integrated correlation time (frames)
 
     def as_dict(self) -> dict:
         return {
@@ -155,6 +158,7 @@ class StampJitter:
             "lr": self.lr,
             "fixes": self.n,
             "significant": self.significant,
+            "correlation_time": self.correlation_time,
         }
 
     def describe(self) -> str:
@@ -179,7 +183,7 @@ def estimate_stamp_jitter(
     e = se3_log(inv_T(T_s) @ raw.T_world_body[inside])
     twist_all = body_twists(smoothed)
     xi = np.stack([np.interp(t, ts, twist_all[:, a]) for a in range(6)], axis=1)
-    return _jitter_ml(e, np.asarray(raw.covariances)[inside], xi, config, slice(3, 6))
+    return _jitter_ml(e, np.asarray(raw.covariances)[inside], xi, config, slice(3, 6), frame_indices(t))
 
 
 JITTER_GATE_M = 0.3
@@ -189,7 +193,12 @@ the jitter's estimate (a duplicated label 2 m away read 46 s of jitter)."""
 
 
 def _jitter_ml(
-    e: np.ndarray, C: np.ndarray, u: np.ndarray, config: TimeOffsetConfig, position: slice = slice(None)
+    e: np.ndarray,
+    C: np.ndarray,
+    u: np.ndarray,
+    config: TimeOffsetConfig,
+    position: slice = slice(None),
+    keys: np.ndarray | None = None,
 ) -> StampJitter:
     """Maximum likelihood of s = sigma^2 in e_k ~ N(0, k C_k + s u_k u_k^T) (residuals e (n, d),
     covariances C (n, d, d), the residual's rate of change with the stamp u (n, d)), k a free
@@ -199,7 +208,16 @@ def _jitter_ml(
     -2 log L = sum d log k + log(1 + g q) + (b - g a^2 / (1 + g q)) / k, q = u^T C^-1 u,
     a = u^T C^-1 e, b = e^T C^-1 e, and k's optimum in closed form for each g; the likelihood
     ratio against g = 0 (k free) for its significance, which also needs sigma inside the offsets'
-    search width.  Residuals whose `position` part is beyond JITTER_GATE_M are left out."""
+    search width.  Residuals whose `position` part is beyond JITTER_GATE_M are left out.
+
+    The ratio is judged as lr / tau, tau the whitened residuals' integrated correlation time
+    over frames (`keys`: code * span + frame, a residual l frames after another of the same code
+    at key + l; correlation.keyed_autocorrelation and Geyer's estimator with its significance
+    gate, as for the front mount; tau = 1 when they are white or without keys): the statistic
+    adds n independent terms' worth of evidence, and residuals that persist over frames are
+    worth n / tau of them.  Without it the load sightings' errors, correlated over ~20 frames
+    (tau ~5, BENCHMARKS.md, twenty-ninth session), read as jitter on flights whose stamps are
+    exact: the 10-minute benchmark flight's front camera 2.05 ms at lr 158."""
     keep = np.linalg.norm(e[:, position], axis=1) <= JITTER_GATE_M
     e, C, u = e[keep], C[keep], u[keep]
     if len(e) < 10:
@@ -223,8 +241,15 @@ def _jitter_ml(
     g = float(res.x) ** 2
     lr = max(0.0, minus2loglik(0.0) - minus2loglik(g))
     sigma = math.sqrt(g * scale(g))
-    significant = lr > config.jitter_lr_threshold and config.jitter_min_s < sigma < config.search_half_width_s
-    return StampJitter(sigma, lr, len(e), bool(significant))
+    tau = 1.0
+    if keys is not None:
+        white = np.linalg.solve(np.linalg.cholesky(C), e[..., None])[..., 0]  # C = L L^T: L^-1 e
+        rho, pairs, _ = keyed_autocorrelation(np.asarray(keys)[keep], white, MAX_LAG)
+        tau, _ = integrated_time(rho, pairs)
+    significant = (
+        lr / tau > config.jitter_lr_threshold and config.jitter_min_s < sigma < config.search_half_width_s
+    )
+    return StampJitter(sigma, lr, len(e), bool(significant), tau)
 
 
 @dataclass
@@ -986,7 +1011,11 @@ def estimate_front_offset(
         _, resid, W = landmark_fit(
             poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
         )
-        found = _jitter_ml(resid, np.linalg.inv(W), sighting_rates(poses, tq, p_cam, front_camera), config)
+        stamps, frame_of = np.unique(t, return_inverse=True)
+        frame = frame_indices(stamps)[frame_of]
+        keys = group * (int(frame.max()) + MAX_LAG + 1) + frame  # a load's sightings l frames apart
+        rates = sighting_rates(poses, tq, p_cam, front_camera)
+        found = _jitter_ml(resid, np.linalg.inv(W), rates, config, keys=keys)
     return FrontProfile(
         r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], found
     )
