@@ -438,6 +438,11 @@ def test_jitter_evidence_held_over_frames_counts_once():
             counted.append(_jitter_ml(E, C, U, cfg).significant)
     assert held == once, (held, once)
     assert sum(counted) > sum(once) + 5, (counted, once)  # as independent: far more verdicts
+    # a covariance that is invertible but not positive definite whitens by its diagonal
+    E, C, U, K = _held_residuals(0, 0.1, 2)
+    C[3] = np.array([[1e-8, 2e-8, 0.0], [2e-8, 1e-8, 0.0], [0.0, 0.0, 1e-8]])
+    with np.errstate(invalid="ignore"):
+        assert _jitter_ml(E, C, U, cfg, keys=K).correlation_time >= 1.0
 
 
 def test_simulator_jitters_stamps_when_asked(tmp_path):

@@ -243,7 +243,10 @@ def _jitter_ml(
     sigma = math.sqrt(g * scale(g))
     tau = 1.0
     if keys is not None:
-        white = np.linalg.solve(np.linalg.cholesky(C), e[..., None])[..., 0]  # C = L L^T: L^-1 e
+        try:
+            white = np.linalg.solve(np.linalg.cholesky(C), e[..., None])[..., 0]  # C = L L^T: L^-1 e
+        except np.linalg.LinAlgError:  # a covariance not positive definite: its diagonal's scale
+            white = e / np.sqrt(np.maximum(np.einsum("nii->ni", C), 1e-300))
         rho, pairs, _ = keyed_autocorrelation(np.asarray(keys)[keep], white, MAX_LAG)
         tau, _ = integrated_time(rho, pairs)
     significant = (
