@@ -142,6 +142,24 @@ def class_autocorrelation(
     return out
 
 
+def group_frame_keys(group: np.ndarray, stamps_ns: np.ndarray, max_lag: int = MAX_LAG) -> np.ndarray:
+    """`keyed_autocorrelation`'s keys of residuals of groups (a load's sightings, a code's) at
+    their stamps: group * span + frame, the frame numbered by `frame_indices` over the distinct
+    stamps and span past the frames' range + max_lag (key + l: the same group l frames later)."""
+    stamps, frame_of = np.unique(np.asarray(stamps_ns, dtype=np.int64), return_inverse=True)
+    frame = frame_indices(stamps)[frame_of]
+    span = int(frame.max()) + max_lag + 1 if len(frame) else 1
+    return np.asarray(group, dtype=np.int64) * span + frame
+
+
+def correlation_time(key: np.ndarray, r: np.ndarray, max_lag: int = MAX_LAG) -> float:
+    """The integrated correlation time in frames of whitened residuals r (N, d) keyed as
+    `keyed_autocorrelation` takes them (`group_frame_keys`): `integrated_time` of their
+    autocorrelation, Geyer's initial monotone sequence with its gate (1 when white)."""
+    rho, pairs, _ = keyed_autocorrelation(key, r, max_lag)
+    return integrated_time(rho, pairs)[0]
+
+
 def keyed_autocorrelation(
     key: np.ndarray, r: np.ndarray, max_lag: int = MAX_LAG
 ) -> tuple[np.ndarray, np.ndarray, int]:

@@ -74,7 +74,7 @@ from fusion.estimate.common import (
     SolveHealth,
     interpolable_load_times,
 )
-from fusion.estimate.correlation import frame_indices, integrated_time, keyed_autocorrelation
+from fusion.estimate.correlation import correlation_time, group_frame_keys
 from fusion.estimate.factors import X
 from fusion.estimate.smoother import (
     FactorKind,
@@ -769,11 +769,8 @@ def estimate_front_mount(
         cov = cov * max(1.0, 2.0 * cost / dof)
     # sightings of one load whose errors persist over frames say less than as many independent
     # ones: the covariance times the residuals' integrated correlation time (1 when white)
-    stamps, frame_of = np.unique(t.astype(np.int64), return_inverse=True)
-    frame = frame_indices(stamps)[frame_of]
-    span = int(frame.max()) + FRONT_MOUNT_MAX_LAG + 1
-    rho, pairs, _ = keyed_autocorrelation(group * span + frame, white, FRONT_MOUNT_MAX_LAG)
-    tau, _ = integrated_time(rho, pairs)
+    keys = group_frame_keys(group, t, FRONT_MOUNT_MAX_LAG)
+    tau = correlation_time(keys, white, FRONT_MOUNT_MAX_LAG)
     cov = cov * tau
     cov = cov + np.eye(3) * math.radians(FRONT_MOUNT_TRAJECTORY_SIGMA_DEG) ** 2
     if not (np.all(np.isfinite(f)) and np.all(np.isfinite(cov))):

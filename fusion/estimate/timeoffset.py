@@ -61,7 +61,7 @@ from scipy.optimize import minimize_scalar
 from fusion.camera import CameraModel
 from fusion.errors import EstimationError
 from fusion.estimate.common import FusionConfig
-from fusion.estimate.correlation import MAX_LAG, frame_indices, integrated_time, keyed_autocorrelation
+from fusion.estimate.correlation import correlation_time, frame_indices, group_frame_keys
 from fusion.estimate.smoother import SolveReuse, smooth
 from fusion.geometry import PoseInterpolator, inv_T, se3_log
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
@@ -211,11 +211,11 @@ def _jitter_ml(
     search width.  Residuals whose `position` part is beyond JITTER_GATE_M are left out.
 
     The ratio is judged as lr / tau, tau the whitened residuals' integrated correlation time
-    over frames (`keys`: code * span + frame, a residual l frames after another of the same code
-    at key + l; correlation.keyed_autocorrelation and Geyer's estimator with its significance
-    gate, as for the front mount; tau = 1 when they are white or without keys): the statistic
-    adds n independent terms' worth of evidence, and residuals that persist over frames are
-    worth n / tau of them.  Without it the load sightings' errors, correlated over ~20 frames
+    over frames (`keys`: correlation.group_frame_keys, a residual l frames after another of the
+    same load or code at key + l; correlation.correlation_time, Geyer's estimator with its gate,
+    as for the front mount; tau = 1 when they are white or without keys): the statistic adds n
+    independent terms' worth of evidence, and residuals that persist over frames are worth
+    n / tau of them.  Without it the load sightings' errors, correlated over ~20 frames
     (tau ~5, BENCHMARKS.md, twenty-ninth session), read as jitter on flights whose stamps are
     exact: the 10-minute benchmark flight's front camera 2.05 ms at lr 158."""
     keep = np.linalg.norm(e[:, position], axis=1) <= JITTER_GATE_M
@@ -247,8 +247,7 @@ def _jitter_ml(
             white = np.linalg.solve(np.linalg.cholesky(C), e[..., None])[..., 0]  # C = L L^T: L^-1 e
         except np.linalg.LinAlgError:  # a covariance not positive definite: its diagonal's scale
             white = e / np.sqrt(np.maximum(np.einsum("nii->ni", C), 1e-300))
-        rho, pairs, _ = keyed_autocorrelation(np.asarray(keys)[keep], white, MAX_LAG)
-        tau, _ = integrated_time(rho, pairs)
+        tau = correlation_time(np.asarray(keys)[keep], white)
     significant = (
         lr / tau > config.jitter_lr_threshold and config.jitter_min_s < sigma < config.search_half_width_s
     )
@@ -1014,11 +1013,8 @@ def estimate_front_offset(
         _, resid, W = landmark_fit(
             poses, tq, group, p_cam, info_cam, front_camera, thr, config.irls_iterations
         )
-        stamps, frame_of = np.unique(t, return_inverse=True)
-        frame = frame_indices(stamps)[frame_of]
-        keys = group * (int(frame.max()) + MAX_LAG + 1) + frame  # a load's sightings l frames apart
         rates = sighting_rates(poses, tq, p_cam, front_camera)
-        found = _jitter_ml(resid, np.linalg.inv(W), rates, config, keys=keys)
+        found = _jitter_ml(resid, np.linalg.inv(W), rates, config, keys=group_frame_keys(group, t))
     return FrontProfile(
         r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], found
     )
