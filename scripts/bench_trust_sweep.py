@@ -132,6 +132,21 @@ HELD_OUT: dict[str, str] = {
     "n_gimb_ro20_mcap": "--scenario gimbaled --duration 15 --seed 103 --readout-ms 20 --format rosbag2",
     "n_a5_video": "--scenario paper_a5 --duration 15 --seed 104 --format video --jpeg 85",
     "n_ob_fish": "--scenario oblique --duration 15 --seed 105 --distortion-model equidistant",
+    # thirtieth session: an IMU whose datasheet states half its noise, the Table A5 hover behind a
+    # rolling shutter at 1024x768, a gimbaled fisheye at 20 fps, a 100 s flight whose camera clock
+    # drifts 30 ppm (long enough for the rate check), 320x240 at 15 fps with glare and low
+    # contrast, oblique loads in a realistic ROS 2 bag over misplaced floor codes; seeds 110-115
+    "m_imu_stated05_real": "--duration 20 --seed 110 --imu-noise-stated 0.5 --camera-effects realistic",
+    "m_a5_ro20_1024": "--scenario paper_a5 --duration 15 --seed 111 --resolution 1024x768 --readout-ms 20",
+    "m_gimb_fish_fps20": (
+        "--scenario gimbaled --duration 15 --seed 112 --distortion-model equidistant --fps 20"
+    ),
+    "m_drift30_100s": "--duration 100 --seed 113 --clock-drift-ppm 30 --time-offset-ms -3",
+    "m_320_fps15_glare": "--duration 15 --seed 114 --resolution 320x240 --fps 15 --glare 0.15 --contrast 0.7",
+    "m_ob_mcap_place": (
+        "--scenario oblique --duration 15 --seed 115 --format rosbag2 --camera-effects realistic "
+        "--placement-error-m 0.005 --placement-error-deg 0.5"
+    ),
 }
 RUN_ARGS: dict[str, str] = {"h_fish_mount": "--calibrate-extrinsics"}
 """`fusion run` options beyond the sweep's (a flight with a mount error is calibrated)."""
