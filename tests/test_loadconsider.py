@@ -318,3 +318,77 @@ def test_at_least_grows_a_covariance_only_where_it_holds_less():
         assert np.linalg.eigvalsh(out - C).min() > -1e-9 and np.linalg.eigvalsh(out - D).min() > -1e-9
         assert np.allclose(at_least(C, 0.5 * C), C)  # already held: unchanged
     assert np.allclose(at_least(np.zeros((3, 3)), D), D)  # no own covariance: the pose's
+
+
+def _code_centre_stated(camera, p_cam, side, d):
+    """What single-code PnP's size-and-bearing model reads for a frontal code of `side` m at the
+    true centre p_cam once the intrinsics are stated off by d = [dfu, dfv, dcu, dcv]: the depth
+    from the mean of the depths its two sizes in px give, the lateral position from the
+    bearing (loadconsider's docstring)."""
+    X, Y, Z = p_cam
+    fu, fv, cu, cv = camera.fu, camera.fv, camera.cu, camera.cv
+    u, v = cu + fu * X / Z, cv + fv * Y / Z  # the centre in px (the true intrinsics)
+    size_u, size_v = fu * side / Z, fv * side / Z
+    fu_, fv_, cu_, cv_ = fu + d[0], fv + d[1], cu + d[2], cv + d[3]
+    Z_ = 0.5 * (fu_ * side / size_u + fv_ * side / size_v)
+    return np.array([(u - cu_) * Z_ / fu_, (v - cv_) * Z_ / fv_, Z_])
+
+
+def test_each_intrinsic_moves_the_code_centre_as_the_size_and_bearing_model_does():
+    """intrinsics_jacobian column by column against the model it linearises (the PnP test in
+    test_intrinsics.py moves fu and fv together, where the two columns' lateral terms cancel)."""
+    from fusion.estimate.loadconsider import intrinsics_jacobian
+
+    p = np.array([0.31, -0.22, 1.4])
+    J = intrinsics_jacobian(CAMERA, p)[0]
+    for i, step in enumerate((0.05, 0.05, 0.01, 0.01)):
+        d = np.zeros(4)
+        d[i] = step
+        moved = (_code_centre_stated(CAMERA, p, 0.1, d) - _code_centre_stated(CAMERA, p, 0.1, -d)) / (2 * step)
+        np.testing.assert_allclose(J[:, i], moved, rtol=1e-4, atol=1e-12, err_msg=f"column {i}")
+
+
+def test_the_mount_rotation_term_is_the_sightings_derivative():
+    """common_terms' U_rot, the mean over a load's sightings of d p_world / d theta for a small
+    rotation theta of the front camera about its centre in the body frame, against central
+    differences of the world point, for a load off the camera's axis in every direction."""
+    from dataclasses import replace
+
+    from fusion.estimate.loadconsider import common_terms
+    from fusion.geometry import so3_exp
+
+    traj, _ = _pass(n=5)
+    target = LOAD + np.array([0.2, 0.0, -0.15])  # off the axis: every component of the ray
+    T_cw = np.linalg.inv(CAMERA.T_world_cam(traj.T_world_body))
+    p_cam = np.einsum("nij,j->ni", T_cw[:, :3, :3], target) + T_cw[:, :3, 3]
+    _, _, _, U_rot, U_shift, _ = common_terms(_observations(traj, p_cam), traj, CAMERA)["L1"]
+
+    def world_points(theta):
+        T_bc = CAMERA.T_body_cam.copy()
+        T_bc[:3, :3] = so3_exp(theta) @ T_bc[:3, :3]
+        T_wc = replace(CAMERA, T_body_cam=T_bc).T_world_cam(traj.T_world_body)
+        return np.einsum("nij,nj->ni", T_wc[:, :3, :3], p_cam) + T_wc[:, :3, 3]
+
+    h = 1e-6
+    numeric = np.column_stack(
+        [(world_points(h * e) - world_points(-h * e)).mean(axis=0) / (2 * h) for e in np.eye(3)]
+    )
+    np.testing.assert_allclose(U_rot, numeric, atol=1e-7)
+    np.testing.assert_allclose(U_shift, traj.T_world_body[0, :3, :3], atol=1e-12)  # yaw only: every R_wb alike
+
+
+def test_a_sighting_takes_the_nearest_poses_covariance():
+    """A sighting between two poses hangs from the nearer one: with a different position sigma
+    at each of three poses 0.1 s apart, a sighting 30 ms after the first takes the first's."""
+    sigmas = (1e-4, 2e-4, 4e-4)
+    covs = np.zeros((3, 6, 6))
+    for k, s in enumerate(sigmas):
+        covs[k, 3:, 3:] = np.eye(3) * s**2
+    T = np.array([make_T(YAW_90, [LOAD[0], LOAD[1] - 1.25, LOAD[2]])] * 3)
+    traj = Trajectory("pnp", np.array([0, 100_000_000, 200_000_000]), T, covs)
+    p_cam = (np.linalg.inv(CAMERA.T_world_cam(T[0])) @ np.append(LOAD, 1.0))[:3]
+    for t_ns, k in ((30_000_000, 0), (70_000_000, 1), (130_000_000, 1), (190_000_000, 2)):
+        obs = [LoadObservation(t_ns, "L1", LOAD, None, p_cam, np.eye(3) * 1e-8)]
+        lm = LoadMap("pnp", [LoadEstimate("L1", LOAD, np.zeros((3, 3)), 1)])
+        cov = add_load_consider_covariance(lm, obs, traj, CAMERA, 0.0).loads[0].cov_world
+        np.testing.assert_allclose(cov, np.eye(3) * sigmas[k] ** 2, rtol=1e-9, err_msg=f"t {t_ns} ns")

@@ -116,3 +116,34 @@ def test_level_kept_fraction_is_the_conditioned_share_of_the_tilt_coupled_varian
         _, C_c, _ = condition_on_level(T, C, C[None], s)
         f = level_kept_fraction(C[None, :2, :2], s)
         np.testing.assert_allclose(np.diag(C_c)[3:5], v + f * h**2 * c, rtol=1e-9)
+
+
+def test_a_share_above_one_is_the_full_levelling_limit():
+    assert tilt_consider_sigma_rad(0.1, 5.0) == tilt_consider_sigma_rad(0.1)
+    assert tilt_consider_sigma_rad(0.1, -1.0) == 0.0
+
+
+def test_frames_without_a_usable_free_tilt_covariance_are_left_out():
+    """A frame whose free tilt covariance is singular (det 0) or not finite says nothing of the
+    tilt: the share is that of the other frames, not 1 and not an error."""
+    from fusion.estimate.tiltconsider import level_kept_fraction
+
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((20, 2, 2)) * 3e-4
+    C = A @ np.swapaxes(A, 1, 2) + 1e-9 * np.eye(2)
+    s = np.radians(0.01)
+    good = level_kept_fraction(C, s)
+    assert 0.0 < good < 1.0
+    singular = np.array([[[4e-8, 2e-8], [2e-8, 1e-8]]])  # det 0
+    nan = np.full((1, 2, 2), np.nan)
+    for bad in (singular, nan, np.concatenate([singular, nan])):
+        assert level_kept_fraction(np.concatenate([C, bad]), s) == good
+
+
+def test_add_tilt_consider_keeps_the_stamps():
+    rng = np.random.default_rng(6)
+    T = _poses(rng, 3, 0.2)
+    stamps = np.array([5, 6, 9], dtype=np.int64)
+    out = add_tilt_consider(Trajectory("ekf", stamps, T, np.tile(np.eye(6) * 1e-6, (3, 1, 1))), 0.01)
+    np.testing.assert_array_equal(out.timestamps_ns, stamps)
+    assert out.name == "ekf"

@@ -78,7 +78,8 @@ def level_kept_fraction(free_tilt_covariances: np.ndarray | None, sigma_rad: flo
     if free_tilt_covariances is None or not len(free_tilt_covariances):
         return 1.0
     C = np.asarray(free_tilt_covariances, dtype=float).reshape(-1, 2, 2)
-    C = C[np.all(np.isfinite(C), axis=(1, 2)) & (np.linalg.det(C) > 0.0) & (C[:, 0, 0] > 0.0)]
+    C = C[np.all(np.isfinite(C), axis=(1, 2))]  # first: det of a NaN matrix warns
+    C = C[(np.linalg.det(C) > 0.0) & (C[:, 0, 0] > 0.0)]
     if not len(C):
         return 1.0
     info = np.linalg.inv(C)
