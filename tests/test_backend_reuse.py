@@ -312,6 +312,20 @@ def test_two_solves_keep_the_iteration_without_covariances_at_the_first_scales(f
     assert np.abs(_positions(two) - _positions(three)).max() < SAME_OPTIMUM_M
 
 
+def test_two_solves_keep_the_iteration_when_a_stated_sensor_is_outside_its_band(flight):
+    """An IMU stated 10x noisier than it is: its chi2/dof at the first solve is below
+    variance.IMU_WARN_BAND, and the iteration (solve_inflated) decides what to do with it, as
+    for any flight whose stated sensor does not fit; solve_inflated_twice says why."""
+    imu = replace(flight.imu, noise=flight.imu.noise.scaled(10.0))
+    args = (flight.frame_t, imu, flight.raw, flight.load_obs)
+    kw = dict(front_camera=FRONT_CAM, velocity=flight.velocity, config=FusionConfig(lm_relative_tol=TIGHT_TOL))
+    two = correlation.InflatedSmoother(_flight_inflation(flight.raw))(*args, **kw)
+    ns = two.stats["noise_scales"]
+    assert ns["imu_chi2_per_dof"] < variance.IMU_WARN_BAND[0]
+    assert ns["two_solves_not_applied"] == "the IMU's chi2/dof is outside its band"
+    assert "two_solves" not in ns
+
+
 def test_one_causal_pass_inflates_the_ekf_and_the_incremental_smoother_alike(flight):
     """The EKF's and the incremental smoother's outputs are both the marginal of frame k as known
     at frame k: inflated from either's pass, the poses' covariances agree (the run takes the
