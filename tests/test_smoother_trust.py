@@ -241,6 +241,20 @@ def test_single_fix_is_dead_reckoned_with_honest_sigma():
     assert np.linalg.norm(e[k]) < 0.01  # at the fix itself
 
 
+def test_an_exactly_determined_dead_reckoning_is_not_a_stall():
+    """One fix dead-reckoned with a near-exact IMU model (integration sigma 1e-5, ten times below
+    the default): the first step reaches an error of ~1e-20, where no step lowers it further;
+    that is convergence, not an LM stall (the health would say one)."""
+    fl = make_flight(seed=32, duration_s=20.0, gaps=())
+    k = 150
+    raw = Trajectory(
+        "pnp", fl.raw.timestamps_ns[k : k + 1], fl.raw.T_world_body[k : k + 1], fl.raw.covariances[k : k + 1]
+    )
+    res = smooth(fl.frame_t, fl.imu, raw, [], FRONT_CAM, config=FusionConfig(integration_sigma=1e-5))
+    assert res.health.mode is SolveMode.DEAD_RECKONED
+    assert res.health.lm_stalls == 0 and res.stats["final_error"] < 1e-10
+
+
 # =========================================================================== incremental
 
 
@@ -416,6 +430,31 @@ def test_lm_damps_where_gauss_newton_diverges():
     assert abs(res.values.atVector(key)[0]) < 1e-4
     assert res.stop is LMStop.CONVERGED
     assert np.all(np.diff(errors) <= 0)
+
+
+def test_lm_at_its_error_floor_has_converged_not_stalled():
+    """A residual no step can lower (r(x) = c - x with a Jacobian that points the wrong way):
+    every damping fails, a stall, unless the error is already below lm_absolute_error_tol,
+    where a step that does not lower it meets rounding (an exactly determined solve, one fix
+    dead-reckoned, sits at ~1e-20): converged there, stalled above it."""
+    key = gtsam.symbol("v", 0)
+
+    def graph(c):
+        def error(this, values, jacobians):
+            x = values.atVector(key)
+            if jacobians is not None:
+                jacobians[0] = np.array([[1.0]])
+            return np.array([c - x[0]])
+
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [key], error))
+        return g
+
+    vals = gtsam.Values()
+    vals.insert(key, np.array([0.0]))
+    assert levenberg_marquardt(graph(1e-6), vals).stop is LMStop.CONVERGED
+    assert levenberg_marquardt(graph(1.0), vals).stop is LMStop.STALLED
+    assert levenberg_marquardt(graph(1e-6), vals, FusionConfig(lm_absolute_error_tol=0.0)).stop is LMStop.STALLED
 
 
 def test_smoother_lm_from_poor_initial_guess():

@@ -165,9 +165,13 @@ class FusionConfig:
     init_outlier_m: float = 0.3
     init_window: int = 15
     # Batch Levenberg-Marquardt (GTSAM's defaults: lambda0 1e-5, factor 10, relativeErrorTol
-    # 1e-5); a step is given up (an LM stall) once lambda exceeds `lm_lambda_max`.
+    # 1e-5); a step is given up (an LM stall) once lambda exceeds `lm_lambda_max`, unless the
+    # error is already below `lm_absolute_error_tol` (GTSAM's absoluteErrorTol, 1e-5): there a
+    # step that does not lower it meets rounding, not a misfit (an exactly determined solve, e.g.
+    # one fix dead-reckoned, reaches ~1e-20), and the solve has converged.
     lm_max_iterations: int = 100
     lm_relative_tol: float = 1e-5
+    lm_absolute_error_tol: float = 1e-5
     lm_lambda0: float = 1e-5
     lm_lambda_factor: float = 10.0
     lm_lambda_max: float = 1e10

@@ -892,7 +892,8 @@ def levenberg_marquardt(
                 stalled = True
                 break
         if stalled:
-            return LMResult(values, it, None, LMStop.STALLED)
+            at_floor = err <= config.lm_absolute_error_tol  # nothing left to lower (FusionConfig)
+            return LMResult(values, it, None, LMStop.CONVERGED if at_floor else LMStop.STALLED)
         undamped = lam == 0.0
         converged = (err - new_err) <= config.lm_relative_tol * max(err, 1e-300)
         if undamped and not converged:
