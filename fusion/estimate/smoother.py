@@ -845,7 +845,10 @@ def levenberg_marquardt(
     by less than lm_relative_tol (GTSAM's relativeErrorTol), or when an undamped step's actual
     decrease matches the linear model's predicted decrease to within lm_relative_tol of the
     error: the model misfit bounds what a further step could gain, so the usual last step that
-    only confirms convergence (a full linearise + eliminate) is skipped.
+    only confirms convergence (a full linearise + eliminate) is skipped.  A step that no
+    damping up to lm_lambda_max makes descend is a stall, unless the error is already below
+    lm_absolute_error_tol: there it meets rounding (an exactly determined solve sits at ~1e-20)
+    and the solve has converged.
 
     Why not gtsam.LevenbergMarquardtOptimizer: with Python CustomFactors in the graph its
     linearisation is 8-110x slower than `graph.linearize` called from Python on the same graph
