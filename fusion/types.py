@@ -76,6 +76,11 @@ class CameraRole(Choice):
     FRONT = "cam1"  # forward-looking, load codes
 
 
+def role_name(camera: str) -> str:
+    """ "floor" or "front": what a camera of the log (its EuRoC name, CameraRole) looks at."""
+    return "front" if camera == CameraRole.FRONT.value else "floor"
+
+
 @dataclass
 class QRDetection:
     """One decoded QR code in one frame."""

@@ -89,7 +89,7 @@ from fusion.estimate.timeoffset import seen_twice, usable_sightings
 from fusion.fileio import atomic_open
 from fusion.geometry import PoseInterpolator, make_T, skew_stack, so3_exp, so3_log
 from fusion.log.euroc import FlightLog, ImuData, LogWarning, VelocityData
-from fusion.types import CameraRole, Choice, Estimator, LoadObservation, Trajectory
+from fusion.types import CameraRole, Choice, Estimator, LoadObservation, Trajectory, role_name
 
 log = logging.getLogger(__name__)
 
@@ -325,7 +325,7 @@ class MountRotation:
 
     @property
     def role(self) -> str:
-        return "front" if self.camera == CameraRole.FRONT.value else "floor"
+        return role_name(self.camera)
 
     @property
     def warning_name(self) -> str:

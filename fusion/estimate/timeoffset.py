@@ -65,7 +65,7 @@ from fusion.estimate.correlation import correlation_time, frame_indices, group_f
 from fusion.estimate.smoother import SolveReuse, smooth
 from fusion.geometry import PoseInterpolator, inv_T, se3_log
 from fusion.log.euroc import FlightLog, ImuData, VelocityData
-from fusion.types import CameraRole, Choice, LoadObservation, Trajectory
+from fusion.types import CameraRole, Choice, LoadObservation, Trajectory, role_name
 
 log = logging.getLogger(__name__)
 
@@ -374,7 +374,7 @@ class CameraOffset:
 
     def describe(self) -> str:
         """One line: `cam1 (front): +15.02 ± 0.31 ms, estimated (seed 0.00 ms); applied`."""
-        role = "floor" if self.camera == CameraRole.FLOOR.value else "front"
+        role = role_name(self.camera)
         sig = f" ± {self.sigma_s * MS_PER_S:.2f}" if self.sigma_s is not None else ""
         seed = f" (seed {self.seed_s * MS_PER_S:+.2f} ms)" if self.seed_s else ""
         if self.source == OffsetSource.ESTIMATED:
@@ -1074,8 +1074,7 @@ def _drift_line(
     drift = ClockDrift(
         float(rate), sigma, t_ref, span_s, list(points), bool(applied), float(offset), math.sqrt(cov[0, 0])
     )
-    role = "floor" if camera == CameraRole.FLOOR.value else "front"
-    log.info("%s (%s): %s", camera, role, drift.describe())
+    log.info("%s (%s): %s", camera, role_name(camera), drift.describe())
     return drift
 
 

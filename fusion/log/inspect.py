@@ -250,14 +250,15 @@ def _inspect_bag(path: Path, opts: LogOptions, report: LogReport) -> None:
             if topic:
                 report.roles[key] = topic
                 role_of[topic] = ROLE_NAMES[key]
-    if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
+    has_truth = first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY
+    if has_truth:
         role_of[rb.GROUNDTRUTH_TOPIC] = ROLE_NAMES["groundtruth"]
     imu_topic = roles.imu if roles else None
     # one pass over every topic, decoding what the run's reader decodes too (its sensors' numbers,
     # each camera's first image and calibration), so that the plausibility check below reads
     # the log from it instead of a second pass over the bag
     vectors = {t for t in (roles.imu, roles.velocity) if t} if roles else set()
-    if first.types.get(rb.GROUNDTRUTH_TOPIC) == rb.ODOMETRY:
+    if has_truth:
         vectors.add(rb.GROUNDTRUTH_TOPIC)
     first_of = {t for t, ty in first.types.items() if ty == rb.CAMERA_INFO}
     first_of |= {t for t in (roles.floor, roles.front) if t} if roles else set()
