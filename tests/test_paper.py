@@ -15,7 +15,7 @@ from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
 from fusion.errors import EstimationError
 from fusion.geometry import inv_T, make_T, rot_z, transform_points
 from fusion.qr import paper
-from fusion.types import LoadObservation, QRDetection
+from fusion.types import LoadObservation, QRDetection, Trajectory
 from fusion.world import LoadCode, World
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "paper"
@@ -367,3 +367,230 @@ def test_paper_load_observations_use_the_nearest_floor_pose():
     obs = paper.paper_load_observations(frames, front_camera(), WORLD, traj)
     assert [o.timestamp_ns for o in obs] == [7]  # the second frame has no pose near it
     np.testing.assert_allclose(obs[0].p_world, [0.0 + DQW, 0.0, 1.5], atol=1e-9)
+
+
+# --------------------------------------------------------------------------- found by a mutation sample
+# (scripts/mutation.py --paths fusion/qr/paper.py, thirty-first session: each test below fails
+# under a mutant that survived the tests above)
+
+
+def test_yaw_averages_the_unit_directions_of_a_non_square_code():
+    """Sec. 3.2.5: the two directions (symbol right, symbol up turned by -90 deg) are averaged as
+    unit vectors, so a code foreshortened along one side does not weigh that side less."""
+    tl = np.array([100.0, 100.0])
+    b1, b2 = math.radians(20.0), math.radians(26.0)  # world +x at b1, world +y at b2 + 90 deg
+    tr = tl + 80.0 * np.array([math.cos(b1), -math.sin(b1)])  # v down
+    bl = tl - 40.0 * np.array([math.cos(b2 + math.pi / 2), -math.sin(b2 + math.pi / 2)])
+    corners = np.array([tl, tr, tr + (bl - tl), bl])
+    assert paper.yaw_from_floor_corners(corners) == pytest.approx(math.pi / 2 - math.radians(23.0), abs=1e-12)
+
+
+def test_algorithm1_skips_a_code_with_unusable_corners_and_keeps_the_first_of_a_tie():
+    good = square_corners(FC + [40.0, 0.0], 50.0, math.pi / 2)
+    nan = np.full((4, 2), np.nan)
+    pose = paper.localize_frame([floor_det("0/7/7", nan), floor_det("0/1/1", good)], floor_camera(), WORLD)
+    assert pose is not None and pose.floor_payload == "0/1/1"
+    # two codes equally far from the centre: line 7's strict '<' keeps the first one listed
+    twin = square_corners(FC - [40.0, 0.0], 50.0, math.pi / 2)
+    pose = paper.localize_frame([floor_det("0/1/1", good), floor_det("0/2/2", twin)], floor_camera(), WORLD)
+    assert pose.floor_payload == "0/1/1"
+    pose = paper.localize_frame([floor_det("0/2/2", twin), floor_det("0/1/1", good)], floor_camera(), WORLD)
+    assert pose.floor_payload == "0/2/2"
+
+
+def test_a_code_exactly_th_from_the_centre_is_matched():
+    """Algorithm 1 line 10 and Algorithm 4 line 5: MinDist <= Th is the matched case."""
+    corners = square_corners(FC + [3.0, 4.0], 50.0, math.pi / 2)
+    d = paper.localize_frame([floor_det("0/1/1", corners)], floor_camera(), WORLD, th_px=0.0).min_dist_px
+    assert (
+        paper.localize_frame([floor_det("0/1/1", corners)], floor_camera(), WORLD, th_px=d).case
+        == paper.MATCHED
+    )
+    load = QRDetection("cam1", 7, "1/box-1", corners, corners)
+    obs = paper.map_loads_frame([load], front_camera(), WORLD, DRONE, 0.0, th_px=d)
+    np.testing.assert_allclose(obs[0].p_world, [1.0 + 0.15 * FL / 50.0, 2.0, 1.5], atol=1e-12)  # Alg. 5
+
+
+def test_a_refused_mount_names_the_camera():
+    turned = make_T(R_BODY_FLOORCAM @ rot_z(math.radians(30)), np.zeros(3))
+    with pytest.raises(EstimationError, match="floor camera mount is 30.0 deg"):
+        paper.localize_frame(
+            [floor_det("0/0/0", square_corners(FC, 50, 0.0))], floor_camera(T_body_cam=turned), WORLD
+        )
+    cam = CameraModel(
+        W, H, FL, FL, FC[0], FC[1], T_body_cam=make_T(R_BODY_FRONTCAM @ rot_z(0.5), np.zeros(3))
+    )
+    with pytest.raises(EstimationError, match="front camera mount"):
+        paper.map_loads_frame([load_det(0.0, 0.0)], cam, WORLD, DRONE, 0.0)
+
+
+def test_paper_trajectory_passes_its_options_to_every_frame():
+    rng = np.random.default_rng(6)
+    off = floor_camera(cu=FC[0] + 12.0, cv=FC[1] - 7.0, distortion=[-0.25, 0.08, 0.001, -0.0005])
+    Ts = {t: random_level_pose(rng) for t in (300, 100, 200)}
+    frames = {t: [project_floor(off, "0/0/0", (0, 0), T, t)] for t, T in Ts.items()}
+    exact = paper.paper_trajectory(frames, off, WORLD, 0.0, undistort=True, centre="principal", name="alg1")
+    assert exact.name == "alg1" and exact.timestamps_ns.tolist() == [100, 200, 300]
+    assert exact.timestamps_ns.dtype == np.int64
+    for T_est, t in zip(exact.T_world_body, exact.timestamps_ns, strict=True):
+        np.testing.assert_allclose(T_est, Ts[int(t)], atol=1e-7)
+    for kwargs in ({"undistort": False}, {"centre": "geometric"}):
+        other = paper.paper_trajectory(
+            frames, off, WORLD, 0.0, **{"undistort": True, "centre": "principal", **kwargs}
+        )
+        assert np.max(np.abs(other.T_world_body[:, :3, 3] - exact.T_world_body[:, :3, 3])) > 1e-3
+    # Th: with a large one every frame is the matched case, placed on the code itself
+    matched = paper.paper_trajectory(frames, off, WORLD, 1e4, undistort=True, centre="principal")
+    np.testing.assert_allclose(matched.T_world_body[:, :2, 3], 0.0, atol=1e-12)
+    # codes classified by the caller are used instead of the frame's detections
+    from fusion.qr.codes import classify
+
+    codes = {200: classify(frames[200], WORLD)}
+    only = paper.paper_trajectory({t: [] for t in frames}, off, WORLD, 0.0, codes=codes)
+    assert only.timestamps_ns.tolist() == [200]
+
+
+@pytest.mark.parametrize("axis", [0, 90, 180, 270])
+def test_each_axis_branch_snaps_a_heading_within_the_tolerance(axis):
+    """Algorithm 6 lines 11, 17, 23, 29: D_r-theta within AXIS_TOL_DEG of an axis is that axis
+    (also from below, across 360 deg for the 0 axis)."""
+    assert paper._axis_branch((axis - 0.3) % 360.0, 0.5) == axis
+    assert paper._axis_branch(axis + 0.5, 0.5) == axis
+    assert paper._axis_branch(axis + 0.6, 0.5) is None
+    yaw = math.radians(axis + 0.3)
+    snapped = paper.map_loads_frame([load_det(30.0, 0.0)], front_camera(), WORLD, DRONE, yaw)
+    exact = paper.map_loads_frame([load_det(30.0, 0.0)], front_camera(), WORLD, DRONE, math.radians(axis))
+    np.testing.assert_allclose(snapped[0].p_world, exact[0].p_world, atol=1e-12)
+    general = paper.map_loads_frame(
+        [load_det(30.0, 0.0)], front_camera(), WORLD, DRONE, yaw, axis_tol_deg=0.0
+    )
+    assert np.max(np.abs(general[0].p_world - exact[0].p_world)) > 1e-3
+
+
+def test_matched_mapping_goes_along_the_heading():
+    yaw = math.radians(30.0)
+    obs = paper.map_loads_frame([load_det(1.0, -1.0)], front_camera(), WORLD, DRONE, yaw)
+    np.testing.assert_allclose(
+        obs[0].p_world, [1.0 + DQW * math.cos(yaw), 2.0 + DQW * math.sin(yaw), 1.5], atol=1e-12
+    )
+
+
+def test_map_loads_frame_keeps_the_raw_corners_and_uses_the_camera_options():
+    rng = np.random.default_rng(7)
+    cam = CameraModel(
+        W,
+        H,
+        FL,
+        FL,
+        FC[0] + 9.0,
+        FC[1] + 5.0,
+        distortion=[-0.2, 0.05, 0.0, 0.0],
+        T_body_cam=make_T(R_BODY_FRONTCAM, np.zeros(3)),
+    )
+    yaw = math.radians(rng.uniform(5, 85))
+    fwd, right = np.array([math.cos(yaw), math.sin(yaw), 0]), np.array([math.sin(yaw), -math.cos(yaw), 0])
+    p = DRONE + 1.6 * fwd + 0.3 * right + [0, 0, 0.2]
+    T_world_cam = make_T(rot_z(yaw), DRONE) @ cam.T_body_cam
+    uv = cam.project(
+        transform_points(inv_T(T_world_cam), WORLD.load_corners_world(LoadCode("L", tuple(p), yaw + math.pi)))
+    )
+    nan = np.full((4, 2), np.nan)
+    dets = [QRDetection("cam1", 0, "1/bad", nan, nan), QRDetection("cam1", 0, "1/L", uv, uv)]
+    obs = paper.map_loads_frame(dets, cam, WORLD, DRONE, yaw, 0.0, undistort=True, centre="principal")
+    assert [o.load_id for o in obs] == ["L"]  # the unusable code is skipped, not the end of the frame
+    np.testing.assert_allclose(obs[0].p_world, p, atol=1e-7)
+    np.testing.assert_array_equal(obs[0].corners_px, uv)  # as detected, not undistorted
+    for kwargs in ({"undistort": False}, {"centre": "geometric"}):
+        o = paper.map_loads_frame(
+            dets, cam, WORLD, DRONE, yaw, 0.0, **{"undistort": True, "centre": "principal", **kwargs}
+        )
+        assert np.max(np.abs(o[0].p_world - p)) > 1e-3
+
+
+def test_aggregate_loads_gives_two_sightings_a_covariance_and_keeps_the_name():
+    P = np.array([[1.0, 2.0, 3.0], [1.2, 2.0, 2.9]])
+    m = paper.aggregate_loads([LoadObservation(i, "a", p) for i, p in enumerate(P)], name="alg4")
+    assert m.name == "alg4"
+    np.testing.assert_allclose(m.by_id()["a"].cov_world, np.cov(P.T) / 2)
+    assert paper.aggregate_loads([]).name == "paper"
+
+
+def test_paper_load_observations_take_the_nearest_pose_of_several():
+    cam = floor_camera()
+    poses = {
+        0: make_T(rot_z(0.0), [0.0, 0.0, 1.5]),
+        100_000_000: make_T(rot_z(math.radians(60.0)), [0.5, -0.2, 1.5]),
+    }
+    traj = paper.paper_trajectory(
+        {t: [project_floor(cam, "0/0/0", (0, 0), T, t)] for t, T in poses.items()}, cam, WORLD
+    )
+    # front frames: one with no pose within 50 ms (first, so it must not end the loop), one
+    # nearer the second pose, one exactly 50 ms from the first (kept: the gap is not > max_gap_s)
+    frames = {
+        -300_000_000: [load_det(0.0, 0.0)],
+        70_000_000: [load_det(0.0, 0.0)],
+        50_000_000: [load_det(0.0, 0.0)],
+    }
+    obs = paper.paper_load_observations(frames, front_camera(), WORLD, traj)
+    assert len(obs) == 2
+    yaw = math.radians(60.0)
+    far = np.array([0.5 + DQW * math.cos(yaw), -0.2 + DQW * math.sin(yaw), 1.5])
+    near = np.array([0.0 + DQW, 0.0, 1.5])
+    # frames in time order: 50 ms on the first pose (a tie, the earlier pose), 70 ms on the second
+    np.testing.assert_allclose([o.p_world for o in obs], [near, far], atol=1e-9)
+    # Th is passed on: a code 3.6 px off the centre is the matched case with the default Th only
+    off = {70_000_000: [load_det(3.0, -2.0)]}
+    matched = paper.paper_load_observations(off, front_camera(), WORLD, traj)
+    general = paper.paper_load_observations(off, front_camera(), WORLD, traj, 0.0)
+    assert np.max(np.abs(matched[0].p_world - general[0].p_world)) > 1e-3
+    # codes classified by the caller: a frame missing from `loads` has none
+    assert paper.paper_load_observations(frames, front_camera(), WORLD, traj, loads={}) == []
+
+
+def test_paper_load_observations_pass_the_camera_options_and_the_callers_codes():
+    from fusion.qr.codes import classify
+
+    cam = CameraModel(
+        W,
+        H,
+        FL,
+        FL,
+        FC[0] + 9.0,
+        FC[1] + 5.0,
+        distortion=[-0.2, 0.05, 0.0, 0.0],
+        T_body_cam=make_T(R_BODY_FRONTCAM, np.zeros(3)),
+    )
+    yaw = math.radians(-40.0)  # a negative heading, as atan2 gives it: D_r-theta is taken mod 360
+    traj = Trajectory("t", np.array([0]), make_T(rot_z(yaw), DRONE)[None], None)
+    fwd, right = np.array([math.cos(yaw), math.sin(yaw), 0]), np.array([math.sin(yaw), -math.cos(yaw), 0])
+    p = DRONE + 1.6 * fwd - 0.4 * right + [0, 0, -0.1]
+    T_world_cam = make_T(rot_z(yaw), DRONE) @ cam.T_body_cam
+    corners = WORLD.load_corners_world(LoadCode("L", tuple(p), yaw + math.pi))
+    uv = cam.project(transform_points(inv_T(T_world_cam), corners))
+    frames = {0: [QRDetection("cam1", 0, "1/L", uv, uv)]}
+    exact = paper.paper_load_observations(frames, cam, WORLD, traj, 0.0, undistort=True, centre="principal")
+    np.testing.assert_allclose(exact[0].p_world, p, atol=1e-7)
+    for kwargs in ({"undistort": False}, {"centre": "geometric"}):
+        o = paper.paper_load_observations(
+            frames, cam, WORLD, traj, 0.0, **{"undistort": True, "centre": "principal", **kwargs}
+        )
+        assert np.max(np.abs(o[0].p_world - p)) > 1e-3
+    # the faithful default: distorted pixels as given (the paper ignores the lens, Sec. 4.2.3)
+    default = paper.paper_load_observations(frames, cam, WORLD, traj, 0.0, centre="principal")
+    np.testing.assert_allclose(
+        default[0].p_world,
+        paper.paper_load_observations(frames, cam, WORLD, traj, 0.0, undistort=False, centre="principal")[
+            0
+        ].p_world,
+    )
+    given = paper.paper_load_observations(
+        frames,
+        cam,
+        WORLD,
+        traj,
+        0.0,
+        undistort=True,
+        centre="principal",
+        loads={0: classify(frames[0], WORLD).loads},
+    )
+    np.testing.assert_allclose(given[0].p_world, p, atol=1e-7)
