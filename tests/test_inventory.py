@@ -315,3 +315,18 @@ def test_sighting_directions_take_the_nearest_pose():
     np.testing.assert_allclose(d, centres / np.linalg.norm(centres, axis=1)[:, None])
     one = Trajectory("smoother", traj.timestamps_ns[:1], traj.T_world_body[:1])
     assert sighting_directions(p, np.array([5, 10**12]), one, camera).shape == (2, 3)
+
+
+def test_load_observations_of_an_id_escaped_on_writing_are_read_under_the_id(tmp_path):
+    """An id starting with - + = @ or ' is written csv_safe (a spreadsheet would run it as a
+    formula); the reader unescapes it, or inventory's ambiguity test and map merge's view
+    directions would never find that load's sightings (thirty-first session's audit)."""
+    from fusion.pipeline import write_load_observations_csv
+    from fusion.types import LoadObservation
+
+    path = tmp_path / "load_observations_pnp.csv"
+    obs = [LoadObservation(100, "-P-01-2", np.array([1.0, 2.0, 3.0])), LoadObservation(200, "'q", np.ones(3))]
+    write_load_observations_csv(path, obs)
+    assert "'-P-01-2" in path.read_text()
+    times, points = read_observation_rows(path)
+    assert sorted(times) == ["'q", "-P-01-2"] and times["-P-01-2"].tolist() == [100]

@@ -20,7 +20,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.errors import FusionError, WarehouseError
-from fusion.fileio import atomic_open, load_yaml
+from fusion.fileio import atomic_open, csv_unsafe, load_yaml
 from fusion.log.files import read_loads_csv, read_tum
 from fusion.types import CameraRole, Estimator, LoadEstimate, LoadMap, Trajectory
 from fusion.world import World
@@ -188,8 +188,9 @@ def read_observation_rows(path: Path) -> tuple[dict[str, np.ndarray], dict[str, 
                 raise WarehouseError(f"{path}:{lineno}: a position is not a number") from None
             if not all(math.isfinite(v) for v in p):
                 raise WarehouseError(f"{path}:{lineno}: NaN or infinite position")
-            out.setdefault(row[1], []).append(p)
-            stamps.setdefault(row[1], []).append(t)
+            load_id = csv_unsafe(row[1])  # written csv_safe (pipeline.write_load_observations_csv)
+            out.setdefault(load_id, []).append(p)
+            stamps.setdefault(load_id, []).append(t)
     return (
         {k: np.asarray(v, dtype=np.int64) for k, v in stamps.items()},
         {k: np.asarray(v) for k, v in out.items()},
