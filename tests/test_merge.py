@@ -5,6 +5,7 @@ folders written in the formats `fusion run` writes."""
 import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,7 @@ def _fake_run(
     shared=None,
     y: float = 1.5,
     sightings: bool = False,
+    log: str | None = None,
 ) -> Path:
     """A run folder: the smoother's trajectory (hovering at y, z = 1.4 over x_range, facing +y
     from y < 2.7, -y from beyond), its load map {id: p} with covariance COV (plus `shared`, its
@@ -62,7 +64,7 @@ def _fake_run(
         ),
     )
     (root / RUN_RECORD).write_text(
-        json.dumps({"log": "x", "world_yaml": world, "front_camera_sensor_yaml": FRONT})
+        json.dumps({"log": log or str(root / "log"), "world_yaml": world, "front_camera_sensor_yaml": FRONT})
     )
     return root
 
@@ -239,3 +241,27 @@ def test_merge_does_not_average_down_what_flights_share(tmp_path):
                 np.testing.assert_allclose(res.loads[0].cov_world, COV / 10 + S)
     assert 1.5 < np.mean(nees_kept) < 5.0  # 48 loads, chi2(3)
     assert np.mean(nees_ignored) > 8.0
+
+
+def test_merge_refuses_one_flight_twice(tmp_path, capsys):
+    """The same run twice, two runs of one log, or a copied run: its sightings would count twice
+    (thirty-first session's audit: n_obs doubled, every sigma / sqrt(2))."""
+    loads = {"A": [1.5, 2.7, 1.4], "B": [2.0, 2.7, 1.3]}
+    r0 = _fake_run(tmp_path / "r0", loads, sightings=True)
+    with pytest.raises(WarehouseError, match="same flight log as .*r0"):
+        merge_runs([load_run(r0), load_run(r0)])
+    r1 = _fake_run(tmp_path / "r1", loads, sightings=True, log=str(tmp_path / "r0" / "log"))
+    with pytest.raises(WarehouseError, match="same flight log"):
+        merge_runs([load_run(r0), load_run(r1)])
+    copy = tmp_path / "copy"
+    shutil.copytree(r0, copy)
+    record = json.loads((copy / RUN_RECORD).read_text())
+    (copy / RUN_RECORD).write_text(json.dumps(dict(record, log=str(tmp_path / "elsewhere"))))
+    with pytest.raises(WarehouseError, match="same load sightings as .*r0"):
+        merge_runs([load_run(r0), load_run(copy)])
+    assert main(["map", "merge", str(r0), str(copy), "--out", str(tmp_path / "m"), "-q"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "count them twice" in err and not (tmp_path / "m").exists()
+    # another flight of the same loads (other positions, other log) is merged
+    other = _fake_run(tmp_path / "r2", {k: np.add(v, 0.001) for k, v in loads.items()}, sightings=True)
+    assert merge_runs([load_run(r0), load_run(other)]).loads[0].n_runs == 2

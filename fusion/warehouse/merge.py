@@ -26,7 +26,8 @@ Between the state and a new flight's estimate (p_k, P_k) of the same id the chan
   (scripts/bench_map_merge_rendered.py) was listed as disappeared, 24 poses "in view" through
   the rack.
 
-Runs of different warehouses (their world.yaml differ) are refused.
+Runs of different warehouses (their world.yaml differ) are refused, and so are two runs of one
+flight (the same log, or the same raw sightings: a copy): their sightings would count twice.
 """
 
 from __future__ import annotations
@@ -141,6 +142,39 @@ def check_same_warehouse(runs: list[RunOutputs], notes: list[str] | None = None)
     return ref
 
 
+def check_distinct_flights(runs: list[RunOutputs]) -> None:
+    """WarehouseError when two of `runs` are of one flight: the same log (run.json), or the same
+    raw load sightings (ids, stamps and positions: a copied log or run folder).  Fused, such a
+    flight's sightings count twice: every sigma shrinks by sqrt(2) for nothing."""
+    by_log: dict[str, RunOutputs] = {}
+    by_sightings: dict[bytes, RunOutputs] = {}
+    for r in runs:
+        same = by_log.get(r.log_path) if r.log_path is not None else None
+        if same is not None:
+            raise WarehouseError(
+                f"{r.out_dir}: a run of the same flight log as {same.out_dir} ({r.log_path}); "
+                "merging them would count its sightings twice"
+            )
+        if r.log_path is not None:
+            by_log[r.log_path] = r
+        if not r.observations:
+            continue
+        key = b"".join(
+            lid.encode()
+            + b"\0"
+            + np.asarray(r.observation_times_ns.get(lid, []), np.int64).tobytes()
+            + np.round(np.asarray(p, float), 6).tobytes()
+            for lid, p in sorted(r.observations.items())
+        )
+        same = by_sightings.get(key)
+        if same is not None:
+            raise WarehouseError(
+                f"{r.out_dir}: the same load sightings as {same.out_dir} (a copy of one flight?); "
+                "merging them would count them twice"
+            )
+        by_sightings[key] = r
+
+
 def _fuse(p_a, P_a, S_a, p_b, P_b, S_b) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(p, P, S): information-weighted fusion of two estimates whose covariances P_a, P_b hold
     the shared parts S_a, S_b (None: nothing shared), which are not averaged down (module
@@ -178,6 +212,7 @@ def merge_runs(runs: list[RunOutputs]) -> MergeResult:
         raise WarehouseError("map merge needs at least one run")
     notes: list[str] = []
     world_yaml = check_same_warehouse(runs, notes)
+    check_distinct_flights(runs)
     state: dict[str, MergedLoad] = {}
     changes: list[Change] = []
     for k, run in enumerate(runs):
