@@ -330,3 +330,19 @@ def test_load_observations_of_an_id_escaped_on_writing_are_read_under_the_id(tmp
     assert "'-P-01-2" in path.read_text()
     times, points = read_observation_rows(path)
     assert sorted(times) == ["'q", "-P-01-2"] and times["-P-01-2"].tolist() == [100]
+
+
+def test_a_manifest_outside_the_warehouse_is_refused_naming_its_line(sample_run, tmp_path, capsys):
+    """A plain manifest filled in millimetres: every load would be "moved" by kilometres; the
+    positions lie outside world.yaml's bounds (10 x 7 m), so the line is named instead
+    (thirty-first session's audit)."""
+    truth = _truth()
+    mm = {k: [1000 * v for v in p] for k, p in truth.items()}
+    manifest = _manifest(tmp_path / "mm.csv", mm)
+    with pytest.raises(WarehouseError, match=r"mm\.csv:2: .* outside the warehouse .*metres"):
+        run_inventory(sample_run, manifest, write=False)
+    assert main(["inventory", str(sample_run), "--expected", str(manifest), "-q"]) == 1
+    assert "\n" not in capsys.readouterr().err.strip()
+    # just beyond the bounds (a label on a rack's outer face at the wall) is fine
+    edge = _manifest(tmp_path / "edge.csv", {"EDGE": [10.5, 3.0, 1.4]})
+    assert run_inventory(sample_run, edge, write=False).statuses()["EDGE"] == Status.NOT_SURVEYED

@@ -39,12 +39,14 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.stats import chi2
 
 from fusion.camera import CameraModel
+from fusion.errors import WarehouseError
 from fusion.fileio import atomic_open
 from fusion.geometry import inv_T
 from fusion.types import Estimator, LoadMap, Trajectory
 from fusion.warehouse import escape
 from fusion.warehouse.manifest import ExpectedLoad, read_manifest
 from fusion.warehouse.runs import RunOutputs, load_run
+from fusion.world import World
 
 logger = logging.getLogger(__name__)
 
@@ -345,6 +347,29 @@ def inventory(run: RunOutputs, expected: list[ExpectedLoad]) -> InventoryResult:
     return InventoryResult(rows, run.estimator, notes)
 
 
+MANIFEST_BOUNDS_MARGIN_M = 1.0
+"""How far outside world.yaml's bounds_m an expected position may lie (a label on the outer face
+of a rack at the wall) before the manifest is refused."""
+
+
+def check_inside_warehouse(expected: list[ExpectedLoad], world: World | None, manifest: Path) -> None:
+    """WarehouseError naming the manifest's line of the first expected position outside the
+    warehouse's bounds (world.yaml bounds_m, MANIFEST_BOUNDS_MARGIN_M beyond): a plain manifest
+    is in metres, and one filled in mm or cm would otherwise report every load "moved" by
+    kilometres.  Nothing is checked when the bounds are unknown."""
+    if world is None:
+        return
+    for e in expected:
+        if not world.contains(e.p_world, MANIFEST_BOUNDS_MARGIN_M):
+            x, y = (float(v) for v in e.p_world[:2])
+            raise WarehouseError(
+                f"{manifest}:{e.line}: {e.load_id!r} expected at x {x:g}, y {y:g} m, outside the "
+                f"warehouse (world.yaml bounds_m x {list(world.bounds_x_m or ())}, y "
+                f"{list(world.bounds_y_m or ())}); a plain manifest is in metres (mm or cm? use the "
+                "WMS layout's unit column)"
+            )
+
+
 def run_inventory(
     run_out: Path,
     manifest: Path,
@@ -357,6 +382,7 @@ def run_inventory(
     re-draw report.html with the inventory colours."""
     expected = read_manifest(manifest)
     run = load_run(run_out, estimator, log)
+    check_inside_warehouse(expected, run.world, manifest)
     result = inventory(run, expected)
     if write:
         out = Path(run_out)

@@ -28,7 +28,9 @@ the label (inventory.MAX_READ_OBLIQUITY_DEG): without it, a flight down the next
 the rack, would call a load it could not have read "missing".
 
 Bad input (duplicate ids, missing columns, short rows, non-numeric or non-finite cells, foreign
-units, empty or unprintable ids) raises WarehouseError with one line naming file and line.
+units, empty or unprintable ids) raises WarehouseError with one line naming file and line; so
+does, in `fusion inventory`, an expected position outside world.yaml's bounds_m (a plain
+manifest filled in mm: inventory.check_inside_warehouse).
 """
 
 from __future__ import annotations
