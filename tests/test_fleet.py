@@ -16,7 +16,7 @@ import pytest
 from distributed import Client, LocalCluster, WorkerPlugin
 
 from fusion.cli import EXIT_FLIGHTS_FAILED, _run_config, build_parser, main
-from fusion.errors import FleetError
+from fusion.errors import FleetError, LogError
 from fusion.fileio import LOCK_NAME, read_manifest
 from fusion.fleet import BatchConfig, FlightStatus, run_batch
 from fusion.fleet.batch import connect
@@ -190,13 +190,22 @@ def _profiler(dask_worker) -> tuple:
     return dask.config.get("distributed.worker.profile.enabled"), "profile" in dask_worker.periodic_callbacks
 
 
-def test_local_workers_start_with_one_malloc_arena_and_no_profiler():
+def test_local_workers_start_with_one_malloc_arena_and_no_profiler(capfd):
     """batch.LOCAL_MALLOC_ARENAS reaches the local cluster's worker processes (glibc reads it
     when the process starts); Dask's own trim threshold stays; the statistical profiler is off
-    (batch.LOCAL_PROFILER)."""
+    (batch.LOCAL_PROFILER).  A bad flight's error is the batch's to report (fleet.md, its
+    FAILED line): the worker prints no "Compute Failed" traceback of it on stderr."""
     with connect(BatchConfig(workers=1)) as client:
         assert client.submit(_malloc_env, pure=False).result() == ("1", "65536")
         assert list(client.run(_profiler).values()) == [(False, False)]
+        with pytest.raises(LogError, match="not a flight"):
+            client.submit(_bad_flight, pure=False).result()
+    err = capfd.readouterr().err
+    assert "Compute Failed" not in err and "Traceback" not in err
+
+
+def _bad_flight() -> None:
+    raise LogError("/x: not a flight log")
 
 
 def test_a_second_batch_on_the_same_folder_is_refused(flights, tmp_path):

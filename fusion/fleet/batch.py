@@ -214,7 +214,9 @@ def connect(cfg: BatchConfig) -> Iterator[Client]:
             threads_per_worker=1,
             processes=True,
             dashboard_address=_dashboard_address(),
-            silence_logs=logging.ERROR,
+            # a failed flight is the batch's to report (fleet.md, its FAILED line): no worker
+            # "Compute Failed" traceback of a FusionError on stderr
+            silence_logs=logging.CRITICAL,
         )
     try:
         client = Client(cluster, set_as_default=False)
