@@ -129,6 +129,7 @@ from fusion.types import (
     LoadObservation,
     RobustKernel,
     Trajectory,
+    role_name,
 )
 from fusion.warehouse import floorcodes
 from fusion.warehouse.inventory import AMBIGUITY_SEPARATION_M, ambiguous_places
@@ -1738,10 +1739,32 @@ def _apply_time_offsets(
                 "own oscillator: stamp with the IMU's clock (or synchronise them) to avoid it",
             )
         )
+    bound = time_offset_bound_warning(offsets)
+    if bound is not None:
+        result.warnings.append(bound)
     if not offsets.any_applied:
         return log, det, loc
     log, det = shift_log(log, offsets), shift_detections(det, offsets)
     return log, det, localize_stage(log, det, cfg)
+
+
+def time_offset_bound_warning(offsets: TimeOffsets) -> LogWarning | None:
+    """The named warning `time_offset_at_bound` for the cameras whose offset profile found its
+    minimum at the search bound (timeoffset.CameraOffset.at_search_bound): the clock is further
+    off than the search reaches, so no estimate of it, nor the poses stamped with it, holds."""
+    bounded = {n: c for n, c in offsets.cameras.items() if c.at_search_bound}
+    if not bounded:
+        return None
+    each = "; ".join(f"{n} ({role_name(n)}) {c.offset_s * 1e3:+.1f} ms" for n, c in bounded.items())
+    return LogWarning(
+        "time_offset_at_bound",
+        len(bounded),
+        f"camera time offsets at the edge of their search: {each} (+-"
+        f"{TimeOffsetConfig().search_half_width_s * 1e3:.0f} ms around the seed): the camera "
+        "clock is likely further off, and the estimates cannot be trusted. Measure the offset "
+        "(a driver's latency, frames stamped on arrival) and fix it with --time-offset-ms, or "
+        "seed the search with Kalibr's timeshift_cam_imu",
+    )
 
 
 def _apply_extrinsics(

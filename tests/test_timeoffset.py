@@ -35,7 +35,7 @@ from fusion.estimate.timeoffset import (
 from fusion.geometry import inv_T, make_T
 from fusion.log.euroc import CameraStream, FlightLog, ImuNoise, read_flight
 from fusion.log.files import read_loads_csv, read_tum
-from fusion.pipeline import RunConfig
+from fusion.pipeline import RunConfig, time_offset_bound_warning
 from fusion.sim.imu import synthesize_imu
 from fusion.sim.simulate import simulate
 from fusion.sim.trajectory import random_aisle_survey
@@ -779,3 +779,22 @@ def test_an_applied_floor_offset_widens_the_pose_covariances_by_its_sigma(tmp_pa
     for name in ("smoother", "ekf"):
         d = est.trajectories[name].covariances - fixed.trajectories[name].covariances
         assert np.linalg.eigvalsh(d).min() > -1e-12 and np.abs(d).max() > 0.0
+
+
+def test_an_offset_beyond_the_search_is_flagged_at_the_bound():
+    """A camera 120 ms late (a driver's latency) is beyond the +-50 ms search: the profile's
+    minimum sits at the bound, which is flagged (CameraOffset.at_search_bound, the run's
+    warning `time_offset_at_bound`), not reported as an estimate "not significant"
+    (thirty-first session's audit: 300 ms read -50 +- 18 ms, "not applied (not significant)")."""
+    fl = _flight(8.0, 3, 120.0 * MS)
+    offsets = resolve_time_offsets(_log(fl), fl["raw"], [], {})
+    floor = offsets.cameras["cam0"]
+    assert floor.at_search_bound and floor.as_dict()["at_search_bound"]
+    assert abs(floor.offset_s) == pytest.approx(TimeOffsetConfig().search_half_width_s, abs=5 * MS)
+    assert "(not significant)" not in floor.describe() and "at the search bound" in floor.describe()
+    warning = time_offset_bound_warning(offsets)
+    assert warning is not None and warning.name == "time_offset_at_bound" and warning.count == 1
+    assert "cam0 (floor) " in warning.message and "--time-offset-ms" in warning.message
+    fl = _flight(8.0, 3, 17.0 * MS)
+    offsets = resolve_time_offsets(_log(fl), fl["raw"], [], {})
+    assert not offsets.cameras["cam0"].at_search_bound and time_offset_bound_warning(offsets) is None

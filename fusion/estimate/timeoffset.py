@@ -335,6 +335,7 @@ class CameraOffset:
     apply_sigmas: float | None = None
     drift: ClockDrift | None = None  # the camera's clock rate, when checked
     jitter: StampJitter | None = None  # the camera's stamp noise, when estimated
+    at_search_bound: bool = False  # the profile's minimum at its bound: the offset may be larger
 
     @property
     def effective_s(self) -> float:
@@ -370,6 +371,7 @@ class CameraOffset:
             "stamp_sigma_ms": math.sqrt(self.stamp_variance_s2) * MS_PER_S,
             "clock_drift": None if self.drift is None else self.drift.as_dict(),
             "stamp_jitter": None if self.jitter is None else self.jitter.as_dict(),
+            "at_search_bound": self.at_search_bound,
         }
 
     def describe(self) -> str:
@@ -379,6 +381,8 @@ class CameraOffset:
         seed = f" (seed {self.seed_s * MS_PER_S:+.2f} ms)" if self.seed_s else ""
         if self.source == OffsetSource.ESTIMATED:
             used = "applied" if self.applied_s else "not applied (not significant)"
+            if self.at_search_bound:  # not a measurement: the cost still falls beyond the bound
+                used = "applied up to the bound" if self.applied_s else "not applied"
         elif self.source == OffsetSource.FIXED:
             used = "applied"
         else:
@@ -594,6 +598,7 @@ class FloorProfile:
     whole_flight: bool = True  # False: profiled on a window of the flight (profile_window_s)
     window_ns: tuple[int, int] = (0, 0)  # the stamps profiled (log clock)
     jitter: StampJitter | None = None  # the fixes' stamp noise at the estimate
+    at_bound: bool = False  # the minimum is at the search bound: the offset may be larger
 
 
 def estimate_floor_offset(
@@ -671,9 +676,8 @@ def estimate_floor_offset(
         log.info("floor camera time offset: Newton steps did not settle; bounded Brent instead")
         found = _profile_minimum(*args)
     r_ms, sig_ms, e_min = found
-    note = ""
-    if abs(r_ms) > S_ms - 2 * config.curvature_step_s * MS_PER_S:
-        note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
+    at_bound = abs(r_ms) > S_ms - 2 * config.curvature_step_s * MS_PER_S
+    note = _at_bound_note(S_ms) if at_bound else ""
     d_best = min(trajs, key=lambda d: abs(d - r_ms * 1e6))
     # residual degrees of freedom: the fixes' dimensions (the IMU's are taken up by the states)
     dim = 6 if sub.covariances is not None else 4
@@ -687,12 +691,17 @@ def estimate_floor_offset(
         note,
         whole_flight=(t1 - t0) < int(config.profile_window_s * NS_PER_S),
         window_ns=(int(t0), int(t1)),
+        at_bound=at_bound,
         jitter=_profile_jitter(
             frames, imu, _shift_traj(sub, d_best), trajs[d_best], d_best, velocity, floor_camera, pcfg, config
         )
         if jitter
         else None,
     )
+
+
+def _at_bound_note(search_ms: float) -> str:
+    return f"at the search bound (+-{search_ms:.0f} ms around the seed): the offset may be larger"
 
 
 def _profile_jitter(
@@ -952,6 +961,7 @@ class FrontProfile:
     note: str = ""
     evaluations: int = 0
     jitter: StampJitter | None = None  # the sightings' stamp noise at the estimate
+    at_bound: bool = False  # the minimum is at the search bound: the offset may be larger
 
 
 def estimate_front_offset(
@@ -1002,9 +1012,8 @@ def estimate_front_offset(
         cost_ms, lo, hi, config.xatol_s * MS_PER_S, config.front_curvature_step_s * MS_PER_S
     )
     sig_ms = _inflate(sig_ms, e_min, 3 * (len(obs) - int(group.max()) - 1) - 1)
-    note = ""
-    if abs(r_ms) > S_ms - step_ms:
-        note = f"at the search bound (+-{S_ms:.0f} ms around the seed): the offset may be larger"
+    at_bound = abs(r_ms) > S_ms - step_ms
+    note = _at_bound_note(S_ms) if at_bound else ""
     found = None
     if jitter:
         # the sightings' stamp jitter at the estimate: residuals from their landmarks against
@@ -1016,7 +1025,13 @@ def estimate_front_offset(
         rates = sighting_rates(poses, tq, p_cam, front_camera)
         found = _jitter_ml(resid, np.linalg.inv(W), rates, config, keys=group_frame_keys(group, t))
     return FrontProfile(
-        r_ms / MS_PER_S, None if sig_ms is None else sig_ms / MS_PER_S, len(obs), note, n_eval[0], found
+        r_ms / MS_PER_S,
+        None if sig_ms is None else sig_ms / MS_PER_S,
+        len(obs),
+        note,
+        n_eval[0],
+        found,
+        at_bound,
     )
 
 
@@ -1227,6 +1242,7 @@ def resolve_time_offsets(
                 config.apply_sigmas,
                 drift,
                 fp.jitter,
+                fp.at_bound,
             )
         except EstimationError as e:
             out.cameras[floor] = CameraOffset(floor, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
@@ -1291,6 +1307,7 @@ def resolve_time_offsets(
             config.apply_sigmas,
             front_drift,
             jitter,
+            fr.at_bound,
         )
     except EstimationError as e:
         out.cameras[front] = CameraOffset(front, seed, None, OffsetSource.SEED, seed, 0.0, str(e))
