@@ -1,5 +1,7 @@
 """Core model: payload grammar, camera model, world.yaml, SE(3) helpers."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -120,6 +122,31 @@ def test_camera_project_undistort_round_trip():
     assert np.max(np.abs(uv2 - uv)) < 1e-6
 
 
+def test_undistortion_is_newton_with_the_exact_jacobian():
+    """undistort_normalized's Newton steps use the model's analytic Jacobian: quadratic
+    convergence, 1e-13 in four steps from the distorted point, for both lens models (a wrong
+    Jacobian term still converges in 30 steps, only linearly: a mutation sample found it
+    untested)."""
+    rng = np.random.default_rng(7)
+    cam = dataclasses.replace(make_camera((-0.25, 0.08, 0.001, -0.0005)), k3=0.01)
+    xy = rng.uniform(-0.6, 0.6, (300, 2))
+    uv = cam.project(np.column_stack([xy, np.ones(len(xy))]))
+    assert np.abs(cam.undistort_normalized(uv, iterations=4) - xy).max() < 1e-13
+    fish = CameraModel(
+        640,
+        480,
+        300.0,
+        300.0,
+        320.0,
+        240.0,
+        np.array([0.05, -0.01, 0.002, -0.0003]),
+        distortion_model="equidistant",
+    )
+    xy = rng.uniform(-1.5, 1.5, (300, 2))
+    uv = fish.project(np.column_stack([xy, np.ones(len(xy))]))
+    assert np.abs(fish.undistort_normalized(uv, iterations=4) - xy).max() < 1e-13
+
+
 def test_camera_project_matches_opencv():
     import cv2
 
@@ -136,6 +163,22 @@ def test_camera_yaml_round_trip(tmp_path):
     cam2 = CameraModel.load(tmp_path / "sensor.yaml")
     assert np.allclose(cam2.K, cam.K) and np.allclose(cam2.distortion, cam.distortion)
     assert np.allclose(cam2.T_body_cam, cam.T_body_cam) and cam2.mount == cam.mount
+
+
+def test_camera_yaml_is_euroc_layout_and_refuses_a_non_positive_size_or_focal_length():
+    data = make_camera().to_sensor_yaml()
+    assert data["T_BS"]["rows"] == 4 and data["T_BS"]["cols"] == 4 and len(data["T_BS"]["data"]) == 16
+    for key, i, v in [
+        ("resolution", 0, 0),
+        ("resolution", 1, 0),
+        ("intrinsics", 0, 0.0),
+        ("intrinsics", 1, -600.0),
+    ]:
+        bad = make_camera().to_sensor_yaml()
+        bad[key] = list(bad[key])
+        bad[key][i] = v
+        with pytest.raises(CameraModelError, match="cam0/sensor.yaml"):
+            CameraModel.from_sensor_yaml(bad, "cam0/sensor.yaml")
 
 
 @pytest.mark.parametrize("key", ["T_BS", "intrinsics", "resolution", "camera_model"])
