@@ -212,6 +212,24 @@ def test_bad_frames_are_skipped_and_counted(log_dir):
     assert "10x10" in log.floor.skipped[2]
 
 
+def test_12_bit_images_in_16_bit_pngs_are_read_at_full_contrast(log_dir):
+    """Machine-vision cameras write Mono12 (0-4095) in 16-bit PNGs: OpenCV's 8-bit read kept
+    the high byte, a near-black image (0-15), and the run said only "check focus and exposure"
+    (thirty-first session's audit).  A 16-bit image is stretched to its brightest pixel, as the
+    bag reader does with mono16; full-range 16-bit reads as the 8-bit original."""
+    files = sorted((log_dir / "mav0" / "cam0" / "data").iterdir())
+    before = [f.image for f in read_flight(log_dir).floor.frames()]
+    cv2.imwrite(str(files[1]), before[1].astype(np.uint16) * 16)  # 12 bits
+    cv2.imwrite(str(files[2]), before[2].astype(np.uint16) * 257)  # full 16-bit range
+    assert cv2.imread(str(files[1]), cv2.IMREAD_UNCHANGED).dtype == np.uint16
+    after = [f.image for f in read_flight(log_dir).floor.frames()]
+    for k in (1, 2):
+        assert after[k].dtype == np.uint8
+        expected = np.round(before[k] * (255.0 / before[k].max())).astype(np.uint8)
+        np.testing.assert_array_equal(after[k], expected)
+    np.testing.assert_array_equal(after[0], before[0])
+
+
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_truncated_images_are_skipped_without_the_codec_printing(log_dir, ext, capfd):
     """A PNG cut short (no IEND) or a JPEG without its end marker is skipped and counted before

@@ -264,9 +264,11 @@ class CameraStream:
             self.skipped.append(f"{self._where(i)}: image {path.name} cannot be read ({e.strerror})")
             return None
         try:
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
         except cv2.error:
             img = None
+        if img is not None and img.dtype == np.uint16:
+            img = gray16_to_8(img)
         if img is None or img.size == 0:
             self.skipped.append(f"{self._where(i)}: image {path.name} is unreadable")
             return None
@@ -286,6 +288,17 @@ class CameraStream:
     def frames(self) -> Iterator[Frame]:
         for i, t in enumerate(self.timestamps_ns):
             yield Frame(int(t), self.load_image(i), self.paths[i])
+
+
+def gray16_to_8(img16: np.ndarray) -> np.ndarray:
+    """A 16-bit grey image (PNG, mono16) as uint8, stretched so its brightest pixel is 255:
+    machine-vision cameras write 10- or 12-bit data in 16-bit containers (Mono12: 0-4095), which
+    keeping the high byte (OpenCV's 8-bit read) turned near black; full-range 16-bit data reads
+    as before.  An all-black image stays black."""
+    top = float(img16.max()) if img16.size else 0.0
+    if top <= 0:
+        return np.zeros(img16.shape, np.uint8)
+    return np.round(img16.astype(np.float64) * (255.0 / top)).astype(np.uint8)
 
 
 def _truncated_image(data: bytes) -> str | None:

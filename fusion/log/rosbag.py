@@ -50,6 +50,7 @@ from fusion.log.euroc import (
     LogWarning,
     StreamSource,
     VelocityData,
+    gray16_to_8,
 )
 from fusion.log.options import LogOptions, StampSource
 from fusion.types import CameraRole
@@ -173,10 +174,12 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         fmt = str(msg.format).lower()
         if not any(f in fmt for f in COMPRESSED_FORMATS):
             raise ValueError(f"CompressedImage format {msg.format!r} is not supported (jpeg or png)")
-        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE)
+        img = cv2.imdecode(
+            np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH
+        )
         if img is None:
             raise ValueError(f"CompressedImage ({msg.format}) does not decode")
-        return img
+        return gray16_to_8(img) if img.dtype == np.uint16 else img
     enc, h, w, step = str(msg.encoding), int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
     if enc not in SUPPORTED_ENCODINGS:
@@ -185,10 +188,8 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         raise ValueError(f"image {w}x{h} step {step} holds {data.size} bytes")
     rows = data[: step * h].reshape(h, step)
     if enc in ("mono16", "16UC1"):
-        img16 = rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2").astype(np.float64)
-        top = img16.max()
         # full scale of a 16-bit container whatever the sensor's bit depth: stretch to 8 bits
-        return np.zeros((h, w), np.uint8) if top <= 0 else np.round(img16 * (255.0 / top)).astype(np.uint8)
+        return gray16_to_8(rows[:, : 2 * w].copy().view(">u2" if msg.is_bigendian else "<u2"))
     if enc in ("mono8", "8UC1") or enc in BAYER_TO_GRAY:
         img = np.ascontiguousarray(rows[:, :w])
         return img if enc in ("mono8", "8UC1") else cv2.cvtColor(img, BAYER_TO_GRAY[enc])
