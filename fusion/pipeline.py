@@ -335,6 +335,45 @@ def _require_readable_floor(log: FlightLog, det: DetectionResult) -> None:
     raise LogError(f"{first} (and every other floor-camera frame: {stats.frames_total} unreadable)")
 
 
+def repeated_frames_warning(det: DetectionResult) -> LogWarning | None:
+    """The named warning `repeated_frames` when a camera's frame repeats the codes of the frame
+    before it to the last bit (every payload and every refined corner): a real image never does
+    (sensor noise moves sub-pixel corners), a frozen camera or a driver re-sending its last image
+    (a video made constant-rate by duplicating frames) does, and those frames' stamps are not
+    their images'.  A frozen floor camera read as a mount 77 deg off before it was named
+    (thirty-first session's audit)."""
+    found = []
+    for camera in sorted({d.camera for d in det.detections}):
+        previous, stamps = None, []
+        for t, frame in det.by_frame(camera).items():
+            # refined corners only: the decoder's fall-back corners lie on a half-pixel grid, and
+            # a code under slow motion keeps them from frame to frame
+            key = sorted(
+                (d.payload, np.asarray(d.corners_px, float).tobytes())
+                for d in frame
+                if not np.array_equal(d.corners_px, d.corners_raw_px)
+            )
+            if key and key == previous:
+                stamps.append(t)
+            previous = key
+        if stamps:
+            found.append((camera, len(stamps), stamps[0]))
+    if not found:
+        return None
+    each = "; ".join(
+        f"{camera} ({role_name(camera)}) {n} frame(s), the first at {t * 1e-9:.3f} s"
+        for camera, n, t in found
+    )
+    return LogWarning(
+        "repeated_frames",
+        sum(n for _, n, _ in found),
+        f"frames identical to the frame before them, to every corner's last bit: {each}. A frozen "
+        "camera or a driver re-sending its last image (or a video made constant-rate by repeating "
+        "frames): those frames' stamps are not their images', and the poses from them stand still "
+        "whatever the drone does. Check the camera and its driver before calibrating anything",
+    )
+
+
 def log_summary(log: FlightLog) -> dict:
     return {
         "path": str(log.root),
@@ -1118,6 +1157,9 @@ def _run_into(
         det = detections
         write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))
     _require_readable_floor(log, det)
+    repeated = repeated_frames_warning(det)
+    if repeated is not None:
+        result.warnings.append(repeated)
     result.detection_stats = detection_statistics(log, det, log.world)
     timings["detect_s"] = time.perf_counter() - t
     if det.skipped:
@@ -1824,6 +1866,9 @@ def _warn_or_apply_mount(
     without `cfg.calibrate_extrinsics`; with it, the correction applied to that camera and the
     per-frame estimates made again (so every output carries the corrected mount)."""
     if not mount.significant:
+        return log, loc
+    if mount.implausible:
+        result.warnings.append(mount.implausible_warning())
         return log, loc
     if not cfg.calibrate_extrinsics:
         warning = mount.warning()

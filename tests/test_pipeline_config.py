@@ -164,3 +164,29 @@ def test_the_tilt_consider_reaches_a_gimbaled_camera_whose_level_is_not_stated_e
                 assert np.isclose(stats[name]["tilt_consider_sigma_rad"], sigma, rtol=1e-12)
                 extra = traj.covariances[:, :3, :3] - tilt_consider_covariance(traj.T_world_body, sigma)
                 assert np.all(np.linalg.eigvalsh(extra)[:, 0] > 0)
+
+
+def test_frames_repeating_the_frame_before_to_the_last_bit_are_named():
+    """A frozen camera (or a driver re-sending its last image) repeats every refined corner to the
+    last bit, which sensor noise never does: the warning `repeated_frames` names the camera.
+    The decoder's fall-back corners (half-pixel grid, refinement refused) may repeat honestly
+    under slow motion and are not counted (thirty-first session's audit: a frozen floor camera
+    was read as a mount 77 deg off)."""
+    from fusion.pipeline import repeated_frames_warning
+    from fusion.qr.detect import DetectionResult
+    from fusion.types import QRDetection
+
+    raw = np.array([[100.5, 100.5], [140.5, 100.5], [140.5, 140.5], [100.5, 140.5]])
+    refined = raw + np.array([0.137, -0.071])
+    rng = np.random.default_rng(0)
+
+    def frames(corners_of, n=6, camera="cam0"):
+        return [QRDetection(camera, k * 33_000_000, "0/1/2", corners_of(k), raw) for k in range(n)]
+
+    noisy = frames(lambda k: refined + rng.normal(0, 0.01, (4, 2)))
+    assert repeated_frames_warning(DetectionResult(noisy, {})) is None
+    assert repeated_frames_warning(DetectionResult(frames(lambda k: raw.copy()), {})) is None
+    frozen = frames(lambda k: refined.copy()) + frames(lambda k: refined + k, 3, "cam1")
+    w = repeated_frames_warning(DetectionResult(frozen, {}))
+    assert w is not None and w.name == "repeated_frames" and w.count == 5
+    assert "cam0 (floor) 5 frame(s), the first at 0.033 s" in w.message and "cam1" not in w.message
