@@ -189,7 +189,10 @@ def test_simulate_cli_turns_the_front_camera_mount_when_asked(tmp_path):
     common = ["--duration", "0.1", "--workers", "1", "-q", "--extrinsic-error-deg", "0", "0.1", "0"]
     assert main(["simulate", str(tmp_path / "front"), *common, "--extrinsic-error-camera", "cam1"]) == 0
     assert main(["simulate", str(tmp_path / "floor"), *common]) == 0
-    front, floor = read_extrinsics_groundtruth(tmp_path / "front"), read_extrinsics_groundtruth(tmp_path / "floor")
+    front, floor = (
+        read_extrinsics_groundtruth(tmp_path / "front"),
+        read_extrinsics_groundtruth(tmp_path / "floor"),
+    )
     assert list(front) == ["cam1"] and list(floor) == ["cam0"]
     np.testing.assert_allclose(np.degrees(front["cam1"]), [0.0, 0.1, 0.0])
 
@@ -585,3 +588,28 @@ def test_front_mount_takes_a_pose_without_a_usable_covariance_as_exact():
     m = estimate_front_mount(Trajectory("pnp", traj.timestamps_ns, traj.T_world_body, cov), obs, FRONT_CAM)
     assert np.all(np.isfinite(m.rotvec_rad)) and np.all(np.isfinite(m.cov_rad2))
     assert abs(np.degrees(m.rotvec_rad[0]) - 0.3) < 0.01 and m.significant_axes == ["x"]
+
+
+def test_a_mount_reading_beyond_any_calibration_error_is_named_and_never_applied():
+    """A frozen floor camera read as a mount 77 deg off, and --calibrate-extrinsics applied it
+    (thirty-first session's audit).  Above MAX_CORRECTION_DEG the check is no mount error: the
+    run warns `mount_check_implausible` and leaves the mount, with or without the flag."""
+    from fusion.estimate.extrinsics import MAX_CORRECTION_DEG
+    from fusion.pipeline import RunConfig, RunResult, _warn_or_apply_mount
+
+    cov = np.eye(3) * math.radians(0.5) ** 2
+    big = MountRotation("cam0", MountSource.ESTIMATED, np.radians([76.7, -55.1, -63.6]), cov, ["x", "y", "z"])
+    small = MountRotation(
+        "cam0", MountSource.ESTIMATED, np.radians([0, 0, 0.8 * MAX_CORRECTION_DEG]), cov, ["z"]
+    )
+    assert big.implausible and not small.implausible
+    assert "not applied" in big.describe() and "--calibrate-extrinsics" not in big.describe()
+    log = read_flight(Path(__file__).resolve().parents[1] / "data" / "sample-flight")
+    for flag in (False, True):
+        result = RunResult(Path("."), {})
+        out_log, loc = _warn_or_apply_mount(
+            log, None, "loc", RunConfig(calibrate_extrinsics=flag), result, big
+        )
+        assert out_log is log and loc == "loc" and not big.applied
+        assert [w.name for w in result.warnings] == ["mount_check_implausible"]
+        assert "frozen camera" in result.warnings[0].message

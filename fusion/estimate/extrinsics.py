@@ -96,6 +96,12 @@ log = logging.getLogger(__name__)
 E = gtsam.symbol_shorthand.E  # E(0): the floor camera's mount rotation error (Rot3)
 WARNING_NAME = "extrinsic_rotation_bias"
 FRONT_WARNING_NAME = "front_extrinsic_rotation_bias"
+IMPLAUSIBLE_WARNING_NAME = "mount_check_implausible"
+MAX_CORRECTION_DEG = 10.0
+"""A mount check reading a rotation larger than this is not a calibration error to correct: a
+T_BS in another axis convention, a camera in the other camera's role, or images that do not
+follow the motion (a frozen camera read as a 77 deg mount, thirty-first session's audit).
+--calibrate-extrinsics does not apply it; the warning IMPLAUSIBLE_WARNING_NAME says so."""
 AXES = ("x", "y", "z")
 EXTRINSICS_GROUNDTRUTH_CSV = "extrinsics_groundtruth.csv"  # the simulator's true mount errors
 GROUNDTRUTH_COLUMNS = ["camera", "rx_deg", "ry_deg", "rz_deg"]
@@ -344,6 +350,8 @@ class MountRotation:
                 for a, v in zip(AXES, np.degrees(self.correction_rad))
                 if a in self.significant_axes
             )
+        elif self.implausible:
+            used = f"beyond a calibration error (> {MAX_CORRECTION_DEG:g} deg), not applied"
         elif self.significant:
             used = "significant, not applied (run with --calibrate-extrinsics)"
         else:
@@ -353,6 +361,33 @@ class MountRotation:
         )
         note = f"; {self.note}" if self.note else ""
         return f"{head}: {axes} deg; {used}{extra}{note}"
+
+    @property
+    def implausible(self) -> bool:
+        """Significant and larger than MAX_CORRECTION_DEG: not a mount error to correct."""
+        return (
+            self.significant
+            and self.rotvec_rad is not None
+            and math.degrees(float(np.linalg.norm(self.rotvec_rad))) > MAX_CORRECTION_DEG
+        )
+
+    def implausible_warning(self) -> LogWarning:
+        """The named warning for an `implausible` reading (never applied)."""
+        angle = math.degrees(float(np.linalg.norm(self.rotvec_rad))) if self.rotvec_rad is not None else 0.0
+        front = self.camera == CameraRole.FRONT.value
+        what = (
+            "load sightings disagree with the floor camera and the IMU"
+            if front
+            else "poses disagree with the IMU"
+        )
+        return LogWarning(
+            IMPLAUSIBLE_WARNING_NAME,
+            1,
+            f"the {self.role} camera's ({self.camera}) {what} by a {angle:.1f} deg "
+            f"rotation, beyond any mount calibration error (> {MAX_CORRECTION_DEG:g} deg): not applied. "
+            "Check that T_BS is in the EuRoC convention (body from camera), that the cameras are not "
+            "swapped, and that the images follow the motion (a frozen camera, repeated frames)",
+        )
 
     def warning(self) -> LogWarning | None:
         """The check's named, counted warning (count: significant axes), or None."""
