@@ -36,6 +36,17 @@ def _grid(text: str) -> tuple[int, int]:
     return nx, ny
 
 
+def _workers(text: str) -> int:
+    """--workers: a process count of at least 1 (0 and negative counts were taken as 1, silently)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of processes, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n} (leave it out for all cores)")
+    return n
+
+
 def _time_offsets_ms(text: str) -> dict[str, float]:
     """--time-offset-ms: {camera: offset in s} (fusion.estimate.timeoffset.parse_time_offsets_ms)."""
     from fusion.estimate.timeoffset import parse_time_offsets_ms
@@ -241,7 +252,7 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
     )
     p.add_argument(
         "--workers",
-        type=int,
+        type=_workers,
         default=None,
         help=(
             "processes for detection, per-frame estimates and, from 600 frames, the fusion "
@@ -371,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace a log that `fusion simulate` wrote there (other files are kept)",
     )
-    p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
+    p.add_argument("--workers", type=_workers, default=None, help="render processes (default: all cores)")
     p.add_argument(
         "--png-compression",
         type=int,
@@ -471,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--scheduler", default=None, help="address of a running dask scheduler, e.g. tcp://host:8786"
     )
     p.add_argument(
-        "--workers", type=int, default=None, help="local cluster: worker processes (default: all cores)"
+        "--workers", type=_workers, default=None, help="local cluster: worker processes (default: all cores)"
     )
     p.add_argument(
         "--retry-failed", action="store_true", help="run again the flights that failed in an earlier batch"

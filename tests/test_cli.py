@@ -217,3 +217,18 @@ def test_strict_exits_3_when_an_estimate_is_not_ok(tmp_path, capsys, monkeypatch
     assert "--strict" in text.err
     assert main(args[:-1] + ["--force"]) == 0  # without --strict the run still succeeds
     assert "degraded" in (out / "report.md").read_text().split("## Summary")[0]
+
+
+@pytest.mark.parametrize(
+    "command", [["run", "log", "--out", "out"], ["simulate", "f"], ["batch", "f", "--out", "o"]]
+)
+@pytest.mark.parametrize("value", ["0", "-3", "two"])
+def test_a_worker_count_below_one_is_refused(command, value, capsys):
+    """--workers 0 / -3 were taken as 1, silently (thirty-first session's audit)."""
+    from fusion.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args([*command, "--workers", value])
+    err = capsys.readouterr().err
+    assert "--workers" in err and err.strip().splitlines()[-1].startswith("fusion")
+    assert build_parser().parse_args([*command, "--workers", "2"]).workers == 2
