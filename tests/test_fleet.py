@@ -96,6 +96,15 @@ def test_list_files_and_paths_expand_in_order_once(flights):
     assert got == [(flights / p).resolve() for p in ("a/flight", "b/flight")]
 
 
+def test_a_list_of_no_flight_is_refused_naming_it(tmp_path):
+    """An empty list (or one of comments only) was a batch of 0 flights, exit 0 (thirty-first
+    session's audit)."""
+    listing = tmp_path / "list.txt"
+    listing.write_text("# nothing flown today\n\n")
+    with pytest.raises(FleetError, match=r"list\.txt: lists no flight"):
+        expand_flights([listing])
+
+
 def test_same_folder_names_get_distinct_stable_names(tmp_path):
     a, b, c = tmp_path / "x" / "f", tmp_path / "y" / "f", tmp_path / "z" / "g"
     names = output_names([a, b, c])

@@ -55,7 +55,8 @@ def expand_flights(args: list[Path]) -> list[Path]:
     """Flights named by `args`: each is a flight log (anything fusion.log.open_flight reads) or
     a text file listing flights, one a line (blank lines and lines starting with `#` ignored, relative
     paths relative to the list).  Paths are resolved and given once each, in order; a path that
-    does not exist stays in the list (it fails as a flight).  FleetError: an unreadable list."""
+    does not exist stays in the list (it fails as a flight).  FleetError: an unreadable list, or
+    one that lists no flight (a batch of nothing is a mistake, not a success)."""
     out: list[Path] = []
     for arg in args:
         arg = Path(arg)
@@ -95,6 +96,8 @@ def _read_list(path: Path) -> list[Path]:
         if text and not text.startswith(LIST_COMMENT):
             p = Path(text)
             out.append(p if p.is_absolute() else path.parent / p)
+    if not out:
+        raise FleetError(f"{path}: lists no flight (only blank lines and # comments)")
     return out
 
 
