@@ -335,6 +335,24 @@ def _require_readable_floor(log: FlightLog, det: DetectionResult) -> None:
     raise LogError(f"{first} (and every other floor-camera frame: {stats.frames_total} unreadable)")
 
 
+def unreadable_front_warning(det: DetectionResult) -> LogWarning | None:
+    """The named warning `front_camera_unreadable` when not one of the front camera's frames
+    could be read: the run goes on (the floor camera localises), but maps no load, which a note
+    about skipped frames did not make plain (thirty-first session's audit; the floor camera's
+    case is an error, `_require_readable_floor`)."""
+    stats = det.stats.get(CameraRole.FRONT.value)
+    if stats is None or stats.frames_total == 0 or stats.frames_skipped < stats.frames_total:
+        return None
+    front_csv = f"{CameraRole.FRONT.value}/data.csv"
+    first = next((m for m in det.skipped if front_csv in m), "")
+    return LogWarning(
+        "front_camera_unreadable",
+        stats.frames_total,
+        f"not one of the front camera's {stats.frames_total} frames could be read (first: {first}): "
+        "no load is mapped",
+    )
+
+
 def repeated_frames_warning(det: DetectionResult) -> LogWarning | None:
     """The named warning `repeated_frames` when a camera's frame repeats the codes of the frame
     before it to the last bit (every payload and every refined corner): a real image never does
@@ -1157,9 +1175,9 @@ def _run_into(
         det = detections
         write_cache(det, out_dir / CACHE_NAME, flight_fingerprint(log, det.backend))
     _require_readable_floor(log, det)
-    repeated = repeated_frames_warning(det)
-    if repeated is not None:
-        result.warnings.append(repeated)
+    for warning in (unreadable_front_warning(det), repeated_frames_warning(det)):
+        if warning is not None:
+            result.warnings.append(warning)
     result.detection_stats = detection_statistics(log, det, log.world)
     timings["detect_s"] = time.perf_counter() - t
     if det.skipped:

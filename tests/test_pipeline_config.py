@@ -190,3 +190,19 @@ def test_frames_repeating_the_frame_before_to_the_last_bit_are_named():
     w = repeated_frames_warning(DetectionResult(frozen, {}))
     assert w is not None and w.name == "repeated_frames" and w.count == 5
     assert "cam0 (floor) 5 frame(s), the first at 0.033 s" in w.message and "cam1" not in w.message
+
+
+def test_a_front_camera_none_of_whose_frames_reads_is_a_named_warning():
+    from fusion.pipeline import unreadable_front_warning
+    from fusion.qr.detect import CameraStats, DetectionResult
+
+    skipped = [
+        "f/mav0/cam1/data.csv:2: image 0.png is missing",
+        "f/mav0/cam0/data.csv:9: image 7.png is missing",
+    ]
+    det = DetectionResult([], {"cam0": CameraStats(10, 1), "cam1": CameraStats(10, 10)}, skipped)
+    w = unreadable_front_warning(det)
+    assert w is not None and w.name == "front_camera_unreadable" and w.count == 10
+    assert "cam1/data.csv:2" in w.message and "no load is mapped" in w.message
+    assert unreadable_front_warning(DetectionResult([], {"cam1": CameraStats(10, 9)})) is None
+    assert unreadable_front_warning(DetectionResult([], {"cam0": CameraStats(10, 10)})) is None
