@@ -57,3 +57,10 @@ class WarehouseError(FusionError):
 class FleetError(FusionError):
     """A batch of flights that cannot run (unreachable scheduler, a locked fleet folder, an
     unreadable flight list); one bad flight is not an error of the batch."""
+
+
+def first_line(exc: BaseException) -> str:
+    """An exception's message for one line of output: its first line (GTSAM's run to eleven,
+    ending in a pointer to its Doxygen pages), or its type's name when it has none."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__

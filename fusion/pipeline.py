@@ -26,7 +26,7 @@ import numpy as np
 
 from fusion import __version__
 from fusion.camera import DEFAULT_FOCAL_SIGMA_REL, DEFAULT_PRINCIPAL_POINT_SIGMA_PX
-from fusion.errors import EstimationError, FusionError, LogError
+from fusion.errors import EstimationError, FusionError, LogError, first_line
 from fusion.estimate import (
     FusionConfig,
     FusionResult,
@@ -1046,9 +1046,8 @@ def fuse_stage(
             continue
         except Exception as e:  # a bug in one back end must not cost the others
             logger.exception("%s failed", name)
-            first_line = str(e).strip().splitlines()[0] if str(e).strip() else ""
             out.failures[name] = EstimatorFailure(
-                name, f"internal error: {type(e).__name__}: {first_line}", type(e).__name__
+                name, f"internal error: {type(e).__name__}: {first_line(e)}", type(e).__name__
             )
             continue
         finally:

@@ -207,3 +207,15 @@ def test_world_yaml_round_trip_and_errors(tmp_path):
 def test_symbol_corners_order():
     c = symbol_corners_S(2.0)
     assert np.allclose(c, [[-1, 1, 0], [1, 1, 0], [1, -1, 0], [-1, -1, 0]])
+
+
+def test_first_line_of_an_exception():
+    """GTSAM's exceptions run to eleven lines; a summary line takes the first (audit: a mount note
+    pasted all of IndeterminantLinearSystemException's text)."""
+    from fusion.errors import first_line
+
+    gtsam_like = RuntimeError(
+        "\nIndeterminant linear system detected while working near variable 7.\n\nThrown when..."
+    )
+    assert first_line(gtsam_like) == "Indeterminant linear system detected while working near variable 7."
+    assert first_line(ValueError("")) == "ValueError"

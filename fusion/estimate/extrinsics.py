@@ -66,7 +66,7 @@ import gtsam
 import numpy as np
 
 from fusion.camera import CameraModel
-from fusion.errors import EstimationError
+from fusion.errors import EstimationError, first_line
 from fusion.estimate.common import (
     LOAD_INTERP_MAX_GAP_S,
     FusionConfig,
@@ -555,7 +555,9 @@ def estimate_mount_and_states(
         lin = graph.linearize(values)
         cov = np.asarray(lin.eliminateMultifrontal(ordering).marginalCovariance(E(0)), float)
     except (RuntimeError, ValueError) as e:
-        raise EstimationError(f"no covariance of the mount rotation: the system is singular ({e})") from None
+        raise EstimationError(
+            f"no covariance of the mount rotation: the system is singular ({first_line(e)})"
+        ) from None
     # residual degrees of freedom: the fixes' 6 dimensions (the IMU's are taken up by the states)
     used = n_fixes - len([i for i in drop if pb.robust[i].kind is FactorKind.POSE])
     dof = 6 * used - 3

@@ -39,7 +39,7 @@ import numpy as np
 
 from fusion.camera import CameraModel
 from fusion.conventions import GRAVITY_M_S2
-from fusion.errors import EstimationError
+from fusion.errors import EstimationError, first_line
 from fusion.estimate import asbuilt, factors, fixedlag
 from fusion.estimate.common import (
     FusionConfig,
@@ -1774,7 +1774,7 @@ def _smooth_incremental(
     except (RuntimeError, ValueError, EstimationError) as e:
         if fallback:
             raise
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        first = first_line(e)
         raise _CholeskyFailed(f"{factorization} failed ({first})") from None
 
 
@@ -2074,7 +2074,7 @@ def _smooth_incremental_run(
         except (RuntimeError, ValueError) as e:
             if not fallback:
                 raise
-            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            reason = first_line(e)
             health.linear_fallbacks += 1
             log.warning("incremental: singular update at t=%.2f s (%s)", tk, reason)
             restart(k, f"singular update ({reason}): restarted with a weak pose prior")

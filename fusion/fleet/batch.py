@@ -41,7 +41,7 @@ import dask
 from distributed import Client, Future, LocalCluster, as_completed
 from distributed.scheduler import KilledWorker
 
-from fusion.errors import FleetError, FusionError, OutputError
+from fusion.errors import FleetError, FusionError, OutputError, first_line
 from fusion.fileio import DirLock, read_manifest
 from fusion.fleet import tasks
 from fusion.fleet.flights import (
@@ -486,10 +486,9 @@ def _reason(exc: BaseException, attempts: int) -> str:
     """One line: a known error's message; else what happened."""
     if isinstance(exc, KilledWorker):
         return f"a worker died running {_task(exc)} on each of {attempts} attempts"
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
     if isinstance(exc, FusionError):
-        return text
-    return f"internal error: {type(exc).__name__}: {text}"
+        return first_line(exc) if str(exc).strip() else ""
+    return f"internal error: {type(exc).__name__}: {first_line(exc)}"
 
 
 def _traceback(fut: Future) -> list[str]:

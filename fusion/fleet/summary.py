@@ -21,7 +21,7 @@ matplotlib.use("Agg")  # never open a window
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
-from fusion.errors import FleetError  # noqa: E402
+from fusion.errors import FleetError, first_line  # noqa: E402
 from fusion.estimate.health import Status  # noqa: E402
 from fusion.fileio import atomic_open, csv_safe, open_regular  # noqa: E402
 from fusion.fleet.flights import FlightRecord, FlightStatus  # noqa: E402
@@ -141,7 +141,7 @@ def _read_metrics(path: Path) -> tuple[dict | None, str]:
             data = json.load(f)
     except (FleetError, ValueError, UnicodeDecodeError) as e:
         logger.warning("%s: cannot read (%s); the flight's summary row says so", path, e)
-        return None, str(e).splitlines()[0] if str(e) else type(e).__name__
+        return None, first_line(e)
     if not isinstance(data, dict):
         return None, "not a JSON object"
     return data, ""
