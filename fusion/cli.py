@@ -234,7 +234,7 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
         "--force",
         action="store_true",
         help="write into an existing output folder: the previous run's outputs (its "
-        "manifest.json) are replaced, other files are kept",
+        "manifest.json) are replaced, other files are kept; a flight log is never an output folder",
     )
     p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
@@ -369,7 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--force",
         action="store_true",
-        help="replace a log that `fusion simulate` wrote there (other files are kept)",
+        help="replace a flight log that `fusion simulate` or `import` wrote there (other files are "
+        "kept; a folder holding a run's outputs is refused)",
     )
     p.add_argument("--workers", type=int, default=None, help="render processes (default: all cores)")
     p.add_argument(
@@ -510,7 +511,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import", parents=[common], help="write any log as an EuRoC folder")
     p.add_argument("log", type=Path, help="ROS bag or video log (or an EuRoC folder)")
     p.add_argument("out", type=Path, help="output EuRoC folder")
-    p.add_argument("--force", action="store_true", help="overwrite an existing folder")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a flight log that `fusion simulate` or `import` wrote there (other files are kept)",
+    )
     _add_log_options(p)
     p = sub.add_parser(
         "export",
