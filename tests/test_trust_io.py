@@ -232,6 +232,53 @@ def test_import_says_import_and_map_merge_refuses_a_flight_log(tmp_path, capsys)
     assert _tree(copy) == before
 
 
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_sigterm_cleans_up_like_ctrl_c(tmp_path, capsys, monkeypatch, name):
+    """SIGTERM (timeout, Slurm, docker stop, systemd) and SIGHUP stop a run as Ctrl-C does: no
+    outputs, lock or "running" manifest left, one line, exit 128 + the signal's number."""
+    import signal
+
+    import fusion.pipeline as pipeline
+
+    signum = getattr(signal, name)
+
+    def killed_mid_run(log, out_dir, *args, **kwargs):
+        (out_dir / "detections.csv").write_text("half")
+        os.kill(os.getpid(), signum)
+        raise AssertionError(f"{name} did not stop the run")
+
+    monkeypatch.setattr(pipeline, "_run_into", killed_mid_run)
+    seen = []
+
+    def guard(signum, frame):  # without fusion's handler, the signal would end the test runner
+        seen.append(signum)
+
+    previous = signal.signal(signum, guard)
+    try:
+        out = tmp_path / "out"
+        assert main(["run", str(SAMPLE), "--out", str(out), "--quiet"]) == 128 + signum
+        assert signal.getsignal(signum) is guard  # restored
+    finally:
+        signal.signal(signum, previous)
+    assert _one_error_line(capsys) == f"fusion: stopped by {name}"
+    assert not seen and not out.exists()
+
+
+def test_stop_signals_leave_an_ignored_hangup_ignored():
+    """`nohup fusion run ...`: SIGHUP stays ignored while the command runs."""
+    import signal
+
+    from fusion.cli import _stop_on_signals
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with _stop_on_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_IGN, signal.SIG_DFL)
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 # ---------------------------------------------------------------- simulate and demo
 
 
