@@ -17,6 +17,7 @@ import argparse
 import contextlib
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -706,8 +707,29 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
 
 
+def _refuse_undecodable_paths(args: argparse.Namespace) -> None:
+    """FusionError, before any work, for a path argument that is not valid UTF-8 (a Latin-1 name
+    from an old USB stick or a Samba share: Python keeps its bytes as lone surrogates, and the
+    report, plots and JSON that name the path could not be written at the very end).  The
+    absolute path is checked, so a non-UTF-8 current folder counts; the message shows the bad
+    bytes escaped (\\xe9)."""
+    for value in vars(args).values():
+        for path in value if isinstance(value, list) else [value]:
+            if not isinstance(path, Path):
+                continue
+            for text in (str(path), os.path.abspath(path)):
+                try:
+                    text.encode("utf-8")
+                except UnicodeEncodeError:
+                    shown = os.fsencode(text).decode("utf-8", "backslashreplace")
+                    raise FusionError(
+                        f"{shown}: the path is not valid UTF-8; rename it (e.g. with convmv) or use another"
+                    ) from None
+
+
 def _command(args: argparse.Namespace) -> int:
     """Run the parsed command; its exit code (FusionError and interruptions: `main`)."""
+    _refuse_undecodable_paths(args)
     if args.command == "simulate":
         from fusion.sim.simulate import simulate
 
