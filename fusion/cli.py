@@ -2,6 +2,9 @@
 
 Known errors (fusion.errors.FusionError) become one line on stderr and exit code 1; anything else
 keeps its traceback, because it is a bug.  `--strict` runs exit 3 when an estimate is not trusted.
+Ctrl-C (SIGINT), SIGTERM (what `timeout`, Slurm, `docker stop` and systemd send) and SIGHUP stop a
+command the same way: its partial outputs are removed and its lock released, then one line and
+exit code 128 + the signal's number (130, 143, 129).
 
 Each subcommand imports its library module when it runs (the one place where imports sit inside
 functions on purpose): `fusion --help` or `fusion qr-sheet` should not load GTSAM, OpenCV,
@@ -11,9 +14,14 @@ rosbags and PyAV.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
+import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 from fusion import __version__
@@ -24,6 +32,49 @@ EXIT_NOT_TRUSTED = 3
 """`--strict`: the run finished and wrote its outputs, but an estimate cannot be trusted."""
 EXIT_FLIGHTS_FAILED = 4
 """`batch`: the batch finished and wrote its summary, but some flights failed (fleet.md says why)."""
+
+
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+"""Ctrl-C; a SIGTERM or SIGHUP exits 128 + its number (143, 129), as a shell reports them."""
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGTERM / SIGHUP, raised in the main thread as Ctrl-C raises KeyboardInterrupt, so that
+    everything that cleans up after Ctrl-C (an output folder's roll-back and lock, a flight
+    log's `.partial`, worker pools, a batch's cluster) cleans up after these too."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _stop_on_signals() -> Iterator[None]:
+    """While the command runs, SIGTERM and SIGHUP raise `Stopped`; the previous handlers are
+    restored afterwards.  A signal already ignored (`nohup`) stays ignored.  Repeats are ignored
+    while the clean-up runs (it should finish; SIGKILL, which a supervisor sends after its grace
+    period, still ends it).  Only this process: the workers are fresh interpreters (forkserver
+    or spawn; dask's nanny spawns), which start with the default handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+
+    def stop(signum, _frame):
+        for s in previous:
+            if previous[s] is not signal.SIG_IGN:
+                signal.signal(s, signal.SIG_IGN)
+        raise Stopped(signum)
+
+    for s, handler in previous.items():
+        if handler is not signal.SIG_IGN:
+            signal.signal(s, stop)
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -245,7 +296,7 @@ def _add_run_options(p: argparse.ArgumentParser, stages: bool = True, time_offse
         "--force",
         action="store_true",
         help="write into an existing output folder: the previous run's outputs (its "
-        "manifest.json) are replaced, other files are kept",
+        "manifest.json) are replaced, other files are kept; a flight log is never an output folder",
     )
     p.add_argument(
         "--backend", choices=("zxing", "aruco"), default="zxing", help="QR detector (default: zxing-cpp)"
@@ -380,7 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--force",
         action="store_true",
-        help="replace a log that `fusion simulate` wrote there (other files are kept)",
+        help="replace a flight log that `fusion simulate` or `import` wrote there (other files are "
+        "kept; a folder holding a run's outputs is refused)",
     )
     p.add_argument("--workers", type=_workers, default=None, help="render processes (default: all cores)")
     p.add_argument(
@@ -521,7 +573,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("import", parents=[common], help="write any log as an EuRoC folder")
     p.add_argument("log", type=Path, help="ROS bag or video log (or an EuRoC folder)")
     p.add_argument("out", type=Path, help="output EuRoC folder")
-    p.add_argument("--force", action="store_true", help="overwrite an existing folder")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a flight log that `fusion simulate` or `import` wrote there (other files are kept)",
+    )
     _add_log_options(p)
     p = sub.add_parser(
         "export",
@@ -649,151 +705,179 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     try:
-        if args.command == "simulate":
-            from fusion.sim.simulate import simulate
-
-            res = simulate(
-                args.out,
-                scenario=args.scenario,
-                duration_s=args.duration,
-                seed=args.seed,
-                overwrite=args.force,
-                progress=not args.quiet,
-                workers=args.workers,
-                resolution=args.resolution,
-                camera_rate_hz=args.fps,
-                start_s=args.start,
-                fmt=args.format,
-                readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
-                placement_error_m=args.placement_error_m,
-                placement_error_deg=args.placement_error_deg,
-                placement_seed=args.placement_seed,
-                png_compression=args.png_compression,
-                time_offset_ms=(
-                    {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
-                ),
-                clock_drift_ppm=args.clock_drift_ppm,
-                stamp_jitter_ms=(
-                    {k: v * 1e3 for k, v in args.stamp_jitter_ms.items()} if args.stamp_jitter_ms else None
-                ),
-                camera_options=_camera_options(args),
-                extrinsic_error_deg=(
-                    None
-                    if args.extrinsic_error_deg is None
-                    else {args.extrinsic_error_camera: tuple(args.extrinsic_error_deg)}
-                ),
-                velocity_rate_hz=args.velocity_rate_hz,
-                imu_noise_scale=args.imu_noise_scale,
-                imu_noise_stated=args.imu_noise_stated,
-            )
-            print(
-                f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
-                f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
-                f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
-                f"{res.wall_time_s:.1f} s wall time"
-            )
-        elif args.command in ("detect", "localize", "smooth", "run"):
-            from fusion import pipeline
-
-            result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
-            print(result.summary())
-            if getattr(args, "strict", False) and not result.trusted:
-                print(
-                    "fusion: --strict: an estimate is not trusted, or none was made "
-                    "(see health and warnings above)",
-                    file=sys.stderr,
-                )
-                return EXIT_NOT_TRUSTED
-        elif args.command == "batch":
-            from fusion.fleet import BatchConfig, run_batch
-
-            bcfg = BatchConfig(
-                scheduler=args.scheduler,
-                workers=args.workers,
-                retry_failed=args.retry_failed,
-                run=_run_config(args),
-            )
-            if args.chunk_frames is not None:
-                if args.chunk_frames < 1:
-                    raise FusionError("--chunk-frames must be at least 1")
-                bcfg.chunk_frames = args.chunk_frames
-            batch = run_batch(args.flights, args.out, bcfg)
-            print(batch.summary())
-            if batch.failed:
-                return EXIT_FLIGHTS_FAILED
-        elif args.command == "inspect":
-            from fusion.log.inspect import inspect_log
-
-            print(inspect_log(args.log, _log_options(args)).format_text())
-        elif args.command == "import":
-            from fusion.log.convert import import_flight
-
-            said: list = []
-            out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force, warnings=said)
-            print(f"wrote {out} (EuRoC layout)")
-            for w in said:  # what the EuRoC copy no longer says (the reader's, frames left out)
-                print(f"warning: {w}")
-        elif args.command == "export":
-            from fusion.log.convert import export_flight
-
-            out = export_flight(
-                args.log,
-                args.out,
-                _log_options(args),
-                image_format=args.image_format,
-                video_codec=args.video_codec,
-                overwrite=args.force,
-            )
-            print(f"wrote {out}")
-        elif args.command == "demo":
-            from fusion import pipeline
-
-            result = pipeline.demo(
-                args.dir, duration_s=args.duration, seed=args.seed, progress=not args.quiet
-            )
-            print(result.summary())
-        elif args.command == "inventory":
-            from fusion.warehouse.inventory import run_inventory
-
-            inv = run_inventory(args.run_out, args.expected, args.estimator, args.log)
-            print("inventory: " + ", ".join(f"{n} {s}" for s, n in inv.counts().items()))
-            for note in inv.notes:
-                print(f"note: {note}")
-            print(f"wrote {args.run_out / 'inventory.csv'}")
-        elif args.command == "map" and args.map_command == "merge":
-            from fusion.warehouse.merge import run_merge
-
-            merged = run_merge(args.run_outs, args.out, args.estimator, args.force)
-            kinds: dict[str, int] = {}
-            for c in merged.changes:
-                kinds[str(c.kind)] = kinds.get(str(c.kind), 0) + 1
-            print(
-                f"merged {len(merged.runs)} runs: {len(merged.loads)} loads; changes: "
-                + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
-                + (f"; {len(merged.floor_codes)} as-built floor codes" if merged.floor_codes else "")
-            )
-            print(f"wrote {args.out}")
-        elif args.command == "qr-sheet":
-            from fusion.qrsheet import write_qr_sheet
-
-            pages = write_qr_sheet(
-                args.out,
-                grid=args.grid,
-                spacing_m=args.spacing,
-                side_m=args.side,
-                payload_unit_m=args.unit,
-                load_ids=args.loads,
-                load_side_m=args.load_side,
-                page=args.page,
-                ecc=args.ecc,
-            )
-            print(f"wrote {args.out} ({pages} pages)")
+        with _stop_on_signals():
+            return _command(args)
     except FusionError as e:
         print(f"fusion: error: {e}", file=sys.stderr)
         return 1
+    except Stopped as e:
+        print(f"fusion: stopped by {signal.Signals(e.signum).name}", file=sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
         print("fusion: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+
+
+def _refuse_undecodable_paths(args: argparse.Namespace) -> None:
+    """FusionError, before any work, for a path argument that is not valid UTF-8 (a Latin-1 name
+    from an old USB stick or a Samba share: Python keeps its bytes as lone surrogates, and the
+    report, plots and JSON that name the path could not be written at the very end).  The
+    absolute path is checked, so a non-UTF-8 current folder counts; the message shows the bad
+    bytes escaped (\\xe9)."""
+    for value in vars(args).values():
+        for path in value if isinstance(value, list) else [value]:
+            if not isinstance(path, Path):
+                continue
+            for text in (str(path), os.path.abspath(path)):
+                try:
+                    text.encode("utf-8")
+                except UnicodeEncodeError:
+                    shown = os.fsencode(text).decode("utf-8", "backslashreplace")
+                    raise FusionError(
+                        f"{shown}: the path is not valid UTF-8; rename it (e.g. with convmv) or use another"
+                    ) from None
+
+
+def _command(args: argparse.Namespace) -> int:
+    """Run the parsed command; its exit code (FusionError and interruptions: `main`)."""
+    _refuse_undecodable_paths(args)
+    if args.command == "simulate":
+        from fusion.sim.simulate import simulate
+
+        res = simulate(
+            args.out,
+            scenario=args.scenario,
+            duration_s=args.duration,
+            seed=args.seed,
+            overwrite=args.force,
+            progress=not args.quiet,
+            workers=args.workers,
+            resolution=args.resolution,
+            camera_rate_hz=args.fps,
+            start_s=args.start,
+            fmt=args.format,
+            readout_s=None if args.readout_ms is None else args.readout_ms * 1e-3,
+            placement_error_m=args.placement_error_m,
+            placement_error_deg=args.placement_error_deg,
+            placement_seed=args.placement_seed,
+            png_compression=args.png_compression,
+            time_offset_ms=(
+                {k: v * 1e3 for k, v in args.time_offset_ms.items()} if args.time_offset_ms else None
+            ),
+            clock_drift_ppm=args.clock_drift_ppm,
+            stamp_jitter_ms=(
+                {k: v * 1e3 for k, v in args.stamp_jitter_ms.items()} if args.stamp_jitter_ms else None
+            ),
+            camera_options=_camera_options(args),
+            extrinsic_error_deg=(
+                None
+                if args.extrinsic_error_deg is None
+                else {args.extrinsic_error_camera: tuple(args.extrinsic_error_deg)}
+            ),
+            velocity_rate_hz=args.velocity_rate_hz,
+            imu_noise_scale=args.imu_noise_scale,
+            imu_noise_stated=args.imu_noise_stated,
+        )
+        print(
+            f"wrote {res.root}: scenario {res.scenario}, {res.duration_s:.1f} s, "
+            f"{res.n_frames} frames per camera ({', '.join(res.cameras)}), "
+            f"{res.n_imu} IMU samples, {len(res.blackouts)} floor-camera blackouts, "
+            f"{res.wall_time_s:.1f} s wall time"
+        )
+    elif args.command in ("detect", "localize", "smooth", "run"):
+        from fusion import pipeline
+
+        result = pipeline.run(_flight_arg(args), args.out, _run_config(args), until=args.command)
+        print(result.summary())
+        if getattr(args, "strict", False) and not result.trusted:
+            print(
+                "fusion: --strict: an estimate is not trusted, or none was made "
+                "(see health and warnings above)",
+                file=sys.stderr,
+            )
+            return EXIT_NOT_TRUSTED
+    elif args.command == "batch":
+        from fusion.fleet import BatchConfig, run_batch
+
+        bcfg = BatchConfig(
+            scheduler=args.scheduler,
+            workers=args.workers,
+            retry_failed=args.retry_failed,
+            run=_run_config(args),
+        )
+        if args.chunk_frames is not None:
+            if args.chunk_frames < 1:
+                raise FusionError("--chunk-frames must be at least 1")
+            bcfg.chunk_frames = args.chunk_frames
+        batch = run_batch(args.flights, args.out, bcfg)
+        print(batch.summary())
+        if batch.failed:
+            return EXIT_FLIGHTS_FAILED
+    elif args.command == "inspect":
+        from fusion.log.inspect import inspect_log
+
+        print(inspect_log(args.log, _log_options(args)).format_text())
+    elif args.command == "import":
+        from fusion.log.convert import import_flight
+
+        said: list = []
+        out = import_flight(args.log, args.out, _log_options(args), overwrite=args.force, warnings=said)
+        print(f"wrote {out} (EuRoC layout)")
+        for w in said:  # what the EuRoC copy no longer says (the reader's, frames left out)
+            print(f"warning: {w}")
+    elif args.command == "export":
+        from fusion.log.convert import export_flight
+
+        out = export_flight(
+            args.log,
+            args.out,
+            _log_options(args),
+            image_format=args.image_format,
+            video_codec=args.video_codec,
+            overwrite=args.force,
+        )
+        print(f"wrote {out}")
+    elif args.command == "demo":
+        from fusion import pipeline
+
+        result = pipeline.demo(args.dir, duration_s=args.duration, seed=args.seed, progress=not args.quiet)
+        print(result.summary())
+    elif args.command == "inventory":
+        from fusion.warehouse.inventory import run_inventory
+
+        inv = run_inventory(args.run_out, args.expected, args.estimator, args.log)
+        print("inventory: " + ", ".join(f"{n} {s}" for s, n in inv.counts().items()))
+        for note in inv.notes:
+            print(f"note: {note}")
+        print(f"wrote {args.run_out / 'inventory.csv'}")
+    elif args.command == "map" and args.map_command == "merge":
+        from fusion.warehouse.merge import run_merge
+
+        merged = run_merge(args.run_outs, args.out, args.estimator, args.force)
+        kinds: dict[str, int] = {}
+        for c in merged.changes:
+            kinds[str(c.kind)] = kinds.get(str(c.kind), 0) + 1
+        print(
+            f"merged {len(merged.runs)} runs: {len(merged.loads)} loads; changes: "
+            + (", ".join(f"{n} {k}" for k, n in kinds.items()) or "none")
+            + (f"; {len(merged.floor_codes)} as-built floor codes" if merged.floor_codes else "")
+        )
+        print(f"wrote {args.out}")
+    elif args.command == "qr-sheet":
+        from fusion.qrsheet import write_qr_sheet
+
+        pages = write_qr_sheet(
+            args.out,
+            grid=args.grid,
+            spacing_m=args.spacing,
+            side_m=args.side,
+            payload_unit_m=args.unit,
+            load_ids=args.loads,
+            load_side_m=args.load_side,
+            page=args.page,
+            ecc=args.ecc,
+        )
+        print(f"wrote {args.out} ({pages} pages)")
     return 0
 
 

@@ -253,6 +253,11 @@ def dump_yaml(data: dict, path: Path) -> None:
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "fusion-outputs/1"
 LOCK_NAME = "fusion.lock"
+RUN_WRITER = "fusion run"
+"""`written_by` of the manifest of a run's output folder (`OutputFolder`: every pipeline stage
+command, `batch`'s flights and `demo`'s run write the same kind of folder)."""
+FLIGHT_LOG_WRITERS = ("fusion simulate", "fusion import")
+"""`written_by` of a flight log's manifest (`log.euroc.FlightLogWriter`): one kind, a log."""
 _HASH_CHUNK = 1 << 20
 
 
@@ -394,6 +399,25 @@ def read_manifest(folder: Path, error: type[FusionError] = OutputError) -> dict 
     return data
 
 
+def manifest_writer(manifest: dict) -> str:
+    """The command that wrote `manifest` (its `written_by`).  A manifest without one is a run's:
+    flight logs always said who wrote them, and only a run's output folder did not."""
+    writer = manifest.get("written_by", RUN_WRITER)
+    return writer if isinstance(writer, str) else repr(writer)
+
+
+def flight_log_mark(folder: Path, manifest: dict | None = None) -> str | None:
+    """What shows that `folder` is a flight log ("written by `fusion simulate`", "mav0/"), or
+    None.  `manifest`: the folder's, when already read.  A flight log is input: no command
+    writes its outputs into one, with or without --force."""
+    manifest = read_manifest(folder) if manifest is None else manifest
+    if manifest is not None and manifest_writer(manifest) in FLIGHT_LOG_WRITERS:
+        return f"written by `{manifest_writer(manifest)}`"
+    if (Path(folder) / "mav0").is_dir():
+        return "mav0/"
+    return None
+
+
 def _inside(folder: Path, rel: str) -> Path | None:
     """`folder / rel` if it stays inside `folder` (a manifest is input too), else None."""
     p = Path(folder) / rel
@@ -449,18 +473,32 @@ class OutputFolder:
             ... write files into out.path ...
         # success: OUT/manifest.json lists every file the run wrote (path, bytes, sha256)
 
-    Entering creates the folder, takes its lock (`DirLock`), refuses a non-empty folder unless
-    `force`, and with `force` deletes the files of the previous run (its manifest) except `keep`
+    Entering refuses a folder that is, holds or lies inside one of `inputs` (the flight log
+    being read), creates the folder, takes its lock (`DirLock`), refuses a folder holding a
+    flight log (`mav0/`) or another command's outputs (a manifest whose `written_by` is not
+    ours: `--force` would delete them), refuses a non-empty folder unless `force`, and with
+    `force` deletes the files of the previous outputs of our kind (their manifest) except `keep`
     (e.g. a cache that checks itself), never the user's other files.  A manifest marked
     "running" is written first, so the outputs of a run that dies hard can still be told apart.
     If the body raises, every file the run created or changed is removed again (no half output)
     and an OSError (full disk, read-only folder) becomes one OutputError."""
 
-    def __init__(self, path: Path, force: bool = False, keep: tuple[str, ...] = (), meta: dict | None = None):
+    def __init__(
+        self,
+        path: Path,
+        force: bool = False,
+        keep: tuple[str, ...] = (),
+        meta: dict | None = None,
+        *,
+        written_by: str = RUN_WRITER,
+        inputs: tuple[Path, ...] = (),
+    ):
         self.path = Path(path)
         self.force = force
         self.keep = tuple(keep)
         self.meta = dict(meta or {})
+        self.written_by = written_by
+        self.inputs = tuple(Path(i) for i in inputs)
         self.lock = DirLock(self.path)
         self.created_folder = False
         self.removed_previous: list[str] = []
@@ -470,6 +508,7 @@ class OutputFolder:
 
     def __enter__(self) -> OutputFolder:
         p = self.path
+        self._refuse_overlap()
         if os.path.lexists(p) and not p.is_dir():
             raise OutputError(f"{p}: exists and is not a folder")
         try:
@@ -496,9 +535,47 @@ class OutputFolder:
             raise
         return self
 
+    def _refuse_overlap(self) -> None:
+        """OutputError if the folder is, holds or lies inside an input (LOG --out LOG, a results
+        folder around the flights, or inside one): writing or --force there touches the input."""
+        out = Path(os.path.realpath(self.path))
+        for src in self.inputs:
+            real = Path(os.path.realpath(src))
+            if out == real:
+                how = "is"
+            elif real.is_relative_to(out):
+                how = "holds"
+            elif out.is_relative_to(real):
+                how = "lies inside"
+            else:
+                continue
+            what = "" if how == "is" else f" ({src})"
+            raise OutputError(
+                f"{self.path}: {how} the flight log being read{what}; choose another output folder"
+            )
+
+    def _refuse_foreign(self) -> None:
+        """OutputError if the folder holds a flight log or another command's outputs (with or
+        without --force: the usual "use --force" advice would delete them)."""
+        p = self.path
+        manifest = read_manifest(p)
+        mark = flight_log_mark(p, manifest)
+        if mark is not None:
+            raise OutputError(
+                f"{p}: is a flight log ({mark}), not an output folder; choose another output folder"
+            )
+        writer = manifest_writer(manifest) if manifest is not None else None
+        if writer is not None and writer != self.written_by:
+            raise OutputError(
+                f"{p}: holds the outputs of `{writer}` (its {MANIFEST_NAME}), not of "
+                f"`{self.written_by}`; choose another output folder"
+            )
+
     def _prepare(self) -> None:
         p = self.path
         others = [n for n in os.listdir(p) if n != LOCK_NAME]
+        if others:
+            self._refuse_foreign()
         if others and not self.force:
             raise OutputError(
                 f"{p}: output folder exists; use --force to write into it "
@@ -573,7 +650,7 @@ class OutputFolder:
                 self.path.rmdir()
 
     def _write_manifest(self, body: dict) -> None:
-        data = {"format": MANIFEST_FORMAT, **self.meta, **body}
+        data = {"format": MANIFEST_FORMAT, "written_by": self.written_by, **self.meta, **body}
         with atomic_open(self.path / MANIFEST_NAME) as f:
             json.dump(data, f, indent=1)
             f.write("\n")

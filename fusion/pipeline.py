@@ -407,12 +407,14 @@ def log_summary(log: FlightLog) -> dict:
 
 def prepare_out_dir(out_dir: Path, force: bool, log_dir: Path | None = None) -> OutputFolder:
     """The run's output folder, to use as a context manager: entering creates and locks it,
-    refuses a non-empty one unless `force` (then deletes the previous run's outputs from its
-    manifest, keeps the user's files and the self-checking detection cache); leaving writes
-    `manifest.json`, or on failure removes what the run wrote."""
+    refuses one that is, holds or lies inside `log_dir`, or holds a flight log or another
+    command's outputs, refuses a non-empty one unless `force` (then deletes the previous run's
+    outputs from its manifest, keeps the user's files and the self-checking detection cache);
+    leaving writes `manifest.json`, or on failure removes what the run wrote."""
 
     meta = {"fusion_version": __version__, "log": str(log_dir) if log_dir is not None else None}
-    return OutputFolder(Path(out_dir), force, keep=(CACHE_NAME,), meta=meta)
+    inputs = (Path(log_dir),) if log_dir is not None else ()
+    return OutputFolder(Path(out_dir), force, keep=(CACHE_NAME,), meta=meta, inputs=inputs)
 
 
 # ============================================================================ stages

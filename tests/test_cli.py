@@ -3,6 +3,7 @@ CLI smoke tests do), and the run-level bad inputs (no front camera, no IMU, no g
 an existing output folder)."""
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -138,6 +139,30 @@ def test_bad_log_is_one_line_and_exit_1(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "imu0/data.csv:6: NaN" in err[0]
     assert main(["run", str(tmp_path / "nope"), "--out", str(tmp_path / "o2")]) == 1
+
+
+def test_non_utf8_paths_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """A folder name with a Latin-1 byte (0xE9) as LOG, as OUT, or as the current folder of
+    relative paths: one line naming the path with the byte escaped, before the pipeline runs
+    (it used to run to the end, then the report writer or plotly raised)."""
+    latin1 = os.fsdecode(b"vol\xe9")  # what Python makes of the bytes: a lone surrogate
+    (tmp_path / latin1).mkdir()
+    log = tmp_path / latin1 / "flight"
+    log.symlink_to(SAMPLE)
+    for args, bad in [
+        ([str(log), "--out", str(tmp_path / "out")], f"{tmp_path}/vol\\xe9/flight"),
+        ([str(SAMPLE), "--out", str(tmp_path / "sortie" / latin1)], f"{tmp_path}/sortie/vol\\xe9"),
+    ]:
+        assert main(["detect", *args, "--quiet", "--workers", "1"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [
+            f"fusion: error: {bad}: the path is not valid UTF-8; rename it (e.g. with convmv) or use another"
+        ]
+    monkeypatch.chdir(tmp_path / latin1)
+    assert main(["detect", "flight", "--out", "out", "--quiet", "--workers", "1"]) == 1
+    assert "vol\\xe9/flight: the path is not valid UTF-8" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [latin1]  # nothing written
+    assert [p.name for p in (tmp_path / latin1).iterdir()] == ["flight"]
 
 
 def test_simulate_and_demo(tmp_path):

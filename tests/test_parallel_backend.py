@@ -152,3 +152,18 @@ def test_run_on_two_workers_writes_the_files_of_one_worker(tmp_path, monkeypatch
     assert runs[1][1] == 0 and runs[2][1] >= 2 + 2 + 4  # smoother and mount windows, back ends
     assert one.keys() == two.keys() and any(name.endswith(".png") for name in one)
     assert [n for n in one if one[n] != two[n]] == []
+
+
+def _sigterm_is_default(context, task: int) -> bool:
+    import signal
+
+    return signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+
+
+def test_the_clis_signal_handler_does_not_reach_the_workers():
+    """`fusion`'s SIGTERM handler (raise in the main thread) is this process's only: workers are
+    fresh interpreters, so a SIGTERM sent to them still ends them."""
+    from fusion.cli import _stop_on_signals
+
+    with _stop_on_signals():
+        assert list(parallel_map(_sigterm_is_default, [0, 1], 2)) == [True, True]

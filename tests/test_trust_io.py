@@ -181,6 +181,104 @@ def test_full_disk_mid_run_leaves_no_half_output(tmp_path, capsys, monkeypatch):
     assert not out2.exists()
 
 
+def _tree(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+def test_force_never_deletes_a_flight_log(tmp_path, capsys):
+    """--force removes only what a manifest of its own kind lists: a flight log written by
+    `fusion simulate` / `import` (whose manifest lists every file of the flight), a log without
+    a manifest and the log being read are refused, with or without --force."""
+    flight = tmp_path / "flight"
+    assert _simulate(flight) == 0
+    capsys.readouterr()
+    before = _tree(flight)
+    for force in ([], ["--force"]):
+        assert main(["detect", str(SAMPLE), "--out", str(flight), "--quiet", *force]) == 1
+        assert f"{flight}: is a flight log (written by `fusion simulate`)" in _one_error_line(capsys)
+    assert _tree(flight) == before
+    # the log being read as OUT, around OUT or inside it; a log that fusion did not write
+    log = _copy_sample(tmp_path, "real")
+    before = _tree(log)
+    for out, how in [(log, "is"), (tmp_path, "holds"), (log / "results", "lies inside")]:
+        assert main(["detect", str(log), "--out", str(out), "--quiet", "--force"]) == 1
+        assert f"{out}: {how} the flight log being read" in _one_error_line(capsys)
+    assert main(["detect", str(flight), "--out", str(log), "--quiet", "--force"]) == 1
+    assert f"{log}: is a flight log (mav0/)" in _one_error_line(capsys)
+    assert _tree(log) == before
+
+
+def test_simulate_force_does_not_delete_a_run(tmp_path, capsys):
+    """The reverse: a run's manifest lists the run's outputs; `simulate --force` refuses them."""
+    out = tmp_path / "out"
+    assert main(["detect", str(SAMPLE), "--out", str(out), "--quiet", "--workers", "1"]) == 0
+    assert _manifest(out)["written_by"] == "fusion run"
+    capsys.readouterr()
+    before = _tree(out)
+    assert _simulate(out, "--force") == 1
+    assert f"{out}: holds the outputs of `fusion run`" in _one_error_line(capsys)
+    assert _tree(out) == before and not (tmp_path / "out.partial").exists()
+
+
+def test_import_says_import_and_map_merge_refuses_a_flight_log(tmp_path, capsys):
+    copy = tmp_path / "copy"
+    assert main(["import", str(SAMPLE), str(copy), "--quiet"]) == 0
+    assert _manifest(copy)["written_by"] == "fusion import"
+    capsys.readouterr()
+    before = _tree(copy)
+    # map merge writes world.yaml: refused before the runs are read
+    assert main(["map", "merge", str(tmp_path / "r1"), "--out", str(copy), "--force", "--quiet"]) == 1
+    assert f"{copy}: is a flight log (written by `fusion import`)" in _one_error_line(capsys)
+    assert _tree(copy) == before
+
+
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_sigterm_cleans_up_like_ctrl_c(tmp_path, capsys, monkeypatch, name):
+    """SIGTERM (timeout, Slurm, docker stop, systemd) and SIGHUP stop a run as Ctrl-C does: no
+    outputs, lock or "running" manifest left, one line, exit 128 + the signal's number."""
+    import signal
+
+    import fusion.pipeline as pipeline
+
+    signum = getattr(signal, name)
+
+    def killed_mid_run(log, out_dir, *args, **kwargs):
+        (out_dir / "detections.csv").write_text("half")
+        os.kill(os.getpid(), signum)
+        raise AssertionError(f"{name} did not stop the run")
+
+    monkeypatch.setattr(pipeline, "_run_into", killed_mid_run)
+    seen = []
+
+    def guard(signum, frame):  # without fusion's handler, the signal would end the test runner
+        seen.append(signum)
+
+    previous = signal.signal(signum, guard)
+    try:
+        out = tmp_path / "out"
+        assert main(["run", str(SAMPLE), "--out", str(out), "--quiet"]) == 128 + signum
+        assert signal.getsignal(signum) is guard  # restored
+    finally:
+        signal.signal(signum, previous)
+    assert _one_error_line(capsys) == f"fusion: stopped by {name}"
+    assert not seen and not out.exists()
+
+
+def test_stop_signals_leave_an_ignored_hangup_ignored():
+    """`nohup fusion run ...`: SIGHUP stays ignored while the command runs."""
+    import signal
+
+    from fusion.cli import _stop_on_signals
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with _stop_on_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_IGN, signal.SIG_DFL)
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 # ---------------------------------------------------------------- simulate and demo
 
 

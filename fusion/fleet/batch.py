@@ -42,7 +42,7 @@ from distributed import Client, Future, LocalCluster, as_completed
 from distributed.scheduler import KilledWorker
 
 from fusion.errors import FleetError, FusionError, OutputError, first_line
-from fusion.fileio import DirLock, read_manifest
+from fusion.fileio import RUN_WRITER, DirLock, manifest_writer, read_manifest
 from fusion.fleet import tasks
 from fusion.fleet.flights import (
     FlightRecord,
@@ -166,12 +166,17 @@ def run_batch(flights: list[Path], out: Path, cfg: BatchConfig | None = None) ->
 
 
 def _complete(folder: Path) -> bool:
-    """True when `folder` holds a finished `fusion run` (its manifest says complete)."""
+    """True when `folder` holds a finished `fusion run` (its manifest says complete; a flight
+    log's complete manifest is not a run: that flight runs, and its run refuses the folder)."""
     try:
         manifest = read_manifest(folder, OutputError)
     except OutputError:
         return False
-    return manifest is not None and manifest.get("status") == "complete"
+    return (
+        manifest is not None
+        and manifest_writer(manifest) == RUN_WRITER
+        and manifest.get("status") == "complete"
+    )
 
 
 # ============================================================================ cluster

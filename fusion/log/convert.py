@@ -32,7 +32,7 @@ def import_flight(
     flight = _as_flight(src, opts)
     if warnings is not None:
         warnings.extend(flight.warnings)
-    with FlightLogWriter(Path(out), overwrite=overwrite) as w:
+    with FlightLogWriter(Path(out), overwrite=overwrite, written_by="fusion import") as w:
         w.write_world(flight.world)
         for name, stream in sorted(flight.cameras.items()):
             w.add_camera(name, stream.camera, comment=f"imported from {flight.root}")

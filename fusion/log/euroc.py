@@ -41,6 +41,7 @@ import numpy as np
 from fusion.camera import CameraModel, coefficient_count, read_T_BS
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import (
+    FLIGHT_LOG_WRITERS,
     MANIFEST_FORMAT,
     MANIFEST_NAME,
     atomic_open,
@@ -48,6 +49,7 @@ from fusion.fileio import (
     csv_unsafe,
     dump_yaml,
     load_yaml,
+    manifest_writer,
     open_regular,
     pid_alive,
     read_manifest,
@@ -1032,14 +1034,19 @@ class FlightLogWriter:
             w.write_imu(imu)
 
     Nothing the writer did not create is deleted.  `root/manifest.json` lists the files it
-    wrote; with `overwrite`, only the files of the previous log's manifest are replaced and the
-    user's other files in `root` are kept (a file of the log layout that the manifest does not
-    list is refused, not overwritten).  A pre-existing `<root>.partial/` is removed only if an
-    earlier writer that has died made it (its PARTIAL_MARKER names a dead pid); otherwise the
-    write is refused.  File-system errors (full disk, read-only folder) become one LogError."""
+    wrote and says who (`written_by`: `fusion simulate` or `fusion import`); with `overwrite`,
+    only the files of the previous log's manifest are replaced and the user's other files in
+    `root` are kept (a file of the log layout that the manifest does not list is refused, not
+    overwritten, and so is a folder whose manifest another command wrote, e.g. a run's).  A
+    pre-existing `<root>.partial/` is removed only if an earlier writer that has died made it
+    (its PARTIAL_MARKER names a dead pid); otherwise the write is refused.  File-system errors
+    (full disk, read-only folder) become one LogError."""
 
-    def __init__(self, root: Path, overwrite: bool = False):
+    def __init__(self, root: Path, overwrite: bool = False, written_by: str = "fusion simulate"):
+        if written_by not in FLIGHT_LOG_WRITERS:
+            raise ValueError(f"written_by must be one of {FLIGHT_LOG_WRITERS}, got {written_by!r}")
         self.root = Path(root)
+        self.written_by = written_by
         if os.path.lexists(self.root) and not overwrite:
             raise LogError(f"{self.root}: already exists")
         self.previous: list[str] = []
@@ -1199,7 +1206,7 @@ class FlightLogWriter:
             json.dump(
                 {
                     "format": MANIFEST_FORMAT,
-                    "written_by": "fusion simulate",
+                    "written_by": self.written_by,
                     "status": "complete",
                     "files": [{"path": r} for r in files],
                 },
@@ -1225,11 +1232,18 @@ def _os_message(root: Path, e: OSError) -> str:
 
 def _previous_log_files(root: Path) -> list[str]:
     """Files of the log in `root` that a FlightLogWriter wrote (its manifest).  Refuses (LogError)
-    a root that is not a folder, or that holds files of the log layout the manifest does not
-    list: they are the user's, and writing the log would overwrite them."""
+    a root that is not a folder, that holds another command's outputs (a manifest not written by
+    a FlightLogWriter, e.g. a run's: replacing "its files" would delete that run), or that holds
+    files of the log layout the manifest does not list: they are the user's, and writing the log
+    would overwrite them."""
     if not root.is_dir() or root.is_symlink():
         raise LogError(f"{root}: exists and is not a folder")
     manifest = read_manifest(root, LogError)
+    if manifest is not None and manifest_writer(manifest) not in FLIGHT_LOG_WRITERS:
+        raise LogError(
+            f"{root}: holds the outputs of `{manifest_writer(manifest)}` (its {MANIFEST_NAME}), "
+            "not a flight log; refusing to overwrite them: choose another folder"
+        )
     ours = {e["path"] for e in manifest["files"]} if manifest else set()
     foreign = []
     for name in LOG_CONFLICT_NAMES:

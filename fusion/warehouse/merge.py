@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import OutputError, WarehouseError
-from fusion.fileio import atomic_open, dump_yaml
+from fusion.fileio import atomic_open, dump_yaml, flight_log_mark
 from fusion.log.files import LOADS_COLUMNS
 from fusion.types import Estimator
 from fusion.warehouse import escape
@@ -290,6 +290,11 @@ def run_merge(
     floor_codes_merged.csv (floorcodes.merge_floor_codes: inverse-covariance weighted; what
     `fusion run --map` reads)."""
     out = Path(out)
+    mark = flight_log_mark(out) if out.is_dir() else None
+    if mark is not None:  # its world.yaml would be replaced, even without --force
+        raise OutputError(
+            f"{out}: is a flight log ({mark}), not an output folder; choose another output folder"
+        )
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not force)):
         raise OutputError(f"{out}: exists; use --force to write into it")
     runs = [load_run(p, estimator) for p in run_outs]
