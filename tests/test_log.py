@@ -212,6 +212,34 @@ def test_bad_frames_are_skipped_and_counted(log_dir):
     assert "10x10" in log.floor.skipped[2]
 
 
+def test_symlink_loops_are_a_skipped_frame_or_an_error_naming_them(log_dir):
+    """A symbolic link loop had raised RuntimeError ("Symlink loop", Python 3.11; OSError on 3.13)
+    from Path.resolve(): an image that is one is skipped and counted like any unreadable image;
+    a camera's data folder or a stream folder that is one is an error naming it."""
+    mav = log_dir / "mav0"
+    image = sorted((mav / "cam0" / "data").iterdir())[2]
+    image.unlink()
+    image.symlink_to(image.name)  # a -> a
+    log = read_flight(log_dir)
+    frames = list(log.floor.frames())
+    assert [f.image is None for f in frames] == [False, False, True, False, False]
+    (skipped,) = log.floor.skipped
+    assert f"data.csv:4: image {image.name}" in skipped and "symbolic links" in skipped
+    shutil.rmtree(mav / "cam1" / "data")
+    (mav / "cam1" / "data").symlink_to("data")
+    with pytest.raises(LogError) as e:
+        read_flight(log_dir)
+    assert str(e.value) == f"{mav / 'cam1' / 'data'}: cannot be opened (a symbolic link loop)"
+    shutil.rmtree(mav / "cam1")
+    (mav / "cam1").symlink_to("cam1")  # had read as a log without a front camera, silently
+    with pytest.raises(LogError, match=r"mav0/cam1: is a symbolic link loop; expected the stream's folder"):
+        read_flight(log_dir)
+    (mav / "cam1").unlink()
+    (mav / "cam1").write_text("")
+    with pytest.raises(LogError, match=r"mav0/cam1: is not a folder"):
+        read_flight(log_dir)
+
+
 @pytest.mark.parametrize("ext", [".png", ".jpg"])
 def test_truncated_images_are_skipped_without_the_codec_printing(log_dir, ext, capfd):
     """A PNG cut short (no IEND) or a JPEG without its end marker is skipped and counted before

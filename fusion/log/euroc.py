@@ -12,7 +12,9 @@
                                                                   readable floor code by design)
 
 The reader is defensive: every malformed row raises LogError naming the file and line; a frame
-whose image is missing or unreadable is skipped, counted and reported (`CameraStream.skipped`).
+whose image is missing or unreadable (a symbolic link loop too) is skipped, counted and reported
+(`CameraStream.skipped`); a stream folder (`mav0/cam1`, ...) or a camera's `data` folder that is
+a file, a dangling link or a link loop is an error naming it, not an absent stream.
 Images are streamed, never all held in memory; an image's size is read from its header and
 checked against sensor.yaml before it is decoded.  Only regular files are opened (a named pipe
 would hang the reader).  After reading, plausibility checks look for unit and clock mistakes
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import math
@@ -610,6 +613,32 @@ def _symlinked_names(data_dir: Path) -> set[str] | None:
         return None
 
 
+def _resolve_failure(e: BaseException) -> str:
+    """Why Path.resolve() failed: a symbolic link loop (RuntimeError on Python < 3.13, OSError
+    ELOOP after) or the OSError's own reason."""
+    if isinstance(e, RuntimeError) or getattr(e, "errno", None) == errno.ELOOP:
+        return "a symbolic link loop"
+    return getattr(e, "strerror", None) or str(e)
+
+
+def _stream_folder(path: Path) -> bool:
+    """Whether a stream folder (mav0/cam0, imu0, ...) is there: True for a folder, False when
+    nothing is at `path`; LogError for anything else at its name (a file, a symbolic link loop, a
+    dangling link), which had read as an absent stream, silently."""
+    if path.is_dir():
+        return True
+    if not os.path.lexists(path):
+        return False
+    try:
+        os.stat(path)
+        why = "not a folder"
+    except FileNotFoundError:
+        why = "a symbolic link to nothing"
+    except (RuntimeError, OSError) as e:
+        why = _resolve_failure(e)
+    raise LogError(f"{path}: is {why}; expected the stream's folder (or nothing, when the log has none)")
+
+
 def _read_camera(cam_dir: Path, name: str) -> CameraStream:
     sensor_path = cam_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
@@ -618,7 +647,10 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
         camera = CameraModel.from_sensor_yaml(cfg, str(sensor_path))
     except CameraModelError as e:
         raise LogError(str(e)) from None
-    data_dir = (cam_dir / "data").resolve()
+    try:
+        data_dir = (cam_dir / "data").resolve()
+    except (RuntimeError, OSError) as e:  # a symbolic link loop: RuntimeError before Python 3.13
+        raise LogError(f"{cam_dir / 'data'}: cannot be opened ({_resolve_failure(e)})") from None
     links = _symlinked_names(data_dir)
     csv_path = cam_dir / "data.csv"
     ts, paths, lines, prev = [], [], [], None
@@ -634,7 +666,12 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
             # not '.' or '..', and no symbolic link), without its lstat of every component
             path = data_dir / fname
         else:
-            path = (data_dir / fname).resolve()
+            try:
+                path = (data_dir / fname).resolve()
+            except (RuntimeError, OSError):
+                # a symbolic link loop: it cannot be opened wherever it points, so the frame is
+                # skipped and counted when its image is read, as any unreadable image
+                path = data_dir / fname
             if data_dir not in path.parents:
                 raise LogError(
                     f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside {cam_dir / 'data'}"
@@ -745,12 +782,12 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
         raise LogError(str(e)) from None
     cameras = {}
     for name in CAMERA_NAMES:
-        if (mav / name).is_dir():
+        if _stream_folder(mav / name):
             cameras[name] = _read_camera(mav / name, name)
     if "cam0" not in cameras and not cameras_optional:
         raise LogError(f"{mav / 'cam0'}: the floor camera folder is missing")
-    imu = _read_imu(mav / "imu0") if (mav / "imu0").is_dir() else None
-    vel = _read_velocity(mav / "vel0") if (mav / "vel0").is_dir() else None
+    imu = _read_imu(mav / "imu0") if _stream_folder(mav / "imu0") else None
+    vel = _read_velocity(mav / "vel0") if _stream_folder(mav / "vel0") else None
     gt_path = mav / "state_groundtruth_estimate0" / "data.csv"
     gt, warnings = _read_groundtruth(gt_path) if os.path.lexists(gt_path) else (None, [])
     loads_path = root / "loads_groundtruth.csv"
