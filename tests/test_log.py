@@ -409,6 +409,21 @@ def test_clean_log_has_no_warnings(log_dir):
     assert read_flight(log_dir).warnings == []
 
 
+def test_one_row_ground_truth_is_a_named_warning_and_no_ground_truth(log_dir):
+    """Ground truth is optional: one sample (nothing to interpolate) is dropped and warned,
+    naming the file, at read time; the run had failed after finishing, naming no file."""
+    gt_csv = log_dir / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    gt_csv.write_text("".join(gt_csv.read_text().splitlines(keepends=True)[:2]))
+    log = read_flight(log_dir)
+    assert log.groundtruth is None
+    (w,) = log.warnings
+    assert (w.name, w.count) == ("groundtruth_too_short", 1)
+    assert (
+        w.message
+        == f"{gt_csv}: ground truth has 1 sample (2 or more needed): evaluation against ground truth skipped"
+    )
+
+
 @pytest.mark.parametrize(
     "case, name, match",
     [

@@ -795,8 +795,30 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
     bo_path = root / "blackouts_groundtruth.csv"
     blackouts = _read_blackouts(bo_path) if os.path.lexists(bo_path) else None
     log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, warnings)
+    log.warnings += drop_short_groundtruth(log)
     log.warnings += check_log(log)
     return log
+
+
+def drop_short_groundtruth(log: FlightLog) -> list[LogWarning]:
+    """Ground truth of fewer than 2 samples cannot be interpolated to any estimate: it is dropped
+    from `log` (the run is then evaluated against nothing, as a log without ground truth) with
+    the warning `groundtruth_too_short` naming its file.  Ground truth is optional: a run that had
+    finished its work then failed on it, with every output discarded."""
+    gt = log.groundtruth
+    if gt is None or len(gt.timestamps_ns) >= 2:
+        return []
+    log.groundtruth = None
+    where = _stream_sources(log)["groundtruth"].data
+    n = len(gt.timestamps_ns)
+    return [
+        LogWarning(
+            "groundtruth_too_short",
+            1,
+            f"{where}: ground truth has {n} sample{'s' if n != 1 else ''} (2 or more needed): "
+            "evaluation against ground truth skipped",
+        )
+    ]
 
 
 # ============================================================================ plausibility
