@@ -73,6 +73,7 @@ from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
     add_stamp_covariance,
+    check_stated_offsets,
     fused_trajectory,
     resolve_time_offsets,
     shift_detections,
@@ -1097,6 +1098,7 @@ def _run_into(
     detections, localized = computed.take() if computed is not None else (None, None)
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
+    check_stated_offsets(log, cfg.time_offsets_s)  # before any work: they are only applied later
     fixes = fixes_in_flight(read_fixes(cfg.fixes), log) if cfg.fixes is not None else None
     if fixes is not None:
         result.warnings += fixes.warnings
