@@ -23,7 +23,7 @@ from fusion.types import LoadEstimate, LoadMap, Trajectory
 from fusion.world import World
 
 
-def write_small_log(root, n_frames=5, n_imu=50, seed=0):
+def write_small_log(root, n_frames=5, n_imu=81, seed=0):
     rng = np.random.default_rng(seed)
     cam = CameraModel(
         64,
@@ -37,7 +37,7 @@ def write_small_log(root, n_frames=5, n_imu=50, seed=0):
         rate_hz=10,
     )
     t_cam = (np.arange(n_frames) * 1e8).astype(np.int64) + 1_000_000_000
-    t_imu = (np.arange(n_imu) * 5e6).astype(np.int64) + 1_000_000_000
+    t_imu = (np.arange(n_imu) * 5e6).astype(np.int64) + 1_000_000_000  # the frames' 1.0-1.4 s
     # a plausible resting IMU (check_log flags units by magnitude and noise)
     imu = ImuData(
         t_imu,
@@ -351,7 +351,7 @@ def test_an_exponent_without_a_decimal_point_is_a_number(log_dir):
             r"they look like microseconds",
         ),
         ("cam_milliseconds", r"cam0/data.csv: timestamps advance 100 per sample .* like milliseconds"),
-        ("accel_in_g", r"imu0/data.csv: the accelerometer's median magnitude is 0.999, .* look like g"),
+        ("accel_in_g", r"imu0/data.csv: the accelerometer's median magnitude is 1, .* look like g"),
     ],
 )
 def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
@@ -439,13 +439,13 @@ def test_one_row_ground_truth_is_a_named_warning_and_no_ground_truth(log_dir):
             r"imu0: samples every 100 ms \(10 Hz\) but sensor.yaml says "
             r"rate_hz 200",
         ),
-        ("imu_offset", "clock_offset", r"imu0 \(1001-1001.25 s\) does not overlap cam0"),
-        ("gt_offset", "clock_offset", r"groundtruth \(1.6-1.845 s\) does not overlap cam0 \(1-1.4 s\)"),
+        ("imu_offset", "clock_offset", r"imu0 \(1001-1001.4 s\) does not overlap cam0"),
+        ("gt_offset", "clock_offset", r"groundtruth \(1.6-2 s\) does not overlap cam0 \(1-1.4 s\)"),
         ("tbs_mm", "T_BS_translation", r"cam1/sensor.yaml: T_BS puts cam1 20 m from the body origin"),
         (
             "gt_quat_scaled",
             "groundtruth_quaternion_not_unit",
-            r"50 quaternion\(s\) not of unit norm "
+            r"81 quaternion\(s\) not of unit norm "
             r"\(first: line 2, norm 2\)",
         ),
         (
@@ -453,6 +453,18 @@ def test_one_row_ground_truth_is_a_named_warning_and_no_ground_truth(log_dir):
             "imu_gaps",
             r"imu0/data.csv: 1 gap\(s\) over 50 ms between samples, 0.105 s in all; the longest "
             r"0.105 s after timestamp \d+ \(0.\d\d s into the IMU\): bridged by a random walk",
+        ),
+        (
+            "imu_late",
+            "imu_coverage",
+            r"imu0/data.csv: the IMU \(1.2-1.4 s\) starts 0.2 s after the cameras' first frame "
+            r"\(1-1.4 s\): 4 frame\(s\) outside it, where the fused poses rest on the cameras alone",
+        ),
+        (
+            "imu_short",
+            "imu_coverage",
+            r"the IMU \(1.2-1.3 s\) starts 0.2 s after the cameras' first frame and ends 0.1 s "
+            r"before their last \(1-1.4 s\): 6 frame",
         ),
         (
             "accel_clipped",
@@ -507,6 +519,10 @@ def _spoil(log_dir, case):
         _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
     elif case == "imu_gap":
         _rewrite_csv(imu_csv, lambda t, v: (list(t[:20]) + list(t[40:]), np.r_[v[:20], v[40:]]))
+    elif case == "imu_late":  # had no warning: imu_gaps looks between samples only
+        _rewrite_csv(imu_csv, lambda t, v: (t[40:], v[40:]))
+    elif case == "imu_short":
+        _rewrite_csv(imu_csv, lambda t, v: (t[40:61], v[40:61]))
     elif case == "accel_clipped":
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :5], np.minimum(v[:, 5], np.sort(v[:, 5])[-10])]))
 
@@ -520,7 +536,7 @@ def test_inspect_shows_the_readers_named_warnings(log_dir):
     gt_csv = log_dir / "mav0" / "state_groundtruth_estimate0" / "data.csv"
     _rewrite_csv(gt_csv, lambda t, v: (t, np.c_[v[:, :3], 2 * v[:, 3:7], v[:, 7:]]))
     (problem,) = inspect_log(log_dir).problems
-    assert problem.startswith("[groundtruth_quaternion_not_unit] x50: ") and str(gt_csv) in problem
+    assert problem.startswith("[groundtruth_quaternion_not_unit] x81: ") and str(gt_csv) in problem
 
 
 @pytest.mark.parametrize("case, name", [("imu_10hz", "rate_mismatch"), ("accel_clipped", "imu_saturated")])

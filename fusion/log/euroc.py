@@ -964,6 +964,35 @@ def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
     return out
 
 
+def _check_imu_coverage(imu_ns: np.ndarray, cameras: list[np.ndarray], where: str) -> list[LogWarning]:
+    """The IMU (stamps `imu_ns`) starting after the cameras' first frame, or ending before their
+    last, by more than IMU_GAP_WARN_S: the frames there have no IMU to bridge them, as in a gap
+    between samples (`imu_gaps`, which only looks between samples; `clock_offset` only fires when
+    both ends are shifted the same way).  One warning `imu_coverage`, counting the frames of the
+    `cameras` (each one's stamps; those warned clock_offset left out) outside the IMU's span;
+    `where` names the IMU's samples."""
+    i0, i1 = _span(imu_ns)
+    c0, c1 = min(int(t[0]) for t in cameras), max(int(t[-1]) for t in cameras)
+    late, early = (i0 - c0) * 1e-9, (c1 - i1) * 1e-9
+    ends = []
+    if late > IMU_GAP_WARN_S:
+        ends.append(f"starts {late:.3g} s after the cameras' first frame")
+    if early > IMU_GAP_WARN_S:
+        ends.append(f"ends {early:.3g} s before their last")
+    if not ends:
+        return []
+    n = sum(int(((t < i0) | (t > i1)).sum()) for t in cameras)
+    return [
+        LogWarning(
+            "imu_coverage",
+            n,
+            f"{where}: the IMU ({i0 * 1e-9:.6g}-{i1 * 1e-9:.6g} s) {' and '.join(ends)} "
+            f"({c0 * 1e-9:.6g}-{c1 * 1e-9:.6g} s): {n} frame(s) outside it, where the fused poses "
+            "rest on the cameras alone",
+        )
+    ]
+
+
 def _span(ts: np.ndarray) -> tuple[int, int]:
     return int(ts[0]), int(ts[-1])
 
@@ -985,11 +1014,12 @@ def _stream_sources(log: FlightLog) -> dict[str, StreamSource]:
 
 
 def check_log(log: FlightLog) -> list[LogWarning]:
-    """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps and clipping,
-    sensor clock offsets above CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not
-    overlapping) and T_BS translations above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise
-    LogError; the rest are returned as warnings, naming the files (a bag's: the bag and topic)
-    as `log.stream_sources` says (an EuRoC folder's: mav0's)."""
+    """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps, clipping and
+    coverage of the cameras' span (`imu_coverage`), sensor clock offsets above
+    CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not overlapping) and T_BS translations
+    above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise LogError; the rest are returned as
+    warnings, naming the files (a bag's: the bag and topic) as `log.stream_sources` says (an
+    EuRoC folder's: mav0's)."""
     src = _stream_sources(log)
     out: list[LogWarning] = []
     streams: dict[str, np.ndarray] = {}
@@ -1008,11 +1038,14 @@ def check_log(log: FlightLog) -> list[LogWarning]:
         streams["groundtruth"] = log.groundtruth.timestamps_ns
     ref_name = "cam0" if "cam0" in streams else "imu0"
     ref0, ref1 = _span(streams[ref_name]) if ref_name in streams else (0, 0)
+    offset: set[str] = set()  # streams warned clock_offset
     for name, ts in streams.items():
         if name == ref_name or ref_name not in streams:
             continue
         a0, a1 = _span(ts)
         d0, d1 = (a0 - ref0) * 1e-9, (a1 - ref1) * 1e-9
+        if (a0 > ref1 or a1 < ref0) or (d0 * d1 > 0 and min(abs(d0), abs(d1)) > CLOCK_OFFSET_MAX_S):
+            offset.add(name)
         if a0 > ref1 or a1 < ref0:
             out.append(
                 LogWarning(
@@ -1034,6 +1067,9 @@ def check_log(log: FlightLog) -> list[LogWarning]:
                     f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)",
                 )
             )
+    cameras = [c.timestamps_ns for n, c in log.cameras.items() if n not in offset and len(c.timestamps_ns)]
+    if log.imu is not None and "imu0" not in offset and cameras:
+        out += _check_imu_coverage(log.imu.timestamps_ns, cameras, src["imu0"].data)
     mounts = {name: cam.camera.T_body_cam for name, cam in log.cameras.items()}
     if log.imu is not None:
         mounts["imu0"] = log.imu.T_body_imu
