@@ -1,5 +1,6 @@
 """Flight-log reader / writer: round trip and every documented bad-log case."""
 
+import re
 import shutil
 
 import cv2
@@ -8,7 +9,8 @@ import pytest
 
 from fusion.camera import CameraModel
 from fusion.conventions import R_BODY_FLOORCAM
-from fusion.errors import LogError
+from fusion.errors import LogError, WorldError
+from fusion.fileio import load_yaml
 from fusion.geometry import make_T, rot_z
 from fusion.log import (
     FlightLogWriter,
@@ -403,6 +405,84 @@ def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
 
 def _warning_names(log):
     return {w.name: w for w in log.warnings}
+
+
+def test_duplicate_yaml_keys_are_an_error_naming_file_and_line(log_dir):
+    """A new calibration pasted below the old one: PyYAML had kept the last, silently."""
+    sensor = log_dir / "mav0" / "cam0" / "sensor.yaml"
+    lines = sensor.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("intrinsics:")) + 1
+    sensor.write_text("\n".join(lines) + "\nintrinsics: [600.0, 600.0, 320.0, 240.0]\n")
+    with pytest.raises(LogError) as e:
+        read_flight(log_dir)
+    assert str(e.value) == (
+        f"{sensor}:{len(lines) + 1}: not valid YAML (key 'intrinsics' given twice (first on line {first}): "
+        "which one holds?)"
+    )
+    world = log_dir / "world.yaml"
+    world.write_text(world.read_text() + "floor_qr: {side_m: 0.3}\n")
+    with pytest.raises(WorldError, match=r"world.yaml:\d+: not valid YAML \(key 'floor_qr' given twice"):
+        World.load(world)
+    # YAML merge keys may be overridden, as they intend
+    merged = log_dir / "merged.yaml"
+    merged.write_text("base: &b {side_m: 0.2}\nfloor_qr:\n  <<: *b\n  side_m: 0.25\n")
+    assert load_yaml(merged)["floor_qr"] == {"side_m": 0.25}
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("load_qr: {side_mm: 100}", r"unknown key load_qr.side_mm \(known load_qr: side_m, side_sigma_m\)"),
+        (
+            "floor_qr: {side_m: 0.2, payload_units_m: 0.5}",
+            r"unknown key floor_qr.payload_units_m \(known floor_qr: side_m, payload_unit_m, ",
+        ),
+        (
+            "floor_qr: {side_m: 0.2}\nbounds: {x: [0, 1], y: [0, 1]}",
+            r"unknown key bounds \(known keys: floor_qr",
+        ),
+    ],
+)
+def test_unknown_world_yaml_keys_are_an_error(tmp_path, text, match):
+    """A misspelt optional key had been ignored and its default used (a 10 cm label mapped as
+    the 15 cm default: every load 1.5x too far along its rays, health ok)."""
+    path = tmp_path / "world.yaml"
+    path.write_text(("floor_qr: {side_m: 0.2}\n" if not text.startswith("floor_qr") else "") + text + "\n")
+    with pytest.raises(WorldError, match=f"^{re.escape(str(path))}: {match}"):
+        World.load(path)
+
+
+def test_sensor_yaml_keys_of_kalibr_or_misspelt_are_errors_others_counted(log_dir):
+    """Kalibr's `line_delay` (ours: line_delay_s) had silently meant a global shutter, a typo
+    the default; a key other tools write (Kalibr's `rostopic`) is read past and counted."""
+    sensor = log_dir / "mav0" / "cam0" / "sensor.yaml"
+    text = sensor.read_text()
+    for extra, match in (
+        (
+            "line_delay: 2.0e-05",
+            r"cam0/sensor.yaml: key 'line_delay' is Kalibr's; a sensor.yaml says line_delay_s",
+        ),
+        ("distortion_coeffs: [0.1, 0, 0, 0]", r"key 'distortion_coeffs' is Kalibr's"),
+        (
+            "intrinsic_sigma: [1, 1, 1, 1]",
+            r"unknown key 'intrinsic_sigma' \(did you mean 'intrinsics_sigma'\? known: ",
+        ),
+    ):
+        sensor.write_text(text + extra + "\n")
+        with pytest.raises(LogError, match=match):
+            read_flight(log_dir)
+    sensor.write_text(text + "rostopic: /cam0/image_raw\ncam_overlaps: [1]\n")
+    imu_sensor = log_dir / "mav0" / "imu0" / "sensor.yaml"
+    imu_text = imu_sensor.read_text()
+    imu_sensor.write_text(imu_text + "gyroscope_noise_densty: 0.1\n")
+    with pytest.raises(
+        LogError, match=r"imu0/sensor.yaml: unknown key 'gyroscope_noise_densty' \(did you mean"
+    ):
+        read_flight(log_dir)
+    imu_sensor.write_text(imu_text)
+    (w,) = read_flight(log_dir).warnings
+    assert (w.name, w.count) == ("sensor_yaml_unknown_keys", 2)
+    assert w.message.startswith(f"{sensor}: key(s) rostopic, cam_overlaps not read (known: sensor_type, ")
 
 
 def test_clean_log_has_no_warnings(log_dir):

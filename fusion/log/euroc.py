@@ -41,7 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fusion.camera import CameraModel, coefficient_count, read_T_BS
+from fusion.camera import SENSOR_YAML_KEYS, CameraModel, coefficient_count, read_T_BS, unknown_sensor_keys
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import (
     MANIFEST_FORMAT,
@@ -639,9 +639,43 @@ def _stream_folder(path: Path) -> bool:
     raise LogError(f"{path}: is {why}; expected the stream's folder (or nothing, when the log has none)")
 
 
-def _read_camera(cam_dir: Path, name: str) -> CameraStream:
+IMU_SENSOR_KEYS = (
+    "sensor_type",
+    "comment",
+    "T_BS",
+    "rate_hz",
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+)
+"""An IMU sensor.yaml's keys (EuRoC's)."""
+
+
+def _sensor_keys(cfg: dict, known: tuple[str, ...], path: Path, warnings: list[LogWarning]) -> None:
+    """camera.unknown_sensor_keys on a sensor.yaml (a LogError for a key that would have meant
+    something: Kalibr's name of one of ours, a typo); the other unknown keys, which other tools
+    write and the reader ignores, are counted in `warnings` (`sensor_yaml_unknown_keys`)."""
+    try:
+        unknown = unknown_sensor_keys(cfg, known, str(path))
+    except CameraModelError as e:
+        raise LogError(str(e)) from None
+    if unknown:
+        warnings.append(
+            LogWarning(
+                "sensor_yaml_unknown_keys",
+                len(unknown),
+                f"{path}: key(s) {', '.join(k[:40] for k in unknown[:5])} not read "
+                f"(known: {', '.join(known)})",
+            )
+        )
+
+
+def _read_camera(cam_dir: Path, name: str, warnings: list[LogWarning] | None = None) -> CameraStream:
+    """One camera's stream; unknown sensor.yaml keys are counted in `warnings`."""
     sensor_path = cam_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
+    _sensor_keys(cfg, SENSOR_YAML_KEYS, sensor_path, [] if warnings is None else warnings)
     _check_sensor_numbers(cfg, str(sensor_path), camera=True)
     try:
         camera = CameraModel.from_sensor_yaml(cfg, str(sensor_path))
@@ -684,9 +718,11 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
     return CameraStream(name, camera, np.asarray(ts, dtype=np.int64), paths, lines)
 
 
-def _read_imu(imu_dir: Path) -> ImuData:
+def _read_imu(imu_dir: Path, warnings: list[LogWarning] | None = None) -> ImuData:
+    """The IMU's samples and sensor.yaml; unknown sensor.yaml keys are counted in `warnings`."""
     sensor_path = imu_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
+    _sensor_keys(cfg, IMU_SENSOR_KEYS, sensor_path, [] if warnings is None else warnings)
     _check_sensor_numbers(cfg, str(sensor_path), camera=False)
     noise = {}
     for key in (
@@ -781,12 +817,13 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
     except WorldError as e:
         raise LogError(str(e)) from None
     cameras = {}
+    sensor_warnings: list[LogWarning] = []
     for name in CAMERA_NAMES:
         if _stream_folder(mav / name):
-            cameras[name] = _read_camera(mav / name, name)
+            cameras[name] = _read_camera(mav / name, name, sensor_warnings)
     if "cam0" not in cameras and not cameras_optional:
         raise LogError(f"{mav / 'cam0'}: the floor camera folder is missing")
-    imu = _read_imu(mav / "imu0") if _stream_folder(mav / "imu0") else None
+    imu = _read_imu(mav / "imu0", sensor_warnings) if _stream_folder(mav / "imu0") else None
     vel = _read_velocity(mav / "vel0") if _stream_folder(mav / "vel0") else None
     gt_path = mav / "state_groundtruth_estimate0" / "data.csv"
     gt, warnings = _read_groundtruth(gt_path) if os.path.lexists(gt_path) else (None, [])
@@ -794,7 +831,7 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
     loads = _read_loads(loads_path) if os.path.lexists(loads_path) else None
     bo_path = root / "blackouts_groundtruth.csv"
     blackouts = _read_blackouts(bo_path) if os.path.lexists(bo_path) else None
-    log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, warnings)
+    log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, sensor_warnings + warnings)
     log.warnings += drop_short_groundtruth(log)
     log.warnings += check_log(log)
     return log
