@@ -34,6 +34,7 @@ stamp mid-exposure of the frame.
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass, field
 from enum import Enum
@@ -47,6 +48,33 @@ from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform, level_frame
 
 MOUNTS = ("body_fixed", "gimbaled")
+SENSOR_YAML_KEYS = (
+    "sensor_type",
+    "comment",
+    "T_BS",
+    "rate_hz",
+    "resolution",
+    "camera_model",
+    "intrinsics",
+    "distortion_model",
+    "distortion_coefficients",
+    "mount",
+    "line_delay_s",
+    "stamp_row",
+    "T_BS_sigma_deg",
+    "T_BS_sigma_m",
+    "intrinsics_sigma",
+)
+"""A camera sensor.yaml's keys (EuRoC's and ours)."""
+FOREIGN_SENSOR_KEYS = {
+    "line_delay": "line_delay_s (s per row)",
+    "distortion_coeffs": "distortion_coefficients",
+    "T_cam_imu": "T_BS (the camera in the body frame: T_cam_imu's inverse)",
+    "timeshift_cam_imu": "--time-offset-ms, or the Kalibr camchain given with --calib",
+}
+"""Kalibr camchain keys that mean something in a sensor.yaml under another name: ignored, each
+had silently changed the model (a global shutter, no distortion, ...)."""
+
 RADTAN = "radtan"
 EQUIDISTANT = "equidistant"
 DISTORTION_MODELS = {
@@ -406,6 +434,7 @@ class CameraModel:
                 raise CameraModelError(f"{source}: missing key '{key}'")
             return data[key]
 
+        unknown_sensor_keys(data, SENSOR_YAML_KEYS, source)
         model = need("camera_model")
         if model != "pinhole":
             raise CameraModelError(f"{source}: camera_model {model!r} is not supported (pinhole only)")
@@ -504,6 +533,26 @@ def _equidistant_undistort(xd: np.ndarray, k: np.ndarray, iterations: int) -> np
         scale = np.where(rd > 1e-12, np.tan(theta) / rd, 1.0)
     scale = np.where(bad, np.nan, scale)
     return xd * scale[..., None]
+
+
+def unknown_sensor_keys(data: dict, known: tuple[str, ...], source: str) -> list[str]:
+    """The keys of a sensor.yaml `data` outside `known`, which the readers ignore (other tools'
+    keys: Kalibr's `rostopic`, `cam_overlaps`, ...: the caller warns).  A CameraModelError naming
+    `source`, the key and the known keys for one that would have meant something: a Kalibr key
+    of FOREIGN_SENSOR_KEYS, or a near-miss of a known key (a typo: `intrinsic_sigma`), whose
+    default had silently been used instead."""
+    unknown = [str(k) for k in data if k not in known]
+    for key in unknown:
+        if key in FOREIGN_SENSOR_KEYS:
+            raise CameraModelError(
+                f"{source}: key {key!r} is Kalibr's; a sensor.yaml says {FOREIGN_SENSOR_KEYS[key]}"
+            )
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+        if close:
+            raise CameraModelError(
+                f"{source}: unknown key {key[:60]!r} (did you mean {close[0]!r}? known: {', '.join(known)})"
+            )
+    return unknown
 
 
 def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:

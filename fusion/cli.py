@@ -207,10 +207,35 @@ def _add_log_options(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--front-frame-times", type=Path, help="front video frame times CSV")
     g.add_argument("--imu", type=Path, help="IMU CSV (EuRoC imu0 columns) or PX4 ULog (.ulg)")
-    g.add_argument("--video-fps", type=float, help="constant video rate (without frame times)")
+    g.add_argument("--video-fps", type=_frame_rate, help="constant video rate (without frame times)")
     g.add_argument(
-        "--video-start-ns", type=int, help="first frame's time in the IMU clock (constant-rate video)"
+        "--video-start-ns",
+        type=_start_ns,
+        help="first frame's time in the IMU clock (constant-rate video)",
     )
+
+
+def _frame_rate(text: str) -> float:
+    """--video-fps: a finite rate > 0 (nan had stamped every frame INT64_MIN, -30 run the clock
+    backwards, 0 fallen back to the container's rate)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a frame rate in Hz: {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text}: the frame rate must be a finite number of Hz > 0")
+    return value
+
+
+def _start_ns(text: str) -> int:
+    """--video-start-ns: a time in the IMU clock as a log states one (euroc._timestamp: >= 0, int64)."""
+    digits = text.strip().removeprefix("-").removeprefix("+")
+    if not (digits.isascii() and digits.isdigit()):  # int() would take '1_000' and ' 5 '
+        raise argparse.ArgumentTypeError(f"not an integer number of nanoseconds: {text!r}")
+    value = int(text.strip())
+    if not 0 <= value <= 2**63 - 1:
+        raise argparse.ArgumentTypeError(f"{text}: must be >= 0 and within int64 nanoseconds")
+    return value
 
 
 def _log_options(args):

@@ -106,7 +106,32 @@ class _Yaml12Floats(yaml.SafeLoader):
     """PyYAML's safe loader with YAML 1.2's floats: an exponent without a decimal point (`2e-4`,
     `-1E+3`) is a number, as yaml-cpp (ROS, Kalibr's tools) and YAML 1.2 read it; PyYAML's YAML
     1.1 resolver reads it as the string '2e-4', and a hand-written imu.yaml or sensor.yaml that
-    says `gyroscope_noise_density: 2e-4` was refused ("expected a number, got str")."""
+    says `gyroscope_noise_density: 2e-4` was refused ("expected a number, got str").
+
+    A key given twice in one mapping is an error at its second line (YAML 1.2 requires unique
+    keys; PyYAML kept the last silently: a new calibration pasted below the old one read as
+    either, unsaid).  Keys merged in by `<<` may be overridden, as YAML merge keys intend."""
+
+    def construct_mapping(self, node: yaml.Node, deep: bool = False) -> dict:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.get(key)
+                except TypeError:  # unhashable: the base class says so
+                    continue
+                if first is not None:
+                    raise yaml.constructor.ConstructorError(
+                        None,
+                        None,
+                        f"key {str(key)[:60]!r} given twice (first on line {first}): which one holds?",
+                        key_node.start_mark,
+                    )
+                seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep)
 
 
 _Yaml12Floats.add_implicit_resolver(

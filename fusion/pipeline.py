@@ -73,6 +73,7 @@ from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     TimeOffsets,
     add_stamp_covariance,
+    check_stated_offsets,
     fused_trajectory,
     resolve_time_offsets,
     shift_detections,
@@ -92,7 +93,7 @@ from fusion.evaluate.report import write_report
 from fusion.fileio import OutputFolder, atomic_open, csv_safe, load_yaml
 from fusion.log import FlightLog, LogOptions, LogWarning, read_flight
 from fusion.log.files import write_loads_csv, write_loads_json, write_tum
-from fusion.log.fixes import PositionFixes, read_fixes
+from fusion.log.fixes import PositionFixes, fixes_in_flight, read_fixes
 from fusion.parallel import Outcome, call_each, chunk_bounds, parallel_map, start_workers_early, worker_count
 from fusion.qr import paper, pnp
 from fusion.qr.codes import classify, rejection_counts
@@ -1156,7 +1157,8 @@ def _run_into(
     detections, localized = computed.take() if computed is not None else (None, None)
 
     result = RunResult(out_dir, log_summary(log), warnings=list(log.warnings))
-    fixes = read_fixes(cfg.fixes) if cfg.fixes is not None else None
+    check_stated_offsets(log, cfg.time_offsets_s)  # before any work: they are only applied later
+    fixes = fixes_in_flight(read_fixes(cfg.fixes), log) if cfg.fixes is not None else None
     if fixes is not None:
         result.warnings += fixes.warnings
     timings["read_s"] = time.perf_counter() - t

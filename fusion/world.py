@@ -179,8 +179,11 @@ class World:
     def from_yaml(cls, data: dict, source: str = "world.yaml") -> World:
         """Build from parsed world.yaml.  Numbers are parsed strictly (a bool or a string is not
         a number: `side_m: true` would otherwise read as 1 m); every error names the field."""
+        _known_keys(data, WORLD_YAML_KEYS, "", source)
         floor = _section(data, "floor_qr", source, required=True)
         load = _section(data, "load_qr", source)
+        _known_keys(floor, WORLD_YAML_KEYS["floor_qr"], "floor_qr.", source)
+        _known_keys(load, WORLD_YAML_KEYS["load_qr"], "load_qr.", source)
         if "side_m" not in floor:
             raise WorldError(f"{source}: floor_qr.side_m is missing")
         floor_side_m = strict_float(floor["side_m"], f"{source}: floor_qr.side_m", WorldError, positive=True)
@@ -231,6 +234,7 @@ class World:
         if bounds is not None:
             if not isinstance(bounds, dict):
                 raise WorldError(f"{source}: bounds_m must be a mapping with x and y")
+            _known_keys(bounds, WORLD_YAML_KEYS["bounds_m"], "bounds_m.", source)
             for axis in ("x", "y"):
                 if axis not in bounds:
                     raise WorldError(f"{source}: bounds_m.{axis} is missing")
@@ -260,6 +264,25 @@ class World:
 
     def save(self, path: Path) -> None:
         dump_yaml(self.to_yaml(), path)
+
+
+WORLD_YAML_KEYS: dict[str, tuple[str, ...]] = {
+    "floor_qr": ("side_m", "payload_unit_m", "placement_sigma_m", "placement_sigma_deg"),
+    "load_qr": ("side_m", "side_sigma_m"),
+    "bounds_m": ("x", "y"),
+}
+"""world.yaml's sections and their keys: anything else is an error (a misspelt optional key,
+`load_qr: {side_mm: 100}` or `payload_units_m`, had been ignored and its default used, unsaid)."""
+
+
+def _known_keys(data: dict, known, prefix: str, source: str) -> None:
+    """WorldError naming the first key of `data` not in `known` (with the known ones)."""
+    for key in data:
+        if key not in known:
+            raise WorldError(
+                f"{source}: unknown key {prefix}{str(key)[:60]} (known {prefix.rstrip('.') or 'keys'}: "
+                f"{', '.join(known)})"
+            )
 
 
 def _section(data: dict, key: str, source: str, required: bool = False) -> dict:

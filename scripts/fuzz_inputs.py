@@ -319,6 +319,43 @@ def _no_imu(d: Path) -> None:
     shutil.rmtree(d / "mav0/imu0")
 
 
+def _cam_symlink_loop(d: Path) -> None:
+    f = _images(d)[50]
+    f.unlink()
+    f.symlink_to(f.name)  # a -> a
+
+
+def _cam1_symlink_loop(d: Path) -> None:
+    shutil.rmtree(d / "mav0/cam1")
+    (d / "mav0/cam1").symlink_to("cam1")
+
+
+def _groundtruth_one_row(d: Path) -> None:
+    p = d / "mav0/state_groundtruth_estimate0/data.csv"
+    _set_lines(p, _lines(p)[:2])
+
+
+def _imu_starts_late(d: Path) -> None:
+    p = d / "mav0/imu0/data.csv"
+    ls = _lines(p)
+    _set_lines(p, ls[:1] + ls[1 + (len(ls) - 1) // 2 :])
+
+
+def _world_unknown_key(d: Path) -> None:
+    p = d / "world.yaml"
+    _set_lines(p, [line.replace("load_qr: {side_m:", "load_qr: {side_mm:") for line in _lines(p)])
+
+
+def _sensor_duplicate_key(d: Path) -> None:
+    p = d / "mav0/cam0/sensor.yaml"
+    _set_lines(p, [*_lines(p), "intrinsics: [600.0, 600.0, 320.0, 240.0]\n"])
+
+
+def _sensor_kalibr_line_delay(d: Path) -> None:
+    p = d / "mav0/cam0/sensor.yaml"
+    _set_lines(p, [*_lines(p), "line_delay: 2.0e-05\n"])
+
+
 CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "imu_text": ("imu0/data.csv: a field 'abc...' in row 501", _imu_text),
     "imu_truncated": ("imu0/data.csv cut in the middle of a row", _imu_truncated),
@@ -373,6 +410,13 @@ CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "velocity_short_row": ("vel0/data.csv: a row of 2 fields", _velocity_short_row),
     "no_front_camera": ("mav0/cam1 deleted", _no_front_camera),
     "no_imu": ("mav0/imu0 deleted", _no_imu),
+    "cam_symlink_loop": ("a cam0 image a symbolic link to itself", _cam_symlink_loop),
+    "cam1_symlink_loop": ("mav0/cam1 a symbolic link to itself", _cam1_symlink_loop),
+    "groundtruth_one_row": ("ground truth of one row", _groundtruth_one_row),
+    "imu_starts_late": ("imu0/data.csv: the first half of the rows missing", _imu_starts_late),
+    "world_unknown_key": ("world.yaml load_qr.side_mm (misspelt side_m)", _world_unknown_key),
+    "sensor_duplicate_key": ("cam0/sensor.yaml intrinsics given twice", _sensor_duplicate_key),
+    "sensor_kalibr_line_delay": ("cam0/sensor.yaml Kalibr's line_delay", _sensor_kalibr_line_delay),
 }
 
 

@@ -8,6 +8,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from fusion.estimate import run_ekf, smooth, smooth_incremental
 from fusion.estimate.fixes import FREE_ROTATION_SIGMA_RAD, align_attitude, merge_fixes
 from fusion.geometry import integrate_gyro, rotation_aligning, so3_exp, so3_log
 from fusion.log import euroc
-from fusion.log.fixes import PositionFixes, read_fixes
+from fusion.log.fixes import PositionFixes, fixes_in_flight, read_fixes
 from fusion.types import Trajectory
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
@@ -53,16 +54,19 @@ def write(path: Path, text: str) -> Path:
 
 
 def test_read_fixes_header_and_rows(tmp_path):
-    f = read_fixes(write(tmp_path / "f.csv", "t_ns,x,y,z,sigma_m\n100,1,2,3,0.1\n\n200, 1.5 ,2,3,0.2\n"))
-    np.testing.assert_array_equal(f.timestamps_ns, [100, 200])
+    f = read_fixes(
+        write(tmp_path / "f.csv", "t_ns,x,y,z,sigma_m\n100000000,1,2,3,0.1\n\n200000000, 1.5 ,2,3,0.2\n")
+    )
+    np.testing.assert_array_equal(f.timestamps_ns, [100_000_000, 200_000_000])
     np.testing.assert_allclose(f.p_world, [[1, 2, 3], [1.5, 2, 3]])
     np.testing.assert_allclose(f.sigma_m, [0.1, 0.2])
     assert f.warnings == []
 
 
 def test_read_fixes_sorts_and_counts_out_of_order(tmp_path):
-    f = read_fixes(write(tmp_path / "f.csv", "# t_ns,x,y,z,sigma_m\n300,3,0,0,1\n100,1,0,0,1\n200,2,0,0,1\n"))
-    np.testing.assert_array_equal(f.timestamps_ns, [100, 200, 300])
+    rows = "# t_ns,x,y,z,sigma_m\n3000000000,3,0,0,1\n1000000000,1,0,0,1\n2000000000,2,0,0,1\n"
+    f = read_fixes(write(tmp_path / "f.csv", rows))
+    np.testing.assert_array_equal(f.timestamps_ns, [1_000_000_000, 2_000_000_000, 3_000_000_000])
     np.testing.assert_allclose(f.p_world[:, 0], [1, 2, 3])
     assert [(w.name, w.count) for w in f.warnings] == [("fixes_out_of_order", 1)]
 
@@ -76,6 +80,10 @@ def test_read_fixes_sorts_and_counts_out_of_order(tmp_path):
         ("100,1,2,3,0.1\n200,1,2,nan,0.1\n", 3, "not a finite number"),
         ("100,1,2,3,0\n", 2, "sigma_m must be > 0"),
         ("100,1,2,3,-0.5\n", 2, "sigma_m must be > 0"),
+        # t_ns as the EuRoC readers take a timestamp: within int64, digits only
+        ("100,1,2,3,0.1\n99999999999999999999,1,2,3,0.1\n", 3, "beyond int64 nanoseconds"),
+        ("1_000_000_000,1,2,3,0.1\n", 2, "not an integer number of nanoseconds"),
+        ("-5,1,2,3,0.1\n", 2, "negative timestamp"),
     ],
 )
 def test_bad_fixes_line_names_file_and_line(tmp_path, body, line, words):
@@ -93,6 +101,51 @@ def test_duplicate_or_missing_fixes_are_errors(tmp_path):
         read_fixes(write(tmp_path / "e.csv", "t_ns,x,y,z,sigma_m\n"))
     with pytest.raises(LogError, match="not found|no such|missing"):
         read_fixes(tmp_path / "absent.csv")
+
+
+def test_fixes_in_another_unit_are_an_error(tmp_path):
+    """Fixes 100 ms apart stamped in ms (or us): 0.1 ms (0.1 us) apart as ns, an error naming
+    the file, not a flight of 8 us fused (numpy overflow warnings, diverged health)."""
+    for unit, per_s in (("ms", 1_000), ("us", 1_000_000)):
+        rows = "".join(f"{k * per_s // 10},1,2,3,0.02\n" for k in range(81))
+        path = write(tmp_path / f"{unit}.csv", "t_ns,x,y,z,sigma_m\n" + rows)
+        with pytest.raises(LogError, match=r"not in nanoseconds") as e:
+            read_fixes(path)
+        assert str(e.value).startswith(f"{path}: ")
+
+
+def _span_log(t0_ns: int, t1_ns: int):
+    """What fixes_in_flight reads of a FlightLog: a camera and an IMU over [t0_ns, t1_ns]."""
+    ts = np.linspace(t0_ns, t1_ns, 11).astype(np.int64)
+    return SimpleNamespace(
+        root=Path("flight"),
+        cameras={"cam0": SimpleNamespace(timestamps_ns=ts)},
+        imu=SimpleNamespace(timestamps_ns=ts),
+    )
+
+
+def test_fixes_outside_the_flight_are_dropped_and_counted():
+    t = np.arange(0, 12, 1, dtype=np.int64) * 1_000_000_000 + 4_000_000_000  # 4 .. 15 s
+    fixes = PositionFixes(t, np.zeros((len(t), 3)), np.full(len(t), 0.02), "fixes.csv")
+    kept = fixes_in_flight(fixes, _span_log(0, 8_000_000_000))
+    np.testing.assert_array_equal(kept.timestamps_ns, t[t <= 8_000_000_000])
+    (w,) = kept.warnings
+    assert (w.name, w.count) == ("fixes_outside_flight", 7)
+    assert w.message.startswith("fixes.csv: 7 of 12") and "0-8 s" in w.message
+    # all inside: the same fixes, no warning
+    assert fixes_in_flight(fixes, _span_log(0, 20_000_000_000)) is fixes
+
+
+def test_fixes_in_another_clock_are_an_error():
+    """UNIX-epoch fixes against a log clock starting at 0: none in the flight, refused (they had
+    been "fused", adding poses 55 years after the flight)."""
+    t = np.arange(81, dtype=np.int64) * 100_000_000 + 1_765_000_000 * 10**9
+    fixes = PositionFixes(t, np.zeros((81, 3)), np.full(81, 0.02), "unix.csv")
+    with pytest.raises(LogError) as e:
+        fixes_in_flight(fixes, _span_log(0, 8_000_000_000))
+    msg = str(e.value)
+    assert msg.startswith("unix.csv: no fix lies within the flight's time span") and "\n" not in msg
+    assert "1.765e+09" in msg and "0-8 s" in msg
 
 
 # =========================================================================== geometry
@@ -272,3 +325,13 @@ def test_cli_camera_less_needs_fixes_and_good_fixes(camera_less_log, tmp_path, c
     assert main(["run", str(log), "--fixes", str(bad), "--out", str(tmp_path / "b"), "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{bad}:3: expected 5 fields" in err[0]
+    # fixes in another clock (UNIX epoch) than the log's: one line naming the file, no output
+    unix = write(
+        tmp_path / "unix.csv",
+        "t_ns,x,y,z,sigma_m\n"
+        + "".join(f"{1_765_000_000_000_000_000 + k * 100_000_000},1,2,3,0.01\n" for k in range(50)),
+    )
+    assert main(["run", str(log), "--fixes", str(unix), "--out", str(tmp_path / "c"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"fusion: error: {unix}: no fix lies within")
+    assert not (tmp_path / "c" / "metrics.json").exists()

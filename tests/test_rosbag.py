@@ -215,12 +215,14 @@ def _images(n, seed=0):
     return [rng.integers(0, 255, size=(24, 32), dtype=np.uint8) for _ in range(n)]
 
 
-def _resting_imu(clipped=0, seed=1):
-    """_write_bag's 30 IMU samples of a plausible IMU at rest (the constant default reads as
-    clipped to euroc.check_log): white noise as the default ImuNoise states it at 100 Hz, gravity
-    on z; with `clipped`, that many accelerometer z readings sit at the axis' largest value."""
+def _resting_imu(clipped=0, seed=1, n=200):
+    """_write_bag's IMU samples (n: 2 s at 100 Hz, over the frames of up to 20 images at 10 Hz:
+    an IMU stopping before the frames is the warning imu_coverage) of a plausible IMU at rest
+    (the constant default reads as clipped to euroc.check_log): white noise as the default
+    ImuNoise states it at 100 Hz, gravity on z; with `clipped`, that many accelerometer z
+    readings sit at the axis' largest value."""
     rng = np.random.default_rng(seed)
-    s = np.c_[rng.normal(scale=1.7e-3, size=(30, 3)), [0, 0, 9.81] + rng.normal(scale=0.02, size=(30, 3))]
+    s = np.c_[rng.normal(scale=1.7e-3, size=(n, 3)), [0, 0, 9.81] + rng.normal(scale=0.02, size=(n, 3))]
     if clipped:
         s[:, 5] = np.minimum(s[:, 5], np.sort(s[:, 5])[-clipped])
     return s

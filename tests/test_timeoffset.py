@@ -18,6 +18,7 @@ from fusion import pipeline
 from fusion.camera import CameraModel
 from fusion.cli import main
 from fusion.conventions import R_BODY_FLOORCAM, R_BODY_FRONTCAM
+from fusion.errors import EstimationError
 from fusion.estimate.smoother import midpoint_specific_force
 from fusion.estimate.timeoffset import (
     CameraOffset,
@@ -26,6 +27,7 @@ from fusion.estimate.timeoffset import (
     TimeOffsetConfig,
     add_stamp_covariance,
     body_twists,
+    check_stated_offsets,
     estimate_floor_offset,
     estimate_front_offset,
     parse_time_offsets_ms,
@@ -101,6 +103,35 @@ def test_parse_time_offsets_ms():
             parse_time_offsets_ms(bad)
     with pytest.raises(SystemExit):  # argparse: one line naming the option, exit 2
         main(["smooth", str(SAMPLE), "--out", "unused", "--time-offset-ms", "cam2=1"])
+
+
+def test_stated_offset_moving_the_cameras_off_the_imu_is_refused(tmp_path, capsys):
+    """1e9 'ms' (a value in ns typed as ms) moved the cameras 11.6 days off the IMU: exit 0,
+    health ok, no warning, no ATE.  Now one line before any work, naming the spans; an offset
+    that leaves the frames on the IMU's span (even a large one) is accepted."""
+    log = read_flight(SAMPLE)
+    c0, c1 = log.floor.timestamps_ns[0] * 1e-9, log.floor.timestamps_ns[-1] * 1e-9
+    i0, i1 = log.imu.timestamps_ns[0] * 1e-9, log.imu.timestamps_ns[-1] * 1e-9
+    check_stated_offsets(log, {"cam0": 0.05, "cam1": -0.05})
+    check_stated_offsets(log, {"cam0": (i1 - c0) - 0.1})  # still overlaps at its end
+    check_stated_offsets(log, {"cam2": 1e6})  # no such camera: resolve_time_offsets' to refuse
+    for bad in ({"cam0": 1e6}, {"cam1": -(c1 - i0) - 0.1}):
+        with pytest.raises(EstimationError, match=r"wholly outside the IMU's"):
+            check_stated_offsets(log, bad)
+    # a camera already off the IMU (another clock: the reader's clock_offset) is not the offset's doing
+    off = replace(
+        log,
+        cameras={
+            **log.cameras,
+            "cam1": replace(log.cameras["cam1"], timestamps_ns=log.cameras["cam1"].timestamps_ns + 10**12),
+        },
+    )
+    check_stated_offsets(off, {"cam1": 0.0})
+    out = tmp_path / "out"
+    assert main(["run", str(SAMPLE), "--time-offset-ms", "1e9", "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("fusion: error: the stated time offset cam0=1e+09 ms")
+    assert not out.exists() or not any(out.iterdir())
 
 
 def test_midpoint_specific_force_is_the_half_step_rotation():

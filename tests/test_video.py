@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fusion.cli import build_parser
 from fusion.errors import LogError
 from fusion.log import LogOptions, euroc, open_flight
 from fusion.log.inspect import inspect_log
@@ -72,6 +73,38 @@ def test_constant_rate_needs_a_start_time(video_dir, tmp_path):
     )
     flight = open_flight(d, LogOptions(video_start_ns=0, video_fps=20.0))
     assert flight.floor.timestamps_ns[1] == 50_000_000
+    # a rate or start that is no rate or time: an error naming the video, not nonsense stamps
+    for bad in (
+        LogOptions(video_start_ns=0, video_fps=float("nan")),
+        LogOptions(video_start_ns=0, video_fps=-30.0),
+        LogOptions(video_start_ns=0, video_fps=0.0),
+        LogOptions(video_start_ns=-5),
+    ):
+        with pytest.raises(LogError, match=r"cam0.mkv: video_(fps|start_ns) "):
+            open_flight(d, bad)
+
+
+@pytest.mark.parametrize(
+    "flag, value",
+    [
+        ("--video-fps", "nan"),
+        ("--video-fps", "-30"),
+        ("--video-fps", "0"),
+        ("--video-fps", "inf"),
+        ("--video-start-ns", "-5"),
+        ("--video-start-ns", "1_000"),
+        ("--video-start-ns", "99999999999999999999"),
+    ],
+)
+def test_video_rate_and_start_flags_refuse_nonsense(flag, value, capsys):
+    """argparse, like every other numeric flag: exit 2, one line naming the flag."""
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["inspect", "v.mkv", flag, value])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert flag in err and "Traceback" not in err
+    args = build_parser().parse_args(["inspect", "v.mkv", "--video-fps", "29.97", "--video-start-ns", "0"])
+    assert (args.video_fps, args.video_start_ns) == (29.97, 0)
 
 
 def test_frame_times_shorter_than_video_use_the_first_frames(video_dir, tmp_path, caplog):

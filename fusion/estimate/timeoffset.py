@@ -1116,6 +1116,37 @@ def _significant(r: float, sigma: float | None, config: TimeOffsetConfig) -> boo
     return sigma is not None and abs(r) > config.apply_sigmas * sigma and abs(r) > config.min_apply_s
 
 
+def check_stated_offsets(log_: FlightLog, fixed_s: dict[str, float] | None) -> None:
+    """EstimationError (one line) when a stated offset (`fixed_s` {camera: s}, --time-offset-ms)
+    moves a camera's frames wholly off the IMU's span: then no frame has an IMU sample to fuse
+    with, and the run had finished with exit 0, health ok and no ATE (a value in us or ns typed
+    as ms: 1e9 'ms' is 11.6 days).  Overlap is the test rather than a size bound: a camera
+    stamped in another clock than the IMU's (the reader's `clock_offset`) needs an offset far
+    larger than the flight to be corrected, and any offset larger than the flight while both
+    clocks agree already fails it.  The shift is the stated offset minus the reader's seed (Kalibr's
+    timeshift_cam_imu, already in the stamps), as resolve_time_offsets applies it.  Only an
+    offset that moves frames overlapping the IMU off it is refused: a camera off the IMU before
+    any offset is the reader's warning (`clock_offset`), and its loads' (`load_sightings_
+    unsynchronised`).  A log without IMU is not checked (no clock to line up with)."""
+    if not fixed_s or log_.imu is None or not len(log_.imu.timestamps_ns):
+        return
+    i0, i1 = int(log_.imu.timestamps_ns[0]), int(log_.imu.timestamps_ns[-1])
+    for name, offset_s in fixed_s.items():
+        stream = log_.cameras.get(name)
+        if stream is None or not len(stream.timestamps_ns):
+            continue
+        shift_s = offset_s - log_.timeshift_ns.get(name, 0) / NS_PER_S
+        c0, c1 = float(stream.timestamps_ns[0]) / NS_PER_S, float(stream.timestamps_ns[-1]) / NS_PER_S
+        overlaps_before = c1 >= i0 / NS_PER_S and c0 <= i1 / NS_PER_S
+        if overlaps_before and (c1 + shift_s < i0 / NS_PER_S or c0 + shift_s > i1 / NS_PER_S):
+            raise EstimationError(
+                f"the stated time offset {name}={offset_s * 1e3:.6g} ms moves {name}'s frames "
+                f"({c0:.6g}-{c1:.6g} s) to {c0 + shift_s:.6g}-{c1 + shift_s:.6g} s, wholly outside the "
+                f"IMU's {i0 / NS_PER_S:.6g}-{i1 / NS_PER_S:.6g} s: give it in milliseconds (not us "
+                "or ns), or leave it out to estimate it"
+            )
+
+
 def resolve_time_offsets(
     log_: FlightLog,
     raw: Trajectory | None,

@@ -12,7 +12,9 @@
                                                                   readable floor code by design)
 
 The reader is defensive: every malformed row raises LogError naming the file and line; a frame
-whose image is missing or unreadable is skipped, counted and reported (`CameraStream.skipped`).
+whose image is missing or unreadable (a symbolic link loop too) is skipped, counted and reported
+(`CameraStream.skipped`); a stream folder (`mav0/cam1`, ...) or a camera's `data` folder that is
+a file, a dangling link or a link loop is an error naming it, not an absent stream.
 Images are streamed, never all held in memory; an image's size is read from its header and
 checked against sensor.yaml before it is decoded.  Only regular files are opened (a named pipe
 would hang the reader).  After reading, plausibility checks look for unit and clock mistakes
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import math
@@ -38,7 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fusion.camera import CameraModel, coefficient_count, read_T_BS
+from fusion.camera import SENSOR_YAML_KEYS, CameraModel, coefficient_count, read_T_BS, unknown_sensor_keys
 from fusion.errors import CameraModelError, LogError, WorldError
 from fusion.fileio import (
     FLIGHT_LOG_WRITERS,
@@ -625,15 +628,78 @@ def _symlinked_names(data_dir: Path) -> set[str] | None:
         return None
 
 
-def _read_camera(cam_dir: Path, name: str) -> CameraStream:
+def _resolve_failure(e: BaseException) -> str:
+    """Why Path.resolve() failed: a symbolic link loop (RuntimeError on Python < 3.13, OSError
+    ELOOP after) or the OSError's own reason."""
+    if isinstance(e, RuntimeError) or getattr(e, "errno", None) == errno.ELOOP:
+        return "a symbolic link loop"
+    return getattr(e, "strerror", None) or str(e)
+
+
+def _stream_folder(path: Path) -> bool:
+    """Whether a stream folder (mav0/cam0, imu0, ...) is there: True for a folder, False when
+    nothing is at `path`; LogError for anything else at its name (a file, a symbolic link loop, a
+    dangling link), which had read as an absent stream, silently."""
+    if path.is_dir():
+        return True
+    if not os.path.lexists(path):
+        return False
+    try:
+        os.stat(path)
+        why = "not a folder"
+    except FileNotFoundError:
+        why = "a symbolic link to nothing"
+    except (RuntimeError, OSError) as e:
+        why = _resolve_failure(e)
+    raise LogError(f"{path}: is {why}; expected the stream's folder (or nothing, when the log has none)")
+
+
+IMU_SENSOR_KEYS = (
+    "sensor_type",
+    "comment",
+    "T_BS",
+    "rate_hz",
+    "gyroscope_noise_density",
+    "gyroscope_random_walk",
+    "accelerometer_noise_density",
+    "accelerometer_random_walk",
+)
+"""An IMU sensor.yaml's keys (EuRoC's)."""
+
+
+def _sensor_keys(cfg: dict, known: tuple[str, ...], path: Path, warnings: list[LogWarning]) -> None:
+    """camera.unknown_sensor_keys on a sensor.yaml (a LogError for a key that would have meant
+    something: Kalibr's name of one of ours, a typo); the other unknown keys, which other tools
+    write and the reader ignores, are counted in `warnings` (`sensor_yaml_unknown_keys`)."""
+    try:
+        unknown = unknown_sensor_keys(cfg, known, str(path))
+    except CameraModelError as e:
+        raise LogError(str(e)) from None
+    if unknown:
+        warnings.append(
+            LogWarning(
+                "sensor_yaml_unknown_keys",
+                len(unknown),
+                f"{path}: key(s) {', '.join(k[:40] for k in unknown[:5])} not read "
+                f"(known: {', '.join(known)})",
+            )
+        )
+
+
+def _read_camera(cam_dir: Path, name: str, warnings: list[LogWarning] | None = None) -> CameraStream:
+    """One camera's stream; unknown sensor.yaml keys are counted in `warnings`."""
     sensor_path = cam_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
+    _sensor_keys(cfg, SENSOR_YAML_KEYS, sensor_path, [] if warnings is None else warnings)
     _check_sensor_numbers(cfg, str(sensor_path), camera=True)
     try:
         camera = CameraModel.from_sensor_yaml(cfg, str(sensor_path))
     except CameraModelError as e:
         raise LogError(str(e)) from None
-    data_dir = (cam_dir / "data").resolve()
+    try:
+        data_dir = (cam_dir / "data").resolve()
+    except (RuntimeError, OSError) as e:  # a symbolic link loop: RuntimeError before Python 3.13
+        raise LogError(f"{cam_dir / 'data'}: cannot be opened ({_resolve_failure(e)})") from None
     links = _symlinked_names(data_dir)
     csv_path = cam_dir / "data.csv"
     ts, paths, lines, prev = [], [], [], None
@@ -649,7 +715,12 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
             # not '.' or '..', and no symbolic link), without its lstat of every component
             path = data_dir / fname
         else:
-            path = (data_dir / fname).resolve()
+            try:
+                path = (data_dir / fname).resolve()
+            except (RuntimeError, OSError):
+                # a symbolic link loop: it cannot be opened wherever it points, so the frame is
+                # skipped and counted when its image is read, as any unreadable image
+                path = data_dir / fname
             if data_dir not in path.parents:
                 raise LogError(
                     f"{csv_path}:{lineno}: file name {fname[:60]!r} points outside {cam_dir / 'data'}"
@@ -662,9 +733,11 @@ def _read_camera(cam_dir: Path, name: str) -> CameraStream:
     return CameraStream(name, camera, np.asarray(ts, dtype=np.int64), paths, lines)
 
 
-def _read_imu(imu_dir: Path) -> ImuData:
+def _read_imu(imu_dir: Path, warnings: list[LogWarning] | None = None) -> ImuData:
+    """The IMU's samples and sensor.yaml; unknown sensor.yaml keys are counted in `warnings`."""
     sensor_path = imu_dir / "sensor.yaml"
     cfg = load_yaml(sensor_path, LogError)
+    _sensor_keys(cfg, IMU_SENSOR_KEYS, sensor_path, [] if warnings is None else warnings)
     _check_sensor_numbers(cfg, str(sensor_path), camera=False)
     noise = {}
     for key in (
@@ -759,22 +832,45 @@ def read_flight(root: Path, cameras_optional: bool = False) -> FlightLog:
     except WorldError as e:
         raise LogError(str(e)) from None
     cameras = {}
+    sensor_warnings: list[LogWarning] = []
     for name in CAMERA_NAMES:
-        if (mav / name).is_dir():
-            cameras[name] = _read_camera(mav / name, name)
+        if _stream_folder(mav / name):
+            cameras[name] = _read_camera(mav / name, name, sensor_warnings)
     if "cam0" not in cameras and not cameras_optional:
         raise LogError(f"{mav / 'cam0'}: the floor camera folder is missing")
-    imu = _read_imu(mav / "imu0") if (mav / "imu0").is_dir() else None
-    vel = _read_velocity(mav / "vel0") if (mav / "vel0").is_dir() else None
+    imu = _read_imu(mav / "imu0", sensor_warnings) if _stream_folder(mav / "imu0") else None
+    vel = _read_velocity(mav / "vel0") if _stream_folder(mav / "vel0") else None
     gt_path = mav / "state_groundtruth_estimate0" / "data.csv"
     gt, warnings = _read_groundtruth(gt_path) if os.path.lexists(gt_path) else (None, [])
     loads_path = root / "loads_groundtruth.csv"
     loads = _read_loads(loads_path) if os.path.lexists(loads_path) else None
     bo_path = root / "blackouts_groundtruth.csv"
     blackouts = _read_blackouts(bo_path) if os.path.lexists(bo_path) else None
-    log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, warnings)
+    log = FlightLog(root, world, cameras, imu, vel, gt, loads, blackouts, sensor_warnings + warnings)
+    log.warnings += drop_short_groundtruth(log)
     log.warnings += check_log(log)
     return log
+
+
+def drop_short_groundtruth(log: FlightLog) -> list[LogWarning]:
+    """Ground truth of fewer than 2 samples cannot be interpolated to any estimate: it is dropped
+    from `log` (the run is then evaluated against nothing, as a log without ground truth) with
+    the warning `groundtruth_too_short` naming its file.  Ground truth is optional: a run that had
+    finished its work then failed on it, with every output discarded."""
+    gt = log.groundtruth
+    if gt is None or len(gt.timestamps_ns) >= 2:
+        return []
+    log.groundtruth = None
+    where = _stream_sources(log)["groundtruth"].data
+    n = len(gt.timestamps_ns)
+    return [
+        LogWarning(
+            "groundtruth_too_short",
+            1,
+            f"{where}: ground truth has {n} sample{'s' if n != 1 else ''} (2 or more needed): "
+            "evaluation against ground truth skipped",
+        )
+    ]
 
 
 # ============================================================================ plausibility
@@ -920,6 +1016,35 @@ def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
     return out
 
 
+def _check_imu_coverage(imu_ns: np.ndarray, cameras: list[np.ndarray], where: str) -> list[LogWarning]:
+    """The IMU (stamps `imu_ns`) starting after the cameras' first frame, or ending before their
+    last, by more than IMU_GAP_WARN_S: the frames there have no IMU to bridge them, as in a gap
+    between samples (`imu_gaps`, which only looks between samples; `clock_offset` only fires when
+    both ends are shifted the same way).  One warning `imu_coverage`, counting the frames of the
+    `cameras` (each one's stamps; those warned clock_offset left out) outside the IMU's span;
+    `where` names the IMU's samples."""
+    i0, i1 = _span(imu_ns)
+    c0, c1 = min(int(t[0]) for t in cameras), max(int(t[-1]) for t in cameras)
+    late, early = (i0 - c0) * 1e-9, (c1 - i1) * 1e-9
+    ends = []
+    if late > IMU_GAP_WARN_S:
+        ends.append(f"starts {late:.3g} s after the cameras' first frame")
+    if early > IMU_GAP_WARN_S:
+        ends.append(f"ends {early:.3g} s before their last")
+    if not ends:
+        return []
+    n = sum(int(((t < i0) | (t > i1)).sum()) for t in cameras)
+    return [
+        LogWarning(
+            "imu_coverage",
+            n,
+            f"{where}: the IMU ({i0 * 1e-9:.6g}-{i1 * 1e-9:.6g} s) {' and '.join(ends)} "
+            f"({c0 * 1e-9:.6g}-{c1 * 1e-9:.6g} s): {n} frame(s) outside it, where the fused poses "
+            "rest on the cameras alone",
+        )
+    ]
+
+
 def _span(ts: np.ndarray) -> tuple[int, int]:
     return int(ts[0]), int(ts[-1])
 
@@ -941,11 +1066,12 @@ def _stream_sources(log: FlightLog) -> dict[str, StreamSource]:
 
 
 def check_log(log: FlightLog) -> list[LogWarning]:
-    """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps and clipping,
-    sensor clock offsets above CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not
-    overlapping) and T_BS translations above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise
-    LogError; the rest are returned as warnings, naming the files (a bag's: the bag and topic)
-    as `log.stream_sources` says (an EuRoC folder's: mav0's)."""
+    """Plausibility checks of a read log: timestamp units and rates, IMU units, gaps, clipping and
+    coverage of the cameras' span (`imu_coverage`), sensor clock offsets above
+    CLOCK_OFFSET_MAX_S (streams shifted at both ends, or not overlapping) and T_BS translations
+    above T_BS_MAX_TRANSLATION_M.  Certain mistakes raise LogError; the rest are returned as
+    warnings, naming the files (a bag's: the bag and topic) as `log.stream_sources` says (an
+    EuRoC folder's: mav0's)."""
     src = _stream_sources(log)
     out: list[LogWarning] = []
     streams: dict[str, np.ndarray] = {}
@@ -964,11 +1090,14 @@ def check_log(log: FlightLog) -> list[LogWarning]:
         streams["groundtruth"] = log.groundtruth.timestamps_ns
     ref_name = "cam0" if "cam0" in streams else "imu0"
     ref0, ref1 = _span(streams[ref_name]) if ref_name in streams else (0, 0)
+    offset: set[str] = set()  # streams warned clock_offset
     for name, ts in streams.items():
         if name == ref_name or ref_name not in streams:
             continue
         a0, a1 = _span(ts)
         d0, d1 = (a0 - ref0) * 1e-9, (a1 - ref1) * 1e-9
+        if (a0 > ref1 or a1 < ref0) or (d0 * d1 > 0 and min(abs(d0), abs(d1)) > CLOCK_OFFSET_MAX_S):
+            offset.add(name)
         if a0 > ref1 or a1 < ref0:
             out.append(
                 LogWarning(
@@ -990,6 +1119,9 @@ def check_log(log: FlightLog) -> list[LogWarning]:
                     f"seems offset (more than {CLOCK_OFFSET_MAX_S} s)",
                 )
             )
+    cameras = [c.timestamps_ns for n, c in log.cameras.items() if n not in offset and len(c.timestamps_ns)]
+    if log.imu is not None and "imu0" not in offset and cameras:
+        out += _check_imu_coverage(log.imu.timestamps_ns, cameras, src["imu0"].data)
     mounts = {name: cam.camera.T_body_cam for name, cam in log.cameras.items()}
     if log.imu is not None:
         mounts["imu0"] = log.imu.T_body_imu

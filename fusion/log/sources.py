@@ -73,6 +73,7 @@ def open_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
 
         log = read_video_flight(path, opts)
     # the same unit, rate and clock plausibility checks as an EuRoC folder gets
+    log.warnings += euroc.drop_short_groundtruth(log)
     log.warnings += euroc.check_log(log)
     return log
 

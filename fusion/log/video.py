@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import shutil
 from collections.abc import Iterator
@@ -301,6 +302,10 @@ def _frame_times(
                 "no camera capture topic; give --frame-times, or --video-start-ns "
                 "(the first frame's time in the IMU clock) for a constant-rate video"
             )
+        if opts.video_fps is not None and not (math.isfinite(opts.video_fps) and opts.video_fps > 0):
+            raise LogError(f"{video}: video_fps {opts.video_fps} is not a frame rate (finite, > 0 Hz)")
+        if opts.video_start_ns < 0:
+            raise LogError(f"{video}: video_start_ns {opts.video_start_ns} is negative")
         fps = opts.video_fps or (float(1 / (steps[0] * tb)) if len(steps) else rate)
         if not fps:
             raise LogError(f"{video}: frame rate unknown; give --video-fps")
