@@ -428,7 +428,7 @@ def _fake_floor_run(root: Path, world: dict, offsets: dict, sigma: float) -> Pat
         LoadMap("smoother", [LoadEstimate("L1", np.ones(3), np.eye(3) * 1e-4, 5)]),
     )
     (root / RUN_RECORD).write_text(
-        json.dumps({"log": "x", "world_yaml": world, "front_camera_sensor_yaml": None})
+        json.dumps({"log": str(root / "log"), "world_yaml": world, "front_camera_sensor_yaml": None})
     )
     cov = np.diag([1e-8, 1e-8, math.radians(0.2) ** 2, sigma**2, sigma**2, 1e-8])
     codes = [
