@@ -475,9 +475,10 @@ def test_matched_mapping_goes_along_the_heading():
     )
 
 
-def test_map_loads_frame_keeps_the_raw_corners_and_uses_the_camera_options():
-    rng = np.random.default_rng(7)
-    cam = CameraModel(
+def distorted_front_camera() -> CameraModel:
+    """A front camera whose principal point is off the image centre and whose lens distorts:
+    what `undistort` and `centre="principal"` are for."""
+    return CameraModel(
         W,
         H,
         FL,
@@ -487,6 +488,11 @@ def test_map_loads_frame_keeps_the_raw_corners_and_uses_the_camera_options():
         distortion=[-0.2, 0.05, 0.0, 0.0],
         T_body_cam=make_T(R_BODY_FRONTCAM, np.zeros(3)),
     )
+
+
+def test_map_loads_frame_keeps_the_raw_corners_and_uses_the_camera_options():
+    rng = np.random.default_rng(7)
+    cam = distorted_front_camera()
     yaw = math.radians(rng.uniform(5, 85))
     fwd, right = np.array([math.cos(yaw), math.sin(yaw), 0]), np.array([math.sin(yaw), -math.cos(yaw), 0])
     p = DRONE + 1.6 * fwd + 0.3 * right + [0, 0, 0.2]
@@ -550,16 +556,7 @@ def test_paper_load_observations_take_the_nearest_pose_of_several():
 def test_paper_load_observations_pass_the_camera_options_and_the_callers_codes():
     from fusion.qr.codes import classify
 
-    cam = CameraModel(
-        W,
-        H,
-        FL,
-        FL,
-        FC[0] + 9.0,
-        FC[1] + 5.0,
-        distortion=[-0.2, 0.05, 0.0, 0.0],
-        T_body_cam=make_T(R_BODY_FRONTCAM, np.zeros(3)),
-    )
+    cam = distorted_front_camera()
     yaw = math.radians(-40.0)  # a negative heading, as atan2 gives it: D_r-theta is taken mod 360
     traj = Trajectory("t", np.array([0]), make_T(rot_z(yaw), DRONE)[None], None)
     fwd, right = np.array([math.cos(yaw), math.sin(yaw), 0]), np.array([math.sin(yaw), -math.cos(yaw), 0])
