@@ -822,6 +822,9 @@ def test_roles_by_type_and_overrides(tmp_path):
     r = assign_roles(tmp_path, {**types, "/c/image": IMAGE}, LogOptions(floor_topic="/c/image"))
     assert (r.floor, r.front, r.unused_images) == ("/c/image", None, ["/a/image", "/b/image"])
     assert assign_roles(tmp_path, types, LogOptions()).unused_images == []
+    # one topic in both camera roles (thirty-first session's audit: 0 loads, health ok)
+    with pytest.raises(LogError, match=r"topic /a/image given as both the floor and the front camera"):
+        assign_roles(tmp_path, types, LogOptions(floor_topic="/a/image", front_topic="/a/image"))
 
 
 def test_euroc_folder_as_calibration_for_a_bag(tmp_path, sample):

@@ -475,6 +475,11 @@ def assign_roles(
     front = check(
         front if front in types or (opts.front_topic and not no_front) else None, IMAGE_TYPES, "front"
     )
+    if floor is not None and floor == front:
+        raise LogError(
+            f"{path}: topic {floor} given as both the floor and the front camera; one camera "
+            "cannot be both (--floor-topic, --front-topic)"
+        )
     rest = [t for t in images if t not in (floor, front)]
     if floor is None:
         if not rest:
