@@ -40,6 +40,11 @@ def _write(path: Path, text: str) -> Path:
 # ----------------------------------------------------------------------------- manifest
 
 
+def test_a_spreadsheets_empty_trailing_cells_are_no_extra_column(tmp_path):
+    (e,) = read_manifest(_write(tmp_path / "m.csv", "id,x_m,y_m,z_m\nA,1,2,3,,\n"))
+    assert e.load_id == "A" and e.p_world.tolist() == [1.0, 2.0, 3.0]
+
+
 def test_plain_manifest_with_and_without_tolerance(tmp_path):
     m = read_manifest(_write(tmp_path / "m.csv", "id,x_m,y_m,z_m,tolerance_m\nA,1,2,3,0.05\nB, 4 ,5,6,\n"))
     assert [e.load_id for e in m] == ["A", "B"]
@@ -86,6 +91,7 @@ def test_manifest_face_yaw_optional_in_both_layouts(tmp_path):
         ("location,pallet_id,x,y,z,unit\nL1,P1,1,2,3,m\nL2,P2,1,2,3,in\n", 3, "unit: 'in' is not one of"),
         ("location,pallet_id,x,y,z\nL1,P1,1,2,3\n", 1, "missing column(s) unit"),
         ("id,x_m,y_m,z_m,face_yaw_deg\nA,1,2,3,south\n", 2, "column face_yaw_deg: 'south' is not a number"),
+        ("id,x_m,y_m,z_m\nA,1,2,3\nB,1,2,3,0.05\n", 3, "5 fields, the header names 4"),
     ],
 )
 def test_bad_manifest_one_line_error_naming_line(tmp_path, text, line, words):

@@ -112,6 +112,11 @@ def read_manifest(path: Path) -> list[ExpectedLoad]:
             continue
         if len(row) < len(header):
             raise WarehouseError(f"{path}:{lineno}: expected {len(header)} fields, found {len(row)}")
+        if any(c.strip() for c in row[len(header) :]):  # a spreadsheet's empty trailing cells pass
+            raise WarehouseError(
+                f"{path}:{lineno}: {len(row)} fields, the header names {len(header)} (a column "
+                "without its header: which is it?)"
+            )
         cells = {name: row[i].strip() for name, i in col.items()}
         entry = (_plain_row if layout == "plain" else _wms_row)(cells, path, lineno)
         if entry.load_id in first_line:
