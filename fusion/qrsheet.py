@@ -281,6 +281,12 @@ def _scale_bar(fig: Figure, x_in: float, y_in: float) -> None:
     fig.text((x_in + L + 0.1) / W, y_in / H, "10 cm", va="bottom", fontsize=7)
 
 
+MAX_SHEET_FLOOR_CODES = 50_000
+"""Floor codes one sheet may hold: 5 hectares at 1 m spacing, far beyond a warehouse hall; a
+1000 x 1000 grid (a million codes) was still rendering after minutes (thirty-first session's
+audit)."""
+
+
 def sheet_pages(
     grid=(10, 6),
     spacing_m: float = 1.0,
@@ -292,7 +298,13 @@ def sheet_pages(
     ecc: str = SHEET_ECC,
 ) -> list[SheetPage]:
     """The laid-out pages (floor codes first, load labels from a new page); every code at
-    error-correction level `ecc` (default H: fusion.qr.symbol says why)."""
+    error-correction level `ecc` (default H: fusion.qr.symbol says why).  QRSheetError for more
+    than MAX_SHEET_FLOOR_CODES floor codes (a mistyped grid ran for hours)."""
+    if grid[0] * grid[1] > MAX_SHEET_FLOOR_CODES:
+        raise QRSheetError(
+            f"a {grid[0]} x {grid[1]} grid is {grid[0] * grid[1]:,} floor codes, over "
+            f"{MAX_SHEET_FLOOR_CODES:,} (5 hectares at 1 m): a mistyped --grid?"
+        )
     floor, loads = _codes(grid, spacing_m, side_m, payload_unit_m, load_ids, load_side_m, ecc)
     pages = []
     if floor:

@@ -102,6 +102,8 @@ def test_impossible_sheets_raise_clear_errors(tmp_path):
         write_qr_sheet(tmp_path / "s.pdf", grid=(0, 0))
     with pytest.raises(QRSheetError, match="side_m"):
         write_qr_sheet(tmp_path / "s.pdf", grid=(1, 1), side_m=-0.1)
+    with pytest.raises(QRSheetError, match="1000 x 1000 grid is 1,000,000 floor codes"):
+        write_qr_sheet(tmp_path / "s.pdf", grid=(1000, 1000), side_m=0.05)
     assert not list(tmp_path.iterdir())
 
 
