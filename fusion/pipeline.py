@@ -2091,9 +2091,27 @@ def _add_stamp_jitter(log: FlightLog, loc: LocalizeResult, result: RunResult) ->
                 f"the {name} camera's ({role.value}) stamps jitter by {jitter.sigma_s * 1e3:.2f} ms "
                 f"(1 sigma, {what}; or its images blur along the motion as much (a long "
                 "exposure). Stamp frames at exposure (a hardware trigger, or the driver's sensor "
-                "timestamp) rather than on arrival, or shorten the exposure",
+                "timestamp) rather than on arrival, or shorten the exposure" + _jitter_imu_caveat(log),
             )
         )
+
+
+def _jitter_imu_caveat(log: FlightLog) -> str:
+    """What else reads as stamp jitter in this log: no IMU, or an IMU with gaps, leaves the motion
+    between frames uncertain, and its error looks like jitter (thirty-first session's audit: a
+    log without its IMU was told to stamp its frames at exposure)."""
+    if log.imu is None:
+        return (
+            ". This log has no IMU: the motion between frames comes from the velocity alone, and "
+            "its error reads as jitter too"
+        )
+    gaps = [w.name for w in log.warnings if w.name in ("imu_gaps", "imu_coverage")]
+    if gaps:
+        return (
+            f". The IMU's gaps ({', '.join(gaps)}) leave the motion between frames uncertain: that "
+            "reads as jitter too"
+        )
+    return ""
 
 
 def _floor_stamp_variance(result: RunResult) -> float:

@@ -206,3 +206,18 @@ def test_a_front_camera_none_of_whose_frames_reads_is_a_named_warning():
     assert "cam1/data.csv:2" in w.message and "no load is mapped" in w.message
     assert unreadable_front_warning(DetectionResult([], {"cam1": CameraStats(10, 9)})) is None
     assert unreadable_front_warning(DetectionResult([], {"cam0": CameraStats(10, 10)})) is None
+
+
+def test_a_stamp_jitter_warning_names_what_else_reads_as_jitter():
+    """Without an IMU, or with its gaps, the motion between frames is uncertain and reads as
+    stamp jitter: the warning says so instead of only "stamp frames at exposure" (thirty-first
+    session's fuzz run: a log without imu0 warned front_stamp_jitter 6.3 ms)."""
+    from types import SimpleNamespace
+
+    from fusion.log import LogWarning
+    from fusion.pipeline import _jitter_imu_caveat
+
+    assert "no IMU" in _jitter_imu_caveat(SimpleNamespace(imu=None, warnings=[]))
+    gappy = SimpleNamespace(imu=object(), warnings=[LogWarning("imu_gaps", 3, "...")])
+    assert "(imu_gaps)" in _jitter_imu_caveat(gappy)
+    assert _jitter_imu_caveat(SimpleNamespace(imu=object(), warnings=[])) == ""
