@@ -874,3 +874,28 @@ def test_detection_in_worker_processes_after_the_parent_read(bags, tmp_path):
     s._pid = -1  # as seen from a forked child
     np.testing.assert_array_equal(s.load_image(4), open_flight(bags["mcap"]).floor.load_image(4))
     assert s._reader is not reader and s._pid > 0
+
+
+def test_export_never_overwrites_its_source_or_a_folder_not_its_own(tmp_path, bags, sample):
+    """`export X.bag X.bag --force` deleted the bag before reading its images and wrote one
+    without them; `export LOG DIR --force` deleted any folder at DIR (thirty-first session's
+    second audit).  --force replaces only a previous export of the same kind."""
+    bag = tmp_path / "self.bag"
+    shutil.copy(bags["bag"], bag)
+    size = bag.stat().st_size
+    with pytest.raises(LogError, match="is, holds or lies inside the log being exported"):
+        export_flight(bag, bag, overwrite=True)
+    assert bag.stat().st_size == size
+    mine = tmp_path / "mydata"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me\n")
+    with pytest.raises(LogError, match="is not a previous video export"):
+        export_flight(sample, mine, overwrite=True)
+    assert (mine / "notes.txt").read_text() == "keep me\n"
+    (tmp_path / "x.mcap").mkdir()
+    with pytest.raises(LogError, match="is a folder, not a previous .mcap export"):
+        export_flight(sample, tmp_path / "x.mcap", overwrite=True)
+    video = export_flight(sample, tmp_path / "video")
+    assert export_flight(sample, video, overwrite=True) == video  # a previous export: replaced
+    again = export_flight(sample, tmp_path / "again.bag")
+    assert export_flight(sample, again, overwrite=True) == again

@@ -4,6 +4,7 @@ ROS 1 bag, ROS 2 MCAP bag or a video folder).  Both stream the frames."""
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 from fusion.errors import LogError
@@ -84,9 +85,12 @@ def export_flight(
     fmt: LogFormat | None = None,
 ) -> Path:
     """Write `src` (a path or a FlightLog) as OUT.bag (ROS 1), OUT.mcap (ROS 2, MCAP storage) or
-    a video folder (`fmt=LogFormat.VIDEO`, or any other name)."""
+    a video folder (`fmt=LogFormat.VIDEO`, or any other name).  `overwrite` replaces only a
+    previous export of that kind (`_check_export_target`); an OUT that is the source, holds it
+    or lies inside it is refused."""
     flight = _as_flight(src, opts)
     fmt = fmt or export_format(out)
+    _check_export_target(Path(src) if not isinstance(src, FlightLog) else flight.root, Path(out), fmt)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
         from fusion.log.rosbag import write_bag
 
@@ -99,3 +103,33 @@ def export_flight(
 
         return write_video_flight(flight, Path(out), codec=video_codec, overwrite=overwrite)
     raise LogError(f"cannot export to {fmt.value}; use `fusion import` for the EuRoC layout")
+
+
+def _check_export_target(src: Path, out: Path, fmt: LogFormat) -> None:
+    """LogError unless `out` may be written by an export, --force or not: not the source log,
+    not a folder holding it or inside it (the export reads the source's images as it writes:
+    `export X.bag X.bag --force` deleted the bag first and wrote one without images), and, when
+    it exists, a previous export of the same kind: a .bag / .mcap file, or a video export's
+    folder (its camchain and cam0 frame times).  `--force` had deleted any folder at OUT, a
+    user's files or a EuRoC flight (thirty-first session's audit)."""
+    real_out, real_src = Path(os.path.realpath(out)), Path(os.path.realpath(src))
+    if real_out == real_src or real_src.is_relative_to(real_out) or real_out.is_relative_to(real_src):
+        raise LogError(
+            f"{out}: is, holds or lies inside the log being exported ({src}); choose another output"
+        )
+    if not os.path.lexists(out):
+        return
+    if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
+        if out.is_dir():
+            raise LogError(f"{out}: is a folder, not a previous {out.suffix} export; choose another output")
+        return
+    if not out.is_dir():
+        raise LogError(f"{out}: is a file, not a previous video export (a folder); choose another output")
+    from fusion.log.video import CAMCHAIN_FILE
+
+    entries = {p.name for p in out.iterdir()}
+    if entries and not ({CAMCHAIN_FILE, "cam0.csv"} <= entries and "mav0" not in entries):
+        raise LogError(
+            f"{out}: is not a previous video export (no {CAMCHAIN_FILE} and cam0.csv, or a flight's "
+            "mav0/): --force replaces only an export; choose another output"
+        )
