@@ -199,3 +199,16 @@ def test_bad_imu_yaml(tmp_path):
     path.write_text("gyroscope_noise_density: 1e-4\n")
     with pytest.raises(LogError, match="imu.yaml: missing key 'gyroscope_random_walk'"):
         read_imu_yaml(path)
+
+
+@pytest.mark.parametrize("rate, words", [("thirty", "expected a number"), (-30, "positive")])
+def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, words):
+    """`rate_hz: thirty` ended in a ValueError traceback, `-30` was taken (second audit)."""
+    data = yaml.safe_load(CAMCHAIN)
+    for k in ("cam0", "cam1"):
+        data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
+    data["cam1"]["rate_hz"] = rate
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(LogError, match=rf"camchain-imucam.yaml: cam1.rate_hz: .*{words}"):
+        read_camchain(path)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from fusion.cli import build_parser
 from fusion.errors import LogError
@@ -313,4 +314,17 @@ def test_ulog_imu_and_capture_times(video_dir, tmp_path):
         match=r"flight.ulg: no 'sensor_combined' topic; the ULog holds "
         r"camera_capture",
     ):
+        open_flight(d)
+
+
+@pytest.mark.parametrize("noise, words", [("fast", "expected a number"), (-0.05, "positive")])
+def test_a_video_logs_velocity_noise_is_checked_when_read(video_dir, tmp_path, noise, words):
+    """velocity.yaml's `noise_m_s: fast` ended in a traceback; `-0.05` passed the reader and
+    failed every back end without naming the file (second audit)."""
+    d = tmp_path / "v"
+    shutil.copytree(video_dir, d)
+    if not (d / "velocity.csv").exists():
+        pytest.skip("the short flight has no velocity")
+    (d / "velocity.yaml").write_text(yaml.safe_dump({"noise_m_s": noise, "frame": "body"}))
+    with pytest.raises(LogError, match=rf"velocity.yaml: noise_m_s: .*{words}"):
         open_flight(d)

@@ -47,7 +47,7 @@ from fusion.camera import (
     stated_mount_sigmas,
 )
 from fusion.errors import CameraModelError, LogError
-from fusion.fileio import dump_yaml, load_yaml
+from fusion.fileio import dump_yaml, load_yaml, strict_float
 from fusion.geometry import inv_T, is_rigid_transform
 from fusion.log.euroc import ImuNoise
 from fusion.types import CameraRole
@@ -176,7 +176,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
             k3=dist[4] if n_coeffs == 5 else 0.0,
             distortion_model=dmodel,
             T_body_cam=T_bi @ inv_T(T_cam_imu),
-            rate_hz=float(block.get("rate_hz", 30.0)),
+            rate_hz=strict_float(block.get("rate_hz", 30.0), f"{where}.rate_hz", LogError, positive=True),
             mount=mount,
             intrinsics_sigma_px=intr_sigma,
             mount_sigma_deg=sigmas.get("T_BS_sigma_deg"),

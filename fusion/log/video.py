@@ -38,7 +38,7 @@ import yaml
 
 from fusion.camera import CameraModel
 from fusion.errors import LogError
-from fusion.fileio import dump_yaml, load_yaml
+from fusion.fileio import dump_yaml, load_yaml, strict_float
 from fusion.geometry import inv_T
 from fusion.log import euroc
 from fusion.log.euroc import (
@@ -446,7 +446,8 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
         sources["vel0"] = StreamSource(str(vel_csv))
         noise = 0.05
         if (folder / VELOCITY_YAML_FILE).is_file():
-            noise = float(load_yaml(folder / VELOCITY_YAML_FILE, LogError).get("noise_m_s", noise))
+            stated = load_yaml(folder / VELOCITY_YAML_FILE, LogError).get("noise_m_s", noise)
+            noise = strict_float(stated, f"{folder / VELOCITY_YAML_FILE}: noise_m_s", LogError, positive=True)
         vel = VelocityData(ts, v, noise)
     gt, gt_warnings = (
         euroc._read_groundtruth(folder / GROUNDTRUTH_FILE)
