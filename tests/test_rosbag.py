@@ -316,6 +316,12 @@ def test_image_encodings_decode_to_gray():
     padded = np.zeros((8, 16), np.uint8)
     padded[:, :10] = gray
     np.testing.assert_array_equal(decode_image(Msg("mono8", padded.tobytes(), 16), IMAGE), gray)
+    # rgb8 published under a mono8 label: three times the data step x height says (second
+    # audit: read as grey stripes from its first third, every frame, no warning)
+    with pytest.raises(ValueError, match="not step x height = 80"):
+        decode_image(Msg("mono8", bgr.tobytes(), 10), IMAGE)
+    with pytest.raises(ValueError, match="a row of at least 30"):
+        decode_image(Msg("rgb8", bgr.tobytes()[:160], 20), IMAGE)
     img16 = gray.astype(np.uint16) * 257  # full 16-bit range -> the same 8 bits
     np.testing.assert_array_equal(
         decode_image(Msg("mono16", img16.tobytes(), 20), IMAGE),

@@ -167,6 +167,10 @@ def _field(msg, *names):
     raise AttributeError(names[0])
 
 
+_BYTES_PER_PIXEL = {"mono16": 2, "16UC1": 2, "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4}
+"""Raw Image encodings of more than one byte a pixel (mono8, 8UC1 and Bayer: one)."""
+
+
 def decode_image(msg, msgtype: str) -> np.ndarray:
     """A sensor_msgs/Image or CompressedImage as uint8 grayscale (H, W).  Raises ValueError with
     the reason for an unsupported encoding or a malformed message."""
@@ -186,6 +190,14 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         raise ValueError(f"image encoding {enc!r} is not supported (one of {', '.join(SUPPORTED_ENCODINGS)})")
     if h < 1 or w < 1 or step * h > data.size:
         raise ValueError(f"image {w}x{h} step {step} holds {data.size} bytes")
+    bpp = _BYTES_PER_PIXEL.get(enc, 1)
+    if data.size != step * h or step < w * bpp:
+        # sensor_msgs/Image: data is step x height bytes, a row at least width x pixel size: more
+        # is another format under this label (rgb8 published as mono8 read as grey stripes)
+        raise ValueError(
+            f"image {w}x{h} {enc} step {step} holds {data.size} bytes, not step x height = {step * h} "
+            f"with a row of at least {w * bpp}: its encoding, width or step is not its data's"
+        )
     rows = data[: step * h].reshape(h, step)
     if enc in ("mono16", "16UC1"):
         # full scale of a 16-bit container whatever the sensor's bit depth: stretch to 8 bits
