@@ -308,6 +308,20 @@ def test_ulog_imu_and_capture_times(video_dir, tmp_path):
     assert any(p.startswith("[stamps_out_of_order] x1: ") and "sensor_combined" in p for p in problems)
     assert any(p.startswith("[stamps_duplicate] x1: ") for p in problems)
 
+    # a re-sent capture message: its repeated time dropped and counted, the frames keep theirs
+    # (it had failed every back end with "sample 50 is duplicated", naming no file)
+    resent = capture[:5] + [capture[4]] + capture[5:]
+    write_ulog(
+        d / "flight.ulg",
+        {"sensor_combined": (SENSOR_COMBINED, rows), "camera_capture": (CAMERA_CAPTURE, resent)},
+    )
+    flight = open_flight(d)
+    np.testing.assert_array_equal(
+        flight.floor.timestamps_ns, [(1_000_000 + 100_000 * k + 7) * 1000 for k in range(N_FRAMES)]
+    )
+    (dup,) = [w for w in flight.warnings if w.name == "stamps_duplicate"]
+    assert dup.count == 1 and "camera_capture" in dup.message
+
     write_ulog(d / "flight.ulg", {"camera_capture": (CAMERA_CAPTURE, capture)})
     with pytest.raises(
         LogError,

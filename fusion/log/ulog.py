@@ -72,11 +72,16 @@ def read_ulog_imu(
     return ImuData(t[idx], gyro[idx], acc[idx], noise or ImuNoise(), T_FLU_FRD.copy(), rate)
 
 
-def read_ulog_frame_times(path: Path) -> np.ndarray | None:
-    """Camera capture (or trigger) times in ns, sorted; None when the ULog has neither topic."""
+def read_ulog_frame_times(path: Path, warnings: list[LogWarning] | None = None) -> np.ndarray | None:
+    """Camera capture (or trigger) times in ns, sorted, duplicates dropped (a re-sent capture
+    message had failed every back end with "sample 50 is duplicated", naming no file: second
+    audit); those are counted LogWarnings in `warnings`, as read_ulog_imu's.  None when the ULog
+    has neither topic."""
     ulog = _open(Path(path), list(CAPTURE_TOPICS))
     for name in CAPTURE_TOPICS:
         ds = _dataset(ulog, name)
         if ds is not None and len(ds.data["timestamp"]):
-            return np.sort(np.asarray(ds.data["timestamp"], np.int64) * NS_PER_US)
+            t = np.asarray(ds.data["timestamp"], np.int64) * NS_PER_US
+            idx, _, _ = sort_unique(t, f"{path}: {name}", warnings)
+            return t[idx]
     return None

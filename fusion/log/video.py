@@ -366,14 +366,14 @@ def read_video_flight(path: Path, opts: LogOptions | None = None) -> FlightLog:
     imu_path = _find(folder, opts.imu, IMU_CSV_FILE, "*.ulg")
     imu, ulog_times = None, None
     sources: dict[str, StreamSource] = {}  # for euroc.check_log's messages: the files read
-    ulog_warnings: list[LogWarning] = []  # the ULog IMU's unordered / duplicate samples
+    ulog_warnings: list[LogWarning] = []  # the ULog's unordered / duplicate IMU samples and captures
     imu_yaml = _find(folder, opts.imu_calib, IMU_YAML_FILE)
     kimu = read_imu_yaml(imu_yaml) if imu_yaml else None
     if imu_path is not None and imu_path.suffix.lower() == ".ulg":
         from fusion.log.ulog import IMU_TOPIC, read_ulog_frame_times, read_ulog_imu
 
         imu = read_ulog_imu(imu_path, kimu.noise if kimu else None, ulog_warnings)
-        ulog_times = read_ulog_frame_times(imu_path)
+        ulog_times = read_ulog_frame_times(imu_path, ulog_warnings)
         # as read_ulog_imu names it; its stamps are microseconds by the format
         sources["imu0"] = StreamSource(f"{imu_path}: {IMU_TOPIC}", stamps_ns=True)
     elif imu_path is not None:
