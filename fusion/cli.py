@@ -853,6 +853,7 @@ def _command(args: argparse.Namespace) -> int:
     elif args.command == "export":
         from fusion.log.convert import export_flight
 
+        said = []
         out = export_flight(
             args.log,
             args.out,
@@ -860,8 +861,11 @@ def _command(args: argparse.Namespace) -> int:
             image_format=args.image_format,
             video_codec=args.video_codec,
             overwrite=args.force,
+            warnings=said,
         )
         print(f"wrote {out}")
+        for w in said:  # what the copy no longer says (the reader's, frames left out)
+            print(f"warning: {w}")
     elif args.command == "demo":
         from fusion import pipeline
 

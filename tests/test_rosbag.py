@@ -905,3 +905,15 @@ def test_export_never_overwrites_its_source_or_a_folder_not_its_own(tmp_path, ba
     assert export_flight(sample, video, overwrite=True) == video  # a previous export: replaced
     again = export_flight(sample, tmp_path / "again.bag")
     assert export_flight(sample, again, overwrite=True) == again
+
+
+def test_export_says_what_the_copy_lost(tmp_path, capsys):
+    """An export wrote only the frames that decode and said nothing: the copy read as a clean
+    camera (second audit).  It prints the frames left out, as `import` does."""
+    log = tmp_path / "log"
+    shutil.copytree(SAMPLE, log)
+    bad = sorted((log / "mav0" / "cam0" / "data").iterdir())[3]
+    bad.write_bytes(b"\\x89PNG\\r\\n\\x1a\\n corrupt")
+    assert main(["export", str(log), str(tmp_path / "x.mcap")]) == 0
+    out = capsys.readouterr().out
+    assert "warning: [frames_skipped] x1: cam0: frames that could not be read were left out" in out

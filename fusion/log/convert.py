@@ -42,15 +42,6 @@ def import_flight(
                     w.write_frame(name, frame.timestamp_ns, frame.image)
             for msg in stream.skipped:
                 log.warning("%s", msg)
-            if stream.skipped and warnings is not None:
-                warnings.append(
-                    LogWarning(
-                        "frames_skipped",
-                        len(stream.skipped),
-                        f"{name}: frames that could not be read were left out of the copy "
-                        f"(first: {stream.skipped[0]})",
-                    )
-                )
         if flight.imu is not None:
             w.write_imu(flight.imu)
         if flight.velocity is not None:
@@ -61,7 +52,23 @@ def import_flight(
             w.write_loads_groundtruth(flight.loads_groundtruth)
         if flight.blackouts is not None:
             w.write_blackouts(flight.blackouts)
+    if warnings is not None:
+        warnings += _skipped_warnings(flight)
     return Path(out)
+
+
+def _skipped_warnings(flight: FlightLog) -> list[LogWarning]:
+    """One `frames_skipped` per camera whose frames could not be read while it was copied (count:
+    the frames left out; the copy simply lacks them, and reads as a clean camera)."""
+    return [
+        LogWarning(
+            "frames_skipped",
+            len(stream.skipped),
+            f"{name}: frames that could not be read were left out of the copy (first: {stream.skipped[0]})",
+        )
+        for name, stream in sorted(flight.cameras.items())
+        if stream.skipped
+    ]
 
 
 def export_format(out: Path) -> LogFormat:
@@ -83,12 +90,16 @@ def export_flight(
     video_codec: str = "ffv1",
     overwrite: bool = False,
     fmt: LogFormat | None = None,
+    warnings: list[LogWarning] | None = None,
 ) -> Path:
     """Write `src` (a path or a FlightLog) as OUT.bag (ROS 1), OUT.mcap (ROS 2, MCAP storage) or
     a video folder (`fmt=LogFormat.VIDEO`, or any other name).  `overwrite` replaces only a
     previous export of that kind (`_check_export_target`); an OUT that is the source, holds it
-    or lies inside it is refused."""
+    or lies inside it is refused.  `warnings` (a list, extended): as `import_flight`'s, the
+    reader's named warnings and the frames left out (an export had dropped both silently)."""
     flight = _as_flight(src, opts)
+    if warnings is not None:
+        warnings.extend(flight.warnings)
     fmt = fmt or export_format(out)
     _check_export_target(Path(src) if not isinstance(src, FlightLog) else flight.root, Path(out), fmt)
     if fmt in (LogFormat.ROSBAG1, LogFormat.ROSBAG2):
@@ -97,12 +108,16 @@ def export_flight(
         want = ".bag" if fmt == LogFormat.ROSBAG1 else ".mcap"
         if Path(out).suffix.lower() != want:
             raise LogError(f"{out}: a {fmt.value} export must end in {want}")
-        return write_bag(flight, Path(out), image_format=image_format, overwrite=overwrite)
-    if fmt == LogFormat.VIDEO:
+        written = write_bag(flight, Path(out), image_format=image_format, overwrite=overwrite)
+    elif fmt == LogFormat.VIDEO:
         from fusion.log.video import write_video_flight
 
-        return write_video_flight(flight, Path(out), codec=video_codec, overwrite=overwrite)
-    raise LogError(f"cannot export to {fmt.value}; use `fusion import` for the EuRoC layout")
+        written = write_video_flight(flight, Path(out), codec=video_codec, overwrite=overwrite)
+    else:
+        raise LogError(f"cannot export to {fmt.value}; use `fusion import` for the EuRoC layout")
+    if warnings is not None:
+        warnings += _skipped_warnings(flight)
+    return written
 
 
 def _check_export_target(src: Path, out: Path, fmt: LogFormat) -> None:
