@@ -212,3 +212,22 @@ def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, 
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(LogError, match=rf"camchain-imucam.yaml: cam1.rate_hz: .*{words}"):
         read_camchain(path)
+
+
+def test_a_misspelt_camchain_key_is_named_not_defaulted(tmp_path):
+    """`distortion_coefs` (one e) was ignored and the lens taken as distortion-free: PnP 0.07 ->
+    4.2 cm with health ok (second audit).  A near miss of a known key is an error naming both;
+    other tools' keys pass."""
+    data = yaml.safe_load(CAMCHAIN)
+    for k in ("cam0", "cam1"):
+        data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
+    data["cam0"]["some_tools_note"] = "kept"
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(yaml.safe_dump(data))
+    assert sorted(read_camchain(path)) == ["cam0", "cam1"]
+    data["cam0"]["distortion_coefs"] = data["cam0"].pop("distortion_coeffs")
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(
+        LogError, match=r"cam0: unknown key 'distortion_coefs' \(did you mean 'distortion_coeffs'\?\)"
+    ):
+        read_camchain(path)

@@ -31,6 +31,7 @@ gyroscope_random_walk, rostopic, update_rate.
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -101,6 +102,40 @@ def _numbers(value, n: int, where: str) -> list[float]:
     return out
 
 
+CAMCHAIN_KEYS = (
+    "camera_model",
+    "intrinsics",
+    "distortion_model",
+    "distortion_coeffs",
+    "resolution",
+    "T_cam_imu",
+    "timeshift_cam_imu",
+    "rostopic",
+    "cam_overlaps",
+    "T_cn_cnm1",
+    "line_delay",
+    "stamp_row",
+    "mount",
+    "intrinsics_sigma",
+    "T_BS_sigma_deg",
+    "T_BS_sigma_m",
+    "rate_hz",
+)
+"""A camchain camera block's keys: Kalibr's and the ones this project adds (write_camchain)."""
+
+
+def _refuse_near_misses(block: dict, where: str) -> None:
+    """LogError for a key of a camera block that misspells a known one (`distortion_coefs`): its
+    default had been used silently (no distortion: PnP 0.07 -> 4.2 cm, health ok; second audit).
+    Other unknown keys (other tools' additions) are left alone."""
+    for key in block:
+        if key in CAMCHAIN_KEYS:
+            continue
+        close = difflib.get_close_matches(str(key), CAMCHAIN_KEYS, n=1, cutoff=0.8)
+        if close:
+            raise LogError(f"{where}: unknown key {str(key)[:60]!r} (did you mean {close[0]!r}?)")
+
+
 def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str, KalibrCamera]:
     """Parse a Kalibr camchain(-imucam).yaml; returns {"cam0": KalibrCamera, ...}.
     Raises LogError naming the file and key."""
@@ -113,6 +148,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
         where = f"{path}: {key}"
         if not isinstance(block, dict):
             raise LogError(f"{where}: expected a mapping")
+        _refuse_near_misses(block, where)
         model = block.get("camera_model", "pinhole")
         if model != "pinhole":
             raise LogError(f"{where}.camera_model: {model!r} is not supported (pinhole only)")
