@@ -228,14 +228,13 @@ def _frame_rate(text: str) -> float:
 
 
 def _start_ns(text: str) -> int:
-    """--video-start-ns: a time in the IMU clock as a log states one (euroc._timestamp: >= 0, int64)."""
-    digits = text.strip().removeprefix("-").removeprefix("+")
-    if not (digits.isascii() and digits.isdigit()):  # int() would take '1_000' and ' 5 '
-        raise argparse.ArgumentTypeError(f"not an integer number of nanoseconds: {text!r}")
-    value = int(text.strip())
-    if not 0 <= value <= 2**63 - 1:
-        raise argparse.ArgumentTypeError(f"{text}: must be >= 0 and within int64 nanoseconds")
-    return value
+    """--video-start-ns: a time in the IMU clock as a log states one (>= 0, int64, digits only)."""
+    from fusion.log.euroc import parse_timestamp_ns
+
+    try:
+        return parse_timestamp_ns(text.strip())
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _log_options(args):

@@ -425,21 +425,28 @@ def _rows(path: Path, ncols: int, header_prefix: str = "#") -> Iterator[tuple[in
             raise LogError(f"{path}: malformed CSV ({e})") from None
 
 
-def _timestamp(text: str, path: Path, lineno: int) -> int:
-    """A non-negative integer number of nanoseconds that fits int64 (digits only)."""
+def parse_timestamp_ns(text: str) -> int:
+    """A non-negative integer number of nanoseconds that fits int64 (digits only: no sign, no
+    underscores); ValueError saying why not."""
     if text.startswith("-") and _DIGITS.fullmatch(text[1:]):
-        raise LogError(f"{path}:{lineno}: negative timestamp {text[:30]}")
+        raise ValueError(f"negative timestamp {text[:30]}")
     if not _DIGITS.fullmatch(text):
         hint = " (seconds with a fraction?)" if re.fullmatch(r"[0-9]+\.[0-9]*", text) else ""
-        raise LogError(
-            f"{path}:{lineno}: timestamp {text[:30]!r} is not an integer number of nanoseconds{hint}"
-        )
+        raise ValueError(f"timestamp {text[:30]!r} is not an integer number of nanoseconds{hint}")
     if len(text) > 19 or int(text) > INT64_MAX:
-        raise LogError(
-            f"{path}:{lineno}: timestamp {text[:30]}{'...' if len(text) > 30 else ''} "
+        raise ValueError(
+            f"timestamp {text[:30]}{'...' if len(text) > 30 else ''} "
             "is too large (beyond int64 nanoseconds, year 2262)"
         )
     return int(text)
+
+
+def _timestamp(text: str, path: Path, lineno: int) -> int:
+    """parse_timestamp_ns, a LogError naming the file and line."""
+    try:
+        return parse_timestamp_ns(text)
+    except ValueError as e:
+        raise LogError(f"{path}:{lineno}: {e}") from None
 
 
 def _numbers(fields: list[str], path: Path, lineno: int) -> list[float]:
