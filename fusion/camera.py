@@ -547,12 +547,19 @@ def unknown_sensor_keys(data: dict, known: tuple[str, ...], source: str) -> list
             raise CameraModelError(
                 f"{source}: key {key!r} is Kalibr's; a sensor.yaml says {FOREIGN_SENSOR_KEYS[key]}"
             )
-        close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+        close = near_miss(key, known)
         if close:
             raise CameraModelError(
-                f"{source}: unknown key {key[:60]!r} (did you mean {close[0]!r}? known: {', '.join(known)})"
+                f"{source}: unknown key {key[:60]!r} (did you mean {close!r}? known: {', '.join(known)})"
             )
     return unknown
+
+
+def near_miss(key: str, known: tuple[str, ...]) -> str | None:
+    """The known key that `key` misspells (difflib ratio >= 0.8: `intrinsic_sigma`,
+    `distortion_coefs`), or None: a typo of a key whose default would otherwise be used unsaid."""
+    close = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+    return close[0] if close else None
 
 
 def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:

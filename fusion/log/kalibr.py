@@ -31,7 +31,6 @@ gyroscope_random_walk, rostopic, update_rate.
 
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,6 +43,7 @@ from fusion.camera import (
     CameraModel,
     StampRow,
     coefficient_count,
+    near_miss,
     stated_intrinsics_sigma,
     stated_mount_sigmas,
 )
@@ -131,9 +131,9 @@ def _refuse_near_misses(block: dict, where: str) -> None:
     for key in block:
         if key in CAMCHAIN_KEYS:
             continue
-        close = difflib.get_close_matches(str(key), CAMCHAIN_KEYS, n=1, cutoff=0.8)
+        close = near_miss(str(key), CAMCHAIN_KEYS)
         if close:
-            raise LogError(f"{where}: unknown key {str(key)[:60]!r} (did you mean {close[0]!r}?)")
+            raise LogError(f"{where}: unknown key {str(key)[:60]!r} (did you mean {close!r}?)")
 
 
 def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str, KalibrCamera]:
