@@ -443,6 +443,20 @@ def flight_log_mark(folder: Path, manifest: dict | None = None) -> str | None:
     return None
 
 
+def path_overlap(out: Path, src: Path) -> str | None:
+    """How an output path meets an input, symbolic links resolved: "is", "holds" (the input lies
+    inside it) or "lies inside" (the input holds it); None when they are apart.  Writing, or
+    --force's clean-up, at such an output touches the input."""
+    real_out, real_src = Path(os.path.realpath(out)), Path(os.path.realpath(src))
+    if real_out == real_src:
+        return "is"
+    if real_src.is_relative_to(real_out):
+        return "holds"
+    if real_out.is_relative_to(real_src):
+        return "lies inside"
+    return None
+
+
 def _inside(folder: Path, rel: str) -> Path | None:
     """`folder / rel` if it stays inside `folder` (a manifest is input too), else None."""
     p = Path(folder) / rel
@@ -563,16 +577,9 @@ class OutputFolder:
     def _refuse_overlap(self) -> None:
         """OutputError if the folder is, holds or lies inside an input (LOG --out LOG, a results
         folder around the flights, or inside one): writing or --force there touches the input."""
-        out = Path(os.path.realpath(self.path))
         for src in self.inputs:
-            real = Path(os.path.realpath(src))
-            if out == real:
-                how = "is"
-            elif real.is_relative_to(out):
-                how = "holds"
-            elif out.is_relative_to(real):
-                how = "lies inside"
-            else:
+            how = path_overlap(self.path, src)
+            if how is None:
                 continue
             what = "" if how == "is" else f" ({src})"
             raise OutputError(

@@ -8,6 +8,7 @@ import os
 from pathlib import Path
 
 from fusion.errors import LogError
+from fusion.fileio import path_overlap
 from fusion.log.euroc import FlightLog, FlightLogWriter, LogWarning
 from fusion.log.options import LogFormat, LogOptions
 from fusion.log.sources import open_flight
@@ -127,8 +128,7 @@ def _check_export_target(src: Path, out: Path, fmt: LogFormat) -> None:
     it exists, a previous export of the same kind: a .bag / .mcap file, or a video export's
     folder (its camchain and cam0 frame times).  `--force` had deleted any folder at OUT, a
     user's files or a EuRoC flight (thirty-first session's audit)."""
-    real_out, real_src = Path(os.path.realpath(out)), Path(os.path.realpath(src))
-    if real_out == real_src or real_src.is_relative_to(real_out) or real_out.is_relative_to(real_src):
+    if path_overlap(out, src) is not None:
         raise LogError(
             f"{out}: is, holds or lies inside the log being exported ({src}); choose another output"
         )
