@@ -363,17 +363,17 @@ class MountRotation:
         return f"{head}: {axes} deg; {used}{extra}{note}"
 
     @property
+    def angle_deg(self) -> float:
+        """The estimated rotation's angle (0 when not estimated)."""
+        return 0.0 if self.rotvec_rad is None else math.degrees(float(np.linalg.norm(self.rotvec_rad)))
+
+    @property
     def implausible(self) -> bool:
         """Significant and larger than MAX_CORRECTION_DEG: not a mount error to correct."""
-        return (
-            self.significant
-            and self.rotvec_rad is not None
-            and math.degrees(float(np.linalg.norm(self.rotvec_rad))) > MAX_CORRECTION_DEG
-        )
+        return self.significant and self.angle_deg > MAX_CORRECTION_DEG
 
     def implausible_warning(self) -> LogWarning:
         """The named warning for an `implausible` reading (never applied)."""
-        angle = math.degrees(float(np.linalg.norm(self.rotvec_rad))) if self.rotvec_rad is not None else 0.0
         front = self.camera == CameraRole.FRONT.value
         what = (
             "load sightings disagree with the floor camera and the IMU"
@@ -383,7 +383,7 @@ class MountRotation:
         return LogWarning(
             IMPLAUSIBLE_WARNING_NAME,
             1,
-            f"the {self.role} camera's ({self.camera}) {what} by a {angle:.1f} deg "
+            f"the {self.role} camera's ({self.camera}) {what} by a {self.angle_deg:.1f} deg "
             f"rotation, beyond any mount calibration error (> {MAX_CORRECTION_DEG:g} deg): not applied. "
             "Check that T_BS is in the EuRoC convention (body from camera), that the cameras are not "
             "swapped, and that the images follow the motion (a frozen camera, repeated frames)",
