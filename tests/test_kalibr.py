@@ -201,6 +201,17 @@ def test_bad_imu_yaml(tmp_path):
         read_imu_yaml(path)
 
 
+@pytest.mark.parametrize("rate", [-200, 0, ".nan"])
+def test_an_imu_update_rate_that_is_no_rate_is_refused(tmp_path, rate):
+    """`update_rate: -200` was taken silently (second audit's minor points)."""
+    path = tmp_path / "imu.yaml"
+    keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
+            "accelerometer_random_walk")
+    path.write_text("".join(f"{k}: 1.0e-3\n" for k in keys) + f"update_rate: {rate}\n")
+    with pytest.raises(LogError, match=r"imu.yaml: 'update_rate' must be positive"):
+        read_imu_yaml(path)
+
+
 @pytest.mark.parametrize("rate, words", [("thirty", "expected a number"), (-30, "positive")])
 def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, words):
     """`rate_hz: thirty` ended in a ValueError traceback, `-30` was taken (second audit)."""

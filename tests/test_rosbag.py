@@ -349,6 +349,13 @@ def test_image_encodings_decode_to_gray():
         data = np.frombuffer(cv2.imencode(".png", gray)[1].tobytes(), np.uint8)
 
     np.testing.assert_array_equal(decode_image(Comp, COMPRESSED), gray)  # png inside "jpeg"
+    whole = Comp.data
+    for fmt, enc in (("png", ".png"), ("jpeg", ".jpg")):
+        # a cut frame is named before decoding: libpng printed its own stderr line per frame
+        Comp.format, Comp.data = fmt, cv2.imencode(enc, gray)[1][:-20]
+        with pytest.raises(ValueError, match=rf"CompressedImage \({fmt}\) is truncated \(no "):
+            decode_image(Comp, COMPRESSED)
+    Comp.format, Comp.data = "jpeg", whole
     Comp.format = "rgb8; compressedDepth"
     with pytest.raises(ValueError, match="compressedDepth"):
         decode_image(Comp, COMPRESSED)

@@ -256,7 +256,7 @@ class CameraStream:
                     )
                     return None
                 data += f.read()
-            truncated = _truncated_image(data)
+            truncated = truncated_image(data)
             if truncated:
                 # said here: libpng / libjpeg would print their own errors on stderr, or decode
                 # the missing rows as grey
@@ -306,7 +306,7 @@ def gray16_to_8(img16: np.ndarray) -> np.ndarray:
     return np.round(img16.astype(np.float64) * (255.0 / top)).astype(np.uint8)
 
 
-def _truncated_image(data: bytes) -> str | None:
+def truncated_image(data: bytes) -> str | None:
     """What is missing at the end of a PNG (its IEND chunk) or JPEG (its EOI marker, anywhere:
     cameras may append trailers after it) file's bytes; None when complete or another format."""
     if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") < 0:

@@ -292,6 +292,8 @@ def read_imu_yaml(path: Path) -> KalibrImu:
         rate = float(rate) if rate is not None else None
     except (TypeError, ValueError):
         raise LogError(f"{path}: 'update_rate' is not a number") from None
+    if rate is not None and not (math.isfinite(rate) and rate > 0):
+        raise LogError(f"{path}: 'update_rate' must be positive, not {block.get('update_rate')!r}")
     topic = block.get("rostopic")
     return KalibrImu(ImuNoise(**vals), str(topic) if topic else None, rate)
 

@@ -51,6 +51,7 @@ from fusion.log.euroc import (
     StreamSource,
     VelocityData,
     gray16_to_8,
+    truncated_image,
 )
 from fusion.log.options import LogOptions, StampSource
 from fusion.types import CameraRole
@@ -178,9 +179,12 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         fmt = str(msg.format).lower()
         if not any(f in fmt for f in COMPRESSED_FORMATS):
             raise ValueError(f"CompressedImage format {msg.format!r} is not supported (jpeg or png)")
-        img = cv2.imdecode(
-            np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH
-        )
+        data = bytes(msg.data)
+        truncated = truncated_image(data)
+        if truncated:
+            # said here: libpng would print its own error line on stderr for every frame
+            raise ValueError(f"CompressedImage ({msg.format}) is truncated ({truncated})")
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
         if img is None:
             raise ValueError(f"CompressedImage ({msg.format}) does not decode")
         return gray16_to_8(img) if img.dtype == np.uint16 else img
