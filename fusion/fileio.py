@@ -275,6 +275,34 @@ def dump_yaml(data: dict, path: Path) -> None:
 
 # ============================================================================ output folders
 
+RECOVERED_DIR = "fusion-recovered-bags"
+RECOVERED_KEEP = 8
+"""Readable copies of damaged bags kept in the temp folder: the most recently used ones."""
+
+
+def recovered_copy_path(stem: str, source_id: str, suffix: str) -> Path:
+    """Where the readable copy of a damaged log goes: the temp folder's fusion-recovered-bags,
+    named by `stem` and a hash of `source_id` (the source's path, size and mtime), so that a copy
+    is found again while its source is unchanged.  The folder is a cache: a copy's mtime is
+    touched when it is handed out, and beyond RECOVERED_KEEP copies the least recently used
+    ones are removed (it grew by one full-size copy per damaged bag ever read)."""
+    folder = Path(tempfile.gettempdir()) / RECOVERED_DIR
+    folder.mkdir(exist_ok=True)
+    key = hashlib.sha256(source_id.encode()).hexdigest()[:16]
+    dst = folder / f"{stem}-{key}{suffix}"
+    with contextlib.suppress(OSError):
+        os.utime(dst)
+    copies = []
+    for p in folder.iterdir():
+        with contextlib.suppress(OSError):
+            if p != dst and p.suffix != ".partial" and not p.name.startswith(".") and p.is_file():
+                copies.append((p.stat().st_mtime_ns, p))
+    for _, old in sorted(copies, reverse=True)[RECOVERED_KEEP - 1 :]:
+        with contextlib.suppress(OSError):
+            old.unlink()  # a reader that has it open keeps reading it
+    return dst
+
+
 MANIFEST_NAME = "manifest.json"
 MANIFEST_FORMAT = "fusion-outputs/1"
 LOCK_NAME = "fusion.lock"

@@ -17,7 +17,7 @@ import pytest
 
 from fusion.cli import main
 from fusion.errors import OutputError
-from fusion.fileio import LOCK_NAME, MANIFEST_NAME, OutputFolder
+from fusion.fileio import LOCK_NAME, MANIFEST_NAME, RECOVERED_KEEP, OutputFolder, recovered_copy_path
 from fusion.log import read_flight
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample-flight"
@@ -553,3 +553,30 @@ def test_unplaced_load_sightings_at_the_flights_ends_are_not_blamed_on_a_clock_o
     assert edge is not None and edge.count == 1 and "started or stopped apart" in edge.message
     far = warn(inside + [floor_t[-1] + 5_000_000_000])
     assert far is not None and "clock offset on cam1" in far.message
+
+
+def test_recovered_bag_copies_are_a_bounded_cache(tmp_path, monkeypatch):
+    """Each damaged bag ever read left a full-size copy in the temp folder (second audit): the
+    folder keeps the RECOVERED_KEEP most recently used copies."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    folder = tmp_path / "fusion-recovered-bags"
+
+    def copy(i):
+        p = recovered_copy_path(f"bag{i}", f"/logs/bag{i}|1|{i}", ".bag")
+        if not p.exists():
+            p.write_bytes(b"copy")
+            os.utime(p, ns=(i * 10**9, i * 10**9))
+        return p
+
+    made = [copy(i) for i in range(RECOVERED_KEEP)]
+    assert all(p.exists() for p in made)
+    assert copy(0) == made[0]  # used again: now the most recent
+    (folder / ".recover-x").mkdir()  # another reader's work folder, not a copy
+    for i in range(RECOVERED_KEEP, RECOVERED_KEEP + 3):
+        copy(i)
+    left = {p.name for p in folder.iterdir() if p.is_file()}
+    assert len(left) == RECOVERED_KEEP
+    assert made[0].name in left and not {p.name for p in made[1:4]} & left
+    assert (folder / ".recover-x").is_dir()

@@ -14,13 +14,12 @@ uncompressed chunk that the cut went through, then DataEnd and a Footer without 
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import struct
-import tempfile
 from pathlib import Path
 
 from fusion.errors import LogError
+from fusion.fileio import recovered_copy_path
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +29,6 @@ OP_DATA_END = 0x0F
 KEPT_OPS = (OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK)
 RECORD_HEAD = 9  # opcode u8 + length u64
 CHUNK_FIXED = 8 + 8 + 8 + 4  # start, end, uncompressed size, crc
-RECOVERED_DIR = "fusion-recovered-bags"
 
 
 def _record(op: int, content: bytes) -> bytes:
@@ -109,10 +107,7 @@ def recovered_mcap(src: Path) -> tuple[Path, str]:
     unchanged) and a one-line note of what was recovered; LogError when nothing was."""
     src = Path(src)
     st = src.stat()
-    key = hashlib.sha256(f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()
-    folder = Path(tempfile.gettempdir()) / RECOVERED_DIR
-    folder.mkdir(exist_ok=True)
-    dst = folder / f"{src.stem}-{key[:16]}.mcap"
+    dst = recovered_copy_path(src.stem, f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}", ".mcap")
     tmp = dst.with_suffix(".partial")
     tmp.unlink(missing_ok=True)
     n_msg, n_chunks, note = recover_mcap(src, tmp)

@@ -13,20 +13,18 @@ refuses; the records before the cut are intact.
 from __future__ import annotations
 
 import bz2
-import hashlib
 import io
 import logging
 import struct
-import tempfile
 from pathlib import Path
 
 from fusion.errors import LogError
+from fusion.fileio import recovered_copy_path
 
 log = logging.getLogger(__name__)
 
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MESSAGE, OP_CHUNK, OP_CONNECTION = 0x02, 0x05, 0x07
-RECOVERED_DIR = "fusion-recovered-bags"
 
 
 def _fields(raw: bytes) -> dict[str, bytes]:
@@ -148,10 +146,7 @@ def recovered_copy(src: Path) -> Path:
     unchanged); logs a warning saying how much was recovered."""
     src = Path(src)
     st = src.stat()
-    key = hashlib.sha256(f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode()).hexdigest()
-    folder = Path(tempfile.gettempdir()) / RECOVERED_DIR
-    folder.mkdir(exist_ok=True)
-    dst = folder / f"{src.stem}-{key[:16]}.bag"
+    dst = recovered_copy_path(src.stem, f"{src.resolve()}|{st.st_size}|{st.st_mtime_ns}", ".bag")
     if not dst.exists():
         tmp = dst.with_suffix(".partial")
         tmp.unlink(missing_ok=True)

@@ -13,7 +13,6 @@ that the cut removed, and the rows before it are kept.  rosbag2's tables (schema
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import shutil
 import sqlite3
@@ -23,11 +22,11 @@ from pathlib import Path
 from typing import Any
 
 from fusion.errors import LogError
+from fusion.fileio import recovered_copy_path
 from fusion.log.euroc import LogWarning
 
 log = logging.getLogger(__name__)
 
-RECOVERED_DIR = "fusion-recovered-bags"
 PAGE_SIZE_OFFSET, PAGE_COUNT_OFFSET = 16, 28
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -106,10 +105,7 @@ def recovered_sqlite_bag(folder: Path, warnings: list[LogWarning] | None = None)
     if not files:
         raise LogError(f"{folder}: no .db3 files")
     stamp = "|".join(f"{p.resolve()}:{p.stat().st_size}:{p.stat().st_mtime_ns}" for p in files)
-    key = hashlib.sha256(stamp.encode()).hexdigest()
-    out_dir = Path(tempfile.gettempdir()) / RECOVERED_DIR
-    out_dir.mkdir(exist_ok=True)
-    dst = out_dir / f"{folder.stem}-{key[:16]}.mcap"
+    dst = recovered_copy_path(folder.stem, stamp, ".mcap")
     n, unknown, notes = recover_db3(files, dst.with_suffix(".partial"))
     if n == 0:
         dst.with_suffix(".partial").unlink(missing_ok=True)
