@@ -188,7 +188,9 @@ def _write_bag(
                 twist = T["geometry_msgs/msg/TwistWithCovariance"](
                     twist=T["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36)
                 )
-                m = T[ODOMETRY](header=_header(ts, t, "world", ros1), child_frame_id="body", pose=pose, twist=twist)
+                m = T[ODOMETRY](
+                    header=_header(ts, t, "world", ros1), child_frame_id="body", pose=pose, twist=twist
+                )
                 w.write(cg, 1_000_000_000 + k * 1_000_000, ser(m, ODOMETRY))
         for t, _, con, data in sorted(queue, key=lambda q: q[:2]):
             real.write(con, t, data)
@@ -260,6 +262,30 @@ def test_a_topic_without_header_stamps_falls_back_to_receive_time_with_a_named_w
     assert len(named) == 1 and named[0].count == 4 and "/cam/image_raw" in named[0].message
     # the IMU has its stamps: no warning for it
     assert "/imu" not in named[0].message
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_frames_with_an_unset_stamp_in_an_epoch_clock_are_dropped_and_counted(
+    tmp_path, world_and_calib, suffix
+):
+    """A driver publishing header.stamp 0 before its clock is synchronised (second audit): its
+    first frames sat at t = 0, 1.7e9 s before the rest, and the smoother split that span into
+    11 million windows.  They are dropped and counted (`stamps_unset`); a clock that starts at
+    0 keeps its frame at 0."""
+    epoch = 1_700_000_000 * 10**9
+    stamps = [0, 0] + [epoch + k * 100_000_000 for k in range(4)]
+    bag = _write_bag(
+        tmp_path / f"e{suffix}", _images(6), stamps=stamps, log_times=[epoch + k for k in range(6)]
+    )
+    flight = open_flight(bag, LogOptions(calib=world_and_calib))
+    np.testing.assert_array_equal(flight.floor.timestamps_ns, np.array(stamps[2:]) + 2_000_000)
+    np.testing.assert_array_equal(flight.floor.load_image(0), _images(6)[2])
+    named = [w for w in flight.warnings if w.name == "stamps_unset"]
+    assert len(named) == 1 and named[0].count == 2 and "/cam/image_raw" in named[0].message
+    zero_based = [k * 100_000_000 for k in range(4)]
+    bag = _write_bag(tmp_path / f"z0{suffix}", _images(4), stamps=zero_based)
+    flight = open_flight(bag, LogOptions(calib=world_and_calib))
+    assert len(flight.floor) == 4 and not [w for w in flight.warnings if w.name == "stamps_unset"]
 
 
 @pytest.mark.parametrize("suffix", [".bag", ".mcap"])
@@ -634,9 +660,10 @@ def _as_sqlite3(mcap: Path, folder: Path) -> Path:
     from rosbags.rosbag2 import Writer as W2
 
     ts = typestore_for(False)
-    with AnyReader([mcap], default_typestore=ts) as r, W2(
-        folder, version=8, storage_plugin=StoragePlugin.SQLITE3
-    ) as w:
+    with (
+        AnyReader([mcap], default_typestore=ts) as r,
+        W2(folder, version=8, storage_plugin=StoragePlugin.SQLITE3) as w,
+    ):
         conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=ts) for c in r.connections}
         for c, t, raw in r.messages():
             w.write(conns[c.id], t, raw)

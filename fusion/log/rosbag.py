@@ -179,12 +179,12 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         fmt = str(msg.format).lower()
         if not any(f in fmt for f in COMPRESSED_FORMATS):
             raise ValueError(f"CompressedImage format {msg.format!r} is not supported (jpeg or png)")
-        data = bytes(msg.data)
-        truncated = truncated_image(data)
+        payload = bytes(msg.data)
+        truncated = truncated_image(payload)
         if truncated:
             # said here: libpng would print its own error line on stderr for every frame
             raise ValueError(f"CompressedImage ({msg.format}) is truncated ({truncated})")
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
+        img = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
         if img is None:
             raise ValueError(f"CompressedImage ({msg.format}) does not decode")
         return gray16_to_8(img) if img.dtype == np.uint16 else img
@@ -413,6 +413,44 @@ def choose_times(
             warnings.append(LogWarning("bag_receive_time", len(log_ns), message))
         return log_ns
     return np.asarray(hdr, dtype=np.int64)
+
+
+UNSET_STAMP_CLOCK_NS = 86_400 * 10**9
+"""A header stamp of 0 is unset (not the first instant of a clock starting at 0) when the
+topic's other stamps are more than a day from it: an epoch-stamped driver that publishes 0
+before its clock is synchronised."""
+
+
+def times_in_order(
+    scan: TopicScan,
+    stamps: StampSource,
+    where: str,
+    path: Path,
+    warnings: list[LogWarning] | None = None,
+    shift_ns: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A topic's times (choose_times, plus `shift_ns`) and the index of its messages in time
+    order (sort_unique), without the messages whose header stamp is unset (0 among stamps a day
+    or more away, UNSET_STAMP_CLOCK_NS): those are dropped and counted as `stamps_unset`.  They
+    were kept at t = 0, 1.7e9 s before the rest of an epoch-stamped flight, and the smoother
+    split that span into 11 million windows."""
+    t = choose_times(scan, stamps, str(path), warnings)
+    unset = np.zeros(len(t), bool)
+    if stamps == StampSource.HEADER and len(t) and t.max() > UNSET_STAMP_CLOCK_NS:
+        unset = t == 0
+    n_unset = int(unset.sum())
+    if n_unset:
+        message = (
+            f"{where}: {n_unset} message(s) with an unset header stamp (0, the others from "
+            f"{t[~unset].min() * 1e-9:.10g} s), dropped"
+        )
+        log.warning(message)
+        if warnings is not None:
+            warnings.append(LogWarning("stamps_unset", n_unset, message))
+    t = t + shift_ns
+    kept = np.flatnonzero(~unset)
+    order, _, _ = sort_unique(t[kept], where, warnings)
+    return t, kept[order]
 
 
 def sort_unique(
@@ -819,9 +857,8 @@ def read_bag(path: Path, opts: LogOptions | None = None, done: BagPass | None = 
         except ValueError as e:
             raise LogError(f"{where} message 0: {e}") from None
         cam, shift_ns = _camera_for(name, topic, calib, meta_cams, scan, infos, where)
-        t = choose_times(ts_scan, opts.stamps, str(path), warnings) + shift_ns
+        t, order = times_in_order(ts_scan, opts.stamps, where, path, warnings, shift_ns)
         shifts[name] = int(shift_ns)
-        order, _, _ = sort_unique(t, where, warnings)
         if len(order) > 1 and name not in meta_cams:
             cam.rate_hz = float(1e9 / np.median(np.diff(t[order])))
         if img.shape != (cam.height, cam.width):
@@ -910,13 +947,12 @@ def _imu_from_scan(s: TopicScan, opts, calib, meta, path, warnings=None) -> ImuD
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
-    t = choose_times(s, opts.stamps, str(path), warnings)
     ga = np.array(s.data, dtype=float)
     g, a = ga[:, :3], ga[:, 3:]
     bad = np.flatnonzero(~np.isfinite(np.c_[g, a]).all(axis=1))
     if bad.size:
         raise LogError(f"{where} message {int(bad[0])}: NaN or infinite value")
-    order, _, _ = sort_unique(t, where, warnings)
+    t, order = times_in_order(s, opts.stamps, where, path, warnings)
     t, g, a = t[order], g[order], a[order]
     noise, T_bi = ImuNoise(), np.eye(4)
     if calib is not None and calib.imu_noise is not None:
@@ -942,14 +978,13 @@ def _velocity_from_scan(s: TopicScan, opts, meta, path, warnings=None) -> Veloci
     where = f"{path}: topic {s.topic}"
     if not s.data:
         raise LogError(f"{where}: no messages")
-    t = choose_times(s, opts.stamps, str(path), warnings)
     v = np.array(s.data, dtype=float)
     if s.msgtype == ODOMETRY:
         v = v[:, 7:10]
     bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if bad.size:
         raise LogError(f"{where} message {int(bad[0])}: NaN or infinite value")
-    order, _, _ = sort_unique(t, where, warnings)
+    t, order = times_in_order(s, opts.stamps, where, path, warnings)
     noise = float((meta.get("velocity") or {}).get("noise_m_s", 0) or 0)
     if not noise and s.msgtype == ODOMETRY:
         cov = np.asarray(s.first.twist.covariance, float).reshape(6, 6)
@@ -961,10 +996,9 @@ def _groundtruth_from_scan(s: TopicScan, path, warnings=None) -> GroundTruth | N
     if not s.data:
         return None
     # its stamp problems are named like every topic's: the truth scores the flight
-    t = choose_times(s, StampSource.HEADER, str(path), warnings)
     x = np.array(s.data, dtype=float)
     p, q, v_body = x[:, 0:3], x[:, [6, 3, 4, 5]], x[:, 7:10]  # q: xyzw -> wxyz
-    order, _, _ = sort_unique(t, f"{path}: topic {s.topic}", warnings)
+    t, order = times_in_order(s, StampSource.HEADER, f"{path}: topic {s.topic}", path, warnings)
     v_world = np.einsum("nij,nj->ni", R_from_quat_wxyz(q), v_body)
     zeros = np.zeros_like(p)  # IMU biases are not carried by the bag
     return GroundTruth(t[order], p[order], q[order], v_world[order], zeros[order], zeros[order])
