@@ -147,6 +147,24 @@ HELD_OUT: dict[str, str] = {
         "--scenario oblique --duration 15 --seed 115 --format rosbag2 --camera-effects realistic "
         "--placement-error-m 0.005 --placement-error-deg 0.5"
     ),
+    # thirty-second session: 10 fps behind a 20 ms rolling shutter with the realistic camera, a
+    # 1280x960 fisheye ROS 1 bag with a 3x noisier IMU, oblique loads with a 5 Hz velocity
+    # sensor and a 60 ppm camera clock over 35 s, a gimbaled camera with 2 ms stamp jitter and
+    # 10 % occlusion, the Table A5 hover at 320x240 defocused, 60 fps over floor codes 2 cm / 2
+    # deg off with 10 ms exposure blur; seeds 120-125, made after all the code they test
+    "p_fps10_ro20_real": "--duration 20 --seed 120 --fps 10 --readout-ms 20 --camera-effects realistic",
+    "p_1280_fish_imu3_bag1": (
+        "--duration 12 --seed 121 --resolution 1280x960 --distortion-model equidistant --imu-noise-scale 3 "
+        "--format rosbag1"
+    ),
+    "p_ob_vel5_drift60": (
+        "--scenario oblique --duration 35 --seed 122 --velocity-rate-hz 5 --clock-drift-ppm 60"
+    ),
+    "p_gimb_jitter2_occl": "--scenario gimbaled --duration 15 --seed 123 --stamp-jitter-ms 2 --occlusion 0.1",
+    "p_a5_320_defocus": "--scenario paper_a5 --duration 15 --seed 124 --resolution 320x240 --defocus 1.5",
+    "p_fps60_place2_exp": (
+        "--duration 10 --seed 125 --fps 60 --placement-error-m 0.02 --placement-error-deg 2 --exposure 0.01"
+    ),
 }
 RUN_ARGS: dict[str, str] = {"h_fish_mount": "--calibrate-extrinsics"}
 """`fusion run` options beyond the sweep's (a flight with a mount error is calibrated)."""
