@@ -1682,6 +1682,20 @@ def _robust_kernel(cfg: RunConfig) -> RobustKernel:
         raise EstimationError(str(e)) from None
 
 
+def placement_inflated(
+    raw: Trajectory | None, inflation: correlation.CorrelationInflation | None
+) -> Trajectory | None:
+    """`raw` with the floor codes' placement share of each pose's covariance inflated by its
+    correlation time (CorrelationInflation.add_to with placement_taus), as the batch smoother
+    takes its poses: the mount check's flight-wide average of poses that share their codes'
+    placement errors.  A 10 s flight over five codes laid 2 cm / 2 deg off read a 1.30 +- 0.27
+    deg mount pitch and asked for a calibration (thirty-second session's held-out flight
+    p_fps60_place2_exp).  Unchanged for a floor laid exactly."""
+    if raw is None or inflation is None:
+        return raw
+    return inflation.add_to(raw, inflation.placement_taus())
+
+
 @dataclass
 class SharedWholeFlight:
     """One whole-flight batch solve serving both the front camera's time-offset profile and the
@@ -1714,6 +1728,9 @@ class SharedWholeFlight:
     frame_t: np.ndarray | None = None
     window: WindowConfig | None = None  # a long flight solved in windows (estimate_mount_windowed)
     workers: int = 1  # processes for those windows
+    # the PnP poses' time correlation (correlation.py): the mount solve takes their floor codes'
+    # placement share inflated as the batch smoother does (placement_inflated)
+    correlation: correlation.CorrelationInflation | None = None
 
     def warm_start(self, frame_t: np.ndarray) -> gtsam.Values | None:
         """The states for a smoother on the frames `frame_t`: None unless they are this solve's
@@ -1732,7 +1749,9 @@ class SharedWholeFlight:
         config: TimeOffsetConfig,
         fusion_config: FusionConfig | None,
     ) -> Trajectory:
-        inp = whole_flight_input(log_, raw, shift_ns, config, fusion_config)
+        inp = whole_flight_input(
+            log_, placement_inflated(raw, self.correlation), shift_ns, config, fusion_config
+        )
         trajectory = None
         if inp.raw.covariances is not None and CameraRole.FLOOR.value in log_.cameras:
             try:
@@ -1778,6 +1797,8 @@ def _apply_time_offsets(
     factor = 1.0
     if raw is not None and loc.correlation is not None:
         factor = loc.correlation.long_average_variance_factor(raw)
+    if shared is not None:
+        shared.correlation = loc.correlation
     offsets = resolve_time_offsets(
         log,
         raw,
@@ -1845,9 +1866,8 @@ def _apply_extrinsics(
     _progress(cfg, "floor camera mount check")
     if mount is None:
         kernel = _robust_kernel(cfg)
-        mount = check_mount(
-            log, loc.trajectories.get(str(Estimator.PNP)), fusion_config=FusionConfig(robust_kernel=kernel)
-        )
+        raw = placement_inflated(loc.trajectories.get(str(Estimator.PNP)), loc.correlation)
+        mount = check_mount(log, raw, fusion_config=FusionConfig(robust_kernel=kernel))
     result.extrinsics = mount
     return _warn_or_apply_mount(log, det, loc, cfg, result, mount)
 

@@ -538,3 +538,31 @@ def test_solve_inflated_keeps_the_first_solves_noise_scales():
         res.stats["noise_scales"]["cameras"] == report["cameras"]
         and res.stats["noise_scales"]["inflated_solve"]
     )
+
+
+def test_placement_inflated_poses_take_the_placement_class_alone():
+    """The floor mount check weighs its poses as the batch smoother does for the floor codes'
+    placement (pipeline.placement_inflated): each pose's placement share times its correlation
+    time added, the corner classes' left as they are; a floor laid exactly (no placement class)
+    leaves the poses unchanged.  A 10 s flight over codes 2 cm / 2 deg off read a 1.30 +- 0.27 deg
+    mount pitch as independent frames (thirty-second session)."""
+    from fusion.pipeline import placement_inflated
+
+    n, k = 4, co.PLACEMENT + 1
+    terms = np.zeros((n, k, 6, 6))
+    terms[:, 0] = 0.25 * np.eye(6)
+    terms[:, co.PLACEMENT] = 0.5 * np.eye(6)
+    taus = np.ones(k)
+    taus[0], taus[co.PLACEMENT] = 3.0, 9.0
+    t = np.arange(n, dtype=np.int64) * 100_000_000
+    both = co.CorrelationInflation(
+        t, terms, np.zeros((k, co.MAX_LAG)), np.zeros(k, dtype=int), taus, 50_000_000
+    )
+    np.testing.assert_array_equal(both.placement_taus(), [1.0] * co.PLACEMENT + [9.0])
+    traj = Trajectory("pnp", t, np.tile(np.eye(4), (n, 1, 1)), np.tile(np.eye(6), (n, 1, 1)))
+    out = placement_inflated(traj, both)
+    np.testing.assert_allclose(out.covariances, np.tile((1.0 + 8.0 * 0.5) * np.eye(6), (n, 1, 1)))
+    assert both.long_average_variance_factor(traj) == pytest.approx(1.0 + 2.0 * 0.25 + 8.0 * 0.5)
+    exact = inflation(np.array([0.6, 0.45]), 2, n=n)  # corner classes only
+    np.testing.assert_array_equal(placement_inflated(traj, exact).covariances, traj.covariances)
+    assert placement_inflated(traj, None) is traj and placement_inflated(None, both) is None

@@ -319,6 +319,14 @@ class CorrelationInflation:
         covs[close] += np.einsum("c,ncij->nij", w, self.terms(nearest[close]))
         return Trajectory(traj.name, traj.timestamps_ns, traj.T_world_body, covs)
 
+    def placement_taus(self) -> np.ndarray:
+        """The flight's taus with the corner classes' at 1: the floor codes' placement class
+        alone (all 1 for a floor laid exactly)."""
+        taus = np.ones(len(self.taus))
+        if len(taus) > PLACEMENT:
+            taus[PLACEMENT] = self.taus[PLACEMENT]
+        return taus
+
     def long_average_variance_factor(self, traj: Trajectory) -> float:
         """By how much the variance of a flight-wide average of `traj`'s poses exceeds that of
         independent frames: the median over the frames of tr(C^-1 (C + E)) / 6, C a frame's
