@@ -662,7 +662,8 @@ def merge_front_parts(log: FlightLog, floor: LocalizeResult, parts: list[dict]) 
     obs: dict[str, list[LoadObservation]] = {}
     maps: dict[str, LoadMap] = {}
     if log.front is None:
-        notes.append("no front camera (mav0/cam1) in this log: no load map")
+        # named by its stream (a bag's topic, a video's cam1 file, an EuRoC folder's mav0/cam1)
+        notes.append("no front camera (stream cam1) in this log: no load map")
         return LocalizeResult(
             trajectories,
             obs,
