@@ -403,7 +403,9 @@ def choose_times(
     if stamps == StampSource.RECEIVE:
         return log_ns
     hdr = scan.header_ns
-    if any(h is None for h in hdr) or (len(hdr) and all(h == 0 for h in hdr)):
+    # every stamp 0: none set (one message stamped 0 may be a clock's first instant: a topic of
+    # a single message, such as a flight's camera_info at t = 0, said "no header stamps")
+    if any(h is None for h in hdr) or (len(hdr) > 1 and all(h == 0 for h in hdr)):
         message = (
             f"{where}: topic {scan.topic} has no header stamps; using the bag's receive time "
             "(the recorder's clock, with its transport delay and jitter)"
