@@ -287,6 +287,7 @@ def test_frames_with_an_unset_stamp_in_an_epoch_clock_are_dropped_and_counted(
     caplog.clear()
     flight = open_flight(bag, LogOptions(calib=world_and_calib))
     assert len(flight.floor) == 4 and not [w for w in flight.warnings if w.name == "stamps_unset"]
+    inspect_log(bag, LogOptions(calib=world_and_calib))
     # its one camera_info, stamped at the flight's t = 0, has its stamp (second audit: it was
     # said to have none, and read at the bag's receive time)
     assert "has no header stamps" not in caplog.text
