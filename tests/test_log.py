@@ -565,6 +565,12 @@ def test_one_row_ground_truth_is_a_named_warning_and_no_ground_truth(log_dir):
             r"before their last \(1-1.4 s\): 6 frame",
         ),
         (
+            "imu_frd",
+            "imu_gravity_axis",
+            r"imu0/data.csv: the median specific force is \([-+]0.00, [-+]0.00, -9.8\d\) m s\^-2 in the body "
+            r"frame, 180 deg from its up axis",
+        ),
+        (
             "accel_clipped",
             "imu_saturated",
             r"imu0/data.csv: 10 sample value\(s\) sit at an axis' "
@@ -621,6 +627,8 @@ def _spoil(log_dir, case):
         _rewrite_csv(imu_csv, lambda t, v: (t[40:], v[40:]))
     elif case == "imu_short":
         _rewrite_csv(imu_csv, lambda t, v: (t[40:61], v[40:61]))
+    elif case == "imu_frd":  # an FRD IMU (PX4) logged as FLU: y and z negated, T_BS identity
+        _rewrite_csv(imu_csv, lambda t, v: (t, v * np.array([1, -1, -1, 1, -1, -1])))
     elif case == "accel_clipped":
         _rewrite_csv(imu_csv, lambda t, v: (t, np.c_[v[:, :5], np.minimum(v[:, 5], np.sort(v[:, 5])[-10])]))
 

@@ -109,6 +109,11 @@ rest on the cameras alone; a counted warning (`imu_gaps`)."""
 GYRO_MAX_PLAUSIBLE_RAD_S = 8.7  # 500 deg/s: beyond any warehouse flight's 99th percentile
 GYRO_NOISE_RATIO_SUSPECT = 30.0  # measured / stated white noise (deg/s: 57x; rotor vibration
 # and conservative Kalibr densities stay well below)
+GRAVITY_MAX_TILT_DEG = 60.0
+"""The median specific force, turned into the body frame (FLU: z up) by imu0's T_BS, points up
+within this angle on any multirotor flight (it hovers and cruises within ~30 deg of level); beyond
+it the IMU's axes are not what T_BS says (`imu_gravity_axis`: an FRD / NED IMU read as FLU gave
+the audit's EKF 2 cm off, 18 cm at worst, with health ok and no warning naming the axes)."""
 SATURATION_MIN_SAMPLES = 10  # repeats of an axis' extreme value that mean clipping
 SATURATION_MIN_FRACTION = 0.005
 RATE_MISMATCH_FACTOR = 1.5  # measured vs sensor.yaml rate_hz (Kalibr imu.yaml: update_rate)
@@ -970,6 +975,9 @@ def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
                 f"{GRAVITY_M_S2}: wrong units, scale or a broken sensor?",
             )
         )
+    up = _gravity_axis_warning(imu, where)
+    if up is not None:
+        out.append(up)
     w_norm = np.linalg.norm(imu.gyro_rad_s, axis=1)
     p99 = float(np.percentile(w_norm, 99))
     ratio = None
@@ -1021,6 +1029,27 @@ def _check_imu(imu: ImuData, where: str) -> list[LogWarning]:
             )
         )
     return out
+
+
+def _gravity_axis_warning(imu: ImuData, where: str) -> LogWarning | None:
+    """`imu_gravity_axis` when the median specific force in the body frame (imu0's T_BS applied)
+    is more than GRAVITY_MAX_TILT_DEG off the body's up axis (+z, FLU); None otherwise."""
+    f = np.median(np.asarray(imu.accel_m_s2, float), axis=0)
+    f_body = np.asarray(imu.T_body_imu, float)[:3, :3] @ f
+    norm = float(np.linalg.norm(f_body))
+    if not norm > 0:
+        return None
+    tilt = math.degrees(math.acos(max(-1.0, min(1.0, f_body[2] / norm))))
+    if tilt <= GRAVITY_MAX_TILT_DEG:
+        return None
+    shown = ", ".join(f"{v:+.2f}" for v in f_body)
+    return LogWarning(
+        "imu_gravity_axis",
+        1,
+        f"{where}: the median specific force is ({shown}) m s^-2 in the body frame, {tilt:.0f} deg "
+        "from its up axis (+z: the body frame is x forward, y left, z up): the IMU's axes are not "
+        "what imu0's T_BS says (an FRD / NED IMU read as FLU, a T_BS missing the IMU's rotation?)",
+    )
 
 
 def _check_imu_coverage(imu_ns: np.ndarray, cameras: list[np.ndarray], where: str) -> list[LogWarning]:
