@@ -37,7 +37,7 @@ from fusion.estimate.timeoffset import (
 from fusion.geometry import inv_T, make_T
 from fusion.log.euroc import CameraStream, FlightLog, ImuNoise, read_flight
 from fusion.log.files import read_loads_csv, read_tum
-from fusion.pipeline import RunConfig, time_offset_bound_warning
+from fusion.pipeline import RunConfig, fixed_offset_warning, time_offset_bound_warning
 from fusion.sim.imu import synthesize_imu
 from fusion.sim.simulate import simulate
 from fusion.sim.trajectory import random_aisle_survey
@@ -829,3 +829,28 @@ def test_an_offset_beyond_the_search_is_flagged_at_the_bound():
     fl = _flight(8.0, 3, 17.0 * MS)
     offsets = resolve_time_offsets(_log(fl), fl["raw"], [], {})
     assert not offsets.cameras["cam0"].at_search_bound and time_offset_bound_warning(offsets) is None
+
+
+def test_a_fixed_offset_is_checked_against_the_data():
+    """--time-offset-ms was applied unchecked: 60 ms off gave the audit's flight 3.6 cm with every
+    health ok and no warning.  The floor profile now runs on the stamps shifted by the fixed
+    value (CameraOffset.check): the right value leaves a residual within its sigma, a wrong one
+    (or its sign flipped) is the warning `time_offset_disagrees`, naming what the data say; the
+    fixed value is still the one applied."""
+    fl = _flight(8.0, 3, 20.0 * MS)
+    right = resolve_time_offsets(_log(fl), fl["raw"], [], {"cam0": 20.0 * MS})
+    cam0 = right.cameras["cam0"]
+    assert cam0.source == OffsetSource.FIXED and cam0.applied_s == pytest.approx(20.0 * MS)
+    assert cam0.check is not None and not cam0.check.disagrees() and fixed_offset_warning(right) is None
+    assert abs(cam0.check.residual_s) < 1.0 * MS
+    for wrong in (0.0, -20.0 * MS):
+        off = resolve_time_offsets(_log(fl), fl["raw"], [], {"cam0": wrong})
+        check = off.cameras["cam0"].check
+        assert (
+            check is not None and check.disagrees() and off.cameras["cam0"].applied_s == pytest.approx(wrong)
+        )
+        assert wrong + check.residual_s == pytest.approx(20.0 * MS, abs=1.0 * MS)
+        warning = fixed_offset_warning(off)
+        assert warning is not None and warning.name == "time_offset_disagrees" and warning.count == 1
+        assert f"cam0 (floor) fixed at {wrong * 1e3:+.1f} ms, its data say +" in warning.message
+        assert off.cameras["cam0"].as_dict()["fixed_check"]["disagrees"] is True
