@@ -1919,7 +1919,7 @@ def fixed_offset_warning(offsets: TimeOffsets) -> LogWarning | None:
         said = (
             "beyond the search"
             if c.check.at_bound or c.check.sigma_s is None
-            else f"{(c.offset_s + c.check.residual_s) * 1e3:+.1f} +- {c.check.sigma_s * 1e3:.1f} ms"
+            else f"{(c.offset_s + c.check.residual_s) * 1e3:+.2f} +- {c.check.sigma_s * 1e3:.2f} ms"
         )
         parts.append(f"{n} ({role_name(n)}) fixed at {c.offset_s * 1e3:+.1f} ms, its data say {said}")
     return LogWarning(

@@ -1335,13 +1335,19 @@ def resolve_time_offsets(
         try:
             if raw is None or len(raw) == 0:
                 raise EstimationError("no floor-code fix")
+            shift_ns = fused_shift_ns or out.shift_ns(floor)
+            floor_check = out.cameras[floor].check if floor in out.cameras else None
+            if floor_check is not None and floor_check.disagrees():
+                # the front camera is checked in the IMU's clock: the floor's as its data say
+                if floor_check.at_bound:
+                    raise EstimationError("the floor camera's fixed offset is beyond its search")
+                shift_ns += int(round(floor_check.residual_s * NS_PER_S))
+                fused = None
             if fused is None:
                 # its own solve, not `whole_flight`: the run's other outputs stay what they were
                 # without the check (the shared solve would warm-start the smoother, and give
                 # the mount check its estimate)
-                fused = fused_trajectory(
-                    log_, raw, fused_shift_ns or out.shift_ns(floor), config, fusion_config
-                )
+                fused = fused_trajectory(log_, raw, shift_ns, config, fusion_config)
             shifted = [replace(o, timestamp_ns=int(o.timestamp_ns) + delta_ns) for o in sightings]
             fr = estimate_front_offset(fused, shifted, log_.cameras[front].camera, config, fusion_config)
             check = FixedCheck(fr.residual_s, fr.sigma_s, fr.at_bound)
