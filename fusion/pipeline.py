@@ -2016,6 +2016,9 @@ def _warn_or_apply_mount(
             result.warnings.append(warning)
         return log, loc
     log = apply_mount(log, mount)
+    large = mount.large_correction_warning()
+    if large is not None:
+        result.warnings.append(large)
     return log, localize_stage(log, det, cfg)
 
 

@@ -613,3 +613,28 @@ def test_a_mount_reading_beyond_any_calibration_error_is_named_and_never_applied
         assert out_log is log and loc == "loc" and not big.applied
         assert [w.name for w in result.warnings] == ["mount_check_implausible"]
         assert "frozen camera" in result.warnings[0].message
+
+
+def test_a_large_applied_correction_is_named():
+    """--calibrate-extrinsics applied a 4.5 deg front pitch that was a load code 10 % larger
+    than world.yaml says, with no warning (thirty-second session's audit): a correction above
+    LARGE_CORRECTION_DEG is `mount_correction_large`, naming what else it may hide; 2 deg (the
+    benchmarks' error) and a correction not applied say nothing."""
+    from fusion.estimate.extrinsics import LARGE_CORRECTION_DEG, LARGE_WARNING_NAME
+
+    def mount(camera, w_deg, applied=True):
+        m = MountRotation(
+            camera, MountSource.ESTIMATED, np.radians(w_deg), np.diag(np.radians([0.05] * 3) ** 2)
+        )
+        m.significant_axes = [a for a, v in zip("xyz", w_deg) if abs(v) > 0.5]
+        m.applied = applied
+        return m
+
+    w = mount("cam1", (0.0, -4.5, 0.0)).large_correction_warning()
+    assert w is not None and w.name == LARGE_WARNING_NAME and "load_qr side_m" in w.message
+    assert "front camera's (cam1) mount was corrected by 4.5 deg" in w.message
+    w = mount("cam0", (3.5, 0.0, 0.0)).large_correction_warning()
+    assert w is not None and "floor_qr side_m" in w.message
+    assert mount("cam0", (0.0, 2.0, 0.0)).large_correction_warning() is None
+    assert mount("cam1", (0.0, -4.5, 0.0), applied=False).large_correction_warning() is None
+    assert LARGE_CORRECTION_DEG == 3.0

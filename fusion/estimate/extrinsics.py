@@ -102,6 +102,12 @@ MAX_CORRECTION_DEG = 10.0
 T_BS in another axis convention, a camera in the other camera's role, or images that do not
 follow the motion (a frozen camera read as a 77 deg mount, thirty-first session's audit).
 --calibrate-extrinsics does not apply it; the warning IMPLAUSIBLE_WARNING_NAME says so."""
+LARGE_CORRECTION_DEG = 3.0
+"""An applied mount correction above this is named (`mount_correction_large`): a camera bolted to
+its frame is rarely this far off, and a misfit the correction can absorb, such as a load code 10 %
+larger than world.yaml says, read as a 4.5 deg front pitch and was applied with no warning (the
+thirty-second session's audit).  The benchmarks' mount errors are 0.05-2 deg."""
+LARGE_WARNING_NAME = "mount_correction_large"
 AXES = ("x", "y", "z")
 EXTRINSICS_GROUNDTRUTH_CSV = "extrinsics_groundtruth.csv"  # the simulator's true mount errors
 GROUNDTRUTH_COLUMNS = ["camera", "rx_deg", "ry_deg", "rz_deg"]
@@ -387,6 +393,30 @@ class MountRotation:
             f"rotation, beyond any mount calibration error (> {MAX_CORRECTION_DEG:g} deg): not applied. "
             "Check that T_BS is in the EuRoC convention (body from camera), that the cameras are not "
             "swapped, and that the images follow the motion (a frozen camera, repeated frames)",
+        )
+
+    def large_correction_warning(self) -> LogWarning | None:
+        """`mount_correction_large` when the correction applied is above LARGE_CORRECTION_DEG,
+        else None."""
+        c = self.correction_rad
+        if not self.applied or c is None:
+            return None
+        angle = math.degrees(float(np.linalg.norm(c)))
+        if angle <= LARGE_CORRECTION_DEG:
+            return None
+        front = self.camera == CameraRole.FRONT.value
+        others = (
+            "world.yaml's load_qr side_m, the front camera's intrinsics or distortion"
+            if front
+            else "world.yaml's floor_qr side_m or payload_unit_m, the floor camera's intrinsics, "
+            "the IMU's axes"
+        )
+        return LogWarning(
+            LARGE_WARNING_NAME,
+            1,
+            f"the {self.role} camera's ({self.camera}) mount was corrected by {angle:.1f} deg "
+            f"(--calibrate-extrinsics), more than a mount is usually off (> {LARGE_CORRECTION_DEG:g} "
+            f"deg): if the camera sits as T_BS says, the correction hides another error: {others}",
         )
 
     def warning(self) -> LogWarning | None:
