@@ -1503,44 +1503,36 @@ def misfit_warnings(noise_scales: dict) -> list[LogWarning]:
     the covariances as if it were noise, and the run said nothing: a floor code 3 % larger than
     world.yaml says gave poses 4.7 cm off with every health ok (thirty-second session's audit).
     Each names the calibration that would make such a misfit."""
-    out = []
-    pnp = noise_scales.get("pnp") or {}
-    if float(pnp.get("scale") or 0.0) > MISFIT_SCALE:
-        out.append(
-            LogWarning(
-                FLOOR_CORNERS_MISFIT,
-                1,
-                f"the floor codes' corners misfit their PnP poses {float(pnp['scale']):.0f}x beyond "
-                "their noise (variance): the codes' geometry is not what the run assumes. Check "
-                "world.yaml's floor_qr side_m and payload_unit_m (and the codes' placement), and the "
-                "floor camera's intrinsics, distortion and line delay",
-            )
-        )
     cams = (noise_scales.get("smoother") or {}).get("cameras") or {}
-    floor = float((cams.get("cam0") or {}).get("scale") or 0.0)
-    if floor > MISFIT_SCALE:
-        out.append(
-            LogWarning(
-                FLOOR_POSES_MISFIT,
-                1,
-                f"the floor camera's poses misfit the IMU's motion {floor:.0f}x beyond their noise "
-                "(variance): check the floor camera's T_BS (its lever arm too, and that it is body "
-                "from camera), the camera-IMU time offset (a fixed --time-offset-ms), and the IMU's "
-                "axes",
-            )
-        )
-    loads = float((cams.get("cam1") or {}).get("scale") or 0.0)
-    if loads > MISFIT_SCALE:
-        out.append(
-            LogWarning(
-                LOAD_MISFIT,
-                1,
-                f"the load sightings misfit each other and the poses {loads:.0f}x beyond their noise "
-                "(variance): the load map is off. Check world.yaml's load_qr side_m, the front "
-                "camera's intrinsics, distortion and T_BS (its lever arm too), and the floor "
-                "camera's lever arm",
-            )
-        )
+    factors = (
+        (
+            FLOOR_CORNERS_MISFIT,
+            (noise_scales.get("pnp") or {}).get("scale"),
+            "the floor codes' corners misfit their PnP poses {:.0f}x beyond their noise (variance): "
+            "the codes' geometry is not what the run assumes. Check world.yaml's floor_qr side_m and "
+            "payload_unit_m (and the codes' placement), and the floor camera's intrinsics, "
+            "distortion and line delay",
+        ),
+        (
+            FLOOR_POSES_MISFIT,
+            (cams.get("cam0") or {}).get("scale"),
+            "the floor camera's poses misfit the IMU's motion {:.0f}x beyond their noise (variance): "
+            "check the floor camera's T_BS (its lever arm too, and that it is body from camera), the "
+            "camera-IMU time offset (a fixed --time-offset-ms), and the IMU's axes",
+        ),
+        (
+            LOAD_MISFIT,
+            (cams.get("cam1") or {}).get("scale"),
+            "the load sightings misfit each other and the poses {:.0f}x beyond their noise "
+            "(variance): the load map is off. Check world.yaml's load_qr side_m, the front camera's "
+            "intrinsics, distortion and T_BS (its lever arm too), and the floor camera's lever arm",
+        ),
+    )
+    out = []
+    for name, factor, message in factors:
+        scale = float(factor or 0.0)
+        if scale > MISFIT_SCALE:
+            out.append(LogWarning(name, 1, message.format(scale)))
     return out
 
 
