@@ -1350,7 +1350,14 @@ def resolve_time_offsets(
                 fused = fused_trajectory(log_, raw, shift_ns, config, fusion_config)
             shifted = [replace(o, timestamp_ns=int(o.timestamp_ns) + delta_ns) for o in sightings]
             fr = estimate_front_offset(fused, shifted, log_.cameras[front].camera, config, fusion_config)
-            check = FixedCheck(fr.residual_s, fr.sigma_s, fr.at_bound)
+            # the trajectory's clock carries the floor's error one to one, as for an estimate
+            floor_sigma = out.cameras[floor].sigma_s if floor in out.cameras else None
+            if floor_sigma is None and floor_check is not None:
+                floor_sigma = floor_check.sigma_s
+            sigma = fr.sigma_s
+            if sigma is not None and floor_sigma is not None:
+                sigma = math.hypot(sigma, floor_sigma)
+            check = FixedCheck(fr.residual_s, sigma, fr.at_bound)
         except EstimationError as e:
             log.info("the fixed front offset not checked: %s", e)
         out.cameras[front] = CameraOffset(
