@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -43,7 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fusion.errors import CameraModelError
+from fusion.errors import CameraModelError, FusionError
 from fusion.fileio import dump_yaml, load_yaml
 from fusion.geometry import inv_T, is_rigid_transform, level_frame
 
@@ -450,8 +451,7 @@ class CameraModel:
         coeffs = data.get("distortion_coefficients", [0, 0, 0, 0])
         n_coeffs = coefficient_count(dist_model, coeffs)
         dist = _floats(coeffs, n_coeffs, "distortion_coefficients", source)
-        if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
-            raise CameraModelError(f"{source}: resolution and focal lengths must be positive")
+        check_intrinsics(res, intr, source, CameraModelError)
         rate = float(data.get("rate_hz", 30.0))
         mount = data.get("mount", "body_fixed")
         if mount not in MOUNTS:
@@ -578,6 +578,23 @@ def stated_mount_sigmas(data: dict, source: str) -> dict[str, float]:
             )
         sigmas[key] = float(v)
     return sigmas
+
+
+def check_intrinsics(
+    resolution: Sequence[float], intrinsics: Sequence[float], source: str, error: type[FusionError]
+) -> None:
+    """`error` naming `source` unless the resolution and focal lengths are positive and the
+    principal point lies inside the image ([0, width] x [0, height] px): one outside it is another
+    resolution's calibration, or cu / cv swapped (the third audit's cx 642 for a 640 px width was
+    taken)."""
+    (w, h), (fu, fv, cu, cv) = resolution, intrinsics
+    if w < 1 or h < 1 or fu <= 0 or fv <= 0:
+        raise error(f"{source}: resolution and focal lengths must be positive")
+    if not (0.0 <= cu <= w and 0.0 <= cv <= h):
+        raise error(
+            f"{source}: principal point ({cu:g}, {cv:g}) px lies outside the {w:g}x{h:g} image: "
+            "intrinsics for another resolution, or cu and cv swapped?"
+        )
 
 
 def stated_intrinsics_sigma(

@@ -7,7 +7,7 @@ import yaml
 
 from fusion.camera import CameraModel
 from fusion.conventions import R_BODY_FLOORCAM
-from fusion.errors import LogError
+from fusion.errors import CameraModelError, LogError
 from fusion.geometry import inv_T, make_T, rot_z
 from fusion.log.euroc import ImuNoise
 from fusion.log.kalibr import read_camchain, read_imu_yaml, write_camchain, write_imu_yaml
@@ -205,8 +205,12 @@ def test_bad_imu_yaml(tmp_path):
 def test_an_imu_update_rate_that_is_no_rate_is_refused(tmp_path, rate):
     """`update_rate: -200` was taken silently (second audit's minor points)."""
     path = tmp_path / "imu.yaml"
-    keys = ("gyroscope_noise_density", "gyroscope_random_walk", "accelerometer_noise_density",
-            "accelerometer_random_walk")
+    keys = (
+        "gyroscope_noise_density",
+        "gyroscope_random_walk",
+        "accelerometer_noise_density",
+        "accelerometer_random_walk",
+    )
     path.write_text("".join(f"{k}: 1.0e-3\n" for k in keys) + f"update_rate: {rate}\n")
     with pytest.raises(LogError, match=r"imu.yaml: 'update_rate' must be positive"):
         read_imu_yaml(path)
@@ -223,6 +227,31 @@ def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, 
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(LogError, match=rf"camchain-imucam.yaml: cam1.rate_hz: .*{words}"):
         read_camchain(path)
+
+
+@pytest.mark.parametrize(
+    "intrinsics", [[458.654, 457.296, 760.0, 248.375], [458.654, 457.296, 248.375, 767.2]]
+)
+def test_a_principal_point_outside_the_image_is_refused(tmp_path, intrinsics):
+    """cx 642 for a 640 px width was taken (third audit): a principal point outside the image is
+    another resolution's calibration or cu / cv swapped, refused naming the file and camera, as
+    sensor.yaml's is."""
+    data = yaml.safe_load(CAMCHAIN)
+    for k in ("cam0", "cam1"):
+        data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
+    data["cam0"]["intrinsics"] = intrinsics
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(
+        LogError, match=r"camchain-imucam.yaml: cam0: principal point .* outside the 752x480 image"
+    ):
+        read_camchain(path)
+    cam = CameraModel(752, 480, 458.0, 457.0, 700.0, 240.0)
+    cam.save(tmp_path / "sensor.yaml")
+    text = (tmp_path / "sensor.yaml").read_text().replace("700.0", "760.0")
+    (tmp_path / "sensor.yaml").write_text(text)
+    with pytest.raises(CameraModelError, match=r"sensor.yaml: principal point \(760, 240\) px lies outside"):
+        CameraModel.load(tmp_path / "sensor.yaml")
 
 
 def test_a_misspelt_camchain_key_is_named_not_defaulted(tmp_path):

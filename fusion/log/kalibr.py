@@ -42,6 +42,7 @@ from fusion.camera import (
     MOUNTS,
     CameraModel,
     StampRow,
+    check_intrinsics,
     coefficient_count,
     near_miss,
     stated_intrinsics_sigma,
@@ -182,8 +183,7 @@ def read_camchain(path: Path, T_body_imu: np.ndarray | None = None) -> dict[str,
         mount = block.get("mount", MOUNTS[0])
         if mount not in MOUNTS:
             raise LogError(f"{where}.mount: {mount!r} is not one of {MOUNTS}")
-        if res[0] < 1 or res[1] < 1 or intr[0] <= 0 or intr[1] <= 0:
-            raise LogError(f"{where}: resolution and focal lengths must be positive")
+        check_intrinsics(res, intr, where, LogError)
         fu, fv, cu, cv = intr
         try:
             line_delay = float(block.get("line_delay", 0.0))
