@@ -96,7 +96,7 @@ from fusion.log.files import write_loads_csv, write_loads_json, write_tum
 from fusion.log.fixes import PositionFixes, fixes_in_flight, read_fixes
 from fusion.parallel import Outcome, call_each, chunk_bounds, parallel_map, start_workers_early, worker_count
 from fusion.qr import paper, pnp
-from fusion.qr.codes import classify, rejection_counts
+from fusion.qr.codes import FLOOR_CODE_ON_FRONT, LOAD_CODE_ON_FLOOR, classify, rejection_counts
 from fusion.qr.detect import (
     CACHE_NAME,
     CACHE_REUSED,
@@ -473,15 +473,19 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
     # (BENCHMARKS.md, mem14); the counts (and the reasons' order) are the same
     rejected: Counter = Counter()
     n_valid: list[int] = []
+    # each camera's sightings of the other's codes: both at once say the cameras are swapped
+    floor_with_load, front_with_floor = 0, 0
     for d in det.by_frame("cam0").values():
         c = classify(d, world)
         if c.floor:
             n_valid.append(len(c.floor))
+        floor_with_load += any(reason == LOAD_CODE_ON_FLOOR for _, reason in c.rejected)
         rejected.update(rejection_counts([c]))
     front_with_load, load_sightings = 0, 0
     for d in (det.by_frame("cam1") if log.front is not None else {}).values():
         c = classify(d, world)
         front_with_load += bool(c.loads)
+        front_with_floor += any(reason == FLOOR_CODE_ON_FRONT for _, reason in c.rejected)
         load_sightings += len(c.loads)
         rejected.update(rejection_counts([c]))
     return {
@@ -494,6 +498,8 @@ def detection_statistics(log: FlightLog, det, world) -> dict:
         "floor_codes_per_frame_with_code": float(np.mean(n_valid)) if n_valid else 0.0,
         "front_frames": len(log.front) if log.front is not None else 0,
         "front_frames_with_load_code": front_with_load,
+        "floor_frames_with_load_code": floor_with_load,
+        "front_frames_with_floor_code": front_with_floor,
         "load_sightings": load_sightings,
         "frames_skipped": len(det.skipped),
         "skipped_messages": det.skipped[:20],
@@ -1576,13 +1582,22 @@ def no_floor_pose_warning(log: FlightLog, loc: LocalizeResult, detection_stats: 
         if with_code
         else "no floor code decoded in any of them"
     )
+    swapped = int(detection_stats.get("floor_frames_with_load_code", 0)) and int(
+        detection_stats.get("front_frames_with_floor_code", 0)
+    )
+    check = (
+        "The floor camera (cam0) read load codes and the front camera (cam1) floor codes: the two "
+        "cameras look swapped (their streams, topics or files)"
+        if swapped and not with_code
+        else f"Check that whole codes fit the floor camera's view ({w}x{h}, fx "
+        f"{log.floor.camera.fu:.0f} px) at the flight's height, its focus and exposure, and "
+        "world.yaml's codes"
+    )
     return LogWarning(
         "no_floor_pose",
         n,
         f"none of the {n} floor-camera frames gave a pose ({seen}; {rejected} payloads rejected): "
-        f"nothing to localise from, no fused estimate. Check that whole codes fit the floor "
-        f"camera's view ({w}x{h}, fx {log.floor.camera.fu:.0f} px) at the flight's height, its "
-        "focus and exposure, and world.yaml's codes",
+        f"nothing to localise from, no fused estimate. {check}",
     )
 
 

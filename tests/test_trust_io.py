@@ -532,6 +532,24 @@ def test_a_floor_camera_that_decodes_no_code_is_a_warning_and_not_trusted(tmp_pa
     assert "no_floor_pose" in capsys.readouterr().out
 
 
+def test_swapped_cameras_are_named_as_such(tmp_path):
+    """The two cameras' images logged under each other's names: the floor camera reads load codes
+    and the front camera floor codes.  no_floor_pose advised the floor camera's focus and exposure
+    (third audit); it now says the cameras look swapped."""
+    log = _copy_sample(tmp_path)
+    mav = log / "mav0"
+    for name in ("data", "data.csv"):
+        (mav / "cam0" / name).rename(mav / f"swap_{name}")
+        (mav / "cam1" / name).rename(mav / "cam0" / name)
+        (mav / f"swap_{name}").rename(mav / "cam1" / name)
+    out = tmp_path / "out"
+    assert main(["run", str(log), "--out", str(out), "--quiet", "--workers", "1", "--no-incremental"]) == 0
+    (w,) = [
+        w for w in json.loads((out / "metrics.json").read_text())["warnings"] if w["name"] == "no_floor_pose"
+    ]
+    assert "the two cameras look swapped" in w["message"] and "focus" not in w["message"]
+
+
 def test_unplaced_load_sightings_at_the_flights_ends_are_not_blamed_on_a_clock_offset():
     """A sighting stamped within a frame of the floor camera's first or last frame (cameras
     started a frame apart, or a jittered stamp) is counted without the clock-offset hint; one

@@ -42,6 +42,10 @@ class LoadSighting:
     load_id: str
 
 
+FLOOR_CODE_ON_FRONT = "wrong_camera: floor code on the front camera"
+LOAD_CODE_ON_FLOOR = "wrong_camera: load code on the floor camera"
+
+
 @dataclass
 class FrameCodes:
     """One frame's codes, sorted."""
@@ -64,7 +68,7 @@ def classify(detections: list[QRDetection], world: World) -> FrameCodes:
             continue
         if isinstance(payload, FloorPayload):
             if det.camera != FLOOR_CAMERA:
-                out.rejected.append((det, "wrong_camera: floor code on the front camera"))
+                out.rejected.append((det, FLOOR_CODE_ON_FRONT))
                 continue
             centre = world.floor_code_position(payload)
             if not world.contains(centre):
@@ -73,7 +77,7 @@ def classify(detections: list[QRDetection], world: World) -> FrameCodes:
             floor.append(FloorSighting(det, payload, centre, world.floor_corners_world(centre)))
         elif isinstance(payload, LoadPayload):
             if det.camera != FRONT_CAMERA:
-                out.rejected.append((det, "wrong_camera: load code on the floor camera"))
+                out.rejected.append((det, LOAD_CODE_ON_FLOOR))
                 continue
             out.loads.append(LoadSighting(det, payload.id))
     counts = Counter(s.payload for s in floor)
