@@ -392,7 +392,8 @@ class MountRotation:
             f"the {self.role} camera's ({self.camera}) {what} by a {self.angle_deg:.1f} deg "
             f"rotation, beyond any mount calibration error (> {MAX_CORRECTION_DEG:g} deg): not applied. "
             "Check that T_BS is in the EuRoC convention (body from camera), that the cameras are not "
-            "swapped, and that the images follow the motion (a frozen camera, repeated frames)",
+            "swapped, that the images follow the motion (a frozen camera, repeated frames), and the "
+            "camera's intrinsics (another resolution's, cu / cv swapped) and the IMU's axes",
         )
 
     def large_correction_warning(self) -> LogWarning | None:
