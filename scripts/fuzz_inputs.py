@@ -356,6 +356,31 @@ def _sensor_kalibr_line_delay(d: Path) -> None:
     _set_lines(p, [*_lines(p), "line_delay: 2.0e-05\n"])
 
 
+def _imu_frd(d: Path) -> None:  # PX4's FRD axes, T_BS saying FLU: y and z negated
+    _map_rows(
+        d / IMU, lambda f: [f[0]] + [repr(-float(x)) if i in (1, 2, 4, 5) else x for i, x in enumerate(f[1:])]
+    )
+
+
+def _sensor_principal_point_outside(d: Path) -> None:
+    p = d / "mav0/cam0/sensor.yaml"
+    _set_lines(p, [_intrinsics_with(line, cu=642.0) for line in _lines(p)])
+
+
+def _intrinsics_with(line: str, cu: float) -> str:
+    if not line.startswith("intrinsics:"):
+        return line
+    fu, fv, _, cv = (float(v) for v in line.split("[", 1)[1].split("]")[0].split(","))
+    return f"intrinsics: [{fu!r}, {fv!r}, {cu!r}, {cv!r}]\n"
+
+
+def _world_floor_side_3pct(d: Path) -> None:
+    p = d / "world.yaml"
+    _set_lines(
+        p, [line.replace("floor_qr: {side_m: 0.2,", "floor_qr: {side_m: 0.206,") for line in _lines(p)]
+    )
+
+
 CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "imu_text": ("imu0/data.csv: a field 'abc...' in row 501", _imu_text),
     "imu_truncated": ("imu0/data.csv cut in the middle of a row", _imu_truncated),
@@ -417,6 +442,10 @@ CASES: dict[str, tuple[str, Callable[[Path], None]]] = {
     "world_unknown_key": ("world.yaml load_qr.side_mm (misspelt side_m)", _world_unknown_key),
     "sensor_duplicate_key": ("cam0/sensor.yaml intrinsics given twice", _sensor_duplicate_key),
     "sensor_kalibr_line_delay": ("cam0/sensor.yaml Kalibr's line_delay", _sensor_kalibr_line_delay),
+    # the third audit's (thirty-second session)
+    "imu_frd": ("imu0/data.csv in FRD axes, T_BS saying FLU", _imu_frd),
+    "sensor_principal_point_outside": ("cam0/sensor.yaml cu 642 for 640 px", _sensor_principal_point_outside),
+    "world_floor_side_3pct": ("world.yaml floor side_m 3 % too large", _world_floor_side_3pct),
 }
 
 
