@@ -365,6 +365,7 @@ def test_an_exponent_without_a_decimal_point_is_a_number(log_dir):
         ("imu_rate_text", r"imu0/sensor.yaml: rate_hz: expected a number, got str 'fast'"),
         ("imu_noise_bool", r"imu0/sensor.yaml: gyroscope_noise_density: expected a number, got bool"),
         ("vel_noise_text", r"vel0/sensor.yaml: noise_m_s: expected a number"),
+        ("vel_world_frame", r"vel0/sensor.yaml: frame 'world': the velocity must be in the body frame"),
         (
             "imu_microseconds",
             r"imu0/data.csv: timestamps advance 5000 per sample .* rate_hz 200: "
@@ -405,6 +406,8 @@ def test_mistaken_inputs_name_file_and_field(log_dir, case, match):
         _set_yaml_line(mav / "imu0" / "sensor.yaml", "gyroscope_noise_density", "yes")
     elif case == "vel_noise_text":
         (mav / "vel0" / "sensor.yaml").write_text("sensor_type: velocity\nnoise_m_s: small\n")
+    elif case == "vel_world_frame":  # it was never read: fused as body-frame (third audit)
+        (mav / "vel0" / "sensor.yaml").write_text("sensor_type: velocity\nframe: world\nnoise_m_s: 0.05\n")
     elif case == "imu_microseconds":
         _rewrite_csv(imu_csv, lambda t, v: ([x // 1000 for x in t], v))
     elif case == "cam_milliseconds":

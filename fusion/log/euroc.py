@@ -779,6 +779,13 @@ def _read_velocity(vel_dir: Path) -> VelocityData:
         noise = strict_float(
             cfg.get("noise_m_s", noise), f"{sensor_path}: noise_m_s", LogError, positive=True
         )
+        frame = cfg.get("frame", "body")
+        if frame != "body":
+            # it was never read: a world-frame velocity was fused as a body-frame one (third audit)
+            raise LogError(
+                f"{sensor_path}: frame {frame!r}: the velocity must be in the body frame (frame: "
+                "body; rotate world-frame velocities by the attitude first)"
+            )
     ts, vals = _numeric_csv(vel_dir / "data.csv", 4)
     return VelocityData(ts, vals, noise)
 
