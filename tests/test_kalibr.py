@@ -1,6 +1,8 @@
 """Kalibr camchain-imucam.yaml / imu.yaml: the meaning of T_cam_imu and timeshift_cam_imu,
 round trips, bad files."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
@@ -216,15 +218,22 @@ def test_an_imu_update_rate_that_is_no_rate_is_refused(tmp_path, rate):
         read_imu_yaml(path)
 
 
-@pytest.mark.parametrize("rate, words", [("thirty", "expected a number"), (-30, "positive")])
-def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, words):
-    """`rate_hz: thirty` ended in a ValueError traceback, `-30` was taken (second audit)."""
+def _camchain_with(tmp_path, camera: str, **keys) -> Path:
+    """CAMCHAIN (its T_cam_imu made exactly rigid) with `keys` set in `camera`'s block, written
+    to tmp_path/camchain-imucam.yaml."""
     data = yaml.safe_load(CAMCHAIN)
     for k in ("cam0", "cam1"):
         data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
-    data["cam1"]["rate_hz"] = rate
+    data[camera].update(keys)
     path = tmp_path / "camchain-imucam.yaml"
     path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("rate, words", [("thirty", "expected a number"), (-30, "positive")])
+def test_a_camchain_rate_that_is_no_rate_names_the_file_and_key(tmp_path, rate, words):
+    """`rate_hz: thirty` ended in a ValueError traceback, `-30` was taken (second audit)."""
+    path = _camchain_with(tmp_path, "cam1", rate_hz=rate)
     with pytest.raises(LogError, match=rf"camchain-imucam.yaml: cam1.rate_hz: .*{words}"):
         read_camchain(path)
 
@@ -236,12 +245,7 @@ def test_a_principal_point_outside_the_image_is_refused(tmp_path, intrinsics):
     """cx 642 for a 640 px width was taken (third audit): a principal point outside the image is
     another resolution's calibration or cu / cv swapped, refused naming the file and camera, as
     sensor.yaml's is."""
-    data = yaml.safe_load(CAMCHAIN)
-    for k in ("cam0", "cam1"):
-        data[k]["T_cam_imu"] = _orthonormalise(np.array(data[k]["T_cam_imu"])).tolist()
-    data["cam0"]["intrinsics"] = intrinsics
-    path = tmp_path / "camchain-imucam.yaml"
-    path.write_text(yaml.safe_dump(data))
+    path = _camchain_with(tmp_path, "cam0", intrinsics=intrinsics)
     with pytest.raises(
         LogError, match=r"camchain-imucam.yaml: cam0: principal point .* outside the 752x480 image"
     ):
