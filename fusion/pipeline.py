@@ -1310,9 +1310,7 @@ def _run_into(
         if misfit.name != LOAD_MISFIT:
             # the poses rest on the misfit geometry: no fused estimate is trusted
             for health in result.health.values():
-                health.reasons.append(misfit.message.split(":", 1)[0])
-                if health.status == Status.OK:
-                    health.status = Status.DEGRADED
+                health.degrade(misfit.message.split(":", 1)[0])
     imu_or_mount = _imu_scale_or_mount_note([result.extrinsics, result.front_extrinsics], fused_stats)
     if imu_or_mount is not None:
         result.notes.append(imu_or_mount)
@@ -2071,10 +2069,7 @@ def _fuse_into_result(
         # level-frame fixes do not observe roll and pitch: the back ends' tilts against each
         # other (health.tilt_disagreement; the sweep's gimbaled flights, BENCHMARKS.md, sweep14)
         for fused_name, reason in tilt_disagreement(judged).items():
-            health = result.health[fused_name]
-            health.reasons.append(reason)
-            if health.status == Status.OK:
-                health.status = Status.DEGRADED
+            result.health[fused_name].degrade(reason)
     del judged
     # after the health and the tilt comparison, the errors common to the fixes and every
     # estimate, which have no place in their innovations' covariances

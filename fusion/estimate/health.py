@@ -114,6 +114,12 @@ class Health:
     def reason(self) -> str:
         return "; ".join(self.reasons) if self.reasons else "consistent with the raw fixes"
 
+    def degrade(self, reason: str) -> None:
+        """Add `reason`; an OK estimate becomes DEGRADED (a worse status stays)."""
+        self.reasons.append(reason)
+        if self.status == Status.OK:
+            self.status = Status.DEGRADED
+
     def to_dict(self) -> dict:
         """JSON-ready summary (for metrics.json)."""
         return {
@@ -357,9 +363,7 @@ def assess_result(
     mode = str(getattr(solve, "mode", "fused"))
     if mode != "fused":
         # dead-reckoned from at most a few fixes, or fused without the IMU: usable, not ok
-        health.reasons.append(f"solved in {mode.replace('_', ' ')} mode")
-        if health.status == Status.OK:
-            health.status = Status.DEGRADED
+        health.degrade(f"solved in {mode.replace('_', ' ')} mode")
     return health
 
 
