@@ -12,8 +12,8 @@ main process and, chunk by chunk, in the workers (wall and CPU s, bytes, calls):
     idle           main-process time waiting for a result in order (stragglers, the tail)
     cache write    write_cache (detections.csv); cache read: read_cache of the file written
 
-The workers' read and decode times are split by timing `open`/`read` and `cv2.imdecode` inside
-the image loader (fusion.log.euroc); PNG files never read since boot are read from disk (`--cold`
+The workers' read and decode times are split by timing `open`/`read` and `decode_image_bytes`
+inside the image loader (fusion.log.euroc); PNG files never read since boot are read from disk (`--cold`
 evicts this flight's files from the page cache first with posix_fadvise(DONTNEED), per file:
 other files stay cached).
 
@@ -42,27 +42,21 @@ from fusion.parallel import parallel_map, worker_count
 _TIMES: dict[str, float] = {"decode": 0.0, "decode_cpu": 0.0}
 
 
-class _TimedCv2:
-    """cv2 with imdecode timed (the loader's only decode call)."""
+_UNTIMED_DECODE = euroc_module.decode_image_bytes
 
-    def __init__(self, cv2_module):
-        self._cv2 = cv2_module
 
-    def imdecode(self, *args):
-        t, c = time.perf_counter(), time.process_time()
-        try:
-            return self._cv2.imdecode(*args)
-        finally:
-            _TIMES["decode"] += time.perf_counter() - t
-            _TIMES["decode_cpu"] += time.process_time() - c
-
-    def __getattr__(self, name):
-        return getattr(self._cv2, name)
+def _timed_decode(data: bytes):
+    """The loader's only decode call (`euroc.decode_image_bytes`), timed."""
+    t, c = time.perf_counter(), time.process_time()
+    try:
+        return _UNTIMED_DECODE(data)
+    finally:
+        _TIMES["decode"] += time.perf_counter() - t
+        _TIMES["decode_cpu"] += time.process_time() - c
 
 
 def _install_timers() -> None:
-    if not isinstance(euroc_module.cv2, _TimedCv2):
-        euroc_module.cv2 = _TimedCv2(euroc_module.cv2)  # type: ignore[assignment]
+    euroc_module.decode_image_bytes = _timed_decode  # type: ignore[assignment]
 
 
 def _proc_counters() -> tuple[float, float, int]:

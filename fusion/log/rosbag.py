@@ -50,6 +50,7 @@ from fusion.log.euroc import (
     LogWarning,
     StreamSource,
     VelocityData,
+    decode_image_bytes,
     gray16_to_8,
     truncated_image,
 )
@@ -184,10 +185,10 @@ def decode_image(msg, msgtype: str) -> np.ndarray:
         if truncated:
             # said here: libpng would print its own error line on stderr for every frame
             raise ValueError(f"CompressedImage ({msg.format}) is truncated ({truncated})")
-        img = cv2.imdecode(np.frombuffer(payload, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
-        if img is None:
+        img = decode_image_bytes(payload)
+        if img is None or img.size == 0:
             raise ValueError(f"CompressedImage ({msg.format}) does not decode")
-        return gray16_to_8(img) if img.dtype == np.uint16 else img
+        return img
     enc, h, w, step = str(msg.encoding), int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
     if enc not in SUPPORTED_ENCODINGS:
