@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fusion.log.euroc import decode_image_bytes
-from fusion.log.png import PNG_SIGNATURE, decode_gray8
+from fusion.log.png import PEEK_ROWS, PNG_SIGNATURE, decode_gray8
 
 
 def chunk(kind: bytes, body: bytes, crc: int | None = None) -> bytes:
@@ -94,6 +94,27 @@ def test_none_sub_and_up_rows_in_any_order_decode_exactly(h, w, seed, parts, dat
     assert fast is not None
     np.testing.assert_array_equal(fast, img)
     np.testing.assert_array_equal(fast, opencv(encoded))
+
+
+@pytest.mark.parametrize("pattern", ["none", "sub", "up", "mixed"])
+def test_one_filter_on_every_row_and_mixed_rows_decode_exactly(pattern):
+    img = np.random.default_rng(3).integers(0, 256, (40, 23), dtype=np.uint8)
+    filters = {"none": [0] * 40, "sub": [1] * 40, "up": [2] * 40, "mixed": [0, 1, 2, 2, 1] * 8}[pattern]
+    fast = decode_gray8(png(img, filters))
+    assert fast is not None
+    np.testing.assert_array_equal(fast, img)
+
+
+@pytest.mark.parametrize("row", [0, PEEK_ROWS - 1, PEEK_ROWS, 39])
+@pytest.mark.parametrize("kind", [3, 4])
+def test_an_average_or_paeth_row_anywhere_is_left_to_opencv(kind, row):
+    """Before and after the rows inflated first (`PEEK_ROWS`)."""
+    img = np.random.default_rng(row).integers(0, 256, (40, 9), dtype=np.uint8)
+    filters = [2] * 40
+    filters[row] = kind
+    encoded = png(img, filters)
+    assert decode_gray8(encoded) is None
+    np.testing.assert_array_equal(decode_image_bytes(encoded), img)
 
 
 @pytest.mark.parametrize("kind", [3, 4])
