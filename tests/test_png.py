@@ -60,6 +60,13 @@ def png(
     return PNG_SIGNATURE + ihdr + extra + idat + chunk(b"IEND", b"")
 
 
+def split_idat(encoded: bytes) -> bytes:
+    """A text chunk put between the first and second IDAT chunks."""
+    (first,) = struct.unpack_from(">I", encoded, 33)
+    cut = 33 + 12 + first
+    return encoded[:cut] + chunk(b"tEXt", b"a\x00b") + encoded[cut:]
+
+
 def opencv(data: bytes) -> np.ndarray | None:
     return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH)
 
@@ -148,6 +155,7 @@ ROWS = filtered_rows(IMG, [2] * 6)
             id="unknown filter",
         ),
         pytest.param(png(IMG)[:-12], id="no IEND"),
+        pytest.param(split_idat(png(IMG, idat_parts=2)), id="IDATs not consecutive"),
         pytest.param(png(IMG)[:40], id="truncated"),
         pytest.param(b"\xff\xd8\xff\xe0 a JPEG", id="not PNG"),
     ],

@@ -42,6 +42,7 @@ def decode_gray8(data: bytes) -> np.ndarray | None:
     if len(view) < 33 or view[:8] != PNG_SIGNATURE:
         return None
     idat: list[memoryview] = []
+    idat_closed = False  # a chunk after the IDATs: another IDAT is an error to libpng
     width = height = 0
     pos = 8
     while True:
@@ -65,11 +66,15 @@ def decode_gray8(data: bytes) -> np.ndarray | None:
             if not (0 < width <= _MAX_SIDE and 0 < height <= _MAX_SIDE):
                 return None
         elif kind == b"IDAT":
+            if idat_closed:
+                return None
             idat.append(body)
         elif kind == b"IEND":
             break
         elif kind not in _PIXEL_NEUTRAL:
             return None
+        else:
+            idat_closed = bool(idat)
         pos = end + 4
     row = width + 1
     size = height * row
