@@ -62,9 +62,11 @@ def png_params(level: int) -> list[int]:
     simulated 640x480 flight (scripts/bench_frontend_speed.py, BENCHMARKS.md): sensor
     noise defeats LZ matching, so Huffman-only coding is as small as deflate at level >= 3 and
     several times faster; libpng's adaptive filter choice (all five filters) saves ~6 % of the
-    size but the Paeth rows it picks cost a reader ~40 % more decoding than the Up filter alone;
-    level 0 (stored, no filter: twice the size) decodes ~7x faster than the level-1 files, for
-    throughput benchmarks; level 9 with the default strategy and all filters for the smallest."""
+    size but the Paeth rows it picks cost a reader ~40 % more decoding than the Up filter alone
+    with OpenCV's decoder, ~3x with the reader's fast path (`fusion.log.png`: None / Sub / Up
+    rows only); level 0 (stored, no filter: twice the size) decodes 5-7x faster than the level-1
+    files with OpenCV (~4x with the fast path), for throughput benchmarks; level 9 with the
+    default strategy and all filters for the smallest."""
     if level <= 0:
         return [cv2.IMWRITE_PNG_COMPRESSION, 0, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
     if level >= 9:
