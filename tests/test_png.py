@@ -142,7 +142,6 @@ ROWS = filtered_rows(IMG, [2] * 6)
         pytest.param(png(IMG, header=(16, 0, 0, 0, 0)), id="16-bit"),
         pytest.param(png(IMG, header=(8, 2, 0, 0, 0)), id="colour"),
         pytest.param(png(IMG, header=(8, 0, 0, 0, 1)), id="interlaced"),
-        pytest.param(png(IMG, extra=chunk(b"gAMA", struct.pack(">I", 45455))), id="gamma chunk"),
         pytest.param(png(IMG, extra=chunk(b"tRNS", b"\x00\x05")), id="transparency chunk"),
         pytest.param(png(IMG, extra=chunk(b"tEXt", b"a\x00b", crc=7)), id="bad CRC"),
         pytest.param(png(IMG, stream=zlib.compress(ROWS)[:-9]), id="cut stream"),
@@ -162,6 +161,28 @@ ROWS = filtered_rows(IMG, [2] * 6)
 )
 def test_anything_else_is_left_to_opencv(encoded):
     assert decode_gray8(encoded) is None
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        pytest.param(chunk(b"gAMA", struct.pack(">I", 10_000)), id="gamma 0.1"),
+        pytest.param(chunk(b"gAMA", struct.pack(">I", 1_000_000)), id="gamma 10"),
+        pytest.param(chunk(b"sRGB", b"\x00"), id="sRGB"),
+        pytest.param(
+            chunk(b"cHRM", struct.pack(">8I", *[31270, 32900, 64000, 33000, 30000, 60000, 15000, 6000])),
+            id="cHRM",
+        ),
+    ],
+)
+def test_colour_space_chunks_are_read_past_as_opencv_does(extra):
+    """OpenCV does not apply gamma, sRGB intent or chromaticities: the stored values come out."""
+    img = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    encoded = png(img, extra=extra)
+    np.testing.assert_array_equal(opencv(encoded), img)
+    fast = decode_gray8(encoded)
+    assert fast is not None
+    np.testing.assert_array_equal(fast, img)
 
 
 def test_opencv_still_decodes_what_the_fast_path_leaves():

@@ -2,17 +2,18 @@
 
 Why by hand (measured in BENCHMARKS.md, "Thirty-third session"): decoding the frames is the
 largest single cost of `fusion run` on a PNG log.  A 640x480 frame of the benchmark flight takes
-~1.9 ms in OpenCV's libpng and 1.8 ms in pyspng, of which zlib's inflate alone is 1.27 ms.  The
+1.5-1.9 ms in OpenCV's libpng (zlib's inflate alone 1.27 ms) and 1.2-1.8 ms in pyspng.  The
 `isal` package (Intel's ISA-L, the compiled inflate behind python-isal / xopen) inflates it in
 0.66 ms, and undoing the rows' filters is 0.3-0.45 ms of numpy.
 
 Only the common case takes this path (PNG specification, sections 11.2.2 and 9.2): 8-bit
 greyscale, not interlaced, every row filtered with None, Sub or Up, which is what OpenCV's
 encoder writes and so what most robotics tools write, and no chunk that could change the pixels
-(only IHDR, IDAT, IEND and text / time / physical-size chunks).  Anything else (colour, 16 bits,
-a palette, Average or Paeth rows, a gamma or transparency chunk, a CRC or zlib error, a length
-that does not match) returns None, and the caller decodes with OpenCV as before, which also
-names the errors.  The result is bit-identical to OpenCV's (`tests/test_png.py`).
+(besides IHDR, IDAT and IEND only text, time, physical-size and the colour-space chunks that
+OpenCV does not apply). Anything else (colour, 16 bits, a palette, Average or Paeth rows, a
+transparency or ICC-profile chunk, a CRC or zlib error, a length that does not match) returns
+None, and the caller decodes with OpenCV as before, which also names the errors. The result is
+bit-identical to OpenCV's (`tests/test_png.py`).
 """
 
 from __future__ import annotations
@@ -25,8 +26,11 @@ from isal import isal_zlib
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
-_PIXEL_NEUTRAL = frozenset({b"tEXt", b"zTXt", b"iTXt", b"tIME", b"pHYs"})
-"""Ancillary chunks that cannot change a decoded grey pixel."""
+_PIXEL_NEUTRAL = frozenset({b"tEXt", b"zTXt", b"iTXt", b"tIME", b"pHYs", b"gAMA", b"sRGB", b"cHRM"})
+"""Ancillary chunks that do not change a grey pixel as OpenCV decodes it: text, time, pixel size,
+and gamma / sRGB intent / chromaticities, which OpenCV's reader does not apply (a gamma of 0.1 or
+10 decodes to the stored values: `tests/test_png.py`; three of zxing-cpp's sample images carry
+them)."""
 
 PEEK_ROWS = 8
 """Rows inflated first, to see their filters (libpng's adaptive choice has Paeth from row 1)."""
