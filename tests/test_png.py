@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from fusion.log.euroc import decode_image_bytes
 from fusion.log.png import PEEK_ROWS, PNG_SIGNATURE, decode_gray8
+from fusion.sim.simulate import png_params
 
 
 def chunk(kind: bytes, body: bytes, crc: int | None = None) -> bytes:
@@ -82,6 +83,19 @@ def test_opencv_written_frames_take_the_fast_path_bit_identical(shape):
     assert fast.dtype == np.uint8 and fast.shape == shape
     np.testing.assert_array_equal(fast, img)
     np.testing.assert_array_equal(fast, opencv(buf.tobytes()))
+
+
+@pytest.mark.parametrize("level", [0, 1, 5, 8])
+def test_the_simulators_frames_take_the_fast_path(level):
+    """`fusion simulate --png-compression 0-8` writes None / Up rows (9: libpng's adaptive
+    filters, OpenCV's); the committed sample flight, written before, has Paeth rows: both paths
+    run end to end in the suite."""
+    img = np.random.default_rng(level).integers(0, 256, (48, 64), dtype=np.uint8)
+    ok, buf = cv2.imencode(".png", img, png_params(level))
+    assert ok
+    fast = decode_gray8(buf.tobytes())
+    assert fast is not None
+    np.testing.assert_array_equal(fast, img)
 
 
 @settings(max_examples=60, deadline=None)
